@@ -1,0 +1,60 @@
+# Two entry points, both safe on a fresh Debian/Ubuntu machine with Python 3.11:
+#   make app   - set up, build the demo session if it is missing, serve the app on http://127.0.0.1:8080
+#   make test  - set up, run the whole test suite (unit tests and the headless-browser test)
+SHELL := /bin/bash
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+HOST ?= 127.0.0.1
+PORT ?= 8080
+APT_GET := DEBIAN_FRONTEND=noninteractive apt-get
+IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
+
+.PHONY: app test lint bench demo sysdeps browserdeps clean
+
+app: $(STAMP) demo
+	$(BIN)/factorydet app --session demo --host $(HOST) --port $(PORT)
+
+demo: $(STAMP)
+	$(BIN)/factorydet demo --session demo
+
+test: $(STAMP) browserdeps
+	$(BIN)/python -m pytest
+
+lint: $(STAMP)
+	$(BIN)/ruff check factorydet_core app tests
+
+bench: $(STAMP)
+	$(BIN)/factorydet bench simulate
+
+# open3d links against libusb-1.0 at import time.
+sysdeps:
+	@if ! ldconfig -p | grep -q 'libusb-1.0.so.0'; then \
+	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq libusb-1.0-0; \
+	  else echo "open3d needs libusb-1.0-0; run: sudo apt-get install -y libusb-1.0-0" >&2; exit 1; fi; \
+	fi
+	@if ! $(PYTHON) -c 'import ensurepip, venv' >/dev/null 2>&1; then \
+	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq python3-venv; \
+	  else echo "Python's venv module is missing; run: sudo apt-get install -y python3-venv" >&2; exit 1; fi; \
+	fi
+
+# The browser test drives Debian's chromium through Playwright (no browser download).
+browserdeps:
+	@if [ ! -x /usr/bin/chromium ]; then \
+	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq chromium; \
+	  else echo "The browser test needs Debian's chromium; run: sudo apt-get install -y chromium" >&2; exit 1; fi; \
+	fi
+
+# torch is pinned and installed first: this exact version is a CPU build on this machine's disk,
+# whereas a version range would make pip pull a multi-GB CUDA build.
+$(STAMP): pyproject.toml | sysdeps
+	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "factorydet needs Python >= 3.11"'
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) build *.egg-info

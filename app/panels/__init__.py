@@ -1,0 +1,1 @@
+"""One module per GUI panel; each builds its widgets and wires them to the state."""

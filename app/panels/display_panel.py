@@ -1,0 +1,46 @@
+"""Display settings: colour mode, point size and box visibility."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import viser
+
+from factorydet_core.colors import COLOR_MODES
+
+from ..state import AppState
+
+_MODE_LABELS = {"sensor": "Sensor", "height": "Height", "class": "Class", "annotated": "Annotated / not"}
+
+
+@dataclasses.dataclass
+class DisplayPanel:
+    color_mode: viser.GuiDropdownHandle
+    point_size: viser.GuiSliderHandle
+    show_boxes: viser.GuiCheckboxHandle
+
+
+def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPanel:
+    labels = [_MODE_LABELS[m] for m in COLOR_MODES]
+    with server.gui.add_folder("Display"):
+        color_mode = server.gui.add_dropdown(
+            "Colour by", labels, initial_value=_MODE_LABELS[state.color_mode]
+        )
+        point_size = server.gui.add_slider(
+            "Point size (m)", min=0.005, max=0.2, step=0.005, initial_value=state.point_size
+        )
+        show_boxes = server.gui.add_checkbox("Show boxes", initial_value=state.show_boxes)
+
+    @color_mode.on_update
+    def _(_: viser.GuiEvent) -> None:
+        state.set_display(color_mode=COLOR_MODES[labels.index(color_mode.value)])
+
+    @point_size.on_update
+    def _(_: viser.GuiEvent) -> None:
+        state.set_display(point_size=float(point_size.value))
+
+    @show_boxes.on_update
+    def _(_: viser.GuiEvent) -> None:
+        state.set_display(show_boxes=bool(show_boxes.value))
+
+    return DisplayPanel(color_mode, point_size, show_boxes)

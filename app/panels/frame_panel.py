@@ -1,0 +1,67 @@
+"""Frame navigation: slider, previous/next buttons and the status line."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import viser
+
+from ..state import AppState
+
+
+@dataclasses.dataclass
+class FramePanel:
+    slider: viser.GuiSliderHandle
+    previous: viser.GuiButtonHandle
+    next: viser.GuiButtonHandle
+    status: viser.GuiMarkdownHandle
+
+    def refresh(self, state: AppState) -> None:
+        """Show the state's frame in the slider and the status line."""
+        with state.lock:
+            index, frame = state.frame_index, state.frame
+        if self.slider.value != index:
+            self.slider.value = index
+        self.previous.disabled = index == 0
+        self.next.disabled = index >= state.dataset.num_frames - 1
+        self.status.content = status_markdown(state.dataset.name, index, state.dataset.num_frames, frame)
+
+
+def status_markdown(dataset_name: str, index: int, num_frames: int, frame) -> str:
+    labels = frame.labels
+    per_class = np.bincount(labels.class_ids, minlength=len(frame.class_names)) if len(labels) else []
+    counts = ", ".join(f"{name} {n}" for name, n in zip(frame.class_names, per_class) if n) or "none"
+    return (
+        f"**{dataset_name}** · frame **{index + 1} / {num_frames}** (`{frame.name}`)  \n"
+        f"{frame.num_points:,} points · {frame.num_sensors} sensors  \n"
+        f"{len(labels)} annotated instances: {counts}"
+    )
+
+
+def build_frame_panel(server: viser.ViserServer, state: AppState) -> FramePanel:
+    num_frames = state.dataset.num_frames
+    with server.gui.add_folder("Frame"):
+        slider = server.gui.add_slider(
+            "Frame", min=0, max=max(num_frames - 1, 1), step=1, initial_value=0, disabled=num_frames <= 1
+        )
+        with server.gui.add_folder("Step", expand_by_default=True):
+            previous = server.gui.add_button("Previous frame", icon=viser.Icon.ARROW_LEFT, disabled=True)
+            next_ = server.gui.add_button("Next frame", icon=viser.Icon.ARROW_RIGHT, disabled=num_frames <= 1)
+        status = server.gui.add_markdown("")
+
+    @slider.on_update
+    def _(_: viser.GuiEvent) -> None:
+        state.set_frame(int(slider.value))
+
+    @previous.on_click
+    def _(_: viser.GuiEvent) -> None:
+        state.step_frame(-1)
+
+    @next_.on_click
+    def _(_: viser.GuiEvent) -> None:
+        state.step_frame(+1)
+
+    panel = FramePanel(slider, previous, next_, status)
+    panel.refresh(state)
+    return panel

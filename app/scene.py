@@ -1,0 +1,78 @@
+"""Scene drawing: the merged scan and the annotated boxes of the shown frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import viser
+
+from factorydet_core import colors
+from factorydet_core.geometry import box_wireframe_segments
+from factorydet_core.merge import merge_frame
+from factorydet_core.types import Frame
+
+
+def point_colors(frame: Frame, points_z: np.ndarray, mode: str) -> np.ndarray:
+    """(N, 3) uint8 colours of the frame's points in colour ``mode``."""
+    if mode == "sensor":
+        return colors.colors_by_sensor(frame.sensor_ids, frame.num_sensors)
+    if mode == "height":
+        return colors.colors_by_height(points_z)
+    if mode == "class":
+        return colors.colors_by_class(frame.point_class_ids, frame.class_names)
+    if mode == "annotated":
+        return colors.colors_by_annotation(frame.point_instance_ids)
+    raise ValueError(f"unknown colour mode {mode!r}")
+
+
+class SceneView:
+    """Owns the scene nodes under ``/scan`` and ``/labels``."""
+
+    def __init__(self, server: viser.ViserServer) -> None:
+        self.server = server
+        self._cloud: viser.PointCloudHandle | None = None
+        self._label_nodes: list = []
+        server.scene.set_up_direction("+z")
+        # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
+        # wireframes and points.
+        server.scene.configure_environment_map(None)
+        server.scene.add_grid("/grid", width=60.0, height=60.0, cell_size=1.0, section_size=5.0, plane="xy")
+
+    def draw(self, frame: Frame, *, color_mode: str, point_size: float, show_boxes: bool) -> None:
+        """Replace the shown scan and boxes with ``frame``'s."""
+        merged = merge_frame(frame)
+        rgb = point_colors(frame, merged.points[:, 2], color_mode)
+        with self.server.atomic():
+            self._cloud = self.server.scene.add_point_cloud(
+                "/scan",
+                points=merged.points,
+                colors=rgb,
+                point_size=point_size,
+                point_shape="square",
+                precision="float32",
+            )
+            for node in self._label_nodes:
+                node.remove()
+            self._label_nodes = []
+            labels = frame.labels
+            if show_boxes and len(labels):
+                class_rgb = colors.class_colors(frame.class_names)[labels.class_ids]
+                segments = box_wireframe_segments(labels.boxes)
+                self._label_nodes.append(
+                    self.server.scene.add_line_segments(
+                        "/labels/boxes", points=segments.astype(np.float32),
+                        colors=np.repeat(class_rgb, 12, axis=0)[:, None].repeat(2, axis=1),
+                        thickness=2.0,
+                        thickness_units="screen",
+                    )
+                )
+                tops = labels.boxes[:, :3] + np.c_[np.zeros((len(labels), 2)), labels.boxes[:, 5] / 2 + 0.1]
+                for i, (top, class_id) in enumerate(zip(tops, labels.class_ids)):
+                    self._label_nodes.append(
+                        self.server.scene.add_label(
+                            f"/labels/name_{i}", text=frame.class_names[class_id], position=tuple(top.tolist())
+                        )
+                    )
+
+    def set_point_size(self, point_size: float) -> None:
+        if self._cloud is not None:
+            self._cloud.point_size = point_size

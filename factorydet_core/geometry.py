@@ -1,0 +1,107 @@
+"""Rigid transforms and oriented boxes.
+
+Boxes are (cx, cy, cz, dx, dy, dz, yaw): centre, full edge lengths along the box's own axes, and
+a counter-clockwise rotation about +z taking the frame's x axis onto the box's x axis (the ``dx``
+edge). z is up, units are metres and radians. See ``docs/conventions.md``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .types import check_array
+
+BOX_EDGES = np.array(
+    [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]]
+)
+"""(12, 2) corner indices of a box's edges, for corners in the order of ``box_corners``."""
+
+# Unit-box corners, bottom face counter-clockwise seen from above, then the top face.
+_UNIT_CORNERS = 0.5 * np.array(
+    [[1, 1, -1], [-1, 1, -1], [-1, -1, -1], [1, -1, -1], [1, 1, 1], [-1, 1, 1], [-1, -1, 1], [1, -1, 1]],
+    dtype=np.float64,
+)
+
+
+def rotation_z(yaw: float | np.ndarray) -> np.ndarray:
+    """Rotation matrices about +z; (3, 3) for a scalar, (..., 3, 3) for an array of angles."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    zeros, ones = np.zeros_like(yaw), np.ones_like(yaw)
+    return np.stack([np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)], -2)
+
+
+def rotation_ypr(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """(3, 3) rotation R = Rz(yaw) @ Ry(pitch) @ Rx(roll) (intrinsic z-y'-x'')."""
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    return rz @ ry @ rx
+
+
+def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """(4, 4) homogeneous transform from a (3, 3) rotation and a (3,) translation."""
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = translation
+    return transform
+
+
+def invert_transform(transform: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rigid transform, without a general matrix inverse."""
+    rotation, translation = transform[:3, :3], transform[:3, 3]
+    return make_transform(rotation.T, -rotation.T @ translation)
+
+
+def apply_transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) transform to (N, 3) points; returns (N, 3) in the points' dtype."""
+    check_array(transform, (4, 4), name="transform", finite=True)
+    check_array(points, (None, 3), name="points")
+    out = points.astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
+    return out.astype(points.dtype, copy=False)
+
+
+def rotation_angle_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
+    """Angle in degrees of the rotation taking ``rotation_b`` onto ``rotation_a``."""
+    cos_angle = (np.trace(rotation_a @ rotation_b.T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos_angle, -1.0, 1.0))))
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(angle, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
+
+
+def box_corners(boxes: np.ndarray) -> np.ndarray:
+    """Corners of (M, 7) boxes as (M, 8, 3), in the order that ``BOX_EDGES`` indexes."""
+    check_array(boxes, (None, 7), name="boxes", finite=True)
+    local = _UNIT_CORNERS[None] * boxes[:, None, 3:6]
+    return np.einsum("mij,mkj->mki", rotation_z(boxes[:, 6]), local) + boxes[:, None, :3]
+
+
+def box_wireframe_segments(boxes: np.ndarray) -> np.ndarray:
+    """Edges of (M, 7) boxes as (M * 12, 2, 3) line segments."""
+    return box_corners(boxes)[:, BOX_EDGES].reshape(-1, 2, 3)
+
+
+def points_in_box(points: np.ndarray, box: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """(N,) bool mask of the (N, 3) points inside one (7,) box grown by ``margin`` on every side."""
+    check_array(points, (None, 3), name="points")
+    check_array(box, (7,), name="box", finite=True)
+    local = (points.astype(np.float64) - box[:3]) @ rotation_z(box[6])  # R_z(-yaw) applied row-wise.
+    return (np.abs(local) <= box[3:6] / 2 + margin).all(axis=1)
+
+
+def transform_boxes(transform: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Move (M, 7) boxes by a (4, 4) transform whose rotation is about z only; returns (M, 7)."""
+    check_array(boxes, (None, 7), name="boxes", finite=True)
+    rotation = transform[:3, :3]
+    if not np.allclose(rotation[2], [0, 0, 1], atol=1e-6):
+        raise ValueError("transform_boxes: the transform must keep z up (a rotation about z only)")
+    out = boxes.copy()
+    out[:, :3] = boxes[:, :3] @ rotation.T + transform[:3, 3]
+    out[:, 6] = wrap_angle(boxes[:, 6] + np.arctan2(rotation[1, 0], rotation[0, 0]))
+    return out

@@ -1,0 +1,195 @@
+"""Typed, frozen containers passed between pipeline stages.
+
+Every array is made read-only when a container is built, so a stage that tries to mutate its input
+fails loudly instead of corrupting a cached frame. Conventions (frames, box layout) are in
+``docs/conventions.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+CLASS_NAMES: tuple[str, ...] = ("barrel", "bobbin", "box", "cone", "pallet", "person", "truck")
+"""The seven object classes of the paper, in class-id order. Background is not a class id here."""
+
+
+class InputError(ValueError):
+    """Bad input data: the message names the file or array and the problem, on one line."""
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    """Return ``array`` as a read-only C-contiguous array (a copy only when needed)."""
+    array = np.ascontiguousarray(array)
+    array.flags.writeable = False
+    return array
+
+
+def check_array(
+    array: np.ndarray,
+    shape: tuple[int | None, ...],
+    *,
+    name: str,
+    finite: bool = False,
+) -> None:
+    """Raise ``InputError`` unless ``array`` has ``shape`` (``None`` matches any length).
+
+    Args:
+        array: the array to check.
+        shape: expected shape; ``None`` entries are free.
+        name: how the message names the array.
+        finite: also require every element to be finite.
+    """
+    if not isinstance(array, np.ndarray):
+        raise InputError(f"{name}: expected a numpy array, got {type(array).__name__}")
+    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise InputError(f"{name}: expected shape {want}, got {array.shape}")
+    if finite and array.dtype.kind == "f" and not np.isfinite(array).all():
+        num_bad = int((~np.isfinite(array)).any(axis=-1).sum()) if array.ndim > 1 else int(
+            (~np.isfinite(array)).sum()
+        )
+        raise InputError(f"{name}: {num_bad} rows hold NaN or Inf values")
+
+
+@dataclasses.dataclass(frozen=True)
+class BoxLabels:
+    """Labelled instances of one frame; row i of every array belongs to instance i."""
+
+    boxes: np.ndarray
+    """(M, 7) float64: (cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame, metres and radians."""
+    class_ids: np.ndarray
+    """(M,) int32: index into the frame's ``class_names``."""
+    instance_ids: np.ndarray
+    """(M,) int64: instance id, > 0, the same object keeps its id across frames."""
+    num_points: np.ndarray
+    """(M,) int64: number of points of the frame that belong to the instance."""
+
+    def __post_init__(self) -> None:
+        num = len(self.boxes) if isinstance(self.boxes, np.ndarray) else -1
+        check_array(self.boxes, (None, 7), name="boxes", finite=True)
+        check_array(self.class_ids, (num,), name="class_ids")
+        check_array(self.instance_ids, (num,), name="instance_ids")
+        check_array(self.num_points, (num,), name="num_points")
+        object.__setattr__(self, "boxes", _frozen(self.boxes.astype(np.float64, copy=False)))
+        object.__setattr__(self, "class_ids", _frozen(self.class_ids.astype(np.int32, copy=False)))
+        object.__setattr__(self, "instance_ids", _frozen(self.instance_ids.astype(np.int64, copy=False)))
+        object.__setattr__(self, "num_points", _frozen(self.num_points.astype(np.int64, copy=False)))
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+    @classmethod
+    def empty(cls) -> BoxLabels:
+        return cls(
+            boxes=np.zeros((0, 7)),
+            class_ids=np.zeros(0, np.int32),
+            instance_ids=np.zeros(0, np.int64),
+            num_points=np.zeros(0, np.int64),
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """One scan of the vehicle's sensors, as stored: points in each sensor's own frame.
+
+    A single file read from disk (PLY, LAS, ...) is a frame with one sensor whose extrinsic is the
+    identity.
+    """
+
+    name: str
+    """Human-readable frame name, e.g. ``frame_00003`` or the file name."""
+    points: np.ndarray
+    """(N, 3) float32: points in the frame of the sensor that measured them, metres."""
+    sensor_ids: np.ndarray
+    """(N,) int16: index into ``T_vehicle_sensor`` of the sensor that measured each point."""
+    T_vehicle_sensor: np.ndarray
+    """(S, 4, 4) float64: nominal extrinsic of each sensor (sensor frame -> vehicle frame)."""
+    T_world_vehicle: np.ndarray
+    """(4, 4) float64: vehicle pose from odometry (vehicle frame -> world frame)."""
+    labels: BoxLabels
+    """Annotated instances, boxes in the vehicle frame."""
+    point_instance_ids: np.ndarray
+    """(N,) int64: annotated instance id of each point, 0 where the point belongs to none."""
+    class_names: tuple[str, ...] = CLASS_NAMES
+    """Class vocabulary that ``labels.class_ids`` and ``point_class_ids`` index."""
+    colors: np.ndarray | None = None
+    """(N, 3) uint8 RGB, when the source has colours."""
+    intensity: np.ndarray | None = None
+    """(N,) float32 return intensity, when the source has it."""
+    origin_offset: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    """(3,) float64: subtracted from the source coordinates on reading (large georeferenced
+    coordinates), added back on export."""
+
+    def __post_init__(self) -> None:
+        check_array(self.points, (None, 3), name=f"{self.name}: points", finite=True)
+        num_points = len(self.points)
+        check_array(self.sensor_ids, (num_points,), name=f"{self.name}: sensor_ids")
+        check_array(self.T_vehicle_sensor, (None, 4, 4), name=f"{self.name}: T_vehicle_sensor", finite=True)
+        check_array(self.T_world_vehicle, (4, 4), name=f"{self.name}: T_world_vehicle", finite=True)
+        check_array(self.point_instance_ids, (num_points,), name=f"{self.name}: point_instance_ids")
+        check_array(self.origin_offset, (3,), name=f"{self.name}: origin_offset", finite=True)
+        num_sensors = len(self.T_vehicle_sensor)
+        if num_points and (self.sensor_ids.min() < 0 or self.sensor_ids.max() >= num_sensors):
+            raise InputError(f"{self.name}: sensor_ids must lie in [0, {num_sensors})")
+        if len(self.labels) and (
+            self.labels.class_ids.min() < 0 or self.labels.class_ids.max() >= len(self.class_names)
+        ):
+            raise InputError(f"{self.name}: label class ids must lie in [0, {len(self.class_names)})")
+        if self.colors is not None:
+            check_array(self.colors, (num_points, 3), name=f"{self.name}: colors")
+            object.__setattr__(self, "colors", _frozen(self.colors.astype(np.uint8, copy=False)))
+        if self.intensity is not None:
+            check_array(self.intensity, (num_points,), name=f"{self.name}: intensity", finite=True)
+            object.__setattr__(self, "intensity", _frozen(self.intensity.astype(np.float32, copy=False)))
+        object.__setattr__(self, "class_names", tuple(str(c) for c in self.class_names))
+        object.__setattr__(self, "points", _frozen(self.points.astype(np.float32, copy=False)))
+        object.__setattr__(self, "sensor_ids", _frozen(self.sensor_ids.astype(np.int16, copy=False)))
+        object.__setattr__(self, "T_vehicle_sensor", _frozen(self.T_vehicle_sensor.astype(np.float64)))
+        object.__setattr__(self, "T_world_vehicle", _frozen(self.T_world_vehicle.astype(np.float64)))
+        object.__setattr__(
+            self, "point_instance_ids", _frozen(self.point_instance_ids.astype(np.int64, copy=False))
+        )
+        object.__setattr__(self, "origin_offset", _frozen(self.origin_offset.astype(np.float64)))
+
+    @property
+    def num_points(self) -> int:
+        return len(self.points)
+
+    @property
+    def num_sensors(self) -> int:
+        return len(self.T_vehicle_sensor)
+
+    @property
+    def point_class_ids(self) -> np.ndarray:
+        """(N,) int32: class id of each point's annotated instance, -1 where there is none."""
+        lookup = dict(zip(self.labels.instance_ids.tolist(), self.labels.class_ids.tolist()))
+        unique_ids, inverse = np.unique(self.point_instance_ids, return_inverse=True)
+        per_unique = np.array([lookup.get(int(i), -1) for i in unique_ids], dtype=np.int32)
+        return per_unique[inverse.reshape(-1)] if len(per_unique) else np.zeros(0, np.int32)
+
+
+@dataclasses.dataclass(frozen=True)
+class MergedCloud:
+    """All points of one frame in the vehicle frame."""
+
+    points: np.ndarray
+    """(N, 3) float32: points in the vehicle frame, metres."""
+    sensor_ids: np.ndarray
+    """(N,) int16: sensor that measured each point."""
+    point_instance_ids: np.ndarray
+    """(N,) int64: annotated instance of each point, 0 for none."""
+    T_vehicle_sensor: np.ndarray
+    """(S, 4, 4) float64: the extrinsics that were used to merge."""
+
+    def __post_init__(self) -> None:
+        check_array(self.points, (None, 3), name="merged points", finite=True)
+        check_array(self.sensor_ids, (len(self.points),), name="merged sensor_ids")
+        check_array(self.point_instance_ids, (len(self.points),), name="merged point_instance_ids")
+        for field in ("points", "sensor_ids", "point_instance_ids", "T_vehicle_sensor"):
+            object.__setattr__(self, field, _frozen(getattr(self, field)))
+
+    @property
+    def num_points(self) -> int:
+        return len(self.points)
