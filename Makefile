@@ -20,6 +20,7 @@ demo: $(STAMP)
 	$(BIN)/factorydet demo --session demo
 
 test: $(STAMP) browserdeps
+	$(BIN)/ruff check factorydet_core app tests
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)

@@ -59,7 +59,8 @@ class SceneView:
                 segments = box_wireframe_segments(labels.boxes)
                 self._label_nodes.append(
                     self.server.scene.add_line_segments(
-                        "/labels/boxes", points=segments.astype(np.float32),
+                        "/labels/boxes",
+                        points=segments.astype(np.float32),
                         colors=np.repeat(class_rgb, 12, axis=0)[:, None].repeat(2, axis=1),
                         thickness=2.0,
                         thickness_units="screen",
@@ -69,9 +70,16 @@ class SceneView:
                 for i, (top, class_id) in enumerate(zip(tops, labels.class_ids)):
                     self._label_nodes.append(
                         self.server.scene.add_label(
-                            f"/labels/name_{i}", text=frame.class_names[class_id], position=tuple(top.tolist())
+                            f"/labels/name_{i}",
+                            text=frame.class_names[class_id],
+                            position=tuple(top.tolist()),
                         )
                     )
+
+    def set_visible(self, visible: bool) -> None:
+        """Show or hide the scan and its boxes."""
+        for node in ([self._cloud] if self._cloud is not None else []) + self._label_nodes:
+            node.visible = visible
 
     def set_point_size(self, point_size: float) -> None:
         if self._cloud is not None:

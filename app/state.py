@@ -55,8 +55,13 @@ class AppState:
             target = self.frame_index + delta
         self.set_frame(target)
 
-    def set_display(self, *, color_mode: str | None = None, point_size: float | None = None,
-                    show_boxes: bool | None = None) -> None:
+    def set_display(
+        self,
+        *,
+        color_mode: str | None = None,
+        point_size: float | None = None,
+        show_boxes: bool | None = None,
+    ) -> None:
         with self.lock:
             if color_mode is not None:
                 if color_mode not in COLOR_MODES:

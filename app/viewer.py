@@ -33,7 +33,7 @@ class FactorydetApp:
         self.display_panel = build_display_panel(server, self.state)
         self._drawn: tuple | None = None
         self.state.on_change(self.redraw)
-        server.initial_camera.position = (-14.0, -14.0, 16.0)
+        server.initial_camera.position = (-10.0, -10.0, 11.0)
         server.initial_camera.look_at = (0.0, 0.0, 0.0)
         server.initial_camera.up = (0.0, 0.0, 1.0)
         self.redraw()
@@ -51,6 +51,7 @@ class FactorydetApp:
             else:
                 self.scene.set_point_size(point_size)
             self.frame_panel.refresh(self.state)
+            self.display_panel.refresh(self.state)
 
 
 def serve(dataset: Dataset, host: str = "127.0.0.1", port: int = 8080) -> None:
@@ -60,7 +61,10 @@ def serve(dataset: Dataset, host: str = "127.0.0.1", port: int = 8080) -> None:
     actual_port = server.get_port()
     print(f"factorydet: serving {dataset.name} at http://{host}:{actual_port}  (Ctrl+C to stop)", flush=True)
     if host not in ("127.0.0.1", "localhost", "::1"):
-        print("factorydet: warning: viser has no authentication; anyone who reaches this address can edit", flush=True)
+        print(
+            "factorydet: warning: viser has no authentication; anyone who reaches this address can edit",
+            flush=True,
+        )
     try:
         server.sleep_forever()
     except KeyboardInterrupt:

@@ -57,7 +57,8 @@ def bench_simulate(num_frames: int = 10, points_per_frame: int = 80_000, seed: i
         num_points.append(len(frame.points))
     return {
         "benchmark": "simulate",
-        "command": f"factorydet bench simulate --frames {num_frames} --points {points_per_frame} --seed {seed}",
+        "command": f"factorydet bench simulate --frames {num_frames} --points {points_per_frame}"
+        f" --seed {seed}",
         "num_frames": num_frames,
         "num_sensors": simulator.rig.num_sensors,
         "points_per_frame_median": int(statistics.median(num_points)),

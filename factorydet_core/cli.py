@@ -10,7 +10,7 @@ from collections.abc import Callable
 from .types import InputError
 
 
-def _progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
+def progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
     from tqdm import tqdm
 
     bar = None
@@ -41,7 +41,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    update, close = _progress_bar("simulating")
+    update, close = progress_bar("simulating")
     try:
         out = simulate_dataset(args.out, config, update)
     finally:
@@ -57,35 +57,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if session.has_data:
         print(f"demo session ready: {session.data_dir}")
         return 0
-    update, close = _progress_bar("building demo")
+    update, close = progress_bar("building demo")
     try:
         ensure_demo(args.root, update)
     finally:
         close()
     print(f"demo session built: {session.data_dir}")
-    return 0
-
-
-def _cmd_app(args: argparse.Namespace) -> int:
-    from app.viewer import serve
-
-    from .dataset import open_dataset
-    from .session import DEMO_SESSION, ensure_demo, open_session
-
-    if args.data is not None:
-        dataset = open_dataset(args.data)
-    else:
-        session = open_session(args.session, args.root)
-        if not session.has_data:
-            if args.session != DEMO_SESSION:
-                raise InputError(f"session {args.session!r} has no data set; pass --data DIR or FILE")
-            update, close = _progress_bar("building demo")
-            try:
-                ensure_demo(args.root, update)
-            finally:
-                close()
-        dataset = open_dataset(session.data_dir)
-    serve(dataset, host=args.host, port=args.port)
     return 0
 
 
@@ -121,15 +98,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="factorydet", description=__doc__)
+    parser = argparse.ArgumentParser(prog="factorydet", description="Factory LiDAR detection tools.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="write a simulated factory data set")
     p.add_argument("--out", required=True, help="data set folder to write")
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--unlabelled-fraction", type=float, default=0.3, help="share of eligible objects left unannotated")
-    p.add_argument("--min-points", type=int, default=50, help="instances with fewer points are never annotated")
+    p.add_argument(
+        "--unlabelled-fraction", type=float, default=0.3, help="share of eligible objects left unannotated"
+    )
+    p.add_argument(
+        "--min-points", type=int, default=50, help="instances with fewer points are never annotated"
+    )
     p.add_argument("--points", type=int, default=80_000, help="approximate points per merged frame")
     p.set_defaults(func=_cmd_simulate)
 
@@ -137,14 +118,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--session", default="demo", choices=["demo"])
     p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
     p.set_defaults(func=_cmd_demo)
-
-    p = sub.add_parser("app", help="serve the browser app")
-    p.add_argument("--session", default="demo")
-    p.add_argument("--data", default=None, help="data set folder or point-cloud file to open instead of a session's")
-    p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
-    p.add_argument("--host", default="127.0.0.1", help="bind address; viser has no authentication")
-    p.add_argument("--port", type=int, default=8080)
-    p.set_defaults(func=_cmd_app)
 
     p = sub.add_parser("info", help="summarise a data set folder or point-cloud file")
     p.add_argument("path")
@@ -160,8 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
+    """Parse ``argv`` and run the chosen command; input errors print one line and return 2."""
+    args = parser.parse_args(argv)
     try:
         return args.func(args)
     except InputError as exc:
@@ -169,6 +143,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The GUI-free commands; ``app.cli`` adds ``factorydet app`` on top of them."""
+    return run(build_parser(), argv)
 
 
 if __name__ == "__main__":

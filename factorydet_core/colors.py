@@ -57,7 +57,9 @@ def colors_by_height(z: np.ndarray, low: float | None = None, high: float | None
     high = float(np.percentile(z, 98)) if high is None else high
     t = np.clip((z - low) / max(high - low, 1e-6), 0, 1)[:, None]
     stops = np.array([[68, 1, 84], [33, 145, 140], [253, 231, 37]], dtype=np.float64)
-    rgb = np.where(t < 0.5, stops[0] + (stops[1] - stops[0]) * t * 2, stops[1] + (stops[2] - stops[1]) * (t * 2 - 1))
+    rgb = np.where(
+        t < 0.5, stops[0] + (stops[1] - stops[0]) * t * 2, stops[1] + (stops[2] - stops[1]) * (t * 2 - 1)
+    )
     return rgb.astype(np.uint8)
 
 

@@ -28,7 +28,9 @@ def rotation_z(yaw: float | np.ndarray) -> np.ndarray:
     yaw = np.asarray(yaw, dtype=np.float64)
     c, s = np.cos(yaw), np.sin(yaw)
     zeros, ones = np.zeros_like(yaw), np.ones_like(yaw)
-    return np.stack([np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)], -2)
+    return np.stack(
+        [np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)], -2
+    )
 
 
 def rotation_ypr(yaw: float, pitch: float, roll: float) -> np.ndarray:

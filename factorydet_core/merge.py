@@ -17,7 +17,9 @@ def merge_frame(frame: Frame, T_vehicle_sensor: np.ndarray | None = None) -> Mer
     Returns:
         The merged cloud, (N, 3) points in the vehicle frame, in the frame's point order.
     """
-    extrinsics = frame.T_vehicle_sensor if T_vehicle_sensor is None else np.asarray(T_vehicle_sensor, np.float64)
+    extrinsics = (
+        frame.T_vehicle_sensor if T_vehicle_sensor is None else np.asarray(T_vehicle_sensor, np.float64)
+    )
     check_array(extrinsics, (frame.num_sensors, 4, 4), name="T_vehicle_sensor", finite=True)
     rotations = extrinsics[frame.sensor_ids, :3, :3]  # (N, 3, 3)
     translations = extrinsics[frame.sensor_ids, :3, 3]

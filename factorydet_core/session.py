@@ -14,8 +14,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .dataset import MANIFEST
-from .types import InputError
 from .sim.simulate import SimConfig, simulate_dataset
+from .types import InputError
 
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
@@ -37,7 +37,8 @@ def validate_name(name: str) -> str:
     """Return ``name`` if it is a safe folder name: letters, digits, ``_ . -``, no path parts."""
     if not isinstance(name, str) or not _NAME_RE.fullmatch(name) or ".." in name:
         raise SessionError(
-            f"invalid session name {name!r}: use 1-64 letters, digits, '_', '.', '-', starting with a letter or digit"
+            f"invalid session name {name!r}: use 1-64 letters, digits, '_', '.', '-',"
+            " starting with a letter or digit"
         )
     return name
 

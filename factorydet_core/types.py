@@ -47,8 +47,10 @@ def check_array(
         want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
         raise InputError(f"{name}: expected shape {want}, got {array.shape}")
     if finite and array.dtype.kind == "f" and not np.isfinite(array).all():
-        num_bad = int((~np.isfinite(array)).any(axis=-1).sum()) if array.ndim > 1 else int(
-            (~np.isfinite(array)).sum()
+        num_bad = (
+            int((~np.isfinite(array)).any(axis=-1).sum())
+            if array.ndim > 1
+            else int((~np.isfinite(array)).sum())
         )
         raise InputError(f"{name}: {num_bad} rows hold NaN or Inf values")
 

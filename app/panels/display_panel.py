@@ -19,6 +19,17 @@ class DisplayPanel:
     point_size: viser.GuiSliderHandle
     show_boxes: viser.GuiCheckboxHandle
 
+    def refresh(self, state: AppState) -> None:
+        """Show the state's display settings (another client or the code may have changed them)."""
+        with state.lock:
+            mode, size, boxes = state.color_mode, state.point_size, state.show_boxes
+        if self.color_mode.value != _MODE_LABELS[mode]:
+            self.color_mode.value = _MODE_LABELS[mode]
+        if self.point_size.value != size:
+            self.point_size.value = size
+        if self.show_boxes.value != boxes:
+            self.show_boxes.value = boxes
+
 
 def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPanel:
     labels = [_MODE_LABELS[m] for m in COLOR_MODES]

@@ -90,7 +90,13 @@ class PlacedObject:
         low, high = self.mesh.bounds
         center_local = (low + high) / 2
         c, s = np.cos(yaw), np.sin(yaw)
-        center = np.array([x + c * center_local[0] - s * center_local[1], y + s * center_local[0] + c * center_local[1], z + center_local[2]])
+        center = np.array(
+            [
+                x + c * center_local[0] - s * center_local[1],
+                y + s * center_local[0] + c * center_local[1],
+                z + center_local[2],
+            ]
+        )
         return np.concatenate([center, high - low, [yaw]])
 
 
@@ -120,17 +126,22 @@ class _Builder:
         self.objects: list[PlacedObject] = []
         self.footprints: list[tuple[float, float, float, float]] = []  # xmin, ymin, xmax, ymax
 
-    def add(self, kind: str, mesh: Mesh, x: float, y: float, z: float, yaw: float, motion: Motion | None = None) -> PlacedObject:
+    def add(
+        self, kind: str, mesh: Mesh, x: float, y: float, z: float, yaw: float, motion: Motion | None = None
+    ) -> PlacedObject:
         placed = PlacedObject(len(self.objects) + 1, kind, mesh, (x, y, z, yaw), motion)
         self.objects.append(placed)
         return placed
 
     def free(self, xmin: float, ymin: float, xmax: float, ymax: float, pad: float = 0.25) -> bool:
         return all(
-            xmax + pad <= a or xmin - pad >= c or ymax + pad <= b or ymin - pad >= d for a, b, c, d in self.footprints
+            xmax + pad <= a or xmin - pad >= c or ymax + pad <= b or ymin - pad >= d
+            for a, b, c, d in self.footprints
         )
 
-    def place_group(self, zone: tuple[float, float, float, float], half: tuple[float, float], tries: int = 60) -> tuple[float, float] | None:
+    def place_group(
+        self, zone: tuple[float, float, float, float], half: tuple[float, float], tries: int = 60
+    ) -> tuple[float, float] | None:
         """Find a free spot in ``zone`` (xmin, ymin, xmax, ymax) for a group of half extents ``half``."""
         if 2 * half[0] > zone[2] - zone[0] or 2 * half[1] > zone[3] - zone[1]:
             return None
@@ -169,7 +180,9 @@ def _hall(builder: _Builder) -> None:
         builder.footprints.append((x - 0.25, y - 0.25, x + 0.25, y + 0.25))
 
 
-def _rack_row(builder: _Builder, x_min: float, num_bays: int, y_back: float, facing: float, num_levels: int) -> None:
+def _rack_row(
+    builder: _Builder, x_min: float, num_bays: int, y_back: float, facing: float, num_levels: int
+) -> None:
     """One single-depth rack row; ``facing`` is +1 when its open side looks to +y."""
     rng = builder.rng
     y_front = y_back + facing * RACK_DEPTH
@@ -181,17 +194,35 @@ def _rack_row(builder: _Builder, x_min: float, num_bays: int, y_back: float, fac
             builder.structure.append(meshes.cuboid((0.09, 0.07, top), (x, y - facing * 0.035, top / 2)))
     for level in range(1, num_levels):
         z = level * LEVEL_SPACING
-        builder.structure.append(meshes.cuboid((x_max - x_min, RACK_DEPTH, PLATE), ((x_min + x_max) / 2, y_mid, z - PLATE / 2)))
+        builder.structure.append(
+            meshes.cuboid((x_max - x_min, RACK_DEPTH, PLATE), ((x_min + x_max) / 2, y_mid, z - PLATE / 2))
+        )
         for y in (y_back, y_front):
-            builder.structure.append(meshes.cuboid((x_max - x_min, 0.05, 0.12), ((x_min + x_max) / 2, y - facing * 0.025, z - PLATE - 0.06)))
-    builder.footprints.append((x_min - 0.1, min(y_back, y_front) - 0.1, x_max + 0.1, max(y_back, y_front) + 0.1))
+            builder.structure.append(
+                meshes.cuboid(
+                    (x_max - x_min, 0.05, 0.12), ((x_min + x_max) / 2, y - facing * 0.025, z - PLATE - 0.06)
+                )
+            )
+    builder.footprints.append(
+        (x_min - 0.1, min(y_back, y_front) - 0.1, x_max + 0.1, max(y_back, y_front) + 0.1)
+    )
     for bay in range(num_bays):
         bay_x0 = x_min + bay * BAY_WIDTH + 0.06
         for level in range(num_levels):
-            _fill_bay(builder, bay_x0, BAY_WIDTH - 0.12, y_mid, level * LEVEL_SPACING, LEVEL_SPACING - 0.25, rng)
+            _fill_bay(
+                builder, bay_x0, BAY_WIDTH - 0.12, y_mid, level * LEVEL_SPACING, LEVEL_SPACING - 0.25, rng
+            )
 
 
-def _fill_bay(builder: _Builder, x0: float, width: float, y_mid: float, z: float, clearance: float, rng: np.random.Generator) -> None:
+def _fill_bay(
+    builder: _Builder,
+    x0: float,
+    width: float,
+    y_mid: float,
+    z: float,
+    clearance: float,
+    rng: np.random.Generator,
+) -> None:
     content = rng.choice(["bobbins", "pallets", "boxes", "empty"], p=[0.25, 0.3, 0.3, 0.15])
     if content == "bobbins":
         # Bobbins in a row, flange against flange; large ones in one row, small ones front and back.
@@ -213,7 +244,9 @@ def _fill_bay(builder: _Builder, x0: float, width: float, y_mid: float, z: float
             half_y = (pallet.bounds[1, 1] - pallet.bounds[0, 1]) / 2  # pallet's short side along the beam
             builder.add("pallet", pallet, x + half_y, y_mid, z, np.pi / 2)
             if rng.uniform() < 0.75:
-                _stack_boxes(builder, x + half_y, y_mid, z + 0.144, (2 * half_y - 0.05, 1.15), clearance - 0.15, rng)
+                _stack_boxes(
+                    builder, x + half_y, y_mid, z + 0.144, (2 * half_y - 0.05, 1.15), clearance - 0.15, rng
+                )
             x += 2 * half_y + rng.uniform(0.05, 0.1)
     elif content == "boxes":
         x = x0
@@ -226,8 +259,14 @@ def _fill_bay(builder: _Builder, x0: float, width: float, y_mid: float, z: float
 
 
 def _stack_boxes(
-    builder: _Builder, x: float, y: float, z: float, footprint: tuple[float, float], clearance: float,
-    rng: np.random.Generator, max_height: int = 2,
+    builder: _Builder,
+    x: float,
+    y: float,
+    z: float,
+    footprint: tuple[float, float],
+    clearance: float,
+    rng: np.random.Generator,
+    max_height: int = 2,
 ) -> None:
     """A column of boxes of one footprint, each resting on the one below."""
     top = z
@@ -247,7 +286,9 @@ def _floor_zone(builder: _Builder, zone: tuple[float, float, float, float], reci
             _floor_group(builder, zone, kind, rng)
 
 
-def _floor_group(builder: _Builder, zone: tuple[float, float, float, float], kind: str, rng: np.random.Generator) -> None:
+def _floor_group(
+    builder: _Builder, zone: tuple[float, float, float, float], kind: str, rng: np.random.Generator
+) -> None:
     if kind == "barrels":
         nx, ny = int(rng.integers(1, 4)), int(rng.integers(1, 3))
         spacing = 0.6
@@ -256,7 +297,14 @@ def _floor_group(builder: _Builder, zone: tuple[float, float, float, float], kin
             return
         for i in range(nx):
             for j in range(ny):
-                builder.add("barrel", meshes.barrel(rng), spot[0] + (i - (nx - 1) / 2) * spacing, spot[1] + (j - (ny - 1) / 2) * spacing, 0.0, rng.uniform(-np.pi, np.pi))
+                builder.add(
+                    "barrel",
+                    meshes.barrel(rng),
+                    spot[0] + (i - (nx - 1) / 2) * spacing,
+                    spot[1] + (j - (ny - 1) / 2) * spacing,
+                    0.0,
+                    rng.uniform(-np.pi, np.pi),
+                )
     elif kind == "boxstack":
         nx = int(rng.integers(1, 3))
         size = (rng.uniform(0.5, 0.8), rng.uniform(0.4, 0.6))
@@ -264,7 +312,9 @@ def _floor_group(builder: _Builder, zone: tuple[float, float, float, float], kin
         if spot is None:
             return
         for i in range(nx):
-            _stack_boxes(builder, spot[0] + (i - (nx - 1) / 2) * size[0], spot[1], 0.0, size, 2.2, rng, max_height=3)
+            _stack_boxes(
+                builder, spot[0] + (i - (nx - 1) / 2) * size[0], spot[1], 0.0, size, 2.2, rng, max_height=3
+            )
     elif kind == "palletload":
         pallet = meshes.pallet(rng)
         yaw = rng.choice([0.0, np.pi / 2])
@@ -288,7 +338,11 @@ def _floor_group(builder: _Builder, zone: tuple[float, float, float, float], kin
     elif kind in ("person", "truck"):
         mesh = meshes.person(rng) if kind == "person" else meshes.truck(rng)
         # Parked trucks stand roughly along the aisle; people face anywhere.
-        yaw = rng.uniform(-np.pi, np.pi) if kind == "person" else rng.choice([0.0, np.pi]) + rng.uniform(-0.3, 0.3)
+        yaw = (
+            rng.uniform(-np.pi, np.pi)
+            if kind == "person"
+            else rng.choice([0.0, np.pi]) + rng.uniform(-0.3, 0.3)
+        )
         spot = builder.place_group(zone, _rotated_half(mesh, yaw))
         if spot is not None:
             builder.add(kind, mesh, spot[0], spot[1], 0.0, yaw)
@@ -301,7 +355,9 @@ def _floor_group(builder: _Builder, zone: tuple[float, float, float, float], kin
         builder.add(kind, mesh, spot[0], spot[1], 0.0, yaw)
         if kind == "table" and rng.uniform() < 0.5:  # a box on the table, touching it
             top = mesh.bounds[1, 2]
-            builder.add("box", meshes.box(rng, (0.4, 0.3, rng.uniform(0.2, 0.35))), spot[0], spot[1], top, yaw)
+            builder.add(
+                "box", meshes.box(rng, (0.4, 0.3, rng.uniform(0.2, 0.35))), spot[0], spot[1], top, yaw
+            )
 
 
 def _movers(builder: _Builder) -> None:
@@ -309,11 +365,21 @@ def _movers(builder: _Builder) -> None:
     # People walk the lane north of the loop and the east/west areas, one per stretch, so they never collide.
     for x0, x1 in ((-15.0, -6.0), (-4.0, 5.0), (7.0, 15.0)):
         mesh = meshes.person(rng, walking=True)
-        motion = Motion(np.array([x0, 7.3 + rng.uniform(-0.2, 0.2)]), np.array([x1, 7.3]), rng.uniform(0.9, 1.4), rng.uniform(0, 10))
+        motion = Motion(
+            np.array([x0, 7.3 + rng.uniform(-0.2, 0.2)]),
+            np.array([x1, 7.3]),
+            rng.uniform(0.9, 1.4),
+            rng.uniform(0, 10),
+        )
         builder.add("person", mesh, x0, 7.3, 0.0, 0.0, motion)
     for x in (-20.0, 20.0):
         mesh = meshes.person(rng, walking=True)
-        motion = Motion(np.array([x, -3.5]), np.array([x + rng.uniform(-1.5, 1.5), 3.5]), rng.uniform(0.8, 1.2), rng.uniform(0, 10))
+        motion = Motion(
+            np.array([x, -3.5]),
+            np.array([x + rng.uniform(-1.5, 1.5), 3.5]),
+            rng.uniform(0.8, 1.2),
+            rng.uniform(0, 10),
+        )
         builder.add("person", mesh, x, -3.5, 0.0, 0.0, motion)
     # Trucks drive the lane south of the loop, one per half.
     for x0, x1 in ((-15.0, -2.0), (2.0, 15.0)):
@@ -337,10 +403,51 @@ def build_factory(rng: np.random.Generator) -> Factory:
             builder.add("cone", meshes.traffic_cone(rng), float(x), y, 0.0, rng.uniform(-np.pi, np.pi))
     builder.footprints += [(-16.5, 6.0, 16.5, 8.2), (-16.5, -8.6, 16.5, -6.0), (-16.5, -5.6, 16.5, 5.6)]
     builder.footprints += [(18.2, -3.8, 21.8, 3.8), (-21.8, -3.8, -18.2, 3.8)]  # east/west walkers' paths
-    _floor_zone(builder, (-16.0, 8.8, 16.0, 11.8), {"barrels": 7, "palletload": 4, "boxstack": 3, "person": 2, "machine": 2, "table": 2, "bin": 2, "cone": 1})
-    _floor_zone(builder, (-16.0, -11.8, 16.0, -8.8), {"boxstack": 5, "truck": 2, "palletload": 4, "barrels": 4, "person": 1, "bin": 3, "table": 1, "cabinet": 1})
+    _floor_zone(
+        builder,
+        (-16.0, 8.8, 16.0, 11.8),
+        {
+            "barrels": 7,
+            "palletload": 4,
+            "boxstack": 3,
+            "person": 2,
+            "machine": 2,
+            "table": 2,
+            "bin": 2,
+            "cone": 1,
+        },
+    )
+    _floor_zone(
+        builder,
+        (-16.0, -11.8, 16.0, -8.8),
+        {
+            "boxstack": 5,
+            "truck": 2,
+            "palletload": 4,
+            "barrels": 4,
+            "person": 1,
+            "bin": 3,
+            "table": 1,
+            "cabinet": 1,
+        },
+    )
     for sign in (-1.0, 1.0):
         zone = (16.5, -11.8, 23.5, 11.8) if sign > 0 else (-23.5, -11.8, -16.5, 11.8)
-        _floor_zone(builder, zone, {"machine": 2, "table": 2, "person": 2, "palletload": 2, "barrels": 2, "boxstack": 2, "truck": 1, "cone": 2, "cabinet": 1, "bin": 1})
+        _floor_zone(
+            builder,
+            zone,
+            {
+                "machine": 2,
+                "table": 2,
+                "person": 2,
+                "palletload": 2,
+                "barrels": 2,
+                "boxstack": 2,
+                "truck": 1,
+                "cone": 2,
+                "cabinet": 1,
+                "bin": 1,
+            },
+        )
     _movers(builder)
     return Factory(structure=Mesh.concatenate(builder.structure), objects=tuple(builder.objects))

@@ -67,7 +67,9 @@ def cylinder(
 ) -> Mesh:
     """Closed cylinder along the x, y or z axis."""
     if sections not in _UNIT_CYLINDERS:
-        _UNIT_CYLINDERS[sections] = _from_trimesh(trimesh.creation.cylinder(radius=1.0, height=1.0, sections=sections))
+        _UNIT_CYLINDERS[sections] = _from_trimesh(
+            trimesh.creation.cylinder(radius=1.0, height=1.0, sections=sections)
+        )
     unit = _UNIT_CYLINDERS[sections]
     vertices = unit.vertices * np.array([radius, radius, length])
     if axis == "x":

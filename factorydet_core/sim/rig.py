@@ -57,7 +57,12 @@ def default_rig(points_per_frame: int = 80_000, vertical_beams: int = 40) -> Sen
         roll = np.radians([0.0, 1.5, -1.5, 0.0][i % 4])
         position = np.array([0.8 * np.cos(yaw), 0.5 * np.sin(yaw), height])
         transforms.append(make_transform(rotation_ypr(yaw, -pitch, roll), position))
-    return SensorRig(np.stack(transforms), beam_directions(horizontal_beams, vertical_beams), horizontal_beams, vertical_beams)
+    return SensorRig(
+        np.stack(transforms),
+        beam_directions(horizontal_beams, vertical_beams),
+        horizontal_beams,
+        vertical_beams,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,12 +95,17 @@ class LoopPath:
             (arc, None, -np.pi / 2, (-a, -b)),
             (a, (-a, -self.half_y), 0.0, None),
         ]
-        for length, start, heading, centre in pieces:
-            if s <= length:
+        for piece in pieces:
+            if s <= piece[0]:
                 break
-            s -= length
+            s -= piece[0]
+        _, start, heading, centre = piece
         if centre is None:
             return start[0] + s * np.cos(heading), start[1] + s * np.sin(heading), heading
         angle = heading - np.pi / 2 + s / r  # position angle on the corner circle
         new_heading = heading + s / r
-        return centre[0] + r * np.cos(angle), centre[1] + r * np.sin(angle), float((new_heading + np.pi) % (2 * np.pi) - np.pi)
+        return (
+            centre[0] + r * np.cos(angle),
+            centre[1] + r * np.sin(angle),
+            float((new_heading + np.pi) % (2 * np.pi) - np.pi),
+        )

@@ -67,7 +67,9 @@ class SimConfig:
         if self.min_annotated_points < 0:
             raise ValueError("min_annotated_points must be >= 0")
         if self.vertical_beams < 2 or self.points_per_frame < 12 * self.vertical_beams:
-            raise ValueError(f"points_per_frame must be at least 12 x vertical_beams = {12 * self.vertical_beams}")
+            raise ValueError(
+                f"points_per_frame must be at least 12 x vertical_beams = {12 * self.vertical_beams}"
+            )
         if not 0.0 < self.train_fraction <= 1.0:
             raise ValueError("train_fraction must lie in (0, 1]")
 
@@ -126,7 +128,8 @@ class FactorySimulator:
         rng = np.random.default_rng([seed, 1])
         self.T_vehicle_sensor_true = np.stack(
             [
-                T @ make_transform(
+                T
+                @ make_transform(
                     _random_rotation(rng, config.calibration_rotation_deg),
                     rng.normal(size=3) / np.sqrt(3) * config.calibration_translation_m,
                 )
@@ -135,7 +138,10 @@ class FactorySimulator:
         )
         self.unannotated_ids = self._choose_unannotated(np.random.default_rng([seed, 2]))
         self._odometry = self._odometry_poses(np.random.default_rng([seed, 3]))
-        self._static_scene, self._static_face_ids = self._scene([(o.instance_id, o.mesh.posed(*o.pose)) for o in self.factory.static_objects], self.factory.structure)
+        self._static_scene, self._static_face_ids = self._scene(
+            [(o.instance_id, o.mesh.posed(*o.pose)) for o in self.factory.static_objects],
+            self.factory.structure,
+        )
         self._class_by_id = {o.instance_id: o.class_id for o in self.factory.objects}
 
     def _choose_unannotated(self, rng: np.random.Generator) -> frozenset[int]:
@@ -158,14 +164,17 @@ class FactorySimulator:
         for i in range(self.config.num_frames):
             if i:
                 drift += rng.normal(size=3) * np.array(
-                    [self.config.odometry_translation_noise * step] * 2 + [np.radians(self.config.odometry_yaw_noise_deg) * step]
+                    [self.config.odometry_translation_noise * step] * 2
+                    + [np.radians(self.config.odometry_yaw_noise_deg) * step]
                 )
             T_drift = make_transform(rotation_ypr(drift[2], 0, 0), np.array([drift[0], drift[1], 0.0]))
             poses.append(self.true_pose(i) @ T_drift)
         return poses
 
     @staticmethod
-    def _scene(posed: list[tuple[int, Mesh]], structure: Mesh | None = None) -> tuple[o3d.t.geometry.RaycastingScene, np.ndarray]:
+    def _scene(
+        posed: list[tuple[int, Mesh]], structure: Mesh | None = None
+    ) -> tuple[o3d.t.geometry.RaycastingScene, np.ndarray]:
         parts = ([(0, structure)] if structure is not None else []) + posed
         mesh = Mesh.concatenate([m for _, m in parts])
         face_ids = np.concatenate([np.full(len(m.faces), i, np.int32) for i, m in parts])
@@ -182,7 +191,9 @@ class FactorySimulator:
         rng = np.random.default_rng([cfg.seed, 4, frame_index])
         T_world_vehicle = self.true_pose(frame_index)
         moving = self.factory.moving_objects
-        dynamic_scene, dynamic_face_ids = self._scene([(o.instance_id, o.mesh.posed(*o.pose_at(time_s))) for o in moving])
+        dynamic_scene, dynamic_face_ids = self._scene(
+            [(o.instance_id, o.mesh.posed(*o.pose_at(time_s))) for o in moving]
+        )
 
         directions = self.rig.ray_directions
         num_rays = len(directions)
@@ -206,7 +217,9 @@ class FactorySimulator:
         from_dynamic = dynamic_first[ray_index]
         point_instance_ids = np.where(
             from_dynamic,
-            dynamic_face_ids[np.where(from_dynamic, primitive_dynamic[ray_index], 0)] if len(dynamic_face_ids) else 0,
+            dynamic_face_ids[np.where(from_dynamic, primitive_dynamic[ray_index], 0)]
+            if len(dynamic_face_ids)
+            else 0,
             self._static_face_ids[np.where(from_dynamic, 0, primitive_static[ray_index])],
         ).astype(np.int32)
 
@@ -223,7 +236,9 @@ class FactorySimulator:
         return SimulatedFrame(
             points=points,
             sensor_ids=sensor_ids,
-            T_world_vehicle_odometry=self._odometry[frame_index] if frame_index < len(self._odometry) else T_world_vehicle,
+            T_world_vehicle_odometry=self._odometry[frame_index]
+            if frame_index < len(self._odometry)
+            else T_world_vehicle,
             T_world_vehicle_true=T_world_vehicle,
             time_s=time_s,
             point_instance_ids=point_instance_ids,
@@ -242,7 +257,9 @@ class FactorySimulator:
             "seed": self.config.seed,
             "config": dataclasses.asdict(self.config),
             "classes": list(CLASS_NAMES),
-            "box_convention": "(cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame; z up, metres, yaw CCW about +z",
+            "box_convention": (
+                "(cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame; z up, metres, yaw CCW about +z"
+            ),
             "sensors": [
                 {
                     "id": i,
@@ -312,7 +329,9 @@ def simulate_dataset(
                 "sensor_ids": frame.sensor_ids,
                 "T_world_vehicle": frame.T_world_vehicle_odometry,
                 "time_s": np.float64(frame.time_s),
-                "point_instance_ids": np.where(np.isin(frame.point_instance_ids, annotated_ids), frame.point_instance_ids, 0).astype(np.int32),
+                "point_instance_ids": np.where(
+                    np.isin(frame.point_instance_ids, annotated_ids), frame.point_instance_ids, 0
+                ).astype(np.int32),
                 "label_boxes": frame.instance_boxes[frame.annotated_mask],
                 "label_class_ids": frame.instance_class_ids[frame.annotated_mask],
                 "label_instance_ids": annotated_ids,

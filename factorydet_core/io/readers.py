@@ -1,0 +1,906 @@
+"""Read and write single point-cloud files as one-sensor ``Frame`` objects.
+
+``read_frame`` picks a reader by the file suffix (case-insensitive, see ``SUPPORTED_SUFFIXES``):
+
+- ``.ply``: ascii, binary_little_endian or binary_big_endian. Vertex properties ``x, y, z`` (any
+  numeric type), optional ``red, green, blue`` and optional ``intensity`` / ``scalar_intensity``.
+- ``.pcd``: ``DATA ascii`` and ``binary`` with any record layout that the FIELDS / SIZE / TYPE /
+  COUNT header describes (padding ``_`` fields, extra fields such as timestamp or ring);
+  ``x, y, z``, optional ``intensity`` and ``rgb`` / ``rgba`` (packed into a float or uint32).
+  ``binary_compressed`` is decoded by Open3D (points and colours only).
+- ``.xyz``, ``.txt``, ``.pts``, ``.csv``: one point a line, separated by whitespace or commas,
+  ``#`` comments skipped, an optional header line of column names (``x y z intensity r g b`` ...).
+  Without names the columns are ``x y z`` then: 4, 5 or 8 columns -> intensity; 6 or >= 9 ->
+  ``r g b`` (when they look like colours); 7 -> intensity, ``r g b`` (Leica PTS). In ``.pts`` files
+  lines holding a single integer (point counts) are skipped.
+- ``.las``, ``.laz``: scaled coordinates, colours (16-bit scaled to 8-bit) and intensity (laspy).
+- ``.bin``: KITTI velodyne scan, float32 records ``x, y, z, intensity``.
+- ``.npy``: an (N, 3) or (N, >=4) numeric array; column 3 is the intensity.
+- ``.npz``: the neutral scene format of ``shared/data/real/README.md``: ``points`` (N, 3),
+  ``boxes`` (M, 7), ``labels`` (M,) str, optional ``colors`` (N, 3) and ``intensity`` (N,).
+
+Every file becomes a frame with one sensor whose extrinsic is the identity. Coordinates larger
+than ``LARGE_COORDINATE_M`` (georeferenced scans) are recentred in float64 before the points are
+cast to float32; the subtracted offset is kept in ``Frame.origin_offset`` and ``write_frame`` adds
+it back. Boxes are (cx, cy, cz, dx, dy, dz, yaw), z up, metres, yaw counter-clockwise about +z.
+
+Bad input raises ``InputError`` with one line naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import re
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from factorydet_core.geometry import points_in_box
+from factorydet_core.io.npz import save_npz
+from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
+
+SUPPORTED_SUFFIXES: tuple[str, ...] = (
+    ".ply",
+    ".pcd",
+    ".xyz",
+    ".txt",
+    ".pts",
+    ".csv",
+    ".las",
+    ".laz",
+    ".bin",
+    ".npy",
+    ".npz",
+)
+"""File suffixes that ``read_frame`` and ``write_frame`` handle (compared case-insensitively)."""
+
+LARGE_COORDINATE_M = 1000.0
+"""Clouds with any |coordinate| above this (metres) are recentred on reading."""
+
+LAS_SCALE = 1e-4
+"""Coordinate resolution (metres) of the LAS/LAZ files that ``write_frame`` writes."""
+
+_INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "i")
+_COLOR_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+_HEADER_LIMIT = 1 << 20  # bytes searched for the end of a PLY / PCD header
+
+
+@dataclasses.dataclass
+class _RawCloud:
+    """What a reader found in a file, before recentring and validation."""
+
+    points: np.ndarray  # (N, 3) float64, source coordinates
+    colors: np.ndarray | None = None  # (N, 3) uint8
+    intensity: np.ndarray | None = None  # (N,) float
+    boxes: np.ndarray | None = None  # (M, 7) float64, source coordinates
+    labels: list[str] | None = None  # (M,) class names
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _error(path: Path, problem: str) -> InputError:
+    """An ``InputError`` whose single-line message names ``path`` and ``problem``."""
+    return InputError(_one_line(f"{path}: {problem}"))
+
+
+def _supported_list() -> str:
+    return ", ".join(SUPPORTED_SUFFIXES)
+
+
+# ----------------------------------------------------------------------------------------------
+# Shared helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def _colors_to_uint8(rgb: np.ndarray) -> np.ndarray | None:
+    """(N, 3) colours of any numeric type as uint8, or ``None`` when they do not look like colours.
+
+    uint8 passes; integral values <= 255 are taken as 8-bit; floats in [0, 1] are scaled by 255;
+    integral values <= 65535 are taken as 16-bit and shifted right by 8.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.dtype == np.uint8:
+        return rgb
+    if rgb.dtype.kind not in "fiub":
+        return None
+    if len(rgb) == 0:
+        return np.zeros(rgb.shape, np.uint8)
+    values = rgb.astype(np.float64)
+    if not np.isfinite(values).all() or values.min() < 0:
+        return None
+    vmax = float(values.max())
+    integral = bool(np.all(values == np.round(values)))
+    if rgb.dtype.kind == "f" and vmax <= 1.0 and not integral:
+        return np.round(values * 255.0).astype(np.uint8)
+    if integral and vmax <= 255:
+        return values.astype(np.uint8)
+    if vmax <= 1.0:
+        return np.round(values * 255.0).astype(np.uint8)
+    if integral and vmax <= 65535:
+        return (values.astype(np.uint16) >> 8).astype(np.uint8)
+    return None
+
+
+def _cloud_from_columns(path: Path, columns: dict[str, np.ndarray], what: str) -> _RawCloud:
+    """Pick x, y, z, colours and intensity out of named 1-D columns (names lower-case)."""
+    missing = [axis for axis in "xyz" if axis not in columns]
+    if missing:
+        found = ", ".join(sorted(columns)) or "none"
+        raise _error(path, f"{what} has no {'/'.join(missing)} field (found: {found})")
+    points = np.column_stack([np.asarray(columns[axis], dtype=np.float64) for axis in "xyz"])
+    colors = None
+    for names in _COLOR_NAMES:
+        if all(name in columns for name in names):
+            colors = _colors_to_uint8(np.column_stack([columns[name] for name in names]))
+            break
+    intensity = None
+    for name in _INTENSITY_NAMES:
+        if name in columns:
+            intensity = np.asarray(columns[name], dtype=np.float32)
+            break
+    return _RawCloud(points=points, colors=colors, intensity=intensity)
+
+
+def _read_header_lines(path: Path, data: bytes, what: str, last: str) -> Iterator[tuple[int, str, int]]:
+    """Yield (line number, stripped line, offset after the line) of the text at the start of ``data``.
+
+    Raises ``InputError`` when the header runs out before the caller has seen its ``last`` line.
+    """
+    pos, lineno = 0, 0
+    while pos < min(len(data), _HEADER_LIMIT):
+        end = data.find(b"\n", pos)
+        end = len(data) if end < 0 else end
+        lineno += 1
+        yield lineno, data[pos:end].decode("latin-1").strip(), end + 1
+        pos = end + 1
+    raise _error(path, f"bad {what} header: no {last} line")
+
+
+def _load_rows(
+    path: Path, rows: list[str], num_columns: int, what: str, delimiter: str | None = None
+) -> np.ndarray:
+    """Parse text rows into a (len(rows), num_columns) float64 array."""
+    if not rows:
+        return np.zeros((0, num_columns))
+    try:
+        values = np.loadtxt(rows, dtype=np.float64, delimiter=delimiter, ndmin=2, comments=None)
+    except ValueError as exc:
+        reason = str(exc).split("; use `usecols`")[0]  # drop numpy's advice to the programmer
+        raise _error(path, f"corrupt {what}: {reason}") from exc
+    if values.shape[1] != num_columns:
+        raise _error(path, f"corrupt {what}: rows have {values.shape[1]} values, expected {num_columns}")
+    return values
+
+
+# ----------------------------------------------------------------------------------------------
+# PLY
+# ----------------------------------------------------------------------------------------------
+
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+_PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+
+
+@dataclasses.dataclass
+class _PlyElement:
+    name: str
+    count: int
+    properties: list[tuple[str, str | None]]  # (name, numpy type code), None for list properties
+
+    @property
+    def has_list(self) -> bool:
+        return any(code is None for _, code in self.properties)
+
+    def dtype(self, endian: str) -> np.dtype:
+        return np.dtype([(f"p{i}", endian + str(code)) for i, (_, code) in enumerate(self.properties)])
+
+
+def _parse_ply_header(path: Path, data: bytes) -> tuple[str, list[_PlyElement], int]:
+    """Return (format, elements, body offset) of a PLY file."""
+    fmt: str | None = None
+    elements: list[_PlyElement] = []
+    for lineno, line, after in _read_header_lines(path, data, "PLY", "end_header"):
+        tokens = line.split()
+        if lineno == 1:
+            if line != "ply":
+                raise _error(path, "not a PLY file: the first line is not 'ply'")
+            continue
+        if not tokens or tokens[0] in ("comment", "obj_info"):
+            continue
+        bad = _error(path, f"bad PLY header line {lineno}: {line[:80]!r}")
+        if tokens[0] == "end_header":
+            if fmt is None:
+                raise _error(path, "bad PLY header: no format line")
+            return fmt, elements, after
+        if tokens[0] == "format":
+            if len(tokens) != 3 or tokens[1] not in _PLY_FORMATS:
+                raise bad
+            fmt = tokens[1]
+        elif tokens[0] == "element":
+            if len(tokens) != 3 or not tokens[2].isdigit():
+                raise bad
+            elements.append(_PlyElement(tokens[1], int(tokens[2]), []))
+        elif tokens[0] == "property":
+            if not elements:
+                raise bad
+            is_list = len(tokens) == 5 and tokens[1] == "list"
+            if is_list and tokens[2] in _PLY_TYPES and tokens[3] in _PLY_TYPES:
+                elements[-1].properties.append((tokens[4], None))
+            elif len(tokens) == 3 and tokens[1] in _PLY_TYPES:
+                elements[-1].properties.append((tokens[2], _PLY_TYPES[tokens[1]]))
+            else:
+                raise bad
+        else:
+            raise bad
+    raise _error(path, "bad PLY header: no end_header line")  # pragma: no cover - _read_header_lines raises
+
+
+def _read_ply(path: Path) -> _RawCloud:
+    data = path.read_bytes()
+    fmt, elements, body = _parse_ply_header(path, data)
+    names = [element.name for element in elements]
+    if "vertex" not in names:
+        raise _error(path, "PLY header declares no vertex element")
+    index = names.index("vertex")
+    vertex = elements[index]
+    if vertex.has_list:
+        raise _error(path, "PLY vertex element with list properties is not supported")
+    prop_names = [name.lower() for name, _ in vertex.properties]
+    if fmt == "ascii":
+        rows = [row for row in data[body:].decode("latin-1").splitlines() if row.strip()]
+        start = sum(element.count for element in elements[:index])
+        if len(rows) < start + vertex.count:
+            raise _error(
+                path,
+                f"truncated PLY: the header declares {vertex.count} vertices but the body has "
+                f"only {max(len(rows) - start, 0)} vertex lines",
+            )
+        values = _load_rows(path, rows[start : start + vertex.count], len(prop_names), "PLY vertex lines")
+        columns = {name: values[:, i] for i, name in reversed(list(enumerate(prop_names)))}
+    else:
+        endian = "<" if fmt == "binary_little_endian" else ">"
+        offset = body
+        for element in elements[:index]:
+            if element.has_list:
+                raise _error(
+                    path,
+                    f"PLY element {element.name!r} with list properties before the vertices is not supported",
+                )
+            offset += element.count * element.dtype(endian).itemsize
+        dtype = vertex.dtype(endian)
+        available = len(data) - offset
+        if available < vertex.count * dtype.itemsize:
+            raise _error(
+                path,
+                f"truncated PLY: the header declares {vertex.count} vertices "
+                f"({vertex.count * dtype.itemsize} bytes) but only {max(available, 0)} bytes follow",
+            )
+        records = np.frombuffer(data, dtype=dtype, count=vertex.count, offset=offset)
+        columns = {name: records[f"p{i}"] for i, name in reversed(list(enumerate(prop_names)))}
+    return _cloud_from_columns(path, columns, "PLY vertex element")
+
+
+# ----------------------------------------------------------------------------------------------
+# PCD
+# ----------------------------------------------------------------------------------------------
+
+
+def _pcd_type(path: Path, kind: str, size: int) -> str:
+    codes = {("F", 4): "f4", ("F", 8): "f8"}
+    codes.update({(k, s): f"{k.lower()}{s}" for k in "IU" for s in (1, 2, 4, 8)})
+    code = codes.get((kind.upper(), size))
+    if code is None:
+        raise _error(path, f"bad PCD header: unsupported field type {kind} of size {size}")
+    return code
+
+
+def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], int]:
+    header: dict[str, list[str]] = {}
+    for _, line, after in _read_header_lines(path, data, "PCD", "DATA"):
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        header[key.upper()] = values
+        if key.upper() == "DATA":
+            return header, after
+    raise _error(path, "bad PCD header: no DATA line")  # pragma: no cover - _read_header_lines raises
+
+
+def _read_pcd(path: Path) -> _RawCloud:
+    data = path.read_bytes()
+    header, body = _parse_pcd_header(path, data)
+    try:
+        fields = [name.lower() for name in header["FIELDS"]]
+        sizes = [int(v) for v in header["SIZE"]]
+        kinds = header["TYPE"]
+        counts = [int(v) for v in header.get("COUNT", ["1"] * len(fields))]
+        width, height = int(header["WIDTH"][0]), int(header.get("HEIGHT", ["1"])[0])
+        num_points = int(header["POINTS"][0]) if "POINTS" in header else width * height
+        mode = header["DATA"][0].lower()
+    except (KeyError, IndexError, ValueError) as exc:
+        raise _error(path, f"bad PCD header: missing or invalid entry ({type(exc).__name__}: {exc})") from exc
+    if not fields or not len(fields) == len(sizes) == len(kinds) == len(counts):
+        raise _error(path, "bad PCD header: FIELDS, SIZE, TYPE and COUNT differ in length")
+    if num_points < 0 or min(counts) < 0:
+        raise _error(path, "bad PCD header: negative POINTS or COUNT")
+    codes = [_pcd_type(path, kind, size) for kind, size in zip(kinds, sizes, strict=True)]
+
+    if mode == "binary_compressed":
+        return _read_with_open3d(path)
+    if mode == "binary":
+        layout = [
+            (f"f{i}", "<" + code, (count,)) if count > 1 else (f"f{i}", "<" + code)
+            for i, (code, count) in enumerate(zip(codes, counts, strict=True))
+            if count > 0
+        ]
+        dtype = np.dtype(layout)
+        available = len(data) - body
+        if available < num_points * dtype.itemsize:
+            raise _error(
+                path,
+                f"truncated PCD: the header declares {num_points} points of {dtype.itemsize} bytes "
+                f"but only {available} bytes follow",
+            )
+        records = np.frombuffer(data, dtype=dtype, count=num_points, offset=body)
+        raw_columns = {i: records[f"f{i}"] for i, count in enumerate(counts) if count == 1}
+    elif mode == "ascii":
+        rows = [row for row in data[body:].decode("latin-1").splitlines() if row.strip()]
+        if len(rows) < num_points:
+            raise _error(
+                path,
+                f"truncated PCD: the header declares {num_points} points but the body has "
+                f"only {len(rows)} lines",
+            )
+        values = _load_rows(path, rows[:num_points], sum(counts), "PCD ascii data")
+        starts = np.cumsum([0, *counts])
+        raw_columns = {i: values[:, starts[i]] for i, count in enumerate(counts) if count == 1}
+    else:
+        raise _error(path, f"bad PCD header: unknown DATA mode {mode!r} (ascii, binary, binary_compressed)")
+
+    columns: dict[str, np.ndarray] = {}
+    for i, column in reversed(list(raw_columns.items())):
+        name = fields[i]
+        if name in ("rgb", "rgba"):
+            packed = (
+                np.ascontiguousarray(column, dtype=np.float32).view(np.uint32)
+                if codes[i] == "f4"
+                else np.asarray(column).astype(np.uint32)
+            )
+            columns["red"] = ((packed >> 16) & 255).astype(np.uint8)
+            columns["green"] = ((packed >> 8) & 255).astype(np.uint8)
+            columns["blue"] = (packed & 255).astype(np.uint8)
+        elif name != "_":
+            columns[name] = column
+    return _cloud_from_columns(path, columns, "PCD")
+
+
+def _read_with_open3d(path: Path) -> _RawCloud:
+    """Read a file with Open3D (used for ``binary_compressed`` PCD): points and colours."""
+    import open3d as o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.io.read_point_cloud(str(path), format=path.suffix.lower().lstrip("."))
+    if cloud.is_empty():
+        raise _error(path, "open3d could not read this binary_compressed PCD, or it holds no points")
+    colors = None
+    if cloud.has_colors():
+        colors = np.round(np.clip(np.asarray(cloud.colors), 0.0, 1.0) * 255.0).astype(np.uint8)
+    return _RawCloud(points=np.asarray(cloud.points, dtype=np.float64), colors=colors)
+
+
+# ----------------------------------------------------------------------------------------------
+# ASCII tables, LAS/LAZ, KITTI, numpy
+# ----------------------------------------------------------------------------------------------
+
+_TOKEN_SPLIT = re.compile(r"[,;\s]+")
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _read_text(path: Path) -> _RawCloud:
+    is_pts = path.suffix.lower() == ".pts"
+    rows = []
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        line = line.strip()
+        if not line or line.startswith("#") or (is_pts and line.isdigit()):
+            continue
+        rows.append(line)
+    if not rows:
+        return _RawCloud(points=np.zeros((0, 3)))
+    names = None
+    first = [token for token in _TOKEN_SPLIT.split(rows[0]) if token]
+    if not any(_is_number(token) for token in first):  # a header line of column names
+        names = [token.lstrip("/").lower() for token in first]
+        rows = rows[1:]
+    if not rows:
+        return _RawCloud(points=np.zeros((0, 3)))
+    delimiter = "," if "," in rows[0] else (";" if ";" in rows[0] else None)
+    num_columns = len([token for token in _TOKEN_SPLIT.split(rows[0]) if token])
+    if num_columns < 3:
+        raise _error(path, f"expected at least 3 columns (x y z) per line, got {num_columns}")
+    values = _load_rows(path, rows, num_columns, "point table", delimiter)
+    if names is not None and len(names) == num_columns and all(axis in names for axis in "xyz"):
+        columns = {name: values[:, i] for i, name in reversed(list(enumerate(names)))}
+        return _cloud_from_columns(path, columns, "point table")
+    cloud = _RawCloud(points=values[:, :3].copy())
+    if num_columns in (4, 5, 7, 8):
+        cloud.intensity = values[:, 3].astype(np.float32)
+    if num_columns == 6 or num_columns >= 9:
+        cloud.colors = _colors_to_uint8(values[:, 3:6])
+    elif num_columns == 7:
+        cloud.colors = _colors_to_uint8(values[:, 4:7])
+    return cloud
+
+
+def _read_las(path: Path) -> _RawCloud:
+    import laspy
+
+    try:
+        las = laspy.read(path)
+    except Exception as exc:  # laspy raises several types for corrupt files
+        reason = f"{type(exc).__name__}: {exc}"
+        raise _error(path, f"cannot read LAS/LAZ (corrupt or truncated): {reason}") from exc
+    declared = int(las.header.point_count)
+    points = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
+    if len(points) != declared:
+        raise _error(path, f"truncated LAS/LAZ: the header declares {declared} points, read {len(points)}")
+    dims = set(las.point_format.dimension_names)
+    colors = None
+    if {"red", "green", "blue"} <= dims:
+        colors = _colors_to_uint8(
+            np.column_stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)])
+        )
+    intensity = np.asarray(las.intensity, dtype=np.float32) if "intensity" in dims else None
+    return _RawCloud(points=points, colors=colors, intensity=intensity)
+
+
+def _read_kitti_bin(path: Path) -> _RawCloud:
+    size = path.stat().st_size
+    if size % 16:
+        raise _error(
+            path,
+            f"not a KITTI velodyne scan: {size} bytes is not a multiple of 16 "
+            "(float32 x, y, z, intensity records)",
+        )
+    values = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    return _RawCloud(points=values[:, :3].astype(np.float64), intensity=values[:, 3].copy())
+
+
+def _read_npy(path: Path) -> _RawCloud:
+    with path.open("rb") as handle:
+        magic = handle.read(6)
+    if magic != b"\x93NUMPY":
+        raise _error(path, "not a .npy file (bad magic bytes)")
+    try:
+        array = np.load(path, allow_pickle=False)
+    except Exception as exc:  # truncated or corrupt .npy
+        raise _error(path, f"corrupt .npy file: {type(exc).__name__}: {exc}") from exc
+    if array.dtype.kind not in "fiu" or array.ndim != 2 or array.shape[1] < 3:
+        raise _error(
+            path, f"expected a numeric array of shape (N, 3) or (N, >=4), got {array.dtype} {array.shape}"
+        )
+    intensity = array[:, 3].astype(np.float32) if array.shape[1] >= 4 else None
+    return _RawCloud(points=array[:, :3].astype(np.float64), intensity=intensity)
+
+
+def _read_npz(path: Path) -> _RawCloud:
+    with path.open("rb") as handle:
+        magic = handle.read(4)
+    if magic != b"PK\x03\x04":
+        raise _error(path, "not an .npz archive (no zip signature)")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            keys = list(archive.files)
+            arrays = {
+                key: archive[key]
+                for key in ("points", "boxes", "labels", "colors", "intensity")
+                if key in keys
+            }
+    except Exception as exc:  # zipfile.BadZipFile, zlib.error, ValueError (pickled objects), ...
+        raise _error(path, f"broken .npz archive: {type(exc).__name__}: {exc}") from exc
+
+    if "points" not in arrays:
+        raise _error(path, f"the .npz has no 'points' array (keys: {', '.join(keys) or 'none'})")
+    points = arrays["points"]
+    if points.dtype.kind not in "fiu" or points.ndim != 2 or points.shape[1] != 3:
+        raise _error(path, f"points: expected a numeric (N, 3) array, got {points.dtype} {points.shape}")
+    num = len(points)
+    cloud = _RawCloud(points=points.astype(np.float64))
+
+    if ("boxes" in arrays) != ("labels" in arrays):
+        raise _error(path, "the .npz must hold both 'boxes' and 'labels' or neither")
+    if "boxes" in arrays:
+        boxes, labels = arrays["boxes"], arrays["labels"]
+        if boxes.dtype.kind not in "fiu" or boxes.ndim != 2 or boxes.shape[1] != 7:
+            raise _error(path, f"boxes: expected a numeric (M, 7) array, got {boxes.dtype} {boxes.shape}")
+        if labels.dtype.kind not in "US" or labels.ndim != 1:
+            raise _error(path, f"labels: expected a 1-D string array, got {labels.dtype} {labels.shape}")
+        if len(labels) != len(boxes):
+            raise _error(path, f"labels: {len(labels)} labels for {len(boxes)} boxes")
+        names = [
+            label.decode("utf-8", "replace") if isinstance(label, bytes) else str(label)
+            for label in labels.tolist()
+        ]
+        empty = [i for i, name in enumerate(names) if not name.strip()]
+        if empty:
+            raise _error(path, f"labels: {len(empty)} empty class names (boxes {empty[:10]})")
+        cloud.boxes, cloud.labels = boxes.astype(np.float64), names
+
+    if "colors" in arrays:
+        colors = arrays["colors"]
+        if colors.ndim != 2 or colors.shape != (num, 3):
+            raise _error(path, f"colors: expected shape ({num}, 3) for {num} points, got {colors.shape}")
+        cloud.colors = _colors_to_uint8(colors)
+        if cloud.colors is None:
+            raise _error(path, "colors: expected uint8 RGB, integers 0-255 or floats in [0, 1]")
+    if "intensity" in arrays:
+        intensity = arrays["intensity"]
+        if intensity.dtype.kind not in "fiu" or intensity.shape != (num,):
+            raise _error(
+                path, f"intensity: expected a numeric ({num},) array, got {intensity.dtype} {intensity.shape}"
+            )
+        cloud.intensity = intensity.astype(np.float32)
+    return cloud
+
+
+_READERS: dict[str, Callable[[Path], _RawCloud]] = {
+    ".ply": _read_ply,
+    ".pcd": _read_pcd,
+    ".xyz": _read_text,
+    ".txt": _read_text,
+    ".pts": _read_text,
+    ".csv": _read_text,
+    ".las": _read_las,
+    ".laz": _read_las,
+    ".bin": _read_kitti_bin,
+    ".npy": _read_npy,
+    ".npz": _read_npz,
+}
+
+
+# ----------------------------------------------------------------------------------------------
+# Frame assembly
+# ----------------------------------------------------------------------------------------------
+
+
+def _vocabulary(path: Path, labels: list[str], class_names: Sequence[str] | None) -> tuple[str, ...]:
+    if class_names is not None:
+        vocab = tuple(str(name) for name in class_names)
+        unknown = sorted(set(labels) - set(vocab))
+        if unknown:
+            raise _error(path, f"unknown class names {unknown}; known class names: {list(vocab)}")
+        return vocab
+    return tuple(sorted(set(labels))) if labels else CLASS_NAMES
+
+
+def _build_frame(path: Path, cloud: _RawCloud, class_names: Sequence[str] | None) -> Frame:
+    points = np.asarray(cloud.points, dtype=np.float64).reshape(-1, 3)
+    num = len(points)
+    if num == 0:
+        raise _error(path, "empty point cloud (0 points)")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise _error(path, f"{int(bad.sum())} of {num} points have NaN or Inf coordinates")
+    if cloud.intensity is not None and not np.isfinite(cloud.intensity).all():
+        count = int((~np.isfinite(cloud.intensity)).sum())
+        raise _error(path, f"{count} of {num} intensity values are NaN or Inf")
+
+    offset = np.zeros(3)
+    if np.abs(points).max() > LARGE_COORDINATE_M:
+        offset = np.round(points.mean(axis=0))
+    local = (points - offset).astype(np.float32)
+
+    labels = cloud.labels or []
+    vocab = _vocabulary(path, labels, class_names)
+    boxes = np.zeros((0, 7)) if cloud.boxes is None else np.array(cloud.boxes, dtype=np.float64)
+    if len(boxes):
+        bad_boxes = ~np.isfinite(boxes).all(axis=1)
+        if bad_boxes.any():
+            raise _error(path, f"{int(bad_boxes.sum())} of {len(boxes)} boxes hold NaN or Inf values")
+        if (boxes[:, 3:6] < 0).any():
+            raise _error(path, f"{int((boxes[:, 3:6] < 0).any(axis=1).sum())} boxes have negative sizes")
+        boxes[:, :3] -= offset
+    index = {name: i for i, name in reversed(list(enumerate(vocab)))}
+    point_instance_ids = np.zeros(num, np.int64)
+    num_inside = np.zeros(len(boxes), np.int64)
+    for i, box in enumerate(boxes):
+        inside = points_in_box(local, box)
+        num_inside[i] = int(inside.sum())
+        point_instance_ids[inside & (point_instance_ids == 0)] = i + 1
+    box_labels = BoxLabels(
+        boxes=boxes,
+        class_ids=np.array([index[name] for name in labels], dtype=np.int32),
+        instance_ids=np.arange(1, len(boxes) + 1, dtype=np.int64),
+        num_points=num_inside,
+    )
+    try:
+        return Frame(
+            name=path.name,
+            points=local,
+            sensor_ids=np.zeros(num, np.int16),
+            T_vehicle_sensor=np.eye(4)[None],
+            T_world_vehicle=np.eye(4),
+            labels=box_labels,
+            point_instance_ids=point_instance_ids,
+            class_names=vocab,
+            colors=cloud.colors,
+            intensity=cloud.intensity,
+            origin_offset=offset,
+        )
+    except InputError as exc:
+        raise _error(path, str(exc)) from exc
+
+
+def read_frame(path: str | os.PathLike, *, class_names: Sequence[str] | None = None) -> Frame:
+    """Read one point-cloud file as a one-sensor ``Frame``.
+
+    Args:
+        path: a file whose suffix is in ``SUPPORTED_SUFFIXES`` (case-insensitive).
+        class_names: class vocabulary for the boxes of an ``.npz`` scene. ``None`` takes the sorted
+            unique labels of the file (``CLASS_NAMES`` when the file has no boxes).
+
+    Returns:
+        A frame named after the file with ``points`` (N, 3) float32 (recentred by
+        ``origin_offset`` (3,) float64 when a coordinate exceeds ``LARGE_COORDINATE_M``),
+        ``sensor_ids`` (N,) all 0, identity ``T_vehicle_sensor`` (1, 4, 4) and ``T_world_vehicle``
+        (4, 4), optional ``colors`` (N, 3) uint8 and ``intensity`` (N,) float32. For ``.npz`` the
+        boxes become ``labels`` (M, 7) with instance ids 1..M, and ``point_instance_ids`` (N,) holds
+        the id of the first box containing each point, 0 for none.
+
+    Raises:
+        InputError: one line naming the file and the problem (missing, unsupported suffix,
+            truncated or corrupt, NaN/Inf coordinates, no points, wrong array shapes, unknown classes).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in _READERS:
+        kind = suffix or "(no suffix)"
+        raise _error(path, f"unsupported file type {kind!r}; supported: {_supported_list()}")
+    if not path.exists():
+        raise _error(path, "file not found")
+    if not path.is_file():
+        raise _error(path, "not a regular file")
+    try:
+        cloud = _READERS[suffix](path)
+    except InputError:
+        raise
+    except OSError as exc:
+        raise _error(path, f"cannot read: {exc.strerror or exc}") from exc
+    except Exception as exc:  # any dependency failure on a corrupt file becomes one line
+        raise _error(path, f"cannot read {suffix} file: {type(exc).__name__}: {exc}") from exc
+    return _build_frame(path, cloud, class_names)
+
+
+# ----------------------------------------------------------------------------------------------
+# Writers
+# ----------------------------------------------------------------------------------------------
+
+
+def _world_points(frame: Frame) -> np.ndarray:
+    """(N, 3) float64 points in the vehicle frame with ``origin_offset`` added back."""
+    points = frame.points.astype(np.float64)
+    for sensor, transform in enumerate(frame.T_vehicle_sensor):
+        if not np.array_equal(transform, np.eye(4)):
+            mask = frame.sensor_ids == sensor
+            points[mask] = points[mask] @ transform[:3, :3].T + transform[:3, 3]
+    return points + frame.origin_offset
+
+
+@contextlib.contextmanager
+def _atomic(path: Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path`` (same suffix) and move it onto ``path`` on success."""
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _float_dtype(frame: Frame) -> type[np.floating]:
+    """float64 when the frame was recentred (so the offset survives), else float32."""
+    return np.float64 if np.any(frame.origin_offset != 0) else np.float32
+
+
+def _write_ply(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
+    fields: list[tuple[str, str, str]] = [(axis, "<f8", "double") for axis in "xyz"]
+    if frame.colors is not None:
+        fields += [(name, "u1", "uchar") for name in ("red", "green", "blue")]
+    if frame.intensity is not None:
+        fields.append(("intensity", "<f4", "float"))
+    records = np.empty(len(points), dtype=[(name, code) for name, code, _ in fields])
+    for axis, name in enumerate("xyz"):
+        records[name] = points[:, axis]
+    if frame.colors is not None:
+        for channel, name in enumerate(("red", "green", "blue")):
+            records[name] = frame.colors[:, channel]
+    if frame.intensity is not None:
+        records["intensity"] = frame.intensity
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment written by factorydet_core",
+        f"element vertex {len(points)}",
+    ]
+    header += [f"property {ply_type} {name}" for name, _, ply_type in fields]
+    header.append("end_header\n")
+    with _atomic(path) as tmp, tmp.open("wb") as handle:
+        handle.write("\n".join(header).encode("ascii"))
+        handle.write(records.tobytes())
+
+
+def _write_pcd(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
+    coord = "<f8" if _float_dtype(frame) is np.float64 else "<f4"
+    fields: list[tuple[str, str]] = [("x", coord), ("y", coord), ("z", coord)]
+    if frame.intensity is not None:
+        fields.append(("intensity", "<f4"))
+    if frame.colors is not None:
+        fields.append(("rgb", "<u4"))
+    records = np.empty(len(points), dtype=fields)
+    for axis, name in enumerate("xyz"):
+        records[name] = points[:, axis]
+    if frame.intensity is not None:
+        records["intensity"] = frame.intensity
+    if frame.colors is not None:
+        rgb = frame.colors.astype(np.uint32)
+        records["rgb"] = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
+    sizes = " ".join(str(np.dtype(code).itemsize) for _, code in fields)
+    # rgb is declared as a float (TYPE F), the PCL convention for packed colour.
+    types = " ".join("F" for _ in fields)
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format (written by factorydet_core)\nVERSION 0.7\n"
+        f"FIELDS {' '.join(name for name, _ in fields)}\nSIZE {sizes}\nTYPE {types}\n"
+        f"COUNT {' '.join('1' for _ in fields)}\nWIDTH {len(points)}\nHEIGHT 1\n"
+        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA binary\n"
+    )
+    with _atomic(path) as tmp, tmp.open("wb") as handle:
+        handle.write(header.encode("ascii"))
+        handle.write(records.tobytes())
+
+
+def _write_text(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
+    columns, formats, names = [points], ["%.6f"] * 3, ["x", "y", "z"]
+    if frame.intensity is not None:
+        columns.append(frame.intensity.astype(np.float64)[:, None])
+        formats.append("%.9g")
+        names.append("intensity")
+    if frame.colors is not None:
+        columns.append(frame.colors.astype(np.float64))
+        formats += ["%d"] * 3
+        names += ["red", "green", "blue"]
+    suffix = path.suffix.lower()
+    delimiter = "," if suffix == ".csv" else " "
+    with _atomic(path) as tmp, tmp.open("w", encoding="utf-8") as handle:
+        if suffix == ".pts":
+            handle.write(f"{len(points)}\n")
+        else:
+            handle.write(f"# {' '.join(names)}\n")
+        np.savetxt(handle, np.hstack(columns), fmt=formats, delimiter=delimiter)
+
+
+def _write_las(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
+    import laspy
+
+    header = laspy.LasHeader(point_format=2 if frame.colors is not None else 0, version="1.2")
+    offsets = np.round(points.mean(axis=0)) if len(points) else np.zeros(3)
+    if len(points) and np.abs(points - offsets).max() / LAS_SCALE >= 2**31 - 1:
+        raise _error(path, f"the cloud spans too far for LAS integer coordinates at scale {LAS_SCALE} m")
+    header.scales = np.full(3, LAS_SCALE)
+    header.offsets = offsets
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    if frame.intensity is not None:
+        las.intensity = np.clip(np.round(frame.intensity), 0, 65535).astype(np.uint16)
+    if frame.colors is not None:
+        colors16 = frame.colors.astype(np.uint16) * 257
+        las.red, las.green, las.blue = colors16[:, 0], colors16[:, 1], colors16[:, 2]
+    with _atomic(path) as tmp:
+        las.write(str(tmp), do_compress=path.suffix.lower() == ".laz")
+
+
+def _write_kitti_bin(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
+    intensity = np.zeros(len(points)) if frame.intensity is None else frame.intensity
+    with _atomic(path) as tmp:
+        np.column_stack([points, intensity]).astype("<f4").tofile(tmp)
+
+
+def _write_npy(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
+    array = points if frame.intensity is None else np.column_stack([points, frame.intensity])
+    with _atomic(path) as tmp, tmp.open("wb") as handle:
+        np.save(handle, array.astype(_float_dtype(frame)), allow_pickle=False)
+
+
+def _write_npz(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
+    dtype = _float_dtype(frame)
+    labels = [frame.class_names[i] for i in frame.labels.class_ids.tolist()]
+    arrays: dict[str, np.ndarray] = {
+        "points": points.astype(dtype),
+        "boxes": boxes.astype(dtype),
+        "labels": np.array(labels, dtype=np.str_),
+    }
+    if frame.colors is not None:
+        arrays["colors"] = np.asarray(frame.colors, dtype=np.uint8)
+    if frame.intensity is not None:
+        arrays["intensity"] = np.asarray(frame.intensity, dtype=np.float32)
+    arrays["point_instance"] = np.asarray(frame.point_instance_ids, dtype=np.int64)
+    arrays["coordinate_note"] = np.array(
+        "written by factorydet_core; boxes are (cx, cy, cz, dx, dy, dz, yaw), z up, metres, "
+        "yaw counter-clockwise about +z"
+    )
+    save_npz(path, arrays)
+
+
+_WRITERS: dict[str, Callable[[Path, Frame, np.ndarray, np.ndarray], None]] = {
+    ".ply": _write_ply,
+    ".pcd": _write_pcd,
+    ".xyz": _write_text,
+    ".txt": _write_text,
+    ".pts": _write_text,
+    ".csv": _write_text,
+    ".las": _write_las,
+    ".laz": _write_las,
+    ".bin": _write_kitti_bin,
+    ".npy": _write_npy,
+    ".npz": _write_npz,
+}
+
+
+def write_frame(path: str | os.PathLike, frame: Frame) -> None:
+    """Write ``frame`` to one file, the format picked by the suffix of ``path``.
+
+    Points (N, 3) are moved into the vehicle frame with ``T_vehicle_sensor`` and get
+    ``origin_offset`` added back in float64; boxes (M, 7) get the same offset. What each format keeps:
+
+    - ``.ply``: binary little endian, x, y, z double, red/green/blue uchar, intensity float.
+    - ``.pcd``: binary, x, y, z float (double when the frame was recentred), intensity, packed rgb.
+    - ``.xyz``, ``.txt``, ``.csv``, ``.pts``: ascii ``x y z [intensity] [r g b]`` (6 decimals).
+    - ``.las``, ``.laz``: scale ``LAS_SCALE``, colours as 16-bit, intensity rounded to uint16.
+    - ``.bin``: KITTI float32 (N, 4), intensity 0 when the frame has none.
+    - ``.npy``: (N, 3) or (N, 4) with intensity, float64 when the frame was recentred.
+    - ``.npz``: the neutral scene format (points, boxes, labels, colors, intensity) via ``save_npz``.
+
+    Only ``.npz`` keeps boxes and labels. The file is replaced atomically.
+
+    Raises:
+        InputError: unsupported suffix, a cloud too large for the format, or the file cannot be written.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in _WRITERS:
+        kind = suffix or "(no suffix)"
+        raise _error(path, f"cannot write file type {kind!r}; supported: {_supported_list()}")
+    points = _world_points(frame)
+    boxes = np.array(frame.labels.boxes, dtype=np.float64)
+    boxes[:, :3] += frame.origin_offset
+    try:
+        _WRITERS[suffix](path, frame, points, boxes)
+    except OSError as exc:
+        raise _error(path, f"cannot write: {exc.strerror or exc}") from exc

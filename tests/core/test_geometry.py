@@ -1,0 +1,71 @@
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from factorydet_core.geometry import (
+    box_corners,
+    box_wireframe_segments,
+    invert_transform,
+    make_transform,
+    points_in_box,
+    rotation_angle_deg,
+    rotation_ypr,
+    transform_boxes,
+    wrap_angle,
+)
+
+finite = st.floats(-50, 50, allow_nan=False)
+size = st.floats(0.05, 10, allow_nan=False)
+angle = st.floats(-np.pi, np.pi, allow_nan=False)
+boxes = st.tuples(finite, finite, finite, size, size, size, angle).map(
+    lambda t: np.array(t, dtype=np.float64)
+)
+
+
+@given(boxes)
+def test_corners_lie_on_the_box_surface(box):
+    corners = box_corners(box[None])[0]
+    assert points_in_box(corners, box, margin=1e-6).all()
+    assert not points_in_box(corners, box, margin=-1e-3).any()
+    np.testing.assert_allclose(corners.mean(0), box[:3], atol=1e-9)
+
+
+@given(boxes)
+def test_yaw_turns_the_dx_edge_counter_clockwise(box):
+    corners = box_corners(box[None])[0]
+    dx_edge = corners[0] - corners[1]  # corners 0 and 1 differ along the box's x axis
+    np.testing.assert_allclose(np.linalg.norm(dx_edge), box[3], rtol=1e-9)
+    assert abs(wrap_angle(np.arctan2(dx_edge[1], dx_edge[0]) - box[6])) < 1e-6
+
+
+@given(boxes, finite, finite, angle)
+@settings(max_examples=50)
+def test_moving_a_box_moves_its_points_with_it(box, tx, ty, yaw):
+    rng = np.random.default_rng(0)
+    local = (rng.uniform(-0.49, 0.49, (50, 3))) * box[3:6]
+    points = local @ rotation_ypr(box[6], 0, 0).T + box[:3]
+    assert points_in_box(points, box).all()
+    transform = make_transform(rotation_ypr(yaw, 0, 0), np.array([tx, ty, 0.3]))
+    moved_points = points @ transform[:3, :3].T + transform[:3, 3]
+    assert points_in_box(moved_points, transform_boxes(transform, box[None])[0], margin=1e-6).all()
+
+
+@given(angle, st.floats(-0.5, 0.5), st.floats(-0.5, 0.5), finite, finite, finite)
+def test_inverse_transform_composes_to_identity(yaw, pitch, roll, x, y, z):
+    transform = make_transform(rotation_ypr(yaw, pitch, roll), np.array([x, y, z]))
+    np.testing.assert_allclose(invert_transform(transform) @ transform, np.eye(4), atol=1e-9)
+    assert rotation_angle_deg(transform[:3, :3], transform[:3, :3]) < 1e-5
+
+
+def test_wireframe_has_twelve_edges_per_box():
+    segments = box_wireframe_segments(np.array([[0, 0, 0, 2, 1, 1, 0.0], [5, 5, 0, 1, 1, 1, 1.0]]))
+    assert segments.shape == (24, 2, 3)
+    lengths = np.linalg.norm(segments[:12, 1] - segments[:12, 0], axis=1)
+    assert sorted(np.round(lengths, 9).tolist()) == [1.0] * 8 + [2.0] * 4
+
+
+def test_transform_boxes_refuses_tilting_transforms():
+    import pytest
+
+    with pytest.raises(ValueError, match="z up"):
+        transform_boxes(make_transform(rotation_ypr(0, 0.3, 0), np.zeros(3)), np.zeros((1, 7)) + 1)
