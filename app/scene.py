@@ -15,7 +15,9 @@ def point_colors(frame: Frame, points_z: np.ndarray, mode: str) -> np.ndarray:
     """(N, 3) uint8 colours of the frame's points in colour ``mode``."""
     if mode == "sensor":
         return colors.colors_by_sensor(frame.sensor_ids, frame.num_sensors)
-    if mode == "height":
+    if mode == "rgb" and frame.colors is not None:
+        return np.asarray(frame.colors)
+    if mode in ("height", "rgb"):
         return colors.colors_by_height(points_z)
     if mode == "class":
         return colors.colors_by_class(frame.point_class_ids, frame.class_names)

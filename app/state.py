@@ -21,7 +21,10 @@ class AppState:
         self.dataset = dataset
         self.lock = threading.RLock()
         self.frame_index = 0
-        self.color_mode = "sensor" if dataset.num_sensors > 1 else "height"
+        first = dataset.frame(0)
+        self.color_mode = (
+            "sensor" if dataset.num_sensors > 1 else ("rgb" if first.colors is not None else "height")
+        )
         self.point_size = 0.04
         self.show_boxes = True
         self.num_frame_changes = 0

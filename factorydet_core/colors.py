@@ -6,7 +6,8 @@ import numpy as np
 
 from .types import CLASS_NAMES
 
-COLOR_MODES = ("sensor", "height", "class", "annotated")
+COLOR_MODES = ("sensor", "height", "class", "annotated", "rgb")
+"""Ways to colour a cloud; ``rgb`` uses the file's own colours and falls back to height without them."""
 
 # One distinct colour per paper class, in CLASS_NAMES order (colour-blind-safe Okabe-Ito-like set).
 _CLASS_PALETTE = np.array(

@@ -10,7 +10,13 @@ from factorydet_core.colors import COLOR_MODES
 
 from ..state import AppState
 
-_MODE_LABELS = {"sensor": "Sensor", "height": "Height", "class": "Class", "annotated": "Annotated / not"}
+_MODE_LABELS = {
+    "sensor": "Sensor",
+    "height": "Height",
+    "class": "Class",
+    "annotated": "Annotated / not",
+    "rgb": "Colour (RGB)",
+}
 
 
 @dataclasses.dataclass
