@@ -16,6 +16,7 @@ def _cmd_app(args: argparse.Namespace) -> int:
 
     if args.data is not None:
         dataset = open_dataset(args.data)
+        title = dataset.name
     else:
         session = open_session(args.session, args.root)
         if not session.has_data:
@@ -27,7 +28,8 @@ def _cmd_app(args: argparse.Namespace) -> int:
             finally:
                 close()
         dataset = open_dataset(session.data_dir)
-    serve(dataset, host=args.host, port=args.port)
+        title = f"session {session.name}"
+    serve(dataset, host=args.host, port=args.port, title=title)
     return 0
 
 

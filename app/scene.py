@@ -12,7 +12,7 @@ from factorydet_core.types import Frame
 
 
 def point_colors(frame: Frame, points_z: np.ndarray, mode: str) -> np.ndarray:
-    """(N, 3) uint8 colours of the frame's points in colour ``mode``."""
+    """(N, 3) uint8 colours of all the frame's points in colour ``mode``."""
     if mode == "sensor":
         return colors.colors_by_sensor(frame.sensor_ids, frame.num_sensors)
     if mode == "rgb" and frame.colors is not None:
@@ -39,10 +39,14 @@ class SceneView:
         server.scene.configure_environment_map(None)
         server.scene.add_grid("/grid", width=60.0, height=60.0, cell_size=1.0, section_size=5.0, plane="xy")
 
-    def draw(self, frame: Frame, *, color_mode: str, point_size: float, show_boxes: bool) -> None:
-        """Replace the shown scan and boxes with ``frame``'s."""
+    def draw(
+        self, frame: Frame, *, color_mode: str, point_size: float, show_boxes: bool, max_height: float
+    ) -> None:
+        """Replace the shown scan and boxes with ``frame``'s, points above ``max_height`` hidden."""
         merged = merge_frame(frame)
         rgb = point_colors(frame, merged.points[:, 2], color_mode)
+        keep = merged.below(max_height)
+        merged, rgb = merged.select(keep), rgb[keep]
         with self.server.atomic():
             self._cloud = self.server.scene.add_point_cloud(
                 "/scan",

@@ -17,8 +17,9 @@ from factorydet_core.types import Frame
 class AppState:
     """Which frame is shown and how; listeners run after every change (under no lock)."""
 
-    def __init__(self, dataset: Dataset) -> None:
+    def __init__(self, dataset: Dataset, title: str | None = None) -> None:
         self.dataset = dataset
+        self.title = title or dataset.name
         self.lock = threading.RLock()
         self.frame_index = 0
         first = dataset.frame(0)
@@ -27,6 +28,7 @@ class AppState:
         )
         self.point_size = 0.04
         self.show_boxes = True
+        self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
         self.num_frame_changes = 0
         self._listeners: list[Callable[[], None]] = []
         self.changed = threading.Condition(self.lock)
@@ -64,7 +66,9 @@ class AppState:
         color_mode: str | None = None,
         point_size: float | None = None,
         show_boxes: bool | None = None,
+        max_height: float | None = None,
     ) -> None:
+        """Change how the frame is drawn; ``None`` leaves a setting as it is."""
         with self.lock:
             if color_mode is not None:
                 if color_mode not in COLOR_MODES:
@@ -74,6 +78,8 @@ class AppState:
                 self.point_size = float(point_size)
             if show_boxes is not None:
                 self.show_boxes = bool(show_boxes)
+            if max_height is not None:
+                self.max_height = float(max_height)
             self.changed.notify_all()
         self._notify()
 

@@ -22,9 +22,9 @@ class FactorydetApp:
         dataset: the data set to show.
     """
 
-    def __init__(self, server: viser.ViserServer, dataset: Dataset) -> None:
+    def __init__(self, server: viser.ViserServer, dataset: Dataset, title: str | None = None) -> None:
         self.server = server
-        self.state = AppState(dataset)
+        self.state = AppState(dataset, title)
         self.scene = SceneView(server)
         self._draw_lock = threading.Lock()  # one redraw at a time; the last one wins
         server.gui.configure_theme(control_width="medium", dark_mode=False)
@@ -42,11 +42,18 @@ class FactorydetApp:
         """Bring the scene and the panels up to date with the state."""
         with self._draw_lock:
             with self.state.lock:
-                key = (self.state.frame_index, self.state.color_mode, self.state.show_boxes)
+                key = (
+                    self.state.frame_index,
+                    self.state.color_mode,
+                    self.state.show_boxes,
+                    self.state.max_height,
+                )
                 point_size = self.state.point_size
                 frame = self.state.frame
             if key != self._drawn:
-                self.scene.draw(frame, color_mode=key[1], point_size=point_size, show_boxes=key[2])
+                self.scene.draw(
+                    frame, color_mode=key[1], point_size=point_size, show_boxes=key[2], max_height=key[3]
+                )
                 self._drawn = key
             else:
                 self.scene.set_point_size(point_size)
@@ -54,12 +61,14 @@ class FactorydetApp:
             self.display_panel.refresh(self.state)
 
 
-def serve(dataset: Dataset, host: str = "127.0.0.1", port: int = 8080) -> None:
+def serve(dataset: Dataset, host: str = "127.0.0.1", port: int = 8080, title: str | None = None) -> None:
     """Serve the app until interrupted."""
     server = viser.ViserServer(host=host, port=port, label="factorydet")
-    FactorydetApp(server, dataset)
+    app = FactorydetApp(server, dataset, title)
     actual_port = server.get_port()
-    print(f"factorydet: serving {dataset.name} at http://{host}:{actual_port}  (Ctrl+C to stop)", flush=True)
+    print(
+        f"factorydet: serving {app.state.title} at http://{host}:{actual_port}  (Ctrl+C to stop)", flush=True
+    )
     if host not in ("127.0.0.1", "localhost", "::1"):
         print(
             "factorydet: warning: viser has no authentication; anyone who reaches this address can edit",

@@ -24,17 +24,20 @@ class DisplayPanel:
     color_mode: viser.GuiDropdownHandle
     point_size: viser.GuiSliderHandle
     show_boxes: viser.GuiCheckboxHandle
+    max_height: viser.GuiSliderHandle
 
     def refresh(self, state: AppState) -> None:
         """Show the state's display settings (another client or the code may have changed them)."""
         with state.lock:
-            mode, size, boxes = state.color_mode, state.point_size, state.show_boxes
+            mode, size, boxes, height = state.color_mode, state.point_size, state.show_boxes, state.max_height
         if self.color_mode.value != _MODE_LABELS[mode]:
             self.color_mode.value = _MODE_LABELS[mode]
         if self.point_size.value != size:
             self.point_size.value = size
         if self.show_boxes.value != boxes:
             self.show_boxes.value = boxes
+        if self.max_height.value != height:
+            self.max_height.value = height
 
 
 def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPanel:
@@ -47,6 +50,14 @@ def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPa
             "Point size (m)", min=0.005, max=0.2, step=0.005, initial_value=state.point_size
         )
         show_boxes = server.gui.add_checkbox("Show boxes", initial_value=state.show_boxes)
+        max_height = server.gui.add_slider(
+            "Hide above (m)",
+            min=0.5,
+            max=50.0,
+            step=0.5,
+            initial_value=state.max_height,
+            hint="Hide points higher than this, to look under the roof",
+        )
 
     @color_mode.on_update
     def _(_: viser.GuiEvent) -> None:
@@ -60,4 +71,8 @@ def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPa
     def _(_: viser.GuiEvent) -> None:
         state.set_display(show_boxes=bool(show_boxes.value))
 
-    return DisplayPanel(color_mode, point_size, show_boxes)
+    @max_height.on_update
+    def _(_: viser.GuiEvent) -> None:
+        state.set_display(max_height=float(max_height.value))
+
+    return DisplayPanel(color_mode, point_size, show_boxes, max_height)

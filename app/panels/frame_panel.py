@@ -25,7 +25,7 @@ class FramePanel:
             self.slider.value = index
         self.previous.disabled = index == 0
         self.next.disabled = index >= state.dataset.num_frames - 1
-        self.status.content = status_markdown(state.dataset.name, index, state.dataset.num_frames, frame)
+        self.status.content = status_markdown(state.title, index, state.dataset.num_frames, frame)
 
 
 def status_markdown(dataset_name: str, index: int, num_frames: int, frame) -> str:

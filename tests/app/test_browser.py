@@ -87,7 +87,7 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
 
     for name in ("Next frame", "Previous frame"):
         assert page.get_by_role("button", name=name).count() == 1
-    for label in ("Colour by", "Point size (m)", "Show boxes"):
+    for label in ("Colour by", "Point size (m)", "Show boxes", "Hide above (m)"):
         assert page.get_by_text(label, exact=True).count() >= 1
     page.get_by_text("frame 1 / 3", exact=False).wait_for(timeout=20_000)
 

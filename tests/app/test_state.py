@@ -20,8 +20,13 @@ def test_frame_changes_are_clamped_counted_and_announced(small_dataset_dir):
 def test_display_settings_are_validated(small_dataset_dir):
     state = AppState(open_dataset(small_dataset_dir))
     assert state.color_mode == "sensor"
-    state.set_display(color_mode="class", point_size=0.1, show_boxes=False)
-    assert (state.color_mode, state.point_size, state.show_boxes) == ("class", 0.1, False)
+    state.set_display(color_mode="class", point_size=0.1, show_boxes=False, max_height=3.0)
+    assert (state.color_mode, state.point_size, state.show_boxes, state.max_height) == (
+        "class",
+        0.1,
+        False,
+        3.0,
+    )
     with pytest.raises(ValueError, match="unknown colour mode"):
         state.set_display(color_mode="rainbow")
 

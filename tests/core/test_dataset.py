@@ -56,3 +56,13 @@ def test_truncated_frame_gives_a_clear_error(tmp_path, small_dataset_dir):
         open_dataset(tmp_path).frame(0)
     with pytest.raises(InputError, match="frame file missing"):
         open_dataset(tmp_path).frame(1)
+
+
+def test_merged_cloud_selection_keeps_rows_together(small_dataset_dir):
+    merged = merge_frame(open_dataset(small_dataset_dir).frame(0))
+    keep = merged.below(2.0)
+    assert 0 < keep.sum() < merged.num_points
+    low = merged.select(keep)
+    assert low.points[:, 2].max() <= 2.0 and low.num_points == keep.sum()
+    np.testing.assert_array_equal(low.sensor_ids, merged.sensor_ids[keep])
+    np.testing.assert_array_equal(low.point_instance_ids, merged.point_instance_ids[keep])
