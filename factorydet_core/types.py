@@ -159,19 +159,6 @@ class Frame:
     def num_points(self) -> int:
         return len(self.points)
 
-    def below(self, max_z: float) -> np.ndarray:
-        """(N,) bool mask of the points at or below ``max_z`` metres (to look under the roof)."""
-        return self.points[:, 2] <= max_z
-
-    def select(self, mask: np.ndarray) -> MergedCloud:
-        """A new cloud with the points where the (N,) ``mask`` holds."""
-        return dataclasses.replace(
-            self,
-            points=self.points[mask],
-            sensor_ids=self.sensor_ids[mask],
-            point_instance_ids=self.point_instance_ids[mask],
-        )
-
     @property
     def num_sensors(self) -> int:
         return len(self.T_vehicle_sensor)
