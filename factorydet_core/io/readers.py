@@ -40,6 +40,7 @@ import numpy as np
 
 from factorydet_core.geometry import points_in_box
 from factorydet_core.io.npz import save_npz
+from factorydet_core.merge import merge_frame
 from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
 
 SUPPORTED_SUFFIXES: tuple[str, ...] = (
@@ -493,11 +494,15 @@ def _read_kitti_bin(path: Path) -> _RawCloud:
     return _RawCloud(points=values[:, :3].astype(np.float64), intensity=values[:, 3].copy())
 
 
-def _read_npy(path: Path) -> _RawCloud:
+def _check_magic(path: Path, magic: bytes, problem: str) -> None:
+    """Raise unless the file starts with ``magic``: a clear error before a dependency's cryptic one."""
     with path.open("rb") as handle:
-        magic = handle.read(6)
-    if magic != b"\x93NUMPY":
-        raise _error(path, "not a .npy file (bad magic bytes)")
+        if handle.read(len(magic)) != magic:
+            raise _error(path, problem)
+
+
+def _read_npy(path: Path) -> _RawCloud:
+    _check_magic(path, b"\x93NUMPY", "not a .npy file (bad magic bytes)")
     try:
         array = np.load(path, allow_pickle=False)
     except Exception as exc:  # truncated or corrupt .npy
@@ -511,10 +516,7 @@ def _read_npy(path: Path) -> _RawCloud:
 
 
 def _read_npz(path: Path) -> _RawCloud:
-    with path.open("rb") as handle:
-        magic = handle.read(4)
-    if magic != b"PK\x03\x04":
-        raise _error(path, "not an .npz archive (no zip signature)")
+    _check_magic(path, b"PK\x03\x04", "not an .npz archive (no zip signature)")
     try:
         with np.load(path, allow_pickle=False) as archive:
             keys = list(archive.files)
@@ -705,12 +707,7 @@ def read_frame(path: str | os.PathLike, *, class_names: Sequence[str] | None = N
 
 def _world_points(frame: Frame) -> np.ndarray:
     """(N, 3) float64 points in the vehicle frame with ``origin_offset`` added back."""
-    points = frame.points.astype(np.float64)
-    for sensor, transform in enumerate(frame.T_vehicle_sensor):
-        if not np.array_equal(transform, np.eye(4)):
-            mask = frame.sensor_ids == sensor
-            points[mask] = points[mask] @ transform[:3, :3].T + transform[:3, 3]
-    return points + frame.origin_offset
+    return merge_frame(frame).points.astype(np.float64) + frame.origin_offset
 
 
 @contextlib.contextmanager

@@ -142,7 +142,7 @@ class FactorySimulator:
             [(o.instance_id, o.mesh.posed(*o.pose)) for o in self.factory.static_objects],
             self.factory.structure,
         )
-        self._class_by_id = {o.instance_id: o.class_id for o in self.factory.objects}
+        self._objects_by_id = {o.instance_id: o for o in self.factory.objects}
 
     def _choose_unannotated(self, rng: np.random.Generator) -> frozenset[int]:
         """The same objects stay unannotated in every frame: a per-class share of the instances."""
@@ -224,10 +224,11 @@ class FactorySimulator:
         ).astype(np.int32)
 
         instance_ids, counts = np.unique(point_instance_ids[point_instance_ids > 0], return_counts=True)
-        by_id = {o.instance_id: o for o in self.factory.objects}
         T_vehicle_world = invert_transform(T_world_vehicle)
-        world_boxes = np.array([by_id[int(i)].box_at(time_s) for i in instance_ids]).reshape(-1, 7)
-        class_ids = np.array([self._class_by_id[int(i)] for i in instance_ids], dtype=np.int32)
+        world_boxes = np.array([self._objects_by_id[int(i)].box_at(time_s) for i in instance_ids]).reshape(
+            -1, 7
+        )
+        class_ids = np.array([self._objects_by_id[int(i)].class_id for i in instance_ids], dtype=np.int32)
         annotated = (
             (class_ids >= 0)
             & (counts >= cfg.min_annotated_points)
