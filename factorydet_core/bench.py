@@ -81,3 +81,167 @@ def update_readme(readme: str | os.PathLike, result: dict) -> None:
     if not pattern.search(text):
         raise ValueError(f"{path}: no '<!-- bench:{name} -->' block to update")
     path.write_text(pattern.sub(lambda _: block, text))
+
+
+def _median(values: list[float]) -> float:
+    return round(float(statistics.median(values)), 1) if values else float("nan")
+
+
+def bench_features(points: np.ndarray, grid, reference_voxels: int = 200, seed: int = 0) -> dict:
+    """Feature throughput on a whole frame, and the speed-up over the float64 reference measured on
+    the same subset of voxels in the same run."""
+    from .features import fisher_vectors, fisher_vectors_reference
+    from .voxels import voxel_local_points
+
+    local = voxel_local_points(points, grid)
+    start = time.perf_counter()
+    fisher_vectors(local, grid.point_voxel_ids, grid.num_voxels)
+    full_s = time.perf_counter() - start
+    rng = np.random.default_rng(seed)
+    chosen = rng.choice(grid.num_voxels, min(reference_voxels, grid.num_voxels), replace=False)
+    remap = np.full(grid.num_voxels, -1)
+    remap[chosen] = np.arange(len(chosen))
+    mask = remap[grid.point_voxel_ids] >= 0
+    subset_points, subset_ids = local[mask], remap[grid.point_voxel_ids[mask]]
+    fast, slow = [], []
+    for _ in range(3):
+        start = time.perf_counter()
+        fast_fv = fisher_vectors(subset_points, subset_ids, len(chosen))
+        fast.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        slow_fv = fisher_vectors_reference(subset_points, subset_ids, len(chosen))
+        slow.append(time.perf_counter() - start)
+    return {
+        "points": int(len(points)),
+        "voxels": int(grid.num_voxels),
+        "seconds": round(full_s, 3),
+        "points_per_second": int(len(points) / full_s),
+        "voxels_per_second": int(grid.num_voxels / full_s),
+        "reference_subset_voxels": int(len(chosen)),
+        "speedup_over_reference": round(statistics.median(slow) / statistics.median(fast), 1),
+        "max_abs_error_vs_reference": float(np.abs(fast_fv - slow_fv).max()),
+    }
+
+
+def bench_pipeline(
+    data: str | os.PathLike,
+    *,
+    preset: str | None = None,
+    overrides: dict | None = None,
+    max_frames: int = 4,
+    iou_threshold: float | None = None,
+    min_points: int = 50,
+    calibrate: bool = True,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Stage times, feature throughput and per-class proposal recall of the front half.
+
+    On a simulated data set (a folder with ``truth/``) the reference is the hidden truth: every
+    instance of the seven classes with at least ``min_points`` points in the frame, annotated or not,
+    on the first ``max_frames`` test frames. On a single file it is the file's own boxes.
+    """
+    import dataclasses
+
+    from .boxes import fit_box
+    from .dataset import open_dataset
+    from .detector import PRESETS, Detector
+    from .evaluation import best_box_iou, best_point_iou, proposal_point_lists, recall_table
+
+    dataset = open_dataset(data)
+    simulated = (Path(data) / "truth").is_dir()
+    if preset is None:
+        preset = "agv" if simulated else "indoor"
+    if iou_threshold is None:
+        iou_threshold = 0.6 if simulated else 0.25
+    params = PRESETS[preset].replace(**(overrides or {}))
+    detector = Detector(params)
+    calibration = None
+    if simulated:
+        from .geometry import rotation_angle_deg
+        from .sim.truth import read_frame_truth, read_truth
+
+        test_frames = dataset.splits.get("test") or list(range(dataset.num_frames))
+        frame_indices = test_frames[:max_frames]
+        if calibrate and dataset.num_sensors > 1:
+            T_true = np.array(read_truth(data)["T_vehicle_sensor_true"])
+            start = time.perf_counter()
+            detector.calibrate(dataset.frame(frame_indices[0]))
+            calib_s = time.perf_counter() - start
+
+            def errors(T: np.ndarray) -> dict:
+                rot = [rotation_angle_deg(T[s, :3, :3], T_true[s, :3, :3]) for s in range(len(T))]
+                trans = np.linalg.norm(T[:, :3, 3] - T_true[:, :3, 3], axis=1)
+                return {"rotation_deg_median": round(float(np.median(rot)), 3),
+                        "translation_cm_median": round(float(np.median(trans)) * 100, 2)}  # fmt: skip
+
+            calibration = {
+                "nominal": errors(dataset.T_vehicle_sensor),
+                "refined": errors(detector.T_vehicle_sensor),
+                "residual_rmse_cm_before": round(float(np.nanmedian(detector.calibration_.rmse_before)) * 100, 2),
+                "residual_rmse_cm_after": round(float(np.nanmedian(detector.calibration_.rmse_after)) * 100, 2),
+                "seconds": round(calib_s, 2),
+            }
+    else:
+        frame_indices = [0]
+
+    def with_truth_ids(index: int):
+        frame = dataset.frame(index)
+        if not simulated:
+            return frame
+        truth = read_frame_truth(data, index)
+        return dataclasses.replace(frame, point_instance_ids=truth.point_instance_ids)
+
+    timings: dict[str, list[float]] = {}
+    class_ids, box_hits, point_hits, oracle_hits = [], [], [], []
+    num_proposals, features = [], None
+    for n, index in enumerate(frame_indices):
+        history = [with_truth_ids(i) for i in range(max(0, index - params.history_frames), index)]
+        result = detector.propose(with_truth_ids(index), history)
+        for stage, ms in result.timings_ms.items():
+            timings.setdefault(stage, []).append(ms)
+        num_proposals.append(len(result.proposals))
+        if features is None:
+            features = bench_features(result.cloud.points, result.grid)
+        if simulated:
+            truth = read_frame_truth(data, index)
+            keep = (truth.instance_class_ids >= 0) & (truth.instance_num_points >= min_points)
+            ref_boxes, ref_ids, ref_classes = (
+                truth.instance_boxes[keep], truth.instance_ids[keep], truth.instance_class_ids[keep]
+            )
+        else:
+            frame = dataset.frame(index)
+            ref_boxes, ref_ids, ref_classes = frame.labels.boxes, frame.labels.instance_ids, frame.labels.class_ids
+        class_ids.append(ref_classes)
+        box_hits.append(best_box_iou(ref_boxes, result.proposals.boxes) >= iou_threshold)
+        point_lists = proposal_point_lists(result.segmentation, result.proposals)
+        point_hits.append(best_point_iou(result.cloud, ref_ids, point_lists) >= iou_threshold)
+        # Upper bound of box fitting: the box fitted to the instance's own points.
+        oracle = np.zeros(len(ref_ids), bool)
+        for r, (inst, box) in enumerate(zip(ref_ids, ref_boxes)):
+            own = result.cloud.points[result.cloud.point_instance_ids == inst]
+            if len(own):
+                oracle[r] = best_box_iou(box[None], fit_box(own)[None])[0] >= iou_threshold
+        oracle_hits.append(oracle)
+        if progress is not None:
+            progress(n + 1, len(frame_indices))
+    class_ids = np.concatenate(class_ids)
+    names = dataset.class_names
+    return {
+        "benchmark": "pipeline" if simulated else "pipeline-real",
+        "command": command,
+        "data": Path(data).name,
+        "preset": preset,
+        "overrides": overrides or {},
+        "frames": [int(i) for i in frame_indices],
+        "iou_threshold": iou_threshold,
+        "stage_ms_median": {stage: _median(v) for stage, v in timings.items()},
+        "target_total_ms": 100,
+        "proposals_per_frame_median": int(statistics.median(num_proposals)),
+        "features": features,
+        "proposal_recall": recall_table(class_ids, np.concatenate(box_hits), names),
+        "segment_recall_point_iou": recall_table(class_ids, np.concatenate(point_hits), names),
+        "oracle_box_fit_recall": recall_table(class_ids, np.concatenate(oracle_hits), names),
+        "calibration": calibration,
+        "machine": machine_info(),
+    }

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+
 import numpy as np
 
-from .types import Frame, MergedCloud, check_array
+from .types import Frame, InputError, MergedCloud, check_array
 
 
 def merge_frame(frame: Frame, T_vehicle_sensor: np.ndarray | None = None) -> MergedCloud:
@@ -29,4 +32,215 @@ def merge_frame(frame: Frame, T_vehicle_sensor: np.ndarray | None = None) -> Mer
         sensor_ids=frame.sensor_ids,
         point_instance_ids=frame.point_instance_ids,
         T_vehicle_sensor=extrinsics,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class ExtrinsicRefinement:
+    """Result of refining each sensor's extrinsic by ICP against the other sensors."""
+
+    T_vehicle_sensor: np.ndarray
+    """(S, 4, 4) refined extrinsics (sensor frame -> vehicle frame)."""
+    rmse_before: np.ndarray
+    """(S,) inlier point-to-point RMSE of each sensor against the others with the input extrinsics, m."""
+    rmse_after: np.ndarray
+    """(S,) the same after refinement, m."""
+    fitness: np.ndarray
+    """(S,) share of each sensor's points that found a neighbour within the correspondence distance."""
+
+
+def _o3d_cloud(points: np.ndarray):
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.asarray(points, np.float64))
+    return cloud
+
+
+def refine_extrinsics(
+    frames: Frame | Sequence[Frame],
+    T_vehicle_sensor: np.ndarray | None = None,
+    *,
+    max_correspondence_m: float = 0.3,
+    downsample_m: float = 0.1,
+    rounds: int = 2,
+    max_iterations: int = 30,
+    remove_common_motion: bool = True,
+) -> ExtrinsicRefinement:
+    """Refine every sensor's extrinsic by point-to-plane ICP of its points against all other sensors.
+
+    The sensors of a rig overlap, so each sensor's points should lie on the surfaces the others see.
+    Each round aligns every sensor in turn to the union of the others (with their current
+    extrinsics). Extrinsics do not change between frames, so several frames of one trajectory can be
+    stacked (in the vehicle frame of each) to add constraints; this is a calibration step run once
+    per data set, not per frame.
+
+    Args:
+        frames: one frame or several frames of the same rig.
+        T_vehicle_sensor: (S, 4, 4) starting extrinsics; the frames' nominal ones by default.
+        max_correspondence_m: ICP correspondence distance; larger than the expected misalignment.
+        downsample_m: voxel size of the down-sampling applied before ICP.
+        rounds: passes over all sensors.
+        max_iterations: ICP iterations per sensor and round.
+        remove_common_motion: aligning sensors to each other cannot see a motion of the whole rig,
+            and such a motion drifts in; remove the mean correction, which assumes the calibration
+            errors of the starting extrinsics average out over the sensors.
+
+    Returns:
+        The refined extrinsics and each sensor's residual before and after.
+    """
+    import open3d as o3d
+
+    frames = [frames] if isinstance(frames, Frame) else list(frames)
+    if not frames:
+        raise InputError("refine_extrinsics: no frames given")
+    extrinsics = np.array(frames[0].T_vehicle_sensor if T_vehicle_sensor is None else T_vehicle_sensor)
+    num_sensors = len(extrinsics)
+    check_array(extrinsics, (None, 4, 4), name="T_vehicle_sensor", finite=True)
+    if num_sensors < 2:
+        raise InputError("refine_extrinsics: needs at least two sensors that overlap")
+    # Sensor-frame points per sensor, with the frame they came from; frames stay separate because
+    # the odometry between them is not trusted here.
+    per_sensor = [[f.points[f.sensor_ids == s].astype(np.float64) for f in frames] for s in range(num_sensors)]
+
+    def vehicle_points(sensor: int, frame_index: int, T: np.ndarray) -> np.ndarray:
+        local = per_sensor[sensor][frame_index]
+        return local @ T[sensor, :3, :3].T + T[sensor, :3, 3]
+
+    def residual(sensor: int, T: np.ndarray) -> tuple[float, float]:
+        sq_sum, num_inliers, num_total = 0.0, 0, 0
+        for f in range(len(frames)):
+            source = vehicle_points(sensor, f, T)
+            others = [vehicle_points(o, f, T) for o in range(num_sensors) if o != sensor]
+            if not len(source) or not sum(len(o) for o in others):
+                continue
+            source_cloud = _o3d_cloud(source).voxel_down_sample(downsample_m)
+            result = o3d.pipelines.registration.evaluate_registration(
+                source_cloud,
+                _o3d_cloud(np.concatenate(others)).voxel_down_sample(downsample_m),
+                max_correspondence_m,
+                np.eye(4),
+            )
+            num = len(source_cloud.points)
+            inliers = int(round(result.fitness * num))
+            sq_sum += result.inlier_rmse**2 * inliers
+            num_inliers += inliers
+            num_total += num
+        rmse = np.sqrt(sq_sum / num_inliers) if num_inliers else np.nan
+        return rmse, (num_inliers / num_total if num_total else 0.0)
+
+    rmse_before = np.array([residual(s, extrinsics)[0] for s in range(num_sensors)])
+    refined = extrinsics.copy()
+    criteria = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=max_iterations)
+    for _ in range(rounds):
+        for sensor in range(num_sensors):
+            sources, targets = [], []
+            for f in range(len(frames)):
+                source = vehicle_points(sensor, f, refined)
+                others = [vehicle_points(o, f, refined) for o in range(num_sensors) if o != sensor]
+                if len(source) and sum(len(o) for o in others):
+                    # Frames are offset far apart so that no correspondence crosses frames.
+                    offset = np.array([0.0, 0.0, 1000.0 * f])
+                    sources.append(source + offset)
+                    targets.append(np.concatenate(others) + offset)
+            if not sources:
+                continue
+            source_cloud = _o3d_cloud(np.concatenate(sources)).voxel_down_sample(downsample_m)
+            target_cloud = _o3d_cloud(np.concatenate(targets)).voxel_down_sample(downsample_m)
+            if len(source_cloud.points) < 10 or len(target_cloud.points) < 10:
+                continue
+            target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
+            result = o3d.pipelines.registration.registration_icp(
+                source_cloud,
+                target_cloud,
+                max_correspondence_m,
+                np.eye(4),
+                o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+                criteria,
+            )
+            refined[sensor] = result.transformation @ refined[sensor]
+    if remove_common_motion:
+        refined = _remove_common_correction(extrinsics, refined)
+    after = [residual(s, refined) for s in range(num_sensors)]
+    return ExtrinsicRefinement(
+        T_vehicle_sensor=refined,
+        rmse_before=rmse_before,
+        rmse_after=np.array([a[0] for a in after]),
+        fitness=np.array([a[1] for a in after]),
+    )
+
+
+def _remove_common_correction(start: np.ndarray, refined: np.ndarray) -> np.ndarray:
+    """Remove the mean rigid correction (rotation-vector mean, translation mean) from ``refined``."""
+    from scipy.spatial.transform import Rotation
+
+    corrections = refined @ np.linalg.inv(start)  # (S, 4, 4) in the vehicle frame
+    mean_rotation = Rotation.from_matrix(corrections[:, :3, :3]).mean().as_matrix()
+    mean = np.eye(4)
+    mean[:3, :3] = mean_rotation
+    mean[:3, 3] = corrections[:, :3, 3].mean(axis=0)
+    return np.linalg.inv(mean)[None] @ refined
+
+
+def accumulate(
+    frames: Sequence[Frame],
+    T_vehicle_sensor: np.ndarray | None = None,
+    *,
+    refine_with_icp: bool = False,
+    max_correspondence_m: float = 0.5,
+) -> MergedCloud:
+    """Merge the last frame with the frames before it into one dense cloud in the last frame's
+    vehicle frame (the paper's P = {P_(i-m) .. P_i} moved by N = {[R|T]}).
+
+    Args:
+        frames: frames in time order; the last one is the current frame.
+        T_vehicle_sensor: (S, 4, 4) extrinsics for every frame; each frame's nominal ones by default.
+        refine_with_icp: correct each earlier frame's odometry pose by point-to-plane ICP against the
+            current frame (odometry drifts).
+        max_correspondence_m: ICP correspondence distance.
+
+    Returns:
+        The accumulated cloud; ``frame_ages`` tells how many frames old each point is.
+    """
+    frames = list(frames)
+    if not frames:
+        raise InputError("accumulate: no frames given")
+    current = frames[-1]
+    current_cloud = merge_frame(current, T_vehicle_sensor)
+    parts = [current_cloud]
+    T_current_world = np.linalg.inv(current.T_world_vehicle)
+    target = None
+    for age, frame in enumerate(reversed(frames[:-1]), start=1):
+        cloud = merge_frame(frame, T_vehicle_sensor)
+        T_current_frame = T_current_world @ frame.T_world_vehicle
+        if refine_with_icp and cloud.num_points and current_cloud.num_points:
+            import open3d as o3d
+
+            if target is None:
+                target = _o3d_cloud(current_cloud.points).voxel_down_sample(0.1)
+                target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
+            result = o3d.pipelines.registration.registration_icp(
+                _o3d_cloud(cloud.points).voxel_down_sample(0.1),
+                target,
+                max_correspondence_m,
+                T_current_frame,
+                o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+            )
+            T_current_frame = result.transformation
+        moved = cloud.points.astype(np.float64) @ T_current_frame[:3, :3].T + T_current_frame[:3, 3]
+        parts.append(
+            MergedCloud(
+                points=moved.astype(np.float32),
+                sensor_ids=cloud.sensor_ids,
+                point_instance_ids=cloud.point_instance_ids,
+                T_vehicle_sensor=cloud.T_vehicle_sensor,
+                frame_ages=np.full(cloud.num_points, age, np.int16),
+            )
+        )
+    return MergedCloud(
+        points=np.concatenate([p.points for p in parts]),
+        sensor_ids=np.concatenate([p.sensor_ids for p in parts]),
+        point_instance_ids=np.concatenate([p.point_instance_ids for p in parts]),
+        T_vehicle_sensor=current_cloud.T_vehicle_sensor,
+        frame_ages=np.concatenate([p.frame_ages for p in parts]),
     )

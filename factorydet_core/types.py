@@ -184,12 +184,18 @@ class MergedCloud:
     """(N,) int64: annotated instance of each point, 0 for none."""
     T_vehicle_sensor: np.ndarray
     """(S, 4, 4) float64: the extrinsics that were used to merge."""
+    frame_ages: np.ndarray | None = None
+    """(N,) int16: how many frames before the current one each point was measured (0 = current);
+    ``None`` means all points are from the current frame."""
 
     def __post_init__(self) -> None:
         check_array(self.points, (None, 3), name="merged points", finite=True)
         check_array(self.sensor_ids, (len(self.points),), name="merged sensor_ids")
         check_array(self.point_instance_ids, (len(self.points),), name="merged point_instance_ids")
-        for field in ("points", "sensor_ids", "point_instance_ids", "T_vehicle_sensor"):
+        if self.frame_ages is None:
+            object.__setattr__(self, "frame_ages", np.zeros(len(self.points), np.int16))
+        check_array(self.frame_ages, (len(self.points),), name="merged frame_ages")
+        for field in ("points", "sensor_ids", "point_instance_ids", "T_vehicle_sensor", "frame_ages"):
             object.__setattr__(self, field, _frozen(getattr(self, field)))
 
     @property
@@ -207,4 +213,102 @@ class MergedCloud:
             points=self.points[mask],
             sensor_ids=self.sensor_ids[mask],
             point_instance_ids=self.point_instance_ids[mask],
+            frame_ages=self.frame_ages[mask],
         )
+
+
+@dataclasses.dataclass(frozen=True)
+class VoxelGrid:
+    """Occupied cells of a regular grid over a cloud (sparse: empty cells are not stored)."""
+
+    voxel_size: float
+    """Edge length of a cell, metres."""
+    origin: np.ndarray
+    """(3,) float64: corner of cell (0, 0, 0)."""
+    coords: np.ndarray
+    """(V, 3) int32: integer cell index of every occupied voxel, sorted lexicographically."""
+    point_voxel_ids: np.ndarray
+    """(N,) int64: the voxel of each point of the cloud the grid was built from."""
+    num_points: np.ndarray
+    """(V,) int64: points per voxel, all >= 1."""
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
+            raise InputError(f"voxel_size must be a positive number of metres, got {self.voxel_size}")
+        check_array(self.origin, (3,), name="voxel grid origin", finite=True)
+        check_array(self.coords, (None, 3), name="voxel coords")
+        check_array(self.num_points, (len(self.coords),), name="voxel num_points")
+        check_array(self.point_voxel_ids, (None,), name="point_voxel_ids")
+        for field in ("origin", "coords", "point_voxel_ids", "num_points"):
+            object.__setattr__(self, field, _frozen(getattr(self, field)))
+
+    @property
+    def num_voxels(self) -> int:
+        return len(self.coords)
+
+    @property
+    def centres(self) -> np.ndarray:
+        """(V, 3) float64 cell centres, metres."""
+        return self.origin + (self.coords + 0.5) * self.voxel_size
+
+
+@dataclasses.dataclass(frozen=True)
+class Segmentation:
+    """Over-segmentation of a cloud into patches and the object segments built from them."""
+
+    patch_ids: np.ndarray
+    """(N,) int64: cut-pursuit patch of each point, in [0, num_patches)."""
+    segment_ids: np.ndarray
+    """(N,) int64: merged segment of each point, in [0, num_segments)."""
+    patch_segment_ids: np.ndarray
+    """(P,) int64: the segment each patch ended up in."""
+    merge_history: tuple[tuple[int, ...], ...] = ()
+    """Patch-id sets of every union formed while merging (each one is also a proposal candidate)."""
+
+    def __post_init__(self) -> None:
+        check_array(self.patch_ids, (None,), name="patch_ids")
+        check_array(self.segment_ids, (len(self.patch_ids),), name="segment_ids")
+        check_array(self.patch_segment_ids, (None,), name="patch_segment_ids")
+        for field in ("patch_ids", "segment_ids", "patch_segment_ids"):
+            object.__setattr__(self, field, _frozen(getattr(self, field).astype(np.int64, copy=False)))
+
+    @property
+    def num_patches(self) -> int:
+        return len(self.patch_segment_ids)
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.patch_segment_ids.max()) + 1 if len(self.patch_segment_ids) else 0
+
+
+@dataclasses.dataclass(frozen=True)
+class Proposals:
+    """Object proposals: a point set, an oriented box and a Fisher-vector feature each."""
+
+    boxes: np.ndarray
+    """(M, 7) float64: (cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame."""
+    features: np.ndarray
+    """(M, 20, 5, 5, 5) float32: aggregated 3DmFV of each proposal."""
+    patch_sets: tuple[tuple[int, ...], ...]
+    """The patches each proposal is made of."""
+    num_points: np.ndarray
+    """(M,) int64: points in the proposal."""
+    num_voxels: np.ndarray
+    """(M,) int64: occupied voxels the proposal touches."""
+    level: np.ndarray
+    """(M,) int8: 0 = final merged segment, 1 = an intermediate union of the merge hierarchy."""
+
+    def __post_init__(self) -> None:
+        num = len(self.boxes) if isinstance(self.boxes, np.ndarray) else -1
+        check_array(self.boxes, (None, 7), name="proposal boxes", finite=True)
+        check_array(self.features, (num, 20, 5, 5, 5), name="proposal features")
+        check_array(self.num_points, (num,), name="proposal num_points")
+        check_array(self.num_voxels, (num,), name="proposal num_voxels")
+        check_array(self.level, (num,), name="proposal level")
+        if len(self.patch_sets) != num:
+            raise InputError(f"proposal patch_sets: expected {num}, got {len(self.patch_sets)}")
+        for field in ("boxes", "features", "num_points", "num_voxels", "level"):
+            object.__setattr__(self, field, _frozen(getattr(self, field)))
+
+    def __len__(self) -> int:
+        return len(self.boxes)

@@ -1,0 +1,115 @@
+"""Cropping, pruning and floor removal of merged clouds (paper section 3.1, before voxelisation).
+
+Every function takes a ``MergedCloud`` and returns a new one (or a mask); the input is never changed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .types import InputError, MergedCloud
+
+
+def crop(
+    cloud: MergedCloud,
+    *,
+    radius: float | None = None,
+    box_min: tuple[float, float, float] | None = None,
+    box_max: tuple[float, float, float] | None = None,
+) -> MergedCloud:
+    """Keep the points within ``radius`` metres of the vehicle (horizontal distance) and/or inside an
+    axis-aligned box of the vehicle frame.
+
+    Args:
+        cloud: points in the vehicle frame.
+        radius: horizontal range limit, metres; ``None`` for no limit.
+        box_min: (3,) lower corner of the kept box, metres; ``None`` for no lower bound.
+        box_max: (3,) upper corner, metres; ``None`` for no upper bound.
+    """
+    mask = np.ones(cloud.num_points, bool)
+    if radius is not None:
+        if not radius > 0:
+            raise InputError(f"crop: radius must be > 0 m, got {radius}")
+        mask &= np.hypot(cloud.points[:, 0], cloud.points[:, 1]) <= radius
+    if box_min is not None:
+        mask &= (cloud.points >= np.asarray(box_min, np.float32)).all(axis=1)
+    if box_max is not None:
+        mask &= (cloud.points <= np.asarray(box_max, np.float32)).all(axis=1)
+    return cloud.select(mask)
+
+
+def prune(cloud: MergedCloud, voxel_size: float) -> MergedCloud:
+    """Voxel down-sampling: keep one measured point per ``voxel_size`` cell (the one closest to the
+    cell's mean), so that per-point attributes (sensor, instance) stay true.
+
+    Args:
+        cloud: the cloud to thin.
+        voxel_size: cell edge, metres; 0 keeps every point.
+    """
+    if voxel_size == 0 or cloud.num_points == 0:
+        return cloud
+    if not voxel_size > 0:
+        raise InputError(f"prune: voxel_size must be >= 0 m, got {voxel_size}")
+    cells = np.floor(cloud.points / voxel_size).astype(np.int64)
+    _, cell_ids, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    cell_ids = cell_ids.reshape(-1)
+    means = np.zeros((len(counts), 3))
+    np.add.at(means, cell_ids, cloud.points)
+    means /= counts[:, None]
+    dist = np.linalg.norm(cloud.points - means[cell_ids], axis=1)
+    # For each cell, the point with the smallest distance: sort by (cell, distance), take firsts.
+    order = np.lexsort((dist, cell_ids))
+    first = np.ones(len(order), bool)
+    first[1:] = cell_ids[order][1:] != cell_ids[order][:-1]
+    keep = np.zeros(cloud.num_points, bool)
+    keep[order[first]] = True
+    return cloud.select(keep)
+
+
+def floor_mask(
+    cloud: MergedCloud,
+    *,
+    distance_m: float = 0.06,
+    max_tilt_deg: float = 10.0,
+    search_below_m: float = 0.5,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Find the floor plane (RANSAC among the lowest points, normal near +z).
+
+    Args:
+        cloud: points in a z-up frame.
+        distance_m: points within this distance of the plane are floor.
+        max_tilt_deg: largest accepted angle between the plane normal and +z.
+        search_below_m: RANSAC looks at points within this height above the lowest percentile.
+        seed: RANSAC seed (results are reproducible).
+
+    Returns:
+        ``(mask, plane)``: (N,) bool, True on floor points, and the plane (4,) as (a, b, c, d) with
+        a x + b y + c z + d = 0 and c > 0; an all-False mask and NaNs when no floor is found.
+    """
+    import open3d as o3d
+
+    no_floor = np.zeros(cloud.num_points, bool), np.full(4, np.nan)
+    if cloud.num_points < 3:
+        return no_floor
+    z = cloud.points[:, 2]
+    low = z <= np.percentile(z, 1) + search_below_m
+    if low.sum() < 3:
+        return no_floor
+    o3d.utility.random.seed(seed)
+    candidate = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points[low].astype(np.float64)))
+    plane, inliers = candidate.segment_plane(distance_m, 3, 200)
+    plane = np.asarray(plane, np.float64)
+    plane /= np.linalg.norm(plane[:3])
+    if plane[2] < 0:
+        plane = -plane
+    if np.degrees(np.arccos(np.clip(plane[2], -1, 1))) > max_tilt_deg or len(inliers) < 3:
+        return no_floor
+    distance = cloud.points.astype(np.float64) @ plane[:3] + plane[3]
+    return distance <= distance_m, plane
+
+
+def remove_floor(cloud: MergedCloud, *, distance_m: float = 0.06) -> MergedCloud:
+    """The cloud without its floor points (see ``floor_mask``); unchanged when no floor is found."""
+    mask, _ = floor_mask(cloud, distance_m=distance_m)
+    return cloud.select(~mask)

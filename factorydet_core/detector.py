@@ -1,0 +1,249 @@
+"""The detector's front half in one call: merge, crop, prune, floor, voxels, features, segments,
+proposals (paper sections 3.1 to 3.4).
+
+``Detector.propose(frame)`` returns a ``ProposalResult`` that keeps every intermediate result, so
+that the app can show each stage and benchmarks can time them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from typing import Literal
+
+import numpy as np
+
+from .cloud import crop, floor_mask, prune
+from .merge import ExtrinsicRefinement, accumulate, refine_extrinsics
+from .proposals import FeatureKind, Weighting, build_proposals
+from .segment import SegmentationParams, segment
+from .types import Frame, InputError, MergedCloud, Proposals, Segmentation, VoxelGrid
+from .voxels import DEFAULT_VOXEL_SIZE, voxel_fisher_vectors, voxelize
+
+STAGES: tuple[str, ...] = ("merge", "prune", "voxelize", "features", "segmentation", "aggregation")
+"""Stage names, in order, as used in ``ProposalResult.timings_ms`` and the benchmark."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontEndParams:
+    """Settings of the front half. ``PRESETS`` holds the documented starting points."""
+
+    history_frames: int = 0
+    """m: earlier frames accumulated with the current one (needs the frames passed to ``propose``)."""
+    icp_between_frames: bool = False
+    """Refine the odometry of accumulated frames by ICP against the current frame."""
+    crop_radius_m: float | None = 25.0
+    """Horizontal range kept around the vehicle; ``None`` keeps everything."""
+    crop_z_m: tuple[float, float] | None = (-0.5, 4.5)
+    """Height range kept (drops the roof); ``None`` keeps everything."""
+    prune_m: float = 0.05
+    """Voxel down-sampling cell; 0 keeps every point."""
+    remove_floor: bool = True
+    """Remove the floor plane, which touches every object."""
+    floor_distance_m: float = 0.06
+    """Points within this distance of the floor plane are floor."""
+    voxel_size_m: float = DEFAULT_VOXEL_SIZE
+    """Cell of the sparse grid whose voxels get Fisher vectors."""
+    segmentation: SegmentationParams = SegmentationParams()
+    segment_on: Literal["points", "voxels"] = "points"
+    """Graph nodes of the cut pursuit: the pruned points, or the occupied voxels (their centroids;
+    the paper's patches are sets of voxels, and it is several times faster)."""
+    min_proposal_points: int = 30
+    """Smaller segments are not proposed."""
+    weighting: Weighting = "points"
+    """Voxel weights when aggregating Fisher vectors (Eq. 7)."""
+    feature: FeatureKind = "aggregated"
+    """Proposal feature: "aggregated" voxel features, or "direct" 3DmFV of the proposal's points."""
+    include_history: bool = True
+    """Also propose the intermediate unions of the merge hierarchy."""
+
+    def __post_init__(self) -> None:
+        if self.history_frames < 0:
+            raise InputError(f"history_frames must be >= 0, got {self.history_frames}")
+        if not self.voxel_size_m > 0:
+            raise InputError(f"voxel_size_m must be > 0, got {self.voxel_size_m}")
+        if self.prune_m < 0:
+            raise InputError(f"prune_m must be >= 0, got {self.prune_m}")
+        if self.segment_on not in ("points", "voxels"):
+            raise InputError(f"segment_on must be 'points' or 'voxels', got {self.segment_on!r}")
+        if self.min_proposal_points < 1:
+            raise InputError(f"min_proposal_points must be >= 1, got {self.min_proposal_points}")
+
+    def replace(self, **changes) -> FrontEndParams:
+        """A copy with ``changes``; ``segmentation`` fields may be given by name too."""
+        seg_fields = {f.name for f in dataclasses.fields(SegmentationParams)}
+        seg_changes = {k: changes.pop(k) for k in list(changes) if k in seg_fields}
+        if seg_changes:
+            changes["segmentation"] = dataclasses.replace(self.segmentation, **seg_changes)
+        return dataclasses.replace(self, **changes)
+
+
+PRESETS: dict[str, FrontEndParams] = {
+    # The AGV's 12-sensor frames of a factory hall (the simulator's data).
+    "agv": FrontEndParams(),
+    # One static indoor scan (ScanNet, S3DIS, a labelCloud file): denser, smaller objects on
+    # furniture, no roof to cut, no range limit.
+    "indoor": FrontEndParams(
+        crop_radius_m=None,
+        crop_z_m=None,
+        prune_m=0.04,
+        voxel_size_m=0.2,
+        segmentation=SegmentationParams(
+            k_features=20, k_graph=10, max_edge_m=0.15, regularization=0.1, merge_threshold=0.15,
+            max_object_size_m=(3.0, 2.2),
+        ),
+    ),  # fmt: skip
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class ProposalResult:
+    """Every intermediate result of the front half for one frame."""
+
+    merged: MergedCloud
+    """All points of the frame (and its history) in the vehicle frame, before cropping."""
+    cloud: MergedCloud
+    """The cropped, pruned, floor-free cloud that was voxelised and segmented."""
+    floor_plane: np.ndarray
+    """(4,) floor plane (a, b, c, d), NaN when none was found or removal is off."""
+    grid: VoxelGrid
+    voxel_features: np.ndarray
+    """(V, 20, 5, 5, 5) float32 per-voxel Fisher vectors."""
+    segmentation: Segmentation
+    proposals: Proposals
+    timings_ms: dict[str, float]
+    """Wall time of each of ``STAGES`` and the total, milliseconds."""
+
+
+ProgressCallback = Callable[[str, float], None]
+"""Called with (stage name, fraction of the front half done) as stages finish."""
+
+
+class Detector:
+    """The detection pipeline. Learned parts (the classifier) arrive with a later issue.
+
+    Args:
+        params: front-half settings, or the name of a preset in ``PRESETS``.
+        T_vehicle_sensor: (S, 4, 4) extrinsics to merge with; each frame's nominal ones by default.
+            ``calibrate`` sets them by ICP.
+    """
+
+    def __init__(
+        self, params: FrontEndParams | str = "agv", T_vehicle_sensor: np.ndarray | None = None
+    ) -> None:
+        if isinstance(params, str):
+            if params not in PRESETS:
+                raise InputError(f"unknown preset {params!r}; choose from {', '.join(PRESETS)}")
+            params = PRESETS[params]
+        self.params = params
+        self.T_vehicle_sensor = None if T_vehicle_sensor is None else np.asarray(T_vehicle_sensor, float)
+        self.calibration_: ExtrinsicRefinement | None = None
+
+    def calibrate(self, frames: Frame | Sequence[Frame], **icp_options) -> Detector:
+        """Refine the rig's extrinsics by ICP between sensors (``merge.refine_extrinsics``)."""
+        self.calibration_ = refine_extrinsics(frames, self.T_vehicle_sensor, **icp_options)
+        self.T_vehicle_sensor = self.calibration_.T_vehicle_sensor
+        return self
+
+    def _segment(self, cloud: MergedCloud, grid: VoxelGrid) -> Segmentation:
+        params = self.params
+        if params.segment_on == "points":
+            return segment(cloud.points, params.segmentation)
+        centroids = np.zeros((grid.num_voxels, 3))
+        np.add.at(centroids, grid.point_voxel_ids, cloud.points)
+        centroids /= np.maximum(grid.num_points, 1)[:, None]
+        # Neighbouring voxel centroids can be up to two cells apart; a shorter edge limit would
+        # split every surface.
+        seg_params = dataclasses.replace(
+            params.segmentation,
+            max_edge_m=max(params.segmentation.max_edge_m, 2.0 * grid.voxel_size),
+            min_patch_points=max(1, params.segmentation.min_patch_points // 4),
+        )
+        by_voxel = segment(centroids.astype(np.float32), seg_params)
+        return Segmentation(
+            patch_ids=by_voxel.patch_ids[grid.point_voxel_ids],
+            segment_ids=by_voxel.segment_ids[grid.point_voxel_ids],
+            patch_segment_ids=by_voxel.patch_segment_ids,
+            merge_history=by_voxel.merge_history,
+        )
+
+    def propose(
+        self,
+        frame: Frame,
+        history: Sequence[Frame] = (),
+        progress: ProgressCallback | None = None,
+    ) -> ProposalResult:
+        """Run the front half on ``frame``.
+
+        Args:
+            frame: the current frame.
+            history: earlier frames, oldest first; the last ``params.history_frames`` are used.
+            progress: optional callback for a progress bar.
+
+        Returns:
+            All intermediate results and the proposals (empty for a frame with too few points).
+        """
+        params = self.params
+        timings: dict[str, float] = {}
+        clock = time.perf_counter()
+
+        def done(stage: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            timings[stage] = (now - clock) * 1000.0
+            clock = now
+            if progress is not None:
+                progress(stage, (STAGES.index(stage) + 1) / len(STAGES))
+
+        extrinsics = self.T_vehicle_sensor
+        if extrinsics is not None and len(extrinsics) != frame.num_sensors:
+            raise InputError(
+                f"{frame.name}: {frame.num_sensors} sensors, but the detector is calibrated for {len(extrinsics)}"
+            )
+        used_history = list(history)[-params.history_frames :] if params.history_frames else []
+        merged = accumulate(used_history + [frame], extrinsics, refine_with_icp=params.icp_between_frames)
+        done("merge")
+
+        cloud = crop(
+            merged,
+            radius=params.crop_radius_m,
+            box_min=None if params.crop_z_m is None else (-np.inf, -np.inf, params.crop_z_m[0]),
+            box_max=None if params.crop_z_m is None else (np.inf, np.inf, params.crop_z_m[1]),
+        )
+        cloud = prune(cloud, params.prune_m)
+        floor_plane = np.full(4, np.nan)
+        if params.remove_floor:
+            is_floor, floor_plane = floor_mask(cloud, distance_m=params.floor_distance_m)
+            cloud = cloud.select(~is_floor)
+        done("prune")
+
+        grid = voxelize(cloud.points, params.voxel_size_m)
+        done("voxelize")
+        voxel_features = voxel_fisher_vectors(cloud, grid)
+        done("features")
+        segmentation = self._segment(cloud, grid)
+        done("segmentation")
+        proposals = build_proposals(
+            cloud.points,
+            segmentation,
+            grid,
+            voxel_features,
+            min_points=params.min_proposal_points,
+            weighting=params.weighting,
+            feature=params.feature,
+            include_history=params.include_history,
+            floor_plane=floor_plane if params.remove_floor else None,
+        )
+        done("aggregation")
+        timings["total"] = sum(timings[s] for s in STAGES)
+        return ProposalResult(
+            merged=merged,
+            cloud=cloud,
+            floor_plane=floor_plane,
+            grid=grid,
+            voxel_features=voxel_features,
+            segmentation=segmentation,
+            proposals=proposals,
+            timings_ms=timings,
+        )

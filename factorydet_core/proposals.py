@@ -1,0 +1,156 @@
+"""Object proposals from segments: aggregated Fisher vectors and oriented boxes (paper section 3.4).
+
+A proposal's feature is the weighted mean of the Fisher vectors of the voxels its points occupy
+(Eq. 7; weights = the proposal's points in each voxel by default, or 1 per voxel), renormalised per
+channel across the Gaussians. The alternative ``feature="direct"`` computes the 3DmFV of the
+proposal's own points scaled into the unit sphere instead.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import scipy.sparse
+
+from .boxes import fit_box
+from .features import NUM_CHANNELS, NUM_GAUSSIANS, fisher_vectors, to_unit_sphere
+from .types import InputError, Proposals, Segmentation, VoxelGrid
+
+Weighting = Literal["points", "uniform"]
+FeatureKind = Literal["aggregated", "direct"]
+
+
+def candidate_patch_sets(
+    segmentation: Segmentation, *, include_history: bool = True, include_patches: bool = False
+) -> tuple[list[tuple[int, ...]], list[int]]:
+    """Patch sets to turn into proposals, each once: the final segments (level 0), the unions of the
+    merge history (level 1) and, optionally, single patches (level 2)."""
+    seen: dict[tuple[int, ...], int] = {}
+    groups: dict[int, list[int]] = {}
+    for patch, seg in enumerate(segmentation.patch_segment_ids.tolist()):
+        groups.setdefault(seg, []).append(patch)
+    for seg in sorted(groups):
+        seen.setdefault(tuple(groups[seg]), 0)
+    if include_history:
+        for union in segmentation.merge_history:
+            seen.setdefault(tuple(union), 1)
+    if include_patches:
+        for patch in range(segmentation.num_patches):
+            seen.setdefault((patch,), 2)
+    return list(seen), list(seen.values())
+
+
+def normalize_channels(features: np.ndarray) -> np.ndarray:
+    """Per-channel L2 normalisation across the Gaussians of (M, 20, 5, 5, 5) features."""
+    flat = features.reshape(len(features), NUM_CHANNELS, NUM_GAUSSIANS).astype(np.float64)
+    norms = np.sqrt(np.maximum((flat**2).sum(axis=2, keepdims=True), 1e-12))
+    return (flat / norms).astype(np.float32).reshape(features.shape)
+
+
+def build_proposals(
+    points: np.ndarray,
+    segmentation: Segmentation,
+    grid: VoxelGrid,
+    voxel_features: np.ndarray,
+    *,
+    min_points: int = 30,
+    weighting: Weighting = "points",
+    feature: FeatureKind = "aggregated",
+    include_history: bool = True,
+    include_patches: bool = False,
+    floor_plane: np.ndarray | None = None,
+    ground_snap_m: float = 0.15,
+) -> Proposals:
+    """Proposals of a segmented cloud.
+
+    Args:
+        points: (N, 3) points the segmentation and the grid were built from.
+        segmentation: patches and segments of those points.
+        grid: their voxel grid.
+        voxel_features: (V, 20, 5, 5, 5) per-voxel Fisher vectors.
+        min_points: smaller candidates are dropped.
+        weighting: voxel weights of the aggregation, "points" (c_v = points of the proposal in the
+            voxel) or "uniform" (c_v = 1).
+        feature: "aggregated" (Eq. 7) or "direct" (3DmFV of the proposal's points).
+        include_history: also propose the intermediate unions of the merge hierarchy.
+        include_patches: also propose single patches.
+        floor_plane: (4,) floor plane (a, b, c, d); a box whose bottom is within ``ground_snap_m`` of
+            it is extended down to the floor, because floor removal cut the object's lowest points.
+        ground_snap_m: see ``floor_plane``.
+
+    Returns:
+        The proposals, empty when no candidate has ``min_points`` points.
+    """
+    if weighting not in ("points", "uniform"):
+        raise InputError(f"weighting must be 'points' or 'uniform', got {weighting!r}")
+    if feature not in ("aggregated", "direct"):
+        raise InputError(f"feature must be 'aggregated' or 'direct', got {feature!r}")
+    num_points = len(points)
+    if len(segmentation.patch_ids) != num_points or len(grid.point_voxel_ids) != num_points:
+        raise InputError("build_proposals: points, segmentation and grid must describe the same cloud")
+    if len(voxel_features) != grid.num_voxels:
+        raise InputError(f"build_proposals: {len(voxel_features)} voxel features for {grid.num_voxels} voxels")
+    sets, levels = candidate_patch_sets(
+        segmentation, include_history=include_history, include_patches=include_patches
+    )
+    num_patches = segmentation.num_patches
+    patch_sizes = np.bincount(segmentation.patch_ids, minlength=num_patches)
+    set_sizes = np.array([patch_sizes[list(s)].sum() for s in sets], np.int64)
+    keep = set_sizes >= min_points
+    sets = [s for s, k in zip(sets, keep) if k]
+    levels = np.array([lv for lv, k in zip(levels, keep) if k], np.int8)
+    if not sets:
+        return Proposals(
+            boxes=np.zeros((0, 7)),
+            features=np.zeros((0, NUM_CHANNELS, 5, 5, 5), np.float32),
+            patch_sets=(),
+            num_points=np.zeros(0, np.int64),
+            num_voxels=np.zeros(0, np.int64),
+            level=np.zeros(0, np.int8),
+        )
+    # membership (M, P) @ patch-voxel point counts (P, V) = proposal-voxel point counts (M, V).
+    rows = np.repeat(np.arange(len(sets)), [len(s) for s in sets])
+    membership = scipy.sparse.csr_matrix(
+        (np.ones(len(rows)), (rows, np.concatenate(sets))), shape=(len(sets), num_patches)
+    )
+    patch_voxel = scipy.sparse.csr_matrix(
+        (np.ones(num_points), (segmentation.patch_ids, grid.point_voxel_ids)),
+        shape=(num_patches, grid.num_voxels),
+    )
+    proposal_voxel = (membership @ patch_voxel).tocsr()
+    num_voxels = np.diff(proposal_voxel.indptr).astype(np.int64)
+
+    order = np.argsort(segmentation.patch_ids, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(patch_sizes)])
+    point_lists = [np.concatenate([order[starts[p] : starts[p + 1]] for p in s]) for s in sets]
+
+    if feature == "aggregated":
+        weights = proposal_voxel.copy()
+        if weighting == "uniform":
+            weights.data[:] = 1.0
+        weights = scipy.sparse.diags(1.0 / np.asarray(weights.sum(axis=1)).ravel()) @ weights
+        flat = voxel_features.reshape(grid.num_voxels, -1).astype(np.float64)
+        mean = np.asarray(weights @ flat).reshape(len(sets), NUM_CHANNELS, 5, 5, 5)
+        features = normalize_channels(mean)
+    else:
+        set_ids = np.repeat(np.arange(len(sets)), [len(p) for p in point_lists])
+        all_points = points[np.concatenate(point_lists)]
+        features = fisher_vectors(to_unit_sphere(all_points, set_ids, len(sets)), set_ids, len(sets))
+
+    boxes = np.array([fit_box(points[idx]) for idx in point_lists])
+    if floor_plane is not None and np.all(np.isfinite(floor_plane)):
+        a, b, c, d = floor_plane
+        floor_z = -(a * boxes[:, 0] + b * boxes[:, 1] + d) / c
+        bottom, top = boxes[:, 2] - boxes[:, 5] / 2, boxes[:, 2] + boxes[:, 5] / 2
+        snap = (bottom - floor_z <= ground_snap_m) & (bottom > floor_z)
+        bottom = np.where(snap, floor_z, bottom)
+        boxes[:, 2], boxes[:, 5] = (bottom + top) / 2, top - bottom
+    return Proposals(
+        boxes=boxes,
+        features=features,
+        patch_sets=tuple(sets),
+        num_points=set_sizes[keep],
+        num_voxels=num_voxels,
+        level=levels,
+    )

@@ -1,0 +1,313 @@
+"""Over-segmentation into local patches by l0 cut pursuit, then merging into object segments
+(paper section 3.3).
+
+1. Local geometric features per point (``pgeof``: linearity, planarity, scattering, verticality,
+   from the k nearest neighbours).
+2. A k-nearest-neighbour graph; edges longer than ``max_edge_m`` are dropped, so objects separated
+   by a gap are never in one patch.
+3. The l0 (Potts) partition of the features on that graph (``cut-pursuit-py``). Its
+   ``reg_strength`` argument is ignored by the library, so the regularisation is folded into the edge
+   weights: w_uv = reg / (1 + d_uv / mean d).
+4. Patches with fewer than ``min_patch_points`` points join the neighbour they share most edges with.
+5. Adjacent patches merge, strongest contact first, while their contact strength (edges between them
+   over the smaller patch's boundary edges) is at least ``merge_threshold`` and their union still
+   fits an object (``max_object_size_m``). Every union formed along the way is kept in
+   ``merge_history``: intermediate unions are proposals too, because the right level of merging
+   differs between a forklift and a box on a pallet.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
+
+from .types import InputError, Segmentation, check_array
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentationParams:
+    """Settings of ``segment``; the defaults were picked with ``factorydet bench pipeline``."""
+
+    k_features: int = 20
+    """Neighbours for the local geometric features."""
+    k_graph: int = 10
+    """Neighbours per point in the adjacency graph."""
+    max_edge_m: float = 0.3
+    """Graph edges longer than this are cut: a gap this wide always separates segments."""
+    regularization: float = 0.1
+    """Cut-pursuit regularisation (lambda): larger gives fewer, bigger patches."""
+    spatial_weight: float = 0.0
+    """Weight of the xyz coordinates (per metre) next to the geometric features in the data term;
+    > 0 keeps patches compact."""
+    min_patch_points: int = 10
+    """Smaller patches are absorbed by their best-connected neighbour."""
+    merge_threshold: float = 0.15
+    """Least contact strength (in [0, 1]) for two adjacent patches to merge."""
+    max_object_size_m: tuple[float, float] = (4.0, 3.2)
+    """(longest horizontal side, height) a merged segment may not exceed, metres."""
+
+    def __post_init__(self) -> None:
+        for name in ("k_features", "k_graph", "min_patch_points"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"segmentation: {name} must be >= 1, got {getattr(self, name)}")
+        for name in ("max_edge_m", "regularization"):
+            if not float(getattr(self, name)) > 0:
+                raise InputError(f"segmentation: {name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.merge_threshold <= 1.0:
+            raise InputError(f"segmentation: merge_threshold must lie in [0, 1], got {self.merge_threshold}")
+        if self.spatial_weight < 0:
+            raise InputError(f"segmentation: spatial_weight must be >= 0, got {self.spatial_weight}")
+
+
+def point_features(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local geometric features and the neighbour lists they came from.
+
+    Args:
+        points: (N, 3) float32 points.
+        k: neighbours per point (excluding the point itself).
+
+    Returns:
+        ``(features, neighbours, sq_distances)``: (N, 4) float32 [linearity, planarity, scattering,
+        verticality], (N, k) uint32 neighbour indices sorted by distance, (N, k) float32 squared
+        distances.
+    """
+    import pgeof
+
+    xyz = np.ascontiguousarray(points, dtype=np.float32)
+    k_eff = min(k, len(xyz) - 1)
+    neighbours, sq_distances = pgeof.knn_search(xyz, xyz, k_eff + 1)
+    # The first neighbour of a point is itself, except for duplicated points; drop column 0.
+    neighbours, sq_distances = neighbours[:, 1:], sq_distances[:, 1:]
+    with_self = np.concatenate([np.arange(len(xyz), dtype=np.uint32)[:, None], neighbours], axis=1)
+    pointers = np.arange(0, with_self.size + 1, k_eff + 1, dtype=np.uint32)
+    geof = pgeof.compute_features(xyz, np.ascontiguousarray(with_self.ravel()), pointers, k_min=3)
+    return np.ascontiguousarray(geof[:, :4]), neighbours, sq_distances
+
+
+def knn_edges(
+    neighbours: np.ndarray, sq_distances: np.ndarray, k: int, max_edge_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Undirected kNN graph: ``(source, target, length)`` with source < target, each edge once."""
+    k = min(k, neighbours.shape[1])
+    num_points = len(neighbours)
+    source = np.repeat(np.arange(num_points, dtype=np.int64), k)
+    target = neighbours[:, :k].astype(np.int64).ravel()
+    length = np.sqrt(sq_distances[:, :k].astype(np.float64)).ravel()
+    keep = (length <= max_edge_m) & (source != target)
+    lo, hi = np.minimum(source, target)[keep], np.maximum(source, target)[keep]
+    key, first = np.unique(lo * num_points + hi, return_index=True)
+    return key // num_points, key % num_points, length[keep][first]
+
+
+def _relabel(labels: np.ndarray) -> np.ndarray:
+    return np.unique(labels, return_inverse=True)[1].reshape(-1).astype(np.int64)
+
+
+def _split_disconnected(labels: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Make every label a connected set of the graph (a label split in pieces becomes several)."""
+    num = len(labels)
+    same = labels[source] == labels[target]
+    graph = scipy.sparse.coo_matrix(
+        (np.ones(same.sum()), (source[same], target[same])), shape=(num, num)
+    ).tocsr()
+    _, components = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    return _relabel(components)
+
+
+def _patch_adjacency(
+    patch_ids: np.ndarray, source: np.ndarray, target: np.ndarray, num_patches: int
+) -> scipy.sparse.csr_matrix:
+    """(P, P) symmetric matrix of the number of graph edges between two patches."""
+    a, b = patch_ids[source], patch_ids[target]
+    cross = a != b
+    matrix = scipy.sparse.coo_matrix(
+        (np.ones(cross.sum()), (a[cross], b[cross])), shape=(num_patches, num_patches)
+    ).tocsr()
+    return (matrix + matrix.T).tocsr()
+
+
+def _absorb_small(
+    patch_ids: np.ndarray, source: np.ndarray, target: np.ndarray, min_points: int
+) -> np.ndarray:
+    """Patches under ``min_points`` join the neighbour with the most shared edges (repeatedly)."""
+    for _ in range(10):
+        num = int(patch_ids.max()) + 1
+        sizes = np.bincount(patch_ids, minlength=num)
+        small = sizes < min_points
+        if not small.any():
+            break
+        adjacency = _patch_adjacency(patch_ids, source, target, num).tolil()
+        mapping = np.arange(num)
+        changed = False
+        for patch in np.flatnonzero(small):
+            row_ids, row_counts = adjacency.rows[patch], adjacency.data[patch]
+            if not row_ids:
+                continue  # isolated: stays (and is dropped later as too small for a proposal)
+            # Prefer a neighbour that is not small itself, then the most shared edges.
+            best = max(zip(row_ids, row_counts), key=lambda rc: (not small[rc[0]], rc[1]))[0]
+            if mapping[best] != patch:
+                mapping[patch] = mapping[best]
+                changed = True
+        if not changed:
+            break
+        # Resolve chains (a -> b -> c).
+        for _ in range(num):
+            nxt = mapping[mapping]
+            if np.array_equal(nxt, mapping):
+                break
+            mapping = nxt
+        patch_ids = _relabel(mapping[patch_ids])
+    return patch_ids
+
+
+def over_segment(
+    points: np.ndarray, params: SegmentationParams = SegmentationParams()
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Cut-pursuit patches.
+
+    Args:
+        points: (N, 3) points (pruned, floor removed).
+        params: segmentation settings.
+
+    Returns:
+        ``(patch_ids, (source, target, length))``: (N,) int64 patch of each point, and the graph.
+    """
+    import cut_pursuit_py
+
+    check_array(points, (None, 3), name="segment points", finite=True)
+    num_points = len(points)
+    if num_points == 0:
+        empty = np.zeros(0, np.int64)
+        return empty, (empty, empty, np.zeros(0))
+    if num_points < 4:  # too few for local features: one patch per connected group
+        source, target = np.triu_indices(num_points, 1)
+        length = np.linalg.norm(points[source] - points[target], axis=1)
+        keep = length <= params.max_edge_m
+        source, target, length = source[keep], target[keep], length[keep]
+        return _split_disconnected(np.zeros(num_points, np.int64), source, target), (source, target, length)
+    features, neighbours, sq_distances = point_features(points, max(params.k_features, params.k_graph))
+    source, target, length = knn_edges(neighbours, sq_distances, params.k_graph, params.max_edge_m)
+    values = features * np.array([1.0, 1.0, 1.0, 2.0], np.float32)  # verticality counts double (SPG)
+    if params.spatial_weight > 0:
+        centred = (points - points.mean(axis=0)) * params.spatial_weight
+        values = np.concatenate([values, centred.astype(np.float32)], axis=1)
+    if len(source):
+        mean_length = max(float(length.mean()), 1e-6)
+        weights = (params.regularization / (1.0 + length / mean_length)).astype(np.float32)
+        labels = cut_pursuit_py.perform_cut_pursuit(
+            1.0,  # ignored by the library; lambda is in the weights
+            values.shape[1],
+            np.ascontiguousarray(values, np.float32),
+            weights,
+            source.astype(np.uint32),
+            target.astype(np.uint32),
+            False,
+        ).astype(np.int64)
+    else:
+        labels = np.arange(num_points, dtype=np.int64)
+    patch_ids = _split_disconnected(labels, source, target)
+    patch_ids = _absorb_small(patch_ids, source, target, params.min_patch_points)
+    return patch_ids, (source, target, length)
+
+
+def merge_patches(
+    points: np.ndarray,
+    patch_ids: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    params: SegmentationParams = SegmentationParams(),
+) -> tuple[np.ndarray, tuple[tuple[int, ...], ...]]:
+    """Greedy merging of adjacent patches into object segments.
+
+    Args:
+        points: (N, 3) points.
+        patch_ids: (N,) patch of each point, in [0, P).
+        source, target: (E,) the point graph's edges.
+        params: ``merge_threshold`` and ``max_object_size_m`` are used.
+
+    Returns:
+        ``(patch_segment_ids, history)``: (P,) segment of each patch, and the patch sets of every
+        union formed, in merge order.
+    """
+    num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
+    if num_patches == 0:
+        return np.zeros(0, np.int64), ()
+    adjacency = _patch_adjacency(patch_ids, source, target, num_patches).tocoo()
+    boundary = np.asarray(adjacency.sum(axis=1)).ravel()  # inter-patch edges of each patch
+    lo = np.full((num_patches, 3), np.inf)
+    hi = np.full((num_patches, 3), -np.inf)
+    np.minimum.at(lo, patch_ids, points)
+    np.maximum.at(hi, patch_ids, points)
+    max_side, max_height = params.max_object_size_m
+
+    # Union-find over patches; each root keeps its members, bounds, boundary and edge counts.
+    parent = np.arange(num_patches)
+    members = {p: [p] for p in range(num_patches)}
+    links: dict[int, dict[int, float]] = {p: {} for p in range(num_patches)}
+    for a, b, c in zip(adjacency.row, adjacency.col, adjacency.data):
+        links[int(a)][int(b)] = float(c)
+
+    def strength(a: int, b: int) -> float:
+        return links[a].get(b, 0.0) / max(min(boundary[a], boundary[b]), 1.0)
+
+    heap = [(-strength(a, b), a, b) for a in links for b in links[a] if a < b]
+    heapq.heapify(heap)
+    history = []
+    while heap:
+        neg_strength, a, b = heapq.heappop(heap)
+        if parent[a] != a or parent[b] != b or b not in links[a]:
+            continue  # stale entry
+        if -neg_strength != strength(a, b):
+            continue  # a newer entry for this pair is in the heap
+        if -neg_strength < params.merge_threshold:
+            break
+        union_lo, union_hi = np.minimum(lo[a], lo[b]), np.maximum(hi[a], hi[b])
+        side = union_hi[:2] - union_lo[:2]
+        # The horizontal test uses the bounding box of the union: it over-estimates a yawed object's
+        # side by at most sqrt(2), which max_object_size_m allows for.
+        if max(side) > max_side * 1.2 or union_hi[2] - union_lo[2] > max_height:
+            continue
+        # Merge b into a.
+        parent[b] = a
+        members[a].extend(members.pop(b))
+        lo[a], hi[a] = union_lo, union_hi
+        shared = links[a].pop(b, 0.0)
+        links[b].pop(a, None)
+        boundary[a] = boundary[a] + boundary[b] - 2 * shared
+        for other, count in links.pop(b).items():
+            links[other].pop(b, None)
+            links[a][other] = links[a].get(other, 0.0) + count
+            links[other][a] = links[a][other]
+        for other in links[a]:
+            heapq.heappush(heap, (-strength(a, other), min(a, other), max(a, other)))
+        history.append(tuple(sorted(members[a])))
+
+    root_of = np.arange(num_patches)
+    for root, group in members.items():
+        root_of[group] = root
+    return _relabel(root_of), tuple(history)
+
+
+def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams()) -> Segmentation:
+    """Patches and merged segments of a cloud.
+
+    Args:
+        points: (N, 3) points of the pruned, floor-free cloud.
+        params: segmentation settings.
+
+    Returns:
+        The segmentation: per-point patch and segment ids, and the merge history.
+    """
+    patch_ids, (source, target, _) = over_segment(points, params)
+    patch_segment_ids, history = merge_patches(points, patch_ids, source, target, params)
+    segment_ids = patch_segment_ids[patch_ids] if len(patch_ids) else np.zeros(0, np.int64)
+    return Segmentation(
+        patch_ids=patch_ids,
+        segment_ids=segment_ids,
+        patch_segment_ids=patch_segment_ids,
+        merge_history=history,
+    )
