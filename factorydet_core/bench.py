@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .sim.simulate import FactorySimulator, SimConfig
+from .types import InputError
 
 
 def machine_info() -> dict:
@@ -132,6 +133,7 @@ def bench_pipeline(
     iou_threshold: float | None = None,
     min_points: int = 50,
     calibrate: bool = True,
+    T_vehicle_sensor: np.ndarray | None = None,
     command: str = "",
     progress=None,
 ) -> dict:
@@ -143,10 +145,11 @@ def bench_pipeline(
     """
     import dataclasses
 
-    from .boxes import fit_box
+    from .boxes import complete_hidden_side, fit_box
     from .dataset import open_dataset
     from .detector import PRESETS, Detector
     from .evaluation import best_box_iou, best_point_iou, proposal_point_lists, recall_table
+    from .proposals import snap_to_floor
 
     dataset = open_dataset(data)
     simulated = (Path(data) / "truth").is_dir()
@@ -154,8 +157,10 @@ def bench_pipeline(
         preset = "agv" if simulated else "indoor"
     if iou_threshold is None:
         iou_threshold = 0.6 if simulated else 0.25
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     params = PRESETS[preset].replace(**(overrides or {}))
-    detector = Detector(params)
+    detector = Detector(params, T_vehicle_sensor)
     calibration = None
     if simulated:
         from .geometry import rotation_angle_deg
@@ -163,7 +168,7 @@ def bench_pipeline(
 
         test_frames = dataset.splits.get("test") or list(range(dataset.num_frames))
         frame_indices = test_frames[:max_frames]
-        if calibrate and dataset.num_sensors > 1:
+        if calibrate and T_vehicle_sensor is None and dataset.num_sensors > 1:
             T_true = np.array(read_truth(data)["T_vehicle_sensor_true"])
             start = time.perf_counter()
             detector.calibrate(dataset.frame(frame_indices[0]))
@@ -172,14 +177,22 @@ def bench_pipeline(
             def errors(T: np.ndarray) -> dict:
                 rot = [rotation_angle_deg(T[s, :3, :3], T_true[s, :3, :3]) for s in range(len(T))]
                 trans = np.linalg.norm(T[:, :3, 3] - T_true[:, :3, 3], axis=1)
+                # Where a point 10 m in front of each sensor lands, against where it should.
+                ahead = np.array([10.0, 0.0, 0.0, 1.0])
+                shift = np.linalg.norm((T[:, :3] @ ahead) - (T_true[:, :3] @ ahead), axis=1)
                 return {"rotation_deg_median": round(float(np.median(rot)), 3),
-                        "translation_cm_median": round(float(np.median(trans)) * 100, 2)}  # fmt: skip
+                        "translation_cm_median": round(float(np.median(trans)) * 100, 2),
+                        "point_10m_ahead_error_cm_median": round(float(np.median(shift)) * 100, 2)}  # fmt: skip
 
             calibration = {
                 "nominal": errors(dataset.T_vehicle_sensor),
                 "refined": errors(detector.T_vehicle_sensor),
-                "residual_rmse_cm_before": round(float(np.nanmedian(detector.calibration_.rmse_before)) * 100, 2),
-                "residual_rmse_cm_after": round(float(np.nanmedian(detector.calibration_.rmse_after)) * 100, 2),
+                "residual_rmse_cm_before": round(
+                    float(np.nanmedian(detector.calibration_.rmse_before)) * 100, 2
+                ),
+                "residual_rmse_cm_after": round(
+                    float(np.nanmedian(detector.calibration_.rmse_after)) * 100, 2
+                ),
                 "seconds": round(calib_s, 2),
             }
     else:
@@ -207,21 +220,31 @@ def bench_pipeline(
             truth = read_frame_truth(data, index)
             keep = (truth.instance_class_ids >= 0) & (truth.instance_num_points >= min_points)
             ref_boxes, ref_ids, ref_classes = (
-                truth.instance_boxes[keep], truth.instance_ids[keep], truth.instance_class_ids[keep]
+                truth.instance_boxes[keep],
+                truth.instance_ids[keep],
+                truth.instance_class_ids[keep],
             )
         else:
             frame = dataset.frame(index)
-            ref_boxes, ref_ids, ref_classes = frame.labels.boxes, frame.labels.instance_ids, frame.labels.class_ids
+            ref_boxes, ref_ids, ref_classes = (
+                frame.labels.boxes,
+                frame.labels.instance_ids,
+                frame.labels.class_ids,
+            )
         class_ids.append(ref_classes)
         box_hits.append(best_box_iou(ref_boxes, result.proposals.boxes) >= iou_threshold)
         point_lists = proposal_point_lists(result.segmentation, result.proposals)
         point_hits.append(best_point_iou(result.cloud, ref_ids, point_lists) >= iou_threshold)
-        # Upper bound of box fitting: the box fitted to the instance's own points.
+        # Upper bound of box fitting: the boxes the front half would propose for a segment that is
+        # exactly the instance's own points.
         oracle = np.zeros(len(ref_ids), bool)
         for r, (inst, box) in enumerate(zip(ref_ids, ref_boxes)):
             own = result.cloud.points[result.cloud.point_instance_ids == inst]
             if len(own):
-                oracle[r] = best_box_iou(box[None], fit_box(own)[None])[0] >= iou_threshold
+                fitted = snap_to_floor(fit_box(own)[None], result.floor_plane)
+                if params.complete_boxes:
+                    fitted = np.concatenate([fitted, complete_hidden_side(fitted)])
+                oracle[r] = best_box_iou(box[None], fitted)[0] >= iou_threshold
         oracle_hits.append(oracle)
         if progress is not None:
             progress(n + 1, len(frame_indices))
@@ -243,5 +266,81 @@ def bench_pipeline(
         "segment_recall_point_iou": recall_table(class_ids, np.concatenate(point_hits), names),
         "oracle_box_fit_recall": recall_table(class_ids, np.concatenate(oracle_hits), names),
         "calibration": calibration,
+        "T_vehicle_sensor": None if detector.T_vehicle_sensor is None else detector.T_vehicle_sensor.tolist(),
         "machine": machine_info(),
     }
+
+
+def bench_voxel_sweep(
+    data: str | os.PathLike,
+    voxel_sizes: list[float],
+    *,
+    max_frames: int = 2,
+    png: str | os.PathLike | None = None,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Proposal recall against voxel size (the paper's Fig. 7 for the front half), with the cut
+    pursuit run on the voxels; point-based segmentation, which does not depend on the voxel size,
+    is the reference line."""
+    base = bench_pipeline(data, max_frames=max_frames, command=command)
+    extrinsics = None if base["T_vehicle_sensor"] is None else np.array(base["T_vehicle_sensor"])
+    rows = []
+    for n, size in enumerate(voxel_sizes):
+        result = bench_pipeline(
+            data,
+            overrides={"voxel_size_m": size, "segment_on": "voxels"},
+            max_frames=max_frames,
+            T_vehicle_sensor=extrinsics,
+        )
+        rows.append(
+            {
+                "voxel_size_m": size,
+                "recall": {k: v["recall"] for k, v in result["proposal_recall"].items()},
+                "segment_recall": result["segment_recall_point_iou"]["all"]["recall"],
+                "total_ms": result["stage_ms_median"]["total"],
+            }
+        )
+        if progress is not None:
+            progress(n + 1, len(voxel_sizes))
+    summary = {
+        "benchmark": "voxel-sweep",
+        "command": command,
+        "data": Path(data).name,
+        "frames": base["frames"],
+        "iou_threshold": base["iou_threshold"],
+        "point_segmentation_recall": {k: v["recall"] for k, v in base["proposal_recall"].items()},
+        "voxel_segmentation": rows,
+        "machine": machine_info(),
+    }
+    if png is not None:
+        plot_voxel_sweep(summary, png)
+        summary["png"] = str(png)
+    return summary
+
+
+def plot_voxel_sweep(summary: dict, png: str | os.PathLike) -> None:
+    """Recall per class against voxel size, one line per class and a dashed 'all' reference."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = summary["voxel_segmentation"]
+    sizes = [r["voxel_size_m"] for r in rows]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    classes = [c for c in rows[0]["recall"] if c != "all"]
+    for name in classes:
+        ax.plot(sizes, [r["recall"].get(name, np.nan) for r in rows], marker="o", label=name, alpha=0.8)
+    ax.plot(sizes, [r["recall"]["all"] for r in rows], "k-", marker="s", lw=2.5, label="all (voxel segments)")
+    ax.axhline(summary["point_segmentation_recall"]["all"], color="k", ls="--", label="all (point segments)")
+    ax.set_xlabel("voxel size (m)")
+    ax.set_ylabel(f"proposal recall @ IoU {summary['iou_threshold']}")
+    ax.set_ylim(0, 1)
+    ax.set_title(f"Proposal recall against grid resolution ({summary['data']}, frames {summary['frames']})")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    Path(png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)

@@ -6,7 +6,6 @@ Boxes are (cx, cy, cz, dx, dy, dz, yaw), z up, yaw counter-clockwise about +z (`
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 from .types import check_array
 
@@ -73,7 +72,9 @@ def box_iou_3d(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     )
     z_overlap = np.maximum(
         0,
-        np.minimum(boxes_a[:, None, 2] + boxes_a[:, None, 5] / 2, boxes_b[None, :, 2] + boxes_b[None, :, 5] / 2)
+        np.minimum(
+            boxes_a[:, None, 2] + boxes_a[:, None, 5] / 2, boxes_b[None, :, 2] + boxes_b[None, :, 5] / 2
+        )
         - np.maximum(
             boxes_a[:, None, 2] - boxes_a[:, None, 5] / 2, boxes_b[None, :, 2] - boxes_b[None, :, 5] / 2
         ),
@@ -95,38 +96,48 @@ def box_iou_3d(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     return iou
 
 
-def fit_box(points: np.ndarray, min_size: float = 0.02) -> np.ndarray:
-    """Oriented upright box around points: the minimum-area rectangle of their ground-plane convex
-    hull (rotating calipers over the hull's edges) and their z extent.
+def fit_box(
+    points: np.ndarray,
+    min_size: float = 0.02,
+    angle_step_deg: float = 1.0,
+    max_search_points: int = 256,
+) -> np.ndarray:
+    """Oriented upright box around points, robust to one- and two-sided (L-shaped) views.
+
+    The heading is the one that maximises the closeness criterion of L-shape fitting (Zhang et al.
+    2017): points of a partially seen object lie on one or two sides of its box, so each point
+    scores 1 / max(d, 1 cm), d its distance to the nearest side of the bounding rectangle at that
+    heading. The minimum-area rectangle, by contrast, turns an L-shaped view diagonally. The box's
+    extents are then the points' extents at that heading, with the z range of the points.
 
     Args:
         points: (N, 3) points, N >= 1.
         min_size: smallest box side, metres (a single point or a flat patch still gets a volume).
+        angle_step_deg: heading search step over [0, 90) degrees.
+        max_search_points: the heading search uses at most this many points (evenly strided).
 
     Returns:
-        (7,) box; yaw in [-pi/2, pi/2) with dx along yaw.
+        (7,) box; dx >= dy, yaw in [-pi/2, pi/2) along dx.
     """
     xy = np.asarray(points[:, :2], np.float64)
     z_lo, z_hi = float(points[:, 2].min()), float(points[:, 2].max())
-    try:
-        hull = xy[ConvexHull(xy).vertices]
-    except (QhullError, ValueError):  # fewer than 3 points, or all collinear
-        hull = xy
-    best = None
-    edges = np.diff(np.vstack([hull, hull[:1]]), axis=0)
-    angles = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), np.pi / 2)) if len(hull) > 1 else [0.0]
-    for angle in angles:
-        c, s = np.cos(angle), np.sin(angle)
-        local = hull @ np.array([[c, -s], [s, c]])  # rotate by -angle
-        lo, hi = local.min(axis=0), local.max(axis=0)
-        area = float(np.prod(np.maximum(hi - lo, min_size)))
-        if best is None or area < best[0]:
-            best = (area, angle, lo, hi)
-    _, angle, lo, hi = best
+    search = xy[:: max(1, len(xy) // max_search_points)] - xy.mean(axis=0)
+    angle = 0.0
+    if len(search) >= 3:
+        angles = np.radians(np.arange(0.0, 90.0, angle_step_deg))
+        c, s = np.cos(angles), np.sin(angles)
+        u = search[:, 0, None] * c + search[:, 1, None] * s  # (n, A) along the heading
+        v = -search[:, 0, None] * s + search[:, 1, None] * c  # (n, A) across it
+        du = np.minimum(u - u.min(axis=0), u.max(axis=0) - u)
+        dv = np.minimum(v - v.min(axis=0), v.max(axis=0) - v)
+        closeness = (1.0 / np.maximum(np.minimum(du, dv), 0.01)).sum(axis=0)
+        angle = float(angles[int(np.argmax(closeness))])
     c, s = np.cos(angle), np.sin(angle)
-    centre_local = (lo + hi) / 2
-    centre = np.array([c * centre_local[0] - s * centre_local[1], s * centre_local[0] + c * centre_local[1]])
-    size = np.maximum(hi - lo, min_size)
+    u = xy[:, 0] * c + xy[:, 1] * s
+    v = -xy[:, 0] * s + xy[:, 1] * c
+    centre_u, centre_v = (u.min() + u.max()) / 2, (v.min() + v.max()) / 2
+    size = np.maximum([u.max() - u.min(), v.max() - v.min()], min_size)
+    centre = np.array([c * centre_u - s * centre_v, s * centre_u + c * centre_v])
     yaw = angle
     if size[1] > size[0]:  # dx is the longer side
         size = size[::-1]
@@ -135,3 +146,35 @@ def fit_box(points: np.ndarray, min_size: float = 0.02) -> np.ndarray:
     return np.array(
         [centre[0], centre[1], (z_lo + z_hi) / 2, size[0], size[1], max(z_hi - z_lo, min_size), yaw]
     )
+
+
+def complete_hidden_side(boxes: np.ndarray, viewpoint: np.ndarray | None = None) -> np.ndarray:
+    """Extend each box away from the viewpoint along its shorter horizontal side until its footprint
+    is square.
+
+    A sensor sees only the surfaces that face it, so a box fitted to the points of a barrel or a
+    crate is cut at the hidden back; assuming a square footprint recovers round and near-square
+    objects (barrels, bobbins, cones, many crates) and is one extra hypothesis next to the fitted
+    box, not a replacement.
+
+    Args:
+        boxes: (M, 7) fitted boxes (dx >= dy, as ``fit_box`` returns).
+        viewpoint: (2,) or (3,) sensor position in the boxes' frame; the origin by default.
+
+    Returns:
+        (M, 7) completed boxes.
+    """
+    boxes = np.array(boxes, np.float64).reshape(-1, 7)
+    view = np.zeros(2) if viewpoint is None else np.asarray(viewpoint, np.float64)[:2]
+    long_side = np.maximum(boxes[:, 3], boxes[:, 4])
+    short_side = np.minimum(boxes[:, 3], boxes[:, 4])
+    yaw = boxes[:, 6] + np.where(boxes[:, 3] >= boxes[:, 4], np.pi / 2, 0.0)  # direction of the short side
+    axis = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+    away = np.sign(np.einsum("md,md->m", axis, boxes[:, :2] - view))
+    away[away == 0] = 1.0
+    shift = (long_side - short_side) / 2
+    out = boxes.copy()
+    out[:, :2] += axis * (away * shift)[:, None]
+    out[:, 3] = long_side
+    out[:, 4] = long_side
+    return out

@@ -87,13 +87,111 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import bench_simulate, update_readme
+def parse_overrides(pairs: list[str] | None) -> dict:
+    """``["regularization=0.1", "segment_on=voxels"]`` -> a dict of parameter overrides; values are
+    read as JSON when they parse (numbers, true/false, lists) and as text otherwise."""
+    overrides = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise InputError(f"--set expects KEY=VALUE, got {pair!r}")
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
+        if isinstance(overrides[key], list):
+            overrides[key] = tuple(overrides[key])
+    return overrides
 
-    result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import bench_pipeline, bench_simulate, bench_voxel_sweep, update_readme
+
+    command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
+    if args.frames is None:
+        args.frames = 10 if args.name == "simulate" else 4
+    if args.name == "simulate":
+        result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
+    else:
+        if args.data is None:
+            raise InputError(f"bench {args.name} needs a DATA folder or file")
+        update, close = progress_bar(args.name)
+        try:
+            if args.name == "pipeline":
+                result = bench_pipeline(
+                    args.data,
+                    preset=args.preset,
+                    overrides=parse_overrides(args.set),
+                    max_frames=args.frames,
+                    command=command,
+                    progress=update,
+                )
+                result.pop("T_vehicle_sensor", None)
+            else:
+                sizes = [float(v) for v in args.voxel_sizes.split(",")]
+                result = bench_voxel_sweep(
+                    args.data, sizes, max_frames=args.frames, png=args.png, command=command, progress=update
+                )
+        finally:
+            close()
     print(json.dumps(result, indent=2))
     if args.readme:
         update_readme(args.readme, result)
+    return 0
+
+
+def _cmd_propose(args: argparse.Namespace) -> int:
+    from .dataset import open_dataset
+    from .detector import PRESETS, Detector
+
+    dataset = open_dataset(args.data)
+    if not 0 <= args.frame < dataset.num_frames:
+        raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
+    preset = args.preset or ("agv" if dataset.num_sensors > 1 else "indoor")
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    detector = Detector(PRESETS[preset].replace(**parse_overrides(args.set)))
+    if args.calibrate and dataset.num_sensors > 1:
+        detector.calibrate(dataset.frame(args.frame))
+    history_from = max(0, args.frame - detector.params.history_frames)
+    history = [dataset.frame(i) for i in range(history_from, args.frame)]
+    result = detector.propose(dataset.frame(args.frame), history)
+    proposals = result.proposals
+    record = {
+        "data": dataset.name,
+        "frame": args.frame,
+        "preset": preset,
+        "num_points": result.merged.num_points,
+        "num_points_segmented": result.cloud.num_points,
+        "num_voxels": result.grid.num_voxels,
+        "num_patches": result.segmentation.num_patches,
+        "num_segments": result.segmentation.num_segments,
+        "timings_ms": {k: round(v, 1) for k, v in result.timings_ms.items()},
+        "box_format": "cx, cy, cz, dx, dy, dz, yaw (vehicle frame, metres, radians)",
+        "proposals": [
+            {
+                "box": [round(float(v), 4) for v in proposals.boxes[i]],
+                "num_points": int(proposals.num_points[i]),
+                "num_voxels": int(proposals.num_voxels[i]),
+                "level": ["segment", "union", "patch"][int(proposals.level[i])],
+                "box_kind": ["fitted", "completed"][int(proposals.box_kind[i])],
+            }
+            for i in range(len(proposals))
+        ],
+    }
+    if args.json:
+        print(json.dumps(record, indent=1))
+    else:
+        print(
+            f"{dataset.name} frame {args.frame}: {len(proposals)} proposals from {record['num_segments']} "
+            f"segments ({record['num_patches']} patches, {record['num_voxels']} voxels) in "
+            f"{record['timings_ms']['total']:.0f} ms"
+        )
+        for row in record["proposals"][: args.limit]:
+            box = ", ".join(f"{v:7.2f}" for v in row["box"])
+            print(f"  [{box}]  {row['num_points']:6d} pts  {row['level']:<7} {row['box_kind']}")
+        if len(proposals) > args.limit:
+            print(f"  ... {len(proposals) - args.limit} more (--json prints all)")
     return 0
 
 
@@ -123,11 +221,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path")
     p.set_defaults(func=_cmd_info)
 
-    p = sub.add_parser("bench", help="benchmarks that print JSON")
-    p.add_argument("name", choices=["simulate"])
-    p.add_argument("--frames", type=int, default=10)
-    p.add_argument("--points", type=int, default=80_000)
-    p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("propose", help="object proposals of one frame (the detector's front half)")
+    p.add_argument("data", help="a data set folder or any point-cloud file the readers open")
+    p.add_argument("--frame", type=int, default=0, help="frame index (0-based)")
+    p.add_argument("--preset", default=None, help="agv or indoor (default: agv for multi-sensor data)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a parameter (repeatable)")
+    p.add_argument(
+        "--no-calibrate", dest="calibrate", action="store_false", help="skip the ICP extrinsic refinement"
+    )
+    p.add_argument("--json", action="store_true", help="print every proposal as JSON")
+    p.add_argument("--limit", type=int, default=20, help="rows of the text listing")
+    p.set_defaults(func=_cmd_propose)
+
+    p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
+    p.add_argument("name", choices=["simulate", "pipeline", "sweep"])
+    p.add_argument("data", nargs="?", default=None, help="data set folder or file (pipeline, sweep)")
+    p.add_argument("--frames", type=int, default=None, help="frames to run (simulate: 10, others: 4)")
+    p.add_argument("--points", type=int, default=80_000, help="simulate: points per frame")
+    p.add_argument("--seed", type=int, default=0, help="simulate: seed")
+    p.add_argument("--preset", default=None, help="pipeline: agv or indoor (default: by data)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="pipeline: override a parameter")
+    p.add_argument("--voxel-sizes", default="0.1,0.15,0.2,0.3,0.4", help="sweep: comma-separated sizes (m)")
+    p.add_argument("--png", default=None, help="sweep: write the plot here")
+    p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.add_argument("--readme", default=None, help="also write the result into this README's bench block")
     p.set_defaults(func=_cmd_bench)
     return parser
@@ -143,6 +259,9 @@ def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # output piped into head and friends
+        sys.stderr.close()
+        return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -101,6 +101,12 @@ def floor_mask(
     plane, inliers = candidate.segment_plane(distance_m, 3, 200)
     plane = np.asarray(plane, np.float64)
     plane /= np.linalg.norm(plane[:3])
+    if len(inliers) >= 3:  # least-squares refit on the RANSAC inliers (RANSAC's plane is any 3 of them)
+        inlier_points = cloud.points[low][np.asarray(inliers)].astype(np.float64)
+        centroid = inlier_points.mean(axis=0)
+        normal = np.linalg.svd(inlier_points - centroid, full_matrices=False)[2][2]
+        normal = normal if normal @ plane[:3] > 0 else -normal
+        plane = np.append(normal, -normal @ centroid)
     if plane[2] < 0:
         plane = -plane
     if np.degrees(np.arccos(np.clip(plane[2], -1, 1))) > max_tilt_deg or len(inliers) < 3:

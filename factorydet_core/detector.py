@@ -57,6 +57,10 @@ class FrontEndParams:
     """Proposal feature: "aggregated" voxel features, or "direct" 3DmFV of the proposal's points."""
     include_history: bool = True
     """Also propose the intermediate unions of the merge hierarchy."""
+    complete_boxes: bool = True
+    """Also propose each segment with its box completed behind the visible side."""
+    include_patches: bool = True
+    """Also propose single patches (an object may be exactly one patch that merging then grew)."""
 
     def __post_init__(self) -> None:
         if self.history_frames < 0:
@@ -90,7 +94,11 @@ PRESETS: dict[str, FrontEndParams] = {
         prune_m=0.04,
         voxel_size_m=0.2,
         segmentation=SegmentationParams(
-            k_features=20, k_graph=10, max_edge_m=0.15, regularization=0.1, merge_threshold=0.15,
+            k_features=20,
+            k_graph=10,
+            max_edge_m=0.15,
+            regularization=0.1,
+            merge_threshold=0.15,
             max_object_size_m=(3.0, 2.2),
         ),
     ),  # fmt: skip
@@ -199,7 +207,8 @@ class Detector:
         extrinsics = self.T_vehicle_sensor
         if extrinsics is not None and len(extrinsics) != frame.num_sensors:
             raise InputError(
-                f"{frame.name}: {frame.num_sensors} sensors, but the detector is calibrated for {len(extrinsics)}"
+                f"{frame.name}: {frame.num_sensors} sensors, but the detector has extrinsics for "
+                f"{len(extrinsics)}"
             )
         used_history = list(history)[-params.history_frames :] if params.history_frames else []
         merged = accumulate(used_history + [frame], extrinsics, refine_with_icp=params.icp_between_frames)
@@ -233,6 +242,8 @@ class Detector:
             weighting=params.weighting,
             feature=params.feature,
             include_history=params.include_history,
+            include_patches=params.include_patches,
+            complete_boxes=params.complete_boxes,
             floor_plane=floor_plane if params.remove_floor else None,
         )
         done("aggregation")

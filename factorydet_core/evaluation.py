@@ -14,7 +14,9 @@ def proposal_point_lists(segmentation: Segmentation, proposals: Proposals) -> li
     order = np.argsort(segmentation.patch_ids, kind="stable")
     starts = np.concatenate([[0], np.cumsum(np.bincount(segmentation.patch_ids, minlength=num_patches))])
     return [
-        np.concatenate([order[starts[p] : starts[p + 1]] for p in patch_set]) if patch_set else np.zeros(0, int)
+        np.concatenate([order[starts[p] : starts[p + 1]] for p in patch_set])
+        if patch_set
+        else np.zeros(0, int)
         for patch_set in proposals.patch_sets
     ]
 
@@ -25,9 +27,7 @@ def best_box_iou(reference_boxes: np.ndarray, proposal_boxes: np.ndarray) -> np.
     return iou.max(axis=1) if iou.shape[1] else np.zeros(len(reference_boxes))
 
 
-def best_point_iou(
-    cloud: MergedCloud, instance_ids: np.ndarray, point_lists: list[np.ndarray]
-) -> np.ndarray:
+def best_point_iou(cloud: MergedCloud, instance_ids: np.ndarray, point_lists: list[np.ndarray]) -> np.ndarray:
     """(R,) the highest point-set IoU of each instance (its points in ``cloud``, by
     ``cloud.point_instance_ids``) with any proposal's point set: segmentation quality without boxes."""
     best = np.zeros(len(instance_ids))

@@ -50,8 +50,8 @@ _AXIS_VIEWS = (
 
 def gaussian_means() -> np.ndarray:
     """(125, 3) float64 Gaussian centres in Gaussian order k = i * 25 + j * 5 + l."""
-    i, j, l = np.meshgrid(CENTRES, CENTRES, CENTRES, indexing="ij")
-    return np.stack([i.ravel(), j.ravel(), l.ravel()], axis=1)
+    grid = np.meshgrid(CENTRES, CENTRES, CENTRES, indexing="ij")
+    return np.stack([axis.ravel() for axis in grid], axis=1)
 
 
 def normalize_fisher_vectors(raw: np.ndarray) -> np.ndarray:
@@ -148,7 +148,9 @@ def fisher_vectors(
                 grad[:, 1 + axis] = Q * D[:, axis][view].expand(-1, 5, 5, 5).reshape(-1, NUM_GAUSSIANS)
                 grad[:, 4 + axis] = Q * D2m1[:, axis][view].expand(-1, 5, 5, 5).reshape(-1, NUM_GAUSSIANS)
             index = local_ids[:, None, None].expand_as(grad)
-            sums[first_set:end_set] = torch.zeros((num_local, 7, NUM_GAUSSIANS)).index_add_(0, local_ids, grad)
+            sums[first_set:end_set] = torch.zeros((num_local, 7, NUM_GAUSSIANS)).index_add_(
+                0, local_ids, grad
+            )
             maxs[first_set:end_set] = torch.full((num_local, 7, NUM_GAUSSIANS), -torch.inf).scatter_reduce_(
                 0, index, grad, "amax"
             )

@@ -62,10 +62,11 @@ def refine_extrinsics(
     T_vehicle_sensor: np.ndarray | None = None,
     *,
     max_correspondence_m: float = 0.3,
-    downsample_m: float = 0.1,
-    rounds: int = 2,
+    downsample_m: float = 0.05,
+    rounds: int = 3,
     max_iterations: int = 30,
     remove_common_motion: bool = True,
+    level_to_floor: bool = True,
 ) -> ExtrinsicRefinement:
     """Refine every sensor's extrinsic by point-to-plane ICP of its points against all other sensors.
 
@@ -85,6 +86,9 @@ def refine_extrinsics(
         remove_common_motion: aligning sensors to each other cannot see a motion of the whole rig,
             and such a motion drifts in; remove the mean correction, which assumes the calibration
             errors of the starting extrinsics average out over the sensors.
+        level_to_floor: then rotate the whole rig so that the floor plane seen within 10 m of the
+            vehicle is level (normal +z, the vehicle frame's definition); this fixes the rig's roll
+            and pitch absolutely, which the mean-correction assumption only fixes on average.
 
     Returns:
         The refined extrinsics and each sensor's residual before and after.
@@ -101,7 +105,9 @@ def refine_extrinsics(
         raise InputError("refine_extrinsics: needs at least two sensors that overlap")
     # Sensor-frame points per sensor, with the frame they came from; frames stay separate because
     # the odometry between them is not trusted here.
-    per_sensor = [[f.points[f.sensor_ids == s].astype(np.float64) for f in frames] for s in range(num_sensors)]
+    per_sensor = [
+        [f.points[f.sensor_ids == s].astype(np.float64) for f in frames] for s in range(num_sensors)
+    ]
 
     def vehicle_points(sensor: int, frame_index: int, T: np.ndarray) -> np.ndarray:
         local = per_sensor[sensor][frame_index]
@@ -132,35 +138,37 @@ def refine_extrinsics(
     rmse_before = np.array([residual(s, extrinsics)[0] for s in range(num_sensors)])
     refined = extrinsics.copy()
     criteria = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=max_iterations)
-    for _ in range(rounds):
+    for round_index in range(rounds):
+        # Coarse to fine: the correspondence distance halves each round (not below 2 cells).
+        distance = max(max_correspondence_m * 0.5**round_index, 2 * downsample_m)
         for sensor in range(num_sensors):
-            sources, targets = [], []
+            corrections = []
             for f in range(len(frames)):
                 source = vehicle_points(sensor, f, refined)
                 others = [vehicle_points(o, f, refined) for o in range(num_sensors) if o != sensor]
-                if len(source) and sum(len(o) for o in others):
-                    # Frames are offset far apart so that no correspondence crosses frames.
-                    offset = np.array([0.0, 0.0, 1000.0 * f])
-                    sources.append(source + offset)
-                    targets.append(np.concatenate(others) + offset)
-            if not sources:
-                continue
-            source_cloud = _o3d_cloud(np.concatenate(sources)).voxel_down_sample(downsample_m)
-            target_cloud = _o3d_cloud(np.concatenate(targets)).voxel_down_sample(downsample_m)
-            if len(source_cloud.points) < 10 or len(target_cloud.points) < 10:
-                continue
-            target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
-            result = o3d.pipelines.registration.registration_icp(
-                source_cloud,
-                target_cloud,
-                max_correspondence_m,
-                np.eye(4),
-                o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-                criteria,
-            )
-            refined[sensor] = result.transformation @ refined[sensor]
+                if not len(source) or not sum(len(o) for o in others):
+                    continue
+                source_cloud = _o3d_cloud(source).voxel_down_sample(downsample_m)
+                target_cloud = _o3d_cloud(np.concatenate(others)).voxel_down_sample(downsample_m)
+                if len(source_cloud.points) < 10 or len(target_cloud.points) < 10:
+                    continue
+                target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
+                result = o3d.pipelines.registration.registration_icp(
+                    source_cloud,
+                    target_cloud,
+                    distance,
+                    np.eye(4),
+                    o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+                    criteria,
+                )
+                corrections.append(result.transformation)
+            if corrections:
+                # One ICP per frame (frames do not share correspondences), then the mean correction.
+                refined[sensor] = _mean_transform(np.array(corrections)) @ refined[sensor]
     if remove_common_motion:
         refined = _remove_common_correction(extrinsics, refined)
+    if level_to_floor:
+        refined = _level_to_floor(frames, refined)
     after = [residual(s, refined) for s in range(num_sensors)]
     return ExtrinsicRefinement(
         T_vehicle_sensor=refined,
@@ -170,16 +178,50 @@ def refine_extrinsics(
     )
 
 
-def _remove_common_correction(start: np.ndarray, refined: np.ndarray) -> np.ndarray:
-    """Remove the mean rigid correction (rotation-vector mean, translation mean) from ``refined``."""
+def _mean_transform(transforms: np.ndarray) -> np.ndarray:
+    """(4, 4) mean of (K, 4, 4) rigid transforms: chordal mean rotation, mean translation."""
     from scipy.spatial.transform import Rotation
 
-    corrections = refined @ np.linalg.inv(start)  # (S, 4, 4) in the vehicle frame
-    mean_rotation = Rotation.from_matrix(corrections[:, :3, :3]).mean().as_matrix()
     mean = np.eye(4)
-    mean[:3, :3] = mean_rotation
-    mean[:3, 3] = corrections[:, :3, 3].mean(axis=0)
-    return np.linalg.inv(mean)[None] @ refined
+    mean[:3, :3] = Rotation.from_matrix(transforms[:, :3, :3]).mean().as_matrix()
+    mean[:3, 3] = transforms[:, :3, 3].mean(axis=0)
+    return mean
+
+
+def _level_to_floor(frames: list[Frame], T_vehicle_sensor: np.ndarray, radius_m: float = 10.0) -> np.ndarray:
+    """Apply the rotation that makes the floor plane of the merged frames level (normal +z)."""
+    from .cloud import floor_mask
+
+    normals = []
+    for frame in frames:
+        cloud = merge_frame(frame, T_vehicle_sensor)
+        near = cloud.select(np.hypot(cloud.points[:, 0], cloud.points[:, 1]) <= radius_m)
+        _, plane = floor_mask(near, distance_m=0.03)
+        if np.all(np.isfinite(plane)):
+            normals.append(plane[:3])
+    if not normals:
+        return T_vehicle_sensor  # no floor in view: nothing to level against
+    normal = np.mean(normals, axis=0)
+    normal /= np.linalg.norm(normal)
+    # Smallest rotation taking the plane normal onto +z (Rodrigues), then the height shift.
+    axis = np.cross(normal, [0.0, 0.0, 1.0])
+    sin_angle, cos_angle = np.linalg.norm(axis), float(normal[2])
+    rotation = np.eye(3)
+    if sin_angle > 1e-12:
+        k = axis / sin_angle
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        rotation = np.eye(3) + sin_angle * K + (1 - cos_angle) * K @ K
+    level = np.eye(4)
+    level[:3, :3] = rotation
+    # Only the rotation: the floor plane's height is biased by a centimetre by whatever stands on
+    # it (measured on the simulator), more than the rig's height error, so the height stays.
+    return level[None] @ T_vehicle_sensor
+
+
+def _remove_common_correction(start: np.ndarray, refined: np.ndarray) -> np.ndarray:
+    """Remove the mean rigid correction of all sensors from ``refined``."""
+    corrections = refined @ np.linalg.inv(start)  # (S, 4, 4) in the vehicle frame
+    return np.linalg.inv(_mean_transform(corrections))[None] @ refined
 
 
 def accumulate(

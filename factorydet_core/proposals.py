@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse
 
-from .boxes import fit_box
+from .boxes import complete_hidden_side, fit_box
 from .features import NUM_CHANNELS, NUM_GAUSSIANS, fisher_vectors, to_unit_sphere
 from .types import InputError, Proposals, Segmentation, VoxelGrid
 
@@ -41,6 +41,23 @@ def candidate_patch_sets(
     return list(seen), list(seen.values())
 
 
+def snap_to_floor(
+    boxes: np.ndarray, floor_plane: np.ndarray | None, ground_snap_m: float = 0.15
+) -> np.ndarray:
+    """Extend (M, 7) boxes whose bottom is within ``ground_snap_m`` above the floor plane (a, b, c, d)
+    down to it: floor removal cut their lowest points. No change without a (finite) plane."""
+    boxes = np.array(boxes, np.float64).reshape(-1, 7)
+    if floor_plane is None or not np.all(np.isfinite(floor_plane)):
+        return boxes
+    a, b, c, d = floor_plane
+    floor_z = -(a * boxes[:, 0] + b * boxes[:, 1] + d) / c
+    bottom, top = boxes[:, 2] - boxes[:, 5] / 2, boxes[:, 2] + boxes[:, 5] / 2
+    snap = (bottom - floor_z <= ground_snap_m) & (bottom > floor_z)
+    bottom = np.where(snap, floor_z, bottom)
+    boxes[:, 2], boxes[:, 5] = (bottom + top) / 2, top - bottom
+    return boxes
+
+
 def normalize_channels(features: np.ndarray) -> np.ndarray:
     """Per-channel L2 normalisation across the Gaussians of (M, 20, 5, 5, 5) features."""
     flat = features.reshape(len(features), NUM_CHANNELS, NUM_GAUSSIANS).astype(np.float64)
@@ -61,6 +78,8 @@ def build_proposals(
     include_patches: bool = False,
     floor_plane: np.ndarray | None = None,
     ground_snap_m: float = 0.15,
+    complete_boxes: bool = True,
+    min_completion_ratio: float = 0.9,
 ) -> Proposals:
     """Proposals of a segmented cloud.
 
@@ -78,6 +97,10 @@ def build_proposals(
         floor_plane: (4,) floor plane (a, b, c, d); a box whose bottom is within ``ground_snap_m`` of
             it is extended down to the floor, because floor removal cut the object's lowest points.
         ground_snap_m: see ``floor_plane``.
+        complete_boxes: also propose each segment with its box completed behind the visible side
+            (``boxes.complete_hidden_side``, seen from the vehicle origin), when its footprint is
+            narrower than ``min_completion_ratio`` times its length.
+        min_completion_ratio: see ``complete_boxes``.
 
     Returns:
         The proposals, empty when no candidate has ``min_points`` points.
@@ -90,7 +113,9 @@ def build_proposals(
     if len(segmentation.patch_ids) != num_points or len(grid.point_voxel_ids) != num_points:
         raise InputError("build_proposals: points, segmentation and grid must describe the same cloud")
     if len(voxel_features) != grid.num_voxels:
-        raise InputError(f"build_proposals: {len(voxel_features)} voxel features for {grid.num_voxels} voxels")
+        raise InputError(
+            f"build_proposals: {len(voxel_features)} voxel features for {grid.num_voxels} voxels"
+        )
     sets, levels = candidate_patch_sets(
         segmentation, include_history=include_history, include_patches=include_patches
     )
@@ -138,19 +163,24 @@ def build_proposals(
         all_points = points[np.concatenate(point_lists)]
         features = fisher_vectors(to_unit_sphere(all_points, set_ids, len(sets)), set_ids, len(sets))
 
-    boxes = np.array([fit_box(points[idx]) for idx in point_lists])
-    if floor_plane is not None and np.all(np.isfinite(floor_plane)):
-        a, b, c, d = floor_plane
-        floor_z = -(a * boxes[:, 0] + b * boxes[:, 1] + d) / c
-        bottom, top = boxes[:, 2] - boxes[:, 5] / 2, boxes[:, 2] + boxes[:, 5] / 2
-        snap = (bottom - floor_z <= ground_snap_m) & (bottom > floor_z)
-        bottom = np.where(snap, floor_z, bottom)
-        boxes[:, 2], boxes[:, 5] = (bottom + top) / 2, top - bottom
+    boxes = snap_to_floor(np.array([fit_box(points[idx]) for idx in point_lists]), floor_plane, ground_snap_m)
+    num_points_kept = set_sizes[keep]
+    box_kind = np.zeros(len(sets), np.int8)
+    if complete_boxes:
+        extra = np.flatnonzero(boxes[:, 4] < min_completion_ratio * boxes[:, 3])
+        boxes = np.concatenate([boxes, complete_hidden_side(boxes[extra])])
+        features = np.concatenate([features, features[extra]])
+        sets = sets + [sets[i] for i in extra]
+        num_points_kept = np.concatenate([num_points_kept, num_points_kept[extra]])
+        num_voxels = np.concatenate([num_voxels, num_voxels[extra]])
+        levels = np.concatenate([levels, levels[extra]])
+        box_kind = np.concatenate([box_kind, np.ones(len(extra), np.int8)])
     return Proposals(
         boxes=boxes,
         features=features,
         patch_sets=tuple(sets),
-        num_points=set_sizes[keep],
+        num_points=num_points_kept,
         num_voxels=num_voxels,
         level=levels,
+        box_kind=box_kind,
     )

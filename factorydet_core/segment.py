@@ -38,9 +38,9 @@ class SegmentationParams:
     """Neighbours per point in the adjacency graph."""
     max_edge_m: float = 0.3
     """Graph edges longer than this are cut: a gap this wide always separates segments."""
-    regularization: float = 0.1
+    regularization: float = 0.05
     """Cut-pursuit regularisation (lambda): larger gives fewer, bigger patches."""
-    spatial_weight: float = 0.0
+    spatial_weight: float = 3.0
     """Weight of the xyz coordinates (per metre) next to the geometric features in the data term;
     > 0 keeps patches compact."""
     min_patch_points: int = 10

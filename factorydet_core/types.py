@@ -296,7 +296,11 @@ class Proposals:
     num_voxels: np.ndarray
     """(M,) int64: occupied voxels the proposal touches."""
     level: np.ndarray
-    """(M,) int8: 0 = final merged segment, 1 = an intermediate union of the merge hierarchy."""
+    """(M,) int8: 0 = final merged segment, 1 = an intermediate union of the merge hierarchy,
+    2 = a single patch."""
+    box_kind: np.ndarray | None = None
+    """(M,) int8: 0 = box fitted to the points, 1 = the same segment's box completed behind its
+    visible side (``boxes.complete_hidden_side``); all 0 when ``None``."""
 
     def __post_init__(self) -> None:
         num = len(self.boxes) if isinstance(self.boxes, np.ndarray) else -1
@@ -305,9 +309,12 @@ class Proposals:
         check_array(self.num_points, (num,), name="proposal num_points")
         check_array(self.num_voxels, (num,), name="proposal num_voxels")
         check_array(self.level, (num,), name="proposal level")
+        if self.box_kind is None:
+            object.__setattr__(self, "box_kind", np.zeros(num, np.int8))
+        check_array(self.box_kind, (num,), name="proposal box_kind")
         if len(self.patch_sets) != num:
             raise InputError(f"proposal patch_sets: expected {num}, got {len(self.patch_sets)}")
-        for field in ("boxes", "features", "num_points", "num_voxels", "level"):
+        for field in ("boxes", "features", "num_points", "num_voxels", "level", "box_kind"):
             object.__setattr__(self, field, _frozen(getattr(self, field)))
 
     def __len__(self) -> int:
