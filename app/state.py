@@ -11,7 +11,11 @@ from collections.abc import Callable
 
 from factorydet_core.colors import COLOR_MODES
 from factorydet_core.dataset import Dataset
+from factorydet_core.detector import PRESETS, FrontEndParams, ProposalResult
 from factorydet_core.types import Frame
+
+LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals")
+"""The detection layers the app can draw, in panel order."""
 
 
 class AppState:
@@ -30,6 +34,17 @@ class AppState:
         self.show_boxes = True
         self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
         self.num_frame_changes = 0
+        # Detection front half: which layers show, its parameters, and the worker's progress.
+        self.layers = {name: name == "proposals" for name in LAYERS}
+        self.params: FrontEndParams = PRESETS["agv" if dataset.num_sensors > 1 else "indoor"]
+        self.use_refined_extrinsics = dataset.num_sensors > 1
+        self.pipeline_status = "waiting"
+        self.pipeline_progress = 0.0
+        self.pipeline_busy = False
+        self.pipeline_result: ProposalResult | None = None
+        self.pipeline_result_key: tuple | None = None
+        self.num_results = 0
+        self.selection_markdown = ""
         self._listeners: list[Callable[[], None]] = []
         self.changed = threading.Condition(self.lock)
 
@@ -80,6 +95,60 @@ class AppState:
                 self.show_boxes = bool(show_boxes)
             if max_height is not None:
                 self.max_height = float(max_height)
+            self.changed.notify_all()
+        self._notify()
+
+    def set_layer(self, name: str, visible: bool) -> None:
+        """Show or hide one of ``LAYERS``."""
+        if name not in LAYERS:
+            raise ValueError(f"unknown layer {name!r}; choose from {LAYERS}")
+        with self.lock:
+            self.layers[name] = bool(visible)
+            self.changed.notify_all()
+        self._notify()
+
+    def set_params(self, **changes) -> None:
+        """Change front-half parameters (``FrontEndParams`` or ``SegmentationParams`` field names);
+        the worker recomputes the current frame."""
+        with self.lock:
+            self.params = self.params.replace(**changes)
+            self.changed.notify_all()
+        self._notify()
+
+    def set_use_refined_extrinsics(self, use: bool) -> None:
+        with self.lock:
+            self.use_refined_extrinsics = bool(use)
+            self.changed.notify_all()
+        self._notify()
+
+    def pipeline_key(self) -> tuple:
+        """What the current front-half result must have been computed from."""
+        with self.lock:
+            return (self.frame_index, self.params, self.use_refined_extrinsics)
+
+    def set_pipeline_progress(self, status: str, fraction: float, busy: bool = True) -> None:
+        with self.lock:
+            self.pipeline_status = status
+            self.pipeline_progress = float(fraction)
+            self.pipeline_busy = busy
+            self.changed.notify_all()
+        self._notify()
+
+    def set_pipeline_result(self, key: tuple, result: ProposalResult, status: str) -> None:
+        with self.lock:
+            self.pipeline_result = result
+            self.pipeline_result_key = key
+            self.pipeline_status = status
+            self.pipeline_progress = 1.0
+            self.pipeline_busy = False
+            self.selection_markdown = ""
+            self.num_results += 1
+            self.changed.notify_all()
+        self._notify()
+
+    def set_selection(self, markdown: str) -> None:
+        with self.lock:
+            self.selection_markdown = markdown
             self.changed.notify_all()
         self._notify()
 

@@ -4,14 +4,25 @@ from __future__ import annotations
 
 import threading
 
+import numpy as np
 import viser
 
 from factorydet_core.dataset import Dataset
+from factorydet_core.inspect import (
+    describe_patch,
+    describe_proposal,
+    description_markdown,
+    nearest_point_on_ray,
+    ray_box_distances,
+)
 
+from .layers import LayerView
 from .panels.display_panel import build_display_panel
 from .panels.frame_panel import build_frame_panel
+from .panels.pipeline_panel import build_pipeline_panel
 from .scene import SceneView
 from .state import AppState
+from .worker import PipelineWorker
 
 
 class FactorydetApp:
@@ -20,19 +31,28 @@ class FactorydetApp:
     Args:
         server: a running viser server (the caller owns it and stops it).
         dataset: the data set to show.
+        title: shown in the status line; the data set's name by default.
+        calibrate: refine the sensor extrinsics by ICP (once, in the background) for multi-sensor data.
     """
 
-    def __init__(self, server: viser.ViserServer, dataset: Dataset, title: str | None = None) -> None:
+    def __init__(
+        self, server: viser.ViserServer, dataset: Dataset, title: str | None = None, calibrate: bool = True
+    ) -> None:
         self.server = server
         self.state = AppState(dataset, title)
         self.scene = SceneView(server)
+        self.layers = LayerView(server)
+        self._layers_key: tuple | None = None
         self._draw_lock = threading.Lock()  # one redraw at a time; the last one wins
         server.gui.configure_theme(control_width="medium", dark_mode=False)
         server.gui.add_markdown("### factorydet")
         self.frame_panel = build_frame_panel(server, self.state)
         self.display_panel = build_display_panel(server, self.state)
+        self.pipeline_panel = build_pipeline_panel(server, self.state)
         self._drawn: tuple | None = None
+        self.worker = PipelineWorker(self.state, calibrate=calibrate)
         self.state.on_change(self.redraw)
+        server.scene.on_click()(self._on_click)
         server.initial_camera.position = (-10.0, -10.0, 11.0)
         server.initial_camera.look_at = (0.0, 0.0, 0.0)
         server.initial_camera.up = (0.0, 0.0, 1.0)
@@ -57,8 +77,49 @@ class FactorydetApp:
                 self._drawn = key
             else:
                 self.scene.set_point_size(point_size)
+            with self.state.lock:
+                result = self.state.pipeline_result
+                layers = dict(self.state.layers)
+                max_height = self.state.max_height
+            if result is not None:
+                layers_key = (id(result), max_height)
+                if layers_key != self._layers_key:
+                    self.layers.draw(result, layers, point_size, max_height)
+                    self._layers_key = layers_key
+                else:
+                    self.layers.set_visibility(layers)
+                    self.layers.set_point_size(point_size)
             self.frame_panel.refresh(self.state)
             self.display_panel.refresh(self.state)
+            self.pipeline_panel.refresh(self.state)
+        self.worker.maybe_request()
+
+    def _on_click(self, event: viser.SceneClickEvent) -> None:
+        """A click picks the nearest proposal box under the cursor, or else the nearest patch point."""
+        with self.state.lock:
+            result = self.state.pipeline_result
+            layers = dict(self.state.layers)
+            frame = self.state.dataset.frame(self.state.pipeline_result_key[0]) if result else None
+            max_height = self.state.max_height
+        if result is None:
+            return
+        origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
+        info = None
+        if layers["proposals"] and len(self.layers.proposal_ids):
+            ids = self.layers.proposal_ids
+            distances = ray_box_distances(origin, direction, result.proposals.boxes[ids])
+            if np.isfinite(distances).any():
+                info = describe_proposal(result, frame, int(ids[int(np.argmin(distances))]))
+        if info is None and (layers["patches"] or layers["segments"]):
+            low = np.flatnonzero(result.cloud.points[:, 2] <= max_height)
+            hit = nearest_point_on_ray(result.cloud.points[low], origin, direction, max_distance=0.15)
+            if hit is not None:
+                info = describe_patch(result, frame, int(result.segmentation.patch_ids[low[hit]]))
+        self.state.set_selection(description_markdown(info) if info else "_Nothing under the cursor._")
+
+    def close(self) -> None:
+        """Stop the background worker (the caller stops the server)."""
+        self.worker.stop()
 
 
 def serve(dataset: Dataset, host: str = "127.0.0.1", port: int = 8080, title: str | None = None) -> None:
@@ -79,4 +140,5 @@ def serve(dataset: Dataset, host: str = "127.0.0.1", port: int = 8080, title: st
     except KeyboardInterrupt:
         pass
     finally:
+        app.worker.stop()
         server.stop()

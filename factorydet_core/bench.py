@@ -180,9 +180,11 @@ def bench_pipeline(
                 # Where a point 10 m in front of each sensor lands, against where it should.
                 ahead = np.array([10.0, 0.0, 0.0, 1.0])
                 shift = np.linalg.norm((T[:, :3] @ ahead) - (T_true[:, :3] @ ahead), axis=1)
-                return {"rotation_deg_median": round(float(np.median(rot)), 3),
-                        "translation_cm_median": round(float(np.median(trans)) * 100, 2),
-                        "point_10m_ahead_error_cm_median": round(float(np.median(shift)) * 100, 2)}  # fmt: skip
+                return {
+                    "rotation_deg_median": round(float(np.median(rot)), 3),
+                    "translation_cm_median": round(float(np.median(trans)) * 100, 2),
+                    "point_10m_ahead_error_cm_median": round(float(np.median(shift)) * 100, 2),
+                }
 
             calibration = {
                 "nominal": errors(dataset.T_vehicle_sensor),

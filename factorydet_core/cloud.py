@@ -72,6 +72,7 @@ def floor_mask(
     distance_m: float = 0.06,
     max_tilt_deg: float = 10.0,
     search_below_m: float = 0.5,
+    ransac_iterations: int = 200,
     seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Find the floor plane (RANSAC among the lowest points, normal near +z).
@@ -81,36 +82,48 @@ def floor_mask(
         distance_m: points within this distance of the plane are floor.
         max_tilt_deg: largest accepted angle between the plane normal and +z.
         search_below_m: RANSAC looks at points within this height above the lowest percentile.
-        seed: RANSAC seed (results are reproducible).
+        ransac_iterations: plane hypotheses tried.
+        seed: RANSAC seed (the same input and seed give the same plane).
 
     Returns:
         ``(mask, plane)``: (N,) bool, True on floor points, and the plane (4,) as (a, b, c, d) with
         a x + b y + c z + d = 0 and c > 0; an all-False mask and NaNs when no floor is found.
     """
-    import open3d as o3d
-
     no_floor = np.zeros(cloud.num_points, bool), np.full(4, np.nan)
     if cloud.num_points < 3:
         return no_floor
     z = cloud.points[:, 2]
-    low = z <= np.percentile(z, 1) + search_below_m
-    if low.sum() < 3:
+    low_points = cloud.points[z <= np.percentile(z, 1) + search_below_m].astype(np.float64)
+    if len(low_points) < 3:
         return no_floor
-    o3d.utility.random.seed(seed)
-    candidate = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points[low].astype(np.float64)))
-    plane, inliers = candidate.segment_plane(distance_m, 3, 200)
-    plane = np.asarray(plane, np.float64)
-    plane /= np.linalg.norm(plane[:3])
-    if len(inliers) >= 3:  # least-squares refit on the RANSAC inliers (RANSAC's plane is any 3 of them)
-        inlier_points = cloud.points[low][np.asarray(inliers)].astype(np.float64)
-        centroid = inlier_points.mean(axis=0)
-        normal = np.linalg.svd(inlier_points - centroid, full_matrices=False)[2][2]
-        normal = normal if normal @ plane[:3] > 0 else -normal
-        plane = np.append(normal, -normal @ centroid)
-    if plane[2] < 0:
-        plane = -plane
-    if np.degrees(np.arccos(np.clip(plane[2], -1, 1))) > max_tilt_deg or len(inliers) < 3:
+    # RANSAC in numpy with a seeded generator (open3d's segment_plane is not reproducible even when
+    # seeded), on at most 20k of the low points; planes tilted more than max_tilt_deg are skipped.
+    rng = np.random.default_rng(seed)
+    if len(low_points) > 20_000:
+        low_points = low_points[rng.choice(len(low_points), 20_000, replace=False)]
+    triples = low_points[rng.integers(0, len(low_points), size=(ransac_iterations, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    valid = lengths > 1e-9
+    normals = normals[valid] / lengths[valid, None]
+    normals *= np.sign(normals[:, 2:3]) + (normals[:, 2:3] == 0)
+    level = normals[:, 2] >= np.cos(np.radians(max_tilt_deg))
+    normals, anchors = normals[level], triples[valid][level, 0]
+    if not len(normals):
         return no_floor
+    offsets = -np.einsum("kd,kd->k", normals, anchors)
+    inlier_counts = (np.abs(low_points @ normals.T + offsets) <= distance_m).sum(axis=0)
+    best = int(np.argmax(inlier_counts))
+    inliers = low_points[np.abs(low_points @ normals[best] + offsets[best]) <= distance_m]
+    if len(inliers) < 3:
+        return no_floor
+    # Least-squares refit on the inliers (RANSAC's plane passes through 3 of them).
+    centroid = inliers.mean(axis=0)
+    normal = np.linalg.svd(inliers - centroid, full_matrices=False)[2][2]
+    normal = normal if normal[2] > 0 else -normal
+    if np.degrees(np.arccos(np.clip(normal[2], -1, 1))) > max_tilt_deg:
+        return no_floor
+    plane = np.append(normal, -normal @ centroid)
     distance = cloud.points.astype(np.float64) @ plane[:3] + plane[3]
     return distance <= distance_m, plane
 

@@ -73,3 +73,28 @@ def colors_by_class(point_class_ids: np.ndarray, class_names: tuple[str, ...]) -
 def colors_by_annotation(point_instance_ids: np.ndarray) -> np.ndarray:
     """(N, 3) uint8: green for points of annotated instances, grey for everything else."""
     return np.where((point_instance_ids > 0)[:, None], np.array([40, 200, 90], np.uint8), UNLABELLED_GREY)
+
+
+def colors_by_id(ids: np.ndarray, seed: int = 0) -> np.ndarray:
+    """(N, 3) uint8: a distinct, stable colour per integer id (patches, segments), bright enough to
+    read against the grid; neighbouring ids get unrelated colours."""
+    ids = np.asarray(ids, np.int64)
+    if not len(ids):
+        return np.zeros((0, 3), np.uint8)
+    # A fixed hash of the id, so a patch keeps its colour however many others there are.
+    hashed = (ids * 2654435761 + seed * 97) % (2**32)
+    hue = (hashed % 360) / 360.0
+    value = 0.75 + 0.25 * ((hashed // 360) % 2)
+    h6 = hue * 6
+    sector = np.floor(h6).astype(int) % 6
+    f = h6 - np.floor(h6)
+    p, q, t = np.zeros_like(f), 1 - f, f
+    one = np.ones_like(f)
+    rgb = np.select(
+        [sector[:, None] == k for k in range(6)],
+        [
+            np.stack(c, axis=1)
+            for c in ((one, t, p), (q, one, p), (p, one, t), (p, q, one), (t, p, one), (one, p, q))
+        ],
+    )
+    return (rgb * value[:, None] * 235 + 20).clip(0, 255).astype(np.uint8)

@@ -9,6 +9,7 @@ import viser
 from factorydet_core.colors import COLOR_MODES
 
 from ..state import AppState
+from . import from_user
 
 _MODE_LABELS = {
     "sensor": "Sensor",
@@ -60,19 +61,27 @@ def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPa
         )
 
     @color_mode.on_update
-    def _(_: viser.GuiEvent) -> None:
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
         state.set_display(color_mode=COLOR_MODES[labels.index(color_mode.value)])
 
     @point_size.on_update
-    def _(_: viser.GuiEvent) -> None:
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
         state.set_display(point_size=float(point_size.value))
 
     @show_boxes.on_update
-    def _(_: viser.GuiEvent) -> None:
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
         state.set_display(show_boxes=bool(show_boxes.value))
 
     @max_height.on_update
-    def _(_: viser.GuiEvent) -> None:
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
         state.set_display(max_height=float(max_height.value))
 
     return DisplayPanel(color_mode, point_size, show_boxes, max_height)

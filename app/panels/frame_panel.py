@@ -8,6 +8,7 @@ import numpy as np
 import viser
 
 from ..state import AppState
+from . import from_user
 
 
 @dataclasses.dataclass
@@ -51,15 +52,21 @@ def build_frame_panel(server: viser.ViserServer, state: AppState) -> FramePanel:
         status = server.gui.add_markdown("")
 
     @slider.on_update
-    def _(_: viser.GuiEvent) -> None:
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
         state.set_frame(int(slider.value))
 
     @previous.on_click
-    def _(_: viser.GuiEvent) -> None:
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
         state.step_frame(-1)
 
     @next_.on_click
-    def _(_: viser.GuiEvent) -> None:
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
         state.step_frame(+1)
 
     panel = FramePanel(slider, previous, next_, status)

@@ -46,8 +46,10 @@ def browser():
 @pytest.fixture
 def app(small_dataset_dir):
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    app = FactorydetApp(server, open_dataset(small_dataset_dir))
+    # The ICP calibration has its own tests; here it would only slow the first result down.
+    app = FactorydetApp(server, open_dataset(small_dataset_dir), calibrate=False)
     yield app
+    app.close()
     server.stop()
 
 
@@ -102,4 +104,50 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
 
     # The measure is not fooled by the page around the points: hide them and it drops.
     app.scene.set_visible(False)
+    app.state.set_layer("proposals", False)  # the orange proposal boxes are colourful too
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) < 0.001, 30), "hidden points still drawn"
+
+
+def test_detection_layers_toggle_and_parameters_recompute(app, page):
+    page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
+    canvas = page.wait_for_selector("canvas[data-engine]", timeout=30_000)
+    assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
+    for label in (
+        "Proposal boxes",
+        "Patches (cut pursuit)",
+        "Voxel size (m)",
+        "Regularisation",
+        "Merge threshold",
+    ):
+        assert page.get_by_text(label, exact=True).count() >= 1, label
+
+    # The first frame's front half runs in the background; its status line reaches the browser.
+    assert app.state.wait_for(lambda: app.state.pipeline_result is not None, timeout=120)
+    page.get_by_text("proposals,", exact=False).first.wait_for(timeout=30_000)
+    assert app.layers.nodes["proposals"].visible and not app.layers.nodes["patches"].visible
+
+    # Toggle a layer from the browser: the state and the scene node follow.
+    page.get_by_label("Patches (cut pursuit)").check()
+    assert app.state.wait_for(lambda: app.state.layers["patches"], timeout=20), (
+        "toggle never reached the server"
+    )
+    assert _wait(lambda: app.layers.nodes["patches"].visible, 20)
+    assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "patches not drawn"
+
+    # Change a parameter from the browser (keyboard on the merge-threshold slider): the layers
+    # recompute for the current frame with the new value, off the GUI thread.
+    before = app.state.num_results
+    old_threshold = app.state.params.segmentation.merge_threshold
+    thumb = page.locator('[role=slider][aria-valuemin="0"][aria-valuemax="1"]')
+    thumb.focus()
+    thumb.press("ArrowRight")
+    expected = round(old_threshold + 0.05, 6)
+    assert app.state.wait_for(
+        lambda: abs(app.state.params.segmentation.merge_threshold - expected) < 1e-6, timeout=20
+    ), "the slider change never reached the server"
+    assert app.state.wait_for(lambda: app.state.num_results > before, timeout=120), "no recompute"
+    assert (
+        app.state.pipeline_result_key[1].segmentation.merge_threshold
+        == app.state.params.segmentation.merge_threshold
+    )
+    assert _wait(lambda: app.layers.drawn_result is app.state.pipeline_result, 30), "new result not drawn"

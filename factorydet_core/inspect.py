@@ -1,0 +1,150 @@
+"""What the app shows about one patch or proposal the user clicked (numbers only, no drawing)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .boxes import box_iou_3d, fit_box
+from .detector import ProposalResult
+from .types import Frame, InputError
+
+
+def nearest_point_on_ray(
+    points: np.ndarray, origin: np.ndarray, direction: np.ndarray, max_distance: float
+) -> int | None:
+    """Index of the point closest to the camera among those within ``max_distance`` of a click ray.
+
+    Args:
+        points: (N, 3) points.
+        origin: (3,) ray origin (the camera).
+        direction: (3,) ray direction (need not be unit length).
+        max_distance: largest perpendicular distance from the ray, metres.
+
+    Returns:
+        The index, or ``None`` when no point is near the ray in front of the camera.
+    """
+    direction = np.asarray(direction, np.float64)
+    norm = np.linalg.norm(direction)
+    if norm == 0 or not len(points):
+        return None
+    direction = direction / norm
+    offsets = np.asarray(points, np.float64) - np.asarray(origin, np.float64)
+    along = offsets @ direction
+    perpendicular_sq = np.einsum("ij,ij->i", offsets, offsets) - along**2
+    candidates = np.flatnonzero((along > 0) & (perpendicular_sq <= max_distance**2))
+    if not len(candidates):
+        return None
+    return int(candidates[np.argmin(along[candidates])])
+
+
+def _best_label(frame: Frame, box: np.ndarray) -> dict:
+    """The annotated instance whose box overlaps ``box`` most, with the IoU (None without overlap)."""
+    if not len(frame.labels):
+        return {"label": None, "label_iou": 0.0}
+    iou = box_iou_3d(box[None], frame.labels.boxes)[0]
+    best = int(np.argmax(iou))
+    if iou[best] <= 0:
+        return {"label": None, "label_iou": 0.0}
+    return {
+        "label": f"{frame.class_names[frame.labels.class_ids[best]]} #{int(frame.labels.instance_ids[best])}",
+        "label_iou": round(float(iou[best]), 3),
+    }
+
+
+def describe_patch(result: ProposalResult, frame: Frame, patch_id: int) -> dict:
+    """Numbers of one cut-pursuit patch: points, voxels, fitted box and the best-overlapping label."""
+    segmentation = result.segmentation
+    if not 0 <= patch_id < segmentation.num_patches:
+        raise InputError(f"patch {patch_id} out of range [0, {segmentation.num_patches})")
+    mask = segmentation.patch_ids == patch_id
+    box = fit_box(result.cloud.points[mask])
+    return {
+        "kind": "patch",
+        "id": int(patch_id),
+        "segment": int(segmentation.patch_segment_ids[patch_id]),
+        "num_points": int(mask.sum()),
+        "num_voxels": int(len(np.unique(result.grid.point_voxel_ids[mask]))),
+        "box": box,
+        **_best_label(frame, box),
+    }
+
+
+def describe_proposal(result: ProposalResult, frame: Frame, index: int) -> dict:
+    """Numbers of one proposal: points, voxels, box, its patches and the best-overlapping label."""
+    proposals = result.proposals
+    if not 0 <= index < len(proposals):
+        raise InputError(f"proposal {index} out of range [0, {len(proposals)})")
+    box = proposals.boxes[index]
+    return {
+        "kind": "proposal",
+        "id": int(index),
+        "num_points": int(proposals.num_points[index]),
+        "num_voxels": int(proposals.num_voxels[index]),
+        "num_patches": len(proposals.patch_sets[index]),
+        "level": ["segment", "union", "patch"][int(proposals.level[index])],
+        "box_kind": ["fitted", "completed"][int(proposals.box_kind[index])],
+        "box": box,
+        **_best_label(frame, box),
+    }
+
+
+def description_markdown(info: dict) -> str:
+    """The description as a short Markdown table for the app's side panel."""
+    box = info["box"]
+    rows = [
+        ("points", f"{info['num_points']:,}"),
+        ("voxels", f"{info['num_voxels']:,}"),
+        ("box size (m)", f"{box[3]:.2f} x {box[4]:.2f} x {box[5]:.2f}"),
+        ("box centre (m)", f"{box[0]:.2f}, {box[1]:.2f}, {box[2]:.2f}"),
+        ("yaw (deg)", f"{np.degrees(box[6]):.0f}"),
+    ]
+    if info["kind"] == "patch":
+        rows.insert(0, ("segment", str(info["segment"])))
+    else:
+        rows.insert(
+            0, ("made of", f"{info['num_patches']} patches ({info['level']}, {info['box_kind']} box)")
+        )
+    label = "none" if info["label"] is None else f"{info['label']} (IoU {info['label_iou']:.2f})"
+    rows.append(("best annotation", label))
+    table = "\n".join(f"| {k} | {v} |" for k, v in rows)
+    return f"**{info['kind'].capitalize()} {info['id']}**\n\n| | |\n|---|---|\n{table}"
+
+
+def ray_box_distances(origin: np.ndarray, direction: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Distance along a click ray to where it enters each oriented box (inf where it misses).
+
+    Args:
+        origin: (3,) ray origin.
+        direction: (3,) ray direction.
+        boxes: (M, 7) boxes.
+
+    Returns:
+        (M,) float64 distances; 0 when the origin is inside a box.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    direction = np.asarray(direction, np.float64)
+    direction = direction / max(np.linalg.norm(direction), 1e-12)
+    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    rel = np.asarray(origin, np.float64) - boxes[:, :3]
+    # Ray in each box's own frame (rotate by -yaw about z).
+    local_origin = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], 1)
+    local_dir = np.stack(
+        [
+            c * direction[0] + s * direction[1],
+            -s * direction[0] + c * direction[1],
+            np.full_like(c, direction[2]),
+        ],
+        1,
+    )
+    half = boxes[:, 3:6] / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (-half - local_origin) / local_dir
+        t2 = (half - local_origin) / local_dir
+    # Axis-parallel rays: inside the slab means (-inf, inf), outside means empty.
+    parallel = local_dir == 0
+    inside = np.abs(local_origin) <= half
+    t_lo = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+    t_hi = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+    enter, leave = t_lo.max(axis=1), t_hi.min(axis=1)
+    hit = (enter <= leave) & (leave >= 0)
+    return np.where(hit, np.maximum(enter, 0.0), np.inf)

@@ -1,0 +1,176 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from factorydet_core.boxes import box_iou_3d, complete_hidden_side, fit_box
+from factorydet_core.geometry import make_transform, points_in_box, rotation_ypr, rotation_z, transform_boxes
+
+coordinate = st.floats(-5, 5, allow_nan=False)
+size = st.floats(0.1, 4, allow_nan=False)
+angle = st.floats(-np.pi, np.pi, allow_nan=False)
+boxes = st.tuples(coordinate, coordinate, coordinate, size, size, size, angle).map(
+    lambda t: np.array(t, dtype=np.float64)
+)
+
+
+def iou(a, b) -> float:
+    return float(box_iou_3d(np.asarray(a, float)[None], np.asarray(b, float)[None])[0, 0])
+
+
+def test_identical_boxes_have_iou_one_and_disjoint_zero():
+    box = np.array([1.0, 2.0, 0.5, 2.0, 1.0, 1.0, 0.4])
+    assert iou(box, box) == pytest.approx(1.0, abs=1e-9)
+    far = box + [10, 0, 0, 0, 0, 0, 0]
+    assert iou(box, far) == 0.0
+    above = box + [0, 0, 1.5, 0, 0, 0, 0]  # same footprint, z ranges apart
+    assert iou(box, above) == 0.0
+    touching = np.array([[0, 0, 0, 1, 1, 1, 0], [1, 0, 0, 1, 1, 1, 0]], float)
+    assert iou(touching[0], touching[1]) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_half_overlap_has_iou_one_third():
+    a = np.array([0, 0, 0, 1, 1, 1, 0.0])
+    b = np.array([0.5, 0, 0, 1, 1, 1, 0.0])
+    assert iou(a, b) == pytest.approx(1 / 3, abs=1e-9)
+    # The same along z and along a yawed axis.
+    assert iou(a, [0, 0, 0.5, 1, 1, 1, 0]) == pytest.approx(1 / 3, abs=1e-9)
+    yaw = 0.7
+    a_yawed = np.array([1, 1, 0, 2, 1, 1, yaw])
+    b_yawed = a_yawed + [np.cos(yaw), np.sin(yaw), 0, 0, 0, 0, 0]
+    assert iou(a_yawed, b_yawed) == pytest.approx(1 / 3, abs=1e-9)
+
+
+def test_contained_box_iou_is_the_volume_ratio():
+    outer = np.array([0, 0, 0, 2, 2, 2, 0.3])
+    inner = np.array([0.1, 0, 0, 1, 1, 1, 0.3 + np.pi / 4])
+    assert iou(outer, inner) == pytest.approx(1 / 8, abs=1e-9)
+
+
+def test_square_box_rotated_by_90_degrees_is_itself():
+    box = np.array([3, -1, 0.5, 1.5, 1.5, 1.0, 0.2])
+    assert iou(box, box + [0, 0, 0, 0, 0, 0, np.pi / 2]) == pytest.approx(1.0, abs=1e-9)
+    # A long box rotated by 90 degrees about its centre: overlap is the central 1 x 1 square.
+    long_box = np.array([0, 0, 0, 3, 1, 1, 0.0])
+    assert iou(long_box, long_box + [0, 0, 0, 0, 0, 0, np.pi / 2]) == pytest.approx(1 / 5, abs=1e-9)
+    # A rectangle is its own 180 degree rotation, and swapping dx/dy with a 90 degree turn.
+    assert iou(long_box, [0, 0, 0, 3, 1, 1, np.pi]) == pytest.approx(1.0, abs=1e-9)
+    assert iou(long_box, [0, 0, 0, 1, 3, 1, np.pi / 2]) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_iou_matrix_shape_and_empty_inputs():
+    a = np.array([[0, 0, 0, 1, 1, 1, 0], [5, 5, 0, 1, 1, 1, 0], [0.5, 0, 0, 1, 1, 1, 0]], float)
+    matrix = box_iou_3d(a, a[:2])
+    assert matrix.shape == (3, 2)
+    np.testing.assert_allclose(matrix, [[1, 0], [0, 1], [1 / 3, 0]], atol=1e-9)
+    assert box_iou_3d(np.zeros((0, 7)), a).shape == (0, 3)
+    assert box_iou_3d(a, np.zeros((0, 7))).shape == (3, 0)
+
+
+@given(boxes, boxes)
+@settings(max_examples=150, deadline=None)
+def test_iou_is_symmetric_and_in_unit_interval(a, b):
+    ab, ba = iou(a, b), iou(b, a)
+    assert 0.0 <= ab <= 1.0 + 1e-9
+    assert ab == pytest.approx(ba, abs=1e-9)
+    assert iou(a, a) == pytest.approx(1.0, abs=1e-9)
+
+
+@given(boxes, boxes, angle, coordinate, coordinate, coordinate)
+@settings(max_examples=150, deadline=None)
+def test_iou_is_invariant_under_a_common_rigid_motion(a, b, yaw, tx, ty, tz):
+    transform = make_transform(rotation_ypr(yaw, 0, 0), np.array([tx, ty, tz]))
+    moved = transform_boxes(transform, np.stack([a, b]))
+    assert iou(moved[0], moved[1]) == pytest.approx(iou(a, b), abs=1e-7)
+
+
+@given(boxes, boxes)
+@settings(max_examples=60, deadline=None)
+def test_iou_agrees_with_a_monte_carlo_estimate(a, b):
+    rng = np.random.default_rng(0)
+    samples = rng.uniform(-0.5, 0.5, (20000, 3)) * a[3:6] @ rotation_z(a[6]).T + a[:3]
+    fraction_in_b = points_in_box(samples, b).mean()
+    intersection = fraction_in_b * np.prod(a[3:6])
+    expected = intersection / (np.prod(a[3:6]) + np.prod(b[3:6]) - intersection)
+    assert iou(a, b) == pytest.approx(expected, abs=0.03)
+
+
+def sample_faces(box: np.ndarray, faces: list[str], rng: np.random.Generator, num: int = 400) -> np.ndarray:
+    """Points on the named vertical faces ('+x', '-x', '+y', '-y') of a box, 5 mm noise."""
+    parts = []
+    for face in faces:
+        local = rng.uniform(-0.5, 0.5, (num, 3))
+        axis = 0 if face[1] == "x" else 1
+        local[:, axis] = 0.5 if face[0] == "+" else -0.5
+        parts.append(local * box[3:6])
+    local = np.concatenate(parts) + rng.normal(0, 0.005, (num * len(faces), 3))
+    return local @ rotation_z(box[6]).T + box[:3]
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.3, 0.7, -1.2, 1.5, 2.5])
+def test_fit_box_recovers_the_heading_from_two_visible_faces(yaw):
+    rng = np.random.default_rng(int(yaw * 100) % 1000)
+    box = np.array([4.0, 3.0, 0.5, 2.0, 1.2, 1.0, yaw])
+    two_sided = fit_box(sample_faces(box, ["-x", "-y"], rng))
+    all_sides = fit_box(sample_faces(box, ["+x", "-x", "+y", "-y"], rng))
+    yaw_error = (np.degrees(two_sided[6] - yaw) + 45) % 90 - 45
+    assert abs(yaw_error) < 3.0
+    assert two_sided[3] >= two_sided[4]
+    assert -np.pi / 2 <= two_sided[6] < np.pi / 2
+    assert iou(two_sided, all_sides) > 0.85
+    assert iou(all_sides, box) > 0.85
+    np.testing.assert_allclose(two_sided[3:6], box[3:6], atol=0.06)
+
+
+def test_fit_box_longer_side_is_dx():
+    rng = np.random.default_rng(1)
+    box = np.array([0.0, 0.0, 1.0, 0.8, 2.4, 2.0, 0.2])  # dy > dx: the fit swaps them and turns yaw
+    fitted = fit_box(sample_faces(box, ["+x", "-x", "+y", "-y"], rng))
+    assert fitted[3] == pytest.approx(2.4, abs=0.05) and fitted[4] == pytest.approx(0.8, abs=0.05)
+    assert abs((np.degrees(fitted[6] - (0.2 + np.pi / 2)) + 90) % 180 - 90) < 3.0
+
+
+@pytest.mark.parametrize(
+    "points",
+    [
+        np.array([[1.0, 2.0, 3.0]]),
+        np.array([[1.0, 2.0, 3.0], [1.0, 2.5, 3.0]]),
+        np.array([[1.0, 2.0, 3.0]] * 5),
+        np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], float),  # collinear
+    ],
+)
+def test_fit_box_of_degenerate_point_sets(points):
+    box = fit_box(points)
+    assert box.shape == (7,) and np.isfinite(box).all()
+    assert (box[3:6] >= 0.02 - 1e-12).all()
+    assert points_in_box(points, box, margin=1e-6).all()
+
+
+def test_complete_hidden_side_extends_away_from_the_viewpoint():
+    # Seen from the origin, a 2 x 0.5 box at y = 5 is cut at its back (larger y).
+    fitted = np.array([[0.0, 5.0, 0.5, 2.0, 0.5, 1.0, 0.0]])
+    completed = complete_hidden_side(fitted)
+    np.testing.assert_allclose(completed, [[0.0, 5.75, 0.5, 2.0, 2.0, 1.0, 0.0]], atol=1e-12)
+    # The near face stays where it was seen.
+    assert completed[0, 1] - completed[0, 4] / 2 == pytest.approx(fitted[0, 1] - fitted[0, 4] / 2)
+    # From a viewpoint behind it, the box grows the other way.
+    behind = complete_hidden_side(fitted, viewpoint=np.array([0.0, 10.0, 1.0]))
+    np.testing.assert_allclose(behind[0, :2], [0.0, 4.25], atol=1e-12)
+    # The completed box contains the fitted one: fitted corners are inside it.
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (4.75, 5.25) for z in (0, 1)], float)
+    assert points_in_box(corners, completed[0], margin=1e-9).all()
+
+
+def test_complete_hidden_side_of_yawed_and_square_boxes():
+    yaw = 0.6
+    fitted = np.array([[10.0, 0.0, 0.0, 3.0, 1.0, 1.0, yaw], [4.0, 4.0, 0.0, 1.5, 1.5, 1.0, 0.3]])
+    completed = complete_hidden_side(fitted)
+    np.testing.assert_allclose(completed[:, 3], completed[:, 4])
+    np.testing.assert_allclose(completed[1], fitted[1])  # already square: unchanged
+    shift = completed[0, :2] - fitted[0, :2]
+    short_axis = np.array([-np.sin(yaw), np.cos(yaw)])
+    # Moved by (3 - 1) / 2 along the short axis, away from the origin.
+    np.testing.assert_allclose(np.abs(shift @ short_axis), 1.0, atol=1e-12)
+    np.testing.assert_allclose(shift @ np.array([np.cos(yaw), np.sin(yaw)]), 0.0, atol=1e-12)
+    assert np.linalg.norm(completed[0, :2]) > np.linalg.norm(fitted[0, :2])
+    assert complete_hidden_side(np.zeros((0, 7))).shape == (0, 7)
