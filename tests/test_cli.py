@@ -33,3 +33,50 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     assert "unlabelled_fraction" in capsys.readouterr().err
     assert main(["app", "--session", "../x", "--root", str(tmp_path)]) == 2
     assert "invalid session name" in capsys.readouterr().err
+
+
+def test_propose_json_on_a_simulated_frame(small_dataset_dir, capsys):
+    assert main(["propose", str(small_dataset_dir), "--frame", "1", "--json", "--no-calibrate"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["frame"] == 1 and record["preset"] == "agv"
+    assert len(record["proposals"]) > 10
+    for proposal in record["proposals"]:
+        assert len(proposal["box"]) == 7 and all(v > 0 for v in proposal["box"][3:6])
+        assert proposal["num_points"] >= 30
+
+
+def test_propose_on_a_real_scan_picks_the_indoor_preset(capsys):
+    import pytest
+
+    from tests.conftest import SHARED_REAL
+
+    path = SHARED_REAL / "scannet_scene0000_00.npz"
+    if not path.exists():
+        pytest.fail(f"{path} is missing: the real scans live in ../shared/data/real beside the repository")
+    assert main(["propose", str(path), "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["preset"] == "indoor" and record["num_points"] == 81_369
+    assert len(record["proposals"]) > 20
+
+
+def test_propose_bad_input(small_dataset_dir, capsys):
+    assert main(["propose", str(small_dataset_dir), "--frame", "99"]) == 2
+    assert "out of range" in capsys.readouterr().err
+    assert main(["propose", str(small_dataset_dir), "--set", "regularization=-1"]) == 2
+    assert "regularization" in capsys.readouterr().err
+    assert main(["propose", str(small_dataset_dir), "--preset", "nope"]) == 2
+    assert "unknown preset" in capsys.readouterr().err
+
+
+def test_bench_pipeline_prints_stage_times_and_recall(small_dataset_dir, capsys):
+    assert main(["bench", "pipeline", str(small_dataset_dir), "--frames", "1", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert set(result["stage_ms_median"]) >= {"merge", "prune", "voxelize", "features", "segmentation"}
+    assert result["features"]["max_abs_error_vs_reference"] < 1e-5
+    assert result["features"]["speedup_over_reference"] > 1
+    assert 0 <= result["proposal_recall"]["all"]["recall"] <= 1
+    calibration = result["calibration"]
+    assert (
+        calibration["refined"]["point_10m_ahead_error_cm_median"]
+        < calibration["nominal"]["point_10m_ahead_error_cm_median"]
+    )
