@@ -174,6 +174,7 @@ class Detector:
             segment_ids=by_voxel.segment_ids[grid.point_voxel_ids],
             patch_segment_ids=by_voxel.patch_segment_ids,
             merge_history=by_voxel.merge_history,
+            patch_is_structure=by_voxel.patch_is_structure,
         )
 
     def propose(

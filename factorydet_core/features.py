@@ -150,9 +150,7 @@ def fisher_vectors(
                 grad[:, 1 + axis] = Q * D[:, axis][view].expand(-1, 5, 5, 5).reshape(-1, NUM_GAUSSIANS)
                 grad[:, 4 + axis] = Q * D2m1[:, axis][view].expand(-1, 5, 5, 5).reshape(-1, NUM_GAUSSIANS)
             index = local_ids[:, None, None].expand_as(grad)
-            sums[first_set:end_set] = torch.zeros((num_local, 7, NUM_GAUSSIANS), dtype=torch.float64).index_add_(
-                0, local_ids, grad.double()
-            )
+            sums[first_set:end_set].index_add_(0, local_ids, grad.double())
             maxs[first_set:end_set] = torch.full((num_local, 7, NUM_GAUSSIANS), -torch.inf).scatter_reduce_(
                 0, index, grad, "amax"
             )
@@ -163,26 +161,32 @@ def fisher_vectors(
     # The gradient scales 1/sqrt(w), 1/sqrt(2w) and 1/T are positive, so they commute with max and
     # min and are applied once here; the alpha offset -w becomes -w (max) and -T w (sum).
     weight = 1.0 / NUM_GAUSSIANS
-    T = torch.from_numpy(counts.astype(np.float64))[:, None, None]
-    maxs, mins = maxs.double(), mins.double()
-    scale_mu = 1.0 / np.sqrt(weight)
-    scale_sigma = 1.0 / np.sqrt(2.0 * weight)
+    T64 = torch.from_numpy(counts.astype(np.float64))[:, None, None]
     raw = torch.cat(
         [
-            (maxs[:, 0:1] - weight) * scale_mu / T,
-            (sums[:, 0:1] - T * weight) * scale_mu / T,
-            maxs[:, 1:4] * scale_mu / T,
-            mins[:, 0:3] * scale_mu / T,
-            sums[:, 1:4] * scale_mu / T,
-            maxs[:, 4:7] * scale_sigma / T,
-            mins[:, 3:6] * scale_sigma / T,
-            sums[:, 4:7] * scale_sigma / T,
+            maxs[:, 0:1] - weight,
+            (sums[:, 0:1] - T64 * weight).float(),  # cancels: float64 until here
+            maxs[:, 1:4],
+            mins[:, 0:3],
+            sums[:, 1:4].float(),
+            maxs[:, 4:7],
+            mins[:, 3:6],
+            sums[:, 4:7].float(),
         ],
         dim=1,
-    ).numpy()
+    )
+    # One multiply for the positive scales 1/sqrt(w) (alpha, mu), 1/sqrt(2 w) (sigma) and 1/T.
+    channel_scale = torch.full((NUM_CHANNELS,), 1.0 / np.sqrt(weight))
+    channel_scale[11:] = 1.0 / np.sqrt(2.0 * weight)
+    raw.mul_(channel_scale[None, :, None] / torch.from_numpy(counts.astype(np.float32))[:, None, None])
     if not normalize:
-        return raw.reshape(num_sets, NUM_CHANNELS, *(GRID_SIZE,) * 3)
-    return normalize_fisher_vectors(raw)
+        return raw.numpy().reshape(num_sets, NUM_CHANNELS, *(GRID_SIZE,) * 3)
+    # Signed square root and per-channel L2 (as ``normalize_fisher_vectors``), in place and in
+    # float32: the raw values already carry their float64-accurate digits.
+    tiny = raw.abs() < _EPS
+    rooted = torch.copysign(raw.abs().sqrt_(), raw).masked_fill_(tiny, 0.0)
+    norms = torch.linalg.vector_norm(rooted, dim=2, keepdim=True).clamp_(min=np.sqrt(_EPS))
+    return rooted.div_(norms).numpy().reshape(num_sets, NUM_CHANNELS, *(GRID_SIZE,) * 3)
 
 
 def fisher_vectors_reference(local_points: np.ndarray, set_ids: np.ndarray, num_sets: int | None = None):

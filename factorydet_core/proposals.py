@@ -28,15 +28,17 @@ def candidate_patch_sets(
     merge history (level 1) and, optionally, single patches (level 2)."""
     seen: dict[tuple[int, ...], int] = {}
     groups: dict[int, list[int]] = {}
+    structure = segmentation.patch_is_structure
     for patch, seg in enumerate(segmentation.patch_segment_ids.tolist()):
-        groups.setdefault(seg, []).append(patch)
+        if not structure[patch]:
+            groups.setdefault(seg, []).append(patch)
     for seg in sorted(groups):
         seen.setdefault(tuple(groups[seg]), 0)
     if include_history:
         for union in segmentation.merge_history:
             seen.setdefault(tuple(union), 1)
     if include_patches:
-        for patch in range(segmentation.num_patches):
+        for patch in np.flatnonzero(~structure).tolist():
             seen.setdefault((patch,), 2)
     return list(seen), list(seen.values())
 

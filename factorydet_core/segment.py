@@ -49,6 +49,13 @@ class SegmentationParams:
     """Least contact strength (in [0, 1]) for two adjacent patches to merge."""
     max_object_size_m: tuple[float, float] = (4.0, 3.2)
     """(longest horizontal side, height) a merged segment may not exceed, metres."""
+    proposal_scales_m: tuple[float, ...] = (1.0, 2.0)
+    """Extra merge passes with these smaller longest-side limits, whose unions are proposals too:
+    the greedy order that builds a forklift can swallow a crate into its neighbour first."""
+    structure_size_m: tuple[float, float] | None = (5.0, 3.5)
+    """A first, geometry-only cut pursuit marks surfaces whose (horizontal diagonal, height) exceeds
+    this as structure (walls, rack beams and posts): cut off from everything else, never merged,
+    never proposed. ``None`` skips that pass."""
 
     def __post_init__(self) -> None:
         for name in ("k_features", "k_graph", "min_patch_points"):
@@ -164,9 +171,39 @@ def _absorb_small(
     return patch_ids
 
 
+def _cut_pursuit(
+    values: np.ndarray, source: np.ndarray, target: np.ndarray, length: np.ndarray, regularization: float
+) -> np.ndarray:
+    """l0 cut pursuit of (N, D) ``values`` on the graph; lambda folded into the edge weights."""
+    import cut_pursuit_py
+
+    mean_length = max(float(length.mean()), 1e-6)
+    weights = (regularization / (1.0 + length / mean_length)).astype(np.float32)
+    return cut_pursuit_py.perform_cut_pursuit(
+        1.0,  # ignored by the library; lambda is in the weights
+        values.shape[1],
+        np.ascontiguousarray(values, np.float32),
+        weights,
+        source.astype(np.uint32),
+        target.astype(np.uint32),
+        False,
+    ).astype(np.int64)
+
+
+def _oversized(points: np.ndarray, labels: np.ndarray, size: tuple[float, float]) -> np.ndarray:
+    """(L,) bool: labels whose points span more than ``size`` = (horizontal, height) metres."""
+    num = int(labels.max()) + 1
+    lo = np.full((num, 3), np.inf)
+    hi = np.full((num, 3), -np.inf)
+    np.minimum.at(lo, labels, points)
+    np.maximum.at(hi, labels, points)
+    extent = hi - lo
+    return (np.hypot(extent[:, 0], extent[:, 1]) > size[0]) | (extent[:, 2] > size[1])
+
+
 def over_segment(
     points: np.ndarray, params: SegmentationParams = SegmentationParams()
-) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Cut-pursuit patches.
 
     Args:
@@ -174,44 +211,46 @@ def over_segment(
         params: segmentation settings.
 
     Returns:
-        ``(patch_ids, (source, target, length))``: (N,) int64 patch of each point, and the graph.
+        ``(patch_ids, structure_mask, (source, target, length))``: (N,) int64 patch of each point,
+        (N,) bool True on structure points (see ``structure_size_m``), and the graph.
     """
-    import cut_pursuit_py
-
     check_array(points, (None, 3), name="segment points", finite=True)
     num_points = len(points)
     if num_points == 0:
         empty = np.zeros(0, np.int64)
-        return empty, (empty, empty, np.zeros(0))
+        return empty, np.zeros(0, bool), (empty, empty, np.zeros(0))
     if num_points < 4:  # too few for local features: one patch per connected group
         source, target = np.triu_indices(num_points, 1)
         length = np.linalg.norm(points[source] - points[target], axis=1)
         keep = length <= params.max_edge_m
         source, target, length = source[keep], target[keep], length[keep]
-        return _split_disconnected(np.zeros(num_points, np.int64), source, target), (source, target, length)
+        patch_ids = _split_disconnected(np.zeros(num_points, np.int64), source, target)
+        return patch_ids, np.zeros(num_points, bool), (source, target, length)
     features, neighbours, sq_distances = point_features(points, max(params.k_features, params.k_graph))
     source, target, length = knn_edges(neighbours, sq_distances, params.k_graph, params.max_edge_m)
-    values = features * np.array([1.0, 1.0, 1.0, 2.0], np.float32)  # verticality counts double (SPG)
+    geometric = features * np.array([1.0, 1.0, 1.0, 2.0], np.float32)  # verticality counts double (SPG)
+    structure_mask = np.zeros(num_points, bool)
+    if params.structure_size_m is not None and len(source):
+        # Pass 1, geometry only: surfaces far bigger than any object (walls, rack beams and posts)
+        # are structure. Cutting them out first keeps objects resting on them separate.
+        first = _split_disconnected(
+            _cut_pursuit(geometric, source, target, length, params.regularization), source, target
+        )
+        structure_mask = _oversized(points, first, params.structure_size_m)[first]
+        keep = structure_mask[source] == structure_mask[target]
+        source, target, length = source[keep], target[keep], length[keep]
+    values = geometric
     if params.spatial_weight > 0:
         centred = (points - points.mean(axis=0)) * params.spatial_weight
         values = np.concatenate([values, centred.astype(np.float32)], axis=1)
-    if len(source):
-        mean_length = max(float(length.mean()), 1e-6)
-        weights = (params.regularization / (1.0 + length / mean_length)).astype(np.float32)
-        labels = cut_pursuit_py.perform_cut_pursuit(
-            1.0,  # ignored by the library; lambda is in the weights
-            values.shape[1],
-            np.ascontiguousarray(values, np.float32),
-            weights,
-            source.astype(np.uint32),
-            target.astype(np.uint32),
-            False,
-        ).astype(np.int64)
-    else:
-        labels = np.arange(num_points, dtype=np.int64)
+    labels = (
+        _cut_pursuit(values, source, target, length, params.regularization)
+        if len(source)
+        else np.arange(num_points)
+    )
     patch_ids = _split_disconnected(labels, source, target)
     patch_ids = _absorb_small(patch_ids, source, target, params.min_patch_points)
-    return patch_ids, (source, target, length)
+    return patch_ids, structure_mask, (source, target, length)
 
 
 def merge_patches(
@@ -302,12 +341,22 @@ def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams(
     Returns:
         The segmentation: per-point patch and segment ids, and the merge history.
     """
-    patch_ids, (source, target, _) = over_segment(points, params)
-    patch_segment_ids, history = merge_patches(points, patch_ids, source, target, params)
+    patch_ids, structure_mask, (source, target, _) = over_segment(points, params)
+    num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
+    patch_is_structure = np.zeros(num_patches, bool)
+    if num_patches:
+        np.logical_or.at(patch_is_structure, patch_ids, structure_mask)
+    # Structure patches take no part in merging: drop their edges.
+    keep = ~patch_is_structure[patch_ids[source]] & ~patch_is_structure[patch_ids[target]]
+    patch_segment_ids, history = merge_patches(points, patch_ids, source[keep], target[keep], params)
+    for scale in params.proposal_scales_m:
+        small = dataclasses.replace(params, max_object_size_m=(scale, params.max_object_size_m[1]))
+        history = history + merge_patches(points, patch_ids, source[keep], target[keep], small)[1]
     segment_ids = patch_segment_ids[patch_ids] if len(patch_ids) else np.zeros(0, np.int64)
     return Segmentation(
         patch_ids=patch_ids,
         segment_ids=segment_ids,
         patch_segment_ids=patch_segment_ids,
         merge_history=history,
+        patch_is_structure=patch_is_structure,
     )

@@ -264,11 +264,17 @@ class Segmentation:
     """(P,) int64: the segment each patch ended up in."""
     merge_history: tuple[tuple[int, ...], ...] = ()
     """Patch-id sets of every union formed while merging (each one is also a proposal candidate)."""
+    patch_is_structure: np.ndarray | None = None
+    """(P,) bool: patches of building structure (walls, racks), never proposed; all False if None."""
 
     def __post_init__(self) -> None:
         check_array(self.patch_ids, (None,), name="patch_ids")
         check_array(self.segment_ids, (len(self.patch_ids),), name="segment_ids")
         check_array(self.patch_segment_ids, (None,), name="patch_segment_ids")
+        if self.patch_is_structure is None:
+            object.__setattr__(self, "patch_is_structure", np.zeros(len(self.patch_segment_ids), bool))
+        check_array(self.patch_is_structure, (len(self.patch_segment_ids),), name="patch_is_structure")
+        object.__setattr__(self, "patch_is_structure", _frozen(self.patch_is_structure.astype(bool)))
         for field in ("patch_ids", "segment_ids", "patch_segment_ids"):
             object.__setattr__(self, field, _frozen(getattr(self, field).astype(np.int64, copy=False)))
 
