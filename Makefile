@@ -26,8 +26,16 @@ test: $(STAMP) browserdeps
 lint: $(STAMP)
 	$(BIN)/ruff check factorydet_core app tests
 
+# Re-runs every benchmark and writes its JSON into README.md (several minutes).
+BENCH_DATA ?= /tmp/bench_sim
+REAL := ../shared/data/real
 bench: $(STAMP)
-	$(BIN)/factorydet bench simulate
+	$(BIN)/factorydet bench simulate --readme README.md
+	rm -rf $(BENCH_DATA) && $(BIN)/factorydet simulate --out $(BENCH_DATA) --frames 12 --seed 0
+	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 4 --json --readme README.md
+	$(BIN)/factorydet bench pipeline $(REAL)/scannet_scene0000_00.npz $(REAL)/scannet_scene0000_01.npz \
+	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
+	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 2 --png docs/voxel_sweep.png --readme README.md
 
 # open3d links against libusb-1.0 at import time.
 sysdeps:

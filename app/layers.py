@@ -32,16 +32,24 @@ class LayerView:
         self.server = server
         self.nodes: dict[str, object] = {}
         self.drawn_result: ProposalResult | None = None
+        self.drawn_frame_index = 0
         self.proposal_ids = np.zeros(0, np.int64)
+        self._voxel_colors: tuple[int, np.ndarray] | None = None  # (id(result), colours)
 
     def draw(
-        self, result: ProposalResult, layers: dict[str, bool], point_size: float, max_height: float
+        self,
+        result: ProposalResult,
+        frame_index: int,
+        layers: dict[str, bool],
+        point_size: float,
+        max_height: float,
     ) -> None:
-        """Replace every layer with ``result``'s; hidden layers are sent hidden."""
+        """Replace every layer with ``result``'s (computed for ``frame_index``); hidden layers are
+        sent hidden."""
         cloud = result.cloud
-        low = cloud.points[:, 2] <= max_height
+        low = cloud.below(max_height)
         merged = result.merged
-        merged_low = merged.points[:, 2] <= max_height
+        merged_low = merged.below(max_height)
         num_sensors = len(merged.T_vehicle_sensor)
         with self.server.atomic():
             for node in self.nodes.values():
@@ -56,12 +64,14 @@ class LayerView:
                 precision="float32",
                 visible=layers["merged"],
             )
-            centres = result.grid.centres.astype(np.float32)
-            voxel_low = centres[:, 2] <= max_height
+            if self._voxel_colors is None or self._voxel_colors[0] != id(result):
+                # Once per result: moving the height slider must not redo the projection.
+                self._voxel_colors = (id(result), fisher_vector_colors(result.voxel_features))
+            voxel_low = result.grid.below(max_height)
             self.nodes["voxels"] = self.server.scene.add_point_cloud(
                 "/pipeline/voxels",
-                points=centres[voxel_low],
-                colors=fisher_vector_colors(result.voxel_features)[voxel_low],
+                points=result.grid.centres[voxel_low].astype(np.float32),
+                colors=self._voxel_colors[1][voxel_low],
                 point_size=result.grid.voxel_size * 0.8,
                 point_shape="square",
                 precision="float32",
@@ -92,6 +102,7 @@ class LayerView:
                 visible=layers["proposals"],
             )
         self.drawn_result = result
+        self.drawn_frame_index = frame_index
 
     def set_visibility(self, layers: dict[str, bool]) -> None:
         for name in LAYERS:

@@ -43,6 +43,7 @@ class AppState:
         self.pipeline_busy = False
         self.pipeline_result: ProposalResult | None = None
         self.pipeline_result_key: tuple | None = None
+        self.pipeline_failed_key: tuple | None = None
         self.num_results = 0
         self.selection_markdown = ""
         self._listeners: list[Callable[[], None]] = []
@@ -143,6 +144,16 @@ class AppState:
             self.pipeline_busy = False
             self.selection_markdown = ""
             self.num_results += 1
+            self.changed.notify_all()
+        self._notify()
+
+    def set_pipeline_failed(self, key: tuple, status: str) -> None:
+        """Record a failed run; it is not retried until the frame or the parameters change."""
+        with self.lock:
+            self.pipeline_failed_key = key
+            self.pipeline_status = status
+            self.pipeline_progress = 0.0
+            self.pipeline_busy = False
             self.changed.notify_all()
         self._notify()
 

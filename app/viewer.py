@@ -40,6 +40,8 @@ class FactorydetApp:
     ) -> None:
         self.server = server
         self.state = AppState(dataset, title)
+        if not calibrate:
+            self.state.use_refined_extrinsics = False
         self.scene = SceneView(server)
         self.layers = LayerView(server)
         self._layers_key: tuple | None = None
@@ -79,12 +81,13 @@ class FactorydetApp:
                 self.scene.set_point_size(point_size)
             with self.state.lock:
                 result = self.state.pipeline_result
+                result_frame = self.state.pipeline_result_key[0] if result is not None else None
                 layers = dict(self.state.layers)
                 max_height = self.state.max_height
             if result is not None:
                 layers_key = (id(result), max_height)
                 if layers_key != self._layers_key:
-                    self.layers.draw(result, layers, point_size, max_height)
+                    self.layers.draw(result, result_frame, layers, point_size, max_height)
                     self._layers_key = layers_key
                 else:
                     self.layers.set_visibility(layers)
@@ -96,25 +99,29 @@ class FactorydetApp:
 
     def _on_click(self, event: viser.SceneClickEvent) -> None:
         """A click picks the nearest proposal box under the cursor, or else the nearest patch point."""
-        with self.state.lock:
-            result = self.state.pipeline_result
-            layers = dict(self.state.layers)
-            frame = self.state.dataset.frame(self.state.pipeline_result_key[0]) if result else None
-            max_height = self.state.max_height
+        with self._draw_lock:  # the drawn result and its box ids belong together
+            result, proposal_ids, frame_index = (
+                self.layers.drawn_result,
+                self.layers.proposal_ids,
+                self.layers.drawn_frame_index,
+            )
         if result is None:
             return
+        with self.state.lock:
+            layers = dict(self.state.layers)
+            max_height = self.state.max_height
+        frame = self.state.dataset.frame(frame_index)
         origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
         info = None
-        if layers["proposals"] and len(self.layers.proposal_ids):
-            ids = self.layers.proposal_ids
-            distances = ray_box_distances(origin, direction, result.proposals.boxes[ids])
+        if layers["proposals"] and len(proposal_ids):
+            distances = ray_box_distances(origin, direction, result.proposals.boxes[proposal_ids])
             if np.isfinite(distances).any():
-                info = describe_proposal(result, frame, int(ids[int(np.argmin(distances))]))
+                info = describe_proposal(result, frame, int(proposal_ids[int(np.argmin(distances))]))
         if info is None and (layers["patches"] or layers["segments"]):
-            low = np.flatnonzero(result.cloud.points[:, 2] <= max_height)
-            hit = nearest_point_on_ray(result.cloud.points[low], origin, direction, max_distance=0.15)
+            shown = np.flatnonzero(result.cloud.below(max_height))
+            hit = nearest_point_on_ray(result.cloud.points[shown], origin, direction, max_distance=0.15)
             if hit is not None:
-                info = describe_patch(result, frame, int(result.segmentation.patch_ids[low[hit]]))
+                info = describe_patch(result, frame, int(result.segmentation.patch_ids[shown[hit]]))
         self.state.set_selection(description_markdown(info) if info else "_Nothing under the cursor._")
 
     def close(self) -> None:

@@ -40,10 +40,12 @@ class PipelineWorker:
             self._wake.notify()
 
     def maybe_request(self) -> None:
-        """Request a run when the state's frame or parameters differ from the last result's."""
+        """Request a run when the state's frame or parameters differ from the last result's (and
+        from the last failed run's, which is not retried until something changes)."""
+        key = self.state.pipeline_key()
         with self.state.lock:
-            up_to_date = self.state.pipeline_result_key == self.state.pipeline_key()
-        if not up_to_date:
+            done = key in (self.state.pipeline_result_key, self.state.pipeline_failed_key)
+        if not done:
             self.request()
 
     def stop(self) -> None:
@@ -60,13 +62,13 @@ class PipelineWorker:
                 self._pending = False
             key = self.state.pipeline_key()
             with self.state.lock:
-                if self.state.pipeline_result_key == key:
+                if key in (self.state.pipeline_result_key, self.state.pipeline_failed_key):
                     continue
             try:
                 self._compute(key)
             except Exception as exc:  # keep the app alive; show what went wrong
                 traceback.print_exc()
-                self.state.set_pipeline_progress(f"failed: {exc}", 0.0, busy=False)
+                self.state.set_pipeline_failed(key, f"failed: {exc}")
 
     def _compute(self, key: tuple) -> None:
         frame_index, params, use_refined = key
@@ -87,7 +89,13 @@ class PipelineWorker:
         self.state.set_pipeline_progress(f"frame {frame_index + 1}: merging", 0.05)
         result = detector.propose(frame, history, progress=progress)
         if self.state.pipeline_key() != key:
-            return  # the user moved on; the newer request is already queued
+            # The user moved on: a newer request is queued, unless they came back to the frame
+            # and parameters of the result already shown, which is then current again.
+            with self.state.lock:
+                back_to_shown = self.state.pipeline_result_key == self.state.pipeline_key()
+            if back_to_shown:
+                self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
+            return
         segmentation = result.segmentation
         status = (
             f"frame {frame_index + 1}: {len(result.proposals):,} proposals, {segmentation.num_segments:,} "

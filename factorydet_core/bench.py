@@ -125,7 +125,7 @@ def bench_features(points: np.ndarray, grid, reference_voxels: int = 200, seed: 
 
 
 def bench_pipeline(
-    data: str | os.PathLike,
+    data: str | os.PathLike | list,
     *,
     preset: str | None = None,
     overrides: dict | None = None,
@@ -141,7 +141,8 @@ def bench_pipeline(
 
     On a simulated data set (a folder with ``truth/``) the reference is the hidden truth: every
     instance of the seven classes with at least ``min_points`` points in the frame, annotated or not,
-    on the first ``max_frames`` test frames. On a single file it is the file's own boxes.
+    on the first ``max_frames`` test frames. On single files (one or a list, pooled) it is each
+    file's own boxes.
     """
     import dataclasses
 
@@ -151,8 +152,14 @@ def bench_pipeline(
     from .evaluation import best_box_iou, best_point_iou, proposal_point_lists, recall_table
     from .proposals import snap_to_floor
 
+    paths = [Path(p) for p in data] if isinstance(data, (list, tuple)) else [Path(data)]
+    if not paths:
+        raise InputError("bench pipeline: no data given")
+    simulated = (paths[0] / "truth").is_dir()
+    if simulated and len(paths) > 1:
+        raise InputError("bench pipeline: give one simulated data set, or several single files")
+    data = paths[0]
     dataset = open_dataset(data)
-    simulated = (Path(data) / "truth").is_dir()
     if preset is None:
         preset = "agv" if simulated else "indoor"
     if iou_threshold is None:
@@ -197,8 +204,9 @@ def bench_pipeline(
                 ),
                 "seconds": round(calib_s, 2),
             }
+        items = [(dataset, index) for index in frame_indices]
     else:
-        frame_indices = [0]
+        items = [(open_dataset(path), 0) for path in paths]
 
     def with_truth_ids(index: int):
         frame = dataset.frame(index)
@@ -210,7 +218,7 @@ def bench_pipeline(
     timings: dict[str, list[float]] = {}
     class_ids, box_hits, point_hits, oracle_hits = [], [], [], []
     num_proposals, features = [], None
-    for n, index in enumerate(frame_indices):
+    for n, (dataset, index) in enumerate(items):
         history = [with_truth_ids(i) for i in range(max(0, index - params.history_frames), index)]
         result = detector.propose(with_truth_ids(index), history)
         for stage, ms in result.timings_ms.items():
@@ -233,7 +241,7 @@ def bench_pipeline(
                 frame.labels.instance_ids,
                 frame.labels.class_ids,
             )
-        class_ids.append(ref_classes)
+        class_ids.append(np.array(dataset.class_names, dtype=object)[ref_classes].astype(str))
         box_hits.append(best_box_iou(ref_boxes, result.proposals.boxes) >= iou_threshold)
         point_lists = proposal_point_lists(result.segmentation, result.proposals)
         point_hits.append(best_point_iou(result.cloud, ref_ids, point_lists) >= iou_threshold)
@@ -249,16 +257,17 @@ def bench_pipeline(
                 oracle[r] = best_box_iou(box[None], fitted)[0] >= iou_threshold
         oracle_hits.append(oracle)
         if progress is not None:
-            progress(n + 1, len(frame_indices))
-    class_ids = np.concatenate(class_ids)
-    names = dataset.class_names
+            progress(n + 1, len(items))
+    class_names = np.concatenate(class_ids)
+    names = tuple(sorted(set(class_names.tolist()), key=lambda c: (c not in dataset.class_names, c)))
+    class_ids = np.array([names.index(c) for c in class_names], np.int64)
     return {
         "benchmark": "pipeline" if simulated else "pipeline-real",
         "command": command,
-        "data": Path(data).name,
+        "data": ", ".join(p.name for p in paths),
         "preset": preset,
         "overrides": overrides or {},
-        "frames": [int(i) for i in frame_indices],
+        "frames": [int(i) for _, i in items],
         "iou_threshold": iou_threshold,
         "stage_ms_median": {stage: _median(v) for stage, v in timings.items()},
         "target_total_ms": 100,

@@ -121,7 +121,7 @@ def fit_box(
     """
     xy = np.asarray(points[:, :2], np.float64)
     z_lo, z_hi = float(points[:, 2].min()), float(points[:, 2].max())
-    search = xy[:: max(1, len(xy) // max_search_points)] - xy.mean(axis=0)
+    search = xy[:: max(1, -(-len(xy) // max_search_points))] - xy.mean(axis=0)  # ceil: at most the limit
     angle = 0.0
     if len(search) >= 3:
         angles = np.radians(np.arange(0.0, 90.0, angle_step_deg))

@@ -113,13 +113,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.name == "simulate":
         result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
     else:
-        if args.data is None:
+        if not args.data:
             raise InputError(f"bench {args.name} needs a DATA folder or file")
         update, close = progress_bar(args.name)
         try:
             if args.name == "pipeline":
                 result = bench_pipeline(
-                    args.data,
+                    args.data if len(args.data) > 1 else args.data[0],
                     preset=args.preset,
                     overrides=parse_overrides(args.set),
                     max_frames=args.frames,
@@ -130,7 +130,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             else:
                 sizes = [float(v) for v in args.voxel_sizes.split(",")]
                 result = bench_voxel_sweep(
-                    args.data, sizes, max_frames=args.frames, png=args.png, command=command, progress=update
+                    args.data[0],
+                    sizes,
+                    max_frames=args.frames,
+                    png=args.png,
+                    command=command,
+                    progress=update,
                 )
         finally:
             close()
@@ -235,7 +240,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
     p.add_argument("name", choices=["simulate", "pipeline", "sweep"])
-    p.add_argument("data", nargs="?", default=None, help="data set folder or file (pipeline, sweep)")
+    p.add_argument(
+        "data",
+        nargs="*",
+        help="pipeline: a simulated data set folder, or point-cloud files (recall pooled); sweep: a folder",
+    )
     p.add_argument("--frames", type=int, default=None, help="frames to run (simulate: 10, others: 4)")
     p.add_argument("--points", type=int, default=80_000, help="simulate: points per frame")
     p.add_argument("--seed", type=int, default=0, help="simulate: seed")

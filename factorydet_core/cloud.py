@@ -79,7 +79,8 @@ def floor_mask(
 
     Args:
         cloud: points in a z-up frame.
-        distance_m: points within this distance of the plane are floor.
+        distance_m: points less than this above the plane are floor, and so is everything below it
+            (range noise and reflections through the floor).
         max_tilt_deg: largest accepted angle between the plane normal and +z.
         search_below_m: RANSAC looks at points within this height above the lowest percentile.
         ransac_iterations: plane hypotheses tried.

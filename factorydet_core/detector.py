@@ -63,6 +63,12 @@ class FrontEndParams:
     """Also propose single patches (an object may be exactly one patch that merging then grew)."""
 
     def __post_init__(self) -> None:
+        if self.crop_z_m is not None:
+            try:
+                low, high = (float(v) for v in self.crop_z_m)
+            except (TypeError, ValueError):
+                raise InputError(f"crop_z_m must be two heights in metres, got {self.crop_z_m!r}") from None
+            object.__setattr__(self, "crop_z_m", (low, high))
         if self.history_frames < 0:
             raise InputError(f"history_frames must be >= 0, got {self.history_frames}")
         if not self.voxel_size_m > 0:
@@ -75,12 +81,26 @@ class FrontEndParams:
             raise InputError(f"min_proposal_points must be >= 1, got {self.min_proposal_points}")
 
     def replace(self, **changes) -> FrontEndParams:
-        """A copy with ``changes``; ``segmentation`` fields may be given by name too."""
+        """A copy with ``changes``; ``segmentation`` fields may be given by name too.
+
+        Raises:
+            InputError: for an unknown name or a value of the wrong kind.
+        """
         seg_fields = {f.name for f in dataclasses.fields(SegmentationParams)}
+        own_fields = {f.name for f in dataclasses.fields(self)} - {"segmentation"}
+        unknown = sorted(set(changes) - seg_fields - own_fields)
+        if unknown:
+            raise InputError(
+                f"unknown parameter {', '.join(unknown)}; "
+                f"choose from {', '.join(sorted(own_fields | seg_fields))}"
+            )
         seg_changes = {k: changes.pop(k) for k in list(changes) if k in seg_fields}
-        if seg_changes:
-            changes["segmentation"] = dataclasses.replace(self.segmentation, **seg_changes)
-        return dataclasses.replace(self, **changes)
+        try:
+            if seg_changes:
+                changes["segmentation"] = dataclasses.replace(self.segmentation, **seg_changes)
+            return dataclasses.replace(self, **changes)
+        except TypeError as exc:  # e.g. a text where a number belongs
+            raise InputError(f"bad parameter value: {exc}") from None
 
 
 PRESETS: dict[str, FrontEndParams] = {

@@ -28,6 +28,16 @@ import scipy.sparse.csgraph
 from .types import InputError, Segmentation, check_array
 
 
+def _positive_pair(value, name: str) -> tuple[float, float]:
+    try:
+        pair = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        pair = ()
+    if len(pair) != 2 or not all(v > 0 for v in pair):
+        raise InputError(f"segmentation: {name} must be two positive lengths in metres, got {value!r}")
+    return pair
+
+
 @dataclasses.dataclass(frozen=True)
 class SegmentationParams:
     """Settings of ``segment``; the defaults were picked with ``factorydet bench pipeline``."""
@@ -48,7 +58,8 @@ class SegmentationParams:
     merge_threshold: float = 0.15
     """Least contact strength (in [0, 1]) for two adjacent patches to merge."""
     max_object_size_m: tuple[float, float] = (4.0, 3.2)
-    """(longest horizontal side, height) a merged segment may not exceed, metres."""
+    """(longest horizontal side, height) of a merged segment, metres; the side is measured on the
+    axis-aligned bounding box with 20 % slack for yawed objects (see ``merge_patches``)."""
     proposal_scales_m: tuple[float, ...] = (1.0, 2.0)
     """Extra merge passes with these smaller longest-side limits, whose unions are proposals too:
     the greedy order that builds a forklift can swallow a crate into its neighbour first."""
@@ -68,6 +79,22 @@ class SegmentationParams:
             raise InputError(f"segmentation: merge_threshold must lie in [0, 1], got {self.merge_threshold}")
         if self.spatial_weight < 0:
             raise InputError(f"segmentation: spatial_weight must be >= 0, got {self.spatial_weight}")
+        object.__setattr__(
+            self, "max_object_size_m", _positive_pair(self.max_object_size_m, "max_object_size_m")
+        )
+        if self.structure_size_m is not None:
+            object.__setattr__(
+                self, "structure_size_m", _positive_pair(self.structure_size_m, "structure_size_m")
+            )
+        try:
+            scales = tuple(float(v) for v in self.proposal_scales_m)
+        except (TypeError, ValueError):
+            raise InputError(
+                f"segmentation: proposal_scales_m must be a list of metres, got {self.proposal_scales_m!r}"
+            ) from None
+        if any(not v > 0 for v in scales):
+            raise InputError(f"segmentation: proposal_scales_m must be > 0, got {scales}")
+        object.__setattr__(self, "proposal_scales_m", scales)
 
 
 def point_features(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -306,8 +333,9 @@ def merge_patches(
             break
         union_lo, union_hi = np.minimum(lo[a], lo[b]), np.maximum(hi[a], hi[b])
         side = union_hi[:2] - union_lo[:2]
-        # The horizontal test uses the bounding box of the union: it over-estimates a yawed object's
-        # side by at most sqrt(2), which max_object_size_m allows for.
+        # The horizontal test uses the axis-aligned bounding box of the union, which over-estimates
+        # a yawed object's longest side (by up to sqrt(2) for a square at 45 degrees); 20 % slack
+        # covers the usual yaws of elongated objects without admitting much larger unions.
         if max(side) > max_side * 1.2 or union_hi[2] - union_lo[2] > max_height:
             continue
         # Merge b into a.

@@ -20,8 +20,14 @@ class InputError(ValueError):
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
-    """Return ``array`` as a read-only C-contiguous array (a copy only when needed)."""
-    array = np.ascontiguousarray(array)
+    """Return ``array`` as a read-only C-contiguous array that nobody else can write to.
+
+    The caller's array is never made read-only itself: a writeable array, or a view of memory that
+    may be writeable elsewhere, is copied first. Only an array that is already read-only and owns
+    its memory (such as another container's field) is shared.
+    """
+    if array.flags.writeable or array.base is not None or not array.flags.c_contiguous:
+        array = np.array(array, order="C", copy=True)
     array.flags.writeable = False
     return array
 
@@ -250,6 +256,10 @@ class VoxelGrid:
     def centres(self) -> np.ndarray:
         """(V, 3) float64 cell centres, metres."""
         return self.origin + (self.coords + 0.5) * self.voxel_size
+
+    def below(self, max_z: float) -> np.ndarray:
+        """(V,) bool mask of the voxels whose centre is at or below ``max_z`` metres."""
+        return self.centres[:, 2] <= max_z
 
 
 @dataclasses.dataclass(frozen=True)

@@ -178,3 +178,32 @@ def test_params_replace_accepts_segmentation_fields():
     params = PRESETS["agv"].replace(max_edge_m=0.2, prune_m=0.1)
     assert params.segmentation.max_edge_m == 0.2 and params.prune_m == 0.1
     assert PRESETS["agv"].segmentation.max_edge_m == 0.3  # the preset is unchanged
+
+
+def test_containers_never_freeze_or_alias_the_callers_arrays():
+    from factorydet_core.types import MergedCloud
+
+    points = np.zeros((4, 3), np.float32)
+    base = np.zeros((8, 3), np.float32)
+    cloud = MergedCloud(
+        points=points,
+        sensor_ids=np.zeros(4, np.int16),
+        point_instance_ids=np.zeros(4, np.int64),
+        T_vehicle_sensor=np.eye(4)[None],
+    )
+    view_cloud = dataclasses.replace(cloud, points=base[:4])
+    assert points.flags.writeable and base.flags.writeable  # the caller's arrays stay theirs
+    base[0] = 7.0
+    assert view_cloud.points[0, 0] == 0.0  # and the container does not see later writes
+    assert not cloud.points.flags.writeable
+
+
+def test_unknown_or_malformed_parameters_are_input_errors():
+    params = PRESETS["agv"]
+    with pytest.raises(InputError, match="unknown parameter foo"):
+        params.replace(foo=1)
+    with pytest.raises(InputError, match="max_object_size_m"):
+        params.replace(max_object_size_m=5)
+    with pytest.raises(InputError, match="crop_z_m"):
+        params.replace(crop_z_m="abc")
+    assert params.replace(max_object_size_m=[3, 2]).segmentation.max_object_size_m == (3.0, 2.0)

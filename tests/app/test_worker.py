@@ -1,0 +1,69 @@
+"""The background worker: latest request wins, failures are shown and not retried in a loop."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from app.state import AppState
+from app.worker import PipelineWorker
+from factorydet_core import detector as detector_module
+from factorydet_core.dataset import open_dataset
+
+
+def _wire(state: AppState, worker: PipelineWorker) -> None:
+    # What the viewer does: every state change may ask for a run.
+    state.on_change(worker.maybe_request)
+
+
+def test_a_failing_run_is_reported_once_and_retried_only_after_a_change(small_dataset_dir, monkeypatch):
+    calls = []
+
+    def failing_propose(self, frame, history=(), progress=None):
+        calls.append(frame.name)
+        if progress is not None:
+            progress("merge", 0.2)  # progress updates must not re-queue the same run
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(detector_module.Detector, "propose", failing_propose)
+    state = AppState(open_dataset(small_dataset_dir))
+    worker = PipelineWorker(state, calibrate=False)
+    _wire(state, worker)
+    try:
+        worker.request()
+        assert state.wait_for(lambda: state.pipeline_status.startswith("failed"), timeout=20)
+        time.sleep(0.5)
+        assert calls == ["frame_00000"] and not state.pipeline_busy
+        state.set_params(merge_threshold=0.5)  # a change: one new attempt
+        assert state.wait_for(lambda: len(calls) == 2, timeout=20)
+        time.sleep(0.5)
+        assert len(calls) == 2
+    finally:
+        worker.stop()
+
+
+def test_coming_back_to_the_shown_frame_clears_the_busy_state(small_dataset_dir, monkeypatch):
+    original = detector_module.Detector.propose
+    release = threading.Event()
+
+    def slow_on_frame_1(self, frame, history=(), progress=None):
+        if frame.name == "frame_00001":
+            release.wait(20)
+        return original(self, frame, history, progress)
+
+    monkeypatch.setattr(detector_module.Detector, "propose", slow_on_frame_1)
+    state = AppState(open_dataset(small_dataset_dir))
+    worker = PipelineWorker(state, calibrate=False)
+    _wire(state, worker)
+    try:
+        worker.request()
+        assert state.wait_for(lambda: state.pipeline_result is not None, timeout=120)
+        state.set_frame(1)  # starts the slow run
+        assert state.wait_for(lambda: state.pipeline_busy, timeout=20)
+        state.set_frame(0)  # back to the result that is shown
+        release.set()
+        assert state.wait_for(lambda: not state.pipeline_busy, timeout=120), state.pipeline_status
+        assert state.pipeline_result_key[0] == 0
+    finally:
+        release.set()
+        worker.stop()
