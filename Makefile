@@ -31,8 +31,8 @@ BENCH_DATA ?= /tmp/bench_sim
 REAL := ../shared/data/real
 bench: $(STAMP)
 	$(BIN)/factorydet bench simulate --readme README.md
-	rm -rf $(BENCH_DATA) && $(BIN)/factorydet simulate --out $(BENCH_DATA) --frames 12 --seed 0
-	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 4 --json --readme README.md
+	rm -rf $(BENCH_DATA) && $(BIN)/factorydet simulate --out $(BENCH_DATA) --frames 24 --seed 0
+	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 8 --json --readme README.md
 	$(BIN)/factorydet bench pipeline $(REAL)/scannet_scene0000_00.npz $(REAL)/scannet_scene0000_01.npz \
 	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
 	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 2 --png docs/voxel_sweep.png --readme README.md

@@ -253,7 +253,11 @@ def bench_pipeline(
             if len(own):
                 fitted = snap_to_floor(fit_box(own)[None], result.floor_plane)
                 if params.complete_boxes:
-                    fitted = np.concatenate([fitted, complete_hidden_side(fitted)])
+                    heading = float(np.arctan2(*own[:, 1::-1].mean(axis=0)))
+                    view = snap_to_floor(fit_box(own, heading=heading)[None], result.floor_plane)
+                    fitted = np.concatenate(
+                        [fitted, complete_hidden_side(fitted), complete_hidden_side(view)]
+                    )
                 oracle[r] = best_box_iou(box[None], fitted)[0] >= iou_threshold
         oracle_hits.append(oracle)
         if progress is not None:

@@ -101,6 +101,7 @@ def fit_box(
     min_size: float = 0.02,
     angle_step_deg: float = 1.0,
     max_search_points: int = 256,
+    heading: float | None = None,
 ) -> np.ndarray:
     """Oriented upright box around points, robust to one- and two-sided (L-shaped) views.
 
@@ -115,6 +116,7 @@ def fit_box(
         min_size: smallest box side, metres (a single point or a flat patch still gets a volume).
         angle_step_deg: heading search step over [0, 90) degrees.
         max_search_points: the heading search uses at most this many points (evenly strided).
+        heading: use this heading (radians) instead of searching one.
 
     Returns:
         (7,) box; dx >= dy, yaw in [-pi/2, pi/2) along dx.
@@ -122,8 +124,8 @@ def fit_box(
     xy = np.asarray(points[:, :2], np.float64)
     z_lo, z_hi = float(points[:, 2].min()), float(points[:, 2].max())
     search = xy[:: max(1, -(-len(xy) // max_search_points))] - xy.mean(axis=0)  # ceil: at most the limit
-    angle = 0.0
-    if len(search) >= 3:
+    angle = 0.0 if heading is None else float(heading) % (np.pi / 2)
+    if heading is None and len(search) >= 3:
         angles = np.radians(np.arange(0.0, 90.0, angle_step_deg))
         c, s = np.cos(angles), np.sin(angles)
         u = search[:, 0, None] * c + search[:, 1, None] * s  # (n, A) along the heading

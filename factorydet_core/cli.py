@@ -7,7 +7,7 @@ import json
 import sys
 from collections.abc import Callable
 
-from .types import InputError
+from .types import BOX_KINDS, LEVELS, InputError
 
 
 def progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
@@ -178,8 +178,8 @@ def _cmd_propose(args: argparse.Namespace) -> int:
                 "box": [round(float(v), 4) for v in proposals.boxes[i]],
                 "num_points": int(proposals.num_points[i]),
                 "num_voxels": int(proposals.num_voxels[i]),
-                "level": ["segment", "union", "patch"][int(proposals.level[i])],
-                "box_kind": ["fitted", "completed"][int(proposals.box_kind[i])],
+                "level": LEVELS[int(proposals.level[i])],
+                "box_kind": BOX_KINDS[int(proposals.box_kind[i])],
             }
             for i in range(len(proposals))
         ],

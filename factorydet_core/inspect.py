@@ -6,7 +6,7 @@ import numpy as np
 
 from .boxes import box_iou_3d, fit_box
 from .detector import ProposalResult
-from .types import Frame, InputError
+from .types import BOX_KINDS, LEVELS, Frame, InputError
 
 
 def nearest_point_on_ray(
@@ -81,8 +81,8 @@ def describe_proposal(result: ProposalResult, frame: Frame, index: int) -> dict:
         "num_points": int(proposals.num_points[index]),
         "num_voxels": int(proposals.num_voxels[index]),
         "num_patches": len(proposals.patch_sets[index]),
-        "level": ["segment", "union", "patch"][int(proposals.level[index])],
-        "box_kind": ["fitted", "completed"][int(proposals.box_kind[index])],
+        "level": LEVELS[int(proposals.level[index])],
+        "box_kind": BOX_KINDS[int(proposals.box_kind[index])],
         "box": box,
         **_best_label(frame, box),
     }

@@ -169,14 +169,26 @@ def build_proposals(
     num_points_kept = set_sizes[keep]
     box_kind = np.zeros(len(sets), np.int8)
     if complete_boxes:
-        extra = np.flatnonzero(boxes[:, 4] < min_completion_ratio * boxes[:, 3])
-        boxes = np.concatenate([boxes, complete_hidden_side(boxes[extra])])
-        features = np.concatenate([features, features[extra]])
-        sets = sets + [sets[i] for i in extra]
-        num_points_kept = np.concatenate([num_points_kept, num_points_kept[extra]])
-        num_voxels = np.concatenate([num_voxels, num_voxels[extra]])
-        levels = np.concatenate([levels, levels[extra]])
-        box_kind = np.concatenate([box_kind, np.ones(len(extra), np.int8)])
+        # Two more hypotheses per segment, both completed behind the visible side: the fitted box,
+        # and a box whose heading is the viewing direction (right for round objects, whose
+        # one-sided view gives the L-shape search nothing to hold on to).
+        view_boxes = np.array(
+            [
+                fit_box(points[idx], heading=float(np.arctan2(*points[idx, 1::-1].mean(axis=0))))
+                for idx in point_lists
+            ]
+        )
+        view_boxes = snap_to_floor(view_boxes, floor_plane, ground_snap_m)
+        hypotheses = [(1, np.flatnonzero(boxes[:, 4] < min_completion_ratio * boxes[:, 3]), boxes)]
+        hypotheses.append((2, np.arange(len(sets)), view_boxes))
+        for kind, extra, source in hypotheses:
+            boxes = np.concatenate([boxes, complete_hidden_side(source[extra])])
+            features = np.concatenate([features, features[extra]])
+            sets = sets + [sets[i] for i in extra]
+            num_points_kept = np.concatenate([num_points_kept, num_points_kept[extra]])
+            num_voxels = np.concatenate([num_voxels, num_voxels[extra]])
+            levels = np.concatenate([levels, levels[extra]])
+            box_kind = np.concatenate([box_kind, np.full(len(extra), kind, np.int8)])
     return Proposals(
         boxes=boxes,
         features=features,

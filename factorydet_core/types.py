@@ -15,6 +15,12 @@ CLASS_NAMES: tuple[str, ...] = ("barrel", "bobbin", "box", "cone", "pallet", "pe
 """The seven object classes of the paper, in class-id order. Background is not a class id here."""
 
 
+BOX_KINDS: tuple[str, ...] = ("fitted", "completed", "view-completed")
+"""How a proposal's box was made (``Proposals.box_kind``)."""
+LEVELS: tuple[str, ...] = ("segment", "union", "patch")
+"""Where a proposal's point set comes from (``Proposals.level``)."""
+
+
 class InputError(ValueError):
     """Bad input data: the message names the file or array and the problem, on one line."""
 
@@ -315,8 +321,9 @@ class Proposals:
     """(M,) int8: 0 = final merged segment, 1 = an intermediate union of the merge hierarchy,
     2 = a single patch."""
     box_kind: np.ndarray | None = None
-    """(M,) int8: 0 = box fitted to the points, 1 = the same segment's box completed behind its
-    visible side (``boxes.complete_hidden_side``); all 0 when ``None``."""
+    """(M,) int8 index into ``BOX_KINDS``: 0 = box fitted to the points, 1 = that box completed
+    behind its visible side (``boxes.complete_hidden_side``), 2 = a box headed along the viewing
+    direction, completed behind; all 0 when ``None``."""
 
     def __post_init__(self) -> None:
         num = len(self.boxes) if isinstance(self.boxes, np.ndarray) else -1

@@ -55,7 +55,7 @@ def test_proposals_are_well_formed(result):
     assert (proposals.boxes[:, 3:6] > 0).all()
     assert (proposals.num_points >= PRESETS["agv"].min_proposal_points).all()
     assert set(np.unique(proposals.level)) <= {0, 1, 2}
-    assert set(np.unique(proposals.box_kind)) <= {0, 1}
+    assert set(np.unique(proposals.box_kind)) == {0, 1, 2}  # fitted, completed, view-completed
     num_patches = result.segmentation.num_patches
     assert all(len(s) >= 1 and max(s) < num_patches for s in proposals.patch_sets)
     # num_points matches the patch sets.
