@@ -189,6 +189,17 @@ def build_proposals(
             num_voxels = np.concatenate([num_voxels, num_voxels[extra]])
             levels = np.concatenate([levels, levels[extra]])
             box_kind = np.concatenate([box_kind, np.full(len(extra), kind, np.int8)])
+    # Different candidates often give the same box (a union with a sliver, a completion of an
+    # already square box): keep the first of boxes equal to within 2 cm and 2 degrees.
+    key = np.column_stack(
+        [np.round(boxes[:, :6] / 0.02), np.round(np.mod(boxes[:, 6], np.pi) / np.radians(2.0)) % 90]
+    ).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    unique = np.sort(first)
+    boxes, features = boxes[unique], features[unique]
+    sets = [sets[i] for i in unique]
+    num_points_kept, num_voxels = num_points_kept[unique], num_voxels[unique]
+    levels, box_kind = levels[unique], box_kind[unique]
     return Proposals(
         boxes=boxes,
         features=features,
