@@ -14,6 +14,10 @@
    fits an object (``max_object_size_m``). Every union formed along the way is kept in
    ``merge_history``: intermediate unions are proposals too, because the right level of merging
    differs between a forklift and a box on a pallet.
+6. More candidates from diversity: the same merging with smaller size limits
+   (``proposal_scales_m``), and cut pursuits on the graph of patches at coarser regularisations
+   (``patch_regularizations``). Surfaces bigger than any object (walls, rack beams) are found by a
+   first, geometry-only cut pursuit and kept out of all of this (``structure_size_m``).
 """
 
 from __future__ import annotations
@@ -60,6 +64,9 @@ class SegmentationParams:
     max_object_size_m: tuple[float, float] = (4.0, 3.2)
     """(longest horizontal side, height) of a merged segment, metres; the side is measured on the
     axis-aligned bounding box with 20 % slack for yawed objects (see ``merge_patches``)."""
+    patch_regularizations: tuple[float, ...] = (0.1, 0.3, 1.0)
+    """Cut pursuits on the graph of patches at these regularisations; their groups of patches are
+    proposals too (a coarser, feature-driven hierarchy next to the greedy contact merging)."""
     proposal_scales_m: tuple[float, ...] = (1.0, 2.0)
     """Extra merge passes with these smaller longest-side limits, whose unions are proposals too:
     the greedy order that builds a forklift can swallow a crate into its neighbour first."""
@@ -95,6 +102,16 @@ class SegmentationParams:
         if any(not v > 0 for v in scales):
             raise InputError(f"segmentation: proposal_scales_m must be > 0, got {scales}")
         object.__setattr__(self, "proposal_scales_m", scales)
+        try:
+            regs = tuple(float(v) for v in self.patch_regularizations)
+        except (TypeError, ValueError):
+            raise InputError(
+                "segmentation: patch_regularizations must be a list of numbers, "
+                f"got {self.patch_regularizations!r}"
+            ) from None
+        if any(not v > 0 for v in regs):
+            raise InputError(f"segmentation: patch_regularizations must be > 0, got {regs}")
+        object.__setattr__(self, "patch_regularizations", regs)
 
 
 def point_features(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -201,16 +218,23 @@ def _absorb_small(
 def _cut_pursuit(
     values: np.ndarray, source: np.ndarray, target: np.ndarray, length: np.ndarray, regularization: float
 ) -> np.ndarray:
-    """l0 cut pursuit of (N, D) ``values`` on the graph; lambda folded into the edge weights."""
+    """l0 cut pursuit of (N, D) ``values`` on the point graph; lambda folded into the edge weights
+    lambda / (1 + d / mean d)."""
+    mean_length = max(float(length.mean()), 1e-6)
+    return _cut_pursuit_weighted(values, source, target, regularization / (1.0 + length / mean_length))
+
+
+def _cut_pursuit_weighted(
+    values: np.ndarray, source: np.ndarray, target: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
+    """(N,) component of each node of the l0 cut pursuit with the given edge weights."""
     import cut_pursuit_py
 
-    mean_length = max(float(length.mean()), 1e-6)
-    weights = (regularization / (1.0 + length / mean_length)).astype(np.float32)
     return cut_pursuit_py.perform_cut_pursuit(
         1.0,  # ignored by the library; lambda is in the weights
         values.shape[1],
         np.ascontiguousarray(values, np.float32),
-        weights,
+        np.ascontiguousarray(weights, np.float32),
         source.astype(np.uint32),
         target.astype(np.uint32),
         False,
@@ -230,7 +254,7 @@ def _oversized(points: np.ndarray, labels: np.ndarray, size: tuple[float, float]
 
 def over_segment(
     points: np.ndarray, params: SegmentationParams = SegmentationParams()
-) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """Cut-pursuit patches.
 
     Args:
@@ -238,21 +262,27 @@ def over_segment(
         params: segmentation settings.
 
     Returns:
-        ``(patch_ids, structure_mask, (source, target, length))``: (N,) int64 patch of each point,
-        (N,) bool True on structure points (see ``structure_size_m``), and the graph.
+        ``(patch_ids, structure_mask, (source, target, length), values)``: (N,) int64 patch of each
+        point, (N,) bool True on structure points (see ``structure_size_m``), the graph, and the
+        (N, D) float32 values the cut pursuit partitioned.
     """
     check_array(points, (None, 3), name="segment points", finite=True)
     num_points = len(points)
     if num_points == 0:
         empty = np.zeros(0, np.int64)
-        return empty, np.zeros(0, bool), (empty, empty, np.zeros(0))
+        return empty, np.zeros(0, bool), (empty, empty, np.zeros(0)), np.zeros((0, 4), np.float32)
     if num_points < 4:  # too few for local features: one patch per connected group
         source, target = np.triu_indices(num_points, 1)
         length = np.linalg.norm(points[source] - points[target], axis=1)
         keep = length <= params.max_edge_m
         source, target, length = source[keep], target[keep], length[keep]
         patch_ids = _split_disconnected(np.zeros(num_points, np.int64), source, target)
-        return patch_ids, np.zeros(num_points, bool), (source, target, length)
+        return (
+            patch_ids,
+            np.zeros(num_points, bool),
+            (source, target, length),
+            np.zeros((num_points, 4), np.float32),
+        )
     features, neighbours, sq_distances = point_features(points, max(params.k_features, params.k_graph))
     source, target, length = knn_edges(neighbours, sq_distances, params.k_graph, params.max_edge_m)
     geometric = features * np.array([1.0, 1.0, 1.0, 2.0], np.float32)  # verticality counts double (SPG)
@@ -277,7 +307,7 @@ def over_segment(
     )
     patch_ids = _split_disconnected(labels, source, target)
     patch_ids = _absorb_small(patch_ids, source, target, params.min_patch_points)
-    return patch_ids, structure_mask, (source, target, length)
+    return patch_ids, structure_mask, (source, target, length), values
 
 
 def merge_patches(
@@ -359,6 +389,49 @@ def merge_patches(
     return _relabel(root_of), tuple(history)
 
 
+def _coarser_partitions(
+    points: np.ndarray,
+    values: np.ndarray,
+    patch_ids: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    patch_is_structure: np.ndarray,
+    params: SegmentationParams,
+) -> tuple[tuple[int, ...], ...]:
+    """Groups of patches from cut pursuits on the patch graph (a node per patch valued by its mean
+    point values, an edge per adjacency weighted by its point-graph edge count) at each of
+    ``params.patch_regularizations``; groups of 2+ patches that still fit an object."""
+    num_patches = len(patch_is_structure)
+    sizes = np.bincount(patch_ids, minlength=num_patches).astype(np.float64)
+    means = np.zeros((num_patches, values.shape[1]))
+    np.add.at(means, patch_ids, values)
+    means /= np.maximum(sizes, 1)[:, None]
+    adjacency = _patch_adjacency(patch_ids, source, target, num_patches).tocoo()
+    upper = adjacency.row < adjacency.col
+    patch_source, patch_target = adjacency.row[upper], adjacency.col[upper]
+    counts = adjacency.data[upper].astype(np.float64)
+    if not len(counts):
+        return ()
+    lo = np.full((num_patches, 3), np.inf)
+    hi = np.full((num_patches, 3), -np.inf)
+    np.minimum.at(lo, patch_ids, points)
+    np.maximum.at(hi, patch_ids, points)
+    max_side, max_height = params.max_object_size_m
+    groups: list[tuple[int, ...]] = []
+    contact = counts / counts.mean()  # stronger contact, dearer cut
+    for regularization in params.patch_regularizations:
+        labels = _cut_pursuit_weighted(means, patch_source, patch_target, regularization * contact)
+        labels = _split_disconnected(labels, patch_source, patch_target)
+        for label in np.unique(labels):
+            members = np.flatnonzero((labels == label) & ~patch_is_structure)
+            if len(members) < 2:
+                continue
+            extent = hi[members].max(axis=0) - lo[members].min(axis=0)
+            if max(extent[:2]) <= max_side * 1.2 and extent[2] <= max_height:
+                groups.append(tuple(members.tolist()))
+    return tuple(groups)
+
+
 def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams()) -> Segmentation:
     """Patches and merged segments of a cloud.
 
@@ -369,7 +442,7 @@ def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams(
     Returns:
         The segmentation: per-point patch and segment ids, and the merge history.
     """
-    patch_ids, structure_mask, (source, target, _) = over_segment(points, params)
+    patch_ids, structure_mask, (source, target, _), values = over_segment(points, params)
     num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
     patch_is_structure = np.zeros(num_patches, bool)
     if num_patches:
@@ -380,6 +453,10 @@ def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams(
     for scale in params.proposal_scales_m:
         small = dataclasses.replace(params, max_object_size_m=(scale, params.max_object_size_m[1]))
         history = history + merge_patches(points, patch_ids, source[keep], target[keep], small)[1]
+    if params.patch_regularizations and num_patches > 1:
+        history = history + _coarser_partitions(
+            points, values, patch_ids, source[keep], target[keep], patch_is_structure, params
+        )
     segment_ids = patch_segment_ids[patch_ids] if len(patch_ids) else np.zeros(0, np.int64)
     return Segmentation(
         patch_ids=patch_ids,
