@@ -35,7 +35,7 @@ bench: $(STAMP)
 	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 8 --json --readme README.md
 	$(BIN)/factorydet bench pipeline $(REAL)/scannet_scene0000_00.npz $(REAL)/scannet_scene0000_01.npz \
 	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
-	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 2 --png docs/voxel_sweep.png --readme README.md
+	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 4 --png docs/voxel_sweep.png --readme README.md
 
 # open3d links against libusb-1.0 at import time.
 sysdeps:

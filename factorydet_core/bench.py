@@ -312,6 +312,7 @@ def bench_voxel_sweep(
             {
                 "voxel_size_m": size,
                 "recall": {k: v["recall"] for k, v in result["proposal_recall"].items()},
+                "num": {k: v["num"] for k, v in result["proposal_recall"].items()},
                 "segment_recall": result["segment_recall_point_iou"]["all"]["recall"],
                 "total_ms": result["stage_ms_median"]["total"],
             }
@@ -346,7 +347,8 @@ def plot_voxel_sweep(summary: dict, png: str | os.PathLike) -> None:
     fig, ax = plt.subplots(figsize=(7, 4.5))
     classes = [c for c in rows[0]["recall"] if c != "all"]
     for name in classes:
-        ax.plot(sizes, [r["recall"].get(name, np.nan) for r in rows], marker="o", label=name, alpha=0.8)
+        label = f"{name} (n={rows[0]['num'][name]})"
+        ax.plot(sizes, [r["recall"].get(name, np.nan) for r in rows], marker="o", label=label, alpha=0.8)
     ax.plot(sizes, [r["recall"]["all"] for r in rows], "k-", marker="s", lw=2.5, label="all (voxel segments)")
     ax.axhline(summary["point_segmentation_recall"]["all"], color="k", ls="--", label="all (point segments)")
     ax.set_xlabel("voxel size (m)")
