@@ -149,3 +149,21 @@ def test_invalid_points_raise():
         segment(np.array([[0, 0, np.nan]] * 5, np.float32))
     with pytest.raises(InputError, match="shape"):
         segment(np.zeros((5, 2), np.float32))
+
+
+def test_convexity_keeps_an_object_apart_from_what_it_stands_on():
+    from factorydet_core.segment import SegmentationParams, _mergeable_connections
+
+    rng = np.random.default_rng(5)
+    # A crate's front face at y = -2 (facing the viewer at the origin), its top (+z) behind it, and
+    # the shelf it stands on, reaching out in front of it at the crate's bottom.
+    front = np.column_stack([rng.uniform(-0.3, 0.3, 300), np.full(300, -2.0), rng.uniform(0.5, 1.0, 300)])
+    top = np.column_stack([rng.uniform(-0.3, 0.3, 300), rng.uniform(-2.6, -2.0, 300), np.full(300, 1.0)])
+    shelf = np.column_stack([rng.uniform(-0.3, 0.3, 300), rng.uniform(-2.0, -1.4, 300), np.full(300, 0.5)])
+    points = np.concatenate([front, top, shelf]).astype(np.float32)
+    patch_ids = np.repeat([0, 1, 2], 300)
+    source = np.array([0, 300, 0])  # front-top, top-... (point indices)
+    target = np.array([300, 0, 600])  # front-top (again), front-shelf
+    keep = _mergeable_connections(points, patch_ids, source, target, SegmentationParams())
+    assert keep[0] and keep[1], "the crate's front and top meet at a convex edge"
+    assert not keep[2], "the crate and the shelf it stands on meet at a concave edge"
