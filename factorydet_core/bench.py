@@ -146,11 +146,10 @@ def bench_pipeline(
     """
     import dataclasses
 
-    from .boxes import complete_hidden_side, fit_box
     from .dataset import open_dataset
     from .detector import PRESETS, Detector
     from .evaluation import best_box_iou, best_point_iou, proposal_point_lists, recall_table
-    from .proposals import snap_to_floor
+    from .proposals import box_hypotheses
 
     paths = [Path(p) for p in data] if isinstance(data, (list, tuple)) else [Path(data)]
     if not paths:
@@ -251,14 +250,8 @@ def bench_pipeline(
         for r, (inst, box) in enumerate(zip(ref_ids, ref_boxes)):
             own = result.cloud.points[result.cloud.point_instance_ids == inst]
             if len(own):
-                fitted = snap_to_floor(fit_box(own)[None], result.floor_plane)
-                if params.complete_boxes:
-                    heading = float(np.arctan2(*own[:, 1::-1].mean(axis=0)))
-                    view = snap_to_floor(fit_box(own, heading=heading)[None], result.floor_plane)
-                    fitted = np.concatenate(
-                        [fitted, complete_hidden_side(fitted), complete_hidden_side(view)]
-                    )
-                oracle[r] = best_box_iou(box[None], fitted)[0] >= iou_threshold
+                hypotheses = box_hypotheses(own, result.floor_plane, complete_boxes=params.complete_boxes)
+                oracle[r] = best_box_iou(box[None], hypotheses)[0] >= iou_threshold
         oracle_hits.append(oracle)
         if progress is not None:
             progress(n + 1, len(items))

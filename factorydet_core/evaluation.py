@@ -5,20 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from .boxes import box_iou_3d
+from .proposals import point_sets
 from .types import MergedCloud, Proposals, Segmentation
 
 
 def proposal_point_lists(segmentation: Segmentation, proposals: Proposals) -> list[np.ndarray]:
     """Point indices (into the segmented cloud) of every proposal."""
-    num_patches = segmentation.num_patches
-    order = np.argsort(segmentation.patch_ids, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(np.bincount(segmentation.patch_ids, minlength=num_patches))])
-    return [
-        np.concatenate([order[starts[p] : starts[p + 1]] for p in patch_set])
-        if patch_set
-        else np.zeros(0, int)
-        for patch_set in proposals.patch_sets
-    ]
+    return point_sets(segmentation.patch_ids, proposals.patch_sets)
 
 
 def best_box_iou(reference_boxes: np.ndarray, proposal_boxes: np.ndarray) -> np.ndarray:

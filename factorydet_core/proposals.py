@@ -60,6 +60,47 @@ def snap_to_floor(
     return boxes
 
 
+def point_sets(patch_ids: np.ndarray, patch_sets: list[tuple[int, ...]] | tuple) -> list[np.ndarray]:
+    """Point indices of each set of patches (``patch_ids`` is the (N,) patch of every point)."""
+    num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
+    order = np.argsort(patch_ids, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(np.bincount(patch_ids, minlength=num_patches))])
+    return [
+        np.concatenate([order[starts[p] : starts[p + 1]] for p in patch_set]) if len(patch_set) else order[:0]
+        for patch_set in patch_sets
+    ]
+
+
+def _fitted_and_view_boxes(points: np.ndarray) -> np.ndarray:
+    """(2, 7): the L-shape box of the points, and their box headed along the viewing direction
+    from the vehicle origin (right for round objects, whose one-sided view gives the L-shape search
+    nothing to hold on to)."""
+    view_heading = float(np.arctan2(*points[:, 1::-1].mean(axis=0)))
+    return np.stack([fit_box(points), fit_box(points, heading=view_heading)])
+
+
+def _completable(boxes: np.ndarray, min_completion_ratio: float) -> np.ndarray:
+    """Indices of boxes narrow enough that completing them behind the visible side changes them."""
+    return np.flatnonzero(boxes[:, 4] < min_completion_ratio * boxes[:, 3])
+
+
+def box_hypotheses(
+    points: np.ndarray,
+    floor_plane: np.ndarray | None = None,
+    *,
+    ground_snap_m: float = 0.15,
+    complete_boxes: bool = True,
+    min_completion_ratio: float = 0.9,
+) -> np.ndarray:
+    """(K, 7) the boxes ``build_proposals`` proposes for one point set: fitted, fitted and completed
+    behind (when narrow), view-headed and completed behind; each snapped to the floor."""
+    fitted, view = snap_to_floor(_fitted_and_view_boxes(points), floor_plane, ground_snap_m)
+    if not complete_boxes:
+        return fitted[None]
+    completed = complete_hidden_side(fitted[None][_completable(fitted[None], min_completion_ratio)])
+    return np.concatenate([fitted[None], completed, complete_hidden_side(view[None])])
+
+
 def normalize_channels(features: np.ndarray) -> np.ndarray:
     """Per-channel L2 normalisation across the Gaussians of (M, 20, 5, 5, 5) features."""
     flat = features.reshape(len(features), NUM_CHANNELS, NUM_GAUSSIANS).astype(np.float64)
@@ -148,9 +189,7 @@ def build_proposals(
     proposal_voxel = (membership @ patch_voxel).tocsr()
     num_voxels = np.diff(proposal_voxel.indptr).astype(np.int64)
 
-    order = np.argsort(segmentation.patch_ids, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(patch_sizes)])
-    point_lists = [np.concatenate([order[starts[p] : starts[p + 1]] for p in s]) for s in sets]
+    point_lists = point_sets(segmentation.patch_ids, sets)
 
     if feature == "aggregated":
         weights = proposal_voxel.copy()
@@ -165,22 +204,16 @@ def build_proposals(
         all_points = points[np.concatenate(point_lists)]
         features = fisher_vectors(to_unit_sphere(all_points, set_ids, len(sets)), set_ids, len(sets))
 
-    boxes = snap_to_floor(np.array([fit_box(points[idx]) for idx in point_lists]), floor_plane, ground_snap_m)
+    fitted_and_view = np.array([_fitted_and_view_boxes(points[idx]) for idx in point_lists])  # (M, 2, 7)
+    boxes = snap_to_floor(fitted_and_view[:, 0], floor_plane, ground_snap_m)
     num_points_kept = set_sizes[keep]
     box_kind = np.zeros(len(sets), np.int8)
     if complete_boxes:
-        # Two more hypotheses per segment, both completed behind the visible side: the fitted box,
-        # and a box whose heading is the viewing direction (right for round objects, whose
-        # one-sided view gives the L-shape search nothing to hold on to).
-        view_boxes = np.array(
-            [
-                fit_box(points[idx], heading=float(np.arctan2(*points[idx, 1::-1].mean(axis=0))))
-                for idx in point_lists
-            ]
-        )
-        view_boxes = snap_to_floor(view_boxes, floor_plane, ground_snap_m)
-        hypotheses = [(1, np.flatnonzero(boxes[:, 4] < min_completion_ratio * boxes[:, 3]), boxes)]
-        hypotheses.append((2, np.arange(len(sets)), view_boxes))
+        view_boxes = snap_to_floor(fitted_and_view[:, 1], floor_plane, ground_snap_m)
+        hypotheses = [
+            (1, _completable(boxes, min_completion_ratio), boxes),
+            (2, np.arange(len(sets)), view_boxes),
+        ]
         for kind, extra, source in hypotheses:
             boxes = np.concatenate([boxes, complete_hidden_side(source[extra])])
             features = np.concatenate([features, features[extra]])
