@@ -113,19 +113,26 @@ def refine_extrinsics(
         local = per_sensor[sensor][frame_index]
         return local @ T[sensor, :3, :3].T + T[sensor, :3, 3]
 
+    def sensor_and_others(sensor: int, frame_index: int, T: np.ndarray):
+        """Down-sampled open3d clouds of one sensor and of all the others, or None if either is empty."""
+        source = vehicle_points(sensor, frame_index, T)
+        others = [vehicle_points(o, frame_index, T) for o in range(num_sensors) if o != sensor]
+        if not len(source) or not sum(len(o) for o in others):
+            return None
+        return (
+            _o3d_cloud(source).voxel_down_sample(downsample_m),
+            _o3d_cloud(np.concatenate(others)).voxel_down_sample(downsample_m),
+        )
+
     def residual(sensor: int, T: np.ndarray) -> tuple[float, float]:
         sq_sum, num_inliers, num_total = 0.0, 0, 0
         for f in range(len(frames)):
-            source = vehicle_points(sensor, f, T)
-            others = [vehicle_points(o, f, T) for o in range(num_sensors) if o != sensor]
-            if not len(source) or not sum(len(o) for o in others):
+            clouds = sensor_and_others(sensor, f, T)
+            if clouds is None:
                 continue
-            source_cloud = _o3d_cloud(source).voxel_down_sample(downsample_m)
+            source_cloud, target_cloud = clouds
             result = o3d.pipelines.registration.evaluate_registration(
-                source_cloud,
-                _o3d_cloud(np.concatenate(others)).voxel_down_sample(downsample_m),
-                max_correspondence_m,
-                np.eye(4),
+                source_cloud, target_cloud, max_correspondence_m, np.eye(4)
             )
             num = len(source_cloud.points)
             inliers = int(round(result.fitness * num))
@@ -144,12 +151,10 @@ def refine_extrinsics(
         for sensor in range(num_sensors):
             corrections = []
             for f in range(len(frames)):
-                source = vehicle_points(sensor, f, refined)
-                others = [vehicle_points(o, f, refined) for o in range(num_sensors) if o != sensor]
-                if not len(source) or not sum(len(o) for o in others):
+                clouds = sensor_and_others(sensor, f, refined)
+                if clouds is None:
                     continue
-                source_cloud = _o3d_cloud(source).voxel_down_sample(downsample_m)
-                target_cloud = _o3d_cloud(np.concatenate(others)).voxel_down_sample(downsample_m)
+                source_cloud, target_cloud = clouds
                 if len(source_cloud.points) < 10 or len(target_cloud.points) < 10:
                     continue
                 target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
