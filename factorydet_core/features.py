@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .geometry import group_bounds
 from .types import InputError, check_array
 
 GRID_SIZE = 5
@@ -231,10 +232,7 @@ def to_unit_sphere(points: np.ndarray, set_ids: np.ndarray, num_sets: int | None
     """
     num_sets = _check_sets(points, set_ids, num_sets)
     points = points.astype(np.float64)
-    lo = np.full((num_sets, 3), np.inf)
-    hi = np.full((num_sets, 3), -np.inf)
-    np.minimum.at(lo, set_ids, points)
-    np.maximum.at(hi, set_ids, points)
+    lo, hi = group_bounds(points, set_ids, num_sets)
     centred = points - ((lo + hi) / 2)[set_ids]
     radius = np.zeros(num_sets)
     np.maximum.at(radius, set_ids, np.linalg.norm(centred, axis=1))

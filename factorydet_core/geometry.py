@@ -107,3 +107,21 @@ def transform_boxes(transform: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     out[:, :3] = boxes[:, :3] @ rotation.T + transform[:3, 3]
     out[:, 6] = wrap_angle(boxes[:, 6] + np.arctan2(rotation[1, 0], rotation[0, 0]))
     return out
+
+
+def group_bounds(points: np.ndarray, group_ids: np.ndarray, num_groups: int) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds of each group of points.
+
+    Args:
+        points: (N, 3) points.
+        group_ids: (N,) group of each point, in [0, num_groups).
+        num_groups: G.
+
+    Returns:
+        ``(lo, hi)``: (G, 3) float64 minimum and maximum corners; +inf / -inf for empty groups.
+    """
+    lo = np.full((num_groups, 3), np.inf)
+    hi = np.full((num_groups, 3), -np.inf)
+    np.minimum.at(lo, group_ids, points)
+    np.maximum.at(hi, group_ids, points)
+    return lo, hi

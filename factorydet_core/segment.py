@@ -29,6 +29,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
+from .geometry import group_bounds
 from .types import InputError, Segmentation, check_array
 
 
@@ -254,10 +255,7 @@ def _cut_pursuit_weighted(
 def _oversized(points: np.ndarray, labels: np.ndarray, size: tuple[float, float]) -> np.ndarray:
     """(L,) bool: labels whose points span more than ``size`` = (horizontal, height) metres."""
     num = int(labels.max()) + 1
-    lo = np.full((num, 3), np.inf)
-    hi = np.full((num, 3), -np.inf)
-    np.minimum.at(lo, labels, points)
-    np.maximum.at(hi, labels, points)
+    lo, hi = group_bounds(points, labels, num)
     extent = hi - lo
     return (np.hypot(extent[:, 0], extent[:, 1]) > size[0]) | (extent[:, 2] > size[1])
 
@@ -344,10 +342,7 @@ def merge_patches(
         return np.zeros(0, np.int64), ()
     adjacency = _patch_adjacency(patch_ids, source, target, num_patches).tocoo()
     boundary = np.asarray(adjacency.sum(axis=1)).ravel()  # inter-patch edges of each patch
-    lo = np.full((num_patches, 3), np.inf)
-    hi = np.full((num_patches, 3), -np.inf)
-    np.minimum.at(lo, patch_ids, points)
-    np.maximum.at(hi, patch_ids, points)
+    lo, hi = group_bounds(points, patch_ids, num_patches)
     max_side, max_height = params.max_object_size_m
 
     # Union-find over patches; each root keeps its members, bounds, boundary and edge counts.
@@ -474,10 +469,7 @@ def _coarser_partitions(
     counts = adjacency.data[upper].astype(np.float64)
     if not len(counts):
         return ()
-    lo = np.full((num_patches, 3), np.inf)
-    hi = np.full((num_patches, 3), -np.inf)
-    np.minimum.at(lo, patch_ids, points)
-    np.maximum.at(hi, patch_ids, points)
+    lo, hi = group_bounds(points, patch_ids, num_patches)
     max_side, max_height = params.max_object_size_m
     groups: list[tuple[int, ...]] = []
     contact = counts / counts.mean()  # stronger contact, dearer cut
