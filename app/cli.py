@@ -29,7 +29,14 @@ def _cmd_app(args: argparse.Namespace) -> int:
                 close()
         dataset = open_dataset(session.data_dir)
         title = f"session {session.name}"
-    serve(dataset, host=args.host, port=args.port, title=title)
+    model, model_name = None, ""
+    if args.model != "none":
+        from factorydet_core.model import DetectionModel
+        from factorydet_core.results import resolve_model
+
+        path = resolve_model(args.model, args.root)
+        model, model_name = DetectionModel.load(path), str(path)
+    serve(dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name)
     return 0
 
 
@@ -42,6 +49,11 @@ def build_app_parser() -> argparse.ArgumentParser:
     p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
     p.add_argument("--host", default="127.0.0.1", help="bind address; viser has no authentication")
     p.add_argument("--port", type=int, default=8080)
+    p.add_argument(
+        "--model",
+        default="default",
+        help="'default' (the shipped checkpoint), a .pt checkpoint, a session name, or 'none'",
+    )
     p.set_defaults(func=_cmd_app)
     return parser
 

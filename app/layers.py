@@ -10,12 +10,26 @@ import viser
 
 from factorydet_core import colors
 from factorydet_core.detector import ProposalResult
+from factorydet_core.evaluation import match_detections
 from factorydet_core.geometry import box_wireframe_segments
+from factorydet_core.types import BoxLabels, Detections
 from factorydet_core.voxels import fisher_vector_colors
 
 from .state import LAYERS
 
 PROPOSAL_RGB = (255, 140, 0)
+SUPPRESSED_RGB = (160, 160, 160)
+MATCH_RGB = {"tp": (30, 170, 60), "fp": (220, 40, 40), "missed": (40, 90, 230)}
+MAX_LABELS = 60  # text sprites are one node each; beyond this the view is unreadable anyway
+
+
+def _wireframes(boxes: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(S, 2, 3) segments and (S, 2, 3) colours of boxes with one (K, 3) colour each."""
+    if not len(boxes):
+        return np.zeros((0, 2, 3), np.float32), np.zeros((0, 2, 3), np.uint8)
+    segments = box_wireframe_segments(boxes).astype(np.float32).reshape(-1, 2, 3)
+    per_box = len(segments) // len(boxes)
+    return segments, np.repeat(np.asarray(rgb, np.uint8), per_box, axis=0)[:, None].repeat(2, axis=1)
 
 
 def shown_proposal_ids(result: ProposalResult) -> np.ndarray:
@@ -35,6 +49,9 @@ class LayerView:
         self.drawn_frame_index = 0
         self.proposal_ids = np.zeros(0, np.int64)
         self._voxel_colors: tuple[int, np.ndarray] | None = None  # (id(result), colours)
+        self.detection_nodes: list = []
+        self.shown_detections: Detections | None = None
+        self.shown_detection_ids = np.zeros(0, np.int64)
 
     def draw(
         self,
@@ -115,3 +132,80 @@ class LayerView:
             node = self.nodes.get(name)
             if node is not None:
                 node.point_size = point_size
+
+    def draw_detections(
+        self,
+        detections: Detections | None,
+        visible: bool,
+        show_suppressed: bool,
+        color_by_match: bool,
+        labels: BoxLabels | None,
+    ) -> None:
+        """Replace the detection boxes: kept ones coloured by class (or by match against
+        ``labels``: true positive, false positive, missed annotation), with a class-and-score label;
+        suppressed ones grey when asked."""
+        with self.server.atomic():
+            for node in self.detection_nodes:
+                node.remove()
+            self.detection_nodes = []
+            self.shown_detections = detections
+            self.shown_detection_ids = np.zeros(0, np.int64)
+            if detections is None or not visible:
+                return
+            kept = np.flatnonzero(detections.kept_mask)
+            rgb = colors.class_colors(detections.class_names)[detections.class_ids[kept]]
+            missed = np.zeros((0, 7))
+            if color_by_match and labels is not None:
+                tp, matched = match_detections(
+                    detections.boxes[kept], detections.class_ids[kept], detections.scores[kept],
+                    labels.boxes, labels.class_ids, 0.6,
+                )  # fmt: skip
+                rgb = np.where(tp[:, None], MATCH_RGB["tp"], MATCH_RGB["fp"])
+                missed = labels.boxes[np.setdiff1d(np.arange(len(labels)), matched[matched >= 0])]
+            segments, segment_rgb = _wireframes(detections.boxes[kept], rgb)
+            self.detection_nodes.append(
+                self.server.scene.add_line_segments(
+                    "/pipeline/detections",
+                    points=segments,
+                    colors=segment_rgb,
+                    thickness=3.0,
+                    thickness_units="screen",
+                )  # fmt: skip
+            )
+            for n, k in enumerate(kept[:MAX_LABELS]):
+                box = detections.boxes[k]
+                self.detection_nodes.append(
+                    self.server.scene.add_label(
+                        f"/pipeline/detection_labels/{n}",
+                        f"{detections.class_names[int(detections.class_ids[k])]} {detections.scores[k]:.2f}",
+                        position=(float(box[0]), float(box[1]), float(box[2] + box[5] / 2 + 0.1)),
+                        font_screen_scale=0.7,
+                    )
+                )
+            shown = kept
+            if show_suppressed:
+                suppressed = np.flatnonzero(~detections.kept_mask)
+                grey = np.tile(SUPPRESSED_RGB, (len(suppressed), 1))
+                segments, segment_rgb = _wireframes(detections.boxes[suppressed], grey)
+                self.detection_nodes.append(
+                    self.server.scene.add_line_segments(
+                        "/pipeline/suppressed",
+                        points=segments,
+                        colors=segment_rgb,
+                        thickness=1.0,
+                        thickness_units="screen",
+                    )  # fmt: skip
+                )
+                shown = np.concatenate([kept, suppressed])
+            if len(missed):
+                segments, segment_rgb = _wireframes(missed, np.tile(MATCH_RGB["missed"], (len(missed), 1)))
+                self.detection_nodes.append(
+                    self.server.scene.add_line_segments(
+                        "/pipeline/missed",
+                        points=segments,
+                        colors=segment_rgb,
+                        thickness=2.0,
+                        thickness_units="screen",
+                    )  # fmt: skip
+                )
+            self.shown_detection_ids = shown

@@ -11,17 +11,22 @@ from collections.abc import Callable
 
 from factorydet_core.colors import COLOR_MODES
 from factorydet_core.dataset import Dataset
-from factorydet_core.detector import PRESETS, FrontEndParams, ProposalResult
-from factorydet_core.types import Frame
+from factorydet_core.detection import select_detections
+from factorydet_core.detector import PRESETS, DetectionResult, FrontEndParams, ProposalResult
+from factorydet_core.evaluation import detection_metrics
+from factorydet_core.types import Detections, Frame
 
-LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals")
+AP_SCORE_FLOOR = 0.05
+"""Detections down to this score feed the metrics panel's PR curve."""
+
+LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals", "detections")
 """The detection layers the app can draw, in panel order."""
 
 
 class AppState:
     """Which frame is shown and how; listeners run after every change (under no lock)."""
 
-    def __init__(self, dataset: Dataset, title: str | None = None) -> None:
+    def __init__(self, dataset: Dataset, title: str | None = None, model=None, model_name: str = "") -> None:
         self.dataset = dataset
         self.title = title or dataset.name
         self.lock = threading.RLock()
@@ -35,7 +40,9 @@ class AppState:
         self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
         self.num_frame_changes = 0
         # Detection front half: which layers show, its parameters, and the worker's progress.
-        self.layers = {name: name == "proposals" for name in LAYERS}
+        # With a model the detections are what people came for; without, the proposals.
+        shown = "detections" if model is not None else "proposals"
+        self.layers = {name: name == shown for name in LAYERS}
         self.params: FrontEndParams = PRESETS["agv" if dataset.num_sensors > 1 else "indoor"]
         self.use_refined_extrinsics = dataset.num_sensors > 1
         self.pipeline_status = "waiting"
@@ -46,6 +53,17 @@ class AppState:
         self.pipeline_failed_key: tuple | None = None
         self.num_results = 0
         self.selection_markdown = ""
+        # Detection back half: the model, the filters the sliders set, and per-frame results.
+        self.model = model
+        self.model_name = model_name
+        self.score_threshold = model.score_threshold if model is not None else 0.5
+        self.nms_iou = model.nms_iou if model is not None else 0.25
+        self.show_suppressed = False
+        self.color_by_match = False
+        self.detection_result: DetectionResult | None = None
+        self.detections: Detections | None = None
+        self.frame_detections: dict[int, dict] = {}  # frame -> candidates and labels, for metrics
+        self.metrics: dict | None = None
         self._listeners: list[Callable[[], None]] = []
         self.changed = threading.Condition(self.lock)
 
@@ -144,6 +162,72 @@ class AppState:
             self.pipeline_busy = False
             self.selection_markdown = ""
             self.num_results += 1
+            self.changed.notify_all()
+        self._notify()
+
+    def set_detection_result(self, key: tuple, result: DetectionResult, status: str) -> None:
+        """A new frame's detections: filter them by the sliders and add the frame to the metrics."""
+        frame = self.dataset.frame(key[0])
+        with self.lock:
+            self.detection_result = result
+            self.frame_detections[key[0]] = {
+                "candidates": result.candidates,
+                "reference_boxes": frame.labels.boxes,
+                "reference_class_ids": frame.labels.class_ids,
+            }
+            self._refilter()
+        self.set_pipeline_result(key, result.proposal, status)
+
+    def _refilter(self) -> None:
+        """Recompute the shown detections and the metrics (under the lock)."""
+        result = self.detection_result
+        self.detections = (
+            None
+            if result is None
+            else select_detections(result.candidates, self.score_threshold, self.nms_iou)
+        )
+        if self.model is None or not self.frame_detections:
+            self.metrics = None
+            return
+        scored = []
+        for item in self.frame_detections.values():
+            floor = select_detections(
+                item["candidates"], min(AP_SCORE_FLOOR, self.score_threshold), self.nms_iou
+            )
+            kept = floor.subset(floor.kept_mask)
+            scored.append(
+                {
+                    "boxes": kept.boxes,
+                    "class_ids": kept.class_ids,
+                    "scores": kept.scores,
+                    "reference_boxes": item["reference_boxes"],
+                    "reference_class_ids": item["reference_class_ids"],
+                }
+            )
+        self.metrics = detection_metrics(scored, self.model.class_names, 0.6, self.score_threshold)
+        self.metrics["num_frames"] = len(scored)
+
+    def set_detection_filter(
+        self,
+        *,
+        score_threshold: float | None = None,
+        nms_iou: float | None = None,
+        show_suppressed: bool | None = None,
+        color_by_match: bool | None = None,
+    ) -> None:
+        """Change the score threshold, NMS IoU or what is shown; the detections re-filter at once."""
+        with self.lock:
+            refilter = False
+            if score_threshold is not None and score_threshold != self.score_threshold:
+                self.score_threshold, refilter = float(score_threshold), True
+            if nms_iou is not None and nms_iou != self.nms_iou:
+                self.nms_iou, refilter = float(nms_iou), True
+            if show_suppressed is not None:
+                self.show_suppressed = bool(show_suppressed)
+            if color_by_match is not None:
+                self.color_by_match = bool(color_by_match)
+            if refilter:
+                self._refilter()
             self.changed.notify_all()
         self._notify()
 

@@ -9,16 +9,20 @@ import viser
 
 from factorydet_core.dataset import Dataset
 from factorydet_core.inspect import (
+    describe_detection,
     describe_patch,
     describe_proposal,
     description_markdown,
+    detection_markdown,
     nearest_point_on_ray,
     ray_box_distances,
 )
 
 from .layers import LayerView
+from .panels.detections_panel import build_detections_panel
 from .panels.display_panel import build_display_panel
 from .panels.frame_panel import build_frame_panel
+from .panels.metrics_panel import build_metrics_panel
 from .panels.pipeline_panel import build_pipeline_panel
 from .scene import SceneView
 from .state import AppState
@@ -33,13 +37,21 @@ class FactorydetApp:
         dataset: the data set to show.
         title: shown in the status line; the data set's name by default.
         calibrate: refine the sensor extrinsics by ICP (once, in the background) for multi-sensor data.
+        model: a ``DetectionModel``; without one the app shows the front half only.
+        model_name: how the model is named in the panel.
     """
 
     def __init__(
-        self, server: viser.ViserServer, dataset: Dataset, title: str | None = None, calibrate: bool = True
+        self,
+        server: viser.ViserServer,
+        dataset: Dataset,
+        title: str | None = None,
+        calibrate: bool = True,
+        model=None,
+        model_name: str = "",
     ) -> None:
         self.server = server
-        self.state = AppState(dataset, title)
+        self.state = AppState(dataset, title, model=model, model_name=model_name)
         if not calibrate:
             self.state.use_refined_extrinsics = False
         self.scene = SceneView(server)
@@ -51,6 +63,9 @@ class FactorydetApp:
         self.frame_panel = build_frame_panel(server, self.state)
         self.display_panel = build_display_panel(server, self.state)
         self.pipeline_panel = build_pipeline_panel(server, self.state)
+        self.detections_panel = build_detections_panel(server, self.state)
+        self.metrics_panel = build_metrics_panel(server, self.state)
+        self._detections_key: tuple | None = None
         self._drawn: tuple | None = None
         self.worker = PipelineWorker(self.state, calibrate=calibrate)
         self.state.on_change(self.redraw)
@@ -92,21 +107,46 @@ class FactorydetApp:
                 else:
                     self.layers.set_visibility(layers)
                     self.layers.set_point_size(point_size)
+            with self.state.lock:
+                detections = self.state.detections
+                detections_key = (
+                    id(detections),
+                    layers["detections"],
+                    self.state.show_suppressed,
+                    self.state.color_by_match,
+                )
+            if detections_key != self._detections_key:
+                labels = self.state.dataset.frame(result_frame).labels if result_frame is not None else None
+                self.layers.draw_detections(detections, *detections_key[1:], labels)
+                self._detections_key = detections_key
             self.frame_panel.refresh(self.state)
             self.display_panel.refresh(self.state)
             self.pipeline_panel.refresh(self.state)
+            self.detections_panel.refresh(self.state)
+            self.metrics_panel.refresh(self.state)
         self.worker.maybe_request()
 
     def _on_click(self, event: viser.SceneClickEvent) -> None:
-        """A click picks the nearest proposal box under the cursor, or else the nearest patch point."""
+        """A click picks the nearest detection box under the cursor, else the nearest proposal box,
+        else the nearest patch point."""
         with self._draw_lock:  # the drawn result and its box ids belong together
             result, proposal_ids, frame_index = (
                 self.layers.drawn_result,
                 self.layers.proposal_ids,
                 self.layers.drawn_frame_index,
             )
+            detections, detection_ids = self.layers.shown_detections, self.layers.shown_detection_ids
         if result is None:
             return
+        origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
+        if detections is not None and len(detection_ids):
+            distances = ray_box_distances(origin, direction, detections.boxes[detection_ids])
+            if np.isfinite(distances).any():
+                k = int(detection_ids[int(np.argmin(distances))])
+                frame = self.state.dataset.frame(frame_index)
+                info = describe_detection(detections, k, result.proposals, frame)
+                self.state.set_selection(detection_markdown(info))
+                return
         with self.state.lock:
             layers = dict(self.state.layers)
             max_height = self.state.max_height
@@ -129,10 +169,17 @@ class FactorydetApp:
         self.worker.stop()
 
 
-def serve(dataset: Dataset, host: str = "127.0.0.1", port: int = 8080, title: str | None = None) -> None:
+def serve(
+    dataset: Dataset,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    title: str | None = None,
+    model=None,
+    model_name: str = "",
+) -> None:
     """Serve the app until interrupted."""
     server = viser.ViserServer(host=host, port=port, label="factorydet")
-    app = FactorydetApp(server, dataset, title)
+    app = FactorydetApp(server, dataset, title, model=model, model_name=model_name)
     actual_port = server.get_port()
     print(
         f"factorydet: serving {app.state.title} at http://{host}:{actual_port}  (Ctrl+C to stop)", flush=True

@@ -1,4 +1,5 @@
-"""The background worker that runs the detector's front half for the shown frame.
+"""The background worker that runs the detector for the shown frame (the front half, and the
+classifier and NMS when the app has a model).
 
 Requests come from state changes (frame, parameters); only the latest matters, so a request that
 arrives while a frame computes replaces any waiting one, and a result that is stale when it
@@ -78,7 +79,7 @@ class PipelineWorker:
             detector = Detector(params).calibrate(dataset.frame(frame_index))
             self._refined_extrinsics = detector.T_vehicle_sensor
         extrinsics = self._refined_extrinsics if use_refined else None
-        detector = Detector(params, extrinsics)
+        detector = Detector(params, extrinsics, model=self.state.model)
         frame = dataset.frame(frame_index)
         first = max(0, frame_index - params.history_frames)
         history = [dataset.frame(i) for i in range(first, frame_index)]
@@ -87,7 +88,11 @@ class PipelineWorker:
             self.state.set_pipeline_progress(f"frame {frame_index + 1}: {stage} done", fraction)
 
         self.state.set_pipeline_progress(f"frame {frame_index + 1}: merging", 0.05)
-        result = detector.propose(frame, history, progress=progress)
+        if detector.model is not None:
+            detection = detector.detect(frame, history, progress=progress)
+            result = detection.proposal
+        else:
+            detection, result = None, detector.propose(frame, history, progress=progress)
         if self.state.pipeline_key() != key:
             # The user moved on: a newer request is queued, unless they came back to the frame
             # and parameters of the result already shown, which is then current again.
@@ -103,4 +108,9 @@ class PipelineWorker:
             f"{result.timings_ms['total'] / 1000:.1f} s"
             + (" (refined extrinsics)" if extrinsics is not None else "")
         )
-        self.state.set_pipeline_result(key, result, status)
+        if detection is None:
+            self.state.set_pipeline_result(key, result, status)
+            return
+        kept = int(detection.detections.kept_mask.sum())
+        status += f"; {kept} detections in {detection.timings_ms['total'] / 1000:.1f} s in all"
+        self.state.set_detection_result(key, detection, status)

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from .types import BOX_KINDS, LEVELS, InputError
 
 
-def progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], None]]:
+def progress_bar(desc: str, unit: str = "frame") -> tuple[Callable[[int, int], None], Callable[[], None]]:
     from tqdm import tqdm
 
     bar = None
@@ -18,7 +18,7 @@ def progress_bar(desc: str) -> tuple[Callable[[int, int], None], Callable[[], No
     def update(done: int, total: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=total, desc=desc, unit="frame")
+            bar = tqdm(total=total, desc=desc, unit=unit)
         bar.update(done - bar.n)
 
     def close() -> None:
@@ -200,6 +200,218 @@ def _cmd_propose(args: argparse.Namespace) -> int:
     return 0
 
 
+def _front_end_note(preset: str, overrides: dict) -> dict:
+    return {
+        "preset": preset,
+        "overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()},
+    }
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .classifier import ProposalClassifier
+    from .dataset import open_dataset
+    from .detector import PRESETS, Detector
+    from .session import open_session, save_training_run
+    from .training import collect_proposals, train_with_mining
+
+    dataset = open_dataset(args.data)
+    session = open_session(args.session, args.root)
+    preset = args.preset or ("agv" if dataset.num_sensors > 1 else "indoor")
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    overrides = parse_overrides(args.set)
+    detector = Detector(PRESETS[preset].replace(**overrides))
+    train = dataset.splits.get("train") or list(range(dataset.num_frames))
+    train = train[: args.frames] if args.frames else train
+    if args.calibrate and dataset.num_sensors > 1:
+        print("calibrating the extrinsics by ICP ...", file=sys.stderr)
+        detector.calibrate(dataset.frame(train[0]))
+    update, close = progress_bar("proposals")
+    try:
+        frames = collect_proposals(dataset, train, detector, lambda _, d, n: update(d, n))
+    finally:
+        close()
+    classifier = ProposalClassifier(
+        width=args.width,
+        epochs=args.epochs,
+        class_weight=None if args.class_weight == "none" else args.class_weight,
+        seed=args.seed,
+    )
+    bars: dict = {}
+
+    def progress(what: str, done: int, total: int) -> None:
+        if what == "fit":
+            if "fit" not in bars:
+                bars["fit"] = progress_bar("training", unit="epoch")
+            bars["fit"][0](done, total)
+            if done == total:
+                bars.pop("fit")[1]()
+        elif what == "round":
+            print(f"round {done - 1} of {total - 1} done", file=sys.stderr)
+
+    run = train_with_mining(
+        frames,
+        classifier,
+        rounds=args.rounds,
+        negatives_per_round=args.negatives,
+        initial_negatives=args.initial_negatives,
+        positive_iou=args.positive_iou,
+        score_threshold=args.score_threshold,
+        nms_iou=args.nms_iou,
+        seed=args.seed,
+        progress=progress,
+    )
+    run.model.front_end = _front_end_note(preset, overrides)
+    for model in run.models:
+        model.front_end = run.model.front_end
+    config = {
+        "classifier": classifier.get_params() | {"class_names": list(classifier.class_names)},
+        "rounds": args.rounds,
+        "negatives_per_round": args.negatives,
+        "initial_negatives": args.initial_negatives,
+        "positive_iou": args.positive_iou,
+        "front_end": run.model.front_end,
+        "command": "factorydet " + " ".join(sys.argv[1:]),
+    }
+    run_id = save_training_run(session, run, str(args.data), config)
+    summary = {
+        "session": session.name,
+        "run_id": run_id,
+        "train_frames": run.train_frames,
+        "rounds": [
+            {
+                k: r[k]
+                for k in ("round", "num_positives", "num_background", "fit_seconds", "num_false_positives")
+                if k in r
+            }
+            | {"train_f1": r["train_metrics"]["f1"], "num_mined": len(r["mined"])}
+            for r in run.rounds
+        ],
+        "model": str(session.models_dir / f"run_{run_id:03d}" / "final.pt"),
+    }
+    if args.export:
+        run.model.save(
+            args.export, {"data": str(args.data), "train_frames": run.train_frames, "config": config}
+        )
+        summary["exported"] = args.export
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _detection_rows(detections, keep_suppressed: bool) -> list[dict]:
+    rows = []
+    for k in range(len(detections)):
+        if not keep_suppressed and detections.suppressed_by[k] >= 0:
+            continue
+        rows.append(
+            {
+                "class": detections.class_names[int(detections.class_ids[k])],
+                "score": round(float(detections.scores[k]), 4),
+                "box": [round(float(v), 4) for v in detections.boxes[k]],
+                "proposal": int(detections.proposal_ids[k]),
+                "suppressed_by": int(detections.suppressed_by[k]),
+                "probabilities": {
+                    name: round(float(p), 4)
+                    for name, p in zip((*detections.class_names, "background"), detections.probabilities[k])
+                },
+            }
+        )
+    return rows
+
+
+def _cmd_detect(args: argparse.Namespace) -> int:
+    from .dataset import open_dataset
+    from .model import DetectionModel
+    from .results import detector_for, resolve_model
+
+    dataset = open_dataset(args.data)
+    if not 0 <= args.frame < dataset.num_frames:
+        raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
+    model_path = resolve_model(args.model, args.root)
+    model = DetectionModel.load(model_path)
+    detector = detector_for(model, dataset, calibrate=args.calibrate)
+    history_from = max(0, args.frame - detector.params.history_frames)
+    history = [dataset.frame(i) for i in range(history_from, args.frame)]
+    result = detector.detect(
+        dataset.frame(args.frame), history, score_threshold=args.score_threshold, nms_iou=args.nms_iou
+    )
+    detections = result.detections
+    record = {
+        "data": dataset.name,
+        "frame": args.frame,
+        "model": str(model_path),
+        "score_threshold": model.score_threshold if args.score_threshold is None else args.score_threshold,
+        "nms_iou": model.nms_iou if args.nms_iou is None else args.nms_iou,
+        "num_proposals": len(result.proposal.proposals),
+        "num_point_sets": result.groups.num_groups,
+        "num_detections": int(detections.kept_mask.sum()),
+        "num_suppressed": int((~detections.kept_mask).sum()),
+        "timings_ms": {k: round(v, 1) for k, v in result.timings_ms.items()},
+        "box_format": "cx, cy, cz, dx, dy, dz, yaw (vehicle frame, metres, radians)",
+        "detections": _detection_rows(detections, args.suppressed),
+    }
+    if args.json:
+        print(json.dumps(record, indent=1))
+    else:
+        print(
+            f"{dataset.name} frame {args.frame}: {record['num_detections']} detections "
+            f"({record['num_suppressed']} suppressed by NMS) in {record['timings_ms']['total']:.0f} ms"
+        )
+        for row in record["detections"]:
+            box = ", ".join(f"{v:7.2f}" for v in row["box"])
+            print(f"  {row['class']:<7} {row['score']:.2f}  [{box}]")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .results import evaluate, plot_pr_curves, resolve_model, strip_curves
+
+    model_path = resolve_model(args.model, args.root)
+    update, close = progress_bar("proposals")
+    try:
+        result = evaluate(
+            args.data,
+            model_path,
+            iou_threshold=args.iou,
+            max_frames=args.frames,
+            with_baseline=args.baseline,
+            progress=lambda _, d, n: update(d, n),
+            command="factorydet " + " ".join(sys.argv[1:]),
+        )
+    finally:
+        close()
+    if args.png:
+        headline = result["against"][result["reference"]]
+        plot_pr_curves(headline, args.png, f"{result['data']}: PR at IoU {args.iou} vs {result['reference']}")
+        result["png"] = args.png
+    print(json.dumps(strip_curves(result), indent=2))
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from .report import write_report
+    from .results import resolve_model
+
+    model_path = resolve_model(args.model, args.root)
+    update, close = progress_bar("report")
+    try:
+        out = write_report(
+            args.data,
+            model_path,
+            args.out,
+            iou_threshold=args.iou,
+            max_frames=args.frames,
+            sweep_sizes=[float(v) for v in args.sweep.split(",")] if args.sweep else [],
+            sweep_frames=args.sweep_frames,
+            command="factorydet " + " ".join(sys.argv[1:]),
+            progress=lambda _, d, n: update(d, n),
+        )
+    finally:
+        close()
+    print(f"wrote {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="factorydet", description="Factory LiDAR detection tools.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -237,6 +449,61 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print every proposal as JSON")
     p.add_argument("--limit", type=int, default=20, help="rows of the text listing")
     p.set_defaults(func=_cmd_propose)
+
+    p = sub.add_parser("train", help="train the classifier with hard-negative mining into a session")
+    p.add_argument("data", help="a data set folder (its train split is used)")
+    p.add_argument("--session", required=True, help="session to write models and the record into")
+    p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
+    p.add_argument("--rounds", type=int, default=2, help="hard-negative mining rounds after the first fit")
+    p.add_argument("--negatives", type=int, default=500, help="mined negatives added per round (N)")
+    p.add_argument("--initial-negatives", type=int, default=2000, help="random background set to start")
+    p.add_argument("--width", type=float, default=0.0625, help="3DmFV-Net width (1.0 = the paper's, 46M)")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--class-weight", default="balanced", choices=["balanced", "none"], help="loss weighting")
+    p.add_argument("--positive-iou", type=float, default=0.6)
+    p.add_argument("--score-threshold", type=float, default=0.5)
+    p.add_argument("--nms-iou", type=float, default=0.25)
+    p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")
+    p.add_argument("--preset", default=None)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a front-half parameter")
+    p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--export", default=None, help="also save the final model to this .pt path")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("detect", help="detections of one frame")
+    p.add_argument("data")
+    p.add_argument("--model", default="default", help="'default', a .pt checkpoint, or a session name")
+    p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
+    p.add_argument("--frame", type=int, default=0)
+    p.add_argument("--score-threshold", type=float, default=None, help="default: the model's")
+    p.add_argument("--nms-iou", type=float, default=None, help="default: the model's")
+    p.add_argument("--suppressed", action="store_true", help="also list what NMS suppressed")
+    p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_detect)
+
+    p = sub.add_parser("evaluate", help="precision, recall, F1 and AP per class on the test frames")
+    p.add_argument("data")
+    p.add_argument("--model", default="default", help="'default', a .pt checkpoint, or a session name")
+    p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
+    p.add_argument("--iou", type=float, default=0.6)
+    p.add_argument("--frames", type=int, default=None, help="only the first N test frames")
+    p.add_argument("--baseline", action="store_true", help="also train and measure the baseline")
+    p.add_argument("--png", default=None, help="write the precision-recall curves here")
+    p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("report", help="write the results report (tables, PR curve, grid sweep)")
+    p.add_argument("data")
+    p.add_argument("--model", default="default")
+    p.add_argument("--root", default=None)
+    p.add_argument("--out", default="docs/results.md")
+    p.add_argument("--iou", type=float, default=0.6)
+    p.add_argument("--frames", type=int, default=None, help="only the first N test frames")
+    p.add_argument("--sweep", default="0.1,0.2,0.3", help="voxel sizes of the grid sweep ('' skips it)")
+    p.add_argument("--sweep-frames", type=int, default=4, help="train frames per sweep point")
+    p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
     p.add_argument("name", choices=["simulate", "pipeline", "sweep"])

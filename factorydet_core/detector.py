@@ -10,16 +10,20 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Sequence
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from .cloud import crop, floor_mask, prune
+from .detection import ProposalGroups, group_proposals, select_detections
 from .merge import ExtrinsicRefinement, accumulate, refine_extrinsics
 from .proposals import FeatureKind, Weighting, build_proposals
 from .segment import SegmentationParams, segment
-from .types import Frame, InputError, MergedCloud, Proposals, Segmentation, VoxelGrid
+from .types import Detections, Frame, InputError, MergedCloud, Proposals, Segmentation, VoxelGrid
 from .voxels import DEFAULT_VOXEL_SIZE, voxel_fisher_vectors, voxelize
+
+if TYPE_CHECKING:
+    from .model import DetectionModel
 
 STAGES: tuple[str, ...] = ("merge", "prune", "voxelize", "features", "segmentation", "aggregation")
 """Stage names, in order, as used in ``ProposalResult.timings_ms`` and the benchmark."""
@@ -151,17 +155,36 @@ ProgressCallback = Callable[[str, float], None]
 """Called with (stage name, fraction of the front half done) as stages finish."""
 
 
+@dataclasses.dataclass(frozen=True)
+class DetectionResult:
+    """The front half's results and the back half's: candidates and detections."""
+
+    proposal: ProposalResult
+    groups: ProposalGroups
+    """The distinct point sets of the proposals, with their features and descriptors."""
+    candidates: Detections
+    """One scored candidate per point set, before the score threshold and NMS."""
+    detections: Detections
+    """Candidates above the score threshold, by decreasing score; NMS-suppressed ones flagged."""
+    timings_ms: dict[str, float]
+    """Front-half stages, then "grouping", "classification", "nms" and "total"."""
+
+
 class Detector:
-    """The detection pipeline. Learned parts (the classifier) arrive with a later issue.
+    """The detection pipeline.
 
     Args:
         params: front-half settings, or the name of a preset in ``PRESETS``.
         T_vehicle_sensor: (S, 4, 4) extrinsics to merge with; each frame's nominal ones by default.
             ``calibrate`` sets them by ICP.
+        model: the trained back half (``model.DetectionModel``) that ``detect`` needs.
     """
 
     def __init__(
-        self, params: FrontEndParams | str = "agv", T_vehicle_sensor: np.ndarray | None = None
+        self,
+        params: FrontEndParams | str = "agv",
+        T_vehicle_sensor: np.ndarray | None = None,
+        model: DetectionModel | None = None,
     ) -> None:
         if isinstance(params, str):
             if params not in PRESETS:
@@ -170,6 +193,7 @@ class Detector:
         self.params = params
         self.T_vehicle_sensor = None if T_vehicle_sensor is None else np.asarray(T_vehicle_sensor, float)
         self.calibration_: ExtrinsicRefinement | None = None
+        self.model = model
 
     def calibrate(self, frames: Frame | Sequence[Frame], **icp_options) -> Detector:
         """Refine the rig's extrinsics by ICP between sensors (``merge.refine_extrinsics``)."""
@@ -282,3 +306,43 @@ class Detector:
             proposals=proposals,
             timings_ms=timings,
         )
+
+    def detect(
+        self,
+        frame: Frame,
+        history: Sequence[Frame] = (),
+        progress: ProgressCallback | None = None,
+        score_threshold: float | None = None,
+        nms_iou: float | None = None,
+    ) -> DetectionResult:
+        """The whole pipeline on ``frame``: proposals, classification, box choice, threshold, NMS."""
+        if self.model is None:
+            raise InputError("the detector has no model: train one (factorydet train) or load a checkpoint")
+
+        def front_progress(stage: str, fraction: float) -> None:
+            if progress is not None:
+                progress(stage, 0.8 * fraction)
+
+        proposal = self.propose(frame, history, front_progress)
+        timings = {k: v for k, v in proposal.timings_ms.items() if k != "total"}
+        clock = time.perf_counter()
+        groups = group_proposals(
+            proposal.proposals, proposal.cloud.points, proposal.segmentation, proposal.floor_plane
+        )
+        timings["grouping"] = (time.perf_counter() - clock) * 1000.0
+        clock = time.perf_counter()
+        candidates = self.model.candidates(proposal.proposals.boxes, groups)
+        timings["classification"] = (time.perf_counter() - clock) * 1000.0
+        if progress is not None:
+            progress("classification", 0.95)
+        clock = time.perf_counter()
+        detections = select_detections(
+            candidates,
+            self.model.score_threshold if score_threshold is None else score_threshold,
+            self.model.nms_iou if nms_iou is None else nms_iou,
+        )
+        timings["nms"] = (time.perf_counter() - clock) * 1000.0
+        timings["total"] = sum(timings.values())
+        if progress is not None:
+            progress("nms", 1.0)
+        return DetectionResult(proposal, groups, candidates, detections, timings)

@@ -51,3 +51,156 @@ def recall_table(
         "recall": round(float(hit_mask.mean()), 3) if len(hit_mask) else float("nan"),
     }
     return table
+
+
+def match_detections(
+    boxes: np.ndarray,
+    class_ids: np.ndarray,
+    scores: np.ndarray,
+    reference_boxes: np.ndarray,
+    reference_class_ids: np.ndarray,
+    iou_threshold: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy matching of one frame's detections to reference instances, as in VOC / SUN RGB-D:
+    by decreasing score, a detection is a true positive if its best-overlapping reference of the
+    same class has IoU >= ``iou_threshold`` and is not matched yet.
+
+    Returns:
+        ``(tp_mask, matched_reference_ids)``: (K,) bool, and (K,) the reference each detection
+        matched (-1 for false positives).
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    matched = np.full(len(boxes), -1, np.int64)
+    if not len(boxes) or not len(reference_boxes):
+        return matched >= 0, matched
+    iou = box_iou_3d(boxes, reference_boxes)
+    iou[np.asarray(class_ids)[:, None] != np.asarray(reference_class_ids)[None, :]] = 0.0
+    taken = np.zeros(len(reference_boxes), bool)
+    for k in np.argsort(-np.asarray(scores), kind="stable"):
+        r = int(np.argmax(iou[k]))
+        if iou[k, r] >= iou_threshold and not taken[r]:
+            taken[r] = True
+            matched[k] = r
+    return matched >= 0, matched
+
+
+def average_precision(recall: np.ndarray, precision: np.ndarray) -> float:
+    """Area under the interpolated precision-recall curve (all points, VOC 2010 and later)."""
+    mrec = np.concatenate([[0.0], recall, [1.0]])
+    mpre = np.concatenate([[0.0], precision, [0.0]])
+    mpre = np.maximum.accumulate(mpre[::-1])[::-1]
+    steps = np.flatnonzero(mrec[1:] != mrec[:-1])
+    return float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
+
+
+def detection_metrics(
+    frames: list[dict],
+    class_names: tuple[str, ...],
+    iou_threshold: float = 0.6,
+    score_threshold: float = 0.5,
+) -> dict:
+    """Precision, recall and F1 per class at a score threshold, AP per class and mAP.
+
+    Args:
+        frames: one dict per frame with ``boxes`` (K, 7), ``class_ids`` (K,), ``scores`` (K,) of the
+            kept detections (scored down to a low threshold, so that AP sees the whole curve), and
+            ``reference_boxes`` (R, 7), ``reference_class_ids`` (R,).
+        class_names: the classes.
+        iou_threshold: matching threshold.
+        score_threshold: operating point for precision, recall and F1.
+
+    Returns:
+        ``{"per_class": {name: {num_reference, num_detections, tp, precision, recall, f1, ap}},
+        "precision", "recall", "f1"`` (pooled over classes)``, "map"`` (mean AP over classes with
+        references)``, "pr_curves": {name: {"recall": [...], "precision": [...]}}}`` with the
+        classes pooled under "all".
+    """
+    scores, tps, classes = [], [], []
+    num_reference = np.zeros(len(class_names), np.int64)
+    for frame in frames:
+        tp, _ = match_detections(
+            frame["boxes"], frame["class_ids"], frame["scores"], frame["reference_boxes"],
+            frame["reference_class_ids"], iou_threshold,
+        )  # fmt: skip
+        scores.append(np.asarray(frame["scores"], np.float64))
+        tps.append(tp)
+        classes.append(np.asarray(frame["class_ids"], np.int64))
+        num_reference += np.bincount(
+            np.asarray(frame["reference_class_ids"], np.int64), minlength=len(class_names)
+        )[: len(class_names)]
+    scores = np.concatenate(scores) if scores else np.zeros(0)
+    tps = np.concatenate(tps) if tps else np.zeros(0, bool)
+    classes = np.concatenate(classes) if classes else np.zeros(0, np.int64)
+
+    def prf(tp: int, num_det: int, num_ref: int) -> tuple[float, float, float]:
+        precision = tp / num_det if num_det else 0.0
+        recall = tp / num_ref if num_ref else 0.0
+        f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+        return precision, recall, f1
+
+    per_class, curves, aps = {}, {}, []
+    for c, name in enumerate(class_names):
+        mask = classes == c
+        order = np.argsort(-scores[mask], kind="stable")
+        cum_tp = np.cumsum(tps[mask][order])
+        cum_det = np.arange(1, mask.sum() + 1)
+        recall = cum_tp / max(num_reference[c], 1)
+        precision = cum_tp / np.maximum(cum_det, 1)
+        ap = average_precision(recall, precision) if num_reference[c] else float("nan")
+        operating = mask & (scores >= score_threshold)
+        tp = int(tps[operating].sum())
+        p, r, f = prf(tp, int(operating.sum()), int(num_reference[c]))
+        per_class[name] = {
+            "num_reference": int(num_reference[c]),
+            "num_detections": int(operating.sum()),
+            "tp": tp,
+            "precision": round(p, 4),
+            "recall": round(r, 4),
+            "f1": round(f, 4),
+            "ap": None if np.isnan(ap) else round(ap, 4),
+        }
+        if num_reference[c]:
+            aps.append(ap)
+            curves[name] = {"recall": recall.round(4).tolist(), "precision": precision.round(4).tolist()}
+    if num_reference.sum():
+        order = np.argsort(-scores, kind="stable")
+        cum_tp = np.cumsum(tps[order])
+        curves["all"] = {
+            "recall": (cum_tp / num_reference.sum()).round(4).tolist(),
+            "precision": (cum_tp / np.arange(1, len(order) + 1)).round(4).tolist(),
+        }
+    operating = scores >= score_threshold
+    p, r, f = prf(int(tps[operating].sum()), int(operating.sum()), int(num_reference.sum()))
+    return {
+        "iou_threshold": iou_threshold,
+        "score_threshold": score_threshold,
+        "per_class": per_class,
+        "num_reference": int(num_reference.sum()),
+        "num_detections": int(operating.sum()),
+        "precision": round(p, 4),
+        "recall": round(r, 4),
+        "f1": round(f, 4),
+        "map": round(float(np.mean(aps)), 4) if aps else None,
+        "pr_curves": curves,
+    }
+
+
+def recognition_accuracy(true_ids: np.ndarray, predicted_ids: np.ndarray, labels: tuple[str, ...]) -> dict:
+    """The paper's Table 2: per true class, the fraction of samples classified correctly, their mean
+    over classes, and the overall accuracy."""
+    true_ids, predicted_ids = np.asarray(true_ids), np.asarray(predicted_ids)
+    per_class = {}
+    for c, name in enumerate(labels):
+        mask = true_ids == c
+        if mask.any():
+            per_class[name] = {
+                "num": int(mask.sum()),
+                "accuracy": round(float((predicted_ids[mask] == c).mean()), 4),
+            }
+    return {
+        "per_class": per_class,
+        "mean_class_accuracy": round(float(np.mean([v["accuracy"] for v in per_class.values()])), 4)
+        if per_class
+        else None,
+        "overall_accuracy": round(float((true_ids == predicted_ids).mean()), 4) if len(true_ids) else None,
+    }

@@ -6,7 +6,7 @@ import numpy as np
 
 from .boxes import box_iou_3d, fit_box
 from .detector import ProposalResult
-from .types import BOX_KINDS, LEVELS, Frame, InputError
+from .types import BOX_KINDS, LEVELS, Detections, Frame, InputError, Proposals
 
 
 def nearest_point_on_ray(
@@ -148,3 +148,45 @@ def ray_box_distances(origin: np.ndarray, direction: np.ndarray, boxes: np.ndarr
     enter, leave = t_lo.max(axis=1), t_hi.min(axis=1)
     hit = (enter <= leave) & (leave >= 0)
     return np.where(hit, np.maximum(enter, 0.0), np.inf)
+
+
+def describe_detection(detections: Detections, index: int, proposals: Proposals, frame: Frame) -> dict:
+    """Numbers of one detection: class probabilities, the proposal and patches it came from, the
+    detections it suppressed, and the best-overlapping annotation."""
+    if not 0 <= index < len(detections):
+        raise InputError(f"detection {index} out of range [0, {len(detections)})")
+    box = detections.boxes[index]
+    proposal = int(detections.proposal_ids[index])
+    names = (*detections.class_names, "background")
+    order = np.argsort(-detections.probabilities[index])
+    suppressed = np.flatnonzero(detections.suppressed_by == index)
+    info = {
+        "title": f"Detection: {names[int(detections.class_ids[index])]} {detections.scores[index]:.2f}",
+        "class probabilities": ", ".join(
+            f"{names[c]} {detections.probabilities[index, c]:.2f}" for c in order[:4]
+        ),
+        "proposal": f"#{proposal} ({LEVELS[int(proposals.level[proposal])]}, "
+        f"{BOX_KINDS[int(proposals.box_kind[proposal])]} box, {int(proposals.num_points[proposal])} points)",
+        "patches": ", ".join(str(p) for p in proposals.patch_sets[proposal][:12])
+        + (" …" if len(proposals.patch_sets[proposal]) > 12 else ""),
+        "box (cx, cy, cz, dx, dy, dz, yaw)": ", ".join(f"{v:.2f}" for v in box),
+        "suppressed": (
+            ", ".join(
+                f"{detections.class_names[int(detections.class_ids[k])]} {detections.scores[k]:.2f}"
+                for k in suppressed[:8]
+            )
+            if len(suppressed)
+            else "none"
+        ),
+    }
+    if detections.suppressed_by[index] >= 0:
+        info["suppressed by"] = f"detection scoring {detections.scores[detections.suppressed_by[index]]:.2f}"
+    best = _best_label(frame, box)
+    info["annotation"] = "none" if best["label"] is None else f"{best['label']} (IoU {best['label_iou']})"
+    return info
+
+
+def detection_markdown(info: dict) -> str:
+    """``describe_detection``'s numbers as a Markdown table."""
+    rows = "\n".join(f"| {key} | {value} |" for key, value in info.items() if key != "title")
+    return f"**{info['title']}**\n\n| | |\n|---|---|\n{rows}"

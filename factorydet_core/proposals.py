@@ -108,6 +108,48 @@ def normalize_channels(features: np.ndarray) -> np.ndarray:
     return (flat / norms).astype(np.float32).reshape(features.shape)
 
 
+def point_set_features(
+    points: np.ndarray,
+    grid: VoxelGrid,
+    voxel_features: np.ndarray,
+    point_lists: list[np.ndarray],
+    weighting: Weighting = "points",
+    feature: FeatureKind = "aggregated",
+    set_voxel_counts: scipy.sparse.csr_matrix | None = None,
+) -> np.ndarray:
+    """(M, 20, 5, 5, 5) features of point sets: the weighted mean of the Fisher vectors of the voxels
+    each set occupies, renormalised (Eq. 7), or the 3DmFV of the set's points in the unit sphere.
+
+    Args:
+        points: (N, 3) the cloud the grid was built from.
+        grid: its voxel grid.
+        voxel_features: (V, 20, 5, 5, 5) per-voxel Fisher vectors.
+        point_lists: M arrays of point indices.
+        weighting: "points" (c_v = the set's points in voxel v) or "uniform" (c_v = 1).
+        feature: "aggregated" or "direct".
+        set_voxel_counts: (M, V) points of each set in each voxel, when the caller has it.
+    """
+    num_sets = len(point_lists)
+    if feature == "direct":
+        set_ids = np.repeat(np.arange(num_sets), [len(p) for p in point_lists])
+        all_points = points[np.concatenate(point_lists)] if num_sets else np.zeros((0, 3))
+        return fisher_vectors(to_unit_sphere(all_points, set_ids, num_sets), set_ids, num_sets)
+    if set_voxel_counts is None:
+        rows = np.repeat(np.arange(num_sets), [len(p) for p in point_lists])
+        cols = grid.point_voxel_ids[np.concatenate(point_lists)] if num_sets else np.zeros(0, np.int64)
+        set_voxel_counts = scipy.sparse.csr_matrix(
+            (np.ones(len(rows)), (rows, cols)), shape=(num_sets, grid.num_voxels)
+        )
+    weights = set_voxel_counts.copy().tocsr()
+    if weighting == "uniform":
+        weights.data[:] = 1.0
+    totals = np.asarray(weights.sum(axis=1)).ravel()
+    weights = scipy.sparse.diags(1.0 / np.maximum(totals, 1e-12)) @ weights
+    flat = voxel_features.reshape(grid.num_voxels, -1).astype(np.float64)
+    mean = np.asarray(weights @ flat).reshape(num_sets, NUM_CHANNELS, 5, 5, 5)
+    return normalize_channels(mean)
+
+
 def build_proposals(
     points: np.ndarray,
     segmentation: Segmentation,
@@ -190,19 +232,9 @@ def build_proposals(
     num_voxels = np.diff(proposal_voxel.indptr).astype(np.int64)
 
     point_lists = point_sets(segmentation.patch_ids, sets)
-
-    if feature == "aggregated":
-        weights = proposal_voxel.copy()
-        if weighting == "uniform":
-            weights.data[:] = 1.0
-        weights = scipy.sparse.diags(1.0 / np.asarray(weights.sum(axis=1)).ravel()) @ weights
-        flat = voxel_features.reshape(grid.num_voxels, -1).astype(np.float64)
-        mean = np.asarray(weights @ flat).reshape(len(sets), NUM_CHANNELS, 5, 5, 5)
-        features = normalize_channels(mean)
-    else:
-        set_ids = np.repeat(np.arange(len(sets)), [len(p) for p in point_lists])
-        all_points = points[np.concatenate(point_lists)]
-        features = fisher_vectors(to_unit_sphere(all_points, set_ids, len(sets)), set_ids, len(sets))
+    features = point_set_features(
+        points, grid, voxel_features, point_lists, weighting, feature, proposal_voxel
+    )
 
     fitted_and_view = np.array([_fitted_and_view_boxes(points[idx]) for idx in point_lists])  # (M, 2, 7)
     boxes = snap_to_floor(fitted_and_view[:, 0], floor_plane, ground_snap_m)

@@ -342,3 +342,79 @@ class Proposals:
 
     def __len__(self) -> int:
         return len(self.boxes)
+
+
+@dataclasses.dataclass(frozen=True)
+class Detections:
+    """Classified proposals: one box per point set, with its class and score.
+
+    The same container holds every scored candidate (``suppressed_by`` all -1) and the result of
+    ``detection.select_detections`` (score threshold and NMS; suppressed candidates stay, with the
+    index of the detection that suppressed them, so that the app can show them).
+    """
+
+    boxes: np.ndarray
+    """(K, 7) float64 boxes in the vehicle frame."""
+    class_ids: np.ndarray
+    """(K,) int32 index into ``class_names`` (never background)."""
+    scores: np.ndarray
+    """(K,) float32: probability of ``class_ids``."""
+    probabilities: np.ndarray
+    """(K, C + 1) float32: probability of each class, background last."""
+    proposal_ids: np.ndarray
+    """(K,) int64: the proposal (index into ``Proposals``) whose box and point set this is."""
+    suppressed_by: np.ndarray
+    """(K,) int64: index of the detection that suppressed this one in NMS, -1 if kept."""
+    class_names: tuple[str, ...] = CLASS_NAMES
+
+    def __post_init__(self) -> None:
+        num = len(self.boxes) if isinstance(self.boxes, np.ndarray) else -1
+        check_array(self.boxes, (None, 7), name="detection boxes", finite=True)
+        check_array(self.class_ids, (num,), name="detection class_ids")
+        check_array(self.scores, (num,), name="detection scores", finite=True)
+        check_array(self.probabilities, (num, len(self.class_names) + 1), name="detection probabilities")
+        check_array(self.proposal_ids, (num,), name="detection proposal_ids")
+        check_array(self.suppressed_by, (num,), name="detection suppressed_by")
+        object.__setattr__(self, "class_names", tuple(self.class_names))
+        for field, dtype in (
+            ("boxes", np.float64),
+            ("class_ids", np.int32),
+            ("scores", np.float32),
+            ("probabilities", np.float32),
+            ("proposal_ids", np.int64),
+            ("suppressed_by", np.int64),
+        ):
+            object.__setattr__(self, field, _frozen(getattr(self, field).astype(dtype, copy=False)))
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+    @property
+    def kept_mask(self) -> np.ndarray:
+        """(K,) bool: not suppressed."""
+        return self.suppressed_by < 0
+
+    def subset(self, ids: np.ndarray) -> Detections:
+        """The detections ``ids`` (indices or a mask); ``suppressed_by`` is reset to -1."""
+        ids = np.flatnonzero(ids) if np.asarray(ids).dtype == bool else np.asarray(ids, np.int64)
+        return Detections(
+            boxes=self.boxes[ids],
+            class_ids=self.class_ids[ids],
+            scores=self.scores[ids],
+            probabilities=self.probabilities[ids],
+            proposal_ids=self.proposal_ids[ids],
+            suppressed_by=np.full(len(ids), -1, np.int64),
+            class_names=self.class_names,
+        )
+
+    @classmethod
+    def empty(cls, class_names: tuple[str, ...] = CLASS_NAMES) -> Detections:
+        return cls(
+            boxes=np.zeros((0, 7)),
+            class_ids=np.zeros(0, np.int32),
+            scores=np.zeros(0, np.float32),
+            probabilities=np.zeros((0, len(class_names) + 1), np.float32),
+            proposal_ids=np.zeros(0, np.int64),
+            suppressed_by=np.zeros(0, np.int64),
+            class_names=class_names,
+        )

@@ -29,3 +29,24 @@ def small_dataset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulate_dataset(
         tmp_path_factory.mktemp("sim_small"), SimConfig(num_frames=3, seed=7, points_per_frame=20_000)
     )
+
+
+@pytest.fixture(scope="session")
+def tiny_model_path(small_dataset_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A quickly trained detection model (two frames, a few epochs): a real checkpoint whose
+    quality does not matter, for tests of the plumbing around it."""
+    from factorydet_core.classifier import ProposalClassifier
+    from factorydet_core.dataset import open_dataset
+    from factorydet_core.detector import Detector
+    from factorydet_core.training import collect_proposals, train_with_mining
+
+    dataset = open_dataset(small_dataset_dir)
+    frames = collect_proposals(dataset, [0, 1], Detector("agv"))
+    run = train_with_mining(
+        frames,
+        ProposalClassifier(width=0.0625, epochs=3, num_threads=1),
+        rounds=0,
+        initial_negatives=200,
+    )
+    run.model.front_end = {"preset": "agv", "overrides": {}}
+    return run.model.save(tmp_path_factory.mktemp("model") / "tiny.pt", {"rounds": 1})

@@ -6,7 +6,7 @@ import dataclasses
 
 import viser
 
-from ..state import LAYERS, AppState
+from ..state import AppState
 from . import from_user
 
 LAYER_LABELS = {
@@ -61,7 +61,8 @@ def build_pipeline_panel(server: viser.ViserServer, state: AppState) -> Pipeline
         layers = dict(state.layers)
     with server.gui.add_folder("Detection layers"):
         layer_boxes = {
-            name: server.gui.add_checkbox(LAYER_LABELS[name], initial_value=layers[name]) for name in LAYERS
+            name: server.gui.add_checkbox(label, initial_value=layers[name])
+            for name, label in LAYER_LABELS.items()
         }
         refined = server.gui.add_checkbox(
             "Refined extrinsics (ICP)",

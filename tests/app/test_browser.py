@@ -151,3 +151,51 @@ def test_detection_layers_toggle_and_parameters_recompute(app, page):
         == app.state.params.segmentation.merge_threshold
     )
     assert _wait(lambda: app.layers.drawn_result is app.state.pipeline_result, 30), "new result not drawn"
+
+
+@pytest.fixture
+def app_with_model(small_dataset_dir, tiny_model_path):
+    from factorydet_core.model import DetectionModel
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    model = DetectionModel.load(tiny_model_path)
+    app = FactorydetApp(
+        server, open_dataset(small_dataset_dir), calibrate=False, model=model, model_name="tiny"
+    )
+    yield app
+    app.close()
+    server.stop()
+
+
+def test_detections_layer_and_score_slider(app_with_model, browser):
+    app = app_with_model
+    context = browser.new_context(viewport={"width": 1100, "height": 900})
+    try:
+        page = context.new_page()
+        page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
+        page.wait_for_selector("canvas[data-engine]", timeout=30_000)
+        assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
+        for label in ("Detections (after NMS)", "Show suppressed", "Score threshold", "NMS IoU"):
+            assert page.get_by_text(label, exact=True).count() >= 1, label
+        assert app.state.wait_for(lambda: app.state.detections is not None, timeout=120), "no detections"
+        page.get_by_text("detections** shown", exact=False).or_(
+            page.get_by_text("detections shown", exact=False)
+        ).first.wait_for(timeout=30_000)
+        before = int(app.state.detections.kept_mask.sum())
+        text_before = page.get_by_text("suppressed by NMS", exact=False).first.inner_text()
+        assert f"{before} detections" in text_before
+
+        # Lower the score threshold from the browser: more candidates pass, so the count changes.
+        thumb = page.locator('[role=slider][aria-valuemin="0.05"][aria-valuemax="1"]')
+        thumb.focus()
+        for _ in range(9):
+            thumb.press("ArrowLeft")
+        assert app.state.wait_for(lambda: app.state.score_threshold < 0.1, timeout=20), "slider never arrived"
+        after = int(app.state.detections.kept_mask.sum())
+        assert after != before
+        page.get_by_text(f"{after} detections", exact=False).first.wait_for(timeout=20_000)
+        assert _wait(lambda: len(app.layers.shown_detection_ids) == after, 20), "scene not re-filtered"
+        # The metrics panel has the frame's per-class table.
+        assert app.state.metrics is not None and app.state.metrics["num_frames"] == 1
+    finally:
+        context.close()

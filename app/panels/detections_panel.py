@@ -1,0 +1,97 @@
+"""Detections: layer toggle, score and NMS sliders that re-filter at once, and what is shown."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import viser
+
+from ..state import AppState
+from . import from_user
+
+
+@dataclasses.dataclass
+class DetectionsPanel:
+    visible: viser.GuiCheckboxHandle
+    show_suppressed: viser.GuiCheckboxHandle
+    color_by_match: viser.GuiCheckboxHandle
+    score_threshold: viser.GuiSliderHandle
+    nms_iou: viser.GuiSliderHandle
+    summary: viser.GuiMarkdownHandle
+
+    def refresh(self, state: AppState) -> None:
+        with state.lock:
+            visible = state.layers["detections"]
+            values = (state.show_suppressed, state.color_by_match, state.score_threshold, state.nms_iou)
+            detections, model_name, has_model = state.detections, state.model_name, state.model is not None
+        for handle, value in zip(
+            (self.visible, self.show_suppressed, self.color_by_match, self.score_threshold, self.nms_iou),
+            (visible, *values),
+        ):
+            if handle.value != value:
+                handle.value = value
+        if not has_model:
+            self.summary.content = "_No model: run `factorydet train` or start with the default model._"
+        elif detections is None:
+            self.summary.content = f"Model `{model_name}`; waiting for the first frame's detections."
+        else:
+            kept = int(detections.kept_mask.sum())
+            self.summary.content = (
+                f"**{kept} detections** shown ({len(detections) - kept} suppressed by NMS)"
+                f" · model `{model_name}`"
+            )
+
+
+def build_detections_panel(server: viser.ViserServer, state: AppState) -> DetectionsPanel:
+    with state.lock:
+        has_model = state.model is not None
+        score, nms = state.score_threshold, state.nms_iou
+    with server.gui.add_folder("Detections"):
+        visible = server.gui.add_checkbox(
+            "Detections (after NMS)", initial_value=True, disabled=not has_model
+        )
+        show_suppressed = server.gui.add_checkbox(
+            "Show suppressed", initial_value=False, disabled=not has_model
+        )
+        color_by_match = server.gui.add_checkbox(
+            "Colour by match",
+            initial_value=False,
+            disabled=not has_model,
+            hint="Green: matches an annotation (IoU 0.6); red: matches none; blue: annotation missed",
+        )
+        score_threshold = server.gui.add_slider(
+            "Score threshold", min=0.05, max=1.0, step=0.05, initial_value=score, disabled=not has_model
+        )
+        nms_iou = server.gui.add_slider(
+            "NMS IoU", min=0.05, max=0.95, step=0.05, initial_value=nms, disabled=not has_model
+        )
+        summary = server.gui.add_markdown("")
+
+    @visible.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            state.set_layer("detections", bool(visible.value))
+
+    @show_suppressed.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            state.set_detection_filter(show_suppressed=bool(show_suppressed.value))
+
+    @color_by_match.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            state.set_detection_filter(color_by_match=bool(color_by_match.value))
+
+    @score_threshold.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            state.set_detection_filter(score_threshold=float(score_threshold.value))
+
+    @nms_iou.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            state.set_detection_filter(nms_iou=float(nms_iou.value))
+
+    panel = DetectionsPanel(visible, show_suppressed, color_by_match, score_threshold, nms_iou, summary)
+    panel.refresh(state)
+    return panel

@@ -1,0 +1,78 @@
+"""Metrics of the detections over the frames viewed so far, against their annotations: the
+per-class table and the precision-recall curve."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import viser
+import viser.uplot
+
+from ..state import AppState
+
+
+def _fmt(value: float | None) -> str:
+    return "–" if value is None else f"{value:.2f}"
+
+
+@dataclasses.dataclass
+class MetricsPanel:
+    table: viser.GuiMarkdownHandle
+    plot: viser.GuiUplotHandle
+    _shown: int = -1
+
+    def refresh(self, state: AppState) -> None:
+        with state.lock:
+            metrics = state.metrics
+        if metrics is None:
+            self.table.content = "_Metrics appear once a frame with annotations has detections._"
+            return
+        if id(metrics) == self._shown:
+            return
+        self._shown = id(metrics)
+        rows = [
+            f"| {name} | {row['num_reference']} | {row['precision']:.2f} | {row['recall']:.2f} | "
+            f"{row['f1']:.2f} | {_fmt(row['ap'])} |"
+            for name, row in metrics["per_class"].items()
+            if row["num_reference"] or row["num_detections"]
+        ]
+        self.table.content = "\n".join(
+            [
+                f"Against the annotations of the {metrics['num_frames']} frame(s) viewed, IoU "
+                f"{metrics['iou_threshold']}, score ≥ {metrics['score_threshold']:.2f}:",
+                "",
+                "| class | n | P | R | F | AP |",
+                "|---|---|---|---|---|---|",
+                *rows,
+                f"| **total** | {metrics['num_reference']} | {metrics['precision']:.2f} | "
+                f"{metrics['recall']:.2f} | **{metrics['f1']:.2f}** | mAP "
+                f"{_fmt(metrics['map'])} |",
+            ]
+        )
+        curve = metrics["pr_curves"].get("all")
+        if curve and len(curve["recall"]):
+            recall = np.concatenate([[0.0], curve["recall"]])
+            precision = np.concatenate([[1.0], curve["precision"]])
+            self.plot.data = (recall, precision)
+
+
+def build_metrics_panel(server: viser.ViserServer, state: AppState) -> MetricsPanel:
+    with server.gui.add_folder("Metrics", expand_by_default=False):
+        table = server.gui.add_markdown("")
+        plot = server.gui.add_uplot(
+            data=(np.array([0.0, 1.0]), np.array([1.0, 0.0])),
+            series=(
+                viser.uplot.Series(label="recall"),
+                viser.uplot.Series(label="precision (all classes)", stroke="#1f77b4", width=2),
+            ),
+            scales={
+                "x": viser.uplot.Scale(time=False, auto=False, range=(0.0, 1.0)),
+                "y": viser.uplot.Scale(auto=False, range=(0.0, 1.0)),
+            },  # fmt: skip
+            title="Precision-recall",
+            aspect=1.2,
+        )
+    panel = MetricsPanel(table, plot)
+    panel.refresh(state)
+    return panel

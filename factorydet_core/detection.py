@@ -1,0 +1,273 @@
+"""The back half of the detector: proposals grouped by point set, classified, boxed by class, and
+filtered by score and 3D NMS (paper §3.5, §3.6).
+
+Several proposals share one point set (the same patches with different box hypotheses), and so
+share one feature; the classifier sees each point set once. Its predicted class then picks the
+box: among the set's hypotheses, and the same boxes grown to the class's typical size behind their
+visible sides, the one closest in size to the class (``BoxSizePrior``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .nms import nms_3d
+from .proposals import point_sets
+from .types import CLASS_NAMES, Detections, InputError, Proposals, Segmentation
+
+DESCRIPTOR_NAMES: tuple[str, ...] = (
+    "length_m",
+    "width_m",
+    "height_m",
+    "width_over_length",
+    "height_over_length",
+    "bottom_above_floor_m",
+    "top_above_floor_m",
+    "linearity",
+    "planarity",
+    "scattering",
+    "verticality",
+    "log_num_points",
+    "log_points_per_m3",
+    "log_num_voxels",
+)
+"""Hand-made geometric descriptors of a point set, for the non-deep baseline."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ProposalGroups:
+    """The distinct point sets of a frame's proposals, with what a classifier reads from them."""
+
+    group_ids: np.ndarray
+    """(M,) int64: the point set of each proposal."""
+    representatives: np.ndarray
+    """(G,) int64: the first proposal of each point set."""
+    features: np.ndarray
+    """(G, 20, 5, 5, 5) float32: the 3DmFV feature of each point set."""
+    descriptors: np.ndarray
+    """(G, len(DESCRIPTOR_NAMES)) float32: geometric descriptors of each point set (its fitted box)."""
+
+    @property
+    def num_groups(self) -> int:
+        return len(self.representatives)
+
+
+def _eigen_features(points: np.ndarray) -> np.ndarray:
+    """(4,) linearity, planarity, scattering, verticality of a point set (Demantke et al.)."""
+    if len(points) < 3:
+        return np.zeros(4)
+    centred = points - points.mean(axis=0)
+    values, vectors = np.linalg.eigh(centred.T @ centred / len(points))
+    l3, l2, l1 = np.sqrt(np.maximum(values, 1e-12))  # ascending
+    normal = vectors[:, 0]
+    return np.array([(l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, 1.0 - abs(normal[2])])
+
+
+def group_proposals(
+    proposals: Proposals,
+    points: np.ndarray,
+    segmentation: Segmentation,
+    floor_plane: np.ndarray | None = None,
+) -> ProposalGroups:
+    """Group proposals by point set and describe each set.
+
+    Args:
+        proposals: the frame's proposals.
+        points: (N, 3) the segmented cloud's points.
+        segmentation: its segmentation (patch ids).
+        floor_plane: (4,) floor plane for the heights above floor (z = 0 when None or NaN).
+    """
+    keys = {}
+    group_ids = np.array([keys.setdefault(s, len(keys)) for s in proposals.patch_sets], np.int64)
+    representatives = np.zeros(len(keys), np.int64)
+    representatives[group_ids[::-1]] = np.arange(len(group_ids))[::-1]  # first proposal of each
+    features = proposals.features[representatives]
+    point_lists = point_sets(segmentation.patch_ids, [proposals.patch_sets[i] for i in representatives])
+    descriptors = describe_point_sets(
+        points,
+        point_lists,
+        proposals.boxes[representatives],
+        proposals.num_voxels[representatives],
+        floor_plane,
+    )
+    return ProposalGroups(group_ids, representatives, features, descriptors)
+
+
+def describe_point_sets(
+    points: np.ndarray,
+    point_lists: list[np.ndarray],
+    boxes: np.ndarray,
+    num_voxels: np.ndarray,
+    floor_plane: np.ndarray | None = None,
+) -> np.ndarray:
+    """(M, len(DESCRIPTOR_NAMES)) float32 geometric descriptors of M point sets with their boxes.
+
+    Args:
+        points: (N, 3) the cloud.
+        point_lists: M arrays of point indices.
+        boxes: (M, 7) a box of each set.
+        num_voxels: (M,) occupied voxels of each set.
+        floor_plane: (4,) floor plane for the heights above floor (z = 0 when None or NaN).
+    """
+    floor_z = 0.0
+    if floor_plane is not None and np.isfinite(floor_plane).all() and abs(floor_plane[2]) > 1e-6:
+        floor_z = -float(floor_plane[3]) / float(floor_plane[2])
+    descriptors = np.zeros((len(point_lists), len(DESCRIPTOR_NAMES)), np.float32)
+    for g, (box, members, voxels) in enumerate(zip(boxes, point_lists, num_voxels)):
+        own = points[members]
+        length, width, height = max(box[3], box[4]), min(box[3], box[4]), box[5]
+        volume = max(length * width * height, 1e-6)
+        descriptors[g] = (
+            length,
+            width,
+            height,
+            width / max(length, 1e-6),
+            height / max(length, 1e-6),
+            box[2] - height / 2 - floor_z,
+            box[2] + height / 2 - floor_z,
+            *_eigen_features(own.astype(np.float64)),
+            np.log(max(len(own), 1)),
+            np.log(max(len(own), 1) / volume),
+            np.log(max(int(voxels), 1)),
+        )
+    return descriptors
+
+
+@dataclasses.dataclass(frozen=True)
+class BoxSizePrior:
+    """Typical box size of each class: median (length, width, height), length >= width."""
+
+    sizes: np.ndarray
+    """(C, 3) metres; NaN rows for classes never seen."""
+
+    @classmethod
+    def from_boxes(cls, boxes: np.ndarray, class_ids: np.ndarray, num_classes: int) -> BoxSizePrior:
+        """Medians of annotated (M, 7) boxes of each class."""
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        class_ids = np.asarray(class_ids)
+        dims = np.column_stack(
+            [np.maximum(boxes[:, 3], boxes[:, 4]), np.minimum(boxes[:, 3], boxes[:, 4]), boxes[:, 5]]
+        )
+        sizes = np.full((num_classes, 3), np.nan)
+        for c in range(num_classes):
+            if (class_ids == c).any():
+                sizes[c] = np.median(dims[class_ids == c], axis=0)
+        return cls(sizes)
+
+    def distance(self, boxes: np.ndarray, class_id: int) -> np.ndarray:
+        """(M,) sum of |log| size ratios of (M, 7) boxes to class ``class_id`` (0 is a perfect fit)."""
+        prior = self.sizes[class_id]
+        if not np.isfinite(prior).all():
+            return np.zeros(len(boxes))
+        dims = np.column_stack(
+            [np.maximum(boxes[:, 3], boxes[:, 4]), np.minimum(boxes[:, 3], boxes[:, 4]), boxes[:, 5]]
+        )
+        return np.abs(np.log(np.maximum(dims, 1e-3) / prior)).sum(axis=1)
+
+    def grow(self, boxes: np.ndarray, class_id: int, viewpoint: np.ndarray | None = None) -> np.ndarray:
+        """(M, 7) boxes grown to at least the class's size: horizontally away from ``viewpoint``
+        (the hidden side; the vehicle origin by default) and upwards (the floor is below)."""
+        prior = self.sizes[class_id]
+        out = np.array(boxes, np.float64).reshape(-1, 7)
+        if not np.isfinite(prior).all():
+            return out
+        view = np.zeros(2) if viewpoint is None else np.asarray(viewpoint, np.float64)[:2]
+        long_is_x = out[:, 3] >= out[:, 4]
+        for axis in (0, 1):  # box x and y
+            size_col = 3 + axis
+            want = np.where(long_is_x == (axis == 0), prior[0], prior[1])
+            grow_by = np.maximum(want - out[:, size_col], 0.0)
+            heading = out[:, 6] + axis * np.pi / 2
+            direction = np.column_stack([np.cos(heading), np.sin(heading)])
+            away = np.sign(np.einsum("md,md->m", direction, out[:, :2] - view))
+            away[away == 0] = 1.0
+            out[:, :2] += direction * (away * grow_by / 2)[:, None]
+            out[:, size_col] += grow_by
+        grow_z = np.maximum(prior[2] - out[:, 5], 0.0)
+        out[:, 2] += grow_z / 2
+        out[:, 5] += grow_z
+        return out
+
+    def to_json(self) -> list:
+        return [[None if not np.isfinite(v) else round(float(v), 4) for v in row] for row in self.sizes]
+
+    @classmethod
+    def from_json(cls, rows: list) -> BoxSizePrior:
+        return cls(np.array([[np.nan if v is None else v for v in row] for row in rows], np.float64))
+
+
+def score_groups(
+    proposal_boxes: np.ndarray,
+    groups: ProposalGroups,
+    probabilities: np.ndarray,
+    box_prior: BoxSizePrior | None = None,
+    class_names: tuple[str, ...] = CLASS_NAMES,
+) -> Detections:
+    """One candidate detection per point set: its most probable object class, that class's
+    probability as score, and the box (among the set's proposals, and with ``box_prior`` the same
+    boxes grown to the class's size) that fits the class's size best.
+
+    Args:
+        proposal_boxes: (M, 7) boxes of the proposals.
+        groups: their point sets (G).
+        probabilities: (G, C + 1) class probabilities of each point set, background last.
+        box_prior: class sizes; without it each set keeps its first (fitted) box.
+        class_names: the C object classes.
+
+    Returns:
+        (G) candidates, none suppressed.
+    """
+    probabilities = np.asarray(probabilities, np.float32)
+    num_classes = len(class_names)
+    if probabilities.shape != (groups.num_groups, num_classes + 1):
+        raise InputError(
+            f"probabilities: expected shape ({groups.num_groups}, {num_classes + 1}),"
+            f" got {probabilities.shape}"
+        )
+    class_ids = probabilities[:, :num_classes].argmax(axis=1).astype(np.int32)
+    scores = probabilities[np.arange(len(class_ids)), class_ids]
+    proposal_boxes = np.asarray(proposal_boxes, np.float64).reshape(-1, 7)
+    boxes = proposal_boxes[groups.representatives].copy()
+    proposal_ids = groups.representatives.copy()
+    if box_prior is not None and groups.num_groups:
+        order = np.argsort(groups.group_ids, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(np.bincount(groups.group_ids, minlength=groups.num_groups))])
+        for g in range(groups.num_groups):
+            members = order[starts[g] : starts[g + 1]]
+            c = int(class_ids[g])
+            options = np.concatenate([proposal_boxes[members], box_prior.grow(proposal_boxes[members], c)])
+            best = int(np.argmin(box_prior.distance(options, c)))
+            boxes[g] = options[best]
+            proposal_ids[g] = members[best % len(members)]
+    return Detections(
+        boxes=boxes,
+        class_ids=class_ids,
+        scores=scores,
+        probabilities=probabilities,
+        proposal_ids=proposal_ids,
+        suppressed_by=np.full(len(boxes), -1, np.int64),
+        class_names=tuple(class_names),
+    )
+
+
+def select_detections(
+    candidates: Detections,
+    score_threshold: float = 0.5,
+    nms_iou: float = 0.25,
+    class_aware: bool = False,
+) -> Detections:
+    """Candidates scoring at least ``score_threshold``, after 3D NMS at ``nms_iou``.
+
+    Returns:
+        Those candidates, by decreasing score; suppressed ones are included with ``suppressed_by``
+        set (use ``kept_mask``).
+    """
+    if not 0.0 <= score_threshold <= 1.0:
+        raise InputError(f"score_threshold must lie in [0, 1], got {score_threshold}")
+    above = np.flatnonzero(candidates.scores >= score_threshold)
+    above = above[np.argsort(-candidates.scores[above], kind="stable")]
+    chosen = candidates.subset(above)
+    _, suppressed_by = nms_3d(chosen.boxes, chosen.scores, nms_iou, chosen.class_ids if class_aware else None)
+    return dataclasses.replace(chosen, suppressed_by=suppressed_by)

@@ -1,0 +1,105 @@
+"""A trained detection model: the proposal classifier, the class size prior that boxes its
+detections, and the operating thresholds, saved together as one checkpoint."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .classifier import ProposalClassifier
+from .detection import BoxSizePrior, ProposalGroups, score_groups, select_detections
+from .types import Detections, InputError
+
+DEFAULT_MODEL = Path(__file__).parent / "models" / "default.pt"
+"""The checkpoint shipped with the package (trained on the demo data, see the README)."""
+
+
+@dataclasses.dataclass
+class DetectionModel:
+    """Classifier, box prior and thresholds.
+
+    Args:
+        classifier: a fitted ``ProposalClassifier`` (or any classifier with ``predict_proba``,
+            ``labels_`` and ``input_kind``: "features" or "descriptors").
+        box_prior: class sizes that pick each detection's box; ``None`` keeps fitted boxes.
+        score_threshold: operating score threshold.
+        nms_iou: 3D NMS threshold.
+        front_end: the preset and overrides the proposals were made with (for the record).
+    """
+
+    classifier: object
+    box_prior: BoxSizePrior | None = None
+    score_threshold: float = 0.5
+    nms_iou: float = 0.25
+    front_end: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return tuple(self.classifier.labels_[:-1])
+
+    def probabilities(self, groups: ProposalGroups) -> np.ndarray:
+        """(G, C + 1) class probabilities of each point set."""
+        kind = getattr(self.classifier, "input_kind", "features")
+        inputs = groups.features if kind == "features" else groups.descriptors
+        if not len(inputs):
+            return np.zeros((0, len(self.classifier.labels_)), np.float32)
+        return self.classifier.predict_proba(inputs)
+
+    def candidates(self, proposal_boxes: np.ndarray, groups: ProposalGroups) -> Detections:
+        """Every point set as a candidate detection (no threshold, no NMS)."""
+        return score_groups(
+            proposal_boxes, groups, self.probabilities(groups), self.box_prior, self.class_names
+        )
+
+    def detect(
+        self,
+        proposal_boxes: np.ndarray,
+        groups: ProposalGroups,
+        score_threshold: float | None = None,
+        nms_iou: float | None = None,
+    ) -> Detections:
+        """Candidates above the score threshold after NMS (suppressed ones flagged)."""
+        return select_detections(
+            self.candidates(proposal_boxes, groups),
+            self.score_threshold if score_threshold is None else score_threshold,
+            self.nms_iou if nms_iou is None else nms_iou,
+        )
+
+    def save(self, path: str | os.PathLike, note: dict | None = None) -> Path:
+        """Checkpoint: the classifier's state dict at ``path`` and a JSON note beside it."""
+        if not isinstance(self.classifier, ProposalClassifier):
+            raise InputError("only the 3DmFV-Net classifier is saved as a checkpoint")
+        extra = {
+            "box_prior": None if self.box_prior is None else self.box_prior.to_json(),
+            "score_threshold": self.score_threshold,
+            "nms_iou": self.nms_iou,
+            "front_end": self.front_end,
+        }
+        return self.classifier.save(path, {**extra, **(note or {})})
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> DetectionModel:
+        """A model from ``save``'s checkpoint (``torch.load(weights_only=True)``)."""
+        classifier = ProposalClassifier.load(path)
+        note = classifier.note_
+        prior = note.get("box_prior")
+        return cls(
+            classifier=classifier,
+            box_prior=None if prior is None else BoxSizePrior.from_json(prior),
+            score_threshold=float(note.get("score_threshold", 0.5)),
+            nms_iou=float(note.get("nms_iou", 0.25)),
+            front_end=dict(note.get("front_end", {})),
+        )
+
+    @property
+    def note(self) -> dict:
+        return getattr(self.classifier, "note_", {})
+
+
+def describe_checkpoint(path: str | os.PathLike) -> dict:
+    """The JSON note of a checkpoint, without loading its weights."""
+    return json.loads(Path(path).with_suffix(".json").read_text())

@@ -1,0 +1,246 @@
+"""Measuring a trained detector the way the paper does: recognition accuracy (its Table 2),
+detection precision, recall, F-score and AP per class (its Table 3), the precision-recall curve
+(its Fig. 6), against the annotations and, on simulated data, against the full hidden truth; the
+baseline on the same proposals; and the report that puts them beside the paper's figures."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .baseline import BaselineClassifier
+from .dataset import Dataset, open_dataset
+from .detection import score_groups, select_detections
+from .detector import PRESETS, Detector
+from .evaluation import detection_metrics, recognition_accuracy
+from .model import DEFAULT_MODEL, DetectionModel
+from .training import FrameProposals, collect_proposals, group_labels
+from .types import InputError
+
+PAPER_TABLE2 = {"mean": 99.84}
+"""Recognition accuracy (%) of Negin et al. 2020, Table 2: only the average is quoted here (the
+per-class figures are not available to this project, so the report leaves them blank)."""
+
+PAPER_TABLE3 = {
+    "ours": {"barrel": 0.038, "truck": 0.258, "total": 0.793},
+    "baseline_3d_dpm": {"total": 0.417},
+}
+"""Detection F-scores at IoU 0.6 from Negin et al. 2020, Table 3, as quoted in the issue."""
+
+Progress = Callable[[str, int, int], None]
+
+
+def resolve_model(spec: str | os.PathLike, root: str | os.PathLike | None = None) -> Path:
+    """A checkpoint path from "default", a ``.pt`` path, or a session name (its latest model)."""
+    from .session import latest_model, open_session
+
+    if str(spec) == "default":
+        path = DEFAULT_MODEL
+    elif str(spec).endswith(".pt"):
+        path = Path(spec)
+    else:
+        path = latest_model(open_session(str(spec), root))
+        if path is None:
+            raise InputError(f"session {spec!r} has no trained model; run factorydet train first")
+    if not path.is_file():
+        raise InputError(f"{path}: no such checkpoint")
+    return path
+
+
+def detector_for(model: DetectionModel | None, dataset: Dataset, calibrate: bool = True) -> Detector:
+    """A detector with the front-half settings the model was trained with, calibrated on the data
+    set's first frame when it has several sensors."""
+    front = (model.front_end if model is not None else {}) or {}
+    preset = front.get("preset") or ("agv" if dataset.num_sensors > 1 else "indoor")
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r} in the model's note")
+    params = PRESETS[preset].replace(**front.get("overrides", {}))
+    detector = Detector(params, model=model)
+    if calibrate and dataset.num_sensors > 1:
+        detector.calibrate(dataset.frame(0))
+    return detector
+
+
+def reference_boxes(dataset: Dataset, frame_index: int, use_truth: bool, min_points: int = 50):
+    """(boxes, class_ids) of a frame: its annotations, or every instance of the truth with at
+    least ``min_points`` points (simulated data sets only)."""
+    if not use_truth:
+        frame = dataset.frame(frame_index)
+        return np.array(frame.labels.boxes), np.array(frame.labels.class_ids)
+    from .sim.truth import read_frame_truth
+
+    truth = read_frame_truth(dataset.path, frame_index)
+    keep = (truth.instance_class_ids >= 0) & (truth.instance_num_points >= min_points)
+    return truth.instance_boxes[keep], truth.instance_class_ids[keep]
+
+
+def _classifier_inputs(frame: FrameProposals, classifier) -> np.ndarray:
+    kind = getattr(classifier, "input_kind", "features")
+    return frame.groups.features if kind == "features" else frame.groups.descriptors
+
+
+def fit_baseline(
+    frames: list[FrameProposals], class_names: tuple[str, ...], positive_iou: float = 0.6
+) -> BaselineClassifier:
+    """The baseline, trained on every point set of the training frames (positives by the
+    annotations, everything else background) and on the annotated instances' own points."""
+    baseline = BaselineClassifier(class_names=class_names)
+    background_id = len(class_names)
+    descriptors = [f.annotation_descriptors for f in frames]
+    labels = [f.annotation_class_ids for f in frames]
+    for frame in frames:
+        frame_labels, _ = group_labels(
+            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
+        )
+        descriptors.append(frame.groups.descriptors)
+        labels.append(frame_labels)
+    return baseline.fit(np.concatenate(descriptors), np.concatenate(labels))
+
+
+def measure(
+    model: DetectionModel,
+    dataset: Dataset,
+    frames: list[FrameProposals],
+    *,
+    iou_threshold: float = 0.6,
+    use_truth: bool = False,
+    ap_score_floor: float = 0.05,
+) -> dict:
+    """Detection metrics (per class and totals) and recognition accuracy of ``model`` on
+    ``frames``, against the annotations or the full truth."""
+    scored, true_ids, predicted_ids = [], [], []
+    class_names = model.class_names
+    background_id = len(class_names)
+    for frame in frames:
+        ref_boxes, ref_classes = reference_boxes(dataset, frame.frame_index, use_truth)
+        probabilities = model.classifier.predict_proba(_classifier_inputs(frame, model.classifier))
+        candidates = score_groups(
+            frame.proposal_boxes, frame.groups, probabilities, model.box_prior, class_names
+        )
+        detections = select_detections(candidates, ap_score_floor, model.nms_iou)
+        kept = detections.subset(detections.kept_mask)
+        scored.append(
+            {
+                "boxes": kept.boxes,
+                "class_ids": kept.class_ids,
+                "scores": kept.scores,
+                "reference_boxes": ref_boxes,
+                "reference_class_ids": ref_classes,
+            }
+        )
+        # Table 2: held-out point sets that match a reference, and those overlapping none.
+        labels, overlaps_any = group_labels(frame, ref_boxes, ref_classes, background_id, iou_threshold)
+        chosen = (labels != background_id) | ~overlaps_any
+        true_ids.append(labels[chosen])
+        predicted_ids.append(probabilities[chosen].argmax(axis=1))
+    metrics = detection_metrics(scored, class_names, iou_threshold, model.score_threshold)
+    metrics["recognition"] = recognition_accuracy(
+        np.concatenate(true_ids), np.concatenate(predicted_ids), (*class_names, "background")
+    )
+    return metrics
+
+
+def evaluate(
+    data: str | os.PathLike,
+    model_path: str | os.PathLike,
+    *,
+    iou_threshold: float = 0.6,
+    max_frames: int | None = None,
+    with_baseline: bool = False,
+    max_train_frames: int | None = None,
+    progress: Progress | None = None,
+    command: str = "",
+) -> dict:
+    """Evaluate a checkpoint on the test frames of a data set.
+
+    The top-level ``per_class``, ``f1`` and ``map`` are against the full truth on simulated data
+    (the issue's targets) and against the annotations otherwise; both are under ``against``.
+    """
+    start = time.perf_counter()
+    dataset = open_dataset(data)
+    model = DetectionModel.load(model_path)
+    simulated = (Path(data) / "truth").is_dir()
+    test = dataset.splits.get("test") or list(range(dataset.num_frames))
+    test = test[:max_frames] if max_frames else test
+    detector = detector_for(model, dataset)
+    frames = collect_proposals(dataset, test, detector, progress)
+    against = {"annotations": measure(model, dataset, frames, iou_threshold=iou_threshold)}
+    if simulated:
+        against["truth"] = measure(model, dataset, frames, iou_threshold=iou_threshold, use_truth=True)
+    headline = against["truth" if simulated else "annotations"]
+    result = {
+        "benchmark": "evaluate",
+        "command": command,
+        "data": Path(data).name,
+        "model": str(model_path),
+        "frames": test,
+        "reference": "truth" if simulated else "annotations",
+        "iou_threshold": iou_threshold,
+        "per_class": {
+            k: {m: v[m] for m in ("precision", "recall", "f1", "ap", "num_reference")}
+            for k, v in headline["per_class"].items()
+        },
+        "precision": headline["precision"],
+        "recall": headline["recall"],
+        "f1": headline["f1"],
+        "map": headline["map"],
+        "against": against,
+    }
+    if with_baseline:
+        train = dataset.splits.get("train") or []
+        train = train[:max_train_frames] if max_train_frames else train
+        train_frames = collect_proposals(dataset, train, detector, progress)
+        baseline = fit_baseline(train_frames, model.class_names)
+        baseline_model = dataclasses.replace(model, classifier=baseline)
+        result["baseline"] = {
+            name: measure(
+                baseline_model, dataset, frames, iou_threshold=iou_threshold, use_truth=name == "truth"
+            )
+            for name in against
+        }
+    result["seconds"] = round(time.perf_counter() - start, 1)
+    return result
+
+
+def strip_curves(metrics: dict) -> dict:
+    """``metrics`` without the PR curves (for printing)."""
+    out = dict(metrics)
+    for key in ("against", "baseline"):
+        if key in out:
+            out[key] = {k: {m: v for m, v in d.items() if m != "pr_curves"} for k, d in out[key].items()}
+    return out
+
+
+def plot_pr_curves(metrics: dict, png: str | os.PathLike, title: str = "") -> None:
+    """Precision against recall per class (the paper's Fig. 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.8))
+    for name, curve in metrics["pr_curves"].items():
+        if name == "all":
+            continue
+        ap = metrics["per_class"][name]["ap"]
+        ax.plot(curve["recall"], curve["precision"], label=f"{name} (AP {ap:.2f})", lw=1.8)
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.set_title(title or f"Precision-recall at IoU {metrics['iou_threshold']}")
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    Path(png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def frame_list(indices: Sequence[int]) -> str:
+    return ", ".join(str(i) for i in indices)

@@ -1,0 +1,318 @@
+"""Training data from proposals, and training with iterative hard-negative mining (paper §3.5).
+
+Positives are point sets whose proposals match an annotated instance; the first background set is
+a random sample of point sets that overlap no annotated instance. Each mining round scores the
+training frames, takes the detections that match no annotated instance, adds the highest scoring
+of them to the background set, and retrains. On a partially annotated data set some of those
+"false positives" are real, unannotated objects: they are mined blindly here, as in the paper, and
+every round is recorded so that people can review them (``session.save_training_run``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from .boxes import box_iou_3d, fit_box
+from .classifier import ProposalClassifier
+from .dataset import Dataset
+from .detection import BoxSizePrior, ProposalGroups, describe_point_sets, group_proposals
+from .detector import Detector
+from .evaluation import detection_metrics
+from .model import DetectionModel
+from .proposals import point_set_features
+from .types import InputError
+
+Progress = Callable[[str, int, int], None]
+"""Called with (what, done, total)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameProposals:
+    """What training and evaluation keep of one frame's front half."""
+
+    frame_index: int
+    proposal_boxes: np.ndarray
+    """(M, 7) boxes of the proposals."""
+    patch_sets: tuple[tuple[int, ...], ...]
+    groups: ProposalGroups
+    label_boxes: np.ndarray
+    """(R, 7) annotated boxes."""
+    label_class_ids: np.ndarray
+    """(R,) their classes."""
+    annotation_features: np.ndarray
+    """(A, 20, 5, 5, 5) features of the annotated instances' own points (extra positives, as
+    detectors add ground-truth boxes to their proposals when training)."""
+    annotation_descriptors: np.ndarray
+    """(A, D) their geometric descriptors."""
+    annotation_class_ids: np.ndarray
+    """(A,) their classes."""
+
+
+def _annotation_samples(frame, result, detector: Detector) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Features, descriptors and classes of the annotated instances' points in the segmented cloud."""
+    cloud = result.cloud
+    lookup = dict(zip(frame.labels.instance_ids.tolist(), frame.labels.class_ids.tolist()))
+    ids, counts = np.unique(cloud.point_instance_ids, return_counts=True)
+    chosen = [int(i) for i, n in zip(ids, counts) if i in lookup and n >= detector.params.min_proposal_points]
+    point_lists = [np.flatnonzero(cloud.point_instance_ids == i) for i in chosen]
+    features = point_set_features(
+        cloud.points,
+        result.grid,
+        result.voxel_features,
+        point_lists,
+        detector.params.weighting,
+        detector.params.feature,
+    ).reshape(-1, 20, 5, 5, 5)
+    boxes = np.array([fit_box(cloud.points[p]) for p in point_lists]).reshape(-1, 7)
+    num_voxels = np.array([len(np.unique(result.grid.point_voxel_ids[p])) for p in point_lists])
+    descriptors = describe_point_sets(cloud.points, point_lists, boxes, num_voxels, result.floor_plane)
+    return features, descriptors, np.array([lookup[i] for i in chosen], np.int64)
+
+
+def collect_proposals(
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    detector: Detector,
+    progress: Progress | None = None,
+) -> list[FrameProposals]:
+    """Run the front half on ``frame_indices`` and keep what the back half needs."""
+    out = []
+    for n, index in enumerate(frame_indices):
+        frame = dataset.frame(index)
+        history = [dataset.frame(i) for i in range(max(0, index - detector.params.history_frames), index)]
+        result = detector.propose(frame, history)
+        groups = group_proposals(
+            result.proposals, result.cloud.points, result.segmentation, result.floor_plane
+        )
+        annotated = _annotation_samples(frame, result, detector)
+        out.append(
+            FrameProposals(
+                frame_index=int(index),
+                proposal_boxes=np.array(result.proposals.boxes),
+                patch_sets=result.proposals.patch_sets,
+                groups=groups,
+                label_boxes=np.array(frame.labels.boxes),
+                label_class_ids=np.array(frame.labels.class_ids),
+                annotation_features=annotated[0],
+                annotation_descriptors=annotated[1],
+                annotation_class_ids=annotated[2],
+            )
+        )
+        if progress is not None:
+            progress("proposals", n + 1, len(frame_indices))
+    return out
+
+
+def group_overlaps(frame: FrameProposals, reference_boxes: np.ndarray) -> np.ndarray:
+    """(G, R) the best IoU of any proposal of each point set with each reference box."""
+    iou = box_iou_3d(frame.proposal_boxes, reference_boxes)
+    best = np.zeros((frame.groups.num_groups, len(reference_boxes)))
+    np.maximum.at(best, frame.groups.group_ids, iou)
+    return best
+
+
+def group_labels(
+    frame: FrameProposals,
+    reference_boxes: np.ndarray,
+    reference_class_ids: np.ndarray,
+    background_id: int,
+    positive_iou: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Label each point set: the class of the reference it matches at ``positive_iou``, else
+    background.
+
+    Returns:
+        ``(labels, overlaps_any)``: (G,) label ids, and (G,) whether the set overlaps any reference.
+    """
+    overlap = group_overlaps(frame, reference_boxes)
+    labels = np.full(frame.groups.num_groups, background_id, np.int64)
+    if overlap.shape[1]:
+        best = overlap.argmax(axis=1)
+        hit = overlap[np.arange(len(best)), best] >= positive_iou
+        labels[hit] = np.asarray(reference_class_ids)[best[hit]]
+        return labels, overlap.max(axis=1) > 0
+    return labels, np.zeros(len(labels), bool)
+
+
+@dataclasses.dataclass
+class TrainingRun:
+    """The result of ``train_with_mining``."""
+
+    model: DetectionModel
+    rounds: list[dict]
+    """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``metrics``
+    (detection on the training frames against the annotations) and ``mined`` (the negatives added
+    after that round: frame, proposal, box, patch set, score, class)."""
+    models: list[DetectionModel]
+    """The model after each round."""
+    train_frames: list[int]
+
+
+def _training_set(
+    frames: list[FrameProposals],
+    background: dict[int, set[int]],
+    positive_iou: float,
+    background_id: int,
+    annotation_positives: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    features, labels = [], []
+    if annotation_positives:
+        features += [f.annotation_features for f in frames]
+        labels += [f.annotation_class_ids for f in frames]
+    for frame in frames:
+        frame_labels, _ = group_labels(
+            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
+        )
+        positive = np.flatnonzero(frame_labels != background_id)
+        negative = np.array(sorted(background.get(frame.frame_index, set())), np.int64)
+        chosen = np.concatenate([positive, negative])
+        features.append(frame.groups.features[chosen])
+        labels.append(np.concatenate([frame_labels[positive], np.full(len(negative), background_id)]))
+    return np.concatenate(features), np.concatenate(labels)
+
+
+def _score_frames(model: DetectionModel, frames: list[FrameProposals], score_threshold: float) -> list[dict]:
+    """Detections of every frame down to ``score_threshold``, with the annotated references."""
+    out = []
+    for frame in frames:
+        detections = model.detect(frame.proposal_boxes, frame.groups, score_threshold=score_threshold)
+        kept = detections.subset(detections.kept_mask)
+        out.append(
+            {
+                "frame_index": frame.frame_index,
+                "detections": kept,
+                "boxes": kept.boxes,
+                "class_ids": kept.class_ids,
+                "scores": kept.scores,
+                "reference_boxes": frame.label_boxes,
+                "reference_class_ids": frame.label_class_ids,
+            }
+        )
+    return out
+
+
+def train_with_mining(
+    frames: list[FrameProposals],
+    classifier: ProposalClassifier,
+    *,
+    rounds: int = 2,
+    negatives_per_round: int = 500,
+    initial_negatives: int = 2000,
+    positive_iou: float = 0.6,
+    score_threshold: float = 0.5,
+    nms_iou: float = 0.25,
+    use_box_prior: bool = True,
+    annotation_positives: bool = True,
+    seed: int = 0,
+    progress: Progress | None = None,
+) -> TrainingRun:
+    """Train, then ``rounds`` times mine hard negatives and retrain.
+
+    Args:
+        frames: training frames' proposals (``collect_proposals``).
+        classifier: an unfitted classifier; its settings are reused for every round.
+        rounds: mining rounds after the first training (0: no mining).
+        negatives_per_round: N, the highest scoring false positives added per round.
+        initial_negatives: size of the random first background set (the paper starts from ~2,000).
+        positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
+            a true positive when mining.
+        score_threshold: detections scoring below it are not mined.
+        nms_iou: NMS threshold of the detections that are mined.
+        use_box_prior: box detections by the class sizes of the training annotations.
+        annotation_positives: also train on each annotated instance's own points.
+        seed: seeds the first background sample.
+        progress: called with ("fit", epoch, epochs) and ("mine", frame, frames).
+    """
+    if not frames:
+        raise InputError("train_with_mining: no training frames")
+    if rounds < 0 or negatives_per_round < 0 or initial_negatives < 0:
+        raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")
+    background_id = classifier.background_id
+    num_classes = len(classifier.class_names)
+    box_prior = None
+    if use_box_prior:
+        box_prior = BoxSizePrior.from_boxes(
+            np.concatenate([f.label_boxes for f in frames]),
+            np.concatenate([f.label_class_ids for f in frames]),
+            num_classes,
+        )
+    # The first background set: point sets that overlap no annotated box, sampled evenly.
+    rng = np.random.default_rng(seed)
+    pool = []
+    for frame in frames:
+        _, overlaps_any = group_labels(
+            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
+        )
+        pool += [(frame.frame_index, int(g)) for g in np.flatnonzero(~overlaps_any)]
+    picked = rng.choice(len(pool), min(initial_negatives, len(pool)), replace=False) if pool else []
+    background: dict[int, set[int]] = {}
+    for i in picked:
+        background.setdefault(pool[i][0], set()).add(pool[i][1])
+
+    records, models = [], []
+    for round_index in range(rounds + 1):
+        features, labels = _training_set(
+            frames, background, positive_iou, background_id, annotation_positives
+        )
+        if not (labels != background_id).any():
+            raise InputError(
+                f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
+            )
+        fit_progress = None if progress is None else (lambda e, n: progress("fit", e, n))
+        fitted = dataclasses.replace(classifier).fit(features, labels, progress=fit_progress)
+        model = DetectionModel(fitted, box_prior, score_threshold, nms_iou)
+        start = time.perf_counter()
+        scored = _score_frames(model, frames, score_threshold=0.05)
+        metrics = detection_metrics(scored, fitted.class_names, positive_iou, score_threshold)
+        metrics.pop("pr_curves")
+        record = {
+            "round": round_index,
+            "num_positives": int((labels != background_id).sum()),
+            "num_background": int((labels == background_id).sum()),
+            "fit_seconds": round(fitted.fit_seconds_, 2),
+            "score_seconds": round(time.perf_counter() - start, 2),
+            "train_metrics": metrics,
+            "mined": [],
+        }
+        if round_index < rounds:
+            mined = []
+            for frame, item in zip(frames, scored):
+                detections = item["detections"]
+                operating = detections.scores >= score_threshold
+                best = (
+                    box_iou_3d(detections.boxes, frame.label_boxes).max(axis=1)
+                    if len(frame.label_boxes)
+                    else np.zeros(len(detections))
+                )
+                group_of = frame.groups.group_ids[detections.proposal_ids]
+                known = background.get(frame.frame_index, set())
+                for k in np.flatnonzero(operating & (best < positive_iou)):
+                    if int(group_of[k]) in known:
+                        continue
+                    proposal = int(detections.proposal_ids[k])
+                    mined.append(
+                        {
+                            "frame_index": frame.frame_index,
+                            "group": int(group_of[k]),
+                            "proposal": proposal,
+                            "box": [round(float(v), 4) for v in detections.boxes[k]],
+                            "patch_set": [int(p) for p in frame.patch_sets[proposal]],
+                            "score": round(float(detections.scores[k]), 4),
+                            "predicted_class": fitted.class_names[int(detections.class_ids[k])],
+                            "best_annotated_iou": round(float(best[k]), 4),
+                        }
+                    )
+            mined.sort(key=lambda m: -m["score"])
+            record["mined"] = mined[:negatives_per_round]
+            record["num_false_positives"] = len(mined)
+            for m in record["mined"]:
+                background.setdefault(m["frame_index"], set()).add(m["group"])
+        records.append(record)
+        models.append(model)
+        if progress is not None:
+            progress("round", round_index + 1, rounds + 1)
+    return TrainingRun(models[-1], records, models, [f.frame_index for f in frames])

@@ -1,0 +1,72 @@
+import numpy as np
+import pytest
+import torch
+
+from factorydet_core.classifier import BACKGROUND, FisherNet, ProposalClassifier, count_parameters
+from factorydet_core.types import InputError
+
+
+def _blobs(rng, num_per_class: int, num_labels: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Features whose class shows as a bright Gaussian cell, plus noise."""
+    features = rng.normal(0, 0.3, (num_per_class * num_labels, 20, 5, 5, 5)).astype(np.float32)
+    labels = np.repeat(np.arange(num_labels), num_per_class)
+    for c in range(num_labels):
+        features[labels == c, :, c, 2, 2] += 2.0
+    return features, labels
+
+
+def test_full_width_is_the_papers_size_and_narrow_is_small():
+    assert 45_000_000 < count_parameters(FisherNet(8, 1.0)) < 46_500_000
+    narrow = FisherNet(8, 0.0625)
+    assert count_parameters(narrow) < 300_000
+    narrow.eval()
+    assert narrow(torch.zeros(2, 20, 5, 5, 5)).shape == (2, 8)
+
+
+def test_fit_learns_a_separable_problem_and_returns_self(rng):
+    features, labels = _blobs(rng, 40)
+    test_features, test_labels = _blobs(np.random.default_rng(1), 20)
+    model = ProposalClassifier(
+        width=0.0625, epochs=25, learning_rate=3e-3, class_names=("a", "b"), num_threads=1
+    )
+    assert model.fit(features, labels) is model
+    assert model.labels_ == ("a", "b", BACKGROUND)
+    proba = model.predict_proba(test_features)
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0, atol=1e-5)
+    assert (model.predict(test_features) == test_labels).mean() > 0.9
+    assert len(model.history_) == 25 and model.history_[-1]["loss"] < model.history_[0]["loss"]
+
+
+def test_checkpoint_round_trip(rng, tmp_path):
+    features, labels = _blobs(rng, 10)
+    model = ProposalClassifier(width=0.0625, epochs=1, class_names=("a", "b")).fit(features, labels)
+    path = model.save(tmp_path / "m.pt", {"metrics": {"f1": 0.5}})
+    loaded = ProposalClassifier.load(path)
+    np.testing.assert_allclose(loaded.predict_proba(features), model.predict_proba(features), atol=1e-6)
+    assert loaded.note_["metrics"] == {"f1": 0.5}
+    assert loaded.note_["train_hash"] == model.train_hash_
+    assert loaded.class_names == ("a", "b")
+    with pytest.raises(InputError):
+        ProposalClassifier.load(tmp_path / "missing.pt")
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    (tmp_path / "bad.json").write_text((tmp_path / "m.json").read_text())
+    with pytest.raises(InputError):
+        ProposalClassifier.load(tmp_path / "bad.pt")
+
+
+def test_bad_inputs_raise(rng):
+    model = ProposalClassifier(width=0.0625, epochs=1)
+    with pytest.raises(InputError):
+        model.predict_proba(np.zeros((1, 20, 5, 5, 5), np.float32))  # not fitted
+    with pytest.raises(InputError):
+        model.fit(np.zeros((4, 20, 4, 4, 4)), np.zeros(4))
+    with pytest.raises(InputError):
+        model.fit(np.zeros((4, 20, 5, 5, 5)), np.full(4, 99))
+    bad = np.zeros((4, 20, 5, 5, 5))
+    bad[0, 0, 0, 0, 0] = np.nan
+    with pytest.raises(InputError):
+        model.fit(bad, np.zeros(4))
+    with pytest.raises(InputError):
+        ProposalClassifier(width=0)
+    with pytest.raises(InputError):
+        ProposalClassifier(class_weight="heavy")

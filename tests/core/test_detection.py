@@ -1,0 +1,96 @@
+import numpy as np
+import pytest
+
+from factorydet_core.detection import (
+    DESCRIPTOR_NAMES,
+    BoxSizePrior,
+    ProposalGroups,
+    describe_point_sets,
+    score_groups,
+    select_detections,
+)
+from factorydet_core.types import InputError
+
+CLASSES = ("small", "long")
+PRIOR = BoxSizePrior(np.array([[0.6, 0.6, 0.9], [4.0, 2.0, 2.5]]))
+
+
+def groups_of(group_ids, num_features=None) -> ProposalGroups:
+    group_ids = np.asarray(group_ids)
+    num = int(group_ids.max()) + 1
+    reps = np.array([np.flatnonzero(group_ids == g)[0] for g in range(num)])
+    return ProposalGroups(
+        group_ids, reps, np.zeros((num, 20, 5, 5, 5), np.float32), np.zeros((num, len(DESCRIPTOR_NAMES)))
+    )
+
+
+def test_prior_from_boxes_uses_sorted_horizontal_sizes():
+    boxes = np.array([[0, 0, 0, 1, 2, 3, 0], [0, 0, 0, 2, 1, 5, 0], [0, 0, 0, 9, 9, 9, 0]], float)
+    prior = BoxSizePrior.from_boxes(boxes, np.array([0, 0, 1]), 3)
+    np.testing.assert_allclose(prior.sizes[0], [2, 1, 4])
+    assert np.isnan(prior.sizes[2]).all()
+    again = BoxSizePrior.from_json(prior.to_json())
+    np.testing.assert_allclose(again.sizes, prior.sizes)
+
+
+def test_grow_extends_away_from_the_viewpoint_and_up():
+    # A 1 m long visible face of a truck, 10 m ahead (along +x) and facing the vehicle.
+    face = np.array([[10.0, 0.0, 0.5, 1.0, 0.2, 1.0, np.pi / 2]])  # dx along y, dy along x
+    grown = PRIOR.grow(face, 1)[0]
+    assert sorted(grown[3:5]) == pytest.approx([2.0, 4.0])
+    assert grown[5] == pytest.approx(2.5)
+    assert grown[2] - grown[5] / 2 == pytest.approx(0.0)  # the bottom stays put
+    assert grown[0] > 10.0  # the hidden side is behind the face
+    # Boxes already larger than the class are left alone.
+    big = np.array([[0, 5, 2, 6, 3, 4, 0.0]])
+    np.testing.assert_allclose(PRIOR.grow(big, 1), big)
+
+
+def test_score_groups_picks_the_box_closest_to_the_class_size():
+    proposal_boxes = np.array(
+        [
+            [5, 0, 0.45, 0.6, 0.3, 0.9, 0],  # group 0: a half-seen small object
+            [5, 0, 0.45, 0.6, 0.6, 0.9, 0],  # group 0: its completed box
+            [0, 9, 1, 1.0, 1.0, 2.0, 0],  # group 1
+        ]
+    )
+    groups = groups_of([0, 0, 1])
+    probabilities = np.array([[0.8, 0.1, 0.1], [0.1, 0.3, 0.6]], np.float32)
+    cands = score_groups(proposal_boxes, groups, probabilities, PRIOR, CLASSES)
+    assert cands.class_ids.tolist() == [0, 1]
+    np.testing.assert_allclose(cands.scores, [0.8, 0.3])
+    assert cands.proposal_ids[0] == 1
+    np.testing.assert_allclose(cands.boxes[0], proposal_boxes[1])
+    # Without a prior each set keeps its first box.
+    plain = score_groups(proposal_boxes, groups, probabilities, None, CLASSES)
+    assert plain.proposal_ids.tolist() == [0, 2]
+    with pytest.raises(InputError):
+        score_groups(proposal_boxes, groups, probabilities[:, :2], PRIOR, CLASSES)
+
+
+def test_select_detections_thresholds_and_flags_suppressed():
+    proposal_boxes = np.array([[0, 0, 0.5, 1, 1, 1, 0], [0.05, 0, 0.5, 1, 1, 1, 0], [5, 0, 0.5, 1, 1, 1, 0]])
+    groups = groups_of([0, 1, 2])
+    probabilities = np.array([[0.7, 0.1, 0.2], [0.9, 0.0, 0.1], [0.2, 0.4, 0.4]], np.float32)
+    cands = score_groups(proposal_boxes, groups, probabilities, None, CLASSES)
+    selected = select_detections(cands, score_threshold=0.5, nms_iou=0.25)
+    assert selected.scores.tolist() == pytest.approx([0.9, 0.7])
+    assert selected.suppressed_by.tolist() == [-1, 0]
+    assert selected.proposal_ids.tolist() == [1, 0]
+    assert len(select_detections(cands, 0.3, 0.25)) == 3
+    assert select_detections(cands, 0.95, 0.25).boxes.shape == (0, 7)
+    with pytest.raises(InputError):
+        select_detections(cands, 1.5)
+
+
+def test_descriptors_of_a_flat_and_a_linear_set():
+    rng = np.random.default_rng(0)
+    plane = np.column_stack([rng.uniform(0, 2, 200), rng.uniform(0, 2, 200), np.zeros(200)])
+    line = np.column_stack([rng.uniform(0, 3, 200), np.zeros(200), np.zeros(200)])
+    points = np.concatenate([plane, line])
+    boxes = np.array([[1, 1, 0, 2, 2, 0.02, 0], [1.5, 0, 0, 3, 0.02, 0.02, 0]])
+    d = describe_point_sets(points, [np.arange(200), np.arange(200, 400)], boxes, np.array([100, 15]))
+    names = list(DESCRIPTOR_NAMES)
+    assert d[0, names.index("planarity")] > 0.8
+    assert d[1, names.index("linearity")] > 0.9
+    assert d[0, names.index("length_m")] == pytest.approx(2.0)
