@@ -375,6 +375,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             iou_threshold=args.iou,
             max_frames=args.frames,
             with_baseline=args.baseline,
+            calibrate=args.calibrate,
             progress=lambda _, d, n: update(d, n),
             command="factorydet " + " ".join(sys.argv[1:]),
         )
@@ -491,6 +492,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="only the first N test frames")
     p.add_argument("--baseline", action="store_true", help="also train and measure the baseline")
     p.add_argument("--png", default=None, help="write the precision-recall curves here")
+    p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.set_defaults(func=_cmd_evaluate)
 

@@ -153,6 +153,7 @@ def evaluate(
     max_frames: int | None = None,
     with_baseline: bool = False,
     max_train_frames: int | None = None,
+    calibrate: bool = True,
     progress: Progress | None = None,
     command: str = "",
 ) -> dict:
@@ -167,7 +168,7 @@ def evaluate(
     simulated = (Path(data) / "truth").is_dir()
     test = dataset.splits.get("test") or list(range(dataset.num_frames))
     test = test[:max_frames] if max_frames else test
-    detector = detector_for(model, dataset)
+    detector = detector_for(model, dataset, calibrate)
     frames = collect_proposals(dataset, test, detector, progress)
     against = {"annotations": measure(model, dataset, frames, iou_threshold=iou_threshold)}
     if simulated:

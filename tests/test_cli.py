@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from app.cli import main
 
 
@@ -80,3 +82,40 @@ def test_bench_pipeline_prints_stage_times_and_recall(small_dataset_dir, capsys)
         calibration["refined"]["point_10m_ahead_error_cm_median"]
         < calibration["nominal"]["point_10m_ahead_error_cm_median"]
     )
+
+
+def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
+    root = tmp_path / "sessions"
+    args = ["train", str(small_dataset_dir), "--session", "s", "--root", str(root), "--rounds", "1",
+            "--epochs", "2", "--frames", "2", "--initial-negatives", "150", "--negatives", "30",
+            "--score-threshold", "0.05", "--no-calibrate"]  # fmt: skip
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["run_id"] == 1 and [r["round"] for r in summary["rounds"]] == [0, 1]
+    assert (root / "s" / "models" / "run_001" / "final.pt").is_file()
+    assert (root / "s" / "models" / "run_001" / "final.json").is_file()
+    assert (root / "s" / "session.sqlite").is_file()
+
+    detect = ["detect", str(small_dataset_dir), "--model", "s", "--root", str(root), "--frame", "2",
+              "--score-threshold", "0.05", "--no-calibrate", "--json"]  # fmt: skip
+    assert main(detect) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["num_detections"] == len(record["detections"]) > 0
+    first = record["detections"][0]
+    assert len(first["box"]) == 7 and first["class"] in first["probabilities"]
+    assert sum(first["probabilities"].values()) == pytest.approx(1.0, abs=1e-3)
+
+    model = str(root / "s" / "models" / "run_001" / "final.pt")
+    assert main(["evaluate", str(small_dataset_dir), "--model", model, "--iou", "0.6", "--no-calibrate",
+                 "--json", "--png", str(tmp_path / "pr.png")]) == 0  # fmt: skip
+    result = json.loads(capsys.readouterr().out)
+    assert {"per_class", "f1", "map", "against"} <= set(result)
+    assert result["reference"] == "truth" and set(result["against"]) == {"annotations", "truth"}
+    for row in result["per_class"].values():
+        assert {"precision", "recall", "f1", "ap"} <= set(row)
+    assert (tmp_path / "pr.png").is_file()
+
+
+def test_detect_without_a_model_is_an_input_error(small_dataset_dir, tmp_path, capsys):
+    assert main(["detect", str(small_dataset_dir), "--model", "nosuch", "--root", str(tmp_path)]) == 2
+    assert "no trained model" in capsys.readouterr().err

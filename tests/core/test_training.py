@@ -1,0 +1,111 @@
+"""Training with hard-negative mining, its session record, and the trained model's detections."""
+
+import numpy as np
+import pytest
+
+from factorydet_core.classifier import ProposalClassifier
+from factorydet_core.dataset import open_dataset
+from factorydet_core.detector import Detector
+from factorydet_core.model import DetectionModel
+from factorydet_core.session import mined_negatives, open_session, save_training_run, training_runs
+from factorydet_core.training import collect_proposals, group_labels, train_with_mining
+from factorydet_core.types import InputError
+
+
+@pytest.fixture(scope="module")
+def frames(small_dataset_dir):
+    return collect_proposals(open_dataset(small_dataset_dir), [0, 1], Detector("agv"))
+
+
+@pytest.fixture(scope="module")
+def run(frames):
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    return train_with_mining(
+        frames, classifier, rounds=1, negatives_per_round=40, initial_negatives=150, score_threshold=0.05
+    )
+
+
+def test_collected_frames_group_proposals_and_keep_annotated_samples(frames):
+    for frame in frames:
+        assert len(frame.groups.group_ids) == len(frame.proposal_boxes)
+        assert frame.groups.num_groups <= len(frame.proposal_boxes)
+        # Proposals of one point set share it.
+        for g in range(min(frame.groups.num_groups, 20)):
+            members = np.flatnonzero(frame.groups.group_ids == g)
+            assert len({frame.patch_sets[m] for m in members}) == 1
+        assert len(frame.annotation_features) == len(frame.annotation_class_ids) > 0
+        assert np.isfinite(frame.annotation_features).all()
+
+
+def test_group_labels_follow_the_annotations(frames):
+    frame = frames[0]
+    labels, overlaps_any = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+    assert labels.shape == (frame.groups.num_groups,)
+    positive = labels != 7
+    assert overlaps_any[positive].all()
+    # Without references everything is background and overlaps nothing.
+    labels, overlaps_any = group_labels(frame, np.zeros((0, 7)), np.zeros(0, int), 7, 0.6)
+    assert (labels == 7).all() and not overlaps_any.any()
+
+
+def test_mining_adds_the_top_false_positives_to_the_background(run):
+    first, second = run.rounds
+    assert first["num_background"] == 150
+    mined = first["mined"]
+    assert 0 < len(mined) <= 40
+    assert second["num_background"] == 150 + len(mined)
+    scores = [m["score"] for m in mined]
+    assert scores == sorted(scores, reverse=True)
+    assert all(m["best_annotated_iou"] < 0.6 for m in mined)
+    assert first["num_false_positives"] >= len(mined)
+    assert second["mined"] == []  # the last round only measures
+    assert len(run.models) == 2 and run.model is run.models[-1]
+    assert {"f1", "precision", "recall", "per_class"} <= set(first["train_metrics"])
+
+
+def test_session_stores_checkpoints_rounds_and_the_review_queue(run, tmp_path):
+    session = open_session("t", tmp_path)
+    run_id = save_training_run(session, run, "small", {"rounds": 1})
+    assert run_id == 1
+    runs = training_runs(session)
+    assert len(runs) == 1 and [r["round"] for r in runs[0]["rounds"]] == [0, 1]
+    assert (session.path / runs[0]["model_path"]).is_file()
+    queue = mined_negatives(session)
+    assert len(queue) == len(run.rounds[0]["mined"])
+    assert queue[0]["review"] == "unreviewed" and len(queue[0]["box"]) == 7
+    assert save_training_run(session, run, "small", {}) == 2
+
+
+def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_dataset_dir):
+    path = run.model.save(tmp_path / "m.pt")
+    loaded = DetectionModel.load(path)
+    frame = frames[0]
+    a = run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
+    np.testing.assert_allclose(a.boxes, b.boxes)
+    # The whole pipeline in one call.
+    detector = Detector("agv", model=loaded)
+    result = detector.detect(open_dataset(small_dataset_dir).frame(0), score_threshold=0.05)
+    assert {"classification", "nms", "total"} <= set(result.timings_ms)
+    assert len(result.candidates) == result.groups.num_groups
+    kept = result.detections.kept_mask
+    assert (result.detections.scores >= 0.05).all()
+    assert np.all(np.diff(result.detections.scores) <= 0)
+    assert (result.detections.suppressed_by[~kept] >= 0).all()
+    with pytest.raises(InputError):
+        Detector("agv").detect(open_dataset(small_dataset_dir).frame(0))
+
+
+def test_training_without_frames_or_positives_is_an_input_error(frames):
+    with pytest.raises(InputError):
+        train_with_mining([], ProposalClassifier(epochs=1))
+    empty = [
+        type(frames[0])(**{**frames[0].__dict__, "label_boxes": np.zeros((0, 7)),
+                           "label_class_ids": np.zeros(0, int),
+                           "annotation_features": np.zeros((0, 20, 5, 5, 5), np.float32),
+                           "annotation_descriptors": np.zeros((0, 14), np.float32),
+                           "annotation_class_ids": np.zeros(0, int)})
+    ]  # fmt: skip
+    with pytest.raises(InputError):
+        train_with_mining(empty, ProposalClassifier(epochs=1), initial_negatives=10)
