@@ -11,7 +11,7 @@ PORT ?= 8080
 APT_GET := DEBIAN_FRONTEND=noninteractive apt-get
 IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 
-.PHONY: app test lint bench demo sysdeps browserdeps clean
+.PHONY: app test lint bench report demo sysdeps browserdeps clean
 
 app: $(STAMP) demo
 	$(BIN)/factorydet app --session demo --host $(HOST) --port $(PORT)
@@ -36,6 +36,12 @@ bench: $(STAMP)
 	$(BIN)/factorydet bench pipeline $(REAL)/scannet_scene0000_00.npz $(REAL)/scannet_scene0000_01.npz \
 	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
 	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 4 --png docs/voxel_sweep.png --readme README.md
+	$(BIN)/factorydet demo
+	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme README.md
+
+# Regenerates docs/results.md (tables, PR curve, grid sweep) for the shipped model on the demo data.
+report: $(STAMP) demo
+	$(BIN)/factorydet report sessions/demo/data --model default --out docs/results.md --sweep 0.15,0.2,0.3 --sweep-frames 2
 
 # open3d links against libusb-1.0 at import time.
 sysdeps:

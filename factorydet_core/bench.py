@@ -354,3 +354,120 @@ def plot_voxel_sweep(summary: dict, png: str | os.PathLike) -> None:
     Path(png).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=110)
     plt.close(fig)
+
+
+def bench_detect(
+    data: str | os.PathLike,
+    model_path: str | os.PathLike,
+    *,
+    max_frames: int = 4,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Time of the whole detection of a frame (front half, grouping, classification, NMS), median
+    over the first ``max_frames`` test frames, and the model's recorded training time per round."""
+    from .dataset import open_dataset
+    from .model import DetectionModel
+    from .results import detector_for
+
+    dataset = open_dataset(data)
+    model = DetectionModel.load(model_path)
+    detector = detector_for(model, dataset)
+    test = (dataset.splits.get("test") or list(range(dataset.num_frames)))[:max_frames]
+    timings: dict[str, list[float]] = {}
+    counts = []
+    for n, index in enumerate(test):
+        result = detector.detect(dataset.frame(index))
+        for stage, ms in result.timings_ms.items():
+            timings.setdefault(stage, []).append(ms)
+        counts.append(int(result.detections.kept_mask.sum()))
+        if progress is not None:
+            progress(n + 1, len(test))
+    note = model.note
+    return {
+        "benchmark": "detect",
+        "command": command,
+        "data": Path(data).name,
+        "model": str(model_path),
+        "width": model.classifier.width,
+        "num_parameters": model.classifier.num_parameters_,
+        "frames": test,
+        "points_per_frame_median": int(statistics.median(len(dataset.frame(i).points) for i in test)),
+        "stage_ms_median": {stage: _median(v) for stage, v in timings.items()},
+        "target_total_ms": 100,
+        "detections_per_frame_median": int(statistics.median(counts)),
+        "training_seconds_per_round": [r.get("fit_seconds") for r in note.get("rounds_record", [])]
+        or note.get("fit_seconds"),
+        "machine": machine_info(),
+    }
+
+
+def bench_classifier(
+    data: str | os.PathLike,
+    *,
+    widths: list[float],
+    features: list[str],
+    epochs: int = 20,
+    max_fit_seconds: float | None = None,
+    max_train_frames: int | None = None,
+    max_test_frames: int | None = None,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Recognition accuracy (the paper's Table 2) and detection F-score of classifiers of several
+    widths and both proposal features, trained on the same training frames (one round, no mining)
+    and measured on the same test frames against the truth; with the time per epoch."""
+    from .classifier import ProposalClassifier
+    from .dataset import open_dataset
+    from .detector import PRESETS, Detector
+    from .results import measure
+    from .training import collect_proposals, train_with_mining
+
+    dataset = open_dataset(data)
+    simulated = (Path(data) / "truth").is_dir()
+    train = (dataset.splits.get("train") or [])[:max_train_frames]
+    test = (dataset.splits.get("test") or [])[:max_test_frames]
+    calibrated = Detector("agv").calibrate(dataset.frame(train[0])).T_vehicle_sensor
+    rows = []
+    steps = len(features) * len(widths)
+    for f, feature in enumerate(features):
+        detector = Detector(PRESETS["agv"].replace(feature=feature), calibrated)
+        train_frames = collect_proposals(dataset, train, detector)
+        test_frames = collect_proposals(dataset, test, detector)
+        for w, width in enumerate(widths):
+            classifier = ProposalClassifier(width=width, epochs=epochs, max_fit_seconds=max_fit_seconds)
+            run = train_with_mining(train_frames, classifier, rounds=0)
+            fitted = run.model.classifier
+            metrics = measure(run.model, dataset, test_frames, use_truth=simulated)
+            rows.append(
+                {
+                    "feature": feature,
+                    "width": width,
+                    "num_parameters": fitted.num_parameters_,
+                    "epochs_run": len(fitted.history_),
+                    "fit_seconds": round(fitted.fit_seconds_, 1),
+                    "seconds_per_epoch": round(fitted.fit_seconds_ / max(len(fitted.history_), 1), 1),
+                    "final_train_loss": fitted.history_[-1]["loss"],
+                    "recognition_mean_class_accuracy": metrics["recognition"]["mean_class_accuracy"],
+                    "recognition_overall_accuracy": metrics["recognition"]["overall_accuracy"],
+                    "recognition_per_class": {
+                        k: v["accuracy"] for k, v in metrics["recognition"]["per_class"].items()
+                    },
+                    "detection_f1": metrics["f1"],
+                    "detection_map": metrics["map"],
+                }
+            )
+            if progress is not None:
+                progress(f * len(widths) + w + 1, steps)
+    return {
+        "benchmark": "classifier",
+        "command": command,
+        "data": Path(data).name,
+        "train_frames": train,
+        "test_frames": test,
+        "reference": "truth" if simulated else "annotations",
+        "epochs": epochs,
+        "max_fit_seconds": max_fit_seconds,
+        "rows": rows,
+        "machine": machine_info(),
+    }

@@ -142,6 +142,8 @@ class ProposalClassifier:
         class_names: the object classes; ``labels_`` appends "background".
         seed: seeds weights and batch order.
         num_threads: torch threads while fitting and predicting (``None``: torch's default).
+        max_fit_seconds: stop after the epoch during which this much time has passed (for
+            equal-time comparisons of widths); ``None`` runs every epoch.
     """
 
     width: float = 0.125
@@ -155,6 +157,7 @@ class ProposalClassifier:
     class_names: tuple[str, ...] = CLASS_NAMES
     seed: int = 0
     num_threads: int | None = None
+    max_fit_seconds: float | None = None
 
     input_kind = "features"
     """What ``predict_proba`` reads from ``detection.ProposalGroups``."""
@@ -261,6 +264,8 @@ class ProposalClassifier:
                 )
                 if progress is not None:
                     progress(epoch + 1, self.epochs)
+                if self.max_fit_seconds is not None and time.perf_counter() - start > self.max_fit_seconds:
+                    break
         network.eval()
         self.network_ = network
         self.history_ = history

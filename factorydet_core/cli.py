@@ -117,7 +117,32 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise InputError(f"bench {args.name} needs a DATA folder or file")
         update, close = progress_bar(args.name)
         try:
-            if args.name == "pipeline":
+            if args.name == "classifier":
+                from .bench import bench_classifier
+
+                result = bench_classifier(
+                    args.data[0],
+                    widths=[float(v) for v in args.widths.split(",")],
+                    features=args.features.split(","),
+                    epochs=args.epochs,
+                    max_fit_seconds=args.max_fit_seconds,
+                    max_train_frames=args.train_frames,
+                    max_test_frames=args.frames,
+                    command=command,
+                    progress=update,
+                )
+            elif args.name == "detect":
+                from .bench import bench_detect
+                from .results import resolve_model
+
+                result = bench_detect(
+                    args.data[0],
+                    resolve_model(args.model),
+                    max_frames=args.frames,
+                    command=command,
+                    progress=update,
+                )
+            elif args.name == "pipeline":
                 result = bench_pipeline(
                     args.data if len(args.data) > 1 else args.data[0],
                     preset=args.preset,
@@ -508,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
-    p.add_argument("name", choices=["simulate", "pipeline", "sweep"])
+    p.add_argument("name", choices=["simulate", "pipeline", "sweep", "detect", "classifier"])
     p.add_argument(
         "data",
         nargs="*",
@@ -521,6 +546,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="pipeline: override a parameter")
     p.add_argument("--voxel-sizes", default="0.1,0.15,0.2,0.3,0.4", help="sweep: comma-separated sizes (m)")
     p.add_argument("--png", default=None, help="sweep: write the plot here")
+    p.add_argument("--model", default="default", help="detect: checkpoint, session name or 'default'")
+    p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
+    p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
+    p.add_argument("--epochs", type=int, default=20, help="classifier: epochs per fit")
+    p.add_argument("--max-fit-seconds", type=float, default=None, help="classifier: time budget per fit")
+    p.add_argument("--train-frames", type=int, default=None, help="classifier: first N training frames")
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.add_argument("--readme", default=None, help="also write the result into this README's bench block")
     p.set_defaults(func=_cmd_bench)

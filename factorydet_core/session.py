@@ -159,6 +159,22 @@ def connect(session: Session) -> Iterator[sqlite3.Connection]:
         connection.close()
 
 
+def rounds_record(run) -> list[dict]:
+    """Per round of a training run: sizes, times and the training-frame F-score (no mined lists)."""
+    return [
+        {
+            "round": r["round"],
+            "num_positives": r["num_positives"],
+            "num_background": r["num_background"],
+            "fit_seconds": r["fit_seconds"],
+            "score_seconds": r.get("score_seconds"),
+            "num_mined": len(r["mined"]),
+            "train_f1": r["train_metrics"]["f1"],
+        }
+        for r in run.rounds
+    ]
+
+
 def save_training_run(session: Session, run, data: str, config: dict) -> int:
     """Store a ``training.TrainingRun``: a checkpoint per round under ``models/run_NNN/``, the final
     one as ``final.pt``, and the rounds and mined negatives in the database.
@@ -205,7 +221,15 @@ def save_training_run(session: Session, run, data: str, config: dict) -> int:
                     for m in record["mined"]
                 ],
             )
-        run.model.save(final, {**note, "round": run.rounds[-1]["round"], "rounds": len(run.rounds)})
+        run.model.save(
+            final,
+            {
+                **note,
+                "round": run.rounds[-1]["round"],
+                "rounds": len(run.rounds),
+                "rounds_record": rounds_record(run),
+            },
+        )
         db.execute(
             "INSERT INTO training_runs VALUES (?, ?, ?, ?, ?, ?)",
             (

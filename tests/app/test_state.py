@@ -53,3 +53,32 @@ def test_rgb_mode_falls_back_to_height_without_colours(small_dataset_dir):
     frame = open_dataset(small_dataset_dir).frame(0)
     z = frame.points[:, 2]
     assert (point_colors(frame, z, "rgb") == colors_by_height(z)).all()
+
+
+def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny_model_path):
+    from factorydet_core.detector import Detector
+    from factorydet_core.inspect import describe_detection, detection_markdown
+    from factorydet_core.model import DetectionModel
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    state = AppState(dataset, model=model, model_name="tiny")
+    assert state.layers["detections"] and not state.layers["proposals"]
+    result = Detector("agv", model=model).detect(dataset.frame(0))
+    state.set_detection_result((0, state.params, False), result, "done")
+    assert state.pipeline_result is result.proposal and state.metrics["num_frames"] == 1
+    state.set_detection_filter(score_threshold=0.05, nms_iou=0.25)
+    low = state.detections
+    assert (low.scores >= 0.05).all() and len(low) == (result.candidates.scores >= 0.05).sum()
+    state.set_detection_filter(nms_iou=0.95)
+    assert state.detections.kept_mask.sum() >= low.kept_mask.sum()
+    assert state.metrics["score_threshold"] == 0.05
+    # A suppressed detection's description names who suppressed it.
+    suppressed = np.flatnonzero(~low.kept_mask)
+    if len(suppressed):
+        info = describe_detection(low, int(suppressed[0]), result.proposal.proposals, dataset.frame(0))
+        assert "suppressed by" in info
+        assert detection_markdown(info).startswith("**Detection:")
+    kept = int(np.flatnonzero(low.kept_mask)[0])
+    info = describe_detection(low, kept, result.proposal.proposals, dataset.frame(0))
+    assert info["proposal"].startswith(f"#{int(low.proposal_ids[kept])}")
