@@ -36,6 +36,8 @@ bench: $(STAMP)
 	$(BIN)/factorydet bench pipeline $(REAL)/scannet_scene0000_00.npz $(REAL)/scannet_scene0000_01.npz \
 	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
 	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 4 --png docs/voxel_sweep.png --readme README.md
+	$(BIN)/factorydet bench classifier $(BENCH_DATA) --widths 0.0625,1.0 --features aggregated,direct \
+	  --epochs 20 --max-fit-seconds 400 --train-frames 8 --frames 4 --readme README.md
 	$(BIN)/factorydet demo
 	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme README.md
 

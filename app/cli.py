@@ -29,11 +29,15 @@ def _cmd_app(args: argparse.Namespace) -> int:
                 close()
         dataset = open_dataset(session.data_dir)
         title = f"session {session.name}"
-    model, model_name = None, ""
-    if args.model != "none":
-        from factorydet_core.model import DetectionModel
-        from factorydet_core.results import resolve_model
+    from factorydet_core.model import DEFAULT_MODEL, DetectionModel
+    from factorydet_core.results import resolve_model
 
+    model, model_name = None, ""
+    if args.model == "default" and not DEFAULT_MODEL.is_file():
+        print(
+            f"factorydet: no shipped model at {DEFAULT_MODEL}; showing the front half only", file=sys.stderr
+        )
+    elif args.model != "none":
         path = resolve_model(args.model, args.root)
         model, model_name = DetectionModel.load(path), str(path)
     serve(dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name)

@@ -50,6 +50,7 @@ class LayerView:
         self.proposal_ids = np.zeros(0, np.int64)
         self._voxel_colors: tuple[int, np.ndarray] | None = None  # (id(result), colours)
         self.detection_nodes: list = []
+        self.detection_source: tuple = (None, 0)  # (DetectionResult, frame index) of the shown detections
         self.shown_detections: Detections | None = None
         self.shown_detection_ids = np.zeros(0, np.int64)
 

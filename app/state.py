@@ -23,6 +23,13 @@ LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals
 """The detection layers the app can draw, in panel order."""
 
 
+def front_end_params(model, dataset: Dataset) -> FrontEndParams:
+    """The settings the model was trained with (its note), else the data set's preset."""
+    front = (getattr(model, "front_end", None) or {}) if model is not None else {}
+    preset = front.get("preset") or ("agv" if dataset.num_sensors > 1 else "indoor")
+    return PRESETS[preset].replace(**front.get("overrides", {}))
+
+
 class AppState:
     """Which frame is shown and how; listeners run after every change (under no lock)."""
 
@@ -43,7 +50,7 @@ class AppState:
         # With a model the detections are what people came for; without, the proposals.
         shown = "detections" if model is not None else "proposals"
         self.layers = {name: name == shown for name in LAYERS}
-        self.params: FrontEndParams = PRESETS["agv" if dataset.num_sensors > 1 else "indoor"]
+        self.params: FrontEndParams = front_end_params(model, dataset)
         self.use_refined_extrinsics = dataset.num_sensors > 1
         self.pipeline_status = "waiting"
         self.pipeline_progress = 0.0
@@ -61,6 +68,7 @@ class AppState:
         self.show_suppressed = False
         self.color_by_match = False
         self.detection_result: DetectionResult | None = None
+        self.detection_frame_index = 0
         self.detections: Detections | None = None
         self.frame_detections: dict[int, dict] = {}  # frame -> candidates and labels, for metrics
         self.metrics: dict | None = None
@@ -155,28 +163,35 @@ class AppState:
 
     def set_pipeline_result(self, key: tuple, result: ProposalResult, status: str) -> None:
         with self.lock:
-            self.pipeline_result = result
-            self.pipeline_result_key = key
-            self.pipeline_status = status
-            self.pipeline_progress = 1.0
-            self.pipeline_busy = False
-            self.selection_markdown = ""
-            self.num_results += 1
-            self.changed.notify_all()
+            self._set_result(key, result, status)
         self._notify()
 
+    def _set_result(self, key: tuple, result: ProposalResult, status: str) -> None:
+        """(Under the lock.)"""
+        self.pipeline_result = result
+        self.pipeline_result_key = key
+        self.pipeline_status = status
+        self.pipeline_progress = 1.0
+        self.pipeline_busy = False
+        self.selection_markdown = ""
+        self.num_results += 1
+        self.changed.notify_all()
+
     def set_detection_result(self, key: tuple, result: DetectionResult, status: str) -> None:
-        """A new frame's detections: filter them by the sliders and add the frame to the metrics."""
+        """A new frame's detections: filter them by the sliders, add the frame to the metrics, and
+        make its front half the shown result, all at once."""
         frame = self.dataset.frame(key[0])
         with self.lock:
             self.detection_result = result
+            self.detection_frame_index = key[0]
             self.frame_detections[key[0]] = {
                 "candidates": result.candidates,
                 "reference_boxes": frame.labels.boxes,
                 "reference_class_ids": frame.labels.class_ids,
             }
             self._refilter()
-        self.set_pipeline_result(key, result.proposal, status)
+            self._set_result(key, result.proposal, status)
+        self._notify()
 
     def _refilter(self) -> None:
         """Recompute the shown detections and the metrics (under the lock)."""

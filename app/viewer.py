@@ -109,6 +109,8 @@ class FactorydetApp:
                     self.layers.set_point_size(point_size)
             with self.state.lock:
                 detections = self.state.detections
+                detection_result = self.state.detection_result
+                detection_frame = self.state.detection_frame_index
                 detections_key = (
                     id(detections),
                     layers["detections"],
@@ -116,8 +118,9 @@ class FactorydetApp:
                     self.state.color_by_match,
                 )
             if detections_key != self._detections_key:
-                labels = self.state.dataset.frame(result_frame).labels if result_frame is not None else None
+                labels = self.state.dataset.frame(detection_frame).labels if detections is not None else None
                 self.layers.draw_detections(detections, *detections_key[1:], labels)
+                self.layers.detection_source = (detection_result, detection_frame)
                 self._detections_key = detections_key
             self.frame_panel.refresh(self.state)
             self.display_panel.refresh(self.state)
@@ -136,15 +139,17 @@ class FactorydetApp:
                 self.layers.drawn_frame_index,
             )
             detections, detection_ids = self.layers.shown_detections, self.layers.shown_detection_ids
+            detection_result, detection_frame = self.layers.detection_source
         if result is None:
             return
         origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
-        if detections is not None and len(detection_ids):
+        if detections is not None and detection_result is not None and len(detection_ids):
             distances = ray_box_distances(origin, direction, detections.boxes[detection_ids])
             if np.isfinite(distances).any():
+                # The detections and the proposals they index come from the same result.
                 k = int(detection_ids[int(np.argmin(distances))])
-                frame = self.state.dataset.frame(frame_index)
-                info = describe_detection(detections, k, result.proposals, frame)
+                frame = self.state.dataset.frame(detection_frame)
+                info = describe_detection(detections, k, detection_result.proposal.proposals, frame)
                 self.state.set_selection(detection_markdown(info))
                 return
         with self.state.lock:

@@ -111,6 +111,5 @@ class PipelineWorker:
         if detection is None:
             self.state.set_pipeline_result(key, result, status)
             return
-        kept = int(detection.detections.kept_mask.sum())
-        status += f"; {kept} detections in {detection.timings_ms['total'] / 1000:.1f} s in all"
+        status += f"; classified and NMS in {detection.timings_ms['total'] / 1000:.1f} s in all"
         self.state.set_detection_result(key, detection, status)

@@ -377,7 +377,8 @@ def bench_detect(
     timings: dict[str, list[float]] = {}
     counts = []
     for n, index in enumerate(test):
-        result = detector.detect(dataset.frame(index))
+        first = max(0, index - detector.params.history_frames)
+        result = detector.detect(dataset.frame(index), [dataset.frame(i) for i in range(first, index)])
         for stage, ms in result.timings_ms.items():
             timings.setdefault(stage, []).append(ms)
         counts.append(int(result.detections.kept_mask.sum()))
@@ -427,11 +428,18 @@ def bench_classifier(
     simulated = (Path(data) / "truth").is_dir()
     train = (dataset.splits.get("train") or [])[:max_train_frames]
     test = (dataset.splits.get("test") or [])[:max_test_frames]
-    calibrated = Detector("agv").calibrate(dataset.frame(train[0])).T_vehicle_sensor
+    if not train or not test:
+        raise InputError(f"{dataset.name}: bench classifier needs train and test frames")
+    preset = "agv" if dataset.num_sensors > 1 else "indoor"
+    calibrated = (
+        Detector(preset).calibrate(dataset.frame(train[0])).T_vehicle_sensor
+        if dataset.num_sensors > 1
+        else None
+    )
     rows = []
     steps = len(features) * len(widths)
     for f, feature in enumerate(features):
-        detector = Detector(PRESETS["agv"].replace(feature=feature), calibrated)
+        detector = Detector(PRESETS[preset].replace(feature=feature), calibrated)
         train_frames = collect_proposals(dataset, train, detector)
         test_frames = collect_proposals(dataset, test, detector)
         for w, width in enumerate(widths):

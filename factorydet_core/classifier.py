@@ -324,9 +324,9 @@ class ProposalClassifier:
         try:
             meta = json.loads(note_path.read_text())
             params = dict(meta["params"])
+            params["class_names"] = tuple(params["class_names"])
         except (json.JSONDecodeError, KeyError, TypeError) as exc:
             raise InputError(f"{note_path}: malformed checkpoint note ({exc})") from None
-        params["class_names"] = tuple(params["class_names"])
         known = {f.name for f in dataclasses.fields(cls)}
         model = cls(**{k: v for k, v in params.items() if k in known})
         network = model._new_network()

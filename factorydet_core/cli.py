@@ -122,7 +122,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
                 result = bench_classifier(
                     args.data[0],
-                    widths=[float(v) for v in args.widths.split(",")],
+                    widths=parse_floats(args.widths, "--widths"),
                     features=args.features.split(","),
                     epochs=args.epochs,
                     max_fit_seconds=args.max_fit_seconds,
@@ -153,7 +153,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
                 result.pop("T_vehicle_sensor", None)
             else:
-                sizes = [float(v) for v in args.voxel_sizes.split(",")]
+                sizes = parse_floats(args.voxel_sizes, "--voxel-sizes")
                 result = bench_voxel_sweep(
                     args.data[0],
                     sizes,
@@ -223,6 +223,14 @@ def _cmd_propose(args: argparse.Namespace) -> int:
         if len(proposals) > args.limit:
             print(f"  ... {len(proposals) - args.limit} more (--json prints all)")
     return 0
+
+
+def parse_floats(text: str, option: str) -> list[float]:
+    """``"0.1,0.2"`` -> ``[0.1, 0.2]``; anything else is an input error naming the option."""
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"{option} expects comma-separated numbers, got {text!r}") from None
 
 
 def _front_end_note(preset: str, overrides: dict) -> dict:
@@ -427,7 +435,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
             args.out,
             iou_threshold=args.iou,
             max_frames=args.frames,
-            sweep_sizes=[float(v) for v in args.sweep.split(",")] if args.sweep else [],
+            sweep_sizes=parse_floats(args.sweep, "--sweep") if args.sweep else [],
             sweep_frames=args.sweep_frames,
             command="factorydet " + " ".join(sys.argv[1:]),
             progress=lambda _, d, n: update(d, n),

@@ -81,8 +81,7 @@ def group_proposals(
     """
     keys = {}
     group_ids = np.array([keys.setdefault(s, len(keys)) for s in proposals.patch_sets], np.int64)
-    representatives = np.zeros(len(keys), np.int64)
-    representatives[group_ids[::-1]] = np.arange(len(group_ids))[::-1]  # first proposal of each
+    representatives = np.unique(group_ids, return_index=True)[1].astype(np.int64)  # first of each
     features = proposals.features[representatives]
     point_lists = point_sets(segmentation.patch_ids, [proposals.patch_sets[i] for i in representatives])
     descriptors = describe_point_sets(

@@ -6,7 +6,7 @@ import numpy as np
 
 from .boxes import box_iou_3d
 from .proposals import point_sets
-from .types import MergedCloud, Proposals, Segmentation
+from .types import InputError, MergedCloud, Proposals, Segmentation
 
 
 def proposal_point_lists(segmentation: Segmentation, proposals: Proposals) -> list[np.ndarray]:
@@ -69,6 +69,8 @@ def match_detections(
         ``(tp_mask, matched_reference_ids)``: (K,) bool, and (K,) the reference each detection
         matched (-1 for false positives).
     """
+    if not 0.0 < iou_threshold <= 1.0:
+        raise InputError(f"iou_threshold must lie in (0, 1], got {iou_threshold}")
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     matched = np.full(len(boxes), -1, np.int64)
     if not len(boxes) or not len(reference_boxes):

@@ -54,7 +54,12 @@ def resolve_model(spec: str | os.PathLike, root: str | os.PathLike | None = None
 
 def detector_for(model: DetectionModel | None, dataset: Dataset, calibrate: bool = True) -> Detector:
     """A detector with the front-half settings the model was trained with, calibrated on the data
-    set's first frame when it has several sensors."""
+    set's first frame when it has several sensors. The model's classes must be the data set's."""
+    if model is not None and tuple(model.class_names) != tuple(dataset.class_names):
+        raise InputError(
+            f"the model's classes {list(model.class_names)} differ from the data set's "
+            f"{list(dataset.class_names)}"
+        )
     front = (model.front_end if model is not None else {}) or {}
     preset = front.get("preset") or ("agv" if dataset.num_sensors > 1 else "indoor")
     if preset not in PRESETS:
@@ -89,6 +94,8 @@ def fit_baseline(
 ) -> BaselineClassifier:
     """The baseline, trained on every point set of the training frames (positives by the
     annotations, everything else background) and on the annotated instances' own points."""
+    if not frames:
+        raise InputError("the baseline needs training frames (the data set has no train split)")
     baseline = BaselineClassifier(class_names=class_names)
     background_id = len(class_names)
     descriptors = [f.annotation_descriptors for f in frames]

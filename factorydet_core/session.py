@@ -183,7 +183,19 @@ def save_training_run(session: Session, run, data: str, config: dict) -> int:
         The run id.
     """
     with connect(session) as db:
-        run_id = int(db.execute("SELECT COALESCE(MAX(id), 0) + 1 FROM training_runs").fetchone()[0])
+        # The row first: its id names the checkpoint folder, so two runs never share one.
+        run_id = int(
+            db.execute(
+                "INSERT INTO training_runs (created, data, config, train_frames, model_path)"
+                " VALUES (?, ?, ?, ?, '')",
+                (
+                    datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+                    data,
+                    json.dumps(config),
+                    json.dumps(run.train_frames),
+                ),
+            ).lastrowid
+        )
         run_dir = session.models_dir / f"run_{run_id:03d}"
         final = run_dir / "final.pt"
         note = {"data": data, "train_frames": run.train_frames, "config": config, "run_id": run_id}
@@ -231,15 +243,8 @@ def save_training_run(session: Session, run, data: str, config: dict) -> int:
             },
         )
         db.execute(
-            "INSERT INTO training_runs VALUES (?, ?, ?, ?, ?, ?)",
-            (
-                run_id,
-                datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-                data,
-                json.dumps(config),
-                json.dumps(run.train_frames),
-                str(final.relative_to(session.path)),
-            ),
+            "UPDATE training_runs SET model_path = ? WHERE id = ?",
+            (str(final.relative_to(session.path)), run_id),
         )
     return run_id
 

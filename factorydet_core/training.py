@@ -225,7 +225,7 @@ def train_with_mining(
         use_box_prior: box detections by the class sizes of the training annotations.
         annotation_positives: also train on each annotated instance's own points.
         seed: seeds the first background sample.
-        progress: called with ("fit", epoch, epochs) and ("mine", frame, frames).
+        progress: called with ("fit", epoch, epochs) and ("round", round, rounds + 1).
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
@@ -253,6 +253,13 @@ def train_with_mining(
     for i in picked:
         background.setdefault(pool[i][0], set()).add(pool[i][1])
 
+    positives_of = {
+        frame.frame_index: group_labels(
+            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
+        )[0]
+        != background_id
+        for frame in frames
+    }
     records, models = [], []
     for round_index in range(rounds + 1):
         features, labels = _training_set(
@@ -290,8 +297,11 @@ def train_with_mining(
                 )
                 group_of = frame.groups.group_ids[detections.proposal_ids]
                 known = background.get(frame.frame_index, set())
+                # A point set that is a positive (some proposal of it matches an annotation) stays
+                # one, even when the box chosen for its detection does not match.
+                positive_groups = positives_of[frame.frame_index]
                 for k in np.flatnonzero(operating & (best < positive_iou)):
-                    if int(group_of[k]) in known:
+                    if int(group_of[k]) in known or positive_groups[group_of[k]]:
                         continue
                     proposal = int(detections.proposal_ids[k])
                     mined.append(

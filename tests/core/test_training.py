@@ -109,3 +109,10 @@ def test_training_without_frames_or_positives_is_an_input_error(frames):
     ]  # fmt: skip
     with pytest.raises(InputError):
         train_with_mining(empty, ProposalClassifier(epochs=1), initial_negatives=10)
+
+
+def test_mined_sets_are_never_positives(run, frames):
+    for m in run.rounds[0]["mined"]:
+        frame = next(f for f in frames if f.frame_index == m["frame_index"])
+        labels, _ = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+        assert labels[m["group"]] == 7
