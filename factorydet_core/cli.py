@@ -437,6 +437,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
             max_frames=args.frames,
             sweep_sizes=parse_floats(args.sweep, "--sweep") if args.sweep else [],
             sweep_frames=args.sweep_frames,
+            calibrate=args.calibrate,
             command="factorydet " + " ".join(sys.argv[1:]),
             progress=lambda _, d, n: update(d, n),
         )
@@ -538,6 +539,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="only the first N test frames")
     p.add_argument("--sweep", default="0.1,0.2,0.3", help="voxel sizes of the grid sweep ('' skips it)")
     p.add_argument("--sweep-frames", type=int, default=4, help="train frames per sweep point")
+    p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")

@@ -113,6 +113,7 @@ def write_report(
     max_frames: int | None = None,
     sweep_sizes: list[float] | None = None,
     sweep_frames: int = 4,
+    calibrate: bool = True,
     command: str = "",
     progress: Progress | None = None,
 ) -> Path:
@@ -125,7 +126,7 @@ def write_report(
     train_idx = dataset.splits.get("train") or []
     test_idx = dataset.splits.get("test") or list(range(dataset.num_frames))
     test_idx = test_idx[:max_frames] if max_frames else test_idx
-    detector = detector_for(model, dataset)
+    detector = detector_for(model, dataset, calibrate)
     test = collect_proposals(dataset, test_idx, detector, progress)
     train = collect_proposals(dataset, train_idx, detector, progress)
     baseline = dataclasses.replace(model, classifier=fit_baseline(train, model.class_names))

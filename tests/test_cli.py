@@ -119,3 +119,21 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
 def test_detect_without_a_model_is_an_input_error(small_dataset_dir, tmp_path, capsys):
     assert main(["detect", str(small_dataset_dir), "--model", "nosuch", "--root", str(tmp_path)]) == 2
     assert "no trained model" in capsys.readouterr().err
+
+
+def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_path, tmp_path, capsys):
+    out = tmp_path / "docs" / "results.md"
+    args = ["report", str(small_dataset_dir), "--model", str(tiny_model_path), "--out", str(out),
+            "--sweep", "0.3", "--sweep-frames", "1", "--no-calibrate"]  # fmt: skip
+    assert main(args) == 0
+    text = out.read_text()
+    for heading in ("Table 2", "Table 3", "Targets", "Fig. 7"):
+        assert heading in text, heading
+    assert "| **mean over classes** |" in text and "| **total** |" in text
+    assert "99.84" in text and "0.793" in text and "0.417" in text  # the paper's figures beside ours
+    assert (tmp_path / "docs" / "results_pr.png").is_file()
+    assert (tmp_path / "docs" / "results_grid_sweep.png").is_file()
+    record = json.loads((tmp_path / "docs" / "results.json").read_text())
+    assert set(record["results"]) == {"annotations", "truth"}
+    assert record["grid_sweep"][0]["voxel_size_m"] == 0.3
+    assert main(["report", str(small_dataset_dir), "--model", str(tiny_model_path), "--sweep", "x"]) == 2
