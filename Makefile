@@ -37,7 +37,7 @@ bench: $(STAMP)
 	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
 	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 4 --png docs/voxel_sweep.png --readme README.md
 	$(BIN)/factorydet bench classifier $(BENCH_DATA) --widths 0.0625,1.0 --features aggregated,direct \
-	  --epochs 20 --max-fit-seconds 400 --train-frames 8 --frames 4 --readme README.md
+	  --epochs 15 --max-fit-seconds 240 --train-frames 4 --frames 2 --readme README.md
 	$(BIN)/factorydet demo
 	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme README.md
 

@@ -142,7 +142,7 @@ class ProposalClassifier:
         class_names: the object classes; ``labels_`` appends "background".
         seed: seeds weights and batch order.
         num_threads: torch threads while fitting and predicting (``None``: torch's default).
-        max_fit_seconds: stop after the epoch during which this much time has passed (for
+        max_fit_seconds: stop after the batch during which this much time has passed (for
             equal-time comparisons of widths); ``None`` runs every epoch.
     """
 
@@ -240,7 +240,14 @@ class ProposalClassifier:
                 network.train()
                 order = torch.randperm(len(x_all), generator=generator)
                 total_loss, correct = 0.0, 0
+                out_of_time = False
                 for lo in range(0, len(order), self.batch_size):
+                    if (
+                        self.max_fit_seconds is not None
+                        and time.perf_counter() - start > self.max_fit_seconds
+                    ):
+                        out_of_time = True
+                        break
                     batch = order[lo : lo + self.batch_size]
                     if len(batch) < 2:  # batch norm needs two samples
                         continue
@@ -255,16 +262,17 @@ class ProposalClassifier:
                     samples_seen += len(batch)
                     total_loss += float(loss.detach()) * len(batch)
                     correct += int((logits.argmax(1) == y_all[batch]).sum())
+                seen = max(min(lo, len(order)) if out_of_time else len(order), 1)
                 history.append(
                     {
-                        "epoch": epoch + 1,
-                        "loss": round(total_loss / len(order), 4),
-                        "train_accuracy": round(correct / len(order), 4),
+                        "epoch": epoch + 1 if not out_of_time else round(epoch + seen / len(order), 2),
+                        "loss": round(total_loss / seen, 4),
+                        "train_accuracy": round(correct / seen, 4),
                     }
                 )
                 if progress is not None:
                     progress(epoch + 1, self.epochs)
-                if self.max_fit_seconds is not None and time.perf_counter() - start > self.max_fit_seconds:
+                if out_of_time:
                     break
         network.eval()
         self.network_ = network
