@@ -163,16 +163,7 @@ class LayerView:
                 )  # fmt: skip
                 rgb = np.where(tp[:, None], MATCH_RGB["tp"], MATCH_RGB["fp"])
                 missed = labels.boxes[np.setdiff1d(np.arange(len(labels)), matched[matched >= 0])]
-            segments, segment_rgb = _wireframes(detections.boxes[kept], rgb)
-            self.detection_nodes.append(
-                self.server.scene.add_line_segments(
-                    "/pipeline/detections",
-                    points=segments,
-                    colors=segment_rgb,
-                    thickness=3.0,
-                    thickness_units="screen",
-                )  # fmt: skip
-            )
+            self._add_boxes("/pipeline/detections", detections.boxes[kept], rgb, 3.0)
             for n, k in enumerate(kept[:MAX_LABELS]):
                 box = detections.boxes[k]
                 self.detection_nodes.append(
@@ -187,26 +178,19 @@ class LayerView:
             if show_suppressed:
                 suppressed = np.flatnonzero(~detections.kept_mask)
                 grey = np.tile(SUPPRESSED_RGB, (len(suppressed), 1))
-                segments, segment_rgb = _wireframes(detections.boxes[suppressed], grey)
-                self.detection_nodes.append(
-                    self.server.scene.add_line_segments(
-                        "/pipeline/suppressed",
-                        points=segments,
-                        colors=segment_rgb,
-                        thickness=1.0,
-                        thickness_units="screen",
-                    )  # fmt: skip
-                )
+                self._add_boxes("/pipeline/suppressed", detections.boxes[suppressed], grey, 1.0)
                 shown = np.concatenate([kept, suppressed])
             if len(missed):
-                segments, segment_rgb = _wireframes(missed, np.tile(MATCH_RGB["missed"], (len(missed), 1)))
-                self.detection_nodes.append(
-                    self.server.scene.add_line_segments(
-                        "/pipeline/missed",
-                        points=segments,
-                        colors=segment_rgb,
-                        thickness=2.0,
-                        thickness_units="screen",
-                    )  # fmt: skip
+                self._add_boxes(
+                    "/pipeline/missed", missed, np.tile(MATCH_RGB["missed"], (len(missed), 1)), 2.0
                 )
             self.shown_detection_ids = shown
+
+    def _add_boxes(self, name: str, boxes: np.ndarray, rgb: np.ndarray, thickness: float) -> None:
+        """Draw (K, 7) boxes as wireframes, one (K, 3) colour each, as one detection node."""
+        segments, segment_rgb = _wireframes(boxes, rgb)
+        self.detection_nodes.append(
+            self.server.scene.add_line_segments(
+                name, points=segments, colors=segment_rgb, thickness=thickness, thickness_units="screen"
+            )
+        )
