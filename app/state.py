@@ -12,7 +12,7 @@ from collections.abc import Callable
 from factorydet_core.colors import COLOR_MODES
 from factorydet_core.dataset import Dataset
 from factorydet_core.detection import select_detections
-from factorydet_core.detector import PRESETS, DetectionResult, FrontEndParams, ProposalResult
+from factorydet_core.detector import DetectionResult, FrontEndParams, ProposalResult, params_for
 from factorydet_core.evaluation import detection_metrics
 from factorydet_core.types import Detections, Frame
 
@@ -21,13 +21,6 @@ AP_SCORE_FLOOR = 0.05
 
 LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals", "detections")
 """The detection layers the app can draw, in panel order."""
-
-
-def front_end_params(model, dataset: Dataset) -> FrontEndParams:
-    """The settings the model was trained with (its note), else the data set's preset."""
-    front = (getattr(model, "front_end", None) or {}) if model is not None else {}
-    preset = front.get("preset") or ("agv" if dataset.num_sensors > 1 else "indoor")
-    return PRESETS[preset].replace(**front.get("overrides", {}))
 
 
 class AppState:
@@ -50,7 +43,7 @@ class AppState:
         # With a model the detections are what people came for; without, the proposals.
         shown = "detections" if model is not None else "proposals"
         self.layers = {name: name == shown for name in LAYERS}
-        self.params: FrontEndParams = front_end_params(model, dataset)
+        self.params: FrontEndParams = params_for(getattr(model, "front_end", None), dataset.num_sensors)
         self.use_refined_extrinsics = dataset.num_sensors > 1
         self.pipeline_status = "waiting"
         self.pipeline_progress = 0.0

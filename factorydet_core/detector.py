@@ -132,6 +132,16 @@ PRESETS: dict[str, FrontEndParams] = {
 }
 
 
+def params_for(front_end: dict | None, num_sensors: int) -> FrontEndParams:
+    """Front-half settings from a model's note (``{"preset": ..., "overrides": {...}}``), else the
+    preset for the data: "agv" for multi-sensor frames, "indoor" for single scans."""
+    front = front_end or {}
+    preset = front.get("preset") or ("agv" if num_sensors > 1 else "indoor")
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r} in the model's note")
+    return PRESETS[preset].replace(**front.get("overrides", {}))
+
+
 @dataclasses.dataclass(frozen=True)
 class ProposalResult:
     """Every intermediate result of the front half for one frame."""

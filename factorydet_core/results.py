@@ -16,7 +16,7 @@ import numpy as np
 from .baseline import BaselineClassifier
 from .dataset import Dataset, open_dataset
 from .detection import score_groups, select_detections
-from .detector import PRESETS, Detector
+from .detector import Detector, params_for
 from .evaluation import detection_metrics, recognition_accuracy
 from .model import DEFAULT_MODEL, DetectionModel
 from .training import FrameProposals, collect_proposals, group_labels
@@ -60,11 +60,7 @@ def detector_for(model: DetectionModel | None, dataset: Dataset, calibrate: bool
             f"the model's classes {list(model.class_names)} differ from the data set's "
             f"{list(dataset.class_names)}"
         )
-    front = (model.front_end if model is not None else {}) or {}
-    preset = front.get("preset") or ("agv" if dataset.num_sensors > 1 else "indoor")
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r} in the model's note")
-    params = PRESETS[preset].replace(**front.get("overrides", {}))
+    params = params_for(model.front_end if model is not None else None, dataset.num_sensors)
     detector = Detector(params, model=model)
     if calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(0))

@@ -154,24 +154,24 @@ class TrainingRun:
 
 def _training_set(
     frames: list[FrameProposals],
+    frame_labels: dict[int, np.ndarray],
     background: dict[int, set[int]],
-    positive_iou: float,
     background_id: int,
     annotation_positives: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
+    """Features and labels: the positive point sets (``frame_labels``: each frame's ``group_labels``),
+    the background sets chosen so far, and the annotated instances' own points."""
     features, labels = [], []
     if annotation_positives:
         features += [f.annotation_features for f in frames]
         labels += [f.annotation_class_ids for f in frames]
     for frame in frames:
-        frame_labels, _ = group_labels(
-            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
-        )
-        positive = np.flatnonzero(frame_labels != background_id)
+        set_labels = frame_labels[frame.frame_index]
+        positive = np.flatnonzero(set_labels != background_id)
         negative = np.array(sorted(background.get(frame.frame_index, set())), np.int64)
         chosen = np.concatenate([positive, negative])
         features.append(frame.groups.features[chosen])
-        labels.append(np.concatenate([frame_labels[positive], np.full(len(negative), background_id)]))
+        labels.append(np.concatenate([set_labels[positive], np.full(len(negative), background_id)]))
     return np.concatenate(features), np.concatenate(labels)
 
 
@@ -240,30 +240,28 @@ def train_with_mining(
             np.concatenate([f.label_class_ids for f in frames]),
             num_classes,
         )
-    # The first background set: point sets that overlap no annotated box, sampled evenly.
-    rng = np.random.default_rng(seed)
-    pool = []
+    # Each point set's label and overlap, fixed for the whole run: the annotations do not change.
+    frame_labels, frame_overlaps = {}, {}
     for frame in frames:
-        _, overlaps_any = group_labels(
+        frame_labels[frame.frame_index], frame_overlaps[frame.frame_index] = group_labels(
             frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
         )
-        pool += [(frame.frame_index, int(g)) for g in np.flatnonzero(~overlaps_any)]
+    # The first background set: point sets that overlap no annotated box, sampled evenly.
+    rng = np.random.default_rng(seed)
+    pool = [
+        (index, int(g))
+        for index, overlaps_any in frame_overlaps.items()
+        for g in np.flatnonzero(~overlaps_any)
+    ]
     picked = rng.choice(len(pool), min(initial_negatives, len(pool)), replace=False) if pool else []
     background: dict[int, set[int]] = {}
     for i in picked:
         background.setdefault(pool[i][0], set()).add(pool[i][1])
 
-    positives_of = {
-        frame.frame_index: group_labels(
-            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
-        )[0]
-        != background_id
-        for frame in frames
-    }
     records, models = [], []
     for round_index in range(rounds + 1):
         features, labels = _training_set(
-            frames, background, positive_iou, background_id, annotation_positives
+            frames, frame_labels, background, background_id, annotation_positives
         )
         if not (labels != background_id).any():
             raise InputError(
@@ -299,9 +297,9 @@ def train_with_mining(
                 known = background.get(frame.frame_index, set())
                 # A point set that is a positive (some proposal of it matches an annotation) stays
                 # one, even when the box chosen for its detection does not match.
-                positive_groups = positives_of[frame.frame_index]
+                set_labels = frame_labels[frame.frame_index]
                 for k in np.flatnonzero(operating & (best < positive_iou)):
-                    if int(group_of[k]) in known or positive_groups[group_of[k]]:
+                    if int(group_of[k]) in known or set_labels[group_of[k]] != background_id:
                         continue
                     proposal = int(detections.proposal_ids[k])
                     mined.append(
