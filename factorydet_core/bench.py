@@ -328,6 +328,16 @@ def bench_voxel_sweep(
     return summary
 
 
+def save_figure(fig, png: str | os.PathLike) -> None:
+    """Write a matplotlib figure as a PNG (creating its folder) and free it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    Path(png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
 def plot_voxel_sweep(summary: dict, png: str | os.PathLike) -> None:
     """Recall per class against voxel size, one line per class and a dashed 'all' reference."""
     import matplotlib
@@ -350,10 +360,7 @@ def plot_voxel_sweep(summary: dict, png: str | os.PathLike) -> None:
     ax.set_title(f"Proposal recall against grid resolution ({summary['data']}, frames {summary['frames']})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, ncol=2)
-    fig.tight_layout()
-    Path(png).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, png)
 
 
 def bench_detect(

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench import machine_info
+from .bench import machine_info, save_figure
 from .classifier import FisherNet, ProposalClassifier, count_parameters
 from .dataset import open_dataset
 from .model import DetectionModel
@@ -98,10 +98,7 @@ def plot_sweep(rows: list[dict], png: str | os.PathLike, title: str) -> None:
     ax.grid(alpha=0.3)
     ax.set_title(title)
     ax.legend(fontsize=8, ncol=2)
-    fig.tight_layout()
-    Path(png).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, png)
 
 
 def write_report(

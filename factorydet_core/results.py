@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .baseline import BaselineClassifier
+from .bench import save_figure
 from .dataset import Dataset, open_dataset
 from .detection import score_groups, select_detections
 from .detector import Detector, params_for
@@ -240,10 +241,7 @@ def plot_pr_curves(metrics: dict, png: str | os.PathLike, title: str = "") -> No
     ax.grid(alpha=0.3)
     ax.set_title(title or f"Precision-recall at IoU {metrics['iou_threshold']}")
     ax.legend(fontsize=8, loc="upper right")
-    fig.tight_layout()
-    Path(png).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, png)
 
 
 def frame_list(indices: Sequence[int]) -> str:
