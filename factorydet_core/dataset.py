@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import zipfile
@@ -27,6 +28,7 @@ class Dataset:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
+        self._hash: str | None = None
         if not self.path.exists():
             raise InputError(f"{self.path}: no such file or folder")
         if self.path.is_dir():
@@ -68,6 +70,20 @@ class Dataset:
 
     def __len__(self) -> int:
         return self.num_frames
+
+    def content_hash(self) -> str:
+        """A short SHA-256 of the manifest and every frame file, computed once: a session records it
+        so that its labels are never applied to a different data set."""
+        if self._hash is None:
+            digest = hashlib.sha256()
+            manifest = self.path / MANIFEST
+            for path in ([manifest] if manifest.is_file() else []) + self._frame_paths:
+                digest.update(path.name.encode() + b"\0")
+                with open(path, "rb") as f:
+                    for block in iter(lambda: f.read(1 << 20), b""):
+                        digest.update(block)
+            self._hash = digest.hexdigest()[:16]
+        return self._hash
 
     def frame(self, index: int) -> Frame:
         """Frame ``index`` (0-based); frames are cached, so repeated reads are free."""

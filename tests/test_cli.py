@@ -96,7 +96,7 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     assert summary["run_id"] == 1 and [r["round"] for r in summary["rounds"]] == [0, 1]
     assert (root / "s" / "models" / "run_001" / "final.pt").is_file()
     assert (root / "s" / "models" / "run_001" / "final.json").is_file()
-    assert (root / "s" / "session.sqlite").is_file()
+    assert (root / "s" / "session.db").is_file()
 
     detect = ["detect", str(small_dataset_dir), "--model", "s", "--root", str(root), "--frame", "2",
               "--score-threshold", "0.05", "--no-calibrate", "--json"]  # fmt: skip

@@ -72,7 +72,7 @@ def test_session_stores_checkpoints_rounds_and_the_review_queue(run, tmp_path):
     assert (session.path / runs[0]["model_path"]).is_file()
     queue = mined_negatives(session)
     assert len(queue) == len(run.rounds[0]["mined"])
-    assert queue[0]["review"] == "unreviewed" and len(queue[0]["box"]) == 7
+    assert queue[0]["verdict"] is None and len(queue[0]["box"]) == 7
     assert save_training_run(session, run, "small", {}) == 2
 
 
