@@ -96,9 +96,7 @@ def open_session(name: str, root: str | os.PathLike | None = None) -> Session:
     return Session(validate_name(name), root_path)
 
 
-def simulate_into(
-    session: Session, config, progress: Callable[[int, int], None] | None = None
-) -> Path:
+def simulate_into(session: Session, config, progress: Callable[[int, int], None] | None = None) -> Path:
     """Simulate a data set into the session's ``data/`` folder, replacing any earlier one.
 
     Args:
