@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .types import CLASS_NAMES, InputError
+from .types import CLASS_NAMES, Cancelled, InputError
 
 BACKGROUND = "background"
 FEATURE_SHAPE = (20, 5, 5, 5)
@@ -199,6 +199,7 @@ class ProposalClassifier:
         features: np.ndarray,
         labels: np.ndarray,
         progress: Callable[[int, int], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
     ) -> ProposalClassifier:
         """Train from scratch.
 
@@ -206,6 +207,8 @@ class ProposalClassifier:
             features: (M, 20, 5, 5, 5) proposal features.
             labels: (M,) ints into ``labels_`` (``background_id`` for background).
             progress: called with (epoch, epochs) after each epoch.
+            should_stop: asked before every batch; when it returns True, fit raises ``Cancelled``
+                and the classifier is left as it was.
 
         Returns:
             self, with ``network_``, ``history_`` (loss and accuracy per epoch) and ``fit_seconds_``.
@@ -242,6 +245,8 @@ class ProposalClassifier:
                 total_loss, correct = 0.0, 0
                 out_of_time = False
                 for lo in range(0, len(order), self.batch_size):
+                    if should_stop is not None and should_stop():
+                        raise Cancelled("training cancelled")
                     if (
                         self.max_fit_seconds is not None
                         and time.perf_counter() - start > self.max_fit_seconds

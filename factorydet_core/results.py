@@ -114,14 +114,19 @@ def measure(
     iou_threshold: float = 0.6,
     use_truth: bool = False,
     ap_score_floor: float = 0.05,
+    references: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> dict:
     """Detection metrics (per class and totals) and recognition accuracy of ``model`` on
-    ``frames``, against the annotations or the full truth."""
+    ``frames``, against the annotations, the full truth, or ``references`` (frame index ->
+    (boxes (R, 7), class_ids (R,)), e.g. a session's corrected labels)."""
     scored, true_ids, predicted_ids = [], [], []
     class_names = model.class_names
     background_id = len(class_names)
     for frame in frames:
-        ref_boxes, ref_classes = reference_boxes(dataset, frame.frame_index, use_truth)
+        if references is not None:
+            ref_boxes, ref_classes = references[frame.frame_index]
+        else:
+            ref_boxes, ref_classes = reference_boxes(dataset, frame.frame_index, use_truth)
         probabilities = model.classifier.predict_proba(_classifier_inputs(frame, model.classifier))
         candidates = score_groups(
             frame.proposal_boxes, frame.groups, probabilities, model.box_prior, class_names

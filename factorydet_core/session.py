@@ -25,6 +25,7 @@ import os
 import re
 import shutil
 import sqlite3
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -124,6 +125,50 @@ def ensure_demo(
     if not session.has_data:
         simulate_into(session, DEMO_CONFIG, progress)
     return session
+
+
+# --- Derived caches ---------------------------------------------------------------------------------
+
+_CACHE_KEY_RE = re.compile(r"[A-Za-z0-9_.-]{1,128}")
+
+
+def _cache_path(session: Session, key: str) -> Path:
+    if not _CACHE_KEY_RE.fullmatch(key) or ".." in key:
+        raise SessionError(f"invalid cache key {key!r}")
+    return session.cache_dir / f"{key}.npz"
+
+
+def write_cache(session: Session, key: str, arrays: dict) -> Path:
+    """Store derived arrays under ``cache/KEY.npz`` (written whole, then renamed into place)."""
+    import numpy as np
+
+    path = _cache_path(session, key)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".partial.npz")
+    np.savez(partial, **arrays)
+    os.replace(partial, path)
+    return path
+
+
+def read_cache(session: Session, key: str) -> dict | None:
+    """The arrays cached under ``key``, or ``None`` when missing or unreadable (then rebuilt)."""
+    import numpy as np
+
+    path = _cache_path(session, key)
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        path.unlink(missing_ok=True)
+        return None
+
+
+def clear_cache(session: Session) -> None:
+    """Delete every derived cache of the session."""
+    if session.cache_dir.exists():
+        shutil.rmtree(session.cache_dir)
 
 
 # --- The session database -------------------------------------------------------------------------
@@ -988,6 +1033,14 @@ class SessionDB:
                 changes.append(self._change(db, "reviews", negative_id, after, author))
             what = verdict if class_name is None else f"{verdict} ({class_name})"
             return self._edit(db, author, "review", f"review {len(ids)} mined negative(s) as {what}", changes)
+
+    def mined_patch_sets(self) -> dict[int, list[tuple[int, ...]]]:
+        """Point sets of every negative mined in the session (all runs), by frame."""
+        out: dict[int, list[tuple[int, ...]]] = {}
+        with self._read() as db:
+            for row in db.execute("SELECT DISTINCT frame_index, patch_set FROM mined_negatives"):
+                out.setdefault(row["frame_index"], []).append(tuple(json.loads(row["patch_set"])))
+        return out
 
     def reviewed_patch_sets(self) -> dict[str, dict[int, list[tuple[int, ...]]]]:
         """Point sets of every reviewed negative by verdict and frame: what the next training run

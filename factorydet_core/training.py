@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -24,7 +24,7 @@ from .detector import Detector
 from .evaluation import detection_metrics
 from .model import DetectionModel
 from .proposals import point_set_features
-from .types import InputError
+from .types import Cancelled, InputError
 
 Progress = Callable[[str, int, int], None]
 """Called with (what, done, total)."""
@@ -50,9 +50,48 @@ class FrameProposals:
     """(A, D) their geometric descriptors."""
     annotation_class_ids: np.ndarray
     """(A,) their classes."""
+    annotation_instance_ids: np.ndarray
+    """(A,) their data set instance ids."""
+
+    def with_labels(
+        self, boxes: np.ndarray, class_ids: np.ndarray, instance_classes: dict[int, int] | None = None
+    ) -> FrameProposals:
+        """The same proposals with other labels (a session's corrected ones).
+
+        Args:
+            boxes: (R, 7) label boxes.
+            class_ids: (R,) their classes.
+            instance_classes: data set instance id -> class id of the labels that are still the
+                data set's instances; only their own-point samples are kept, with that class.
+                ``None`` keeps them all as they are.
+        """
+        keep = np.ones(len(self.annotation_instance_ids), bool)
+        classes = np.array(self.annotation_class_ids)
+        if instance_classes is not None:
+            keep = np.array([int(i) in instance_classes for i in self.annotation_instance_ids], bool)
+            classes = np.array([instance_classes.get(int(i), -1) for i in self.annotation_instance_ids])
+        return dataclasses.replace(
+            self,
+            label_boxes=np.asarray(boxes, np.float64).reshape(-1, 7),
+            label_class_ids=np.asarray(class_ids, np.int64),
+            annotation_features=self.annotation_features[keep],
+            annotation_descriptors=self.annotation_descriptors[keep],
+            annotation_class_ids=classes[keep].astype(np.int64),
+            annotation_instance_ids=self.annotation_instance_ids[keep],
+        )
+
+    def point_set_ids(self, patch_sets) -> np.ndarray:
+        """Indices of the point sets (groups) made of the given patch sets; unknown ones are
+        dropped (a front half with other settings cut the frame differently)."""
+        lookup = {}
+        for proposal, group in enumerate(self.groups.group_ids):
+            lookup.setdefault(tuple(self.patch_sets[proposal]), int(group))
+        return np.array(sorted({lookup[tuple(p)] for p in patch_sets if tuple(p) in lookup}), np.int64)
 
 
-def _annotation_samples(frame, result, detector: Detector) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _annotation_samples(
+    frame, result, detector: Detector
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Features, descriptors and classes of the annotated instances' points in the segmented cloud."""
     cloud = result.cloud
     lookup = dict(zip(frame.labels.instance_ids.tolist(), frame.labels.class_ids.tolist()))
@@ -70,7 +109,12 @@ def _annotation_samples(frame, result, detector: Detector) -> tuple[np.ndarray, 
     boxes = np.array([fit_box(cloud.points[p]) for p in point_lists]).reshape(-1, 7)
     num_voxels = np.array([len(np.unique(result.grid.point_voxel_ids[p])) for p in point_lists])
     descriptors = describe_point_sets(cloud.points, point_lists, boxes, num_voxels, result.floor_plane)
-    return features, descriptors, np.array([lookup[i] for i in chosen], np.int64)
+    return (
+        features,
+        descriptors,
+        np.array([lookup[i] for i in chosen], np.int64),
+        np.array(chosen, np.int64),
+    )
 
 
 def collect_proposals(
@@ -100,6 +144,7 @@ def collect_proposals(
                 annotation_features=annotated[0],
                 annotation_descriptors=annotated[1],
                 annotation_class_ids=annotated[2],
+                annotation_instance_ids=annotated[3],
             )
         )
         if progress is not None:
@@ -175,10 +220,20 @@ def _training_set(
     return np.concatenate(features), np.concatenate(labels)
 
 
-def _score_frames(model: DetectionModel, frames: list[FrameProposals], score_threshold: float) -> list[dict]:
+def _score_frames(
+    model: DetectionModel,
+    frames: list[FrameProposals],
+    score_threshold: float,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> list[dict]:
     """Detections of every frame down to ``score_threshold``, with the annotated references."""
     out = []
-    for frame in frames:
+    for n, frame in enumerate(frames):
+        if should_stop is not None and should_stop():
+            raise Cancelled("training cancelled")
+        if progress is not None:
+            progress("score", n, len(frames))
         detections = model.detect(frame.proposal_boxes, frame.groups, score_threshold=score_threshold)
         kept = detections.subset(detections.kept_mask)
         out.append(
@@ -209,6 +264,10 @@ def train_with_mining(
     annotation_positives: bool = True,
     seed: int = 0,
     progress: Progress | None = None,
+    background_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
+    excluded_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
+    mine_after_last: bool = False,
+    should_stop: Callable[[], bool] | None = None,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -225,7 +284,15 @@ def train_with_mining(
         use_box_prior: box detections by the class sizes of the training annotations.
         annotation_positives: also train on each annotated instance's own points.
         seed: seeds the first background sample.
-        progress: called with ("fit", epoch, epochs) and ("round", round, rounds + 1).
+        progress: called with ("fit", epoch, epochs), ("score", frame, frames) and
+            ("round", round, rounds + 1).
+        background_sets: per frame, patch sets that start in the background set (confirmed
+            background and negatives mined before), unless a label now makes them positives.
+        excluded_sets: per frame, patch sets that are never background nor mined (real objects
+            whose segment is wrong).
+        mine_after_last: also mine after the last round; those negatives go to the record (to be
+            reviewed) but into no fit.
+        should_stop: asked between batches and frames; True raises ``types.Cancelled``.
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
@@ -246,17 +313,30 @@ def train_with_mining(
         frame_labels[frame.frame_index], frame_overlaps[frame.frame_index] = group_labels(
             frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
         )
+    by_index = {f.frame_index: f for f in frames}
+    excluded = {
+        index: set(by_index[index].point_set_ids(sets).tolist())
+        for index, sets in (excluded_sets or {}).items()
+        if index in by_index
+    }
     # The first background set: point sets that overlap no annotated box, sampled evenly.
     rng = np.random.default_rng(seed)
     pool = [
         (index, int(g))
         for index, overlaps_any in frame_overlaps.items()
         for g in np.flatnonzero(~overlaps_any)
+        if int(g) not in excluded.get(index, ())
     ]
     picked = rng.choice(len(pool), min(initial_negatives, len(pool)), replace=False) if pool else []
     background: dict[int, set[int]] = {}
     for i in picked:
         background.setdefault(pool[i][0], set()).add(pool[i][1])
+    for index, sets in (background_sets or {}).items():
+        if index not in by_index:
+            continue
+        for g in by_index[index].point_set_ids(sets):
+            if frame_labels[index][g] == background_id and int(g) not in excluded.get(index, ()):
+                background.setdefault(index, set()).add(int(g))
 
     records, models = [], []
     for round_index in range(rounds + 1):
@@ -268,10 +348,12 @@ def train_with_mining(
                 f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
             )
         fit_progress = None if progress is None else (lambda e, n: progress("fit", e, n))
-        fitted = dataclasses.replace(classifier).fit(features, labels, progress=fit_progress)
+        fitted = dataclasses.replace(classifier).fit(
+            features, labels, progress=fit_progress, should_stop=should_stop
+        )
         model = DetectionModel(fitted, box_prior, score_threshold, nms_iou)
         start = time.perf_counter()
-        scored = _score_frames(model, frames, score_threshold=0.05)
+        scored = _score_frames(model, frames, 0.05, progress, should_stop)
         metrics = detection_metrics(scored, fitted.class_names, positive_iou, score_threshold)
         metrics.pop("pr_curves")
         record = {
@@ -283,7 +365,7 @@ def train_with_mining(
             "train_metrics": metrics,
             "mined": [],
         }
-        if round_index < rounds:
+        if round_index < rounds or mine_after_last:
             mined = []
             for frame, item in zip(frames, scored):
                 detections = item["detections"]
@@ -294,7 +376,7 @@ def train_with_mining(
                     else np.zeros(len(detections))
                 )
                 group_of = frame.groups.group_ids[detections.proposal_ids]
-                known = background.get(frame.frame_index, set())
+                known = background.get(frame.frame_index, set()) | excluded.get(frame.frame_index, set())
                 # A point set that is a positive (some proposal of it matches an annotation) stays
                 # one, even when the box chosen for its detection does not match.
                 set_labels = frame_labels[frame.frame_index]
@@ -311,6 +393,7 @@ def train_with_mining(
                             "patch_set": [int(p) for p in frame.patch_sets[proposal]],
                             "score": round(float(detections.scores[k]), 4),
                             "predicted_class": fitted.class_names[int(detections.class_ids[k])],
+                            "probabilities": [round(float(p), 4) for p in detections.probabilities[k]],
                             "best_annotated_iou": round(float(best[k]), 4),
                         }
                     )
@@ -324,3 +407,54 @@ def train_with_mining(
         if progress is not None:
             progress("round", round_index + 1, rounds + 1)
     return TrainingRun(models[-1], records, models, [f.frame_index for f in frames])
+
+
+def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarray]:
+    """Flat arrays holding ``frames`` (for an ``.npz`` cache); ``proposals_from_arrays`` inverts it."""
+    out: dict[str, np.ndarray] = {"frame_indices": np.array([f.frame_index for f in frames], np.int64)}
+    for k, f in enumerate(frames):
+        sizes = np.array([len(p) for p in f.patch_sets], np.int64)
+        flat = np.array([i for p in f.patch_sets for i in p], np.int64)
+        arrays = {
+            "proposal_boxes": f.proposal_boxes,
+            "patch_set_sizes": sizes,
+            "patch_set_ids": flat,
+            "group_ids": f.groups.group_ids,
+            "representatives": f.groups.representatives,
+            "features": f.groups.features,
+            "descriptors": f.groups.descriptors,
+            "label_boxes": f.label_boxes,
+            "label_class_ids": f.label_class_ids,
+            "annotation_features": f.annotation_features,
+            "annotation_descriptors": f.annotation_descriptors,
+            "annotation_class_ids": f.annotation_class_ids,
+            "annotation_instance_ids": f.annotation_instance_ids,
+        }
+        out |= {f"{k}/{name}": np.asarray(value) for name, value in arrays.items()}
+    return out
+
+
+def proposals_from_arrays(arrays: Mapping[str, np.ndarray]) -> list[FrameProposals]:
+    """The frames stored by ``proposals_to_arrays``."""
+    frames = []
+    for k, index in enumerate(np.asarray(arrays["frame_indices"]).tolist()):
+        a = {name.split("/", 1)[1]: v for name, v in arrays.items() if name.startswith(f"{k}/")}
+        bounds = np.concatenate([[0], np.cumsum(a["patch_set_sizes"])])
+        flat = a["patch_set_ids"].tolist()
+        patch_sets = tuple(tuple(flat[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:]))
+        groups = ProposalGroups(a["group_ids"], a["representatives"], a["features"], a["descriptors"])
+        frames.append(
+            FrameProposals(
+                frame_index=int(index),
+                proposal_boxes=a["proposal_boxes"],
+                patch_sets=patch_sets,
+                groups=groups,
+                label_boxes=a["label_boxes"],
+                label_class_ids=a["label_class_ids"],
+                annotation_features=a["annotation_features"],
+                annotation_descriptors=a["annotation_descriptors"],
+                annotation_class_ids=a["annotation_class_ids"],
+                annotation_instance_ids=a["annotation_instance_ids"],
+            )
+        )
+    return frames

@@ -25,6 +25,10 @@ class InputError(ValueError):
     """Bad input data: the message names the file or array and the problem, on one line."""
 
 
+class Cancelled(Exception):  # noqa: N818 - a request, not an error
+    """Raised by long work when its ``should_stop`` callback asked it to stop."""
+
+
 def _frozen(array: np.ndarray) -> np.ndarray:
     """Return ``array`` as a read-only C-contiguous array that nobody else can write to.
 

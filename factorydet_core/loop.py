@@ -1,0 +1,316 @@
+"""The labelling loop: train from a session's corrected labels and review verdicts, compare the
+model before and after, and a simulated reviewer that answers the review queue from the
+simulator's hidden truth (for ``factorydet bench hitl`` only; the app never calls it).
+
+The loop, as the app and ``factorydet loop`` run it:
+
+1. ``train_session(..., mode="full")`` trains from the session's labels with blind hard-negative
+   mining (the paper's procedure) and mines one more batch after the last round. Every mined
+   negative goes to the review queue of that run.
+2. People review the queue (``SessionDB.review``): background, object of class C, wrong box, skip.
+3. ``train_session(..., mode="next")`` refits on the corrected labels. Its background set is the
+   random first sample, every negative mined so far except those reviewed as real objects, and
+   the confirmed background. It then mines the next queue.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from .boxes import box_iou_3d
+from .classifier import ProposalClassifier
+from .dataset import Dataset
+from .detector import Detector
+from .model import DetectionModel
+from .session import SessionDB, read_cache, write_cache
+from .training import (
+    FrameProposals,
+    Progress,
+    TrainingRun,
+    collect_proposals,
+    proposals_from_arrays,
+    proposals_to_arrays,
+    train_with_mining,
+)
+from .types import InputError
+
+MODES = ("full", "next")
+_CACHE_FORMAT = 1  # bump when FrameProposals or the front half's output changes meaning
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopSettings:
+    """How the loop trains: the classifier and the mining settings (``train_with_mining``)."""
+
+    width: float = 0.0625
+    epochs: int = 20
+    class_weight: str | None = "balanced"
+    rounds: int = 2
+    """Mining rounds of a full retrain (a 'next' round is always one fit)."""
+    negatives_per_round: int = 500
+    initial_negatives: int = 2000
+    positive_iou: float = 0.6
+    score_threshold: float = 0.5
+    nms_iou: float = 0.25
+    seed: int = 0
+    num_threads: int | None = None
+
+    def classifier(self, class_names: Sequence[str]) -> ProposalClassifier:
+        return ProposalClassifier(
+            class_names=tuple(class_names),
+            width=self.width,
+            epochs=self.epochs,
+            class_weight=self.class_weight,
+            seed=self.seed,
+            num_threads=self.num_threads,
+        )
+
+
+def proposals_cache_key(dataset: Dataset, detector: Detector) -> str:
+    """Names the cached proposals of a data set under a front half's settings and calibration."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps([_CACHE_FORMAT, dataset.content_hash()]).encode())
+    digest.update(json.dumps(dataclasses.asdict(detector.params), sort_keys=True, default=str).encode())
+    if detector.T_vehicle_sensor is not None:
+        digest.update(np.round(detector.T_vehicle_sensor, 6).tobytes())
+    return f"proposals_{digest.hexdigest()[:16]}"
+
+
+def cached_proposals(
+    db: SessionDB,
+    dataset: Dataset,
+    detector: Detector,
+    frame_indices: Sequence[int],
+    progress: Progress | None = None,
+) -> list[FrameProposals]:
+    """``collect_proposals`` through the session's ``cache/``: frames proposed before under the same
+    settings are read back, the others proposed and added."""
+    key = proposals_cache_key(dataset, detector)
+    arrays = read_cache(db.session, key)
+    cached = {f.frame_index: f for f in proposals_from_arrays(arrays)} if arrays else {}
+    missing = [int(i) for i in frame_indices if int(i) not in cached]
+    if missing:
+        for frame in collect_proposals(dataset, missing, detector, progress):
+            cached[frame.frame_index] = frame
+        write_cache(db.session, key, proposals_to_arrays([cached[i] for i in sorted(cached)]))
+    return [cached[int(i)] for i in frame_indices]
+
+
+def session_references(
+    db: SessionDB, frame_indices: Sequence[int]
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Frame index -> (boxes (R, 7), class_ids (R,)) of the session's current labels."""
+    out = {}
+    for index in frame_indices:
+        boxes, class_ids, _ = db.frame_boxes(index)
+        out[int(index)] = (boxes, class_ids)
+    return out
+
+
+def with_session_labels(db: SessionDB, frames: Sequence[FrameProposals]) -> list[FrameProposals]:
+    """The frames with the session's labels in place of the data set's annotations."""
+    names = db.class_names
+    out = []
+    for frame in frames:
+        labels = db.labels(frame.frame_index)
+        instance_classes = {
+            int(lab.instance_id): names.index(lab.class_name)
+            for lab in labels
+            if lab.origin == "dataset" and lab.instance_id is not None
+        }
+        out.append(
+            frame.with_labels(
+                np.array([lab.box for lab in labels]).reshape(-1, 7),
+                np.array([names.index(lab.class_name) for lab in labels], np.int64),
+                instance_classes,
+            )
+        )
+    return out
+
+
+def _merge(*maps: dict[int, list]) -> dict[int, list]:
+    out: dict[int, list] = {}
+    for m in maps:
+        for index, items in m.items():
+            out.setdefault(index, []).extend(items)
+    return out
+
+
+def train_session(
+    db: SessionDB,
+    frames: Sequence[FrameProposals],
+    settings: LoopSettings,
+    *,
+    mode: str = "next",
+    data_ref: str = "",
+    front_end: dict | None = None,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> tuple[int, TrainingRun]:
+    """Train on the session's labels and verdicts, store the run, and mine its review queue.
+
+    Args:
+        frames: the training frames' proposals (``cached_proposals``), with any labels: the
+            session's replace them.
+        mode: 'full' retrains from scratch with ``settings.rounds`` blind mining rounds; 'next'
+            runs one more round on top of everything mined and reviewed so far.
+        front_end: the front half's settings note stored with the models.
+        should_stop: cancels the run (``types.Cancelled``); nothing is stored then.
+
+    Returns:
+        ``(run_id, run)``.
+    """
+    if mode not in MODES:
+        raise InputError(f"unknown training mode {mode!r}; choose from {', '.join(MODES)}")
+    if not frames:
+        raise InputError("no training frames")
+    frame_indices = [f.frame_index for f in frames]
+    snapshot_id = db.snapshot_labels(frame_indices)
+    labelled = with_session_labels(db, frames)
+    reviewed = db.reviewed_patch_sets()
+    excluded = _merge(reviewed["object"], reviewed["wrong_box"])
+    if mode == "next":
+        background = _merge(db.mined_patch_sets(), reviewed["background"])
+        rounds = 0
+    else:
+        background = reviewed["background"]
+        rounds = settings.rounds
+    run = train_with_mining(
+        labelled,
+        settings.classifier(db.class_names),
+        rounds=rounds,
+        negatives_per_round=settings.negatives_per_round,
+        initial_negatives=settings.initial_negatives,
+        positive_iou=settings.positive_iou,
+        score_threshold=settings.score_threshold,
+        nms_iou=settings.nms_iou,
+        seed=settings.seed,
+        progress=progress,
+        background_sets=background,
+        excluded_sets=excluded,
+        mine_after_last=True,
+        should_stop=should_stop,
+    )
+    for model in run.models:
+        model.front_end = front_end
+    config = {"mode": mode, "settings": dataclasses.asdict(settings), "front_end": front_end}
+    run_id = db.save_training_run(run, data_ref, config, kind=mode, snapshot_id=snapshot_id)
+    return run_id, run
+
+
+def compare_models(
+    models: dict[str, DetectionModel],
+    dataset: Dataset,
+    frames: Sequence[FrameProposals],
+    references: dict[int, tuple[np.ndarray, np.ndarray]],
+    iou_threshold: float = 0.6,
+) -> dict:
+    """Precision, recall and F-score per class and in total of each model on the same frames and
+    references (the app's before/after table)."""
+    from .results import measure
+
+    out = {}
+    for name, model in models.items():
+        metrics = measure(model, dataset, list(frames), iou_threshold=iou_threshold, references=references)
+        out[name] = {
+            "per_class": {
+                k: {m: v[m] for m in ("precision", "recall", "f1", "num_reference")}
+                for k, v in metrics["per_class"].items()
+            },
+            "precision": metrics["precision"],
+            "recall": metrics["recall"],
+            "f1": metrics["f1"],
+        }
+    return out
+
+
+def comparison_markdown(table: dict) -> str:
+    """A before/after table: one row per class, F-score (precision / recall) per model."""
+    names = list(table)
+    if not names:
+        return "_no models to compare_"
+    classes = list(table[names[0]]["per_class"])
+    head = "| class | " + " | ".join(names) + " |\n|---|" + "---|" * len(names) + "\n"
+
+    def cell(m: dict) -> str:
+        return f"{m['f1']:.3f} ({m['precision']:.2f} / {m['recall']:.2f})"
+
+    rows = [
+        f"| {c} | " + " | ".join(cell(table[n]["per_class"][c]) for n in names) + " |"
+        for c in classes
+        if any(table[n]["per_class"][c]["num_reference"] for n in names)
+    ]
+    rows.append("| **total** | " + " | ".join(cell(table[n]) for n in names) + " |")
+    return (
+        head + "\n".join(rows) + "\n\nF-score (precision / recall) at IoU 0.6 against the session's labels."
+    )
+
+
+# --- The simulated reviewer (benchmarks only) -----------------------------------------------------
+
+
+def truth_verdict(
+    dataset: Dataset, item: dict, positive_iou: float = 0.6, object_overlap: float = 0.1
+) -> tuple[str, str | None, np.ndarray | None]:
+    """What a careful person would answer for a mined negative, read from the simulator's truth.
+
+    Returns:
+        ``(verdict, class_name, true_box)``: 'object' with the class when the mined box matches a
+        real object at ``positive_iou``; 'wrong_box' with the object's class and true box when it
+        overlaps one by at least ``object_overlap`` IoU; else 'background'.
+    """
+    from .sim.truth import read_frame_truth
+
+    truth = read_frame_truth(dataset.path, item["frame_index"])
+    real = truth.instance_class_ids >= 0
+    if not real.any():
+        return "background", None, None
+    boxes, classes = truth.instance_boxes[real], truth.instance_class_ids[real]
+    iou = box_iou_3d(np.asarray([item["box"]], np.float64), boxes)[0]
+    best = int(iou.argmax())
+    name = dataset.class_names[int(classes[best])]
+    if iou[best] >= positive_iou:
+        return "object", name, boxes[best]
+    if iou[best] >= object_overlap:
+        return "wrong_box", name, boxes[best]
+    return "background", None, None
+
+
+def simulated_review(
+    db: SessionDB,
+    dataset: Dataset,
+    budget: int,
+    author: str = "simulated-reviewer",
+    positive_iou: float = 0.6,
+) -> dict:
+    """Answer the top ``budget`` pending items of the latest run's queue from the truth, one
+    ``SessionDB.review`` call per item, as the review panel's buttons make them. A 'wrong box' is
+    followed by the box a person would draw (``SessionDB.add_label``), unless a label already
+    covers the object.
+
+    Returns:
+        Counts per verdict and the number of boxes drawn.
+    """
+    counts = {"background": 0, "object": 0, "wrong_box": 0, "boxes_drawn": 0}
+    for item in db.review_queue(pending_only=True)[:budget]:
+        verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)
+        db.review(
+            [item["id"]],
+            verdict,
+            author,
+            class_name=class_name if verdict == "object" else None,
+            expected={item["id"]: item["verdict"]},
+        )
+        counts[verdict] += 1
+        if verdict == "wrong_box":
+            boxes, _, _ = db.frame_boxes(item["frame_index"])
+            covered = len(boxes) and box_iou_3d(true_box[None], boxes).max() >= positive_iou
+            if not covered:
+                db.add_label(item["frame_index"], true_box, class_name, author)
+                counts["boxes_drawn"] += 1
+    return counts

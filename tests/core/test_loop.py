@@ -1,0 +1,137 @@
+"""The labelling loop: training from a session's labels and verdicts, the proposal cache, the
+before/after comparison, and the simulated reviewer."""
+
+import numpy as np
+import pytest
+
+from factorydet_core.dataset import open_dataset
+from factorydet_core.detector import Detector
+from factorydet_core.loop import (
+    LoopSettings,
+    cached_proposals,
+    compare_models,
+    comparison_markdown,
+    proposals_cache_key,
+    session_references,
+    simulated_review,
+    train_session,
+    truth_verdict,
+    with_session_labels,
+)
+from factorydet_core.session import SessionDB, open_session
+from factorydet_core.sim.truth import read_frame_truth
+from factorydet_core.types import Cancelled
+
+SETTINGS = LoopSettings(epochs=2, rounds=1, negatives_per_round=30, initial_negatives=120, score_threshold=0.05)
+
+
+@pytest.fixture(scope="module")
+def dataset(small_dataset_dir):
+    return open_dataset(small_dataset_dir)
+
+
+@pytest.fixture(scope="module")
+def detector():
+    return Detector("agv")
+
+
+@pytest.fixture(scope="module")
+def db(tmp_path_factory, dataset):
+    return SessionDB(open_session("loop", tmp_path_factory.mktemp("sessions")), dataset)
+
+
+@pytest.fixture(scope="module")
+def frames(db, dataset, detector):
+    return cached_proposals(db, dataset, detector, [0, 1])
+
+
+def test_proposals_are_cached_and_read_back_equal(db, dataset, detector, frames, monkeypatch):
+    key = proposals_cache_key(dataset, detector)
+    assert (db.session.cache_dir / f"{key}.npz").is_file()
+    # A second call reads the cache: proposing again would fail.
+    monkeypatch.setattr("factorydet_core.loop.collect_proposals", lambda *a, **k: pytest.fail("re-proposed"))
+    again = cached_proposals(db, dataset, detector, [1, 0])
+    assert [f.frame_index for f in again] == [1, 0]
+    for a, b in zip(frames, again[::-1]):
+        assert a.patch_sets == b.patch_sets
+        np.testing.assert_array_equal(a.groups.features, b.groups.features)
+        np.testing.assert_array_equal(a.annotation_instance_ids, b.annotation_instance_ids)
+    # Other front-half settings are another cache entry.
+    other = Detector(detector.params.replace(voxel_size_m=0.3))
+    assert proposals_cache_key(dataset, other) != key
+
+
+def test_session_labels_replace_the_annotations(db, frames):
+    frame = frames[0]
+    labels = db.labels(0)
+    db.update_label(labels[0].id, "ann", class_name="truck")
+    db.delete_labels([labels[1].id], "ann")
+    (relabelled,) = with_session_labels(db, [frame])
+    assert len(relabelled.label_boxes) == len(frame.label_boxes) - 1
+    truck = db.class_names.index("truck")
+    assert relabelled.label_class_ids[0] == truck
+    # The deleted instance's own points are no longer a positive; the renamed one's are a truck.
+    kept = dict(zip(relabelled.annotation_instance_ids.tolist(), relabelled.annotation_class_ids.tolist()))
+    assert labels[1].instance_id not in kept
+    if labels[0].instance_id in kept:
+        assert kept[labels[0].instance_id] == truck
+    db.undo("ann")
+    db.undo("ann")
+    assert len(with_session_labels(db, [frame])[0].label_boxes) == len(frame.label_boxes)
+
+
+def test_full_run_then_review_then_next_round(db, dataset, frames):
+    run_id, run = train_session(db, frames, SETTINGS, mode="full", data_ref="small")
+    assert [r["round"] for r in run.rounds] == [0, 1]
+    queue = db.review_queue()
+    mined_total = sum(len(r["mined"]) for r in run.rounds)
+    assert len(queue) == mined_total > 0 and all(item["run_id"] == run_id for item in queue)
+    assert db.training_runs()[-1]["kind"] == "full"
+    assert db.training_runs()[-1]["snapshot_id"] is not None
+
+    counts = simulated_review(db, dataset, budget=10)
+    assert counts["background"] + counts["object"] + counts["wrong_box"] == min(10, len(queue))
+    progress = db.review_progress(run_id)
+    assert progress["reviewed"] == min(10, len(queue))
+    # Every verdict agrees with the truth it was read from.
+    for item in db.review_queue(run_id):
+        if item["verdict"] is not None:
+            assert truth_verdict(dataset, item)[0] == item["verdict"]
+
+    confirmed = db.reviewed_patch_sets()["background"]
+    next_id, next_run = train_session(db, frames, SETTINGS, mode="next", data_ref="small")
+    assert next_id == run_id + 1 and len(next_run.rounds) == 1
+    # The next fit's background holds every earlier mined negative not reviewed as an object.
+    assert next_run.rounds[0]["num_background"] >= SETTINGS.initial_negatives
+    new_queue = db.review_queue()
+    mined_before = {(i["frame_index"], tuple(i["patch_set"])) for i in queue}
+    assert all((i["frame_index"], tuple(i["patch_set"])) not in mined_before for i in new_queue)
+    assert all(
+        (index, tuple(p)) in mined_before for index, sets in confirmed.items() for p in sets
+    )
+
+    references = session_references(db, [0, 1])
+    table = compare_models({"before": run.model, "after": next_run.model}, dataset, frames, references)
+    assert set(table) == {"before", "after"}
+    assert 0 <= table["after"]["f1"] <= 1
+    assert "| **total** |" in comparison_markdown(table)
+
+
+def test_a_cancelled_run_stores_nothing(db, frames):
+    runs_before = len(db.training_runs())
+    with pytest.raises(Cancelled):
+        train_session(db, frames, SETTINGS, mode="next", should_stop=lambda: True)
+    assert len(db.training_runs()) == runs_before
+
+
+def test_truth_verdicts(dataset):
+    truth = read_frame_truth(dataset.path, 0)
+    real = np.flatnonzero(truth.instance_class_ids >= 0)[0]
+    box = truth.instance_boxes[real]
+    item = {"frame_index": 0, "box": box.tolist()}
+    verdict, name, _ = truth_verdict(dataset, item)
+    assert verdict == "object" and name == dataset.class_names[truth.instance_class_ids[real]]
+    shifted = {"frame_index": 0, "box": (box + [box[3] * 0.6, 0, 0, 0, 0, 0, 0]).tolist()}
+    assert truth_verdict(dataset, shifted)[0] == "wrong_box"
+    far = {"frame_index": 0, "box": [500.0, 500.0, 0.5, 1, 1, 1, 0]}
+    assert truth_verdict(dataset, far) == ("background", None, None)
