@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import getpass
 import json
 import sys
 from collections.abc import Callable
@@ -233,6 +235,17 @@ def parse_floats(text: str, option: str) -> list[float]:
         raise InputError(f"{option} expects comma-separated numbers, got {text!r}") from None
 
 
+def parse_ints(text: str, option: str = "--ids") -> list[int]:
+    """``"3,4"`` -> ``[3, 4]``; anything else is an input error naming the option."""
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"{option} expects comma-separated integers, got {text!r}") from None
+    if not values:
+        raise InputError(f"{option} is empty")
+    return values
+
+
 def _front_end_note(preset: str, overrides: dict) -> dict:
     return {
         "preset": preset,
@@ -240,51 +253,76 @@ def _front_end_note(preset: str, overrides: dict) -> dict:
     }
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
-    from .classifier import ProposalClassifier
+def _open_session_db(args: argparse.Namespace):
+    """The session's database and data set: ``args.data`` if given, else the data set the session
+    was made on."""
     from .dataset import open_dataset
-    from .detector import PRESETS, Detector
-    from .session import open_session, save_training_run
-    from .training import collect_proposals, train_with_mining
+    from .session import SessionDB, open_session
 
-    dataset = open_dataset(args.data)
     session = open_session(args.session, args.root)
-    preset = args.preset or ("agv" if dataset.num_sensors > 1 else "indoor")
+    data = getattr(args, "data", None)
+    if data is None:
+        if session.has_data:
+            data = session.data_dir
+        elif session.db_path.is_file():
+            data = SessionDB(session).meta().get("data")
+        if data is None:
+            raise InputError(f"session {args.session!r} has no data set; pass --data DIR")
+    dataset = open_dataset(data)
+    return SessionDB(session, dataset), dataset
+
+
+def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], None]]:
+    bars: dict = {}
+
+    def progress(what: str, done: int, total: int) -> None:
+        if what in ("fit", "proposals"):
+            if what not in bars:
+                bars[what] = progress_bar(
+                    "training" if what == "fit" else "proposals", "epoch" if what == "fit" else "frame"
+                )
+            bars[what][0](done, total)
+            if done == total:
+                bars.pop(what)[1]()
+        elif what == "round":
+            print(f"round {done - 1} of {total - 1} done", file=sys.stderr)
+
+    def close() -> None:
+        for _, finish in bars.values():
+            finish()
+
+    return progress, close
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .detector import PRESETS, Detector
+    from .loop import LoopSettings, cached_proposals, compare_models, session_references, train_session
+    from .model import DetectionModel
+
+    db, dataset = _open_session_db(args)
+    runs = db.training_runs()
+    previous = runs[-1] if runs else None
+    if args.mode == "next" and previous is None:
+        raise InputError(f"session {args.session!r} has no training run to continue; use --mode full")
+    if args.mode == "next" and args.preset is None and not args.set:
+        front_end = previous["config"].get("front_end") or {}  # the same cut, so patch sets compare
+        preset, overrides = front_end.get("preset"), front_end.get("overrides", {})
+    else:
+        preset, overrides = args.preset, parse_overrides(args.set)
+    preset = preset or ("agv" if dataset.num_sensors > 1 else "indoor")
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    overrides = parse_overrides(args.set)
     detector = Detector(PRESETS[preset].replace(**overrides))
     train = dataset.splits.get("train") or list(range(dataset.num_frames))
     train = train[: args.frames] if args.frames else train
     if args.calibrate and dataset.num_sensors > 1:
         print("calibrating the extrinsics by ICP ...", file=sys.stderr)
         detector.calibrate(dataset.frame(train[0]))
-    update, close = progress_bar("proposals")
-    try:
-        frames = collect_proposals(dataset, train, detector, lambda _, d, n: update(d, n))
-    finally:
-        close()
-    classifier = ProposalClassifier(
+    progress, close = _training_progress()
+    settings = LoopSettings(
         width=args.width,
         epochs=args.epochs,
         class_weight=None if args.class_weight == "none" else args.class_weight,
-        seed=args.seed,
-    )
-    bars: dict = {}
-
-    def progress(what: str, done: int, total: int) -> None:
-        if what == "fit":
-            if "fit" not in bars:
-                bars["fit"] = progress_bar("training", unit="epoch")
-            bars["fit"][0](done, total)
-            if done == total:
-                bars.pop("fit")[1]()
-        elif what == "round":
-            print(f"round {done - 1} of {total - 1} done", file=sys.stderr)
-
-    run = train_with_mining(
-        frames,
-        classifier,
         rounds=args.rounds,
         negatives_per_round=args.negatives,
         initial_negatives=args.initial_negatives,
@@ -292,42 +330,99 @@ def _cmd_train(args: argparse.Namespace) -> int:
         score_threshold=args.score_threshold,
         nms_iou=args.nms_iou,
         seed=args.seed,
-        progress=progress,
     )
-    run.model.front_end = _front_end_note(preset, overrides)
-    for model in run.models:
-        model.front_end = run.model.front_end
-    config = {
-        "classifier": classifier.get_params() | {"class_names": list(classifier.class_names)},
-        "rounds": args.rounds,
-        "negatives_per_round": args.negatives,
-        "initial_negatives": args.initial_negatives,
-        "positive_iou": args.positive_iou,
-        "front_end": run.model.front_end,
-        "command": "factorydet " + " ".join(sys.argv[1:]),
-    }
-    run_id = save_training_run(session, run, str(args.data), config)
-    summary = {
-        "session": session.name,
-        "run_id": run_id,
-        "train_frames": run.train_frames,
-        "rounds": [
-            {
-                k: r[k]
-                for k in ("round", "num_positives", "num_background", "fit_seconds", "num_false_positives")
-                if k in r
+    front_end = _front_end_note(preset, overrides)
+    try:
+        frames = cached_proposals(db, dataset, detector, train, progress)
+        run_id, run = train_session(
+            db, frames, settings, mode=args.mode, data_ref=str(dataset.path), front_end=front_end,
+            progress=progress,
+        )  # fmt: skip
+        summary = {
+            "session": db.session.name,
+            "run_id": run_id,
+            "mode": args.mode,
+            "train_frames": run.train_frames,
+            "rounds": [
+                {
+                    k: r[k]
+                    for k in (
+                        "round",
+                        "num_positives",
+                        "num_background",
+                        "fit_seconds",
+                        "num_false_positives",
+                    )
+                    if k in r
+                }
+                | {"train_f1": r["train_metrics"]["f1"], "num_mined": len(r["mined"])}
+                for r in run.rounds
+            ],
+            "review_queue": len(db.review_queue(run_id)),
+            "model": str(db.session.models_dir / f"run_{run_id:03d}" / "final.pt"),
+        }
+        if args.compare:
+            test = dataset.splits.get("test") or []
+            test = test[: args.test_frames] if args.test_frames else test
+            if not test:
+                raise InputError("--compare needs test frames (the data set has no test split)")
+            test_frames = cached_proposals(db, dataset, detector, test, progress)
+            models = {f"run {run_id}": run.model}
+            if previous is not None:
+                models = {
+                    f"run {previous['id']}": DetectionModel.load(db.session.path / previous["model_path"])
+                } | models
+            table = compare_models(models, dataset, test_frames, session_references(db, test))
+            db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
+            summary["compare"] = {
+                name: {k: m[k] for k in ("precision", "recall", "f1")} for name, m in table.items()
             }
-            | {"train_f1": r["train_metrics"]["f1"], "num_mined": len(r["mined"])}
-            for r in run.rounds
-        ],
-        "model": str(session.models_dir / f"run_{run_id:03d}" / "final.pt"),
-    }
+    finally:
+        close()
     if args.export:
+        config = {"settings": dataclasses.asdict(settings), "front_end": front_end}
         run.model.save(
-            args.export, {"data": str(args.data), "train_frames": run.train_frames, "config": config}
+            args.export, {"data": str(dataset.path), "train_frames": run.train_frames, "config": config}
         )
         summary["exported"] = args.export
     print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _cmd_queue(args: argparse.Namespace) -> int:
+    db, _ = _open_session_db(args)
+    queue = db.review_queue(
+        args.run, predicted_class=args.class_name, frame_index=args.frame, pending_only=args.pending
+    )
+    progress = db.review_progress(args.run)
+    if args.json:
+        print(json.dumps({"progress": progress, "items": queue[: args.limit or None]}, indent=2))
+        return 0
+    counts = ", ".join(f"{v.replace('_', ' ')} {progress[v]}" for v in ("background", "object", "wrong_box"))
+    print(f"{progress['reviewed']} of {progress['total']} reviewed ({counts})")
+    for item in queue[: args.limit or None]:
+        verdict = item["verdict"] or "-"
+        if item["verdict_class"]:
+            verdict += f" ({item['verdict_class']})"
+        print(f"{item['id']:6d}  frame {item['frame_index']:3d}  {item['predicted_class']:8s} "
+              f"{item['score']:.3f}  {verdict}")  # fmt: skip
+    return 0
+
+
+def _cmd_review(args: argparse.Namespace) -> int:
+    db, _ = _open_session_db(args)
+    edit_id = db.review(parse_ints(args.ids), args.verdict, args.author, class_name=args.class_name)
+    print(json.dumps({"edit": edit_id, "progress": db.review_progress()}))
+    return 0
+
+
+def _cmd_undo(args: argparse.Namespace) -> int:
+    db, _ = _open_session_db(args)
+    edit = db.redo(args.author) if args.redo else db.undo(args.author)
+    if edit is None:
+        print(f"nothing to {'redo' if args.redo else 'undo'} for {args.author}")
+        return 1
+    print(f"{'redid' if args.redo else 'undid'} edit {edit.id}: {edit.summary}")
     return 0
 
 
@@ -485,15 +580,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--limit", type=int, default=20, help="rows of the text listing")
     p.set_defaults(func=_cmd_propose)
 
-    p = sub.add_parser("train", help="train the classifier with hard-negative mining into a session")
-    p.add_argument("data", help="a data set folder (its train split is used)")
-    p.add_argument("--session", required=True, help="session to write models and the record into")
+    p = sub.add_parser(
+        "train",
+        help="train the classifier into a session: a full run with blind hard-negative mining, or the"
+        " next round on the session's corrected labels and review verdicts",
+    )
+    p.add_argument("data", nargs="?", default=None, help="data set folder (default: the session's)")
+    p.add_argument("--session", required=True, help="session to read labels from and write models into")
     p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
+    p.add_argument(
+        "--mode",
+        default="full",
+        choices=["full", "next"],
+        help="full: retrain from scratch with --rounds mining rounds; next: one more round",
+    )
     p.add_argument("--rounds", type=int, default=2, help="hard-negative mining rounds after the first fit")
     p.add_argument("--negatives", type=int, default=500, help="mined negatives added per round (N)")
     p.add_argument("--initial-negatives", type=int, default=2000, help="random background set to start")
     p.add_argument("--width", type=float, default=0.0625, help="3DmFV-Net width (1.0 = the paper's, 46M)")
-    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--class-weight", default="balanced", choices=["balanced", "none"], help="loss weighting")
     p.add_argument("--positive-iou", type=float, default=0.6)
     p.add_argument("--score-threshold", type=float, default=0.5)
@@ -503,8 +608,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a front-half parameter")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="measure the previous and the new model on the test frames against the session's labels",
+    )
+    p.add_argument("--test-frames", type=int, default=None, help="with --compare: the first N test frames")
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     p.set_defaults(func=_cmd_train)
+
+    def session_args(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--session", required=True)
+        p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
+        p.add_argument("--data", default=None, help="data set folder (default: the session's)")
+
+    p = sub.add_parser("queue", help="list the review queue: negatives mined by a run, highest score first")
+    session_args(p)
+    p.add_argument("--run", type=int, default=None, help="training run (default: the latest)")
+    p.add_argument("--class", dest="class_name", default=None, help="only this predicted class")
+    p.add_argument("--frame", type=int, default=None, help="only this frame")
+    p.add_argument("--pending", action="store_true", help="only items without a decided verdict")
+    p.add_argument("--limit", type=int, default=50, help="items to list (0: all)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_cmd_queue)
+
+    p = sub.add_parser("review", help="give a verdict on mined negatives (one undoable edit)")
+    session_args(p)
+    p.add_argument("--ids", required=True, help="comma-separated queue item ids")
+    p.add_argument("--verdict", required=True, choices=["background", "object", "wrong_box", "skip"])
+    p.add_argument("--class", dest="class_name", default=None, help="the object's class (verdict object)")
+    p.add_argument("--author", default=getpass.getuser(), help="who reviews (default: the login name)")
+    p.set_defaults(func=_cmd_review)
+
+    p = sub.add_parser("undo", help="undo (or --redo) an author's latest edit of a session")
+    session_args(p)
+    p.add_argument("--author", default=getpass.getuser())
+    p.add_argument("--redo", action="store_true")
+    p.set_defaults(func=_cmd_undo)
 
     p = sub.add_parser("detect", help="detections of one frame")
     p.add_argument("data")

@@ -118,6 +118,52 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     assert (tmp_path / "pr.png").is_file()
 
 
+def test_the_labelling_loop_from_the_command_line(small_dataset_dir, tmp_path, capsys):
+    root = str(tmp_path / "sessions")
+    common = ["--session", "s", "--root", root]
+    train = ["train", str(small_dataset_dir), *common, "--rounds", "0", "--epochs", "2", "--frames", "2",
+             "--initial-negatives", "150", "--negatives", "20", "--score-threshold", "0.05",
+             "--no-calibrate"]  # fmt: skip
+    assert main(train) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["mode"] == "full" and first["review_queue"] > 0
+
+    assert main(["queue", *common, "--json", "--limit", "0"]) == 0
+    queue = json.loads(capsys.readouterr().out)
+    assert queue["progress"] == {"total": first["review_queue"], "reviewed": 0, "background": 0,
+                                 "object": 0, "wrong_box": 0, "skip": 0}  # fmt: skip
+    scores = [item["score"] for item in queue["items"]]
+    assert scores == sorted(scores, reverse=True)
+    ids = [item["id"] for item in queue["items"][:3]]
+    review = [
+        "review",
+        *common,
+        "--ids",
+        ",".join(map(str, ids[:2])),
+        "--verdict",
+        "background",
+        "--author",
+        "ann",
+    ]
+    assert main(review) == 0
+    assert json.loads(capsys.readouterr().out)["progress"]["background"] == 2
+    assert main(["review", *common, "--ids", str(ids[2]), "--verdict", "object", "--class", "box",
+                 "--author", "ann"]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["undo", *common, "--author", "ann"]) == 0
+    assert "review 1 mined negative(s) as object (box)" in capsys.readouterr().out
+    assert main(["undo", *common, "--author", "bob"]) == 1
+    assert main(["review", *common, "--ids", "x", "--verdict", "skip"]) == 2
+    assert main(["review", *common, "--ids", str(ids[0]), "--verdict", "object", "--author", "ann"]) == 2
+    assert "needs a class" in capsys.readouterr().err
+
+    assert main([*train, "--mode", "next", "--compare", "--test-frames", "1"]) == 0
+    second = json.loads(capsys.readouterr().out)
+    assert second["run_id"] == 2 and second["mode"] == "next"
+    assert set(second["compare"]) == {"run 1", "run 2"}
+    assert 0 <= second["compare"]["run 2"]["f1"] <= 1
+
+
 def test_detect_without_a_model_is_an_input_error(small_dataset_dir, tmp_path, capsys):
     assert main(["detect", str(small_dataset_dir), "--model", "nosuch", "--root", str(tmp_path)]) == 2
     assert "no trained model" in capsys.readouterr().err

@@ -22,7 +22,9 @@ from factorydet_core.session import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.types import Cancelled
 
-SETTINGS = LoopSettings(epochs=2, rounds=1, negatives_per_round=30, initial_negatives=120, score_threshold=0.05)
+SETTINGS = LoopSettings(
+    epochs=2, rounds=1, negatives_per_round=30, initial_negatives=120, score_threshold=0.05
+)
 
 
 @pytest.fixture(scope="module")
@@ -106,9 +108,7 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     new_queue = db.review_queue()
     mined_before = {(i["frame_index"], tuple(i["patch_set"])) for i in queue}
     assert all((i["frame_index"], tuple(i["patch_set"])) not in mined_before for i in new_queue)
-    assert all(
-        (index, tuple(p)) in mined_before for index, sets in confirmed.items() for p in sets
-    )
+    assert all((index, tuple(p)) in mined_before for index, sets in confirmed.items() for p in sets)
 
     references = session_references(db, [0, 1])
     table = compare_models({"before": run.model, "after": next_run.model}, dataset, frames, references)
