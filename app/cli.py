@@ -7,19 +7,29 @@ import sys
 
 from factorydet_core.cli import build_parser, progress_bar, run
 from factorydet_core.dataset import open_dataset
-from factorydet_core.session import DEMO_SESSION, ensure_demo, open_session
+from factorydet_core.session import DEMO_SESSION, SessionDB, ensure_demo, latest_model, open_session
 from factorydet_core.types import InputError
 
 
 def _cmd_app(args: argparse.Namespace) -> int:
     from .viewer import serve
 
-    if args.data is not None:
+    db = None
+    if args.data is not None and args.session is None:
         dataset = open_dataset(args.data)
         title = dataset.name
+        print("factorydet: no --session given; labels are read-only", file=sys.stderr)
+    elif args.data is not None:
+        dataset = open_dataset(args.data)
+        db = SessionDB(open_session(args.session, args.root), dataset)
+        title = f"session {args.session}"
     else:
+        args.session = args.session or DEMO_SESSION
         session = open_session(args.session, args.root)
-        if not session.has_data:
+        recorded = SessionDB(session).meta().get("data") if session.db_path.is_file() else None
+        if not session.has_data and recorded is not None:
+            dataset = open_dataset(recorded)  # a session made on a data set outside its folder
+        elif not session.has_data:
             if args.session != DEMO_SESSION:
                 raise InputError(f"session {args.session!r} has no data set; pass --data DIR or FILE")
             update, close = progress_bar("building demo")
@@ -27,7 +37,9 @@ def _cmd_app(args: argparse.Namespace) -> int:
                 ensure_demo(args.root, update)
             finally:
                 close()
-        dataset = open_dataset(session.data_dir)
+        if session.has_data:
+            dataset = open_dataset(session.data_dir)
+        db = SessionDB(session, dataset)
         title = f"session {session.name}"
     from factorydet_core.model import DEFAULT_MODEL, DetectionModel
     from factorydet_core.results import resolve_model
@@ -40,7 +52,11 @@ def _cmd_app(args: argparse.Namespace) -> int:
     elif args.model != "none":
         path = resolve_model(args.model, args.root)
         model, model_name = DetectionModel.load(path), str(path)
-    serve(dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name)
+    if db is not None and args.model == "default":
+        latest = latest_model(db.session)
+        if latest is not None:  # the session's own latest model beats the shipped one
+            model, model_name = DetectionModel.load(latest), f"session run {db.latest_run_id()}"
+    serve(dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name, db=db)
     return 0
 
 
@@ -48,8 +64,16 @@ def build_app_parser() -> argparse.ArgumentParser:
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     p = sub.add_parser("app", help="serve the browser app")
-    p.add_argument("--session", default=DEMO_SESSION, help="session under --root (default: demo)")
-    p.add_argument("--data", default=None, help="data set folder or point-cloud file to open instead")
+    p.add_argument(
+        "--session",
+        default=None,
+        help="session under --root (default: demo); with --data, the session to label that data set in",
+    )
+    p.add_argument(
+        "--data",
+        default=None,
+        help="data set folder or point-cloud file (read-only unless --session is given)",
+    )
     p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
     p.add_argument("--host", default="127.0.0.1", help="bind address; viser has no authentication")
     p.add_argument("--port", type=int, default=8080)

@@ -12,7 +12,7 @@ from factorydet_core import colors
 from factorydet_core.detector import ProposalResult
 from factorydet_core.evaluation import match_detections
 from factorydet_core.geometry import box_wireframe_segments
-from factorydet_core.types import BoxLabels, Detections
+from factorydet_core.types import Detections
 from factorydet_core.voxels import fisher_vector_colors
 
 from .state import LAYERS
@@ -140,11 +140,11 @@ class LayerView:
         visible: bool,
         show_suppressed: bool,
         color_by_match: bool,
-        labels: BoxLabels | None,
+        labels: tuple[np.ndarray, np.ndarray] | None,
     ) -> None:
         """Replace the detection boxes: kept ones coloured by class (or by match against
-        ``labels``: true positive, false positive, missed annotation), with a class-and-score label;
-        suppressed ones grey when asked."""
+        ``labels``, ``(boxes (R, 7), class_ids (R,))``: true positive, false positive, missed
+        label), with a class-and-score label; suppressed ones grey when asked."""
         with self.server.atomic():
             for node in self.detection_nodes:
                 node.remove()
@@ -157,12 +157,13 @@ class LayerView:
             rgb = colors.class_colors(detections.class_names)[detections.class_ids[kept]]
             missed = np.zeros((0, 7))
             if color_by_match and labels is not None:
+                label_boxes, label_class_ids = labels
                 tp, matched = match_detections(
                     detections.boxes[kept], detections.class_ids[kept], detections.scores[kept],
-                    labels.boxes, labels.class_ids, 0.6,
+                    label_boxes, label_class_ids, 0.6,
                 )  # fmt: skip
                 rgb = np.where(tp[:, None], MATCH_RGB["tp"], MATCH_RGB["fp"])
-                missed = labels.boxes[np.setdiff1d(np.arange(len(labels)), matched[matched >= 0])]
+                missed = label_boxes[np.setdiff1d(np.arange(len(label_boxes)), matched[matched >= 0])]
             self._add_boxes("/pipeline/detections", detections.boxes[kept], rgb, 3.0)
             for n, k in enumerate(kept[:MAX_LABELS]):
                 box = detections.boxes[k]

@@ -33,54 +33,58 @@ class SceneView:
         self.server = server
         self._cloud: viser.PointCloudHandle | None = None
         self._label_nodes: list = []
+        self.points = np.zeros((0, 3))  # the shown scan, for per-client overlays
+        self.colors = np.zeros((0, 3), np.uint8)
         server.scene.set_up_direction("+z")
         # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
         # wireframes and points.
         server.scene.configure_environment_map(None)
         server.scene.add_grid("/grid", width=60.0, height=60.0, cell_size=1.0, section_size=5.0, plane="xy")
 
-    def draw(
-        self, frame: Frame, *, color_mode: str, point_size: float, show_boxes: bool, max_height: float
-    ) -> None:
-        """Replace the shown scan and boxes with ``frame``'s, points above ``max_height`` hidden."""
+    def draw(self, frame: Frame, *, color_mode: str, point_size: float, max_height: float) -> None:
+        """Replace the shown scan with ``frame``'s, points above ``max_height`` hidden."""
         merged = merge_frame(frame)
         rgb = point_colors(frame, merged.points[:, 2], color_mode)
         keep = merged.below(max_height)
         merged, rgb = merged.select(keep), rgb[keep]
+        self.points, self.colors = merged.points, rgb
+        self._cloud = self.server.scene.add_point_cloud(
+            "/scan",
+            points=merged.points,
+            colors=rgb,
+            point_size=point_size,
+            point_shape="square",
+            precision="float32",
+        )
+
+    def draw_labels(
+        self, boxes: np.ndarray, class_ids: np.ndarray, class_names: tuple[str, ...], visible: bool
+    ) -> None:
+        """Replace the label boxes (wireframes in the class colour, with the class name on top)."""
         with self.server.atomic():
-            self._cloud = self.server.scene.add_point_cloud(
-                "/scan",
-                points=merged.points,
-                colors=rgb,
-                point_size=point_size,
-                point_shape="square",
-                precision="float32",
-            )
             for node in self._label_nodes:
                 node.remove()
             self._label_nodes = []
-            labels = frame.labels
-            if show_boxes and len(labels):
-                class_rgb = colors.class_colors(frame.class_names)[labels.class_ids]
-                segments = box_wireframe_segments(labels.boxes)
+            if not visible or not len(boxes):
+                return
+            class_rgb = colors.class_colors(class_names)[class_ids]
+            segments = box_wireframe_segments(boxes)
+            self._label_nodes.append(
+                self.server.scene.add_line_segments(
+                    "/labels/boxes",
+                    points=segments.astype(np.float32),
+                    colors=np.repeat(class_rgb, 12, axis=0)[:, None].repeat(2, axis=1),
+                    thickness=2.0,
+                    thickness_units="screen",
+                )
+            )
+            tops = boxes[:, :3] + np.c_[np.zeros((len(boxes), 2)), boxes[:, 5] / 2 + 0.1]
+            for i, (top, class_id) in enumerate(zip(tops, class_ids)):
                 self._label_nodes.append(
-                    self.server.scene.add_line_segments(
-                        "/labels/boxes",
-                        points=segments.astype(np.float32),
-                        colors=np.repeat(class_rgb, 12, axis=0)[:, None].repeat(2, axis=1),
-                        thickness=2.0,
-                        thickness_units="screen",
+                    self.server.scene.add_label(
+                        f"/labels/name_{i}", text=class_names[class_id], position=tuple(top.tolist())
                     )
                 )
-                tops = labels.boxes[:, :3] + np.c_[np.zeros((len(labels), 2)), labels.boxes[:, 5] / 2 + 0.1]
-                for i, (top, class_id) in enumerate(zip(tops, labels.class_ids)):
-                    self._label_nodes.append(
-                        self.server.scene.add_label(
-                            f"/labels/name_{i}",
-                            text=frame.class_names[class_id],
-                            position=tuple(top.tolist()),
-                        )
-                    )
 
     def set_visible(self, visible: bool) -> None:
         """Show or hide the scan and its boxes."""

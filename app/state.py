@@ -9,6 +9,8 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
+import numpy as np
+
 from factorydet_core.colors import COLOR_MODES
 from factorydet_core.dataset import Dataset
 from factorydet_core.detection import select_detections
@@ -26,8 +28,19 @@ LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals
 class AppState:
     """Which frame is shown and how; listeners run after every change (under no lock)."""
 
-    def __init__(self, dataset: Dataset, title: str | None = None, model=None, model_name: str = "") -> None:
+    def __init__(
+        self, dataset: Dataset, title: str | None = None, model=None, model_name: str = "", db=None
+    ) -> None:
         self.dataset = dataset
+        self.db = db
+        """The session's ``SessionDB``; ``None`` when the app shows a data set without a session
+        (labels then come from the data set and cannot be edited)."""
+        self.revision = 0  # bumped after every write to the session database
+        self.model_revision = 0  # bumped when the shown model changes
+        self.training_busy = False
+        self.training_status = "idle"
+        self.training_progress = 0.0
+        self.training_comparison: dict | None = None  # the last run's before/after table
         self.title = title or dataset.name
         self.lock = threading.RLock()
         self.frame_index = 0
@@ -142,9 +155,73 @@ class AppState:
         self._notify()
 
     def pipeline_key(self) -> tuple:
-        """What the current front-half result must have been computed from."""
+        """What the current result must have been computed from: frame, front-half parameters,
+        extrinsics, and the model."""
         with self.lock:
-            return (self.frame_index, self.params, self.use_refined_extrinsics)
+            return (self.frame_index, self.params, self.use_refined_extrinsics, self.model_revision)
+
+    # -- the session: labels, reviews, training
+
+    @property
+    def editable(self) -> bool:
+        return self.db is not None
+
+    def frame_labels(self, frame_index: int | None = None):
+        """``(boxes (R, 7), class_ids (R,), label_ids (R,))`` of a frame (the shown one by default):
+        the session's labels, or the data set's annotations without a session (ids -1)."""
+        index = self.frame_index if frame_index is None else int(frame_index)
+        if self.db is not None:
+            return self.db.frame_boxes(index)
+        labels = self.dataset.frame(index).labels
+        return np.array(labels.boxes), np.array(labels.class_ids), np.full(len(labels), -1)
+
+    def session_changed(self) -> None:
+        """Something was written to the session database: every view refreshes, and the metrics
+        are recomputed against the corrected labels."""
+        with self.lock:
+            self.revision += 1
+            for index, item in self.frame_detections.items():
+                boxes, class_ids, _ = self.frame_labels(index)
+                item["reference_boxes"], item["reference_class_ids"] = boxes, class_ids
+            self._refilter()
+            self.changed.notify_all()
+        self._notify()
+
+    def set_model(self, model, name: str) -> None:
+        """Show another model's detections (the worker recomputes the shown frame)."""
+        with self.lock:
+            self.model = model
+            self.model_name = name
+            self.model_revision += 1
+            if model is not None:
+                self.score_threshold, self.nms_iou = model.score_threshold, model.nms_iou
+                self.params = params_for(model.front_end, self.dataset.num_sensors)
+            self.detection_result = None
+            self.detections = None
+            self.frame_detections = {}
+            self.metrics = None
+            self.changed.notify_all()
+        self._notify()
+
+    def set_training(
+        self,
+        *,
+        busy: bool | None = None,
+        status: str | None = None,
+        progress: float | None = None,
+        comparison: dict | None = None,
+    ) -> None:
+        with self.lock:
+            if busy is not None:
+                self.training_busy = busy
+            if status is not None:
+                self.training_status = status
+            if progress is not None:
+                self.training_progress = float(progress)
+            if comparison is not None:
+                self.training_comparison = comparison
+            self.changed.notify_all()
+        self._notify()
 
     def set_pipeline_progress(self, status: str, fraction: float, busy: bool = True) -> None:
         with self.lock:
@@ -173,14 +250,14 @@ class AppState:
     def set_detection_result(self, key: tuple, result: DetectionResult, status: str) -> None:
         """A new frame's detections: filter them by the sliders, add the frame to the metrics, and
         make its front half the shown result, all at once."""
-        frame = self.dataset.frame(key[0])
+        boxes, class_ids, _ = self.frame_labels(key[0])
         with self.lock:
             self.detection_result = result
             self.detection_frame_index = key[0]
             self.frame_detections[key[0]] = {
                 "candidates": result.candidates,
-                "reference_boxes": frame.labels.boxes,
-                "reference_class_ids": frame.labels.class_ids,
+                "reference_boxes": boxes,
+                "reference_class_ids": class_ids,
             }
             self._refilter()
             self._set_result(key, result.proposal, status)

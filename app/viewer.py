@@ -8,6 +8,7 @@ import numpy as np
 import viser
 
 from factorydet_core.dataset import Dataset
+from factorydet_core.editing import points_in_screen_rect
 from factorydet_core.inspect import (
     describe_detection,
     describe_patch,
@@ -16,16 +17,24 @@ from factorydet_core.inspect import (
     detection_markdown,
     nearest_point_on_ray,
     ray_box_distances,
+    segment_patch_ids,
 )
+from factorydet_core.loop import LoopSettings
 
+from .clients import ClientView
 from .layers import LayerView
 from .panels.detections_panel import build_detections_panel
 from .panels.display_panel import build_display_panel
 from .panels.frame_panel import build_frame_panel
+from .panels.help_panel import build_help_panel, register_hotkeys
+from .panels.labels_panel import build_labels_panel
 from .panels.metrics_panel import build_metrics_panel
 from .panels.pipeline_panel import build_pipeline_panel
+from .panels.review_panel import build_review_panel
+from .panels.training_panel import build_training_panel
 from .scene import SceneView
 from .state import AppState
+from .trainer import TrainingWorker
 from .worker import PipelineWorker
 
 
@@ -39,6 +48,9 @@ class FactorydetApp:
         calibrate: refine the sensor extrinsics by ICP (once, in the background) for multi-sensor data.
         model: a ``DetectionModel``; without one the app shows the front half only.
         model_name: how the model is named in the panel.
+        db: the session's ``SessionDB``: labels become editable, the review queue and retraining
+            appear. Without one, the data set's annotations are shown read-only.
+        training: how the Training panel trains (``loop.LoopSettings``).
     """
 
     def __init__(
@@ -49,9 +61,11 @@ class FactorydetApp:
         calibrate: bool = True,
         model=None,
         model_name: str = "",
+        db=None,
+        training: LoopSettings | None = None,
     ) -> None:
         self.server = server
-        self.state = AppState(dataset, title, model=model, model_name=model_name)
+        self.state = AppState(dataset, title, model=model, model_name=model_name, db=db)
         if not calibrate:
             self.state.use_refined_extrinsics = False
         self.scene = SceneView(server)
@@ -65,11 +79,23 @@ class FactorydetApp:
         self.pipeline_panel = build_pipeline_panel(server, self.state)
         self.detections_panel = build_detections_panel(server, self.state)
         self.metrics_panel = build_metrics_panel(server, self.state)
+        self.trainer = TrainingWorker(self.state, training, calibrate=calibrate)
+        self.training_panel = (
+            build_training_panel(server, self.state, self.trainer) if db is not None else None
+        )
         self._detections_key: tuple | None = None
         self._drawn: tuple | None = None
+        self._labels_key: tuple | None = None
+        self.clients: dict[int, ClientView] = {}
+        self._clients_lock = threading.Lock()
+        self._clients_key: tuple | None = None
         self.worker = PipelineWorker(self.state, calibrate=calibrate)
         self.state.on_change(self.redraw)
         server.scene.on_click()(self._on_click)
+        server.scene.on_click(modifier="shift")(lambda event: self._on_click(event, add=True))
+        server.scene.on_rect_select(modifier="shift")(self._on_rect_select)
+        server.on_client_connect(self._on_connect)
+        server.on_client_disconnect(self._on_disconnect)
         server.initial_camera.position = (-10.0, -10.0, 11.0)
         server.initial_camera.look_at = (0.0, 0.0, 0.0)
         server.initial_camera.up = (0.0, 0.0, 1.0)
@@ -79,21 +105,19 @@ class FactorydetApp:
         """Bring the scene and the panels up to date with the state."""
         with self._draw_lock:
             with self.state.lock:
-                key = (
-                    self.state.frame_index,
-                    self.state.color_mode,
-                    self.state.show_boxes,
-                    self.state.max_height,
-                )
+                key = (self.state.frame_index, self.state.color_mode, self.state.max_height)
+                labels_key = (self.state.frame_index, self.state.revision, self.state.show_boxes)
                 point_size = self.state.point_size
                 frame = self.state.frame
             if key != self._drawn:
-                self.scene.draw(
-                    frame, color_mode=key[1], point_size=point_size, show_boxes=key[2], max_height=key[3]
-                )
+                self.scene.draw(frame, color_mode=key[1], point_size=point_size, max_height=key[2])
                 self._drawn = key
             else:
                 self.scene.set_point_size(point_size)
+            if labels_key != self._labels_key:
+                boxes, class_ids, _ = self.state.frame_labels(labels_key[0])
+                self.scene.draw_labels(boxes, class_ids, self.state.dataset.class_names, labels_key[2])
+                self._labels_key = labels_key
             with self.state.lock:
                 result = self.state.pipeline_result
                 result_frame = self.state.pipeline_result_key[0] if result is not None else None
@@ -118,7 +142,10 @@ class FactorydetApp:
                     self.state.color_by_match,
                 )
             if detections_key != self._detections_key:
-                labels = self.state.dataset.frame(detection_frame).labels if detections is not None else None
+                labels = None
+                if detections is not None:
+                    boxes, class_ids, _ = self.state.frame_labels(detection_frame)
+                    labels = (boxes, class_ids)
                 self.layers.draw_detections(detections, *detections_key[1:], labels)
                 self.layers.detection_source = (detection_result, detection_frame)
                 self._detections_key = detections_key
@@ -127,11 +154,61 @@ class FactorydetApp:
             self.pipeline_panel.refresh(self.state)
             self.detections_panel.refresh(self.state)
             self.metrics_panel.refresh(self.state)
+            if self.training_panel is not None:
+                self.training_panel.refresh(self.state)
+            with self.state.lock:
+                clients_key = (self.state.revision, self.state.frame_index, id(self.layers.drawn_result))
+            if clients_key != self._clients_key:
+                self._clients_key = clients_key
+                for view in self._client_views():
+                    view.refresh()
         self.worker.maybe_request()
 
-    def _on_click(self, event: viser.SceneClickEvent) -> None:
-        """A click picks the nearest detection box under the cursor, else the nearest proposal box,
-        else the nearest patch point."""
+    # -- browsers
+
+    def _client_views(self) -> list[ClientView]:
+        with self._clients_lock:
+            return list(self.clients.values())
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        view = ClientView(
+            client,
+            self.state,
+            scene_points=lambda: (self.scene.points, self.scene.colors),
+            drawn_result=lambda: (self.layers.drawn_result, self.layers.drawn_frame_index),
+        )
+        if self.state.editable:
+            labels_panel = build_labels_panel(view)
+            review_panel = build_review_panel(view)
+            view.panels = [labels_panel, review_panel]
+            register_hotkeys(view, labels_panel, review_panel)
+            build_help_panel(view)
+        with self._clients_lock:
+            self.clients[client.client_id] = view
+        view.refresh()
+
+    def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        with self._clients_lock:
+            self.clients.pop(client.client_id, None)
+
+    def client_view(self, client_id: int) -> ClientView | None:
+        with self._clients_lock:
+            return self.clients.get(client_id)
+
+    def _on_click(self, event: viser.SceneClickEvent, add: bool = False) -> None:
+        """A click picks the nearest label box under the cursor (it becomes the browser's
+        selection), else the nearest detection box, else the nearest proposal box, else the nearest
+        patch point (whose segment becomes the browser's selection; shift-click adds it)."""
+        view = self.client_view(event.client_id)
+        origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
+        with self.state.lock:
+            show_labels, frame_index = self.state.show_boxes, self.state.frame_index
+        if view is not None and self.state.editable and show_labels and not add:
+            boxes, _, label_ids = self.state.frame_labels(frame_index)
+            distances = ray_box_distances(origin, direction, boxes) if len(boxes) else np.zeros(0)
+            if np.isfinite(distances).any():
+                view.select_label(int(label_ids[int(np.argmin(distances))]))
+                return
         with self._draw_lock:  # the drawn result and its box ids belong together
             result, proposal_ids, frame_index = (
                 self.layers.drawn_result,
@@ -166,12 +243,36 @@ class FactorydetApp:
             shown = np.flatnonzero(result.cloud.below(max_height))
             hit = nearest_point_on_ray(result.cloud.points[shown], origin, direction, max_distance=0.15)
             if hit is not None:
-                info = describe_patch(result, frame, int(result.segmentation.patch_ids[shown[hit]]))
+                patch_id = int(result.segmentation.patch_ids[shown[hit]])
+                info = describe_patch(result, frame, patch_id)
+                if view is not None:
+                    view.select_patches(segment_patch_ids(result, patch_id), add=add)
+        if info is None and view is not None and not add:
+            view.clear_selection()
         self.state.set_selection(description_markdown(info) if info else "_Nothing under the cursor._")
 
+    def _on_rect_select(self, event: viser.SceneRectSelectEvent) -> None:
+        """Shift-drag: the patches of the points inside the rectangle become the selection."""
+        view = self.client_view(event.client_id)
+        with self._draw_lock:
+            result = self.layers.drawn_result
+        if view is None or result is None:
+            return
+        camera = event.client.camera
+        with self.state.lock:
+            max_height = self.state.max_height
+        shown = np.flatnonzero(result.cloud.below(max_height))
+        inside = points_in_screen_rect(
+            result.cloud.points[shown], camera.position, camera.wxyz, camera.fov, camera.aspect,
+            event.screen_min, event.screen_max,
+        )  # fmt: skip
+        patch_ids = np.unique(result.segmentation.patch_ids[shown[inside]])
+        view.select_patches(patch_ids[patch_ids >= 0])
+
     def close(self) -> None:
-        """Stop the background worker (the caller stops the server)."""
+        """Stop the background workers (the caller stops the server)."""
         self.worker.stop()
+        self.trainer.cancel()
 
 
 def serve(
@@ -181,10 +282,11 @@ def serve(
     title: str | None = None,
     model=None,
     model_name: str = "",
+    db=None,
 ) -> None:
     """Serve the app until interrupted."""
     server = viser.ViserServer(host=host, port=port, label="factorydet")
-    app = FactorydetApp(server, dataset, title, model=model, model_name=model_name)
+    app = FactorydetApp(server, dataset, title, model=model, model_name=model_name, db=db)
     actual_port = server.get_port()
     print(
         f"factorydet: serving {app.state.title} at http://{host}:{actual_port}  (Ctrl+C to stop)", flush=True
@@ -199,5 +301,5 @@ def serve(
     except KeyboardInterrupt:
         pass
     finally:
-        app.worker.stop()
+        app.close()
         server.stop()

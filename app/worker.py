@@ -72,7 +72,7 @@ class PipelineWorker:
                 self.state.set_pipeline_failed(key, f"failed: {exc}")
 
     def _compute(self, key: tuple) -> None:
-        frame_index, params, use_refined = key
+        frame_index, params, use_refined, _ = key
         dataset = self.state.dataset
         if use_refined and self.calibrate and dataset.num_sensors > 1 and self._refined_extrinsics is None:
             self.state.set_pipeline_progress("refining the sensor extrinsics (ICP, once)", 0.02)

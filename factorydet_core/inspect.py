@@ -69,6 +69,14 @@ def describe_patch(result: ProposalResult, frame: Frame, patch_id: int) -> dict:
     }
 
 
+def segment_patch_ids(result: ProposalResult, patch_id: int) -> np.ndarray:
+    """(K,) the patches of the segment that ``patch_id`` belongs to (what a click selects)."""
+    segmentation = result.segmentation
+    if not 0 <= patch_id < segmentation.num_patches:
+        raise InputError(f"patch {patch_id} out of range [0, {segmentation.num_patches})")
+    return np.flatnonzero(segmentation.patch_segment_ids == segmentation.patch_segment_ids[patch_id])
+
+
 def describe_proposal(result: ProposalResult, frame: Frame, index: int) -> dict:
     """Numbers of one proposal: points, voxels, box, its patches and the best-overlapping label."""
     proposals = result.proposals
@@ -190,3 +198,63 @@ def detection_markdown(info: dict) -> str:
     """``describe_detection``'s numbers as a Markdown table."""
     rows = "\n".join(f"| {key} | {value} |" for key, value in info.items() if key != "title")
     return f"**{info['title']}**\n\n| | |\n|---|---|\n{rows}"
+
+
+def _neighbours(box, labels, radius: float = 3.0, exclude_id: int | None = None) -> list[str]:
+    """Labels whose centre is within ``radius`` metres of ``box``'s, nearest first."""
+    centre = np.asarray(box, np.float64)[:3]
+    near = []
+    for lab in labels:
+        if lab.id == exclude_id:
+            continue
+        distance = float(np.linalg.norm(np.asarray(lab.box[:3]) - centre))
+        if distance <= radius:
+            near.append((distance, f"{lab.class_name} #{lab.id} at {distance:.1f} m"))
+    return [text for _, text in sorted(near)]
+
+
+def _box_text(box) -> str:
+    b = np.asarray(box, np.float64)
+    return (
+        f"centre ({b[0]:.2f}, {b[1]:.2f}, {b[2]:.2f}) m, size {b[3]:.2f} × {b[4]:.2f} × {b[5]:.2f} m, "
+        f"yaw {np.degrees(b[6]):.0f}°"
+    )
+
+
+def describe_label(label, frame_labels) -> str:
+    """Markdown about a stored label (``session.Label``) and its neighbours among ``frame_labels``."""
+    near = _neighbours(label.box, frame_labels, exclude_id=label.id)
+    return (
+        f"**Label #{label.id}: {label.class_name}** (frame {label.frame_index + 1})  \n"
+        f"{_box_text(label.box)}  \n"
+        f"origin *{label.origin}*, made by {label.created_by}, last changed by {label.modified_by} "
+        f"at {label.modified[:19].replace('T', ' ')} (version {label.version})  \n"
+        f"Nearby: {', '.join(near[:5]) if near else 'no other label within 3 m'}"
+    )
+
+
+def review_item_markdown(item: dict, frame_labels, rank: int, total: int) -> str:
+    """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``)."""
+    lines = [
+        f"**Item {rank} of {total}** (#{item['id']}, frame {item['frame_index'] + 1}, "
+        f"mined in run {item['run_id']} round {item['round']})",
+        f"predicted **{item['predicted_class']}**, score **{item['score']:.3f}**; best IoU with a "
+        f"label when mined {item['best_annotated_iou']:.2f}",
+        _box_text(item["box"]),
+        f"patches {', '.join(map(str, item['patch_set'][:12]))}"
+        + (" …" if len(item["patch_set"]) > 12 else ""),
+    ]
+    probabilities = item.get("probabilities")
+    if probabilities:
+        from .types import CLASS_NAMES
+
+        names = (*CLASS_NAMES, "background") if len(probabilities) == len(CLASS_NAMES) + 1 else None
+        if names is not None:
+            top = sorted(zip(names, probabilities), key=lambda t: -t[1])[:3]
+            lines.append("probabilities: " + ", ".join(f"{n} {p:.2f}" for n, p in top))
+    near = _neighbours(item["box"], frame_labels)
+    lines.append(f"Nearby labels: {', '.join(near[:5]) if near else 'none within 3 m'}")
+    if item.get("verdict"):
+        verdict = item["verdict"] + (f" ({item['verdict_class']})" if item.get("verdict_class") else "")
+        lines.append(f"Verdict: **{verdict}** by {item['reviewer']}")
+    return "  \n".join(lines)

@@ -787,6 +787,16 @@ class SessionDB:
                 ).lastrowid
             )
 
+    def snapshot_size(self, snapshot_id: int) -> int:
+        """How many labels a snapshot holds."""
+        with self._read() as db:
+            row = db.execute(
+                "SELECT num_labels FROM label_snapshots WHERE id = ?", (int(snapshot_id),)
+            ).fetchone()
+        if row is None:
+            raise SessionError(f"no label snapshot {snapshot_id}")
+        return int(row[0])
+
     def snapshot(self, snapshot_id: int) -> dict:
         """A stored snapshot: ``created``, ``last_edit_id``, ``frames`` and ``labels``."""
         with self._read() as db:

@@ -26,17 +26,23 @@ class FramePanel:
             self.slider.value = index
         self.previous.disabled = index == 0
         self.next.disabled = index >= state.dataset.num_frames - 1
-        self.status.content = status_markdown(state.title, index, state.dataset.num_frames, frame)
+        _, class_ids, _ = state.frame_labels(index)
+        what = "labels in the session" if state.editable else "annotated instances"
+        self.status.content = status_markdown(
+            state.title, index, state.dataset.num_frames, frame, class_ids, what
+        )
 
 
-def status_markdown(dataset_name: str, index: int, num_frames: int, frame) -> str:
-    labels = frame.labels
-    per_class = np.bincount(labels.class_ids, minlength=len(frame.class_names)) if len(labels) else []
+def status_markdown(
+    dataset_name: str, index: int, num_frames: int, frame, class_ids=None, what: str = "annotated instances"
+) -> str:
+    class_ids = frame.labels.class_ids if class_ids is None else np.asarray(class_ids)
+    per_class = np.bincount(class_ids, minlength=len(frame.class_names)) if len(class_ids) else []
     counts = ", ".join(f"{name} {n}" for name, n in zip(frame.class_names, per_class) if n) or "none"
     return (
         f"**{dataset_name}** · frame **{index + 1} / {num_frames}** (`{frame.name}`)  \n"
         f"{frame.num_points:,} points · {frame.num_sensors} sensors  \n"
-        f"{len(labels)} annotated instances: {counts}"
+        f"{len(class_ids)} {what}: {counts}"
     )
 
 

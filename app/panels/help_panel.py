@@ -1,0 +1,83 @@
+"""Keyboard shortcuts (registered per browser, so each acts on that browser's selection and
+review item) and the help panel that lists them."""
+
+from __future__ import annotations
+
+import viser
+
+from ..clients import ClientView
+
+# (key, what it does, the action on a ClientView given the panels' current class)
+HOTKEYS: tuple[tuple[str, str], ...] = (
+    ("B", "review: background"),
+    ("O", "review: object of the chosen class"),
+    ("W", "review: wrong box"),
+    ("S", "review: skip"),
+    ("N", "review: next item"),
+    ("P", "review: previous item"),
+    ("C", "label: set the chosen class"),
+    ("L", "label the selected segment"),
+    ("K", "split the selected segment into two labels"),
+    ("delete", "delete the selected label"),
+    ("Z", "undo your last edit"),
+    ("Y", "redo"),
+    ("escape", "clear the selection"),
+    ("1-7", "choose the class (barrel … truck)"),
+)
+
+
+def help_markdown(class_names: tuple[str, ...]) -> str:
+    rows = "\n".join(f"| `{key}` | {what} |" for key, what in HOTKEYS)
+    classes = ", ".join(f"`{i + 1}` {name}" for i, name in enumerate(class_names))
+    return (
+        "| key | action |\n|---|---|\n" + rows + "\n\n"
+        f"Classes: {classes}.  \nMouse: click a box to select it, click points to select their "
+        "segment, shift-click to add a segment, shift-drag to select a rectangle. Drag the gizmo to "
+        "move or turn the selected box. Ctrl/Cmd+K lists every command."
+    )
+
+
+def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser.CommandHandle]:
+    """Register the shortcuts for one browser; returns the command handles."""
+    gui = view.client.gui
+    names = view.state.dataset.class_names
+
+    def chosen_class() -> str:
+        return view.object_class
+
+    actions = {
+        "B": ("Review: background", lambda: view.verdict("background")),
+        "O": ("Review: object", lambda: view.verdict("object", chosen_class())),
+        "W": ("Review: wrong box", lambda: view.verdict("wrong_box")),
+        "S": ("Review: skip", lambda: view.verdict("skip")),
+        "N": ("Review: next item", lambda: view.step(1)),
+        "P": ("Review: previous item", lambda: view.step(-1)),
+        "C": ("Label: set class", lambda: view.set_class(chosen_class())),
+        "L": ("Label the selected segment", lambda: view.label_segment(chosen_class())),
+        "K": ("Split the selected segment", lambda: view.label_segment(chosen_class(), split=True)),
+        "delete": ("Delete the selected label", view.delete_selected),
+        "Z": ("Undo", view.undo),
+        "Y": ("Redo", lambda: view.undo(redo=True)),
+        "escape": ("Clear the selection", view.clear_selection),
+    }
+    handles = []
+    for key, (label, action) in actions.items():
+        handle = gui.add_command(label, hotkey=key)
+        handle.on_trigger(lambda _event, action=action: action())
+        handles.append(handle)
+    for i, name in enumerate(names[:9]):
+
+        def choose(_event, name=name) -> None:
+            view.object_class = name
+            for dropdown in (labels_panel.class_name, review_panel.object_class):
+                dropdown.value = name
+
+        handle = gui.add_command(f"Class: {name}", hotkey=str(i + 1))
+        handle.on_trigger(choose)
+        handles.append(handle)
+    return handles
+
+
+def build_help_panel(view: ClientView) -> None:
+    with view.client.gui.add_folder("Keys", expand_by_default=False):
+        view.client.gui.add_markdown(help_markdown(view.state.dataset.class_names))

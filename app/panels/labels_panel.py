@@ -1,0 +1,119 @@
+"""Fixing labels (one panel per browser): the selected label or segment, its class, delete, a new
+label from a segment (or two, split), the box's numbers, undo and redo."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import viser
+
+from factorydet_core.inspect import describe_label
+
+from ..clients import ClientView
+from . import from_user
+
+
+@dataclasses.dataclass
+class LabelsPanel:
+    author: viser.GuiTextHandle
+    selection: viser.GuiMarkdownHandle
+    class_name: viser.GuiDropdownHandle
+    set_class: viser.GuiButtonHandle
+    delete: viser.GuiButtonHandle
+    label_segment: viser.GuiButtonHandle
+    split_segment: viser.GuiButtonHandle
+    centre: viser.GuiVector3Handle
+    size: viser.GuiVector3Handle
+    yaw_deg: viser.GuiNumberHandle
+    apply_box: viser.GuiButtonHandle
+    undo: viser.GuiButtonHandle
+    redo: viser.GuiButtonHandle
+
+    def refresh(self, view: ClientView) -> None:
+        state = view.state
+        label = view.selected_label()
+        points = view.selected_points()
+        if not state.editable:
+            self.selection.content = "_This data set is open without a session: labels are read-only._"
+        elif label is not None:
+            self.selection.content = describe_label(label, state.db.labels(label.frame_index))
+        elif len(points):
+            self.selection.content = (
+                f"**Segment** of {len(view.selected_patch_ids)} patch(es), {len(points):,} points. "
+                "**Label segment** boxes it as a new label of the class above; **Split** makes two."
+            )
+        else:
+            self.selection.content = (
+                "_Click a label box to select it; click points to select their segment "
+                "(shift-click adds another; shift-drag selects a rectangle)._"
+            )
+        for button in (self.set_class, self.delete, self.apply_box):
+            button.disabled = label is None
+        for button in (self.label_segment, self.split_segment):
+            button.disabled = not len(points)
+        if label is not None:
+            box = np.asarray(label.box)
+            values = (
+                tuple(np.round(box[:3], 3)),
+                tuple(np.round(box[3:6], 3)),
+                round(float(np.degrees(box[6])), 1),
+            )
+            for handle, value in zip((self.centre, self.size, self.yaw_deg), values):
+                if handle.value != value:
+                    handle.value = value
+        if state.db is not None:
+            can_undo, can_redo = state.db.can_undo(view.author)
+            self.undo.disabled, self.redo.disabled = not can_undo, not can_redo
+
+
+def build_labels_panel(view: ClientView) -> LabelsPanel:
+    gui = view.client.gui
+    names = list(view.state.dataset.class_names)
+    with gui.add_folder("Labels"):
+        author = gui.add_text(
+            "Your name", initial_value=view.author, hint="Edits and reviews are signed with it"
+        )
+        selection = gui.add_markdown("")
+        class_name = gui.add_dropdown("Class", names, initial_value=view.object_class)
+        set_class = gui.add_button("Set class [C]", hint="Give the selected label the class above")
+        delete = gui.add_button("Delete label [Delete]", color="red")
+        label_segment = gui.add_button("Label segment [L]", hint="A new label boxing the selected segment")
+        split_segment = gui.add_button("Split segment into two [K]")
+        with gui.add_folder("Box", expand_by_default=False):
+            centre = gui.add_vector3("Centre (m)", initial_value=(0.0, 0.0, 0.0), step=0.05)
+            size = gui.add_vector3(
+                "Size (m)", initial_value=(1.0, 1.0, 1.0), min=(0.02, 0.02, 0.02), step=0.05
+            )
+            yaw_deg = gui.add_number("Yaw (deg)", initial_value=0.0, step=1.0)
+            apply_box = gui.add_button("Apply box", hint="Or drag the gizmo on the selected box")
+        undo = gui.add_button("Undo [Z]")
+        redo = gui.add_button("Redo [Y]")
+    panel = LabelsPanel(
+        author, selection, class_name, set_class, delete, label_segment, split_segment,
+        centre, size, yaw_deg, apply_box, undo, redo,
+    )  # fmt: skip
+
+    @author.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event) and author.value.strip():
+            view.author = author.value.strip()[:64]
+            view.refresh()
+
+    @class_name.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            view.object_class = class_name.value
+
+    set_class.on_click(lambda _: view.set_class(class_name.value))
+    delete.on_click(lambda _: view.delete_selected())
+    label_segment.on_click(lambda _: view.label_segment(class_name.value))
+    split_segment.on_click(lambda _: view.label_segment(class_name.value, split=True))
+    undo.on_click(lambda _: view.undo())
+    redo.on_click(lambda _: view.undo(redo=True))
+
+    @apply_box.on_click
+    def _(_) -> None:
+        view.apply_box([*centre.value, *size.value, float(np.radians(yaw_deg.value))])
+
+    return panel

@@ -1,0 +1,128 @@
+"""The review queue (one panel per browser): the negatives the last training run mined, highest
+score first, one verdict each: background, object of a class, wrong box, skip."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import viser
+
+from factorydet_core.inspect import review_item_markdown
+
+from ..clients import ClientView
+from . import from_user
+
+ALL = "all"
+
+
+@dataclasses.dataclass
+class ReviewPanel:
+    progress_text: viser.GuiMarkdownHandle
+    progress: viser.GuiProgressBarHandle
+    filter_class: viser.GuiDropdownHandle
+    filter_frame: viser.GuiDropdownHandle
+    pending_only: viser.GuiCheckboxHandle
+    dim: viser.GuiCheckboxHandle
+    item: viser.GuiMarkdownHandle
+    object_class: viser.GuiDropdownHandle
+    buttons: dict[str, viser.GuiButtonHandle]
+
+    def refresh(self, view: ClientView) -> None:
+        state = view.state
+        if state.db is None:
+            self.progress_text.content = "_No session: nothing to review._"
+            return
+        counts = state.db.review_progress()
+        total = counts["total"]
+        self.progress_text.content = (
+            f"**{counts['reviewed']} of {total} reviewed** · background {counts['background']} · "
+            f"object {counts['object']} · wrong box {counts['wrong_box']} · skipped {counts['skip']}"
+            if total
+            else "_No mined negatives yet: train a model in the Training panel, then review here._"
+        )
+        self.progress.value = 100.0 * counts["reviewed"] / total if total else 0.0
+        queue = view.load_queue()
+        item = view.current_item()
+        if item is None:
+            self.item.content = (
+                f"{len(queue)} item(s) in this filter. Press **Next** to start."
+                if queue
+                else "_No items in this filter._"
+            )
+        else:
+            rank = [q["id"] for q in queue].index(item["id"]) + 1
+            labels = state.db.labels(item["frame_index"])
+            self.item.content = review_item_markdown(item, labels, rank, len(queue))
+        for name, button in self.buttons.items():
+            button.disabled = not queue and name not in ("previous", "next")
+
+
+def build_review_panel(view: ClientView) -> ReviewPanel:
+    gui = view.client.gui
+    state = view.state
+    names = list(state.dataset.class_names)
+    with gui.add_folder("Review queue"):
+        progress_text = gui.add_markdown("")
+        progress = gui.add_progress_bar(0.0, animated=False)
+        filter_class = gui.add_dropdown("Predicted class", [ALL, *names], initial_value=ALL)
+        frames = [ALL, *(str(i + 1) for i in range(state.dataset.num_frames))]
+        filter_frame = gui.add_dropdown("Frame", frames, initial_value=ALL)
+        pending_only = gui.add_checkbox("Pending only", initial_value=view.pending_only)
+        dim = gui.add_checkbox("Dim the scene", initial_value=view.dim)
+        item = gui.add_markdown("")
+        object_class = gui.add_dropdown("Object class", names, initial_value=view.object_class)
+        buttons = {
+            "background": gui.add_button("Background [B]", color="gray", hint="Confirmed: not an object"),
+            "object": gui.add_button("Object [O]", color="green", hint="A real object of the class above"),
+            "wrong_box": gui.add_button(
+                "Wrong box [W]", color="orange", hint="Real, but the segment is wrong"
+            ),
+            "skip": gui.add_button("Skip [S]"),
+            "previous": gui.add_button("Previous [P]"),
+            "next": gui.add_button("Next [N]"),
+            "batch": gui.add_button(
+                "Background for all pending in this filter", color="red", hint="One undoable edit"
+            ),
+        }
+    panel = ReviewPanel(
+        progress_text, progress, filter_class, filter_frame, pending_only, dim, item, object_class, buttons
+    )
+
+    def set_filter(_event=None) -> None:
+        with view.lock:
+            view.filter_class = None if filter_class.value == ALL else filter_class.value
+            view.filter_frame = None if filter_frame.value == ALL else int(filter_frame.value) - 1
+            view.pending_only = bool(pending_only.value)
+            view.dim = bool(dim.value)
+            view.current_item_id = None
+        view.step(0)
+
+    for handle in (filter_class, filter_frame, pending_only, dim):
+        handle.on_update(lambda event: set_filter() if from_user(event) else None)
+
+    @object_class.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            view.object_class = object_class.value
+
+    buttons["background"].on_click(lambda _: view.verdict("background"))
+    buttons["object"].on_click(lambda _: view.verdict("object", object_class.value))
+    buttons["wrong_box"].on_click(lambda _: wrong_box(view))
+    buttons["skip"].on_click(lambda _: view.verdict("skip"))
+    buttons["previous"].on_click(lambda _: view.step(-1))
+    buttons["next"].on_click(lambda _: view.step(1))
+    buttons["batch"].on_click(lambda _: view.batch_verdict("background"))
+    return panel
+
+
+def wrong_box(view: ClientView) -> None:
+    """Mark the item a real object with a wrong segment, and select its points so that the
+    person can box them (Label segment) or adjust a new box right away."""
+    item = view.current_item()
+    view.verdict("wrong_box")
+    if item is not None:
+        view.notify(
+            "Wrong box",
+            "Select the object's points (click, shift-click) and press Label segment, "
+            "or edit a box in the Labels panel.",
+        )

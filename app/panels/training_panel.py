@@ -1,0 +1,122 @@
+"""Retraining (shared by every browser): start the next mining round or a full retrain, watch it,
+cancel it; the before/after table; the model rounds with their label snapshots, and switching the
+shown model back to an earlier one."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import viser
+
+from factorydet_core.loop import comparison_markdown
+from factorydet_core.model import DEFAULT_MODEL, DetectionModel
+
+from ..state import AppState
+from ..trainer import TrainingWorker
+
+MODES = {"next round": "next", "full retrain": "full"}
+SHIPPED = "shipped default model"
+
+
+def model_choices(state: AppState) -> dict[str, str]:
+    """Dropdown text -> checkpoint path of every model the session can show."""
+    choices = {SHIPPED: str(DEFAULT_MODEL)} if DEFAULT_MODEL.is_file() else {}
+    if state.db is None:
+        return choices
+    for run in reversed(state.db.training_runs()):
+        choices[f"run {run['id']} ({run['kind']}) final"] = str(state.db.session.path / run["model_path"])
+        for r in reversed(run["rounds"]):
+            choices[f"run {run['id']} round {r['round']}"] = str(state.db.session.path / r["model_path"])
+    return choices
+
+
+def runs_markdown(state: AppState) -> str:
+    if state.db is None:
+        return ""
+    runs = state.db.training_runs()
+    if not runs:
+        return "_No training runs in this session yet._"
+    rows = []
+    for run in runs[-8:]:
+        snapshot = run["snapshot_id"]
+        labels = state.db.snapshot_size(snapshot) if snapshot is not None else "–"
+        last = run["rounds"][-1]["train_metrics"].get("f1") if run["rounds"] else None
+        f1 = "–" if last is None else f"{last:.3f}"
+        when = run["created"][:16].replace("T", " ")
+        rows.append(f"| {run['id']} | {run['kind']} | {len(run['rounds'])} | {labels} | {f1} | {when} |")
+    return (
+        "| run | mode | rounds | labels trained on | train F1 | when |\n|---|---|---|---|---|---|\n"
+        + "\n".join(rows)
+    )
+
+
+@dataclasses.dataclass
+class TrainingPanel:
+    mode: viser.GuiDropdownHandle
+    epochs: viser.GuiNumberHandle
+    train: viser.GuiButtonHandle
+    cancel: viser.GuiButtonHandle
+    progress: viser.GuiProgressBarHandle
+    status: viser.GuiMarkdownHandle
+    comparison: viser.GuiMarkdownHandle
+    runs: viser.GuiMarkdownHandle
+    model: viser.GuiDropdownHandle
+    show_model: viser.GuiButtonHandle
+    _seen: tuple = ()
+
+    def refresh(self, state: AppState) -> None:
+        with state.lock:
+            busy, status, progress = state.training_busy, state.training_status, state.training_progress
+            comparison, revision, model_name = state.training_comparison, state.revision, state.model_name
+        self.train.disabled = busy or state.db is None
+        self.cancel.disabled = not busy
+        self.progress.value = round(100.0 * progress, 1)
+        self.status.content = f"**Training:** {status} · shown model `{model_name or 'none'}`"
+        key = (revision, id(comparison))
+        if key == self._seen:
+            return
+        self._seen = key
+        self.comparison.content = (
+            "**Before / after** (test frames)\n\n" + comparison_markdown(comparison) if comparison else ""
+        )
+        self.runs.content = runs_markdown(state)
+        choices = list(model_choices(state))
+        if choices and tuple(self.model.options) != tuple(choices):
+            self.model.options = choices
+        self.show_model.disabled = not choices
+
+
+def build_training_panel(server: viser.ViserServer, state: AppState, worker: TrainingWorker) -> TrainingPanel:
+    with server.gui.add_folder("Training", expand_by_default=False):
+        mode = server.gui.add_dropdown("Mode", list(MODES), initial_value="next round")
+        epochs = server.gui.add_number("Epochs", initial_value=worker.settings.epochs, min=1, max=500, step=1)
+        train = server.gui.add_button(
+            "Train", color="green", hint="On the corrected labels and the review verdicts, in the background"
+        )
+        cancel = server.gui.add_button("Cancel training", color="red", disabled=True)
+        progress = server.gui.add_progress_bar(0.0, animated=True)
+        status = server.gui.add_markdown("")
+        comparison = server.gui.add_markdown("")
+        runs = server.gui.add_markdown("")
+        choices = list(model_choices(state)) or ["(none)"]
+        model = server.gui.add_dropdown("Model", choices, initial_value=choices[0])
+        show_model = server.gui.add_button("Show this model")
+    panel = TrainingPanel(mode, epochs, train, cancel, progress, status, comparison, runs, model, show_model)
+
+    @train.on_click
+    def _(event: viser.GuiEvent) -> None:
+        if not worker.start(MODES[mode.value], int(epochs.value)) and event.client is not None:
+            event.client.add_notification(
+                "Training", "A training job is already running.", auto_close_seconds=5
+            )
+
+    cancel.on_click(lambda _: worker.cancel())
+
+    @show_model.on_click
+    def _(_) -> None:
+        path = model_choices(state).get(model.value)
+        if path is not None:
+            state.set_model(DetectionModel.load(path), model.value)
+
+    panel.refresh(state)
+    return panel

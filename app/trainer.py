@@ -1,0 +1,137 @@
+"""Retraining from the app: one background thread runs the next mining round or a full retrain on
+the session's corrected labels and verdicts, reports progress into the state, can be cancelled,
+and ends with a before/after table on the test frames and the new model shown.
+
+A crash or a cancel of the job never touches the labels: the run is stored only once it has
+finished, and labels are only ever read here.
+"""
+
+from __future__ import annotations
+
+import threading
+import traceback
+
+from factorydet_core.detector import Detector, params_for
+from factorydet_core.loop import (
+    LoopSettings,
+    cached_proposals,
+    compare_models,
+    session_references,
+    train_session,
+)
+from factorydet_core.types import Cancelled
+
+from .state import AppState
+
+
+class TrainingWorker:
+    """Runs at most one training job at a time.
+
+    Args:
+        state: the app state (its ``db`` must be set).
+        settings: how to train.
+        calibrate: refine the extrinsics by ICP first (multi-sensor data), as the viewer does.
+    """
+
+    def __init__(self, state: AppState, settings: LoopSettings | None = None, calibrate: bool = True) -> None:
+        self.state = state
+        self.settings = settings or LoopSettings()
+        self.calibrate = calibrate
+        self._cancel = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self.last_run_id: int | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self, mode: str, epochs: int | None = None) -> bool:
+        """Start a job ('next' or 'full'); False when one is already running or there is no session."""
+        with self._lock:
+            if self.busy or self.state.db is None:
+                return False
+            if mode == "next" and self.state.db.latest_run_id() is None:
+                mode = "full"  # nothing to continue from yet
+            settings = self.settings
+            if epochs is not None:
+                settings = LoopSettings(**{**settings.__dict__, "epochs": int(epochs)})
+            self._cancel.clear()
+            self.state.set_training(busy=True, status=f"starting ({mode})", progress=0.0)
+            self._thread = threading.Thread(
+                target=self._run, args=(mode, settings), name="factorydet-training", daemon=True
+            )
+            self._thread.start()
+            return True
+
+    def cancel(self) -> None:
+        self._cancel.set()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self, mode: str, settings: LoopSettings) -> None:
+        state = self.state
+        try:
+            self._train(mode, settings)
+        except Cancelled:
+            state.set_training(busy=False, status="cancelled; nothing was stored", progress=0.0)
+        except Exception as exc:  # keep the app alive; say what went wrong
+            traceback.print_exc()
+            state.set_training(busy=False, status=f"failed: {exc}", progress=0.0)
+
+    def _train(self, mode: str, settings: LoopSettings) -> None:
+        state, db, dataset = self.state, self.state.db, self.state.dataset
+        with state.lock:
+            before, before_name = state.model, state.model_name
+        front_end = getattr(before, "front_end", None)
+        detector = Detector(params_for(front_end, dataset.num_sensors))
+        train = dataset.splits.get("train") or list(range(dataset.num_frames))
+        test = dataset.splits.get("test") or []
+        rounds = settings.rounds + 1 if mode == "full" else 1
+        # Shares of the progress bar: proposals, the fits, the before/after measurement.
+        fit_share = 0.75
+        done_fits = [0]
+
+        def progress(what: str, done: int, total: int) -> None:
+            if self._cancel.is_set():
+                raise Cancelled("training cancelled")
+            if what == "proposals":
+                state.set_training(status=f"proposals: frame {done} of {total}", progress=0.1 * done / total)
+            elif what == "fit":
+                fraction = (done_fits[0] + done / total) / rounds
+                state.set_training(
+                    status=f"round {done_fits[0] + 1} of {rounds}: epoch {done} of {total}",
+                    progress=0.1 + fit_share * fraction,
+                )
+            elif what == "round":
+                done_fits[0] = done
+
+        if self.calibrate and dataset.num_sensors > 1:
+            state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
+            detector.calibrate(dataset.frame(train[0]))
+        frames = cached_proposals(db, dataset, detector, train, progress)
+        run_id, run = train_session(
+            db, frames, settings, mode=mode, data_ref=str(dataset.path), front_end=front_end,
+            progress=progress, should_stop=self._cancel.is_set,
+        )  # fmt: skip
+        self.last_run_id = run_id
+        table = None
+        if test:
+            state.set_training(status="measuring before and after on the test frames", progress=0.88)
+            test_frames = cached_proposals(db, dataset, detector, test)
+            models = {f"after (run {run_id})": run.model}
+            if before is not None:
+                models = {f"before ({before_name})": before} | models
+            table = compare_models(models, dataset, test_frames, session_references(db, test))
+            db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
+        state.set_model(run.model, f"session run {run_id}")
+        queue = len(db.review_queue(run_id))
+        state.set_training(
+            busy=False,
+            status=f"run {run_id} ({mode}) done: {queue} mined negatives to review",
+            progress=1.0,
+            comparison=table,
+        )
+        state.session_changed()

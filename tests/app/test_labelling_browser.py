@@ -1,0 +1,193 @@
+"""Labelling in headless Chromium: the review queue by buttons and hotkeys, selecting a box on the
+canvas, undo, retraining with a progress bar, and two browsers at once."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import viser
+
+from app.viewer import FactorydetApp
+from factorydet_core.dataset import open_dataset
+from factorydet_core.editing import camera_for_box
+from factorydet_core.loop import LoopSettings
+from factorydet_core.model import DetectionModel
+from factorydet_core.session import SessionDB, open_session
+from factorydet_core.training import TrainingRun
+
+from .test_browser import _wait, browser  # noqa: F401 - the module's browser fixture
+
+pytestmark = pytest.mark.browser
+
+TINY = LoopSettings(epochs=1, rounds=0, initial_negatives=100, negatives_per_round=20, score_threshold=0.05)
+
+
+def _queue_run(model_path, num_mined: int = 6) -> TrainingRun:
+    """A real model with a made-up mining record: a review queue without training first."""
+    model = DetectionModel.load(model_path)
+    mined = [
+        {
+            "frame_index": 0,
+            "group": i,
+            "proposal": i,
+            "box": [2.0 * i, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0],
+            "patch_set": [i],
+            "score": 0.9 - 0.05 * i,
+            "predicted_class": ["box", "barrel"][i % 2],
+            "probabilities": None,
+            "best_annotated_iou": 0.0,
+        }  # fmt: skip
+        for i in range(num_mined)
+    ]
+    record = {
+        "round": 0,
+        "num_positives": 1,
+        "num_background": 1,
+        "fit_seconds": 0.0,
+        "train_metrics": {"f1": 0.0},
+    }
+    return TrainingRun(model, [{**record, "mined": mined}], [model], [0])
+
+
+@pytest.fixture
+def session_app(small_dataset_dir, tiny_model_path, tmp_path):
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("ui", tmp_path), dataset)
+    db.save_training_run(_queue_run(tiny_model_path), "small", {})
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    model = DetectionModel.load(tiny_model_path)
+    app = FactorydetApp(
+        server, dataset, calibrate=False, model=model, model_name="tiny", db=db, training=TINY
+    )  # fmt: skip
+    yield app
+    app.trainer.cancel()
+    app.trainer.join(60)
+    app.close()
+    server.stop()
+
+
+def _open(browser, app, height: int = 1400):  # noqa: F811 - the fixture's value
+    context = browser.new_context(viewport={"width": 1200, "height": height})
+    page = context.new_page()
+    before = {c for c in app.server.get_clients()}
+    page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
+    page.wait_for_selector("canvas[data-engine]", timeout=30_000)
+    assert _wait(lambda: len(set(app.server.get_clients()) - before) == 1, 30), "the browser never connected"
+    client_id = (set(app.server.get_clients()) - before).pop()
+    assert _wait(lambda: app.client_view(client_id) is not None, 10)
+    return context, page, app.client_view(client_id)
+
+
+def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context, page, view = _open(browser, app)
+    try:
+        page.get_by_text("0 of 6 reviewed", exact=False).wait_for(timeout=30_000)
+        page.get_by_role("button", name="Next [N]").click()
+        assert _wait(lambda: view.current_item_id is not None, 20), "Next never reached the server"
+        first = view.current_item_id
+        assert first == db.review_queue()[0]["id"]  # highest score first
+        page.get_by_text("Item 1 of 6", exact=False).wait_for(timeout=20_000)
+        page.get_by_role("button", name="Background [B]").click()
+        assert _wait(lambda: db.review_progress()["background"] == 1, 20), "the verdict was not stored"
+        page.get_by_text("1 of 6 reviewed", exact=False).wait_for(timeout=20_000)
+        assert _wait(lambda: view.current_item_id not in (None, first), 20), "did not move to the next item"
+
+        # A hotkey: 'O' marks the shown item a real object of the chosen class ('3' chooses box).
+        second = view.current_item_id
+        page.locator("canvas[data-engine]").click(position={"x": 5, "y": 5})
+        page.keyboard.press("3")
+        assert _wait(lambda: view.object_class == "box", 10), "the class hotkey did not arrive"
+        page.keyboard.press("o")
+        assert _wait(lambda: db.review_progress()["object"] == 1, 20), "the hotkey verdict was not stored"
+        item = next(q for q in db.review_queue() if q["id"] == second)
+        assert item["verdict"] == "object" and item["verdict_class"] == "box"
+        label = db.label(item["label_id"])
+        assert label.origin == "review" and label.class_name == "box"
+        page.get_by_text("2 of 6 reviewed", exact=False).wait_for(timeout=20_000)
+        # Undo from the browser takes the last verdict back.
+        page.get_by_role("button", name="Undo [Z]").click()
+        assert _wait(lambda: db.review_progress()["object"] == 0, 20)
+        assert db.label(item["label_id"]).deleted
+    finally:
+        context.close()
+
+
+def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context, page, view = _open(browser, app)
+    try:
+        label = db.labels(0)[0]
+        client = view.client
+        position, look_at = camera_for_box(label.box, distance_factor=2.0, min_distance=3.0)
+        client.camera.position = tuple(position)
+        client.camera.look_at = tuple(look_at)
+        canvas = page.locator("canvas[data-engine]")
+        box = canvas.bounding_box()
+        time.sleep(1.0)  # let the camera move arrive before clicking
+        canvas.click(position={"x": box["width"] / 2, "y": box["height"] / 2})
+        assert _wait(lambda: view.selected_label_id == label.id, 20), "the click did not select the box"
+        page.get_by_text(f"Label #{label.id}", exact=False).wait_for(timeout=20_000)
+        page.get_by_role("button", name="Delete label [Delete]").click()
+        assert _wait(lambda: db.label(label.id).deleted, 20), "delete was not stored"
+        page.get_by_role("button", name="Undo [Z]").click()
+        assert _wait(lambda: not db.label(label.id).deleted, 20), "undo was not applied"
+        assert [e.kind for e in db.edits(view.author)] == ["delete"]
+        assert db.edits(view.author)[0].state == "undone"
+    finally:
+        context.close()
+
+
+def test_retrain_from_the_browser_shows_progress_and_the_before_after_table(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context, page, _ = _open(browser, app)
+    try:
+        runs_before = len(db.training_runs())
+        page.get_by_text("Training", exact=True).first.click()  # the folder starts collapsed
+        page.get_by_role("button", name="Train", exact=True).click()
+        assert _wait(lambda: app.state.training_busy, 20), "the Train click never reached the server"
+        seen = set()
+        assert _wait(
+            lambda: seen.add(round(app.state.training_progress, 2)) or not app.state.training_busy, 300
+        ), "training never finished"
+        assert "done" in app.state.training_status, app.state.training_status
+        assert app.state.training_progress == 1.0 and len(seen) > 2  # it moved, not just jumped
+        assert len(db.training_runs()) == runs_before + 1
+        assert app.state.model_name == f"session run {db.latest_run_id()}"
+        page.get_by_text("done:", exact=False).first.wait_for(timeout=20_000)
+        page.get_by_text("Before / after", exact=False).first.wait_for(timeout=20_000)
+        assert db.training_runs()[-1]["metrics"]["compare"]
+    finally:
+        context.close()
+
+
+def test_two_browsers_see_each_others_edits(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context_a, page_a, view_a = _open(browser, app, height=1200)
+    context_b, page_b, view_b = _open(browser, app, height=1200)
+    try:
+        assert view_a is not view_b and view_a.author != view_b.author
+        page_b.get_by_text("0 of 6 reviewed", exact=False).wait_for(timeout=30_000)
+        page_a.get_by_role("button", name="Next [N]").click()
+        assert _wait(lambda: view_a.current_item_id is not None, 20)
+        page_a.get_by_role("button", name="Background [B]").click()
+        assert _wait(lambda: db.review_progress()["background"] == 1, 20)
+        page_b.get_by_text("1 of 6 reviewed", exact=False).wait_for(timeout=20_000)
+        # Each browser's cursor is its own; B was never moved.
+        assert view_b.current_item_id is None
+        # B, still seeing the item A decided as unreviewed, is told instead of overwriting it.
+        decided = db.review_queue()[0]
+        view_b.queue = [{**decided, "verdict": None}]
+        view_b.current_item_id = decided["id"]
+        view_b.verdict("object", "box")
+        assert db.review_queue()[0]["verdict"] == "background"
+        assert np.isclose(db.review_progress()["object"], 0)
+    finally:
+        context_a.close()
+        context_b.close()
