@@ -8,6 +8,7 @@ import getpass
 import json
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from .types import BOX_KINDS, LEVELS, InputError
 
@@ -111,7 +112,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
     if args.frames is None:
-        args.frames = 10 if args.name == "simulate" else 4
+        args.frames = {"simulate": 10, "hitl": None}.get(args.name, 4)
     if args.name == "simulate":
         result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
     else:
@@ -133,6 +134,29 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     command=command,
                     progress=update,
                 )
+            elif args.name == "hitl":
+                from .bench import bench_hitl
+                from .loop import LoopSettings
+
+                result = bench_hitl(
+                    args.data[0],
+                    budgets=[int(v) for v in parse_floats(args.budgets, "--budgets")],
+                    rounds=args.rounds,
+                    settings=LoopSettings(
+                        epochs=args.epochs,
+                        negatives_per_round=args.negatives,
+                        initial_negatives=args.initial_negatives,
+                        score_threshold=args.score_threshold,
+                    ),
+                    max_train_frames=args.train_frames,
+                    max_test_frames=args.frames,
+                    calibrate=args.calibrate,
+                    command=command,
+                    progress=update,
+                )
+                if args.out:
+                    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+                    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
             elif args.name == "detect":
                 from .bench import bench_detect
                 from .results import resolve_model
@@ -683,7 +707,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
-    p.add_argument("name", choices=["simulate", "pipeline", "sweep", "detect", "classifier"])
+    p.add_argument("name", choices=["simulate", "pipeline", "sweep", "detect", "classifier", "hitl"])
     p.add_argument(
         "data",
         nargs="*",
@@ -699,9 +723,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default="default", help="detect: checkpoint, session name or 'default'")
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
-    p.add_argument("--epochs", type=int, default=20, help="classifier: epochs per fit")
+    p.add_argument("--epochs", type=int, default=20, help="classifier, hitl: epochs per fit")
     p.add_argument("--max-fit-seconds", type=float, default=None, help="classifier: time budget per fit")
-    p.add_argument("--train-frames", type=int, default=None, help="classifier: first N training frames")
+    p.add_argument("--train-frames", type=int, default=None, help="classifier, hitl: first N training frames")
+    p.add_argument("--budgets", default="50,200", help="hitl: reviews per round K, comma-separated")
+    p.add_argument("--rounds", type=int, default=2, help="hitl: mining rounds after the first fit")
+    p.add_argument("--negatives", type=int, default=500, help="hitl: mined negatives per round")
+    p.add_argument("--initial-negatives", type=int, default=2000, help="hitl: first random background set")
+    p.add_argument("--score-threshold", type=float, default=0.5, help="hitl: operating score (mining too)")
+    p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
+    p.add_argument("--out", default=None, help="hitl: also write the JSON here (the report reads it)")
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.add_argument("--readme", default=None, help="also write the result into this README's bench block")
     p.set_defaults(func=_cmd_bench)

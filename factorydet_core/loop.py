@@ -314,3 +314,28 @@ def simulated_review(
                 db.add_label(item["frame_index"], true_box, class_name, author)
                 counts["boxes_drawn"] += 1
     return counts
+
+
+def add_truth_labels(
+    db: SessionDB, dataset: Dataset, frame_indices: Sequence[int], min_points: int = 50
+) -> int:
+    """Label every real object the data set left unannotated (at least ``min_points`` points) from
+    the simulator's truth: the fully labelled upper bound of ``bench hitl``.
+
+    Returns:
+        How many labels were added.
+    """
+    from .sim.truth import read_frame_truth
+
+    added = 0
+    for index in frame_indices:
+        truth = read_frame_truth(dataset.path, index)
+        missing = (
+            (truth.instance_class_ids >= 0)
+            & ~truth.annotated_mask
+            & (truth.instance_num_points >= min_points)
+        )
+        for box, class_id in zip(truth.instance_boxes[missing], truth.instance_class_ids[missing]):
+            db.add_label(index, box, dataset.class_names[int(class_id)], "truth", origin="import")
+            added += 1
+    return added

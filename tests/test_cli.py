@@ -185,3 +185,21 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
     assert set(record["results"]) == {"annotations", "truth"}
     assert record["grid_sweep"][0]["voxel_size_m"] == 0.3
     assert main(["report", str(small_dataset_dir), "--model", str(tiny_model_path), "--sweep", "x"]) == 2
+
+
+def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_dataset_dir, tmp_path, capsys):
+    out = tmp_path / "hitl.json"
+    args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
+            "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
+            "--no-calibrate", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result == json.loads(out.read_text())
+    assert set(result["f1"]) == {"blind", "reviewed_5", "full"}
+    assert all(0 <= f <= 1 for f in result["f1"].values())
+    assert set(result["recovered"]) == {"5"}
+    reviewed = result["variants"]["reviewed_5"]
+    assert 0 < reviewed["num_reviews"] <= 5  # one review round (rounds=1), at most K items
+    assert result["variants"]["blind"]["num_reviews"] == 0
+    assert result["variants"]["full"]["truth_labels_added"] > 0
+    assert set(reviewed["per_class_f1"]) >= {"barrel", "truck"}
