@@ -440,6 +440,20 @@ def _cmd_review(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_labels(args: argparse.Namespace) -> int:
+    from .labels_io import export_labels, import_labels
+
+    db, _ = _open_session_db(args)
+    frames = parse_ints(args.frames, "--frames") if args.frames else None
+    if args.action == "export":
+        paths = export_labels(db, args.format or "json", args.path, frames)
+        print(json.dumps({"exported": [str(p) for p in paths], "format": args.format or "json"}))
+        return 0
+    report = import_labels(db, args.path, args.author, args.format)
+    print(json.dumps(report, indent=2))
+    return 0
+
+
 def _cmd_undo(args: argparse.Namespace) -> int:
     db, _ = _open_session_db(args)
     edit = db.redo(args.author) if args.redo else db.undo(args.author)
@@ -663,6 +677,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--class", dest="class_name", default=None, help="the object's class (verdict object)")
     p.add_argument("--author", default=getpass.getuser(), help="who reviews (default: the login name)")
     p.set_defaults(func=_cmd_review)
+
+    p = sub.add_parser("labels", help="export a session's labels, or import labels into it")
+    p.add_argument("action", choices=["export", "import"])
+    p.add_argument("path", help="export: a .json file or a folder (kitti, npz); import: a file or folder")
+    session_args(p)
+    p.add_argument("--format", default=None, choices=["json", "kitti", "npz"], help="default: json / guessed")
+    p.add_argument("--frames", default=None, help="export: comma-separated frame indices (default: all)")
+    p.add_argument("--author", default=getpass.getuser(), help="import: who the labels are signed by")
+    p.set_defaults(func=_cmd_labels)
 
     p = sub.add_parser("undo", help="undo (or --redo) an author's latest edit of a session")
     session_args(p)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from .boxes import fit_box
+from .geometry import wrap_angle
 from .types import InputError
 
 
@@ -31,12 +32,7 @@ def pose_to_box(position, wxyz, size) -> np.ndarray:
     size = np.asarray(size, np.float64)
     if size.shape != (3,) or not (size > 0).all():
         raise InputError(f"box size must be three positive numbers, got {size.tolist()}")
-    return np.array([*np.asarray(position, np.float64), *size, wrap_angle(yaw)])
-
-
-def wrap_angle(angle: float) -> float:
-    """``angle`` in [-pi, pi)."""
-    return float((angle + np.pi) % (2 * np.pi) - np.pi)
+    return np.array([*np.asarray(position, np.float64), *size, float(wrap_angle(yaw))])
 
 
 def points_in_screen_rect(

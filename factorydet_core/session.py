@@ -651,6 +651,27 @@ class SessionDB:
             self._edit(db, author, "add", f"add {class_name} to frame {frame_index}", [change])
         return self.label(label_id)
 
+    def add_labels(self, items, author: str, origin: str = "import") -> list[Label]:
+        """Several new labels as one undoable edit.
+
+        Args:
+            items: ``(frame_index, box, class_name)`` triples.
+        """
+        if origin not in ORIGINS:
+            raise SessionError(f"unknown label origin {origin!r}")
+        items = [(self._check_frame(f), box, self._check_class(c)) for f, box, c in items]
+        if not items:
+            return []
+        self.ensure_frames({f for f, _, _ in items})
+        with self._write() as db:
+            ids, changes = [], []
+            for frame_index, box, class_name in items:
+                label_id, change = self._insert_label(db, frame_index, box, class_name, origin, author)
+                ids.append(label_id)
+                changes.append(change)
+            self._edit(db, author, "add", f"{origin}: add {len(ids)} label(s)", changes)
+        return [self.label(i) for i in ids]
+
     def update_label(
         self,
         label_id: int,

@@ -12,8 +12,8 @@ from factorydet_core.editing import (
     points_in_screen_rect,
     pose_to_box,
     split_in_two,
-    wrap_angle,
 )
+from factorydet_core.geometry import wrap_angle
 from factorydet_core.types import InputError
 
 finite = st.floats(-50, 50, allow_nan=False)
