@@ -66,10 +66,14 @@ class ClientView:
         self.queue: list[dict] = []
         self.panels: list = []
         self.gizmo: viser.TransformControlsHandle | None = None
+        self.suspect_index = -1
+        self.closed = False  # set when the browser disconnects: nothing is sent to it after that
 
     # -- messages
 
     def notify(self, title: str, body: str, error: bool = False) -> None:
+        if self.closed:
+            return
         self.client.add_notification(
             title, body, auto_close_seconds=6.0 if not error else 12.0, color="red" if error else None
         )
@@ -293,10 +297,34 @@ class ClientView:
         self.refresh()
         return len(items) if done is not None else 0
 
+    def current_suspect(self) -> dict | None:
+        suspects = self.state.suspects
+        with self.lock:
+            index = self.suspect_index
+        return suspects[index] if 0 <= index < len(suspects) else None
+
+    def next_suspect(self, delta: int = 1) -> None:
+        """Select the next label the model contradicts and put the camera on it."""
+        suspects = self.state.suspects
+        if not suspects:
+            self.notify("Suspect labels", "None listed: press Find suspect labels (needs a model).")
+            return
+        with self.lock:
+            self.suspect_index = (self.suspect_index + delta) % len(suspects)
+            suspect = suspects[self.suspect_index]
+        self.state.set_frame(suspect["frame_index"])
+        position, look_at = camera_for_box(suspect["box"])
+        with self.client.atomic():
+            self.client.camera.position = tuple(position)
+            self.client.camera.look_at = tuple(look_at)
+        self.select_label(suspect["label_id"])
+
     # -- drawing this browser's overlays
 
     def refresh(self) -> None:
         """Bring this browser's panels and highlights up to date."""
+        if self.closed:
+            return
         self._draw_highlights()
         for panel in self.panels:
             panel.refresh(self)

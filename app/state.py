@@ -41,6 +41,7 @@ class AppState:
         self.training_status = "idle"
         self.training_progress = 0.0
         self.training_comparison: dict | None = None  # the last run's before/after table
+        self.suspects: list[dict] = []  # labels the shown model contradicts (loop.suspect_labels)
         self.title = title or dataset.name
         self.lock = threading.RLock()
         self.frame_index = 0
@@ -200,6 +201,12 @@ class AppState:
             self.detections = None
             self.frame_detections = {}
             self.metrics = None
+            self.changed.notify_all()
+        self._notify()
+
+    def set_suspects(self, suspects: list[dict]) -> None:
+        with self.lock:
+            self.suspects = list(suspects)
             self.changed.notify_all()
         self._notify()
 

@@ -17,6 +17,7 @@ from factorydet_core.loop import (
     cached_proposals,
     compare_models,
     session_references,
+    suspect_labels,
     train_session,
 )
 from factorydet_core.types import Cancelled
@@ -64,6 +65,51 @@ class TrainingWorker:
             self._thread.start()
             return True
 
+    def find_suspects(self) -> bool:
+        """Look for labels the shown model contradicts, in the background; False when busy."""
+        with self._lock:
+            if self.busy or self.state.db is None or self.state.model is None:
+                return False
+            self._cancel.clear()
+            self.state.set_training(busy=True, status="looking for suspect labels", progress=0.0)
+            self._thread = threading.Thread(target=self._suspects, name="factorydet-suspects", daemon=True)
+            self._thread.start()
+            return True
+
+    def _suspects(self) -> None:
+        state = self.state
+        try:
+            detector = self._detector()
+            train = state.dataset.splits.get("train") or list(range(state.dataset.num_frames))
+
+            def progress(_what: str, done: int, total: int) -> None:
+                if self._cancel.is_set():
+                    raise Cancelled("cancelled")
+                state.set_training(
+                    status=f"suspect labels: proposals of frame {done} of {total}",
+                    progress=0.9 * done / total,
+                )
+
+            frames = cached_proposals(state.db, state.dataset, detector, train, progress)
+            suspects = suspect_labels(state.db, state.model, frames)
+            state.set_suspects(suspects)
+            state.set_training(busy=False, status=f"{len(suspects)} suspect label(s) found", progress=1.0)
+        except Cancelled:
+            state.set_training(busy=False, status="cancelled", progress=0.0)
+        except Exception as exc:  # keep the app alive; say what went wrong
+            traceback.print_exc()
+            state.set_training(busy=False, status=f"failed: {exc}", progress=0.0)
+
+    def _detector(self) -> Detector:
+        """The front half the shown model was trained with, calibrated like the viewer's."""
+        dataset = self.state.dataset
+        detector = Detector(params_for(getattr(self.state.model, "front_end", None), dataset.num_sensors))
+        if self.calibrate and dataset.num_sensors > 1:
+            train = dataset.splits.get("train") or [0]
+            self.state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
+            detector.calibrate(dataset.frame(train[0]))
+        return detector
+
     def cancel(self) -> None:
         self._cancel.set()
 
@@ -86,7 +132,7 @@ class TrainingWorker:
         with state.lock:
             before, before_name = state.model, state.model_name
         front_end = getattr(before, "front_end", None)
-        detector = Detector(params_for(front_end, dataset.num_sensors))
+        detector = self._detector()
         train = dataset.splits.get("train") or list(range(dataset.num_frames))
         test = dataset.splits.get("test") or []
         rounds = settings.rounds + 1 if mode == "full" else 1
@@ -108,9 +154,6 @@ class TrainingWorker:
             elif what == "round":
                 done_fits[0] = done
 
-        if self.calibrate and dataset.num_sensors > 1:
-            state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
-            detector.calibrate(dataset.frame(train[0]))
         frames = cached_proposals(db, dataset, detector, train, progress)
         run_id, run = train_session(
             db, frames, settings, mode=mode, data_ref=str(dataset.path), front_end=front_end,
@@ -127,6 +170,8 @@ class TrainingWorker:
             table = compare_models(models, dataset, test_frames, session_references(db, test))
             db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
         state.set_model(run.model, f"session run {run_id}")
+        state.set_training(status="looking for suspect labels", progress=0.95)
+        state.set_suspects(suspect_labels(db, run.model, frames))
         queue = len(db.review_queue(run_id))
         state.set_training(
             busy=False,

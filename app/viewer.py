@@ -179,7 +179,7 @@ class FactorydetApp:
         )
         if self.state.editable:
             labels_panel = build_labels_panel(view)
-            review_panel = build_review_panel(view)
+            review_panel = build_review_panel(view, self.trainer.find_suspects)
             view.panels = [labels_panel, review_panel]
             register_hotkeys(view, labels_panel, review_panel)
             build_help_panel(view)
@@ -189,7 +189,9 @@ class FactorydetApp:
 
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
         with self._clients_lock:
-            self.clients.pop(client.client_id, None)
+            view = self.clients.pop(client.client_id, None)
+        if view is not None:
+            view.closed = True
 
     def client_view(self, client_id: int) -> ClientView | None:
         with self._clients_lock:

@@ -521,10 +521,7 @@ def bench_hitl(
     import tempfile
 
     from .dataset import open_dataset
-    from .detector import Detector, params_for
-    from .loop import LoopSettings, add_truth_labels, cached_proposals, simulated_review, train_session
-    from .results import measure
-    from .session import SessionDB, open_session
+    from .loop import LoopSettings
 
     dataset = open_dataset(data)
     if not (Path(data) / "truth").is_dir():
@@ -537,7 +534,26 @@ def bench_hitl(
     test = (dataset.splits.get("test") or [])[:max_test_frames]
     if not train or not test:
         raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
-    root = Path(workdir) if workdir is not None else Path(tempfile.mkdtemp(prefix="factorydet_hitl_"))
+    scratch_dir = None if workdir is not None else tempfile.TemporaryDirectory(prefix="factorydet_hitl_")
+    root = Path(workdir) if workdir is not None else Path(scratch_dir.name)
+    try:
+        return _hitl_variants(
+            dataset, data, root, train, test, budgets, rounds, settings, calibrate, command, progress
+        )
+    finally:
+        if scratch_dir is not None:
+            scratch_dir.cleanup()
+
+
+def _hitl_variants(
+    dataset, data, root, train, test, budgets, rounds, settings, calibrate, command, progress
+) -> dict:
+    """``bench_hitl``'s work inside its sessions folder ``root``."""
+    from .detector import Detector, params_for
+    from .loop import add_truth_labels, cached_proposals, simulated_review, train_session
+    from .results import measure
+    from .session import SessionDB, open_session
+
     detector = Detector(params_for(None, dataset.num_sensors))
     if calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(train[0]))

@@ -155,8 +155,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     progress=update,
                 )
                 if args.out:
+                    from .report import hitl_markdown
+
                     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
                     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+                    Path(args.out).with_suffix(".md").write_text(hitl_markdown(result))
             elif args.name == "detect":
                 from .bench import bench_detect
                 from .results import resolve_model

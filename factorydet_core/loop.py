@@ -339,3 +339,51 @@ def add_truth_labels(
             db.add_label(index, box, dataset.class_names[int(class_id)], "truth", origin="import")
             added += 1
     return added
+
+
+def suspect_labels(
+    db: SessionDB,
+    model: DetectionModel,
+    frames: Sequence[FrameProposals],
+    min_iou: float = 0.5,
+    max_label_probability: float = 0.2,
+) -> list[dict]:
+    """Labels the classifier disagrees with strongly: the point set that best matches the label
+    (IoU >= ``min_iou``) gets at most ``max_label_probability`` for the label's class and a
+    different class (or background) on top. Most suspect first.
+
+    Returns:
+        Dicts with ``label_id``, ``frame_index``, ``class_name``, ``box``, ``label_probability``,
+        ``predicted_class`` and ``predicted_probability``.
+    """
+    from .training import group_overlaps
+
+    names = (*model.class_names, "background")
+    out = []
+    for frame in frames:
+        labels = db.labels(frame.frame_index)
+        if not labels or not frame.groups.num_groups:
+            continue
+        probabilities = model.probabilities(frame.groups)
+        overlap = group_overlaps(frame, np.array([lab.box for lab in labels]))
+        for r, lab in enumerate(labels):
+            g = int(overlap[:, r].argmax())
+            if overlap[g, r] < min_iou or lab.class_name not in names:
+                continue
+            p = probabilities[g]
+            p_label = float(p[names.index(lab.class_name)])
+            top = int(p.argmax())
+            if p_label <= max_label_probability and names[top] != lab.class_name:
+                out.append(
+                    {
+                        "label_id": lab.id,
+                        "frame_index": lab.frame_index,
+                        "class_name": lab.class_name,
+                        "box": list(lab.box),
+                        "label_probability": round(p_label, 4),
+                        "predicted_class": names[top],
+                        "predicted_probability": round(float(p[top]), 4),
+                    }
+                )
+    out.sort(key=lambda s: s["label_probability"])
+    return out

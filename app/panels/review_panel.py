@@ -26,6 +26,7 @@ class ReviewPanel:
     item: viser.GuiMarkdownHandle
     object_class: viser.GuiDropdownHandle
     buttons: dict[str, viser.GuiButtonHandle]
+    suspects: viser.GuiMarkdownHandle
 
     def refresh(self, view: ClientView) -> None:
         state = view.state
@@ -54,10 +55,25 @@ class ReviewPanel:
             labels = state.db.labels(item["frame_index"])
             self.item.content = review_item_markdown(item, labels, rank, len(queue))
         for name, button in self.buttons.items():
-            button.disabled = not queue and name not in ("previous", "next")
+            button.disabled = not queue and name not in ("previous", "next", "find_suspects", "next_suspect")
+        suspect = view.current_suspect()
+        count = len(state.suspects)
+        text = (
+            f"**{count} suspect label(s)**: labels the shown model contradicts strongly."
+            if count
+            else ("_No suspect labels listed; **Find suspect labels** asks the shown model._")
+        )
+        if suspect is not None:
+            text += (
+                f"  \nNow: label #{suspect['label_id']} *{suspect['class_name']}* (frame "
+                f"{suspect['frame_index'] + 1}): the model says **{suspect['predicted_class']}** "
+                f"({suspect['predicted_probability']:.2f}), {suspect['label_probability']:.2f} for its "
+                "class. Fix it in the Labels panel or go on."
+            )
+        self.suspects.content = text
 
 
-def build_review_panel(view: ClientView) -> ReviewPanel:
+def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
     gui = view.client.gui
     state = view.state
     names = list(state.dataset.class_names)
@@ -84,9 +100,14 @@ def build_review_panel(view: ClientView) -> ReviewPanel:
                 "Background for all pending in this filter", color="red", hint="One undoable edit"
             ),
         }
+    with gui.add_folder("Suspect labels", expand_by_default=False):
+        suspects = gui.add_markdown("")
+        buttons["find_suspects"] = gui.add_button("Find suspect labels", hint="Runs in the background")
+        buttons["next_suspect"] = gui.add_button("Next suspect [U]")
     panel = ReviewPanel(
-        progress_text, progress, filter_class, filter_frame, pending_only, dim, item, object_class, buttons
-    )
+        progress_text, progress, filter_class, filter_frame, pending_only, dim, item, object_class, buttons,
+        suspects,
+    )  # fmt: skip
 
     def set_filter(_event=None) -> None:
         with view.lock:
@@ -112,6 +133,11 @@ def build_review_panel(view: ClientView) -> ReviewPanel:
     buttons["previous"].on_click(lambda _: view.step(-1))
     buttons["next"].on_click(lambda _: view.step(1))
     buttons["batch"].on_click(lambda _: view.batch_verdict("background"))
+    buttons["next_suspect"].on_click(lambda _: view.next_suspect())
+    if find_suspects is not None:
+        buttons["find_suspects"].on_click(
+            lambda _: find_suspects() or view.notify("Suspect labels", "Busy: a job is running.")
+        )
     return panel
 
 

@@ -162,6 +162,14 @@ def test_retrain_from_the_browser_shows_progress_and_the_before_after_table(sess
         page.get_by_text("done:", exact=False).first.wait_for(timeout=20_000)
         page.get_by_text("Before / after", exact=False).first.wait_for(timeout=20_000)
         assert db.training_runs()[-1]["metrics"]["compare"]
+
+        # Suspect labels from the browser: the shown model is asked in the background.
+        page.get_by_text("Suspect labels", exact=True).first.click()
+        page.get_by_role("button", name="Find suspect labels").click()
+        assert _wait(lambda: "suspect label(s) found" in app.state.training_status, 120), (
+            app.state.training_status
+        )
+        page.get_by_text("suspect label(s) found", exact=False).first.wait_for(timeout=20_000)
     finally:
         context.close()
 

@@ -14,10 +14,12 @@ from factorydet_core.loop import (
     proposals_cache_key,
     session_references,
     simulated_review,
+    suspect_labels,
     train_session,
     truth_verdict,
     with_session_labels,
 )
+from factorydet_core.model import DetectionModel
 from factorydet_core.session import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.types import Cancelled
@@ -135,3 +137,19 @@ def test_truth_verdicts(dataset):
     assert truth_verdict(dataset, shifted)[0] == "wrong_box"
     far = {"frame_index": 0, "box": [500.0, 500.0, 0.5, 1, 1, 1, 0]}
     assert truth_verdict(dataset, far) == ("background", None, None)
+
+
+def test_suspect_labels_are_the_ones_the_classifier_contradicts(db, frames, tiny_model_path):
+    model = DetectionModel.load(tiny_model_path)
+    suspects = suspect_labels(db, model, frames, max_label_probability=1.0)
+    assert suspects, "with no probability limit, every matched label the model ranks lower is listed"
+    probabilities = [s["label_probability"] for s in suspects]
+    assert probabilities == sorted(probabilities)
+    for s in suspects:
+        assert (
+            s["predicted_class"] != s["class_name"] and s["predicted_probability"] >= s["label_probability"]
+        )
+        assert db.label(s["label_id"]).class_name == s["class_name"]
+    strict = suspect_labels(db, model, frames, max_label_probability=0.05)
+    assert len(strict) <= len(suspects)
+    assert all(s["label_probability"] <= 0.05 for s in strict)
