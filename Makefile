@@ -11,7 +11,7 @@ PORT ?= 8080
 APT_GET := DEBIAN_FRONTEND=noninteractive apt-get
 IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 
-.PHONY: app test lint bench report demo sysdeps browserdeps clean
+.PHONY: app test lint bench report screenshots demo sysdeps browserdeps clean
 
 app: $(STAMP) demo
 	$(BIN)/factorydet app --session demo --host $(HOST) --port $(PORT)
@@ -40,6 +40,11 @@ bench: $(STAMP)
 	  --epochs 15 --max-fit-seconds 240 --train-frames 4 --frames 2 --readme README.md
 	$(BIN)/factorydet demo
 	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme README.md
+	$(BIN)/factorydet bench hitl sessions/demo/data --budgets 50,200 --rounds 2 --epochs 15 --out docs/hitl.json
+
+# Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
+screenshots: $(STAMP) demo browserdeps
+	$(BIN)/python -m app.screenshots sessions/demo/data --out docs/img
 
 # Regenerates docs/results.md (tables, PR curve, grid sweep) for the shipped model on the demo data.
 report: $(STAMP) demo

@@ -73,7 +73,7 @@ class FactorydetApp:
         self._layers_key: tuple | None = None
         self._draw_lock = threading.Lock()  # one redraw at a time; the last one wins
         server.gui.configure_theme(control_width="medium", dark_mode=False)
-        server.gui.add_markdown("### factorydet")
+        server.gui.add_markdown("### factorydet", order=0)
         self.frame_panel = build_frame_panel(server, self.state)
         self.display_panel = build_display_panel(server, self.state)
         self.pipeline_panel = build_pipeline_panel(server, self.state)

@@ -46,7 +46,7 @@ def build_detections_panel(server: viser.ViserServer, state: AppState) -> Detect
     with state.lock:
         has_model = state.model is not None
         score, nms = state.score_threshold, state.nms_iou
-    with server.gui.add_folder("Detections"):
+    with server.gui.add_folder("Detections", order=70):
         visible = server.gui.add_checkbox(
             "Detections (after NMS)", initial_value=True, disabled=not has_model
         )

@@ -43,7 +43,7 @@ class DisplayPanel:
 
 def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPanel:
     labels = [_MODE_LABELS[m] for m in COLOR_MODES]
-    with server.gui.add_folder("Display"):
+    with server.gui.add_folder("Display", order=50):
         color_mode = server.gui.add_dropdown(
             "Colour by", labels, initial_value=_MODE_LABELS[state.color_mode]
         )

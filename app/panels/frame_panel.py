@@ -48,7 +48,7 @@ def status_markdown(
 
 def build_frame_panel(server: viser.ViserServer, state: AppState) -> FramePanel:
     num_frames = state.dataset.num_frames
-    with server.gui.add_folder("Frame"):
+    with server.gui.add_folder("Frame", order=10):
         slider = server.gui.add_slider(
             "Frame", min=0, max=max(num_frames - 1, 1), step=1, initial_value=0, disabled=num_frames <= 1
         )

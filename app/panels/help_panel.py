@@ -81,5 +81,5 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
 
 
 def build_help_panel(view: ClientView) -> None:
-    with view.client.gui.add_folder("Keys", expand_by_default=False):
+    with view.client.gui.add_folder("Keys", order=90, expand_by_default=False):
         view.client.gui.add_markdown(help_markdown(view.state.dataset.class_names))

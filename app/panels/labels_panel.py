@@ -70,7 +70,7 @@ class LabelsPanel:
 def build_labels_panel(view: ClientView) -> LabelsPanel:
     gui = view.client.gui
     names = list(view.state.dataset.class_names)
-    with gui.add_folder("Labels"):
+    with gui.add_folder("Labels", order=30):
         author = gui.add_text(
             "Your name", initial_value=view.author, hint="Edits and reviews are signed with it"
         )

@@ -58,7 +58,7 @@ class MetricsPanel:
 
 
 def build_metrics_panel(server: viser.ViserServer, state: AppState) -> MetricsPanel:
-    with server.gui.add_folder("Metrics", expand_by_default=False):
+    with server.gui.add_folder("Metrics", order=80, expand_by_default=False):
         table = server.gui.add_markdown("")
         plot = server.gui.add_uplot(
             data=(np.array([0.0, 1.0]), np.array([1.0, 0.0])),

@@ -59,7 +59,7 @@ def build_pipeline_panel(server: viser.ViserServer, state: AppState) -> Pipeline
     with state.lock:
         params = state.params
         layers = dict(state.layers)
-    with server.gui.add_folder("Detection layers"):
+    with server.gui.add_folder("Detection layers", order=60):
         layer_boxes = {
             name: server.gui.add_checkbox(label, initial_value=layers[name])
             for name, label in LAYER_LABELS.items()
@@ -70,7 +70,7 @@ def build_pipeline_panel(server: viser.ViserServer, state: AppState) -> Pipeline
             disabled=state.dataset.num_sensors < 2,
             hint="Merge with extrinsics refined by ICP between sensors instead of the nominal ones",
         )
-    with server.gui.add_folder("Segmentation"):
+    with server.gui.add_folder("Segmentation", order=61):
         voxel_size = server.gui.add_slider(
             "Voxel size (m)", min=0.05, max=0.5, step=0.05, initial_value=params.voxel_size_m
         )
@@ -92,7 +92,7 @@ def build_pipeline_panel(server: viser.ViserServer, state: AppState) -> Pipeline
         )
         progress = server.gui.add_progress_bar(0.0, animated=False)
         status = server.gui.add_markdown("")
-    with server.gui.add_folder("Selection"):
+    with server.gui.add_folder("Selection", order=62):
         selection = server.gui.add_markdown("")
 
     for name, box in layer_boxes.items():

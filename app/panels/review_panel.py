@@ -77,7 +77,7 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
     gui = view.client.gui
     state = view.state
     names = list(state.dataset.class_names)
-    with gui.add_folder("Review queue"):
+    with gui.add_folder("Review queue", order=20):
         progress_text = gui.add_markdown("")
         progress = gui.add_progress_bar(0.0, animated=False)
         filter_class = gui.add_dropdown("Predicted class", [ALL, *names], initial_value=ALL)
@@ -100,7 +100,7 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
                 "Background for all pending in this filter", color="red", hint="One undoable edit"
             ),
         }
-    with gui.add_folder("Suspect labels", expand_by_default=False):
+    with gui.add_folder("Suspect labels", order=21, expand_by_default=False):
         suspects = gui.add_markdown("")
         buttons["find_suspects"] = gui.add_button("Find suspect labels", hint="Runs in the background")
         buttons["next_suspect"] = gui.add_button("Next suspect [U]")

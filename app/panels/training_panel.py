@@ -87,7 +87,7 @@ class TrainingPanel:
 
 
 def build_training_panel(server: viser.ViserServer, state: AppState, worker: TrainingWorker) -> TrainingPanel:
-    with server.gui.add_folder("Training", expand_by_default=False):
+    with server.gui.add_folder("Training", order=40, expand_by_default=False):
         mode = server.gui.add_dropdown("Mode", list(MODES), initial_value="next round")
         epochs = server.gui.add_number("Epochs", initial_value=worker.settings.epochs, min=1, max=500, step=1)
         train = server.gui.add_button(

@@ -1,0 +1,111 @@
+"""Screenshots for the README's walkthrough, taken by driving the real app in headless Chromium:
+train from the Training panel, review a few mined negatives with the review panel's buttons, train
+the next round, and capture the review queue and the before/after table.
+
+    .venv/bin/python -m app.screenshots DATA --out docs/img
+
+Runs in a scratch session (nothing is written under ``sessions/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import viser
+
+from factorydet_core.dataset import open_dataset
+from factorydet_core.loop import LoopSettings
+from factorydet_core.model import DEFAULT_MODEL, DetectionModel
+from factorydet_core.session import SessionDB, open_session
+
+from .viewer import FactorydetApp
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+
+
+def _wait(predicate, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"timed out waiting for {what}")
+
+
+def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
+    from playwright.sync_api import sync_playwright
+
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dataset = open_dataset(data)
+    with tempfile.TemporaryDirectory() as root:
+        db = SessionDB(open_session("walkthrough", root), dataset)
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+        model = DetectionModel.load(DEFAULT_MODEL) if DEFAULT_MODEL.is_file() else None
+        app = FactorydetApp(
+            server, dataset, model=model, model_name="shipped default", db=db,
+            training=LoopSettings(epochs=epochs, rounds=0),
+        )  # fmt: skip
+        shots = []
+        try:
+            with sync_playwright() as pw:
+                browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+                page = browser.new_context(viewport={"width": 1500, "height": 1000}).new_page()
+                page.goto(f"http://127.0.0.1:{server.get_port()}/")
+                page.wait_for_selector("canvas[data-engine]", timeout=60_000)
+                _wait(lambda: app.clients, 60, "the browser")
+                view = next(iter(app.clients.values()))
+                for folder in ("Display", "Detection layers", "Segmentation", "Selection", "Detections"):
+                    # Fold the viewing panels so the labelling ones fit on the page.
+                    title = page.get_by_text(folder, exact=True).first
+                    if title.count():
+                        title.click()
+                page.get_by_text("Training", exact=True).first.click()
+                page.get_by_role("button", name="Train", exact=True).click()
+                _wait(lambda: app.state.training_busy, 30, "training to start")
+                _wait(lambda: not app.state.training_busy, 3600, "the first training run")
+                page.get_by_text("Training", exact=True).first.click()  # fold it again
+                page.get_by_role("button", name="Next [N]").click()
+                _wait(lambda: view.current_item_id is not None, 30, "the first queue item")
+                time.sleep(3)  # the dimmed scene and the camera move reach the canvas
+                shots.append(out_dir / "review_queue.png")
+                page.screenshot(path=str(shots[-1]))
+                for _ in range(reviews):
+                    page.get_by_role("button", name="Background [B]").click()
+                    time.sleep(0.5)
+                page.get_by_text("Training", exact=True).first.click()
+                page.get_by_role("button", name="Train", exact=True).click()
+                _wait(lambda: app.state.training_busy, 30, "training to start")
+                _wait(lambda: not app.state.training_busy, 3600, "the next round")
+                page.get_by_text("Review queue", exact=True).first.click()  # fold it
+                page.get_by_text("Before / after", exact=False).first.wait_for(timeout=30_000)
+                time.sleep(2)
+                shots.append(out_dir / "before_after.png")
+                page.screenshot(path=str(shots[-1]))
+                browser.close()
+        finally:
+            app.close()
+            app.trainer.join(120)
+            server.stop()
+    return shots
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", help="a simulated data set folder (e.g. sessions/demo/data)")
+    parser.add_argument("--out", default="docs/img")
+    parser.add_argument("--epochs", type=int, default=5)
+    args = parser.parse_args()
+    for path in take(args.data, args.out, args.epochs):
+        print(path)
+
+
+if __name__ == "__main__":
+    main()
