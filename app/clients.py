@@ -49,7 +49,7 @@ class ClientView:
         self.client = client
         self.state = state
         self._scene_points = scene_points
-        self._drawn_result = drawn_result
+        self.drawn_result = drawn_result
         self.lock = threading.RLock()
         self.author = f"reviewer-{client.client_id}"
         self.selected_label_id: int | None = None
@@ -108,7 +108,7 @@ class ClientView:
 
     def select_patches(self, patch_ids, add: bool = False) -> None:
         """Select the segment made of ``patch_ids`` of the drawn result (``add``: extend it)."""
-        result, frame_index = self._drawn_result()
+        result, frame_index = self.drawn_result()
         with self.lock:
             if not add or self.selected_frame != frame_index:
                 self.selected_patch_ids = set()
@@ -125,7 +125,7 @@ class ClientView:
 
     def selected_points(self) -> np.ndarray:
         """(K, 3) points of the selected segment in the drawn result."""
-        result, frame_index = self._drawn_result()
+        result, frame_index = self.drawn_result()
         with self.lock:
             patch_ids = set(self.selected_patch_ids)
             frame = self.selected_frame
@@ -243,8 +243,8 @@ class ClientView:
         k = ids.index(current) + delta if current in ids else 0
         self.go_to(queue[max(0, min(k, len(queue) - 1))])
 
-    def verdict(self, verdict: str, class_name: str | None = None) -> None:
-        """The verdict on the shown item, then the next pending one."""
+    def verdict(self, verdict: str, class_name: str | None = None, advance: bool = True) -> None:
+        """The verdict on the shown item, then (with ``advance``) the next pending one."""
         item = self.current_item()
         if item is None:
             self.step(0)
@@ -266,6 +266,9 @@ class ClientView:
             self.load_queue()
             return
         queue = self.load_queue()
+        if not advance:
+            self.refresh()
+            return
         ids = [q["id"] for q in queue]
         k = ids.index(item["id"]) if item["id"] in ids else -1
         later = [q for q in queue[k + 1 :] if q["verdict"] in (None, "skip")]

@@ -142,13 +142,17 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
 
 
 def wrong_box(view: ClientView) -> None:
-    """Mark the item a real object with a wrong segment, and select its points so that the
-    person can box them (Label segment) or adjust a new box right away."""
+    """Mark the item a real object whose segment is wrong, stay on it, and select its points so
+    that the person can box them right away (Label segment, or the Box fields after it)."""
     item = view.current_item()
-    view.verdict("wrong_box")
-    if item is not None:
-        view.notify(
-            "Wrong box",
-            "Select the object's points (click, shift-click) and press Label segment, "
-            "or edit a box in the Labels panel.",
-        )
+    view.verdict("wrong_box", advance=False)
+    if item is None:
+        return
+    _, drawn_frame = view.drawn_result()
+    if drawn_frame == item["frame_index"]:
+        view.select_patches(item["patch_set"])
+    view.notify(
+        "Wrong box",
+        "Its points are selected: shift-click or shift-drag to add the rest of the object, then "
+        "Label segment [L]; Next [N] goes on.",
+    )
