@@ -82,3 +82,33 @@ def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny
     kept = int(np.flatnonzero(low.kept_mask)[0])
     info = describe_detection(low, kept, result.proposal.proposals, dataset.frame(0))
     assert info["proposal"].startswith(f"#{int(low.proposal_ids[kept])}")
+
+
+def test_session_labels_drive_the_view_and_a_model_switch_resets_detections(
+    small_dataset_dir, tiny_model_path, tmp_path
+):
+    from factorydet_core.model import DetectionModel
+    from factorydet_core.session import SessionDB, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    read_only = AppState(dataset)
+    boxes, class_ids, ids = read_only.frame_labels()
+    assert len(boxes) == len(dataset.frame(0).labels) and (ids == -1).all() and not read_only.editable
+
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    state = AppState(dataset, db=db)
+    assert state.editable
+    label = db.labels(0)[0]
+    db.delete_labels([label.id], "ann")
+    seen = []
+    state.on_change(lambda: seen.append(state.revision))
+    state.session_changed()
+    boxes, _, ids = state.frame_labels()
+    assert seen == [1] and label.id not in ids.tolist() and len(boxes) == len(dataset.frame(0).labels) - 1
+
+    key = state.pipeline_key()
+    model = DetectionModel.load(tiny_model_path)
+    state.set_model(model, "tiny")
+    assert state.pipeline_key() != key and state.model_name == "tiny"
+    assert state.detections is None and state.frame_detections == {} and state.metrics is None
+    assert state.score_threshold == model.score_threshold
