@@ -10,6 +10,8 @@ is told (``EditConflictError``).
 
 from __future__ import annotations
 
+import secrets
+import sqlite3
 import threading
 from collections.abc import Callable
 
@@ -17,12 +19,15 @@ import numpy as np
 import viser
 
 from factorydet_core import colors
-from factorydet_core.editing import box_of_points, box_to_pose, camera_for_box, split_in_two
+from factorydet_core.editing import box_of_points, box_to_pose, camera_for_box, pose_to_box, split_in_two
 from factorydet_core.geometry import box_wireframe_segments
-from factorydet_core.session import EditConflictError, SessionError
+from factorydet_core.session import EditConflictError
+from factorydet_core.types import InputError
 
 from .state import AppState
 
+FAILED = object()
+"""What ``ClientView._guarded`` returns when the edit was refused (the person has been told)."""
 HIGHLIGHT_RGB = (255, 215, 0)
 REVIEW_RGB = (255, 0, 200)
 DIM_FACTOR = 0.25
@@ -51,8 +56,11 @@ class ClientView:
         self._scene_points = scene_points
         self.drawn_result = drawn_result
         self.lock = threading.RLock()
-        self.author = f"reviewer-{client.client_id}"
+        # viser numbers browsers from 0 at every start, so the default name must not be the id:
+        # a new browser would otherwise inherit (and undo) an earlier person's edits.
+        self.author = f"reviewer-{secrets.token_hex(3)}"
         self.selected_label_id: int | None = None
+        self.selected_label_version: int | None = None
         self.selected_patch_ids: set[int] = set()
         self.selected_frame: int | None = None
         self.object_class = state.dataset.class_names[0]
@@ -67,6 +75,8 @@ class ClientView:
         self.panels: list = []
         self.gizmo: viser.TransformControlsHandle | None = None
         self.suspect_index = -1
+        self.class_dropdowns: list = []  # every dropdown showing object_class
+        self._refresh_lock = threading.Lock()  # one refresh at a time (redraw and callback threads)
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
 
     # -- messages
@@ -78,48 +88,71 @@ class ClientView:
             title, body, auto_close_seconds=6.0 if not error else 12.0, color="red" if error else None
         )
 
-    def _guarded(self, action: Callable[[], object], what: str) -> object | None:
-        """Run an edit; a conflict or a refused edit becomes a notification, not a crash."""
+    def _guarded(self, action: Callable[[], object], what: str) -> object:
+        """Run an edit; a conflict, a refused edit or a database failure becomes a notification
+        (and ``FAILED`` is returned), never an exception in viser's callback thread."""
         try:
             result = action()
         except EditConflictError as exc:
             self.notify(f"{what}: someone else got there first", str(exc), error=True)
+            self._reload_selected_version()
             self.state.session_changed()
-            return None
-        except SessionError as exc:
+            return FAILED
+        except InputError as exc:  # SessionError included
             self.notify(f"{what}: not done", str(exc), error=True)
-            return None
+            return FAILED
+        except sqlite3.Error as exc:
+            self.notify(f"{what}: the session database failed", f"{type(exc).__name__}: {exc}", error=True)
+            return FAILED
         self.state.session_changed()
         return result
 
     # -- selection
 
     def selected_label(self):
-        if self.selected_label_id is None or self.state.db is None:
+        """The selected label as stored now (``None`` if none or deleted)."""
+        with self.lock:
+            label_id = self.selected_label_id
+        if label_id is None or self.state.db is None:
             return None
-        label = self.state.db.label(self.selected_label_id)
+        label = self.state.db.label(label_id)
         return None if label.deleted else label
 
+    def _reload_selected_version(self) -> None:
+        """After a conflict the person sees the label as it is now; their next edit is made
+        against that version."""
+        label = self.selected_label()
+        with self.lock:
+            self.selected_label_version = None if label is None else label.version
+
     def select_label(self, label_id: int | None) -> None:
+        """Select a label; edits from here on are made against the version selected (or last
+        edited by this browser), so someone else's change in between is reported, not overwritten."""
+        label = None
+        if label_id is not None and self.state.db is not None:
+            label = self.state.db.label(label_id)
         with self.lock:
             self.selected_label_id = label_id
+            self.selected_label_version = None if label is None else label.version
             self.selected_patch_ids = set()
         self.refresh()
 
     def select_patches(self, patch_ids, add: bool = False) -> None:
         """Select the segment made of ``patch_ids`` of the drawn result (``add``: extend it)."""
-        result, frame_index = self.drawn_result()
+        _, frame_index = self.drawn_result()
         with self.lock:
             if not add or self.selected_frame != frame_index:
                 self.selected_patch_ids = set()
             self.selected_patch_ids |= {int(p) for p in patch_ids}
             self.selected_frame = frame_index
             self.selected_label_id = None
+            self.selected_label_version = None
         self.refresh()
 
     def clear_selection(self) -> None:
         with self.lock:
             self.selected_label_id = None
+            self.selected_label_version = None
             self.selected_patch_ids = set()
         self.refresh()
 
@@ -136,65 +169,69 @@ class ClientView:
 
     # -- label edits
 
+    def _edit_selected(self, what: str, edit: Callable) -> object:
+        """Apply ``edit(label_id, expected_version)`` to the selected label."""
+        with self.lock:
+            label_id, version = self.selected_label_id, self.selected_label_version
+        if label_id is None:
+            self.notify(what, "Select a label first (click its box).")
+            return FAILED
+        result = self._guarded(lambda: edit(label_id, version), what)
+        if result is not FAILED and hasattr(result, "version"):
+            with self.lock:
+                self.selected_label_version = result.version
+        return result
+
     def set_class(self, class_name: str) -> None:
-        label = self.selected_label()
-        if label is None:
-            self.notify("Set class", "Select a label first (click its box).")
-            return
-        self._guarded(
-            lambda: self.state.db.update_label(
-                label.id, self.author, expected_version=label.version, class_name=class_name
-            ),
+        self._edit_selected(
             "Set class",
+            lambda i, v: self.state.db.update_label(
+                i, self.author, expected_version=v, class_name=class_name
+            ),
         )
 
     def apply_box(self, box) -> None:
-        label = self.selected_label()
-        if label is None:
-            return
-        self._guarded(
-            lambda: self.state.db.update_label(
-                label.id, self.author, expected_version=label.version, box=box
-            ),
-            "Move box",
+        self._edit_selected(
+            "Move box", lambda i, v: self.state.db.update_label(i, self.author, expected_version=v, box=box)
         )
 
     def delete_selected(self) -> None:
-        label = self.selected_label()
-        if label is None:
-            self.notify("Delete", "Select a label first (click its box).")
-            return
-        if self._guarded(
-            lambda: self.state.db.delete_labels([label.id], self.author, {label.id: label.version}), "Delete"
-        ):
+        done = self._edit_selected(
+            "Delete", lambda i, v: self.state.db.delete_labels([i], self.author, {i: v})
+        )
+        if done is not FAILED:
             self.select_label(None)
 
     def label_segment(self, class_name: str, split: bool = False) -> None:
-        """A new label (two with ``split``) boxing the selected segment's points."""
+        """A new label (two with ``split``, as one edit) boxing the selected segment's points."""
         points = self.selected_points()
-        frame_index = self.selected_frame
+        with self.lock:
+            frame_index = self.selected_frame
         if len(points) < 3 or frame_index is None:
             self.notify("Label segment", "Select a segment first: click its points (shift-click adds one).")
             return
-        parts = [points] if not split else [points[split_in_two(points) == k] for k in (0, 1)]
 
         def add():
-            return [
-                self.state.db.add_label(frame_index, box_of_points(part), class_name, self.author)
-                for part in parts
-            ]
+            parts = [points] if not split else [points[split_in_two(points) == k] for k in (0, 1)]
+            boxes = [box_of_points(part) for part in parts]  # all boxes first: nothing half-written
+            return self.state.db.add_labels(
+                [(frame_index, b, class_name) for b in boxes], self.author, "user"
+            )
 
-        added = self._guarded(add, "Label segment")
-        if added:
+        added = self._guarded(add, "Split segment" if split else "Label segment")
+        if added is not FAILED and added:
             self.select_label(added[-1].id)
 
     def undo(self, redo: bool = False) -> None:
+        what = "Redo" if redo else "Undo"
         edit = self._guarded(
-            lambda: self.state.db.redo(self.author) if redo else self.state.db.undo(self.author),
-            "Redo" if redo else "Undo",
+            lambda: self.state.db.redo(self.author) if redo else self.state.db.undo(self.author), what
         )
+        if edit is FAILED:
+            return
+        self._reload_selected_version()
         if edit is None:
-            self.notify("Redo" if redo else "Undo", "Nothing to " + ("redo." if redo else "undo."))
+            self.notify(what, "Nothing to " + ("redo." if redo else "undo."))
         else:
             self.notify("Redone" if redo else "Undone", edit.summary)
 
@@ -247,11 +284,11 @@ class ClientView:
         """The verdict on the shown item, then (with ``advance``) the next pending one."""
         item = self.current_item()
         if item is None:
+            # Nothing is shown yet: show the first item, and let the person look before judging.
             self.step(0)
-            item = self.current_item()
-            if item is None:
+            if self.current_item() is None:
                 self.notify("Review", "The queue is empty: train a model from the Training panel first.")
-                return
+            return
         done = self._guarded(
             lambda: self.state.db.review(
                 [item["id"]],
@@ -262,8 +299,9 @@ class ClientView:
             ),
             "Review",
         )
-        if done is None:
+        if done is FAILED:
             self.load_queue()
+            self.refresh()
             return
         queue = self.load_queue()
         if not advance:
@@ -298,7 +336,17 @@ class ClientView:
         )
         self.load_queue()
         self.refresh()
-        return len(items) if done is not None else 0
+        return len(items) if done is not FAILED else 0
+
+    def set_object_class(self, name: str) -> None:
+        """The class the Labels and Review panels (and the O, C, L, K keys) use: one per browser,
+        shown in both panels' dropdowns."""
+        with self.lock:
+            self.object_class = name
+            dropdowns = list(self.class_dropdowns)
+        for dropdown in dropdowns:
+            if dropdown.value != name:
+                dropdown.value = name
 
     def current_suspect(self) -> dict | None:
         suspects = self.state.suspects
@@ -328,9 +376,10 @@ class ClientView:
         """Bring this browser's panels and highlights up to date."""
         if self.closed:
             return
-        self._draw_highlights()
-        for panel in self.panels:
-            panel.refresh(self)
+        with self._refresh_lock:
+            self._draw_highlights()
+            for panel in self.panels:
+                panel.refresh(self)
 
     def _draw_highlights(self) -> None:
         scene = self.client.scene
@@ -369,7 +418,13 @@ class ClientView:
             )  # fmt: skip
             self._dimmed = True
         elif self._dimmed:
-            scene.remove_by_name("/scan")
+            # Removing this browser's copy would remove the scan from its view altogether: send
+            # the undimmed colours under the same name instead.
+            scene_points, scene_colors = self._scene_points()
+            scene.add_point_cloud(
+                "/scan", points=scene_points, colors=scene_colors,
+                point_size=self.state.point_size, point_shape="square", precision="float32",
+            )  # fmt: skip
             self._dimmed = False
 
     def _draw_gizmo(self, label) -> None:
@@ -380,19 +435,19 @@ class ClientView:
             return
         position, wxyz = box_to_pose(label.box)
         if self.gizmo is None:
-            self.gizmo = self.client.scene.add_transform_controls(
+            gizmo = self.client.scene.add_transform_controls(
                 "/client/gizmo", scale=1.5, disable_sliders=True, depth_test=False
             )
 
-            @self.gizmo.on_update
+            @gizmo.on_update
             def _(event) -> None:
                 if getattr(event, "phase", "end") != "end":
                     return
-                from factorydet_core.editing import pose_to_box
-
                 current = self.selected_label()
                 if current is not None:
-                    self.apply_box(pose_to_box(self.gizmo.position, self.gizmo.wxyz, current.box[3:6]))
+                    self.apply_box(pose_to_box(gizmo.position, gizmo.wxyz, current.box[3:6]))
+
+            self.gizmo = gizmo
 
         self.gizmo.position = tuple(position)
         self.gizmo.wxyz = tuple(wxyz)

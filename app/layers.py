@@ -47,6 +47,7 @@ class LayerView:
         self.nodes: dict[str, object] = {}
         self.drawn_result: ProposalResult | None = None
         self.drawn_frame_index = 0
+        self.drawn: tuple[ProposalResult | None, int] = (None, 0)  # the two above, set as one
         self.proposal_ids = np.zeros(0, np.int64)
         self._voxel_colors: tuple[int, np.ndarray] | None = None  # (id(result), colours)
         self.detection_nodes: list = []
@@ -121,6 +122,7 @@ class LayerView:
             )
         self.drawn_result = result
         self.drawn_frame_index = frame_index
+        self.drawn = (result, frame_index)
 
     def set_visibility(self, layers: dict[str, bool]) -> None:
         for name in LAYERS:

@@ -33,8 +33,8 @@ class SceneView:
         self.server = server
         self._cloud: viser.PointCloudHandle | None = None
         self._label_nodes: list = []
-        self.points = np.zeros((0, 3))  # the shown scan, for per-client overlays
-        self.colors = np.zeros((0, 3), np.uint8)
+        # The shown scan's (points, colours), set as one, for per-browser overlays.
+        self.shown: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
         server.scene.set_up_direction("+z")
         # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
         # wireframes and points.
@@ -47,7 +47,7 @@ class SceneView:
         rgb = point_colors(frame, merged.points[:, 2], color_mode)
         keep = merged.below(max_height)
         merged, rgb = merged.select(keep), rgb[keep]
-        self.points, self.colors = merged.points, rgb
+        self.shown = (merged.points, rgb)
         self._cloud = self.server.scene.add_point_cloud(
             "/scan",
             points=merged.points,

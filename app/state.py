@@ -257,8 +257,9 @@ class AppState:
     def set_detection_result(self, key: tuple, result: DetectionResult, status: str) -> None:
         """A new frame's detections: filter them by the sliders, add the frame to the metrics, and
         make its front half the shown result, all at once."""
-        boxes, class_ids, _ = self.frame_labels(key[0])
         with self.lock:
+            # Read under the lock, so an edit's session_changed cannot slip in between.
+            boxes, class_ids, _ = self.frame_labels(key[0])
             self.detection_result = result
             self.detection_frame_index = key[0]
             self.frame_detections[key[0]] = {

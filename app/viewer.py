@@ -174,8 +174,8 @@ class FactorydetApp:
         view = ClientView(
             client,
             self.state,
-            scene_points=lambda: (self.scene.points, self.scene.colors),
-            drawn_result=lambda: (self.layers.drawn_result, self.layers.drawn_frame_index),
+            scene_points=lambda: self.scene.shown,
+            drawn_result=lambda: self.layers.drawn,
         )
         if self.state.editable:
             labels_panel = build_labels_panel(view)

@@ -258,3 +258,12 @@ def review_item_markdown(item: dict, frame_labels, rank: int, total: int) -> str
         verdict = item["verdict"] + (f" ({item['verdict_class']})" if item.get("verdict_class") else "")
         lines.append(f"Verdict: **{verdict}** by {item['reviewer']}")
     return "  \n".join(lines)
+
+
+def patches_in_box(result: ProposalResult, box) -> np.ndarray:
+    """(K,) the patches with at least one point inside ``box`` (7,)."""
+    from .geometry import points_in_box
+
+    inside = points_in_box(result.cloud.points, np.asarray(box, np.float64))
+    ids = np.unique(result.segmentation.patch_ids[inside])
+    return ids[ids >= 0]

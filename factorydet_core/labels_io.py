@@ -159,12 +159,16 @@ def export_labels(db: SessionDB, fmt: str, out: str | os.PathLike, frame_indices
     raise InputError(f"unknown label format {fmt!r}; choose from {', '.join(FORMATS)}")
 
 
-def read_labels(path: str | os.PathLike, fmt: str | None = None) -> list[tuple[int, np.ndarray, str]]:
+def read_labels(
+    path: str | os.PathLike, fmt: str | None = None, data_hash: str | None = None
+) -> list[tuple[int, np.ndarray, str]]:
     """``(frame_index, box, class_name)`` of every box in an exported file or folder.
 
     Args:
         fmt: 'json', 'kitti' (a folder of ``NNNNNN.txt`` or one such file) or 'npz' (a folder of
             ``frame_NNNNN.npz`` or one file); guessed from the path when ``None``.
+        data_hash: the session's data set hash; a JSON file exported from another data set is
+            refused.
     """
     path = Path(path)
     if not path.exists():
@@ -180,6 +184,11 @@ def read_labels(path: str | os.PathLike, fmt: str | None = None) -> list[tuple[i
     if fmt == "json":
         try:
             record = json.loads(path.read_text())
+            if data_hash is not None and record.get("data_hash") not in (None, data_hash):
+                raise InputError(
+                    f"{path}: exported from another data set (hash {record['data_hash']}, the session's "
+                    f"is {data_hash}); boxes would land on the wrong frames"
+                )
             for frame in record["frames"]:
                 for box, name in zip(frame["boxes"], frame["labels"], strict=True):
                     items.append((int(frame["frame_index"]), np.asarray(box, np.float64), str(name)))
@@ -211,7 +220,9 @@ def read_labels(path: str | os.PathLike, fmt: str | None = None) -> list[tuple[i
                     boxes, names = np.asarray(data["boxes"], np.float64), [str(n) for n in data["labels"]]
             except (OSError, ValueError, KeyError) as exc:
                 raise InputError(f"{file}: not a scene file with boxes and labels ({exc})") from None
-            items += [(index, box, name) for box, name in zip(boxes, names)]
+            if (len(boxes) and (boxes.ndim != 2 or boxes.shape[1] != 7)) or len(boxes) != len(names):
+                raise InputError(f"{file}: boxes {boxes.shape} and labels ({len(names)}) do not pair up")
+            items += [(index, box, name) for box, name in zip(boxes.reshape(-1, 7), names, strict=True)]
     else:
         raise InputError(f"unknown label format {fmt!r}; choose from {', '.join(FORMATS)}")
     return items
@@ -225,25 +236,41 @@ def import_labels(db: SessionDB, path: str | os.PathLike, author: str, fmt: str 
         repeats a label (same class, IoU >= 0.95) and is skipped, a conflict overlaps a label of
         another class (IoU >= 0.5) and is imported, both listed with the label they meet.
     """
-    items = read_labels(path, fmt)
+    items = read_labels(path, fmt, db.meta().get("data_hash"))
     unknown = sorted({name for _, _, name in items} - set(db.class_names))
     if unknown:
         raise InputError(f"{path}: classes {unknown} are not the session's {list(db.class_names)}")
     duplicates, conflicts, keep = [], [], []
+    names = db.class_names
     for frame_index, box, name in items:
         boxes, class_ids, label_ids = db.frame_boxes(frame_index)
-        if len(boxes):
-            iou = box_iou_3d(box[None], boxes)[0]
-            best = int(iou.argmax())
-            other = {"frame_index": frame_index, "class": name, "box": [round(float(v), 4) for v in box],
-                     "label_id": int(label_ids[best]), "label_class": db.class_names[int(class_ids[best])],
-                     "iou": round(float(iou[best]), 3)}  # fmt: skip
-            if iou[best] >= DUPLICATE_IOU and other["label_class"] == name:
-                duplicates.append(other)
-                continue
-            if iou[best] >= CONFLICT_IOU and other["label_class"] != name:
-                conflicts.append(other)
+        # Earlier boxes of the same file count as labels too, so a file's own repeats are caught.
+        earlier = [(b, n) for f, b, n in keep if f == frame_index]
+        all_boxes = np.concatenate([boxes, np.array([b for b, _ in earlier]).reshape(-1, 7)])
+        all_names = [names[int(c)] for c in class_ids] + [n for _, n in earlier]
+        all_ids = [int(i) for i in label_ids] + [None] * len(earlier)
+        if len(all_boxes):
+            iou = box_iou_3d(box[None], all_boxes)[0]
+            same = np.array([n == name for n in all_names])
+
+            found = None
+            if same.any() and iou[same].max() >= DUPLICATE_IOU:
+                found, kind = int(np.flatnonzero(same)[iou[same].argmax()]), duplicates
+            elif (~same).any() and iou[~same].max() >= CONFLICT_IOU:
+                found, kind = int(np.flatnonzero(~same)[iou[~same].argmax()]), conflicts
+            if found is not None:
+                kind.append(
+                    {
+                        "frame_index": frame_index,
+                        "class": name,
+                        "box": [round(float(v), 4) for v in box],
+                        "label_id": all_ids[found],
+                        "label_class": all_names[found],
+                        "iou": round(float(iou[found]), 3),
+                    }
+                )
+                if kind is duplicates:
+                    continue
         keep.append((frame_index, box, name))
     added = db.add_labels(keep, author, origin="import")
-    edit = db.edits(author, limit=1)[0].id if added else None
-    return {"imported": len(added), "duplicates": duplicates, "conflicts": conflicts, "edit": edit}
+    return {"imported": len(added), "duplicates": duplicates, "conflicts": conflicts, "edit": added.edit_id}

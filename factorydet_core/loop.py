@@ -112,21 +112,42 @@ def session_references(
     return out
 
 
-def with_session_labels(db: SessionDB, frames: Sequence[FrameProposals]) -> list[FrameProposals]:
-    """The frames with the session's labels in place of the data set's annotations."""
+def with_session_labels(
+    db: SessionDB, frames: Sequence[FrameProposals], snapshot: dict | None = None
+) -> list[FrameProposals]:
+    """The frames with the session's labels in place of the data set's annotations: the current
+    ones, or those of a stored ``snapshot`` (``SessionDB.snapshot``), so that a run trains on
+    exactly the labels it records."""
     names = db.class_names
+    if snapshot is None:
+        by_frame = {
+            f.frame_index: [
+                {
+                    "box": list(lab.box),
+                    "class_name": lab.class_name,
+                    "origin": lab.origin,
+                    "instance_id": lab.instance_id,
+                }
+                for lab in db.labels(f.frame_index)
+            ]
+            for f in frames
+        }
+    else:
+        by_frame = {f.frame_index: [] for f in frames}
+        for lab in snapshot["labels"]:
+            by_frame.setdefault(lab["frame_index"], []).append(lab)
     out = []
     for frame in frames:
-        labels = db.labels(frame.frame_index)
+        labels = by_frame[frame.frame_index]
         instance_classes = {
-            int(lab.instance_id): names.index(lab.class_name)
+            int(lab["instance_id"]): names.index(lab["class_name"])
             for lab in labels
-            if lab.origin == "dataset" and lab.instance_id is not None
+            if lab["origin"] == "dataset" and lab.get("instance_id") is not None
         }
         out.append(
             frame.with_labels(
-                np.array([lab.box for lab in labels]).reshape(-1, 7),
-                np.array([names.index(lab.class_name) for lab in labels], np.int64),
+                np.array([lab["box"] for lab in labels], np.float64).reshape(-1, 7),
+                np.array([names.index(lab["class_name"]) for lab in labels], np.int64),
                 instance_classes,
             )
         )
@@ -171,7 +192,7 @@ def train_session(
         raise InputError("no training frames")
     frame_indices = [f.frame_index for f in frames]
     snapshot_id = db.snapshot_labels(frame_indices)
-    labelled = with_session_labels(db, frames)
+    labelled = with_session_labels(db, frames, db.snapshot(snapshot_id))
     reviewed = db.reviewed_patch_sets()
     excluded = _merge(reviewed["object"], reviewed["wrong_box"])
     if mode == "next":

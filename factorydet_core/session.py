@@ -25,6 +25,7 @@ import os
 import re
 import shutil
 import sqlite3
+import threading
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -144,7 +145,7 @@ def write_cache(session: Session, key: str, arrays: dict) -> Path:
 
     path = _cache_path(session, key)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".partial.npz")
+    partial = path.with_name(f"{path.stem}.{os.getpid()}.{threading.get_ident()}.partial.npz")
     np.savez(partial, **arrays)
     os.replace(partial, path)
     return path
@@ -293,6 +294,14 @@ class Label:
     version: int
     """Bumped by every change: an edit names the version it was made against."""
     deleted: bool
+
+
+class LabelBatch(list):
+    """Labels added together, with the id of the edit that added them."""
+
+    def __init__(self, labels, edit_id: int | None) -> None:
+        super().__init__(labels)
+        self.edit_id = edit_id
 
 
 @dataclasses.dataclass(frozen=True)
@@ -651,8 +660,8 @@ class SessionDB:
             self._edit(db, author, "add", f"add {class_name} to frame {frame_index}", [change])
         return self.label(label_id)
 
-    def add_labels(self, items, author: str, origin: str = "import") -> list[Label]:
-        """Several new labels as one undoable edit.
+    def add_labels(self, items, author: str, origin: str = "import") -> LabelBatch:
+        """Several new labels as one undoable edit (returned with its ``edit_id``).
 
         Args:
             items: ``(frame_index, box, class_name)`` triples.
@@ -661,7 +670,7 @@ class SessionDB:
             raise SessionError(f"unknown label origin {origin!r}")
         items = [(self._check_frame(f), box, self._check_class(c)) for f, box, c in items]
         if not items:
-            return []
+            return LabelBatch([], None)
         self.ensure_frames({f for f, _, _ in items})
         with self._write() as db:
             ids, changes = [], []
@@ -669,8 +678,8 @@ class SessionDB:
                 label_id, change = self._insert_label(db, frame_index, box, class_name, origin, author)
                 ids.append(label_id)
                 changes.append(change)
-            self._edit(db, author, "add", f"{origin}: add {len(ids)} label(s)", changes)
-        return [self.label(i) for i in ids]
+            edit_id = self._edit(db, author, "add", f"{origin}: add {len(ids)} label(s)", changes)
+        return LabelBatch([self.label(i) for i in ids], edit_id)
 
     def update_label(
         self,
@@ -794,7 +803,7 @@ class SessionDB:
         frames = sorted({int(i) for i in frame_indices})
         with self._write() as db:
             rows = db.execute(
-                f"SELECT id, frame_index, box, class_name, origin FROM labels WHERE deleted = 0"
+                f"SELECT id, frame_index, box, class_name, origin, instance_id FROM labels WHERE deleted = 0"
                 f" AND frame_index IN ({','.join('?' * len(frames))}) ORDER BY id",
                 frames,
             ).fetchall()
@@ -1050,6 +1059,15 @@ class SessionDB:
                 label_id = current["label_id"] if current else None
                 if label_id is not None:
                     label = self._content(db, "labels", label_id)
+                    made = {
+                        "class_name": current["class_name"],
+                        "deleted": 0 if current["verdict"] == "object" else 1,
+                    }
+                    if {k: label[k] for k in made} != made:
+                        raise EditConflictError(
+                            f"label {label_id}, made by the verdict on mined negative {negative_id}, was "
+                            "edited since; change or delete it in the Labels panel instead"
+                        )
                     wanted = {**label, "deleted": 0 if verdict == "object" else 1}
                     if verdict == "object":
                         wanted["class_name"] = class_name

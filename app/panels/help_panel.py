@@ -6,6 +6,7 @@ from __future__ import annotations
 import viser
 
 from ..clients import ClientView
+from .review_panel import wrong_box
 
 # (key, what it does, the action on a ClientView given the panels' current class)
 HOTKEYS: tuple[tuple[str, str], ...] = (
@@ -49,7 +50,7 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
     actions = {
         "B": ("Review: background", lambda: view.verdict("background")),
         "O": ("Review: object", lambda: view.verdict("object", chosen_class())),
-        "W": ("Review: wrong box", lambda: view.verdict("wrong_box")),
+        "W": ("Review: wrong box", lambda: wrong_box(view)),
         "S": ("Review: skip", lambda: view.verdict("skip")),
         "N": ("Review: next item", lambda: view.step(1)),
         "P": ("Review: previous item", lambda: view.step(-1)),
@@ -70,9 +71,7 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
     for i, name in enumerate(names[:9]):
 
         def choose(_event, name=name) -> None:
-            view.object_class = name
-            for dropdown in (labels_panel.class_name, review_panel.object_class):
-                dropdown.value = name
+            view.set_object_class(name)
 
         handle = gui.add_command(f"Class: {name}", hotkey=str(i + 1))
         handle.on_trigger(choose)

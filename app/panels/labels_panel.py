@@ -29,6 +29,7 @@ class LabelsPanel:
     apply_box: viser.GuiButtonHandle
     undo: viser.GuiButtonHandle
     redo: viser.GuiButtonHandle
+    _shown: tuple | None = None
 
     def refresh(self, view: ClientView) -> None:
         state = view.state
@@ -52,7 +53,11 @@ class LabelsPanel:
             button.disabled = label is None
         for button in (self.label_segment, self.split_segment):
             button.disabled = not len(points)
-        if label is not None:
+        # Fill the Box fields only when another label or version is shown: a refresh caused by
+        # someone else's edit must not overwrite numbers the person is typing.
+        shown = None if label is None else (label.id, label.version)
+        if label is not None and shown != self._shown:
+            self._shown = shown
             box = np.asarray(label.box)
             values = (
                 tuple(np.round(box[:3], 3)),
@@ -96,14 +101,17 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
 
     @author.on_update
     def _(event: viser.GuiEvent) -> None:
-        if from_user(event) and author.value.strip():
-            view.author = author.value.strip()[:64]
+        name = "".join(c for c in author.value if c.isalnum() or c in " .-_@")[:64].strip()
+        if from_user(event) and name:
+            view.author = name
             view.refresh()
+
+    view.class_dropdowns.append(class_name)
 
     @class_name.on_update
     def _(event: viser.GuiEvent) -> None:
         if from_user(event):
-            view.object_class = class_name.value
+            view.set_object_class(class_name.value)
 
     set_class.on_click(lambda _: view.set_class(class_name.value))
     delete.on_click(lambda _: view.delete_selected())

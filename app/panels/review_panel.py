@@ -7,7 +7,7 @@ import dataclasses
 
 import viser
 
-from factorydet_core.inspect import review_item_markdown
+from factorydet_core.inspect import patches_in_box, review_item_markdown
 
 from ..clients import ClientView
 from . import from_user
@@ -51,7 +51,8 @@ class ReviewPanel:
                 else "_No items in this filter._"
             )
         else:
-            rank = [q["id"] for q in queue].index(item["id"]) + 1
+            ids = [q["id"] for q in queue]
+            rank = ids.index(item["id"]) + 1 if item["id"] in ids else 0
             labels = state.db.labels(item["frame_index"])
             self.item.content = review_item_markdown(item, labels, rank, len(queue))
         for name, button in self.buttons.items():
@@ -121,10 +122,12 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
     for handle in (filter_class, filter_frame, pending_only, dim):
         handle.on_update(lambda event: set_filter() if from_user(event) else None)
 
+    view.class_dropdowns.append(object_class)
+
     @object_class.on_update
     def _(event: viser.GuiEvent) -> None:
         if from_user(event):
-            view.object_class = object_class.value
+            view.set_object_class(object_class.value)
 
     buttons["background"].on_click(lambda _: view.verdict("background"))
     buttons["object"].on_click(lambda _: view.verdict("object", object_class.value))
@@ -148,9 +151,11 @@ def wrong_box(view: ClientView) -> None:
     view.verdict("wrong_box", advance=False)
     if item is None:
         return
-    _, drawn_frame = view.drawn_result()
-    if drawn_frame == item["frame_index"]:
-        view.select_patches(item["patch_set"])
+    # The patches inside the mined box in the shown cut (the app's cut may differ from the one
+    # training mined from, so the stored patch ids are not used).
+    result, drawn_frame = view.drawn_result()
+    if result is not None and drawn_frame == item["frame_index"]:
+        view.select_patches(patches_in_box(result, item["box"]))
     view.notify(
         "Wrong box",
         "Its points are selected: shift-click or shift-drag to add the rest of the object, then "

@@ -10,6 +10,7 @@ import viser
 
 from factorydet_core.loop import comparison_markdown
 from factorydet_core.model import DEFAULT_MODEL, DetectionModel
+from factorydet_core.types import InputError
 
 from ..state import AppState
 from ..trainer import TrainingWorker
@@ -113,10 +114,17 @@ def build_training_panel(server: viser.ViserServer, state: AppState, worker: Tra
     cancel.on_click(lambda _: worker.cancel())
 
     @show_model.on_click
-    def _(_) -> None:
+    def _(event: viser.GuiEvent) -> None:
         path = model_choices(state).get(model.value)
-        if path is not None:
-            state.set_model(DetectionModel.load(path), model.value)
+        if path is None:
+            return
+        try:
+            loaded = DetectionModel.load(path)
+        except (InputError, OSError, RuntimeError, ValueError) as exc:
+            if event.client is not None:
+                event.client.add_notification("Model", f"cannot load {path}: {exc}", color="red")
+            return
+        state.set_model(loaded, model.value)
 
     panel.refresh(state)
     return panel

@@ -132,3 +132,23 @@ def test_bad_files_and_classes_are_input_errors(db, tmp_path):
     (kitti / "frame.txt").write_text("")
     with pytest.raises(InputError, match="named by frame index"):
         read_labels(kitti)
+
+
+def test_repeats_inside_one_file_and_other_data_sets_are_caught(db, tmp_path):
+    import json
+
+    out = tmp_path / "labels.json"
+    export_labels(db, "json", out, [1])
+    record = json.loads(out.read_text())
+    frame = record["frames"][0]
+    fresh_box = [20.0, 20.0, 0.5, 1.0, 1.0, 1.0, 0.0]
+    frame["boxes"] += [fresh_box, fresh_box]
+    frame["labels"] += ["cone", "cone"]
+    out.write_text(json.dumps(record))
+    report = import_labels(db, out, "bob")
+    assert report["imported"] == 1  # the first copy of the new box; the second repeats it
+    assert sum(d["label_id"] is None for d in report["duplicates"]) == 1
+    record["data_hash"] = "0000000000000000"
+    out.write_text(json.dumps(record))
+    with pytest.raises(InputError, match="another data set"):
+        import_labels(db, out, "bob")

@@ -317,3 +317,14 @@ def test_training_runs_point_at_their_checkpoints_and_label_snapshot(db, tiny_mo
     snapshot = db.snapshot(snapshot_id)
     assert snapshot["frames"] == [0, 1]
     assert len(snapshot["labels"]) == len(db.labels(0)) - 1 + len(db.labels(1))
+
+
+def test_a_new_verdict_never_discards_an_edit_of_the_label_it_made(db, tiny_model_path):
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    item = db.review_queue()[0]
+    db.review([item["id"]], "object", "ann", class_name="box")
+    label_id = db.review_queue()[0]["label_id"]
+    db.update_label(label_id, "bob", class_name="truck")  # someone corrects the new label
+    with pytest.raises(EditConflictError, match="edited since"):
+        db.review([item["id"]], "background", "ann")
+    assert db.label(label_id).class_name == "truck" and not db.label(label_id).deleted
