@@ -417,6 +417,7 @@ def bench_classifier(
     *,
     widths: list[float],
     features: list[str],
+    geometry: Sequence[bool] = (True, False),
     epochs: int = 20,
     max_fit_seconds: float | None = None,
     max_train_frames: int | None = None,
@@ -425,9 +426,10 @@ def bench_classifier(
     progress=None,
 ) -> dict:
     """Recognition accuracy (the paper's Table 2) and detection F-score of classifiers of several
-    widths and proposal features, trained on the same training frames (one round, no mining) and
-    measured on the same test frames against the truth; with the time per epoch. Every feature is
-    measured at ``widths[0]``, the other widths on ``features[0]``."""
+    widths, proposal features and inputs (the 3DmFV tensor with or without the geometric
+    descriptors), trained on the same training frames (one round, no mining) and measured on the
+    same test frames against the truth; with the time per epoch. Every feature and input is
+    measured at ``widths[0]``, the other widths on ``features[0]`` with ``geometry[0]``."""
     from .classifier import ProposalClassifier
     from .dataset import open_dataset
     from .detector import PRESETS, Detector
@@ -449,20 +451,23 @@ def bench_classifier(
     rows = []
     # Every feature at the first width; the other widths on the first feature only (a full-width
     # network takes minutes per epoch here, and its inference is slow too).
-    pairs = [(feature, widths[0]) for feature in features] + [(features[0], w) for w in widths[1:]]
-    steps = len(pairs)
+    runs = [(feature, widths[0], g) for feature in features for g in geometry]
+    runs += [(features[0], w, geometry[0]) for w in widths[1:]]
     for feature in features:
         detector = Detector(PRESETS[preset].replace(feature=feature), calibrated)
         train_frames = collect_proposals(dataset, train, detector)
         test_frames = collect_proposals(dataset, test, detector)
-        for width in [w for feat, w in pairs if feat == feature]:
-            classifier = ProposalClassifier(width=width, epochs=epochs, max_fit_seconds=max_fit_seconds)
+        for _, width, with_geometry in [r for r in runs if r[0] == feature]:
+            classifier = ProposalClassifier(
+                width=width, epochs=epochs, max_fit_seconds=max_fit_seconds, geometry=with_geometry
+            )
             run = train_with_mining(train_frames, classifier, rounds=0)
             fitted = run.model.classifier
             metrics = measure(run.model, dataset, test_frames, use_truth=simulated)
             rows.append(
                 {
                     "feature": feature,
+                    "geometry": with_geometry,
                     "width": width,
                     "num_parameters": fitted.num_parameters_,
                     "epochs_run": len(fitted.history_),
@@ -479,7 +484,7 @@ def bench_classifier(
                 }
             )
             if progress is not None:
-                progress(len(rows), steps)
+                progress(len(rows), len(runs))
     return {
         "benchmark": "classifier",
         "command": command,

@@ -7,6 +7,14 @@ pooling, and fully connected layers with dropout. At ``width=1`` it is the publi
 ``ProposalClassifier`` wraps it the scikit-learn way: settings in ``__init__``, ``fit`` returns
 ``self``, ``predict_proba`` gives one column per class of ``labels_`` (the object classes, then
 "background" last). Checkpoints are a state dict (``.pt``) with a JSON note beside it.
+
+With ``geometry=True`` the network also reads each point set's geometric descriptors
+(``detection.DESCRIPTOR_NAMES``: box size, height above the floor, eigenvalue features, density),
+standardised and joined to the flattened convolution output before the fully connected layers.
+The 3DmFV tensor describes shape but not absolute size (the aggregated feature is a mean of
+per-voxel vectors, the direct one is scaled into the unit sphere), and the classes here differ
+first by size: a cone and a truck can look alike once normalised. ``bench classifier`` measures
+both inputs side by side.
 """
 
 from __future__ import annotations
@@ -25,6 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .detection import DESCRIPTOR_NAMES
 from .types import CLASS_NAMES, Cancelled, InputError
 
 BACKGROUND = "background"
@@ -61,12 +70,29 @@ class Inception(nn.Module):
 
 
 class FisherNet(nn.Module):
-    """3DmFV-Net on a (B, 20, n, n, n) input; ``width`` scales every layer's channels."""
+    """3DmFV-Net on a (B, 20, n, n, n) input; ``width`` scales every layer's channels.
+
+    ``num_descriptors`` > 0 adds a (B, num_descriptors) input, standardised by the buffers
+    ``descriptor_mean`` and ``descriptor_scale`` (set from the training data, saved in the state
+    dict), passed through its own two fully connected layers and concatenated to the flattened
+    convolution output. The branch keeps the few descriptors from being drowned by the hundreds of
+    convolution outputs (joined directly, the network fitted noise in the tensor instead).
+    """
+
+    DESCRIPTOR_UNITS = 64
 
     def __init__(
-        self, num_classes: int = 8, width: float = 1.0, dropout: float = 0.3, in_channels: int = 20
+        self,
+        num_classes: int = 8,
+        width: float = 1.0,
+        dropout: float = 0.3,
+        in_channels: int = 20,
+        num_descriptors: int = 0,
     ) -> None:
         super().__init__()
+        self.num_descriptors = num_descriptors
+        self.register_buffer("descriptor_mean", torch.zeros(num_descriptors))
+        self.register_buffer("descriptor_scale", torch.ones(num_descriptors))
 
         def scaled(n: int) -> int:
             return max(2, int(round(n * width)))
@@ -82,8 +108,20 @@ class FisherNet(nn.Module):
             channels = blocks[-1].out_channels
         blocks.append(nn.MaxPool3d(2, 2, ceil_mode=True))  # 3 -> 2
         self.features = nn.Sequential(*blocks)
-        layers: list[nn.Module] = [nn.Flatten()]
+        self.descriptor_branch = None
         width_in = channels * 8
+        if num_descriptors:
+            units = self.DESCRIPTOR_UNITS
+            self.descriptor_branch = nn.Sequential(
+                nn.Linear(num_descriptors, units, bias=False),
+                nn.BatchNorm1d(units),
+                nn.ReLU(inplace=True),
+                nn.Linear(units, units, bias=False),
+                nn.BatchNorm1d(units),
+                nn.ReLU(inplace=True),
+            )
+            width_in += units
+        layers: list[nn.Module] = []
         for n in (1024, 256, 128):
             layers += [
                 nn.Linear(width_in, scaled(n), bias=False),
@@ -95,19 +133,27 @@ class FisherNet(nn.Module):
         layers.append(nn.Linear(width_in, num_classes))
         self.head = nn.Sequential(*layers)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
+    def forward(self, x: torch.Tensor, descriptors: torch.Tensor | None = None) -> torch.Tensor:
+        flat = torch.flatten(self.features(x), 1)
+        if self.num_descriptors:
+            if descriptors is None:
+                raise ValueError("this network needs descriptors")
+            standardised = (descriptors - self.descriptor_mean) / self.descriptor_scale
+            flat = torch.cat([flat, self.descriptor_branch(standardised)], dim=1)
+        return self.head(flat)
 
 
 def count_parameters(module: nn.Module) -> int:
     return int(sum(p.numel() for p in module.parameters()))
 
 
-def data_hash(features: np.ndarray, labels: np.ndarray) -> str:
+def data_hash(features: np.ndarray, labels: np.ndarray, descriptors: np.ndarray | None = None) -> str:
     """Short content hash of a training set, stored with checkpoints."""
     digest = hashlib.sha256()
     digest.update(np.ascontiguousarray(features, np.float32).tobytes())
     digest.update(np.ascontiguousarray(labels, np.int64).tobytes())
+    if descriptors is not None:
+        digest.update(np.ascontiguousarray(descriptors, np.float32).tobytes())
     return digest.hexdigest()[:16]
 
 
@@ -144,6 +190,9 @@ class ProposalClassifier:
         num_threads: torch threads while fitting and predicting (``None``: torch's default).
         max_fit_seconds: stop after the batch during which this much time has passed (for
             equal-time comparisons of widths); ``None`` runs every epoch.
+        geometry: also read each point set's geometric descriptors (``fit`` and
+            ``predict_proba`` then need them); ``False`` is the paper's network on the 3DmFV
+            tensor alone.
     """
 
     width: float = 0.125
@@ -158,9 +207,12 @@ class ProposalClassifier:
     seed: int = 0
     num_threads: int | None = None
     max_fit_seconds: float | None = None
+    geometry: bool = True
 
-    input_kind = "features"
-    """What ``predict_proba`` reads from ``detection.ProposalGroups``."""
+    @property
+    def input_kind(self) -> str:
+        """What ``predict_proba`` reads from ``detection.ProposalGroups``."""
+        return "features+descriptors" if self.geometry else "features"
 
     def __post_init__(self) -> None:
         if not self.width > 0:
@@ -184,20 +236,36 @@ class ProposalClassifier:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
     def _new_network(self) -> FisherNet:
-        return FisherNet(len(self.labels_), self.width, self.dropout)
+        num_descriptors = len(DESCRIPTOR_NAMES) if self.geometry else 0
+        return FisherNet(len(self.labels_), self.width, self.dropout, num_descriptors=num_descriptors)
 
-    def _check_features(self, features: np.ndarray) -> np.ndarray:
+    def _check_inputs(
+        self, features: np.ndarray, descriptors: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         features = np.asarray(features, np.float32)
         if features.ndim != 5 or features.shape[1:] != FEATURE_SHAPE:
             raise InputError(f"features: expected shape (M, 20, 5, 5, 5), got {features.shape}")
         if not np.isfinite(features).all():
             raise InputError("features hold NaN or Inf values")
-        return features
+        if not self.geometry:
+            return features, None
+        if descriptors is None:
+            raise InputError("this classifier reads geometric descriptors (geometry=True); pass them")
+        descriptors = np.asarray(descriptors, np.float32)
+        if descriptors.shape != (len(features), len(DESCRIPTOR_NAMES)):
+            raise InputError(
+                f"descriptors: expected shape ({len(features)}, {len(DESCRIPTOR_NAMES)}),"
+                f" got {descriptors.shape}"
+            )
+        if not np.isfinite(descriptors).all():
+            raise InputError("descriptors hold NaN or Inf values")
+        return features, descriptors
 
     def fit(
         self,
         features: np.ndarray,
         labels: np.ndarray,
+        descriptors: np.ndarray | None = None,
         progress: Callable[[int, int], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
     ) -> ProposalClassifier:
@@ -206,6 +274,8 @@ class ProposalClassifier:
         Args:
             features: (M, 20, 5, 5, 5) proposal features.
             labels: (M,) ints into ``labels_`` (``background_id`` for background).
+            descriptors: (M, len(DESCRIPTOR_NAMES)) geometric descriptors; needed with
+                ``geometry=True``, ignored otherwise.
             progress: called with (epoch, epochs) after each epoch.
             should_stop: asked before every batch; when it returns True, fit raises ``Cancelled``
                 and the classifier is left as it was.
@@ -213,7 +283,7 @@ class ProposalClassifier:
         Returns:
             self, with ``network_``, ``history_`` (loss and accuracy per epoch) and ``fit_seconds_``.
         """
-        features = self._check_features(features)
+        features, descriptors = self._check_inputs(features, descriptors)
         labels = np.asarray(labels, np.int64)
         if labels.shape != (len(features),):
             raise InputError(f"labels: expected shape ({len(features)},), got {labels.shape}")
@@ -225,6 +295,11 @@ class ProposalClassifier:
         with _torch_threads(self.num_threads):
             torch.manual_seed(self.seed)
             network = self._new_network()
+            d_all = None
+            if descriptors is not None:
+                d_all = torch.from_numpy(descriptors)
+                network.descriptor_mean.copy_(d_all.mean(dim=0))
+                network.descriptor_scale.copy_(d_all.std(dim=0).clamp_min(1e-3))
             counts = np.bincount(labels, minlength=len(self.labels_)).astype(np.float64)
             weight = None
             if self.class_weight == "balanced":
@@ -259,7 +334,7 @@ class ProposalClassifier:
                     decays = samples_seen // self.decay_every_samples
                     for group in optimizer.param_groups:
                         group["lr"] = max(self.learning_rate * self.lr_decay**decays, 1e-5)
-                    logits = network(x_all[batch])
+                    logits = network(x_all[batch], None if d_all is None else d_all[batch])
                     loss = loss_fn(logits, y_all[batch])
                     optimizer.zero_grad()
                     loss.backward()
@@ -284,26 +359,32 @@ class ProposalClassifier:
         self.history_ = history
         self.fit_seconds_ = time.perf_counter() - start
         self.num_parameters_ = count_parameters(network)
-        self.train_hash_ = data_hash(features, labels)
+        self.train_hash_ = data_hash(features, labels, descriptors)
         self.train_counts_ = {name: int(c) for name, c in zip(self.labels_, counts)}
         return self
 
-    def predict_proba(self, features: np.ndarray, batch_size: int = 512) -> np.ndarray:
-        """(M, len(labels_)) class probabilities of (M, 20, 5, 5, 5) features."""
+    def predict_proba(
+        self, features: np.ndarray, descriptors: np.ndarray | None = None, batch_size: int = 512
+    ) -> np.ndarray:
+        """(M, len(labels_)) class probabilities of (M, 20, 5, 5, 5) features (and, with
+        ``geometry=True``, their (M, len(DESCRIPTOR_NAMES)) descriptors)."""
         if not hasattr(self, "network_"):
             raise InputError("the classifier is not fitted; call fit or load a checkpoint")
-        features = self._check_features(features)
+        features, descriptors = self._check_inputs(features, descriptors)
         out = np.zeros((len(features), len(self.labels_)), np.float32)
         with _torch_threads(self.num_threads), torch.inference_mode():
             self.network_.eval()
             for lo in range(0, len(features), batch_size):
-                logits = self.network_(torch.from_numpy(features[lo : lo + batch_size]))
+                batch_descriptors = None
+                if descriptors is not None:
+                    batch_descriptors = torch.from_numpy(descriptors[lo : lo + batch_size])
+                logits = self.network_(torch.from_numpy(features[lo : lo + batch_size]), batch_descriptors)
                 out[lo : lo + batch_size] = torch.softmax(logits, dim=1).numpy()
         return out
 
-    def predict(self, features: np.ndarray) -> np.ndarray:
+    def predict(self, features: np.ndarray, descriptors: np.ndarray | None = None) -> np.ndarray:
         """(M,) most probable label ids."""
-        return self.predict_proba(features).argmax(axis=1)
+        return self.predict_proba(features, descriptors).argmax(axis=1)
 
     def save(self, path: str | os.PathLike, note: dict | None = None) -> Path:
         """Write the state dict to ``path`` (.pt) and a JSON note beside it (``path`` with .json):
@@ -338,6 +419,7 @@ class ProposalClassifier:
             meta = json.loads(note_path.read_text())
             params = dict(meta["params"])
             params["class_names"] = tuple(params["class_names"])
+            params.setdefault("geometry", False)  # checkpoints from before the option existed
         except (json.JSONDecodeError, KeyError, TypeError) as exc:
             raise InputError(f"{note_path}: malformed checkpoint note ({exc})") from None
         known = {f.name for f in dataclasses.fields(cls)}

@@ -107,6 +107,15 @@ def parse_overrides(pairs: list[str] | None) -> dict:
     return overrides
 
 
+def _choices(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:
+    """Comma-separated values of ``flag``, each one of ``allowed``."""
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [v for v in values if v not in allowed]
+    if bad or not values:
+        raise InputError(f"{flag}: expected a comma-separated list of {', '.join(allowed)}, got {text!r}")
+    return values
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from .bench import bench_pipeline, bench_simulate, bench_voxel_sweep, update_readme
 
@@ -127,6 +136,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     args.data[0],
                     widths=parse_floats(args.widths, "--widths"),
                     features=args.features.split(","),
+                    geometry=[
+                        {"on": True, "off": False}[v]
+                        for v in _choices(args.geometry, "--geometry", ("on", "off"))
+                    ],
                     epochs=args.epochs,
                     max_fit_seconds=args.max_fit_seconds,
                     max_train_frames=args.train_frames,
@@ -354,9 +367,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
         negatives_per_round=args.negatives,
         initial_negatives=args.initial_negatives,
         positive_iou=args.positive_iou,
+        fragment_iou=args.fragment_iou,
         score_threshold=args.score_threshold,
         nms_iou=args.nms_iou,
         seed=args.seed,
+        geometry=args.geometry,
     )
     front_end = _front_end_note(preset, overrides)
     try:
@@ -641,7 +656,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=float, default=0.0625, help="3DmFV-Net width (1.0 = the paper's, 46M)")
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--class-weight", default="balanced", choices=["balanced", "none"], help="loss weighting")
+    p.add_argument(
+        "--no-geometry",
+        dest="geometry",
+        action="store_false",
+        help="the paper's network on the 3DmFV tensor alone (default: geometric descriptors as well)",
+    )
     p.add_argument("--positive-iou", type=float, default=0.6)
+    p.add_argument(
+        "--fragment-iou",
+        type=float,
+        default=0.4,
+        help="point sets overlapping a label at most this much start as background (0: the paper's start)",
+    )
     p.add_argument("--score-threshold", type=float, default=0.5)
     p.add_argument("--nms-iou", type=float, default=0.25)
     p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")
@@ -749,6 +776,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default="default", help="detect: checkpoint, session name or 'default'")
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
+    p.add_argument(
+        "--geometry",
+        default="on,off",
+        help="classifier: network inputs to compare (on: 3DmFV and descriptors, off: 3DmFV alone)",
+    )
     p.add_argument("--epochs", type=int, default=20, help="classifier, hitl: epochs per fit")
     p.add_argument("--max-fit-seconds", type=float, default=None, help="classifier: time budget per fit")
     p.add_argument("--train-frames", type=int, default=None, help="classifier, hitl: first N training frames")

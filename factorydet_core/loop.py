@@ -55,10 +55,14 @@ class LoopSettings:
     negatives_per_round: int = 500
     initial_negatives: int = 2000
     positive_iou: float = 0.6
+    fragment_iou: float = 0.4
+    """Point sets overlapping a label at most this much start as background (0: the paper's start)."""
     score_threshold: float = 0.5
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
+    geometry: bool = True
+    """Feed the point sets' geometric descriptors to the network beside the 3DmFV tensor."""
 
     def classifier(self, class_names: Sequence[str]) -> ProposalClassifier:
         return ProposalClassifier(
@@ -68,6 +72,7 @@ class LoopSettings:
             class_weight=self.class_weight,
             seed=self.seed,
             num_threads=self.num_threads,
+            geometry=self.geometry,
         )
 
 
@@ -208,6 +213,7 @@ def train_session(
         negatives_per_round=settings.negatives_per_round,
         initial_negatives=settings.initial_negatives,
         positive_iou=settings.positive_iou,
+        fragment_iou=settings.fragment_iou,
         score_threshold=settings.score_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,

@@ -24,7 +24,7 @@ class DetectionModel:
 
     Args:
         classifier: a fitted ``ProposalClassifier`` (or any classifier with ``predict_proba``,
-            ``labels_`` and ``input_kind``: "features" or "descriptors").
+            ``labels_`` and ``input_kind``: "features", "descriptors" or "features+descriptors").
         box_prior: class sizes that pick each detection's box; ``None`` keeps fitted boxes.
         score_threshold: operating score threshold.
         nms_iou: 3D NMS threshold.
@@ -43,11 +43,7 @@ class DetectionModel:
 
     def probabilities(self, groups: ProposalGroups) -> np.ndarray:
         """(G, C + 1) class probabilities of each point set."""
-        kind = getattr(self.classifier, "input_kind", "features")
-        inputs = groups.features if kind == "features" else groups.descriptors
-        if not len(inputs):
-            return np.zeros((0, len(self.classifier.labels_)), np.float32)
-        return self.classifier.predict_proba(inputs)
+        return group_probabilities(self.classifier, groups)
 
     def candidates(self, proposal_boxes: np.ndarray, groups: ProposalGroups) -> Detections:
         """Every point set as a candidate detection (no threshold, no NMS)."""
@@ -98,6 +94,18 @@ class DetectionModel:
     @property
     def note(self) -> dict:
         return getattr(self.classifier, "note_", {})
+
+
+def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
+    """(G, C + 1) probabilities of a classifier for point sets, fed what its ``input_kind`` names."""
+    if not groups.num_groups:
+        return np.zeros((0, len(classifier.labels_)), np.float32)
+    kind = getattr(classifier, "input_kind", "features")
+    if kind == "descriptors":
+        return classifier.predict_proba(groups.descriptors)
+    if kind == "features+descriptors":
+        return classifier.predict_proba(groups.features, groups.descriptors)
+    return classifier.predict_proba(groups.features)
 
 
 def describe_checkpoint(path: str | os.PathLike) -> dict:

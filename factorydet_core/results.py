@@ -81,11 +81,6 @@ def reference_boxes(dataset: Dataset, frame_index: int, use_truth: bool, min_poi
     return truth.instance_boxes[keep], truth.instance_class_ids[keep]
 
 
-def _classifier_inputs(frame: FrameProposals, classifier) -> np.ndarray:
-    kind = getattr(classifier, "input_kind", "features")
-    return frame.groups.features if kind == "features" else frame.groups.descriptors
-
-
 def fit_baseline(
     frames: list[FrameProposals], class_names: tuple[str, ...], positive_iou: float = 0.6
 ) -> BaselineClassifier:
@@ -127,7 +122,7 @@ def measure(
             ref_boxes, ref_classes = references[frame.frame_index]
         else:
             ref_boxes, ref_classes = reference_boxes(dataset, frame.frame_index, use_truth)
-        probabilities = model.classifier.predict_proba(_classifier_inputs(frame, model.classifier))
+        probabilities = model.probabilities(frame.groups)
         candidates = score_groups(
             frame.proposal_boxes, frame.groups, probabilities, model.box_prior, class_names
         )

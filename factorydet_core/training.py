@@ -203,12 +203,13 @@ def _training_set(
     background: dict[int, set[int]],
     background_id: int,
     annotation_positives: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Features and labels: the positive point sets (``frame_labels``: each frame's ``group_labels``),
-    the background sets chosen so far, and the annotated instances' own points."""
-    features, labels = [], []
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Features, descriptors and labels: the positive point sets (``frame_labels``: each frame's
+    ``group_labels``), the background sets chosen so far, and the annotated instances' own points."""
+    features, descriptors, labels = [], [], []
     if annotation_positives:
         features += [f.annotation_features for f in frames]
+        descriptors += [f.annotation_descriptors for f in frames]
         labels += [f.annotation_class_ids for f in frames]
     for frame in frames:
         set_labels = frame_labels[frame.frame_index]
@@ -216,8 +217,9 @@ def _training_set(
         negative = np.array(sorted(background.get(frame.frame_index, set())), np.int64)
         chosen = np.concatenate([positive, negative])
         features.append(frame.groups.features[chosen])
+        descriptors.append(frame.groups.descriptors[chosen])
         labels.append(np.concatenate([set_labels[positive], np.full(len(negative), background_id)]))
-    return np.concatenate(features), np.concatenate(labels)
+    return np.concatenate(features), np.concatenate(descriptors), np.concatenate(labels)
 
 
 def _score_frames(
@@ -258,6 +260,7 @@ def train_with_mining(
     negatives_per_round: int = 500,
     initial_negatives: int = 2000,
     positive_iou: float = 0.6,
+    fragment_iou: float = 0.4,
     score_threshold: float = 0.5,
     nms_iou: float = 0.25,
     use_box_prior: bool = True,
@@ -279,6 +282,12 @@ def train_with_mining(
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
             a true positive when mining.
+        fragment_iou: point sets that overlap an annotated box, but at most at this IoU (parts of
+            an object, an object with its neighbours), all start in the background set: they are
+            the negatives a detector meets next to every object, and without them a fragment
+            scores as high as the whole object and wins NMS. Sets between this and
+            ``positive_iou`` are left out of training. 0 starts from the paper's set alone
+            (random sets overlapping nothing).
         score_threshold: detections scoring below it are not mined.
         nms_iou: NMS threshold of the detections that are mined.
         use_box_prior: box detections by the class sizes of the training annotations.
@@ -298,6 +307,8 @@ def train_with_mining(
         raise InputError("train_with_mining: no training frames")
     if rounds < 0 or negatives_per_round < 0 or initial_negatives < 0:
         raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")
+    if not 0.0 <= fragment_iou < positive_iou:
+        raise InputError(f"fragment_iou must lie in [0, positive_iou), got {fragment_iou}")
     background_id = classifier.background_id
     num_classes = len(classifier.class_names)
     box_prior = None
@@ -331,6 +342,17 @@ def train_with_mining(
     background: dict[int, set[int]] = {}
     for i in picked:
         background.setdefault(pool[i][0], set()).add(pool[i][1])
+    if fragment_iou > 0:
+        for frame in frames:
+            index = frame.frame_index
+            if not len(frame.label_boxes):
+                continue
+            best = group_overlaps(frame, frame.label_boxes).max(axis=1)
+            fragments = np.flatnonzero((best > 0) & (best <= fragment_iou))
+            fragments = fragments[frame_labels[index][fragments] == background_id]
+            background.setdefault(index, set()).update(
+                int(g) for g in fragments if int(g) not in excluded.get(index, ())
+            )
     for index, sets in (background_sets or {}).items():
         if index not in by_index:
             continue
@@ -340,7 +362,7 @@ def train_with_mining(
 
     records, models = [], []
     for round_index in range(rounds + 1):
-        features, labels = _training_set(
+        features, descriptors, labels = _training_set(
             frames, frame_labels, background, background_id, annotation_positives
         )
         if not (labels != background_id).any():
@@ -349,7 +371,7 @@ def train_with_mining(
             )
         fit_progress = None if progress is None else (lambda e, n: progress("fit", e, n))
         fitted = dataclasses.replace(classifier).fit(
-            features, labels, progress=fit_progress, should_stop=should_stop
+            features, labels, descriptors, progress=fit_progress, should_stop=should_stop
         )
         model = DetectionModel(fitted, box_prior, score_threshold, nms_iou)
         start = time.perf_counter()

@@ -1,8 +1,11 @@
+import json
+
 import numpy as np
 import pytest
 import torch
 
 from factorydet_core.classifier import BACKGROUND, FisherNet, ProposalClassifier, count_parameters
+from factorydet_core.detection import DESCRIPTOR_NAMES
 from factorydet_core.types import InputError
 
 
@@ -27,7 +30,7 @@ def test_fit_learns_a_separable_problem_and_returns_self(rng):
     features, labels = _blobs(rng, 40)
     test_features, test_labels = _blobs(np.random.default_rng(1), 20)
     model = ProposalClassifier(
-        width=0.0625, epochs=25, learning_rate=3e-3, class_names=("a", "b"), num_threads=1
+        width=0.0625, epochs=25, learning_rate=3e-3, class_names=("a", "b"), num_threads=1, geometry=False
     )
     assert model.fit(features, labels) is model
     assert model.labels_ == ("a", "b", BACKGROUND)
@@ -39,7 +42,8 @@ def test_fit_learns_a_separable_problem_and_returns_self(rng):
 
 def test_checkpoint_round_trip(rng, tmp_path):
     features, labels = _blobs(rng, 10)
-    model = ProposalClassifier(width=0.0625, epochs=1, class_names=("a", "b")).fit(features, labels)
+    model = ProposalClassifier(width=0.0625, epochs=1, class_names=("a", "b"), geometry=False)
+    model.fit(features, labels)
     path = model.save(tmp_path / "m.pt", {"metrics": {"f1": 0.5}})
     loaded = ProposalClassifier.load(path)
     np.testing.assert_allclose(loaded.predict_proba(features), model.predict_proba(features), atol=1e-6)
@@ -55,7 +59,7 @@ def test_checkpoint_round_trip(rng, tmp_path):
 
 
 def test_bad_inputs_raise(rng):
-    model = ProposalClassifier(width=0.0625, epochs=1)
+    model = ProposalClassifier(width=0.0625, epochs=1, geometry=False)
     with pytest.raises(InputError):
         model.predict_proba(np.zeros((1, 20, 5, 5, 5), np.float32))  # not fitted
     with pytest.raises(InputError):
@@ -70,3 +74,49 @@ def test_bad_inputs_raise(rng):
         ProposalClassifier(width=0)
     with pytest.raises(InputError):
         ProposalClassifier(class_weight="heavy")
+
+
+def _sized(rng, num_per_class: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noise features that carry no class; the class shows only in the height descriptor."""
+    features = rng.normal(0, 0.3, (2 * num_per_class, 20, 5, 5, 5)).astype(np.float32)
+    labels = np.repeat([0, 1], num_per_class)
+    descriptors = rng.normal(0, 0.05, (2 * num_per_class, len(DESCRIPTOR_NAMES))).astype(np.float32)
+    descriptors[:, DESCRIPTOR_NAMES.index("height_m")] += np.where(labels == 0, 0.5, 2.0)
+    return features, descriptors, labels
+
+
+def test_geometry_learns_what_only_the_descriptors_tell(rng, tmp_path):
+    """Classes told apart by size alone: only the network that reads the descriptors learns it,
+    and its standardisation of them survives a checkpoint."""
+    features, descriptors, labels = _sized(rng, 150)
+    test_features, test_descriptors, test_labels = _sized(np.random.default_rng(1), 40)
+    settings = dict(width=0.0625, epochs=20, learning_rate=3e-3, class_names=("a",), num_threads=1)
+    with_geometry = ProposalClassifier(**settings).fit(features, labels, descriptors)
+    assert with_geometry.input_kind == "features+descriptors"
+    assert (with_geometry.predict(test_features, test_descriptors) == test_labels).mean() > 0.95
+    without = ProposalClassifier(**settings, geometry=False).fit(features, labels)
+    assert without.input_kind == "features"
+    assert (without.predict(test_features) == test_labels).mean() < 0.75
+    loaded = ProposalClassifier.load(with_geometry.save(tmp_path / "g.pt"))
+    assert loaded.geometry
+    np.testing.assert_allclose(
+        loaded.predict_proba(test_features, test_descriptors),
+        with_geometry.predict_proba(test_features, test_descriptors),
+        atol=1e-6,
+    )
+    with pytest.raises(InputError, match="descriptors"):
+        with_geometry.predict_proba(features)
+    with pytest.raises(InputError, match="descriptors"):
+        with_geometry.predict_proba(features, descriptors[:, :3])
+
+
+def test_checkpoint_from_before_the_geometry_option_loads_as_the_papers_network(rng, tmp_path):
+    features, labels = _blobs(rng, 10)
+    model = ProposalClassifier(width=0.0625, epochs=1, class_names=("a", "b"), geometry=False)
+    path = model.fit(features, labels).save(tmp_path / "old.pt")
+    note = json.loads(path.with_suffix(".json").read_text())
+    del note["params"]["geometry"]
+    path.with_suffix(".json").write_text(json.dumps(note))
+    loaded = ProposalClassifier.load(path)
+    assert not loaded.geometry
+    np.testing.assert_allclose(loaded.predict_proba(features), model.predict_proba(features), atol=1e-6)

@@ -8,7 +8,7 @@ from factorydet_core.dataset import open_dataset
 from factorydet_core.detector import Detector
 from factorydet_core.model import DetectionModel
 from factorydet_core.session import mined_negatives, open_session, save_training_run, training_runs
-from factorydet_core.training import collect_proposals, group_labels, train_with_mining
+from factorydet_core.training import collect_proposals, group_labels, group_overlaps, train_with_mining
 from factorydet_core.types import InputError
 
 
@@ -21,7 +21,13 @@ def frames(small_dataset_dir):
 def run(frames):
     classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
     return train_with_mining(
-        frames, classifier, rounds=1, negatives_per_round=40, initial_negatives=150, score_threshold=0.05
+        frames,
+        classifier,
+        rounds=1,
+        negatives_per_round=40,
+        initial_negatives=150,
+        fragment_iou=0.0,  # the paper's start: random sets that overlap nothing
+        score_threshold=0.05,
     )
 
 
@@ -61,6 +67,22 @@ def test_mining_adds_the_top_false_positives_to_the_background(run):
     assert second["mined"] == []  # the last round only measures
     assert len(run.models) == 2 and run.model is run.models[-1]
     assert {"f1", "precision", "recall", "per_class"} <= set(first["train_metrics"])
+
+
+def test_fragments_of_annotated_objects_start_in_the_background(frames):
+    """Point sets that overlap a label at IoU in (0, fragment_iou] are all background from the
+    start; sets between fragment_iou and positive_iou are left out."""
+    expected = 0
+    for frame in frames:
+        best = group_overlaps(frame, frame.label_boxes).max(axis=1)
+        labels, _ = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+        expected += int(((best > 0) & (best <= 0.4) & (labels == 7)).sum())
+    assert expected > 0
+    classifier = ProposalClassifier(width=0.0625, epochs=1, num_threads=1)
+    run = train_with_mining(frames, classifier, rounds=0, initial_negatives=0, fragment_iou=0.4)
+    assert run.rounds[0]["num_background"] == expected
+    with pytest.raises(InputError, match="fragment_iou"):
+        train_with_mining(frames, classifier, rounds=0, fragment_iou=0.6)
 
 
 def test_session_stores_checkpoints_rounds_and_the_review_queue(run, tmp_path):
