@@ -91,8 +91,9 @@ class FisherNet(nn.Module):
     ) -> None:
         super().__init__()
         self.num_descriptors = num_descriptors
-        self.register_buffer("descriptor_mean", torch.zeros(num_descriptors))
-        self.register_buffer("descriptor_scale", torch.ones(num_descriptors))
+        if num_descriptors:  # no buffers without descriptors: the paper's state dict stays as it was
+            self.register_buffer("descriptor_mean", torch.zeros(num_descriptors))
+            self.register_buffer("descriptor_scale", torch.ones(num_descriptors))
 
         def scaled(n: int) -> int:
             return max(2, int(round(n * width)))
@@ -121,7 +122,9 @@ class FisherNet(nn.Module):
                 nn.ReLU(inplace=True),
             )
             width_in += units
-        layers: list[nn.Module] = []
+        # The head starts with a (no-op) Flatten so that its layers keep the state-dict indices
+        # of checkpoints written before the descriptor branch existed.
+        layers: list[nn.Module] = [nn.Flatten()]
         for n in (1024, 256, 128):
             layers += [
                 nn.Linear(width_in, scaled(n), bias=False),
