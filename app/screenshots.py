@@ -39,6 +39,15 @@ def _wait(predicate, timeout: float, what: str) -> None:
     raise TimeoutError(f"timed out waiting for {what}")
 
 
+_HIDE_WEBGL_NOTICE = """
+for (const el of document.querySelectorAll('[class*="Notification-root"], [role="alert"]')) {
+  if (el.innerText.includes('Software WebGL')) el.style.display = 'none';
+}
+"""
+"""The headless browser renders WebGL in software and viser says so; the notice would cover the
+screenshots' scene."""
+
+
 def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
     from playwright.sync_api import sync_playwright
 
@@ -57,7 +66,7 @@ def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
         try:
             with sync_playwright() as pw:
                 browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-                page = browser.new_context(viewport={"width": 1500, "height": 1000}).new_page()
+                page = browser.new_context(viewport={"width": 1500, "height": 1200}).new_page()
                 page.goto(f"http://127.0.0.1:{server.get_port()}/")
                 page.wait_for_selector("canvas[data-engine]", timeout=60_000)
                 _wait(lambda: app.clients, 60, "the browser")
@@ -72,9 +81,12 @@ def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
                 _wait(lambda: app.state.training_busy, 30, "training to start")
                 _wait(lambda: not app.state.training_busy, 3600, "the first training run")
                 page.get_by_text("Training", exact=True).first.click()  # fold it again
+                page.get_by_text("Labels", exact=True).first.click()  # fold: the queue fits
                 page.get_by_role("button", name="Next [N]").click()
                 _wait(lambda: view.current_item_id is not None, 30, "the first queue item")
                 time.sleep(3)  # the dimmed scene and the camera move reach the canvas
+                page.evaluate(_HIDE_WEBGL_NOTICE)
+                page.get_by_text("Review queue", exact=True).first.scroll_into_view_if_needed()
                 shots.append(out_dir / "review_queue.png")
                 page.screenshot(path=str(shots[-1]))
                 for _ in range(reviews):
@@ -85,8 +97,11 @@ def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
                 _wait(lambda: app.state.training_busy, 30, "training to start")
                 _wait(lambda: not app.state.training_busy, 3600, "the next round")
                 page.get_by_text("Review queue", exact=True).first.click()  # fold it
+                page.get_by_text("Frame", exact=True).first.click()  # fold: the table fits
                 page.get_by_text("Before / after", exact=False).first.wait_for(timeout=30_000)
                 time.sleep(2)
+                page.evaluate(_HIDE_WEBGL_NOTICE)
+                page.get_by_text("Before / after", exact=False).first.scroll_into_view_if_needed()
                 shots.append(out_dir / "before_after.png")
                 page.screenshot(path=str(shots[-1]))
                 browser.close()
