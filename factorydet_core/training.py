@@ -173,14 +173,29 @@ def group_labels(
     Returns:
         ``(labels, overlaps_any)``: (G,) label ids, and (G,) whether the set overlaps any reference.
     """
+    labels, best_iou = _labels_and_best_iou(
+        frame, reference_boxes, reference_class_ids, background_id, positive_iou
+    )
+    return labels, best_iou > 0
+
+
+def _labels_and_best_iou(
+    frame: FrameProposals,
+    reference_boxes: np.ndarray,
+    reference_class_ids: np.ndarray,
+    background_id: int,
+    positive_iou: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``group_labels``' labels, with (G,) each set's best IoU with any reference (0 without any)."""
     overlap = group_overlaps(frame, reference_boxes)
     labels = np.full(frame.groups.num_groups, background_id, np.int64)
-    if overlap.shape[1]:
-        best = overlap.argmax(axis=1)
-        hit = overlap[np.arange(len(best)), best] >= positive_iou
-        labels[hit] = np.asarray(reference_class_ids)[best[hit]]
-        return labels, overlap.max(axis=1) > 0
-    return labels, np.zeros(len(labels), bool)
+    if not overlap.shape[1]:
+        return labels, np.zeros(len(labels))
+    best = overlap.argmax(axis=1)
+    best_iou = overlap[np.arange(len(best)), best]
+    hit = best_iou >= positive_iou
+    labels[hit] = np.asarray(reference_class_ids)[best[hit]]
+    return labels, best_iou
 
 
 @dataclasses.dataclass
@@ -318,10 +333,10 @@ def train_with_mining(
             np.concatenate([f.label_class_ids for f in frames]),
             num_classes,
         )
-    # Each point set's label and overlap, fixed for the whole run: the annotations do not change.
-    frame_labels, frame_overlaps = {}, {}
+    # Each point set's label and best overlap, fixed for the whole run: the annotations do not change.
+    frame_labels, frame_best_iou = {}, {}
     for frame in frames:
-        frame_labels[frame.frame_index], frame_overlaps[frame.frame_index] = group_labels(
+        frame_labels[frame.frame_index], frame_best_iou[frame.frame_index] = _labels_and_best_iou(
             frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
         )
     by_index = {f.frame_index: f for f in frames}
@@ -334,8 +349,8 @@ def train_with_mining(
     rng = np.random.default_rng(seed)
     pool = [
         (index, int(g))
-        for index, overlaps_any in frame_overlaps.items()
-        for g in np.flatnonzero(~overlaps_any)
+        for index, best_iou in frame_best_iou.items()
+        for g in np.flatnonzero(best_iou == 0)
         if int(g) not in excluded.get(index, ())
     ]
     picked = rng.choice(len(pool), min(initial_negatives, len(pool)), replace=False) if pool else []
@@ -343,16 +358,13 @@ def train_with_mining(
     for i in picked:
         background.setdefault(pool[i][0], set()).add(pool[i][1])
     if fragment_iou > 0:
-        for frame in frames:
-            index = frame.frame_index
-            if not len(frame.label_boxes):
-                continue
-            best = group_overlaps(frame, frame.label_boxes).max(axis=1)
-            fragments = np.flatnonzero((best > 0) & (best <= fragment_iou))
+        for index, best_iou in frame_best_iou.items():
+            fragments = np.flatnonzero((best_iou > 0) & (best_iou <= fragment_iou))
             fragments = fragments[frame_labels[index][fragments] == background_id]
-            background.setdefault(index, set()).update(
-                int(g) for g in fragments if int(g) not in excluded.get(index, ())
-            )
+            if len(fragments):
+                background.setdefault(index, set()).update(
+                    int(g) for g in fragments if int(g) not in excluded.get(index, ())
+                )
     for index, sets in (background_sets or {}).items():
         if index not in by_index:
             continue
