@@ -15,7 +15,8 @@
    ``merge_history``: intermediate unions are proposals too, because the right level of merging
    differs between a forklift and a box on a pallet.
 6. More candidates from diversity: the same merging with smaller size limits
-   (``proposal_scales_m``), and cut pursuits on the graph of patches at coarser regularisations
+   (``proposal_scales_m`` on the longest side, ``proposal_sizes_m`` on side and height: crate-sized
+   passes that cannot join a crate to the one it stands on before its own faces are joined), and cut pursuits on the graph of patches at coarser regularisations
    (``patch_regularizations``). Surfaces bigger than any object (walls, rack beams) are found by a
    first, geometry-only cut pursuit and kept out of all of this (``structure_size_m``).
 """
@@ -81,6 +82,17 @@ class SegmentationParams:
     proposal_scales_m: tuple[float, ...] = (1.0, 2.0)
     """Extra merge passes with these smaller longest-side limits, whose unions are proposals too:
     the greedy order that builds a forklift can swallow a crate into its neighbour first."""
+    proposal_sizes_m: tuple[tuple[float, float], ...] = (
+        (0.7, 0.45),
+        (1.0, 0.45),
+        (1.0, 0.6),
+        (1.3, 0.45),
+        (1.3, 0.75),
+    )
+    """Extra merge passes limited to these (longest side, height) sizes, metres, whose unions are
+    proposals too. The contact order joins a crate's front face to the crate below before its top;
+    a pass that cannot grow taller than one crate forms the crate alone (measured with
+    ``factorydet bench pipeline``: box proposal recall rose about 1.6-fold on the simulator)."""
     structure_size_m: tuple[float, float] | None = (5.0, 3.5)
     """A first, geometry-only cut pursuit marks surfaces whose (horizontal diagonal, height) exceeds
     this as structure (walls, rack beams and posts): cut off from everything else, never merged,
@@ -113,6 +125,14 @@ class SegmentationParams:
         if any(not v > 0 for v in scales):
             raise InputError(f"segmentation: proposal_scales_m must be > 0, got {scales}")
         object.__setattr__(self, "proposal_scales_m", scales)
+        try:
+            sizes = tuple(_positive_pair(pair, "proposal_sizes_m entry") for pair in self.proposal_sizes_m)
+        except TypeError:
+            raise InputError(
+                "segmentation: proposal_sizes_m must be a list of (side, height) pairs in metres, "
+                f"got {self.proposal_sizes_m!r}"
+            ) from None
+        object.__setattr__(self, "proposal_sizes_m", sizes)
         try:
             regs = tuple(float(v) for v in self.patch_regularizations)
         except (TypeError, ValueError):
@@ -506,8 +526,9 @@ def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams(
     if params.convexity and num_patches > 1:
         keep &= _mergeable_connections(points, patch_ids, source, target, params)
     patch_segment_ids, history = merge_patches(points, patch_ids, source[keep], target[keep], params)
-    for scale in params.proposal_scales_m:
-        small = dataclasses.replace(params, max_object_size_m=(scale, params.max_object_size_m[1]))
+    passes = [(scale, params.max_object_size_m[1]) for scale in params.proposal_scales_m]
+    for size in passes + list(params.proposal_sizes_m):
+        small = dataclasses.replace(params, max_object_size_m=size)
         history = history + merge_patches(points, patch_ids, source[keep], target[keep], small)[1]
     if params.patch_regularizations and num_patches > 1:
         history = history + _coarser_partitions(

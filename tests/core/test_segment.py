@@ -167,3 +167,50 @@ def test_convexity_keeps_an_object_apart_from_what_it_stands_on():
     keep = _mergeable_connections(points, patch_ids, source, target, SegmentationParams())
     assert keep[0] and keep[1], "the crate's front and top meet at a convex edge"
     assert not keep[2], "the crate and the shelf it stands on meet at a concave edge"
+
+
+def _flush_stacks() -> tuple[np.ndarray, np.ndarray]:
+    """Two columns of three crates of one footprint, flush side by side and on top of each other,
+    seen as a sensor sees them: the fronts, the tops of the columns and one outer side."""
+    parts = [
+        box_surface(np.array([x, 0.0, z]), (0.8, 0.5, height), 0.0, 0.04)
+        for x in (0.0, 0.8)
+        for z, height in ((0.2, 0.4), (0.6, 0.4), (0.95, 0.3))
+    ]
+    labels = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
+    points, first = np.unique(np.round(np.concatenate(parts), 6), axis=0, return_index=True)
+    labels = labels[first]
+    visible = (points[:, 1] < -0.24) | (points[:, 2] > 1.09) | (points[:, 0] < -0.39)
+    rng = np.random.default_rng(0)
+    points = points[visible] + rng.normal(0, 0.003, (int(visible.sum()), 3))
+    return points.astype(np.float32), labels[visible]
+
+
+def _best_point_iou(segmentation, labels: np.ndarray) -> np.ndarray:
+    from factorydet_core.proposals import candidate_patch_sets, point_sets
+
+    sets, _ = candidate_patch_sets(segmentation)
+    lists = point_sets(segmentation.patch_ids, sets)
+    best = []
+    for label in np.unique(labels):
+        own = labels == label
+        best.append(max(own[m].sum() / (own.sum() + len(m) - own[m].sum()) for m in lists))
+    return np.array(best)
+
+
+def test_crate_sized_passes_propose_crates_of_a_flush_stack():
+    points, labels = _flush_stacks()
+    without = segment(points, SegmentationParams(proposal_sizes_m=()))
+    with_sizes = segment(points, SegmentationParams())
+    # The extra passes only add candidates.
+    assert set(without.merge_history) <= set(with_sizes.merge_history)
+    found_without = (_best_point_iou(without, labels) >= 0.6).sum()
+    found_with = (_best_point_iou(with_sizes, labels) >= 0.6).sum()
+    assert found_with >= 4, "most crates of the stack get a proposal of their own"
+    assert found_with > found_without
+
+
+@pytest.mark.parametrize("sizes", [[[1.0, 0.0]], [1.0], [[1.0, 0.5, 0.2]], 3.0])
+def test_invalid_proposal_sizes_raise(sizes):
+    with pytest.raises(InputError, match="proposal_sizes_m"):
+        SegmentationParams(proposal_sizes_m=sizes)
