@@ -3,8 +3,8 @@ filtered by score and 3D NMS (paper §3.5, §3.6).
 
 Several proposals share one point set (the same patches with different box hypotheses), and so
 share one feature; the classifier sees each point set once. Its predicted class then picks the
-box: among the set's hypotheses, and the same boxes grown to the class's typical size behind their
-visible sides, the one closest in size to the class (``BoxSizePrior``).
+box: among the set's hypotheses, and the same boxes grown to the class's typical sizes behind their
+visible sides, the least grown one whose size the class's annotations cover (``BoxSizePrior``).
 """
 
 from __future__ import annotations
@@ -134,41 +134,101 @@ def describe_point_sets(
     return descriptors
 
 
+def _horizontal_sorted_sizes(boxes: np.ndarray) -> np.ndarray:
+    """(M, 3) (length, width, height) of (M, 7) boxes, length >= width."""
+    return np.column_stack(
+        [np.maximum(boxes[:, 3], boxes[:, 4]), np.minimum(boxes[:, 3], boxes[:, 4]), boxes[:, 5]]
+    )
+
+
+def _size_modes(sizes: np.ndarray, max_modes: int, min_share: float = 0.1) -> np.ndarray:
+    """(K, 3) typical sizes of one class: k-means on log sizes (k <= ``max_modes``), seeded at
+    evenly spaced quantiles of the volume; clusters holding less than ``min_share`` of the boxes
+    (or a single box) are dropped. A class of one kind of object gets one mode near its median; a
+    class of two kinds (pallet trucks and forklifts) gets one per kind."""
+    logs = np.log(np.maximum(sizes, 1e-3))
+    k = min(max_modes, len(logs))
+    order = np.argsort(logs.sum(axis=1), kind="stable")
+    centres = logs[order[((np.arange(k) + 0.5) * len(logs) / k).astype(int)]]
+    for _ in range(25):
+        assign = np.argmin(((logs[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+        centres = np.array(
+            [logs[assign == j].mean(axis=0) if (assign == j).any() else centres[j] for j in range(k)]
+        )
+    counts = np.bincount(assign, minlength=k)
+    keep = counts >= max(2, min_share * len(logs))
+    if not keep.any():
+        return np.median(sizes, axis=0)[None]
+    return np.exp(centres[keep])
+
+
 @dataclasses.dataclass(frozen=True)
 class BoxSizePrior:
-    """Typical box size of each class: median (length, width, height), length >= width."""
+    """Typical box sizes of each class, from annotated boxes: the median (length, width, height)
+    with length >= width, the annotated range, and up to three modes (size clusters).
+
+    A detection's box is chosen among its point set's box hypotheses and the same boxes grown to
+    each mode behind their visible sides (``options``): the least grown one whose size lies in the
+    class's annotated range, else the one nearest to that range. Without a range (checkpoints from
+    before it was kept) the one nearest to the median.
+    """
 
     sizes: np.ndarray
-    """(C, 3) metres; NaN rows for classes never seen."""
+    """(C, 3) median sizes, metres; NaN rows for classes never seen."""
+    lower: np.ndarray | None = None
+    """(C, 3) smallest annotated sizes (NaN for classes never seen); ``None``: unknown."""
+    upper: np.ndarray | None = None
+    """(C, 3) largest annotated sizes."""
+    modes: tuple[np.ndarray, ...] | None = None
+    """Per class a (K, 3) array of typical sizes (K = 0 for classes never seen)."""
 
     @classmethod
-    def from_boxes(cls, boxes: np.ndarray, class_ids: np.ndarray, num_classes: int) -> BoxSizePrior:
-        """Medians of annotated (M, 7) boxes of each class."""
+    def from_boxes(
+        cls, boxes: np.ndarray, class_ids: np.ndarray, num_classes: int, max_modes: int = 3
+    ) -> BoxSizePrior:
+        """The prior of annotated (M, 7) boxes of classes ``class_ids`` (M,)."""
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         class_ids = np.asarray(class_ids)
-        dims = np.column_stack(
-            [np.maximum(boxes[:, 3], boxes[:, 4]), np.minimum(boxes[:, 3], boxes[:, 4]), boxes[:, 5]]
-        )
-        sizes = np.full((num_classes, 3), np.nan)
+        dims = _horizontal_sorted_sizes(boxes)
+        sizes, lower, upper = (np.full((num_classes, 3), np.nan) for _ in range(3))
+        modes = []
         for c in range(num_classes):
-            if (class_ids == c).any():
-                sizes[c] = np.median(dims[class_ids == c], axis=0)
-        return cls(sizes)
+            own = dims[class_ids == c]
+            if len(own):
+                sizes[c], lower[c], upper[c] = np.median(own, axis=0), own.min(axis=0), own.max(axis=0)
+                modes.append(_size_modes(own, max_modes))
+            else:
+                modes.append(np.zeros((0, 3)))
+        return cls(sizes, lower, upper, tuple(modes))
 
     def distance(self, boxes: np.ndarray, class_id: int) -> np.ndarray:
         """(M,) sum of |log| size ratios of (M, 7) boxes to class ``class_id`` (0 is a perfect fit)."""
         prior = self.sizes[class_id]
         if not np.isfinite(prior).all():
             return np.zeros(len(boxes))
-        dims = np.column_stack(
-            [np.maximum(boxes[:, 3], boxes[:, 4]), np.minimum(boxes[:, 3], boxes[:, 4]), boxes[:, 5]]
-        )
+        dims = _horizontal_sorted_sizes(np.asarray(boxes, np.float64).reshape(-1, 7))
         return np.abs(np.log(np.maximum(dims, 1e-3) / prior)).sum(axis=1)
 
-    def grow(self, boxes: np.ndarray, class_id: int, viewpoint: np.ndarray | None = None) -> np.ndarray:
-        """(M, 7) boxes grown to at least the class's size: horizontally away from ``viewpoint``
-        (the hidden side; the vehicle origin by default) and upwards (the floor is below)."""
-        prior = self.sizes[class_id]
+    def range_distance(self, boxes: np.ndarray, class_id: int) -> np.ndarray:
+        """(M,) sum of |log| ratios of (M, 7) boxes' sizes to the nearest size in the class's
+        annotated range (0 inside it)."""
+        if self.lower is None or self.upper is None or not np.isfinite(self.lower[class_id]).all():
+            return self.distance(boxes, class_id)
+        dims = np.maximum(_horizontal_sorted_sizes(np.asarray(boxes, np.float64).reshape(-1, 7)), 1e-3)
+        clipped = np.clip(dims, self.lower[class_id], self.upper[class_id])
+        return np.abs(np.log(clipped / dims)).sum(axis=1)
+
+    def grow(
+        self,
+        boxes: np.ndarray,
+        class_id: int,
+        viewpoint: np.ndarray | None = None,
+        size: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(M, 7) boxes grown to at least the class's median size (or ``size``, (3,) length, width,
+        height): horizontally away from ``viewpoint`` (the hidden side; the vehicle origin by
+        default) and upwards (the floor is below)."""
+        prior = self.sizes[class_id] if size is None else np.asarray(size, np.float64)
         out = np.array(boxes, np.float64).reshape(-1, 7)
         if not np.isfinite(prior).all():
             return out
@@ -189,12 +249,58 @@ class BoxSizePrior:
         out[:, 5] += grow_z
         return out
 
-    def to_json(self) -> list:
-        return [[None if not np.isfinite(v) else round(float(v), 4) for v in row] for row in self.sizes]
+    def options(self, boxes: np.ndarray, class_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """A point set's box options for class ``class_id`` and the cost of each.
+
+        Args:
+            boxes: (M, 7) the set's box hypotheses, the fitted box first.
+
+        Returns:
+            ``(options, cost)``: (K, 7) the hypotheses and the same grown to each of the class's
+            modes (to its median without modes), and (K,) their cost; the chosen box is the
+            option of least cost. The cost is the distance to the class's range (to its median
+            without a range) plus a tie-break that prefers the least grown box (0.001 per unit of
+            log volume ratio to the fitted box).
+        """
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        if not np.isfinite(self.sizes[class_id]).all():
+            return boxes, np.zeros(len(boxes))
+        modes = self.modes[class_id] if self.modes is not None else self.sizes[class_id][None]
+        options = np.concatenate([boxes, *(self.grow(boxes, class_id, size=m) for m in modes)])
+        if self.lower is None:
+            return options, self.distance(options, class_id)
+        volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
+        fitted_volume = float(np.prod(np.maximum(boxes[0, 3:6], 1e-3)))
+        growth = np.abs(np.log(volume / fitted_volume))
+        return options, self.range_distance(options, class_id) + 1e-3 * growth
+
+    def to_json(self) -> dict:
+        def rows(array):
+            return [[None if not np.isfinite(v) else round(float(v), 4) for v in row] for row in array]
+
+        out = {"median": rows(self.sizes)}
+        if self.lower is not None and self.upper is not None:
+            out["lower"], out["upper"] = rows(self.lower), rows(self.upper)
+        if self.modes is not None:
+            out["modes"] = [rows(m) for m in self.modes]
+        return out
 
     @classmethod
-    def from_json(cls, rows: list) -> BoxSizePrior:
-        return cls(np.array([[np.nan if v is None else v for v in row] for row in rows], np.float64))
+    def from_json(cls, data: list | dict) -> BoxSizePrior:
+        """From ``to_json``; a plain list of rows is a checkpoint's medians from before the range."""
+
+        def array(rows):
+            return np.array([[np.nan if v is None else v for v in row] for row in rows], np.float64)
+
+        if isinstance(data, list):
+            return cls(array(data))
+        modes = data.get("modes")
+        return cls(
+            array(data["median"]),
+            array(data["lower"]) if "lower" in data else None,
+            array(data["upper"]) if "upper" in data else None,
+            None if modes is None else tuple(array(m).reshape(-1, 3) for m in modes),
+        )
 
 
 def score_groups(
@@ -205,8 +311,8 @@ def score_groups(
     class_names: tuple[str, ...] = CLASS_NAMES,
 ) -> Detections:
     """One candidate detection per point set: its most probable object class, that class's
-    probability as score, and the box (among the set's proposals, and with ``box_prior`` the same
-    boxes grown to the class's size) that fits the class's size best.
+    probability as score, and the box that ``box_prior.options`` prefers for that class among the
+    set's proposals and their grown versions.
 
     Args:
         proposal_boxes: (M, 7) boxes of the proposals.
@@ -236,8 +342,8 @@ def score_groups(
         for g in range(groups.num_groups):
             members = order[starts[g] : starts[g + 1]]
             c = int(class_ids[g])
-            options = np.concatenate([proposal_boxes[members], box_prior.grow(proposal_boxes[members], c)])
-            best = int(np.argmin(box_prior.distance(options, c)))
+            options, cost = box_prior.options(proposal_boxes[members], c)
+            best = int(np.argmin(cost))
             boxes[g] = options[best]
             proposal_ids[g] = members[best % len(members)]
     return Detections(

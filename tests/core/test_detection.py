@@ -94,3 +94,51 @@ def test_descriptors_of_a_flat_and_a_linear_set():
     assert d[0, names.index("planarity")] > 0.8
     assert d[1, names.index("linearity")] > 0.9
     assert d[0, names.index("length_m")] == pytest.approx(2.0)
+
+
+def _truck_boxes() -> tuple[np.ndarray, np.ndarray]:
+    """Annotated pallet trucks (2.0 x 0.56 x 1.3) and forklifts (3.3 x 1.4 x 2.4), class 1, and
+    one small object, class 0."""
+    rng = np.random.default_rng(3)
+    small = [[0, 0, 0, 2.0 + rng.normal(0, 0.02), 0.56, 1.3, 0] for _ in range(6)]
+    large = [[0, 0, 0, 1.4, 3.3 + rng.normal(0, 0.02), 2.4, 0] for _ in range(4)]
+    boxes = np.array(small + large + [[0, 0, 0, 0.6, 0.6, 0.9, 0]], float)
+    return boxes, np.array([1] * 10 + [0])
+
+
+def test_prior_keeps_range_and_one_mode_per_kind():
+    boxes, class_ids = _truck_boxes()
+    prior = BoxSizePrior.from_boxes(boxes, class_ids, 3)
+    modes = prior.modes[1][np.argsort(prior.modes[1][:, 0])]
+    np.testing.assert_allclose(modes, [[2.0, 0.56, 1.3], [3.3, 1.4, 2.4]], atol=0.05)
+    np.testing.assert_allclose(prior.lower[1], [boxes[:6, 3].min(), 0.56, 1.3])
+    np.testing.assert_allclose(prior.upper[1], [boxes[6:10, 4].max(), 1.4, 2.4])
+    assert len(prior.modes[2]) == 0 and np.isnan(prior.lower[2]).all()
+    again = BoxSizePrior.from_json(prior.to_json())
+    np.testing.assert_allclose(again.lower, prior.lower, atol=1e-4)
+    np.testing.assert_allclose(again.modes[1], prior.modes[1], atol=1e-4)
+    # A checkpoint's prior from before the range: medians only, chosen as before.
+    old = BoxSizePrior.from_json(prior.to_json()["median"])
+    assert old.lower is None and old.modes is None
+
+
+def test_options_keep_a_plausible_box_and_grow_a_partial_view_to_the_nearest_kind():
+    boxes, class_ids = _truck_boxes()
+    prior = BoxSizePrior.from_boxes(boxes, class_ids, 3)
+    # A whole forklift, seen well: its own box is inside the range and is kept as it is.
+    whole = np.array([[8.0, 0.0, 1.2, 3.25, 1.38, 2.4, 0.0]])
+    options, cost = prior.options(whole, 1)
+    np.testing.assert_allclose(options[np.argmin(cost)], whole[0])
+    # The median alone would have grown it, or picked another size.
+    assert prior.range_distance(whole, 1)[0] == 0.0 and prior.distance(whole, 1)[0] > 0.0
+    # The visible 0.8 m of a pallet truck: grown to a pallet truck, not to a forklift.
+    partial = np.array([[6.0, 0.0, 0.65, 0.8, 0.55, 1.3, 0.0]])
+    options, cost = prior.options(partial, 1)
+    chosen = options[np.argmin(cost)]
+    np.testing.assert_allclose(sorted(chosen[3:5]), [0.56, 2.0], atol=0.06)
+    assert chosen[5] == pytest.approx(1.3)
+    assert chosen[0] > 6.0  # grown behind the visible end, away from the vehicle at the origin
+    # A class never annotated keeps the hypotheses, at no cost.
+    options, cost = prior.options(partial, 2)
+    np.testing.assert_allclose(options, partial)
+    assert (cost == 0).all()
