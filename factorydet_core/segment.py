@@ -16,9 +16,10 @@
    differs between a forklift and a box on a pallet.
 6. More candidates from diversity: the same merging with smaller size limits
    (``proposal_scales_m`` on the longest side, ``proposal_sizes_m`` on side and height: crate-sized
-   passes that cannot join a crate to the one it stands on before its own faces are joined), and cut pursuits on the graph of patches at coarser regularisations
-   (``patch_regularizations``). Surfaces bigger than any object (walls, rack beams) are found by a
-   first, geometry-only cut pursuit and kept out of all of this (``structure_size_m``).
+   passes that cannot join a crate to the one it stands on before its own faces are joined), and
+   cut pursuits on the graph of patches at coarser regularisations (``patch_regularizations``).
+   Surfaces bigger than any object (walls, rack beams) are found by a first, geometry-only cut
+   pursuit and kept out of all of this (``structure_size_m``).
 """
 
 from __future__ import annotations
