@@ -263,8 +263,9 @@ def write_report(
             "|" + "---|" * len(bound),
             "| " + " | ".join(_fmt(v) for v in bound.values()) + " |",
             "",
-            "The class-size prior then grows boxes of classified point sets towards their class's "
-            "typical size behind the visible side, which can exceed that bound for some classes.",
+            "The class-size prior then grows boxes of classified point sets that are smaller than their "
+            "class's annotations towards its typical sizes behind the visible side, which can exceed "
+            "that bound for some classes.",
         ]
     background_row = rec_deep["per_class"].get("background")
     if background_row is not None:
