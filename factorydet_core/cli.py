@@ -368,6 +368,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         initial_negatives=args.initial_negatives,
         positive_iou=args.positive_iou,
         fragment_iou=args.fragment_iou,
+        fragments_per_frame=args.fragments_per_frame,
         score_threshold=args.score_threshold,
         nms_iou=args.nms_iou,
         seed=args.seed,
@@ -591,6 +592,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
             calibrate=args.calibrate,
             command="factorydet " + " ".join(sys.argv[1:]),
             progress=lambda _, d, n: update(d, n),
+            train_data=args.train_data,
         )
     finally:
         close()
@@ -668,6 +670,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.4,
         help="point sets overlapping a label at most this much start as background (0: the paper's start)",
+    )
+    p.add_argument(
+        "--fragments-per-frame",
+        type=int,
+        default=None,
+        help="sample at most N of those per frame (default: all; bounds the fit's time on many frames)",
     )
     p.add_argument("--score-threshold", type=float, default=0.5)
     p.add_argument("--nms-iou", type=float, default=0.25)
@@ -756,6 +764,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="only the first N test frames")
     p.add_argument("--sweep", default="0.1,0.2,0.3", help="voxel sizes of the grid sweep ('' skips it)")
     p.add_argument("--sweep-frames", type=int, default=4, help="train frames per sweep point")
+    p.add_argument(
+        "--train-data",
+        default=None,
+        help="data set whose training frames train the baseline and the sweep (the model's; default: DATA)",
+    )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
     p.set_defaults(func=_cmd_report)
 

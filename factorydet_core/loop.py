@@ -57,6 +57,8 @@ class LoopSettings:
     positive_iou: float = 0.6
     fragment_iou: float = 0.4
     """Point sets overlapping a label at most this much start as background (0: the paper's start)."""
+    fragments_per_frame: int | None = None
+    """At most this many of them per frame (``None``: all)."""
     score_threshold: float = 0.5
     nms_iou: float = 0.25
     seed: int = 0
@@ -214,6 +216,7 @@ def train_session(
         initial_negatives=settings.initial_negatives,
         positive_iou=settings.positive_iou,
         fragment_iou=settings.fragment_iou,
+        fragments_per_frame=settings.fragments_per_frame,
         score_threshold=settings.score_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,

@@ -276,6 +276,7 @@ def train_with_mining(
     initial_negatives: int = 2000,
     positive_iou: float = 0.6,
     fragment_iou: float = 0.4,
+    fragments_per_frame: int | None = None,
     score_threshold: float = 0.5,
     nms_iou: float = 0.25,
     use_box_prior: bool = True,
@@ -303,6 +304,8 @@ def train_with_mining(
             scores as high as the whole object and wins NMS. Sets between this and
             ``positive_iou`` are left out of training. 0 starts from the paper's set alone
             (random sets overlapping nothing).
+        fragments_per_frame: at most this many fragments per frame, sampled at random (``None``:
+            all). A frame has about a thousand; on many frames they would dominate the fit's time.
         score_threshold: detections scoring below it are not mined.
         nms_iou: NMS threshold of the detections that are mined.
         use_box_prior: box detections by the class sizes of the training annotations.
@@ -324,6 +327,8 @@ def train_with_mining(
         raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")
     if not 0.0 <= fragment_iou < positive_iou:
         raise InputError(f"fragment_iou must lie in [0, positive_iou), got {fragment_iou}")
+    if fragments_per_frame is not None and fragments_per_frame < 0:
+        raise InputError(f"fragments_per_frame must be >= 0 or None, got {fragments_per_frame}")
     background_id = classifier.background_id
     num_classes = len(classifier.class_names)
     box_prior = None
@@ -361,6 +366,8 @@ def train_with_mining(
         for index, best_iou in frame_best_iou.items():
             fragments = np.flatnonzero((best_iou > 0) & (best_iou <= fragment_iou))
             fragments = fragments[frame_labels[index][fragments] == background_id]
+            if fragments_per_frame is not None and len(fragments) > fragments_per_frame:
+                fragments = np.sort(rng.choice(fragments, fragments_per_frame, replace=False))
             if len(fragments):
                 background.setdefault(index, set()).update(
                     int(g) for g in fragments if int(g) not in excluded.get(index, ())

@@ -1,4 +1,5 @@
 import json
+import shutil
 
 import pytest
 
@@ -171,10 +172,14 @@ def test_detect_without_a_model_is_an_input_error(small_dataset_dir, tmp_path, c
 
 def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_path, tmp_path, capsys):
     out = tmp_path / "docs" / "results.md"
+    # The baseline and the sweep train on another data set's frames (the model's training data).
+    train_copy = shutil.copytree(small_dataset_dir, tmp_path / "train_copy")
     args = ["report", str(small_dataset_dir), "--model", str(tiny_model_path), "--out", str(out),
-            "--sweep", "0.3", "--sweep-frames", "1", "--no-calibrate"]  # fmt: skip
+            "--sweep", "0.3", "--sweep-frames", "1", "--no-calibrate",
+            "--train-data", str(train_copy)]  # fmt: skip
     assert main(args) == 0
     text = out.read_text()
+    assert f"of `{train_copy}`" in text
     for heading in ("Table 2", "Table 3", "Targets", "Fig. 7"):
         assert heading in text, heading
     assert "| **mean over classes** |" in text and "| **total** |" in text

@@ -83,6 +83,17 @@ def test_fragments_of_annotated_objects_start_in_the_background(frames):
     assert run.rounds[0]["num_background"] == expected
     with pytest.raises(InputError, match="fragment_iou"):
         train_with_mining(frames, classifier, rounds=0, fragment_iou=0.6)
+    # A cap samples at most that many per frame.
+    per_frame = []
+    for frame in frames:
+        best = group_overlaps(frame, frame.label_boxes).max(axis=1)
+        labels, _ = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+        per_frame.append(int(((best > 0) & (best <= 0.4) & (labels == 7)).sum()))
+    cap = max(1, min(per_frame) // 2)
+    capped = train_with_mining(frames, classifier, rounds=0, initial_negatives=0, fragments_per_frame=cap)
+    assert capped.rounds[0]["num_background"] == sum(min(n, cap) for n in per_frame)
+    with pytest.raises(InputError, match="fragments_per_frame"):
+        train_with_mining(frames, classifier, rounds=0, fragments_per_frame=-1)
 
 
 def test_session_stores_checkpoints_rounds_and_the_review_queue(run, tmp_path):
