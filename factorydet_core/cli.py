@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import getpass
 import json
+import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -379,7 +379,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         frames = cached_proposals(db, dataset, detector, train, progress)
         run_id, run = train_session(
             db, frames, settings, mode=args.mode, data_ref=str(dataset.path), front_end=front_end,
-            progress=progress,
+            progress=progress, command=args.command_line,
         )  # fmt: skip
         summary = {
             "session": db.session.name,
@@ -423,10 +423,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     finally:
         close()
     if args.export:
-        config = {"settings": dataclasses.asdict(settings), "front_end": front_end}
-        run.model.save(
-            args.export, {"data": str(dataset.path), "train_frames": run.train_frames, "config": config}
-        )
+        # The run's final checkpoint as it is, with its note (settings, rounds, command).
+        final = Path(summary["model"])
+        export = Path(args.export)
+        export.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(final, export)
+        shutil.copyfile(final.with_suffix(".json"), export.with_suffix(".json"))
         summary["exported"] = args.export
     print(json.dumps(summary, indent=2))
     return 0
@@ -813,6 +815,8 @@ def build_parser() -> argparse.ArgumentParser:
 def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     """Parse ``argv`` and run the chosen command; input errors print one line and return 2."""
     args = parser.parse_args(argv)
+    # The command line as typed (for the records that say how to reproduce a result).
+    args.command_line = "factorydet " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
         return args.func(args)
     except InputError as exc:

@@ -179,6 +179,7 @@ def train_session(
     front_end: dict | None = None,
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
+    command: str = "",
 ) -> tuple[int, TrainingRun]:
     """Train on the session's labels and verdicts, store the run, and mine its review queue.
 
@@ -229,6 +230,8 @@ def train_session(
     for model in run.models:
         model.front_end = front_end
     config = {"mode": mode, "settings": dataclasses.asdict(settings), "front_end": front_end}
+    if command:
+        config["command"] = command  # the checkpoints' notes say how to reproduce them
     run_id = db.save_training_run(run, data_ref, config, kind=mode, snapshot_id=snapshot_id)
     return run_id, run
 

@@ -91,12 +91,18 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     root = tmp_path / "sessions"
     args = ["train", str(small_dataset_dir), "--session", "s", "--root", str(root), "--rounds", "1",
             "--epochs", "2", "--frames", "2", "--initial-negatives", "150", "--negatives", "30",
-            "--score-threshold", "0.05", "--no-calibrate"]  # fmt: skip
+            "--score-threshold", "0.05", "--no-calibrate",
+            "--export", str(tmp_path / "out" / "m.pt")]  # fmt: skip
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["run_id"] == 1 and [r["round"] for r in summary["rounds"]] == [0, 1]
     assert (root / "s" / "models" / "run_001" / "final.pt").is_file()
-    assert (root / "s" / "models" / "run_001" / "final.json").is_file()
+    note = json.loads((root / "s" / "models" / "run_001" / "final.json").read_text())
+    assert note["config"]["command"].startswith("factorydet train ")
+    # --export is the final checkpoint with the same note.
+    final = root / "s" / "models" / "run_001" / "final.pt"
+    assert (tmp_path / "out" / "m.pt").read_bytes() == final.read_bytes()
+    assert json.loads((tmp_path / "out" / "m.json").read_text()) == note
     assert (root / "s" / "session.db").is_file()
 
     detect = ["detect", str(small_dataset_dir), "--model", "s", "--root", str(root), "--frame", "2",
