@@ -151,6 +151,8 @@ class TrainingWorker:
                     status=f"round {done_fits[0] + 1} of {rounds}: epoch {done} of {total}",
                     progress=0.1 + fit_share * fraction,
                 )
+            elif what == "box quality" and done == 0:
+                state.set_training(status="fitting the box quality regressor", progress=0.1)
             elif what == "round":
                 done_fits[0] = done
 

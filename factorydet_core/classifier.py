@@ -37,6 +37,7 @@ from .detection import DESCRIPTOR_NAMES
 from .types import CLASS_NAMES, Cancelled, InputError
 
 BACKGROUND = "background"
+CLASS_WEIGHTS = (None, "balanced", "sqrt")
 FEATURE_SHAPE = (20, 5, 5, 5)
 
 
@@ -146,6 +147,22 @@ class FisherNet(nn.Module):
         return self.head(flat)
 
 
+def class_weights(counts: np.ndarray, kind: str | None) -> torch.Tensor | None:
+    """Cross-entropy weights of classes with (C,) training ``counts``: ``None`` (plain loss),
+    ``"balanced"`` (inverse frequency: every class weighs as much in total) or ``"sqrt"`` (inverse
+    square root of the frequency: rare classes still count more, but a rare class's error no longer
+    costs hundreds of times a background error, which made the net call structure "pallet").
+    Absent classes get 0; the weights average 1 over the samples."""
+    if kind is None:
+        return None
+    counts = np.asarray(counts, np.float64)
+    present = counts > 0
+    w = np.zeros_like(counts)
+    w[present] = 1.0 / counts[present] if kind == "balanced" else 1.0 / np.sqrt(counts[present])
+    w *= counts.sum() / max((w * counts).sum(), 1e-12)
+    return torch.as_tensor(w, dtype=torch.float32)
+
+
 def count_parameters(module: nn.Module) -> int:
     return int(sum(p.numel() for p in module.parameters()))
 
@@ -222,8 +239,10 @@ class ProposalClassifier:
             raise InputError(f"width must be > 0, got {self.width}")
         if self.epochs < 1 or self.batch_size < 2:
             raise InputError("epochs must be >= 1 and batch_size >= 2")
-        if self.class_weight not in (None, "balanced"):
-            raise InputError(f"class_weight must be None or 'balanced', got {self.class_weight!r}")
+        if self.class_weight not in CLASS_WEIGHTS:
+            raise InputError(
+                f"class_weight must be one of {', '.join(map(str, CLASS_WEIGHTS))}, got {self.class_weight!r}"
+            )
         self.class_names = tuple(self.class_names)
 
     @property
@@ -304,12 +323,7 @@ class ProposalClassifier:
                 network.descriptor_mean.copy_(d_all.mean(dim=0))
                 network.descriptor_scale.copy_(d_all.std(dim=0).clamp_min(1e-3))
             counts = np.bincount(labels, minlength=len(self.labels_)).astype(np.float64)
-            weight = None
-            if self.class_weight == "balanced":
-                present = counts > 0
-                w = np.zeros_like(counts)
-                w[present] = counts[present].sum() / (present.sum() * counts[present])
-                weight = torch.as_tensor(w, dtype=torch.float32)
+            weight = class_weights(counts, self.class_weight)
             loss_fn = nn.CrossEntropyLoss(weight=weight)
             optimizer = torch.optim.Adam(network.parameters(), lr=self.learning_rate)
             x_all = torch.from_numpy(features)

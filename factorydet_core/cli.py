@@ -324,6 +324,8 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
             bars[what][0](done, total)
             if done == total:
                 bars.pop(what)[1]()
+        elif what == "box quality" and done == 0:
+            print("fitting the box quality regressor ...", file=sys.stderr)
         elif what == "round":
             print(f"round {done - 1} of {total - 1} done", file=sys.stderr)
 
@@ -337,7 +339,7 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .detector import PRESETS, Detector
     from .loop import LoopSettings, cached_proposals, compare_models, session_references, train_session
-    from .model import DetectionModel
+    from .model import DetectionModel, quality_path
 
     db, dataset = _open_session_db(args)
     runs = db.training_runs()
@@ -373,6 +375,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         nms_iou=args.nms_iou,
         seed=args.seed,
         geometry=args.geometry,
+        box_quality=args.box_quality,
     )
     front_end = _front_end_note(preset, overrides)
     try:
@@ -429,6 +432,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         export.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(final, export)
         shutil.copyfile(final.with_suffix(".json"), export.with_suffix(".json"))
+        if quality_path(final).is_file():
+            shutil.copyfile(quality_path(final), quality_path(export))
         summary["exported"] = args.export
     print(json.dumps(summary, indent=2))
     return 0
@@ -659,7 +664,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--initial-negatives", type=int, default=2000, help="random background set to start")
     p.add_argument("--width", type=float, default=0.0625, help="3DmFV-Net width (1.0 = the paper's, 46M)")
     p.add_argument("--epochs", type=int, default=20)
-    p.add_argument("--class-weight", default="balanced", choices=["balanced", "none"], help="loss weighting")
+    p.add_argument(
+        "--class-weight",
+        default="balanced",
+        choices=["balanced", "sqrt", "none"],
+        help="loss weighting: inverse class frequency, its square root, or none (the paper's plain loss)",
+    )
     p.add_argument(
         "--no-geometry",
         dest="geometry",
@@ -692,6 +702,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="measure the previous and the new model on the test frames against the session's labels",
     )
     p.add_argument("--test-frames", type=int, default=None, help="with --compare: the first N test frames")
+    p.add_argument(
+        "--no-box-quality",
+        dest="box_quality",
+        action="store_false",
+        help="keep the size prior's box and the class probability as score, without the regressor of "
+        "each box's IoU",
+    )
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     p.set_defaults(func=_cmd_train)
 

@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from .box_quality import BoxQuality
 from .boxes import box_iou_3d
 from .classifier import ProposalClassifier
 from .dataset import Dataset
@@ -65,6 +66,9 @@ class LoopSettings:
     num_threads: int | None = None
     geometry: bool = True
     """Feed the point sets' geometric descriptors to the network beside the 3DmFV tensor."""
+    box_quality: bool = True
+    """Pick each detection's box and weigh its score by a regressor of the box's IoU
+    (``box_quality.BoxQuality``); False keeps the size prior's box and the class probability."""
 
     def classifier(self, class_names: Sequence[str]) -> ProposalClassifier:
         return ProposalClassifier(
@@ -221,6 +225,7 @@ def train_session(
         score_threshold=settings.score_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,
+        box_quality=BoxQuality(seed=settings.seed) if settings.box_quality else None,
         progress=progress,
         background_sets=background,
         excluded_sets=excluded,

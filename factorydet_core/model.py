@@ -1,5 +1,7 @@
 """A trained detection model: the proposal classifier, the class size prior that boxes its
-detections, and the operating thresholds, saved together as one checkpoint."""
+detections, the box quality regressor that picks and scores those boxes, and the operating
+thresholds, saved together as one checkpoint (``NAME.pt``, ``NAME.json`` and, with a box quality
+regressor, ``NAME.boxq.npz``)."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .box_quality import BoxQuality
 from .classifier import ProposalClassifier
 from .detection import BoxSizePrior, ProposalGroups, score_groups, select_detections
 from .types import Detections, InputError
@@ -29,6 +32,9 @@ class DetectionModel:
         score_threshold: operating score threshold.
         nms_iou: 3D NMS threshold.
         front_end: the preset and overrides the proposals were made with (for the record).
+        box_quality: picks each detection's box among the prior's options by predicted IoU and
+            multiplies its score by that IoU (``box_quality.BoxQuality``); ``None`` keeps the
+            prior's choice and the class probability as score.
     """
 
     classifier: object
@@ -36,6 +42,7 @@ class DetectionModel:
     score_threshold: float = 0.5
     nms_iou: float = 0.25
     front_end: dict = dataclasses.field(default_factory=dict)
+    box_quality: BoxQuality | None = None
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -48,7 +55,12 @@ class DetectionModel:
     def candidates(self, proposal_boxes: np.ndarray, groups: ProposalGroups) -> Detections:
         """Every point set as a candidate detection (no threshold, no NMS)."""
         return score_groups(
-            proposal_boxes, groups, self.probabilities(groups), self.box_prior, self.class_names
+            proposal_boxes,
+            groups,
+            self.probabilities(groups),
+            self.box_prior,
+            self.class_names,
+            self.box_quality,
         )
 
     def detect(
@@ -74,8 +86,12 @@ class DetectionModel:
             "score_threshold": self.score_threshold,
             "nms_iou": self.nms_iou,
             "front_end": self.front_end,
+            "box_quality": None if self.box_quality is None else dataclasses.asdict(self.box_quality),
         }
-        return self.classifier.save(path, {**extra, **(note or {})})
+        written = self.classifier.save(path, {**extra, **(note or {})})
+        if self.box_quality is not None:
+            np.savez(quality_path(path), **self.box_quality.to_arrays())
+        return written
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> DetectionModel:
@@ -83,17 +99,32 @@ class DetectionModel:
         classifier = ProposalClassifier.load(path)
         note = classifier.note_
         prior = note.get("box_prior")
+        box_quality = None
+        if note.get("box_quality"):
+            arrays_path = quality_path(path)
+            try:
+                with np.load(arrays_path, allow_pickle=False) as arrays:
+                    box_quality = BoxQuality.from_arrays(dict(arrays))
+            except (OSError, ValueError) as exc:
+                raise InputError(f"{arrays_path}: unreadable box quality arrays ({exc})") from None
         return cls(
             classifier=classifier,
             box_prior=None if prior is None else BoxSizePrior.from_json(prior),
             score_threshold=float(note.get("score_threshold", 0.5)),
             nms_iou=float(note.get("nms_iou", 0.25)),
             front_end=dict(note.get("front_end", {})),
+            box_quality=box_quality,
         )
 
     @property
     def note(self) -> dict:
         return getattr(self.classifier, "note_", {})
+
+
+def quality_path(path: str | os.PathLike) -> Path:
+    """Where a checkpoint's box quality arrays live: ``NAME.boxq.npz`` beside ``NAME.pt``."""
+    path = Path(path)
+    return path.with_name(path.stem + ".boxq.npz")
 
 
 def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:

@@ -124,7 +124,12 @@ def measure(
             ref_boxes, ref_classes = reference_boxes(dataset, frame.frame_index, use_truth)
         probabilities = model.probabilities(frame.groups)
         candidates = score_groups(
-            frame.proposal_boxes, frame.groups, probabilities, model.box_prior, class_names
+            frame.proposal_boxes,
+            frame.groups,
+            probabilities,
+            model.box_prior,
+            class_names,
+            model.box_quality,
         )
         detections = select_detections(candidates, ap_score_floor, model.nms_iou)
         kept = detections.subset(detections.kept_mask)

@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from .box_quality import BoxQuality
 from .boxes import box_iou_3d, fit_box
 from .classifier import ProposalClassifier
 from .dataset import Dataset
@@ -287,6 +288,7 @@ def train_with_mining(
     excluded_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
     mine_after_last: bool = False,
     should_stop: Callable[[], bool] | None = None,
+    box_quality: BoxQuality | None = None,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -320,6 +322,10 @@ def train_with_mining(
         mine_after_last: also mine after the last round; those negatives go to the record (to be
             reviewed) but into no fit.
         should_stop: asked between batches and frames; True raises ``types.Cancelled``.
+        box_quality: an unfitted ``BoxQuality``, fitted once on the frames' labels (it does not
+            depend on the classifier) and shared by every round's model, so that mining sees the
+            scores the model will give; ``None`` keeps the size prior's box and the class
+            probability as score. Needs ``use_box_prior``.
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
@@ -379,6 +385,15 @@ def train_with_mining(
             if frame_labels[index][g] == background_id and int(g) not in excluded.get(index, ()):
                 background.setdefault(index, set()).add(int(g))
 
+    quality = None
+    if box_quality is not None and box_prior is not None:
+        if progress is not None:
+            progress("box quality", 0, 1)
+        rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
+        quality = dataclasses.replace(box_quality).fit(rows, targets)
+        if progress is not None:
+            progress("box quality", 1, 1)
+
     records, models = [], []
     for round_index in range(rounds + 1):
         features, descriptors, labels = _training_set(
@@ -392,7 +407,7 @@ def train_with_mining(
         fitted = dataclasses.replace(classifier).fit(
             features, labels, descriptors, progress=fit_progress, should_stop=should_stop
         )
-        model = DetectionModel(fitted, box_prior, score_threshold, nms_iou)
+        model = DetectionModel(fitted, box_prior, score_threshold, nms_iou, box_quality=quality)
         start = time.perf_counter()
         scored = _score_frames(model, frames, 0.05, progress, should_stop)
         metrics = detection_metrics(scored, fitted.class_names, positive_iou, score_threshold)
