@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from factorydet_core.classifier import BACKGROUND, FisherNet, ProposalClassifier, count_parameters
+from factorydet_core.classifier import (
+    BACKGROUND,
+    FisherNet,
+    ProposalClassifier,
+    class_weights,
+    count_parameters,
+)
 from factorydet_core.detection import DESCRIPTOR_NAMES
 from factorydet_core.types import InputError
 
@@ -74,6 +80,21 @@ def test_bad_inputs_raise(rng):
         ProposalClassifier(width=0)
     with pytest.raises(InputError):
         ProposalClassifier(class_weight="heavy")
+
+
+def test_class_weights_balanced_sqrt_and_none():
+    counts = np.array([100.0, 400.0, 0.0, 1600.0])
+    assert class_weights(counts, None) is None
+    balanced = class_weights(counts, "balanced").numpy()
+    sqrt = class_weights(counts, "sqrt").numpy()
+    for w in (balanced, sqrt):
+        assert w[2] == 0.0
+        assert (w * counts).sum() == pytest.approx(counts.sum(), rel=1e-5)  # mean weight 1 per sample
+    # Balanced: every present class weighs the same in total; sqrt: rare classes still weigh more
+    # per sample, by the square root of the frequency ratio.
+    np.testing.assert_allclose((balanced * counts)[[0, 1, 3]], counts.sum() / 3, rtol=1e-5)
+    assert sqrt[0] / sqrt[3] == pytest.approx(4.0, rel=1e-5)
+    assert balanced[0] / balanced[3] == pytest.approx(16.0, rel=1e-5)
 
 
 def _sized(rng, num_per_class: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

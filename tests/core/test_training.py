@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from factorydet_core.box_quality import BoxQuality
 from factorydet_core.classifier import ProposalClassifier
 from factorydet_core.dataset import open_dataset
 from factorydet_core.detector import Detector
@@ -107,6 +108,23 @@ def test_session_stores_checkpoints_rounds_and_the_review_queue(run, tmp_path):
     assert len(queue) == len(run.rounds[0]["mined"])
     assert queue[0]["verdict"] is None and len(queue[0]["box"]) == 7
     assert save_training_run(session, run, "small", {}) == 2
+
+
+def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
+    run = train_with_mining(
+        frames,
+        ProposalClassifier(width=0.0625, epochs=1, num_threads=1),
+        rounds=1,
+        negatives_per_round=10,
+        initial_negatives=100,
+        box_quality=BoxQuality(max_iter=10),
+    )
+    quality = run.models[0].box_quality
+    assert quality is not None and all(m.box_quality is quality for m in run.models)
+    frame = frames[0]
+    detections = run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.0)
+    probability = detections.probabilities[np.arange(len(detections.scores)), detections.class_ids]
+    assert (detections.scores <= probability + 1e-6).all()  # probability times a predicted IoU
 
 
 def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_dataset_dir):

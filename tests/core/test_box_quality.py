@@ -1,0 +1,144 @@
+"""Box quality: the exported trees predict as scikit-learn does, the regressor learns from the
+annotations, and detections take the option it rates best, scored by class probability times IoU."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from sklearn.ensemble import HistGradientBoostingRegressor
+
+from factorydet_core.box_quality import (
+    BoxQuality,
+    choose_boxes,
+    group_members,
+    num_option_features,
+    option_features,
+)
+from factorydet_core.dataset import open_dataset
+from factorydet_core.detection import BoxSizePrior, score_groups
+from factorydet_core.detector import Detector
+from factorydet_core.model import DetectionModel
+from factorydet_core.training import collect_proposals
+from factorydet_core.types import CLASS_NAMES, InputError
+
+NUM_CLASSES = len(CLASS_NAMES)
+
+
+@pytest.fixture(scope="module")
+def frames(small_dataset_dir):
+    return collect_proposals(open_dataset(small_dataset_dir), [0, 1], Detector("agv"))
+
+
+@pytest.fixture(scope="module")
+def prior(frames):
+    return BoxSizePrior.from_boxes(
+        np.concatenate([f.label_boxes for f in frames]),
+        np.concatenate([f.label_class_ids for f in frames]),
+        NUM_CLASSES,
+    )
+
+
+@pytest.fixture(scope="module")
+def fitted(frames, prior):
+    quality = BoxQuality(max_iter=40)
+    rows, targets = quality.training_rows(frames, prior, NUM_CLASSES)
+    return quality.fit(rows, targets), rows, targets
+
+
+def test_exported_trees_predict_exactly_as_scikit_learn(rng):
+    features = rng.normal(size=(600, 5))
+    targets = np.clip(0.5 + 0.3 * np.tanh(features[:, 0]) - 0.2 * (features[:, 1] > 0.3), 0, 1)
+    quality = BoxQuality(max_iter=30).fit(features, targets)
+    reference = HistGradientBoostingRegressor(max_iter=30, learning_rate=0.1, random_state=0)
+    reference.fit(features, targets)
+    test = rng.normal(size=(300, 5)) * 1.5
+    np.testing.assert_allclose(quality.predict(test), np.clip(reference.predict(test), 0, 1), atol=1e-9)
+    # Thresholds exactly at a split go left, as in scikit-learn.
+    on_split = test.copy()
+    on_split[:, quality.trees_["feature"][0]] = quality.trees_["threshold"][0]
+    expected = np.clip(reference.predict(on_split), 0, 1)
+    np.testing.assert_allclose(quality.predict(on_split), expected, atol=1e-9)
+
+
+def test_arrays_round_trip_and_bad_input(rng):
+    features = rng.normal(size=(200, 3))
+    quality = BoxQuality(max_iter=10).fit(features, rng.uniform(size=200))
+    arrays = {k: np.array(v) for k, v in quality.to_arrays().items()}
+    again = BoxQuality.from_arrays(arrays)
+    np.testing.assert_array_equal(again.predict(features), quality.predict(features))
+    with pytest.raises(InputError):
+        again.predict(features[:, :2])
+    with pytest.raises(InputError):
+        BoxQuality.from_arrays({k: v for k, v in arrays.items() if k != "roots"})
+    with pytest.raises(InputError):
+        BoxQuality(background_rate=1.5)
+    with pytest.raises(InputError):
+        BoxQuality().fit(features, np.full(200, np.nan))
+
+
+def test_option_features_describe_every_option(frames, prior):
+    frame = frames[0]
+    members = group_members(frame.groups)
+    assert sorted(np.concatenate(members).tolist()) == list(range(len(frame.proposal_boxes)))
+    for g in range(min(20, frame.groups.num_groups)):
+        boxes = frame.proposal_boxes[members[g]]
+        np.testing.assert_array_equal(boxes[0], frame.proposal_boxes[frame.groups.representatives[g]])
+        options, features = option_features(boxes, 2, frame.groups.descriptors[g], prior, NUM_CLASSES)
+        assert features.shape == (len(options), num_option_features(NUM_CLASSES))
+        assert np.isfinite(features).all()
+        assert (features[:, 2] == 1).all() and features[:, :NUM_CLASSES].sum() == len(options)
+        # The set's own boxes come first, unchanged.
+        np.testing.assert_array_equal(options[: len(boxes)], boxes)
+
+
+def test_regressor_learns_the_iou_of_options(fitted):
+    quality, rows, targets = fitted
+    assert len(rows) == len(targets) and ((targets >= 0) & (targets <= 1)).all()
+    # Both ends are in the training set: good boxes of annotated objects and background at 0.
+    assert (targets > 0.6).any() and (targets == 0).any()
+    predicted = quality.predict(rows)
+    assert ((predicted >= 0) & (predicted <= 1)).all()
+    # It ranks: options it rates high overlap their objects far more than those it rates low.
+    high, low = predicted >= np.quantile(predicted, 0.9), predicted <= np.quantile(predicted, 0.5)
+    assert targets[high].mean() > 0.3 + targets[low].mean()
+
+
+def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, prior, fitted):
+    quality = fitted[0]
+    frame = frames[0]
+    num_groups = frame.groups.num_groups
+    probabilities = np.full((num_groups, NUM_CLASSES + 1), 0.01, np.float32)
+    probabilities[:, 2] = 0.9  # every set a "box" with probability 0.9
+    plain = score_groups(frame.proposal_boxes, frame.groups, probabilities, prior)
+    rated = score_groups(frame.proposal_boxes, frame.groups, probabilities, prior, box_quality=quality)
+    boxes, proposal_ids, predicted = choose_boxes(
+        frame.proposal_boxes, frame.groups, np.full(num_groups, 2), prior, quality
+    )
+    np.testing.assert_allclose(rated.boxes, boxes)
+    np.testing.assert_array_equal(rated.proposal_ids, proposal_ids)
+    np.testing.assert_allclose(rated.scores, 0.9 * predicted, rtol=1e-5)
+    np.testing.assert_allclose(plain.scores, 0.9, rtol=1e-6)
+    members = group_members(frame.groups)
+    for g in range(0, num_groups, max(1, num_groups // 15)):
+        options, features = option_features(
+            frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES
+        )
+        assert quality.predict(features).max() == pytest.approx(predicted[g])
+        assert proposal_ids[g] in members[g]
+    # Sets below the floor keep the prior's box and their probability.
+    probabilities[:5, 2] = 0.02
+    low = score_groups(frame.proposal_boxes, frame.groups, probabilities, prior, box_quality=quality)
+    np.testing.assert_allclose(low.scores[:5], 0.02, rtol=1e-5)
+    np.testing.assert_allclose(low.boxes[:5], plain.boxes[:5])
+
+
+def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
+    model = dataclasses.replace(DetectionModel.load(tiny_model_path), box_quality=fitted[0])
+    path = model.save(tmp_path / "q.pt")
+    loaded = DetectionModel.load(path)
+    assert loaded.note["box_quality"]["max_iter"] == 40
+    rows = fitted[1][:50]
+    np.testing.assert_array_equal(loaded.box_quality.predict(rows), fitted[0].predict(rows))
+    (tmp_path / "q.boxq.npz").unlink()
+    with pytest.raises(InputError):
+        DetectionModel.load(path)
