@@ -570,6 +570,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             calibrate=args.calibrate,
             progress=lambda _, d, n: update(d, n),
             command="factorydet " + " ".join(sys.argv[1:]),
+            score_thresholds=parse_floats(args.thresholds, "--thresholds") if args.thresholds else (),
         )
     finally:
         close()
@@ -769,6 +770,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iou", type=float, default=0.6)
     p.add_argument("--frames", type=int, default=None, help="only the first N test frames")
     p.add_argument("--baseline", action="store_true", help="also train and measure the baseline")
+    p.add_argument(
+        "--thresholds",
+        default=None,
+        help="comma-separated score thresholds: also print precision, recall and F-score at each "
+        "(operating_points), to choose the operating threshold",
+    )
     p.add_argument("--png", default=None, help="write the precision-recall curves here")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")

@@ -346,7 +346,9 @@ def score_groups(
         # Sets whose class probability is below the floor keep the prior's box and that probability
         # as score (no threshold in use goes that low); this halves the time of a frame's scoring.
         rated = np.flatnonzero(scores >= QUALITY_SCORE_FLOOR)
-        boxes, proposal_ids = _prior_boxes(proposal_boxes, groups, class_ids, box_prior)
+        boxes, proposal_ids = _prior_boxes(
+            proposal_boxes, groups, class_ids, box_prior, np.flatnonzero(scores < QUALITY_SCORE_FLOOR)
+        )
         if len(rated):
             rated_boxes, rated_ids, predicted_iou = choose_boxes(
                 proposal_boxes, groups, class_ids, box_prior, box_quality, rated
@@ -372,15 +374,20 @@ QUALITY_SCORE_FLOOR = 0.05
 
 
 def _prior_boxes(
-    proposal_boxes: np.ndarray, groups: ProposalGroups, class_ids: np.ndarray, box_prior: BoxSizePrior
+    proposal_boxes: np.ndarray,
+    groups: ProposalGroups,
+    class_ids: np.ndarray,
+    box_prior: BoxSizePrior,
+    subset: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(G, 7) the box ``box_prior.options`` prefers for each set's class and (G,) its proposal."""
+    """(G, 7) the box ``box_prior.options`` prefers for each set's class and (G,) its proposal;
+    with ``subset``, only those sets get it and the others keep their first (fitted) box."""
     boxes = proposal_boxes[groups.representatives].copy()
     proposal_ids = groups.representatives.copy()
     if groups.num_groups:
         order = np.argsort(groups.group_ids, kind="stable")
         starts = np.concatenate([[0], np.cumsum(np.bincount(groups.group_ids, minlength=groups.num_groups))])
-        for g in range(groups.num_groups):
+        for g in range(groups.num_groups) if subset is None else subset.tolist():
             members = order[starts[g] : starts[g + 1]]
             c = int(class_ids[g])
             options, cost = box_prior.options(proposal_boxes[members], c)

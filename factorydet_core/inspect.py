@@ -187,6 +187,10 @@ def describe_detection(detections: Detections, index: int, proposals: Proposals,
             else "none"
         ),
     }
+    probability = float(detections.probabilities[index, int(detections.class_ids[index])])
+    if probability > 0 and abs(float(detections.scores[index]) - probability) > 1e-6:
+        # A model with box quality scores probability x predicted IoU (detection.score_groups).
+        info["predicted box IoU"] = f"{float(detections.scores[index]) / probability:.2f}"
     if detections.suppressed_by[index] >= 0:
         info["suppressed by"] = f"detection scoring {detections.scores[detections.suppressed_by[index]]:.2f}"
     best = _best_label(frame, box)

@@ -110,10 +110,13 @@ def measure(
     use_truth: bool = False,
     ap_score_floor: float = 0.05,
     references: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    score_thresholds: Sequence[float] = (),
 ) -> dict:
     """Detection metrics (per class and totals) and recognition accuracy of ``model`` on
     ``frames``, against the annotations, the full truth, or ``references`` (frame index ->
-    (boxes (R, 7), class_ids (R,)), e.g. a session's corrected labels)."""
+    (boxes (R, 7), class_ids (R,)), e.g. a session's corrected labels). With ``score_thresholds``,
+    ``operating_points`` lists the total precision, recall and F-score at each of them (to choose
+    the operating threshold)."""
     scored, true_ids, predicted_ids = [], [], []
     class_names = model.class_names
     background_id = len(class_names)
@@ -148,6 +151,13 @@ def measure(
         true_ids.append(labels[chosen])
         predicted_ids.append(probabilities[chosen].argmax(axis=1))
     metrics = detection_metrics(scored, class_names, iou_threshold, model.score_threshold)
+    if score_thresholds:
+        metrics["operating_points"] = []
+        for threshold in score_thresholds:
+            at = detection_metrics(scored, class_names, iou_threshold, float(threshold))
+            metrics["operating_points"].append(
+                {"score_threshold": float(threshold), **{k: at[k] for k in ("precision", "recall", "f1")}}
+            )
     metrics["recognition"] = recognition_accuracy(
         np.concatenate(true_ids), np.concatenate(predicted_ids), (*class_names, "background")
     )
@@ -165,6 +175,7 @@ def evaluate(
     calibrate: bool = True,
     progress: Progress | None = None,
     command: str = "",
+    score_thresholds: Sequence[float] = (),
 ) -> dict:
     """Evaluate a checkpoint on the test frames of a data set.
 
@@ -179,9 +190,20 @@ def evaluate(
     test = test[:max_frames] if max_frames else test
     detector = detector_for(model, dataset, calibrate)
     frames = collect_proposals(dataset, test, detector, progress)
-    against = {"annotations": measure(model, dataset, frames, iou_threshold=iou_threshold)}
+    against = {
+        "annotations": measure(
+            model, dataset, frames, iou_threshold=iou_threshold, score_thresholds=score_thresholds
+        )
+    }
     if simulated:
-        against["truth"] = measure(model, dataset, frames, iou_threshold=iou_threshold, use_truth=True)
+        against["truth"] = measure(
+            model,
+            dataset,
+            frames,
+            iou_threshold=iou_threshold,
+            use_truth=True,
+            score_thresholds=score_thresholds,
+        )
     headline = against["truth" if simulated else "annotations"]
     result = {
         "benchmark": "evaluate",
