@@ -228,10 +228,10 @@ def _export_trees(regressor) -> dict[str, np.ndarray]:
         if nodes["is_categorical"].any():
             raise InputError("box quality: categorical splits are not exported")
         roots.append(offset)
-        parts["feature"].append(nodes["feature_idx"].astype(np.int64))
+        parts["feature"].append(nodes["feature_idx"].astype(np.int32))
         parts["threshold"].append(nodes["num_threshold"].astype(np.float64))
-        parts["left"].append(nodes["left"].astype(np.int64) + offset)
-        parts["right"].append(nodes["right"].astype(np.int64) + offset)
+        parts["left"].append(nodes["left"].astype(np.int32) + offset)
+        parts["right"].append(nodes["right"].astype(np.int32) + offset)
         parts["is_leaf"].append(nodes["is_leaf"].astype(bool))
         parts["value"].append(nodes["value"].astype(np.float64))
         offset += len(nodes)

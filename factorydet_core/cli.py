@@ -160,6 +160,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                         negatives_per_round=args.negatives,
                         initial_negatives=args.initial_negatives,
                         score_threshold=args.score_threshold,
+                        box_quality=args.box_quality,
                     ),
                     max_train_frames=args.train_frames,
                     max_test_frames=args.frames,
@@ -690,7 +691,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="sample at most N of those per frame (default: all; bounds the fit's time on many frames)",
     )
-    p.add_argument("--score-threshold", type=float, default=0.5)
+    p.add_argument(
+        "--score-threshold",
+        type=float,
+        default=0.3,
+        help="operating score of the model and of mining; with box quality a score is the class "
+        "probability times the predicted IoU, so it runs lower than a probability",
+    )
     p.add_argument("--nms-iou", type=float, default=0.25)
     p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")
     p.add_argument("--preset", default=None)
@@ -827,7 +834,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rounds", type=int, default=2, help="hitl: mining rounds after the first fit")
     p.add_argument("--negatives", type=int, default=500, help="hitl: mined negatives per round")
     p.add_argument("--initial-negatives", type=int, default=2000, help="hitl: first random background set")
-    p.add_argument("--score-threshold", type=float, default=0.5, help="hitl: operating score (mining too)")
+    p.add_argument(
+        "--score-threshold",
+        type=float,
+        default=0.3,
+        help="hitl: operating score (mining too); with box quality a score is probability x predicted IoU",
+    )
+    p.add_argument(
+        "--no-box-quality",
+        dest="box_quality",
+        action="store_false",
+        help="hitl: train without the box quality regressor",
+    )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument("--out", default=None, help="hitl: also write the JSON here (the report reads it)")
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")

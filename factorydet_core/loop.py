@@ -60,7 +60,8 @@ class LoopSettings:
     """Point sets overlapping a label at most this much start as background (0: the paper's start)."""
     fragments_per_frame: int | None = None
     """At most this many of them per frame (``None``: all)."""
-    score_threshold: float = 0.5
+    score_threshold: float = 0.3
+    """Operating score (and mining's); with box quality, class probability times predicted IoU."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None

@@ -90,7 +90,7 @@ class DetectionModel:
         }
         written = self.classifier.save(path, {**extra, **(note or {})})
         if self.box_quality is not None:
-            np.savez(quality_path(path), **self.box_quality.to_arrays())
+            np.savez_compressed(quality_path(path), **self.box_quality.to_arrays())
         return written
 
     @classmethod

@@ -8,7 +8,8 @@ A session is a folder ``sessions/NAME/``:
                        set reference and hash, the labels of every frame, the edit log that undo
                        and redo walk, the training runs and their rounds, the negatives each round
                        mined and the review verdicts on them
-    models/run_NNN/    checkpoints of run NNN: round_R.pt (+ .json notes) and final.pt
+    models/run_NNN/    checkpoints of run NNN: round_R.pt and final.pt, each with its .json note
+                       and .boxq.npz box quality arrays
     cache/             derived data (proposals, features), deletable at any time
 
 Every write to the database is one transaction committed before the call returns, so an edit the

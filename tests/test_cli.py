@@ -105,8 +105,11 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     assert json.loads((tmp_path / "out" / "m.json").read_text()) == note
     assert (root / "s" / "session.db").is_file()
 
+    # The model has box quality (the default): scores are probability x predicted IoU, low for a
+    # two-epoch classifier, so every candidate above 0 is shown.
+    assert (tmp_path / "out" / "m.boxq.npz").is_file() and note["box_quality"] is not None
     detect = ["detect", str(small_dataset_dir), "--model", "s", "--root", str(root), "--frame", "2",
-              "--score-threshold", "0.05", "--no-calibrate", "--json"]  # fmt: skip
+              "--score-threshold", "0.0", "--no-calibrate", "--json"]  # fmt: skip
     assert main(detect) == 0
     record = json.loads(capsys.readouterr().out)
     assert record["num_detections"] == len(record["detections"]) > 0
@@ -130,7 +133,7 @@ def test_the_labelling_loop_from_the_command_line(small_dataset_dir, tmp_path, c
     common = ["--session", "s", "--root", root]
     train = ["train", str(small_dataset_dir), *common, "--rounds", "0", "--epochs", "2", "--frames", "2",
              "--initial-negatives", "150", "--negatives", "20", "--score-threshold", "0.05",
-             "--no-calibrate"]  # fmt: skip
+             "--no-calibrate", "--no-box-quality"]  # fmt: skip
     assert main(train) == 0
     first = json.loads(capsys.readouterr().out)
     assert first["mode"] == "full" and first["review_queue"] > 0
@@ -202,7 +205,7 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_datas
     out = tmp_path / "hitl.json"
     args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
             "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
-            "--no-calibrate", "--out", str(out)]  # fmt: skip
+            "--no-calibrate", "--no-box-quality", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
     assert result == json.loads(out.read_text())
