@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .bench import machine_info, save_figure
+from .box_quality import BoxQuality
 from .classifier import FisherNet, ProposalClassifier, count_parameters
 from .dataset import open_dataset
 from .model import DetectionModel
@@ -63,7 +64,8 @@ def voxel_sweep(
     train_T_vehicle_sensor: np.ndarray | None = None,
 ) -> list[dict]:
     """F-score against the truth for each voxel size, retraining the classifier (one round, no
-    mining) on ``train_indices`` with the model's settings each time (the paper's Fig. 7).
+    mining) on ``train_indices`` with the model's settings each time (the paper's Fig. 7): its
+    classifier settings, its operating threshold, and a box quality regressor when it has one.
 
     The training frames are ``train_dataset``'s (with its own extrinsics ``train_T_vehicle_sensor``)
     when given, else ``dataset``'s."""
@@ -79,7 +81,13 @@ def voxel_sweep(
         params = base.replace(voxel_size_m=size)
         train = collect_proposals(train_dataset, train_indices, Detector(params, train_T_vehicle_sensor))
         test = collect_proposals(dataset, test_indices, Detector(params, T_vehicle_sensor))
-        run = train_with_mining(train, ProposalClassifier(**settings), rounds=0)
+        run = train_with_mining(
+            train,
+            ProposalClassifier(**settings),
+            rounds=0,
+            score_threshold=model.score_threshold,
+            box_quality=None if model.box_quality is None else BoxQuality(),
+        )
         metrics = measure(run.model, dataset, test, iou_threshold=iou_threshold, use_truth=True)
         rows.append({"voxel_size_m": size, "f1": metrics["f1"], "map": metrics["map"],
                      "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()}})  # fmt: skip
@@ -307,8 +315,10 @@ def write_report(
             "## Fig. 7: F-score against grid resolution",
             "",
             "One training round (no mining) per voxel size on the first "
-            f"{len(train_idx[:sweep_frames])} training frames, measured on the test frames against the "
-            "truth.",
+            f"{len(train_idx[:sweep_frames])} training frames, with the model's settings (score "
+            f"threshold {model.score_threshold}"
+            + (", box quality" if model.box_quality is not None else "")
+            + "), measured on the test frames against the truth.",
             "",
             "| voxel size (m) | total F | mAP |",
             "|---|---|---|",
