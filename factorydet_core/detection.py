@@ -10,12 +10,16 @@ visible sides, the least grown one whose size the class's annotations cover (``B
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .nms import nms_3d
 from .proposals import point_sets
 from .types import CLASS_NAMES, Detections, InputError, Proposals, Segmentation
+
+if TYPE_CHECKING:  # box_quality builds on this module
+    from .box_quality import BoxQuality
 
 DESCRIPTOR_NAMES: tuple[str, ...] = (
     "length_m",
@@ -309,7 +313,7 @@ def score_groups(
     probabilities: np.ndarray,
     box_prior: BoxSizePrior | None = None,
     class_names: tuple[str, ...] = CLASS_NAMES,
-    box_quality=None,
+    box_quality: BoxQuality | None = None,
 ) -> Detections:
     """One candidate detection per point set: its most probable object class, that class's
     probability as score, and the box that ``box_prior.options`` prefers for that class among the
@@ -344,7 +348,7 @@ def score_groups(
         from .box_quality import choose_boxes  # it builds on this module
 
         # Sets whose class probability is below the floor keep the prior's box and that probability
-        # as score (no threshold in use goes that low); this halves the time of a frame's scoring.
+        # as score: no threshold in use goes that low, so the regressor is not run for them.
         rated = np.flatnonzero(scores >= QUALITY_SCORE_FLOOR)
         boxes, proposal_ids = _prior_boxes(
             proposal_boxes, groups, class_ids, box_prior, np.flatnonzero(scores < QUALITY_SCORE_FLOOR)
