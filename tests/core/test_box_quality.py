@@ -142,3 +142,20 @@ def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
     (tmp_path / "q.boxq.npz").unlink()
     with pytest.raises(InputError):
         DetectionModel.load(path)
+
+
+def test_detection_details_show_the_predicted_iou(small_dataset_dir, prior, fitted):
+    from factorydet_core.detection import group_proposals
+    from factorydet_core.inspect import describe_detection
+
+    frame = open_dataset(small_dataset_dir).frame(0)
+    result = Detector("agv").propose(frame)
+    groups = group_proposals(result.proposals, result.cloud.points, result.segmentation, result.floor_plane)
+    probabilities = np.full((groups.num_groups, NUM_CLASSES + 1), 0.01, np.float32)
+    probabilities[:, 2] = 0.9
+    rated = score_groups(result.proposals.boxes, groups, probabilities, prior, box_quality=fitted[0])
+    k = int(np.argmax(rated.scores))
+    info = describe_detection(rated, k, result.proposals, frame)
+    assert float(info["predicted box IoU"]) == pytest.approx(rated.scores[k] / 0.9, abs=0.006)
+    plain = score_groups(result.proposals.boxes, groups, probabilities, prior)
+    assert "predicted box IoU" not in describe_detection(plain, k, result.proposals, frame)
