@@ -95,6 +95,82 @@ def option_features(
     return options, features
 
 
+def class_option_features(
+    proposal_boxes: np.ndarray,
+    members: Sequence[np.ndarray],
+    class_id: int,
+    descriptors: np.ndarray,
+    prior: BoxSizePrior,
+    num_classes: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``option_features`` for many point sets of one class at once (the per-set calls cost more
+    than the regressor at inference); rows equal ``option_features``'s, set after set.
+
+    Args:
+        proposal_boxes: (M, 7) boxes of the proposals.
+        members: S arrays of proposal indices, one per set, its fitted box first.
+        class_id: the class of every one of these sets.
+        descriptors: (S, len(DESCRIPTOR_NAMES)) their descriptors.
+        prior: the class size prior.
+        num_classes: C.
+
+    Returns:
+        ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features, (K,) the set
+        (0..S-1) of each row and (K,) the proposal its box came from.
+    """
+    counts = np.array([len(m) for m in members], np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    member_ids = np.concatenate(members).astype(np.int64)
+    boxes = np.asarray(proposal_boxes, np.float64)[member_ids]
+    owner = np.repeat(np.arange(len(members)), counts)
+    member = np.arange(len(boxes)) - np.repeat(starts, counts)
+    fitted = boxes[starts]
+    if not np.isfinite(prior.sizes[class_id]).all():
+        options, cost, grown = boxes, np.zeros(len(boxes)), np.zeros(len(boxes), np.int64)
+    else:
+        modes = prior.modes[class_id] if prior.modes is not None else prior.sizes[class_id][None]
+        blocks = [boxes, *(prior.grow(boxes, class_id, size=m) for m in modes)]
+        options = np.concatenate(blocks)
+        grown = np.repeat(np.arange(len(blocks)), len(boxes))
+        if prior.lower is None:
+            cost = prior.distance(options, class_id)
+        else:
+            volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
+            fitted_volume = np.prod(np.maximum(fitted[:, 3:6], 1e-3), axis=1)[np.tile(owner, len(blocks))]
+            cost = prior.range_distance(options, class_id) + 1e-3 * np.abs(np.log(volume / fitted_volume))
+    owner, member = np.tile(owner, len(options) // len(boxes)), np.tile(member, len(options) // len(boxes))
+    sources = member_ids[np.tile(np.arange(len(boxes)), len(options) // len(boxes))]
+    # Set after set, grown after fitted, as option_features orders a set's options.
+    order = np.lexsort((member, grown, owner))
+    options, cost, owner, member, grown, sources = (
+        a[order] for a in (options, cost, owner, member, grown, sources)
+    )
+    log_dims = np.log(np.maximum(_horizontal_sorted_sizes(options), 1e-3))
+    log_fitted = np.log(np.maximum(_horizontal_sorted_sizes(fitted), 1e-3))[owner]
+    modes = prior.modes[class_id] if prior.modes is not None else prior.sizes[class_id][None]
+    modes = modes[np.isfinite(modes).all(axis=1)] if len(modes) else modes
+    if len(modes):
+        to_mode = np.abs(log_dims[:, None, :] - np.log(modes)[None]).sum(axis=2).min(axis=1)
+    else:
+        to_mode = np.zeros(len(options))
+    one_hot = np.zeros((len(options), num_classes))
+    one_hot[:, class_id] = 1.0
+    features = np.column_stack(
+        [
+            one_hot,
+            log_dims,
+            log_dims - log_fitted,
+            to_mode,
+            cost,
+            np.minimum(member, 2),
+            grown,
+            np.hypot(options[:, 0], options[:, 1]),
+            np.asarray(descriptors, np.float64)[owner],
+        ]
+    )
+    return options, features, owner, sources
+
+
 def num_option_features(num_classes: int) -> int:
     return num_classes + len(OPTION_FEATURE_NAMES) + len(DESCRIPTOR_NAMES)
 
@@ -288,16 +364,22 @@ def choose_boxes(
     num_classes = len(prior.sizes)
     members = group_members(groups)
     chosen = np.arange(groups.num_groups) if subset is None else np.asarray(subset, np.int64)
+    chosen_classes = np.asarray(class_ids)[chosen]
     all_options, all_features, sources, owners = [], [], [], []
-    for row, g in enumerate(chosen.tolist()):
-        member_ids = members[g]
-        options, features = option_features(
-            proposal_boxes[member_ids], int(class_ids[g]), groups.descriptors[g], prior, num_classes
+    for class_id in np.unique(chosen_classes).tolist():
+        rows = np.flatnonzero(chosen_classes == class_id)
+        options, features, owner, source = class_option_features(
+            proposal_boxes,
+            [members[g] for g in chosen[rows].tolist()],
+            int(class_id),
+            groups.descriptors[chosen[rows]],
+            prior,
+            num_classes,
         )
         all_options.append(options)
         all_features.append(features)
-        sources.append(member_ids[np.arange(len(options)) % len(member_ids)])
-        owners.append(np.full(len(options), row))
+        sources.append(source)
+        owners.append(rows[owner])
     boxes = np.zeros((len(chosen), 7))
     proposal_ids = np.zeros(len(chosen), np.int64)
     predicted = np.zeros(len(chosen))

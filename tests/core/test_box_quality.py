@@ -10,6 +10,7 @@ from sklearn.ensemble import HistGradientBoostingRegressor
 from factorydet_core.box_quality import (
     BoxQuality,
     choose_boxes,
+    class_option_features,
     group_members,
     num_option_features,
     option_features,
@@ -89,6 +90,36 @@ def test_option_features_describe_every_option(frames, prior):
         assert (features[:, 2] == 1).all() and features[:, :NUM_CLASSES].sum() == len(options)
         # The set's own boxes come first, unchanged.
         np.testing.assert_array_equal(options[: len(boxes)], boxes)
+
+
+def test_batched_options_equal_the_per_set_ones(frames, prior):
+    """Inference builds the options of all sets of a class at once; rows must be option_features's,
+    set after set (the regressor was trained on those)."""
+    frame = frames[0]
+    members = group_members(frame.groups)
+    sets = list(range(0, frame.groups.num_groups, 3))
+    for class_id in (0, 2, 4, 6):
+        options, features, owner, sources = class_option_features(
+            frame.proposal_boxes,
+            [members[g] for g in sets],
+            class_id,
+            frame.groups.descriptors[sets],
+            prior,
+            NUM_CLASSES,
+        )
+        expected = [
+            option_features(
+                frame.proposal_boxes[members[g]], class_id, frame.groups.descriptors[g], prior, NUM_CLASSES
+            )
+            for g in sets
+        ]
+        np.testing.assert_array_equal(options, np.concatenate([e[0] for e in expected]))
+        np.testing.assert_array_equal(features, np.concatenate([e[1] for e in expected]))
+        np.testing.assert_array_equal(owner, np.repeat(np.arange(len(sets)), [len(e[0]) for e in expected]))
+        for row, g in enumerate(sets):
+            np.testing.assert_array_equal(
+                sources[owner == row], members[g][np.arange(len(expected[row][0])) % len(members[g])]
+            )
 
 
 def test_regressor_learns_the_iou_of_options(fitted):
