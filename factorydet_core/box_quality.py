@@ -43,13 +43,6 @@ OPTION_FEATURE_NAMES: tuple[str, ...] = (
 """Per box option, after the one-hot class and before the point set's descriptors."""
 
 
-def group_members(groups: ProposalGroups) -> list[np.ndarray]:
-    """Per point set, the indices of its proposals in proposal order (the fitted box first)."""
-    order = np.argsort(groups.group_ids, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(np.bincount(groups.group_ids, minlength=groups.num_groups))])
-    return [order[starts[g] : starts[g + 1]] for g in range(groups.num_groups)]
-
-
 def option_features(
     boxes: np.ndarray, class_id: int, descriptors: np.ndarray, prior: BoxSizePrior, num_classes: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -66,31 +59,14 @@ def option_features(
         ``(options, features)``: (K, 7) boxes (``BoxSizePrior.options``) and (K, F) features: the
         one-hot class (C), ``OPTION_FEATURE_NAMES``, then the descriptors.
     """
-    options, cost = prior.options(boxes, class_id)
-    num_options, num_boxes = len(options), len(boxes)
-    log_dims = np.log(np.maximum(_horizontal_sorted_sizes(options), 1e-3))
-    log_fitted = np.log(np.maximum(_horizontal_sorted_sizes(boxes[:1]), 1e-3))
-    modes = prior.modes[class_id] if prior.modes is not None else prior.sizes[class_id][None]
-    modes = modes[np.isfinite(modes).all(axis=1)] if len(modes) else modes
-    if len(modes):
-        to_mode = np.abs(log_dims[:, None, :] - np.log(modes)[None]).sum(axis=2).min(axis=1)
-    else:
-        to_mode = np.zeros(num_options)
-    one_hot = np.zeros((num_options, num_classes))
-    one_hot[:, class_id] = 1.0
-    index = np.arange(num_options)
-    features = np.column_stack(
-        [
-            one_hot,
-            log_dims,
-            log_dims - log_fitted,
-            to_mode,
-            cost,
-            np.minimum(index % num_boxes, 2),
-            index // num_boxes,
-            np.hypot(options[:, 0], options[:, 1]),
-            np.repeat(np.asarray(descriptors, np.float64).reshape(1, -1), num_options, axis=0),
-        ]
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    options, features, _, _ = class_option_features(
+        boxes,
+        [np.arange(len(boxes))],
+        class_id,
+        np.asarray(descriptors, np.float64).reshape(1, -1),
+        prior,
+        num_classes,
     )
     return options, features
 
@@ -103,8 +79,9 @@ def class_option_features(
     prior: BoxSizePrior,
     num_classes: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``option_features`` for many point sets of one class at once (the per-set calls cost more
-    than the regressor at inference); rows equal ``option_features``'s, set after set.
+    """The box options of many point sets of one class and their features, set after set, each
+    set's options in ``BoxSizePrior.options``'s order (one call for all sets: per-set calls cost
+    more than the regressor at inference).
 
     Args:
         proposal_boxes: (M, 7) boxes of the proposals.
@@ -115,8 +92,9 @@ def class_option_features(
         num_classes: C.
 
     Returns:
-        ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features, (K,) the set
-        (0..S-1) of each row and (K,) the proposal its box came from.
+        ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features (the one-hot
+        class, ``OPTION_FEATURE_NAMES``, then the descriptors), (K,) the set (0..S-1) of each row
+        and (K,) the proposal its box came from.
     """
     counts = np.array([len(m) for m in members], np.int64)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -125,22 +103,12 @@ def class_option_features(
     owner = np.repeat(np.arange(len(members)), counts)
     member = np.arange(len(boxes)) - np.repeat(starts, counts)
     fitted = boxes[starts]
-    if not np.isfinite(prior.sizes[class_id]).all():
-        options, cost, grown = boxes, np.zeros(len(boxes)), np.zeros(len(boxes), np.int64)
-    else:
-        modes = prior.modes[class_id] if prior.modes is not None else prior.sizes[class_id][None]
-        blocks = [boxes, *(prior.grow(boxes, class_id, size=m) for m in modes)]
-        options = np.concatenate(blocks)
-        grown = np.repeat(np.arange(len(blocks)), len(boxes))
-        if prior.lower is None:
-            cost = prior.distance(options, class_id)
-        else:
-            volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
-            fitted_volume = np.prod(np.maximum(fitted[:, 3:6], 1e-3), axis=1)[np.tile(owner, len(blocks))]
-            cost = prior.range_distance(options, class_id) + 1e-3 * np.abs(np.log(volume / fitted_volume))
-    owner, member = np.tile(owner, len(options) // len(boxes)), np.tile(member, len(options) // len(boxes))
-    sources = member_ids[np.tile(np.arange(len(boxes)), len(options) // len(boxes))]
-    # Set after set, grown after fitted, as option_features orders a set's options.
+    options, cost = prior.options(boxes, class_id, fitted_boxes=fitted[owner])
+    blocks = len(options) // len(boxes)  # the boxes, then the boxes grown to each mode
+    grown = np.repeat(np.arange(blocks), len(boxes))
+    owner, member = np.tile(owner, blocks), np.tile(member, blocks)
+    sources = np.tile(member_ids, blocks)
+    # Set after set, grown after fitted, as BoxSizePrior.options orders one set's options.
     order = np.lexsort((member, grown, owner))
     options, cost, owner, member, grown, sources = (
         a[order] for a in (options, cost, owner, member, grown, sources)
@@ -228,7 +196,7 @@ class BoxQuality:
                 continue
             skip = (excluded or {}).get(frame.frame_index, set())
             iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
-            for g, members in enumerate(group_members(frame.groups)):
+            for g, members in enumerate(frame.groups.members()):
                 best = iou[members].max(axis=0)
                 label = int(best.argmax())
                 overlapping = best[label] >= self.min_overlap
@@ -362,7 +330,7 @@ def choose_boxes(
         option came from, (S,) its predicted IoU, in the order of ``subset``.
     """
     num_classes = len(prior.sizes)
-    members = group_members(groups)
+    members = groups.members()
     chosen = np.arange(groups.num_groups) if subset is None else np.asarray(subset, np.int64)
     chosen_classes = np.asarray(class_ids)[chosen]
     all_options, all_features, sources, owners = [], [], [], []

@@ -57,6 +57,12 @@ class ProposalGroups:
     def num_groups(self) -> int:
         return len(self.representatives)
 
+    def members(self) -> list[np.ndarray]:
+        """Per point set, the indices of its proposals in proposal order (the fitted box first)."""
+        order = np.argsort(self.group_ids, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(np.bincount(self.group_ids, minlength=self.num_groups))])
+        return [order[starts[g] : starts[g + 1]] for g in range(self.num_groups)]
+
 
 def _eigen_features(points: np.ndarray) -> np.ndarray:
     """(4,) linearity, planarity, scattering, verticality of a point set (Demantke et al.)."""
@@ -253,18 +259,23 @@ class BoxSizePrior:
         out[:, 5] += grow_z
         return out
 
-    def options(self, boxes: np.ndarray, class_id: int) -> tuple[np.ndarray, np.ndarray]:
+    def options(
+        self, boxes: np.ndarray, class_id: int, fitted_boxes: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """A point set's box options for class ``class_id`` and the cost of each.
 
         Args:
             boxes: (M, 7) the set's box hypotheses, the fitted box first.
+            fitted_boxes: (M, 7) the fitted box of each box's own set, when ``boxes`` hold the
+                hypotheses of several sets at once; ``None``: one set, whose fitted box is
+                ``boxes[0]``.
 
         Returns:
             ``(options, cost)``: (K, 7) the hypotheses and the same grown to each of the class's
-            modes (to its median without modes), and (K,) their cost; the chosen box is the
-            option of least cost. The cost is the distance to the class's range (to its median
-            without a range) plus a tie-break that prefers the least grown box (0.001 per unit of
-            log volume ratio to the fitted box).
+            modes (to its median without modes), block after block, and (K,) their cost; the chosen
+            box is the option of least cost. The cost is the distance to the class's range (to its
+            median without a range) plus a tie-break that prefers the least grown box (0.001 per unit
+            of log volume ratio to the fitted box).
         """
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         if not np.isfinite(self.sizes[class_id]).all():
@@ -274,7 +285,11 @@ class BoxSizePrior:
         if self.lower is None:
             return options, self.distance(options, class_id)
         volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
-        fitted_volume = float(np.prod(np.maximum(boxes[0, 3:6], 1e-3)))
+        if fitted_boxes is None:
+            fitted_volume = float(np.prod(np.maximum(boxes[0, 3:6], 1e-3)))
+        else:
+            fitted = np.asarray(fitted_boxes, np.float64).reshape(-1, 7)
+            fitted_volume = np.tile(np.prod(np.maximum(fitted[:, 3:6], 1e-3), axis=1), 1 + len(modes))
         growth = np.abs(np.log(volume / fitted_volume))
         return options, self.range_distance(options, class_id) + 1e-3 * growth
 
@@ -389,10 +404,9 @@ def _prior_boxes(
     boxes = proposal_boxes[groups.representatives].copy()
     proposal_ids = groups.representatives.copy()
     if groups.num_groups:
-        order = np.argsort(groups.group_ids, kind="stable")
-        starts = np.concatenate([[0], np.cumsum(np.bincount(groups.group_ids, minlength=groups.num_groups))])
+        all_members = groups.members()
         for g in range(groups.num_groups) if subset is None else subset.tolist():
-            members = order[starts[g] : starts[g + 1]]
+            members = all_members[g]
             c = int(class_ids[g])
             options, cost = box_prior.options(proposal_boxes[members], c)
             best = int(np.argmin(cost))

@@ -8,10 +8,10 @@ import pytest
 from sklearn.ensemble import HistGradientBoostingRegressor
 
 from factorydet_core.box_quality import (
+    OPTION_FEATURE_NAMES,
     BoxQuality,
     choose_boxes,
     class_option_features,
-    group_members,
     num_option_features,
     option_features,
 )
@@ -79,7 +79,7 @@ def test_arrays_round_trip_and_bad_input(rng):
 
 def test_option_features_describe_every_option(frames, prior):
     frame = frames[0]
-    members = group_members(frame.groups)
+    members = frame.groups.members()
     assert sorted(np.concatenate(members).tolist()) == list(range(len(frame.proposal_boxes)))
     for g in range(min(20, frame.groups.num_groups)):
         boxes = frame.proposal_boxes[members[g]]
@@ -96,7 +96,7 @@ def test_batched_options_equal_the_per_set_ones(frames, prior):
     """Inference builds the options of all sets of a class at once; rows must be option_features's,
     set after set (the regressor was trained on those)."""
     frame = frames[0]
-    members = group_members(frame.groups)
+    members = frame.groups.members()
     sets = list(range(0, frame.groups.num_groups, 3))
     for class_id in (0, 2, 4, 6):
         options, features, owner, sources = class_option_features(
@@ -114,6 +114,11 @@ def test_batched_options_equal_the_per_set_ones(frames, prior):
             for g in sets
         ]
         np.testing.assert_array_equal(options, np.concatenate([e[0] for e in expected]))
+        # Each set's options and costs are BoxSizePrior.options's for that set alone.
+        reference = [prior.options(frame.proposal_boxes[members[g]], class_id) for g in sets]
+        np.testing.assert_array_equal(options, np.concatenate([r[0] for r in reference]))
+        cost_column = NUM_CLASSES + OPTION_FEATURE_NAMES.index("prior_cost")
+        np.testing.assert_array_equal(features[:, cost_column], np.concatenate([r[1] for r in reference]))
         np.testing.assert_array_equal(features, np.concatenate([e[1] for e in expected]))
         np.testing.assert_array_equal(owner, np.repeat(np.arange(len(sets)), [len(e[0]) for e in expected]))
         for row, g in enumerate(sets):
@@ -149,7 +154,7 @@ def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, 
     np.testing.assert_array_equal(rated.proposal_ids, proposal_ids)
     np.testing.assert_allclose(rated.scores, 0.9 * predicted, rtol=1e-5)
     np.testing.assert_allclose(plain.scores, 0.9, rtol=1e-6)
-    members = group_members(frame.groups)
+    members = frame.groups.members()
     for g in range(0, num_groups, max(1, num_groups // 15)):
         options, features = option_features(
             frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES
