@@ -68,6 +68,10 @@ sysdeps:
 	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq libusb-1.0-0; \
 	  else echo "open3d needs libusb-1.0-0; run: sudo apt-get install -y libusb-1.0-0" >&2; exit 1; fi; \
 	fi
+	@if ! ldconfig -p | grep -q 'libgomp.so.1'; then \
+	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq libgomp1; \
+	  else echo "numba's threads need libgomp1; run: sudo apt-get install -y libgomp1" >&2; exit 1; fi; \
+	fi
 	@if ! $(PYTHON) -c 'import ensurepip, venv' >/dev/null 2>&1; then \
 	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq python3-venv; \
 	  else echo "Python's venv module is missing; run: sudo apt-get install -y python3-venv" >&2; exit 1; fi; \

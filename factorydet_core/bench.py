@@ -149,6 +149,7 @@ def bench_pipeline(
     import dataclasses
 
     from .dataset import open_dataset
+    from .detection import BoxSizePrior, best_option_iou
     from .detector import PRESETS, Detector
     from .evaluation import best_box_iou, best_point_iou, proposal_point_lists, recall_table
     from .proposals import box_hypotheses
@@ -170,6 +171,7 @@ def bench_pipeline(
     params = PRESETS[preset].replace(**(overrides or {}))
     detector = Detector(params, T_vehicle_sensor)
     calibration = None
+    size_prior = None
     if simulated:
         from .geometry import rotation_angle_deg
         from .sim.truth import read_frame_truth, read_truth
@@ -206,6 +208,18 @@ def bench_pipeline(
                 "seconds": round(calib_s, 2),
             }
         items = [(dataset, index) for index in frame_indices]
+        # The class sizes a detector trained on this data set's annotated training frames knows.
+        train_frames = dataset.splits.get("train") or []
+        annotated = [dataset.frame(i).labels for i in train_frames]
+        size_prior = (
+            BoxSizePrior.from_boxes(
+                np.concatenate([labels.boxes for labels in annotated]),
+                np.concatenate([labels.class_ids for labels in annotated]),
+                len(dataset.class_names),
+            )
+            if annotated
+            else None
+        )
     else:
         items = [(open_dataset(path), 0) for path in paths]
 
@@ -217,7 +231,7 @@ def bench_pipeline(
         return dataclasses.replace(frame, point_instance_ids=truth.point_instance_ids)
 
     timings: dict[str, list[float]] = {}
-    class_ids, box_hits, point_hits, oracle_hits = [], [], [], []
+    class_ids, box_hits, point_hits, oracle_hits, option_hits = [], [], [], [], []
     num_proposals, features = [], None
     for n, (dataset, index) in enumerate(items):
         history = [with_truth_ids(i) for i in range(max(0, index - params.history_frames), index)]
@@ -244,6 +258,11 @@ def bench_pipeline(
             )
         class_ids.append(np.array(dataset.class_names, dtype=object)[ref_classes].astype(str))
         box_hits.append(best_box_iou(ref_boxes, result.proposals.boxes) >= iou_threshold)
+        if size_prior is not None:
+            set_of: dict[tuple[int, ...], int] = {}
+            set_ids = np.array([set_of.setdefault(p, len(set_of)) for p in result.proposals.patch_sets])
+            option_iou = best_option_iou(ref_boxes, ref_classes, result.proposals.boxes, set_ids, size_prior)
+            option_hits.append(option_iou >= iou_threshold)
         point_lists = proposal_point_lists(result.segmentation, result.proposals)
         point_hits.append(best_point_iou(result.cloud, ref_ids, point_lists) >= iou_threshold)
         # Upper bound of box fitting: the boxes the front half would propose for a segment that is
@@ -275,6 +294,9 @@ def bench_pipeline(
         "proposal_recall": recall_table(class_ids, np.concatenate(box_hits), names),
         "segment_recall_point_iou": recall_table(class_ids, np.concatenate(point_hits), names),
         "oracle_box_fit_recall": recall_table(class_ids, np.concatenate(oracle_hits), names),
+        "option_recall": (
+            recall_table(class_ids, np.concatenate(option_hits), names) if option_hits else None
+        ),
         "calibration": calibration,
         "T_vehicle_sensor": None if detector.T_vehicle_sensor is None else detector.T_vehicle_sensor.tolist(),
         "machine": machine_info(),

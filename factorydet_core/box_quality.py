@@ -19,12 +19,20 @@ anything. ``tests/core/test_box_quality.py`` checks that ``predict`` equals scik
 from __future__ import annotations
 
 import dataclasses
+import threading
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
 from .boxes import box_iou_3d
-from .detection import DESCRIPTOR_NAMES, BoxSizePrior, ProposalGroups, _horizontal_sorted_sizes
+from .detection import (
+    ANCHORS_PER_SIZE,
+    DESCRIPTOR_NAMES,
+    BoxSizePrior,
+    ProposalGroups,
+    _horizontal_sorted_sizes,
+)
 from .types import InputError
 
 OPTION_FEATURE_NAMES: tuple[str, ...] = (
@@ -42,9 +50,25 @@ OPTION_FEATURE_NAMES: tuple[str, ...] = (
 )
 """Per box option, after the one-hot class and before the point set's descriptors."""
 
+ANCHORED_FEATURE_NAMES: tuple[str, ...] = (
+    "anchored",
+    "offset_from_viewer_m",
+    "offset_sideways_m",
+    "offset_up_m",
+)
+"""With anchored options (``BoxQuality.anchored``), after ``OPTION_FEATURE_NAMES``: whether the
+option is a mode-sized box set into a corner of the fitted box, and where its centre lies from the
+fitted box's centre: away from the viewer (the vehicle origin) in the ground plane, sideways
+(absolute) and up."""
+
 
 def option_features(
-    boxes: np.ndarray, class_id: int, descriptors: np.ndarray, prior: BoxSizePrior, num_classes: int
+    boxes: np.ndarray,
+    class_id: int,
+    descriptors: np.ndarray,
+    prior: BoxSizePrior,
+    num_classes: int,
+    anchored: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A point set's box options for one class and what the regressor reads of each.
 
@@ -54,10 +78,13 @@ def option_features(
         descriptors: (len(DESCRIPTOR_NAMES),) the set's geometric descriptors.
         prior: the class size prior that grows the options.
         num_classes: C, the number of object classes.
+        anchored: add the class's sizes set into the fitted box's corners
+            (``BoxSizePrior.anchored``) to the options.
 
     Returns:
         ``(options, features)``: (K, 7) boxes (``BoxSizePrior.options``) and (K, F) features: the
-        one-hot class (C), ``OPTION_FEATURE_NAMES``, then the descriptors.
+        one-hot class (C), ``OPTION_FEATURE_NAMES``, ``ANCHORED_FEATURE_NAMES`` when
+        ``anchored``, then the descriptors.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     options, features, _, _ = class_option_features(
@@ -67,6 +94,7 @@ def option_features(
         np.asarray(descriptors, np.float64).reshape(1, -1),
         prior,
         num_classes,
+        anchored,
     )
     return options, features
 
@@ -78,6 +106,7 @@ def class_option_features(
     descriptors: np.ndarray,
     prior: BoxSizePrior,
     num_classes: int,
+    anchored: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The box options of many point sets of one class and their features, set after set, each
     set's options in ``BoxSizePrior.options``'s order (one call for all sets: per-set calls cost
@@ -90,11 +119,12 @@ def class_option_features(
         descriptors: (S, len(DESCRIPTOR_NAMES)) their descriptors.
         prior: the class size prior.
         num_classes: C.
+        anchored: add the class's sizes set into each set's fitted box's corners.
 
     Returns:
-        ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features (the one-hot
-        class, ``OPTION_FEATURE_NAMES``, then the descriptors), (K,) the set (0..S-1) of each row
-        and (K,) the proposal its box came from.
+        ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features (as
+        ``option_features``), (K,) the set (0..S-1) of each row and (K,) the proposal its box came
+        from (an anchored box's is the fitted box's).
     """
     counts = np.array([len(m) for m in members], np.int64)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -103,19 +133,34 @@ def class_option_features(
     owner = np.repeat(np.arange(len(members)), counts)
     member = np.arange(len(boxes)) - np.repeat(starts, counts)
     fitted = boxes[starts]
-    options, cost = prior.options(boxes, class_id, fitted_boxes=fitted[owner])
-    blocks = len(options) // len(boxes)  # the boxes, then the boxes grown to each mode
+    has_size = np.isfinite(prior.sizes[class_id]).all()
+    options, cost = prior.options(
+        boxes, class_id, fitted_boxes=fitted[owner], anchor_boxes=fitted if anchored and has_size else None
+    )
+    num_modes = len(prior.class_modes(class_id)) if has_size else 0
+    blocks = 1 + num_modes  # the boxes, then the boxes grown to each mode...
     grown = np.repeat(np.arange(blocks), len(boxes))
     owner, member = np.tile(owner, blocks), np.tile(member, blocks)
     sources = np.tile(member_ids, blocks)
-    # Set after set, grown after fitted, as BoxSizePrior.options orders one set's options.
-    order = np.lexsort((member, grown, owner))
-    options, cost, owner, member, grown, sources = (
-        a[order] for a in (options, cost, owner, member, grown, sources)
+    block = grown
+    num_anchored = len(options) - blocks * len(boxes)
+    if num_anchored:  # ...then each mode's boxes set into the fitted boxes' corners
+        per_set = num_anchored // len(members)
+        anchor_block = np.repeat(np.arange(per_set), len(members))
+        grown = np.concatenate([grown, 1 + anchor_block // ANCHORS_PER_SIZE])
+        block = np.concatenate([block, blocks + anchor_block])
+        owner = np.concatenate([owner, np.tile(np.arange(len(members)), per_set)])
+        member = np.concatenate([member, np.zeros(num_anchored, np.int64)])
+        sources = np.concatenate([sources, np.tile(member_ids[starts], per_set)])
+    is_anchored = block >= blocks
+    # Set after set, grown after fitted, anchored last, as BoxSizePrior.options orders one set's.
+    order = np.lexsort((member, block, owner))
+    options, cost, owner, member, grown, sources, is_anchored = (
+        a[order] for a in (options, cost, owner, member, grown, sources, is_anchored)
     )
     log_dims = np.log(np.maximum(_horizontal_sorted_sizes(options), 1e-3))
     log_fitted = np.log(np.maximum(_horizontal_sorted_sizes(fitted), 1e-3))[owner]
-    modes = prior.modes[class_id] if prior.modes is not None else prior.sizes[class_id][None]
+    modes = prior.class_modes(class_id)
     modes = modes[np.isfinite(modes).all(axis=1)] if len(modes) else modes
     if len(modes):
         to_mode = np.abs(log_dims[:, None, :] - np.log(modes)[None]).sum(axis=2).min(axis=1)
@@ -123,24 +168,35 @@ def class_option_features(
         to_mode = np.zeros(len(options))
     one_hot = np.zeros((len(options), num_classes))
     one_hot[:, class_id] = 1.0
-    features = np.column_stack(
-        [
-            one_hot,
-            log_dims,
-            log_dims - log_fitted,
-            to_mode,
-            cost,
-            np.minimum(member, 2),
-            grown,
-            np.hypot(options[:, 0], options[:, 1]),
-            np.asarray(descriptors, np.float64)[owner],
-        ]
-    )
+    columns = [
+        one_hot,
+        log_dims,
+        log_dims - log_fitted,
+        to_mode,
+        cost,
+        np.minimum(member, 2),
+        grown,
+        np.hypot(options[:, 0], options[:, 1]),
+    ]
+    if anchored:
+        columns += [is_anchored, *_offsets_from_fitted(options, fitted[owner])]
+    features = np.column_stack([*columns, np.asarray(descriptors, np.float64)[owner]])
     return options, features, owner, sources
 
 
-def num_option_features(num_classes: int) -> int:
-    return num_classes + len(OPTION_FEATURE_NAMES) + len(DESCRIPTOR_NAMES)
+def _offsets_from_fitted(options: np.ndarray, fitted: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(away from the viewer, sideways (absolute), up) offsets in metres of (K, 7) options' centres
+    from their (K, 7) fitted boxes' centres; the viewer is the vehicle origin."""
+    offset = options[:, :3] - fitted[:, :3]
+    radial = fitted[:, :2] / np.maximum(np.linalg.norm(fitted[:, :2], axis=1), 1e-6)[:, None]
+    away = np.einsum("kd,kd->k", offset[:, :2], radial)
+    sideways = np.abs(offset[:, 0] * radial[:, 1] - offset[:, 1] * radial[:, 0])
+    return away, sideways, offset[:, 2]
+
+
+def num_option_features(num_classes: int, anchored: bool = False) -> int:
+    extra = len(ANCHORED_FEATURE_NAMES) if anchored else 0
+    return num_classes + len(OPTION_FEATURE_NAMES) + extra + len(DESCRIPTOR_NAMES)
 
 
 @dataclasses.dataclass
@@ -157,6 +213,9 @@ class BoxQuality:
         max_iter: boosting iterations.
         learning_rate: boosting learning rate.
         seed: seeds the background sample, its classes and the regressor.
+        anchored: the options include each class size set into the fitted box's corners
+            (``BoxSizePrior.anchored``): the boxes of objects in a segment of several, and of
+            objects seen from one side. Checkpoints from before it load with ``False``.
     """
 
     background_rate: float = 0.1
@@ -164,6 +223,7 @@ class BoxQuality:
     max_iter: int = 300
     learning_rate: float = 0.1
     seed: int = 0
+    anchored: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.background_rate <= 1.0:
@@ -206,7 +266,12 @@ class BoxQuality:
                     continue
                 class_id = int(frame.label_class_ids[label]) if overlapping else random_class
                 options, features = option_features(
-                    frame.proposal_boxes[members], class_id, frame.groups.descriptors[g], prior, num_classes
+                    frame.proposal_boxes[members],
+                    class_id,
+                    frame.groups.descriptors[g],
+                    prior,
+                    num_classes,
+                    self.anchored,
                 )
                 reference = frame.label_boxes[label : label + 1] if overlapping else frame.label_boxes
                 rows.append(features)
@@ -243,11 +308,15 @@ class BoxQuality:
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The fitted trees as plain arrays (for ``np.savez``; ``from_arrays`` reads them back)."""
-        return {**self.trees_, "num_features": np.array(self.num_features_)}
+        return {
+            **self.trees_,
+            "num_features": np.array(self.num_features_),
+            "anchored": np.array(self.anchored),
+        }
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> BoxQuality:
-        model = cls()
+        model = cls(anchored=bool(arrays["anchored"]) if "anchored" in arrays else False)
         try:
             model.trees_ = {key: np.asarray(arrays[key]) for key in _TREE_KEYS}
             model.num_features_ = int(arrays["num_features"])
@@ -286,7 +355,69 @@ def _export_trees(regressor) -> dict[str, np.ndarray]:
 
 
 def _evaluate_trees(trees: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
-    """The baseline plus every tree's leaf value, as scikit-learn adds them: one tree at a time,
+    """The baseline plus every tree's leaf value, as scikit-learn adds them: each row walks every
+    tree to its leaf, compiled by numba, rows split over the cores (several times faster than the
+    vectorised walk of ``_evaluate_trees_numpy``, which anchored options made the slowest step of a
+    detection). Features are finite, so the missing-value branch of a split never applies."""
+    return _walk_trees(
+        np.ascontiguousarray(features, np.float64),
+        trees["roots"].astype(np.int64),
+        trees["feature"].astype(np.int64),
+        trees["threshold"].astype(np.float64),
+        trees["left"].astype(np.int64),
+        trees["right"].astype(np.int64),
+        trees["is_leaf"].astype(np.bool_),
+        trees["value"].astype(np.float64),
+        float(trees["baseline"][0]),
+    )
+
+
+def _compile_walk():
+    import numba
+
+    @numba.njit(parallel=True, cache=True, nogil=True)
+    def walk(features, roots, feature, threshold, left, right, is_leaf, value, baseline):
+        num_rows = features.shape[0]
+        total = np.empty(num_rows)
+        for r in numba.prange(num_rows):
+            acc = baseline
+            for t in range(roots.shape[0]):
+                node = roots[t]
+                while not is_leaf[node]:
+                    # Values equal to a threshold go left, as in scikit-learn.
+                    if features[r, feature[node]] <= threshold[node]:
+                        node = left[node]
+                    else:
+                        node = right[node]
+                acc += value[node]
+            total[r] = acc
+        return total
+
+    return walk
+
+
+_walk_compiled = None
+_walk_lock = threading.Lock()
+
+
+def _walk_trees(*args) -> np.ndarray:
+    global _walk_compiled
+    # One walk at a time: the app calls from several threads, and numba's fallback threading layer
+    # (workqueue, where OpenMP is missing) aborts the process on concurrent parallel launches.
+    with _walk_lock:
+        if _walk_compiled is None:  # compile (or load numba's cache) on first use, not at import
+            import numba
+
+            numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+            _walk_compiled = _compile_walk()
+        with warnings.catch_warnings():
+            # numba names every threading layer it could not load (an old TBB, say) on first launch.
+            warnings.filterwarnings("ignore", message=".*threading layer.*")
+            return _walk_compiled(*args)
+
+
+def _evaluate_trees_numpy(trees: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
+    """``_evaluate_trees`` in plain numpy (the reference its test compares with): one tree at a time,
     all rows descending a level per step (a few hundred short vector steps; walking all trees at
     once gathers over rows x trees and was several times slower). Features are finite, so the
     missing-value branch of a split never applies."""
@@ -343,6 +474,7 @@ def choose_boxes(
             groups.descriptors[chosen[rows]],
             prior,
             num_classes,
+            quality.anchored,
         )
         all_options.append(options)
         all_features.append(features)

@@ -172,6 +172,11 @@ def _size_modes(sizes: np.ndarray, max_modes: int, min_share: float = 0.1) -> np
     return np.exp(centres[keep])
 
 
+ANCHORS_PER_SIZE = 16
+"""Boxes ``BoxSizePrior.anchored`` sets into each box per size: 2 orientations x 4 corners x
+bottom or top."""
+
+
 @dataclasses.dataclass(frozen=True)
 class BoxSizePrior:
     """Typical box sizes of each class, from annotated boxes: the median (length, width, height)
@@ -259,8 +264,48 @@ class BoxSizePrior:
         out[:, 5] += grow_z
         return out
 
+    def anchored(self, boxes: np.ndarray, size: np.ndarray) -> np.ndarray:
+        """Boxes of exactly ``size`` ((3,) length, width, height) set into each of (M, 7) boxes'
+        corners: the new box shares one vertical edge's corner of the old box (its 4 corners) and
+        its bottom or its top, with its length along the old box's x or y axis. A segment of two
+        stacked or side-by-side objects (flush faces leave no gap to cut at) holds each object in
+        one of its corners; a segment of one object seen from one side holds it in the corner
+        nearest the viewer (the size grows away from the other corners).
+
+        Returns:
+            (ANCHORS_PER_SIZE * M, 7), anchor after anchor (M rows each): orientation (length
+            along x, then y), then corner (x sign, y sign in (-,-), (-,+), (+,-), (+,+)), then
+            bottom before top.
+        """
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        size = np.asarray(size, np.float64)
+        cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+        bottom, top = boxes[:, 2] - boxes[:, 5] / 2, boxes[:, 2] + boxes[:, 5] / 2
+        out = []
+        for dx, dy in ((size[0], size[1]), (size[1], size[0])):
+            for sx in (-1.0, 1.0):
+                for sy in (-1.0, 1.0):
+                    # Offsets in the box frame that keep corner (sx, sy) where it is.
+                    ox, oy = sx * (boxes[:, 3] - dx) / 2, sy * (boxes[:, 4] - dy) / 2
+                    for z in (bottom + size[2] / 2, top - size[2] / 2):
+                        block = boxes.copy()
+                        block[:, 0] += cos * ox - sin * oy
+                        block[:, 1] += sin * ox + cos * oy
+                        block[:, 2] = z
+                        block[:, 3], block[:, 4], block[:, 5] = dx, dy, size[2]
+                        out.append(block)
+        return np.concatenate(out)
+
+    def class_modes(self, class_id: int) -> np.ndarray:
+        """(K, 3) the sizes options are grown to for ``class_id``: its modes, else its median."""
+        return self.modes[class_id] if self.modes is not None else self.sizes[class_id][None]
+
     def options(
-        self, boxes: np.ndarray, class_id: int, fitted_boxes: np.ndarray | None = None
+        self,
+        boxes: np.ndarray,
+        class_id: int,
+        fitted_boxes: np.ndarray | None = None,
+        anchor_boxes: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """A point set's box options for class ``class_id`` and the cost of each.
 
@@ -269,28 +314,40 @@ class BoxSizePrior:
             fitted_boxes: (M, 7) the fitted box of each box's own set, when ``boxes`` hold the
                 hypotheses of several sets at once; ``None``: one set, whose fitted box is
                 ``boxes[0]``.
+            anchor_boxes: (S, 7) boxes to set boxes of each mode's exact size into
+                (``anchored``), appended after the grown blocks, mode after mode; ``None``: none.
+                Their cost's volume ratio is to the anchor box they came from.
 
         Returns:
             ``(options, cost)``: (K, 7) the hypotheses and the same grown to each of the class's
-            modes (to its median without modes), block after block, and (K,) their cost; the chosen
-            box is the option of least cost. The cost is the distance to the class's range (to its
-            median without a range) plus a tie-break that prefers the least grown box (0.001 per unit
-            of log volume ratio to the fitted box).
+            modes (to its median without modes), block after block, then the anchored boxes, and
+            (K,) their cost; the chosen box is the option of least cost. The cost is the distance to
+            the class's range (to its median without a range) plus a tie-break that prefers the
+            least grown box (0.001 per unit of log volume ratio to the fitted box).
         """
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         if not np.isfinite(self.sizes[class_id]).all():
             return boxes, np.zeros(len(boxes))
-        modes = self.modes[class_id] if self.modes is not None else self.sizes[class_id][None]
-        options = np.concatenate([boxes, *(self.grow(boxes, class_id, size=m) for m in modes)])
+        modes = self.class_modes(class_id)
+        anchors = np.zeros((0, 7)) if anchor_boxes is None else np.asarray(anchor_boxes, np.float64)
+        anchors = anchors.reshape(-1, 7)
+        blocks = [boxes, *(self.grow(boxes, class_id, size=m) for m in modes)]
+        if len(anchors):
+            blocks += [self.anchored(anchors, m) for m in modes]
+        options = np.concatenate(blocks)
         if self.lower is None:
             return options, self.distance(options, class_id)
         volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
         if fitted_boxes is None:
-            fitted_volume = float(np.prod(np.maximum(boxes[0, 3:6], 1e-3)))
+            fitted_volume = np.full(len(boxes), float(np.prod(np.maximum(boxes[0, 3:6], 1e-3))))
         else:
             fitted = np.asarray(fitted_boxes, np.float64).reshape(-1, 7)
-            fitted_volume = np.tile(np.prod(np.maximum(fitted[:, 3:6], 1e-3), axis=1), 1 + len(modes))
-        growth = np.abs(np.log(volume / fitted_volume))
+            fitted_volume = np.prod(np.maximum(fitted[:, 3:6], 1e-3), axis=1)
+        anchor_volume = np.prod(np.maximum(anchors[:, 3:6], 1e-3), axis=1)
+        reference_volume = np.concatenate(
+            [np.tile(fitted_volume, 1 + len(modes)), np.tile(anchor_volume, ANCHORS_PER_SIZE * len(modes))]
+        )
+        growth = np.abs(np.log(volume / reference_volume))
         return options, self.range_distance(options, class_id) + 1e-3 * growth
 
     def to_json(self) -> dict:
@@ -434,3 +491,49 @@ def select_detections(
     chosen = candidates.subset(above)
     _, suppressed_by = nms_3d(chosen.boxes, chosen.scores, nms_iou, chosen.class_ids if class_aware else None)
     return dataclasses.replace(chosen, suppressed_by=suppressed_by)
+
+
+def best_option_iou(
+    reference_boxes: np.ndarray,
+    reference_class_ids: np.ndarray,
+    proposal_boxes: np.ndarray,
+    group_ids: np.ndarray,
+    prior: BoxSizePrior,
+    anchored: bool = True,
+) -> np.ndarray:
+    """(R,) the highest 3D IoU of each reference box with any box option of its own class
+    (``BoxSizePrior.options``, with ``anchored`` boxes set into each fitted box) of the point sets
+    that overlap it: the recall bound of a detector that names every class right and picks the best
+    option.
+
+    Args:
+        reference_boxes: (R, 7) boxes; reference_class_ids: (R,) their classes.
+        proposal_boxes: (M, 7) proposal boxes; group_ids: (M,) the point set of each, the first
+            proposal of a set being its fitted box.
+        prior: the class sizes.
+    """
+    from .boxes import box_iou_3d
+
+    reference_boxes = np.asarray(reference_boxes, np.float64).reshape(-1, 7)
+    proposal_boxes = np.asarray(proposal_boxes, np.float64).reshape(-1, 7)
+    group_ids = np.asarray(group_ids, np.int64)
+    best = np.zeros(len(reference_boxes))
+    if not len(reference_boxes) or not len(proposal_boxes):
+        return best
+    overlap = box_iou_3d(proposal_boxes, reference_boxes) > 0
+    for r in range(len(reference_boxes)):
+        sets = np.unique(group_ids[overlap[:, r]])
+        if not len(sets):
+            continue
+        members = np.isin(group_ids, sets)
+        boxes, owners = proposal_boxes[members], group_ids[members]
+        # Stable order keeps each set's fitted box first among its proposals.
+        order = np.argsort(owners, kind="stable")
+        boxes, owners = boxes[order], owners[order]
+        first = np.concatenate([[True], owners[1:] != owners[:-1]])
+        fitted = boxes[first][np.cumsum(first) - 1]
+        anchor_boxes = boxes[first] if anchored else None
+        class_id = int(reference_class_ids[r])
+        options, _ = prior.options(boxes, class_id, fitted_boxes=fitted, anchor_boxes=anchor_boxes)
+        best[r] = box_iou_3d(options, reference_boxes[r : r + 1]).max()
+    return best

@@ -16,7 +16,7 @@ from factorydet_core.box_quality import (
     option_features,
 )
 from factorydet_core.dataset import open_dataset
-from factorydet_core.detection import BoxSizePrior, score_groups
+from factorydet_core.detection import ANCHORS_PER_SIZE, BoxSizePrior, score_groups
 from factorydet_core.detector import Detector
 from factorydet_core.model import DetectionModel
 from factorydet_core.training import collect_proposals
@@ -66,6 +66,9 @@ def test_arrays_round_trip_and_bad_input(rng):
     quality = BoxQuality(max_iter=10).fit(features, rng.uniform(size=200))
     arrays = {k: np.array(v) for k, v in quality.to_arrays().items()}
     again = BoxQuality.from_arrays(arrays)
+    assert again.anchored
+    # Checkpoints from before anchored options read their features without them.
+    assert not BoxQuality.from_arrays({k: v for k, v in arrays.items() if k != "anchored"}).anchored
     np.testing.assert_array_equal(again.predict(features), quality.predict(features))
     with pytest.raises(InputError):
         again.predict(features[:, :2])
@@ -77,22 +80,34 @@ def test_arrays_round_trip_and_bad_input(rng):
         BoxQuality().fit(features, np.full(200, np.nan))
 
 
-def test_option_features_describe_every_option(frames, prior):
+@pytest.mark.parametrize("anchored", [False, True])
+def test_option_features_describe_every_option(frames, prior, anchored):
     frame = frames[0]
     members = frame.groups.members()
     assert sorted(np.concatenate(members).tolist()) == list(range(len(frame.proposal_boxes)))
     for g in range(min(20, frame.groups.num_groups)):
         boxes = frame.proposal_boxes[members[g]]
         np.testing.assert_array_equal(boxes[0], frame.proposal_boxes[frame.groups.representatives[g]])
-        options, features = option_features(boxes, 2, frame.groups.descriptors[g], prior, NUM_CLASSES)
-        assert features.shape == (len(options), num_option_features(NUM_CLASSES))
+        options, features = option_features(
+            boxes, 2, frame.groups.descriptors[g], prior, NUM_CLASSES, anchored
+        )
+        assert features.shape == (len(options), num_option_features(NUM_CLASSES, anchored))
         assert np.isfinite(features).all()
         assert (features[:, 2] == 1).all() and features[:, :NUM_CLASSES].sum() == len(options)
         # The set's own boxes come first, unchanged.
         np.testing.assert_array_equal(options[: len(boxes)], boxes)
+        num_modes = len(prior.class_modes(2))
+        num_anchored = ANCHORS_PER_SIZE * num_modes if anchored else 0
+        assert len(options) == len(boxes) * (1 + num_modes) + num_anchored
+        if anchored:
+            flag = features[:, NUM_CLASSES + len(OPTION_FEATURE_NAMES)]
+            np.testing.assert_array_equal(flag, np.arange(len(options)) >= len(options) - num_anchored)
+            anchored_boxes = [prior.anchored(boxes[:1], m) for m in prior.class_modes(2)]
+            np.testing.assert_array_equal(options[-num_anchored:], np.concatenate(anchored_boxes))
 
 
-def test_batched_options_equal_the_per_set_ones(frames, prior):
+@pytest.mark.parametrize("anchored", [False, True])
+def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
     """Inference builds the options of all sets of a class at once; rows must be option_features's,
     set after set (the regressor was trained on those)."""
     frame = frames[0]
@@ -106,25 +121,40 @@ def test_batched_options_equal_the_per_set_ones(frames, prior):
             frame.groups.descriptors[sets],
             prior,
             NUM_CLASSES,
+            anchored,
         )
         expected = [
             option_features(
-                frame.proposal_boxes[members[g]], class_id, frame.groups.descriptors[g], prior, NUM_CLASSES
+                frame.proposal_boxes[members[g]],
+                class_id,
+                frame.groups.descriptors[g],
+                prior,
+                NUM_CLASSES,
+                anchored,
             )
             for g in sets
         ]
         np.testing.assert_array_equal(options, np.concatenate([e[0] for e in expected]))
         # Each set's options and costs are BoxSizePrior.options's for that set alone.
-        reference = [prior.options(frame.proposal_boxes[members[g]], class_id) for g in sets]
+        reference = [
+            prior.options(
+                frame.proposal_boxes[members[g]],
+                class_id,
+                anchor_boxes=frame.proposal_boxes[members[g][:1]] if anchored else None,
+            )
+            for g in sets
+        ]
         np.testing.assert_array_equal(options, np.concatenate([r[0] for r in reference]))
         cost_column = NUM_CLASSES + OPTION_FEATURE_NAMES.index("prior_cost")
         np.testing.assert_array_equal(features[:, cost_column], np.concatenate([r[1] for r in reference]))
         np.testing.assert_array_equal(features, np.concatenate([e[1] for e in expected]))
         np.testing.assert_array_equal(owner, np.repeat(np.arange(len(sets)), [len(e[0]) for e in expected]))
         for row, g in enumerate(sets):
-            np.testing.assert_array_equal(
-                sources[owner == row], members[g][np.arange(len(expected[row][0])) % len(members[g])]
-            )
+            # Grown boxes come from the box they grew; anchored ones from the fitted box.
+            num_grown = len(members[g]) * (1 + len(prior.class_modes(class_id)))
+            expected_sources = members[g][np.arange(len(expected[row][0])) % len(members[g])]
+            expected_sources[num_grown:] = members[g][0]
+            np.testing.assert_array_equal(sources[owner == row], expected_sources)
 
 
 def test_regressor_learns_the_iou_of_options(fitted):
@@ -157,7 +187,7 @@ def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, 
     members = frame.groups.members()
     for g in range(0, num_groups, max(1, num_groups // 15)):
         options, features = option_features(
-            frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES
+            frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES, True
         )
         assert quality.predict(features).max() == pytest.approx(predicted[g])
         assert proposal_ids[g] in members[g]
@@ -195,3 +225,21 @@ def test_detection_details_show_the_predicted_iou(small_dataset_dir, prior, fitt
     assert float(info["predicted box IoU"]) == pytest.approx(rated.scores[k] / 0.9, abs=0.006)
     plain = score_groups(result.proposals.boxes, groups, probabilities, prior)
     assert "predicted box IoU" not in describe_detection(plain, k, result.proposals, frame)
+
+
+def test_compiled_tree_walk_equals_the_numpy_walk_from_several_threads(rng):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from factorydet_core.box_quality import _evaluate_trees, _evaluate_trees_numpy
+
+    features = rng.normal(size=(800, 6))
+    targets = np.clip(0.4 + 0.3 * np.sin(features[:, 0] * 2) + 0.1 * features[:, 2], 0, 1)
+    quality = BoxQuality(max_iter=50).fit(features, targets)
+    test = rng.normal(size=(2000, 6)) * 1.3
+    expected = _evaluate_trees_numpy(quality.trees_, test)
+    np.testing.assert_allclose(_evaluate_trees(quality.trees_, test), expected, atol=1e-12)
+    # The app predicts from its worker and its callbacks' threads at once.
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(lambda _: _evaluate_trees(quality.trees_, test), range(8)))
+    for result in results:
+        np.testing.assert_allclose(result, expected, atol=1e-12)

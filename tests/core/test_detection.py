@@ -1,7 +1,11 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from factorydet_core.boxes import box_iou_3d, rectangle_corners
 from factorydet_core.detection import (
+    ANCHORS_PER_SIZE,
     DESCRIPTOR_NAMES,
     BoxSizePrior,
     ProposalGroups,
@@ -142,3 +146,63 @@ def test_options_keep_a_plausible_box_and_grow_a_partial_view_to_the_nearest_kin
     options, cost = prior.options(partial, 2)
     np.testing.assert_allclose(options, partial)
     assert (cost == 0).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    centre=st.tuples(*(st.floats(-20, 20),) * 3),
+    dims=st.tuples(*(st.floats(0.2, 5.0),) * 3),
+    yaw=st.floats(-np.pi, np.pi),
+    size=st.tuples(*(st.floats(0.2, 3.0),) * 3),
+)
+def test_anchored_boxes_share_a_corner_and_a_face_with_their_box(centre, dims, yaw, size):
+    box = np.array([[*centre, *dims, yaw]])
+    anchored = PRIOR.anchored(box, np.array(size))
+    assert anchored.shape == (ANCHORS_PER_SIZE, 7)
+    np.testing.assert_allclose(anchored[:, 6], yaw)
+    np.testing.assert_allclose(anchored[:, 5], size[2])
+    # Length along the box's x axis, then along its y axis.
+    np.testing.assert_allclose(anchored[:8, 3:5], np.tile(size[:2], (8, 1)))
+    np.testing.assert_allclose(anchored[8:, 3:5], np.tile(size[1::-1], (8, 1)))
+    bottom, top = centre[2] - dims[2] / 2, centre[2] + dims[2] / 2
+    np.testing.assert_allclose(anchored[0::2, 2] - size[2] / 2, bottom, atol=1e-9)
+    np.testing.assert_allclose(anchored[1::2, 2] + size[2] / 2, top, atol=1e-9)
+    # Each keeps one of the box's four ground-plane corners as one of its own.
+    own = rectangle_corners(box)[0]
+    for corners in rectangle_corners(anchored):
+        distance = np.linalg.norm(corners[:, None, :] - own[None, :, :], axis=2)
+        assert distance.min() < 1e-6
+    # A size equal to the box's gives the box back, wherever it is anchored.
+    same = PRIOR.anchored(box, np.array(dims))[:8:2]
+    np.testing.assert_allclose(box_iou_3d(same, box)[:, 0], 1.0, atol=1e-6)
+
+
+def test_anchored_options_find_each_object_of_a_flush_stack():
+    """Two crates side by side with flush faces make one segment: its fitted box holds each crate
+    in a corner, and the anchored options contain both, where growing or the box itself do not."""
+    prior = BoxSizePrior.from_boxes(np.array([[0, 0, 0, 1.2, 0.8, 0.6, 0.0]] * 3), np.zeros(3, int), 1)
+    crates = np.array([[5.0, -0.6, 0.3, 1.2, 0.8, 0.6, 0.0], [5.0, 0.6, 0.3, 1.2, 0.8, 0.6, 0.0]])
+    # Crates turned 90 degrees: their 1.2 m length lies along the world y axis.
+    crates[:, 6] = np.pi / 2
+    segment = np.array([[5.0, 0.0, 0.3, 0.8, 2.4, 0.6, 0.0]])
+    plain, _ = prior.options(segment, 0)
+    assert box_iou_3d(plain, crates).max() < 0.6
+    options, cost = prior.options(segment, 0, anchor_boxes=segment)
+    assert len(options) == len(plain) + ANCHORS_PER_SIZE
+    np.testing.assert_allclose(box_iou_3d(options, crates).max(axis=0), 1.0, atol=1e-6)
+    assert np.isfinite(cost).all()
+
+
+def test_best_option_iou_is_the_bound_of_the_anchored_options():
+    from factorydet_core.detection import best_option_iou
+
+    prior = BoxSizePrior.from_boxes(np.array([[0, 0, 0, 1.2, 0.8, 0.6, 0.0]] * 3), np.zeros(3, int), 1)
+    crates = np.array([[5.0, -0.6, 0.3, 0.8, 1.2, 0.6, 0.0], [5.0, 0.6, 0.3, 0.8, 1.2, 0.6, 0.0]])
+    far = np.array([[-9.0, 9.0, 0.3, 0.8, 1.2, 0.6, 0.0]])
+    # One set: the flush pair's box and a view-headed variant of it; nothing near the far crate.
+    proposals = np.array([[5.0, 0.0, 0.3, 0.8, 2.4, 0.6, 0.0], [5.0, 0.0, 0.3, 2.4, 0.8, 0.6, np.pi / 2]])
+    references = np.concatenate([crates, far])
+    best = best_option_iou(references, np.zeros(3, int), proposals, np.zeros(2, int), prior)
+    np.testing.assert_allclose(best, [1.0, 1.0, 0.0], atol=1e-6)
+    plain = best_option_iou(references, np.zeros(3, int), proposals, np.zeros(2, int), prior, anchored=False)
+    assert plain.max() < 0.6
