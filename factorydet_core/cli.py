@@ -160,6 +160,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                         negatives_per_round=args.negatives,
                         initial_negatives=args.initial_negatives,
                         score_threshold=args.score_threshold,
+                        mining_threshold=args.mining_threshold,
                         box_quality=args.box_quality,
                     ),
                     max_train_frames=args.train_frames,
@@ -373,6 +374,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         fragment_iou=args.fragment_iou,
         fragments_per_frame=args.fragments_per_frame,
         score_threshold=args.score_threshold,
+        mining_threshold=args.mining_threshold,
         nms_iou=args.nms_iou,
         seed=args.seed,
         geometry=args.geometry,
@@ -698,6 +700,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="operating score of the model and of mining; with box quality a score is the class "
         "probability times the predicted IoU, so it runs lower than a probability",
     )
+    p.add_argument(
+        "--mining-threshold",
+        type=float,
+        default=None,
+        help="mine (and queue for review) false positives scoring at least this (default: the "
+        "operating score threshold, as the paper)",
+    )
     p.add_argument("--nms-iou", type=float, default=0.25)
     p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")
     p.add_argument("--preset", default=None)
@@ -838,7 +847,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--score-threshold",
         type=float,
         default=0.3,
-        help="hitl: operating score (mining too); with box quality a score is probability x predicted IoU",
+        help="hitl: operating score; with box quality a score is probability x predicted IoU",
+    )
+    p.add_argument(
+        "--mining-threshold",
+        type=float,
+        default=None,
+        help="hitl: mine and queue false positives scoring at least this (default: the operating score)",
     )
     p.add_argument(
         "--no-box-quality",

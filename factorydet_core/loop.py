@@ -61,7 +61,9 @@ class LoopSettings:
     fragments_per_frame: int | None = None
     """At most this many of them per frame (``None``: all)."""
     score_threshold: float = 0.3
-    """Operating score (and mining's); with box quality, class probability times predicted IoU."""
+    """Operating score; with box quality, class probability times predicted IoU."""
+    mining_threshold: float | None = None
+    """Least score of a mined (and queued) false positive; ``None``: the operating threshold."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -224,6 +226,7 @@ def train_session(
         fragment_iou=settings.fragment_iou,
         fragments_per_frame=settings.fragments_per_frame,
         score_threshold=settings.score_threshold,
+        mining_threshold=settings.mining_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,
         box_quality=BoxQuality(seed=settings.seed) if settings.box_quality else None,

@@ -289,6 +289,7 @@ def train_with_mining(
     mine_after_last: bool = False,
     should_stop: Callable[[], bool] | None = None,
     box_quality: BoxQuality | None = None,
+    mining_threshold: float | None = None,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -308,7 +309,8 @@ def train_with_mining(
             (random sets overlapping nothing).
         fragments_per_frame: at most this many fragments per frame, sampled at random (``None``:
             all). A frame has about a thousand; on many frames they would dominate the fit's time.
-        score_threshold: detections scoring below it are not mined.
+        score_threshold: the models' operating score threshold; detections scoring below it are
+            not mined unless ``mining_threshold`` says otherwise.
         nms_iou: NMS threshold of the detections that are mined.
         use_box_prior: box detections by the class sizes of the training annotations.
         annotation_positives: also train on each annotated instance's own points.
@@ -326,9 +328,17 @@ def train_with_mining(
             depend on the classifier) and shared by every round's model, so that mining sees the
             scores the model will give; ``None`` keeps the size prior's box and the class
             probability as score. Needs ``use_box_prior``.
+        mining_threshold: detections scoring at least this are mined (``None``: the operating
+            ``score_threshold``, as the paper). With box quality a score is a probability times a
+            predicted IoU, so few clear the operating threshold on a few frames: a lower one fills
+            the mined set and the review queue with the next most confident false positives.
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
+    if mining_threshold is None:
+        mining_threshold = score_threshold
+    if not 0.0 <= mining_threshold <= 1.0:
+        raise InputError(f"mining_threshold must lie in [0, 1], got {mining_threshold}")
     if rounds < 0 or negatives_per_round < 0 or initial_negatives < 0:
         raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")
     if not 0.0 <= fragment_iou < positive_iou:
@@ -409,7 +419,7 @@ def train_with_mining(
         )
         model = DetectionModel(fitted, box_prior, score_threshold, nms_iou, box_quality=quality)
         start = time.perf_counter()
-        scored = _score_frames(model, frames, 0.05, progress, should_stop)
+        scored = _score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
         metrics = detection_metrics(scored, fitted.class_names, positive_iou, score_threshold)
         metrics.pop("pr_curves")
         record = {
@@ -425,7 +435,7 @@ def train_with_mining(
             mined = []
             for frame, item in zip(frames, scored):
                 detections = item["detections"]
-                operating = detections.scores >= score_threshold
+                operating = detections.scores >= mining_threshold
                 best = (
                     box_iou_3d(detections.boxes, frame.label_boxes).max(axis=1)
                     if len(frame.label_boxes)

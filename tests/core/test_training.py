@@ -167,3 +167,28 @@ def test_mined_sets_are_never_positives(run, frames):
         frame = next(f for f in frames if f.frame_index == m["frame_index"])
         labels, _ = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
         assert labels[m["group"]] == 7
+
+
+def test_mining_threshold_decides_what_is_mined_not_the_operating_threshold(frames, run):
+    def first_round(**thresholds):
+        return train_with_mining(
+            frames,
+            ProposalClassifier(width=0.0625, epochs=2, num_threads=1),
+            rounds=0,
+            negatives_per_round=40,
+            initial_negatives=150,
+            fragment_iou=0.0,
+            mine_after_last=True,
+            **thresholds,
+        )
+
+    # Mining at 0.05 under a 0.5 operating threshold mines what the 0.05 run mined.
+    low = first_round(score_threshold=0.5, mining_threshold=0.05)
+    assert low.model.score_threshold == 0.5
+    assert [m["group"] for m in low.rounds[0]["mined"]] == [m["group"] for m in run.rounds[0]["mined"]]
+    # Without it, mining follows the operating threshold.
+    high = first_round(score_threshold=0.5)
+    assert all(m["score"] >= 0.5 for m in high.rounds[0]["mined"])
+    assert high.rounds[0]["num_false_positives"] <= low.rounds[0]["num_false_positives"]
+    with pytest.raises(InputError):
+        first_round(mining_threshold=1.5)
