@@ -40,7 +40,7 @@ bench: $(STAMP)
 	  --epochs 15 --max-fit-seconds 240 --train-frames 4 --frames 2 --readme README.md
 	$(BIN)/factorydet demo
 	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme README.md
-	$(BIN)/factorydet bench hitl sessions/demo/data --budgets 50,200 --rounds 2 --epochs 5 --train-frames 4 --out docs/hitl.json
+	$(BIN)/factorydet bench hitl sessions/demo/data --budgets 50,200 --rounds 2 --epochs 5 --train-frames 4 --mining-threshold 0.05 --out docs/hitl.json
 
 # Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
 screenshots: $(STAMP) demo browserdeps

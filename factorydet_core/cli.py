@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from .types import BOX_KINDS, LEVELS, InputError
+from .types import BOX_KINDS, LEVELS, MINING_THRESHOLD, InputError
 
 
 def progress_bar(desc: str, unit: str = "frame") -> tuple[Callable[[int, int], None], Callable[[], None]]:
@@ -703,9 +703,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--mining-threshold",
         type=float,
-        default=None,
-        help="mine (and queue for review) false positives scoring at least this (default: the "
-        "operating score threshold, as the paper)",
+        default=MINING_THRESHOLD,
+        help="mine (and queue for review) false positives scoring at least this; the top --negatives "
+        f"by score go to the background (default {MINING_THRESHOLD}: every reported false positive)",
     )
     p.add_argument("--nms-iou", type=float, default=0.25)
     p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")
@@ -852,8 +852,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--mining-threshold",
         type=float,
-        default=None,
-        help="hitl: mine and queue false positives scoring at least this (default: the operating score)",
+        default=MINING_THRESHOLD,
+        help=f"hitl: mine and queue false positives scoring at least this (default {MINING_THRESHOLD})",
     )
     p.add_argument(
         "--no-box-quality",

@@ -38,7 +38,7 @@ from .training import (
     proposals_to_arrays,
     train_with_mining,
 )
-from .types import InputError
+from .types import MINING_THRESHOLD, InputError
 
 MODES = ("full", "next")
 _CACHE_FORMAT = 1  # bump when FrameProposals or the front half's output changes meaning
@@ -62,8 +62,12 @@ class LoopSettings:
     """At most this many of them per frame (``None``: all)."""
     score_threshold: float = 0.3
     """Operating score; with box quality, class probability times predicted IoU."""
-    mining_threshold: float | None = None
-    """Least score of a mined (and queued) false positive; ``None``: the operating threshold."""
+    mining_threshold: float | None = MINING_THRESHOLD
+    """Least score of a mined (and queued) false positive; ``None``: the operating threshold. The
+    paper collects every false positive and adds the top N by score; with box quality a score is a
+    probability times a predicted IoU, and at the operating threshold a few frames yield a few dozen
+    (``bench hitl`` on four frames: 46 in two rounds, so reviewing 50 or 200 made no difference).
+    0.05 is the score floor of AP and of the box quality regressor: below it nothing is reported."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None

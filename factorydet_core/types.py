@@ -19,6 +19,10 @@ BOX_KINDS: tuple[str, ...] = ("fitted", "completed", "view-completed")
 """How a proposal's box was made (``Proposals.box_kind``)."""
 LEVELS: tuple[str, ...] = ("segment", "union", "patch")
 """Where a proposal's point set comes from (``Proposals.level``)."""
+MINING_THRESHOLD = 0.05
+"""The loop's and the command line's least score of a mined false positive: the score floor of AP
+and of the box quality regressor, so the mined set is every false positive the detector reports
+(the top N by score go to the background, as the paper)."""
 
 
 class InputError(ValueError):
