@@ -444,6 +444,8 @@ def bench_classifier(
     max_fit_seconds: float | None = None,
     max_train_frames: int | None = None,
     max_test_frames: int | None = None,
+    score_threshold: float = 0.3,
+    box_quality: bool = True,
     command: str = "",
     progress=None,
 ) -> dict:
@@ -451,7 +453,12 @@ def bench_classifier(
     widths, proposal features and inputs (the 3DmFV tensor with or without the geometric
     descriptors), trained on the same training frames (one round, no mining) and measured on the
     same test frames against the truth; with the time per epoch. Every feature and input is
-    measured at ``widths[0]``, the other widths on ``features[0]`` with ``geometry[0]``."""
+    measured at ``widths[0]``, the other widths on ``features[0]`` with ``geometry[0]``.
+
+    Detections are made as the shipped model makes them: at ``score_threshold``, with one box
+    quality regressor (``box_quality``) fitted per feature on the training frames and shared by
+    every classifier of that feature, so that the rows differ only in the class probabilities."""
+    from .box_quality import BoxQuality
     from .classifier import ProposalClassifier
     from .dataset import open_dataset
     from .detector import PRESETS, Detector
@@ -479,13 +486,22 @@ def bench_classifier(
         detector = Detector(PRESETS[preset].replace(feature=feature), calibrated)
         train_frames = collect_proposals(dataset, train, detector)
         test_frames = collect_proposals(dataset, test, detector)
+        quality = None  # fitted with the feature's first classifier, then shared
         for _, width, with_geometry in [r for r in runs if r[0] == feature]:
             classifier = ProposalClassifier(
                 width=width, epochs=epochs, max_fit_seconds=max_fit_seconds, geometry=with_geometry
             )
-            run = train_with_mining(train_frames, classifier, rounds=0)
-            fitted = run.model.classifier
-            metrics = measure(run.model, dataset, test_frames, use_truth=simulated)
+            run = train_with_mining(
+                train_frames,
+                classifier,
+                rounds=0,
+                score_threshold=score_threshold,
+                box_quality=BoxQuality() if box_quality and quality is None else None,
+            )
+            quality = quality or run.model.box_quality
+            model = dataclasses.replace(run.model, box_quality=quality)
+            fitted = model.classifier
+            metrics = measure(model, dataset, test_frames, use_truth=simulated)
             rows.append(
                 {
                     "feature": feature,
@@ -501,6 +517,8 @@ def bench_classifier(
                     "recognition_per_class": {
                         k: v["accuracy"] for k, v in metrics["recognition"]["per_class"].items()
                     },
+                    "detection_precision": metrics["precision"],
+                    "detection_recall": metrics["recall"],
                     "detection_f1": metrics["f1"],
                     "detection_map": metrics["map"],
                 }
@@ -516,6 +534,8 @@ def bench_classifier(
         "reference": "truth" if simulated else "annotations",
         "epochs": epochs,
         "max_fit_seconds": max_fit_seconds,
+        "score_threshold": score_threshold,
+        "box_quality": box_quality,
         "rows": rows,
         "machine": machine_info(),
     }

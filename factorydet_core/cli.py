@@ -135,7 +135,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 result = bench_classifier(
                     args.data[0],
                     widths=parse_floats(args.widths, "--widths"),
-                    features=args.features.split(","),
+                    features=_choices(args.features, "--features", ("aggregated", "direct")),
                     geometry=[
                         {"on": True, "off": False}[v]
                         for v in _choices(args.geometry, "--geometry", ("on", "off"))
@@ -144,6 +144,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     max_fit_seconds=args.max_fit_seconds,
                     max_train_frames=args.train_frames,
                     max_test_frames=args.frames,
+                    score_threshold=args.score_threshold,
+                    box_quality=args.box_quality,
                     command=command,
                     progress=update,
                 )
@@ -847,7 +849,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--score-threshold",
         type=float,
         default=0.3,
-        help="hitl: operating score; with box quality a score is probability x predicted IoU",
+        help="classifier, hitl: operating score; with box quality a score is probability x predicted IoU",
     )
     p.add_argument(
         "--mining-threshold",
@@ -859,7 +861,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-box-quality",
         dest="box_quality",
         action="store_false",
-        help="hitl: train without the box quality regressor",
+        help="classifier, hitl: detect without the box quality regressor",
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument("--out", default=None, help="hitl: also write the JSON here (the report reads it)")

@@ -217,3 +217,16 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_datas
     assert result["variants"]["blind"]["num_reviews"] == 0
     assert result["variants"]["full"]["truth_labels_added"] > 0
     assert set(reviewed["per_class_f1"]) >= {"barrel", "truck"}
+
+
+def test_bench_classifier_measures_rows_with_the_models_box_quality(small_dataset_dir, capsys):
+    args = ["bench", "classifier", str(small_dataset_dir), "--widths", "0.0625", "--features", "aggregated",
+            "--geometry", "on,off", "--epochs", "1", "--train-frames", "1", "--frames", "1"]  # fmt: skip
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["box_quality"] is True and result["score_threshold"] == 0.3
+    assert [(r["feature"], r["geometry"]) for r in result["rows"]] == [("aggregated", True), ("aggregated", False)]
+    for row in result["rows"]:
+        assert row["epochs_run"] == 1
+        assert 0 <= row["detection_precision"] <= 1 and 0 <= row["detection_f1"] <= 1
+    assert main(["bench", "classifier", str(small_dataset_dir), "--features", "voxels"]) == 2
