@@ -225,7 +225,8 @@ def test_bench_classifier_measures_rows_with_the_models_box_quality(small_datase
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["box_quality"] is True and result["score_threshold"] == 0.3
-    assert [(r["feature"], r["geometry"]) for r in result["rows"]] == [("aggregated", True), ("aggregated", False)]
+    rows = [(r["feature"], r["geometry"]) for r in result["rows"]]
+    assert rows == [("aggregated", True), ("aggregated", False)]
     for row in result["rows"]:
         assert row["epochs_run"] == 1
         assert 0 <= row["detection_precision"] <= 1 and 0 <= row["detection_f1"] <= 1
