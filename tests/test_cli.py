@@ -198,6 +198,12 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
     record = json.loads((tmp_path / "docs" / "results.json").read_text())
     assert set(record["results"]) == {"annotations", "truth"}
     assert record["grid_sweep"][0]["voxel_size_m"] == 0.3
+    # Where recall goes: each row of the funnel is a subset of the one before.
+    bound = record["proposal_recall_bound"]
+    assert "| the same, kept by NMS |" in text
+    for name in bound["kept"]:
+        chain = [bound[k][name] for k in ("options", "chosen", "scored", "kept") if bound[k] is not None]
+        assert len(chain) >= 3 and chain == sorted(chain, reverse=True), (name, chain)
     assert main(["report", str(small_dataset_dir), "--model", str(tiny_model_path), "--sweep", "x"]) == 2
 
 
