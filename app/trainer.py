@@ -41,11 +41,20 @@ class TrainingWorker:
         self._cancel = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
+        # Set when a job starts, cleared in the same step that tells the GUI it is done: the thread
+        # lives a little longer, and a click right after "done" must not be refused as busy.
+        self._running = False
         self.last_run_id: int | None = None
 
     @property
     def busy(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        return self._running
+
+    def _finish(self, **training) -> None:
+        """End the job: free the trainer and publish its final status, as one step."""
+        with self._lock:
+            self._running = False
+            self.state.set_training(busy=False, **training)
 
     def start(self, mode: str, epochs: int | None = None) -> bool:
         """Start a job ('next' or 'full'); False when one is already running or there is no session."""
@@ -58,6 +67,7 @@ class TrainingWorker:
             if epochs is not None:
                 settings = LoopSettings(**{**settings.__dict__, "epochs": int(epochs)})
             self._cancel.clear()
+            self._running = True
             self.state.set_training(busy=True, status=f"starting ({mode})", progress=0.0)
             self._thread = threading.Thread(
                 target=self._run, args=(mode, settings), name="factorydet-training", daemon=True
@@ -71,6 +81,7 @@ class TrainingWorker:
             if self.busy or self.state.db is None or self.state.model is None:
                 return False
             self._cancel.clear()
+            self._running = True
             self.state.set_training(busy=True, status="looking for suspect labels", progress=0.0)
             self._thread = threading.Thread(target=self._suspects, name="factorydet-suspects", daemon=True)
             self._thread.start()
@@ -93,12 +104,12 @@ class TrainingWorker:
             frames = cached_proposals(state.db, state.dataset, detector, train, progress)
             suspects = suspect_labels(state.db, state.model, frames)
             state.set_suspects(suspects)
-            state.set_training(busy=False, status=f"{len(suspects)} suspect label(s) found", progress=1.0)
+            self._finish(status=f"{len(suspects)} suspect label(s) found", progress=1.0)
         except Cancelled:
-            state.set_training(busy=False, status="cancelled", progress=0.0)
+            self._finish(status="cancelled", progress=0.0)
         except Exception as exc:  # keep the app alive; say what went wrong
             traceback.print_exc()
-            state.set_training(busy=False, status=f"failed: {exc}", progress=0.0)
+            self._finish(status=f"failed: {exc}", progress=0.0)
 
     def _detector(self) -> Detector:
         """The front half the shown model was trained with, calibrated like the viewer's."""
@@ -118,14 +129,13 @@ class TrainingWorker:
             self._thread.join(timeout)
 
     def _run(self, mode: str, settings: LoopSettings) -> None:
-        state = self.state
         try:
             self._train(mode, settings)
         except Cancelled:
-            state.set_training(busy=False, status="cancelled; nothing was stored", progress=0.0)
+            self._finish(status="cancelled; nothing was stored", progress=0.0)
         except Exception as exc:  # keep the app alive; say what went wrong
             traceback.print_exc()
-            state.set_training(busy=False, status=f"failed: {exc}", progress=0.0)
+            self._finish(status=f"failed: {exc}", progress=0.0)
 
     def _train(self, mode: str, settings: LoopSettings) -> None:
         state, db, dataset = self.state, self.state.db, self.state.dataset
@@ -175,10 +185,9 @@ class TrainingWorker:
         state.set_training(status="looking for suspect labels", progress=0.95)
         state.set_suspects(suspect_labels(db, run.model, frames))
         queue = len(db.review_queue(run_id))
-        state.set_training(
-            busy=False,
+        state.session_changed()
+        self._finish(
             status=f"run {run_id} ({mode}) done: {queue} mined negatives to review",
             progress=1.0,
             comparison=table,
         )
-        state.session_changed()

@@ -1,0 +1,40 @@
+"""The training worker: one job at a time, and free again the moment it says it is done."""
+
+from __future__ import annotations
+
+import threading
+
+from app.state import AppState
+from app.trainer import TrainingWorker
+from factorydet_core.dataset import open_dataset
+from factorydet_core.session import SessionDB, open_session
+
+from .test_browser import _wait
+
+
+def test_a_job_can_start_as_soon_as_the_last_one_says_done(small_dataset_dir, tmp_path):
+    dataset = open_dataset(small_dataset_dir)
+    state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
+    trainer = TrainingWorker(state, calibrate=False)
+    finish, release, jobs = threading.Event(), threading.Event(), []
+
+    def job(mode, settings):  # stands in for training: says done, then its thread lives on
+        jobs.append(mode)
+        finish.wait(10)
+        trainer._finish(status=f"{mode} done", progress=1.0)
+        release.wait(10)
+
+    trainer._train = job
+    try:
+        assert trainer.start("full")
+        assert state.training_busy and not trainer.start("full")  # one job at a time
+        finish.set()
+        assert _wait(lambda: not state.training_busy, 10) and state.training_status == "full done"
+        first = trainer._thread
+        assert first.is_alive()  # the thread outlives its "done"...
+        assert trainer.start("next")  # ...and a click right after "done" is not refused as busy
+        assert _wait(lambda: len(jobs) == 2, 10)
+    finally:
+        release.set()
+        trainer.join(10)
+        first.join(10)
