@@ -41,20 +41,17 @@ class TrainingWorker:
         self._cancel = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
-        # Set when a job starts, cleared in the same step that tells the GUI it is done: the thread
-        # lives a little longer, and a click right after "done" must not be refused as busy.
-        self._running = False
         self.last_run_id: int | None = None
 
     @property
     def busy(self) -> bool:
-        return self._running
+        # The status the GUI shows, not the thread's liveness: the thread lives a little after it
+        # says "done", and a click right after "done" must not be refused as busy.
+        return self.state.training_busy
 
     def _finish(self, **training) -> None:
-        """End the job: free the trainer and publish its final status, as one step."""
-        with self._lock:
-            self._running = False
-            self.state.set_training(busy=False, **training)
+        """End the job: publish its final status, which frees the trainer."""
+        self.state.set_training(busy=False, **training)
 
     def start(self, mode: str, epochs: int | None = None) -> bool:
         """Start a job ('next' or 'full'); False when one is already running or there is no session."""
@@ -67,7 +64,6 @@ class TrainingWorker:
             if epochs is not None:
                 settings = LoopSettings(**{**settings.__dict__, "epochs": int(epochs)})
             self._cancel.clear()
-            self._running = True
             self.state.set_training(busy=True, status=f"starting ({mode})", progress=0.0)
             self._thread = threading.Thread(
                 target=self._run, args=(mode, settings), name="factorydet-training", daemon=True
@@ -81,7 +77,6 @@ class TrainingWorker:
             if self.busy or self.state.db is None or self.state.model is None:
                 return False
             self._cancel.clear()
-            self._running = True
             self.state.set_training(busy=True, status="looking for suspect labels", progress=0.0)
             self._thread = threading.Thread(target=self._suspects, name="factorydet-suspects", daemon=True)
             self._thread.start()

@@ -335,8 +335,7 @@ def write_report(
             ("scored", f"the same, score ≥ {model.score_threshold:g}"),
             ("kept", "the same, kept by NMS"),
         ):
-            if bound.get(key) is not None:
-                lines.append(f"| {row} | " + " | ".join(_fmt(v) for v in bound[key].values()) + " |")
+            lines.append(f"| {row} | " + " | ".join(_fmt(v) for v in bound[key].values()) + " |")
         lines += [
             "",
             "The options are each point set's boxes, the same grown to its class's typical sizes behind "

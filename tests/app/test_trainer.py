@@ -25,16 +25,19 @@ def test_a_job_can_start_as_soon_as_the_last_one_says_done(small_dataset_dir, tm
         release.wait(10)
 
     trainer._train = job
+    threads = []
     try:
         assert trainer.start("full")
+        threads.append(trainer._thread)
         assert state.training_busy and not trainer.start("full")  # one job at a time
         finish.set()
         assert _wait(lambda: not state.training_busy, 10) and state.training_status == "full done"
-        first = trainer._thread
-        assert first.is_alive()  # the thread outlives its "done"...
+        assert threads[0].is_alive()  # the thread outlives its "done"...
         assert trainer.start("next")  # ...and a click right after "done" is not refused as busy
+        threads.append(trainer._thread)
         assert _wait(lambda: len(jobs) == 2, 10)
     finally:
+        finish.set()
         release.set()
-        trainer.join(10)
-        first.join(10)
+        for thread in threads:
+            thread.join(10)
