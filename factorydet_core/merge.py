@@ -166,7 +166,12 @@ def refine_extrinsics(
                     o3d.pipelines.registration.TransformationEstimationPointToPlane(),
                     criteria,
                 )
-                corrections.append(result.transformation)
+                # open3d sums its normal equations in parallel, so the same input gives transforms that
+                # differ in the last bits from run to run; ICP's stopping test, the voxel grid and cut
+                # pursuit amplify that into different segments. Snapping to 1e-10 (far below any
+                # calibration error) makes a calibration repeat exactly, except in the rare case
+                # where the noise straddles a snapping step.
+                corrections.append(np.round(result.transformation, 10))
             if corrections:
                 # One ICP per frame (frames do not share correspondences), then the mean correction.
                 refined[sensor] = _mean_transform(np.array(corrections)) @ refined[sensor]
