@@ -50,7 +50,9 @@ def test_exported_trees_predict_exactly_as_scikit_learn(rng):
     features = rng.normal(size=(600, 5))
     targets = np.clip(0.5 + 0.3 * np.tanh(features[:, 0]) - 0.2 * (features[:, 1] > 0.3), 0, 1)
     quality = BoxQuality(max_iter=30).fit(features, targets)
-    reference = HistGradientBoostingRegressor(max_iter=30, learning_rate=0.1, random_state=0)
+    reference = HistGradientBoostingRegressor(
+        max_iter=30, max_leaf_nodes=quality.max_leaf_nodes, learning_rate=0.1, random_state=0
+    )
     reference.fit(features, targets)
     test = rng.normal(size=(300, 5)) * 1.5
     np.testing.assert_allclose(quality.predict(test), np.clip(reference.predict(test), 0, 1), atol=1e-9)
@@ -167,6 +169,35 @@ def test_regressor_learns_the_iou_of_options(fitted):
     # It ranks: options it rates high overlap their objects far more than those it rates low.
     high, low = predicted >= np.quantile(predicted, 0.9), predicted <= np.quantile(predicted, 0.5)
     assert targets[high].mean() > 0.3 + targets[low].mean()
+
+
+def test_an_option_fitting_another_object_of_the_class_is_right(frames, prior):
+    """A set that holds several objects of one class (a stack of crates) has one right box per
+    object: the option that fits the second object is trained towards IoU 1, not towards its
+    overlap with the object the set overlaps most."""
+    from factorydet_core.boxes import box_iou_3d
+
+    frame = frames[0]
+    members = frame.groups.members()
+    iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
+    g = next(g for g, m in enumerate(members) if iou[m].max() >= 0.5)
+    label = int(iou[members[g]].max(axis=0).argmax())
+    class_id = int(frame.label_class_ids[label])
+    options, features = option_features(
+        frame.proposal_boxes[members[g]], class_id, frame.groups.descriptors[g], prior, NUM_CLASSES, True
+    )
+    overlap = box_iou_3d(options, frame.label_boxes[label : label + 1])[:, 0]
+    other = int(np.argmin(overlap))
+    assert overlap[other] < 0.5
+    # A second object of the class exactly where that option lies.
+    with_second = dataclasses.replace(
+        frame,
+        label_boxes=np.concatenate([frame.label_boxes, options[other : other + 1]]),
+        label_class_ids=np.concatenate([frame.label_class_ids, [class_id]]),
+    )
+    rows, targets = BoxQuality(background_rate=0.0).training_rows([with_second], prior, NUM_CLASSES)
+    same_row = np.flatnonzero((rows == features[other]).all(axis=1))
+    assert len(same_row) and targets[same_row] == pytest.approx(1.0)
 
 
 def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, prior, fitted):
