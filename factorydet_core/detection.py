@@ -241,13 +241,22 @@ class BoxSizePrior:
         size: np.ndarray | None = None,
     ) -> np.ndarray:
         """(M, 7) boxes grown to at least the class's median size (or ``size``, (3,) length, width,
-        height): horizontally away from ``viewpoint`` (the hidden side; the vehicle origin by
-        default) and upwards (the floor is below)."""
+        height): horizontally towards the hidden side, away from ``viewpoint`` (the vehicle origin
+        by default), and upwards (the floor is below).
+
+        A box axis along the line of sight grows only away from the viewer (its near face is the
+        seen one); an axis across it grows equally to both sides (both of its ends are seen, the
+        visible points of a round object or the top of a cone are narrower than its foot); oblique
+        axes in between, by the cosine of their angle to the line of sight. Growing every axis
+        wholly to one side put the boxes of cones beside their objects (``option_recall`` in
+        ``bench pipeline``; the README gives the figures)."""
         prior = self.sizes[class_id] if size is None else np.asarray(size, np.float64)
         out = np.array(boxes, np.float64).reshape(-1, 7)
         if not np.isfinite(prior).all():
             return out
         view = np.zeros(2) if viewpoint is None else np.asarray(viewpoint, np.float64)[:2]
+        sight = out[:, :2] - view
+        sight /= np.maximum(np.linalg.norm(sight, axis=1), 1e-9)[:, None]
         long_is_x = out[:, 3] >= out[:, 4]
         for axis in (0, 1):  # box x and y
             size_col = 3 + axis
@@ -255,8 +264,7 @@ class BoxSizePrior:
             grow_by = np.maximum(want - out[:, size_col], 0.0)
             heading = out[:, 6] + axis * np.pi / 2
             direction = np.column_stack([np.cos(heading), np.sin(heading)])
-            away = np.sign(np.einsum("md,md->m", direction, out[:, :2] - view))
-            away[away == 0] = 1.0
+            away = np.einsum("md,md->m", direction, sight)  # cosine to the line of sight
             out[:, :2] += direction * (away * grow_by / 2)[:, None]
             out[:, size_col] += grow_by
         grow_z = np.maximum(prior[2] - out[:, 5], 0.0)

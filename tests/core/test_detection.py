@@ -50,6 +50,19 @@ def test_grow_extends_away_from_the_viewpoint_and_up():
     np.testing.assert_allclose(PRIOR.grow(big, 1), big)
 
 
+def test_grow_splits_the_growth_of_an_axis_across_the_line_of_sight():
+    # The visible top of a cone 5 m ahead: 0.2 m wide across the line of sight, 0.1 m deep.
+    top = np.array([[5.0, 0.0, 0.3, 0.1, 0.2, 0.6, 0.0]])
+    grown = PRIOR.grow(top, 0, size=np.array([0.4, 0.4, 0.6]))[0]
+    assert grown[3:5] == pytest.approx([0.4, 0.4])
+    assert grown[1] == pytest.approx(0.0)  # across the line of sight: both sides alike
+    assert grown[0] == pytest.approx(5.15)  # along it: only away from the viewer
+    # An axis at 60 degrees to the line of sight moves by half of the one-sided shift.
+    oblique = np.array([[5.0, 0.0, 0.3, 0.2, 0.4, 0.6, np.pi / 3]])
+    moved = PRIOR.grow(oblique, 0, size=np.array([0.4, 0.4, 0.6]))[0]
+    np.testing.assert_allclose(moved[:2], [5.0 + 0.05 * np.cos(np.pi / 3), 0.05 * np.sin(np.pi / 3)])
+
+
 def test_score_groups_picks_the_box_closest_to_the_class_size():
     proposal_boxes = np.array(
         [
