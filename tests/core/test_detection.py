@@ -219,3 +219,16 @@ def test_best_option_iou_is_the_bound_of_the_anchored_options():
     np.testing.assert_allclose(best, [1.0, 1.0, 0.0], atol=1e-6)
     plain = best_option_iou(references, np.zeros(3, int), proposals, np.zeros(2, int), prior, anchored=False)
     assert plain.max() < 0.6
+
+
+def test_a_rare_kind_of_object_keeps_its_size_mode():
+    # 28 forklifts and 2 pallet trucks (7 %): the trucks' size must stay an option.
+    forklifts = np.tile([0, 0, 1.2, 3.4, 1.3, 2.3, 0.0], (28, 1))
+    pallet_trucks = np.tile([0, 0, 0.6, 2.0, 0.6, 1.3, 0.0], (2, 1))
+    prior = BoxSizePrior.from_boxes(np.vstack([forklifts, pallet_trucks]), np.zeros(30, int), 1)
+    modes = prior.class_modes(0)
+    assert len(modes) == 2
+    np.testing.assert_allclose(sorted(modes.tolist()), [[2.0, 0.6, 1.3], [3.4, 1.3, 2.3]], atol=1e-9)
+    # A single odd box is no mode.
+    odd = np.vstack([forklifts, pallet_trucks[:1]])
+    assert len(BoxSizePrior.from_boxes(odd, np.zeros(29, int), 1).class_modes(0)) == 1
