@@ -27,7 +27,6 @@ import numpy as np
 
 from .boxes import box_iou_3d
 from .detection import (
-    ANCHORS_PER_SIZE,
     DESCRIPTOR_NAMES,
     BoxSizePrior,
     ProposalGroups,
@@ -57,7 +56,8 @@ ANCHORED_FEATURE_NAMES: tuple[str, ...] = (
     "offset_up_m",
 )
 """With anchored options (``BoxQuality.anchored``), after ``OPTION_FEATURE_NAMES``: whether the
-option is a mode-sized box set into a corner of the fitted box, and where its centre lies from the
+option is a mode-sized box placed by the fitted box (set into its corner, standing on the floor
+under it, or stacked inside it: ``detection.OPTION_KINDS``), and where its centre lies from the
 fitted box's centre: away from the viewer (the vehicle origin) in the ground plane, sideways
 (absolute) and up."""
 
@@ -78,8 +78,8 @@ def option_features(
         descriptors: (len(DESCRIPTOR_NAMES),) the set's geometric descriptors.
         prior: the class size prior that grows the options.
         num_classes: C, the number of object classes.
-        anchored: add the class's sizes set into the fitted box's corners
-            (``BoxSizePrior.anchored``) to the options.
+        anchored: add the class's sizes placed by the fitted box (``BoxSizePrior.anchored``,
+            ``standing``, ``stacked``) to the options.
 
     Returns:
         ``(options, features)``: (K, 7) boxes (``BoxSizePrior.options``) and (K, F) features: the
@@ -119,7 +119,7 @@ def class_option_features(
         descriptors: (S, len(DESCRIPTOR_NAMES)) their descriptors.
         prior: the class size prior.
         num_classes: C.
-        anchored: add the class's sizes set into each set's fitted box's corners.
+        anchored: add the class's sizes placed by each set's fitted box (corners, floor, stack).
 
     Returns:
         ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features (as
@@ -134,27 +134,19 @@ def class_option_features(
     member = np.arange(len(boxes)) - np.repeat(starts, counts)
     fitted = boxes[starts]
     has_size = np.isfinite(prior.sizes[class_id]).all()
-    options, cost = prior.options(
+    options, cost, kinds, option_sources, mode_ids = prior.option_sources(
         boxes, class_id, fitted_boxes=fitted[owner], anchor_boxes=fitted if anchored and has_size else None
     )
-    num_modes = len(prior.class_modes(class_id)) if has_size else 0
-    blocks = 1 + num_modes  # the boxes, then the boxes grown to each mode...
-    grown = np.repeat(np.arange(blocks), len(boxes))
-    owner, member = np.tile(owner, blocks), np.tile(member, blocks)
-    sources = np.tile(member_ids, blocks)
-    block = grown
-    num_anchored = len(options) - blocks * len(boxes)
-    if num_anchored:  # ...then each mode's boxes set into the fitted boxes' corners
-        per_set = num_anchored // len(members)
-        anchor_block = np.repeat(np.arange(per_set), len(members))
-        grown = np.concatenate([grown, 1 + anchor_block // ANCHORS_PER_SIZE])
-        block = np.concatenate([block, blocks + anchor_block])
-        owner = np.concatenate([owner, np.tile(np.arange(len(members)), per_set)])
-        member = np.concatenate([member, np.zeros(num_anchored, np.int64)])
-        sources = np.concatenate([sources, np.tile(member_ids[starts], per_set)])
-    is_anchored = block >= blocks
-    # Set after set, grown after fitted, anchored last, as BoxSizePrior.options orders one set's.
-    order = np.lexsort((member, block, owner))
+    from_boxes = kinds < 2  # hypotheses and grown ones come from a box; the others from a set
+    box_rows = np.where(from_boxes, option_sources, 0)
+    owner = np.where(from_boxes, owner[box_rows], option_sources)
+    member = np.where(from_boxes, member[box_rows], 0)
+    sources = np.where(from_boxes, member_ids[box_rows], member_ids[starts[owner]])
+    grown = mode_ids + 1
+    is_anchored = ~from_boxes
+    # Set after set, each set's options in the order BoxSizePrior.options gives one set's (its
+    # blocks list the sets in order, so a stable sort by set keeps that order within each).
+    order = np.argsort(owner, kind="stable")
     options, cost, owner, member, grown, sources, is_anchored = (
         a[order] for a in (options, cost, owner, member, grown, sources, is_anchored)
     )

@@ -151,14 +151,17 @@ def _horizontal_sorted_sizes(boxes: np.ndarray) -> np.ndarray:
     )
 
 
-def _size_modes(sizes: np.ndarray, max_modes: int, min_share: float = 0.05) -> np.ndarray:
+def _size_modes(
+    sizes: np.ndarray, max_modes: int, min_share: float = 0.05, merge_log_ratio: float = 0.05
+) -> np.ndarray:
     """(K, 3) typical sizes of one class: k-means on log sizes (k <= ``max_modes``), seeded at
     evenly spaced quantiles of the volume; clusters holding less than ``min_share`` of the boxes
-    (or a single box) are dropped. A class of two kinds (pallet trucks and forklifts) gets a mode
-    per kind; a class of one kind whose sizes vary a little gets several close modes (the default
-    corpus's barrels: five within 7% of each other), whose options are near duplicates. At a share
-    of 0.1 the pallet trucks of the simulator's default corpus (4 of its 55 annotated trucks) had
-    no mode, and no option of a pallet truck's point set reached their size."""
+    (or a single box) are dropped, and modes within ``merge_log_ratio`` of a more frequent one on
+    every axis (5%: their options are near duplicates) are merged into it. A class of two kinds
+    (pallet trucks and forklifts) gets a mode per kind; a class of one kind whose sizes vary a
+    little (the default corpus's barrels, within 7% of each other) gets one or two. At a share of
+    0.1 the pallet trucks of the simulator's default corpus (4 of its 55 annotated trucks) had no
+    mode, and no option of a pallet truck's point set reached their size."""
     logs = np.log(np.maximum(sizes, 1e-3))
     k = min(max_modes, len(logs))
     order = np.argsort(logs.sum(axis=1), kind="stable")
@@ -172,18 +175,36 @@ def _size_modes(sizes: np.ndarray, max_modes: int, min_share: float = 0.05) -> n
     keep = counts >= max(2, min_share * len(logs))
     if not keep.any():
         return np.median(sizes, axis=0)[None]
-    return np.exp(centres[keep])
+    kept_centres, kept_counts = centres[keep], counts[keep]
+    merged: list[list[int]] = []  # groups of kept modes, each led by its most frequent member
+    for j in np.argsort(-kept_counts, kind="stable").tolist():
+        for group in merged:
+            if np.abs(kept_centres[j] - kept_centres[group[0]]).max() <= merge_log_ratio:
+                group.append(j)
+                break
+        else:
+            merged.append([j])
+    return np.exp(
+        np.array([np.average(kept_centres[g], axis=0, weights=kept_counts[g]) for g in merged])
+    )
 
 
 ANCHORS_PER_SIZE = 16
 """Boxes ``BoxSizePrior.anchored`` sets into each box per size: 2 orientations x 4 corners x
 bottom or top."""
 
+OPTION_KINDS: tuple[str, ...] = ("hypothesis", "grown", "anchored", "standing", "stacked")
+"""What ``BoxSizePrior.option_sources`` says each option is: a point set's own box hypothesis; the
+same grown to a size mode (``grow``); a mode-sized box set into a corner of the fitted box
+(``anchored``); a mode-sized box centred on the fitted box and standing on the floor
+(``standing``); a mode-sized box one object up from the fitted box's bottom or down from its top
+(``stacked``)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class BoxSizePrior:
     """Typical box sizes of each class, from annotated boxes: the median (length, width, height)
-    with length >= width, the annotated range, and up to five modes (size clusters).
+    with length >= width, the annotated range, and up to eight modes (size clusters).
 
     A detection's box is chosen among its point set's box hypotheses and the same boxes grown to
     each mode behind their visible sides (``options``): the least grown one whose size lies in the
@@ -202,13 +223,14 @@ class BoxSizePrior:
 
     @classmethod
     def from_boxes(
-        cls, boxes: np.ndarray, class_ids: np.ndarray, num_classes: int, max_modes: int = 5
+        cls, boxes: np.ndarray, class_ids: np.ndarray, num_classes: int, max_modes: int = 8
     ) -> BoxSizePrior:
         """The prior of annotated (M, 7) boxes of classes ``class_ids`` (M,), with up to
-        ``max_modes`` modes per class. Crates come in more sizes than three modes told apart
-        (three averaged a 1.15 x 0.95 m and a 1.15 x 0.75 m crate into one mode between them); five
-        put a crate's option within IoU 0.6 more often, at about 1.6 times the options (and the
-        box quality regressor's time). ``bench pipeline``'s ``option_recall`` measures it."""
+        ``max_modes`` modes per class. Crates and bobbins come in more sizes than three modes told
+        apart (three averaged a 1.15 x 0.95 m and a 1.15 x 0.75 m crate into one mode between
+        them); eight, with near-duplicate modes merged (``_size_modes``), put a crate's or a
+        bobbin's option within IoU 0.6 more often than five. ``bench pipeline``'s
+        ``option_recall`` measures it."""
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         class_ids = np.asarray(class_ids)
         dims = _horizontal_sorted_sizes(boxes)
@@ -311,6 +333,44 @@ class BoxSizePrior:
                         out.append(block)
         return np.concatenate(out)
 
+    def standing(self, boxes: np.ndarray, size: np.ndarray) -> np.ndarray:
+        """(M', 7) boxes of ``size`` ((3,) length, width, height) standing on the floor (z = 0, the
+        vehicle frame's floor) centred on those of (M, 7) ``boxes`` whose bottom lies below that
+        height; horizontally the box keeps its heading and grows to at least ``size`` to both sides
+        (length along its longer axis). Objects beside the vehicle lose their lower part to its own
+        blind zone, not only their foot to floor removal: a cone's visible top, 0.2 m above the
+        floor, is as wide as the view's line of sight is deep, and growing it away from the viewer
+        or upwards set the box beside and above the cone (``option_recall`` in ``bench
+        pipeline``)."""
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        size = np.asarray(size, np.float64)
+        out = boxes[boxes[:, 2] - boxes[:, 5] / 2 < size[2]].copy()
+        long_is_x = out[:, 3] >= out[:, 4]
+        out[:, 3] = np.maximum(out[:, 3], np.where(long_is_x, size[0], size[1]))
+        out[:, 4] = np.maximum(out[:, 4], np.where(long_is_x, size[1], size[0]))
+        out[:, 2], out[:, 5] = size[2] / 2, size[2]
+        return out
+
+    def stacked(self, boxes: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``anchored`` boxes of ``size`` moved one object height up from the bottom of (M, 7)
+        ``boxes`` (the bottom-set ones) or down from their top (the top-set ones), for the boxes at
+        least two objects high: the middle objects of a stack of pallets or crates, which no corner
+        of the stack's box holds (a stack of three pallets has one, of four two).
+
+        Returns:
+            ``(stacked, rows)``: (K, 7) boxes and (K,) the row of ``boxes`` each was set into, in
+            ``anchored``'s order with the boxes too low to hold two objects left out.
+        """
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        size = np.asarray(size, np.float64)
+        corners = self.anchored(boxes, size).reshape(ANCHORS_PER_SIZE, len(boxes), 7)
+        rows = np.tile(np.arange(len(boxes)), (ANCHORS_PER_SIZE, 1))
+        # anchored's blocks alternate bottom-set and top-set: move those up, these down.
+        corners[0::2, :, 2] += size[2]
+        corners[1::2, :, 2] -= size[2]
+        tall = np.broadcast_to(boxes[:, 5] >= 2 * size[2] - 1e-6, rows.shape)
+        return corners[tall], rows[tall]
+
     def class_modes(self, class_id: int) -> np.ndarray:
         """(K, 3) the sizes options are grown to for ``class_id``: its modes, else its median."""
         return self.modes[class_id] if self.modes is not None else self.sizes[class_id][None]
@@ -330,40 +390,74 @@ class BoxSizePrior:
                 hypotheses of several sets at once; ``None``: one set, whose fitted box is
                 ``boxes[0]``.
             anchor_boxes: (S, 7) boxes to set boxes of each mode's exact size into
-                (``anchored``), appended after the grown blocks, mode after mode; ``None``: none.
-                Their cost's volume ratio is to the anchor box they came from.
+                (``anchored``, ``standing``, ``stacked``), appended after the grown blocks, mode
+                after mode; ``None``: none. Their cost's volume ratio is to the anchor box they
+                came from.
 
         Returns:
             ``(options, cost)``: (K, 7) the hypotheses and the same grown to each of the class's
-            modes (to its median without modes), block after block, then the anchored boxes, and
-            (K,) their cost; the chosen box is the option of least cost. The cost is the distance to
-            the class's range (to its median without a range) plus a tie-break that prefers the
-            least grown box (0.001 per unit of log volume ratio to the fitted box).
+            modes (to its median without modes), block after block, then per mode the anchored,
+            standing and stacked boxes, and (K,) their cost; the chosen box is the option of least
+            cost. The cost is the distance to the class's range (to its median without a range)
+            plus a tie-break that prefers the least grown box (0.001 per unit of log volume ratio
+            to the fitted box). ``option_sources`` says where each option came from.
+        """
+        options, cost, _, _, _ = self.option_sources(boxes, class_id, fitted_boxes, anchor_boxes)
+        return options, cost
+
+    def option_sources(
+        self,
+        boxes: np.ndarray,
+        class_id: int,
+        fitted_boxes: np.ndarray | None = None,
+        anchor_boxes: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``options`` with where each option came from.
+
+        Returns:
+            ``(options, cost, kinds, sources, modes)``: as ``options``, and per option (K,) its
+            kind (an index into ``OPTION_KINDS``), (K,) its source (the row of ``boxes`` for
+            hypotheses and grown boxes, of ``anchor_boxes`` for the others) and (K,) the mode it
+            was sized to (-1 for hypotheses).
         """
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        rows = np.arange(len(boxes))
         if not np.isfinite(self.sizes[class_id]).all():
-            return boxes, np.zeros(len(boxes))
+            zeros = np.zeros(len(boxes), np.int64)
+            return boxes, np.zeros(len(boxes)), zeros, rows, zeros - 1
         modes = self.class_modes(class_id)
         anchors = np.zeros((0, 7)) if anchor_boxes is None else np.asarray(anchor_boxes, np.float64)
         anchors = anchors.reshape(-1, 7)
-        blocks = [boxes, *(self.grow(boxes, class_id, size=m) for m in modes)]
+        anchor_rows = np.arange(len(anchors))
+        # (boxes, kind, source rows, mode) blocks, in the documented order.
+        blocks = [(boxes, 0, rows, -1)]
+        blocks += [(self.grow(boxes, class_id, size=m), 1, rows, j) for j, m in enumerate(modes)]
         if len(anchors):
-            blocks += [self.anchored(anchors, m) for m in modes]
-        options = np.concatenate(blocks)
+            for j, m in enumerate(modes):
+                blocks.append((self.anchored(anchors, m), 2, np.tile(anchor_rows, ANCHORS_PER_SIZE), j))
+                low = anchors[:, 2] - anchors[:, 5] / 2 < m[2]
+                blocks.append((self.standing(anchors, m), 3, anchor_rows[low], j))
+                stacked, stacked_rows = self.stacked(anchors, m)
+                blocks.append((stacked, 4, stacked_rows, j))
+        options = np.concatenate([b[0] for b in blocks])
+        kinds = np.concatenate([np.full(len(b[0]), b[1], np.int64) for b in blocks])
+        sources = np.concatenate([b[2] for b in blocks]).astype(np.int64)
+        mode_ids = np.concatenate([np.full(len(b[0]), b[3], np.int64) for b in blocks])
         if self.lower is None:
-            return options, self.distance(options, class_id)
-        volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
+            return options, self.distance(options, class_id), kinds, sources, mode_ids
         if fitted_boxes is None:
-            fitted_volume = np.full(len(boxes), float(np.prod(np.maximum(boxes[0, 3:6], 1e-3))))
+            fitted = np.repeat(boxes[:1], len(boxes), axis=0)
         else:
             fitted = np.asarray(fitted_boxes, np.float64).reshape(-1, 7)
-            fitted_volume = np.prod(np.maximum(fitted[:, 3:6], 1e-3), axis=1)
-        anchor_volume = np.prod(np.maximum(anchors[:, 3:6], 1e-3), axis=1)
-        reference_volume = np.concatenate(
-            [np.tile(fitted_volume, 1 + len(modes)), np.tile(anchor_volume, ANCHORS_PER_SIZE * len(modes))]
-        )
+        reference = np.where((kinds < 2)[:, None], fitted[np.minimum(sources, len(fitted) - 1)], 0.0)
+        if len(anchors):
+            from_anchor = anchors[np.minimum(sources, len(anchors) - 1)]
+            reference = np.where((kinds >= 2)[:, None], from_anchor, reference)
+        volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
+        reference_volume = np.prod(np.maximum(reference[:, 3:6], 1e-3), axis=1)
         growth = np.abs(np.log(volume / reference_volume))
-        return options, self.range_distance(options, class_id) + 1e-3 * growth
+        cost = self.range_distance(options, class_id) + 1e-3 * growth
+        return options, cost, kinds, sources, mode_ids
 
     def to_json(self) -> dict:
         def rows(array):

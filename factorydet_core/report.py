@@ -341,8 +341,10 @@ def write_report(
             "The options are each point set's boxes, the same grown to its class's typical sizes behind "
             "the visible side"
             + (
-                ", and those sizes set into each corner of the fitted box (objects in a segment of "
-                "several, flush stacks)"
+                ", and boxes of those sizes placed by the fitted box: set into each of its corners "
+                "(objects in a segment of several, flush stacks), standing on the floor under it "
+                "(objects whose lower part the vehicle does not see) and one object up from its "
+                "bottom or down from its top (the middle of a stack)"
                 if model.box_quality is not None and model.box_quality.anchored
                 else ""
             )

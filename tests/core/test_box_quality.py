@@ -99,13 +99,21 @@ def test_option_features_describe_every_option(frames, prior, anchored):
         # The set's own boxes come first, unchanged.
         np.testing.assert_array_equal(options[: len(boxes)], boxes)
         num_modes = len(prior.class_modes(2))
-        num_anchored = ANCHORS_PER_SIZE * num_modes if anchored else 0
-        assert len(options) == len(boxes) * (1 + num_modes) + num_anchored
-        if anchored:
-            flag = features[:, NUM_CLASSES + len(OPTION_FEATURE_NAMES)]
-            np.testing.assert_array_equal(flag, np.arange(len(options)) >= len(options) - num_anchored)
-            anchored_boxes = [prior.anchored(boxes[:1], m) for m in prior.class_modes(2)]
-            np.testing.assert_array_equal(options[-num_anchored:], np.concatenate(anchored_boxes))
+        num_grown = len(boxes) * (1 + num_modes)
+        if not anchored:
+            assert len(options) == num_grown
+            continue
+        # After the grown blocks, per mode: the corners, the floor, the stack.
+        placed = []
+        for m in prior.class_modes(2):
+            fitted = boxes[:1]
+            placed += [prior.anchored(fitted, m), prior.standing(fitted, m), prior.stacked(fitted, m)[0]]
+        placed = np.concatenate(placed)
+        assert len(placed) >= ANCHORS_PER_SIZE * num_modes
+        assert len(options) == num_grown + len(placed)
+        np.testing.assert_array_equal(options[num_grown:], placed)
+        flag = features[:, NUM_CLASSES + len(OPTION_FEATURE_NAMES)]
+        np.testing.assert_array_equal(flag, np.arange(len(options)) >= num_grown)
 
 
 @pytest.mark.parametrize("anchored", [False, True])

@@ -7,8 +7,10 @@ from factorydet_core.boxes import box_iou_3d, rectangle_corners
 from factorydet_core.detection import (
     ANCHORS_PER_SIZE,
     DESCRIPTOR_NAMES,
+    OPTION_KINDS,
     BoxSizePrior,
     ProposalGroups,
+    _size_modes,
     describe_point_sets,
     score_groups,
     select_detections,
@@ -200,10 +202,58 @@ def test_anchored_options_find_each_object_of_a_flush_stack():
     segment = np.array([[5.0, 0.0, 0.3, 0.8, 2.4, 0.6, 0.0]])
     plain, _ = prior.options(segment, 0)
     assert box_iou_3d(plain, crates).max() < 0.6
-    options, cost = prior.options(segment, 0, anchor_boxes=segment)
-    assert len(options) == len(plain) + ANCHORS_PER_SIZE
+    options, cost, kinds, sources, _ = prior.option_sources(segment, 0, anchor_boxes=segment)
+    assert (kinds == OPTION_KINDS.index("anchored")).sum() == ANCHORS_PER_SIZE
+    assert (sources[kinds >= 2] == 0).all()
     np.testing.assert_allclose(box_iou_3d(options, crates).max(axis=0), 1.0, atol=1e-6)
     assert np.isfinite(cost).all()
+
+
+def test_standing_options_find_an_object_whose_lower_part_is_unseen():
+    """A cone beside the vehicle shows only its top, 0.2 m above the floor, seen from both sides
+    (its fitted box is centred on it): growing that box away from the viewer and upwards misses
+    the cone, the box of the cone's size standing on the floor under it does not."""
+    cone = np.array([[0.45, -1.2, 0.32, 0.38, 0.38, 0.64, 0.0]])
+    prior = BoxSizePrior.from_boxes(np.repeat(cone, 3, axis=0), np.zeros(3, int), 1)
+    visible_top = np.array([[0.46, -1.17, 0.4, 0.23, 0.17, 0.41, 0.0]])
+    plain, _ = prior.options(visible_top, 0)
+    assert box_iou_3d(plain, cone).max() < 0.6
+    options, _, kinds, _, _ = prior.option_sources(visible_top, 0, anchor_boxes=visible_top)
+    standing = options[kinds == OPTION_KINDS.index("standing")]
+    assert len(standing) == 1
+    assert standing[0, 2] - standing[0, 5] / 2 == pytest.approx(0.0)
+    assert box_iou_3d(standing, cone)[0, 0] > 0.8
+    # A box on a shelf, well above the size's height, gets no standing option.
+    on_shelf = visible_top + np.array([0, 0, 1.5, 0, 0, 0, 0])
+    assert len(prior.standing(on_shelf, prior.class_modes(0)[0])) == 0
+
+
+def test_stacked_options_find_the_middle_object_of_a_stack():
+    """Three pallets stacked make one segment; its corners hold the bottom and the top pallet, only
+    the stacked options the middle one."""
+    pallet = np.array([1.2, 0.8, 0.12])
+    prior = BoxSizePrior.from_boxes(np.array([[0, 0, 0.06, *pallet, 0.0]] * 3), np.zeros(3, int), 1)
+    gap = 0.02
+    pallets = np.array([[2.0, -4.5, 0.06 + k * (0.12 + gap), *pallet, 0.0] for k in range(3)])
+    stack = np.array([[2.0, -4.5, (3 * 0.12 + 2 * gap) / 2, *pallet[:2], 3 * 0.12 + 2 * gap, 0.0]])
+    corners = prior.anchored(stack, pallet)
+    found = box_iou_3d(corners, pallets).max(axis=0)
+    assert found[0] > 0.99 and found[2] > 0.99 and found[1] < 0.6
+    options, _, kinds, _, _ = prior.option_sources(stack, 0, anchor_boxes=stack)
+    assert box_iou_3d(options, pallets).max(axis=0).min() > 0.7
+    assert box_iou_3d(options[kinds == OPTION_KINDS.index("stacked")], pallets[1:2]).max() > 0.7
+    # One pallet is not a stack: no stacked options.
+    assert len(prior.stacked(pallets[:1], pallet)[0]) == 0
+
+
+def test_near_duplicate_size_modes_are_merged():
+    rng = np.random.default_rng(0)
+    barrels = np.array([0.6, 0.6, 0.9]) * rng.uniform(0.98, 1.02, (60, 3))
+    assert len(_size_modes(barrels, 8)) == 1
+    crates = np.concatenate([barrels, np.array([1.15, 0.95, 0.5]) * rng.uniform(0.99, 1.01, (30, 3))])
+    modes = _size_modes(crates, 8)
+    assert len(modes) == 2
+    np.testing.assert_allclose(np.sort(modes[:, 0]), [0.6, 1.15], rtol=0.03)
 
 
 def test_best_option_iou_is_the_bound_of_the_anchored_options():
