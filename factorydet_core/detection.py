@@ -449,10 +449,11 @@ class BoxSizePrior:
             fitted = np.repeat(boxes[:1], len(boxes), axis=0)
         else:
             fitted = np.asarray(fitted_boxes, np.float64).reshape(-1, 7)
-        reference = np.where((kinds < 2)[:, None], fitted[np.minimum(sources, len(fitted) - 1)], 0.0)
-        if len(anchors):
-            from_anchor = anchors[np.minimum(sources, len(anchors) - 1)]
-            reference = np.where((kinds >= 2)[:, None], from_anchor, reference)
+        # Each option's volume is compared with its own set's fitted box, or the anchor it came from.
+        from_box = kinds < 2
+        reference = np.zeros((len(options), 7))
+        reference[from_box] = fitted[sources[from_box]]
+        reference[~from_box] = anchors[sources[~from_box]]
         volume = np.prod(np.maximum(options[:, 3:6], 1e-3), axis=1)
         reference_volume = np.prod(np.maximum(reference[:, 3:6], 1e-3), axis=1)
         growth = np.abs(np.log(volume / reference_volume))

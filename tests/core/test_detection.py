@@ -244,6 +244,9 @@ def test_stacked_options_find_the_middle_object_of_a_stack():
     assert box_iou_3d(options[kinds == OPTION_KINDS.index("stacked")], pallets[1:2]).max() > 0.7
     # One pallet is not a stack: no stacked options.
     assert len(prior.stacked(pallets[:1], pallet)[0]) == 0
+    # Anchors alone, without hypotheses, still give the placed boxes and a cost for each.
+    placed, cost = prior.options(np.zeros((0, 7)), 0, fitted_boxes=np.zeros((0, 7)), anchor_boxes=stack)
+    assert len(placed) == (kinds >= 2).sum() and np.isfinite(cost).all()
 
 
 def test_near_duplicate_size_modes_are_merged():
