@@ -333,29 +333,38 @@ class BoxSizePrior:
                         out.append(block)
         return np.concatenate(out)
 
-    def standing(self, boxes: np.ndarray, size: np.ndarray) -> np.ndarray:
-        """(M', 7) boxes of ``size`` ((3,) length, width, height) standing on the floor (z = 0, the
-        vehicle frame's floor) centred on those of (M, 7) ``boxes`` whose bottom lies below that
-        height; horizontally the box keeps its heading and grows to at least ``size`` to both sides
-        (length along its longer axis). Objects beside the vehicle lose their lower part to its own
-        blind zone, not only their foot to floor removal: a cone's visible top, 0.2 m above the
-        floor, is as wide as the view's line of sight is deep, and growing it away from the viewer
-        or upwards set the box beside and above the cone (``option_recall`` in ``bench
-        pipeline``)."""
+    def standing(self, boxes: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Boxes of ``size`` ((3,) length, width, height) standing on the floor (z = 0, the vehicle
+        frame's floor) centred on those of (M, 7) ``boxes`` whose bottom lies below that height;
+        horizontally the box keeps its heading and grows to at least ``size`` to both sides (length
+        along its longer axis). Objects beside the vehicle lose their lower part to its own blind
+        zone, not only their foot to floor removal: a cone's visible top, 0.2 m above the floor, is
+        as wide as the view's line of sight is deep, and growing it away from the viewer or upwards
+        set the box beside and above the cone (``option_recall`` in ``bench pipeline``).
+
+        Returns:
+            ``(standing, rows)``: (K, 7) boxes and (K,) the row of ``boxes`` each stands under.
+        """
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         size = np.asarray(size, np.float64)
-        out = boxes[boxes[:, 2] - boxes[:, 5] / 2 < size[2]].copy()
+        rows = np.flatnonzero(boxes[:, 2] - boxes[:, 5] / 2 < size[2])
+        out = boxes[rows]
         long_is_x = out[:, 3] >= out[:, 4]
         out[:, 3] = np.maximum(out[:, 3], np.where(long_is_x, size[0], size[1]))
         out[:, 4] = np.maximum(out[:, 4], np.where(long_is_x, size[1], size[0]))
         out[:, 2], out[:, 5] = size[2] / 2, size[2]
-        return out
+        return out, rows
 
-    def stacked(self, boxes: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def stacked(
+        self, boxes: np.ndarray, size: np.ndarray, corners: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``anchored`` boxes of ``size`` moved one object height up from the bottom of (M, 7)
         ``boxes`` (the bottom-set ones) or down from their top (the top-set ones), for the boxes at
         least two objects high: the middle objects of a stack of pallets or crates, which no corner
         of the stack's box holds (a stack of three pallets has one, of four two).
+
+        Args:
+            corners: ``anchored(boxes, size)`` when the caller has it already (not modified).
 
         Returns:
             ``(stacked, rows)``: (K, 7) boxes and (K,) the row of ``boxes`` each was set into, in
@@ -363,7 +372,9 @@ class BoxSizePrior:
         """
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         size = np.asarray(size, np.float64)
-        corners = self.anchored(boxes, size).reshape(ANCHORS_PER_SIZE, len(boxes), 7)
+        if corners is None:
+            corners = self.anchored(boxes, size)
+        corners = np.array(corners, np.float64).reshape(ANCHORS_PER_SIZE, len(boxes), 7)
         rows = np.tile(np.arange(len(boxes)), (ANCHORS_PER_SIZE, 1))
         # anchored's blocks alternate bottom-set and top-set: move those up, these down.
         corners[0::2, :, 2] += size[2]
@@ -434,10 +445,11 @@ class BoxSizePrior:
         blocks += [(self.grow(boxes, class_id, size=m), 1, rows, j) for j, m in enumerate(modes)]
         if len(anchors):
             for j, m in enumerate(modes):
-                blocks.append((self.anchored(anchors, m), 2, np.tile(anchor_rows, ANCHORS_PER_SIZE), j))
-                low = anchors[:, 2] - anchors[:, 5] / 2 < m[2]
-                blocks.append((self.standing(anchors, m), 3, anchor_rows[low], j))
-                stacked, stacked_rows = self.stacked(anchors, m)
+                corners = self.anchored(anchors, m)
+                blocks.append((corners, 2, np.tile(anchor_rows, ANCHORS_PER_SIZE), j))
+                standing, standing_rows = self.standing(anchors, m)
+                blocks.append((standing, 3, standing_rows, j))
+                stacked, stacked_rows = self.stacked(anchors, m, corners)
                 blocks.append((stacked, 4, stacked_rows, j))
         options = np.concatenate([b[0] for b in blocks])
         kinds = np.concatenate([np.full(len(b[0]), b[1], np.int64) for b in blocks])

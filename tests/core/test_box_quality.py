@@ -107,7 +107,7 @@ def test_option_features_describe_every_option(frames, prior, anchored):
         placed = []
         for m in prior.class_modes(2):
             fitted = boxes[:1]
-            placed += [prior.anchored(fitted, m), prior.standing(fitted, m), prior.stacked(fitted, m)[0]]
+            placed += [prior.anchored(fitted, m), prior.standing(fitted, m)[0], prior.stacked(fitted, m)[0]]
         placed = np.concatenate(placed)
         assert len(placed) >= ANCHORS_PER_SIZE * num_modes
         assert len(options) == num_grown + len(placed)

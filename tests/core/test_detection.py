@@ -225,7 +225,7 @@ def test_standing_options_find_an_object_whose_lower_part_is_unseen():
     assert box_iou_3d(standing, cone)[0, 0] > 0.8
     # A box on a shelf, well above the size's height, gets no standing option.
     on_shelf = visible_top + np.array([0, 0, 1.5, 0, 0, 0, 0])
-    assert len(prior.standing(on_shelf, prior.class_modes(0)[0])) == 0
+    assert len(prior.standing(on_shelf, prior.class_modes(0)[0])[0]) == 0
 
 
 def test_stacked_options_find_the_middle_object_of_a_stack():
