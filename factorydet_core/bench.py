@@ -261,7 +261,14 @@ def bench_pipeline(
         if size_prior is not None:
             set_of: dict[tuple[int, ...], int] = {}
             set_ids = np.array([set_of.setdefault(p, len(set_of)) for p in result.proposals.patch_sets])
-            option_iou = best_option_iou(ref_boxes, ref_classes, result.proposals.boxes, set_ids, size_prior)
+            option_iou = best_option_iou(
+                ref_boxes,
+                ref_classes,
+                result.proposals.boxes,
+                set_ids,
+                size_prior,
+                anchor_mask=result.proposals.anchor_mask,
+            )
             option_hits.append(option_iou >= iou_threshold)
         point_lists = proposal_point_lists(result.segmentation, result.proposals)
         point_hits.append(best_point_iou(result.cloud, ref_ids, point_lists) >= iou_threshold)
@@ -271,7 +278,12 @@ def bench_pipeline(
         for r, (inst, box) in enumerate(zip(ref_ids, ref_boxes)):
             own = result.cloud.points[result.cloud.point_instance_ids == inst]
             if len(own):
-                hypotheses = box_hypotheses(own, result.floor_plane, complete_boxes=params.complete_boxes)
+                hypotheses = box_hypotheses(
+                    own,
+                    result.floor_plane,
+                    complete_boxes=params.complete_boxes,
+                    heading=result.proposals.scene_heading,
+                )
                 oracle[r] = best_box_iou(box[None], hypotheses)[0] >= iou_threshold
         oracle_hits.append(oracle)
         if progress is not None:

@@ -69,6 +69,7 @@ def option_features(
     prior: BoxSizePrior,
     num_classes: int,
     anchored: bool = False,
+    anchor_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A point set's box options for one class and what the regressor reads of each.
 
@@ -80,6 +81,8 @@ def option_features(
         num_classes: C, the number of object classes.
         anchored: add the class's sizes placed by the fitted box (``BoxSizePrior.anchored``,
             ``standing``, ``stacked``) to the options.
+        anchor_mask: (M,) bool, the boxes sizes are placed by (the fitted one is always among
+            them); ``None``: the fitted box alone.
 
     Returns:
         ``(options, features)``: (K, 7) boxes (``BoxSizePrior.options``) and (K, F) features: the
@@ -95,6 +98,7 @@ def option_features(
         prior,
         num_classes,
         anchored,
+        anchor_mask,
     )
     return options, features
 
@@ -107,6 +111,7 @@ def class_option_features(
     prior: BoxSizePrior,
     num_classes: int,
     anchored: bool = False,
+    anchor_mask: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The box options of many point sets of one class and their features, set after set, each
     set's options in ``BoxSizePrior.options``'s order (one call for all sets: per-set calls cost
@@ -120,11 +125,14 @@ def class_option_features(
         prior: the class size prior.
         num_classes: C.
         anchored: add the class's sizes placed by each set's fitted box (corners, floor, stack).
+        anchor_mask: (M,) bool over ``proposal_boxes``, the boxes sizes are placed by besides each
+            set's fitted box (``Proposals.anchor_mask``: the scene-aligned ones); ``None``: the
+            fitted boxes alone.
 
     Returns:
         ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features (as
         ``option_features``), (K,) the set (0..S-1) of each row and (K,) the proposal its box came
-        from (an anchored box's is the fitted box's).
+        from (an anchored box's is the box it was placed by).
     """
     counts = np.array([len(m) for m in members], np.int64)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
@@ -133,15 +141,23 @@ def class_option_features(
     owner = np.repeat(np.arange(len(members)), counts)
     member = np.arange(len(boxes)) - np.repeat(starts, counts)
     fitted = boxes[starts]
+    anchor_rows = starts
+    if anchor_mask is not None:
+        # Rows of boxes, set after set (members are listed set after set), each set's fitted first.
+        anchor_rows = np.union1d(starts, np.flatnonzero(np.asarray(anchor_mask, bool)[member_ids]))
     has_size = np.isfinite(prior.sizes[class_id]).all()
     options, cost, kinds, option_sources, mode_ids = prior.option_sources(
-        boxes, class_id, fitted_boxes=fitted[owner], anchor_boxes=fitted if anchored and has_size else None
+        boxes,
+        class_id,
+        fitted_boxes=fitted[owner],
+        anchor_boxes=boxes[anchor_rows] if anchored and has_size else None,
     )
-    from_boxes = kinds < 2  # hypotheses and grown ones come from a box; the others from a set
+    from_boxes = kinds < 2  # hypotheses and grown ones come from a box; the others from an anchor
     box_rows = np.where(from_boxes, option_sources, 0)
-    owner = np.where(from_boxes, owner[box_rows], option_sources)
+    anchor_of = anchor_rows[np.where(from_boxes, 0, option_sources)] if len(anchor_rows) else box_rows
+    owner = np.where(from_boxes, owner[box_rows], owner[anchor_of])
     member = np.where(from_boxes, member[box_rows], 0)
-    sources = np.where(from_boxes, member_ids[box_rows], member_ids[starts[owner]])
+    sources = np.where(from_boxes, member_ids[box_rows], member_ids[anchor_of])
     grown = mode_ids + 1
     is_anchored = ~from_boxes
     # Set after set, each set's options in the order BoxSizePrior.options gives one set's (its
@@ -271,6 +287,7 @@ class BoxQuality:
                     prior,
                     num_classes,
                     self.anchored,
+                    None if frame.groups.anchor_mask is None else frame.groups.anchor_mask[members],
                 )
                 # An overlapping set's options are right when they fit any object of its class (the
                 # neighbour's box in a stack of crates is no worse than the first one's); a
@@ -482,6 +499,7 @@ def choose_boxes(
             prior,
             num_classes,
             quality.anchored,
+            groups.anchor_mask,
         )
         all_options.append(options)
         all_features.append(features)

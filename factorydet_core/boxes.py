@@ -212,3 +212,34 @@ def complete_hidden_side(boxes: np.ndarray, viewpoint: np.ndarray | None = None)
     out[:, 3] = long_side
     out[:, 4] = long_side
     return out
+
+
+def scene_heading(boxes: np.ndarray, weights: np.ndarray | None = None, bin_deg: float = 1.0) -> float:
+    """The dominant heading of a scene, modulo 90 degrees: the mode of (M, 7) boxes' yaws folded
+    into [0, 90) degrees, each box weighted by ``weights`` (M,) (its number of points, say).
+
+    Factories, warehouses and rooms are built on a rectangular grid: walls, racks and the crates
+    and bobbins on their shelves share a heading, and the points of walls and racks outweigh the
+    rest. A round object's own box has no heading to find (a bobbin seen from one side gives the
+    L-shape search a curve), and boxing it at the scene's heading lines it up with its shelf.
+
+    Returns:
+        The heading in radians, in [0, pi/2); 0 without boxes.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    if not len(boxes):
+        return 0.0
+    weights = np.ones(len(boxes)) if weights is None else np.asarray(weights, np.float64)
+    num_bins = max(1, round(90.0 / bin_deg))
+    folded = np.mod(boxes[:, 6], np.pi / 2)
+    bins = np.minimum((folded / (np.pi / 2) * num_bins).astype(np.int64), num_bins - 1)
+    histogram = np.bincount(bins, weights=weights, minlength=num_bins)
+    # Circular smoothing over neighbouring bins: 0 and 89.9 degrees are one heading.
+    smoothed = histogram + np.roll(histogram, 1) + np.roll(histogram, -1)
+    peak = int(np.argmax(smoothed))
+    # The weighted mean of the folded yaws within one bin of the peak, unwrapped around it.
+    centre = (peak + 0.5) * (np.pi / 2) / num_bins
+    offset = (folded - centre + np.pi / 4) % (np.pi / 2) - np.pi / 4
+    near = np.abs(offset) <= 1.5 * (np.pi / 2) / num_bins
+    refined = centre + np.average(offset[near], weights=np.maximum(weights[near], 1e-12))
+    return float(refined % (np.pi / 2))

@@ -52,6 +52,9 @@ class ProposalGroups:
     """(G, 20, 5, 5, 5) float32: the 3DmFV feature of each point set."""
     descriptors: np.ndarray
     """(G, len(DESCRIPTOR_NAMES)) float32: geometric descriptors of each point set (its fitted box)."""
+    anchor_mask: np.ndarray | None = None
+    """(M,) bool: the proposals whose boxes class sizes are set into (``Proposals.anchor_mask``);
+    ``None``: the first (fitted) box of each set."""
 
     @property
     def num_groups(self) -> int:
@@ -101,7 +104,7 @@ def group_proposals(
         proposals.num_voxels[representatives],
         floor_plane,
     )
-    return ProposalGroups(group_ids, representatives, features, descriptors)
+    return ProposalGroups(group_ids, representatives, features, descriptors, proposals.anchor_mask)
 
 
 def describe_point_sets(
@@ -184,9 +187,7 @@ def _size_modes(
                 break
         else:
             merged.append([j])
-    return np.exp(
-        np.array([np.average(kept_centres[g], axis=0, weights=kept_counts[g]) for g in merged])
-    )
+    return np.exp(np.array([np.average(kept_centres[g], axis=0, weights=kept_counts[g]) for g in merged]))
 
 
 ANCHORS_PER_SIZE = 16
@@ -622,6 +623,7 @@ def best_option_iou(
     group_ids: np.ndarray,
     prior: BoxSizePrior,
     anchored: bool = True,
+    anchor_mask: np.ndarray | None = None,
 ) -> np.ndarray:
     """(R,) the highest 3D IoU of each reference box with any box option of its own class
     (``BoxSizePrior.options``, with ``anchored`` boxes set into each fitted box) of the point sets
@@ -633,6 +635,8 @@ def best_option_iou(
         proposal_boxes: (M, 7) proposal boxes; group_ids: (M,) the point set of each, the first
             proposal of a set being its fitted box.
         prior: the class sizes.
+        anchor_mask: (M,) bool, the proposals whose boxes sizes are set into besides each set's
+            fitted box (``Proposals.anchor_mask``); ``None``: the fitted boxes alone.
     """
     from .boxes import box_iou_3d
 
@@ -649,12 +653,13 @@ def best_option_iou(
             continue
         members = np.isin(group_ids, sets)
         boxes, owners = proposal_boxes[members], group_ids[members]
+        is_anchor = np.zeros(len(boxes), bool) if anchor_mask is None else np.asarray(anchor_mask)[members]
         # Stable order keeps each set's fitted box first among its proposals.
         order = np.argsort(owners, kind="stable")
-        boxes, owners = boxes[order], owners[order]
+        boxes, owners, is_anchor = boxes[order], owners[order], is_anchor[order]
         first = np.concatenate([[True], owners[1:] != owners[:-1]])
         fitted = boxes[first][np.cumsum(first) - 1]
-        anchor_boxes = boxes[first] if anchored else None
+        anchor_boxes = boxes[first | is_anchor] if anchored else None
         class_id = int(reference_class_ids[r])
         options, _ = prior.options(boxes, class_id, fitted_boxes=fitted, anchor_boxes=anchor_boxes)
         best[r] = box_iou_3d(options, reference_boxes[r : r + 1]).max()

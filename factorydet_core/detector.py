@@ -63,6 +63,9 @@ class FrontEndParams:
     """Also propose the intermediate unions of the merge hierarchy."""
     complete_boxes: bool = True
     """Also propose each segment with its box completed behind the visible side."""
+    align_to_scene: bool = True
+    """With ``complete_boxes``, also propose each segment boxed at the scene's heading (round
+    objects' own boxes have none; ``build_proposals``)."""
     include_patches: bool = True
     """Also propose single patches (an object may be exactly one patch that merging then grew)."""
 
@@ -302,6 +305,7 @@ class Detector:
             include_history=params.include_history,
             include_patches=params.include_patches,
             complete_boxes=params.complete_boxes,
+            align_to_scene=params.align_to_scene,
             floor_plane=floor_plane if params.remove_floor else None,
         )
         done("aggregation")

@@ -41,7 +41,7 @@ from .training import (
 from .types import MINING_THRESHOLD, InputError
 
 MODES = ("full", "next")
-_CACHE_FORMAT = 1  # bump when FrameProposals or the front half's output changes meaning
+_CACHE_FORMAT = 2  # bump when FrameProposals or the front half's output changes meaning
 
 
 @dataclasses.dataclass(frozen=True)

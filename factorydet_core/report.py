@@ -57,7 +57,13 @@ def _proposal_recall(dataset, frames, iou_threshold: float, model: DetectionMode
         hits.append(overlap.max(axis=0) >= iou_threshold if overlap.shape[0] else np.zeros(len(boxes), bool))
         if model.box_prior is not None:
             best = best_option_iou(
-                boxes, class_ids, frame.proposal_boxes, frame.groups.group_ids, model.box_prior, anchored
+                boxes,
+                class_ids,
+                frame.proposal_boxes,
+                frame.groups.group_ids,
+                model.box_prior,
+                anchored,
+                frame.groups.anchor_mask,
             )
             option_hits.append(best >= iou_threshold)
         candidates = model.candidates(frame.proposal_boxes, frame.groups)

@@ -489,6 +489,11 @@ def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarra
             "representatives": f.groups.representatives,
             "features": f.groups.features,
             "descriptors": f.groups.descriptors,
+            "anchor_mask": (
+                np.zeros(len(f.proposal_boxes), bool)
+                if f.groups.anchor_mask is None
+                else f.groups.anchor_mask
+            ),
             "label_boxes": f.label_boxes,
             "label_class_ids": f.label_class_ids,
             "annotation_features": f.annotation_features,
@@ -508,7 +513,9 @@ def proposals_from_arrays(arrays: Mapping[str, np.ndarray]) -> list[FrameProposa
         bounds = np.concatenate([[0], np.cumsum(a["patch_set_sizes"])])
         flat = a["patch_set_ids"].tolist()
         patch_sets = tuple(tuple(flat[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:]))
-        groups = ProposalGroups(a["group_ids"], a["representatives"], a["features"], a["descriptors"])
+        groups = ProposalGroups(
+            a["group_ids"], a["representatives"], a["features"], a["descriptors"], a.get("anchor_mask")
+        )
         frames.append(
             FrameProposals(
                 frame_index=int(index),

@@ -15,8 +15,13 @@ CLASS_NAMES: tuple[str, ...] = ("barrel", "bobbin", "box", "cone", "pallet", "pe
 """The seven object classes of the paper, in class-id order. Background is not a class id here."""
 
 
-BOX_KINDS: tuple[str, ...] = ("fitted", "completed", "view-completed")
-"""How a proposal's box was made (``Proposals.box_kind``)."""
+BOX_KINDS: tuple[str, ...] = ("fitted", "completed", "view-completed", "aligned", "aligned-completed")
+"""How a proposal's box was made (``Proposals.box_kind``): the point set's L-shape box, the same
+completed behind its visible side, the box headed along the line of sight and completed, the box at
+the scene's heading (``boxes.scene_heading``), the same completed."""
+ANCHOR_BOX_KINDS: tuple[int, ...] = (0, 3)
+"""Box kinds that class sizes are set into (``BoxSizePrior.anchored`` and the like): the fitted
+box and the scene-aligned one, the two that hug the seen points."""
 LEVELS: tuple[str, ...] = ("segment", "union", "patch")
 """Where a proposal's point set comes from (``Proposals.level``)."""
 MINING_THRESHOLD = 0.05
@@ -331,7 +336,16 @@ class Proposals:
     box_kind: np.ndarray | None = None
     """(M,) int8 index into ``BOX_KINDS``: 0 = box fitted to the points, 1 = that box completed
     behind its visible side (``boxes.complete_hidden_side``), 2 = a box headed along the viewing
-    direction, completed behind; all 0 when ``None``."""
+    direction, completed behind, 3 = a box at the scene's heading, 4 = that box completed; all 0
+    when ``None``."""
+    scene_heading: float | None = None
+    """Radians in [0, pi/2): the heading the aligned boxes (kinds 3 and 4) were fitted at; ``None``
+    without them."""
+
+    @property
+    def anchor_mask(self) -> np.ndarray:
+        """(M,) bool: the proposals whose boxes class sizes are set into (``ANCHOR_BOX_KINDS``)."""
+        return np.isin(self.box_kind, ANCHOR_BOX_KINDS)
 
     def __post_init__(self) -> None:
         num = len(self.boxes) if isinstance(self.boxes, np.ndarray) else -1

@@ -122,6 +122,11 @@ def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
     set after set (the regressor was trained on those)."""
     frame = frames[0]
     members = frame.groups.members()
+    anchor_mask = frame.groups.anchor_mask
+    # The front half's scene-aligned boxes are anchors besides the fitted ones, in some sets.
+    assert anchor_mask is not None
+    has_aligned_anchor = [anchor_mask[m[1:]].any() for m in members]
+    assert any(has_aligned_anchor) and not all(has_aligned_anchor)
     sets = list(range(0, frame.groups.num_groups, 3))
     for class_id in (0, 2, 4, 6):
         options, features, owner, sources = class_option_features(
@@ -132,6 +137,7 @@ def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
             prior,
             NUM_CLASSES,
             anchored,
+            anchor_mask,
         )
         expected = [
             option_features(
@@ -141,16 +147,19 @@ def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
                 prior,
                 NUM_CLASSES,
                 anchored,
+                anchor_mask[members[g]],
             )
             for g in sets
         ]
         np.testing.assert_array_equal(options, np.concatenate([e[0] for e in expected]))
-        # Each set's options and costs are BoxSizePrior.options's for that set alone.
+        # Each set's options and costs are BoxSizePrior.options's for that set alone, its fitted
+        # box and its aligned one the anchors.
+        anchors_of = {g: members[g][(members[g] == members[g][0]) | anchor_mask[members[g]]] for g in sets}
         reference = [
-            prior.options(
+            prior.option_sources(
                 frame.proposal_boxes[members[g]],
                 class_id,
-                anchor_boxes=frame.proposal_boxes[members[g][:1]] if anchored else None,
+                anchor_boxes=frame.proposal_boxes[anchors_of[g]] if anchored else None,
             )
             for g in sets
         ]
@@ -160,11 +169,16 @@ def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
         np.testing.assert_array_equal(features, np.concatenate([e[1] for e in expected]))
         np.testing.assert_array_equal(owner, np.repeat(np.arange(len(sets)), [len(e[0]) for e in expected]))
         for row, g in enumerate(sets):
-            # Grown boxes come from the box they grew; anchored ones from the fitted box.
-            num_grown = len(members[g]) * (1 + len(prior.class_modes(class_id)))
-            expected_sources = members[g][np.arange(len(expected[row][0])) % len(members[g])]
-            expected_sources[num_grown:] = members[g][0]
+            # Grown boxes come from the box they grew; placed ones from the anchor they were placed by.
+            _, _, kinds, option_rows, _ = reference[row]
+            expected_sources = np.where(
+                kinds < 2,
+                members[g][np.minimum(option_rows, len(members[g]) - 1)],
+                anchors_of[g][np.minimum(option_rows, len(anchors_of[g]) - 1)],
+            )
             np.testing.assert_array_equal(sources[owner == row], expected_sources)
+        if anchored and class_id == 2:
+            assert any(len(anchors_of[g]) > 1 for g in sets)
 
 
 def test_regressor_learns_the_iou_of_options(fitted):
@@ -225,8 +239,9 @@ def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, 
     np.testing.assert_allclose(plain.scores, 0.9, rtol=1e-6)
     members = frame.groups.members()
     for g in range(0, num_groups, max(1, num_groups // 15)):
+        mask = frame.groups.anchor_mask[members[g]]
         options, features = option_features(
-            frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES, True
+            frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES, True, mask
         )
         assert quality.predict(features).max() == pytest.approx(predicted[g])
         assert proposal_ids[g] in members[g]

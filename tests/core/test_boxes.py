@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from factorydet_core.boxes import box_iou_3d, complete_hidden_side, fit_box
+from factorydet_core.boxes import box_iou_3d, complete_hidden_side, fit_box, scene_heading
 from factorydet_core.geometry import make_transform, points_in_box, rotation_ypr, rotation_z, transform_boxes
 
 coordinate = st.floats(-5, 5, allow_nan=False)
@@ -234,3 +234,37 @@ def test_iou_blocks_give_the_same_matrix():
     rng = np.random.default_rng(0)
     a = np.column_stack([rng.uniform(-3, 3, (40, 3)), rng.uniform(0.2, 2, (40, 3)), rng.uniform(-3, 3, 40)])
     np.testing.assert_allclose(box_iou_3d(a, a, max_block=7), box_iou_3d(a, a), atol=0)
+
+
+def _heading_gap(a: float, b: float) -> float:
+    """Angle between two headings modulo 90 degrees, radians."""
+    return abs((a - b + np.pi / 4) % (np.pi / 2) - np.pi / 4)
+
+
+@given(st.floats(0.0, 2 * np.pi), st.integers(0, 2**31 - 1))
+@settings(max_examples=100, deadline=None)
+def test_scene_heading_finds_the_grid_of_the_heavy_boxes(heading, seed):
+    rng = np.random.default_rng(seed)
+    # Walls and racks (many points) along the grid, either way round; a few light boxes at random.
+    num_grid, num_random = 12, 30
+    yaws = np.concatenate(
+        [
+            heading + rng.integers(0, 4, num_grid) * np.pi / 2 + rng.normal(0, np.radians(0.3), num_grid),
+            rng.uniform(-np.pi, np.pi, num_random),
+        ]
+    )
+    boxes = np.zeros((len(yaws), 7))
+    boxes[:, 3:6] = 1.0
+    boxes[:, 6] = yaws
+    weights = np.concatenate([rng.uniform(500, 2000, num_grid), rng.uniform(10, 100, num_random)])
+    found = scene_heading(boxes, weights)
+    assert 0.0 <= found < np.pi / 2
+    assert _heading_gap(found, heading) < np.radians(1.0)
+    # Turning the whole scene turns its heading.
+    turned = boxes.copy()
+    turned[:, 6] += 0.3
+    assert _heading_gap(scene_heading(turned, weights), heading + 0.3) < np.radians(1.0)
+
+
+def test_scene_heading_of_no_boxes_is_zero():
+    assert scene_heading(np.zeros((0, 7))) == 0.0

@@ -274,6 +274,37 @@ def test_best_option_iou_is_the_bound_of_the_anchored_options():
     assert plain.max() < 0.6
 
 
+def test_sizes_set_into_the_scene_aligned_box_find_a_round_object_on_a_shelf():
+    from factorydet_core.detection import best_option_iou
+    from factorydet_core.proposals import box_hypotheses
+
+    # A standing bobbin on a shelf built along the axes; its neighbours hide all but a quarter of
+    # its round side, whose own box runs diagonally. No annotated bobbin had its size.
+    rng = np.random.default_rng(0)
+    truth = np.array([[2.6, 4.1, 1.79, 0.378, 0.378, 0.37, 0.0]])
+    angles = np.radians(rng.uniform(180, 270, 60))
+    points = np.column_stack(
+        [2.6 + 0.189 * np.cos(angles), 4.1 + 0.189 * np.sin(angles), rng.uniform(1.62, 1.96, 60)]
+    )
+    sizes = np.array([[0.33, 0.326, 0.326]] * 6 + [[0.454, 0.454, 0.281]] * 6 + [[0.59, 0.59, 0.31]] * 5)
+    annotated = np.column_stack([np.zeros((17, 3)), sizes, np.zeros(17)])
+    prior = BoxSizePrior.from_boxes(annotated, np.zeros(17, int), 1)
+    own = box_hypotheses(points)
+    assert abs(own[0, 6]) > np.radians(30)  # the L-shape box is diagonal
+    aligned = box_hypotheses(points, heading=0.0)
+    np.testing.assert_allclose(aligned[: len(own)], own)
+    anchor_mask = np.zeros(len(aligned), bool)
+    anchor_mask[[0, len(own)]] = True  # the fitted box and the box at the scene's heading
+
+    def bound(boxes, mask=None):
+        return best_option_iou(truth, [0], boxes, np.zeros(len(boxes), int), prior, anchor_mask=mask)[0]
+
+    assert bound(own) < 0.6
+    assert bound(aligned, anchor_mask) > 0.65
+    # The aligned hypotheses alone, without sizes set into them, fall short.
+    assert bound(aligned) < bound(aligned, anchor_mask) - 0.01
+
+
 def test_a_rare_kind_of_object_keeps_its_size_mode():
     # 28 forklifts and 2 pallet trucks (7 %): the trucks' size must stay an option.
     forklifts = np.tile([0, 0, 1.2, 3.4, 1.3, 2.3, 0.0], (28, 1))

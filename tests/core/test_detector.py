@@ -55,7 +55,15 @@ def test_proposals_are_well_formed(result):
     assert (proposals.boxes[:, 3:6] > 0).all()
     assert (proposals.num_points >= PRESETS["agv"].min_proposal_points).all()
     assert set(np.unique(proposals.level)) <= {0, 1, 2}
-    assert set(np.unique(proposals.box_kind)) == {0, 1, 2}  # fitted, completed, view-completed
+    # fitted, completed, view-completed, aligned, aligned-completed
+    assert set(np.unique(proposals.box_kind)) == {0, 1, 2, 3, 4}
+    # The simulated hall is built along its axes, and the aligned boxes follow it.
+    heading = proposals.scene_heading
+    assert min(heading, np.pi / 2 - heading) < np.radians(2)
+    aligned = proposals.boxes[proposals.box_kind >= 3]
+    folded = np.mod(aligned[:, 6] - heading + np.pi / 4, np.pi / 2) - np.pi / 4
+    assert np.abs(folded).max() < 1e-9
+    assert (proposals.anchor_mask == np.isin(proposals.box_kind, (0, 3))).all()
     num_patches = result.segmentation.num_patches
     assert all(len(s) >= 1 and max(s) < num_patches for s in proposals.patch_sets)
     # num_points matches the patch sets.

@@ -110,7 +110,10 @@ def test_min_points_and_completion():
     assert only_big.patch_sets == ((0,), (0, 1))
     none = build_proposals(points, segmentation, grid, voxel_features, min_points=8)
     assert len(none) == 0 and none.features.shape == (0, 20, 5, 5, 5) and none.boxes.shape == (0, 7)
-    completed = build_proposals(points, segmentation, grid, voxel_features, min_points=1, complete_boxes=True)
+    completed = build_proposals(
+        points, segmentation, grid, voxel_features, min_points=1, complete_boxes=True, align_to_scene=False
+    )
+    assert completed.scene_heading is None
     extra = completed.box_kind > 0
     # Every candidate gets a view-completed box; narrow ones also their own box completed.
     assert (completed.box_kind == 2).sum() == 3 and (completed.box_kind == 1).sum() >= 1
