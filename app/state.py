@@ -72,6 +72,8 @@ class AppState:
         self.model_name = model_name
         self.score_threshold = model.score_threshold if model is not None else 0.5
         self.nms_iou = model.nms_iou if model is not None else 0.25
+        # The model's own threshold per class, until someone moves the score slider.
+        self.use_class_thresholds = model is not None and model.class_thresholds() is not None
         self.show_suppressed = False
         self.color_by_match = False
         self.detection_result: DetectionResult | None = None
@@ -196,6 +198,7 @@ class AppState:
             self.model_revision += 1
             if model is not None:
                 self.score_threshold, self.nms_iou = model.score_threshold, model.nms_iou
+                self.use_class_thresholds = model.class_thresholds() is not None
                 self.params = params_for(model.front_end, self.dataset.num_sensors)
             self.detection_result = None
             self.detections = None
@@ -271,13 +274,22 @@ class AppState:
             self._set_result(key, result.proposal, status)
         self._notify()
 
+    def class_thresholds(self):
+        """(C,) the per-class thresholds in force, or ``None`` (one threshold; under the lock)."""
+        if not self.use_class_thresholds or self.model is None:
+            return None
+        return self.model.class_thresholds()
+
     def _refilter(self) -> None:
         """Recompute the shown detections and the metrics (under the lock)."""
         result = self.detection_result
+        per_class = self.class_thresholds()
         self.detections = (
             None
             if result is None
-            else select_detections(result.candidates, self.score_threshold, self.nms_iou)
+            else select_detections(
+                result.candidates, self.score_threshold, self.nms_iou, class_score_thresholds=per_class
+            )
         )
         if self.model is None or not self.frame_detections:
             self.metrics = None
@@ -297,7 +309,7 @@ class AppState:
                     "reference_class_ids": item["reference_class_ids"],
                 }
             )
-        self.metrics = detection_metrics(scored, self.model.class_names, 0.6, self.score_threshold)
+        self.metrics = detection_metrics(scored, self.model.class_names, 0.6, self.score_threshold, per_class)
         self.metrics["num_frames"] = len(scored)
 
     def set_detection_filter(
@@ -307,12 +319,22 @@ class AppState:
         nms_iou: float | None = None,
         show_suppressed: bool | None = None,
         color_by_match: bool | None = None,
+        use_class_thresholds: bool | None = None,
     ) -> None:
-        """Change the score threshold, NMS IoU or what is shown; the detections re-filter at once."""
+        """Change the score threshold, NMS IoU or what is shown; the detections re-filter at once.
+        A score threshold applies to every class (the model's per-class ones are switched off)."""
         with self.lock:
             refilter = False
-            if score_threshold is not None and score_threshold != self.score_threshold:
+            if use_class_thresholds is not None:
+                wanted = bool(use_class_thresholds) and self.model is not None
+                wanted = wanted and self.model.class_thresholds() is not None
+                if wanted != self.use_class_thresholds:
+                    self.use_class_thresholds, refilter = wanted, True
+            if score_threshold is not None and (
+                score_threshold != self.score_threshold or self.use_class_thresholds
+            ):
                 self.score_threshold, refilter = float(score_threshold), True
+                self.use_class_thresholds = False
             if nms_iou is not None and nms_iou != self.nms_iou:
                 self.nms_iou, refilter = float(nms_iou), True
             if show_suppressed is not None:

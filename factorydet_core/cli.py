@@ -376,6 +376,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         fragment_iou=args.fragment_iou,
         fragments_per_frame=args.fragments_per_frame,
         score_threshold=args.score_threshold,
+        class_thresholds=args.class_thresholds,
         mining_threshold=args.mining_threshold,
         nms_iou=args.nms_iou,
         seed=args.seed,
@@ -538,6 +539,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         "frame": args.frame,
         "model": str(model_path),
         "score_threshold": model.score_threshold if args.score_threshold is None else args.score_threshold,
+        "class_score_thresholds": model.class_score_thresholds if args.score_threshold is None else None,
         "nms_iou": model.nms_iou if args.nms_iou is None else args.nms_iou,
         "num_proposals": len(result.proposal.proposals),
         "num_point_sets": result.groups.num_groups,
@@ -708,6 +710,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=MINING_THRESHOLD,
         help="mine (and queue for review) false positives scoring at least this; the top --negatives "
         f"by score go to the background (default {MINING_THRESHOLD}: every reported false positive)",
+    )
+    p.add_argument(
+        "--no-class-thresholds",
+        dest="class_thresholds",
+        action="store_false",
+        help="one operating threshold (--score-threshold) for every class (default: each class's own, "
+        "the one of highest F-score on the training frames' annotations)",
     )
     p.add_argument("--nms-iou", type=float, default=0.25)
     p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")

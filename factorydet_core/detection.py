@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .evaluation import operating_thresholds
 from .nms import nms_3d
 from .proposals import point_sets
 from .types import CLASS_NAMES, Detections, InputError, Proposals, Segmentation
@@ -600,8 +601,12 @@ def select_detections(
     score_threshold: float = 0.5,
     nms_iou: float = 0.25,
     class_aware: bool = False,
+    class_score_thresholds: np.ndarray | None = None,
 ) -> Detections:
     """Candidates scoring at least ``score_threshold``, after 3D NMS at ``nms_iou``.
+
+    Args:
+        class_score_thresholds: (C,) a threshold per class instead (NaN: ``score_threshold``).
 
     Returns:
         Those candidates, by decreasing score; suppressed ones are included with ``suppressed_by``
@@ -609,7 +614,12 @@ def select_detections(
     """
     if not 0.0 <= score_threshold <= 1.0:
         raise InputError(f"score_threshold must lie in [0, 1], got {score_threshold}")
-    above = np.flatnonzero(candidates.scores >= score_threshold)
+    if class_score_thresholds is None:
+        threshold = np.full(len(candidates.scores), float(score_threshold))
+    else:
+        per_class = operating_thresholds(len(class_score_thresholds), score_threshold, class_score_thresholds)
+        threshold = per_class[candidates.class_ids]
+    above = np.flatnonzero(candidates.scores >= threshold)
     above = above[np.argsort(-candidates.scores[above], kind="stable")]
     chosen = candidates.subset(above)
     _, suppressed_by = nms_3d(chosen.boxes, chosen.scores, nms_iou, chosen.class_ids if class_aware else None)

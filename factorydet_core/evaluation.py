@@ -95,11 +95,36 @@ def average_precision(recall: np.ndarray, precision: np.ndarray) -> float:
     return float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
 
 
+def _pooled_matches(
+    frames: list[dict], num_classes: int, iou_threshold: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Detections of all ``frames`` pooled: (K,) scores, (K,) whether each is a true positive,
+    (K,) classes, and (C,) the number of references per class."""
+    scores, tps, classes = [], [], []
+    num_reference = np.zeros(num_classes, np.int64)
+    for frame in frames:
+        tp, _ = match_detections(
+            frame["boxes"], frame["class_ids"], frame["scores"], frame["reference_boxes"],
+            frame["reference_class_ids"], iou_threshold,
+        )  # fmt: skip
+        scores.append(np.asarray(frame["scores"], np.float64))
+        tps.append(tp)
+        classes.append(np.asarray(frame["class_ids"], np.int64))
+        num_reference += np.bincount(
+            np.asarray(frame["reference_class_ids"], np.int64), minlength=num_classes
+        )[:num_classes]
+    scores = np.concatenate(scores) if scores else np.zeros(0)
+    tps = np.concatenate(tps) if tps else np.zeros(0, bool)
+    classes = np.concatenate(classes) if classes else np.zeros(0, np.int64)
+    return scores, tps, classes, num_reference
+
+
 def detection_metrics(
     frames: list[dict],
     class_names: tuple[str, ...],
     iou_threshold: float = 0.6,
     score_threshold: float = 0.5,
+    class_score_thresholds: np.ndarray | None = None,
 ) -> dict:
     """Precision, recall and F1 per class at a score threshold, AP per class and mAP.
 
@@ -110,6 +135,7 @@ def detection_metrics(
         class_names: the classes.
         iou_threshold: matching threshold.
         score_threshold: operating point for precision, recall and F1.
+        class_score_thresholds: (C,) an operating point per class instead (NaN: ``score_threshold``).
 
     Returns:
         ``{"per_class": {name: {num_reference, num_detections, tp, precision, recall, f1, ap}},
@@ -117,22 +143,9 @@ def detection_metrics(
         references)``, "pr_curves": {name: {"recall": [...], "precision": [...]}}}`` with the
         classes pooled under "all".
     """
-    scores, tps, classes = [], [], []
-    num_reference = np.zeros(len(class_names), np.int64)
-    for frame in frames:
-        tp, _ = match_detections(
-            frame["boxes"], frame["class_ids"], frame["scores"], frame["reference_boxes"],
-            frame["reference_class_ids"], iou_threshold,
-        )  # fmt: skip
-        scores.append(np.asarray(frame["scores"], np.float64))
-        tps.append(tp)
-        classes.append(np.asarray(frame["class_ids"], np.int64))
-        num_reference += np.bincount(
-            np.asarray(frame["reference_class_ids"], np.int64), minlength=len(class_names)
-        )[: len(class_names)]
-    scores = np.concatenate(scores) if scores else np.zeros(0)
-    tps = np.concatenate(tps) if tps else np.zeros(0, bool)
-    classes = np.concatenate(classes) if classes else np.zeros(0, np.int64)
+    scores, tps, classes, num_reference = _pooled_matches(frames, len(class_names), iou_threshold)
+    per_class_threshold = operating_thresholds(len(class_names), score_threshold, class_score_thresholds)
+    above = scores >= per_class_threshold[classes]
 
     def prf(tp: int, num_det: int, num_ref: int) -> tuple[float, float, float]:
         precision = tp / num_det if num_det else 0.0
@@ -149,7 +162,7 @@ def detection_metrics(
         recall = cum_tp / max(num_reference[c], 1)
         precision = cum_tp / np.maximum(cum_det, 1)
         ap = average_precision(recall, precision) if num_reference[c] else float("nan")
-        operating = mask & (scores >= score_threshold)
+        operating = mask & above
         tp = int(tps[operating].sum())
         p, r, f = prf(tp, int(operating.sum()), int(num_reference[c]))
         per_class[name] = {
@@ -171,9 +184,9 @@ def detection_metrics(
             "recall": (cum_tp / num_reference.sum()).round(4).tolist(),
             "precision": (cum_tp / np.arange(1, len(order) + 1)).round(4).tolist(),
         }
-    operating = scores >= score_threshold
+    operating = above
     p, r, f = prf(int(tps[operating].sum()), int(operating.sum()), int(num_reference.sum()))
-    return {
+    out = {
         "iou_threshold": iou_threshold,
         "score_threshold": score_threshold,
         "per_class": per_class,
@@ -185,6 +198,60 @@ def detection_metrics(
         "map": round(float(np.mean(aps)), 4) if aps else None,
         "pr_curves": curves,
     }
+    if class_score_thresholds is not None:
+        out["class_score_thresholds"] = {
+            name: round(float(t), 4) for name, t in zip(class_names, per_class_threshold)
+        }
+    return out
+
+
+def operating_thresholds(
+    num_classes: int, score_threshold: float, class_score_thresholds: np.ndarray | None = None
+) -> np.ndarray:
+    """(C,) the score threshold of each class: ``class_score_thresholds`` where given (not NaN),
+    else ``score_threshold``."""
+    out = np.full(num_classes, float(score_threshold))
+    if class_score_thresholds is not None:
+        given = np.asarray(class_score_thresholds, np.float64).reshape(-1)
+        if len(given) != num_classes:
+            raise InputError(f"class_score_thresholds: expected {num_classes} values, got {len(given)}")
+        if np.any((given < 0) | (given > 1)):
+            raise InputError("class_score_thresholds must lie in [0, 1]")
+        out = np.where(np.isnan(given), out, given)
+    return out
+
+
+CLASS_THRESHOLD_GRID: tuple[float, ...] = tuple(round(0.1 + 0.05 * k, 2) for k in range(17))
+"""Score thresholds ``tune_class_thresholds`` chooses among: 0.1 to 0.9 in steps of 0.05."""
+
+
+def tune_class_thresholds(
+    frames: list[dict],
+    class_names: tuple[str, ...],
+    iou_threshold: float = 0.6,
+    grid: tuple[float, ...] = CLASS_THRESHOLD_GRID,
+) -> np.ndarray:
+    """(C,) each class's score threshold of highest F-score on ``frames`` (``detection_metrics``'s
+    input, scored down to at least the grid's lowest threshold); NaN for a class without references
+    or without a true positive at any threshold (it keeps the global one).
+
+    One threshold for all classes serves them badly: the classifier's probabilities are on
+    different scales per class (a well-boxed truck scores 0.3, a barrel 0.7), so any one threshold
+    drops the trucks or floods the barrels (``docs/default_model_validation.json``)."""
+    scores, tps, classes, num_reference = _pooled_matches(frames, len(class_names), iou_threshold)
+    best_f = np.zeros(len(class_names))
+    chosen = np.full(len(class_names), np.nan)
+    for threshold in grid:
+        above = scores >= threshold
+        for c in range(len(class_names)):
+            tp = int(tps[above & (classes == c)].sum())
+            num_detections = int((above & (classes == c)).sum())
+            if not tp or not num_reference[c]:
+                continue
+            f1 = 2 * tp / (num_detections + num_reference[c])  # 2PR / (P + R)
+            if f1 > best_f[c] + 1e-12:  # strictly better: ties keep the lower threshold
+                best_f[c], chosen[c] = f1, float(threshold)
+    return chosen
 
 
 def recognition_accuracy(true_ids: np.ndarray, predicted_ids: np.ndarray, labels: tuple[str, ...]) -> dict:

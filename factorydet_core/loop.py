@@ -62,6 +62,10 @@ class LoopSettings:
     """At most this many of them per frame (``None``: all)."""
     score_threshold: float = 0.3
     """Operating score; with box quality, class probability times predicted IoU."""
+    class_thresholds: bool = True
+    """Give the model a threshold per class, tuned on the training frames' labels
+    (``train_with_mining``'s ``tune_class_thresholds``); ``score_threshold`` is then the fallback
+    of classes without a labelled match."""
     mining_threshold: float | None = MINING_THRESHOLD
     """Least score of a mined (and queued) false positive; ``None``: the operating threshold. The
     paper collects every false positive and adds the top N by score; with box quality a score is a
@@ -230,6 +234,7 @@ def train_session(
         fragment_iou=settings.fragment_iou,
         fragments_per_frame=settings.fragments_per_frame,
         score_threshold=settings.score_threshold,
+        tune_class_thresholds=settings.class_thresholds,
         mining_threshold=settings.mining_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,

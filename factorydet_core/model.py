@@ -35,6 +35,9 @@ class DetectionModel:
         box_quality: picks each detection's box among the prior's options by predicted IoU and
             multiplies its score by that IoU (``box_quality.BoxQuality``); ``None`` keeps the
             prior's choice and the class probability as score.
+        class_score_thresholds: per class name, its own operating threshold (tuned on the
+            training frames, ``evaluation.tune_class_thresholds``); classes not in it use
+            ``score_threshold``. ``None``: one threshold for all.
     """
 
     classifier: object
@@ -43,10 +46,17 @@ class DetectionModel:
     nms_iou: float = 0.25
     front_end: dict = dataclasses.field(default_factory=dict)
     box_quality: BoxQuality | None = None
+    class_score_thresholds: dict[str, float] | None = None
 
     @property
     def class_names(self) -> tuple[str, ...]:
         return tuple(self.classifier.labels_[:-1])
+
+    def class_thresholds(self) -> np.ndarray | None:
+        """(C,) the per-class operating thresholds (NaN: ``score_threshold``), or ``None``."""
+        if not self.class_score_thresholds:
+            return None
+        return np.array([self.class_score_thresholds.get(c, np.nan) for c in self.class_names], np.float64)
 
     def probabilities(self, groups: ProposalGroups) -> np.ndarray:
         """(G, C + 1) class probabilities of each point set."""
@@ -70,11 +80,14 @@ class DetectionModel:
         score_threshold: float | None = None,
         nms_iou: float | None = None,
     ) -> Detections:
-        """Candidates above the score threshold after NMS (suppressed ones flagged)."""
+        """Candidates above the score threshold after NMS (suppressed ones flagged). Without
+        ``score_threshold``, the model's operating point: its per-class thresholds when it has
+        them; with it, that one threshold for every class."""
         return select_detections(
             self.candidates(proposal_boxes, groups),
             self.score_threshold if score_threshold is None else score_threshold,
             self.nms_iou if nms_iou is None else nms_iou,
+            class_score_thresholds=self.class_thresholds() if score_threshold is None else None,
         )
 
     def save(self, path: str | os.PathLike, note: dict | None = None) -> Path:
@@ -87,6 +100,7 @@ class DetectionModel:
             "nms_iou": self.nms_iou,
             "front_end": self.front_end,
             "box_quality": None if self.box_quality is None else dataclasses.asdict(self.box_quality),
+            "class_score_thresholds": self.class_score_thresholds,
         }
         written = self.classifier.save(path, {**extra, **(note or {})})
         if self.box_quality is not None:
@@ -114,6 +128,7 @@ class DetectionModel:
             nms_iou=float(note.get("nms_iou", 0.25)),
             front_end=dict(note.get("front_end", {})),
             box_quality=box_quality,
+            class_score_thresholds=_class_thresholds_from_note(note.get("class_score_thresholds")),
         )
 
     @property
@@ -142,3 +157,17 @@ def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
 def describe_checkpoint(path: str | os.PathLike) -> dict:
     """The JSON note of a checkpoint, without loading its weights."""
     return json.loads(Path(path).with_suffix(".json").read_text())
+
+
+def _class_thresholds_from_note(value) -> dict[str, float] | None:
+    """A checkpoint note's per-class thresholds, checked (a hand-edited note gets a clear error)."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise InputError(f"class_score_thresholds must map class names to thresholds, got {value!r}")
+    out = {}
+    for name, threshold in value.items():
+        if not isinstance(threshold, (int, float)) or not 0.0 <= float(threshold) <= 1.0:
+            raise InputError(f"class_score_thresholds[{name!r}] must lie in [0, 1], got {threshold!r}")
+        out[str(name)] = float(threshold)
+    return out

@@ -150,7 +150,9 @@ def measure(
         chosen = (labels != background_id) | ~overlaps_any
         true_ids.append(labels[chosen])
         predicted_ids.append(probabilities[chosen].argmax(axis=1))
-    metrics = detection_metrics(scored, class_names, iou_threshold, model.score_threshold)
+    metrics = detection_metrics(
+        scored, class_names, iou_threshold, model.score_threshold, model.class_thresholds()
+    )
     if score_thresholds:
         metrics["operating_points"] = []
         for threshold in score_thresholds:

@@ -23,6 +23,7 @@ from .dataset import Dataset
 from .detection import BoxSizePrior, ProposalGroups, describe_point_sets, group_proposals
 from .detector import Detector
 from .evaluation import detection_metrics
+from .evaluation import tune_class_thresholds as tune_thresholds
 from .model import DetectionModel
 from .proposals import point_set_features
 from .types import Cancelled, InputError
@@ -290,6 +291,7 @@ def train_with_mining(
     should_stop: Callable[[], bool] | None = None,
     box_quality: BoxQuality | None = None,
     mining_threshold: float | None = None,
+    tune_class_thresholds: bool = True,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -332,6 +334,12 @@ def train_with_mining(
             ``score_threshold``, as the paper). With box quality a score is a probability times a
             predicted IoU, so few clear the operating threshold on a few frames: a lower one fills
             the mined set and the review queue with the next most confident false positives.
+        tune_class_thresholds: give each round's model a score threshold per class, the one of
+            highest F-score at ``positive_iou`` on the training frames' annotations
+            (``evaluation.tune_class_thresholds``; the scores mining computes anyway). The
+            classifier's probabilities differ in scale between classes, and one threshold drops
+            a whole class (``docs/default_model_validation.json``). ``False``: ``score_threshold``
+            for all.
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
@@ -420,7 +428,17 @@ def train_with_mining(
         model = DetectionModel(fitted, box_prior, score_threshold, nms_iou, box_quality=quality)
         start = time.perf_counter()
         scored = _score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
-        metrics = detection_metrics(scored, fitted.class_names, positive_iou, score_threshold)
+        if tune_class_thresholds:
+            tuned = tune_thresholds(scored, fitted.class_names, positive_iou)
+            model = dataclasses.replace(
+                model,
+                class_score_thresholds={
+                    name: float(t) for name, t in zip(fitted.class_names, tuned) if np.isfinite(t)
+                },
+            )
+        metrics = detection_metrics(
+            scored, fitted.class_names, positive_iou, score_threshold, model.class_thresholds()
+        )
         metrics.pop("pr_curves")
         record = {
             "round": round_index,

@@ -18,27 +18,44 @@ class DetectionsPanel:
     score_threshold: viser.GuiSliderHandle
     nms_iou: viser.GuiSliderHandle
     summary: viser.GuiMarkdownHandle
+    class_thresholds: viser.GuiCheckboxHandle
 
     def refresh(self, state: AppState) -> None:
         with state.lock:
             visible = state.layers["detections"]
             values = (state.show_suppressed, state.color_by_match, state.score_threshold, state.nms_iou)
             detections, model_name, has_model = state.detections, state.model_name, state.model is not None
+            per_class = state.use_class_thresholds
+            tuned = None if state.model is None else state.model.class_score_thresholds
         for handle, value in zip(
-            (self.visible, self.show_suppressed, self.color_by_match, self.score_threshold, self.nms_iou),
-            (visible, *values),
+            (
+                self.visible,
+                self.show_suppressed,
+                self.color_by_match,
+                self.score_threshold,
+                self.nms_iou,
+                self.class_thresholds,
+            ),
+            (visible, *values, per_class),
         ):
             if handle.value != value:
                 handle.value = value
+        if self.class_thresholds.disabled != (not tuned):
+            self.class_thresholds.disabled = not tuned
         if not has_model:
             self.summary.content = "_No model: run `factorydet train` or start with the default model._"
         elif detections is None:
             self.summary.content = f"Model `{model_name}`; waiting for the first frame's detections."
         else:
             kept = int(detections.kept_mask.sum())
+            threshold = (
+                "per-class thresholds " + ", ".join(f"{c} {t:.2f}" for c, t in tuned.items())
+                if per_class and tuned
+                else "one score threshold"
+            )
             self.summary.content = (
                 f"**{kept} detections** shown ({len(detections) - kept} suppressed by NMS)"
-                f" · model `{model_name}`"
+                f" · model `{model_name}` · {threshold}"
             )
 
 
@@ -46,6 +63,7 @@ def build_detections_panel(server: viser.ViserServer, state: AppState) -> Detect
     with state.lock:
         has_model = state.model is not None
         score, nms = state.score_threshold, state.nms_iou
+        per_class = state.use_class_thresholds
     with server.gui.add_folder("Detections", order=70):
         visible = server.gui.add_checkbox(
             "Detections (after NMS)", initial_value=True, disabled=not has_model
@@ -58,6 +76,13 @@ def build_detections_panel(server: viser.ViserServer, state: AppState) -> Detect
             initial_value=False,
             disabled=not has_model,
             hint="Green: matches an annotation (IoU 0.6); red: matches none; blue: annotation missed",
+        )
+        class_thresholds = server.gui.add_checkbox(
+            "Per-class thresholds",
+            initial_value=per_class,
+            disabled=not per_class,
+            hint="Each class's own score threshold, tuned on the training frames; moving the score "
+            "slider sets one threshold for all classes",
         )
         score_threshold = server.gui.add_slider(
             "Score threshold", min=0.05, max=1.0, step=0.05, initial_value=score, disabled=not has_model
@@ -82,6 +107,11 @@ def build_detections_panel(server: viser.ViserServer, state: AppState) -> Detect
         if from_user(event):
             state.set_detection_filter(color_by_match=bool(color_by_match.value))
 
+    @class_thresholds.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            state.set_detection_filter(use_class_thresholds=bool(class_thresholds.value))
+
     @score_threshold.on_update
     def _(event: viser.GuiEvent) -> None:
         if from_user(event):
@@ -92,6 +122,8 @@ def build_detections_panel(server: viser.ViserServer, state: AppState) -> Detect
         if from_user(event):
             state.set_detection_filter(nms_iou=float(nms_iou.value))
 
-    panel = DetectionsPanel(visible, show_suppressed, color_by_match, score_threshold, nms_iou, summary)
+    panel = DetectionsPanel(
+        visible, show_suppressed, color_by_match, score_threshold, nms_iou, summary, class_thresholds
+    )
     panel.refresh(state)
     return panel

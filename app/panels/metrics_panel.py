@@ -40,7 +40,12 @@ class MetricsPanel:
         self.table.content = "\n".join(
             [
                 f"Against the annotations of the {metrics['num_frames']} frame(s) viewed, IoU "
-                f"{metrics['iou_threshold']}, score ≥ {metrics['score_threshold']:.2f}:",
+                f"{metrics['iou_threshold']}, "
+                + (
+                    "each class's own score threshold:"
+                    if "class_score_thresholds" in metrics
+                    else f"score ≥ {metrics['score_threshold']:.2f}:"
+                ),
                 "",
                 "| class | n | P | R | F | AP |",
                 "|---|---|---|---|---|---|",

@@ -84,6 +84,40 @@ def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny
     assert info["proposal"].startswith(f"#{int(low.proposal_ids[kept])}")
 
 
+def test_per_class_thresholds_until_the_slider_moves(small_dataset_dir, tiny_model_path):
+    import dataclasses
+
+    from factorydet_core.detector import Detector
+    from factorydet_core.model import DetectionModel
+
+    dataset = open_dataset(small_dataset_dir)
+    base = DetectionModel.load(tiny_model_path)
+    assert not AppState(dataset, model=base, model_name="tiny").use_class_thresholds
+    result = Detector("agv", model=base).detect(dataset.frame(0))
+    scores, classes = result.candidates.scores, result.candidates.class_ids
+    top_class = int(np.bincount(classes).argmax())
+    names = base.class_names
+    # The most frequent class needs a score above every candidate's; the others pass at 0.
+    tuned = {name: (1.0 if c == top_class else 0.0) for c, name in enumerate(names)}
+    model = dataclasses.replace(base, class_score_thresholds=tuned)
+    state = AppState(dataset, model=model, model_name="tuned")
+    assert state.use_class_thresholds
+    state.set_detection_result((0, state.params, False), result, "done")
+    shown = state.detections
+    assert not (shown.class_ids == top_class).any() and len(shown) == (classes != top_class).sum()
+    assert state.metrics["class_score_thresholds"][names[top_class]] == 1.0
+    # Moving the score slider sets one threshold for every class.
+    state.set_detection_filter(score_threshold=0.05)
+    assert not state.use_class_thresholds and "class_score_thresholds" not in state.metrics
+    assert len(state.detections) == (scores >= 0.05).sum()
+    state.set_detection_filter(use_class_thresholds=True)
+    assert state.use_class_thresholds and len(state.detections) == len(shown)
+    # A model without them cannot switch them on.
+    state.set_model(base, "tiny")
+    state.set_detection_filter(use_class_thresholds=True)
+    assert not state.use_class_thresholds
+
+
 def test_session_labels_drive_the_view_and_a_model_switch_resets_detections(
     small_dataset_dir, tiny_model_path, tmp_path
 ):

@@ -100,6 +100,13 @@ def test_select_detections_thresholds_and_flags_suppressed():
     assert select_detections(cands, 0.95, 0.25).boxes.shape == (0, 7)
     with pytest.raises(InputError):
         select_detections(cands, 1.5)
+    # A threshold per class: the second class's 0.4 passes its own 0.35, class 0 needs 0.8.
+    per_class = select_detections(cands, 0.5, 0.25, class_score_thresholds=np.array([0.8, 0.35]))
+    assert per_class.scores.tolist() == pytest.approx([0.9, 0.4])
+    assert per_class.class_ids.tolist() == [0, 1]
+    # NaN falls back to the global threshold.
+    fallback = select_detections(cands, 0.5, 0.25, class_score_thresholds=np.array([np.nan, 0.35]))
+    assert fallback.scores.tolist() == pytest.approx([0.9, 0.7, 0.4])
 
 
 def test_descriptors_of_a_flat_and_a_linear_set():

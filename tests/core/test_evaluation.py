@@ -6,7 +6,9 @@ from factorydet_core.evaluation import (
     detection_metrics,
     match_detections,
     recognition_accuracy,
+    tune_class_thresholds,
 )
+from factorydet_core.types import InputError
 
 BOX = np.array([0, 0, 0.5, 1, 1, 1, 0.0])
 
@@ -69,6 +71,48 @@ def test_detection_metrics_per_class_and_totals():
     assert m["f1"] == pytest.approx(1 / 3, abs=1e-4)
     assert set(m["pr_curves"]) == {"a", "b", "all"}
     assert m["pr_curves"]["all"]["recall"][-1] == pytest.approx(0.5)
+
+
+def _two_scale_frames() -> list[dict]:
+    """Class 0 (barrels, say) scores high, right or wrong; class 1 (trucks) scores low even when
+    right. Ten frames: each has a true class-0 box at 0.8, a false one at 0.5, and a true class-1
+    box at 0.25 plus a false one at 0.12."""
+    frames = []
+    for k in range(10):
+        x = 20.0 * k
+        frames.append(
+            {
+                "boxes": np.stack([shifted(x), shifted(x + 3), shifted(x + 6), shifted(x + 9)]),
+                "class_ids": np.array([0, 0, 1, 1]),
+                "scores": np.array([0.8, 0.5, 0.25, 0.12]),
+                "reference_boxes": np.stack([shifted(x), shifted(x + 6)]),
+                "reference_class_ids": np.array([0, 1]),
+            }
+        )
+    return frames
+
+
+def test_tuned_thresholds_give_each_class_its_best_operating_point():
+    frames = _two_scale_frames()
+    names = ("barrel", "truck", "cone")
+    tuned = tune_class_thresholds(frames, names, 0.6, grid=(0.1, 0.2, 0.3, 0.6, 0.9))
+    # Barrels: 0.6 drops their false positives (0.1 to 0.3 keep them, 0.9 drops everything);
+    # trucks: 0.2 keeps the true ones and drops the false; cones have no references.
+    assert tuned[0] == 0.6 and tuned[1] == 0.2 and np.isnan(tuned[2])
+    one = detection_metrics(frames, names, 0.6, 0.3)
+    per_class = detection_metrics(frames, names, 0.6, 0.3, tuned)
+    assert one["per_class"]["truck"]["f1"] == 0.0 and one["per_class"]["barrel"]["f1"] < 1.0
+    assert per_class["per_class"]["truck"]["f1"] == 1.0 and per_class["per_class"]["barrel"]["f1"] == 1.0
+    assert per_class["f1"] == 1.0 and one["f1"] < 0.7
+    assert per_class["class_score_thresholds"] == {"barrel": 0.6, "truck": 0.2, "cone": 0.3}
+    # Each class's figures are those of a single threshold at its own value.
+    for name, threshold in (("barrel", 0.6), ("truck", 0.2)):
+        alone = detection_metrics(frames, names, 0.6, threshold)["per_class"][name]
+        assert per_class["per_class"][name] == alone
+    with pytest.raises(InputError, match="3 values"):
+        detection_metrics(frames, names, 0.6, 0.3, np.array([0.5, 0.5]))
+    with pytest.raises(InputError, match=r"\[0, 1\]"):
+        detection_metrics(frames, names, 0.6, 0.3, np.array([0.5, 1.5, np.nan]))
 
 
 def test_recognition_accuracy_table():

@@ -1,15 +1,26 @@
 """Training with hard-negative mining, its session record, and the trained model's detections."""
 
+import dataclasses
+import json
+
 import numpy as np
 import pytest
 
+from factorydet_core import training
 from factorydet_core.box_quality import BoxQuality
 from factorydet_core.classifier import ProposalClassifier
 from factorydet_core.dataset import open_dataset
 from factorydet_core.detector import Detector
+from factorydet_core.evaluation import tune_class_thresholds
 from factorydet_core.model import DetectionModel
 from factorydet_core.session import mined_negatives, open_session, save_training_run, training_runs
-from factorydet_core.training import collect_proposals, group_labels, group_overlaps, train_with_mining
+from factorydet_core.training import (
+    _score_frames,
+    collect_proposals,
+    group_labels,
+    group_overlaps,
+    train_with_mining,
+)
 from factorydet_core.types import InputError
 
 
@@ -127,6 +138,35 @@ def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
     assert (detections.scores <= probability + 1e-6).all()  # probability times a predicted IoU
 
 
+def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
+    seen = []
+
+    def fake_tuning(scored, class_names, iou_threshold):
+        seen.append((len(scored), iou_threshold))
+        out = np.full(len(class_names), np.nan)
+        out[[1, 6]] = [0.45, 0.15]  # bobbins and trucks
+        return out
+
+    monkeypatch.setattr(training, "tune_thresholds", fake_tuning)
+    run = train_with_mining(
+        frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=1, initial_negatives=100
+    )
+    assert seen == [(len(frames), 0.6)] * 2
+    for model, record in zip(run.models, run.rounds):
+        assert model.class_score_thresholds == {"bobbin": 0.45, "truck": 0.15}
+        thresholds = record["train_metrics"]["class_score_thresholds"]
+        assert thresholds["bobbin"] == 0.45 and thresholds["truck"] == 0.15 and thresholds["box"] == 0.5
+    untuned = train_with_mining(
+        frames,
+        ProposalClassifier(width=0.0625, epochs=1, num_threads=1),
+        rounds=0,
+        initial_negatives=100,
+        tune_class_thresholds=False,
+    )
+    assert untuned.model.class_score_thresholds is None and len(seen) == 2
+    assert "class_score_thresholds" not in untuned.rounds[0]["train_metrics"]
+
+
 def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_dataset_dir):
     path = run.model.save(tmp_path / "m.pt")
     loaded = DetectionModel.load(path)
@@ -135,6 +175,29 @@ def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_d
     b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
     np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
     np.testing.assert_allclose(a.boxes, b.boxes)
+    # Each round's model gets the per-class thresholds of highest F-score on the training frames'
+    # annotations, from the scores its round computed (none here: this two-epoch classifier
+    # matches no annotation above 0.1; test_each_round_takes_its_tuned_thresholds has some).
+    names = run.model.class_names
+    expected = tune_class_thresholds(_score_frames(run.model, frames, 0.05), names, 0.6)
+    assert run.model.class_score_thresholds == {
+        c: float(t) for c, t in zip(names, expected) if np.isfinite(t)
+    }
+    # Per-class thresholds travel with the checkpoint and are the operating point when no
+    # threshold is asked for.
+    tuned = {names[0]: 0.9, names[1]: 0.06}
+    path = dataclasses.replace(run.model, class_score_thresholds=tuned).save(tmp_path / "t.pt")
+    loaded_tuned = DetectionModel.load(path)
+    assert loaded_tuned.class_score_thresholds == tuned
+    own = loaded_tuned.detect(frame.proposal_boxes, frame.groups)
+    kept = own.subset(own.kept_mask)
+    floor = np.array([tuned.get(names[c], loaded_tuned.score_threshold) for c in kept.class_ids])
+    assert (kept.scores >= floor).all()
+    note = json.loads(path.with_suffix(".json").read_text())
+    note["class_score_thresholds"] = {names[0]: 1.5}
+    path.with_suffix(".json").write_text(json.dumps(note))
+    with pytest.raises(InputError, match=r"\[0, 1\]"):
+        DetectionModel.load(path)
     # The whole pipeline in one call.
     detector = Detector("agv", model=loaded)
     result = detector.detect(open_dataset(small_dataset_dir).frame(0), score_threshold=0.05)
