@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import json
 import os
@@ -19,8 +18,8 @@ from .results import (
     PAPER_TABLE2,
     PAPER_TABLE3,
     Progress,
+    baseline_model,
     detector_for,
-    fit_baseline,
     measure,
     plot_pr_curves,
     reference_boxes,
@@ -31,6 +30,20 @@ from .types import InputError
 
 def _fmt(value, digits: int = 3) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
+
+
+def operating_text(model: DetectionModel) -> str:
+    """How a model's detections are thresholded, in words, for the report."""
+    tuned = model.class_score_thresholds
+    if not tuned:
+        return f"operating score threshold {model.score_threshold:g}"
+    per_class = ", ".join(f"{name} {tuned[name]:g}" for name in model.class_names if name in tuned)
+    rest = [name for name in model.class_names if name not in tuned]
+    return (
+        f"per-class operating score thresholds, tuned on the training frames' annotations ({per_class}"
+        + (f"; {', '.join(rest)} {model.score_threshold:g}" if rest else "")
+        + ")"
+    )
 
 
 def _proposal_recall(dataset, frames, iou_threshold: float, model: DetectionModel) -> dict:
@@ -134,6 +147,7 @@ def voxel_sweep(
             ProposalClassifier(**settings),
             rounds=0,
             score_threshold=model.score_threshold,
+            tune_class_thresholds=model.class_score_thresholds is not None,
             box_quality=None if model.box_quality is None else BoxQuality(),
         )
         metrics = measure(run.model, dataset, test, iou_threshold=iou_threshold, use_truth=True)
@@ -196,7 +210,7 @@ def write_report(
     train_detector = detector if train_data is None else detector_for(model, train_dataset, calibrate)
     test = collect_proposals(dataset, test_idx, detector, progress)
     train = collect_proposals(train_dataset, train_idx, train_detector, progress)
-    baseline = dataclasses.replace(model, classifier=fit_baseline(train, model.class_names))
+    baseline = baseline_model(model, train)
     references = ["annotations", "truth"] if simulated else ["annotations"]
     results = {
         ref: {
@@ -247,8 +261,8 @@ def write_report(
         f"{rounds} training rounds ({max(rounds - 1, 0)} of hard-negative mining), "
         f"training time of the final round {note.get('fit_seconds', 0):.0f} s; command: "
         f"`{note.get('config', {}).get('command', '?')}`.",
-        f"- Matching: IoU ≥ {iou_threshold} with a reference of the same class; operating score threshold "
-        f"{model.score_threshold}, NMS IoU {model.nms_iou}. AP is the area under the interpolated PR curve.",
+        f"- Matching: IoU ≥ {iou_threshold} with a reference of the same class; {operating_text(model)}, "
+        f"NMS IoU {model.nms_iou}. AP is the area under the interpolated PR curve.",
         f"- Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory_gb']} GB, no GPU.",
         "",
         "## Table 2: recognition accuracy (%) of held-out point sets",
@@ -340,7 +354,7 @@ def write_report(
             lines.append("| box options | " + " | ".join(_fmt(v) for v in bound["options"].values()) + " |")
         for key, row in (
             ("chosen", "chosen box of its class, any score"),
-            ("scored", f"the same, score ≥ {model.score_threshold:g}"),
+            ("scored", "the same, at the operating threshold"),
             ("kept", "the same, kept by NMS"),
         ):
             lines.append(f"| {row} | " + " | ".join(_fmt(v) for v in bound[key].values()) + " |")
@@ -349,7 +363,8 @@ def write_report(
             "The options are each point set's boxes, the same grown to its class's typical sizes behind "
             "the visible side"
             + (
-                ", and boxes of those sizes placed by the fitted box: set into each of its corners "
+                ", and boxes of those sizes placed by the fitted box and by the box at the scene's "
+                "heading (round objects' own boxes have no heading): set into each of its corners "
                 "(objects in a segment of several, flush stacks), standing on the floor under it "
                 "(objects whose lower part the vehicle does not see) and one object up from its "
                 "bottom or down from its top (the middle of a stack)"
@@ -378,7 +393,7 @@ def write_report(
             f"The classifier is the other limit: it keeps {100 * background_row['accuracy']:.1f}% of "
             f"the {background_row['num']} background point sets of the test frames as background "
             f"(the baseline {100 * rec_base['per_class']['background']['accuracy']:.1f}%); "
-            f"{100 * (1 - deep['precision']):.0f}% of its detections at score {model.score_threshold} "
+            f"{100 * (1 - deep['precision']):.0f}% of its detections at the operating thresholds "
             f"are false positives (precision {deep['precision']:.3f}), and it recognises "
             f"{100 * rec_deep['mean_class_accuracy']:.1f}% "
             "of held-out point sets per class on average against the paper's "
@@ -392,6 +407,7 @@ def write_report(
             "One training round (no mining) per voxel size on the first "
             f"{len(train_idx[:sweep_frames])} training frames, with the model's settings (score "
             f"threshold {model.score_threshold}"
+            + (", per-class thresholds tuned on those frames" if model.class_score_thresholds else "")
             + (", box quality" if model.box_quality is not None else "")
             + "), measured on the test frames against the truth.",
             "",

@@ -101,6 +101,25 @@ def fit_baseline(
     return baseline.fit(np.concatenate(descriptors), np.concatenate(labels))
 
 
+def baseline_model(
+    model: DetectionModel, frames: list[FrameProposals], positive_iou: float = 0.6
+) -> DetectionModel:
+    """``model`` with the baseline classifier fitted on the training ``frames`` in place of its
+    own, and, when ``model`` has per-class thresholds, the baseline's own tuned on the same frames
+    (``evaluation.tune_class_thresholds``; the deep classifier's would not fit its scores)."""
+    from .evaluation import tune_class_thresholds
+    from .training import _score_frames
+
+    out = dataclasses.replace(
+        model, classifier=fit_baseline(frames, model.class_names, positive_iou), class_score_thresholds=None
+    )
+    if model.class_score_thresholds is None:
+        return out
+    tuned = tune_class_thresholds(_score_frames(out, frames, 0.05), out.class_names, positive_iou)
+    out.class_score_thresholds = {c: float(t) for c, t in zip(out.class_names, tuned) if np.isfinite(t)}
+    return out
+
+
 def measure(
     model: DetectionModel,
     dataset: Dataset,
@@ -229,12 +248,9 @@ def evaluate(
         train = dataset.splits.get("train") or []
         train = train[:max_train_frames] if max_train_frames else train
         train_frames = collect_proposals(dataset, train, detector, progress)
-        baseline = fit_baseline(train_frames, model.class_names)
-        baseline_model = dataclasses.replace(model, classifier=baseline)
+        baseline = baseline_model(model, train_frames)
         result["baseline"] = {
-            name: measure(
-                baseline_model, dataset, frames, iou_threshold=iou_threshold, use_truth=name == "truth"
-            )
+            name: measure(baseline, dataset, frames, iou_threshold=iou_threshold, use_truth=name == "truth")
             for name in against
         }
     result["seconds"] = round(time.perf_counter() - start, 1)

@@ -334,8 +334,8 @@ def train_with_mining(
             ``score_threshold``, as the paper). With box quality a score is a probability times a
             predicted IoU, so few clear the operating threshold on a few frames: a lower one fills
             the mined set and the review queue with the next most confident false positives.
-        tune_class_thresholds: give each round's model a score threshold per class, the one of
-            highest F-score at ``positive_iou`` on the training frames' annotations
+        tune_class_thresholds: give each round's model a score threshold per class, the one up to
+            ``score_threshold`` of highest F-score at ``positive_iou`` on the training frames' annotations
             (``evaluation.tune_class_thresholds``; the scores mining computes anyway). The
             classifier's probabilities differ in scale between classes, and one threshold drops
             a whole class (``docs/default_model_validation.json``). ``False``: ``score_threshold``
@@ -429,7 +429,7 @@ def train_with_mining(
         start = time.perf_counter()
         scored = _score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
         if tune_class_thresholds:
-            tuned = tune_thresholds(scored, fitted.class_names, positive_iou)
+            tuned = tune_thresholds(scored, fitted.class_names, positive_iou, max_threshold=score_threshold)
             model = dataclasses.replace(
                 model,
                 class_score_thresholds={

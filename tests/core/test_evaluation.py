@@ -105,6 +105,9 @@ def test_tuned_thresholds_give_each_class_its_best_operating_point():
     assert per_class["per_class"]["truck"]["f1"] == 1.0 and per_class["per_class"]["barrel"]["f1"] == 1.0
     assert per_class["f1"] == 1.0 and one["f1"] < 0.7
     assert per_class["class_score_thresholds"] == {"barrel": 0.6, "truck": 0.2, "cone": 0.3}
+    # Capped at the global threshold, barrels keep the cap; trucks still go below it.
+    capped = tune_class_thresholds(frames, names, 0.6, grid=(0.1, 0.2, 0.3, 0.6, 0.9), max_threshold=0.3)
+    assert capped[0] == 0.1 and capped[1] == 0.2
     # Each class's figures are those of a single threshold at its own value.
     for name, threshold in (("barrel", 0.6), ("truck", 0.2)):
         alone = detection_metrics(frames, names, 0.6, threshold)["per_class"][name]

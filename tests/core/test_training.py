@@ -141,8 +141,8 @@ def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
 def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
     seen = []
 
-    def fake_tuning(scored, class_names, iou_threshold):
-        seen.append((len(scored), iou_threshold))
+    def fake_tuning(scored, class_names, iou_threshold, max_threshold):
+        seen.append((len(scored), iou_threshold, max_threshold))
         out = np.full(len(class_names), np.nan)
         out[[1, 6]] = [0.45, 0.15]  # bobbins and trucks
         return out
@@ -151,7 +151,7 @@ def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
     run = train_with_mining(
         frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=1, initial_negatives=100
     )
-    assert seen == [(len(frames), 0.6)] * 2
+    assert seen == [(len(frames), 0.6, 0.5)] * 2  # never above the global threshold
     for model, record in zip(run.models, run.rounds):
         assert model.class_score_thresholds == {"bobbin": 0.45, "truck": 0.15}
         thresholds = record["train_metrics"]["class_score_thresholds"]
@@ -179,7 +179,7 @@ def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_d
     # annotations, from the scores its round computed (none here: this two-epoch classifier
     # matches no annotation above 0.1; test_each_round_takes_its_tuned_thresholds has some).
     names = run.model.class_names
-    expected = tune_class_thresholds(_score_frames(run.model, frames, 0.05), names, 0.6)
+    expected = tune_class_thresholds(_score_frames(run.model, frames, 0.05), names, 0.6, max_threshold=0.05)
     assert run.model.class_score_thresholds == {
         c: float(t) for c, t in zip(names, expected) if np.isfinite(t)
     }
