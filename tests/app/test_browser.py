@@ -190,7 +190,7 @@ def test_detections_layer_and_score_slider(app_with_model, browser):
         thumb.focus()
         for _ in range(9):
             thumb.press("ArrowLeft")
-        assert app.state.wait_for(lambda: app.state.score_threshold < 0.1, timeout=20), "slider never arrived"
+        assert app.state.wait_for(lambda: app.state.score_threshold < 0.1, timeout=60), "slider never arrived"
         after = int(app.state.detections.kept_mask.sum())
         assert after != before
         page.get_by_text(f"{after} detections", exact=False).first.wait_for(timeout=20_000)
