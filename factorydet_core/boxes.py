@@ -214,6 +214,17 @@ def complete_hidden_side(boxes: np.ndarray, viewpoint: np.ndarray | None = None)
     return out
 
 
+def heading_gap(yaw: np.ndarray | float, heading: float) -> np.ndarray:
+    """The angle in [0, pi/4] between yaws (any shape) and a heading, modulo 90 degrees: a box's
+    heading is the same after a quarter turn (its sides swap), so 0 and 90 degrees are no gap."""
+    return np.abs(_fold_quarter(np.asarray(yaw, np.float64) - heading))
+
+
+def _fold_quarter(angle: np.ndarray) -> np.ndarray:
+    """Angles folded into [-pi/4, pi/4) modulo pi/2."""
+    return (angle + np.pi / 4) % (np.pi / 2) - np.pi / 4
+
+
 def scene_heading(boxes: np.ndarray, weights: np.ndarray | None = None, bin_deg: float = 1.0) -> float:
     """The dominant heading of a scene, modulo 90 degrees: the mode of (M, 7) boxes' yaws folded
     into [0, 90) degrees, each box weighted by ``weights`` (M,) (its number of points, say).
@@ -239,7 +250,7 @@ def scene_heading(boxes: np.ndarray, weights: np.ndarray | None = None, bin_deg:
     peak = int(np.argmax(smoothed))
     # The weighted mean of the folded yaws within one bin of the peak, unwrapped around it.
     centre = (peak + 0.5) * (np.pi / 2) / num_bins
-    offset = (folded - centre + np.pi / 4) % (np.pi / 2) - np.pi / 4
+    offset = _fold_quarter(folded - centre)
     near = np.abs(offset) <= 1.5 * (np.pi / 2) / num_bins
     refined = centre + np.average(offset[near], weights=np.maximum(weights[near], 1e-12))
     return float(refined % (np.pi / 2))

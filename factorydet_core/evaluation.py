@@ -205,6 +205,16 @@ def detection_metrics(
     return out
 
 
+def check_thresholds(values: np.ndarray, what: str, names: tuple[str, ...] | None = None) -> None:
+    """Raise ``InputError`` naming the first of ``values`` (any shape; NaN allowed: "not set")
+    outside [0, 1], as ``what[name]`` when ``names`` label them."""
+    values = np.asarray(values, np.float64).reshape(-1)
+    bad = np.flatnonzero((values < 0) | (values > 1))
+    if len(bad):
+        where = f"{what}[{names[bad[0]]!r}]" if names is not None else what
+        raise InputError(f"{where} must lie in [0, 1], got {values[bad[0]]}")
+
+
 def operating_thresholds(
     num_classes: int, score_threshold: float, class_score_thresholds: np.ndarray | None = None
 ) -> np.ndarray:
@@ -215,8 +225,7 @@ def operating_thresholds(
         given = np.asarray(class_score_thresholds, np.float64).reshape(-1)
         if len(given) != num_classes:
             raise InputError(f"class_score_thresholds: expected {num_classes} values, got {len(given)}")
-        if np.any((given < 0) | (given > 1)):
-            raise InputError("class_score_thresholds must lie in [0, 1]")
+        check_thresholds(given, "class_score_thresholds")
         out = np.where(np.isnan(given), out, given)
     return out
 

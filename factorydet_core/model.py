@@ -15,6 +15,7 @@ import numpy as np
 from .box_quality import BoxQuality
 from .classifier import ProposalClassifier
 from .detection import BoxSizePrior, ProposalGroups, score_groups, select_detections
+from .evaluation import check_thresholds
 from .types import Detections, InputError
 
 DEFAULT_MODEL = Path(__file__).parent / "models" / "default.pt"
@@ -165,9 +166,14 @@ def _class_thresholds_from_note(value) -> dict[str, float] | None:
         return None
     if not isinstance(value, dict):
         raise InputError(f"class_score_thresholds must map class names to thresholds, got {value!r}")
-    out = {}
-    for name, threshold in value.items():
-        if not isinstance(threshold, (int, float)) or not 0.0 <= float(threshold) <= 1.0:
-            raise InputError(f"class_score_thresholds[{name!r}] must lie in [0, 1], got {threshold!r}")
-        out[str(name)] = float(threshold)
-    return out
+    names = tuple(str(name) for name in value)
+    for name, threshold in zip(names, value.values()):
+        if (
+            isinstance(threshold, bool)
+            or not isinstance(threshold, (int, float))
+            or not np.isfinite(threshold)
+        ):
+            raise InputError(f"class_score_thresholds[{name!r}] must be a number, got {threshold!r}")
+    thresholds = np.array(list(value.values()), np.float64)
+    check_thresholds(thresholds, "class_score_thresholds", names)
+    return dict(zip(names, thresholds.tolist()))

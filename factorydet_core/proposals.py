@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse
 
-from .boxes import complete_hidden_side, fit_box, scene_heading
+from .boxes import complete_hidden_side, fit_box, heading_gap, scene_heading
 from .features import NUM_CHANNELS, NUM_GAUSSIANS, fisher_vectors, to_unit_sphere
 from .types import InputError, Proposals, Segmentation, VoxelGrid
 
@@ -82,6 +82,16 @@ def _fitted_and_view_boxes(points: np.ndarray, heading: float | None = None) -> 
     return np.stack(boxes)
 
 
+# Boxes within this angle of the scene's heading are aligned with it already.
+ALIGNED_TOLERANCE_RAD = np.radians(3.0)
+
+
+def _misaligned(boxes: np.ndarray, heading: float) -> np.ndarray:
+    """Indices of (M, 7) boxes more than ALIGNED_TOLERANCE_RAD off ``heading`` (modulo 90 degrees):
+    the ones that also get a box at the scene's heading."""
+    return np.flatnonzero(heading_gap(boxes[:, 6], heading) > ALIGNED_TOLERANCE_RAD)
+
+
 def _completable(boxes: np.ndarray, min_completion_ratio: float) -> np.ndarray:
     """Indices of boxes narrow enough that completing them behind the visible side changes them."""
     return np.flatnonzero(boxes[:, 4] < min_completion_ratio * boxes[:, 3])
@@ -97,14 +107,15 @@ def box_hypotheses(
     heading: float | None = None,
 ) -> np.ndarray:
     """(K, 7) the boxes ``build_proposals`` proposes for one point set: fitted, fitted and completed
-    behind (when narrow), view-headed and completed behind, and with the scene's ``heading`` the box
-    at that heading and the same completed (when narrow); each snapped to the floor."""
+    behind (when narrow), view-headed and completed behind, and with the scene's ``heading`` (when
+    the fitted box is off it) the box at that heading and the same completed (when narrow); each
+    snapped to the floor."""
     boxes = snap_to_floor(_fitted_and_view_boxes(points, heading), floor_plane, ground_snap_m)
     if not complete_boxes:
         return boxes[:1]
     out = [boxes[:1], complete_hidden_side(boxes[:1][_completable(boxes[:1], min_completion_ratio)])]
     out.append(complete_hidden_side(boxes[1:2]))
-    if heading is not None:
+    if heading is not None and len(_misaligned(boxes[:1], heading)):
         aligned = boxes[2:3]
         out += [aligned, complete_hidden_side(aligned[_completable(aligned, min_completion_ratio)])]
     return np.concatenate(out)
@@ -269,9 +280,7 @@ def build_proposals(
         ]
         if align_to_scene:
             heading = float(scene_heading(boxes, num_points_kept))
-            # Boxes within 3 degrees of the scene's heading are aligned already.
-            off = np.abs((boxes[:, 6] - heading + np.pi / 4) % (np.pi / 2) - np.pi / 4)
-            misaligned = np.flatnonzero(off > np.radians(3.0))
+            misaligned = _misaligned(boxes, heading)
             aligned = np.zeros_like(boxes)
             if len(misaligned):
                 aligned[misaligned] = snap_to_floor(

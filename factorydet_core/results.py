@@ -107,17 +107,14 @@ def baseline_model(
     """``model`` with the baseline classifier fitted on the training ``frames`` in place of its
     own, and, when ``model`` has per-class thresholds, the baseline's own tuned on the same frames
     (``evaluation.tune_class_thresholds``; the deep classifier's would not fit its scores)."""
-    from .evaluation import tune_class_thresholds
-    from .training import _score_frames
+    from .training import score_frames, with_tuned_thresholds
 
     out = dataclasses.replace(
         model, classifier=fit_baseline(frames, model.class_names, positive_iou), class_score_thresholds=None
     )
     if model.class_score_thresholds is None:
         return out
-    tuned = tune_class_thresholds(_score_frames(out, frames, 0.05), out.class_names, positive_iou)
-    out.class_score_thresholds = {c: float(t) for c, t in zip(out.class_names, tuned) if np.isfinite(t)}
-    return out
+    return with_tuned_thresholds(out, score_frames(out, frames, 0.05), positive_iou)
 
 
 def measure(

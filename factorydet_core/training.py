@@ -239,14 +239,15 @@ def _training_set(
     return np.concatenate(features), np.concatenate(descriptors), np.concatenate(labels)
 
 
-def _score_frames(
+def score_frames(
     model: DetectionModel,
     frames: list[FrameProposals],
     score_threshold: float,
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
 ) -> list[dict]:
-    """Detections of every frame down to ``score_threshold``, with the annotated references."""
+    """Detections of every frame down to ``score_threshold``, with the annotated references
+    (``evaluation.detection_metrics``'s input)."""
     out = []
     for n, frame in enumerate(frames):
         if should_stop is not None and should_stop():
@@ -267,6 +268,21 @@ def _score_frames(
             }
         )
     return out
+
+
+def with_tuned_thresholds(
+    model: DetectionModel, scored: list[dict], positive_iou: float = 0.6, max_threshold: float = 1.0
+) -> DetectionModel:
+    """``model`` with each class's score threshold tuned to its highest F-score on ``scored``
+    (``score_frames``'s output for ``model``, down to 0.05; ``evaluation.tune_class_thresholds``,
+    none above ``max_threshold``); a class without a true positive keeps the global threshold."""
+    tuned = tune_thresholds(scored, model.class_names, positive_iou, max_threshold=max_threshold)
+    return dataclasses.replace(
+        model,
+        class_score_thresholds={
+            name: float(t) for name, t in zip(model.class_names, tuned) if np.isfinite(t)
+        },
+    )
 
 
 def train_with_mining(
@@ -427,15 +443,9 @@ def train_with_mining(
         )
         model = DetectionModel(fitted, box_prior, score_threshold, nms_iou, box_quality=quality)
         start = time.perf_counter()
-        scored = _score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
+        scored = score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
         if tune_class_thresholds:
-            tuned = tune_thresholds(scored, fitted.class_names, positive_iou, max_threshold=score_threshold)
-            model = dataclasses.replace(
-                model,
-                class_score_thresholds={
-                    name: float(t) for name, t in zip(fitted.class_names, tuned) if np.isfinite(t)
-                },
-            )
+            model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
         metrics = detection_metrics(
             scored, fitted.class_names, positive_iou, score_threshold, model.class_thresholds()
         )

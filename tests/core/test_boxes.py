@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from factorydet_core.boxes import box_iou_3d, complete_hidden_side, fit_box, scene_heading
+from factorydet_core.boxes import box_iou_3d, complete_hidden_side, fit_box, heading_gap, scene_heading
 from factorydet_core.geometry import make_transform, points_in_box, rotation_ypr, rotation_z, transform_boxes
 
 coordinate = st.floats(-5, 5, allow_nan=False)
@@ -236,9 +236,23 @@ def test_iou_blocks_give_the_same_matrix():
     np.testing.assert_allclose(box_iou_3d(a, a, max_block=7), box_iou_3d(a, a), atol=0)
 
 
-def _heading_gap(a: float, b: float) -> float:
-    """Angle between two headings modulo 90 degrees, radians."""
-    return abs((a - b + np.pi / 4) % (np.pi / 2) - np.pi / 4)
+def test_heading_gap_is_the_angle_modulo_a_quarter_turn():
+    d = np.radians
+    cases = [
+        (0.0, 0.0, 0.0),
+        (d(10), 0.0, d(10)),
+        (d(-10), 0.0, d(10)),
+        (d(95), 0.0, d(5)),
+        (d(85), 0.0, d(5)),
+        (d(45), 0.0, d(45)),
+        (d(190), d(5), d(5)),
+        (d(-89), d(1), 0.0),
+    ]
+    for yaw, heading, gap in cases:
+        assert float(heading_gap(yaw, heading)) == pytest.approx(gap, abs=1e-12)
+    yaws = np.linspace(-7, 7, 101).reshape(1, 101)
+    assert heading_gap(yaws, 0.4).shape == (1, 101)
+    assert (heading_gap(yaws, 0.4) <= np.pi / 4 + 1e-12).all()
 
 
 @given(st.floats(0.0, 2 * np.pi), st.integers(0, 2**31 - 1))
@@ -259,11 +273,11 @@ def test_scene_heading_finds_the_grid_of_the_heavy_boxes(heading, seed):
     weights = np.concatenate([rng.uniform(500, 2000, num_grid), rng.uniform(10, 100, num_random)])
     found = scene_heading(boxes, weights)
     assert 0.0 <= found < np.pi / 2
-    assert _heading_gap(found, heading) < np.radians(1.0)
+    assert heading_gap(found, heading) < np.radians(1.0)
     # Turning the whole scene turns its heading.
     turned = boxes.copy()
     turned[:, 6] += 0.3
-    assert _heading_gap(scene_heading(turned, weights), heading + 0.3) < np.radians(1.0)
+    assert heading_gap(scene_heading(turned, weights), heading + 0.3) < np.radians(1.0)
 
 
 def test_scene_heading_of_no_boxes_is_zero():

@@ -3,6 +3,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from factorydet_core.boxes import heading_gap
 from factorydet_core.dataset import open_dataset
 from factorydet_core.detector import PRESETS, STAGES, Detector, FrontEndParams, ProposalResult
 from factorydet_core.geometry import invert_transform, points_in_box
@@ -61,8 +62,7 @@ def test_proposals_are_well_formed(result):
     heading = proposals.scene_heading
     assert min(heading, np.pi / 2 - heading) < np.radians(2)
     aligned = proposals.boxes[proposals.box_kind >= 3]
-    folded = np.mod(aligned[:, 6] - heading + np.pi / 4, np.pi / 2) - np.pi / 4
-    assert np.abs(folded).max() < 1e-9
+    assert heading_gap(aligned[:, 6], heading).max() < 1e-9
     assert (proposals.anchor_mask == np.isin(proposals.box_kind, (0, 3))).all()
     num_patches = result.segmentation.num_patches
     assert all(len(s) >= 1 and max(s) < num_patches for s in proposals.patch_sets)

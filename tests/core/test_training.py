@@ -15,10 +15,10 @@ from factorydet_core.evaluation import tune_class_thresholds
 from factorydet_core.model import DetectionModel
 from factorydet_core.session import mined_negatives, open_session, save_training_run, training_runs
 from factorydet_core.training import (
-    _score_frames,
     collect_proposals,
     group_labels,
     group_overlaps,
+    score_frames,
     train_with_mining,
 )
 from factorydet_core.types import InputError
@@ -179,7 +179,7 @@ def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_d
     # annotations, from the scores its round computed (none here: this two-epoch classifier
     # matches no annotation above 0.1; test_each_round_takes_its_tuned_thresholds has some).
     names = run.model.class_names
-    expected = tune_class_thresholds(_score_frames(run.model, frames, 0.05), names, 0.6, max_threshold=0.05)
+    expected = tune_class_thresholds(score_frames(run.model, frames, 0.05), names, 0.6, max_threshold=0.05)
     assert run.model.class_score_thresholds == {
         c: float(t) for c, t in zip(names, expected) if np.isfinite(t)
     }
@@ -196,7 +196,11 @@ def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_d
     note = json.loads(path.with_suffix(".json").read_text())
     note["class_score_thresholds"] = {names[0]: 1.5}
     path.with_suffix(".json").write_text(json.dumps(note))
-    with pytest.raises(InputError, match=r"\[0, 1\]"):
+    with pytest.raises(InputError, match=rf"\[{names[0]!r}\] must lie in \[0, 1\], got 1.5"):
+        DetectionModel.load(path)
+    note["class_score_thresholds"] = {names[0]: "high"}
+    path.with_suffix(".json").write_text(json.dumps(note))
+    with pytest.raises(InputError, match="must be a number"):
         DetectionModel.load(path)
     # The whole pipeline in one call.
     detector = Detector("agv", model=loaded)
