@@ -19,8 +19,6 @@ anything. ``tests/core/test_box_quality.py`` checks that ``predict`` equals scik
 from __future__ import annotations
 
 import dataclasses
-import threading
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -32,6 +30,7 @@ from .detection import (
     ProposalGroups,
     _horizontal_sorted_sizes,
 )
+from .jit import run_kernel
 from .types import InputError
 
 OPTION_FEATURE_NAMES: tuple[str, ...] = (
@@ -383,7 +382,8 @@ def _evaluate_trees(trees: dict[str, np.ndarray], features: np.ndarray) -> np.nd
     tree to its leaf, compiled by numba, rows split over the cores (several times faster than the
     vectorised walk of ``_evaluate_trees_numpy``, which anchored options made the slowest step of a
     detection). Features are finite, so the missing-value branch of a split never applies."""
-    return _walk_trees(
+    return run_kernel(
+        _compile_walk,
         np.ascontiguousarray(features, np.float64),
         trees["roots"].astype(np.int64),
         trees["feature"].astype(np.int64),
@@ -418,26 +418,6 @@ def _compile_walk():
         return total
 
     return walk
-
-
-_walk_compiled = None
-_walk_lock = threading.Lock()
-
-
-def _walk_trees(*args) -> np.ndarray:
-    global _walk_compiled
-    # One walk at a time: the app calls from several threads, and numba's fallback threading layer
-    # (workqueue, where OpenMP is missing) aborts the process on concurrent parallel launches.
-    with _walk_lock:
-        if _walk_compiled is None:  # compile (or load numba's cache) on first use, not at import
-            import numba
-
-            numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-            _walk_compiled = _compile_walk()
-        with warnings.catch_warnings():
-            # numba names every threading layer it could not load (an old TBB, say) on first launch.
-            warnings.filterwarnings("ignore", message=".*threading layer.*")
-            return _walk_compiled(*args)
 
 
 def _evaluate_trees_numpy(trees: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:

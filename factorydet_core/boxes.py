@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .types import check_array
+from .jit import run_kernel
+from .types import InputError, check_array
 
 
 def _inside(points: np.ndarray, rectangles: np.ndarray) -> np.ndarray:
@@ -153,33 +154,143 @@ def fit_box(
     Returns:
         (7,) box; dx >= dy, yaw in [-pi/2, pi/2) along dx.
     """
-    xy = np.asarray(points[:, :2], np.float64)
-    z_lo, z_hi = float(points[:, 2].min()), float(points[:, 2].max())
-    search = xy[:: max(1, -(-len(xy) // max_search_points))] - xy.mean(axis=0)  # ceil: at most the limit
-    angle = 0.0 if heading is None else float(heading) % (np.pi / 2)
-    if heading is None and len(search) >= 3:
-        angles = np.radians(np.arange(0.0, 90.0, angle_step_deg))
-        c, s = np.cos(angles), np.sin(angles)
-        u = search[:, 0, None] * c + search[:, 1, None] * s  # (n, A) along the heading
-        v = -search[:, 0, None] * s + search[:, 1, None] * c  # (n, A) across it
-        du = np.minimum(u - u.min(axis=0), u.max(axis=0) - u)
-        dv = np.minimum(v - v.min(axis=0), v.max(axis=0) - v)
-        closeness = (1.0 / np.maximum(np.minimum(du, dv), 0.01)).sum(axis=0)
-        angle = float(angles[int(np.argmax(closeness))])
-    c, s = np.cos(angle), np.sin(angle)
-    u = xy[:, 0] * c + xy[:, 1] * s
-    v = -xy[:, 0] * s + xy[:, 1] * c
-    centre_u, centre_v = (u.min() + u.max()) / 2, (v.min() + v.max()) / 2
-    size = np.maximum([u.max() - u.min(), v.max() - v.min()], min_size)
-    centre = np.array([c * centre_u - s * centre_v, s * centre_u + c * centre_v])
-    yaw = angle
-    if size[1] > size[0]:  # dx is the longer side
-        size = size[::-1]
-        yaw = angle + np.pi / 2
-    yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2
-    return np.array(
-        [centre[0], centre[1], (z_lo + z_hi) / 2, size[0], size[1], max(z_hi - z_lo, min_size), yaw]
+    points = np.asarray(points)
+    headings = None if heading is None else np.array([heading], np.float64)
+    return fit_boxes(points, [np.arange(len(points))], headings, min_size, angle_step_deg, max_search_points)[
+        0
+    ]
+
+
+def fit_boxes(
+    points: np.ndarray,
+    point_lists: list[np.ndarray],
+    headings: np.ndarray | None = None,
+    min_size: float = 0.02,
+    angle_step_deg: float = 1.0,
+    max_search_points: int = 256,
+) -> np.ndarray:
+    """``fit_box`` of many point sets at once, compiled and spread over the cores (a frame's few
+    thousand point sets took most of the proposal stage one call at a time).
+
+    Args:
+        points: (N, 3) the cloud (further columns are ignored).
+        point_lists: M arrays of indices into ``points``, none empty.
+        headings: (M,) each set's heading in radians, NaN to search it; ``None`` searches all.
+        min_size, angle_step_deg, max_search_points: as ``fit_box``.
+
+    Returns:
+        (M, 7) boxes; dx >= dy, yaw in [-pi/2, pi/2) along dx.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise InputError(f"points: expected shape (N, 3), got {points.shape}")
+    sizes = np.array([len(p) for p in point_lists], np.int64)
+    if (sizes == 0).any():
+        raise InputError(f"point set {int(np.argmin(sizes))} is empty: a box needs at least one point")
+    if max_search_points < 1 or angle_step_deg <= 0:
+        raise InputError("max_search_points must be >= 1 and angle_step_deg > 0")
+    num_sets = len(point_lists)
+    if headings is None:
+        headings = np.full(num_sets, np.nan)
+    headings = np.asarray(headings, np.float64).reshape(-1)
+    if len(headings) != num_sets:
+        raise InputError(f"headings: expected {num_sets} values, got {len(headings)}")
+    out = np.zeros((num_sets, 7))
+    if not num_sets:
+        return out
+    indptr = np.concatenate([[0], np.cumsum(sizes)])
+    indices = np.concatenate([np.asarray(p, np.int64).reshape(-1) for p in point_lists])
+    if indices.min() < 0 or indices.max() >= len(points):
+        raise InputError("point_lists index outside the points")
+    angles = np.radians(np.arange(0.0, 90.0, angle_step_deg))
+    run_kernel(
+        _compile_fit_boxes,
+        np.ascontiguousarray(points[:, :2], np.float64),
+        np.ascontiguousarray(points[:, 2], np.float64),
+        indptr,
+        indices,
+        headings,
+        angles,
+        np.cos(angles),
+        np.sin(angles),
+        float(min_size),
+        int(max_search_points),
+        out,
     )
+    return out
+
+
+def _compile_fit_boxes():
+    import math
+
+    import numba
+
+    @numba.njit(parallel=True, cache=True, nogil=True)
+    def fit(xy, z, indptr, indices, headings, angles, cos_a, sin_a, min_size, max_search, out):
+        for m in numba.prange(indptr.shape[0] - 1):
+            lo, num = indptr[m], indptr[m + 1] - indptr[m]
+            mean_x, mean_y, z_lo, z_hi = 0.0, 0.0, np.inf, -np.inf
+            for i in range(num):
+                p = indices[lo + i]
+                mean_x += xy[p, 0]
+                mean_y += xy[p, 1]
+                z_lo = min(z_lo, z[p])
+                z_hi = max(z_hi, z[p])
+            mean_x /= num
+            mean_y /= num
+            stride = max(1, -(-num // max_search))  # ceil: at most max_search points
+            num_search = -(-num // stride)
+            angle = 0.0
+            if not np.isnan(headings[m]):
+                angle = headings[m] % (np.pi / 2)
+            elif num_search >= 3:
+                sx = np.empty(num_search)
+                sy = np.empty(num_search)
+                for j in range(num_search):
+                    p = indices[lo + j * stride]
+                    sx[j] = xy[p, 0] - mean_x
+                    sy[j] = xy[p, 1] - mean_y
+                best = -1.0
+                for a in range(angles.shape[0]):
+                    c, s = cos_a[a], sin_a[a]
+                    u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
+                    for j in range(num_search):
+                        u = sx[j] * c + sy[j] * s
+                        v = -sx[j] * s + sy[j] * c
+                        u_lo, u_hi = min(u_lo, u), max(u_hi, u)
+                        v_lo, v_hi = min(v_lo, v), max(v_hi, v)
+                    closeness = 0.0
+                    for j in range(num_search):
+                        u = sx[j] * c + sy[j] * s
+                        v = -sx[j] * s + sy[j] * c
+                        gap = min(min(u - u_lo, u_hi - u), min(v - v_lo, v_hi - v))
+                        closeness += 1.0 / max(gap, 0.01)
+                    if closeness > best:  # the first of equal maxima, like argmax
+                        best = closeness
+                        angle = angles[a]
+            c, s = math.cos(angle), math.sin(angle)
+            u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
+            for i in range(num):
+                p = indices[lo + i]
+                u = xy[p, 0] * c + xy[p, 1] * s
+                v = -xy[p, 0] * s + xy[p, 1] * c
+                u_lo, u_hi = min(u_lo, u), max(u_hi, u)
+                v_lo, v_hi = min(v_lo, v), max(v_hi, v)
+            centre_u, centre_v = (u_lo + u_hi) / 2, (v_lo + v_hi) / 2
+            size_u, size_v = max(u_hi - u_lo, min_size), max(v_hi - v_lo, min_size)
+            yaw = angle
+            if size_v > size_u:  # dx is the longer side
+                size_u, size_v = size_v, size_u
+                yaw = angle + np.pi / 2
+            out[m, 0] = c * centre_u - s * centre_v
+            out[m, 1] = s * centre_u + c * centre_v
+            out[m, 2] = (z_lo + z_hi) / 2
+            out[m, 3] = size_u
+            out[m, 4] = size_v
+            out[m, 5] = max(z_hi - z_lo, min_size)
+            out[m, 6] = (yaw + np.pi / 2) % np.pi - np.pi / 2
+
+    return fit
 
 
 def complete_hidden_side(boxes: np.ndarray, viewpoint: np.ndarray | None = None) -> np.ndarray:

@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 import scipy.sparse
 
-from .boxes import complete_hidden_side, fit_box, heading_gap, scene_heading
+from .boxes import complete_hidden_side, fit_boxes, heading_gap, scene_heading
 from .features import NUM_CHANNELS, NUM_GAUSSIANS, fisher_vectors, to_unit_sphere
 from .types import InputError, Proposals, Segmentation, VoxelGrid
 
@@ -71,15 +71,22 @@ def point_sets(patch_ids: np.ndarray, patch_sets: list[tuple[int, ...]] | tuple)
     ]
 
 
-def _fitted_and_view_boxes(points: np.ndarray, heading: float | None = None) -> np.ndarray:
-    """(2, 7): the L-shape box of the points, and their box headed along the viewing direction
-    from the vehicle origin (right for round objects, whose one-sided view gives the L-shape search
-    nothing to hold on to); with ``heading``, (3, 7): also their box at that heading."""
-    view_heading = float(np.arctan2(*points[:, 1::-1].mean(axis=0)))
-    boxes = [fit_box(points), fit_box(points, heading=view_heading)]
+def _fitted_and_view_boxes(
+    points: np.ndarray, point_lists: list[np.ndarray], heading: float | None = None
+) -> np.ndarray:
+    """(M, 2, 7) for each of the M point sets: the L-shape box of its points, and their box headed
+    along the viewing direction from the vehicle origin (right for round objects, whose one-sided
+    view gives the L-shape search nothing to hold on to); with ``heading``, (M, 3, 7): also their
+    box at that heading."""
+    # The mean as each set's own array computes it, so the headings (and boxes) do not depend on
+    # how many sets are fitted together.
+    view_headings = np.array([np.arctan2(*points[idx][:, 1::-1].mean(axis=0)) for idx in point_lists])
+    num_sets = len(point_lists)
+    headings = [np.full(num_sets, np.nan), view_headings]
     if heading is not None:
-        boxes.append(fit_box(points, heading=heading))
-    return np.stack(boxes)
+        headings.append(np.full(num_sets, float(heading)))
+    boxes = fit_boxes(points, list(point_lists) * len(headings), np.concatenate(headings))
+    return boxes.reshape(len(headings), num_sets, 7).transpose(1, 0, 2)
 
 
 # Boxes within this angle of the scene's heading are aligned with it already.
@@ -110,7 +117,9 @@ def box_hypotheses(
     behind (when narrow), view-headed and completed behind, and with the scene's ``heading`` (when
     the fitted box is off it) the box at that heading and the same completed (when narrow); each
     snapped to the floor."""
-    boxes = snap_to_floor(_fitted_and_view_boxes(points, heading), floor_plane, ground_snap_m)
+    boxes = snap_to_floor(
+        _fitted_and_view_boxes(points, [np.arange(len(points))], heading)[0], floor_plane, ground_snap_m
+    )
     if not complete_boxes:
         return boxes[:1]
     out = [boxes[:1], complete_hidden_side(boxes[:1][_completable(boxes[:1], min_completion_ratio)])]
@@ -265,7 +274,7 @@ def build_proposals(
         points, grid, voxel_features, point_lists, weighting, feature, proposal_voxel
     )
 
-    fitted_and_view = np.array([_fitted_and_view_boxes(points[idx]) for idx in point_lists])  # (M, 2, 7)
+    fitted_and_view = _fitted_and_view_boxes(points, point_lists).reshape(-1, 2, 7)
     boxes = snap_to_floor(fitted_and_view[:, 0], floor_plane, ground_snap_m)
     num_points_kept = set_sizes[keep]
     box_kind = np.zeros(len(sets), np.int8)
@@ -284,7 +293,9 @@ def build_proposals(
             aligned = np.zeros_like(boxes)
             if len(misaligned):
                 aligned[misaligned] = snap_to_floor(
-                    np.array([fit_box(points[point_lists[i]], heading=heading) for i in misaligned]),
+                    fit_boxes(
+                        points, [point_lists[i] for i in misaligned], np.full(len(misaligned), heading)
+                    ),
                     floor_plane,
                     ground_snap_m,
                 )

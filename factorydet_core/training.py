@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from .box_quality import BoxQuality
-from .boxes import box_iou_3d, fit_box
+from .boxes import box_iou_3d, fit_boxes
 from .classifier import ProposalClassifier
 from .dataset import Dataset
 from .detection import BoxSizePrior, ProposalGroups, describe_point_sets, group_proposals
@@ -108,7 +108,7 @@ def _annotation_samples(
         detector.params.weighting,
         detector.params.feature,
     ).reshape(-1, 20, 5, 5, 5)
-    boxes = np.array([fit_box(cloud.points[p]) for p in point_lists]).reshape(-1, 7)
+    boxes = fit_boxes(cloud.points, point_lists)
     num_voxels = np.array([len(np.unique(result.grid.point_voxel_ids[p])) for p in point_lists])
     descriptors = describe_point_sets(cloud.points, point_lists, boxes, num_voxels, result.floor_plane)
     return (

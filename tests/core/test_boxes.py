@@ -3,8 +3,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from factorydet_core.boxes import box_iou_3d, complete_hidden_side, fit_box, heading_gap, scene_heading
+from factorydet_core.boxes import (
+    box_iou_3d,
+    complete_hidden_side,
+    fit_box,
+    fit_boxes,
+    heading_gap,
+    scene_heading,
+)
 from factorydet_core.geometry import make_transform, points_in_box, rotation_ypr, rotation_z, transform_boxes
+from factorydet_core.types import InputError
 
 coordinate = st.floats(-5, 5, allow_nan=False)
 size = st.floats(0.1, 4, allow_nan=False)
@@ -282,3 +290,74 @@ def test_scene_heading_finds_the_grid_of_the_heavy_boxes(heading, seed):
 
 def test_scene_heading_of_no_boxes_is_zero():
     assert scene_heading(np.zeros((0, 7))) == 0.0
+
+
+def _fit_box_reference(points, min_size=0.02, angle_step_deg=1.0, max_search_points=256, heading=None):
+    """``fit_box`` written plainly in numpy, one point set at a time (the compiled kernel's reference)."""
+    xy = np.asarray(points[:, :2], np.float64)
+    z_lo, z_hi = float(points[:, 2].min()), float(points[:, 2].max())
+    search = xy[:: max(1, -(-len(xy) // max_search_points))] - xy.mean(axis=0)
+    angle = 0.0 if heading is None else float(heading) % (np.pi / 2)
+    if heading is None and len(search) >= 3:
+        angles = np.radians(np.arange(0.0, 90.0, angle_step_deg))
+        u = search[:, 0, None] * np.cos(angles) + search[:, 1, None] * np.sin(angles)
+        v = -search[:, 0, None] * np.sin(angles) + search[:, 1, None] * np.cos(angles)
+        du = np.minimum(u - u.min(axis=0), u.max(axis=0) - u)
+        dv = np.minimum(v - v.min(axis=0), v.max(axis=0) - v)
+        angle = float(angles[int(np.argmax((1.0 / np.maximum(np.minimum(du, dv), 0.01)).sum(axis=0)))])
+    c, s = np.cos(angle), np.sin(angle)
+    u, v = xy[:, 0] * c + xy[:, 1] * s, -xy[:, 0] * s + xy[:, 1] * c
+    centre_u, centre_v = (u.min() + u.max()) / 2, (v.min() + v.max()) / 2
+    size = np.maximum([u.max() - u.min(), v.max() - v.min()], min_size)
+    yaw = angle
+    if size[1] > size[0]:
+        size, yaw = size[::-1], angle + np.pi / 2
+    return np.array(
+        [
+            c * centre_u - s * centre_v,
+            s * centre_u + c * centre_v,
+            (z_lo + z_hi) / 2,
+            size[0],
+            size[1],
+            max(z_hi - z_lo, min_size),
+            (yaw + np.pi / 2) % np.pi - np.pi / 2,
+        ]
+    )
+
+
+def test_fit_boxes_matches_the_plain_fit_of_each_set():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(3000, 3)) * [4, 2, 1]
+    # Sets of every size the search treats differently: 1 and 2 points (no search), a few, more
+    # than max_search_points (strided), and an L-shaped corner.
+    corner = np.concatenate(
+        [
+            np.column_stack([np.linspace(0, 2, 40), np.zeros(40)]),
+            np.column_stack([np.zeros(30), np.linspace(0, 1, 30)]),
+        ]
+    )
+    corner = np.column_stack([corner @ rotation_z(0.4)[:2, :2].T + [5, 5], rng.uniform(0, 1, 70)])
+    points = np.concatenate([points, corner])
+    lists = [rng.choice(3000, n, replace=False) for n in (1, 2, 3, 7, 50, 256, 257, 900)]
+    lists.append(np.arange(3000, 3070))
+    boxes = fit_boxes(points, lists)
+    expected = np.array([_fit_box_reference(points[idx]) for idx in lists])
+    np.testing.assert_allclose(boxes, expected, rtol=0, atol=1e-12)
+    assert np.isclose(heading_gap(boxes[-1, 6], 0.4), 0, atol=np.radians(1))  # the corner's heading
+    headings = np.array([np.nan, 0.3, -2.0, np.nan, 7.5, 0.0, np.pi / 2, -0.1, np.nan])
+    boxes = fit_boxes(points, lists, headings, max_search_points=64)
+    expected = [
+        _fit_box_reference(points[idx], max_search_points=64, heading=None if np.isnan(h) else h)
+        for idx, h in zip(lists, headings)
+    ]
+    np.testing.assert_allclose(boxes, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        fit_box(points[lists[5]], heading=0.3), fit_boxes(points, lists[5:6], [0.3])[0]
+    )
+    assert fit_boxes(points, []).shape == (0, 7)
+    with pytest.raises(InputError, match="empty"):
+        fit_boxes(points, [np.arange(3), np.arange(0)])
+    with pytest.raises(InputError, match="outside"):
+        fit_boxes(points, [np.array([len(points)])])
+    with pytest.raises(InputError, match="headings"):
+        fit_boxes(points, lists, np.zeros(2))
