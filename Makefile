@@ -92,6 +92,7 @@ $(STAMP): pyproject.toml | sysdeps
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
 	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m factorydet_core.jit  # compiles the numba kernels once (about half a minute)
 	touch $(STAMP)
 
 clean:

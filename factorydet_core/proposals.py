@@ -277,20 +277,24 @@ def build_proposals(
     fitted_and_view = _fitted_and_view_boxes(points, point_lists).reshape(-1, 2, 7)
     boxes = snap_to_floor(fitted_and_view[:, 0], floor_plane, ground_snap_m)
     num_points_kept = set_sizes[keep]
+    # Each candidate box is one of a set's hypotheses: origin is its set, and the set's features,
+    # patches and counts are gathered once at the end (copying every set's features per kind of
+    # box took a good part of the stage).
+    origin = np.arange(len(sets))
     box_kind = np.zeros(len(sets), np.int8)
     heading = None
     if complete_boxes:
         view_boxes = snap_to_floor(fitted_and_view[:, 1], floor_plane, ground_snap_m)
-        everything = np.arange(len(sets))
+        fitted = boxes
         # (kind, the sets that get one, their boxes, whether to complete them)
         hypotheses = [
-            (1, _completable(boxes, min_completion_ratio), boxes, True),
-            (2, everything, view_boxes, True),
+            (1, _completable(fitted, min_completion_ratio), fitted, True),
+            (2, np.arange(len(sets)), view_boxes, True),
         ]
         if align_to_scene:
-            heading = float(scene_heading(boxes, num_points_kept))
-            misaligned = _misaligned(boxes, heading)
-            aligned = np.zeros_like(boxes)
+            heading = float(scene_heading(fitted, num_points_kept))
+            misaligned = _misaligned(fitted, heading)
+            aligned = np.zeros_like(fitted)
             if len(misaligned):
                 aligned[misaligned] = snap_to_floor(
                     fit_boxes(
@@ -304,11 +308,7 @@ def build_proposals(
         for kind, extra, source, complete in hypotheses:
             added = complete_hidden_side(source[extra]) if complete else source[extra]
             boxes = np.concatenate([boxes, added])
-            features = np.concatenate([features, features[extra]])
-            sets = sets + [sets[i] for i in extra]
-            num_points_kept = np.concatenate([num_points_kept, num_points_kept[extra]])
-            num_voxels = np.concatenate([num_voxels, num_voxels[extra]])
-            levels = np.concatenate([levels, levels[extra]])
+            origin = np.concatenate([origin, extra])
             box_kind = np.concatenate([box_kind, np.full(len(extra), kind, np.int8)])
     # Different candidates often give the same box (a union with a sliver, a completion of an
     # already square box): keep the first of boxes equal to within 2 cm and 2 degrees.
@@ -317,10 +317,10 @@ def build_proposals(
     ).astype(np.int64)
     _, first = np.unique(key, axis=0, return_index=True)
     unique = np.sort(first)
-    boxes, features = boxes[unique], features[unique]
-    sets = [sets[i] for i in unique]
-    num_points_kept, num_voxels = num_points_kept[unique], num_voxels[unique]
-    levels, box_kind = levels[unique], box_kind[unique]
+    boxes, box_kind, chosen = boxes[unique], box_kind[unique], origin[unique]
+    features = features[chosen]
+    sets = [sets[i] for i in chosen]
+    num_points_kept, num_voxels, levels = num_points_kept[chosen], num_voxels[chosen], levels[chosen]
     return Proposals(
         boxes=boxes,
         features=features,

@@ -25,13 +25,13 @@
 from __future__ import annotations
 
 import dataclasses
-import heapq
 
 import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
 from .geometry import group_bounds
+from .jit import run_kernel
 from .types import InputError, Segmentation, check_array
 
 
@@ -223,18 +223,15 @@ def _absorb_small(
         small = sizes < min_points
         if not small.any():
             break
-        adjacency = _patch_adjacency(patch_ids, source, target, num).tolil()
-        mapping = np.arange(num)
-        changed = False
-        for patch in np.flatnonzero(small):
-            row_ids, row_counts = adjacency.rows[patch], adjacency.data[patch]
-            if not row_ids:
-                continue  # isolated: stays (and is dropped later as too small for a proposal)
-            # Prefer a neighbour that is not small itself, then the most shared edges.
-            best = max(zip(row_ids, row_counts), key=lambda rc: (not small[rc[0]], rc[1]))[0]
-            if mapping[best] != patch:
-                mapping[patch] = mapping[best]
-                changed = True
+        adjacency = _patch_adjacency(patch_ids, source, target, num)
+        adjacency.sort_indices()
+        mapping, changed = run_kernel(
+            _compile_absorb,
+            adjacency.indptr.astype(np.int64),
+            adjacency.indices.astype(np.int64),
+            adjacency.data.astype(np.float64),
+            small,
+        )
         if not changed:
             break
         # Resolve chains (a -> b -> c).
@@ -245,6 +242,33 @@ def _absorb_small(
             mapping = nxt
         patch_ids = _relabel(mapping[patch_ids])
     return patch_ids
+
+
+def _compile_absorb():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def absorb(indptr, neighbours, counts, small):
+        """One round: each small patch, in order, maps to its best neighbour's current target."""
+        mapping = np.arange(len(small))
+        changed = False
+        for patch in range(len(small)):
+            if not small[patch] or indptr[patch] == indptr[patch + 1]:
+                continue  # isolated: stays (and is dropped later as too small for a proposal)
+            # Prefer a neighbour that is not small itself, then the most shared edges; the first
+            # (lowest id) of equals.
+            best = -1
+            best_big, best_count = False, -1.0
+            for e in range(indptr[patch], indptr[patch + 1]):
+                big = not small[neighbours[e]]
+                if best < 0 or (big and not best_big) or (big == best_big and counts[e] > best_count):
+                    best, best_big, best_count = neighbours[e], big, counts[e]
+            if mapping[best] != patch:
+                mapping[patch] = mapping[best]
+                changed = True
+        return mapping, changed
+
+    return absorb
 
 
 def _cut_pursuit(
@@ -361,58 +385,107 @@ def merge_patches(
     num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
     if num_patches == 0:
         return np.zeros(0, np.int64), ()
-    adjacency = _patch_adjacency(patch_ids, source, target, num_patches).tocoo()
-    boundary = np.asarray(adjacency.sum(axis=1)).ravel()  # inter-patch edges of each patch
+    adjacency = _patch_adjacency(patch_ids, source, target, num_patches)
+    adjacency.sort_indices()
     lo, hi = group_bounds(points, patch_ids, num_patches)
     max_side, max_height = params.max_object_size_m
-
-    # Union-find over patches; each root keeps its members, bounds, boundary and edge counts.
-    parent = np.arange(num_patches)
-    members = {p: [p] for p in range(num_patches)}
-    links: dict[int, dict[int, float]] = {p: {} for p in range(num_patches)}
-    for a, b, c in zip(adjacency.row, adjacency.col, adjacency.data):
-        links[int(a)][int(b)] = float(c)
-
-    def strength(a: int, b: int) -> float:
-        return links[a].get(b, 0.0) / max(min(boundary[a], boundary[b]), 1.0)
-
-    heap = [(-strength(a, b), a, b) for a in links for b in links[a] if a < b]
-    heapq.heapify(heap)
-    history = []
-    while heap:
-        neg_strength, a, b = heapq.heappop(heap)
-        if parent[a] != a or parent[b] != b or b not in links[a]:
-            continue  # stale entry
-        if -neg_strength != strength(a, b):
-            continue  # a newer entry for this pair is in the heap
-        if -neg_strength < params.merge_threshold:
-            break
-        union_lo, union_hi = np.minimum(lo[a], lo[b]), np.maximum(hi[a], hi[b])
-        side = union_hi[:2] - union_lo[:2]
+    root_of, history_members, history_ends = run_kernel(
+        _compile_merge,
+        num_patches,
+        adjacency.indptr.astype(np.int64),
+        adjacency.indices.astype(np.int64),
+        adjacency.data.astype(np.float64),
+        lo,
+        hi,
         # The horizontal test uses the axis-aligned bounding box of the union, which over-estimates
         # a yawed object's longest side (by up to sqrt(2) for a square at 45 degrees); 20 % slack
         # covers the usual yaws of elongated objects without admitting much larger unions.
-        if max(side) > max_side * 1.2 or union_hi[2] - union_lo[2] > max_height:
-            continue
-        # Merge b into a.
-        parent[b] = a
-        members[a].extend(members.pop(b))
-        lo[a], hi[a] = union_lo, union_hi
-        shared = links[a].pop(b, 0.0)
-        links[b].pop(a, None)
-        boundary[a] = boundary[a] + boundary[b] - 2 * shared
-        for other, count in links.pop(b).items():
-            links[other].pop(b, None)
-            links[a][other] = links[a].get(other, 0.0) + count
-            links[other][a] = links[a][other]
-        for other in links[a]:
-            heapq.heappush(heap, (-strength(a, other), min(a, other), max(a, other)))
-        history.append(tuple(sorted(members[a])))
+        float(max_side) * 1.2,
+        float(max_height),
+        float(params.merge_threshold),
+    )
+    starts = np.concatenate([[0], history_ends[:-1]])
+    history = tuple(tuple(history_members[a:b].tolist()) for a, b in zip(starts, history_ends))
+    return _relabel(root_of), history
 
-    root_of = np.arange(num_patches)
-    for root, group in members.items():
-        root_of[group] = root
-    return _relabel(root_of), tuple(history)
+
+def _compile_merge():
+    import heapq
+
+    import numba
+    from numba import types
+    from numba.typed import Dict, List
+
+    @numba.njit(cache=True, nogil=True)
+    def merge(num_patches, indptr, neighbours, counts, lo, hi, max_side, max_height, threshold):
+        # Union-find over patches; each root keeps its members, bounds, boundary (its inter-patch
+        # edges) and edge counts to the other roots.
+        parent = np.arange(num_patches)
+        boundary = np.zeros(num_patches)
+        links = List()
+        members = List()
+        heap = []
+        for a in range(num_patches):
+            row = Dict.empty(types.int64, types.float64)
+            for e in range(indptr[a], indptr[a + 1]):
+                row[neighbours[e]] = counts[e]
+                boundary[a] += counts[e]
+            links.append(row)
+            own = List.empty_list(types.int64)
+            own.append(a)
+            members.append(own)
+        for a in range(num_patches):
+            for b, count in links[a].items():
+                if a < b:
+                    heap.append((-(count / max(min(boundary[a], boundary[b]), 1.0)), a, b))
+        heapq.heapify(heap)
+        history_members = List.empty_list(types.int64)
+        history_ends = List.empty_list(types.int64)
+        while len(heap):
+            neg_strength, a, b = heapq.heappop(heap)
+            if parent[a] != a or parent[b] != b or b not in links[a]:
+                continue  # stale entry
+            if -neg_strength != links[a][b] / max(min(boundary[a], boundary[b]), 1.0):
+                continue  # a newer entry for this pair is in the heap
+            if -neg_strength < threshold:
+                break
+            union_lo = np.minimum(lo[a], lo[b])
+            union_hi = np.maximum(hi[a], hi[b])
+            if max(union_hi[0] - union_lo[0], union_hi[1] - union_lo[1]) > max_side:
+                continue
+            if union_hi[2] - union_lo[2] > max_height:
+                continue
+            # Merge b into a.
+            parent[b] = a
+            members[a].extend(members[b])
+            members[b] = List.empty_list(types.int64)
+            lo[a], hi[a] = union_lo, union_hi
+            shared = links[a].pop(b)
+            links[b].pop(a)
+            boundary[a] = boundary[a] + boundary[b] - 2 * shared
+            for other, count in links[b].items():
+                links[other].pop(b)
+                total = links[a].get(other, 0.0) + count
+                links[a][other] = total
+                links[other][a] = total
+            links[b] = Dict.empty(types.int64, types.float64)
+            for other, count in links[a].items():
+                strength = count / max(min(boundary[a], boundary[other]), 1.0)
+                heapq.heappush(heap, (-strength, min(a, other), max(a, other)))
+            union = np.empty(len(members[a]), np.int64)
+            for i in range(len(union)):
+                union[i] = members[a][i]
+            union.sort()
+            history_members.extend(union)
+            history_ends.append(len(history_members))
+        root_of = np.arange(num_patches)
+        for root in range(num_patches):
+            if parent[root] == root:
+                for patch in members[root]:
+                    root_of[patch] = root
+        return root_of, np.asarray(history_members), np.asarray(history_ends)
+
+    return merge
 
 
 def _mergeable_connections(
