@@ -50,11 +50,8 @@ def prune(cloud: MergedCloud, voxel_size: float) -> MergedCloud:
         return cloud
     if not voxel_size > 0:
         raise InputError(f"prune: voxel_size must be >= 0 m, got {voxel_size}")
-    cells = np.floor(cloud.points / voxel_size).astype(np.int64)
-    _, cell_ids, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    cell_ids = cell_ids.reshape(-1)
-    means = np.zeros((len(counts), 3))
-    np.add.at(means, cell_ids, cloud.points)
+    cell_ids, counts = _cell_ids(np.floor(cloud.points / voxel_size).astype(np.int64))
+    means = np.stack([np.bincount(cell_ids, cloud.points[:, axis], len(counts)) for axis in range(3)], axis=1)
     means /= counts[:, None]
     dist = np.linalg.norm(cloud.points - means[cell_ids], axis=1)
     # For each cell, the point with the smallest distance: sort by (cell, distance), take firsts.
@@ -64,6 +61,21 @@ def prune(cloud: MergedCloud, voxel_size: float) -> MergedCloud:
     keep = np.zeros(cloud.num_points, bool)
     keep[order[first]] = True
     return cloud.select(keep)
+
+
+def _cell_ids(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) the id of each of (N, 3) integer cells among the distinct cells in lexicographic order,
+    and (C,) each cell's count (``np.unique(cells, axis=0)``'s inverse and counts, computed on one
+    integer key per cell: several times faster)."""
+    lo = cells.min(axis=0)
+    span = cells.max(axis=0) - lo + 1
+    if float(np.prod(span.astype(np.float64))) >= 2.0**62:  # a key would overflow: the slow way
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        return inverse.reshape(-1), counts
+    offset = cells - lo
+    key = (offset[:, 0] * span[1] + offset[:, 1]) * span[2] + offset[:, 2]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return inverse.reshape(-1), counts
 
 
 def floor_mask(

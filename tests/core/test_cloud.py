@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from factorydet_core.cloud import crop, floor_mask, prune, remove_floor
+from factorydet_core.cloud import _cell_ids, crop, floor_mask, prune, remove_floor
 from factorydet_core.geometry import rotation_ypr
 from factorydet_core.types import InputError, MergedCloud
 
@@ -98,6 +100,19 @@ def test_prune_picks_the_point_closest_to_the_cell_mean():
     points = np.array([[0.1, 0.1, 0.1], [0.5, 0.5, 0.5], [0.8, 0.8, 0.8], [1.5, 0.2, 0.2]])
     pruned = prune(make_cloud(points, np.arange(4)), 1.0)
     assert sorted(pruned.point_instance_ids.tolist()) == [1, 3]
+
+
+@given(st.integers(0, 2**31 - 1), st.sampled_from([3, 40, 10**7, 2**40]))
+@settings(max_examples=60, deadline=None)
+def test_cell_ids_are_those_of_unique_rows(seed, span):
+    # Spans up to 2**40 per axis overflow a single int64 key and take the slow path.
+    rng = np.random.default_rng(seed)
+    cells = rng.integers(-span, span, (int(rng.integers(1, 300)), 3))
+    cells[rng.integers(0, len(cells), len(cells) // 2)] = cells[0]  # repeated cells
+    ids, counts = _cell_ids(cells)
+    _, expected_ids, expected_counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    np.testing.assert_array_equal(ids, expected_ids.reshape(-1))
+    np.testing.assert_array_equal(counts, expected_counts)
 
 
 def test_prune_zero_and_invalid_sizes():
