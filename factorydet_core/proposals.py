@@ -319,6 +319,7 @@ def build_proposals(
     unique = np.sort(first)
     boxes, box_kind, chosen = boxes[unique], box_kind[unique], origin[unique]
     features = features[chosen]
+    features.flags.writeable = False  # a fresh array nobody else holds: Proposals need not copy it
     sets = [sets[i] for i in chosen]
     num_points_kept, num_voxels, levels = num_points_kept[chosen], num_voxels[chosen], levels[chosen]
     return Proposals(

@@ -5,6 +5,7 @@ from hypothesis import strategies as st
 from factorydet_core.geometry import (
     box_corners,
     box_wireframe_segments,
+    group_bounds,
     invert_transform,
     make_transform,
     points_in_box,
@@ -69,3 +70,19 @@ def test_transform_boxes_refuses_tilting_transforms():
 
     with pytest.raises(ValueError, match="z up"):
         transform_boxes(make_transform(rotation_ypr(0, 0.3, 0), np.zeros(3)), np.zeros((1, 7)) + 1)
+
+
+@given(st.integers(0, 2**31 - 1), st.integers(0, 200), st.integers(1, 30))
+@settings(max_examples=60, deadline=None)
+def test_group_bounds_are_each_groups_min_and_max(seed, num_points, num_groups):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(num_points, 3)).astype(rng.choice([np.float32, np.float64]))
+    group_ids = rng.integers(0, num_groups, num_points)
+    lo, hi = group_bounds(points, group_ids, num_groups)
+    for group in range(num_groups):
+        members = points[group_ids == group]
+        if len(members):
+            np.testing.assert_array_equal(lo[group], members.min(axis=0))
+            np.testing.assert_array_equal(hi[group], members.max(axis=0))
+        else:  # empty groups keep +inf / -inf
+            assert np.isposinf(lo[group]).all() and np.isneginf(hi[group]).all()
