@@ -378,19 +378,22 @@ def _export_trees(regressor) -> dict[str, np.ndarray]:
 
 
 def _evaluate_trees(trees: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
-    """The baseline plus every tree's leaf value, as scikit-learn adds them: each row walks every
-    tree to its leaf, compiled by numba, rows split over the cores (several times faster than the
-    vectorised walk of ``_evaluate_trees_numpy``, which anchored options made the slowest step of a
-    detection). Features are finite, so the missing-value branch of a split never applies."""
+    """The baseline plus every tree's leaf value, as scikit-learn adds them (in tree order, so the
+    sums are those of one row at a time): compiled by numba, blocks of rows split over the cores,
+    each block walking one tree at a time while that tree is in cache, with each node's split
+    feature (-1 at a leaf) and children packed together. Several times faster than the vectorised
+    walk of ``_evaluate_trees_numpy``, and 1.6 times faster than walking every tree per row
+    (measured on a bench frame's 674k options). Features are finite, so the missing-value branch
+    of a split never applies."""
+    split_feature = np.where(trees["is_leaf"], -1, trees["feature"]).astype(np.int32)
+    children = np.stack([trees["left"], trees["right"]], axis=1).astype(np.int32)
     return run_kernel(
         _compile_walk,
         np.ascontiguousarray(features, np.float64),
         trees["roots"].astype(np.int64),
-        trees["feature"].astype(np.int64),
+        split_feature,
+        children,
         trees["threshold"].astype(np.float64),
-        trees["left"].astype(np.int64),
-        trees["right"].astype(np.int64),
-        trees["is_leaf"].astype(np.bool_),
         trees["value"].astype(np.float64),
         float(trees["baseline"][0]),
     )
@@ -399,22 +402,29 @@ def _evaluate_trees(trees: dict[str, np.ndarray], features: np.ndarray) -> np.nd
 def _compile_walk():
     import numba
 
+    block = 1024  # rows per block: a few hundred kB of features, while one tree stays in L1
+
     @numba.njit(parallel=True, cache=True, nogil=True)
-    def walk(features, roots, feature, threshold, left, right, is_leaf, value, baseline):
+    def walk(features, roots, split_feature, children, threshold, value, baseline):
         num_rows = features.shape[0]
         total = np.empty(num_rows)
-        for r in numba.prange(num_rows):
-            acc = baseline
+        for b in numba.prange((num_rows + block - 1) // block):
+            lo, hi = b * block, min((b + 1) * block, num_rows)
+            acc = np.full(hi - lo, baseline)
             for t in range(roots.shape[0]):
-                node = roots[t]
-                while not is_leaf[node]:
-                    # Values equal to a threshold go left, as in scikit-learn.
-                    if features[r, feature[node]] <= threshold[node]:
-                        node = left[node]
-                    else:
-                        node = right[node]
-                acc += value[node]
-            total[r] = acc
+                for r in range(lo, hi):
+                    node = roots[t]
+                    feature = split_feature[node]
+                    while feature >= 0:
+                        # Values equal to a threshold go left, as in scikit-learn.
+                        node = (
+                            children[node, 0]
+                            if features[r, feature] <= threshold[node]
+                            else children[node, 1]
+                        )
+                        feature = split_feature[node]
+                    acc[r - lo] += value[node]
+            total[lo:hi] = acc
         return total
 
     return walk

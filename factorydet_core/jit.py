@@ -48,10 +48,9 @@ def warm_up() -> None:
     patch_ids, source, target = np.arange(12) % 4, np.arange(11), np.arange(1, 12)
     merge_patches(points, patch_ids, source, target)
     _absorb_small(patch_ids, source, target, min_points=4)
-    one_leaf = np.zeros(1, np.int64)
     run_kernel(
-        _compile_walk, points, one_leaf, one_leaf, np.zeros(1), one_leaf, one_leaf,
-        np.ones(1, np.bool_), np.zeros(1), 0.0,
+        _compile_walk, points, np.zeros(1, np.int64), np.full(1, -1, np.int32), np.zeros((1, 2), np.int32),
+        np.zeros(1), np.zeros(1), 0.0,
     )  # fmt: skip
 
 
