@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from .types import BOX_KINDS, LEVELS, MINING_THRESHOLD, InputError
+from .types import BOX_KINDS, LEVELS, MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 
 def progress_bar(desc: str, unit: str = "frame") -> tuple[Callable[[int, int], None], Callable[[], None]]:
@@ -144,7 +144,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     max_fit_seconds=args.max_fit_seconds,
                     max_train_frames=args.train_frames,
                     max_test_frames=args.frames,
-                    score_threshold=args.score_threshold,
+                    score_threshold=0.3 if args.score_threshold is None else args.score_threshold,
                     box_quality=args.box_quality,
                     command=command,
                     progress=update,
@@ -161,7 +161,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                         epochs=args.epochs,
                         negatives_per_round=args.negatives,
                         initial_negatives=args.initial_negatives,
-                        score_threshold=args.score_threshold,
+                        score_threshold=(
+                            SCORE_THRESHOLD if args.score_threshold is None else args.score_threshold
+                        ),
+                        probability_exponent=args.probability_exponent,
                         mining_threshold=args.mining_threshold,
                         box_quality=args.box_quality,
                     ),
@@ -376,6 +379,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         fragment_iou=args.fragment_iou,
         fragments_per_frame=args.fragments_per_frame,
         score_threshold=args.score_threshold,
+        probability_exponent=args.probability_exponent,
         class_thresholds=args.class_thresholds,
         mining_threshold=args.mining_threshold,
         nms_iou=args.nms_iou,
@@ -700,9 +704,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--score-threshold",
         type=float,
-        default=0.3,
+        default=SCORE_THRESHOLD,
         help="operating score of the model and of mining; with box quality a score is the class "
-        "probability times the predicted IoU, so it runs lower than a probability",
+        "probability to --probability-exponent times the predicted IoU "
+        f"(default {SCORE_THRESHOLD})",
+    )
+    p.add_argument(
+        "--probability-exponent",
+        type=float,
+        default=PROBABILITY_EXPONENT,
+        help="with box quality, the class probability's power in the score (1: the plain product; "
+        f"default {PROBABILITY_EXPONENT}, see the README)",
     )
     p.add_argument(
         "--mining-threshold",
@@ -857,8 +869,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--score-threshold",
         type=float,
-        default=0.3,
-        help="classifier, hitl: operating score; with box quality a score is probability x predicted IoU",
+        default=None,
+        help="classifier, hitl: operating score; with box quality a score is probability x predicted IoU "
+        f"(default: classifier 0.3, hitl {SCORE_THRESHOLD})",
+    )
+    p.add_argument(
+        "--probability-exponent",
+        type=float,
+        default=PROBABILITY_EXPONENT,
+        help="hitl: with box quality, the class probability's power in the score",
     )
     p.add_argument(
         "--mining-threshold",

@@ -510,12 +510,13 @@ def score_groups(
     box_prior: BoxSizePrior | None = None,
     class_names: tuple[str, ...] = CLASS_NAMES,
     box_quality: BoxQuality | None = None,
+    probability_exponent: float = 1.0,
 ) -> Detections:
     """One candidate detection per point set: its most probable object class, that class's
     probability as score, and the box that ``box_prior.options`` prefers for that class among the
     set's proposals and their grown versions. With ``box_quality`` (``box_quality.BoxQuality``,
     which needs ``box_prior``) the box is the option of highest predicted IoU and the score is the
-    class probability times that IoU.
+    class probability to the power ``probability_exponent`` times that IoU.
 
     Args:
         proposal_boxes: (M, 7) boxes of the proposals.
@@ -524,10 +525,15 @@ def score_groups(
         box_prior: class sizes; without it each set keeps its first (fitted) box.
         class_names: the C object classes.
         box_quality: predicts each option's IoU with the object (optional).
+        probability_exponent: with ``box_quality``, how much the class probability weighs against
+            the predicted IoU in the score (1: their product; 0.5: the square root of the
+            probability times the IoU). Sets below ``QUALITY_SCORE_FLOOR`` keep the probability.
 
     Returns:
         (G) candidates, none suppressed.
     """
+    if not probability_exponent > 0:
+        raise InputError(f"probability_exponent must be > 0, got {probability_exponent}")
     probabilities = np.asarray(probabilities, np.float32)
     num_classes = len(class_names)
     if probabilities.shape != (groups.num_groups, num_classes + 1):
@@ -555,7 +561,7 @@ def score_groups(
             )
             boxes[rated], proposal_ids[rated] = rated_boxes, rated_ids
             scores = scores.copy()
-            scores[rated] = scores[rated] * predicted_iou
+            scores[rated] = scores[rated] ** np.float32(probability_exponent) * predicted_iou
     elif box_prior is not None and groups.num_groups:
         boxes, proposal_ids = _prior_boxes(proposal_boxes, groups, class_ids, box_prior)
     return Detections(

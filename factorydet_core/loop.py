@@ -38,7 +38,7 @@ from .training import (
     proposals_to_arrays,
     train_with_mining,
 )
-from .types import MINING_THRESHOLD, InputError
+from .types import MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 MODES = ("full", "next")
 _CACHE_FORMAT = 2  # bump when FrameProposals or the front half's output changes meaning
@@ -60,8 +60,11 @@ class LoopSettings:
     """Point sets overlapping a label at most this much start as background (0: the paper's start)."""
     fragments_per_frame: int | None = None
     """At most this many of them per frame (``None``: all)."""
-    score_threshold: float = 0.3
-    """Operating score; with box quality, class probability times predicted IoU."""
+    score_threshold: float = SCORE_THRESHOLD
+    """Operating score; with box quality, the class probability to ``probability_exponent`` times
+    the predicted IoU."""
+    probability_exponent: float = PROBABILITY_EXPONENT
+    """With box quality, the class probability's power in the score (``types.PROBABILITY_EXPONENT``)."""
     class_thresholds: bool = True
     """Give the model a threshold per class, tuned on the training frames' labels
     (``train_with_mining``'s ``tune_class_thresholds``); ``score_threshold`` is then the fallback
@@ -235,6 +238,7 @@ def train_session(
         fragments_per_frame=settings.fragments_per_frame,
         score_threshold=settings.score_threshold,
         tune_class_thresholds=settings.class_thresholds,
+        probability_exponent=settings.probability_exponent,
         mining_threshold=settings.mining_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,

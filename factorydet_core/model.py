@@ -39,6 +39,9 @@ class DetectionModel:
         class_score_thresholds: per class name, its own operating threshold (tuned on the
             training frames, ``evaluation.tune_class_thresholds``); classes not in it use
             ``score_threshold``. ``None``: one threshold for all.
+        probability_exponent: with ``box_quality``, a detection's score is its class probability
+            to this power times its predicted IoU (``detection.score_groups``); checkpoints from
+            before it was kept load with 1.
     """
 
     classifier: object
@@ -48,6 +51,7 @@ class DetectionModel:
     front_end: dict = dataclasses.field(default_factory=dict)
     box_quality: BoxQuality | None = None
     class_score_thresholds: dict[str, float] | None = None
+    probability_exponent: float = 1.0
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -72,6 +76,7 @@ class DetectionModel:
             self.box_prior,
             self.class_names,
             self.box_quality,
+            self.probability_exponent,
         )
 
     def detect(
@@ -102,6 +107,7 @@ class DetectionModel:
             "front_end": self.front_end,
             "box_quality": None if self.box_quality is None else dataclasses.asdict(self.box_quality),
             "class_score_thresholds": self.class_score_thresholds,
+            "probability_exponent": self.probability_exponent,
         }
         written = self.classifier.save(path, {**extra, **(note or {})})
         if self.box_quality is not None:
@@ -130,6 +136,7 @@ class DetectionModel:
             front_end=dict(note.get("front_end", {})),
             box_quality=box_quality,
             class_score_thresholds=_class_thresholds_from_note(note.get("class_score_thresholds")),
+            probability_exponent=_exponent_from_note(note.get("probability_exponent", 1.0)),
         )
 
     @property
@@ -158,6 +165,13 @@ def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
 def describe_checkpoint(path: str | os.PathLike) -> dict:
     """The JSON note of a checkpoint, without loading its weights."""
     return json.loads(Path(path).with_suffix(".json").read_text())
+
+
+def _exponent_from_note(value) -> float:
+    """A checkpoint note's probability exponent, checked."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < np.inf:
+        raise InputError(f"probability_exponent must be a number > 0, got {value!r}")
+    return float(value)
 
 
 def _class_thresholds_from_note(value) -> dict[str, float] | None:

@@ -149,6 +149,7 @@ def measure(
             model.box_prior,
             class_names,
             model.box_quality,
+            model.probability_exponent,
         )
         detections = select_detections(candidates, ap_score_floor, model.nms_iou)
         kept = detections.subset(detections.kept_mask)

@@ -308,6 +308,7 @@ def train_with_mining(
     box_quality: BoxQuality | None = None,
     mining_threshold: float | None = None,
     tune_class_thresholds: bool = True,
+    probability_exponent: float = 1.0,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -356,6 +357,10 @@ def train_with_mining(
             classifier's probabilities differ in scale between classes, and one threshold drops
             a whole class (``docs/default_model_validation.json``). ``False``: ``score_threshold``
             for all.
+        probability_exponent: with ``box_quality``, the model's score is the class probability
+            to this power times the predicted IoU (``DetectionModel.probability_exponent``); it
+            ranks the mined negatives too. 1 is the plain product; the command line and the app
+            train with 0.5 (see ``loop.LoopSettings``).
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
@@ -441,7 +446,14 @@ def train_with_mining(
         fitted = dataclasses.replace(classifier).fit(
             features, labels, descriptors, progress=fit_progress, should_stop=should_stop
         )
-        model = DetectionModel(fitted, box_prior, score_threshold, nms_iou, box_quality=quality)
+        model = DetectionModel(
+            fitted,
+            box_prior,
+            score_threshold,
+            nms_iou,
+            box_quality=quality,
+            probability_exponent=probability_exponent,
+        )
         start = time.perf_counter()
         scored = score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
         if tune_class_thresholds:

@@ -2,6 +2,7 @@
 annotations, and detections take the option it rates best, scored by class probability times IoU."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -250,6 +251,22 @@ def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, 
     low = score_groups(frame.proposal_boxes, frame.groups, probabilities, prior, box_quality=quality)
     np.testing.assert_allclose(low.scores[:5], 0.02, rtol=1e-5)
     np.testing.assert_allclose(low.boxes[:5], plain.boxes[:5])
+    # The probability's power in the score: the same boxes, the square root of 0.9 times the IoU,
+    # and sets below the floor still keep their probability.
+    rooted = score_groups(
+        frame.proposal_boxes,
+        frame.groups,
+        probabilities,
+        prior,
+        box_quality=quality,
+        probability_exponent=0.5,
+    )
+    np.testing.assert_allclose(rooted.boxes, low.boxes)
+    np.testing.assert_allclose(rooted.scores[5:], np.sqrt(0.9) * predicted[5:], rtol=1e-5)
+    np.testing.assert_allclose(rooted.scores[:5], 0.02, rtol=1e-5)
+    with pytest.raises(InputError, match="probability_exponent"):
+        score_groups(frame.proposal_boxes, frame.groups, probabilities, prior, box_quality=quality,
+                     probability_exponent=0.0)  # fmt: skip
 
 
 def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
@@ -257,6 +274,17 @@ def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
     path = model.save(tmp_path / "q.pt")
     loaded = DetectionModel.load(path)
     assert loaded.note["box_quality"]["max_iter"] == 40
+    assert loaded.probability_exponent == 1.0
+    rooted = DetectionModel.load(dataclasses.replace(model, probability_exponent=0.5).save(tmp_path / "r.pt"))
+    assert rooted.probability_exponent == 0.5
+    note_path = tmp_path / "r.json"
+    note = json.loads(note_path.read_text())
+    del note["probability_exponent"]  # a checkpoint from before the exponent was kept
+    note_path.write_text(json.dumps(note))
+    assert DetectionModel.load(tmp_path / "r.pt").probability_exponent == 1.0
+    note_path.write_text(json.dumps({**note, "probability_exponent": -1}))
+    with pytest.raises(InputError, match="probability_exponent"):
+        DetectionModel.load(tmp_path / "r.pt")
     rows = fitted[1][:50]
     np.testing.assert_array_equal(loaded.box_quality.predict(rows), fitted[0].predict(rows))
     (tmp_path / "q.boxq.npz").unlink()

@@ -89,6 +89,7 @@ def test_session_labels_replace_the_annotations(db, frames):
 def test_full_run_then_review_then_next_round(db, dataset, frames):
     run_id, run = train_session(db, frames, SETTINGS, mode="full", data_ref="small")
     assert [r["round"] for r in run.rounds] == [0, 1]
+    assert run.model.probability_exponent == SETTINGS.probability_exponent == 0.5  # the loop's default
     queue = db.review_queue()
     mined_total = sum(len(r["mined"]) for r in run.rounds)
     assert len(queue) == mined_total > 0 and all(item["run_id"] == run_id for item in queue)

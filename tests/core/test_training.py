@@ -162,8 +162,10 @@ def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
         rounds=0,
         initial_negatives=100,
         tune_class_thresholds=False,
+        probability_exponent=0.5,
     )
     assert untuned.model.class_score_thresholds is None and len(seen) == 2
+    assert untuned.model.probability_exponent == 0.5 and run.model.probability_exponent == 1.0
     assert "class_score_thresholds" not in untuned.rounds[0]["train_metrics"]
 
 
