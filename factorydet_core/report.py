@@ -33,14 +33,18 @@ def _fmt(value, digits: int = 3) -> str:
 
 
 def operating_text(model: DetectionModel) -> str:
-    """How a model's detections are thresholded, in words, for the report."""
+    """How a model's detections are scored and thresholded, in words, for the report."""
+    score = ""
+    if model.box_quality is not None:
+        power = "" if model.probability_exponent == 1 else f" to the power {model.probability_exponent:g}"
+        score = f"score = class probability{power} x predicted IoU; "
     tuned = model.class_score_thresholds
     if not tuned:
-        return f"operating score threshold {model.score_threshold:g}"
+        return f"{score}operating score threshold {model.score_threshold:g}"
     per_class = ", ".join(f"{name} {tuned[name]:g}" for name in model.class_names if name in tuned)
     rest = [name for name in model.class_names if name not in tuned]
     return (
-        f"per-class operating score thresholds, tuned on the training frames' annotations ({per_class}"
+        f"{score}per-class operating score thresholds, tuned on the training frames' annotations ({per_class}"
         + (f"; {', '.join(rest)} {model.score_threshold:g}" if rest else "")
         + ")"
     )
