@@ -130,7 +130,8 @@ def voxel_sweep(
 ) -> list[dict]:
     """F-score against the truth for each voxel size, retraining the classifier (one round, no
     mining) on ``train_indices`` with the model's settings each time (the paper's Fig. 7): its
-    classifier settings, its operating threshold, and a box quality regressor when it has one.
+    classifier settings, its operating threshold and score exponent, and a box quality regressor
+    when it has one.
 
     The training frames are ``train_dataset``'s (with its own extrinsics ``train_T_vehicle_sensor``)
     when given, else ``dataset``'s."""
@@ -153,6 +154,7 @@ def voxel_sweep(
             score_threshold=model.score_threshold,
             tune_class_thresholds=model.class_score_thresholds is not None,
             box_quality=None if model.box_quality is None else BoxQuality(),
+            probability_exponent=model.probability_exponent,
         )
         metrics = measure(run.model, dataset, test, iou_threshold=iou_threshold, use_truth=True)
         rows.append({"voxel_size_m": size, "f1": metrics["f1"], "map": metrics["map"],

@@ -23,3 +23,25 @@ def test_operating_text_names_the_score_and_the_thresholds():
         "score = class probability x predicted IoU; per-class operating score thresholds, tuned on the "
         "training frames' annotations (truck 0.25; barrel 0.35)"
     )
+
+
+def test_grid_sweep_retrains_with_the_models_score_settings(monkeypatch):
+    from factorydet_core import report
+
+    calls = []
+    monkeypatch.setattr(report, "collect_proposals", lambda *args, **kwargs: [])
+    monkeypatch.setattr(
+        report,
+        "train_with_mining",
+        lambda *args, **kwargs: calls.append(kwargs) or types.SimpleNamespace(model=None),
+    )
+    monkeypatch.setattr(report, "measure", lambda *args, **kwargs: {"f1": 0.0, "map": 0.0, "per_class": {}})
+    classifier = types.SimpleNamespace(labels_=["barrel", "background"], get_params=lambda: {"width": 0.0625})
+    model = DetectionModel(classifier, score_threshold=0.35, box_quality=object(), probability_exponent=0.5,
+                           class_score_thresholds={"barrel": 0.35})  # fmt: skip
+    rows = report.voxel_sweep(None, model, [0.2, 0.3], [0], [1], None, 0.6)
+    assert [row["voxel_size_m"] for row in rows] == [0.2, 0.3]
+    assert len(calls) == 2
+    for kwargs in calls:
+        assert kwargs["probability_exponent"] == 0.5 and kwargs["score_threshold"] == 0.35
+        assert kwargs["tune_class_thresholds"] and kwargs["box_quality"] is not None
