@@ -228,7 +228,9 @@ class FactorydetApp:
                 # The detections and the proposals they index come from the same result.
                 k = int(detection_ids[int(np.argmin(distances))])
                 frame = self.state.dataset.frame(detection_frame)
-                info = describe_detection(detections, k, detection_result.proposal.proposals, frame)
+                with self.state.lock:
+                    exponent = getattr(self.state.model, "probability_exponent", 1.0)
+                info = describe_detection(detections, k, detection_result.proposal.proposals, frame, exponent)
                 self.state.set_selection(detection_markdown(info))
                 return
         with self.state.lock:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .sim.simulate import FactorySimulator, SimConfig
-from .types import InputError
+from .types import PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 
 def machine_info() -> dict:
@@ -459,10 +459,11 @@ def bench_classifier(
     max_fit_seconds: float | None = None,
     max_train_frames: int | None = None,
     max_test_frames: int | None = None,
-    score_threshold: float = 0.3,
+    score_threshold: float = SCORE_THRESHOLD,
     box_quality: bool = True,
     command: str = "",
     progress=None,
+    probability_exponent: float = PROBABILITY_EXPONENT,
 ) -> dict:
     """Recognition accuracy (the paper's Table 2) and detection F-score of classifiers of several
     widths, proposal features and inputs (the 3DmFV tensor with or without the geometric
@@ -470,7 +471,8 @@ def bench_classifier(
     same test frames against the truth; with the time per epoch. Every feature and input is
     measured at ``widths[0]``, the other widths on ``features[0]`` with ``geometry[0]``.
 
-    Detections are made as the shipped model makes them: at ``score_threshold``, with one box
+    Detections are made as the shipped model makes them: at ``score_threshold``, scored with
+    ``probability_exponent``, with one box
     quality regressor (``box_quality``) fitted per feature on the training frames and shared by
     every classifier of that feature, so that the rows differ only in the class probabilities."""
     from .box_quality import BoxQuality
@@ -512,6 +514,7 @@ def bench_classifier(
                 rounds=0,
                 score_threshold=score_threshold,
                 box_quality=BoxQuality() if box_quality and quality is None else None,
+                probability_exponent=probability_exponent,
             )
             quality = quality or run.model.box_quality
             model = dataclasses.replace(run.model, box_quality=quality)

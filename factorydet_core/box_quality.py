@@ -8,8 +8,8 @@ probability alone says nothing about whether the chosen box is a fragment, a who
 object with its neighbour. ``BoxQuality`` learns both from the annotations, as IoU-Net-style
 localisation confidence does: a gradient-boosted regressor predicts, for every option, its 3D IoU
 with the annotated object the set belongs to (0 for sets that overlap no annotation). A detection
-takes the option of highest predicted IoU, and its score becomes the class probability times that
-predicted IoU.
+takes the option of highest predicted IoU, and its score becomes the class probability (to the
+model's ``probability_exponent``, 0.5 for the loop and the command line) times that predicted IoU.
 
 The regressor is scikit-learn's ``HistGradientBoostingRegressor``; for checkpoints it is exported to
 plain arrays (``to_arrays``) and evaluated by ``predict`` here, so loading a model never unpickles

@@ -184,6 +184,8 @@ def fit_boxes(
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise InputError(f"points: expected shape (N, 3), got {points.shape}")
+    if any(np.asarray(p).dtype == bool for p in point_lists):
+        raise InputError("point_lists: expected arrays of point indices, got a boolean mask")
     sizes = np.array([len(p) for p in point_lists], np.int64)
     if (sizes == 0).any():
         raise InputError(f"point set {int(np.argmin(sizes))} is empty: a box needs at least one point")

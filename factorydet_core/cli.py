@@ -144,7 +144,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     max_fit_seconds=args.max_fit_seconds,
                     max_train_frames=args.train_frames,
                     max_test_frames=args.frames,
-                    score_threshold=0.3 if args.score_threshold is None else args.score_threshold,
+                    score_threshold=SCORE_THRESHOLD if args.score_threshold is None else args.score_threshold,
+                    probability_exponent=args.probability_exponent,
                     box_quality=args.box_quality,
                     command=command,
                     progress=update,
@@ -870,14 +871,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--score-threshold",
         type=float,
         default=None,
-        help="classifier, hitl: operating score; with box quality a score is probability x predicted IoU "
-        f"(default: classifier 0.3, hitl {SCORE_THRESHOLD})",
+        help="classifier, hitl: operating score; with box quality a score is probability to "
+        f"--probability-exponent x predicted IoU (default {SCORE_THRESHOLD})",
     )
     p.add_argument(
         "--probability-exponent",
         type=float,
         default=PROBABILITY_EXPONENT,
-        help="hitl: with box quality, the class probability's power in the score",
+        help="classifier, hitl: with box quality, the class probability's power in the score "
+        f"(default {PROBABILITY_EXPONENT})",
     )
     p.add_argument(
         "--mining-threshold",

@@ -532,8 +532,7 @@ def score_groups(
     Returns:
         (G) candidates, none suppressed.
     """
-    if not probability_exponent > 0:
-        raise InputError(f"probability_exponent must be > 0, got {probability_exponent}")
+    check_exponent(probability_exponent)
     probabilities = np.asarray(probabilities, np.float32)
     num_classes = len(class_names)
     if probabilities.shape != (groups.num_groups, num_classes + 1):
@@ -573,6 +572,16 @@ def score_groups(
         suppressed_by=np.full(len(boxes), -1, np.int64),
         class_names=tuple(class_names),
     )
+
+
+def check_exponent(probability_exponent: float) -> None:
+    """Raise ``InputError`` unless the score's probability exponent is a finite number > 0."""
+    if (
+        isinstance(probability_exponent, bool)
+        or not isinstance(probability_exponent, (int, float, np.floating, np.integer))
+        or not 0 < probability_exponent < np.inf
+    ):
+        raise InputError(f"probability_exponent must be a finite number > 0, got {probability_exponent!r}")
 
 
 QUALITY_SCORE_FLOOR = 0.05

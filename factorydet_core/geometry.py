@@ -120,6 +120,8 @@ def group_bounds(points: np.ndarray, group_ids: np.ndarray, num_groups: int) -> 
     Returns:
         ``(lo, hi)``: (G, 3) float64 minimum and maximum corners; +inf / -inf for empty groups.
     """
+    if len(group_ids) != len(points):
+        raise ValueError(f"group_bounds: {len(group_ids)} group ids for {len(points)} points")
     lo = np.full((num_groups, 3), np.inf)
     hi = np.full((num_groups, 3), -np.inf)
     if not len(group_ids):

@@ -158,7 +158,9 @@ def ray_box_distances(origin: np.ndarray, direction: np.ndarray, boxes: np.ndarr
     return np.where(hit, np.maximum(enter, 0.0), np.inf)
 
 
-def describe_detection(detections: Detections, index: int, proposals: Proposals, frame: Frame) -> dict:
+def describe_detection(
+    detections: Detections, index: int, proposals: Proposals, frame: Frame, probability_exponent: float = 1.0
+) -> dict:
     """Numbers of one detection: class probabilities, the proposal and patches it came from, the
     detections it suppressed, and the best-overlapping annotation."""
     if not 0 <= index < len(detections):
@@ -189,8 +191,10 @@ def describe_detection(detections: Detections, index: int, proposals: Proposals,
     }
     probability = float(detections.probabilities[index, int(detections.class_ids[index])])
     if probability > 0 and abs(float(detections.scores[index]) - probability) > 1e-6:
-        # A model with box quality scores probability x predicted IoU (detection.score_groups).
-        info["predicted box IoU"] = f"{float(detections.scores[index]) / probability:.2f}"
+        # A model with box quality scores probability ** probability_exponent x predicted IoU
+        # (detection.score_groups; the model's exponent).
+        predicted = float(detections.scores[index]) / probability**probability_exponent
+        info["predicted box IoU"] = f"{predicted:.2f}"
     if detections.suppressed_by[index] >= 0:
         info["suppressed by"] = f"detection scoring {detections.scores[detections.suppressed_by[index]]:.2f}"
     best = _best_label(frame, box)

@@ -41,7 +41,7 @@ from .training import (
 from .types import MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 MODES = ("full", "next")
-_CACHE_FORMAT = 2  # bump when FrameProposals or the front half's output changes meaning
+_CACHE_FORMAT = 3  # bump when FrameProposals or the front half's output changes (3: compiled features)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +72,8 @@ class LoopSettings:
     mining_threshold: float | None = MINING_THRESHOLD
     """Least score of a mined (and queued) false positive; ``None``: the operating threshold. The
     paper collects every false positive and adds the top N by score; with box quality a score is a
-    probability times a predicted IoU, and at the operating threshold a few frames yield a few dozen
+    probability (to ``probability_exponent``) times a predicted IoU, and at the operating threshold
+    a few frames yield a few dozen
     (``bench hitl`` on four frames: 46 in two rounds, so reviewing 50 or 200 made no difference).
     0.05 is the score floor of AP and of the box quality regressor: below it nothing is reported."""
     nms_iou: float = 0.25

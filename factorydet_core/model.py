@@ -14,7 +14,7 @@ import numpy as np
 
 from .box_quality import BoxQuality
 from .classifier import ProposalClassifier
-from .detection import BoxSizePrior, ProposalGroups, score_groups, select_detections
+from .detection import BoxSizePrior, ProposalGroups, check_exponent, score_groups, select_detections
 from .evaluation import check_thresholds
 from .types import Detections, InputError
 
@@ -169,8 +169,7 @@ def describe_checkpoint(path: str | os.PathLike) -> dict:
 
 def _exponent_from_note(value) -> float:
     """A checkpoint note's probability exponent, checked."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < np.inf:
-        raise InputError(f"probability_exponent must be a number > 0, got {value!r}")
+    check_exponent(value)
     return float(value)
 
 

@@ -413,6 +413,11 @@ def write_report(
             "One training round (no mining) per voxel size on the first "
             f"{len(train_idx[:sweep_frames])} training frames, with the model's settings (score "
             f"threshold {model.score_threshold}"
+            + (
+                f", probability exponent {model.probability_exponent:g}"
+                if model.probability_exponent != 1
+                else ""
+            )
             + (", per-class thresholds tuned on those frames" if model.class_score_thresholds else "")
             + (", box quality" if model.box_quality is not None else "")
             + "), measured on the test frames against the truth.",

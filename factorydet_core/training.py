@@ -20,7 +20,7 @@ from .box_quality import BoxQuality
 from .boxes import box_iou_3d, fit_boxes
 from .classifier import ProposalClassifier
 from .dataset import Dataset
-from .detection import BoxSizePrior, ProposalGroups, describe_point_sets, group_proposals
+from .detection import BoxSizePrior, ProposalGroups, check_exponent, describe_point_sets, group_proposals
 from .detector import Detector
 from .evaluation import detection_metrics
 from .evaluation import tune_class_thresholds as tune_thresholds
@@ -348,9 +348,10 @@ def train_with_mining(
             scores the model will give; ``None`` keeps the size prior's box and the class
             probability as score. Needs ``use_box_prior``.
         mining_threshold: detections scoring at least this are mined (``None``: the operating
-            ``score_threshold``, as the paper). With box quality a score is a probability times a
-            predicted IoU, so few clear the operating threshold on a few frames: a lower one fills
-            the mined set and the review queue with the next most confident false positives.
+            ``score_threshold``, as the paper). With box quality a score is a probability (to
+            ``probability_exponent``) times a predicted IoU, so few clear the operating threshold
+            on a few frames: a lower one fills the mined set and the review queue with the next
+            most confident false positives.
         tune_class_thresholds: give each round's model a score threshold per class, the one up to
             ``score_threshold`` of highest F-score at ``positive_iou`` on the training frames' annotations
             (``evaluation.tune_class_thresholds``; the scores mining computes anyway). The
@@ -364,6 +365,7 @@ def train_with_mining(
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
+    check_exponent(probability_exponent)
     if mining_threshold is None:
         mining_threshold = score_threshold
     if not 0.0 <= mining_threshold <= 1.0:

@@ -305,6 +305,12 @@ def test_detection_details_show_the_predicted_iou(small_dataset_dir, prior, fitt
     k = int(np.argmax(rated.scores))
     info = describe_detection(rated, k, result.proposals, frame)
     assert float(info["predicted box IoU"]) == pytest.approx(rated.scores[k] / 0.9, abs=0.006)
+    # With the square root of the probability in the score, the same IoU.
+    rooted = score_groups(
+        result.proposals.boxes, groups, probabilities, prior, box_quality=fitted[0], probability_exponent=0.5
+    )
+    info = describe_detection(rooted, k, result.proposals, frame, probability_exponent=0.5)
+    assert float(info["predicted box IoU"]) == pytest.approx(rated.scores[k] / 0.9, abs=0.006)
     plain = score_groups(result.proposals.boxes, groups, probabilities, prior)
     assert "predicted box IoU" not in describe_detection(plain, k, result.proposals, frame)
 

@@ -361,3 +361,5 @@ def test_fit_boxes_matches_the_plain_fit_of_each_set():
         fit_boxes(points, [np.array([len(points)])])
     with pytest.raises(InputError, match="headings"):
         fit_boxes(points, lists, np.zeros(2))
+    with pytest.raises(InputError, match="boolean mask"):
+        fit_boxes(points, [np.arange(len(points)) < 10])

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -86,3 +87,5 @@ def test_group_bounds_are_each_groups_min_and_max(seed, num_points, num_groups):
             np.testing.assert_array_equal(hi[group], members.max(axis=0))
         else:  # empty groups keep +inf / -inf
             assert np.isposinf(lo[group]).all() and np.isneginf(hi[group]).all()
+    with pytest.raises(ValueError, match="group ids"):
+        group_bounds(points, np.zeros(num_points + 1, np.int64), num_groups)

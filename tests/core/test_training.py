@@ -166,6 +166,9 @@ def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
     )
     assert untuned.model.class_score_thresholds is None and len(seen) == 2
     assert untuned.model.probability_exponent == 0.5 and run.model.probability_exponent == 1.0
+    for bad in (0, -1.0, float("inf"), True):  # refused before anything is fitted
+        with pytest.raises(InputError, match="probability_exponent"):
+            train_with_mining(frames, None, probability_exponent=bad)
     assert "class_score_thresholds" not in untuned.rounds[0]["train_metrics"]
 
 
