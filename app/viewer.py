@@ -19,6 +19,7 @@ from factorydet_core.inspect import (
     ray_box_distances,
     segment_patch_ids,
 )
+from factorydet_core.jit import warm_up
 from factorydet_core.loop import LoopSettings
 
 from .clients import ClientView
@@ -65,6 +66,10 @@ class FactorydetApp:
         training: LoopSettings | None = None,
     ) -> None:
         self.server = server
+        # Compile the library's numba kernels (or load them from numba's disk cache, about a
+        # second) before any client connects: compiling holds the interpreter for seconds at a
+        # time, during which the server could not send a new browser its controls.
+        warm_up()
         self.state = AppState(dataset, title, model=model, model_name=model_name, db=db)
         if not calibrate:
             self.state.use_refined_extrinsics = False

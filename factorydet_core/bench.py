@@ -553,6 +553,7 @@ def bench_classifier(
         "epochs": epochs,
         "max_fit_seconds": max_fit_seconds,
         "score_threshold": score_threshold,
+        "probability_exponent": probability_exponent,
         "box_quality": box_quality,
         "rows": rows,
         "machine": machine_info(),

@@ -230,7 +230,9 @@ def test_bench_classifier_measures_rows_with_the_models_box_quality(small_datase
             "--geometry", "on,off", "--epochs", "1", "--train-frames", "1", "--frames", "1"]  # fmt: skip
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
-    assert result["box_quality"] is True and result["score_threshold"] == 0.3
+    # Scored as the loop and the shipped model score: the square root of the probability at 0.35.
+    assert result["box_quality"] is True and result["score_threshold"] == 0.35
+    assert result["probability_exponent"] == 0.5
     rows = [(r["feature"], r["geometry"]) for r in result["rows"]]
     assert rows == [("aggregated", True), ("aggregated", False)]
     for row in result["rows"]:

@@ -87,6 +87,9 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     canvas = page.wait_for_selector("canvas[data-engine]", timeout=30_000)
     assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
 
+    # The controls reach a new browser in messages sent after its connection is registered
+    # (a fraction of a second later).
+    page.get_by_role("button", name="Next frame").wait_for(timeout=30_000)
     for name in ("Next frame", "Previous frame"):
         assert page.get_by_role("button", name=name).count() == 1
     for label in ("Colour by", "Point size (m)", "Show boxes", "Hide above (m)"):
@@ -112,6 +115,7 @@ def test_detection_layers_toggle_and_parameters_recompute(app, page):
     page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
     canvas = page.wait_for_selector("canvas[data-engine]", timeout=30_000)
     assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
+    page.get_by_text("Proposal boxes", exact=True).first.wait_for(timeout=30_000)
     for label in (
         "Proposal boxes",
         "Patches (cut pursuit)",
@@ -175,6 +179,7 @@ def test_detections_layer_and_score_slider(app_with_model, browser):
         page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
         page.wait_for_selector("canvas[data-engine]", timeout=30_000)
         assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
+        page.get_by_text("Score threshold", exact=True).first.wait_for(timeout=30_000)
         for label in ("Detections (after NMS)", "Show suppressed", "Score threshold", "NMS IoU"):
             assert page.get_by_text(label, exact=True).count() >= 1, label
         assert app.state.wait_for(lambda: app.state.detections is not None, timeout=120), "no detections"
