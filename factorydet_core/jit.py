@@ -1,12 +1,9 @@
-"""Kernels compiled by numba on first use, run one at a time where numba needs it.
+"""Kernels compiled by numba on first use, and run one at a time.
 
 numba is imported only when a kernel first runs (importing the library stays fast), compiled
-kernels are cached on disk beside the module (``cache=True``), and compiling holds one lock. So do
-launches until numba names its threading layer: the app calls the library from several threads,
-and numba's fallback layer (workqueue, where OpenMP and TBB are missing) aborts the process on
-concurrent parallel launches of any kernel. With OpenMP or TBB, which are thread-safe, launches
-run concurrently: the app's editing call of ``fit_box`` then need not wait for a detection's
-seconds-long tree walk.
+kernels are cached on disk beside the module (``cache=True``), and every launch holds one lock: the
+app calls the library from several threads, and numba's fallback threading layer (workqueue, where
+OpenMP is missing) aborts the process on concurrent parallel launches of any kernel.
 """
 
 from __future__ import annotations
@@ -17,14 +14,10 @@ from collections.abc import Callable
 
 _lock = threading.Lock()
 _compiled: dict[Callable[[], Callable], Callable] = {}
-_concurrent_launches = False  # set once numba reports a thread-safe threading layer
 
 
 def run_kernel(build: Callable[[], Callable], *args):
     """Call the kernel ``build()`` returns (built once per process) with ``args``."""
-    kernel = _compiled.get(build)
-    if kernel is not None and _concurrent_launches:
-        return kernel(*args)
     with _lock:
         kernel = _compiled.get(build)
         if kernel is None:
@@ -35,25 +28,7 @@ def run_kernel(build: Callable[[], Callable], *args):
         with warnings.catch_warnings():
             # numba names every threading layer it could not load (an old TBB, say) on first launch.
             warnings.filterwarnings("ignore", message=".*threading layer.*")
-            result = kernel(*args)
-        _allow_concurrent_launches()
-        return result
-
-
-def _allow_concurrent_launches() -> None:
-    global _concurrent_launches
-    import numba
-
-    try:
-        layer = numba.threading_layer()
-    except ValueError:  # no parallel kernel has launched yet
-        return
-    _concurrent_launches = layer in ("omp", "tbb")
-
-
-def concurrent_launches() -> bool:
-    """Whether kernels may launch from several threads at once (numba's layer is OpenMP or TBB)."""
-    return _concurrent_launches
+            return kernel(*args)
 
 
 def warm_up() -> None:

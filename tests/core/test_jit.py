@@ -4,7 +4,6 @@ import threading
 
 import numpy as np
 
-from factorydet_core import jit
 from factorydet_core.boxes import fit_boxes
 from factorydet_core.jit import warm_up
 
@@ -32,7 +31,3 @@ def test_kernels_called_from_several_threads_give_the_single_thread_result():
         thread.join()
     for result in results:
         np.testing.assert_array_equal(result, expected)
-    # Concurrent launches only where numba's threading layer is thread-safe.
-    import numba
-
-    assert jit.concurrent_launches() == (numba.threading_layer() in ("omp", "tbb"))
