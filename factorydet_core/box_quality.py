@@ -32,6 +32,7 @@ from .detection import (
 )
 from .jit import run_kernel
 from .types import InputError
+from .visibility import FreeSpace, box_visibility
 
 OPTION_FEATURE_NAMES: tuple[str, ...] = (
     "log_length",
@@ -60,6 +61,12 @@ under it, or stacked inside it: ``detection.OPTION_KINDS``), and where its centr
 fitted box's centre: away from the viewer (the vehicle origin) in the ground plane, sideways
 (absolute) and up."""
 
+VISIBILITY_FEATURE_NAMES: tuple[str, ...] = ("seen_free_share", "seen_occupied_share")
+"""With ``BoxQuality.visibility``, after the anchored ones: the share of the option's volume that
+the frame's rays passed through, and the share where they ended (``visibility.box_visibility``).
+An object's box holds its visible surface and the unseen space behind it; a box grown the wrong
+way, or of the wrong size, holds space the scan saw empty."""
+
 
 def option_features(
     boxes: np.ndarray,
@@ -69,6 +76,7 @@ def option_features(
     num_classes: int,
     anchored: bool = False,
     anchor_mask: np.ndarray | None = None,
+    free_space: FreeSpace | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A point set's box options for one class and what the regressor reads of each.
 
@@ -82,11 +90,12 @@ def option_features(
             ``standing``, ``stacked``) to the options.
         anchor_mask: (M,) bool, the boxes sizes are placed by (the fitted one is always among
             them); ``None``: the fitted box alone.
+        free_space: the frame's rays; given, ``VISIBILITY_FEATURE_NAMES`` are added.
 
     Returns:
         ``(options, features)``: (K, 7) boxes (``BoxSizePrior.options``) and (K, F) features: the
         one-hot class (C), ``OPTION_FEATURE_NAMES``, ``ANCHORED_FEATURE_NAMES`` when
-        ``anchored``, then the descriptors.
+        ``anchored``, ``VISIBILITY_FEATURE_NAMES`` with ``free_space``, then the descriptors.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
     options, features, _, _ = class_option_features(
@@ -98,6 +107,7 @@ def option_features(
         num_classes,
         anchored,
         anchor_mask,
+        free_space,
     )
     return options, features
 
@@ -111,6 +121,7 @@ def class_option_features(
     num_classes: int,
     anchored: bool = False,
     anchor_mask: np.ndarray | None = None,
+    free_space: FreeSpace | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The box options of many point sets of one class and their features, set after set, each
     set's options in ``BoxSizePrior.options``'s order (one call for all sets: per-set calls cost
@@ -127,6 +138,7 @@ def class_option_features(
         anchor_mask: (M,) bool over ``proposal_boxes``, the boxes sizes are placed by besides each
             set's fitted box (``Proposals.anchor_mask``: the scene-aligned ones); ``None``: the
             fitted boxes alone.
+        free_space: the frame's rays; given, ``VISIBILITY_FEATURE_NAMES`` are added.
 
     Returns:
         ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features (as
@@ -187,6 +199,8 @@ def class_option_features(
     ]
     if anchored:
         columns += [is_anchored, *_offsets_from_fitted(options, fitted[owner])]
+    if free_space is not None:
+        columns.append(box_visibility(free_space, options))
     features = np.column_stack([*columns, np.asarray(descriptors, np.float64)[owner]])
     return options, features, owner, sources
 
@@ -201,8 +215,9 @@ def _offsets_from_fitted(options: np.ndarray, fitted: np.ndarray) -> tuple[np.nd
     return away, sideways, offset[:, 2]
 
 
-def num_option_features(num_classes: int, anchored: bool = False) -> int:
+def num_option_features(num_classes: int, anchored: bool = False, visibility: bool = False) -> int:
     extra = len(ANCHORED_FEATURE_NAMES) if anchored else 0
+    extra += len(VISIBILITY_FEATURE_NAMES) if visibility else 0
     return num_classes + len(OPTION_FEATURE_NAMES) + extra + len(DESCRIPTOR_NAMES)
 
 
@@ -227,6 +242,9 @@ class BoxQuality:
         anchored: the options include each class size set into the fitted box's corners
             (``BoxSizePrior.anchored``): the boxes of objects in a segment of several, and of
             objects seen from one side. Checkpoints from before it load with ``False``.
+        visibility: the regressor also reads how much of each option the frame's rays saw empty
+            or occupied (``VISIBILITY_FEATURE_NAMES``; the point sets' groups must carry their
+            frame's ``free_space``). Checkpoints from before it load with ``False``.
     """
 
     background_rate: float = 0.1
@@ -236,6 +254,7 @@ class BoxQuality:
     learning_rate: float = 0.1
     seed: int = 0
     anchored: bool = True
+    visibility: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.background_rate <= 1.0:
@@ -287,6 +306,7 @@ class BoxQuality:
                     num_classes,
                     self.anchored,
                     None if frame.groups.anchor_mask is None else frame.groups.anchor_mask[members],
+                    self.free_space_of(frame.groups),
                 )
                 # An overlapping set's options are right when they fit any object of its class (the
                 # neighbour's box in a stack of crates is no worse than the first one's); a
@@ -298,6 +318,17 @@ class BoxQuality:
         if not rows:
             raise InputError("box quality: no training frame has annotations")
         return np.concatenate(rows), np.concatenate(targets)
+
+    def free_space_of(self, groups: ProposalGroups) -> FreeSpace | None:
+        """The free space the features read from ``groups``: theirs with ``visibility``, else none."""
+        if not self.visibility:
+            return None
+        if groups.free_space is None:
+            raise InputError(
+                "box quality: this regressor reads free space, but the point sets carry none"
+                " (group them with Detector.group)"
+            )
+        return groups.free_space
 
     def fit(self, features: np.ndarray, targets: np.ndarray) -> BoxQuality:
         """Fit the regressor on (R, F) option features and their (R,) IoUs; returns self."""
@@ -335,11 +366,15 @@ class BoxQuality:
             **self.trees_,
             "num_features": np.array(self.num_features_),
             "anchored": np.array(self.anchored),
+            "visibility": np.array(self.visibility),
         }
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> BoxQuality:
-        model = cls(anchored=bool(arrays["anchored"]) if "anchored" in arrays else False)
+        model = cls(
+            anchored=bool(arrays["anchored"]) if "anchored" in arrays else False,
+            visibility=bool(arrays["visibility"]) if "visibility" in arrays else False,
+        )
         try:
             model.trees_ = {key: np.asarray(arrays[key]) for key in _TREE_KEYS}
             model.num_features_ = int(arrays["num_features"])
@@ -490,6 +525,7 @@ def choose_boxes(
             num_classes,
             quality.anchored,
             groups.anchor_mask,
+            quality.free_space_of(groups),
         )
         all_options.append(options)
         all_features.append(features)

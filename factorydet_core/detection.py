@@ -18,6 +18,7 @@ from .evaluation import operating_thresholds
 from .nms import nms_3d
 from .proposals import point_sets
 from .types import CLASS_NAMES, Detections, InputError, Proposals, Segmentation
+from .visibility import FreeSpace
 
 if TYPE_CHECKING:  # box_quality builds on this module
     from .box_quality import BoxQuality
@@ -56,6 +57,9 @@ class ProposalGroups:
     anchor_mask: np.ndarray | None = None
     """(M,) bool: the proposals whose boxes class sizes are set into (``Proposals.anchor_mask``);
     ``None``: the first (fitted) box of each set."""
+    free_space: FreeSpace | None = None
+    """What the frame's rays saw around the vehicle (``visibility.free_space``), for the box
+    quality regressor's visibility features; ``None``: not computed."""
 
     @property
     def num_groups(self) -> int:
@@ -84,6 +88,7 @@ def group_proposals(
     points: np.ndarray,
     segmentation: Segmentation,
     floor_plane: np.ndarray | None = None,
+    free_space: FreeSpace | None = None,
 ) -> ProposalGroups:
     """Group proposals by point set and describe each set.
 
@@ -92,6 +97,7 @@ def group_proposals(
         points: (N, 3) the segmented cloud's points.
         segmentation: its segmentation (patch ids).
         floor_plane: (4,) floor plane for the heights above floor (z = 0 when None or NaN).
+        free_space: the frame's rays on a grid (``visibility.free_space``), kept with the groups.
     """
     keys = {}
     group_ids = np.array([keys.setdefault(s, len(keys)) for s in proposals.patch_sets], np.int64)
@@ -105,7 +111,9 @@ def group_proposals(
         proposals.num_voxels[representatives],
         floor_plane,
     )
-    return ProposalGroups(group_ids, representatives, features, descriptors, proposals.anchor_mask)
+    return ProposalGroups(
+        group_ids, representatives, features, descriptors, proposals.anchor_mask, free_space
+    )
 
 
 def describe_point_sets(

@@ -20,6 +20,7 @@ from .merge import ExtrinsicRefinement, accumulate, refine_extrinsics
 from .proposals import FeatureKind, Weighting, build_proposals
 from .segment import SegmentationParams, segment
 from .types import Detections, Frame, InputError, MergedCloud, Proposals, Segmentation, VoxelGrid
+from .visibility import free_space
 from .voxels import DEFAULT_VOXEL_SIZE, voxel_fisher_vectors, voxelize
 
 if TYPE_CHECKING:
@@ -321,6 +322,23 @@ class Detector:
             timings_ms=timings,
         )
 
+    def group(self, proposal: ProposalResult) -> ProposalGroups:
+        """The point sets of a frame's proposals, described for the back half, with the frame's
+        free space (``visibility.free_space``) over the cropped region (25 m and -0.5 to 4.5 m
+        without a crop)."""
+        params = self.params
+        return group_proposals(
+            proposal.proposals,
+            proposal.cloud.points,
+            proposal.segmentation,
+            proposal.floor_plane,
+            free_space(
+                proposal.merged,
+                radius_m=25.0 if params.crop_radius_m is None else params.crop_radius_m,
+                z_range_m=(-0.5, 4.5) if params.crop_z_m is None else params.crop_z_m,
+            ),
+        )
+
     def detect(
         self,
         frame: Frame,
@@ -340,9 +358,7 @@ class Detector:
         proposal = self.propose(frame, history, front_progress)
         timings = {k: v for k, v in proposal.timings_ms.items() if k != "total"}
         clock = time.perf_counter()
-        groups = group_proposals(
-            proposal.proposals, proposal.cloud.points, proposal.segmentation, proposal.floor_plane
-        )
+        groups = self.group(proposal)
         timings["grouping"] = (time.perf_counter() - clock) * 1000.0
         clock = time.perf_counter()
         candidates = self.model.candidates(proposal.proposals.boxes, groups)

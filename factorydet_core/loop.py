@@ -41,7 +41,7 @@ from .training import (
 from .types import MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 MODES = ("full", "next")
-_CACHE_FORMAT = 3  # bump when FrameProposals or the front half's output changes (3: compiled features)
+_CACHE_FORMAT = 4  # bump when FrameProposals or the front half's output changes (4: free space)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -20,13 +20,14 @@ from .box_quality import BoxQuality
 from .boxes import box_iou_3d, fit_boxes
 from .classifier import ProposalClassifier
 from .dataset import Dataset
-from .detection import BoxSizePrior, ProposalGroups, check_exponent, describe_point_sets, group_proposals
+from .detection import BoxSizePrior, ProposalGroups, check_exponent, describe_point_sets
 from .detector import Detector
 from .evaluation import detection_metrics
 from .evaluation import tune_class_thresholds as tune_thresholds
 from .model import DetectionModel
 from .proposals import point_set_features
 from .types import Cancelled, InputError
+from .visibility import FreeSpace
 
 Progress = Callable[[str, int, int], None]
 """Called with (what, done, total)."""
@@ -131,9 +132,7 @@ def collect_proposals(
         frame = dataset.frame(index)
         history = [dataset.frame(i) for i in range(max(0, index - detector.params.history_frames), index)]
         result = detector.propose(frame, history)
-        groups = group_proposals(
-            result.proposals, result.cloud.points, result.segmentation, result.floor_plane
-        )
+        groups = detector.group(result)
         annotated = _annotation_samples(frame, result, detector)
         out.append(
             FrameProposals(
@@ -543,6 +542,8 @@ def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarra
             "annotation_class_ids": f.annotation_class_ids,
             "annotation_instance_ids": f.annotation_instance_ids,
         }
+        if f.groups.free_space is not None:
+            arrays |= {f"free_space/{n}": v for n, v in f.groups.free_space.to_arrays().items()}
         out |= {f"{k}/{name}": np.asarray(value) for name, value in arrays.items()}
     return out
 
@@ -555,8 +556,14 @@ def proposals_from_arrays(arrays: Mapping[str, np.ndarray]) -> list[FrameProposa
         bounds = np.concatenate([[0], np.cumsum(a["patch_set_sizes"])])
         flat = a["patch_set_ids"].tolist()
         patch_sets = tuple(tuple(flat[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:]))
+        space = {n.split("/", 1)[1]: v for n, v in a.items() if n.startswith("free_space/")}
         groups = ProposalGroups(
-            a["group_ids"], a["representatives"], a["features"], a["descriptors"], a.get("anchor_mask")
+            a["group_ids"],
+            a["representatives"],
+            a["features"],
+            a["descriptors"],
+            a.get("anchor_mask"),
+            FreeSpace.from_arrays(space) if space else None,
         )
         frames.append(
             FrameProposals(

@@ -207,7 +207,13 @@ def test_an_option_fitting_another_object_of_the_class_is_right(frames, prior):
     label = int(iou[members[g]].max(axis=0).argmax())
     class_id = int(frame.label_class_ids[label])
     options, features = option_features(
-        frame.proposal_boxes[members[g]], class_id, frame.groups.descriptors[g], prior, NUM_CLASSES, True
+        frame.proposal_boxes[members[g]],
+        class_id,
+        frame.groups.descriptors[g],
+        prior,
+        NUM_CLASSES,
+        True,
+        free_space=frame.groups.free_space,
     )
     overlap = box_iou_3d(options, frame.label_boxes[label : label + 1])[:, 0]
     other = int(np.argmin(overlap))
@@ -242,7 +248,14 @@ def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, 
     for g in range(0, num_groups, max(1, num_groups // 15)):
         mask = frame.groups.anchor_mask[members[g]]
         options, features = option_features(
-            frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES, True, mask
+            frame.proposal_boxes[members[g]],
+            2,
+            frame.groups.descriptors[g],
+            prior,
+            NUM_CLASSES,
+            True,
+            mask,
+            frame.groups.free_space,
         )
         assert quality.predict(features).max() == pytest.approx(predicted[g])
         assert proposal_ids[g] in members[g]
@@ -293,12 +306,12 @@ def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
 
 
 def test_detection_details_show_the_predicted_iou(small_dataset_dir, prior, fitted):
-    from factorydet_core.detection import group_proposals
     from factorydet_core.inspect import describe_detection
 
     frame = open_dataset(small_dataset_dir).frame(0)
-    result = Detector("agv").propose(frame)
-    groups = group_proposals(result.proposals, result.cloud.points, result.segmentation, result.floor_plane)
+    detector = Detector("agv")
+    result = detector.propose(frame)
+    groups = detector.group(result)
     probabilities = np.full((groups.num_groups, NUM_CLASSES + 1), 0.01, np.float32)
     probabilities[:, 2] = 0.9
     rated = score_groups(result.proposals.boxes, groups, probabilities, prior, box_quality=fitted[0])
@@ -331,3 +344,25 @@ def test_compiled_tree_walk_equals_the_numpy_walk_from_several_threads(rng):
         results = list(pool.map(lambda _: _evaluate_trees(quality.trees_, test), range(8)))
     for result in results:
         np.testing.assert_allclose(result, expected, atol=1e-12)
+
+
+def test_visibility_features_are_the_options_seen_free_and_occupied_shares(frames, prior, fitted):
+    from factorydet_core.box_quality import ANCHORED_FEATURE_NAMES, VISIBILITY_FEATURE_NAMES
+    from factorydet_core.visibility import box_visibility
+
+    frame = frames[0]
+    members = frame.groups.members()
+    g = len(members) // 2
+    args = (frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES, True)
+    options, features = option_features(*args, free_space=frame.groups.free_space)
+    _, without = option_features(*args)
+    assert features.shape[1] == num_option_features(NUM_CLASSES, True, True) == without.shape[1] + 2
+    start = NUM_CLASSES + len(OPTION_FEATURE_NAMES) + len(ANCHORED_FEATURE_NAMES)
+    shares = features[:, start : start + len(VISIBILITY_FEATURE_NAMES)]
+    np.testing.assert_array_equal(shares, box_visibility(frame.groups.free_space, options))
+    assert shares[:, 0].max() > 0  # some option of the set holds space the rays saw empty
+    # The shipped arrays keep the flag; arrays from before it load without visibility.
+    arrays = fitted[0].to_arrays()
+    assert fitted[0].visibility and BoxQuality.from_arrays(arrays).visibility
+    del arrays["visibility"]
+    assert not BoxQuality.from_arrays(arrays).visibility
