@@ -40,6 +40,8 @@ def warm_up() -> None:
     from .boxes import fit_boxes
     from .features import fisher_vectors
     from .segment import _absorb_small, merge_patches
+    from .types import MergedCloud
+    from .visibility import box_visibility, free_space
 
     rng = np.random.default_rng(0)
     points = rng.uniform(0, 1, (12, 3))
@@ -52,6 +54,8 @@ def warm_up() -> None:
         _compile_walk, points, np.zeros(1, np.int64), np.full(1, -1, np.int32), np.zeros((1, 2), np.int32),
         np.zeros(1), np.zeros(1), 0.0,
     )  # fmt: skip
+    cloud = MergedCloud(points, np.zeros(12, np.int16), np.zeros(12, np.int64), np.eye(4)[None])
+    box_visibility(free_space(cloud, radius_m=2.0), np.zeros((1, 7)))
 
 
 if __name__ == "__main__":
