@@ -139,6 +139,7 @@ def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
             NUM_CLASSES,
             anchored,
             anchor_mask,
+            frame.groups.free_space if anchored else None,
         )
         expected = [
             option_features(
@@ -149,6 +150,7 @@ def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
                 NUM_CLASSES,
                 anchored,
                 anchor_mask[members[g]],
+                frame.groups.free_space if anchored else None,
             )
             for g in sets
         ]
