@@ -165,6 +165,10 @@ class ProposalResult:
     """Wall time of each of ``STAGES`` and the total, milliseconds."""
 
 
+FREE_SPACE_MAX_RADIUS_M = 40.0
+"""``Detector.group``'s free-space grid spans at most this radius (0.1 m cells: 800 x 800 x 50 at
+40 m, 32 MB); a larger crop leaves objects beyond it unseen to the box quality regressor."""
+
 ProgressCallback = Callable[[str, float], None]
 """Called with (stage name, fraction of the front half done) as stages finish."""
 
@@ -325,8 +329,10 @@ class Detector:
     def group(self, proposal: ProposalResult) -> ProposalGroups:
         """The point sets of a frame's proposals, described for the back half, with the frame's
         free space (``visibility.free_space``) over the cropped region (25 m and -0.5 to 4.5 m
-        without a crop)."""
+        without a crop; at most ``FREE_SPACE_MAX_RADIUS_M`` across, since the grid's memory grows
+        with the square of its radius)."""
         params = self.params
+        radius = 25.0 if params.crop_radius_m is None else min(params.crop_radius_m, FREE_SPACE_MAX_RADIUS_M)
         return group_proposals(
             proposal.proposals,
             proposal.cloud.points,
@@ -334,7 +340,7 @@ class Detector:
             proposal.floor_plane,
             free_space(
                 proposal.merged,
-                radius_m=25.0 if params.crop_radius_m is None else params.crop_radius_m,
+                radius_m=radius,
                 z_range_m=(-0.5, 4.5) if params.crop_z_m is None else params.crop_z_m,
             ),
         )

@@ -29,7 +29,7 @@ SAMPLES_PER_AXIS = 3
 """``box_visibility`` reads a box at the centres of a 3 x 3 x 3 subdivision of it."""
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class FreeSpace:
     """A frame's rays on a regular grid in the vehicle frame."""
 
@@ -41,6 +41,7 @@ class FreeSpace:
     """(X, Y, Z) uint8: ``UNSEEN``, ``FREE`` or ``OCCUPIED`` per cell."""
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "state", np.asarray(self.state))
         if self.state.ndim != 3 or self.state.dtype != np.uint8:
             raise InputError(
                 f"free space: state must be a 3-D uint8 array, got {self.state.dtype} {self.state.shape}"
@@ -50,7 +51,11 @@ class FreeSpace:
         state = np.array(self.state)
         state.setflags(write=False)
         object.__setattr__(self, "state", state)
-        object.__setattr__(self, "origin", np.asarray(self.origin, np.float64).reshape(3))
+        origin = np.array(self.origin, np.float64).reshape(3)
+        if not np.isfinite(origin).all():
+            raise InputError(f"free space: origin must be finite, got {origin}")
+        origin.setflags(write=False)
+        object.__setattr__(self, "origin", origin)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain arrays for a cache, the states packed to two bits a cell (``from_arrays`` reads
@@ -107,7 +112,12 @@ def free_space(
     ends = np.asarray(cloud.points, np.float64)[current]
     sensors = np.asarray(cloud.T_vehicle_sensor, np.float64)[:, :3, 3]
     starts = sensors[np.asarray(cloud.sensor_ids, np.int64)[current]]
-    state = run_kernel(_compile_cast, starts, ends, origin, float(cell_size_m), shape)
+    # Rays are walked only inside the grid: a return beyond it (the simulator's reach 100 m, a
+    # point thrown far by bad extrinsics) ends where its ray leaves the grid, without a return there.
+    exit_t = _exit_fraction(starts, ends, origin, origin + shape * cell_size_m)
+    is_return = exit_t >= 1.0
+    ends = np.where(is_return[:, None], ends, starts + (ends - starts) * exit_t[:, None])
+    state = run_kernel(_compile_cast, starts, ends, is_return, origin, float(cell_size_m), shape)
     return FreeSpace(origin, float(cell_size_m), state)
 
 
@@ -125,11 +135,29 @@ def box_visibility(space: FreeSpace, boxes: np.ndarray) -> np.ndarray:
     )
 
 
+def _exit_fraction(starts: np.ndarray, ends: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """(R,) where each segment (R, 3) starts -> ends leaves the box [low, high], as a fraction of its
+    length, a little short of the border so that the point stays in the last cell (>= 1: it ends
+    inside; 0 for a segment that starts outside and never enters)."""
+    direction = ends - starts
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_low = (low - starts) / direction
+        t_high = (high - starts) / direction
+    # Along an axis the segment does not move, it stays within the slab for ever (or never).
+    inside = (starts >= low) & (starts < high)
+    t_far = np.where(direction == 0, np.where(inside, np.inf, -np.inf), np.maximum(t_low, t_high))
+    t_near = np.where(direction == 0, np.where(inside, -np.inf, np.inf), np.minimum(t_low, t_high))
+    exit_t = t_far.min(axis=1)
+    enters = (t_near.max(axis=1) <= exit_t) & (exit_t > 0)
+    length = np.maximum(np.linalg.norm(direction, axis=1), 1e-12)
+    return np.where(enters, np.maximum(exit_t - 1e-6 / length, 0.0), 0.0)
+
+
 def _compile_cast():
     import numba
 
     @numba.njit(cache=True, nogil=True)
-    def cast(starts, ends, origin, cell, shape):
+    def cast(starts, ends, is_return, origin, cell, shape):
         nx, ny, nz = shape[0], shape[1], shape[2]
         state = np.zeros((nx, ny, nz), np.uint8)
         ends_cell = np.empty((len(ends), 3), np.int64)
@@ -168,7 +196,10 @@ def _compile_cast():
         for r in range(len(ends)):
             x, y, z = ends_cell[r, 0], ends_cell[r, 1], ends_cell[r, 2]
             if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
-                state[x, y, z] = 2
+                if is_return[r]:
+                    state[x, y, z] = 2
+                elif state[x, y, z] == 0:
+                    state[x, y, z] = 1  # a ray cut at the grid's border crossed its last cell
         return state
 
     return cast

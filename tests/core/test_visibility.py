@@ -153,3 +153,25 @@ def test_a_visibility_regressor_refuses_point_sets_without_free_space():
     assert BoxQuality(visibility=False).free_space_of(groups) is None
     with pytest.raises(InputError, match="free space"):
         BoxQuality(visibility=True).free_space_of(groups)
+
+
+def test_a_return_beyond_the_grid_frees_its_ray_inside_it_and_occupies_nothing():
+    far = np.array([[1e7, 0.05, 1.05]])  # a point thrown far away (bad extrinsics, say)
+    space = free_space(_cloud(far, sensor_position=(0.05, 0.05, 1.05)), radius_m=5, cell_size_m=0.1)
+    assert (space.state == OCCUPIED).sum() == 0
+    # Every cell from the sensor's to the grid's border at x = 5 m.
+    assert (space.state == FREE).sum() == 50
+    assert space.state[-1, 50, 15] == FREE
+
+
+def test_free_space_arrays_cannot_be_changed_through_it():
+    origin = np.zeros(3)
+    space = FreeSpace(origin, 0.5, np.zeros((2, 2, 2), np.uint8))
+    origin[0] = 9.0
+    assert space.origin[0] == 0.0
+    with pytest.raises(ValueError):
+        space.origin[0] = 1.0
+    with pytest.raises(ValueError):
+        space.state[0, 0, 0] = 1
+    with pytest.raises(InputError):
+        FreeSpace([np.nan, 0, 0], 0.5, np.zeros((2, 2, 2), np.uint8))
