@@ -124,9 +124,16 @@ def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  #
         label = db.labels(0)[0]
         client = view.client
         position, look_at = camera_for_box(label.box, distance_factor=2.0, min_distance=3.0)
+        reported = []  # cameras the browser reports back (it does after the server moves it)
+        client.camera.on_update(lambda camera: reported.append(np.array(camera.position)))
         with client.atomic():
             client.camera.position = tuple(position)  # position first: it drags look_at along
             client.camera.look_at = tuple(look_at)
+        # Click only once the browser has applied the camera: while the app's worker computes the
+        # first frame, a starved browser can take longer than the retries below to move it.
+        assert _wait(lambda: any(np.allclose(p, position, atol=0.01) for p in reported), 60), (
+            "the browser never reported the new camera"
+        )
         canvas = page.locator("canvas[data-engine]")
         box = canvas.bounding_box()
         # The camera message and the click travel separately: on a loaded machine the browser may
