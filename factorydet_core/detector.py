@@ -326,23 +326,22 @@ class Detector:
             timings_ms=timings,
         )
 
-    def group(self, proposal: ProposalResult) -> ProposalGroups:
+    def group(self, proposal: ProposalResult, with_free_space: bool = True) -> ProposalGroups:
         """The point sets of a frame's proposals, described for the back half, with the frame's
-        free space (``visibility.free_space``) over the cropped region (25 m and -0.5 to 4.5 m
-        without a crop; at most ``FREE_SPACE_MAX_RADIUS_M`` across, since the grid's memory grows
-        with the square of its radius)."""
-        params = self.params
-        radius = 25.0 if params.crop_radius_m is None else min(params.crop_radius_m, FREE_SPACE_MAX_RADIUS_M)
+        free space (``visibility.free_space``, unless ``with_free_space`` is False) over the
+        cropped region (``free_space``'s default extent without a crop; at most
+        ``FREE_SPACE_MAX_RADIUS_M`` across, since the grid's memory grows with the square of its
+        radius)."""
+        space = None
+        if with_free_space:
+            extent = {}
+            if self.params.crop_radius_m is not None:
+                extent["radius_m"] = min(self.params.crop_radius_m, FREE_SPACE_MAX_RADIUS_M)
+            if self.params.crop_z_m is not None:
+                extent["z_range_m"] = self.params.crop_z_m
+            space = free_space(proposal.merged, **extent)
         return group_proposals(
-            proposal.proposals,
-            proposal.cloud.points,
-            proposal.segmentation,
-            proposal.floor_plane,
-            free_space(
-                proposal.merged,
-                radius_m=radius,
-                z_range_m=(-0.5, 4.5) if params.crop_z_m is None else params.crop_z_m,
-            ),
+            proposal.proposals, proposal.cloud.points, proposal.segmentation, proposal.floor_plane, space
         )
 
     def detect(
@@ -364,7 +363,9 @@ class Detector:
         proposal = self.propose(frame, history, front_progress)
         timings = {k: v for k, v in proposal.timings_ms.items() if k != "total"}
         clock = time.perf_counter()
-        groups = self.group(proposal)
+        # Casting the rays costs about 0.17 s a frame: only for a regressor that reads them.
+        quality = self.model.box_quality
+        groups = self.group(proposal, with_free_space=quality is not None and quality.visibility)
         timings["grouping"] = (time.perf_counter() - clock) * 1000.0
         clock = time.perf_counter()
         candidates = self.model.candidates(proposal.proposals.boxes, groups)

@@ -41,14 +41,11 @@ class FreeSpace:
     """(X, Y, Z) uint8: ``UNSEEN``, ``FREE`` or ``OCCUPIED`` per cell."""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "state", np.asarray(self.state))
-        if self.state.ndim != 3 or self.state.dtype != np.uint8:
-            raise InputError(
-                f"free space: state must be a 3-D uint8 array, got {self.state.dtype} {self.state.shape}"
-            )
+        state = np.array(self.state)  # a copy: the caller's array may change later
+        if state.ndim != 3 or state.dtype != np.uint8:
+            raise InputError(f"free space: state must be a 3-D uint8 array, got {state.dtype} {state.shape}")
         if not (np.isfinite(self.cell_size) and self.cell_size > 0):
             raise InputError(f"free space: cell_size must be > 0, got {self.cell_size}")
-        state = np.array(self.state)
         state.setflags(write=False)
         object.__setattr__(self, "state", state)
         origin = np.array(self.origin, np.float64).reshape(3)
@@ -184,8 +181,8 @@ def _compile_cast():
             # Walk the cells the segment crosses, up to (not including) the end cell.
             for _ in range(abs(last[0] - cur[0]) + abs(last[1] - cur[1]) + abs(last[2] - cur[2])):
                 if 0 <= cur[0] < nx and 0 <= cur[1] < ny and 0 <= cur[2] < nz:
-                    if state[cur[0], cur[1], cur[2]] == 0:
-                        state[cur[0], cur[1], cur[2]] = 1
+                    if state[cur[0], cur[1], cur[2]] == UNSEEN:
+                        state[cur[0], cur[1], cur[2]] = FREE
                 a = 0
                 if t_max[1] < t_max[a]:
                     a = 1
@@ -197,9 +194,9 @@ def _compile_cast():
             x, y, z = ends_cell[r, 0], ends_cell[r, 1], ends_cell[r, 2]
             if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz:
                 if is_return[r]:
-                    state[x, y, z] = 2
-                elif state[x, y, z] == 0:
-                    state[x, y, z] = 1  # a ray cut at the grid's border crossed its last cell
+                    state[x, y, z] = OCCUPIED
+                elif state[x, y, z] == UNSEEN:
+                    state[x, y, z] = FREE  # a ray cut at the grid's border crossed its last cell
         return state
 
     return cast
@@ -230,9 +227,9 @@ def _compile_sample():
                         z = int(np.floor((cz + ((h + 0.5) / per_axis - 0.5) * dz - origin[2]) / cell))
                         if 0 <= z < nz:
                             value = state[x, y, z]
-                            if value == 1:
+                            if value == FREE:
                                 free += weight
-                            elif value == 2:
+                            elif value == OCCUPIED:
                                 occupied += weight
             out[k, 0] = free
             out[k, 1] = occupied

@@ -215,3 +215,27 @@ def test_unknown_or_malformed_parameters_are_input_errors():
     with pytest.raises(InputError, match="crop_z_m"):
         params.replace(crop_z_m="abc")
     assert params.replace(max_object_size_m=[3, 2]).segmentation.max_object_size_m == (3.0, 2.0)
+
+
+def test_detection_casts_rays_only_for_a_regressor_that_reads_them(
+    small_dataset_dir, tiny_model_path, result
+):
+    from factorydet_core.model import DetectionModel
+
+    detector = Detector("agv")
+    assert detector.group(result).free_space is not None
+    assert detector.group(result, with_free_space=False).free_space is None
+    from factorydet_core.box_quality import BoxQuality
+    from factorydet_core.training import collect_proposals
+
+    model = DetectionModel.load(tiny_model_path)
+    dataset = open_dataset(small_dataset_dir)
+    frames = collect_proposals(dataset, [0], detector)
+    qualities = []
+    for visibility in (True, False):
+        quality = BoxQuality(max_iter=3, visibility=visibility)
+        qualities.append(quality.fit(*quality.training_rows(frames, model.box_prior, len(model.class_names))))
+    for box_quality, reads in zip((*qualities, None), (True, False, False)):
+        detector.model = dataclasses.replace(model, box_quality=box_quality)
+        groups = detector.detect(dataset.frame(0)).groups
+        assert (groups.free_space is not None) == reads
