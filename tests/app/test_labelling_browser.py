@@ -3,8 +3,6 @@ canvas, undo, retraining with a progress bar, and two browsers at once."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 import viser
@@ -120,33 +118,57 @@ def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  #
     app = session_app
     db = app.state.db
     context, page, view = _open(browser, app)
+    clicks = []  # the rays of the clicks that reached the server, in order
+    app.server.scene.on_click()(lambda event: clicks.append(event))
     try:
+        # The first frame's pipeline and its drawing compete with the browser for the two cores:
+        # clicking before they finish made clicks arrive after the test had given up on them.
+        assert _wait(
+            lambda: (
+                not app.state.pipeline_busy
+                and app.layers.drawn_result is app.state.pipeline_result
+                and app.layers.drawn_result is not None
+            ),
+            120,
+        ), f"the first frame was never drawn ({app.state.pipeline_status})"
         label = db.labels(0)[0]
         client = view.client
         position, look_at = camera_for_box(label.box, distance_factor=2.0, min_distance=3.0)
         reported = []  # cameras the browser reports back (it does after the server moves it)
-        client.camera.on_update(lambda camera: reported.append(np.array(camera.position)))
+        client.camera.on_update(
+            lambda camera: reported.append((np.array(camera.position), np.array(camera.look_at)))
+        )
         with client.atomic():
             client.camera.position = tuple(position)  # position first: it drags look_at along
             client.camera.look_at = tuple(look_at)
-        # Click only once the browser has applied the camera: while the app's worker computes the
-        # first frame, a starved browser can take longer than the retries below to move it.
-        assert _wait(lambda: any(np.allclose(p, position, atol=0.01) for p in reported), 60), (
-            "the browser never reported the new camera"
-        )
+        assert _wait(
+            lambda: any(
+                np.allclose(p, position, atol=0.01) and np.allclose(q, look_at, atol=0.01)
+                for p, q in reported
+            ),
+            60,
+        ), f"the browser never reported the new camera (last: {reported[-1:]})"
         canvas = page.locator("canvas[data-engine]")
         box = canvas.bounding_box()
-        # The camera message and the click travel separately: on a loaded machine the browser may
-        # not have moved its camera yet when the first click lands, so a click whose ray missed is
-        # repeated (a click cannot select the wrong box by retrying: each selects from scratch).
+        # A click travels through the browser's render loop, which software WebGL can hold for
+        # seconds: wait for each click to reach the server before judging it, and click again
+        # only if it arrived and missed (each click selects from scratch, so a retry cannot
+        # select the wrong box).
         selected = False
-        for _ in range(4):
-            time.sleep(1.0)
+        for attempt in range(3):
+            num_clicks = len(clicks)
             canvas.click(position={"x": box["width"] / 2, "y": box["height"] / 2})
-            selected = _wait(lambda: view.selected_label_id == label.id, 5)
+            assert _wait(lambda n=num_clicks: len(clicks) > n, 60), (
+                f"click {attempt + 1} never reached the server"
+            )
+            selected = _wait(lambda: view.selected_label_id == label.id, 10)
             if selected:
                 break
-        assert selected, f"the click did not select box {label.id} (selected: {view.selected_label_id})"
+        rays = [(np.round(c.ray_origin, 2).tolist(), np.round(c.ray_direction, 3).tolist()) for c in clicks]
+        assert selected, (
+            f"the clicks did not select box {label.id} {np.round(label.box, 2).tolist()} "
+            f"(selected: {view.selected_label_id}; rays: {rays}; camera: {position}, {look_at})"
+        )
         page.get_by_text(f"Label #{label.id}", exact=False).wait_for(timeout=20_000)
         page.get_by_role("button", name="Delete label [Delete]").click()
         assert _wait(lambda: db.label(label.id).deleted, 20), "delete was not stored"
