@@ -387,6 +387,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         geometry=args.geometry,
         box_quality=args.box_quality,
+        visibility={"auto": None, "on": True, "off": False}[args.visibility],
     )
     front_end = _front_end_note(preset, overrides)
     try:
@@ -749,6 +750,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_false",
         help="keep the size prior's box and the class probability as score, without the regressor of "
         "each box's IoU",
+    )
+    p.add_argument(
+        "--visibility",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="whether the box quality regressor reads what the frame's rays saw empty or occupied "
+        "in each box (auto: on for multi-sensor data, off for single scans such as ScanNet's, "
+        "whose clouds come from meshes)",
     )
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     p.set_defaults(func=_cmd_train)

@@ -76,7 +76,11 @@ class FrontEndParams:
                 low, high = (float(v) for v in self.crop_z_m)
             except (TypeError, ValueError):
                 raise InputError(f"crop_z_m must be two heights in metres, got {self.crop_z_m!r}") from None
+            if not low < high:  # also false for NaN
+                raise InputError(f"crop_z_m must be (low, high) with low < high, got {self.crop_z_m!r}")
             object.__setattr__(self, "crop_z_m", (low, high))
+        if self.crop_radius_m is not None and not self.crop_radius_m > 0:
+            raise InputError(f"crop_radius_m must be > 0 (or None: no crop), got {self.crop_radius_m}")
         if self.history_frames < 0:
             raise InputError(f"history_frames must be >= 0, got {self.history_frames}")
         if not self.voxel_size_m > 0:

@@ -84,6 +84,17 @@ class LoopSettings:
     box_quality: bool = True
     """Pick each detection's box and weigh its score by a regressor of the box's IoU
     (``box_quality.BoxQuality``); False keeps the size prior's box and the class probability."""
+    visibility: bool | None = None
+    """The box quality regressor also reads what the frame's rays saw of each box
+    (``BoxQuality.visibility``). ``None``: on for multi-sensor data, whose rays start at the
+    sensors of the merge's extrinsics; off for single scans (ScanNet and S3DIS clouds are sampled
+    from meshes and read with an identity extrinsic, so their free space means nothing)."""
+
+    def quality_visibility(self, dataset: Dataset | None) -> bool:
+        """Whether the box quality regressor reads free space for ``dataset`` (``visibility``)."""
+        if self.visibility is not None:
+            return self.visibility
+        return dataset is None or dataset.num_sensors > 1
 
     def classifier(self, class_names: Sequence[str]) -> ProposalClassifier:
         return ProposalClassifier(
@@ -243,7 +254,11 @@ def train_session(
         mining_threshold=settings.mining_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,
-        box_quality=BoxQuality(seed=settings.seed) if settings.box_quality else None,
+        box_quality=(
+            BoxQuality(seed=settings.seed, visibility=settings.quality_visibility(db.dataset))
+            if settings.box_quality
+            else None
+        ),
         progress=progress,
         background_sets=background,
         excluded_sets=excluded,

@@ -4,6 +4,7 @@ import shutil
 import pytest
 
 from app.cli import main
+from factorydet_core.model import DetectionModel
 
 
 def test_simulate_info_and_bench(tmp_path, capsys):
@@ -91,7 +92,7 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     root = tmp_path / "sessions"
     args = ["train", str(small_dataset_dir), "--session", "s", "--root", str(root), "--rounds", "1",
             "--epochs", "2", "--frames", "2", "--initial-negatives", "150", "--negatives", "30",
-            "--score-threshold", "0.05", "--no-calibrate",
+            "--score-threshold", "0.05", "--no-calibrate", "--visibility", "off",
             "--export", str(tmp_path / "out" / "m.pt")]  # fmt: skip
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out)
@@ -108,6 +109,8 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     # The model has box quality (the default): scores are probability x predicted IoU, low for a
     # two-epoch classifier, so every candidate above 0 is shown.
     assert (tmp_path / "out" / "m.boxq.npz").is_file() and note["box_quality"] is not None
+    # --visibility off: this multi-sensor data would otherwise give the regressor free space.
+    assert not DetectionModel.load(tmp_path / "out" / "m.pt").box_quality.visibility
     detect = ["detect", str(small_dataset_dir), "--model", "s", "--root", str(root), "--frame", "2",
               "--score-threshold", "0.0", "--no-calibrate", "--json"]  # fmt: skip
     assert main(detect) == 0

@@ -175,6 +175,10 @@ def test_extrinsics_of_another_rig_raise(frame0):
         {"prune_m": -0.1},
         {"segment_on": "pixels"},
         {"min_proposal_points": 0},
+        {"crop_radius_m": 0.0},
+        {"crop_radius_m": float("nan")},
+        {"crop_z_m": (4.5, -0.5)},
+        {"crop_z_m": (0.0, float("nan"))},
     ],
 )
 def test_invalid_front_end_params_raise(changes):

@@ -156,3 +156,13 @@ def test_suspect_labels_are_the_ones_the_classifier_contradicts(db, frames, tiny
     strict = suspect_labels(db, model, frames, max_label_probability=0.05)
     assert len(strict) <= len(suspects)
     assert all(s["label_probability"] <= 0.05 for s in strict)
+
+
+def test_free_space_is_read_by_default_for_multi_sensor_data_only(dataset):
+    from types import SimpleNamespace
+
+    assert dataset.num_sensors > 1 and LoopSettings().quality_visibility(dataset)
+    single_scan = SimpleNamespace(num_sensors=1)  # an imported ScanNet room: one identity extrinsic
+    assert not LoopSettings().quality_visibility(single_scan)
+    assert LoopSettings(visibility=True).quality_visibility(single_scan)
+    assert not LoopSettings(visibility=False).quality_visibility(dataset)
