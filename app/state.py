@@ -13,7 +13,7 @@ import numpy as np
 
 from factorydet_core.colors import COLOR_MODES
 from factorydet_core.dataset import Dataset
-from factorydet_core.detection import select_detections
+from factorydet_core.detection import BOX_VOTE_IOU, select_detections
 from factorydet_core.detector import DetectionResult, FrontEndParams, ProposalResult, params_for
 from factorydet_core.evaluation import detection_metrics
 from factorydet_core.types import Detections, Frame
@@ -280,6 +280,10 @@ class AppState:
             return None
         return self.model.class_thresholds()
 
+    def _vote_iou(self) -> float | None:
+        """The shown model's box voting threshold (under the lock)."""
+        return BOX_VOTE_IOU if self.model is None else self.model.vote_iou
+
     def _refilter(self) -> None:
         """Recompute the shown detections and the metrics (under the lock)."""
         result = self.detection_result
@@ -288,7 +292,11 @@ class AppState:
             None
             if result is None
             else select_detections(
-                result.candidates, self.score_threshold, self.nms_iou, class_score_thresholds=per_class
+                result.candidates,
+                self.score_threshold,
+                self.nms_iou,
+                class_score_thresholds=per_class,
+                vote_iou=self._vote_iou(),
             )
         )
         if self.model is None or not self.frame_detections:
@@ -297,7 +305,10 @@ class AppState:
         scored = []
         for item in self.frame_detections.values():
             floor = select_detections(
-                item["candidates"], min(AP_SCORE_FLOOR, self.score_threshold), self.nms_iou
+                item["candidates"],
+                min(AP_SCORE_FLOOR, self.score_threshold),
+                self.nms_iou,
+                vote_iou=self._vote_iou(),
             )
             kept = floor.subset(floor.kept_mask)
             scored.append(

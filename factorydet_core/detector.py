@@ -383,6 +383,7 @@ class Detector:
             self.model.nms_iou if nms_iou is None else nms_iou,
             # The model's per-class thresholds are its operating point unless one is asked for.
             class_score_thresholds=self.model.class_thresholds() if score_threshold is None else None,
+            vote_iou=self.model.vote_iou,
         )
         timings["nms"] = (time.perf_counter() - clock) * 1000.0
         timings["total"] = sum(timings.values())

@@ -14,7 +14,14 @@ import numpy as np
 
 from .box_quality import BoxQuality
 from .classifier import ProposalClassifier
-from .detection import BoxSizePrior, ProposalGroups, check_exponent, score_groups, select_detections
+from .detection import (
+    BOX_VOTE_IOU,
+    BoxSizePrior,
+    ProposalGroups,
+    check_exponent,
+    score_groups,
+    select_detections,
+)
 from .evaluation import check_thresholds
 from .types import Detections, InputError
 
@@ -42,6 +49,9 @@ class DetectionModel:
         probability_exponent: with ``box_quality``, a detection's score is its class probability
             to this power times its predicted IoU (``detection.score_groups``); checkpoints from
             before it was kept load with 1.
+        vote_iou: after NMS, the candidates overlapping a kept detection at least this much vote
+            on its box (``nms.vote_boxes``); ``None`` keeps the chosen box. Voting needs no
+            training, so checkpoints from before it load with the default.
     """
 
     classifier: object
@@ -52,6 +62,7 @@ class DetectionModel:
     box_quality: BoxQuality | None = None
     class_score_thresholds: dict[str, float] | None = None
     probability_exponent: float = 1.0
+    vote_iou: float | None = BOX_VOTE_IOU
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -94,6 +105,7 @@ class DetectionModel:
             self.score_threshold if score_threshold is None else score_threshold,
             self.nms_iou if nms_iou is None else nms_iou,
             class_score_thresholds=self.class_thresholds() if score_threshold is None else None,
+            vote_iou=self.vote_iou,
         )
 
     def save(self, path: str | os.PathLike, note: dict | None = None) -> Path:
@@ -108,6 +120,7 @@ class DetectionModel:
             "box_quality": None if self.box_quality is None else dataclasses.asdict(self.box_quality),
             "class_score_thresholds": self.class_score_thresholds,
             "probability_exponent": self.probability_exponent,
+            "vote_iou": self.vote_iou,
         }
         written = self.classifier.save(path, {**extra, **(note or {})})
         if self.box_quality is not None:
@@ -137,6 +150,7 @@ class DetectionModel:
             box_quality=box_quality,
             class_score_thresholds=_class_thresholds_from_note(note.get("class_score_thresholds")),
             probability_exponent=_exponent_from_note(note.get("probability_exponent", 1.0)),
+            vote_iou=_vote_iou_from_note(note.get("vote_iou", BOX_VOTE_IOU)),
         )
 
     @property
@@ -190,3 +204,11 @@ def _class_thresholds_from_note(value) -> dict[str, float] | None:
     thresholds = np.array(list(value.values()), np.float64)
     check_thresholds(thresholds, "class_score_thresholds", names)
     return dict(zip(names, thresholds.tolist()))
+
+
+def _vote_iou_from_note(value) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:
+        raise InputError(f"checkpoint note: vote_iou must be null or in (0, 1], got {value!r}")
+    return float(value)

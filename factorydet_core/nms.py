@@ -55,3 +55,64 @@ def nms_3d(
         suppressed_by[order[hit]] = order[rank]
         alive &= ~hit
     return order[np.array(keep, np.int64)], suppressed_by
+
+
+def vote_boxes(
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    keep_ids: np.ndarray,
+    iou_threshold: float = 0.4,
+    class_ids: np.ndarray | None = None,
+) -> np.ndarray:
+    """Box voting after NMS: each kept box moved to the weighted mean of the boxes that overlap it.
+
+    The detector's candidates come from discrete box options (the class's size modes placed by
+    each point set's fitted box), so the right box of an object often lies between the boxes that
+    several point sets chose for it, and NMS keeps only the best scored of them. Voting (as in
+    Gidaris and Komodakis's multi-region detector) averages them: every box whose IoU with a kept
+    box is at least ``iou_threshold`` (of the same class, with ``class_ids``) votes with the
+    weight ``score * IoU``; the kept box itself is one of the voters (IoU 1). The centre is the
+    weighted mean of the voters' centres, each size the weighted geometric mean of theirs, taken
+    along the kept box's axes (a voter turned by more than 45 degrees from it has its length and
+    width swapped); the heading stays the kept box's.
+
+    Args:
+        boxes: (M, 7) the voters, the kept boxes among them.
+        scores: (M,) their scores (> 0 for a vote to count).
+        keep_ids: (K,) indices of the kept boxes in ``boxes``.
+        iou_threshold: least IoU of a voter with a kept box, in (0, 1].
+        class_ids: (M,) optional; given, only boxes of the kept box's class vote.
+
+    Returns:
+        (K, 7) the voted boxes, in the order of ``keep_ids``.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    scores = np.asarray(scores, np.float64)
+    check_array(scores, (len(boxes),), name="scores", finite=True)
+    keep_ids = np.asarray(keep_ids, np.int64).reshape(-1)
+    if len(keep_ids) and (keep_ids.min() < 0 or keep_ids.max() >= len(boxes)):
+        raise InputError(f"keep_ids must index the {len(boxes)} boxes")
+    if not 0.0 < iou_threshold <= 1.0:
+        raise InputError(f"iou_threshold must lie in (0, 1], got {iou_threshold}")
+    kept = boxes[keep_ids]
+    if not len(keep_ids):
+        return kept
+    iou = box_iou_3d(kept, boxes)
+    iou[np.arange(len(keep_ids)), keep_ids] = 1.0  # exact, whatever rounding gives
+    weight = np.where(iou >= iou_threshold, np.maximum(scores, 0.0)[None] * iou, 0.0)
+    if class_ids is not None:
+        class_ids = np.asarray(class_ids)
+        check_array(class_ids, (len(boxes),), name="class_ids")
+        weight *= class_ids[keep_ids][:, None] == class_ids[None]
+    # A kept box of score 0 still votes for itself, so no row is without weight.
+    weight[np.arange(len(keep_ids)), keep_ids] = np.maximum(weight[np.arange(len(keep_ids)), keep_ids], 1e-12)
+    weight /= weight.sum(axis=1, keepdims=True)
+    turned = np.abs((boxes[None, :, 6] - kept[:, None, 6] + np.pi / 2) % np.pi - np.pi / 2) > np.pi / 4
+    log_sizes = np.log(np.maximum(boxes[:, 3:6], 1e-9))
+    along_kept = np.where(
+        turned[..., None], log_sizes[None][..., [1, 0, 2]], log_sizes[None]
+    )  # (K, M, 3): each voter's sizes along the kept box's length, width and height
+    voted = kept.copy()
+    voted[:, :3] = weight @ boxes[:, :3]
+    voted[:, 3:6] = np.exp(np.einsum("km,kmd->kd", weight, along_kept))
+    return voted

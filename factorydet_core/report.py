@@ -85,7 +85,11 @@ def _proposal_recall(dataset, frames, iou_threshold: float, model: DetectionMode
             option_hits.append(best >= iou_threshold)
         candidates = model.candidates(frame.proposal_boxes, frame.groups)
         scored = select_detections(  # all of them
-            candidates, model.score_threshold, model.nms_iou, class_score_thresholds=model.class_thresholds()
+            candidates,
+            model.score_threshold,
+            model.nms_iou,
+            class_score_thresholds=model.class_thresholds(),
+            vote_iou=model.vote_iou,
         )
         for name, chosen in (
             ("chosen", candidates),

@@ -151,7 +151,7 @@ def measure(
             model.box_quality,
             model.probability_exponent,
         )
-        detections = select_detections(candidates, ap_score_floor, model.nms_iou)
+        detections = select_detections(candidates, ap_score_floor, model.nms_iou, vote_iou=model.vote_iou)
         kept = detections.subset(detections.kept_mask)
         scored.append(
             {

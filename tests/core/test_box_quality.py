@@ -300,6 +300,19 @@ def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
     note_path.write_text(json.dumps({**note, "probability_exponent": -1}))
     with pytest.raises(InputError, match="probability_exponent"):
         DetectionModel.load(tmp_path / "r.pt")
+    # Box voting: kept, switched off (null), and the default for checkpoints from before it.
+    from factorydet_core.detection import BOX_VOTE_IOU
+
+    assert loaded.vote_iou == BOX_VOTE_IOU and loaded.note["vote_iou"] == BOX_VOTE_IOU
+    for value, expected in ((None, None), (0.6, 0.6)):
+        note_path.write_text(json.dumps({**note, "vote_iou": value}))
+        assert DetectionModel.load(tmp_path / "r.pt").vote_iou == expected
+    del note["vote_iou"]
+    note_path.write_text(json.dumps(note))
+    assert DetectionModel.load(tmp_path / "r.pt").vote_iou == BOX_VOTE_IOU
+    note_path.write_text(json.dumps({**note, "vote_iou": 1.5}))
+    with pytest.raises(InputError, match="vote_iou"):
+        DetectionModel.load(tmp_path / "r.pt")
     rows = fitted[1][:50]
     np.testing.assert_array_equal(loaded.box_quality.predict(rows), fitted[0].predict(rows))
     (tmp_path / "q.boxq.npz").unlink()

@@ -109,6 +109,26 @@ def test_select_detections_thresholds_and_flags_suppressed():
     assert fallback.scores.tolist() == pytest.approx([0.9, 0.7, 0.4])
 
 
+def test_kept_detections_are_voted_on_by_the_candidates_that_overlap_them():
+    # Two point sets of one object whose boxes straddle it, and a weak third one.
+    proposal_boxes = np.array(
+        [[0, 0, 0.5, 1, 1, 1, 0], [0.2, 0, 0.5, 1, 1, 1, 0], [0.1, 0.1, 0.5, 1, 1, 1, 0]]
+    )
+    groups = groups_of([0, 1, 2])
+    probabilities = np.array([[0.9, 0.0, 0.1], [0.8, 0.0, 0.2], [0.2, 0.0, 0.8]], np.float32)
+    cands = score_groups(proposal_boxes, groups, probabilities, None, CLASSES)
+    plain = select_detections(cands, 0.5, 0.25, vote_iou=None)
+    voted = select_detections(cands, 0.5, 0.25)
+    np.testing.assert_array_equal(plain.boxes, cands.boxes[[0, 1]])  # by score; 1 suppressed by 0
+    assert voted.suppressed_by.tolist() == [-1, 0]
+    assert 0.0 < voted.boxes[0, 0] < 0.2 and voted.boxes[0, 1] > 0.0  # moved toward the voters
+    np.testing.assert_array_equal(voted.boxes[1], plain.boxes[1])  # suppressed ones keep theirs
+    # The weak candidate (0.2) votes at any operating threshold: a detection's box does not depend
+    # on the threshold that shows it.
+    low = select_detections(cands, 0.05, 0.25)
+    np.testing.assert_allclose(low.boxes[0], voted.boxes[0])
+
+
 def test_descriptors_of_a_flat_and_a_linear_set():
     rng = np.random.default_rng(0)
     plane = np.column_stack([rng.uniform(0, 2, 200), rng.uniform(0, 2, 200), np.zeros(200)])
