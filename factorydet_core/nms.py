@@ -107,12 +107,16 @@ def vote_boxes(
     # A kept box of score 0 still votes for itself, so no row is without weight.
     weight[np.arange(len(keep_ids)), keep_ids] = np.maximum(weight[np.arange(len(keep_ids)), keep_ids], 1e-12)
     weight /= weight.sum(axis=1, keepdims=True)
-    turned = np.abs((boxes[None, :, 6] - kept[:, None, 6] + np.pi / 2) % np.pi - np.pi / 2) > np.pi / 4
-    log_sizes = np.log(np.maximum(boxes[:, 3:6], 1e-9))
-    along_kept = np.where(
-        turned[..., None], log_sizes[None][..., [1, 0, 2]], log_sizes[None]
-    )  # (K, M, 3): each voter's sizes along the kept box's length, width and height
+    # Only the voting pairs (a few per kept box) are gathered: (K, M, 3) arrays of every pair would
+    # take hundreds of MB when the app shows every candidate.
+    rows, voters = np.nonzero(weight)
+    pair_weight = weight[rows, voters]
+    gap = np.abs((boxes[voters, 6] - kept[rows, 6] + np.pi / 2) % np.pi - np.pi / 2)
+    log_sizes = np.log(np.maximum(boxes[voters, 3:6], 1e-9))
+    turned = gap > np.pi / 4
+    log_sizes[turned] = log_sizes[turned][:, [1, 0, 2]]  # along the kept box's length and width
     voted = kept.copy()
-    voted[:, :3] = weight @ boxes[:, :3]
-    voted[:, 3:6] = np.exp(np.einsum("km,kmd->kd", weight, along_kept))
+    for axis in range(3):
+        voted[:, axis] = np.bincount(rows, pair_weight * boxes[voters, axis], minlength=len(kept))
+        voted[:, 3 + axis] = np.exp(np.bincount(rows, pair_weight * log_sizes[:, axis], minlength=len(kept)))
     return voted
