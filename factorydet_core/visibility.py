@@ -113,7 +113,8 @@ def free_space(
     # point thrown far by bad extrinsics) ends where its ray leaves the grid, without a return there.
     exit_t = _exit_fraction(starts, ends, origin, origin + shape * cell_size_m)
     is_return = exit_t >= 1.0
-    ends = np.where(is_return[:, None], ends, starts + (ends - starts) * exit_t[:, None])
+    clipped = np.flatnonzero(~is_return)  # (a zero-length ray's fraction is infinite: not clipped)
+    ends[clipped] = starts[clipped] + (ends[clipped] - starts[clipped]) * exit_t[clipped, None]
     state = run_kernel(_compile_cast, starts, ends, is_return, origin, float(cell_size_m), shape)
     return FreeSpace(origin, float(cell_size_m), state)
 
@@ -137,7 +138,7 @@ def _exit_fraction(starts: np.ndarray, ends: np.ndarray, low: np.ndarray, high: 
     length, a little short of the border so that the point stays in the last cell (>= 1: it ends
     inside; 0 for a segment that starts outside and never enters)."""
     direction = ends - starts
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t_low = (low - starts) / direction
         t_high = (high - starts) / direction
     # Along an axis the segment does not move, it stays within the slab for ever (or never).
