@@ -97,15 +97,16 @@ def vote_boxes(
     kept = boxes[keep_ids]
     if not len(keep_ids):
         return kept
+    own = (np.arange(len(keep_ids)), keep_ids)  # each kept box's own entry in its row
     iou = box_iou_3d(kept, boxes)
-    iou[np.arange(len(keep_ids)), keep_ids] = 1.0  # exact, whatever rounding gives
+    iou[own] = 1.0  # exact, whatever rounding gives
     weight = np.where(iou >= iou_threshold, np.maximum(scores, 0.0)[None] * iou, 0.0)
     if class_ids is not None:
         class_ids = np.asarray(class_ids)
         check_array(class_ids, (len(boxes),), name="class_ids")
         weight *= class_ids[keep_ids][:, None] == class_ids[None]
     # A kept box of score 0 still votes for itself, so no row is without weight.
-    weight[np.arange(len(keep_ids)), keep_ids] = np.maximum(weight[np.arange(len(keep_ids)), keep_ids], 1e-12)
+    weight[own] = np.maximum(weight[own], 1e-12)
     weight /= weight.sum(axis=1, keepdims=True)
     # Only the voting pairs (a few per kept box) are gathered: (K, M, 3) arrays of every pair would
     # take hundreds of MB when the app shows every candidate.
