@@ -29,10 +29,11 @@ lint: $(STAMP)
 # Re-runs every benchmark and writes its JSON into README.md (several minutes).
 BENCH_DATA ?= /tmp/bench_sim
 REAL := ../shared/data/real
-bench: $(STAMP)
+bench: $(STAMP) corpus
 	$(BIN)/factorydet bench simulate --readme README.md
 	rm -rf $(BENCH_DATA) && $(BIN)/factorydet simulate --out $(BENCH_DATA) --frames 24 --seed 0
 	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 8 --json --readme README.md
+	$(BIN)/factorydet bench pipeline $(CORPUS) --frames 20 --json --readme README.md --readme-block pipeline-corpus
 	$(BIN)/factorydet bench pipeline $(REAL)/scannet_scene0000_00.npz $(REAL)/scannet_scene0000_01.npz \
 	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
 	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 4 --png docs/voxel_sweep.png --readme README.md

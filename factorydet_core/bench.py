@@ -74,15 +74,30 @@ def bench_simulate(num_frames: int = 10, points_per_frame: int = 80_000, seed: i
     }
 
 
-def update_readme(readme: str | os.PathLike, result: dict) -> None:
-    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with ``result``."""
+def check_readme_block(readme: str | os.PathLike, name: str) -> None:
+    """Raise ``InputError`` unless ``readme`` has a ``<!-- bench:name -->`` block (checked before a
+    long benchmark, not after it)."""
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", name):
+        raise InputError(f"README block names are letters, digits, '-' and '_', got {name!r}")
     path = Path(readme)
-    name = result["benchmark"]
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    if f"<!-- bench:{name} -->" not in path.read_text() or f"<!-- /bench:{name} -->" not in path.read_text():
+        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
+
+
+def update_readme(readme: str | os.PathLike, result: dict, name: str | None = None) -> None:
+    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with ``result``;
+    ``name`` defaults to the result's ``benchmark`` (a second block of the same benchmark, on other
+    data, takes a name of its own)."""
+    path = Path(readme)
+    name = result["benchmark"] if name is None else name
+    check_readme_block(path, name)
     text = path.read_text()
     block = f"<!-- bench:{name} -->\n```json\n{json.dumps(result, indent=2)}\n```\n<!-- /bench:{name} -->"
     pattern = re.compile(rf"<!-- bench:{name} -->.*?<!-- /bench:{name} -->", re.S)
     if not pattern.search(text):
-        raise ValueError(f"{path}: no '<!-- bench:{name} -->' block to update")
+        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
     path.write_text(pattern.sub(lambda _: block, text))
 
 

@@ -120,6 +120,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from .bench import bench_pipeline, bench_simulate, bench_voxel_sweep, update_readme
 
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
+    if args.readme and args.readme_block:
+        from .bench import check_readme_block
+
+        check_readme_block(args.readme, args.readme_block)
     if args.frames is None:
         args.frames = {"simulate": 10, "hitl": None}.get(args.name, 4)
     if args.name == "simulate":
@@ -216,7 +220,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             close()
     print(json.dumps(result, indent=2))
     if args.readme:
-        update_readme(args.readme, result)
+        update_readme(args.readme, result, args.readme_block)
     return 0
 
 
@@ -906,6 +910,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="hitl: also write the JSON here (the report reads it)")
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.add_argument("--readme", default=None, help="also write the result into this README's bench block")
+    p.add_argument(
+        "--readme-block",
+        default=None,
+        help="the README block's name (default: the benchmark's; e.g. a second pipeline block on other data)",
+    )
     p.set_defaults(func=_cmd_bench)
     return parser
 

@@ -55,6 +55,12 @@ class SegmentationParams:
     """Neighbours per point in the adjacency graph."""
     max_edge_m: float = 0.3
     """Graph edges longer than this are cut: a gap this wide always separates segments."""
+    max_edge_per_range: float = 0.0
+    """Besides ``max_edge_m``, an edge may be this long per metre of horizontal distance of its
+    nearer end from the viewpoint (the vehicle frame's origin). A scanning sensor's returns spread
+    with range: the AGV's beams are 1.2 degrees apart vertically, 0.31 m at 15 m, so a fixed
+    0.3 m limit cut far objects into slices (a forklift at 15 m into its mast and its body).
+    0 keeps one limit everywhere (static scans without a viewpoint)."""
     regularization: float = 0.05
     """Cut-pursuit regularisation (lambda): larger gives fewer, bigger patches."""
     spatial_weight: float = 3.0
@@ -106,6 +112,10 @@ class SegmentationParams:
         for name in ("max_edge_m", "regularization"):
             if not float(getattr(self, name)) > 0:
                 raise InputError(f"segmentation: {name} must be > 0, got {getattr(self, name)}")
+        if not float(self.max_edge_per_range) >= 0:
+            raise InputError(
+                f"segmentation: max_edge_per_range must be >= 0, got {self.max_edge_per_range}"
+            )
         if not 0.0 <= self.merge_threshold <= 1.0:
             raise InputError(f"segmentation: merge_threshold must lie in [0, 1], got {self.merge_threshold}")
         if self.spatial_weight < 0:
@@ -172,15 +182,22 @@ def point_features(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, 
 
 
 def knn_edges(
-    neighbours: np.ndarray, sq_distances: np.ndarray, k: int, max_edge_m: float
+    neighbours: np.ndarray, sq_distances: np.ndarray, k: int, max_edge_m: float | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Undirected kNN graph: ``(source, target, length)`` with source < target, each edge once."""
+    """Undirected kNN graph: ``(source, target, length)`` with source < target, each edge once.
+
+    ``max_edge_m`` is one limit, or (N,) one per point; an edge is kept when it is no longer than
+    the smaller limit of its two ends (so the graph does not depend on which end found the other).
+    """
     k = min(k, neighbours.shape[1])
     num_points = len(neighbours)
     source = np.repeat(np.arange(num_points, dtype=np.int64), k)
     target = neighbours[:, :k].astype(np.int64).ravel()
     length = np.sqrt(sq_distances[:, :k].astype(np.float64)).ravel()
-    keep = (length <= max_edge_m) & (source != target)
+    limit = np.asarray(max_edge_m, np.float64)
+    if limit.ndim:
+        limit = np.minimum(limit[source], limit[target])
+    keep = (length <= limit) & (source != target)
     lo, hi = np.minimum(source, target)[keep], np.maximum(source, target)[keep]
     key, first = np.unique(lo * num_points + hi, return_index=True)
     return key // num_points, key % num_points, length[keep][first]
@@ -305,6 +322,15 @@ def _oversized(points: np.ndarray, labels: np.ndarray, size: tuple[float, float]
     return (np.hypot(extent[:, 0], extent[:, 1]) > size[0]) | (extent[:, 2] > size[1])
 
 
+def edge_limits(points: np.ndarray, params: SegmentationParams) -> float | np.ndarray:
+    """The graph's edge length limit: ``max_edge_m``, or (N,) per point
+    max(``max_edge_m``, ``max_edge_per_range`` x horizontal distance from the origin)."""
+    if params.max_edge_per_range <= 0:
+        return float(params.max_edge_m)
+    distance = np.hypot(points[:, 0], points[:, 1]).astype(np.float64)
+    return np.maximum(params.max_edge_m, params.max_edge_per_range * distance)
+
+
 def over_segment(
     points: np.ndarray, params: SegmentationParams = SegmentationParams()
 ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
@@ -327,7 +353,8 @@ def over_segment(
     if num_points < 4:  # too few for local features: one patch per connected group
         source, target = np.triu_indices(num_points, 1)
         length = np.linalg.norm(points[source] - points[target], axis=1)
-        keep = length <= params.max_edge_m
+        limit = np.broadcast_to(edge_limits(points, params), (num_points,))
+        keep = length <= np.minimum(limit[source], limit[target])
         source, target, length = source[keep], target[keep], length[keep]
         patch_ids = _split_disconnected(np.zeros(num_points, np.int64), source, target)
         return (
@@ -337,7 +364,7 @@ def over_segment(
             np.zeros((num_points, 4), np.float32),
         )
     features, neighbours, sq_distances = point_features(points, max(params.k_features, params.k_graph))
-    source, target, length = knn_edges(neighbours, sq_distances, params.k_graph, params.max_edge_m)
+    source, target, length = knn_edges(neighbours, sq_distances, params.k_graph, edge_limits(points, params))
     geometric = features * np.array([1.0, 1.0, 1.0, 2.0], np.float32)  # verticality counts double (SPG)
     structure_mask = np.zeros(num_points, bool)
     if params.structure_size_m is not None and len(source):

@@ -27,6 +27,14 @@ def test_bench_writes_the_readme_block(tmp_path, capsys):
     assert main(["bench", "simulate", "--frames", "1", "--points", "4000", "--readme", str(readme)]) == 0
     text = readme.read_text()
     assert "old" not in text and '"seconds_per_frame_median"' in text and text.endswith("after\n")
+    # A block of its own name: the default block is left alone.
+    readme.write_text(text + "<!-- bench:sim-b -->\nold\n<!-- /bench:sim-b -->\n")
+    args = ["bench", "simulate", "--frames", "1", "--points", "4000", "--readme", str(readme)]
+    assert main([*args, "--readme-block", "sim-b"]) == 0
+    assert readme.read_text().startswith(text) and "old" not in readme.read_text()
+    assert main([*args, "--readme-block", "missing"]) == 2
+    assert "no '<!-- bench:missing -->' block" in capsys.readouterr().err
+    assert main([*args, "--readme-block", "a b"]) == 2
 
 
 def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys):

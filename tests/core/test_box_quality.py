@@ -17,7 +17,7 @@ from factorydet_core.box_quality import (
     option_features,
 )
 from factorydet_core.dataset import open_dataset
-from factorydet_core.detection import ANCHORS_PER_SIZE, BoxSizePrior, score_groups
+from factorydet_core.detection import ANCHORS_PER_SIZE, GROW_VARIANTS, BoxSizePrior, score_groups
 from factorydet_core.detector import Detector
 from factorydet_core.model import DetectionModel
 from factorydet_core.training import collect_proposals
@@ -100,7 +100,7 @@ def test_option_features_describe_every_option(frames, prior, anchored):
         # The set's own boxes come first, unchanged.
         np.testing.assert_array_equal(options[: len(boxes)], boxes)
         num_modes = len(prior.class_modes(2))
-        num_grown = len(boxes) * (1 + num_modes)
+        num_grown = len(boxes) * (1 + len(GROW_VARIANTS) * num_modes)
         if not anchored:
             assert len(options) == num_grown
             continue

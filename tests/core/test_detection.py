@@ -7,6 +7,7 @@ from factorydet_core.boxes import box_iou_3d, rectangle_corners
 from factorydet_core.detection import (
     ANCHORS_PER_SIZE,
     DESCRIPTOR_NAMES,
+    GROW_VARIANTS,
     OPTION_KINDS,
     BoxSizePrior,
     ProposalGroups,
@@ -63,6 +64,25 @@ def test_grow_splits_the_growth_of_an_axis_across_the_line_of_sight():
     oblique = np.array([[5.0, 0.0, 0.3, 0.2, 0.4, 0.6, np.pi / 3]])
     moved = PRIOR.grow(oblique, 0, size=np.array([0.4, 0.4, 0.6]))[0]
     np.testing.assert_allclose(moved[:2], [5.0 + 0.05 * np.cos(np.pi / 3), 0.05 * np.sin(np.pi / 3)])
+
+
+def test_grow_can_put_the_length_on_the_short_side_and_part_of_it_towards_the_viewer():
+    # A forklift's mast seen from the front, 10 m ahead: 1.0 m across the line of sight, 0.1 m deep.
+    mast = np.array([[10.0, 0.0, 1.0, 0.1, 1.0, 2.0, 0.0]])
+    size = np.array([3.0, 1.2, 2.0])
+    lengthwise = PRIOR.grow(mast, 1, size=size)[0]
+    assert lengthwise[3:5] == pytest.approx([1.2, 3.0])  # the face grows to the length
+    crosswise = PRIOR.grow(mast, 1, size=size, crosswise=True)[0]
+    assert crosswise[3:5] == pytest.approx([3.0, 1.2])  # the depth does
+    assert crosswise[0] == pytest.approx(10.0 + 2.9 / 2)  # all of it away from the viewer
+    shared = PRIOR.grow(mast, 1, size=size, near_share=0.3, crosswise=True)[0]
+    # 30% of the 2.9 m growth towards the viewer: the near end 0.87 m before the mast's front.
+    assert shared[0] - shared[3] / 2 == pytest.approx(9.95 - 0.3 * 2.9)
+    assert shared[0] + shared[3] / 2 == pytest.approx(10.05 + 0.7 * 2.9)
+    assert shared[1] == pytest.approx(0.0)
+    # Each hypothesis is grown once per variant.
+    options, _ = PRIOR.options(mast, 1)
+    assert len(options) == 1 + len(GROW_VARIANTS)
 
 
 def test_score_groups_picks_the_box_closest_to_the_class_size():

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from factorydet_core.geometry import rotation_z
-from factorydet_core.segment import SegmentationParams, segment
+from factorydet_core.segment import SegmentationParams, knn_edges, segment
 from factorydet_core.types import InputError
 
 
@@ -103,6 +103,37 @@ def test_a_gap_wider_than_max_edge_always_separates():
     assert not set(result.segment_ids[:600]) & set(result.segment_ids[600:])
 
 
+def _sparse_face(distance_m: float) -> np.ndarray:
+    """A 1.2 x 2.2 m face ``distance_m`` ahead, sampled as a scanner 0.7 x 1.2 degrees apart would."""
+    step_y, step_z = distance_m * np.radians(0.7), distance_m * np.radians(1.2)
+    y, z = np.meshgrid(np.arange(-0.6, 0.6, step_y), np.arange(0.1, 2.3, step_z))
+    return np.column_stack([np.full(y.size, distance_m), y.ravel(), z.ravel()]).astype(np.float32)
+
+
+def test_edges_may_grow_with_range_so_far_objects_stay_whole():
+    far = _sparse_face(20.0)  # rows 0.42 m apart
+    fixed = segment(far, SegmentationParams(max_edge_m=0.3))
+    assert fixed.num_segments > 1  # every row is cut from the next
+    ranged = segment(far, SegmentationParams(max_edge_m=0.3, max_edge_per_range=0.04))
+    assert ranged.num_segments == 1
+    # Near the viewer the fixed limit still rules: the same gap separates there.
+    rng = np.random.default_rng(1)
+    plane = np.column_stack([rng.uniform(0, 1, (600, 2)), np.zeros(600)]) + [2.0, 0, 0]
+    points = np.concatenate([plane, plane + [1.0 + 0.35, 0, 0]]).astype(np.float32)
+    result = segment(points, SegmentationParams(max_edge_m=0.3, max_edge_per_range=0.04))
+    assert not set(result.segment_ids[:600]) & set(result.segment_ids[600:])
+
+
+def test_knn_edges_take_the_smaller_limit_of_both_ends():
+    # Points 0 and 1 are 0.5 m apart; point 1's limit admits that, point 0's does not.
+    neighbours = np.array([[1], [0]], np.uint32)
+    sq_distances = np.array([[0.25], [0.25]], np.float32)
+    source, _, _ = knn_edges(neighbours, sq_distances, 1, np.array([0.3, 0.6]))
+    assert len(source) == 0
+    source, target, length = knn_edges(neighbours, sq_distances, 1, np.array([0.6, 0.6]))
+    assert source.tolist() == [0] and target.tolist() == [1] and length == pytest.approx([0.5])
+
+
 @pytest.mark.parametrize("num_points", [0, 1, 2, 3])
 def test_tiny_inputs_do_not_crash(num_points):
     points = np.array([[0, 0, 0], [0.05, 0, 0], [5, 5, 5]], np.float32)[:num_points]
@@ -136,6 +167,8 @@ def test_duplicated_points_do_not_crash():
         {"merge_threshold": -0.1},
         {"merge_threshold": 1.5},
         {"spatial_weight": -1.0},
+        {"max_edge_per_range": -0.01},
+        {"max_edge_per_range": float("nan")},
     ],
 )
 def test_invalid_params_raise(changes):
