@@ -25,6 +25,13 @@ LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals
 """The detection layers the app can draw, in panel order."""
 
 
+def _vote_slider_value(model) -> float:
+    """The box voting IoU a model asks for, 0 when it switches voting off (``vote_iou: null``)."""
+    if model is None:
+        return BOX_VOTE_IOU
+    return 0.0 if model.vote_iou is None else float(model.vote_iou)
+
+
 class AppState:
     """Which frame is shown and how; listeners run after every change (under no lock)."""
 
@@ -72,6 +79,8 @@ class AppState:
         self.model_name = model_name
         self.score_threshold = model.score_threshold if model is not None else 0.5
         self.nms_iou = model.nms_iou if model is not None else 0.25
+        # Box voting after NMS: the model's IoU, 0 for off (the slider's bottom).
+        self.vote_iou = _vote_slider_value(model)
         # The model's own threshold per class, until someone moves the score slider.
         self.use_class_thresholds = model is not None and model.class_thresholds() is not None
         self.show_suppressed = False
@@ -198,6 +207,7 @@ class AppState:
             self.model_revision += 1
             if model is not None:
                 self.score_threshold, self.nms_iou = model.score_threshold, model.nms_iou
+                self.vote_iou = _vote_slider_value(model)
                 self.use_class_thresholds = model.class_thresholds() is not None
                 self.params = params_for(model.front_end, self.dataset.num_sensors)
             self.detection_result = None
@@ -281,8 +291,8 @@ class AppState:
         return self.model.class_thresholds()
 
     def _vote_iou(self) -> float | None:
-        """The shown model's box voting threshold (under the lock)."""
-        return BOX_VOTE_IOU if self.model is None else self.model.vote_iou
+        """The box voting threshold in force, ``None`` for off (under the lock)."""
+        return self.vote_iou if self.vote_iou > 0 else None
 
     def _refilter(self) -> None:
         """Recompute the shown detections and the metrics (under the lock)."""
@@ -331,9 +341,13 @@ class AppState:
         show_suppressed: bool | None = None,
         color_by_match: bool | None = None,
         use_class_thresholds: bool | None = None,
+        vote_iou: float | None = None,
     ) -> None:
-        """Change the score threshold, NMS IoU or what is shown; the detections re-filter at once.
-        A score threshold applies to every class (the model's per-class ones are switched off)."""
+        """Change the score threshold, NMS IoU, box voting IoU (0: off) or what is shown; the
+        detections re-filter at once. A score threshold applies to every class (the model's
+        per-class ones are switched off)."""
+        if vote_iou is not None and not 0.0 <= float(vote_iou) < 1.0:
+            raise ValueError(f"vote_iou must lie in [0, 1), got {vote_iou}")
         with self.lock:
             refilter = False
             if use_class_thresholds is not None:
@@ -348,6 +362,8 @@ class AppState:
                 self.use_class_thresholds = False
             if nms_iou is not None and nms_iou != self.nms_iou:
                 self.nms_iou, refilter = float(nms_iou), True
+            if vote_iou is not None and vote_iou != self.vote_iou:
+                self.vote_iou, refilter = float(vote_iou), True
             if show_suppressed is not None:
                 self.show_suppressed = bool(show_suppressed)
             if color_by_match is not None:

@@ -1,4 +1,5 @@
-"""Detections: layer toggle, score and NMS sliders that re-filter at once, and what is shown."""
+"""Detections: layer toggle, score, NMS and box voting sliders that re-filter at once, and what is
+shown."""
 
 from __future__ import annotations
 
@@ -19,11 +20,18 @@ class DetectionsPanel:
     nms_iou: viser.GuiSliderHandle
     summary: viser.GuiMarkdownHandle
     class_thresholds: viser.GuiCheckboxHandle
+    vote_iou: viser.GuiSliderHandle
 
     def refresh(self, state: AppState) -> None:
         with state.lock:
             visible = state.layers["detections"]
-            values = (state.show_suppressed, state.color_by_match, state.score_threshold, state.nms_iou)
+            values = (
+                state.show_suppressed,
+                state.color_by_match,
+                state.score_threshold,
+                state.nms_iou,
+                state.vote_iou,
+            )
             detections, model_name, has_model = state.detections, state.model_name, state.model is not None
             per_class = state.use_class_thresholds
             tuned = None if state.model is None else state.model.class_score_thresholds
@@ -34,6 +42,7 @@ class DetectionsPanel:
                 self.color_by_match,
                 self.score_threshold,
                 self.nms_iou,
+                self.vote_iou,
                 self.class_thresholds,
             ),
             (visible, *values, per_class),
@@ -62,7 +71,7 @@ class DetectionsPanel:
 def build_detections_panel(server: viser.ViserServer, state: AppState) -> DetectionsPanel:
     with state.lock:
         has_model = state.model is not None
-        score, nms = state.score_threshold, state.nms_iou
+        score, nms, vote = state.score_threshold, state.nms_iou, state.vote_iou
         per_class = state.use_class_thresholds
     with server.gui.add_folder("Detections", order=70):
         visible = server.gui.add_checkbox(
@@ -89,6 +98,16 @@ def build_detections_panel(server: viser.ViserServer, state: AppState) -> Detect
         )
         nms_iou = server.gui.add_slider(
             "NMS IoU", min=0.05, max=0.95, step=0.05, initial_value=nms, disabled=not has_model
+        )
+        vote_iou = server.gui.add_slider(
+            "Box voting IoU",
+            min=0.0,
+            max=0.95,
+            step=0.05,
+            initial_value=vote,
+            disabled=not has_model,
+            hint="Each kept box becomes the score x IoU weighted mean of the same-class candidates "
+            "overlapping it at least this much; 0 switches voting off",
         )
         summary = server.gui.add_markdown("")
 
@@ -122,8 +141,20 @@ def build_detections_panel(server: viser.ViserServer, state: AppState) -> Detect
         if from_user(event):
             state.set_detection_filter(nms_iou=float(nms_iou.value))
 
+    @vote_iou.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            state.set_detection_filter(vote_iou=float(vote_iou.value))
+
     panel = DetectionsPanel(
-        visible, show_suppressed, color_by_match, score_threshold, nms_iou, summary, class_thresholds
+        visible,
+        show_suppressed,
+        color_by_match,
+        score_threshold,
+        nms_iou,
+        summary,
+        class_thresholds,
+        vote_iou,
     )
     panel.refresh(state)
     return panel

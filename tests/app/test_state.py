@@ -56,6 +56,7 @@ def test_rgb_mode_falls_back_to_height_without_colours(small_dataset_dir):
 
 
 def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny_model_path):
+    from factorydet_core.detection import select_detections
     from factorydet_core.detector import Detector
     from factorydet_core.inspect import describe_detection, detection_markdown
     from factorydet_core.model import DetectionModel
@@ -73,6 +74,21 @@ def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny
     state.set_detection_filter(nms_iou=0.95)
     assert state.detections.kept_mask.sum() >= low.kept_mask.sum()
     assert state.metrics["score_threshold"] == 0.05
+    # Box voting: the model's IoU by default; 0 switches it off, and the kept boxes are then the
+    # candidates' own.
+    assert state.vote_iou == (model.vote_iou or 0.0)
+    state.set_detection_filter(nms_iou=0.25, vote_iou=0.0)
+    plain = state.detections
+    unvoted = select_detections(result.candidates, 0.05, 0.25, vote_iou=None)
+    np.testing.assert_array_equal(plain.boxes, unvoted.boxes)
+    state.set_detection_filter(vote_iou=0.1)
+    voted = state.detections
+    np.testing.assert_array_equal(voted.kept_mask, plain.kept_mask)  # voting moves boxes only
+    np.testing.assert_array_equal(
+        voted.boxes, select_detections(result.candidates, 0.05, 0.25, vote_iou=0.1).boxes
+    )
+    with pytest.raises(ValueError):
+        state.set_detection_filter(vote_iou=1.5)
     # A suppressed detection's description names who suppressed it.
     suppressed = np.flatnonzero(~low.kept_mask)
     if len(suppressed):
