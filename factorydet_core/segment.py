@@ -4,7 +4,8 @@
 1. Local geometric features per point (``pgeof``: linearity, planarity, scattering, verticality,
    from the k nearest neighbours).
 2. A k-nearest-neighbour graph; edges longer than ``max_edge_m`` are dropped, so objects separated
-   by a gap are never in one patch.
+   by a gap are never in one patch (far from the viewpoint the limit may grow with range,
+   ``max_edge_per_range``, as a scanner's returns spread).
 3. The l0 (Potts) partition of the features on that graph (``cut-pursuit-py``). Its
    ``reg_strength`` argument is ignored by the library, so the regularisation is folded into the edge
    weights: w_uv = reg / (1 + d_uv / mean d).
