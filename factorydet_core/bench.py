@@ -82,7 +82,8 @@ def check_readme_block(readme: str | os.PathLike, name: str) -> None:
     path = Path(readme)
     if not path.is_file():
         raise InputError(f"{path}: no such file")
-    if f"<!-- bench:{name} -->" not in path.read_text() or f"<!-- /bench:{name} -->" not in path.read_text():
+    text = path.read_text()
+    if f"<!-- bench:{name} -->" not in text or f"<!-- /bench:{name} -->" not in text:
         raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
 
 
