@@ -290,3 +290,129 @@ def recognition_accuracy(true_ids: np.ndarray, predicted_ids: np.ndarray, labels
         else None,
         "overall_accuracy": round(float((true_ids == predicted_ids).mean()), 4) if len(true_ids) else None,
     }
+
+
+FALSE_POSITIVE_KINDS: tuple[str, ...] = ("duplicate", "localization", "confusion", "background")
+"""Why a detection is false (``error_breakdown``), checked in this order: a reference of its class
+fits it at the matching IoU but was already matched; one of its class overlaps it, but less; only a
+reference of another class overlaps it; nothing does."""
+
+MISS_KINDS: tuple[str, ...] = ("no_candidate", "below_threshold", "suppressed")
+"""Why a reference is missed (``error_breakdown``): no candidate of its class fits it at the
+matching IoU, whatever its score (a wrong class on its point set, or a wrong box among the
+options); some do, but all score below their class's operating threshold; one scores above it, but
+NMS suppressed it or the one-to-one matching gave it another reference."""
+
+OVERLAP_IOU = 0.1
+"""Least IoU at which ``error_breakdown`` counts a false positive as overlapping a reference."""
+
+
+def error_breakdown(
+    frames: list[dict],
+    class_names: tuple[str, ...],
+    iou_threshold: float = 0.6,
+    score_threshold: float = 0.5,
+    class_score_thresholds: np.ndarray | None = None,
+) -> dict:
+    """Where a detector's errors come from at its operating point, in the manner of Hoiem et al.'s
+    "Diagnosing error in object detectors" (ECCV 2012): each false positive and each missed
+    reference is given one kind (``FALSE_POSITIVE_KINDS``, ``MISS_KINDS``).
+
+    Args:
+        frames: ``detection_metrics``'s input; for the kinds of misses each frame also holds its
+            candidates before the threshold and NMS: ``candidate_boxes`` (M, 7),
+            ``candidate_class_ids`` (M,) and ``candidate_scores`` (M,). Without them every miss
+            counts as ``no_candidate``.
+        class_names, iou_threshold, score_threshold, class_score_thresholds: as for
+            ``detection_metrics``; the operating point the errors are counted at.
+
+    Returns:
+        ``{"per_class": {name: {"tp", "num_reference", "false_positives": {kind: n}, "misses":
+        {kind: n}}},
+        "false_positives": {kind: n}, "misses": {kind: n}, "tp", "num_detections",
+        "num_reference", "f1", "f1_without": {kind: F}}``: the totals over classes, and the total
+        F-score with every false positive of one kind removed, or every miss of one kind found.
+    """
+    num_classes = len(class_names)
+    thresholds = operating_thresholds(num_classes, score_threshold, class_score_thresholds)
+    fp = np.zeros((num_classes, len(FALSE_POSITIVE_KINDS)), np.int64)
+    missed = np.zeros((num_classes, len(MISS_KINDS)), np.int64)
+    tp_per_class = np.zeros(num_classes, np.int64)
+    for frame in frames:
+        classes = np.asarray(frame["class_ids"], np.int64)
+        scores = np.asarray(frame["scores"], np.float64)
+        above = scores >= thresholds[classes] if len(classes) else np.zeros(0, bool)
+        boxes = np.asarray(frame["boxes"], np.float64).reshape(-1, 7)[above]
+        classes, scores = classes[above], scores[above]
+        ref_boxes = np.asarray(frame["reference_boxes"], np.float64).reshape(-1, 7)
+        ref_classes = np.asarray(frame["reference_class_ids"], np.int64)
+        tp, matched = match_detections(boxes, classes, scores, ref_boxes, ref_classes, iou_threshold)
+        np.add.at(tp_per_class, classes[tp], 1)
+        iou = (
+            box_iou_3d(boxes, ref_boxes)
+            if len(boxes) and len(ref_boxes)
+            else np.zeros((len(boxes), len(ref_boxes)))
+        )
+        same = classes[:, None] == ref_classes[None, :]
+        same_iou = np.where(same, iou, 0.0).max(axis=1, initial=0.0)
+        other_iou = np.where(same, 0.0, iou).max(axis=1, initial=0.0)
+        kind = np.select(
+            [same_iou >= iou_threshold, same_iou >= OVERLAP_IOU, other_iou >= OVERLAP_IOU], [0, 1, 2], 3
+        )
+        np.add.at(fp, (classes[~tp], kind[~tp]), 1)
+        found = np.zeros(len(ref_boxes), bool)
+        found[matched[tp]] = True
+        lost = np.flatnonzero(~found)
+        if not len(lost):
+            continue
+        candidate_boxes = np.asarray(frame.get("candidate_boxes", np.zeros((0, 7))), np.float64).reshape(
+            -1, 7
+        )
+        candidate_classes = np.asarray(frame.get("candidate_class_ids", np.zeros(0)), np.int64)
+        candidate_scores = np.asarray(frame.get("candidate_scores", np.zeros(0)), np.float64)
+        fits = np.zeros((len(candidate_boxes), len(lost)), bool)
+        if len(candidate_boxes):
+            fits = box_iou_3d(candidate_boxes, ref_boxes[lost]) >= iou_threshold
+            fits &= candidate_classes[:, None] == ref_classes[lost][None, :]
+        scored_above = (
+            candidate_scores >= thresholds[candidate_classes] if len(candidate_boxes) else np.zeros(0, bool)
+        )
+        miss_kind = np.where(~fits.any(axis=0), 0, np.where((fits & scored_above[:, None]).any(axis=0), 2, 1))
+        np.add.at(missed, (ref_classes[lost], miss_kind), 1)
+    tp_total = int(tp_per_class.sum())
+    num_detections = tp_total + int(fp.sum())
+    num_reference = tp_total + int(missed.sum())
+
+    def f1(tp: int, detections: int, references: int) -> float:
+        return round(2 * tp / (detections + references), 4) if detections + references else 0.0
+
+    fp_totals, miss_totals = fp.sum(axis=0), missed.sum(axis=0)
+    f1_without = {
+        **{
+            k: f1(tp_total, num_detections - int(n), num_reference)
+            for k, n in zip(FALSE_POSITIVE_KINDS, fp_totals)
+        },
+        **{
+            k: f1(tp_total + int(n), num_detections + int(n), num_reference)
+            for k, n in zip(MISS_KINDS, miss_totals)
+        },
+    }
+    return {
+        "iou_threshold": iou_threshold,
+        "per_class": {
+            name: {
+                "tp": int(tp_per_class[c]),
+                "num_reference": int(tp_per_class[c] + missed[c].sum()),
+                "false_positives": dict(zip(FALSE_POSITIVE_KINDS, fp[c].tolist())),
+                "misses": dict(zip(MISS_KINDS, missed[c].tolist())),
+            }
+            for c, name in enumerate(class_names)
+        },
+        "false_positives": dict(zip(FALSE_POSITIVE_KINDS, fp_totals.tolist())),
+        "misses": dict(zip(MISS_KINDS, miss_totals.tolist())),
+        "tp": tp_total,
+        "num_detections": num_detections,
+        "num_reference": num_reference,
+        "f1": f1(tp_total, num_detections, num_reference),
+        "f1_without": f1_without,
+    }

@@ -13,6 +13,7 @@ from .bench import machine_info, save_figure
 from .box_quality import BoxQuality
 from .classifier import FisherNet, ProposalClassifier, count_parameters
 from .dataset import open_dataset
+from .evaluation import FALSE_POSITIVE_KINDS, MISS_KINDS, OVERLAP_IOU
 from .model import DetectionModel
 from .results import (
     PAPER_TABLE2,
@@ -21,6 +22,7 @@ from .results import (
     baseline_model,
     detector_for,
     measure,
+    plot_error_breakdown,
     plot_pr_curves,
     reference_boxes,
 )
@@ -118,6 +120,55 @@ def _proposal_recall(dataset, frames, iou_threshold: float, model: DetectionMode
         "options": table(option_hits) if option_hits else None,
         **{name: table(lists) for name, lists in funnel.items()},
     }
+
+
+def _error_lines(errors: dict, reference: str, png: Path) -> list[str]:
+    """The report's section on the kinds of errors (``evaluation.error_breakdown``)."""
+    names = list(errors["per_class"])
+    rows = [("true positives", lambda r: r["tp"], errors["tp"])]
+    rows += [
+        (f"false positive: {k}", lambda r, k=k: r["false_positives"][k], errors["false_positives"][k])
+        for k in FALSE_POSITIVE_KINDS
+    ]
+    rows += [
+        (f"missed: {k.replace('_', ' ')}", lambda r, k=k: r["misses"][k], errors["misses"][k])
+        for k in MISS_KINDS
+    ]
+    without = errors["f1_without"]
+    worst_fp = max(FALSE_POSITIVE_KINDS, key=lambda k: without[k])
+    worst_miss = max(MISS_KINDS, key=lambda k: without[k])
+    return [
+        "",
+        "## Where the errors are",
+        "",
+        f"Every 3DmFV-Net detection at the operating thresholds and every {reference} instance, "
+        "sorted by kind (after Hoiem et al., *Diagnosing error in object detectors*, 2012). A false "
+        "positive is a *duplicate* when an instance of its class fits it at the IoU but was already "
+        f"matched, *localization* when one of its class overlaps it at IoU {OVERLAP_IOU} or more but "
+        "less than the threshold, *confusion* when only an instance of another class overlaps it, "
+        "and *background* when none does. A missed instance has *no candidate* when no point set's "
+        "candidate of its class fits it at the IoU, whatever the score (a wrong class on its point "
+        "set, or a wrong box chosen among the options); is *below threshold* when some do but all "
+        "score below the operating threshold; and is *suppressed* when one scored above it but NMS "
+        "or the one-to-one matching took it.",
+        "",
+        "| | " + " | ".join(names) + " | total |",
+        "|---|" + "---|" * (len(names) + 1),
+        *[
+            f"| {label} | " + " | ".join(str(get(errors["per_class"][n])) for n in names) + f" | {total} |"
+            for label, get, total in rows
+        ],
+        "",
+        f"Total F-score {errors['f1']:.3f}; with every false positive of one kind removed: "
+        + ", ".join(f"{k} {without[k]:.3f}" for k in FALSE_POSITIVE_KINDS)
+        + "; with every miss of one kind found: "
+        + ", ".join(f"{k.replace('_', ' ')} {without[k]:.3f}" for k in MISS_KINDS)
+        + f". The largest single gains: removing the {worst_fp} false positives "
+        f"({without[worst_fp]:.3f}), and finding the misses of kind "
+        f'"{worst_miss.replace("_", " ")}" ({without[worst_miss]:.3f}).',
+        "",
+        f"![errors by kind]({png.name})",
+    ]
 
 
 def voxel_sweep(
@@ -234,6 +285,11 @@ def write_report(
     headline = references[-1]
     stem = out.with_suffix("")
     pr_png = Path(f"{stem}_pr.png")
+    plot_error_breakdown(
+        results[headline]["deep"]["errors"],
+        Path(f"{stem}_errors.png"),
+        f"3DmFV-Net errors vs {headline} at the operating point, IoU {iou_threshold}",
+    )
     plot_pr_curves(
         results[headline]["deep"], pr_png, f"3DmFV-Net detections vs {headline}, IoU {iou_threshold}"
     )
@@ -409,6 +465,8 @@ def write_report(
             "of held-out point sets per class on average against the paper's "
             f"{PAPER_TABLE2['mean']}%.",
         ]
+    errors_png = Path(f"{stem}_errors.png")
+    lines += _error_lines(deep["errors"], headline, errors_png)
     if sweep_rows:
         lines += [
             "",

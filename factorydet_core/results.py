@@ -18,7 +18,7 @@ from .bench import save_figure
 from .dataset import Dataset, open_dataset
 from .detection import score_groups, select_detections
 from .detector import Detector, params_for
-from .evaluation import detection_metrics, recognition_accuracy
+from .evaluation import detection_metrics, error_breakdown, recognition_accuracy
 from .model import DEFAULT_MODEL, DetectionModel
 from .training import FrameProposals, collect_proposals, group_labels
 from .types import InputError
@@ -132,7 +132,8 @@ def measure(
     ``frames``, against the annotations, the full truth, or ``references`` (frame index ->
     (boxes (R, 7), class_ids (R,)), e.g. a session's corrected labels). With ``score_thresholds``,
     ``operating_points`` lists the total precision, recall and F-score at each of them (to choose
-    the operating threshold)."""
+    the operating threshold). ``errors`` sorts the false positives and misses at the operating
+    point by kind (``evaluation.error_breakdown``)."""
     scored, true_ids, predicted_ids = [], [], []
     class_names = model.class_names
     background_id = len(class_names)
@@ -160,6 +161,10 @@ def measure(
                 "scores": kept.scores,
                 "reference_boxes": ref_boxes,
                 "reference_class_ids": ref_classes,
+                # Before the threshold and NMS, for the kinds of misses (error_breakdown).
+                "candidate_boxes": candidates.boxes,
+                "candidate_class_ids": candidates.class_ids,
+                "candidate_scores": candidates.scores,
             }
         )
         # Table 2: held-out point sets that match a reference, and those overlapping none.
@@ -177,6 +182,9 @@ def measure(
             metrics["operating_points"].append(
                 {"score_threshold": float(threshold), **{k: at[k] for k in ("precision", "recall", "f1")}}
             )
+    metrics["errors"] = error_breakdown(
+        scored, class_names, iou_threshold, model.score_threshold, model.class_thresholds()
+    )
     metrics["recognition"] = recognition_accuracy(
         np.concatenate(true_ids), np.concatenate(predicted_ids), (*class_names, "background")
     )
@@ -240,6 +248,7 @@ def evaluate(
         "recall": headline["recall"],
         "f1": headline["f1"],
         "map": headline["map"],
+        "errors": headline["errors"],
         "against": against,
     }
     if with_baseline:
@@ -289,3 +298,44 @@ def plot_pr_curves(metrics: dict, png: str | os.PathLike, title: str = "") -> No
 
 def frame_list(indices: Sequence[int]) -> str:
     return ", ".join(str(i) for i in indices)
+
+
+def plot_error_breakdown(errors: dict, png: str | os.PathLike, title: str = "") -> None:
+    """Per class, stacked bars of the detections (true positives, then each kind of false
+    positive) beside the references (found, then each kind of miss): ``evaluation.error_breakdown``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .evaluation import FALSE_POSITIVE_KINDS, MISS_KINDS
+
+    names = list(errors["per_class"])
+    positions = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(8.0, 4.8))
+    width = 0.38
+    for side, (group, kinds, shades) in enumerate(
+        (("false_positives", FALSE_POSITIVE_KINDS, plt.cm.Reds), ("misses", MISS_KINDS, plt.cm.Blues))
+    ):
+        x = positions + (side - 0.5) * width
+        found = np.array([errors["per_class"][n]["tp"] for n in names], float)
+        ax.bar(x, found, width, color="#4c9a2a", label="true positives" if side == 0 else None)
+        bottom = found.copy()
+        for k, kind in enumerate(kinds):
+            counts = np.array([errors["per_class"][n][group][kind] for n in names], float)
+            label = f"{'FP' if group == 'false_positives' else 'miss'}: {kind.replace('_', ' ')}"
+            ax.bar(
+                x,
+                counts,
+                width,
+                bottom=bottom,
+                color=shades(0.35 + 0.5 * k / max(len(kinds) - 1, 1)),
+                label=label,
+            )
+            bottom += counts
+    ax.set_xticks(positions, names)
+    ax.set_ylabel("count (left bar: detections; right bar: references)")
+    ax.set_title(title or f"Errors at the operating point, IoU {errors['iou_threshold']}")
+    ax.legend(fontsize=7, ncol=2, loc="upper right")
+    ax.grid(axis="y", alpha=0.3)
+    save_figure(fig, png)

@@ -114,9 +114,7 @@ class SegmentationParams:
             if not float(getattr(self, name)) > 0:
                 raise InputError(f"segmentation: {name} must be > 0, got {getattr(self, name)}")
         if not float(self.max_edge_per_range) >= 0:
-            raise InputError(
-                f"segmentation: max_edge_per_range must be >= 0, got {self.max_edge_per_range}"
-            )
+            raise InputError(f"segmentation: max_edge_per_range must be >= 0, got {self.max_edge_per_range}")
         if not 0.0 <= self.merge_threshold <= 1.0:
             raise InputError(f"segmentation: merge_threshold must lie in [0, 1], got {self.merge_threshold}")
         if self.spatial_weight < 0:

@@ -132,7 +132,8 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     assert main(["evaluate", str(small_dataset_dir), "--model", model, "--iou", "0.6", "--no-calibrate",
                  "--json", "--png", str(tmp_path / "pr.png")]) == 0  # fmt: skip
     result = json.loads(capsys.readouterr().out)
-    assert {"per_class", "f1", "map", "against"} <= set(result)
+    assert {"per_class", "f1", "map", "against", "errors"} <= set(result)
+    assert set(result["errors"]["false_positives"]) == {"duplicate", "localization", "confusion", "background"}
     assert result["reference"] == "truth" and set(result["against"]) == {"annotations", "truth"}
     for row in result["per_class"].values():
         assert {"precision", "recall", "f1", "ap"} <= set(row)
@@ -200,14 +201,25 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
     assert main(args) == 0
     text = out.read_text()
     assert f"of `{train_copy}`" in text
-    for heading in ("Table 2", "Table 3", "Targets", "Fig. 7"):
+    for heading in ("Table 2", "Table 3", "Targets", "Where the errors are", "Fig. 7"):
         assert heading in text, heading
     assert "| **mean over classes** |" in text and "| **total** |" in text
     assert "99.84" in text and "0.793" in text and "0.417" in text  # the paper's figures beside ours
     assert (tmp_path / "docs" / "results_pr.png").is_file()
     assert (tmp_path / "docs" / "results_grid_sweep.png").is_file()
+    assert (tmp_path / "docs" / "results_errors.png").is_file()
     record = json.loads((tmp_path / "docs" / "results.json").read_text())
     assert set(record["results"]) == {"annotations", "truth"}
+    # Every detection and every instance has exactly one kind, at Table 3's operating point.
+    deep = record["results"]["truth"]["deep"]
+    errors = deep["errors"]
+    assert errors["f1"] == pytest.approx(deep["f1"], abs=1e-3)
+    assert errors["num_reference"] == deep["num_reference"]
+    assert errors["num_detections"] == deep["num_detections"]
+    for name, row in errors["per_class"].items():
+        assert row["tp"] + sum(row["misses"].values()) == deep["per_class"][name]["num_reference"]
+        assert row["tp"] + sum(row["false_positives"].values()) == deep["per_class"][name]["num_detections"]
+    assert "| true positives | " in text and "| missed: no candidate |" in text
     assert record["grid_sweep"][0]["voxel_size_m"] == 0.3
     # Where recall goes: each row of the funnel is a subset of the one before.
     bound = record["proposal_recall_bound"]

@@ -4,6 +4,7 @@ import pytest
 from factorydet_core.evaluation import (
     average_precision,
     detection_metrics,
+    error_breakdown,
     match_detections,
     recognition_accuracy,
     tune_class_thresholds,
@@ -71,6 +72,55 @@ def test_detection_metrics_per_class_and_totals():
     assert m["f1"] == pytest.approx(1 / 3, abs=1e-4)
     assert set(m["pr_curves"]) == {"a", "b", "all"}
     assert m["pr_curves"]["all"]["recall"][-1] == pytest.approx(0.5)
+
+
+def test_error_breakdown_gives_every_error_its_kind():
+    # References: class 0 at x = 0 (found), 10 (no candidate), 20 (a candidate below the
+    # threshold), 30 (a candidate above it, suppressed); class 1 at x = 40.
+    refs = np.stack([shifted(0), shifted(10), shifted(20), shifted(30), shifted(40)])
+    ref_classes = np.array([0, 0, 0, 0, 1])
+    kept = {
+        # tp on 0; a duplicate on 0; a box half off 0... shifted 0.5 m (IoU 1/3): localization;
+        # class 0 on the class-1 reference: confusion; class 1 far from everything: background;
+        # a low scorer below the threshold, not counted.
+        "boxes": np.stack([shifted(0), shifted(0.05), shifted(0.5), shifted(40), shifted(60), shifted(80)]),
+        "class_ids": np.array([0, 0, 0, 0, 1, 0]),
+        "scores": np.array([0.9, 0.8, 0.7, 0.6, 0.6, 0.2]),
+    }
+    frame = {
+        **kept,
+        "reference_boxes": refs,
+        "reference_class_ids": ref_classes,
+        "candidate_boxes": np.stack([shifted(0), shifted(20.05), shifted(30.05), shifted(40)]),
+        "candidate_class_ids": np.array([0, 0, 0, 0]),
+        "candidate_scores": np.array([0.9, 0.3, 0.8, 0.6]),
+    }
+    errors = error_breakdown([frame], ("a", "b"), iou_threshold=0.6, score_threshold=0.5)
+    assert errors["per_class"]["a"]["false_positives"] == {
+        "duplicate": 1, "localization": 1, "confusion": 1, "background": 0
+    }  # fmt: skip
+    assert errors["per_class"]["b"]["false_positives"]["background"] == 1
+    assert errors["per_class"]["a"]["misses"] == {"no_candidate": 1, "below_threshold": 1, "suppressed": 1}
+    # The class-1 reference has only a class-0 candidate: no candidate of its class.
+    assert errors["per_class"]["b"]["misses"] == {"no_candidate": 1, "below_threshold": 0, "suppressed": 0}
+    assert (errors["tp"], errors["num_detections"], errors["num_reference"]) == (1, 5, 5)
+    assert (errors["per_class"]["a"]["tp"], errors["per_class"]["a"]["num_reference"]) == (1, 4)
+    # The same operating point as detection_metrics.
+    assert errors["f1"] == pytest.approx(detection_metrics([frame], ("a", "b"), 0.6, 0.5)["f1"], abs=1e-4)
+    # Removing the one background false positive: 2 * 1 / (4 + 5).
+    assert errors["f1_without"]["background"] == pytest.approx(2 / 9, abs=1e-4)
+    # Finding the two no-candidate misses: 2 * 3 / (7 + 5).
+    assert errors["f1_without"]["no_candidate"] == pytest.approx(0.5, abs=1e-4)
+    # Per-class thresholds: with class 0's at 0.1 the low scorer counts (a background FP at x = 80)
+    # and the x = 20 candidate is no longer below the threshold.
+    lowered = error_breakdown([frame], ("a", "b"), 0.6, 0.5, np.array([0.1, np.nan]))
+    assert lowered["per_class"]["a"]["false_positives"]["background"] == 1
+    assert lowered["per_class"]["a"]["misses"]["below_threshold"] == 0
+    # Without candidates every miss is "no candidate".
+    bare = {k: v for k, v in frame.items() if not k.startswith("candidate_")}
+    assert error_breakdown([bare], ("a", "b"), 0.6, 0.5)["misses"] == {
+        "no_candidate": 4, "below_threshold": 0, "suppressed": 0
+    }  # fmt: skip
 
 
 def _two_scale_frames() -> list[dict]:
