@@ -15,7 +15,7 @@ from factorydet_core.colors import COLOR_MODES
 from factorydet_core.dataset import Dataset
 from factorydet_core.detection import BOX_VOTE_IOU, select_detections
 from factorydet_core.detector import DetectionResult, FrontEndParams, ProposalResult, params_for
-from factorydet_core.evaluation import detection_metrics
+from factorydet_core.evaluation import detection_metrics, error_breakdown
 from factorydet_core.types import Detections, Frame
 
 AP_SCORE_FLOOR = 0.05
@@ -328,10 +328,16 @@ class AppState:
                     "scores": kept.scores,
                     "reference_boxes": item["reference_boxes"],
                     "reference_class_ids": item["reference_class_ids"],
+                    "candidate_boxes": item["candidates"].boxes,
+                    "candidate_class_ids": item["candidates"].class_ids,
+                    "candidate_scores": item["candidates"].scores,
                 }
             )
         self.metrics = detection_metrics(scored, self.model.class_names, 0.6, self.score_threshold, per_class)
         self.metrics["num_frames"] = len(scored)
+        self.metrics["errors"] = error_breakdown(
+            scored, self.model.class_names, 0.6, self.score_threshold, per_class
+        )
 
     def set_detection_filter(
         self,

@@ -1,5 +1,5 @@
 """Metrics of the detections over the frames viewed so far, against their annotations: the
-per-class table and the precision-recall curve."""
+per-class table, the kinds of errors and the precision-recall curve."""
 
 from __future__ import annotations
 
@@ -16,10 +16,31 @@ def _fmt(value: float | None) -> str:
     return "–" if value is None else f"{value:.2f}"
 
 
+def errors_markdown(errors: dict) -> str:
+    """The kinds of errors at the operating point (``evaluation.error_breakdown``) as a table: how
+    many of each kind, and the total F-score if every error of that kind were fixed."""
+    without = errors["f1_without"]
+    rows = [
+        f"| {group} {kind.replace('_', ' ')} | {count} | {without[kind]:.2f} |"
+        for group, counts in (("FP:", errors["false_positives"]), ("missed:", errors["misses"]))
+        for kind, count in counts.items()
+    ]
+    return "\n".join(
+        [
+            f"Errors by kind (F {errors['f1']:.2f} now; the last column: F with that kind fixed):",
+            "",
+            "| kind | n | F if fixed |",
+            "|---|---|---|",
+            *rows,
+        ]
+    )
+
+
 @dataclasses.dataclass
 class MetricsPanel:
     table: viser.GuiMarkdownHandle
     plot: viser.GuiUplotHandle
+    errors: viser.GuiMarkdownHandle
     _shown: int = -1
 
     def refresh(self, state: AppState) -> None:
@@ -27,6 +48,7 @@ class MetricsPanel:
             metrics = state.metrics
         if metrics is None:
             self.table.content = "_Metrics appear once a frame with annotations has detections._"
+            self.errors.content = ""
             return
         if id(metrics) == self._shown:
             return
@@ -55,6 +77,7 @@ class MetricsPanel:
                 f"{_fmt(metrics['map'])} |",
             ]
         )
+        self.errors.content = errors_markdown(metrics["errors"]) if "errors" in metrics else ""
         curve = metrics["pr_curves"].get("all")
         if curve and len(curve["recall"]):
             recall = np.concatenate([[0.0], curve["recall"]])
@@ -65,6 +88,7 @@ class MetricsPanel:
 def build_metrics_panel(server: viser.ViserServer, state: AppState) -> MetricsPanel:
     with server.gui.add_folder("Metrics", order=80, expand_by_default=False):
         table = server.gui.add_markdown("")
+        errors = server.gui.add_markdown("")
         plot = server.gui.add_uplot(
             data=(np.array([0.0, 1.0]), np.array([1.0, 0.0])),
             series=(
@@ -78,6 +102,6 @@ def build_metrics_panel(server: viser.ViserServer, state: AppState) -> MetricsPa
             title="Precision-recall",
             aspect=1.2,
         )
-    panel = MetricsPanel(table, plot)
+    panel = MetricsPanel(table, plot, errors)
     panel.refresh(state)
     return panel

@@ -74,6 +74,10 @@ def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny
     state.set_detection_filter(nms_iou=0.95)
     assert state.detections.kept_mask.sum() >= low.kept_mask.sum()
     assert state.metrics["score_threshold"] == 0.05
+    # The kinds of errors are counted at the same operating point as the table.
+    errors = state.metrics["errors"]
+    assert errors["f1"] == pytest.approx(state.metrics["f1"], abs=1e-3)
+    assert errors["num_detections"] == state.metrics["num_detections"]
     # Box voting: the model's IoU by default; 0 switches it off, and the kept boxes are then the
     # candidates' own.
     assert state.vote_iou == (model.vote_iou or 0.0)

@@ -1,0 +1,23 @@
+import numpy as np
+
+from app.panels.metrics_panel import errors_markdown
+from factorydet_core.evaluation import error_breakdown
+
+BOX = np.array([0, 0, 0.5, 1, 1, 1, 0.0])
+
+
+def test_errors_markdown_lists_every_kind_with_its_count_and_f_if_fixed():
+    frame = {
+        "boxes": np.stack([BOX, BOX + [9, 0, 0, 0, 0, 0, 0]]),
+        "class_ids": np.array([0, 0]),
+        "scores": np.array([0.9, 0.8]),
+        "reference_boxes": np.stack([BOX, BOX + [4, 0, 0, 0, 0, 0, 0]]),
+        "reference_class_ids": np.array([0, 0]),
+    }
+    text = errors_markdown(error_breakdown([frame], ("a",), 0.6, 0.5))
+    # One true positive, one background false positive, one miss without a candidate: F 0.5; with
+    # the false positive gone 2 / 3, with the miss found (one more detection, a true one) 4 / 5.
+    assert "F 0.50 now" in text
+    assert "| FP: background | 1 | 0.67 |" in text
+    assert "| missed: no candidate | 1 | 0.80 |" in text
+    assert "| FP: localization | 0 | 0.50 |" in text
