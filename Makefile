@@ -55,7 +55,7 @@ corpus: $(STAMP)
 # Retrains the shipped checkpoint (about twenty minutes on 2 cores; see the README).
 default-model: $(STAMP) corpus
 	$(BIN)/factorydet train $(CORPUS) --session corpus --rounds 1 --epochs 10 --fragments-per-frame 300 \
-	  --score-threshold 0.35 --probability-exponent 0.5 --export factorydet_core/models/default.pt
+	  --score-threshold 0.35 --probability-exponent 0.5 --set feature=direct --export factorydet_core/models/default.pt
 
 # Regenerates docs/results.md (tables, PR curve, grid sweep) for the shipped model on the demo data;
 # the baseline and the sweep train on the shipped model's training corpus.

@@ -122,6 +122,13 @@ def _proposal_recall(dataset, frames, iou_threshold: float, model: DetectionMode
     }
 
 
+FEATURE_TEXT = {
+    "aggregated": "points-weighted mean of each point set's voxel features (the paper's Eq. 7)",
+    "direct": "3DmFV of each point set's own points (`feature=direct`)",
+}
+"""How the report names each proposal feature (``FrontEndParams.feature``)."""
+
+
 def _error_lines(errors: dict, reference: str, png: Path) -> list[str]:
     """The report's section on the kinds of errors (``evaluation.error_breakdown``)."""
     names = list(errors["per_class"])
@@ -324,6 +331,7 @@ def write_report(
         f"- Model: `{model_path}`: 3DmFV-Net width {model.classifier.width} "
         f"({model.classifier.num_parameters_:,} parameters; width 1.0, the paper's network, has "
         f"{count_parameters(FisherNet(len(model.classifier.labels_), 1.0)):,}), "
+        f"on the {FEATURE_TEXT[detector.params.feature]}, "
         f"{rounds} training rounds ({max(rounds - 1, 0)} of hard-negative mining), "
         f"training time of the final round {note.get('fit_seconds', 0):.0f} s; command: "
         f"`{note.get('config', {}).get('command', '?')}`.",

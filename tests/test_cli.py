@@ -202,6 +202,7 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
     assert main(args) == 0
     text = out.read_text()
     assert f"of `{train_copy}`" in text
+    assert "voxel features (the paper's Eq. 7)" in text  # the tiny model's proposal feature
     for heading in ("Table 2", "Table 3", "Targets", "Where the errors are", "Fig. 7"):
         assert heading in text, heading
     assert "| **mean over classes** |" in text and "| **total** |" in text
