@@ -299,9 +299,10 @@ reference of another class overlaps it; nothing does."""
 
 MISS_KINDS: tuple[str, ...] = ("no_candidate", "below_threshold", "suppressed")
 """Why a reference is missed (``error_breakdown``): no candidate of its class fits it at the
-matching IoU, whatever its score (a wrong class on its point set, or a wrong box among the
-options); some do, but all score below their class's operating threshold; one scores above it, but
-NMS suppressed it or the one-to-one matching gave it another reference."""
+matching IoU, whatever its score (no point set covers it, its point set has a wrong class, or a
+wrong box was chosen among the options); some do, but all score below their class's operating
+threshold; one scores above it, but NMS suppressed it, the one-to-one matching gave it another
+reference, or box voting moved its box below the IoU."""
 
 OVERLAP_IOU = 0.1
 """Least IoU at which ``error_breakdown`` counts a false positive as overlapping a reference."""
@@ -331,7 +332,9 @@ def error_breakdown(
         {kind: n}}},
         "false_positives": {kind: n}, "misses": {kind: n}, "tp", "num_detections",
         "num_reference", "f1", "f1_without": {kind: F}}``: the totals over classes, and the total
-        F-score with every false positive of one kind removed, or every miss of one kind found.
+        F-score with every false positive of one kind removed, or every miss of one kind found
+        (each by one more detection: a found "suppressed" miss whose candidate was already
+        counted as a duplicate would add none, so its figure can run slightly low).
     """
     num_classes = len(class_names)
     thresholds = operating_thresholds(num_classes, score_threshold, class_score_thresholds)
@@ -346,6 +349,9 @@ def error_breakdown(
         classes, scores = classes[above], scores[above]
         ref_boxes = np.asarray(frame["reference_boxes"], np.float64).reshape(-1, 7)
         ref_classes = np.asarray(frame["reference_class_ids"], np.int64)
+        # References of classes the detector does not know are not counted (as detection_metrics).
+        known = (ref_classes >= 0) & (ref_classes < num_classes)
+        ref_boxes, ref_classes = ref_boxes[known], ref_classes[known]
         tp, matched = match_detections(boxes, classes, scores, ref_boxes, ref_classes, iou_threshold)
         np.add.at(tp_per_class, classes[tp], 1)
         iou = (

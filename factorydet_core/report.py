@@ -154,10 +154,11 @@ def _error_lines(errors: dict, reference: str, png: Path) -> list[str]:
         f"matched, *localization* when one of its class overlaps it at IoU {OVERLAP_IOU} or more but "
         "less than the threshold, *confusion* when only an instance of another class overlaps it, "
         "and *background* when none does. A missed instance has *no candidate* when no point set's "
-        "candidate of its class fits it at the IoU, whatever the score (a wrong class on its point "
-        "set, or a wrong box chosen among the options); is *below threshold* when some do but all "
-        "score below the operating threshold; and is *suppressed* when one scored above it but NMS "
-        "or the one-to-one matching took it.",
+        "candidate of its class fits it at the IoU, whatever the score (no point set covers it, its "
+        "point set has a wrong class, or a wrong box was chosen among the options); is *below "
+        "threshold* when some do but all score below the operating threshold; and is *suppressed* "
+        "when one scored above it but NMS or the one-to-one matching took it, or box voting moved "
+        "its box below the IoU.",
         "",
         "| | " + " | ".join(names) + " | total |",
         "|---|" + "---|" * (len(names) + 1),
@@ -292,9 +293,10 @@ def write_report(
     headline = references[-1]
     stem = out.with_suffix("")
     pr_png = Path(f"{stem}_pr.png")
+    errors_png = Path(f"{stem}_errors.png")
     plot_error_breakdown(
         results[headline]["deep"]["errors"],
-        Path(f"{stem}_errors.png"),
+        errors_png,
         f"3DmFV-Net errors vs {headline} at the operating point, IoU {iou_threshold}",
     )
     plot_pr_curves(
@@ -473,7 +475,6 @@ def write_report(
             "of held-out point sets per class on average against the paper's "
             f"{PAPER_TABLE2['mean']}%.",
         ]
-    errors_png = Path(f"{stem}_errors.png")
     lines += _error_lines(deep["errors"], headline, errors_png)
     if sweep_rows:
         lines += [

@@ -116,6 +116,11 @@ def test_error_breakdown_gives_every_error_its_kind():
     lowered = error_breakdown([frame], ("a", "b"), 0.6, 0.5, np.array([0.1, np.nan]))
     assert lowered["per_class"]["a"]["false_positives"]["background"] == 1
     assert lowered["per_class"]["a"]["misses"]["below_threshold"] == 0
+    # A reference of a class the detector does not know is not counted, as in detection_metrics.
+    unknown = {**frame, "reference_boxes": np.concatenate([refs, [shifted(100)]]),
+               "reference_class_ids": np.append(ref_classes, 2)}  # fmt: skip
+    assert error_breakdown([unknown], ("a", "b"), 0.6, 0.5)["num_reference"] == 5
+    assert detection_metrics([unknown], ("a", "b"), 0.6, 0.5)["num_reference"] == 5
     # Without candidates every miss is "no candidate".
     bare = {k: v for k, v in frame.items() if not k.startswith("candidate_")}
     assert error_breakdown([bare], ("a", "b"), 0.6, 0.5)["misses"] == {
