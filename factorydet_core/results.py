@@ -18,7 +18,13 @@ from .bench import save_figure
 from .dataset import Dataset, open_dataset
 from .detection import score_groups, select_detections
 from .detector import Detector, params_for
-from .evaluation import detection_metrics, error_breakdown, recognition_accuracy
+from .evaluation import (
+    FALSE_POSITIVE_KINDS,
+    MISS_KINDS,
+    detection_metrics,
+    error_breakdown,
+    recognition_accuracy,
+)
 from .model import DEFAULT_MODEL, DetectionModel
 from .training import FrameProposals, collect_proposals, group_labels
 from .types import InputError
@@ -308,17 +314,15 @@ def plot_error_breakdown(errors: dict, png: str | os.PathLike, title: str = "") 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .evaluation import FALSE_POSITIVE_KINDS, MISS_KINDS
-
     names = list(errors["per_class"])
     positions = np.arange(len(names))
+    found = np.array([errors["per_class"][n]["tp"] for n in names], float)
     fig, ax = plt.subplots(figsize=(8.0, 4.8))
     width = 0.38
     for side, (group, kinds, shades) in enumerate(
         (("false_positives", FALSE_POSITIVE_KINDS, plt.cm.Reds), ("misses", MISS_KINDS, plt.cm.Blues))
     ):
         x = positions + (side - 0.5) * width
-        found = np.array([errors["per_class"][n]["tp"] for n in names], float)
         ax.bar(x, found, width, color="#4c9a2a", label="true positives" if side == 0 else None)
         bottom = found.copy()
         for k, kind in enumerate(kinds):
