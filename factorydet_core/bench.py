@@ -576,12 +576,26 @@ def bench_classifier(
     }
 
 
+def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:
+    """``count`` frames spread evenly over ``frames`` (all of them for ``None`` or more than there
+    are), first and last included: a vehicle's consecutive frames are 1.5 m apart and nearly
+    repeat each other, so the first N would see one corner of the hall."""
+    frames = [int(i) for i in frames]
+    if count is None or count >= len(frames):
+        return frames
+    if count < 1:
+        raise InputError(f"frame count must be >= 1, got {count}")
+    picks = np.unique(np.round(np.linspace(0, len(frames) - 1, count)).astype(int))
+    return [frames[i] for i in picks]
+
+
 def bench_hitl(
     data: str | os.PathLike,
     *,
     budgets: Sequence[int] = (50, 200),
     rounds: int = 2,
     settings=None,
+    seeds: Sequence[int] = (0,),
     max_train_frames: int | None = None,
     max_test_frames: int | None = None,
     calibrate: bool = True,
@@ -598,7 +612,10 @@ def bench_hitl(
     (c) ``full``: mining on full labels (every real object labelled), the upper bound.
 
     Every variant runs ``rounds + 1`` fits: a first fit that mines, then ``rounds`` next rounds.
-    ``recovered[K]`` is (F(b) - F(a)) / (F(c) - F(a)).
+    Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
+    and the box quality regressor) trains every variant afresh; F-scores are the seeds' means,
+    and ``recovered[K]`` is (F(b) - F(a)) / (F(c) - F(a)) of the means. The training and test
+    frames are spread evenly over their splits (``spread_frames``).
     """
     import tempfile
 
@@ -610,25 +627,37 @@ def bench_hitl(
         raise InputError(
             f"{dataset.name}: bench hitl needs a simulated data set (its reviewer reads the truth)"
         )
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise InputError(f"bench hitl needs one or more distinct seeds, got {seeds}")
     settings = settings or LoopSettings()
     settings = dataclasses.replace(settings, rounds=0)
-    train = (dataset.splits.get("train") or [])[:max_train_frames]
-    test = (dataset.splits.get("test") or [])[:max_test_frames]
+    train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
+    test = spread_frames(dataset.splits.get("test") or [], max_test_frames)
     if not train or not test:
         raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
     scratch_dir = None if workdir is not None else tempfile.TemporaryDirectory(prefix="factorydet_hitl_")
     root = Path(workdir) if workdir is not None else Path(scratch_dir.name)
     try:
         return _hitl_variants(
-            dataset, data, root, train, test, budgets, rounds, settings, calibrate, command, progress
+            dataset, data, root, train, test, budgets, rounds, settings, seeds, calibrate, command, progress
         )
     finally:
         if scratch_dir is not None:
             scratch_dir.cleanup()
 
 
+def _recovered(f1: dict[str, float], budgets: Sequence[int]) -> tuple[float, dict[str, float | None]]:
+    """The gap F(full) - F(blind) and the share of it each ``reviewed_K`` recovers (``None``
+    when there is no gap)."""
+    gap = f1["full"] - f1["blind"]
+    return gap, {
+        str(k): None if gap <= 0 else round((f1[f"reviewed_{k}"] - f1["blind"]) / gap, 3) for k in budgets
+    }
+
+
 def _hitl_variants(
-    dataset, data, root, train, test, budgets, rounds, settings, calibrate, command, progress
+    dataset, data, root, train, test, budgets, rounds, settings, seeds, calibrate, command, progress
 ) -> dict:
     """``bench_hitl``'s work inside its sessions folder ``root``."""
     from .detector import Detector, params_for
@@ -645,43 +674,63 @@ def _hitl_variants(
     test_frames = cached_proposals(scratch, dataset, detector, test)
     proposal_seconds = time.perf_counter() - start
     variants = [("blind", 0), *((f"reviewed_{k}", int(k)) for k in budgets), ("full", 0)]
-    steps, done = len(variants) * (rounds + 1), 0
-    results = {}
-    for name, budget in variants:
-        db = SessionDB(open_session(name, root), dataset)
-        added = add_truth_labels(db, dataset, train) if name == "full" else 0
-        reviews = {"background": 0, "object": 0, "wrong_box": 0, "boxes_drawn": 0}
-        fit_seconds = 0.0
-        for r in range(rounds + 1):
-            _, run = train_session(
-                db, train_frames, settings, mode="full" if r == 0 else "next", data_ref=str(data)
+    steps, done = len(seeds) * len(variants) * (rounds + 1), 0
+    per_seed: dict[str, list[dict]] = {name: [] for name, _ in variants}
+    for seed in seeds:
+        seed_settings = dataclasses.replace(settings, seed=seed)
+        for name, budget in variants:
+            db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
+            added = add_truth_labels(db, dataset, train) if name == "full" else 0
+            reviews = {"background": 0, "object": 0, "wrong_box": 0, "boxes_drawn": 0}
+            fit_seconds = 0.0
+            for r in range(rounds + 1):
+                _, run = train_session(
+                    db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data)
+                )
+                fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
+                if budget and r < rounds:
+                    for key, value in simulated_review(db, dataset, budget).items():
+                        reviews[key] += value
+                done += 1
+                if progress is not None:
+                    progress(done, steps)
+            metrics = measure(run.model, dataset, test_frames, use_truth=True)
+            per_seed[name].append(
+                {
+                    "seed": seed,
+                    "f1": metrics["f1"],
+                    "precision": metrics["precision"],
+                    "recall": metrics["recall"],
+                    "map": metrics["map"],
+                    "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()},
+                    "num_reviews": reviews["background"] + reviews["object"] + reviews["wrong_box"],
+                    "reviews": reviews,
+                    "truth_labels_added": added,
+                    "fit_seconds": round(fit_seconds, 1),
+                }
             )
-            fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
-            if budget and r < rounds:
-                for key, value in simulated_review(db, dataset, budget).items():
-                    reviews[key] += value
-            done += 1
-            if progress is not None:
-                progress(done, steps)
-        metrics = measure(run.model, dataset, test_frames, use_truth=True)
+
+    def mean(values) -> float:
+        return round(float(np.mean(values)), 4)
+
+    results = {}
+    for name, runs in per_seed.items():
         results[name] = {
-            "f1": metrics["f1"],
-            "precision": metrics["precision"],
-            "recall": metrics["recall"],
-            "map": metrics["map"],
-            "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()},
-            "num_reviews": reviews["background"] + reviews["object"] + reviews["wrong_box"],
-            "reviews": reviews,
-            "truth_labels_added": added,
-            "fit_seconds": round(fit_seconds, 1),
+            **{key: mean([r[key] for r in runs]) for key in ("f1", "precision", "recall", "map")},
+            "f1_per_seed": [r["f1"] for r in runs],
+            "f1_std": round(float(np.std([r["f1"] for r in runs], ddof=1)), 4) if len(runs) > 1 else None,
+            "per_class_f1": {c: mean([r["per_class_f1"][c] for r in runs]) for c in runs[0]["per_class_f1"]},
+            "num_reviews": mean([r["num_reviews"] for r in runs]),
+            "reviews": {k: mean([r["reviews"][k] for r in runs]) for k in runs[0]["reviews"]},
+            "truth_labels_added": mean([r["truth_labels_added"] for r in runs]),
+            "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),
         }
-    gap = results["full"]["f1"] - results["blind"]["f1"]
-    recovered = {
-        str(k): (
-            None if gap <= 0 else round((results[f"reviewed_{k}"]["f1"] - results["blind"]["f1"]) / gap, 3)
-        )
-        for k in budgets
-    }
+    f1 = {name: r["f1"] for name, r in results.items()}
+    gap, recovered = _recovered(f1, budgets)
+    seed_recovered = [
+        _recovered({n: runs[i]["f1"] for n, runs in per_seed.items()}, budgets)[1] for i in range(len(seeds))
+    ]
+    recovered_per_seed = {str(k): [r[str(k)] for r in seed_recovered] for k in budgets}
     return {
         "benchmark": "hitl",
         "command": command,
@@ -691,11 +740,14 @@ def _hitl_variants(
         "reference": "truth",
         "iou_threshold": 0.6,
         "mining_rounds": rounds,
-        "settings": dataclasses.asdict(settings),
-        "f1": {name: r["f1"] for name, r in results.items()},
+        "seeds": seeds,
+        "settings": {k: v for k, v in dataclasses.asdict(settings).items() if k != "seed"},
+        "f1": f1,
         "recovered": recovered,
+        "recovered_per_seed": recovered_per_seed,
         "gap_full_minus_blind": round(gap, 4),
         "variants": results,
+        "per_seed": per_seed,
         "proposal_seconds": round(proposal_seconds, 1),
         "machine": machine_info(),
     }

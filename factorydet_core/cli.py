@@ -160,7 +160,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
                 result = bench_hitl(
                     args.data[0],
-                    budgets=[int(v) for v in parse_floats(args.budgets, "--budgets")],
+                    budgets=parse_ints(args.budgets, "--budgets"),
                     rounds=args.rounds,
                     settings=LoopSettings(
                         epochs=args.epochs,
@@ -173,6 +173,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                         mining_threshold=args.mining_threshold,
                         box_quality=args.box_quality,
                     ),
+                    seeds=parse_ints(args.seeds, "--seeds"),
                     max_train_frames=args.train_frames,
                     max_test_frames=args.frames,
                     calibrate=args.calibrate,
@@ -858,7 +859,12 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="*",
         help="pipeline: a simulated data set folder, or point-cloud files (recall pooled); sweep: a folder",
     )
-    p.add_argument("--frames", type=int, default=None, help="frames to run (simulate: 10, others: 4)")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="frames to run (simulate: 10, hitl: all test frames, spread evenly if fewer; others: 4)",
+    )
     p.add_argument("--points", type=int, default=80_000, help="simulate: points per frame")
     p.add_argument("--seed", type=int, default=0, help="simulate: seed")
     p.add_argument("--preset", default=None, help="pipeline: agv or indoor (default: by data)")
@@ -875,7 +881,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--epochs", type=int, default=20, help="classifier, hitl: epochs per fit")
     p.add_argument("--max-fit-seconds", type=float, default=None, help="classifier: time budget per fit")
-    p.add_argument("--train-frames", type=int, default=None, help="classifier, hitl: first N training frames")
+    p.add_argument(
+        "--train-frames",
+        type=int,
+        default=None,
+        help="classifier: first N training frames; hitl: N training frames spread over the split",
+    )
+    p.add_argument("--seeds", default="0", help="hitl: training seeds, comma-separated (F is their mean)")
     p.add_argument("--budgets", default="50,200", help="hitl: reviews per round K, comma-separated")
     p.add_argument("--rounds", type=int, default=2, help="hitl: mining rounds after the first fit")
     p.add_argument("--negatives", type=int, default=500, help="hitl: mined negatives per round")

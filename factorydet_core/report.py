@@ -524,21 +524,41 @@ def write_report(
 
 def hitl_markdown(result: dict) -> str:
     """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
-    reviews, and full labels, with the recovered fraction of the gap and the reviews it took."""
+    reviews, and full labels (means over the seeds, with each seed's total), the recovered
+    fraction of the gap and the reviews it took."""
     variants = result["variants"]
     names = list(variants)
+    seeds = result.get("seeds", [result["settings"].get("seed", 0)])
     classes = list(next(iter(variants.values()))["per_class_f1"])
     head = "| class | " + " | ".join(names) + " |\n|---|" + "---|" * len(names)
     rows = [
         f"| {c} | " + " | ".join(_fmt(variants[n]["per_class_f1"][c]) for n in names) + " |" for c in classes
     ]
     rows.append("| **total F** | " + " | ".join(f"**{_fmt(variants[n]['f1'])}**" for n in names) + " |")
+    if len(seeds) > 1:
+        rows.append(
+            "| total F per seed | "
+            + " | ".join(", ".join(_fmt(f) for f in variants[n]["f1_per_seed"]) for n in names)
+            + " |"
+        )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
-    rows.append("| reviews | " + " | ".join(str(variants[n]["num_reviews"]) for n in names) + " |")
-    recovered = ", ".join(
-        f"K = {k}: {'–' if v is None else f'{100 * v:.0f}%'}" for k, v in result["recovered"].items()
-    )
+    rows.append("| reviews | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |")
+
+    def share(v: float | None) -> str:
+        return "–" if v is None else f"{100 * v:.0f}%"
+
+    recovered = ", ".join(f"K = {k}: {share(v)}" for k, v in result["recovered"].items())
+    if len(seeds) > 1:
+        recovered += (
+            " (per seed: "
+            + "; ".join(
+                f"K = {k}: " + ", ".join(share(v) for v in values)
+                for k, values in result["recovered_per_seed"].items()
+            )
+            + ")"
+        )
     settings = result["settings"]
+    mean_note = f" Means over seeds {', '.join(map(str, seeds))}." if len(seeds) > 1 else ""
     return "\n".join(
         [
             "## Human in the loop: does reviewing the mined negatives help?",
@@ -551,7 +571,7 @@ def hitl_markdown(result: dict) -> str:
             "per round. F-score at IoU "
             f"{result['iou_threshold']} against the full truth. `blind`: mining on the partial labels (the "
             "paper); `reviewed_K`: a simulated reviewer answers the top K items of each round's queue from "
-            "the truth through the review panel's own call; `full`: every real object labelled.",
+            "the truth through the review panel's own call; `full`: every real object labelled." + mean_note,
             "",
             head,
             *rows,

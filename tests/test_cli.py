@@ -236,7 +236,7 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_datas
     out = tmp_path / "hitl.json"
     args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
             "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
-            "--no-calibrate", "--no-box-quality", "--out", str(out)]  # fmt: skip
+            "--seeds", "0,1", "--no-calibrate", "--no-box-quality", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
     assert result == json.loads(out.read_text())
@@ -248,6 +248,19 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_datas
     assert result["variants"]["blind"]["num_reviews"] == 0
     assert result["variants"]["full"]["truth_labels_added"] > 0
     assert set(reviewed["per_class_f1"]) >= {"barrel", "truck"}
+    # Every variant trains once per seed; its F is their mean, and the gap is that of the means.
+    assert result["seeds"] == [0, 1]
+    for name, variant in result["variants"].items():
+        runs = result["per_seed"][name]
+        assert [r["seed"] for r in runs] == [0, 1]
+        assert variant["f1_per_seed"] == [r["f1"] for r in runs]
+        assert variant["f1"] == pytest.approx(sum(variant["f1_per_seed"]) / 2, abs=1e-4)
+    f1 = result["f1"]
+    assert result["gap_full_minus_blind"] == pytest.approx(f1["full"] - f1["blind"], abs=1e-4)
+    assert len(result["recovered_per_seed"]["5"]) == 2
+    markdown = out.with_suffix(".md").read_text()
+    assert "| total F per seed |" in markdown and "Means over seeds 0, 1." in markdown
+    assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "1,1"]) == 2
 
 
 def test_bench_classifier_measures_rows_with_the_models_box_quality(small_dataset_dir, capsys):
