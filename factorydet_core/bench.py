@@ -661,7 +661,13 @@ def _hitl_variants(
 ) -> dict:
     """``bench_hitl``'s work inside its sessions folder ``root``."""
     from .detector import Detector, params_for
-    from .loop import add_truth_labels, cached_proposals, simulated_review, train_session
+    from .loop import (
+        add_truth_labels,
+        cached_proposals,
+        simulated_review,
+        train_session,
+        unannotated_coverage,
+    )
     from .results import measure
     from .session import SessionDB, open_session
 
@@ -695,6 +701,7 @@ def _hitl_variants(
                 if progress is not None:
                     progress(done, steps)
             metrics = measure(run.model, dataset, test_frames, use_truth=True)
+            covered, unannotated = unannotated_coverage(db, dataset, train)
             per_seed[name].append(
                 {
                     "seed": seed,
@@ -706,6 +713,8 @@ def _hitl_variants(
                     "num_reviews": reviews["background"] + reviews["object"] + reviews["wrong_box"],
                     "reviews": reviews,
                     "truth_labels_added": added,
+                    "unannotated_labelled": covered,
+                    "unannotated_total": unannotated,
                     "fit_seconds": round(fit_seconds, 1),
                 }
             )
@@ -723,6 +732,11 @@ def _hitl_variants(
             "num_reviews": mean([r["num_reviews"] for r in runs]),
             "reviews": {k: mean([r["reviews"][k] for r in runs]) for k in runs[0]["reviews"]},
             "truth_labels_added": mean([r["truth_labels_added"] for r in runs]),
+            # Of the objects the data set left unannotated on the training frames, the share the
+            # session labels at the end (full: all; blind: none; reviewed: what the reviews gave back).
+            "unannotated_labelled": mean(
+                [r["unannotated_labelled"] / max(r["unannotated_total"], 1) for r in runs]
+            ),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),
         }
     f1 = {name: r["f1"] for name, r in results.items()}

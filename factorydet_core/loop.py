@@ -387,6 +387,18 @@ def simulated_review(
     return counts
 
 
+def _unannotated_truth(dataset: Dataset, index: int, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """The real objects of frame ``index`` the data set left unannotated, with at least
+    ``min_points`` points: (boxes (M, 7), class_ids (M,)) from the simulator's truth."""
+    from .sim.truth import read_frame_truth
+
+    truth = read_frame_truth(dataset.path, index)
+    missing = (
+        (truth.instance_class_ids >= 0) & ~truth.annotated_mask & (truth.instance_num_points >= min_points)
+    )
+    return truth.instance_boxes[missing], truth.instance_class_ids[missing]
+
+
 def add_truth_labels(
     db: SessionDB, dataset: Dataset, frame_indices: Sequence[int], min_points: int = 50
 ) -> int:
@@ -396,20 +408,41 @@ def add_truth_labels(
     Returns:
         How many labels were added.
     """
-    from .sim.truth import read_frame_truth
-
     added = 0
     for index in frame_indices:
-        truth = read_frame_truth(dataset.path, index)
-        missing = (
-            (truth.instance_class_ids >= 0)
-            & ~truth.annotated_mask
-            & (truth.instance_num_points >= min_points)
-        )
-        for box, class_id in zip(truth.instance_boxes[missing], truth.instance_class_ids[missing]):
+        boxes, class_ids = _unannotated_truth(dataset, index, min_points)
+        for box, class_id in zip(boxes, class_ids):
             db.add_label(index, box, dataset.class_names[int(class_id)], "truth", origin="import")
             added += 1
     return added
+
+
+def unannotated_coverage(
+    db: SessionDB,
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    min_points: int = 50,
+    iou_threshold: float = 0.6,
+) -> tuple[int, int]:
+    """How many of the objects the data set left unannotated (``add_truth_labels``' set) the
+    session now labels with their class at ``iou_threshold``: what the reviews gave back.
+
+    Returns:
+        ``(covered, total)``.
+    """
+    covered = total = 0
+    for index in frame_indices:
+        boxes, class_ids = _unannotated_truth(dataset, index, min_points)
+        total += len(boxes)
+        labels, label_class_ids, _ = db.frame_boxes(index)
+        if not len(boxes) or not len(labels):
+            continue
+        truth_names = np.asarray(dataset.class_names)[class_ids]
+        label_names = np.asarray(db.class_names)[label_class_ids]
+        same_class = truth_names[:, None] == label_names[None, :]
+        iou = np.where(same_class, box_iou_3d(boxes, labels), 0.0)
+        covered += int((iou.max(axis=1) >= iou_threshold).sum())
+    return covered, total
 
 
 def suspect_labels(

@@ -543,6 +543,12 @@ def hitl_markdown(result: dict) -> str:
         )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
     rows.append("| reviews | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |")
+    if all("unannotated_labelled" in variants[n] for n in names):
+        rows.append(
+            "| unannotated training objects labelled | "
+            + " | ".join(f"{100 * variants[n]['unannotated_labelled']:.0f}%" for n in names)
+            + " |"
+        )
 
     def share(v: float | None) -> str:
         return "–" if v is None else f"{100 * v:.0f}%"

@@ -260,6 +260,10 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_datas
     assert len(result["recovered_per_seed"]["5"]) == 2
     markdown = out.with_suffix(".md").read_text()
     assert "| total F per seed |" in markdown and "Means over seeds 0, 1." in markdown
+    # What the reviews gave back: full labels cover every unannotated object, blind ones none.
+    assert result["variants"]["full"]["unannotated_labelled"] == 1.0
+    assert result["variants"]["blind"]["unannotated_labelled"] == 0.0
+    assert "| unannotated training objects labelled |" in markdown
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "1,1"]) == 2
 
 

@@ -8,6 +8,7 @@ from factorydet_core.dataset import open_dataset
 from factorydet_core.detector import Detector
 from factorydet_core.loop import (
     LoopSettings,
+    add_truth_labels,
     cached_proposals,
     compare_models,
     comparison_markdown,
@@ -17,6 +18,7 @@ from factorydet_core.loop import (
     suspect_labels,
     train_session,
     truth_verdict,
+    unannotated_coverage,
     with_session_labels,
 )
 from factorydet_core.model import DetectionModel
@@ -166,3 +168,17 @@ def test_free_space_is_read_by_default_for_multi_sensor_data_only(dataset):
     assert not LoopSettings().quality_visibility(single_scan)
     assert LoopSettings(visibility=True).quality_visibility(single_scan)
     assert not LoopSettings(visibility=False).quality_visibility(dataset)
+
+
+def test_unannotated_coverage_counts_the_truth_labels_a_session_gained(dataset, tmp_path):
+    db = SessionDB(open_session("coverage", tmp_path), dataset)
+    covered, total = unannotated_coverage(db, dataset, [0, 1])
+    assert covered == 0 and total > 0  # the data set's own labels are the annotated objects only
+    assert add_truth_labels(db, dataset, [0]) > 0
+    covered_0, total_0 = unannotated_coverage(db, dataset, [0])
+    assert covered_0 == total_0 and unannotated_coverage(db, dataset, [0, 1]) == (covered_0, total)
+    # A label of another class over the object does not count.
+    label = next(lab for lab in db.labels(0) if lab.origin == "import")
+    other = next(name for name in db.class_names if name != label.class_name)
+    db.update_label(label.id, "ann", class_name=other)
+    assert unannotated_coverage(db, dataset, [0]) == (covered_0 - 1, total_0)
