@@ -87,15 +87,19 @@ def check_readme_block(readme: str | os.PathLike, name: str) -> None:
         raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
 
 
-def update_readme(readme: str | os.PathLike, result: dict, name: str | None = None) -> None:
-    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with ``result``;
-    ``name`` defaults to the result's ``benchmark`` (a second block of the same benchmark, on other
-    data, takes a name of its own)."""
+def update_readme(
+    readme: str | os.PathLike, result: dict, name: str | None = None, markdown: str | None = None
+) -> None:
+    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with ``result``
+    as JSON, or with ``markdown`` (a table rendered from it) when given; ``name`` defaults to the
+    result's ``benchmark`` (a second block of the same benchmark, on other data, takes a name of
+    its own)."""
     path = Path(readme)
     name = result["benchmark"] if name is None else name
     check_readme_block(path, name)
     text = path.read_text()
-    block = f"<!-- bench:{name} -->\n```json\n{json.dumps(result, indent=2)}\n```\n<!-- /bench:{name} -->"
+    body = f"```json\n{json.dumps(result, indent=2)}\n```" if markdown is None else markdown.strip()
+    block = f"<!-- bench:{name} -->\n{body}\n<!-- /bench:{name} -->"
     pattern = re.compile(rf"<!-- bench:{name} -->.*?<!-- /bench:{name} -->", re.S)
     if not pattern.search(text):
         raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
@@ -687,7 +691,7 @@ def _hitl_variants(
         for name, budget in variants:
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
-            reviews = {"background": 0, "object": 0, "wrong_box": 0, "boxes_drawn": 0}
+            reviews = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0}
             fit_seconds = 0.0
             for r in range(rounds + 1):
                 _, run = train_session(
@@ -710,7 +714,7 @@ def _hitl_variants(
                     "recall": metrics["recall"],
                     "map": metrics["map"],
                     "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()},
-                    "num_reviews": reviews["background"] + reviews["object"] + reviews["wrong_box"],
+                    "num_reviews": sum(v for k, v in reviews.items() if k != "boxes_drawn"),
                     "reviews": reviews,
                     "truth_labels_added": added,
                     "unannotated_labelled": covered,

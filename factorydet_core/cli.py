@@ -120,10 +120,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from .bench import bench_pipeline, bench_simulate, bench_voxel_sweep, update_readme
 
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
-    if args.readme and args.readme_block:
+    if args.readme and (args.readme_block or args.name == "hitl"):
         from .bench import check_readme_block
 
-        check_readme_block(args.readme, args.readme_block)
+        check_readme_block(args.readme, args.readme_block or "hitl")  # before a long run, not after
     if args.frames is None:
         args.frames = {"simulate": 10, "hitl": None}.get(args.name, 4)
     if args.name == "simulate":
@@ -221,7 +221,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             close()
     print(json.dumps(result, indent=2))
     if args.readme:
-        update_readme(args.readme, result, args.readme_block)
+        markdown = None
+        if args.name == "hitl":  # a table people read, where the other benchmarks keep their JSON
+            from .report import hitl_markdown
+
+            markdown = hitl_markdown(result, heading=False)
+        update_readme(args.readme, result, args.readme_block, markdown)
     return 0
 
 

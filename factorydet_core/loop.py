@@ -325,30 +325,51 @@ def comparison_markdown(table: dict) -> str:
 # --- The simulated reviewer (benchmarks only) -----------------------------------------------------
 
 
+def annotation_min_points(dataset: Dataset) -> int:
+    """The data set's annotation policy: objects with at least this many points in a frame are
+    annotated (the simulator's ``min_annotated_points``; 50 when the manifest does not say). The
+    truth references of the evaluation and the full labels of ``bench hitl`` follow it too."""
+    return int(dataset.manifest.get("config", {}).get("min_annotated_points", 50))
+
+
 def truth_verdict(
-    dataset: Dataset, item: dict, positive_iou: float = 0.6, object_overlap: float = 0.1
+    dataset: Dataset,
+    item: dict,
+    positive_iou: float = 0.6,
+    object_overlap: float = 0.1,
+    min_points: int | None = None,
 ) -> tuple[str, str | None, np.ndarray | None]:
-    """What a careful person would answer for a mined negative, read from the simulator's truth.
+    """What a careful person would answer for a mined negative, read from the simulator's truth,
+    under the data set's annotation policy (objects of at least ``min_points`` points, by default
+    ``annotation_min_points``).
 
     Returns:
-        ``(verdict, class_name, true_box)``: 'object' with the class when the mined box matches a
-        real object at ``positive_iou``; 'wrong_box' with the object's class and true box when it
-        overlaps one by at least ``object_overlap`` IoU; else 'background'.
+        ``(verdict, class_name, true_box)``: 'object' with the class when the mined box matches an
+        object of the policy at ``positive_iou``; 'wrong_box' with the object's class and true box
+        when it overlaps one by at least ``object_overlap`` IoU; 'skip' when it overlaps only real
+        objects too sparse for the policy (neither a label nor background: a person labelling to
+        the policy leaves them as the annotations and the truth references do); else 'background'.
     """
     from .sim.truth import read_frame_truth
 
+    if min_points is None:
+        min_points = annotation_min_points(dataset)
     truth = read_frame_truth(dataset.path, item["frame_index"])
     real = truth.instance_class_ids >= 0
     if not real.any():
         return "background", None, None
-    boxes, classes = truth.instance_boxes[real], truth.instance_class_ids[real]
-    iou = box_iou_3d(np.asarray([item["box"]], np.float64), boxes)[0]
-    best = int(iou.argmax())
-    name = dataset.class_names[int(classes[best])]
-    if iou[best] >= positive_iou:
-        return "object", name, boxes[best]
-    if iou[best] >= object_overlap:
-        return "wrong_box", name, boxes[best]
+    iou = box_iou_3d(np.asarray([item["box"]], np.float64), truth.instance_boxes[real])[0]
+    dense = truth.instance_num_points[real] >= min_points
+    if dense.any():
+        best = int(np.flatnonzero(dense)[iou[dense].argmax()])
+        name = dataset.class_names[int(truth.instance_class_ids[real][best])]
+        box = truth.instance_boxes[real][best]
+        if iou[best] >= positive_iou:
+            return "object", name, box
+        if iou[best] >= object_overlap:
+            return "wrong_box", name, box
+    if (iou[~dense] >= object_overlap).any():
+        return "skip", None, None
     return "background", None, None
 
 
@@ -359,17 +380,24 @@ def simulated_review(
     author: str = "simulated-reviewer",
     positive_iou: float = 0.6,
 ) -> dict:
-    """Answer the top ``budget`` pending items of the latest run's queue from the truth, one
-    ``SessionDB.review`` call per item, as the review panel's buttons make them. A 'wrong box' is
-    followed by the box a person would draw (``SessionDB.add_label``), unless a label already
-    covers the object.
+    """Answer the top ``budget`` pending items of the latest run's queue from the truth
+    (``truth_verdict``), one ``SessionDB.review`` call per item, as the review panel's buttons make
+    them. A 'wrong box' is followed by the box a person would draw (``SessionDB.add_label``). An
+    item on an object the session already labels (at ``positive_iou``, for instance one drawn for an
+    earlier item) is a part, a duplicate or a misplaced box of a labelled object: a negative, so
+    'background' when its box is off the object and 'skip' when it matches it (there is nothing to
+    add), as the full labels of ``bench hitl`` would mine and keep it.
 
     Returns:
         Counts per verdict and the number of boxes drawn.
     """
-    counts = {"background": 0, "object": 0, "wrong_box": 0, "boxes_drawn": 0}
+    counts = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0}
     for item in db.review_queue(pending_only=True)[:budget]:
         verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)
+        if true_box is not None:
+            boxes, _, _ = db.frame_boxes(item["frame_index"])
+            if len(boxes) and box_iou_3d(true_box[None], boxes).max() >= positive_iou:
+                verdict, class_name = ("skip" if verdict == "object" else "background"), None
         db.review(
             [item["id"]],
             verdict,
@@ -379,19 +407,19 @@ def simulated_review(
         )
         counts[verdict] += 1
         if verdict == "wrong_box":
-            boxes, _, _ = db.frame_boxes(item["frame_index"])
-            covered = len(boxes) and box_iou_3d(true_box[None], boxes).max() >= positive_iou
-            if not covered:
-                db.add_label(item["frame_index"], true_box, class_name, author)
-                counts["boxes_drawn"] += 1
+            db.add_label(item["frame_index"], true_box, class_name, author)
+            counts["boxes_drawn"] += 1
     return counts
 
 
-def _unannotated_truth(dataset: Dataset, index: int, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+def _unannotated_truth(dataset: Dataset, index: int, min_points: int | None) -> tuple[np.ndarray, np.ndarray]:
     """The real objects of frame ``index`` the data set left unannotated, with at least
-    ``min_points`` points: (boxes (M, 7), class_ids (M,)) from the simulator's truth."""
+    ``min_points`` points (``None``: ``annotation_min_points``): (boxes (M, 7), class_ids (M,))
+    from the simulator's truth."""
     from .sim.truth import read_frame_truth
 
+    if min_points is None:
+        min_points = annotation_min_points(dataset)
     truth = read_frame_truth(dataset.path, index)
     missing = (
         (truth.instance_class_ids >= 0) & ~truth.annotated_mask & (truth.instance_num_points >= min_points)
@@ -400,10 +428,11 @@ def _unannotated_truth(dataset: Dataset, index: int, min_points: int) -> tuple[n
 
 
 def add_truth_labels(
-    db: SessionDB, dataset: Dataset, frame_indices: Sequence[int], min_points: int = 50
+    db: SessionDB, dataset: Dataset, frame_indices: Sequence[int], min_points: int | None = None
 ) -> int:
-    """Label every real object the data set left unannotated (at least ``min_points`` points) from
-    the simulator's truth: the fully labelled upper bound of ``bench hitl``.
+    """Label every real object the data set left unannotated (at least ``min_points`` points, by
+    default the annotation policy's) from the simulator's truth: the fully labelled upper bound of
+    ``bench hitl``.
 
     Returns:
         How many labels were added.
@@ -421,7 +450,7 @@ def unannotated_coverage(
     db: SessionDB,
     dataset: Dataset,
     frame_indices: Sequence[int],
-    min_points: int = 50,
+    min_points: int | None = None,
     iou_threshold: float = 0.6,
 ) -> tuple[int, int]:
     """How many of the objects the data set left unannotated (``add_truth_labels``' set) the

@@ -4,11 +4,13 @@ before/after comparison, and the simulated reviewer."""
 import numpy as np
 import pytest
 
+from factorydet_core.boxes import box_iou_3d
 from factorydet_core.dataset import open_dataset
 from factorydet_core.detector import Detector
 from factorydet_core.loop import (
     LoopSettings,
     add_truth_labels,
+    annotation_min_points,
     cached_proposals,
     compare_models,
     comparison_markdown,
@@ -24,6 +26,7 @@ from factorydet_core.loop import (
 from factorydet_core.model import DetectionModel
 from factorydet_core.session import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
+from factorydet_core.training import TrainingRun
 from factorydet_core.types import Cancelled
 
 # Two epochs make a classifier whose probabilities times a predicted IoU rarely reach mining's
@@ -99,13 +102,22 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     assert db.training_runs()[-1]["snapshot_id"] is not None
 
     counts = simulated_review(db, dataset, budget=10)
-    assert counts["background"] + counts["object"] + counts["wrong_box"] == min(10, len(queue))
+    verdicts = ("background", "object", "wrong_box", "skip")
+    assert sum(counts[v] for v in verdicts) == min(10, len(queue))
+    assert counts["boxes_drawn"] == counts["wrong_box"]
     progress = db.review_progress(run_id)
-    assert progress["reviewed"] == min(10, len(queue))
-    # Every verdict agrees with the truth it was read from.
+    assert progress["reviewed"] == min(10, len(queue)) - counts["skip"]
+    # Every verdict agrees with the truth it was read from, except on an object the session
+    # labels already: that item is a negative (or, matching the label, nothing to add).
     for item in db.review_queue(run_id):
-        if item["verdict"] is not None:
-            assert truth_verdict(dataset, item)[0] == item["verdict"]
+        if item["verdict"] is None:
+            continue
+        truth, _, true_box = truth_verdict(dataset, item)
+        if item["verdict"] != truth:
+            assert truth in ("object", "wrong_box")
+            assert item["verdict"] == {"object": "skip", "wrong_box": "background"}[truth]
+            labels, _, _ = db.frame_boxes(item["frame_index"])
+            assert box_iou_3d(true_box[None], labels).max() >= 0.6
 
     confirmed = db.reviewed_patch_sets()["background"]
     next_id, next_run = train_session(db, frames, SETTINGS, mode="next", data_ref="small")
@@ -133,7 +145,7 @@ def test_a_cancelled_run_stores_nothing(db, frames):
 
 def test_truth_verdicts(dataset):
     truth = read_frame_truth(dataset.path, 0)
-    real = np.flatnonzero(truth.instance_class_ids >= 0)[0]
+    real = np.flatnonzero((truth.instance_class_ids >= 0) & (truth.instance_num_points >= 50))[0]
     box = truth.instance_boxes[real]
     item = {"frame_index": 0, "box": box.tolist()}
     verdict, name, _ = truth_verdict(dataset, item)
@@ -142,6 +154,58 @@ def test_truth_verdicts(dataset):
     assert truth_verdict(dataset, shifted)[0] == "wrong_box"
     far = {"frame_index": 0, "box": [500.0, 500.0, 0.5, 1, 1, 1, 0]}
     assert truth_verdict(dataset, far) == ("background", None, None)
+    # An object too sparse for the annotation policy is neither labelled nor background.
+    assert annotation_min_points(dataset) == 50
+    dense = truth.instance_num_points >= 50
+    sparse = np.flatnonzero((truth.instance_class_ids >= 0) & ~dense)
+    iou = box_iou_3d(truth.instance_boxes[sparse], truth.instance_boxes[dense])
+    alone = sparse[iou.max(axis=1, initial=0.0) < 0.1][0]
+    item = {"frame_index": 0, "box": truth.instance_boxes[alone].tolist()}
+    assert truth_verdict(dataset, item) == ("skip", None, None)
+    # With a policy that takes every visible object, it is an object.
+    assert truth_verdict(dataset, item, min_points=0)[0] == "object"
+
+
+def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
+    dataset, tmp_path, tiny_model_path
+):
+    db = SessionDB(open_session("reviewer", tmp_path), dataset)
+    truth = read_frame_truth(dataset.path, 0)
+    # An annotated object (the data set's label is its truth box), and a box shifted off it.
+    real = np.flatnonzero(truth.annotated_mask & (truth.instance_num_points >= 50))[0]
+    box = truth.instance_boxes[real]
+    shifted = box + [box[3] * 0.6, 0, 0, 0, 0, 0, 0]
+    assert truth_verdict(dataset, {"frame_index": 0, "box": shifted.tolist()})[0] == "wrong_box"
+    model = DetectionModel.load(tiny_model_path)
+    mined = [
+        {
+            "frame_index": 0,
+            "group": g,
+            "proposal": g,
+            "box": [float(v) for v in b],
+            "patch_set": [g],
+            "score": 0.9 - 0.1 * g,
+            "predicted_class": "box",
+            "probabilities": [0.1] * 8,
+            "best_annotated_iou": 0.0,
+        }
+        for g, b in enumerate([shifted, box])
+    ]
+    record = {
+        "round": 0,
+        "num_positives": 1,
+        "num_background": 1,
+        "fit_seconds": 1.0,
+        "train_metrics": {"f1": 0},
+    }
+    db.save_training_run(TrainingRun(model, [{**record, "mined": mined}], [model], [0]), "small", {})
+    num_labels = len(db.labels(0))
+    counts = simulated_review(db, dataset, budget=5)
+    # The shifted box is a misplaced box of a labelled object: a negative. The exact one repeats
+    # the label: nothing to add.
+    assert counts == {"background": 1, "object": 0, "wrong_box": 0, "skip": 1, "boxes_drawn": 0}
+    assert [item["verdict"] for item in db.review_queue()] == ["background", "skip"]
+    assert len(db.labels(0)) == num_labels
 
 
 def test_suspect_labels_are_the_ones_the_classifier_contradicts(db, frames, tiny_model_path):
