@@ -613,7 +613,8 @@ def bench_hitl(
     (a) ``blind``: mining on the partial labels, as the paper;
     (b) ``reviewed_K``: the same, with a simulated reviewer answering the top K items of each
         round's queue from the truth, through ``SessionDB.review`` (the review panel's call);
-    (c) ``full``: mining on full labels (every real object labelled), the upper bound.
+    (c) ``full``: mining on full labels (every object of the annotation policy labelled,
+        ``loop.add_truth_labels``), the upper bound.
 
     Every variant runs ``rounds + 1`` fits: a first fit that mines, then ``rounds`` next rounds.
     Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
@@ -631,9 +632,11 @@ def bench_hitl(
         raise InputError(
             f"{dataset.name}: bench hitl needs a simulated data set (its reviewer reads the truth)"
         )
-    seeds = [int(s) for s in seeds]
-    if not seeds or len(set(seeds)) != len(seeds):
-        raise InputError(f"bench hitl needs one or more distinct seeds, got {seeds}")
+    seeds, budgets = [int(s) for s in seeds], [int(k) for k in budgets]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise InputError(f"bench hitl needs one or more distinct seeds >= 0, got {seeds}")
+    if not budgets or len(set(budgets)) != len(budgets) or min(budgets) < 1:
+        raise InputError(f"bench hitl needs one or more distinct review budgets K >= 1, got {budgets}")
     settings = settings or LoopSettings()
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
@@ -741,7 +744,7 @@ def _hitl_variants(
             "unannotated_labelled": mean(
                 [r["unannotated_labelled"] / max(r["unannotated_total"], 1) for r in runs]
             ),
-            "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),
+            "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
     f1 = {name: r["f1"] for name, r in results.items()}
     gap, recovered = _recovered(f1, budgets)

@@ -126,9 +126,18 @@ class Dataset:
             raise InputError(f"{path}: {exc}") from None
 
 
+def annotation_min_points(dataset: Dataset, default: int | None = 50) -> int | None:
+    """The data set's annotation policy: objects with at least this many points in a frame are
+    annotated (the simulator's ``min_annotated_points``; ``default`` when the manifest does not
+    say, as for real scans). The truth references of the evaluation (``results.reference_boxes``)
+    and the labels of the simulated reviewer and of the full labels of ``bench hitl`` follow it."""
+    value = dataset.manifest.get("config", {}).get("min_annotated_points")
+    return default if value is None else int(value)
+
+
 def open_dataset(path: str | os.PathLike) -> Dataset:
     """Open a data set folder or a point-cloud file."""
     return Dataset(path)
 
 
-__all__ = ["CLASS_NAMES", "Dataset", "open_dataset"]
+__all__ = ["CLASS_NAMES", "Dataset", "annotation_min_points", "open_dataset"]

@@ -241,14 +241,30 @@ def describe_label(label, frame_labels) -> str:
     )
 
 
-def review_item_markdown(item: dict, frame_labels, rank: int, total: int) -> str:
-    """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``)."""
+def review_item_markdown(
+    item: dict,
+    frame_labels,
+    rank: int,
+    total: int,
+    num_points: int | None = None,
+    min_points: int | None = None,
+) -> str:
+    """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``), with
+    the number of points in its box when known and the data set's annotation policy (objects of
+    at least ``min_points`` points are labelled)."""
     lines = [
         f"**Item {rank} of {total}** (#{item['id']}, frame {item['frame_index'] + 1}, "
         f"mined in run {item['run_id']} round {item['round']})",
         f"predicted **{item['predicted_class']}**, score **{item['score']:.3f}**; best IoU with a "
         f"label when mined {item['best_annotated_iou']:.2f}",
         _box_text(item["box"]),
+    ]
+    if num_points is not None:
+        lines.append(
+            f"{num_points} points in its box"
+            + (f" (the data set labels objects of at least {min_points} points)" if min_points else "")
+        )
+    lines += [
         f"patches {', '.join(map(str, item['patch_set'][:12]))}"
         + (" …" if len(item["patch_set"]) > 12 else ""),
     ]
@@ -266,6 +282,13 @@ def review_item_markdown(item: dict, frame_labels, rank: int, total: int) -> str
         verdict = item["verdict"] + (f" ({item['verdict_class']})" if item.get("verdict_class") else "")
         lines.append(f"Verdict: **{verdict}** by {item['reviewer']}")
     return "  \n".join(lines)
+
+
+def num_points_in_box(result: ProposalResult, box) -> int:
+    """How many of the proposed cloud's points lie inside ``box`` (7,)."""
+    from .geometry import points_in_box
+
+    return int(points_in_box(result.cloud.points, np.asarray(box, np.float64)).sum())
 
 
 def patches_in_box(result: ProposalResult, box) -> np.ndarray:

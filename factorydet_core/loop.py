@@ -25,7 +25,7 @@ import numpy as np
 from .box_quality import BoxQuality
 from .boxes import box_iou_3d
 from .classifier import ProposalClassifier
-from .dataset import Dataset
+from .dataset import Dataset, annotation_min_points
 from .detector import Detector
 from .model import DetectionModel
 from .session import SessionDB, read_cache, write_cache
@@ -323,13 +323,6 @@ def comparison_markdown(table: dict) -> str:
 
 
 # --- The simulated reviewer (benchmarks only) -----------------------------------------------------
-
-
-def annotation_min_points(dataset: Dataset) -> int:
-    """The data set's annotation policy: objects with at least this many points in a frame are
-    annotated (the simulator's ``min_annotated_points``; 50 when the manifest does not say). The
-    truth references of the evaluation and the full labels of ``bench hitl`` follow it too."""
-    return int(dataset.manifest.get("config", {}).get("min_annotated_points", 50))
 
 
 def truth_verdict(

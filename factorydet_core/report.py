@@ -536,6 +536,12 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
         f"| {c} | " + " | ".join(_fmt(variants[n]["per_class_f1"][c]) for n in names) + " |" for c in classes
     ]
     rows.append("| **total F** | " + " | ".join(f"**{_fmt(variants[n]['f1'])}**" for n in names) + " |")
+    if all(variants[n].get("f1_std") is not None for n in names):
+        rows.append(
+            "| standard deviation over seeds | "
+            + " | ".join(_fmt(variants[n]["f1_std"]) for n in names)
+            + " |"
+        )
     if len(seeds) > 1:
         rows.append(
             "| total F per seed | "
@@ -543,7 +549,9 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " |"
         )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
-    rows.append("| reviews | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |")
+    rows.append(
+        "| verdicts (skips too) | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |"
+    )
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "
@@ -577,7 +585,8 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             "per round. F-score at IoU "
             f"{result['iou_threshold']} against the full truth. `blind`: mining on the partial labels (the "
             "paper); `reviewed_K`: a simulated reviewer answers the top K items of each round's queue from "
-            "the truth through the review panel's own call; `full`: every real object labelled." + mean_note,
+            "the truth through the review panel's own call, labelling to the data set's annotation "
+            "policy; `full`: every object of that policy labelled." + mean_note,
             "",
             head,
             *rows,

@@ -15,7 +15,7 @@ import numpy as np
 
 from .baseline import BaselineClassifier
 from .bench import save_figure
-from .dataset import Dataset, open_dataset
+from .dataset import Dataset, annotation_min_points, open_dataset
 from .detection import score_groups, select_detections
 from .detector import Detector, params_for
 from .evaluation import (
@@ -74,9 +74,12 @@ def detector_for(model: DetectionModel | None, dataset: Dataset, calibrate: bool
     return detector
 
 
-def reference_boxes(dataset: Dataset, frame_index: int, use_truth: bool, min_points: int = 50):
+def reference_boxes(dataset: Dataset, frame_index: int, use_truth: bool, min_points: int | None = None):
     """(boxes, class_ids) of a frame: its annotations, or every instance of the truth with at
-    least ``min_points`` points (simulated data sets only)."""
+    least ``min_points`` points (simulated data sets only; ``None``: the data set's annotation
+    policy, ``dataset.annotation_min_points``)."""
+    if min_points is None:
+        min_points = annotation_min_points(dataset)
     if not use_truth:
         frame = dataset.frame(frame_index)
         return np.array(frame.labels.boxes), np.array(frame.labels.class_ids)

@@ -232,13 +232,17 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
     assert main(["report", str(small_dataset_dir), "--model", str(tiny_model_path), "--sweep", "x"]) == 2
 
 
-def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_dataset_dir, tmp_path, capsys):
+def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
+    small_dataset_dir, tmp_path, capsys, monkeypatch
+):
     out = tmp_path / "hitl.json"
     readme = tmp_path / "README.md"
     readme.write_text("# x\n\n<!-- bench:hitl -->\nold\n<!-- /bench:hitl -->\n\nend\n")
     # A README without the block is refused before the long run, not after it.
     (tmp_path / "other.md").write_text("# no block\n")
-    assert main(["bench", "hitl", str(small_dataset_dir), "--readme", str(tmp_path / "other.md")]) == 2
+    with monkeypatch.context() as patch:
+        patch.setattr("factorydet_core.bench.bench_hitl", lambda *a, **k: pytest.fail("ran before the check"))
+        assert main(["bench", "hitl", str(small_dataset_dir), "--readme", str(tmp_path / "other.md")]) == 2
     capsys.readouterr()
     args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
             "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
@@ -280,6 +284,9 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(small_datas
     assert result["variants"]["blind"]["unannotated_labelled"] == 0.0
     assert "| unannotated training objects labelled |" in markdown
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "1,1"]) == 2
+    assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "-1"]) == 2
+    assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "200,200"]) == 2
+    assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "0"]) == 2
 
 
 def test_bench_classifier_measures_rows_with_the_models_box_quality(small_dataset_dir, capsys):

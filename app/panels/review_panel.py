@@ -7,7 +7,8 @@ import dataclasses
 
 import viser
 
-from factorydet_core.inspect import patches_in_box, review_item_markdown
+from factorydet_core.dataset import annotation_min_points
+from factorydet_core.inspect import num_points_in_box, patches_in_box, review_item_markdown
 
 from ..clients import ClientView
 from . import from_user
@@ -54,7 +55,16 @@ class ReviewPanel:
             ids = [q["id"] for q in queue]
             rank = ids.index(item["id"]) + 1 if item["id"] in ids else 0
             labels = state.db.labels(item["frame_index"])
-            self.item.content = review_item_markdown(item, labels, rank, len(queue))
+            result, drawn_frame = view.drawn_result()
+            shown = result is not None and drawn_frame == item["frame_index"]
+            self.item.content = review_item_markdown(
+                item,
+                labels,
+                rank,
+                len(queue),
+                num_points=num_points_in_box(result, item["box"]) if shown else None,
+                min_points=annotation_min_points(state.dataset, default=None),
+            )
         for name, button in self.buttons.items():
             button.disabled = not queue and name not in ("previous", "next", "find_suspects", "next_suspect")
         suspect = view.current_suspect()
@@ -89,10 +99,16 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
         item = gui.add_markdown("")
         object_class = gui.add_dropdown("Object class", names, initial_value=view.object_class)
         buttons = {
-            "background": gui.add_button("Background [B]", color="gray", hint="Confirmed: not an object"),
+            "background": gui.add_button(
+                "Background [B]",
+                color="gray",
+                hint="Confirmed negative: not an object, or a part or misplaced box of a labelled one",
+            ),
             "object": gui.add_button("Object [O]", color="green", hint="A real object of the class above"),
             "wrong_box": gui.add_button(
-                "Wrong box [W]", color="orange", hint="Real, but the segment is wrong"
+                "Wrong box [W]",
+                color="orange",
+                hint="A real object with no label yet, but the segment is wrong",
             ),
             "skip": gui.add_button("Skip [S]"),
             "previous": gui.add_button("Previous [P]"),

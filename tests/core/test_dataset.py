@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from factorydet_core.dataset import open_dataset
+from factorydet_core.dataset import annotation_min_points, open_dataset
 from factorydet_core.merge import merge_frame
 from factorydet_core.types import InputError
 
@@ -66,3 +66,17 @@ def test_merged_cloud_selection_keeps_rows_together(small_dataset_dir):
     assert low.points[:, 2].max() <= 2.0 and low.num_points == keep.sum()
     np.testing.assert_array_equal(low.sensor_ids, merged.sensor_ids[keep])
     np.testing.assert_array_equal(low.point_instance_ids, merged.point_instance_ids[keep])
+
+
+def test_annotation_policy_is_read_from_the_manifest(small_dataset_dir, tmp_path):
+    assert annotation_min_points(open_dataset(small_dataset_dir)) == 50  # the simulator's default
+    manifest = json.loads((small_dataset_dir / "manifest.json").read_text())
+    manifest["config"]["min_annotated_points"] = 20
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "manifest.json").write_text(json.dumps(manifest))
+    assert annotation_min_points(open_dataset(other)) == 20
+    del manifest["config"]
+    (other / "manifest.json").write_text(json.dumps(manifest))
+    assert annotation_min_points(open_dataset(other)) == 50
+    assert annotation_min_points(open_dataset(other), default=None) is None

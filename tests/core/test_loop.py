@@ -5,12 +5,11 @@ import numpy as np
 import pytest
 
 from factorydet_core.boxes import box_iou_3d
-from factorydet_core.dataset import open_dataset
+from factorydet_core.dataset import annotation_min_points, open_dataset
 from factorydet_core.detector import Detector
 from factorydet_core.loop import (
     LoopSettings,
     add_truth_labels,
-    annotation_min_points,
     cached_proposals,
     compare_models,
     comparison_markdown,
@@ -104,7 +103,16 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     counts = simulated_review(db, dataset, budget=10)
     verdicts = ("background", "object", "wrong_box", "skip")
     assert sum(counts[v] for v in verdicts) == min(10, len(queue))
-    assert counts["boxes_drawn"] == counts["wrong_box"]
+    # Drawn boxes are truth boxes, and no object ends up labelled twice.
+    for index in (0, 1):
+        labels, _, _ = db.frame_boxes(index)
+        overlap = box_iou_3d(labels, labels)
+        np.fill_diagonal(overlap, 0.0)
+        assert overlap.max(initial=0.0) < 0.6
+        truth_boxes = read_frame_truth(dataset.path, index).instance_boxes
+        for lab in db.labels(index):
+            if lab.created_by == "simulated-reviewer" and lab.origin == "user":
+                assert box_iou_3d(np.array([lab.box]), truth_boxes).max() > 0.999
     progress = db.review_progress(run_id)
     assert progress["reviewed"] == min(10, len(queue)) - counts["skip"]
     # Every verdict agrees with the truth it was read from, except on an object the session
@@ -143,6 +151,14 @@ def test_a_cancelled_run_stores_nothing(db, frames):
     assert len(db.training_runs()) == runs_before
 
 
+def _lone_sparse_box(truth):
+    """The box of a real object with under 50 points that no object of 50 or more touches."""
+    dense = truth.instance_num_points >= 50
+    sparse = np.flatnonzero((truth.instance_class_ids >= 0) & ~dense)
+    iou = box_iou_3d(truth.instance_boxes[sparse], truth.instance_boxes[dense])
+    return truth.instance_boxes[sparse[iou.max(axis=1, initial=0.0) < 0.1][0]]
+
+
 def test_truth_verdicts(dataset):
     truth = read_frame_truth(dataset.path, 0)
     real = np.flatnonzero((truth.instance_class_ids >= 0) & (truth.instance_num_points >= 50))[0]
@@ -156,11 +172,7 @@ def test_truth_verdicts(dataset):
     assert truth_verdict(dataset, far) == ("background", None, None)
     # An object too sparse for the annotation policy is neither labelled nor background.
     assert annotation_min_points(dataset) == 50
-    dense = truth.instance_num_points >= 50
-    sparse = np.flatnonzero((truth.instance_class_ids >= 0) & ~dense)
-    iou = box_iou_3d(truth.instance_boxes[sparse], truth.instance_boxes[dense])
-    alone = sparse[iou.max(axis=1, initial=0.0) < 0.1][0]
-    item = {"frame_index": 0, "box": truth.instance_boxes[alone].tolist()}
+    item = {"frame_index": 0, "box": _lone_sparse_box(truth).tolist()}
     assert truth_verdict(dataset, item) == ("skip", None, None)
     # With a policy that takes every visible object, it is an object.
     assert truth_verdict(dataset, item, min_points=0)[0] == "object"
@@ -189,7 +201,7 @@ def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
             "probabilities": [0.1] * 8,
             "best_annotated_iou": 0.0,
         }
-        for g, b in enumerate([shifted, box])
+        for g, b in enumerate([shifted, box, _lone_sparse_box(truth)])
     ]
     record = {
         "round": 0,
@@ -202,9 +214,9 @@ def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
     num_labels = len(db.labels(0))
     counts = simulated_review(db, dataset, budget=5)
     # The shifted box is a misplaced box of a labelled object: a negative. The exact one repeats
-    # the label: nothing to add.
-    assert counts == {"background": 1, "object": 0, "wrong_box": 0, "skip": 1, "boxes_drawn": 0}
-    assert [item["verdict"] for item in db.review_queue()] == ["background", "skip"]
+    # the label: nothing to add. The third touches only an object too sparse for the policy.
+    assert counts == {"background": 1, "object": 0, "wrong_box": 0, "skip": 2, "boxes_drawn": 0}
+    assert [item["verdict"] for item in db.review_queue()] == ["background", "skip", "skip"]
     assert len(db.labels(0)) == num_labels
 
 
