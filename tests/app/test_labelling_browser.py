@@ -15,6 +15,7 @@ from factorydet_core.model import DetectionModel
 from factorydet_core.session import SessionDB, open_session
 from factorydet_core.training import TrainingRun
 
+from ..fakes import mined_item, queue_run
 from .test_browser import _wait, browser  # noqa: F401 - the module's browser fixture
 
 pytestmark = pytest.mark.browser
@@ -24,29 +25,11 @@ TINY = LoopSettings(epochs=1, rounds=0, initial_negatives=100, negatives_per_rou
 
 def _queue_run(model_path, num_mined: int = 6) -> TrainingRun:
     """A real model with a made-up mining record: a review queue without training first."""
-    model = DetectionModel.load(model_path)
-    mined = [
-        {
-            "frame_index": 0,
-            "group": i,
-            "proposal": i,
-            "box": [2.0 * i, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0],
-            "patch_set": [i],
-            "score": 0.9 - 0.05 * i,
-            "predicted_class": ["box", "barrel"][i % 2],
-            "probabilities": None,
-            "best_annotated_iou": 0.0,
-        }  # fmt: skip
+    items = [
+        mined_item(0, i, [2.0 * i, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0], 0.9 - 0.05 * i, ["box", "barrel"][i % 2])
         for i in range(num_mined)
     ]
-    record = {
-        "round": 0,
-        "num_positives": 1,
-        "num_background": 1,
-        "fit_seconds": 0.0,
-        "train_metrics": {"f1": 0.0},
-    }
-    return TrainingRun(model, [{**record, "mined": mined}], [model], [0])
+    return queue_run(model_path, [items])
 
 
 @pytest.fixture

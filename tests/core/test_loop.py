@@ -25,8 +25,9 @@ from factorydet_core.loop import (
 from factorydet_core.model import DetectionModel
 from factorydet_core.session import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
-from factorydet_core.training import TrainingRun
 from factorydet_core.types import Cancelled
+
+from ..fakes import mined_item, queue_run
 
 # Two epochs make a classifier whose probabilities times a predicted IoU rarely reach mining's
 # floor, so the plumbing tests of the loop train without the box quality regressor.
@@ -188,29 +189,9 @@ def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
     box = truth.instance_boxes[real]
     shifted = box + [box[3] * 0.6, 0, 0, 0, 0, 0, 0]
     assert truth_verdict(dataset, {"frame_index": 0, "box": shifted.tolist()})[0] == "wrong_box"
-    model = DetectionModel.load(tiny_model_path)
-    mined = [
-        {
-            "frame_index": 0,
-            "group": g,
-            "proposal": g,
-            "box": [float(v) for v in b],
-            "patch_set": [g],
-            "score": 0.9 - 0.1 * g,
-            "predicted_class": "box",
-            "probabilities": [0.1] * 8,
-            "best_annotated_iou": 0.0,
-        }
-        for g, b in enumerate([shifted, box, _lone_sparse_box(truth)])
-    ]
-    record = {
-        "round": 0,
-        "num_positives": 1,
-        "num_background": 1,
-        "fit_seconds": 1.0,
-        "train_metrics": {"f1": 0},
-    }
-    db.save_training_run(TrainingRun(model, [{**record, "mined": mined}], [model], [0]), "small", {})
+    boxes = [shifted, box, _lone_sparse_box(truth)]
+    items = [mined_item(0, g, b, 0.9 - 0.1 * g, probabilities=[0.1] * 8) for g, b in enumerate(boxes)]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
     num_labels = len(db.labels(0))
     counts = simulated_review(db, dataset, budget=5)
     # The shifted box is a misplaced box of a labelled object: a negative. The exact one repeats

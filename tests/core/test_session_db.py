@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from factorydet_core.dataset import open_dataset
-from factorydet_core.model import DetectionModel
 from factorydet_core.session import (
     SCHEMA_VERSION,
     EditConflictError,
@@ -24,6 +23,8 @@ from factorydet_core.session import (
     open_session,
 )
 from factorydet_core.training import TrainingRun
+
+from ..fakes import mined_item, queue_run
 
 BOX = (1.0, 2.0, 0.5, 1.2, 0.8, 1.0, 0.3)
 
@@ -44,27 +45,18 @@ def _reopen(db: SessionDB) -> SessionDB:
 
 def _fake_run(model_path: Path, num_mined: int = 6) -> TrainingRun:
     """A real model with a made-up mining record, to fill the review queue without training."""
-    model = DetectionModel.load(model_path)
-    mined = [
-        {
-            "frame_index": i % 2,
-            "group": i,
-            "proposal": 10 + i,
-            "box": [float(i), 0.0, 0.5, 1.0, 1.0, 1.0, 0.0],
-            "patch_set": [i, i + 100],
-            "score": 0.9 - 0.1 * i,
-            "predicted_class": ["box", "barrel"][i % 2],
-            "probabilities": [0.1] * 8,
-            "best_annotated_iou": 0.0,
-        }
+    items = [
+        mined_item(
+            i % 2,
+            i,
+            [float(i), 0.0, 0.5, 1.0, 1.0, 1.0, 0.0],
+            0.9 - 0.1 * i,
+            ["box", "barrel"][i % 2],
+            [0.1] * 8,
+        )
         for i in range(num_mined)
     ]
-    record = {"round": 0, "num_positives": 5, "num_background": 9, "fit_seconds": 1.0}
-    rounds = [
-        {**record, "train_metrics": {"f1": 0.1}, "mined": mined},
-        {**record, "round": 1, "train_metrics": {"f1": 0.2}, "mined": []},
-    ]
-    return TrainingRun(model, rounds, [model, model], [0, 1])
+    return queue_run(model_path, [items, []], train_frames=(0, 1))
 
 
 def test_first_access_imports_the_data_sets_annotations(db, dataset):
