@@ -77,13 +77,14 @@ def detector_for(model: DetectionModel | None, dataset: Dataset, calibrate: bool
 def reference_boxes(dataset: Dataset, frame_index: int, use_truth: bool, min_points: int | None = None):
     """(boxes, class_ids) of a frame: its annotations, or every instance of the truth with at
     least ``min_points`` points (simulated data sets only; ``None``: the data set's annotation
-    policy, ``dataset.annotation_min_points``)."""
-    if min_points is None:
-        min_points = annotation_min_points(dataset)
+    policy, ``dataset.annotation_min_points``; only the truth reads it)."""
     if not use_truth:
         frame = dataset.frame(frame_index)
         return np.array(frame.labels.boxes), np.array(frame.labels.class_ids)
     from .sim.truth import read_frame_truth
+
+    if min_points is None:
+        min_points = annotation_min_points(dataset)
 
     truth = read_frame_truth(dataset.path, frame_index)
     keep = (truth.instance_class_ids >= 0) & (truth.instance_num_points >= min_points)
