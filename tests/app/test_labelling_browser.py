@@ -121,29 +121,40 @@ def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  #
         client.camera.on_update(
             lambda camera: reported.append((np.array(camera.position), np.array(camera.look_at)))
         )
-        with client.atomic():
-            client.camera.position = tuple(position)  # position first: it drags look_at along
-            client.camera.look_at = tuple(look_at)
-        assert _wait(
-            lambda: any(
-                np.allclose(p, position, atol=0.01) and np.allclose(q, look_at, atol=0.01)
-                for p, q in reported
-            ),
-            60,
-        ), f"the browser never reported the new camera (last: {reported[-1:]})"
+
+        def move_camera(timeout: float) -> bool:
+            reported.clear()
+            with client.atomic():
+                client.camera.position = tuple(position)  # position first: it drags look_at along
+                client.camera.look_at = tuple(look_at)
+            return _wait(
+                lambda: any(
+                    np.allclose(p, position, atol=0.01) and np.allclose(q, look_at, atol=0.01)
+                    for p, q in reported
+                ),
+                timeout,
+            )
+
+        assert move_camera(60), f"the browser never reported the new camera (last: {reported[-1:]})"
         canvas = page.locator("canvas[data-engine]")
         box = canvas.bounding_box()
         # A click travels through the browser's render loop, which software WebGL can hold for
         # seconds: wait for each click to reach the server before judging it, and click again
         # only if it arrived and missed (each click selects from scratch, so a retry cannot
-        # select the wrong box).
+        # select the wrong box). A click can also be cast from the camera the page had before
+        # the move although the browser already reported the new one (seen once in a full
+        # run): such a click says nothing about selection, so move the camera again and retry.
         selected = False
-        for attempt in range(3):
+        for attempt in range(5):
             num_clicks = len(clicks)
             canvas.click(position={"x": box["width"] / 2, "y": box["height"] / 2})
             assert _wait(lambda n=num_clicks: len(clicks) > n, 60), (
                 f"click {attempt + 1} never reached the server"
             )
+            if not np.allclose(clicks[-1].ray_origin, position, atol=0.05):
+                # The page may not report a camera it already has: wait a little, not for a report.
+                move_camera(5)
+                continue
             selected = _wait(lambda: view.selected_label_id == label.id, 10)
             if selected:
                 break
