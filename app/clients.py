@@ -21,7 +21,7 @@ import viser
 from factorydet_core import colors
 from factorydet_core.editing import box_of_points, box_to_pose, camera_for_box, pose_to_box, split_in_two
 from factorydet_core.geometry import box_wireframe_segments
-from factorydet_core.session import EditConflictError
+from factorydet_core.session import HIDE_LABELLED_IOU, EditConflictError
 from factorydet_core.types import InputError
 
 from .state import AppState
@@ -68,6 +68,7 @@ class ClientView:
         self.filter_class: str | None = None
         self.filter_frame: int | None = None
         self.pending_only = True
+        self.hide_labelled = False
         self.current_item_id: int | None = None
         self.dim = True
         self._dimmed = False
@@ -242,11 +243,16 @@ class ClientView:
             return []
         with self.lock:
             filter_class, filter_frame, pending = self.filter_class, self.filter_frame, self.pending_only
+            hide_labelled, current_id = self.hide_labelled, self.current_item_id
         queue = self.state.db.review_queue(
             predicted_class=filter_class, frame_index=filter_frame, pending_only=False
         )
+        # The shown item stays, though a verdict just took it out of the filter (the panel still
+        # shows it, with its verdict, until Next).
         if pending:
-            queue = [q for q in queue if q["verdict"] in (None, "skip") or q["id"] == self.current_item_id]
+            queue = [q for q in queue if q["verdict"] in (None, "skip") or q["id"] == current_id]
+        if hide_labelled:
+            queue = [q for q in queue if q["label_iou"] < HIDE_LABELLED_IOU or q["id"] == current_id]
         with self.lock:
             self.queue = queue
         return queue

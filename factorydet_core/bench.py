@@ -600,6 +600,7 @@ def bench_hitl(
     rounds: int = 2,
     settings=None,
     seeds: Sequence[int] = (0,),
+    max_label_iou: float | None = None,
     max_train_frames: int | None = None,
     max_test_frames: int | None = None,
     calibrate: bool = True,
@@ -615,6 +616,9 @@ def bench_hitl(
         round's queue from the truth, through ``SessionDB.review`` (the review panel's call);
     (c) ``full``: mining on full labels (every object of the annotation policy labelled,
         ``loop.add_truth_labels``), the upper bound.
+
+    ``max_label_iou`` gives the reviewer the queue filter that hides items on labelled objects
+    (``SessionDB.review_queue``); hidden items cost no budget.
 
     Every variant runs ``rounds + 1`` fits: a first fit that mines, then ``rounds`` next rounds.
     Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
@@ -637,6 +641,8 @@ def bench_hitl(
         raise InputError(f"bench hitl needs one or more distinct seeds >= 0, got {seeds}")
     if not budgets or len(set(budgets)) != len(budgets) or min(budgets) < 1:
         raise InputError(f"bench hitl needs one or more distinct review budgets K >= 1, got {budgets}")
+    if max_label_iou is not None and not 0.0 < max_label_iou <= 1.0:
+        raise InputError(f"bench hitl: the queue filter's IoU must lie in (0, 1], got {max_label_iou}")
     settings = settings or LoopSettings()
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
@@ -647,7 +653,19 @@ def bench_hitl(
     root = Path(workdir) if workdir is not None else Path(scratch_dir.name)
     try:
         return _hitl_variants(
-            dataset, data, root, train, test, budgets, rounds, settings, seeds, calibrate, command, progress
+            dataset,
+            data,
+            root,
+            train,
+            test,
+            budgets,
+            rounds,
+            settings,
+            seeds,
+            max_label_iou,
+            calibrate,
+            command,
+            progress,
         )
     finally:
         if scratch_dir is not None:
@@ -664,7 +682,19 @@ def _recovered(f1: dict[str, float], budgets: Sequence[int]) -> tuple[float, dic
 
 
 def _hitl_variants(
-    dataset, data, root, train, test, budgets, rounds, settings, seeds, calibrate, command, progress
+    dataset,
+    data,
+    root,
+    train,
+    test,
+    budgets,
+    rounds,
+    settings,
+    seeds,
+    max_label_iou,
+    calibrate,
+    command,
+    progress,
 ) -> dict:
     """``bench_hitl``'s work inside its sessions folder ``root``."""
     from .detector import Detector, params_for
@@ -694,7 +724,7 @@ def _hitl_variants(
         for name, budget in variants:
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
-            reviews = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0}
+            reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)
             fit_seconds = 0.0
             for r in range(rounds + 1):
                 _, run = train_session(
@@ -702,7 +732,8 @@ def _hitl_variants(
                 )
                 fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
                 if budget and r < rounds:
-                    for key, value in simulated_review(db, dataset, budget).items():
+                    answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou)
+                    for key, value in answered.items():
                         reviews[key] += value
                 done += 1
                 if progress is not None:
@@ -717,7 +748,7 @@ def _hitl_variants(
                     "recall": metrics["recall"],
                     "map": metrics["map"],
                     "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()},
-                    "num_reviews": sum(v for k, v in reviews.items() if k != "boxes_drawn"),
+                    "num_reviews": sum(v for k, v in reviews.items() if k not in ("boxes_drawn", "hidden")),
                     "reviews": reviews,
                     "truth_labels_added": added,
                     "unannotated_labelled": covered,
@@ -762,6 +793,9 @@ def _hitl_variants(
         "iou_threshold": 0.6,
         "mining_rounds": rounds,
         "seeds": seeds,
+        # The reviewer's queue: highest score first, without the items that overlap a label at
+        # this IoU or more when set (the review panel's "hide items on labelled objects").
+        "queue_max_label_iou": max_label_iou,
         "settings": {k: v for k, v in dataclasses.asdict(settings).items() if k != "seed"},
         "f1": f1,
         "recovered": recovered,

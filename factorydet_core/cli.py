@@ -174,6 +174,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                         box_quality=args.box_quality,
                     ),
                     seeds=parse_ints(args.seeds, "--seeds"),
+                    max_label_iou=args.hide_labelled,
                     max_train_frames=args.train_frames,
                     max_test_frames=args.frames,
                     calibrate=args.calibrate,
@@ -922,6 +923,14 @@ def build_parser() -> argparse.ArgumentParser:
         dest="box_quality",
         action="store_false",
         help="classifier, hitl: detect without the box quality regressor",
+    )
+    p.add_argument(
+        "--hide-labelled",
+        type=float,
+        default=None,
+        metavar="IOU",
+        help="hitl: the reviewer's queue hides items whose box overlaps a label at this IoU or more, "
+        "as the review panel's filter (default: the plain score order)",
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument("--out", default=None, help="hitl: also write the JSON here (the report reads it)")

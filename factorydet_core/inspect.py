@@ -256,7 +256,8 @@ def review_item_markdown(
         f"**Item {rank} of {total}** (#{item['id']}, frame {item['frame_index'] + 1}, "
         f"mined in run {item['run_id']} round {item['round']})",
         f"predicted **{item['predicted_class']}**, score **{item['score']:.3f}**; best IoU with a "
-        f"label when mined {item['best_annotated_iou']:.2f}",
+        f"label when mined {item['best_annotated_iou']:.2f}"
+        + (f", now {item['label_iou']:.2f}" if item.get("label_iou") is not None else ""),
         _box_text(item["box"]),
     ]
     if num_points is not None:

@@ -266,7 +266,7 @@ def train_session(
         should_stop=should_stop,
     )
     for model in run.models:
-        model.front_end = front_end
+        model.front_end = dict(front_end or {})
     config = {"mode": mode, "settings": dataclasses.asdict(settings), "front_end": front_end}
     if command:
         config["command"] = command  # the checkpoints' notes say how to reproduce them
@@ -372,6 +372,7 @@ def simulated_review(
     budget: int,
     author: str = "simulated-reviewer",
     positive_iou: float = 0.6,
+    max_label_iou: float | None = None,
 ) -> dict:
     """Answer the top ``budget`` pending items of the latest run's queue from the truth
     (``truth_verdict``), one ``SessionDB.review`` call per item, as the review panel's buttons make
@@ -381,11 +382,23 @@ def simulated_review(
     'background' when its box is off the object and 'skip' when it matches it (there is nothing to
     add), as the full labels of ``bench hitl`` would mine and keep it.
 
+    Args:
+        max_label_iou: review the queue with the panel's "hide items on labelled objects" filter
+            (``SessionDB.review_queue``): an item whose box overlaps a current label at this IoU
+            or more, checked when its turn comes (the panel's queue follows the labels the
+            reviewer adds), is passed over and does not count against the budget.
+
     Returns:
-        Counts per verdict and the number of boxes drawn.
+        Counts per verdict, the number of boxes drawn and of items ``hidden`` by the filter.
     """
-    counts = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0}
-    for item in db.review_queue(pending_only=True)[:budget]:
+    counts = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0, "hidden": 0}
+    answered = 0
+    for item in db.review_queue(pending_only=True):
+        if answered == budget:
+            break
+        if max_label_iou is not None and db.label_overlap([item])[0] >= max_label_iou:
+            counts["hidden"] += 1
+            continue
         verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)
         if true_box is not None:
             boxes, _, _ = db.frame_boxes(item["frame_index"])
@@ -399,6 +412,7 @@ def simulated_review(
             expected={item["id"]: item["verdict"]},
         )
         counts[verdict] += 1
+        answered += 1
         if verdict == "wrong_box":
             db.add_label(item["frame_index"], true_box, class_name, author)
             counts["boxes_drawn"] += 1

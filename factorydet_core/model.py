@@ -146,7 +146,7 @@ class DetectionModel:
             box_prior=None if prior is None else BoxSizePrior.from_json(prior),
             score_threshold=float(note.get("score_threshold", 0.5)),
             nms_iou=float(note.get("nms_iou", 0.25)),
-            front_end=dict(note.get("front_end", {})),
+            front_end=dict(note.get("front_end") or {}),
             box_quality=box_quality,
             class_score_thresholds=_class_thresholds_from_note(note.get("class_score_thresholds")),
             probability_exponent=_exponent_from_note(note.get("probability_exponent", 1.0)),

@@ -552,6 +552,12 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     rows.append(
         "| verdicts (skips too) | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |"
     )
+    if any(variants[n].get("reviews", {}).get("hidden") for n in names):
+        rows.append(
+            "| queue items passed over by the filter | "
+            + " | ".join(f"{variants[n]['reviews'].get('hidden', 0):g}" for n in names)
+            + " |"
+        )
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "
@@ -573,6 +579,13 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + ")"
         )
     settings = result["settings"]
+    hide = result.get("queue_max_label_iou")
+    queue_note = (
+        f" The reviewer's queue hides items whose box overlaps a label at IoU {hide:g} or more (the "
+        'review panel\'s "hide items on labelled objects"); hidden items cost no budget.'
+        if hide
+        else ""
+    )
     mean_note = f" Means over seeds {', '.join(map(str, seeds))}." if len(seeds) > 1 else ""
     return "\n".join(
         [
@@ -586,7 +599,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             f"{result['iou_threshold']} against the full truth. `blind`: mining on the partial labels (the "
             "paper); `reviewed_K`: a simulated reviewer answers the top K items of each round's queue from "
             "the truth through the review panel's own call, labelling to the data set's annotation "
-            "policy; `full`: every object of that policy labelled." + mean_note,
+            "policy; `full`: every object of that policy labelled." + queue_note + mean_note,
             "",
             head,
             *rows,

@@ -38,6 +38,10 @@ _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 DEMO_SESSION = "demo"
 DEMO_CONFIG = {"num_frames": 12, "seed": 0}
+HIDE_LABELLED_IOU = 0.25
+"""The review panel's "hide items on labelled objects" filter: items whose box overlaps a label at
+this IoU or more (``SessionDB.review_queue``'s ``max_label_iou``). Mined items overlap a label at
+most below ``positive_iou`` 0.6; boxes of neighbouring objects rarely reach 0.25."""
 """``SimConfig`` fields of the demo data set `make app` builds: seeded, twelve frames, a few
 seconds on a laptop."""
 
@@ -962,9 +966,21 @@ class SessionDB:
         predicted_class: str | None = None,
         frame_index: int | None = None,
         pending_only: bool = False,
+        max_label_iou: float | None = None,
     ) -> list[dict]:
         """Negatives mined by a run (the latest by default), highest score first, each with its
-        verdict (``None`` if unreviewed), the verdict's class, label and reviewer."""
+        verdict (``None`` if unreviewed), the verdict's class, label and reviewer, and
+        ``label_iou``: its box's highest IoU with the frame's current labels.
+
+        Args:
+            max_label_iou: leave out items whose box overlaps a current label at this IoU or more
+                (``None``: keep all). Such an item is a part, a duplicate or a loose box of an
+                object already labelled: it is trained as background whatever its verdict, so a
+                reviewer's time is better spent on the items that overlap no label, where the
+                unlabelled objects are.
+        """
+        if max_label_iou is not None and not 0.0 < max_label_iou <= 1.0:
+            raise InputError(f"max_label_iou must lie in (0, 1], got {max_label_iou}")
         if run_id is None:
             run_id = self.latest_run_id()
         query = (
@@ -988,6 +1004,31 @@ class SessionDB:
             item["patch_set"] = json.loads(item["patch_set"])
             item["probabilities"] = json.loads(item["probabilities"]) if item["probabilities"] else None
             out.append(item)
+        label_iou = self.label_overlap(out)
+        for item, iou in zip(out, label_iou):
+            item["label_iou"] = iou
+        if max_label_iou is not None:
+            out = [item for item in out if item["label_iou"] < max_label_iou]
+        return out
+
+    def label_overlap(self, items: list[dict]) -> list[float]:
+        """Each item's (a dict with ``frame_index`` and ``box``) highest box IoU with the current
+        labels of its frame (0 when it overlaps none)."""
+        import numpy as np
+
+        from .boxes import box_iou_3d
+
+        out = [0.0] * len(items)
+        by_frame: dict[int, list[int]] = {}
+        for i, item in enumerate(items):
+            by_frame.setdefault(int(item["frame_index"]), []).append(i)
+        for index, positions in by_frame.items():
+            boxes = self.frame_boxes(index)[0]
+            if not len(boxes):
+                continue
+            item_boxes = np.array([items[i]["box"] for i in positions], np.float64).reshape(-1, 7)
+            for i, iou in zip(positions, box_iou_3d(item_boxes, boxes).max(axis=1)):
+                out[i] = round(float(iou), 4)
         return out
 
     def review_progress(self, run_id: int | None = None) -> dict:

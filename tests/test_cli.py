@@ -247,7 +247,7 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
             "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
             "--seeds", "0,1", "--train-frames", "1", "--no-calibrate", "--no-box-quality", "--out", str(out),
-            "--readme", str(readme)]  # fmt: skip
+            "--readme", str(readme), "--hide-labelled", "0.25"]  # fmt: skip
     assert main(args) == 0
     # The README gets the table (no JSON, no section title of its own), the rest untouched.
     text = readme.read_text()
@@ -264,6 +264,7 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     assert set(result["recovered"]) == {"5"}
     reviewed = result["variants"]["reviewed_5"]
     assert 0 < reviewed["num_reviews"] <= 5  # one review round (rounds=1), at most K items
+    assert result["queue_max_label_iou"] == 0.25 and reviewed["reviews"]["hidden"] >= 0
     assert result["variants"]["blind"]["num_reviews"] == 0
     assert result["variants"]["full"]["truth_labels_added"] > 0
     assert set(reviewed["per_class_f1"]) >= {"barrel", "truck"}
@@ -287,6 +288,7 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "-1"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "200,200"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "0"]) == 2
+    assert main(["bench", "hitl", str(small_dataset_dir), "--hide-labelled", "0"]) == 2
 
 
 def test_bench_classifier_measures_rows_with_the_models_box_quality(small_dataset_dir, capsys):

@@ -9,6 +9,7 @@ import viser
 
 from factorydet_core.dataset import annotation_min_points
 from factorydet_core.inspect import num_points_in_box, patches_in_box, review_item_markdown
+from factorydet_core.session import HIDE_LABELLED_IOU
 
 from ..clients import ClientView
 from . import from_user
@@ -23,6 +24,7 @@ class ReviewPanel:
     filter_class: viser.GuiDropdownHandle
     filter_frame: viser.GuiDropdownHandle
     pending_only: viser.GuiCheckboxHandle
+    hide_labelled: viser.GuiCheckboxHandle
     dim: viser.GuiCheckboxHandle
     item: viser.GuiMarkdownHandle
     object_class: viser.GuiDropdownHandle
@@ -95,6 +97,12 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
         frames = [ALL, *(str(i + 1) for i in range(state.dataset.num_frames))]
         filter_frame = gui.add_dropdown("Frame", frames, initial_value=ALL)
         pending_only = gui.add_checkbox("Pending only", initial_value=view.pending_only)
+        hide_labelled = gui.add_checkbox(
+            "Hide items on labelled objects",
+            initial_value=view.hide_labelled,
+            hint=f"Items whose box overlaps a label at IoU {HIDE_LABELLED_IOU} or more: parts, duplicates "
+            "and loose boxes of labelled objects, trained as background whatever the verdict",
+        )
         dim = gui.add_checkbox("Dim the scene", initial_value=view.dim)
         item = gui.add_markdown("")
         object_class = gui.add_dropdown("Object class", names, initial_value=view.object_class)
@@ -122,8 +130,8 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
         buttons["find_suspects"] = gui.add_button("Find suspect labels", hint="Runs in the background")
         buttons["next_suspect"] = gui.add_button("Next suspect [U]")
     panel = ReviewPanel(
-        progress_text, progress, filter_class, filter_frame, pending_only, dim, item, object_class, buttons,
-        suspects,
+        progress_text, progress, filter_class, filter_frame, pending_only, hide_labelled, dim, item,
+        object_class, buttons, suspects,
     )  # fmt: skip
 
     def set_filter(_event=None) -> None:
@@ -131,11 +139,12 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
             view.filter_class = None if filter_class.value == ALL else filter_class.value
             view.filter_frame = None if filter_frame.value == ALL else int(filter_frame.value) - 1
             view.pending_only = bool(pending_only.value)
+            view.hide_labelled = bool(hide_labelled.value)
             view.dim = bool(dim.value)
             view.current_item_id = None
         view.step(0)
 
-    for handle in (filter_class, filter_frame, pending_only, dim):
+    for handle in (filter_class, filter_frame, pending_only, hide_labelled, dim):
         handle.on_update(lambda event: set_filter() if from_user(event) else None)
 
     view.class_dropdowns.append(object_class)

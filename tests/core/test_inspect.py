@@ -24,3 +24,6 @@ def test_review_item_markdown_gives_the_points_in_the_box_and_the_annotation_pol
     # A data set that states no policy, and a frame that is not drawn: no such claims.
     assert "(the data set labels" not in review_item_markdown(ITEM, [], 1, 5, num_points=37)
     assert "points in its box" not in review_item_markdown(ITEM, [], 1, 5)
+    # The queue's current overlap with the labels, beside the one at mining time.
+    assert "when mined 0.00, now 0.45" in review_item_markdown({**ITEM, "label_iou": 0.45}, [], 1, 5)
+    assert ", now" not in text

@@ -25,7 +25,7 @@ from factorydet_core.loop import (
 from factorydet_core.model import DetectionModel
 from factorydet_core.session import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
-from factorydet_core.types import Cancelled
+from factorydet_core.types import Cancelled, InputError
 
 from ..fakes import mined_item, queue_run
 
@@ -100,6 +100,9 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     assert len(queue) == mined_total > 0 and all(item["run_id"] == run_id for item in queue)
     assert db.training_runs()[-1]["kind"] == "full"
     assert db.training_runs()[-1]["snapshot_id"] is not None
+    # A run trained with no front-end note (scripts, the benchmark) still loads.
+    stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
+    assert stored.front_end == {} and stored.class_names == run.model.class_names
 
     counts = simulated_review(db, dataset, budget=10)
     verdicts = ("background", "object", "wrong_box", "skip")
@@ -196,9 +199,37 @@ def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
     counts = simulated_review(db, dataset, budget=5)
     # The shifted box is a misplaced box of a labelled object: a negative. The exact one repeats
     # the label: nothing to add. The third touches only an object too sparse for the policy.
-    assert counts == {"background": 1, "object": 0, "wrong_box": 0, "skip": 2, "boxes_drawn": 0}
+    assert counts == {"background": 1, "object": 0, "wrong_box": 0, "skip": 2, "boxes_drawn": 0, "hidden": 0}
     assert [item["verdict"] for item in db.review_queue()] == ["background", "skip", "skip"]
     assert len(db.labels(0)) == num_labels
+
+
+def test_the_reviewer_with_the_labelled_filter_spends_its_budget_off_labelled_objects(
+    dataset, tmp_path, tiny_model_path
+):
+    db = SessionDB(open_session("filtered", tmp_path), dataset)
+    truth = read_frame_truth(dataset.path, 0)
+    real = (truth.instance_class_ids >= 0) & (truth.instance_num_points >= 50)
+    labelled = truth.instance_boxes[np.flatnonzero(real & truth.annotated_mask)[0]]
+    unlabelled = truth.instance_boxes[np.flatnonzero(real & ~truth.annotated_mask)[0]]
+    along = 0.5 * labelled[3] * np.array([np.cos(labelled[6]), np.sin(labelled[6])])
+    shifted = labelled + [*along, 0, 0, 0, 0, 0]  # half its length along its own axis: IoU 1/3
+    # Highest score first: two items on a labelled object, an unlabelled object, a duplicate of
+    # it (on a labelled object once the first is answered), and a lone sparse object.
+    boxes = [shifted, labelled, unlabelled, unlabelled, _lone_sparse_box(truth)]
+    items = [mined_item(0, g, b, 0.9 - 0.1 * g, probabilities=[0.1] * 8) for g, b in enumerate(boxes)]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    shown = db.review_queue(max_label_iou=0.25)
+    assert [item["proposal"] for item in shown] == [2, 3, 4]
+    assert db.review_queue()[0]["label_iou"] == pytest.approx(1 / 3, abs=1e-3)
+
+    counts = simulated_review(db, dataset, budget=2, max_label_iou=0.25)
+    assert counts == {"background": 0, "object": 1, "wrong_box": 0, "skip": 1, "boxes_drawn": 0, "hidden": 3}
+    assert [item["verdict"] for item in db.review_queue()] == [None, None, "object", None, "skip"]
+    # The label the verdict made hides its duplicate from the filtered queue too.
+    assert [item["proposal"] for item in db.review_queue(max_label_iou=0.25)] == [4]
+    with pytest.raises(InputError, match="max_label_iou"):
+        db.review_queue(max_label_iou=0.0)
 
 
 def test_suspect_labels_are_the_ones_the_classifier_contradicts(db, frames, tiny_model_path):
