@@ -701,6 +701,7 @@ def _hitl_variants(
     from .loop import (
         add_truth_labels,
         cached_proposals,
+        queue_reach,
         simulated_review,
         train_session,
         unannotated_coverage,
@@ -726,11 +727,14 @@ def _hitl_variants(
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
             reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)
             fit_seconds = 0.0
+            reached: set = set()  # unannotated objects some reviewable queue item overlaps
             for r in range(rounds + 1):
                 _, run = train_session(
                     db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data)
                 )
                 fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
+                if name != "full" and r < rounds:
+                    reached |= queue_reach(db, dataset, train)
                 if budget and r < rounds:
                     answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou)
                     for key, value in answered.items():
@@ -753,6 +757,7 @@ def _hitl_variants(
                     "truth_labels_added": added,
                     "unannotated_labelled": covered,
                     "unannotated_total": unannotated,
+                    "unannotated_in_queue": None if name == "full" else len(reached),
                     "fit_seconds": round(fit_seconds, 1),
                 }
             )
@@ -775,6 +780,12 @@ def _hitl_variants(
             "unannotated_labelled": mean(
                 [r["unannotated_labelled"] / max(r["unannotated_total"], 1) for r in runs]
             ),
+            # Of those objects, the share some item of a reviewed round's queue overlaps (IoU 0.1):
+            # all that reviews of any budget could give back (None for full labels: no queue of
+            # unannotated objects to reach).
+            "unannotated_in_queue": None
+            if name == "full"
+            else mean([r["unannotated_in_queue"] / max(r["unannotated_total"], 1) for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
     f1 = {name: r["f1"] for name, r in results.items()}

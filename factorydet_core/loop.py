@@ -481,6 +481,37 @@ def unannotated_coverage(
     return covered, total
 
 
+def queue_reach(
+    db: SessionDB,
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    run_id: int | None = None,
+    object_overlap: float = 0.1,
+    min_points: int | None = None,
+) -> set[tuple[int, int]]:
+    """The objects the data set left unannotated (``add_truth_labels``' set) that some item of a
+    run's review queue (the latest by default) overlaps at ``object_overlap`` IoU: the ones a
+    reviewer answering the whole queue could label ('object' or 'wrong box'). Reviews cannot give
+    back more than this, whatever their budget.
+
+    Returns:
+        ``(frame_index, k)`` pairs, ``k`` indexing the frame's unannotated objects in
+        ``_unannotated_truth``'s order.
+    """
+    by_frame: dict[int, list[list[float]]] = {}
+    for item in db.review_queue(run_id):
+        by_frame.setdefault(int(item["frame_index"]), []).append(item["box"])
+    reached = set()
+    for index in frame_indices:
+        boxes, _ = _unannotated_truth(dataset, index, min_points)
+        items = by_frame.get(int(index))
+        if not len(boxes) or not items:
+            continue
+        iou = box_iou_3d(boxes, np.asarray(items, np.float64).reshape(-1, 7))
+        reached.update((int(index), int(k)) for k in np.flatnonzero(iou.max(axis=1) >= object_overlap))
+    return reached
+
+
 def suspect_labels(
     db: SessionDB,
     model: DetectionModel,

@@ -558,6 +558,17 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(f"{variants[n]['reviews'].get('hidden', 0):g}" for n in names)
             + " |"
         )
+    if any(variants[n].get("unannotated_in_queue") is not None for n in names):
+        rows.append(
+            "| unannotated training objects in the reviewed rounds' queues | "
+            + " | ".join(
+                "–"
+                if variants[n].get("unannotated_in_queue") is None
+                else f"{100 * variants[n]['unannotated_in_queue']:.0f}%"
+                for n in names
+            )
+            + " |"
+        )
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "

@@ -283,6 +283,10 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     # What the reviews gave back: full labels cover every unannotated object, blind ones none.
     assert result["variants"]["full"]["unannotated_labelled"] == 1.0
     assert result["variants"]["blind"]["unannotated_labelled"] == 0.0
+    # Reviews give back at most what the reviewed queues reach.
+    assert result["variants"]["full"]["unannotated_in_queue"] is None
+    assert 0 <= reviewed["unannotated_labelled"] <= reviewed["unannotated_in_queue"] <= 1
+    assert "| unannotated training objects in the reviewed rounds' queues |" in markdown
     assert "| unannotated training objects labelled |" in markdown
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "1,1"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "-1"]) == 2

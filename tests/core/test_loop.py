@@ -14,6 +14,7 @@ from factorydet_core.loop import (
     compare_models,
     comparison_markdown,
     proposals_cache_key,
+    queue_reach,
     session_references,
     simulated_review,
     suspect_labels,
@@ -221,6 +222,8 @@ def test_the_reviewer_with_the_labelled_filter_spends_its_budget_off_labelled_ob
     db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
     shown = db.review_queue(max_label_iou=0.25)
     assert [item["proposal"] for item in shown] == [2, 3, 4]
+    # Of the unannotated objects (in truth order), the queue reaches the first, items 2 and 3.
+    assert queue_reach(db, dataset, [0, 1]) == {(0, 0)}
     assert db.review_queue()[0]["label_iou"] == pytest.approx(1 / 3, abs=1e-3)
 
     counts = simulated_review(db, dataset, budget=2, max_label_iou=0.25)
