@@ -970,7 +970,7 @@ class SessionDB:
     ) -> list[dict]:
         """Negatives mined by a run (the latest by default), highest score first, each with its
         verdict (``None`` if unreviewed), the verdict's class, label and reviewer, and
-        ``label_iou``: its box's highest IoU with the frame's current labels.
+        ``label_iou``: its box's highest IoU with the frame's current labels (``label_overlap``).
 
         Args:
             max_label_iou: leave out items whose box overlaps a current label at this IoU or more
@@ -1008,27 +1008,35 @@ class SessionDB:
         for item, iou in zip(out, label_iou):
             item["label_iou"] = iou
         if max_label_iou is not None:
-            out = [item for item in out if item["label_iou"] < max_label_iou]
+            out = [item for item in out if item["label_iou"] is None or item["label_iou"] < max_label_iou]
         return out
 
-    def label_overlap(self, items: list[dict]) -> list[float]:
+    def label_overlap(self, items: list[dict]) -> list[float | None]:
         """Each item's (a dict with ``frame_index`` and ``box``) highest box IoU with the current
-        labels of its frame (0 when it overlaps none)."""
+        labels of its frame (0 when it overlaps none; ``None`` for a frame whose labels were never
+        imported, when no data set is open to import them)."""
         import numpy as np
 
         from .boxes import box_iou_3d
 
-        out = [0.0] * len(items)
         by_frame: dict[int, list[int]] = {}
         for i, item in enumerate(items):
             by_frame.setdefault(int(item["frame_index"]), []).append(i)
+        readable = set(by_frame)
+        if self.dataset is None:
+            with self._read() as db:
+                readable &= {r[0] for r in db.execute("SELECT frame_index FROM frames")}
+        out: list[float | None] = [None] * len(items)
         for index, positions in by_frame.items():
-            boxes = self.frame_boxes(index)[0]
-            if not len(boxes):
+            if index not in readable:
                 continue
-            item_boxes = np.array([items[i]["box"] for i in positions], np.float64).reshape(-1, 7)
-            for i, iou in zip(positions, box_iou_3d(item_boxes, boxes).max(axis=1)):
-                out[i] = round(float(iou), 4)
+            boxes = self.frame_boxes(index)[0]
+            iou = np.zeros(len(positions))
+            if len(boxes):
+                item_boxes = np.array([items[i]["box"] for i in positions], np.float64).reshape(-1, 7)
+                iou = box_iou_3d(item_boxes, boxes).max(axis=1)
+            for i, value in zip(positions, iou):
+                out[i] = round(float(value), 4)
         return out
 
     def review_progress(self, run_id: int | None = None) -> dict:
