@@ -93,6 +93,14 @@ def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
         page.get_by_role("button", name="Undo [Z]").click()
         assert _wait(lambda: db.review_progress()["object"] == 0, 20)
         assert db.label(item["label_id"]).deleted
+
+        # The filter that hides items on labelled objects: a label on the last item hides it.
+        last = db.review_queue()[-1]
+        db.add_label(last["frame_index"], last["box"], "box", "someone else")
+        page.get_by_label("Hide items on labelled objects").check()
+        assert _wait(lambda: view.hide_labelled, 20), "the filter never reached the server"
+        assert _wait(lambda: last["id"] not in [q["id"] for q in view.load_queue()], 20)
+        page.get_by_text("Item 1 of 4", exact=False).wait_for(timeout=20_000)  # 5 pending, 1 hidden
     finally:
         context.close()
 
