@@ -649,27 +649,13 @@ def bench_hitl(
     test = spread_frames(dataset.splits.get("test") or [], max_test_frames)
     if not train or not test:
         raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
-    scratch_dir = None if workdir is not None else tempfile.TemporaryDirectory(prefix="factorydet_hitl_")
-    root = Path(workdir) if workdir is not None else Path(scratch_dir.name)
-    try:
-        return _hitl_variants(
-            dataset,
-            data,
-            root,
-            train,
-            test,
-            budgets,
-            rounds,
-            settings,
-            seeds,
-            max_label_iou,
-            calibrate,
-            command,
-            progress,
-        )
-    finally:
-        if scratch_dir is not None:
-            scratch_dir.cleanup()
+    plan = _HitlPlan(
+        dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command
+    )
+    if workdir is not None:
+        return _hitl_variants(plan, Path(workdir), progress)
+    with tempfile.TemporaryDirectory(prefix="factorydet_hitl_") as scratch_dir:
+        return _hitl_variants(plan, Path(scratch_dir), progress)
 
 
 def _recovered(f1: dict[str, float], budgets: Sequence[int]) -> tuple[float, dict[str, float | None]]:
@@ -681,21 +667,24 @@ def _recovered(f1: dict[str, float], budgets: Sequence[int]) -> tuple[float, dic
     }
 
 
-def _hitl_variants(
-    dataset,
-    data,
-    root,
-    train,
-    test,
-    budgets,
-    rounds,
-    settings,
-    seeds,
-    max_label_iou,
-    calibrate,
-    command,
-    progress,
-) -> dict:
+@dataclasses.dataclass(frozen=True)
+class _HitlPlan:
+    """``bench_hitl``'s checked arguments."""
+
+    dataset: object
+    data: str | os.PathLike
+    train: list[int]
+    test: list[int]
+    budgets: list[int]
+    rounds: int
+    settings: object
+    seeds: list[int]
+    max_label_iou: float | None
+    calibrate: bool
+    command: str
+
+
+def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
     """``bench_hitl``'s work inside its sessions folder ``root``."""
     from .detector import Detector, params_for
     from .loop import (
@@ -709,6 +698,9 @@ def _hitl_variants(
     from .results import measure
     from .session import SessionDB, open_session
 
+    dataset, data, train, test, budgets = plan.dataset, plan.data, plan.train, plan.test, plan.budgets
+    rounds, settings, seeds, max_label_iou = plan.rounds, plan.settings, plan.seeds, plan.max_label_iou
+    calibrate, command = plan.calibrate, plan.command
     detector = Detector(params_for(None, dataset.num_sensors))
     if calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(train[0]))
