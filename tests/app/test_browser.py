@@ -191,11 +191,18 @@ def test_detections_layer_and_score_slider(app_with_model, browser):
         assert f"{before} detections" in text_before
 
         # Lower the score threshold from the browser: more candidates pass, so the count changes.
+        # The panel re-renders while the frame's work finishes, which can take the focus off the
+        # thumb between key presses on a loaded machine: press again (each press only lowers it).
         thumb = page.locator('[role=slider][aria-valuemin="0.05"][aria-valuemax="1"]')
-        thumb.focus()
-        for _ in range(9):
-            thumb.press("ArrowLeft")
-        assert app.state.wait_for(lambda: app.state.score_threshold < 0.1, timeout=60), "slider never arrived"
+        arrived = False
+        for _ in range(3):
+            thumb.focus()
+            for _ in range(9):
+                thumb.press("ArrowLeft")
+            arrived = app.state.wait_for(lambda: app.state.score_threshold < 0.1, timeout=30)
+            if arrived:
+                break
+        assert arrived, f"slider never arrived (score threshold {app.state.score_threshold})"
         after = int(app.state.detections.kept_mask.sum())
         assert after != before
         page.get_by_text(f"{after} detections", exact=False).first.wait_for(timeout=20_000)
