@@ -41,7 +41,7 @@ bench: $(STAMP) corpus
 	  --epochs 15 --max-fit-seconds 240 --train-frames 4 --frames 2 --readme README.md
 	$(BIN)/factorydet demo
 	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme README.md
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200,500 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/hitl.json --readme README.md
 
 # Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
