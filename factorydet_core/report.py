@@ -555,7 +555,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     if any(variants[n].get("reviews", {}).get("hidden") for n in names):
         rows.append(
             "| queue items passed over by the filter | "
-            + " | ".join(f"{variants[n]['reviews'].get('hidden', 0):g}" for n in names)
+            + " | ".join(f"{variants[n]['reviews'].get('hidden', 0):.0f}" for n in names)
             + " |"
         )
     if any(variants[n].get("unannotated_in_queue") is not None for n in names):
