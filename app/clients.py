@@ -21,7 +21,7 @@ import viser
 from factorydet_core import colors
 from factorydet_core.editing import box_of_points, box_to_pose, camera_for_box, pose_to_box, split_in_two
 from factorydet_core.geometry import box_wireframe_segments
-from factorydet_core.session import HIDE_LABELLED_IOU, EditConflictError
+from factorydet_core.session import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.types import InputError
 
 from .state import AppState
@@ -252,7 +252,11 @@ class ClientView:
         if pending:
             queue = [q for q in queue if q["verdict"] in (None, "skip") or q["id"] == current_id]
         if hide_labelled:
-            queue = [q for q in queue if q["label_iou"] < HIDE_LABELLED_IOU or q["id"] == current_id]
+            queue = [
+                q
+                for q in queue
+                if not on_labelled_object(q["label_iou"], HIDE_LABELLED_IOU) or q["id"] == current_id
+            ]
         with self.lock:
             self.queue = queue
         return queue

@@ -28,7 +28,7 @@ from .classifier import ProposalClassifier
 from .dataset import Dataset, annotation_min_points
 from .detector import Detector
 from .model import DetectionModel
-from .session import SessionDB, read_cache, write_cache
+from .session import SessionDB, on_labelled_object, read_cache, write_cache
 from .training import (
     FrameProposals,
     Progress,
@@ -396,7 +396,7 @@ def simulated_review(
     for item in db.review_queue(pending_only=True):
         if answered == budget:
             break
-        if max_label_iou is not None and db.label_overlap([item])[0] >= max_label_iou:
+        if max_label_iou is not None and on_labelled_object(db.label_overlap([item])[0], max_label_iou):
             counts["hidden"] += 1
             continue
         verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)

@@ -38,12 +38,18 @@ _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 DEMO_SESSION = "demo"
 DEMO_CONFIG = {"num_frames": 12, "seed": 0}
+"""``SimConfig`` fields of the demo data set `make app` builds: seeded, twelve frames, a few
+seconds on a laptop."""
 HIDE_LABELLED_IOU = 0.25
 """The review panel's "hide items on labelled objects" filter: items whose box overlaps a label at
 this IoU or more (``SessionDB.review_queue``'s ``max_label_iou``). Mined items overlap a label at
 most below ``positive_iou`` 0.6; boxes of neighbouring objects rarely reach 0.25."""
-"""``SimConfig`` fields of the demo data set `make app` builds: seeded, twelve frames, a few
-seconds on a laptop."""
+
+
+def on_labelled_object(label_iou: float | None, max_label_iou: float) -> bool:
+    """Whether the labelled-objects filter hides a queue item of this ``label_iou``
+    (``SessionDB.label_overlap``; ``None``, an overlap not known, is never hidden)."""
+    return label_iou is not None and label_iou >= max_label_iou
 
 
 class SessionError(InputError):
@@ -981,6 +987,18 @@ class SessionDB:
         """
         if max_label_iou is not None and not 0.0 < max_label_iou <= 1.0:
             raise InputError(f"max_label_iou must lie in (0, 1], got {max_label_iou}")
+        out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
+        label_iou = self.label_overlap(out)
+        for item, iou in zip(out, label_iou):
+            item["label_iou"] = iou
+        if max_label_iou is not None:
+            out = [item for item in out if not on_labelled_object(item["label_iou"], max_label_iou)]
+        return out
+
+    def _queue_rows(
+        self, run_id: int | None, predicted_class: str | None, frame_index: int | None, pending_only: bool
+    ) -> list[dict]:
+        """``review_queue``'s rows as stored, without the overlap with the labels."""
         if run_id is None:
             run_id = self.latest_run_id()
         query = (
@@ -1004,11 +1022,6 @@ class SessionDB:
             item["patch_set"] = json.loads(item["patch_set"])
             item["probabilities"] = json.loads(item["probabilities"]) if item["probabilities"] else None
             out.append(item)
-        label_iou = self.label_overlap(out)
-        for item, iou in zip(out, label_iou):
-            item["label_iou"] = iou
-        if max_label_iou is not None:
-            out = [item for item in out if item["label_iou"] is None or item["label_iou"] < max_label_iou]
         return out
 
     def label_overlap(self, items: list[dict]) -> list[float | None]:
@@ -1041,7 +1054,7 @@ class SessionDB:
 
     def review_progress(self, run_id: int | None = None) -> dict:
         """Counts of a run's queue: ``total``, ``reviewed`` (a decided verdict) and per verdict."""
-        queue = self.review_queue(run_id)
+        queue = self._queue_rows(run_id, None, None, False)  # counts only: no label overlap
         counts = {v: sum(item["verdict"] == v for item in queue) for v in VERDICTS}
         return {"total": len(queue), "reviewed": sum(counts[v] for v in DECIDED), **counts}
 
