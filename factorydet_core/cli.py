@@ -399,6 +399,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         geometry=args.geometry,
         box_quality=args.box_quality,
         visibility={"auto": None, "on": True, "off": False}[args.visibility],
+        method=args.method,
     )
     front_end = _front_end_note(preset, overrides)
     try:
@@ -769,6 +770,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="whether the box quality regressor reads what the frame's rays saw empty or occupied "
         "in each box (auto: on for multi-sensor data, off for single scans such as ScanNet's, "
         "whose clouds come from meshes)",
+    )
+    p.add_argument(
+        "--method",
+        choices=("paper", "box_head"),
+        default="paper",
+        help="paper: the 3DmFV-Net classifier choosing among the size prior's box options; box_head: "
+        "the learned box head, which classifies and boxes each point set in one pass",
     )
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     p.set_defaults(func=_cmd_train)

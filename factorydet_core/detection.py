@@ -60,6 +60,12 @@ class ProposalGroups:
     free_space: FreeSpace | None = None
     """What the frame's rays saw around the vehicle (``visibility.free_space``), for the box
     quality regressor's visibility features; ``None``: not computed."""
+    points: np.ndarray | None = None
+    """(G, SAMPLED_POINTS, 3) float32: a fixed-size sample of each point set's points in the
+    vehicle frame (``sample_point_sets``), what the learned box head reads; ``None``: not kept."""
+    fitted_boxes: np.ndarray | None = None
+    """(G, 7) the fitted box of each point set (its first proposal's): the box head's canonical
+    frame; ``None``: not kept."""
 
     @property
     def num_groups(self) -> int:
@@ -70,6 +76,43 @@ class ProposalGroups:
         order = np.argsort(self.group_ids, kind="stable")
         starts = np.concatenate([[0], np.cumsum(np.bincount(self.group_ids, minlength=self.num_groups))])
         return [order[starts[g] : starts[g + 1]] for g in range(self.num_groups)]
+
+
+SAMPLED_POINTS = 64
+"""Points kept of each point set for the learned box head (``box_head.BoxHead``)."""
+
+
+def floor_height(floor_plane: np.ndarray | None) -> float:
+    """The floor plane's height at the vehicle origin (0 for ``None``, NaN or a vertical plane)."""
+    if floor_plane is not None and np.isfinite(floor_plane).all() and abs(floor_plane[2]) > 1e-6:
+        return -float(floor_plane[3]) / float(floor_plane[2])
+    return 0.0
+
+
+def sample_point_sets(
+    points: np.ndarray, point_lists: list[np.ndarray], num_samples: int = SAMPLED_POINTS, seed: int = 0
+) -> np.ndarray:
+    """(M, num_samples, 3) float32: ``num_samples`` points of each of M point sets, drawn without
+    replacement from sets that have more and with replacement (all points first) from the others;
+    an empty set gives zeros. Seeded: the same sets give the same samples.
+
+    Args:
+        points: (N, 3) the cloud.
+        point_lists: M arrays of indices into ``points``.
+    """
+    rng = np.random.default_rng(seed)
+    out = np.zeros((len(point_lists), num_samples, 3), np.float32)
+    for m, members in enumerate(point_lists):
+        count = len(members)
+        if not count:
+            continue
+        if count >= num_samples:
+            chosen = members[rng.choice(count, num_samples, replace=False)]
+        else:
+            extra = rng.integers(0, count, num_samples - count)
+            chosen = np.concatenate([members, members[extra]])
+        out[m] = points[chosen]
+    return out
 
 
 def _eigen_features(points: np.ndarray) -> np.ndarray:
@@ -112,7 +155,14 @@ def group_proposals(
         floor_plane,
     )
     return ProposalGroups(
-        group_ids, representatives, features, descriptors, proposals.anchor_mask, free_space
+        group_ids,
+        representatives,
+        features,
+        descriptors,
+        proposals.anchor_mask,
+        free_space,
+        sample_point_sets(points, point_lists),
+        np.array(proposals.boxes[representatives], np.float64),
     )
 
 
@@ -132,9 +182,7 @@ def describe_point_sets(
         num_voxels: (M,) occupied voxels of each set.
         floor_plane: (4,) floor plane for the heights above floor (z = 0 when None or NaN).
     """
-    floor_z = 0.0
-    if floor_plane is not None and np.isfinite(floor_plane).all() and abs(floor_plane[2]) > 1e-6:
-        floor_z = -float(floor_plane[3]) / float(floor_plane[2])
+    floor_z = floor_height(floor_plane)
     descriptors = np.zeros((len(point_lists), len(DESCRIPTOR_NAMES)), np.float32)
     for g, (box, members, voxels) in enumerate(zip(boxes, point_lists, num_voxels)):
         own = points[members]

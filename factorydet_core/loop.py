@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from .box_head import BoxHead
 from .box_quality import BoxQuality
 from .boxes import box_iou_3d
 from .classifier import ProposalClassifier
@@ -41,7 +42,11 @@ from .training import (
 from .types import MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 MODES = ("full", "next")
-_CACHE_FORMAT = 4  # bump when FrameProposals or the front half's output changes (4: free space)
+_CACHE_FORMAT = 5  # bump when FrameProposals or the front half's output changes (5: sampled points)
+
+
+METHODS: tuple[str, ...] = ("paper", "box_head")
+"""The back halves ``LoopSettings.method`` chooses between."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +101,24 @@ class LoopSettings:
             return self.visibility
         return dataset is None or dataset.num_sensors > 1
 
-    def classifier(self, class_names: Sequence[str]) -> ProposalClassifier:
+    method: str = "paper"
+    """"paper": the 3DmFV-Net classifier and the size prior's box options (with ``box_quality``);
+    "box_head": the learned box head (``box_head.BoxHead``), which classifies and boxes each point
+    set in one pass (``width``, ``geometry`` and ``box_quality`` do not apply)."""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+
+    def classifier(self, class_names: Sequence[str]) -> ProposalClassifier | BoxHead:
+        if self.method == "box_head":
+            return BoxHead(
+                class_names=tuple(class_names),
+                epochs=self.epochs,
+                class_weight=self.class_weight,
+                seed=self.seed,
+                num_threads=self.num_threads,
+            )
         return ProposalClassifier(
             class_names=tuple(class_names),
             width=self.width,
@@ -256,7 +278,7 @@ def train_session(
         seed=settings.seed,
         box_quality=(
             BoxQuality(seed=settings.seed, visibility=settings.quality_visibility(db.dataset))
-            if settings.box_quality
+            if settings.box_quality and settings.method == "paper"
             else None
         ),
         progress=progress,

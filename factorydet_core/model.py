@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .box_head import BoxHead, head_candidates
 from .box_quality import BoxQuality
 from .classifier import ProposalClassifier
 from .detection import (
@@ -78,8 +79,16 @@ class DetectionModel:
         """(G, C + 1) class probabilities of each point set."""
         return group_probabilities(self.classifier, groups)
 
+    @property
+    def method(self) -> str:
+        """"box_head" for the learned box head (``box_head.BoxHead``), "paper" for the paper's
+        classifier with the box options of the size prior (and the box quality regressor)."""
+        return "box_head" if isinstance(self.classifier, BoxHead) else "paper"
+
     def candidates(self, proposal_boxes: np.ndarray, groups: ProposalGroups) -> Detections:
-        """Every point set as a candidate detection (no threshold, no NMS)."""
+        """Every point set as a candidate detection (no threshold, no NMS), in point-set order."""
+        if isinstance(self.classifier, BoxHead):
+            return head_candidates(groups, self.classifier, self.probability_exponent)
         return score_groups(
             proposal_boxes,
             groups,
@@ -110,8 +119,8 @@ class DetectionModel:
 
     def save(self, path: str | os.PathLike, note: dict | None = None) -> Path:
         """Checkpoint: the classifier's state dict at ``path`` and a JSON note beside it."""
-        if not isinstance(self.classifier, ProposalClassifier):
-            raise InputError("only the 3DmFV-Net classifier is saved as a checkpoint")
+        if not isinstance(self.classifier, (ProposalClassifier, BoxHead)):
+            raise InputError("only the 3DmFV-Net classifier and the box head are saved as checkpoints")
         extra = {
             "box_prior": None if self.box_prior is None else self.box_prior.to_json(),
             "score_threshold": self.score_threshold,
@@ -130,7 +139,7 @@ class DetectionModel:
     @classmethod
     def load(cls, path: str | os.PathLike) -> DetectionModel:
         """A model from ``save``'s checkpoint (``torch.load(weights_only=True)``)."""
-        classifier = ProposalClassifier.load(path)
+        classifier = BoxHead.load(path) if _is_box_head(path) else ProposalClassifier.load(path)
         note = classifier.note_
         prior = note.get("box_prior")
         box_quality = None
@@ -158,6 +167,14 @@ class DetectionModel:
         return getattr(self.classifier, "note_", {})
 
 
+def _is_box_head(path: str | os.PathLike) -> bool:
+    """Whether the checkpoint at ``path`` holds a box head (its note's format says so)."""
+    try:
+        return describe_checkpoint(path).get("format", "").startswith("factorydet-box-head/")
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return False  # the classifier's loader says what is wrong with it
+
+
 def quality_path(path: str | os.PathLike) -> Path:
     """Where a checkpoint's box quality arrays live: ``NAME.boxq.npz`` beside ``NAME.pt``."""
     path = Path(path)
@@ -169,6 +186,10 @@ def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
     if not groups.num_groups:
         return np.zeros((0, len(classifier.labels_)), np.float32)
     kind = getattr(classifier, "input_kind", "features")
+    if kind == "points":
+        return classifier.predict_proba(
+            groups.points, groups.fitted_boxes, groups.descriptors
+        )
     if kind == "descriptors":
         return classifier.predict_proba(groups.descriptors)
     if kind == "features+descriptors":

@@ -16,7 +16,7 @@ import numpy as np
 from .baseline import BaselineClassifier
 from .bench import save_figure
 from .dataset import Dataset, annotation_min_points, open_dataset
-from .detection import score_groups, select_detections
+from .detection import select_detections
 from .detector import Detector, params_for
 from .evaluation import (
     FALSE_POSITIVE_KINDS,
@@ -152,16 +152,8 @@ def measure(
             ref_boxes, ref_classes = references[frame.frame_index]
         else:
             ref_boxes, ref_classes = reference_boxes(dataset, frame.frame_index, use_truth)
-        probabilities = model.probabilities(frame.groups)
-        candidates = score_groups(
-            frame.proposal_boxes,
-            frame.groups,
-            probabilities,
-            model.box_prior,
-            class_names,
-            model.box_quality,
-            model.probability_exponent,
-        )
+        candidates = model.candidates(frame.proposal_boxes, frame.groups)
+        probabilities = candidates.probabilities
         detections = select_detections(candidates, ap_score_floor, model.nms_iou, vote_iou=model.vote_iou)
         kept = detections.subset(detections.kept_mask)
         scored.append(

@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from .box_head import BoxHead, HeadSamples, label_point_sets
 from .box_quality import BoxQuality
 from .boxes import box_iou_3d, fit_boxes
 from .classifier import ProposalClassifier
@@ -238,6 +239,47 @@ def _training_set(
     return np.concatenate(features), np.concatenate(descriptors), np.concatenate(labels)
 
 
+def head_labels(
+    frame: FrameProposals, background_id: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point set's label for the box head by where its points lie
+    (``box_head.label_point_sets``): ``(labels, owners)``, -1 for sets left out of training."""
+    if frame.groups.points is None:
+        raise InputError("the box head needs each point set's points: collect the proposals again")
+    return label_point_sets(frame.groups.points, frame.label_boxes, frame.label_class_ids, background_id)
+
+
+def _head_training_set(
+    frames: list[FrameProposals],
+    frame_labels: dict[int, np.ndarray],
+    frame_owners: dict[int, np.ndarray],
+    background: dict[int, set[int]],
+    excluded: dict[int, set[int]],
+) -> tuple[HeadSamples, np.ndarray]:
+    """The box head's samples (every labelled point set of every frame, sets in ``excluded`` left
+    out) and (M,) which of them are hard negatives (the sets in ``background``)."""
+    parts, hard = [], []
+    for frame in frames:
+        labels = frame_labels[frame.frame_index].copy()
+        owners = frame_owners[frame.frame_index]
+        labels[sorted(excluded.get(frame.frame_index, ()))] = -1
+        keep = np.flatnonzero(labels >= 0)
+        targets = np.full((frame.groups.num_groups, 7), np.nan)
+        targets[owners >= 0] = frame.label_boxes[owners[owners >= 0]]
+        groups = frame.groups
+        parts.append(
+            HeadSamples(
+                points=groups.points[keep],
+                anchor_boxes=frame.proposal_boxes[groups.representatives][keep],
+                descriptors=groups.descriptors[keep],
+                labels=labels[keep],
+                target_boxes=targets[keep],
+            )
+        )
+        hard.append(np.isin(keep, sorted(background.get(frame.frame_index, ()))))
+    return HeadSamples.concatenate(parts), np.concatenate(hard)
+
+
 def score_frames(
     model: DetectionModel,
     frames: list[FrameProposals],
@@ -377,19 +419,24 @@ def train_with_mining(
         raise InputError(f"fragments_per_frame must be >= 0 or None, got {fragments_per_frame}")
     background_id = classifier.background_id
     num_classes = len(classifier.class_names)
+    is_head = isinstance(classifier, BoxHead)
     box_prior = None
-    if use_box_prior:
+    if use_box_prior or is_head:
         box_prior = BoxSizePrior.from_boxes(
             np.concatenate([f.label_boxes for f in frames]),
             np.concatenate([f.label_class_ids for f in frames]),
             num_classes,
         )
     # Each point set's label and best overlap, fixed for the whole run: the annotations do not change.
-    frame_labels, frame_best_iou = {}, {}
+    frame_labels, frame_best_iou, frame_owners = {}, {}, {}
     for frame in frames:
         frame_labels[frame.frame_index], frame_best_iou[frame.frame_index] = _labels_and_best_iou(
             frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
         )
+        if is_head:  # the head's sets are labelled by their points, not by their boxes
+            frame_labels[frame.frame_index], frame_owners[frame.frame_index] = head_labels(
+                frame, background_id
+            )
     by_index = {f.frame_index: f for f in frames}
     excluded = {
         index: set(by_index[index].point_set_ids(sets).tolist())
@@ -406,9 +453,10 @@ def train_with_mining(
     ]
     picked = rng.choice(len(pool), min(initial_negatives, len(pool)), replace=False) if pool else []
     background: dict[int, set[int]] = {}
-    for i in picked:
+    # The head draws its background afresh every epoch: only hard negatives are kept as a set.
+    for i in [] if is_head else picked:
         background.setdefault(pool[i][0], set()).add(pool[i][1])
-    if fragment_iou > 0:
+    if fragment_iou > 0 and not is_head:
         for index, best_iou in frame_best_iou.items():
             fragments = np.flatnonzero((best_iou > 0) & (best_iou <= fragment_iou))
             fragments = fragments[frame_labels[index][fragments] == background_id]
@@ -426,7 +474,7 @@ def train_with_mining(
                 background.setdefault(index, set()).add(int(g))
 
     quality = None
-    if box_quality is not None and box_prior is not None:
+    if box_quality is not None and box_prior is not None and not is_head:
         if progress is not None:
             progress("box quality", 0, 1)
         rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
@@ -436,17 +484,26 @@ def train_with_mining(
 
     records, models = [], []
     for round_index in range(rounds + 1):
-        features, descriptors, labels = _training_set(
-            frames, frame_labels, background, background_id, annotation_positives
-        )
-        if not (labels != background_id).any():
-            raise InputError(
-                f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
-            )
         fit_progress = None if progress is None else (lambda e, n: progress("fit", e, n))
-        fitted = dataclasses.replace(classifier).fit(
-            features, labels, descriptors, progress=fit_progress, should_stop=should_stop
-        )
+        if is_head:
+            samples, hard = _head_training_set(frames, frame_labels, frame_owners, background, excluded)
+            labels = samples.labels
+            if not (labels != background_id).any():
+                raise InputError("no point set lies in an annotated box: nothing to learn from")
+            fitted = dataclasses.replace(classifier).fit(
+                samples, box_prior.sizes, hard, progress=fit_progress, should_stop=should_stop
+            )
+        else:
+            features, descriptors, labels = _training_set(
+                frames, frame_labels, background, background_id, annotation_positives
+            )
+            if not (labels != background_id).any():
+                raise InputError(
+                    f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
+                )
+            fitted = dataclasses.replace(classifier).fit(
+                features, labels, descriptors, progress=fit_progress, should_stop=should_stop
+            )
         model = DetectionModel(
             fitted,
             box_prior,
@@ -542,6 +599,8 @@ def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarra
             "annotation_class_ids": f.annotation_class_ids,
             "annotation_instance_ids": f.annotation_instance_ids,
         }
+        if f.groups.points is not None:
+            arrays["points"] = f.groups.points
         if f.groups.free_space is not None:
             arrays |= {f"free_space/{n}": v for n, v in f.groups.free_space.to_arrays().items()}
         out |= {f"{k}/{name}": np.asarray(value) for name, value in arrays.items()}
@@ -564,6 +623,8 @@ def proposals_from_arrays(arrays: Mapping[str, np.ndarray]) -> list[FrameProposa
             a["descriptors"],
             a.get("anchor_mask"),
             FreeSpace.from_arrays(space) if space else None,
+            a.get("points"),
+            a["proposal_boxes"][a["representatives"]],
         )
         frames.append(
             FrameProposals(

@@ -264,3 +264,30 @@ def test_mining_threshold_decides_what_is_mined_not_the_operating_threshold(fram
     assert high.rounds[0]["num_false_positives"] <= low.rounds[0]["num_false_positives"]
     with pytest.raises(InputError):
         first_round(mining_threshold=1.5)
+
+
+def test_the_box_head_trains_with_mining_and_its_checkpoint_detects(frames, tmp_path, small_dataset_dir):
+    from factorydet_core.box_head import BoxHead
+
+    head = BoxHead(channels=(16, 32), hidden=32, epochs=2, batch_size=64, num_threads=1)
+    run = train_with_mining(frames, head, rounds=1, negatives_per_round=30, score_threshold=0.05)
+    assert isinstance(run.model.classifier, BoxHead) and run.model.method == "box_head"
+    assert run.model.box_quality is None  # the head scores its own boxes
+    first, second = run.rounds
+    # Mined negatives are sets the head's labels call background, and they are in the next fit.
+    labels = {f.frame_index: training.head_labels(f, head.background_id)[0] for f in frames}
+    assert first["mined"] and all(labels[m["frame_index"]][m["group"]] == head.background_id
+                                  for m in first["mined"])  # fmt: skip
+    assert second["num_background"] >= first["num_background"]
+    path = run.model.save(tmp_path / "head.pt")
+    loaded = DetectionModel.load(path)
+    assert loaded.method == "box_head"
+    frame = frames[0]
+    a = run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
+    np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-6)
+    frame_0 = open_dataset(small_dataset_dir).frame(0)
+    result = Detector("agv", model=loaded).detect(frame_0, score_threshold=0.05)
+    assert len(result.candidates) == result.groups.num_groups
+    assert (result.detections.scores >= 0.05).all()
