@@ -128,6 +128,34 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         args.frames = {"simulate": 10, "hitl": None}.get(args.name, 4)
     if args.name == "simulate":
         result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
+    elif args.name == "quality":
+        from .heldout import QualityPlan, bench_quality, quality_markdown, write_outputs
+
+        if len(args.data) != 1:
+            raise InputError("bench quality needs one DATA folder: the training factory")
+        plan = QualityPlan(
+            train_data=Path(args.data[0]),
+            heldout_seeds=tuple(parse_ints(args.heldout_seeds, "--heldout-seeds")),
+            heldout_frames=args.heldout_frames,
+            train_frames=args.train_frames,
+            seeds=tuple(parse_ints(args.seeds, "--seeds")),
+            epochs=args.epochs,
+            rounds=args.rounds,
+            methods=tuple(_choices(args.methods, "--methods", ("box_head", "paper"))),
+            paper_model=args.model,
+            scratch=Path(args.scratch),
+            calibrate=args.calibrate,
+        )
+        update, close = _training_progress()
+        try:
+            result = bench_quality(plan, command=command, progress=update)
+        finally:
+            close()
+        if args.out:
+            write_outputs(result, args.out)
+        print(json.dumps(result, indent=2))
+        print(quality_markdown(result), file=sys.stderr)
+        return 0
     else:
         if not args.data:
             raise InputError(f"bench {args.name} needs a DATA folder or file")
@@ -867,7 +895,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
-    p.add_argument("name", choices=["simulate", "pipeline", "sweep", "detect", "classifier", "hitl"])
+    p.add_argument(
+        "name", choices=["simulate", "pipeline", "sweep", "detect", "classifier", "hitl", "quality"]
+    )
     p.add_argument(
         "data",
         nargs="*",
@@ -885,7 +915,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="pipeline: override a parameter")
     p.add_argument("--voxel-sizes", default="0.1,0.15,0.2,0.3,0.4", help="sweep: comma-separated sizes (m)")
     p.add_argument("--png", default=None, help="sweep: write the plot here")
-    p.add_argument("--model", default="default", help="detect: checkpoint, session name or 'default'")
+    p.add_argument(
+        "--model",
+        default="default",
+        help="detect: checkpoint, session name or 'default'; quality: the paper pipeline's checkpoint",
+    )
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
     p.add_argument(
@@ -893,7 +927,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="on,off",
         help="classifier: network inputs to compare (on: 3DmFV and descriptors, off: 3DmFV alone)",
     )
-    p.add_argument("--epochs", type=int, default=20, help="classifier, hitl: epochs per fit")
+    p.add_argument("--epochs", type=int, default=20, help="classifier, hitl, quality: epochs per fit")
     p.add_argument("--max-fit-seconds", type=float, default=None, help="classifier: time budget per fit")
     p.add_argument(
         "--train-frames",
@@ -901,9 +935,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="classifier: first N training frames; hitl: N training frames spread over the split",
     )
-    p.add_argument("--seeds", default="0", help="hitl: training seeds, comma-separated (F is their mean)")
+    p.add_argument(
+        "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"
+    )
     p.add_argument("--budgets", default="50,200", help="hitl: reviews per round K, comma-separated")
-    p.add_argument("--rounds", type=int, default=2, help="hitl: mining rounds after the first fit")
+    p.add_argument("--rounds", type=int, default=2, help="hitl, quality: mining rounds after the first fit")
     p.add_argument("--negatives", type=int, default=500, help="hitl: mined negatives per round")
     p.add_argument("--initial-negatives", type=int, default=2000, help="hitl: first random background set")
     p.add_argument(
@@ -941,7 +977,19 @@ def build_parser() -> argparse.ArgumentParser:
         "as the review panel's filter (default: the plain score order)",
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
-    p.add_argument("--out", default=None, help="hitl: also write the JSON here (the report reads it)")
+    p.add_argument(
+        "--out", default=None, help="hitl, quality: also write the JSON here, and its table beside it (.md)"
+    )
+    p.add_argument(
+        "--heldout-seeds",
+        default="101,102,103",
+        help="quality: simulator seeds of the held-out factories (never the training factory's)",
+    )
+    p.add_argument("--heldout-frames", type=int, default=12, help="quality: frames per held-out factory")
+    p.add_argument("--methods", default="box_head,paper", help="quality: box_head, paper (the --model)")
+    p.add_argument(
+        "--scratch", default="/tmp/factorydet_heldout", help="quality: held-out factories and caches"
+    )
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.add_argument("--readme", default=None, help="also write the result into this README's bench block")
     p.add_argument(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from .boxes import box_iou_3d
@@ -95,6 +97,26 @@ def average_precision(recall: np.ndarray, precision: np.ndarray) -> float:
     return float(np.sum((mrec[steps + 1] - mrec[steps]) * mpre[steps + 1]))
 
 
+IGNORE_IOU = 0.25
+"""A detection that matches no reference but overlaps an ignored object (one below the annotation
+policy's point count: ``results.ignored_boxes``) at least this much is left out of the counts, as
+KITTI's "DontCare" regions and nuScenes' ignored boxes: such objects are real, so a detection on
+them is no false positive, and not references, so missing them is no miss."""
+
+
+def ignored_mask(boxes: np.ndarray, tp_mask: np.ndarray, ignore_boxes: np.ndarray | None) -> np.ndarray:
+    """(K,) the false positives among (K, 7) ``boxes`` that lie on one of ``ignore_boxes`` (Q, 7)
+    (``IGNORE_IOU``, any class)."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    out = np.zeros(len(boxes), bool)
+    if ignore_boxes is None or not len(ignore_boxes) or not len(boxes):
+        return out
+    false = np.flatnonzero(~np.asarray(tp_mask, bool))
+    if len(false):
+        out[false] = box_iou_3d(boxes[false], ignore_boxes).max(axis=1) >= IGNORE_IOU
+    return out
+
+
 def _pooled_matches(
     frames: list[dict], num_classes: int, iou_threshold: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -107,9 +129,10 @@ def _pooled_matches(
             frame["boxes"], frame["class_ids"], frame["scores"], frame["reference_boxes"],
             frame["reference_class_ids"], iou_threshold,
         )  # fmt: skip
-        scores.append(np.asarray(frame["scores"], np.float64))
-        tps.append(tp)
-        classes.append(np.asarray(frame["class_ids"], np.int64))
+        counted = ~ignored_mask(frame["boxes"], tp, frame.get("ignore_boxes"))
+        scores.append(np.asarray(frame["scores"], np.float64)[counted])
+        tps.append(tp[counted])
+        classes.append(np.asarray(frame["class_ids"], np.int64)[counted])
         num_reference += np.bincount(
             np.asarray(frame["reference_class_ids"], np.int64), minlength=num_classes
         )[:num_classes]
@@ -131,7 +154,8 @@ def detection_metrics(
     Args:
         frames: one dict per frame with ``boxes`` (K, 7), ``class_ids`` (K,), ``scores`` (K,) of the
             kept detections (scored down to a low threshold, so that AP sees the whole curve), and
-            ``reference_boxes`` (R, 7), ``reference_class_ids`` (R,).
+            ``reference_boxes`` (R, 7), ``reference_class_ids`` (R,); optionally
+            ``ignore_boxes`` (Q, 7): detections on them are not counted (``IGNORE_IOU``).
         class_names: the classes.
         iou_threshold: matching threshold.
         score_threshold: operating point for precision, recall and F1.
@@ -141,17 +165,24 @@ def detection_metrics(
         ``{"per_class": {name: {num_reference, num_detections, tp, precision, recall, f1, ap}},
         "precision", "recall", "f1"`` (pooled over classes)``, "map"`` (mean AP over classes with
         references)``, "pr_curves": {name: {"recall": [...], "precision": [...]}}}`` with the
-        classes pooled under "all".
+        classes pooled under "all". Each figure says how many references it rests on
+        (``num_reference``); recall, F-score and AP of a class without references are ``None``, and
+        so are the totals when no frame has any (with a warning): they are undefined, not 0.
     """
     scores, tps, classes, num_reference = _pooled_matches(frames, len(class_names), iou_threshold)
     per_class_threshold = operating_thresholds(len(class_names), score_threshold, class_score_thresholds)
     above = scores >= per_class_threshold[classes]
 
-    def prf(tp: int, num_det: int, num_ref: int) -> tuple[float, float, float]:
+    def prf(tp: int, num_det: int, num_ref: int) -> tuple[float, float | None, float | None]:
         precision = tp / num_det if num_det else 0.0
-        recall = tp / num_ref if num_ref else 0.0
+        if not num_ref:  # recall, and so F, rest on nothing: undefined, not 0
+            return precision, None, None
+        recall = tp / num_ref
         f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
         return precision, recall, f1
+
+    def rounded(value: float | None) -> float | None:
+        return None if value is None else round(value, 4)
 
     per_class, curves, aps = {}, {}, []
     for c, name in enumerate(class_names):
@@ -170,8 +201,8 @@ def detection_metrics(
             "num_detections": int(operating.sum()),
             "tp": tp,
             "precision": round(p, 4),
-            "recall": round(r, 4),
-            "f1": round(f, 4),
+            "recall": rounded(r),
+            "f1": rounded(f),
             "ap": None if np.isnan(ap) else round(ap, 4),
         }
         if num_reference[c]:
@@ -186,6 +217,11 @@ def detection_metrics(
         }
     operating = above
     p, r, f = prf(int(tps[operating].sum()), int(operating.sum()), int(num_reference.sum()))
+    if not num_reference.sum():
+        warnings.warn(
+            "detection metrics without any reference instance: recall, F-score and mAP are undefined",
+            stacklevel=2,
+        )
     out = {
         "iou_threshold": iou_threshold,
         "score_threshold": score_threshold,
@@ -193,8 +229,8 @@ def detection_metrics(
         "num_reference": int(num_reference.sum()),
         "num_detections": int(operating.sum()),
         "precision": round(p, 4),
-        "recall": round(r, 4),
-        "f1": round(f, 4),
+        "recall": rounded(r),
+        "f1": rounded(f),
         "map": round(float(np.mean(aps)), 4) if aps else None,
         "pr_curves": curves,
     }
@@ -288,6 +324,8 @@ def recognition_accuracy(true_ids: np.ndarray, predicted_ids: np.ndarray, labels
         "mean_class_accuracy": round(float(np.mean([v["accuracy"] for v in per_class.values()])), 4)
         if per_class
         else None,
+        # The mean is over the classes with samples: say which ones it leaves out.
+        "classes_without_samples": [name for name in labels if name not in per_class],
         "overall_accuracy": round(float((true_ids == predicted_ids).mean()), 4) if len(true_ids) else None,
     }
 

@@ -331,6 +331,8 @@ def comparison_markdown(table: dict) -> str:
     head = "| class | " + " | ".join(names) + " |\n|---|" + "---|" * len(names) + "\n"
 
     def cell(m: dict) -> str:
+        if m["f1"] is None:  # no reference of the class: precision alone is defined
+            return f"– ({m['precision']:.2f} / –)"
         return f"{m['f1']:.3f} ({m['precision']:.2f} / {m['recall']:.2f})"
 
     rows = [

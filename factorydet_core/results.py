@@ -27,7 +27,7 @@ from .evaluation import (
 )
 from .model import DEFAULT_MODEL, DetectionModel
 from .training import FrameProposals, collect_proposals, group_labels
-from .types import InputError
+from .types import Detections, InputError
 
 PAPER_TABLE2 = {"mean": 99.84}
 """Recognition accuracy (%) of Negin et al. 2020, Table 2: only the average is quoted here (the
@@ -91,6 +91,21 @@ def reference_boxes(dataset: Dataset, frame_index: int, use_truth: bool, min_poi
     return truth.instance_boxes[keep], truth.instance_class_ids[keep]
 
 
+def ignored_boxes(dataset: Dataset, frame_index: int, min_points: int | None = None) -> np.ndarray:
+    """(Q, 7) truth boxes of the frame's objects that are seen (some points) but fall below the
+    annotation policy: not references, and detections on them are neither right nor wrong
+    (``evaluation.IGNORE_IOU``; KITTI's "DontCare"). Empty for data sets without a truth."""
+    from .sim.truth import read_frame_truth
+
+    if not (Path(dataset.path) / "truth").is_dir():
+        return np.zeros((0, 7))
+    if min_points is None:
+        min_points = annotation_min_points(dataset)
+    truth = read_frame_truth(dataset.path, frame_index)
+    sparse = (truth.instance_class_ids >= 0) & (truth.instance_num_points < (min_points or 0))
+    return truth.instance_boxes[sparse & (truth.instance_num_points > 0)]
+
+
 def fit_baseline(
     frames: list[FrameProposals], class_names: tuple[str, ...], positive_iou: float = 0.6
 ) -> BaselineClassifier:
@@ -129,7 +144,7 @@ def baseline_model(
 
 def measure(
     model: DetectionModel,
-    dataset: Dataset,
+    dataset: Dataset | None,
     frames: list[FrameProposals],
     *,
     iou_threshold: float = 0.6,
@@ -137,13 +152,23 @@ def measure(
     ap_score_floor: float = 0.05,
     references: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
     score_thresholds: Sequence[float] = (),
+    ignored: dict[int, np.ndarray] | None = None,
+    candidates: dict[int, Detections] | None = None,
 ) -> dict:
     """Detection metrics (per class and totals) and recognition accuracy of ``model`` on
     ``frames``, against the annotations, the full truth, or ``references`` (frame index ->
-    (boxes (R, 7), class_ids (R,)), e.g. a session's corrected labels). With ``score_thresholds``,
-    ``operating_points`` lists the total precision, recall and F-score at each of them (to choose
-    the operating threshold). ``errors`` sorts the false positives and misses at the operating
-    point by kind (``evaluation.error_breakdown``)."""
+    (boxes (R, 7), class_ids (R,)), e.g. a session's corrected labels; ``dataset`` may then be
+    ``None``). With ``score_thresholds``, ``operating_points`` lists the total precision, recall
+    and F-score at each of them (to choose the operating threshold). ``errors`` sorts the false
+    positives and misses at the operating point by kind (``evaluation.error_breakdown``).
+
+    Args:
+        ignored: frame index -> (Q, 7) boxes of objects below the annotation policy; detections on
+            them are left out of the counts (``evaluation.IGNORE_IOU``). With ``use_truth`` and no
+            ``references`` they are read from the truth (``ignored_boxes``); ``{}`` turns that off.
+        candidates: frame index -> the model's candidates of that frame (``model.candidates``),
+            when they were computed already.
+    """
     scored, true_ids, predicted_ids = [], [], []
     class_names = model.class_names
     background_id = len(class_names)
@@ -152,9 +177,20 @@ def measure(
             ref_boxes, ref_classes = references[frame.frame_index]
         else:
             ref_boxes, ref_classes = reference_boxes(dataset, frame.frame_index, use_truth)
-        candidates = model.candidates(frame.proposal_boxes, frame.groups)
-        probabilities = candidates.probabilities
-        detections = select_detections(candidates, ap_score_floor, model.nms_iou, vote_iou=model.vote_iou)
+        if ignored is not None:
+            ignore = ignored.get(frame.frame_index, np.zeros((0, 7)))
+        elif use_truth and references is None:
+            ignore = ignored_boxes(dataset, frame.frame_index)
+        else:
+            ignore = np.zeros((0, 7))
+        if candidates is not None and frame.frame_index in candidates:
+            frame_candidates = candidates[frame.frame_index]
+        else:
+            frame_candidates = model.candidates(frame.proposal_boxes, frame.groups)
+        probabilities = frame_candidates.probabilities
+        detections = select_detections(
+            frame_candidates, ap_score_floor, model.nms_iou, vote_iou=model.vote_iou
+        )
         kept = detections.subset(detections.kept_mask)
         scored.append(
             {
@@ -163,10 +199,11 @@ def measure(
                 "scores": kept.scores,
                 "reference_boxes": ref_boxes,
                 "reference_class_ids": ref_classes,
+                "ignore_boxes": ignore,
                 # Before the threshold and NMS, for the kinds of misses (error_breakdown).
-                "candidate_boxes": candidates.boxes,
-                "candidate_class_ids": candidates.class_ids,
-                "candidate_scores": candidates.scores,
+                "candidate_boxes": frame_candidates.boxes,
+                "candidate_class_ids": frame_candidates.class_ids,
+                "candidate_scores": frame_candidates.scores,
             }
         )
         # Table 2: held-out point sets that match a reference, and those overlapping none.
@@ -219,10 +256,13 @@ def evaluate(
     test = test[:max_frames] if max_frames else test
     detector = detector_for(model, dataset, calibrate)
     frames = collect_proposals(dataset, test, detector, progress)
+    # Classified and boxed once, measured against the annotations and the truth.
+    candidates = {f.frame_index: model.candidates(f.proposal_boxes, f.groups) for f in frames}
     against = {
         "annotations": measure(
-            model, dataset, frames, iou_threshold=iou_threshold, score_thresholds=score_thresholds
-        )
+            model, dataset, frames, iou_threshold=iou_threshold, score_thresholds=score_thresholds,
+            candidates=candidates,
+        )  # fmt: skip
     }
     if simulated:
         against["truth"] = measure(
@@ -232,6 +272,7 @@ def evaluate(
             iou_threshold=iou_threshold,
             use_truth=True,
             score_thresholds=score_thresholds,
+            candidates=candidates,
         )
     headline = against["truth" if simulated else "annotations"]
     result = {
@@ -251,8 +292,16 @@ def evaluate(
         "f1": headline["f1"],
         "map": headline["map"],
         "errors": headline["errors"],
+        "num_reference": headline["num_reference"],
         "against": against,
     }
+    if simulated:
+        # The same without the ignore rule: detections on objects below the policy count as false.
+        plain = measure(
+            model, dataset, frames, iou_threshold=iou_threshold, use_truth=True, ignored={},
+            candidates=candidates,
+        )  # fmt: skip
+        result["truth_without_ignore"] = {k: plain[k] for k in ("precision", "recall", "f1", "map")}
     if with_baseline:
         train = dataset.splits.get("train") or []
         train = train[:max_train_frames] if max_train_frames else train

@@ -54,8 +54,8 @@ class MetricsPanel:
             return
         self._shown = id(metrics)
         rows = [
-            f"| {name} | {row['num_reference']} | {row['precision']:.2f} | {row['recall']:.2f} | "
-            f"{row['f1']:.2f} | {_fmt(row['ap'])} |"
+            f"| {name} | {row['num_reference']} | {row['precision']:.2f} | {_fmt(row['recall'])} | "
+            f"{_fmt(row['f1'])} | {_fmt(row['ap'])} |"
             for name, row in metrics["per_class"].items()
             if row["num_reference"] or row["num_detections"]
         ]

@@ -179,3 +179,41 @@ def test_recognition_accuracy_table():
     assert table["per_class"]["b"]["accuracy"] == 1.0
     assert table["mean_class_accuracy"] == pytest.approx((0.5 + 1 + 0.5) / 3, abs=1e-4)
     assert table["overall_accuracy"] == pytest.approx(0.6)
+
+
+def test_metrics_without_references_are_undefined_not_zero():
+    frames = [
+        {
+            "boxes": np.array([[0, 0, 0.5, 1, 1, 1, 0.0]]),
+            "class_ids": np.array([0]),
+            "scores": np.array([0.9]),
+            "reference_boxes": np.zeros((0, 7)),
+            "reference_class_ids": np.zeros(0, np.int64),
+        }
+    ]
+    with pytest.warns(UserWarning, match="undefined"):
+        metrics = detection_metrics(frames, ("a", "b"), 0.6, 0.5)
+    assert metrics["f1"] is None and metrics["recall"] is None and metrics["map"] is None
+    assert metrics["precision"] == 0.0 and metrics["num_reference"] == 0
+    assert metrics["per_class"]["a"]["f1"] is None and metrics["per_class"]["a"]["num_detections"] == 1
+
+
+def test_detections_on_ignored_objects_are_neither_right_nor_wrong():
+    reference = np.array([[0, 0, 0.5, 1, 1, 1, 0.0]])
+    sparse = np.array([[5, 0, 0.5, 1, 1, 1, 0.0]])
+    frame = {
+        "boxes": np.vstack([reference, sparse + [0.1, 0, 0, 0, 0, 0, 0], [[9, 9, 0.5, 1, 1, 1, 0]]]),
+        "class_ids": np.array([0, 0, 0]),
+        "scores": np.array([0.9, 0.8, 0.7]),
+        "reference_boxes": reference,
+        "reference_class_ids": np.array([0]),
+    }
+    plain = detection_metrics([frame], ("a",), 0.6, 0.5)
+    assert plain["num_detections"] == 3 and plain["precision"] == pytest.approx(1 / 3, abs=1e-4)
+    ignored = detection_metrics([frame | {"ignore_boxes": sparse}], ("a",), 0.6, 0.5)
+    # The detection on the sparse object is dropped; the one on nothing stays a false positive.
+    assert ignored["num_detections"] == 2 and ignored["precision"] == pytest.approx(0.5)
+    assert ignored["recall"] == plain["recall"] == 1.0
+    # A true positive is never dropped, even where an ignored box overlaps it.
+    tp_only = detection_metrics([frame | {"ignore_boxes": reference}], ("a",), 0.6, 0.5)
+    assert tp_only["per_class"]["a"]["tp"] == 1
