@@ -396,8 +396,8 @@ class BoxHead:
         max_fit_seconds: stop after the step during which this much time has passed.
     """
 
-    channels: tuple[int, ...] = (64, 128, 256)
-    hidden: int = 256
+    channels: tuple[int, ...] = (32, 64, 128)
+    hidden: int = 128
     heading_bins: int = 12
     epochs: int = 20
     batch_size: int = 256

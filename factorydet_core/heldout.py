@@ -149,19 +149,27 @@ def _heldout_set(plan: QualityPlan, params, progress: Progress | None) -> Heldou
     return HeldoutSet(frames, references, ignored, sources)
 
 
-def candidate_bound(model: DetectionModel, heldout: HeldoutSet, iou_threshold: float = 0.6) -> dict:
+def candidate_bound(
+    class_names: Sequence[str], heldout: HeldoutSet, candidates: dict, iou_threshold: float = 0.6
+) -> dict:
     """Per class, the share of truth objects some candidate of their class boxes at
-    ``iou_threshold`` (before thresholds and NMS): what a perfect ranking could find."""
-    class_names = model.class_names
+    ``iou_threshold`` (before thresholds and NMS): what a perfect ranking could find.
+
+    Args:
+        candidates: frame index -> the model's candidates (``DetectionModel.candidates``).
+    """
     hits = {name: [] for name in class_names}
     for frame in heldout.frames:
         boxes, classes = heldout.references[frame.frame_index]
         if not len(boxes):
             continue
-        candidates = model.candidates(frame.proposal_boxes, frame.groups)
-        iou = box_iou_3d(candidates.boxes, boxes) if len(candidates) else np.zeros((0, len(boxes)))
-        iou[candidates.class_ids[:, None] != classes[None, :]] = 0.0
-        best = iou.max(axis=0) if len(iou) else np.zeros(len(boxes))
+        frame_candidates = candidates[frame.frame_index]
+        if len(frame_candidates):
+            iou = box_iou_3d(frame_candidates.boxes, boxes)
+            iou[frame_candidates.class_ids[:, None] != classes[None, :]] = 0.0
+            best = iou.max(axis=0)
+        else:
+            best = np.zeros(len(boxes))
         for c, value in zip(classes, best):
             hits[class_names[int(c)]].append(value >= iou_threshold)
     out = {name: round(float(np.mean(v)), 4) if v else None for name, v in hits.items()}
@@ -173,26 +181,23 @@ def candidate_bound(model: DetectionModel, heldout: HeldoutSet, iou_threshold: f
 def measure_heldout(model: DetectionModel, heldout: HeldoutSet) -> dict:
     """Detection metrics at each of ``IOU_THRESHOLDS`` (with and without the ignore rule for
     objects below the annotation policy), recognition accuracy per class (Table 2), the candidate
-    bound, and the back half's time per frame."""
+    bound, and the back half's time per frame (median; classification and boxes, before NMS)."""
     from .results import measure
 
-    start = time.perf_counter()
-    for frame in heldout.frames[:3]:
-        model.candidates(frame.proposal_boxes, frame.groups)
-    back_half_ms = (time.perf_counter() - start) * 1000.0 / min(3, len(heldout.frames))
-    out: dict = {"back_half_ms_per_frame": round(back_half_ms, 1)}
+    candidates, times = {}, []
+    for frame in heldout.frames:
+        start = time.perf_counter()
+        candidates[frame.frame_index] = model.candidates(frame.proposal_boxes, frame.groups)
+        times.append((time.perf_counter() - start) * 1000.0)
+    out: dict = {"back_half_ms_per_frame": round(float(np.median(times)), 1)}
+    common = {"references": heldout.references, "candidates": candidates}
     for iou in IOU_THRESHOLDS:
-        metrics = measure(
-            model, None, heldout.frames, iou_threshold=iou, references=heldout.references,
-            ignored=heldout.ignored,
-        )  # fmt: skip
+        metrics = measure(model, None, heldout.frames, iou_threshold=iou, ignored=heldout.ignored, **common)
         metrics.pop("pr_curves", None)
         out[f"iou_{iou}"] = metrics
-    plain = measure(
-        model, None, heldout.frames, iou_threshold=IOU_THRESHOLDS[0], references=heldout.references
-    )
+    plain = measure(model, None, heldout.frames, iou_threshold=IOU_THRESHOLDS[0], **common)
     out["iou_0.6_without_ignore"] = {k: plain[k] for k in ("precision", "recall", "f1", "map")}
-    out["candidate_bound"] = candidate_bound(model, heldout, IOU_THRESHOLDS[0])
+    out["candidate_bound"] = candidate_bound(model.class_names, heldout, candidates, IOU_THRESHOLDS[0])
     return out
 
 
@@ -294,10 +299,10 @@ def quality_markdown(result: dict) -> str:
     methods = result["methods"]
     classes = list(next(iter(methods.values()))["summary"]["per_class_f1"])
 
-    def cell(stat: dict) -> str:
+    def cell(stat: dict, digits: int = 3) -> str:
         if stat["mean"] is None:
             return "n/a"
-        return f"{stat['mean']:.3f}" + (f" ± {stat['std']:.3f}" if stat["std"] else "")
+        return f"{stat['mean']:.{digits}f}" + (f" ± {stat['std']:.{digits}f}" if stat["std"] else "")
 
     header = "| | " + " | ".join(methods) + " |"
     lines = [header, "|---" * (len(methods) + 1) + "|"]
@@ -311,7 +316,7 @@ def quality_markdown(result: dict) -> str:
         *((f"F-score {c}", _per_class_cell(cell, c)) for c in classes),
         ("recognition, mean over classes", lambda s: cell(s["recognition_mean"])),
         ("recognition, background", lambda s: cell(s["recognition_per_class"]["background"])),
-        ("back half, ms per frame", lambda s: cell(s["back_half_ms_per_frame"])),
+        ("back half, ms per frame (median)", lambda s: cell(s["back_half_ms_per_frame"], 0)),
     ]
     for name, get in rows:
         lines.append(f"| {name} | " + " | ".join(get(m["summary"]) for m in methods.values()) + " |")
