@@ -120,10 +120,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from .bench import bench_pipeline, bench_simulate, bench_voxel_sweep, update_readme
 
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
-    if args.readme and (args.readme_block or args.name == "hitl"):
+    if args.readme and (args.readme_block or args.name in ("hitl", "quality")):
         from .bench import check_readme_block
 
-        check_readme_block(args.readme, args.readme_block or "hitl")  # before a long run, not after
+        check_readme_block(args.readme, args.readme_block or args.name)  # before a long run, not after
     if args.frames is None:
         args.frames = {"simulate": 10, "hitl": None}.get(args.name, 4)
     if args.name == "simulate":
@@ -155,6 +155,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             write_outputs(result, args.out)
         print(json.dumps(result, indent=2))
         print(quality_markdown(result), file=sys.stderr)
+        if args.readme:
+            update_readme(args.readme, result, args.readme_block, quality_markdown(result))
         return 0
     else:
         if not args.data:

@@ -309,3 +309,18 @@ def test_bench_classifier_measures_rows_with_the_models_box_quality(small_datase
         assert row["epochs_run"] == 1
         assert 0 <= row["detection_precision"] <= 1 and 0 <= row["detection_f1"] <= 1
     assert main(["bench", "classifier", str(small_dataset_dir), "--features", "voxels"]) == 2
+
+
+def test_bench_quality_checks_its_arguments_and_readme_before_running(
+    small_dataset_dir, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.setattr("factorydet_core.heldout.bench_quality", lambda *a, **k: pytest.fail("ran"))
+    base = ["bench", "quality", str(small_dataset_dir), "--scratch", str(tmp_path)]
+    assert main([*base, "--methods", "magic"]) == 2
+    assert "methods" in capsys.readouterr().err
+    assert main([*base, "--heldout-seeds", "7"]) == 2  # the training factory's own seed
+    assert "own seed" in capsys.readouterr().err
+    (tmp_path / "other.md").write_text("# no block\n")
+    assert main([*base, "--readme", str(tmp_path / "other.md")]) == 2
+    assert "bench:quality" in capsys.readouterr().err
+    assert main(["bench", "quality", "--scratch", str(tmp_path)]) == 2

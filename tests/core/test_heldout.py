@@ -18,6 +18,7 @@ def test_the_plan_refuses_the_training_factory_as_held_out(small_dataset_dir, tm
         QualityPlan(train_data=small_dataset_dir, seeds=(), scratch=tmp_path)
 
 
+@pytest.mark.slow
 def test_a_tiny_run_measures_both_methods_on_the_same_held_out_frames(small_dataset_dir, tmp_path):
     plan = QualityPlan(
         train_data=small_dataset_dir,
