@@ -75,14 +75,26 @@ def to_canonical(points: np.ndarray, origin: np.ndarray, heading: np.ndarray) ->
     return np.stack([x, y, shifted[..., 2]], axis=-1)
 
 
-POINT_CHANNELS = 6
-"""Per-point inputs: canonical x, y, z in metres, and the same over the fitted box's half length,
+POINT_CHANNELS = 7
+"""Per-point inputs: canonical x, y, z in metres; the same over the fitted box's half length,
 half width and half height (where each point lies against the box's faces: LiDAR R-CNN's answer
-to the size ambiguity of a set of points)."""
+to the size ambiguity of a set of points); and the point's height above the floor (objects stand
+on the floor or on each other)."""
+
+_BOTTOM_ABOVE_FLOOR = DESCRIPTOR_NAMES.index("bottom_above_floor_m")
 
 
-def point_inputs(canonical: np.ndarray, anchor_boxes: np.ndarray) -> np.ndarray:
-    """(M, P, POINT_CHANNELS) float32 inputs of M sets' (M, P, 3) canonical points."""
+def floor_heights(fitted_boxes: np.ndarray, descriptors: np.ndarray) -> np.ndarray:
+    """(M,) the floor's height under each of M sets, from its fitted box (M, 7) and its
+    descriptors (M, len(DESCRIPTOR_NAMES)), which give that box's bottom above the floor."""
+    fitted_boxes = np.asarray(fitted_boxes, np.float64).reshape(-1, 7)
+    fitted_bottom = np.asarray(descriptors, np.float64).reshape(len(fitted_boxes), -1)[:, _BOTTOM_ABOVE_FLOOR]
+    return fitted_boxes[:, 2] - fitted_boxes[:, 5] / 2 - fitted_bottom
+
+
+def point_inputs(canonical: np.ndarray, anchor_boxes: np.ndarray, floor_z: np.ndarray) -> np.ndarray:
+    """(M, P, POINT_CHANNELS) float32 inputs of M sets' (M, P, 3) canonical points in the frames of
+    (M, 7) ``anchor_boxes``, over floors at (M,) ``floor_z``."""
     anchor_boxes = np.asarray(anchor_boxes, np.float64).reshape(-1, 7)
     dims = anchor_boxes[:, 3:6]
     half = (
@@ -90,7 +102,8 @@ def point_inputs(canonical: np.ndarray, anchor_boxes: np.ndarray) -> np.ndarray:
         / 2
     )
     scaled = canonical / np.maximum(half, 0.05)[:, None, :]
-    return np.concatenate([canonical, scaled], axis=2).astype(np.float32)
+    above_floor = canonical[..., 2] + (anchor_boxes[:, 2] - floor_z)[:, None]
+    return np.concatenate([canonical, scaled, above_floor[..., None]], axis=2).astype(np.float32)
 
 
 def symmetry_orders(templates: np.ndarray, square_ratio: float = SQUARE_RATIO) -> np.ndarray:
@@ -460,11 +473,11 @@ class BoxHead:
         return PointSetNet(len(self.class_names), self.channels, self.hidden, self.heading_bins, self.dropout)
 
     def _inputs(
-        self, points: np.ndarray, anchor_boxes: np.ndarray, descriptors: np.ndarray
+        self, points: np.ndarray, anchor_boxes: np.ndarray, descriptors: np.ndarray, floor_z: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Canonical points (M, P, 3) float32, globals, and the frames' origin and heading."""
+        """Point inputs (M, P, POINT_CHANNELS), globals, and the frames' origin and heading."""
         origin, heading = canonical_frame(anchor_boxes)
-        canonical = point_inputs(to_canonical(points, origin, heading), anchor_boxes)
+        canonical = point_inputs(to_canonical(points, origin, heading), anchor_boxes, floor_z)
         return canonical, global_inputs(anchor_boxes, descriptors, heading), origin, heading
 
     def fit(
@@ -507,7 +520,8 @@ class BoxHead:
         with _torch_threads(self.num_threads):
             torch.manual_seed(self.seed)
             network = self._new_network()
-            _, globals_all, _, _ = self._inputs(samples.points[:1], samples.anchor_boxes, samples.descriptors)
+            _, fitted_heading = canonical_frame(samples.anchor_boxes)
+            globals_all = global_inputs(samples.anchor_boxes, samples.descriptors, fitted_heading)
             network.global_mean.copy_(torch.from_numpy(globals_all.mean(axis=0)))
             network.global_scale.copy_(torch.from_numpy(globals_all.std(axis=0)).clamp_min(1e-3))
             counts = np.bincount(labels, minlength=num_classes + 1).astype(np.float64)
@@ -586,6 +600,7 @@ class BoxHead:
         labels = samples.labels[batch]
         if self.augment:
             points, anchors, targets = _augment(rng, points, anchors, targets)
+        floor_z = floor_heights(anchors, samples.descriptors[batch])  # before any jitter
         if self.jitter_share > 0:
             # Some objects are read in the frame of a box near their own, as the refinement passes
             # read them in the frame of the previous pass's box.
@@ -593,7 +608,9 @@ class BoxHead:
                 (labels < len(self.class_names)) & (rng.uniform(size=len(labels)) < self.jitter_share)
             )
             anchors[chosen] = jitter_boxes(rng, targets[chosen])
-        canonical, globals_, origin, heading = self._inputs(points, anchors, samples.descriptors[batch])
+        canonical, globals_, origin, heading = self._inputs(
+            points, anchors, samples.descriptors[batch], floor_z
+        )
         out = network(torch.from_numpy(canonical), torch.from_numpy(globals_))
         y = torch.from_numpy(labels)
         class_loss = loss_fn(out["logits"], y)
@@ -690,12 +707,13 @@ class BoxHead:
         iou = np.zeros((num, num_classes), np.float32)
         anchor_boxes = np.asarray(anchor_boxes, np.float64).reshape(num, 7)
         descriptors = np.asarray(descriptors, np.float32).reshape(num, len(DESCRIPTOR_NAMES))
+        floor_z = floor_heights(anchor_boxes, descriptors)  # the refinement passes keep it
         with _torch_threads(self.num_threads), torch.inference_mode():
             self.network_.eval()
             for lo in range(0, num, batch_size):
                 part = slice(lo, lo + batch_size)
                 probabilities[part], boxes[part], iou[part] = self._forward(
-                    points[part], anchor_boxes[part], descriptors[part], range(num_classes)
+                    points[part], anchor_boxes[part], descriptors[part], floor_z[part], range(num_classes)
                 )
             rows = np.arange(num)
             for _ in range(self.refine_steps):
@@ -705,18 +723,23 @@ class BoxHead:
                     part = slice(lo, lo + batch_size)
                     own = best[part]
                     _, refined, refined_iou = self._forward(
-                        points[part], boxes[rows[part], own], descriptors[part], own
+                        points[part], boxes[rows[part], own], descriptors[part], floor_z[part], own
                     )
                     boxes[rows[part], own] = refined[:, 0]
                     iou[rows[part], own] = refined_iou[np.arange(len(own)), own]
         return HeadOutput(probabilities, boxes, iou)
 
     def _forward(
-        self, points: np.ndarray, anchor_boxes: np.ndarray, descriptors: np.ndarray, classes
+        self,
+        points: np.ndarray,
+        anchor_boxes: np.ndarray,
+        descriptors: np.ndarray,
+        floor_z: np.ndarray,
+        classes,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One pass over M sets: probabilities (M, C + 1), boxes (M, K, 7) decoded as ``classes``
         (K class ids, or (M,) one per set: K = 1), IoUs (M, C)."""
-        canonical, globals_, origin, heading = self._inputs(points, anchor_boxes, descriptors)
+        canonical, globals_, origin, heading = self._inputs(points, anchor_boxes, descriptors, floor_z)
         out = self.network_(torch.from_numpy(canonical), torch.from_numpy(globals_))
         count = len(canonical)
         if isinstance(classes, np.ndarray):

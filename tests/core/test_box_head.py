@@ -161,10 +161,14 @@ def _toy_samples(rng, num_per_class: int) -> tuple[HeadSamples, np.ndarray]:
             labels.append(label)
             targets.append(box if label < 2 else np.full(7, np.nan))
     num = len(labels)
+    anchors = np.array(anchors)
+    # Descriptors of a scene whose floor is at z = 0: the fitted box's bottom above it.
+    descriptors = np.zeros((num, len(DESCRIPTOR_NAMES)), np.float32)
+    descriptors[:, DESCRIPTOR_NAMES.index("bottom_above_floor_m")] = anchors[:, 2] - anchors[:, 5] / 2
     samples = HeadSamples(
         points=np.array(points, np.float32),
-        anchor_boxes=np.array(anchors),
-        descriptors=rng.normal(0, 1, (num, len(DESCRIPTOR_NAMES))).astype(np.float32),
+        anchor_boxes=anchors,
+        descriptors=descriptors,
         labels=np.array(labels),
         target_boxes=np.array(targets),
     )
