@@ -332,17 +332,6 @@ class HeadOutput:
     """(M, C) float32: the IoU the head expects of each of those boxes."""
 
 
-def jitter_boxes(rng: np.random.Generator, boxes: np.ndarray) -> np.ndarray:
-    """(M, 7) boxes near (M, 7) ``boxes``: centres moved by 10% of their size per axis, sizes
-    scaled by about 10%, yaws turned by about 6 degrees (normal noise)."""
-    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
-    out = boxes.copy()
-    out[:, :3] += rng.normal(0.0, 0.1, (len(boxes), 3)) * boxes[:, 3:6]
-    out[:, 3:6] *= np.exp(rng.normal(0.0, 0.1, (len(boxes), 3)))
-    out[:, 6] += rng.normal(0.0, 0.1, len(boxes))
-    return out
-
-
 def _augment(
     rng: np.random.Generator,
     points: np.ndarray,
@@ -419,11 +408,6 @@ class BoxHead:
         seed: seeds weights, batches and augmentation.
         num_threads: torch threads while fitting and predicting (``None``: torch's default).
         max_fit_seconds: stop after the step during which this much time has passed.
-        jitter_share: share of the objects of each batch read in the frame of a box near their own
-            (``jitter_boxes``) instead of their fitted box: what ``refine_steps`` needs.
-        refine_steps: after the first pass, read each set again this many times in the frame of
-            its box as its most probable class, and take the new box and IoU (a cascade, as
-            PointRCNN refines its proposals).
     """
 
     channels: tuple[int, ...] = (32, 64, 128)
@@ -438,8 +422,6 @@ class BoxHead:
     augment: bool = True
     class_names: tuple[str, ...] = CLASS_NAMES
     square_ratio: float = SQUARE_RATIO
-    jitter_share: float = 0.0
-    refine_steps: int = 0
     seed: int = 0
     num_threads: int | None = None
     max_fit_seconds: float | None = None
@@ -451,8 +433,6 @@ class BoxHead:
         self.class_names = tuple(self.class_names)
         if not self.channels or min(self.channels) < 1 or self.hidden < 2:
             raise InputError("channels must be positive widths and hidden >= 2")
-        if not 0 <= self.jitter_share <= 1 or self.refine_steps < 0:
-            raise InputError("jitter_share must lie in [0, 1] and refine_steps be >= 0")
         if self.heading_bins < 1 or self.epochs < 1 or self.batch_size < 2:
             raise InputError("heading_bins and epochs must be >= 1, batch_size >= 2")
         if not self.background_per_positive >= 0:
@@ -600,14 +580,7 @@ class BoxHead:
         labels = samples.labels[batch]
         if self.augment:
             points, anchors, targets = _augment(rng, points, anchors, targets)
-        floor_z = floor_heights(anchors, samples.descriptors[batch])  # before any jitter
-        if self.jitter_share > 0:
-            # Some objects are read in the frame of a box near their own, as the refinement passes
-            # read them in the frame of the previous pass's box.
-            chosen = np.flatnonzero(
-                (labels < len(self.class_names)) & (rng.uniform(size=len(labels)) < self.jitter_share)
-            )
-            anchors[chosen] = jitter_boxes(rng, targets[chosen])
+        floor_z = floor_heights(anchors, samples.descriptors[batch])
         canonical, globals_, origin, heading = self._inputs(
             points, anchors, samples.descriptors[batch], floor_z
         )
@@ -707,7 +680,7 @@ class BoxHead:
         iou = np.zeros((num, num_classes), np.float32)
         anchor_boxes = np.asarray(anchor_boxes, np.float64).reshape(num, 7)
         descriptors = np.asarray(descriptors, np.float32).reshape(num, len(DESCRIPTOR_NAMES))
-        floor_z = floor_heights(anchor_boxes, descriptors)  # the refinement passes keep it
+        floor_z = floor_heights(anchor_boxes, descriptors)
         with _torch_threads(self.num_threads), torch.inference_mode():
             self.network_.eval()
             for lo in range(0, num, batch_size):
@@ -715,18 +688,6 @@ class BoxHead:
                 probabilities[part], boxes[part], iou[part] = self._forward(
                     points[part], anchor_boxes[part], descriptors[part], floor_z[part], range(num_classes)
                 )
-            rows = np.arange(num)
-            for _ in range(self.refine_steps):
-                # Read each set again in the frame of its box as its most probable class.
-                best = probabilities[:, :num_classes].argmax(axis=1)
-                for lo in range(0, num, batch_size):
-                    part = slice(lo, lo + batch_size)
-                    own = best[part]
-                    _, refined, refined_iou = self._forward(
-                        points[part], boxes[rows[part], own], descriptors[part], floor_z[part], own
-                    )
-                    boxes[rows[part], own] = refined[:, 0]
-                    iou[rows[part], own] = refined_iou[np.arange(len(own)), own]
         return HeadOutput(probabilities, boxes, iou)
 
     def _forward(

@@ -262,29 +262,3 @@ def test_bad_inputs_are_refused(rng):
         HeadSamples(samples.points[:, :, :2], samples.anchor_boxes, samples.descriptors, samples.labels,
                     samples.target_boxes)  # fmt: skip
 
-
-def test_jittered_boxes_stay_near_their_box(rng):
-    from factorydet_core.box_head import jitter_boxes
-
-    boxes = _boxes(rng, 200, rng.integers(0, 3, 200))
-    jittered = jitter_boxes(rng, boxes)
-    assert jittered.shape == boxes.shape and not np.allclose(jittered, boxes)
-    assert np.median(paired_iou(jittered, boxes)) > 0.5
-
-
-def test_refinement_reads_each_set_again_in_the_frame_of_its_box(rng):
-    samples, templates = _toy_samples(rng, 20)
-    head = BoxHead(channels=(16,), hidden=16, epochs=2, batch_size=32, class_names=("cube", "bar"),
-                   jitter_share=0.5, num_threads=1)  # fmt: skip
-    head.fit(samples, templates)
-    once = head.predict(samples.points, samples.anchor_boxes, samples.descriptors)
-    head.refine_steps = 1
-    twice = head.predict(samples.points, samples.anchor_boxes, samples.descriptors)
-    np.testing.assert_allclose(twice.probabilities, once.probabilities)  # the class is the first pass's
-    best = once.probabilities[:, :2].argmax(axis=1)
-    rows = np.arange(samples.num_samples)
-    other = 1 - best
-    np.testing.assert_allclose(twice.boxes[rows, other], once.boxes[rows, other])  # only its class moves
-    assert not np.allclose(twice.boxes[rows, best], once.boxes[rows, best])
-    with pytest.raises(InputError):
-        BoxHead(refine_steps=-1)
