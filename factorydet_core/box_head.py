@@ -231,6 +231,46 @@ def global_inputs(anchor_boxes: np.ndarray, descriptors: np.ndarray, heading: np
     ).astype(np.float32)
 
 
+def _box_corners(centre: torch.Tensor, size: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """(B, 8, 3) corners of B boxes (centre (B, 3), size (B, 3), yaw (B,)) in a torch graph."""
+    signs = torch.tensor(
+        [[sx, sy, sz] for sx in (-0.5, 0.5) for sy in (-0.5, 0.5) for sz in (-0.5, 0.5)], dtype=size.dtype
+    )
+    local = signs[None] * size[:, None, :]
+    c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
+    x = local[..., 0] * c - local[..., 1] * s
+    y = local[..., 0] * s + local[..., 1] * c
+    return torch.stack([x, y, local[..., 2]], dim=-1) + centre[:, None, :]
+
+
+def _corner_loss(
+    centre: torch.Tensor,
+    log_size: torch.Tensor,
+    residual: torch.Tensor,
+    targets: BoxTargets,
+    templates: torch.Tensor,
+    symmetry: torch.Tensor,
+    heading_bins: int,
+) -> torch.Tensor:
+    """Frustum PointNets' corner loss in the canonical frame: the mean distance of the predicted
+    box's 8 corners to the target's, the predicted heading taken in the target's bin, the least
+    over the target's equivalent turns (its symmetry), so that centre, size and heading are
+    learnt together for the IoU they make."""
+    width = 2 * np.pi / heading_bins
+    bins = torch.from_numpy(targets.heading_bin).to(centre.dtype)
+    order = symmetry.to(centre.dtype)
+    predicted = _box_corners(centre, templates * torch.exp(log_size), (bins + 0.5 + residual) * width / order)
+    target_size = templates * torch.exp(torch.from_numpy(targets.log_size.astype(np.float32)))
+    target_yaw = (bins + 0.5 + torch.from_numpy(targets.heading_residual.astype(np.float32))) * width / order
+    target_centre = torch.from_numpy(targets.centre.astype(np.float32))
+    distances = []
+    for turn in range(4):  # turns of 2 pi / symmetry (a rectangle's repeat: harmless in the min)
+        turned = target_yaw + turn * (2 * np.pi / order)
+        corners = _box_corners(target_centre, target_size, turned)
+        distances.append(torch.linalg.vector_norm(predicted - corners, dim=2).mean(dim=1))
+    return torch.stack(distances, dim=1).min(dim=1).values.mean()
+
+
 class PointSetNet(nn.Module):
     """A PointNet on a set's canonical points (shared per-point MLP, max pooling) joined with the
     set's global inputs, then one MLP with every output: class logits (C + 1), centre (3), size
@@ -408,6 +448,8 @@ class BoxHead:
         seed: seeds weights, batches and augmentation.
         num_threads: torch threads while fitting and predicting (``None``: torch's default).
         max_fit_seconds: stop after the step during which this much time has passed.
+        corner_loss: weight of Frustum PointNets' corner loss (``_corner_loss``) beside the
+            separate centre, size and heading losses (0: off).
     """
 
     channels: tuple[int, ...] = (32, 64, 128)
@@ -422,6 +464,7 @@ class BoxHead:
     augment: bool = True
     class_names: tuple[str, ...] = CLASS_NAMES
     square_ratio: float = SQUARE_RATIO
+    corner_loss: float = 0.0
     seed: int = 0
     num_threads: int | None = None
     max_fit_seconds: float | None = None
@@ -612,6 +655,16 @@ class BoxHead:
                 residual_pred, torch.from_numpy(encoded.heading_residual.astype(np.float32)), beta=0.05
             )
             box_loss = centre_loss + size_loss + 0.5 * bin_loss + residual_loss
+            if self.corner_loss:
+                box_loss = box_loss + self.corner_loss * _corner_loss(
+                    out["centre"][r],
+                    size_pred,
+                    residual_pred,
+                    encoded,
+                    torch.from_numpy(templates[own].astype(np.float32)),
+                    torch.from_numpy(symmetry[own]),
+                    self.heading_bins,
+                )
             with torch.no_grad():
                 decoded = self._decode(
                     {k: v[r] for k, v in out.items()}, origin[rows], heading[rows], own, templates, symmetry

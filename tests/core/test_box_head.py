@@ -262,3 +262,34 @@ def test_bad_inputs_are_refused(rng):
         HeadSamples(samples.points[:, :, :2], samples.anchor_boxes, samples.descriptors, samples.labels,
                     samples.target_boxes)  # fmt: skip
 
+
+
+def test_corner_loss_is_zero_on_the_target_and_blind_to_its_symmetry(rng):
+    import torch
+
+    from factorydet_core.box_head import _corner_loss
+
+    class_ids = rng.integers(0, 3, 40)
+    boxes = _boxes(rng, 40, class_ids)
+    anchors = boxes + np.concatenate([rng.normal(0, 0.2, (40, 3)), np.zeros((40, 4))], axis=1)
+    origin, heading = canonical_frame(anchors)
+    encoded = encode_boxes(boxes, origin, heading, class_ids, TEMPLATES, SYMMETRY, 12)
+
+    def loss(centre, log_size, residual):
+        return float(
+            _corner_loss(
+                torch.tensor(centre, dtype=torch.float32), torch.tensor(log_size, dtype=torch.float32),
+                torch.tensor(residual, dtype=torch.float32), encoded,
+                torch.tensor(TEMPLATES[class_ids], dtype=torch.float32),
+                torch.tensor(SYMMETRY[class_ids]), 12,
+            )
+        )  # fmt: skip
+
+    exact = loss(encoded.centre, encoded.log_size, encoded.heading_residual)
+    assert exact == pytest.approx(0.0, abs=1e-5)
+    shifted = loss(encoded.centre + [0.1, 0, 0], encoded.log_size, encoded.heading_residual)
+    assert shifted == pytest.approx(0.1, abs=1e-4)  # every corner 10 cm off
+    assert loss(encoded.centre, encoded.log_size + 0.2, encoded.heading_residual) > 0.01
+    # A whole turn of the folded heading (12 bins) is the box turned by its symmetry: no loss.
+    assert loss(encoded.centre, encoded.log_size, encoded.heading_residual + 12) == pytest.approx(0, abs=1e-4)
+    assert loss(encoded.centre, encoded.log_size, encoded.heading_residual + 3) > 0.05
