@@ -449,7 +449,9 @@ class BoxHead:
         num_threads: torch threads while fitting and predicting (``None``: torch's default).
         max_fit_seconds: stop after the step during which this much time has passed.
         corner_loss: weight of Frustum PointNets' corner loss (``_corner_loss``) beside the
-            separate centre, size and heading losses (0: off).
+            separate centre, size and heading losses (0: off). 3 measured ahead of 0, 1 and 10 in
+            the share of held-out objects some candidate boxes at IoU 0.6 (one training seed, three
+            held-out factories, 8 epochs; the issue's notes give the figures).
     """
 
     channels: tuple[int, ...] = (32, 64, 128)
@@ -464,7 +466,7 @@ class BoxHead:
     augment: bool = True
     class_names: tuple[str, ...] = CLASS_NAMES
     square_ratio: float = SQUARE_RATIO
-    corner_loss: float = 0.0
+    corner_loss: float = 3.0
     seed: int = 0
     num_threads: int | None = None
     max_fit_seconds: float | None = None
