@@ -754,8 +754,9 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                 }
             )
 
-    def mean(values) -> float:
-        return round(float(np.mean(values)), 4)
+    def mean(values) -> float | None:
+        given = [v for v in values if v is not None]  # None: a class without references
+        return round(float(np.mean(given)), 4) if given else None
 
     results = {}
     for name, runs in per_seed.items():

@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from .boxes import rectangle_corners, rectangle_intersection_areas
-from .classifier import BACKGROUND, _torch_threads, class_weights, count_parameters
+from .classifier import ClassOutputs, _torch_threads, class_weights, count_parameters
 from .detection import DESCRIPTOR_NAMES, ProposalGroups, check_exponent
 from .types import CLASS_NAMES, Cancelled, Detections, InputError
 
@@ -426,7 +426,7 @@ def _augment(
 
 
 @dataclasses.dataclass
-class BoxHead:
+class BoxHead(ClassOutputs):
     """The learned box head (module docstring).
 
     Args:
@@ -482,17 +482,6 @@ class BoxHead:
             raise InputError("heading_bins and epochs must be >= 1, batch_size >= 2")
         if not self.background_per_positive >= 0:
             raise InputError(f"background_per_positive must be >= 0, got {self.background_per_positive}")
-
-    @property
-    def labels_(self) -> tuple[str, ...]:
-        return (*self.class_names, BACKGROUND)
-
-    @property
-    def background_id(self) -> int:
-        return len(self.class_names)
-
-    def get_params(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
     def _new_network(self) -> PointSetNet:
         return PointSetNet(len(self.class_names), self.channels, self.hidden, self.heading_bins, self.dropout)

@@ -191,8 +191,27 @@ def _torch_threads(num_threads: int | None):
         torch.set_num_threads(previous)
 
 
+class ClassOutputs:
+    """What the project's learned classifiers share: object classes in ``class_names``, one output
+    column per class of ``labels_`` (background last), and scikit-learn's ``get_params``."""
+
+    class_names: tuple[str, ...]
+
+    @property
+    def labels_(self) -> tuple[str, ...]:
+        """Names of the output columns: the object classes, then background."""
+        return (*self.class_names, BACKGROUND)
+
+    @property
+    def background_id(self) -> int:
+        return len(self.class_names)
+
+    def get_params(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
 @dataclasses.dataclass
-class ProposalClassifier:
+class ProposalClassifier(ClassOutputs):
     """3DmFV-Net proposal classifier.
 
     Args:
@@ -245,18 +264,6 @@ class ProposalClassifier:
                 f"class_weight must be one of {', '.join(map(str, CLASS_WEIGHTS))}, got {self.class_weight!r}"
             )
         self.class_names = tuple(self.class_names)
-
-    @property
-    def labels_(self) -> tuple[str, ...]:
-        """Names of the output columns: the object classes, then background."""
-        return (*self.class_names, BACKGROUND)
-
-    @property
-    def background_id(self) -> int:
-        return len(self.class_names)
-
-    def get_params(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
     def _new_network(self) -> FisherNet:
         num_descriptors = len(DESCRIPTOR_NAMES) if self.geometry else 0

@@ -236,7 +236,8 @@ def plot_sweep(rows: list[dict], png: str | os.PathLike, title: str) -> None:
     sizes = [r["voxel_size_m"] for r in rows]
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for name in rows[0]["per_class_f1"]:
-        ax.plot(sizes, [r["per_class_f1"][name] for r in rows], marker="o", alpha=0.7, label=name)
+        f1 = [np.nan if r["per_class_f1"][name] is None else r["per_class_f1"][name] for r in rows]
+        ax.plot(sizes, f1, marker="o", alpha=0.7, label=name)
     ax.plot(sizes, [r["f1"] for r in rows], "k-", marker="s", lw=2.5, label="total")
     ax.set_xlabel("voxel size (m)")
     ax.set_ylabel("detection F-score vs truth")
