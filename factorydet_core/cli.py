@@ -143,6 +143,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             rounds=args.rounds,
             methods=tuple(_choices(args.methods, "--methods", ("box_head", "paper"))),
             paper_model=args.model,
+            overrides=tuple(parse_overrides(args.set).items()),
             scratch=Path(args.scratch),
             calibrate=args.calibrate,
         )
@@ -914,7 +915,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--points", type=int, default=80_000, help="simulate: points per frame")
     p.add_argument("--seed", type=int, default=0, help="simulate: seed")
     p.add_argument("--preset", default=None, help="pipeline: agv or indoor (default: by data)")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="pipeline: override a parameter")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="pipeline, quality: override a front-half parameter (quality: e.g. history_frames=2)",
+    )
     p.add_argument("--voxel-sizes", default="0.1,0.15,0.2,0.3,0.4", help="sweep: comma-separated sizes (m)")
     p.add_argument("--png", default=None, help="sweep: write the plot here")
     p.add_argument(

@@ -69,6 +69,10 @@ class QualityPlan:
     paper_model: str = "default"
     """The paper pipeline's checkpoint (``results.resolve_model``); its front half is the one
     every method uses, so that they classify the same proposals."""
+    overrides: tuple[tuple[str, object], ...] = ()
+    """Front-half settings changed for every method (``FrontEndParams.replace``), e.g.
+    ``(("history_frames", 2),)`` to measure multi-frame accumulation; the paper checkpoint then
+    classifies the proposals of that front half."""
     scratch: Path = Path("/tmp/factorydet_heldout")
     """Where the held-out factories and the proposal caches are written."""
     calibrate: bool = True
@@ -76,6 +80,9 @@ class QualityPlan:
     def __post_init__(self) -> None:
         if not self.heldout_seeds or not self.seeds:
             raise InputError("bench quality needs at least one held-out seed and one training seed")
+        from .detector import FrontEndParams
+
+        FrontEndParams().replace(**dict(self.overrides))  # unknown names and bad values fail here
         if self.heldout_frames < 1 or self.epochs < 1 or self.rounds < 0:
             raise InputError("heldout_frames and epochs must be >= 1, rounds >= 0")
         unknown = set(self.methods) - {"box_head", "paper"}
@@ -238,7 +245,7 @@ def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | Non
     train_dataset = open_dataset(plan.train_data)
     if tuple(paper.class_names) != tuple(train_dataset.class_names):
         raise InputError("the paper model's classes differ from the training data's")
-    params = params_for(paper.front_end, train_dataset.num_sensors)
+    params = params_for(paper.front_end, train_dataset.num_sensors).replace(**dict(plan.overrides))
     heldout = _heldout_set(plan, params, progress)
     train_split = train_dataset.splits.get("train") or list(range(train_dataset.num_frames))
     train_indices = spread_frames(train_split, plan.train_frames)
@@ -257,6 +264,7 @@ def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | Non
         "reference": "truth: objects of at least the annotation policy's points (detections on "
         "sparser ones are ignored; iou_0.6_without_ignore counts them)",
         "front_end": paper.front_end,
+        "front_end_overrides": dict(plan.overrides),
         "training_seeds": list(plan.seeds),
         "methods": {},
     }

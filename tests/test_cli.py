@@ -324,3 +324,5 @@ def test_bench_quality_checks_its_arguments_and_readme_before_running(
     assert main([*base, "--readme", str(tmp_path / "other.md")]) == 2
     assert "bench:quality" in capsys.readouterr().err
     assert main(["bench", "quality", "--scratch", str(tmp_path)]) == 2
+    assert main([*base, "--set", "no_such_setting=1"]) == 2
+    assert "unknown parameter" in capsys.readouterr().err
