@@ -730,33 +730,24 @@ class BoxHead(ClassOutputs):
             for lo in range(0, num, batch_size):
                 part = slice(lo, lo + batch_size)
                 probabilities[part], boxes[part], iou[part] = self._forward(
-                    points[part], anchor_boxes[part], descriptors[part], floor_z[part], range(num_classes)
+                    points[part], anchor_boxes[part], descriptors[part], floor_z[part]
                 )
         return HeadOutput(probabilities, boxes, iou)
 
     def _forward(
-        self,
-        points: np.ndarray,
-        anchor_boxes: np.ndarray,
-        descriptors: np.ndarray,
-        floor_z: np.ndarray,
-        classes,
+        self, points: np.ndarray, anchor_boxes: np.ndarray, descriptors: np.ndarray, floor_z: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One pass over M sets: probabilities (M, C + 1), boxes (M, K, 7) decoded as ``classes``
-        (K class ids, or (M,) one per set: K = 1), IoUs (M, C)."""
+        """One pass over M sets: probabilities (M, C + 1), boxes (M, C, 7) as each class, IoUs (M, C)."""
         canonical, globals_, origin, heading = self._inputs(points, anchor_boxes, descriptors, floor_z)
         out = self.network_(torch.from_numpy(canonical), torch.from_numpy(globals_))
         count = len(canonical)
-        if isinstance(classes, np.ndarray):
-            decoded = self._decode(out, origin, heading, classes, self.templates_, self.symmetry_)[:, None]
-        else:
-            decoded = np.stack(
-                [
-                    self._decode(out, origin, heading, np.full(count, c), self.templates_, self.symmetry_)
-                    for c in classes
-                ],
-                axis=1,
-            )
+        decoded = np.stack(
+            [
+                self._decode(out, origin, heading, np.full(count, c), self.templates_, self.symmetry_)
+                for c in range(len(self.class_names))
+            ],
+            axis=1,
+        )
         return (
             torch.softmax(out["logits"], dim=1).numpy(),
             decoded,

@@ -270,7 +270,7 @@ def _head_training_set(
         parts.append(
             HeadSamples(
                 points=groups.points[keep],
-                anchor_boxes=frame.proposal_boxes[groups.representatives][keep],
+                anchor_boxes=groups.fitted_boxes[keep],
                 descriptors=groups.descriptors[keep],
                 labels=labels[keep],
                 target_boxes=targets[keep],
@@ -428,14 +428,16 @@ def train_with_mining(
             num_classes,
         )
     # Each point set's label and best overlap, fixed for the whole run: the annotations do not change.
+    # The head's sets are labelled by their points, not by their boxes, and it needs no overlaps.
     frame_labels, frame_best_iou, frame_owners = {}, {}, {}
     for frame in frames:
-        frame_labels[frame.frame_index], frame_best_iou[frame.frame_index] = _labels_and_best_iou(
-            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
-        )
-        if is_head:  # the head's sets are labelled by their points, not by their boxes
+        if is_head:
             frame_labels[frame.frame_index], frame_owners[frame.frame_index] = head_labels(
                 frame, background_id
+            )
+        else:
+            frame_labels[frame.frame_index], frame_best_iou[frame.frame_index] = _labels_and_best_iou(
+                frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
             )
     by_index = {f.frame_index: f for f in frames}
     excluded = {
@@ -443,7 +445,9 @@ def train_with_mining(
         for index, sets in (excluded_sets or {}).items()
         if index in by_index
     }
-    # The first background set: point sets that overlap no annotated box, sampled evenly.
+    # The first background set: point sets that overlap no annotated box, sampled evenly, and the
+    # fragments. None for the head (it has no overlaps): it draws its background afresh every
+    # epoch and keeps only hard negatives as a set.
     rng = np.random.default_rng(seed)
     pool = [
         (index, int(g))
@@ -453,10 +457,9 @@ def train_with_mining(
     ]
     picked = rng.choice(len(pool), min(initial_negatives, len(pool)), replace=False) if pool else []
     background: dict[int, set[int]] = {}
-    # The head draws its background afresh every epoch: only hard negatives are kept as a set.
-    for i in [] if is_head else picked:
+    for i in picked:
         background.setdefault(pool[i][0], set()).add(pool[i][1])
-    if fragment_iou > 0 and not is_head:
+    if fragment_iou > 0:
         for index, best_iou in frame_best_iou.items():
             fragments = np.flatnonzero((best_iou > 0) & (best_iou <= fragment_iou))
             fragments = fragments[frame_labels[index][fragments] == background_id]
