@@ -30,9 +30,7 @@ where ``model.DetectionModel`` holds a classifier; ``predict`` also gives the bo
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
-import pickle
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,7 +40,15 @@ import torch
 from torch import nn
 
 from .boxes import rectangle_corners, rectangle_intersection_areas
-from .classifier import ClassOutputs, _torch_threads, class_weights, count_parameters
+from .classifier import (
+    ClassOutputs,
+    _torch_threads,
+    class_weights,
+    count_parameters,
+    load_weights,
+    read_checkpoint_note,
+    write_checkpoint,
+)
 from .detection import DESCRIPTOR_NAMES, ProposalGroups, check_exponent
 from .types import CLASS_NAMES, Cancelled, Detections, InputError
 
@@ -763,9 +769,6 @@ class BoxHead(ClassOutputs):
         the settings, labels, size templates, parameter count, history and ``note``."""
         if not hasattr(self, "network_"):
             raise InputError("the box head is not fitted; nothing to save")
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save(self.network_.state_dict(), path)
         params = self.get_params()
         meta = {
             "format": "factorydet-box-head/1",
@@ -783,33 +786,24 @@ class BoxHead(ClassOutputs):
             "history": self.history_,
             **(note or {}),
         }
-        path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
-        return path
+        return write_checkpoint(self.network_, path, meta)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> BoxHead:
         """A fitted head from ``save``'s checkpoint (``torch.load(weights_only=True)``); ``note_``
         holds the JSON note."""
-        path = Path(path)
-        note_path = path.with_suffix(".json")
-        if not path.is_file() or not note_path.is_file():
-            raise InputError(f"{path}: no checkpoint (needs {path.name} and {note_path.name})")
+        meta = read_checkpoint_note(path)
+        note_path = Path(path).with_suffix(".json")
         try:
-            meta = json.loads(note_path.read_text())
             params = dict(meta["params"])
             templates = np.array(meta["templates"], np.float64)
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{note_path}: malformed box head note ({exc})") from None
         known = {f.name for f in dataclasses.fields(cls)}
         head = cls(**{k: v for k, v in params.items() if k in known})
         if templates.shape != (len(head.class_names), 3):
             raise InputError(f"{note_path}: templates must have shape ({len(head.class_names)}, 3)")
-        network = head._new_network()
-        try:
-            network.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-        except (RuntimeError, OSError, ValueError, KeyError, pickle.UnpicklingError) as exc:
-            raise InputError(f"{path}: unreadable checkpoint ({exc})") from None
-        network.eval()
+        network = load_weights(head._new_network(), path)
         head.network_ = network
         head.templates_ = templates
         head.symmetry_ = np.array(

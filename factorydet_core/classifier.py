@@ -210,6 +210,39 @@ class ClassOutputs:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
+def write_checkpoint(network: nn.Module, path: str | os.PathLike, note: dict) -> Path:
+    """A network's state dict at ``path`` (.pt) and ``note`` as JSON beside it (.json)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(network.state_dict(), path)
+    path.with_suffix(".json").write_text(json.dumps(note, indent=2))
+    return path
+
+
+def read_checkpoint_note(path: str | os.PathLike) -> dict:
+    """The JSON note of the checkpoint at ``path``; ``InputError`` if either file is missing or
+    the note is not JSON."""
+    path = Path(path)
+    note_path = path.with_suffix(".json")
+    if not path.is_file() or not note_path.is_file():
+        raise InputError(f"{path}: no checkpoint (needs {path.name} and {note_path.name})")
+    try:
+        return json.loads(note_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{note_path}: malformed checkpoint note ({exc})") from None
+
+
+def load_weights(network: nn.Module, path: str | os.PathLike) -> nn.Module:
+    """``network`` with the state dict at ``path`` (``torch.load(weights_only=True)``: a crafted
+    file runs no code), in eval mode; ``InputError`` if it does not fit."""
+    try:
+        network.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+    except (RuntimeError, OSError, ValueError, KeyError, pickle.UnpicklingError) as exc:
+        raise InputError(f"{path}: unreadable checkpoint ({exc})") from None
+    network.eval()
+    return network
+
+
 @dataclasses.dataclass
 class ProposalClassifier(ClassOutputs):
     """3DmFV-Net proposal classifier.
@@ -416,9 +449,6 @@ class ProposalClassifier(ClassOutputs):
         the settings, labels, training data hash, parameter count, history and ``note``."""
         if not hasattr(self, "network_"):
             raise InputError("the classifier is not fitted; nothing to save")
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save(self.network_.state_dict(), path)
         meta = {
             "format": "factorydet-classifier/1",
             "params": {**self.get_params(), "class_names": list(self.class_names)},
@@ -430,32 +460,23 @@ class ProposalClassifier(ClassOutputs):
             "history": self.history_,
             **(note or {}),
         }
-        path.with_suffix(".json").write_text(json.dumps(meta, indent=2))
-        return path
+        return write_checkpoint(self.network_, path, meta)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> ProposalClassifier:
         """A fitted classifier from a checkpoint written by ``save``; ``note_`` holds the JSON note."""
-        path = Path(path)
-        note_path = path.with_suffix(".json")
-        if not path.is_file() or not note_path.is_file():
-            raise InputError(f"{path}: no checkpoint (needs {path.name} and {note_path.name})")
+        meta = read_checkpoint_note(path)
         try:
-            meta = json.loads(note_path.read_text())
             params = dict(meta["params"])
             params["class_names"] = tuple(params["class_names"])
             params.setdefault("geometry", False)  # checkpoints from before the option existed
-        except (json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise InputError(f"{note_path}: malformed checkpoint note ({exc})") from None
+        except (KeyError, TypeError) as exc:
+            raise InputError(
+                f"{Path(path).with_suffix('.json')}: malformed checkpoint note ({exc})"
+            ) from None
         known = {f.name for f in dataclasses.fields(cls)}
         model = cls(**{k: v for k, v in params.items() if k in known})
-        network = model._new_network()
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-            network.load_state_dict(state)
-        except (RuntimeError, OSError, ValueError, KeyError, pickle.UnpicklingError) as exc:
-            raise InputError(f"{path}: unreadable checkpoint ({exc})") from None
-        network.eval()
+        network = load_weights(model._new_network(), path)
         model.network_ = network
         model.history_ = meta.get("history", [])
         model.fit_seconds_ = float(meta.get("fit_seconds", 0.0))
