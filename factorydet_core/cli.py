@@ -10,7 +10,15 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from .types import BOX_KINDS, LEVELS, MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
+from .types import (
+    BOX_KINDS,
+    LEVELS,
+    METHODS,
+    MINING_THRESHOLD,
+    PROBABILITY_EXPONENT,
+    SCORE_THRESHOLD,
+    InputError,
+)
 
 
 def progress_bar(desc: str, unit: str = "frame") -> tuple[Callable[[int, int], None], Callable[[], None]]:
@@ -141,7 +149,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             seeds=tuple(parse_ints(args.seeds, "--seeds")),
             epochs=args.epochs,
             rounds=args.rounds,
-            methods=tuple(_choices(args.methods, "--methods", ("box_head", "paper"))),
+            methods=tuple(_choices(args.methods, "--methods", METHODS)),
             paper_model=args.model,
             overrides=tuple(parse_overrides(args.set).items()),
             scratch=Path(args.scratch),
@@ -804,10 +812,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--method",
-        choices=("paper", "box_head"),
+        choices=METHODS,
         default="paper",
         help="paper: the 3DmFV-Net classifier choosing among the size prior's box options; box_head: "
-        "the learned box head, which classifies and boxes each point set in one pass",
+        "the learned box head, which classifies and boxes each point set in one pass; head_options: "
+        "the box head classifies, the box quality regressor boxes among the size prior's options",
     )
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     p.set_defaults(func=_cmd_train)
@@ -926,7 +935,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--model",
         default="default",
-        help="detect: checkpoint, session name or 'default'; quality: the paper pipeline's checkpoint",
+        help="detect: checkpoint, session name, 'default' or 'paper'; quality: the paper pipeline's "
+        "checkpoint ('paper': the shipped one)",
     )
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
@@ -994,7 +1004,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="quality: simulator seeds of the held-out factories (never the training factory's)",
     )
     p.add_argument("--heldout-frames", type=int, default=12, help="quality: frames per held-out factory")
-    p.add_argument("--methods", default="box_head,paper", help="quality: box_head, paper (the --model)")
+    p.add_argument(
+        "--methods",
+        default="head_options,box_head,paper",
+        help="quality: head_options, box_head (trained per seed; both read the same head), paper "
+        "(the --model)",
+    )
     p.add_argument(
         "--scratch", default="/tmp/factorydet_heldout", help="quality: held-out factories and caches"
     )

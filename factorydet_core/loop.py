@@ -39,14 +39,10 @@ from .training import (
     proposals_to_arrays,
     train_with_mining,
 )
-from .types import MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
+from .types import METHODS, MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 MODES = ("full", "next")
 _CACHE_FORMAT = 5  # bump when FrameProposals or the front half's output changes (5: sampled points)
-
-
-METHODS: tuple[str, ...] = ("paper", "box_head")
-"""The back halves ``LoopSettings.method`` chooses between."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,14 +100,18 @@ class LoopSettings:
     method: str = "paper"
     """"paper": the 3DmFV-Net classifier and the size prior's box options (with ``box_quality``);
     "box_head": the learned box head (``box_head.BoxHead``), which classifies and boxes each point
-    set in one pass (``width``, ``geometry`` and ``box_quality`` do not apply)."""
+    set in one pass (``width``, ``geometry`` and ``box_quality`` do not apply); "head_options":
+    the box head classifies, the box quality regressor boxes among the size prior's options
+    (``width`` and ``geometry`` do not apply; ``box_quality`` must be on)."""
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.method == "head_options" and not self.box_quality:
+            raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
 
     def classifier(self, class_names: Sequence[str]) -> ProposalClassifier | BoxHead:
-        if self.method == "box_head":
+        if self.method in ("box_head", "head_options"):
             return BoxHead(
                 class_names=tuple(class_names),
                 epochs=self.epochs,
@@ -278,7 +278,7 @@ def train_session(
         seed=settings.seed,
         box_quality=(
             BoxQuality(seed=settings.seed, visibility=settings.quality_visibility(db.dataset))
-            if settings.box_quality and settings.method == "paper"
+            if settings.box_quality and settings.method != "box_head"
             else None
         ),
         progress=progress,

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .box_head import BoxHead, head_candidates
+from .box_head import BoxHead, head_candidates, head_probabilities
 from .box_quality import BoxQuality
 from .classifier import ProposalClassifier
 from .detection import (
@@ -28,6 +28,10 @@ from .types import Detections, InputError
 
 DEFAULT_MODEL = Path(__file__).parent / "models" / "default.pt"
 """The checkpoint shipped with the package (trained on the demo data, see the README)."""
+
+PAPER_MODEL = Path(__file__).parent / "models" / "paper.pt"
+"""The shipped checkpoint of the paper's pipeline (3DmFV-Net classifier, box options, box quality
+regressor), trained on the same corpus as ``DEFAULT_MODEL``: the benchmarks' reference."""
 
 
 @dataclasses.dataclass
@@ -77,17 +81,23 @@ class DetectionModel:
 
     def probabilities(self, groups: ProposalGroups) -> np.ndarray:
         """(G, C + 1) class probabilities of each point set."""
+        if isinstance(self.classifier, BoxHead):
+            return head_probabilities(groups, self.classifier)
         return group_probabilities(self.classifier, groups)
 
     @property
     def method(self) -> str:
-        """"box_head" for the learned box head (``box_head.BoxHead``), "paper" for the paper's
-        classifier with the box options of the size prior (and the box quality regressor)."""
-        return "box_head" if isinstance(self.classifier, BoxHead) else "paper"
+        """Which back half this is (``METHODS``): "box_head" for the learned box head
+        (``box_head.BoxHead``) boxing its own detections, "head_options" for the box head's class
+        probabilities with the box options of the size prior chosen by the box quality regressor,
+        "paper" for the paper's classifier with those box options."""
+        if isinstance(self.classifier, BoxHead):
+            return "head_options" if self.box_quality is not None else "box_head"
+        return "paper"
 
     def candidates(self, proposal_boxes: np.ndarray, groups: ProposalGroups) -> Detections:
         """Every point set as a candidate detection (no threshold, no NMS), in point-set order."""
-        if isinstance(self.classifier, BoxHead):
+        if self.method == "box_head":
             return head_candidates(groups, self.classifier, self.probability_exponent)
         return score_groups(
             proposal_boxes,
@@ -187,9 +197,7 @@ def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
         return np.zeros((0, len(classifier.labels_)), np.float32)
     kind = getattr(classifier, "input_kind", "features")
     if kind == "points":
-        return classifier.predict_proba(
-            groups.points, groups.fitted_boxes, groups.descriptors
-        )
+        return classifier.predict_proba(groups.points, groups.fitted_boxes, groups.descriptors)
     if kind == "descriptors":
         return classifier.predict_proba(groups.descriptors)
     if kind == "features+descriptors":

@@ -25,7 +25,7 @@ from .evaluation import (
     error_breakdown,
     recognition_accuracy,
 )
-from .model import DEFAULT_MODEL, DetectionModel
+from .model import DEFAULT_MODEL, PAPER_MODEL, DetectionModel
 from .training import FrameProposals, collect_proposals, group_labels
 from .types import Detections, InputError
 
@@ -43,11 +43,14 @@ Progress = Callable[[str, int, int], None]
 
 
 def resolve_model(spec: str | os.PathLike, root: str | os.PathLike | None = None) -> Path:
-    """A checkpoint path from "default", a ``.pt`` path, or a session name (its latest model)."""
+    """A checkpoint path from "default" (the shipped model), "paper" (the shipped checkpoint of the
+    paper's pipeline, ``model.PAPER_MODEL``), a ``.pt`` path, or a session name (its latest model)."""
     from .session import latest_model, open_session
 
     if str(spec) == "default":
         path = DEFAULT_MODEL
+    elif str(spec) == "paper":
+        path = PAPER_MODEL
     elif str(spec).endswith(".pt"):
         path = Path(spec)
     else:

@@ -239,9 +239,7 @@ def _training_set(
     return np.concatenate(features), np.concatenate(descriptors), np.concatenate(labels)
 
 
-def head_labels(
-    frame: FrameProposals, background_id: int
-) -> tuple[np.ndarray, np.ndarray]:
+def head_labels(frame: FrameProposals, background_id: int) -> tuple[np.ndarray, np.ndarray]:
     """Each point set's label for the box head by where its points lie
     (``box_head.label_point_sets``): ``(labels, owners)``, -1 for sets left out of training."""
     if frame.groups.points is None:
@@ -477,7 +475,7 @@ def train_with_mining(
                 background.setdefault(index, set()).add(int(g))
 
     quality = None
-    if box_quality is not None and box_prior is not None and not is_head:
+    if box_quality is not None and box_prior is not None:
         if progress is not None:
             progress("box quality", 0, 1)
         rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)

@@ -39,6 +39,11 @@ SCORE_THRESHOLD = 0.35
 """The loop's and the command line's operating score, the best single threshold of that score on
 the default corpus's frames 40-49."""
 
+METHODS: tuple[str, ...] = ("paper", "box_head", "head_options")
+"""The back halves a model can be (``model.DetectionModel.method``): the paper's 3DmFV-Net
+classifier choosing among the size prior's box options by the box quality regressor; the learned
+box head classifying and boxing each point set; the box head classifying and the regressor boxing."""
+
 
 class InputError(ValueError):
     """Bad input data: the message names the file or array and the problem, on one line."""

@@ -19,7 +19,7 @@ def test_the_plan_refuses_the_training_factory_as_held_out(small_dataset_dir, tm
 
 
 @pytest.mark.slow
-def test_a_tiny_run_measures_both_methods_on_the_same_held_out_frames(small_dataset_dir, tmp_path):
+def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_dataset_dir, tmp_path):
     plan = QualityPlan(
         train_data=small_dataset_dir,
         heldout_seeds=(501,),
@@ -32,9 +32,11 @@ def test_a_tiny_run_measures_both_methods_on_the_same_held_out_frames(small_data
     )
     result = bench_quality(plan, command="test")
     assert result["num_heldout_frames"] == 1 and result["train_seed"] == 7
-    head, paper = result["methods"]["box_head"], result["methods"]["paper"]
+    options, head, paper = (result["methods"][m] for m in ("head_options", "box_head", "paper"))
     assert [r["seed"] for r in head["runs"]] == [0, 1] and len(paper["runs"]) == 1
-    for method in (head, paper):
+    # Both learned methods read the same head, trained once per seed.
+    assert [r["train_seconds"] for r in options["runs"]] == [r["train_seconds"] for r in head["runs"]]
+    for method in (options, head, paper):
         run = method["runs"][0]
         assert {"iou_0.6", "iou_0.5", "iou_0.25", "candidate_bound", "iou_0.6_without_ignore"} <= set(run)
         # Every figure says how many truth objects it rests on, the same for both methods.
@@ -47,5 +49,6 @@ def test_a_tiny_run_measures_both_methods_on_the_same_held_out_frames(small_data
     write_outputs(result, tmp_path / "bench" / "quality.json")
     assert json.loads((tmp_path / "bench" / "quality.json").read_text())["benchmark"] == "quality"
     table = (tmp_path / "bench" / "quality.md").read_text()
-    assert "| F-score, IoU 0.6 |" in table and "box_head" in table and "seeds 501" in table
+    assert "| F-score, IoU 0.6 |" in table and "seeds 501" in table
+    assert "box_head" in table and "head_options" in table
     assert table == quality_markdown(result)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from factorydet_core.boxes import box_iou_3d
+from factorydet_core.classifier import ProposalClassifier
 from factorydet_core.dataset import annotation_min_points, open_dataset
 from factorydet_core.detector import Detector
 from factorydet_core.loop import (
@@ -273,3 +274,14 @@ def test_unannotated_coverage_counts_the_truth_labels_a_session_gained(dataset, 
     other = next(name for name in db.class_names if name != label.class_name)
     db.update_label(label.id, "ann", class_name=other)
     assert unannotated_coverage(db, dataset, [0]) == (covered_0 - 1, total_0)
+
+
+def test_the_loop_settings_name_a_back_half_and_check_it():
+    from factorydet_core.box_head import BoxHead
+
+    assert isinstance(LoopSettings(method="head_options").classifier(("a", "b")), BoxHead)
+    assert isinstance(LoopSettings(method="paper").classifier(("a", "b")), ProposalClassifier)
+    with pytest.raises(InputError, match="box_quality"):
+        LoopSettings(method="head_options", box_quality=False)  # it boxes by the regressor
+    with pytest.raises(InputError, match="method"):
+        LoopSettings(method="magic")

@@ -291,3 +291,35 @@ def test_the_box_head_trains_with_mining_and_its_checkpoint_detects(frames, tmp_
     result = Detector("agv", model=loaded).detect(frame_0, score_threshold=0.05)
     assert len(result.candidates) == result.groups.num_groups
     assert (result.detections.scores >= 0.05).all()
+
+
+def test_the_box_head_classifies_and_the_box_quality_regressor_boxes(frames, tmp_path):
+    from factorydet_core.box_head import BoxHead, head_probabilities
+    from factorydet_core.detection import score_groups
+
+    head = BoxHead(channels=(16, 32), hidden=32, epochs=2, batch_size=64, num_threads=1)
+    quality = BoxQuality(max_iter=20, max_leaf_nodes=8, visibility=False)
+    run = train_with_mining(frames, head, rounds=0, score_threshold=0.05, box_quality=quality)
+    model = run.model
+    assert model.method == "head_options" and model.box_quality is not None
+    frame = frames[0]
+    # The candidates are the paper pipeline's box choice over the head's class probabilities.
+    probabilities = head_probabilities(frame.groups, model.classifier)
+    assert probabilities.shape == (frame.groups.num_groups, len(model.class_names) + 1)
+    expected = score_groups(
+        frame.proposal_boxes, frame.groups, probabilities, model.box_prior, model.class_names,
+        model.box_quality, model.probability_exponent,
+    )  # fmt: skip
+    got = model.candidates(frame.proposal_boxes, frame.groups)
+    np.testing.assert_allclose(got.boxes, expected.boxes)
+    np.testing.assert_allclose(got.scores, expected.scores)
+    # They differ from the head's own boxes, which the same head without the regressor gives.
+    own = dataclasses.replace(model, box_quality=None)
+    assert own.method == "box_head"
+    assert not np.allclose(own.candidates(frame.proposal_boxes, frame.groups).boxes, got.boxes)
+    loaded = DetectionModel.load(model.save(tmp_path / "options.pt"))
+    assert loaded.method == "head_options"
+    a = model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
+    np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-4)  # the note keeps sizes to 0.1 mm
