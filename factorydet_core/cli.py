@@ -12,6 +12,7 @@ from pathlib import Path
 
 from .types import (
     BOX_KINDS,
+    DEFAULT_METHOD,
     LEVELS,
     METHODS,
     MINING_THRESHOLD,
@@ -813,7 +814,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         choices=METHODS,
-        default="paper",
+        default=DEFAULT_METHOD,
         help="paper: the 3DmFV-Net classifier choosing among the size prior's box options; box_head: "
         "the learned box head, which classifies and boxes each point set in one pass; head_options: "
         "the box head classifies, the box quality regressor boxes among the size prior's options",

@@ -39,7 +39,14 @@ from .training import (
     proposals_to_arrays,
     train_with_mining,
 )
-from .types import METHODS, MINING_THRESHOLD, PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
+from .types import (
+    DEFAULT_METHOD,
+    METHODS,
+    MINING_THRESHOLD,
+    PROBABILITY_EXPONENT,
+    SCORE_THRESHOLD,
+    InputError,
+)
 
 MODES = ("full", "next")
 _CACHE_FORMAT = 5  # bump when FrameProposals or the front half's output changes (5: sampled points)
@@ -97,7 +104,7 @@ class LoopSettings:
             return self.visibility
         return dataset is None or dataset.num_sensors > 1
 
-    method: str = "paper"
+    method: str = DEFAULT_METHOD
     """"paper": the 3DmFV-Net classifier and the size prior's box options (with ``box_quality``);
     "box_head": the learned box head (``box_head.BoxHead``), which classifies and boxes each point
     set in one pass (``width``, ``geometry`` and ``box_quality`` do not apply); "head_options":

@@ -11,7 +11,7 @@ import numpy as np
 
 from .bench import machine_info, save_figure
 from .box_quality import BoxQuality
-from .classifier import FisherNet, ProposalClassifier, count_parameters
+from .classifier import FisherNet, count_parameters
 from .dataset import open_dataset
 from .evaluation import FALSE_POSITIVE_KINDS, MISS_KINDS, OVERLAP_IOU
 from .model import DetectionModel
@@ -32,6 +32,43 @@ from .types import InputError
 
 def _fmt(value, digits: int = 3) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
+
+
+METHOD_LABELS = {"paper": "3DmFV-Net", "box_head": "box head", "head_options": "box head + options"}
+"""How the report names each back half (``model.DetectionModel.method``) in its tables."""
+
+
+def model_text(model: DetectionModel) -> str:
+    """What the model's back half is, in one clause."""
+    if model.method == "paper":
+        return (
+            f"3DmFV-Net width {model.classifier.width} ({model.classifier.num_parameters_:,} parameters; "
+            f"width 1.0, the paper's network, has "
+            f"{count_parameters(FisherNet(len(model.classifier.labels_), 1.0)):,})"
+        )
+    num_parameters = model.classifier.num_parameters_
+    head = f"learned box head, a PointNet on each point set's points ({num_parameters:,} parameters)"
+    if model.method == "head_options":
+        return (
+            head
+            + ", whose class probabilities the box quality regressor boxes among the size prior's options"
+        )
+    return head + ", which boxes its own detections"
+
+
+def heldout_lines(quality: dict) -> list[str]:
+    """The held-out factory benchmark's table (``heldout.quality_markdown``) under its heading."""
+    from .heldout import quality_markdown
+
+    return [
+        "",
+        "## Held-out factories: the paper's method and the learned stages side by side",
+        "",
+        "The headline. Every method classifies the same proposals of factories no training, tuning "
+        "or threshold choice saw (`factorydet bench quality`, `docs/bench/quality.json`):",
+        "",
+        quality_markdown(quality).rstrip(),
+    ]
 
 
 def operating_text(model: DetectionModel) -> str:
@@ -129,7 +166,7 @@ FEATURE_TEXT = {
 """How the report names each proposal feature (``FrontEndParams.feature``)."""
 
 
-def _error_lines(errors: dict, reference: str, png: Path) -> list[str]:
+def _error_lines(errors: dict, reference: str, png: Path, method_label: str = "3DmFV-Net") -> list[str]:
     """The report's section on the kinds of errors (``evaluation.error_breakdown``)."""
     names = list(errors["per_class"])
     rows = [("true positives", lambda r: r["tp"], errors["tp"])]
@@ -148,7 +185,7 @@ def _error_lines(errors: dict, reference: str, png: Path) -> list[str]:
         "",
         "## Where the errors are",
         "",
-        f"Every 3DmFV-Net detection at the operating thresholds and every {reference} instance, "
+        f"Every {method_label} detection at the operating thresholds and every {reference} instance, "
         "sorted by kind (after Hoiem et al., *Diagnosing error in object detectors*, 2012). A false "
         "positive is a *duplicate* when an instance of its class fits it at the IoU but was already "
         f"matched, *localization* when one of its class overlaps it at IoU {OVERLAP_IOU} or more but "
@@ -204,7 +241,6 @@ def voxel_sweep(
 
     front = model.front_end or {}
     base = PRESETS[front.get("preset", "agv")].replace(**front.get("overrides", {}))
-    settings = {k: v for k, v in model.classifier.get_params().items()}
     rows = []
     for n, size in enumerate(sizes):
         params = base.replace(voxel_size_m=size)
@@ -212,7 +248,7 @@ def voxel_sweep(
         test = collect_proposals(dataset, test_indices, Detector(params, T_vehicle_sensor))
         run = train_with_mining(
             train,
-            ProposalClassifier(**settings),
+            type(model.classifier)(**model.classifier.get_params()),  # its settings, unfitted
             rounds=0,
             score_threshold=model.score_threshold,
             tune_class_thresholds=model.class_score_thresholds is not None,
@@ -271,6 +307,7 @@ def write_report(
     out = Path(out)
     dataset = open_dataset(data)
     model = DetectionModel.load(model_path)
+    label = METHOD_LABELS[model.method]
     simulated = (Path(data) / "truth").is_dir()
     train_dataset = dataset if train_data is None else open_dataset(train_data)
     train_idx = train_dataset.splits.get("train") or []
@@ -298,10 +335,10 @@ def write_report(
     plot_error_breakdown(
         results[headline]["deep"]["errors"],
         errors_png,
-        f"3DmFV-Net errors vs {headline} at the operating point, IoU {iou_threshold}",
+        f"{label} errors vs {headline} at the operating point, IoU {iou_threshold}",
     )
     plot_pr_curves(
-        results[headline]["deep"], pr_png, f"3DmFV-Net detections vs {headline}, IoU {iou_threshold}"
+        results[headline]["deep"], pr_png, f"{label} detections vs {headline}, IoU {iou_threshold}"
     )
     sweep_rows, sweep_png = [], Path(f"{stem}_grid_sweep.png")
     if sweep_sizes:
@@ -318,6 +355,7 @@ def write_report(
     note = model.note
     rounds = int(note.get("rounds", 1))
     machine = machine_info()
+    quality_path = out.parent / "bench" / "quality.json"  # written by `factorydet bench quality`
     class_names = model.class_names
 
     lines = [
@@ -331,9 +369,7 @@ def write_report(
         "(the model's, the baseline's and the grid sweep's).",
         f"- Instances in the test frames: {results[headline]['deep']['num_reference']} against the {headline}"
         + (f" ({results['annotations']['deep']['num_reference']} annotated)" if simulated else ""),
-        f"- Model: `{model_path}`: 3DmFV-Net width {model.classifier.width} "
-        f"({model.classifier.num_parameters_:,} parameters; width 1.0, the paper's network, has "
-        f"{count_parameters(FisherNet(len(model.classifier.labels_), 1.0)):,}), "
+        f"- Model: `{model_path}`: {model_text(model)}, "
         f"on the {FEATURE_TEXT[detector.params.feature]}, "
         f"{rounds} training rounds ({max(rounds - 1, 0)} of hard-negative mining), "
         f"training time of the final round {note.get('fit_seconds', 0):.0f} s; command: "
@@ -341,13 +377,14 @@ def write_report(
         f"- Matching: IoU ≥ {iou_threshold} with a reference of the same class; {operating_text(model)}, "
         f"NMS IoU {model.nms_iou}. AP is the area under the interpolated PR curve.",
         f"- Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory_gb']} GB, no GPU.",
+        *(heldout_lines(json.loads(quality_path.read_text())) if quality_path.is_file() else []),
         "",
         "## Table 2: recognition accuracy (%) of held-out point sets",
         "",
         "Test-frame point sets that match a reference instance at the IoU threshold take its class; "
         "those that overlap none are background.",
         "",
-        "| class | n | 3DmFV-Net | baseline | paper |",
+        f"| class | n | {label} | baseline | paper |",
         "|---|---|---|---|---|",
     ]
     rec_deep = results[headline]["deep"]["recognition"]
@@ -368,7 +405,7 @@ def write_report(
         "",
         f"## Table 3: detection F-score at IoU {iou_threshold}",
         "",
-        "| class | n | 3DmFV-Net P | R | **F** | AP | baseline F | baseline AP | paper F (IoU 0.6) "
+        f"| class | n | {label} P | R | **F** | AP | baseline F | baseline AP | paper F (IoU 0.6) "
         "| paper 3D-DPM F (IoU 0.6) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -412,7 +449,7 @@ def write_report(
             "IoU 0.6 and are not compared at this threshold)."
         ),
         f"- Classes at or below F = 0.5: {', '.join(below) if below else 'none'}.",
-        f"- 3DmFV-Net against the baseline (total F): {deep['f1']:.3f} against {base['f1']:.3f}"
+        f"- {label} against the baseline (total F): {deep['f1']:.3f} against {base['f1']:.3f}"
         + (" (ahead)." if deep["f1"] > base["f1"] else " (not ahead)."),
     ]
     if bound is not None:
@@ -456,7 +493,7 @@ def write_report(
                 else ""
             ),
             "",
-            "The last three rows follow the 3DmFV-Net's detections down from that bound: the share "
+            f"The last three rows follow the {label}'s detections down from that bound: the share "
             "of instances for which some point set's candidate names the instance's class and its "
             "chosen box reaches the IoU, at any score (a wrong class on the set, or a wrong choice "
             "among its options, loses an instance here), then at the operating score, then among "
@@ -476,7 +513,7 @@ def write_report(
             "of held-out point sets per class on average against the paper's "
             f"{PAPER_TABLE2['mean']}%.",
         ]
-    lines += _error_lines(deep["errors"], headline, errors_png)
+    lines += _error_lines(deep["errors"], headline, errors_png, label)
     if sweep_rows:
         lines += [
             "",

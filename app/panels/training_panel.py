@@ -9,19 +9,25 @@ import dataclasses
 import viser
 
 from factorydet_core.loop import comparison_markdown
-from factorydet_core.model import DEFAULT_MODEL, DetectionModel
-from factorydet_core.types import InputError
+from factorydet_core.model import DEFAULT_MODEL, PAPER_MODEL, DetectionModel
+from factorydet_core.types import METHODS, InputError
 
 from ..state import AppState
 from ..trainer import TrainingWorker
 
 MODES = {"next round": "next", "full retrain": "full"}
 SHIPPED = "shipped default model"
+SHIPPED_PAPER = "shipped paper pipeline"
+METHOD_HINT = (
+    "paper: the 3DmFV-Net classifier picks among box options; box_head: a learned head classifies "
+    "and boxes each point set; head_options: the head classifies, the box quality regressor boxes"
+)
 
 
 def model_choices(state: AppState) -> dict[str, str]:
     """Dropdown text -> checkpoint path of every model the session can show."""
-    choices = {SHIPPED: str(DEFAULT_MODEL)} if DEFAULT_MODEL.is_file() else {}
+    shipped = {SHIPPED: DEFAULT_MODEL, SHIPPED_PAPER: PAPER_MODEL}
+    choices = {name: str(path) for name, path in shipped.items() if path.is_file()}
     if state.db is None:
         return choices
     for run in reversed(state.db.training_runs()):
@@ -54,6 +60,7 @@ def runs_markdown(state: AppState) -> str:
 @dataclasses.dataclass
 class TrainingPanel:
     mode: viser.GuiDropdownHandle
+    method: viser.GuiDropdownHandle
     epochs: viser.GuiNumberHandle
     train: viser.GuiButtonHandle
     cancel: viser.GuiButtonHandle
@@ -90,6 +97,9 @@ class TrainingPanel:
 def build_training_panel(server: viser.ViserServer, state: AppState, worker: TrainingWorker) -> TrainingPanel:
     with server.gui.add_folder("Training", order=40, expand_by_default=False):
         mode = server.gui.add_dropdown("Mode", list(MODES), initial_value="next round")
+        method = server.gui.add_dropdown(
+            "Method", list(METHODS), initial_value=worker.settings.method, hint=METHOD_HINT
+        )
         epochs = server.gui.add_number("Epochs", initial_value=worker.settings.epochs, min=1, max=500, step=1)
         train = server.gui.add_button(
             "Train", color="green", hint="On the corrected labels and the review verdicts, in the background"
@@ -102,11 +112,13 @@ def build_training_panel(server: viser.ViserServer, state: AppState, worker: Tra
         choices = list(model_choices(state)) or ["(none)"]
         model = server.gui.add_dropdown("Model", choices, initial_value=choices[0])
         show_model = server.gui.add_button("Show this model")
-    panel = TrainingPanel(mode, epochs, train, cancel, progress, status, comparison, runs, model, show_model)
+    panel = TrainingPanel(
+        mode, method, epochs, train, cancel, progress, status, comparison, runs, model, show_model
+    )
 
     @train.on_click
     def _(event: viser.GuiEvent) -> None:
-        if not worker.start(MODES[mode.value], int(epochs.value)) and event.client is not None:
+        if not worker.start(MODES[mode.value], int(epochs.value), method.value) and event.client is not None:
             event.client.add_notification(
                 "Training", "A training job is already running.", auto_close_seconds=5
             )

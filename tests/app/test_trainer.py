@@ -7,6 +7,7 @@ import threading
 from app.state import AppState
 from app.trainer import TrainingWorker
 from factorydet_core.dataset import open_dataset
+from factorydet_core.loop import LoopSettings
 from factorydet_core.session import SessionDB, open_session
 
 from .test_browser import _wait
@@ -41,3 +42,23 @@ def test_a_job_can_start_as_soon_as_the_last_one_says_done(small_dataset_dir, tm
         release.set()
         for thread in threads:
             thread.join(10)
+
+
+def test_a_job_trains_with_the_method_and_epochs_it_was_started_with(small_dataset_dir, tmp_path):
+    dataset = open_dataset(small_dataset_dir)
+    state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
+    trainer = TrainingWorker(state, calibrate=False)
+    seen = []
+    done = threading.Event()
+
+    def job(mode, settings):
+        seen.append((mode, settings.method, settings.epochs))
+        trainer._finish(status="done", progress=1.0)
+        done.set()
+
+    trainer._train = job
+    assert trainer.start("full", epochs=3, method="box_head")
+    assert done.wait(10)
+    trainer.join(10)
+    assert seen == [("full", "box_head", 3)]
+    assert trainer.settings.method == LoopSettings().method  # the worker's own settings are unchanged

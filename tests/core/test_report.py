@@ -1,6 +1,8 @@
 """The report's wording of how a model scores and thresholds its detections."""
 
+import json
 import types
+from pathlib import Path
 
 from factorydet_core.model import DetectionModel
 from factorydet_core.report import operating_text
@@ -45,3 +47,22 @@ def test_grid_sweep_retrains_with_the_models_score_settings(monkeypatch):
     for kwargs in calls:
         assert kwargs["probability_exponent"] == 0.5 and kwargs["score_threshold"] == 0.35
         assert kwargs["tune_class_thresholds"] and kwargs["box_quality"] is not None
+
+
+def test_the_report_names_the_back_half_and_shows_the_held_out_table(tmp_path):
+    from factorydet_core import report
+    from factorydet_core.box_head import BoxHead
+
+    head = BoxHead(class_names=("barrel", "truck"))
+    head.num_parameters_ = 1234
+    assert "box head" in report.model_text(DetectionModel(head)) and "1,234" in report.model_text(
+        DetectionModel(head)
+    )
+    with_options = DetectionModel(head, box_quality=object())
+    assert with_options.method == "head_options" and "box quality" in report.model_text(with_options)
+    assert report.METHOD_LABELS[with_options.method] == "box head + options"
+    # The committed benchmark record, as `factorydet bench quality` wrote it.
+    quality = json.loads((Path(__file__).parents[2] / "docs" / "bench" / "quality.json").read_text())
+    lines = report.heldout_lines(quality)
+    assert lines[1].startswith("## Held-out factories")
+    assert "| " + " | ".join(quality["methods"]) + " |" in "\n".join(lines)
