@@ -1,6 +1,6 @@
 # Two entry points, both safe on a fresh Debian/Ubuntu machine with Python 3.11:
 #   make app   - set up, build the demo session if it is missing, serve the app on http://127.0.0.1:8080
-#   make test  - set up, run the whole test suite (unit tests and the headless-browser test)
+#   make test  - set up, run the whole test suite (lint, docs build, unit and headless-browser tests)
 SHELL := /bin/bash
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
@@ -11,7 +11,7 @@ PORT ?= 8080
 APT_GET := DEBIAN_FRONTEND=noninteractive apt-get
 IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 
-.PHONY: app test lint bench report screenshots demo corpus default-model sysdeps browserdeps clean
+.PHONY: app test lint docs bench report screenshots demo corpus default-model sysdeps browserdeps clean
 
 app: $(STAMP) demo
 	$(BIN)/factorydet app --session demo --host $(HOST) --port $(PORT)
@@ -21,30 +21,35 @@ demo: $(STAMP)
 
 test: $(STAMP) browserdeps
 	$(BIN)/ruff check factorydet_core app tests
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $$(mktemp -d)
 	$(BIN)/python -m pytest
+
+# The documentation site (README's links, docs/*.md) into site/; strict: a broken link fails.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
 lint: $(STAMP)
 	$(BIN)/ruff check factorydet_core app tests
 
-# Re-runs every benchmark and writes its JSON into README.md (several minutes).
+# Re-runs every benchmark: JSON under docs/, tables into docs/benchmarks.md, docs/labelling.md and the README (an hour or more).
 BENCH_DATA ?= /tmp/bench_sim
 REAL := ../shared/data/real
 bench: $(STAMP) corpus
-	$(BIN)/factorydet bench simulate --readme README.md
+	$(BIN)/factorydet bench simulate --readme docs/benchmarks.md
 	rm -rf $(BENCH_DATA) && $(BIN)/factorydet simulate --out $(BENCH_DATA) --frames 24 --seed 0
-	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 8 --json --readme README.md
-	$(BIN)/factorydet bench pipeline $(CORPUS) --frames 20 --json --readme README.md --readme-block pipeline-corpus
+	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 8 --json --readme docs/benchmarks.md
+	$(BIN)/factorydet bench pipeline $(CORPUS) --frames 20 --json --readme docs/benchmarks.md --readme-block pipeline-corpus
 	$(BIN)/factorydet bench pipeline $(REAL)/scannet_scene0000_00.npz $(REAL)/scannet_scene0000_01.npz \
-	  $(REAL)/scannet_scene0000_02.npz --json --readme README.md
-	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 4 --png docs/voxel_sweep.png --readme README.md
+	  $(REAL)/scannet_scene0000_02.npz --json --readme docs/benchmarks.md
+	$(BIN)/factorydet bench sweep $(BENCH_DATA) --frames 4 --png docs/voxel_sweep.png --readme docs/benchmarks.md
 	$(BIN)/factorydet bench classifier $(BENCH_DATA) --widths 0.0625,1.0 --features aggregated,direct \
-	  --epochs 15 --max-fit-seconds 240 --train-frames 4 --frames 2 --readme README.md
+	  --epochs 15 --max-fit-seconds 240 --train-frames 4 --frames 2 --readme docs/benchmarks.md
 	$(BIN)/factorydet demo
-	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme README.md
+	$(BIN)/factorydet bench detect sessions/demo/data --model default --frames 4 --readme docs/benchmarks.md
 	$(BIN)/factorydet bench quality $(CORPUS) --model paper --seeds 0,1,2 --heldout-seeds 101,102,103 \
 	  --heldout-frames 12 --epochs 20 --rounds 1 --out docs/bench/quality.json --readme README.md
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/hitl.json --readme README.md
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/hitl.json --readme docs/labelling.md
 
 # Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
 screenshots: $(STAMP) demo browserdeps
