@@ -76,10 +76,12 @@ class TrainingPanel:
         with state.lock:
             busy, status, progress = state.training_busy, state.training_status, state.training_progress
             comparison, revision, model_name = state.training_comparison, state.revision, state.model_name
+            method = getattr(state.model, "method", None)
         self.train.disabled = busy or state.db is None
         self.cancel.disabled = not busy
         self.progress.value = round(100.0 * progress, 1)
-        self.status.content = f"**Training:** {status} · shown model `{model_name or 'none'}`"
+        shown = f"`{model_name or 'none'}`" + (f" ({method})" if method else "")
+        self.status.content = f"**Training:** {status} · shown model {shown}"
         key = (revision, id(comparison))
         if key == self._seen:
             return
