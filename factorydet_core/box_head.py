@@ -887,17 +887,11 @@ def label_point_sets(
     return labels, owner
 
 
-def _check_head_input(groups: ProposalGroups) -> None:
+def check_head_input(groups: ProposalGroups) -> None:
+    """Raise ``InputError`` unless the point sets carry the sampled points and fitted boxes the
+    head reads."""
     if groups.points is None or groups.fitted_boxes is None:
         raise InputError("the box head needs each point set's points (detection.group_proposals keeps them)")
-
-
-def head_probabilities(groups: ProposalGroups, head: BoxHead) -> np.ndarray:
-    """(G, C + 1) the head's class probabilities of each point set, background last."""
-    if not groups.num_groups:
-        return np.zeros((0, len(head.class_names) + 1), np.float32)
-    _check_head_input(groups)
-    return head.predict(groups.points, groups.fitted_boxes, groups.descriptors).probabilities
 
 
 def head_candidates(groups: ProposalGroups, head: BoxHead, probability_exponent: float = 1.0) -> Detections:
@@ -918,7 +912,7 @@ def head_candidates(groups: ProposalGroups, head: BoxHead, probability_exponent:
     num_classes = len(head.class_names)
     if not groups.num_groups:
         return Detections.empty(head.class_names)
-    _check_head_input(groups)
+    check_head_input(groups)
     out = head.predict(groups.points, groups.fitted_boxes, groups.descriptors)
     class_ids = out.probabilities[:, :num_classes].argmax(axis=1)
     rows = np.arange(len(class_ids))

@@ -276,6 +276,8 @@ def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | Non
         "training_seeds": list(plan.seeds),
         "methods": {},
     }
+    from .loop import LoopSettings  # the loop's rule for when box quality reads free space
+
     runs: dict[str, list[dict]] = {m: [] for m in plan.methods}
     if "paper" in runs:
         runs["paper"].append(
@@ -294,7 +296,7 @@ def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | Non
             seed=seed,
             progress=progress,
             box_quality=(
-                BoxQuality(seed=seed, visibility=train_dataset.num_sensors > 1)
+                BoxQuality(seed=seed, visibility=LoopSettings().quality_visibility(train_dataset))
                 if "head_options" in learned
                 else None
             ),

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .box_head import BoxHead, head_candidates, head_probabilities
+from .box_head import BoxHead, check_head_input, head_candidates
 from .box_quality import BoxQuality
 from .classifier import ProposalClassifier
 from .detection import (
@@ -81,8 +81,6 @@ class DetectionModel:
 
     def probabilities(self, groups: ProposalGroups) -> np.ndarray:
         """(G, C + 1) class probabilities of each point set."""
-        if isinstance(self.classifier, BoxHead):
-            return head_probabilities(groups, self.classifier)
         return group_probabilities(self.classifier, groups)
 
     @property
@@ -197,6 +195,7 @@ def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
         return np.zeros((0, len(classifier.labels_)), np.float32)
     kind = getattr(classifier, "input_kind", "features")
     if kind == "points":
+        check_head_input(groups)
         return classifier.predict_proba(groups.points, groups.fitted_boxes, groups.descriptors)
     if kind == "descriptors":
         return classifier.predict_proba(groups.descriptors)

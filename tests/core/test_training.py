@@ -294,7 +294,7 @@ def test_the_box_head_trains_with_mining_and_its_checkpoint_detects(frames, tmp_
 
 
 def test_the_box_head_classifies_and_the_box_quality_regressor_boxes(frames, tmp_path):
-    from factorydet_core.box_head import BoxHead, head_probabilities
+    from factorydet_core.box_head import BoxHead
     from factorydet_core.detection import score_groups
 
     head = BoxHead(channels=(16, 32), hidden=32, epochs=2, batch_size=64, num_threads=1)
@@ -304,7 +304,7 @@ def test_the_box_head_classifies_and_the_box_quality_regressor_boxes(frames, tmp
     assert model.method == "head_options" and model.box_quality is not None
     frame = frames[0]
     # The candidates are the paper pipeline's box choice over the head's class probabilities.
-    probabilities = head_probabilities(frame.groups, model.classifier)
+    probabilities = model.probabilities(frame.groups)
     assert probabilities.shape == (frame.groups.num_groups, len(model.class_names) + 1)
     expected = score_groups(
         frame.proposal_boxes, frame.groups, probabilities, model.box_prior, model.class_names,
