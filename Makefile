@@ -11,7 +11,7 @@ PORT ?= 8080
 APT_GET := DEBIAN_FRONTEND=noninteractive apt-get
 IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 
-.PHONY: app test lint docs bench report screenshots demo corpus default-model paper-model sysdeps browserdeps clean
+.PHONY: app test test-fast lint docs bench report screenshots demo corpus default-model paper-model sysdeps browserdeps clean
 
 app: $(STAMP) demo
 	$(BIN)/factorydet app --session demo --host $(HOST) --port $(PORT)
@@ -19,17 +19,22 @@ app: $(STAMP) demo
 demo: $(STAMP)
 	$(BIN)/factorydet demo --session demo
 
-test: $(STAMP) browserdeps
-	$(BIN)/ruff check factorydet_core app tests
+test: $(STAMP) browserdeps lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $$(mktemp -d)
 	$(BIN)/python -m pytest
+
+# The quick loop while editing: lint, the import contract and every test not marked slow or browser.
+test-fast: $(STAMP) lint
+	$(BIN)/python -m pytest -m "not slow and not browser" -q
 
 # The documentation site (README's links, docs/*.md) into site/; strict: a broken link fails.
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
+# ruff, and the layering contracts of pyproject.toml's [tool.importlinter] (import-linter).
 lint: $(STAMP)
 	$(BIN)/ruff check factorydet_core app tests
+	$(BIN)/lint-imports --no-cache
 
 # Re-runs every benchmark: JSON under docs/, tables into docs/benchmarks.md, docs/labelling.md and the README (an hour or more).
 BENCH_DATA ?= /tmp/bench_sim
@@ -108,7 +113,7 @@ $(STAMP): pyproject.toml | sysdeps
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
 	$(BIN)/python -m pip install -q -e '.[dev]'
-	$(BIN)/python -m factorydet_core.jit  # compiles the numba kernels once (about half a minute)
+	$(BIN)/python -m factorydet_core.detection.warmup  # compiles the numba kernels once (about half a minute)
 	touch $(STAMP)
 
 clean:

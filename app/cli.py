@@ -6,9 +6,9 @@ import argparse
 import sys
 
 from factorydet_core.cli import build_parser, progress_bar, run
-from factorydet_core.dataset import open_dataset
-from factorydet_core.session import DEMO_SESSION, SessionDB, ensure_demo, latest_model, open_session
-from factorydet_core.types import InputError
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.demo import DEMO_SESSION, ensure_demo
+from factorydet_core.session.store import latest_model, open_session, open_session_data, session_data
 
 
 def _cmd_app(args: argparse.Namespace) -> int:
@@ -19,30 +19,19 @@ def _cmd_app(args: argparse.Namespace) -> int:
         dataset = open_dataset(args.data)
         title = dataset.name
         print("factorydet: no --session given; labels are read-only", file=sys.stderr)
-    elif args.data is not None:
-        dataset = open_dataset(args.data)
-        db = SessionDB(open_session(args.session, args.root), dataset)
-        title = f"session {args.session}"
     else:
         args.session = args.session or DEMO_SESSION
-        session = open_session(args.session, args.root)
-        recorded = SessionDB(session).meta().get("data") if session.db_path.is_file() else None
-        if not session.has_data and recorded is not None:
-            dataset = open_dataset(recorded)  # a session made on a data set outside its folder
-        elif not session.has_data:
-            if args.session != DEMO_SESSION:
-                raise InputError(f"session {args.session!r} has no data set; pass --data DIR or FILE")
+        demo = args.data is None and args.session == DEMO_SESSION
+        if demo and session_data(open_session(DEMO_SESSION, args.root)) is None:
             update, close = progress_bar("building demo")
             try:
                 ensure_demo(args.root, update)
             finally:
                 close()
-        if session.has_data:
-            dataset = open_dataset(session.data_dir)
-        db = SessionDB(session, dataset)
-        title = f"session {session.name}"
-    from factorydet_core.model import DEFAULT_MODEL, DetectionModel
-    from factorydet_core.results import resolve_model
+        db, dataset = open_session_data(args.session, args.root, args.data)
+        title = f"session {args.session}"
+    from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
+    from factorydet_core.session.models import resolve_model
 
     model, model_name = None, ""
     if args.model == "default" and not DEFAULT_MODEL.is_file():

@@ -1,40 +1,27 @@
-"""What belongs to one browser: who they are, what they selected, where they are in the review
-queue, their own panels and highlights.
-
-The scene and the session are shared by every browser; a selection, a camera, a review cursor and
-an undo stack (by author name) are each browser's own. Every edit goes through the session
-database, which commits it before the call returns, so an edit the panel acknowledges is stored;
-an edit made against a label or verdict someone else has changed since is refused and the person
-is told (``EditConflictError``).
-"""
+"""What one browser sees of its ``BrowserSession``: notifications, its camera, its panels, the
+highlighted boxes and points, the box gizmo and the dimmed scan while reviewing (viser)."""
 
 from __future__ import annotations
 
-import secrets
-import sqlite3
 import threading
 from collections.abc import Callable
 
 import numpy as np
 import viser
 
-from factorydet_core import colors
-from factorydet_core.editing import box_of_points, box_to_pose, camera_for_box, pose_to_box, split_in_two
 from factorydet_core.geometry import box_wireframe_segments
-from factorydet_core.session import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
-from factorydet_core.types import InputError
+from factorydet_core.session.editing import box_to_pose, camera_for_box, pose_to_box
 
+from .browser_session import BrowserSession
 from .state import AppState
 
-FAILED = object()
-"""What ``ClientView._guarded`` returns when the edit was refused (the person has been told)."""
 HIGHLIGHT_RGB = (255, 215, 0)
 REVIEW_RGB = (255, 0, 200)
 DIM_FACTOR = 0.25
 
 
-class ClientView:
-    """One browser's selection, review cursor and panels.
+class ClientView(BrowserSession):
+    """One browser's session drawn in its viser client.
 
     Args:
         client: the viser client.
@@ -51,336 +38,36 @@ class ClientView:
         scene_points: Callable[[], tuple[np.ndarray, np.ndarray]],
         drawn_result: Callable[[], tuple],
     ) -> None:
+        super().__init__(state, drawn_result)
         self.client = client
-        self.state = state
         self._scene_points = scene_points
-        self.drawn_result = drawn_result
-        self.lock = threading.RLock()
-        # viser numbers browsers from 0 at every start, so the default name must not be the id:
-        # a new browser would otherwise inherit (and undo) an earlier person's edits.
-        self.author = f"reviewer-{secrets.token_hex(3)}"
-        self.selected_label_id: int | None = None
-        self.selected_label_version: int | None = None
-        self.selected_patch_ids: set[int] = set()
-        self.selected_frame: int | None = None
-        self.object_class = state.dataset.class_names[0]
-        # Review: filters, the item shown, whether the scene is dimmed around it.
-        self.filter_class: str | None = None
-        self.filter_frame: int | None = None
-        self.pending_only = True
-        self.hide_labelled = False
-        self.current_item_id: int | None = None
-        self.dim = True
         self._dimmed = False
-        self.queue: list[dict] = []
         self.panels: list = []
         self.gizmo: viser.TransformControlsHandle | None = None
-        self.suspect_index = -1
         self.class_dropdowns: list = []  # every dropdown showing object_class
         self._refresh_lock = threading.Lock()  # one refresh at a time (redraw and callback threads)
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
 
-    # -- messages
-
     def notify(self, title: str, body: str, error: bool = False) -> None:
+        super().notify(title, body, error)
         if self.closed:
             return
         self.client.add_notification(
             title, body, auto_close_seconds=6.0 if not error else 12.0, color="red" if error else None
         )
 
-    def _guarded(self, action: Callable[[], object], what: str) -> object:
-        """Run an edit; a conflict, a refused edit or a database failure becomes a notification
-        (and ``FAILED`` is returned), never an exception in viser's callback thread."""
-        try:
-            result = action()
-        except EditConflictError as exc:
-            self.notify(f"{what}: someone else got there first", str(exc), error=True)
-            self._reload_selected_version()
-            self.state.session_changed()
-            return FAILED
-        except InputError as exc:  # SessionError included
-            self.notify(f"{what}: not done", str(exc), error=True)
-            return FAILED
-        except sqlite3.Error as exc:
-            self.notify(f"{what}: the session database failed", f"{type(exc).__name__}: {exc}", error=True)
-            return FAILED
-        self.state.session_changed()
-        return result
-
-    # -- selection
-
-    def selected_label(self):
-        """The selected label as stored now (``None`` if none or deleted)."""
-        with self.lock:
-            label_id = self.selected_label_id
-        if label_id is None or self.state.db is None:
-            return None
-        label = self.state.db.label(label_id)
-        return None if label.deleted else label
-
-    def _reload_selected_version(self) -> None:
-        """After a conflict the person sees the label as it is now; their next edit is made
-        against that version."""
-        label = self.selected_label()
-        with self.lock:
-            self.selected_label_version = None if label is None else label.version
-
-    def select_label(self, label_id: int | None) -> None:
-        """Select a label; edits from here on are made against the version selected (or last
-        edited by this browser), so someone else's change in between is reported, not overwritten."""
-        label = None
-        if label_id is not None and self.state.db is not None:
-            label = self.state.db.label(label_id)
-        with self.lock:
-            self.selected_label_id = label_id
-            self.selected_label_version = None if label is None else label.version
-            self.selected_patch_ids = set()
-        self.refresh()
-
-    def select_patches(self, patch_ids, add: bool = False) -> None:
-        """Select the segment made of ``patch_ids`` of the drawn result (``add``: extend it)."""
-        _, frame_index = self.drawn_result()
-        with self.lock:
-            if not add or self.selected_frame != frame_index:
-                self.selected_patch_ids = set()
-            self.selected_patch_ids |= {int(p) for p in patch_ids}
-            self.selected_frame = frame_index
-            self.selected_label_id = None
-            self.selected_label_version = None
-        self.refresh()
-
-    def clear_selection(self) -> None:
-        with self.lock:
-            self.selected_label_id = None
-            self.selected_label_version = None
-            self.selected_patch_ids = set()
-        self.refresh()
-
-    def selected_points(self) -> np.ndarray:
-        """(K, 3) points of the selected segment in the drawn result."""
-        result, frame_index = self.drawn_result()
-        with self.lock:
-            patch_ids = set(self.selected_patch_ids)
-            frame = self.selected_frame
-        if result is None or not patch_ids or frame != frame_index:
-            return np.zeros((0, 3))
-        mask = np.isin(result.segmentation.patch_ids, list(patch_ids))
-        return result.cloud.points[mask]
-
-    # -- label edits
-
-    def _edit_selected(self, what: str, edit: Callable) -> object:
-        """Apply ``edit(label_id, expected_version)`` to the selected label."""
-        with self.lock:
-            label_id, version = self.selected_label_id, self.selected_label_version
-        if label_id is None:
-            self.notify(what, "Select a label first (click its box).")
-            return FAILED
-        result = self._guarded(lambda: edit(label_id, version), what)
-        if result is not FAILED and hasattr(result, "version"):
-            with self.lock:
-                self.selected_label_version = result.version
-        return result
-
-    def set_class(self, class_name: str) -> None:
-        self._edit_selected(
-            "Set class",
-            lambda i, v: self.state.db.update_label(
-                i, self.author, expected_version=v, class_name=class_name
-            ),
-        )
-
-    def apply_box(self, box) -> None:
-        self._edit_selected(
-            "Move box", lambda i, v: self.state.db.update_label(i, self.author, expected_version=v, box=box)
-        )
-
-    def delete_selected(self) -> None:
-        done = self._edit_selected(
-            "Delete", lambda i, v: self.state.db.delete_labels([i], self.author, {i: v})
-        )
-        if done is not FAILED:
-            self.select_label(None)
-
-    def label_segment(self, class_name: str, split: bool = False) -> None:
-        """A new label (two with ``split``, as one edit) boxing the selected segment's points."""
-        points = self.selected_points()
-        with self.lock:
-            frame_index = self.selected_frame
-        if len(points) < 3 or frame_index is None:
-            self.notify("Label segment", "Select a segment first: click its points (shift-click adds one).")
-            return
-
-        def add():
-            parts = [points] if not split else [points[split_in_two(points) == k] for k in (0, 1)]
-            boxes = [box_of_points(part) for part in parts]  # all boxes first: nothing half-written
-            return self.state.db.add_labels(
-                [(frame_index, b, class_name) for b in boxes], self.author, "user"
-            )
-
-        added = self._guarded(add, "Split segment" if split else "Label segment")
-        if added is not FAILED and added:
-            self.select_label(added[-1].id)
-
-    def undo(self, redo: bool = False) -> None:
-        what = "Redo" if redo else "Undo"
-        edit = self._guarded(
-            lambda: self.state.db.redo(self.author) if redo else self.state.db.undo(self.author), what
-        )
-        if edit is FAILED:
-            return
-        self._reload_selected_version()
-        if edit is None:
-            self.notify(what, "Nothing to " + ("redo." if redo else "undo."))
-        else:
-            self.notify("Redone" if redo else "Undone", edit.summary)
-
-    # -- review queue
-
-    def load_queue(self) -> list[dict]:
-        if self.state.db is None:
-            return []
-        with self.lock:
-            filter_class, filter_frame, pending = self.filter_class, self.filter_frame, self.pending_only
-            hide_labelled, current_id = self.hide_labelled, self.current_item_id
-        queue = self.state.db.review_queue(
-            predicted_class=filter_class, frame_index=filter_frame, pending_only=False
-        )
-        # The shown item stays, though a verdict just took it out of the filter (the panel still
-        # shows it, with its verdict, until Next).
-        if pending:
-            queue = [q for q in queue if q["verdict"] in (None, "skip") or q["id"] == current_id]
-        if hide_labelled:
-            queue = [
-                q
-                for q in queue
-                if not on_labelled_object(q["label_iou"], HIDE_LABELLED_IOU) or q["id"] == current_id
-            ]
-        with self.lock:
-            self.queue = queue
-        return queue
-
-    def current_item(self) -> dict | None:
-        with self.lock:
-            return next((q for q in self.queue if q["id"] == self.current_item_id), None)
-
-    def go_to(self, item: dict | None) -> None:
-        """Show a queue item: its frame, the camera on it, its box highlighted in a dimmed scene."""
-        with self.lock:
-            self.current_item_id = None if item is None else item["id"]
-        if item is None:
-            self.refresh()
-            return
-        self.state.set_frame(item["frame_index"])
-        position, look_at = camera_for_box(item["box"])
+    def look_at_box(self, box) -> None:
+        position, look_at = camera_for_box(box)
         with self.client.atomic():
             self.client.camera.position = tuple(position)
             self.client.camera.look_at = tuple(look_at)  # after position: setting it moves look_at
-        self.refresh()
 
-    def step(self, delta: int) -> None:
-        queue = self.load_queue()
-        if not queue:
-            self.go_to(None)
-            return
-        ids = [q["id"] for q in queue]
+    def _object_class_shown(self, name: str) -> None:
         with self.lock:
-            current = self.current_item_id
-        k = ids.index(current) + delta if current in ids else 0
-        self.go_to(queue[max(0, min(k, len(queue) - 1))])
-
-    def verdict(self, verdict: str, class_name: str | None = None, advance: bool = True) -> None:
-        """The verdict on the shown item, then (with ``advance``) the next pending one."""
-        item = self.current_item()
-        if item is None:
-            # Nothing is shown yet: show the first item, and let the person look before judging.
-            self.step(0)
-            if self.current_item() is None:
-                self.notify("Review", "The queue is empty: train a model from the Training panel first.")
-            return
-        done = self._guarded(
-            lambda: self.state.db.review(
-                [item["id"]],
-                verdict,
-                self.author,
-                class_name=class_name,
-                expected={item["id"]: item["verdict"]},
-            ),
-            "Review",
-        )
-        if done is FAILED:
-            self.load_queue()
-            self.refresh()
-            return
-        queue = self.load_queue()
-        if not advance:
-            self.refresh()
-            return
-        ids = [q["id"] for q in queue]
-        k = ids.index(item["id"]) if item["id"] in ids else -1
-        later = [q for q in queue[k + 1 :] if q["verdict"] in (None, "skip")]
-        self.go_to(later[0] if later else None)
-
-    def batch_verdict(self, verdict: str, class_name: str | None = None) -> int:
-        """One verdict on every pending item of the current filter, as one undoable edit."""
-        with self.lock:
-            pending_only = self.pending_only
-            self.pending_only = True
-        queue = self.load_queue()
-        with self.lock:
-            self.pending_only = pending_only
-        items = [q for q in queue if q["verdict"] in (None, "skip")]
-        if not items:
-            self.notify("Batch", "No pending items in the current filter.")
-            return 0
-        done = self._guarded(
-            lambda: self.state.db.review(
-                [q["id"] for q in items],
-                verdict,
-                self.author,
-                class_name=class_name,
-                expected={q["id"]: q["verdict"] for q in items},
-            ),
-            "Batch",
-        )
-        self.load_queue()
-        self.refresh()
-        return len(items) if done is not FAILED else 0
-
-    def set_object_class(self, name: str) -> None:
-        """The class the Labels and Review panels (and the O, C, L, K keys) use: one per browser,
-        shown in both panels' dropdowns."""
-        with self.lock:
-            self.object_class = name
             dropdowns = list(self.class_dropdowns)
         for dropdown in dropdowns:
             if dropdown.value != name:
                 dropdown.value = name
-
-    def current_suspect(self) -> dict | None:
-        suspects = self.state.suspects
-        with self.lock:
-            index = self.suspect_index
-        return suspects[index] if 0 <= index < len(suspects) else None
-
-    def next_suspect(self, delta: int = 1) -> None:
-        """Select the next label the model contradicts and put the camera on it."""
-        suspects = self.state.suspects
-        if not suspects:
-            self.notify("Suspect labels", "None listed: press Find suspect labels (needs a model).")
-            return
-        with self.lock:
-            self.suspect_index = (self.suspect_index + delta) % len(suspects)
-            suspect = suspects[self.suspect_index]
-        self.state.set_frame(suspect["frame_index"])
-        position, look_at = camera_for_box(suspect["box"])
-        with self.client.atomic():
-            self.client.camera.position = tuple(position)
-            self.client.camera.look_at = tuple(look_at)
-        self.select_label(suspect["label_id"])
-
-    # -- drawing this browser's overlays
 
     def refresh(self) -> None:
         """Bring this browser's panels and highlights up to date."""
@@ -461,9 +148,3 @@ class ClientView:
 
         self.gizmo.position = tuple(position)
         self.gizmo.wxyz = tuple(wxyz)
-
-
-def class_color_hex(class_names: tuple[str, ...], name: str) -> str:
-    """The class colour as ``#rrggbb`` (for the panels' markdown)."""
-    rgb = colors.class_colors(class_names)[class_names.index(name)]
-    return "#" + "".join(f"{int(v):02x}" for v in rgb)

@@ -9,11 +9,11 @@ import numpy as np
 import viser
 
 from factorydet_core import colors
-from factorydet_core.detector import ProposalResult
-from factorydet_core.evaluation import match_detections
+from factorydet_core.detection.detector import ProposalResult
 from factorydet_core.geometry import box_wireframe_segments
+from factorydet_core.metrics import match_detections
+from factorydet_core.proposals.voxels import fisher_vector_colors
 from factorydet_core.types import Detections
-from factorydet_core.voxels import fisher_vector_colors
 
 from .state import LAYERS
 

@@ -7,7 +7,7 @@ import viser
 
 from factorydet_core import colors
 from factorydet_core.geometry import box_wireframe_segments
-from factorydet_core.merge import merge_frame
+from factorydet_core.proposals.merge import merge_frame
 from factorydet_core.types import Frame
 
 

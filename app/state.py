@@ -12,10 +12,11 @@ from collections.abc import Callable
 import numpy as np
 
 from factorydet_core.colors import COLOR_MODES
-from factorydet_core.dataset import Dataset
-from factorydet_core.detection import BOX_VOTE_IOU, select_detections
-from factorydet_core.detector import DetectionResult, FrontEndParams, ProposalResult, params_for
-from factorydet_core.evaluation import detection_metrics, error_breakdown
+from factorydet_core.detection.detector import DetectionResult, ProposalResult, params_for
+from factorydet_core.detection.scoring import BOX_VOTE_IOU, select_detections
+from factorydet_core.io.dataset import Dataset
+from factorydet_core.metrics import detection_metrics, error_breakdown
+from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.types import Detections, Frame
 
 AP_SCORE_FLOOR = 0.05
@@ -64,7 +65,7 @@ class AppState:
         # With a model the detections are what people came for; without, the proposals.
         shown = "detections" if model is not None else "proposals"
         self.layers = {name: name == shown for name in LAYERS}
-        self.params: FrontEndParams = params_for(getattr(model, "front_end", None), dataset.num_sensors)
+        self.params: FrontEndParams = params_for(model, dataset.num_sensors)
         self.use_refined_extrinsics = dataset.num_sensors > 1
         self.pipeline_status = "waiting"
         self.pipeline_progress = 0.0
@@ -209,7 +210,7 @@ class AppState:
                 self.score_threshold, self.nms_iou = model.score_threshold, model.nms_iou
                 self.vote_iou = _vote_slider_value(model)
                 self.use_class_thresholds = model.class_thresholds() is not None
-                self.params = params_for(model.front_end, self.dataset.num_sensors)
+                self.params = params_for(model, self.dataset.num_sensors)
             self.detection_result = None
             self.detections = None
             self.frame_detections = {}

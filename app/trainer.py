@@ -12,16 +12,10 @@ import dataclasses
 import threading
 import traceback
 
-from factorydet_core.detector import Detector, params_for
-from factorydet_core.loop import (
-    LoopSettings,
-    cached_proposals,
-    compare_models,
-    session_references,
-    suspect_labels,
-    train_session,
-)
+from factorydet_core.detection.detector import Detector, params_for
+from factorydet_core.training.loop import LoopSettings, cached_proposals, suspect_labels
 from factorydet_core.types import Cancelled
+from factorydet_core.workflows import retrain_session
 
 from .state import AppState
 
@@ -113,7 +107,7 @@ class TrainingWorker:
     def _detector(self) -> Detector:
         """The front half the shown model was trained with, calibrated like the viewer's."""
         dataset = self.state.dataset
-        detector = Detector(params_for(getattr(self.state.model, "front_end", None), dataset.num_sensors))
+        detector = Detector(params_for(self.state.model, dataset.num_sensors))
         if self.calibrate and dataset.num_sensors > 1:
             train = dataset.splits.get("train") or [0]
             self.state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
@@ -140,10 +134,6 @@ class TrainingWorker:
         state, db, dataset = self.state, self.state.db, self.state.dataset
         with state.lock:
             before, before_name = state.model, state.model_name
-        front_end = getattr(before, "front_end", None)
-        detector = self._detector()
-        train = dataset.splits.get("train") or list(range(dataset.num_frames))
-        test = dataset.splits.get("test") or []
         rounds = settings.rounds + 1 if mode == "full" else 1
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75
@@ -152,7 +142,9 @@ class TrainingWorker:
         def progress(what: str, done: int, total: int) -> None:
             if self._cancel.is_set():
                 raise Cancelled("training cancelled")
-            if what == "proposals":
+            if what == "calibrate":
+                state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
+            elif what == "proposals":
                 state.set_training(status=f"proposals: frame {done} of {total}", progress=0.1 * done / total)
             elif what == "fit":
                 fraction = (done_fits[0] + done / total) / rounds
@@ -164,29 +156,23 @@ class TrainingWorker:
                 state.set_training(status="fitting the box quality regressor", progress=0.1)
             elif what == "round":
                 done_fits[0] = done
+            elif what == "compare":
+                state.set_training(status="measuring before and after on the test frames", progress=0.88)
 
-        frames = cached_proposals(db, dataset, detector, train, progress)
-        run_id, run = train_session(
-            db, frames, settings, mode=mode, data_ref=str(dataset.path), front_end=front_end,
-            progress=progress, should_stop=self._cancel.is_set,
+        done = retrain_session(
+            db, dataset, settings, params_for(before, dataset.num_sensors), mode=mode,
+            before={} if before is None else {f"before ({before_name})": before},
+            after_label="after (run {run_id})", calibrate=self.calibrate, progress=progress,
+            should_stop=self._cancel.is_set,
         )  # fmt: skip
-        self.last_run_id = run_id
-        table = None
-        if test:
-            state.set_training(status="measuring before and after on the test frames", progress=0.88)
-            test_frames = cached_proposals(db, dataset, detector, test)
-            models = {f"after (run {run_id})": run.model}
-            if before is not None:
-                models = {f"before ({before_name})": before} | models
-            table = compare_models(models, dataset, test_frames, session_references(db, test))
-            db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
-        state.set_model(run.model, f"session run {run_id}")
+        self.last_run_id = done.run_id
+        state.set_model(done.run.model, f"session run {done.run_id}")
         state.set_training(status="looking for suspect labels", progress=0.95)
-        state.set_suspects(suspect_labels(db, run.model, frames))
-        queue = len(db.review_queue(run_id))
+        state.set_suspects(suspect_labels(db, done.run.model, done.train_frames))
+        queue = len(db.review_queue(done.run_id))
         state.session_changed()
         self._finish(
-            status=f"run {run_id} ({mode}) done: {queue} mined negatives to review",
+            status=f"run {done.run_id} ({mode}) done: {queue} mined negatives to review",
             progress=1.0,
-            comparison=table,
+            comparison=done.comparison,
         )

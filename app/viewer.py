@@ -7,9 +7,8 @@ import threading
 import numpy as np
 import viser
 
-from factorydet_core.dataset import Dataset
-from factorydet_core.editing import points_in_screen_rect
-from factorydet_core.inspect import (
+from factorydet_core.detection.warmup import warm_up
+from factorydet_core.evaluation.diagnostics import (
     describe_detection,
     describe_patch,
     describe_proposal,
@@ -19,8 +18,9 @@ from factorydet_core.inspect import (
     ray_box_distances,
     segment_patch_ids,
 )
-from factorydet_core.jit import warm_up
-from factorydet_core.loop import LoopSettings
+from factorydet_core.io.dataset import Dataset
+from factorydet_core.session.editing import points_in_screen_rect
+from factorydet_core.training.loop import LoopSettings
 
 from .clients import ClientView
 from .layers import LayerView

@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 import traceback
 
-from factorydet_core.detector import Detector
+from factorydet_core.detection.detector import Detector
 
 from .state import AppState
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import run_kernel
-from .types import InputError, check_array
+from factorydet_core.jit import run_kernel
+from factorydet_core.types import InputError, check_array
 
 
 def _inside(points: np.ndarray, rectangles: np.ndarray) -> np.ndarray:

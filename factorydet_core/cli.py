@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from .types import (
+from factorydet_core.types import (
     BOX_KINDS,
     DEFAULT_METHOD,
     LEVELS,
@@ -41,7 +41,7 @@ def progress_bar(desc: str, unit: str = "frame") -> tuple[Callable[[int, int], N
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from .sim.simulate import SimConfig, simulate_dataset
+    from factorydet_core.sim.simulate import SimConfig, simulate_dataset
 
     try:
         config = SimConfig(
@@ -63,7 +63,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .session import DEMO_SESSION, ensure_demo, open_session
+    from factorydet_core.session.demo import DEMO_SESSION, ensure_demo
+    from factorydet_core.session.store import open_session
 
     session = open_session(DEMO_SESSION, args.root)
     if session.has_data:
@@ -79,7 +80,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from .dataset import open_dataset
+    from factorydet_core.io.dataset import open_dataset
 
     dataset = open_dataset(args.path)
     frame = dataset.frame(0)
@@ -126,11 +127,16 @@ def _choices(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import bench_pipeline, bench_simulate, bench_voxel_sweep, update_readme
+    from factorydet_core.evaluation.bench import (
+        bench_pipeline,
+        bench_simulate,
+        bench_voxel_sweep,
+        update_readme,
+    )
 
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
     if args.readme and (args.readme_block or args.name in ("hitl", "quality")):
-        from .bench import check_readme_block
+        from factorydet_core.evaluation.bench import check_readme_block
 
         check_readme_block(args.readme, args.readme_block or args.name)  # before a long run, not after
     if args.frames is None:
@@ -138,7 +144,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.name == "simulate":
         result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
     elif args.name == "quality":
-        from .heldout import QualityPlan, bench_quality, quality_markdown, write_outputs
+        from factorydet_core.evaluation.quality import (
+            QualityPlan,
+            bench_quality,
+            quality_markdown,
+            write_outputs,
+        )
 
         if len(args.data) != 1:
             raise InputError("bench quality needs one DATA folder: the training factory")
@@ -174,7 +185,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         update, close = progress_bar(args.name)
         try:
             if args.name == "classifier":
-                from .bench import bench_classifier
+                from factorydet_core.evaluation.bench import bench_classifier
 
                 result = bench_classifier(
                     args.data[0],
@@ -195,8 +206,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     progress=update,
                 )
             elif args.name == "hitl":
-                from .bench import bench_hitl
-                from .loop import LoopSettings
+                from factorydet_core.evaluation.hitl import bench_hitl
+                from factorydet_core.training.loop import LoopSettings
 
                 result = bench_hitl(
                     args.data[0],
@@ -222,14 +233,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     progress=update,
                 )
                 if args.out:
-                    from .report import hitl_markdown
+                    from factorydet_core.evaluation.report import hitl_markdown
 
                     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
                     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
                     Path(args.out).with_suffix(".md").write_text(hitl_markdown(result))
             elif args.name == "detect":
-                from .bench import bench_detect
-                from .results import resolve_model
+                from factorydet_core.evaluation.bench import bench_detect
+                from factorydet_core.session.models import resolve_model
 
                 result = bench_detect(
                     args.data[0],
@@ -264,7 +275,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.readme:
         markdown = None
         if args.name == "hitl":  # a table people read, where the other benchmarks keep their JSON
-            from .report import hitl_markdown
+            from factorydet_core.evaluation.report import hitl_markdown
 
             markdown = hitl_markdown(result, heading=False)
         update_readme(args.readme, result, args.readme_block, markdown)
@@ -272,16 +283,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_propose(args: argparse.Namespace) -> int:
-    from .dataset import open_dataset
-    from .detector import PRESETS, Detector
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.settings import front_end_params, preset_for
 
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
-    preset = args.preset or ("agv" if dataset.num_sensors > 1 else "indoor")
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    detector = Detector(PRESETS[preset].replace(**parse_overrides(args.set)))
+    preset = args.preset or preset_for(dataset.num_sensors)
+    detector = Detector(front_end_params(preset, parse_overrides(args.set)))
     if args.calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(args.frame))
     history_from = max(0, args.frame - detector.params.history_frames)
@@ -345,30 +355,11 @@ def parse_ints(text: str, option: str = "--ids") -> list[int]:
     return values
 
 
-def _front_end_note(preset: str, overrides: dict) -> dict:
-    return {
-        "preset": preset,
-        "overrides": {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()},
-    }
-
-
 def _open_session_db(args: argparse.Namespace):
-    """The session's database and data set: ``args.data`` if given, else the data set the session
-    was made on."""
-    from .dataset import open_dataset
-    from .session import SessionDB, open_session
+    """The session's database and data set (``session.store.open_session_data``)."""
+    from factorydet_core.session.store import open_session_data
 
-    session = open_session(args.session, args.root)
-    data = getattr(args, "data", None)
-    if data is None:
-        if session.has_data:
-            data = session.data_dir
-        elif session.db_path.is_file():
-            data = SessionDB(session).meta().get("data")
-        if data is None:
-            raise InputError(f"session {args.session!r} has no data set; pass --data DIR")
-    dataset = open_dataset(data)
-    return SessionDB(session, dataset), dataset
+    return open_session_data(args.session, args.root, getattr(args, "data", None))
 
 
 def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], None]]:
@@ -387,6 +378,10 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
             print("fitting the box quality regressor ...", file=sys.stderr)
         elif what == "round":
             print(f"round {done - 1} of {total - 1} done", file=sys.stderr)
+        elif what == "calibrate":
+            print("calibrating the extrinsics by ICP ...", file=sys.stderr)
+        elif what == "compare":
+            print("measuring before and after on the test frames ...", file=sys.stderr)
 
     def close() -> None:
         for _, finish in bars.values():
@@ -396,30 +391,24 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .detector import PRESETS, Detector
-    from .loop import LoopSettings, cached_proposals, compare_models, session_references, train_session
-    from .model import DetectionModel, quality_path
+    from factorydet_core.detection.model import DetectionModel, quality_path
+    from factorydet_core.proposals.settings import front_end_from_record, front_end_params
+    from factorydet_core.training.loop import LoopSettings
+    from factorydet_core.workflows import retrain_session
 
     db, dataset = _open_session_db(args)
     runs = db.training_runs()
     previous = runs[-1] if runs else None
     if args.mode == "next" and previous is None:
         raise InputError(f"session {args.session!r} has no training run to continue; use --mode full")
+    if args.compare and not dataset.splits.get("test"):
+        raise InputError("--compare needs test frames (the data set has no test split)")
+    front_end = None
     if args.mode == "next" and args.preset is None and not args.set:
-        front_end = previous["config"].get("front_end") or {}  # the same cut, so patch sets compare
-        preset, overrides = front_end.get("preset"), front_end.get("overrides", {})
-    else:
-        preset, overrides = args.preset, parse_overrides(args.set)
-    preset = preset or ("agv" if dataset.num_sensors > 1 else "indoor")
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    detector = Detector(PRESETS[preset].replace(**overrides))
-    train = dataset.splits.get("train") or list(range(dataset.num_frames))
-    train = train[: args.frames] if args.frames else train
-    if args.calibrate and dataset.num_sensors > 1:
-        print("calibrating the extrinsics by ICP ...", file=sys.stderr)
-        detector.calibrate(dataset.frame(train[0]))
-    progress, close = _training_progress()
+        # The same front half as the run it continues, so that the point sets compare.
+        front_end = front_end_from_record(previous["config"].get("front_end"))
+    if front_end is None:
+        front_end = front_end_params(args.preset, parse_overrides(args.set), dataset.num_sensors)
     settings = LoopSettings(
         width=args.width,
         epochs=args.epochs,
@@ -441,54 +430,40 @@ def _cmd_train(args: argparse.Namespace) -> int:
         visibility={"auto": None, "on": True, "off": False}[args.visibility],
         method=args.method,
     )
-    front_end = _front_end_note(preset, overrides)
+    before = {}
+    if args.compare and previous is not None:
+        before = {f"run {previous['id']}": DetectionModel.load(db.session.path / previous["model_path"])}
+    progress, close = _training_progress()
     try:
-        frames = cached_proposals(db, dataset, detector, train, progress)
-        run_id, run = train_session(
-            db, frames, settings, mode=args.mode, data_ref=str(dataset.path), front_end=front_end,
+        done = retrain_session(
+            db, dataset, settings, front_end, mode=args.mode, before=before, compare=args.compare,
+            calibrate=args.calibrate, max_train_frames=args.frames, max_test_frames=args.test_frames,
             progress=progress, command=args.command_line,
         )  # fmt: skip
-        summary = {
-            "session": db.session.name,
-            "run_id": run_id,
-            "mode": args.mode,
-            "train_frames": run.train_frames,
-            "rounds": [
-                {
-                    k: r[k]
-                    for k in (
-                        "round",
-                        "num_positives",
-                        "num_background",
-                        "fit_seconds",
-                        "num_false_positives",
-                    )
-                    if k in r
-                }
-                | {"train_f1": r["train_metrics"]["f1"], "num_mined": len(r["mined"])}
-                for r in run.rounds
-            ],
-            "review_queue": len(db.review_queue(run_id)),
-            "model": str(db.session.models_dir / f"run_{run_id:03d}" / "final.pt"),
-        }
-        if args.compare:
-            test = dataset.splits.get("test") or []
-            test = test[: args.test_frames] if args.test_frames else test
-            if not test:
-                raise InputError("--compare needs test frames (the data set has no test split)")
-            test_frames = cached_proposals(db, dataset, detector, test, progress)
-            models = {f"run {run_id}": run.model}
-            if previous is not None:
-                models = {
-                    f"run {previous['id']}": DetectionModel.load(db.session.path / previous["model_path"])
-                } | models
-            table = compare_models(models, dataset, test_frames, session_references(db, test))
-            db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
-            summary["compare"] = {
-                name: {k: m[k] for k in ("precision", "recall", "f1")} for name, m in table.items()
-            }
     finally:
         close()
+    run_id, run = done.run_id, done.run
+    summary = {
+        "session": db.session.name,
+        "run_id": run_id,
+        "mode": args.mode,
+        "train_frames": run.train_frames,
+        "rounds": [
+            {
+                k: r[k]
+                for k in ("round", "num_positives", "num_background", "fit_seconds", "num_false_positives")
+                if k in r
+            }
+            | {"train_f1": r["train_metrics"]["f1"], "num_mined": len(r["mined"])}
+            for r in run.rounds
+        ],
+        "review_queue": len(db.review_queue(run_id)),
+        "model": str(db.session.models_dir / f"run_{run_id:03d}" / "final.pt"),
+    }
+    if done.comparison is not None:
+        summary["compare"] = {
+            name: {k: m[k] for k in ("precision", "recall", "f1")} for name, m in done.comparison.items()
+        }
     if args.export:
         # The run's final checkpoint as it is, with its note (settings, rounds, command).
         final = Path(summary["model"])
@@ -531,7 +506,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
 
 
 def _cmd_labels(args: argparse.Namespace) -> int:
-    from .labels_io import export_labels, import_labels
+    from factorydet_core.session.labels_io import export_labels, import_labels
 
     db, _ = _open_session_db(args)
     frames = parse_ints(args.frames, "--frames") if args.frames else None
@@ -576,9 +551,10 @@ def _detection_rows(detections, keep_suppressed: bool) -> list[dict]:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
-    from .dataset import open_dataset
-    from .model import DetectionModel
-    from .results import detector_for, resolve_model
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.evaluation.evaluate import detector_for
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.session.models import resolve_model
 
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
@@ -621,7 +597,9 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .results import evaluate, plot_pr_curves, resolve_model, strip_curves
+    from factorydet_core.evaluation.evaluate import evaluate, strip_curves
+    from factorydet_core.evaluation.plots import plot_pr_curves
+    from factorydet_core.session.models import resolve_model
 
     model_path = resolve_model(args.model, args.root)
     update, close = progress_bar("proposals")
@@ -648,8 +626,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from .report import write_report
-    from .results import resolve_model
+    from factorydet_core.evaluation.report import write_report
+    from factorydet_core.session.models import resolve_model
 
     model_path = resolve_model(args.model, args.root)
     update, close = progress_bar("report")

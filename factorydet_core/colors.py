@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .types import CLASS_NAMES
+from factorydet_core.types import CLASS_NAMES
 
 COLOR_MODES = ("sensor", "height", "class", "annotated", "rgb")
 """Ways to colour a cloud; ``rgb`` uses the file's own colours and falls back to height without them."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .types import check_array
+from factorydet_core.types import check_array
 
 BOX_EDGES = np.array(
     [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]]
@@ -64,6 +64,23 @@ def apply_transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     check_array(points, (None, 3), name="points")
     out = points.astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
     return out.astype(points.dtype, copy=False)
+
+
+def apply_transforms(transforms: np.ndarray, transform_ids: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Move each point by its own transform, ``transforms[transform_ids[i]]`` for point ``i``.
+
+    Args:
+        transforms: (T, 4, 4) rigid transforms.
+        transform_ids: (N,) integer index into ``transforms`` of each point.
+        points: (N, 3) points.
+
+    Returns:
+        (N, 3) float64 moved points.
+    """
+    transform_ids = np.asarray(transform_ids)
+    rotations = transforms[transform_ids, :3, :3]  # (N, 3, 3)
+    translations = transforms[transform_ids, :3, 3]
+    return np.einsum("nij,nj->ni", rotations, np.asarray(points, np.float64)) + translations
 
 
 def rotation_angle_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:

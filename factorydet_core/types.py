@@ -24,10 +24,13 @@ ANCHOR_BOX_KINDS: tuple[int, ...] = (0, 3)
 box and the scene-aligned one, the two that hug the seen points."""
 LEVELS: tuple[str, ...] = ("segment", "union", "patch")
 """Where a proposal's point set comes from (``Proposals.level``)."""
-MINING_THRESHOLD = 0.05
-"""The loop's and the command line's least score of a mined false positive: the score floor of AP
-and of the box quality regressor, so the mined set is every false positive the detector reports
-(the top N by score go to the background, as the paper)."""
+SCORE_FLOOR = 0.05
+"""The least score anything is reported at: detections below it are not ranked for AP, get no box
+quality prediction (their class probability stays their score) and do not vote on boxes."""
+MINING_THRESHOLD = SCORE_FLOOR
+"""The loop's and the command line's least score of a mined false positive: the score floor, so
+the mined set is every false positive the detector reports (the top N by score go to the
+background, as the paper)."""
 PROBABILITY_EXPONENT = 0.5
 """The loop's and the command line's power of the class probability in a detection's score (with
 box quality: probability ** exponent x predicted IoU). The square root weighs the classifier less
@@ -388,7 +391,7 @@ class Detections:
     """Classified proposals: one box per point set, with its class and score.
 
     The same container holds every scored candidate (``suppressed_by`` all -1) and the result of
-    ``detection.select_detections`` (score threshold and NMS; suppressed candidates stay, with the
+    ``scoring.select_detections`` (score threshold and NMS; suppressed candidates stay, with the
     index of the detection that suppressed them, so that the app can show them).
     """
 

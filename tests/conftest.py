@@ -35,10 +35,11 @@ def small_dataset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def tiny_model_path(small_dataset_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A quickly trained detection model (two frames, a few epochs): a real checkpoint whose
     quality does not matter, for tests of the plumbing around it."""
-    from factorydet_core.classifier import ProposalClassifier
-    from factorydet_core.dataset import open_dataset
-    from factorydet_core.detector import Detector
-    from factorydet_core.training import collect_proposals, train_with_mining
+    from factorydet_core.detection.classifier import ProposalClassifier
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.settings import front_end_params
+    from factorydet_core.training.mining import collect_proposals, train_with_mining
 
     dataset = open_dataset(small_dataset_dir)
     frames = collect_proposals(dataset, [0, 1], Detector("agv"))
@@ -48,5 +49,5 @@ def tiny_model_path(small_dataset_dir: Path, tmp_path_factory: pytest.TempPathFa
         rounds=0,
         initial_negatives=200,
     )
-    run.model.front_end = {"preset": "agv", "overrides": {}}
+    run.model.front_end = front_end_params("agv")
     return run.model.save(tmp_path_factory.mktemp("model") / "tiny.pt", {"rounds": 1})

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from factorydet_core.model import DetectionModel
-from factorydet_core.training import TrainingRun
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.training.mining import TrainingRun
 
 
 def mined_item(

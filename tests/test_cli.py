@@ -4,7 +4,7 @@ import shutil
 import pytest
 
 from app.cli import main
-from factorydet_core.model import DetectionModel
+from factorydet_core.detection.model import DetectionModel
 
 
 def test_simulate_info_and_bench(tmp_path, capsys):
@@ -241,7 +241,9 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     # A README without the block is refused before the long run, not after it.
     (tmp_path / "other.md").write_text("# no block\n")
     with monkeypatch.context() as patch:
-        patch.setattr("factorydet_core.bench.bench_hitl", lambda *a, **k: pytest.fail("ran before the check"))
+        patch.setattr(
+            "factorydet_core.evaluation.hitl.bench_hitl", lambda *a, **k: pytest.fail("ran before the check")
+        )
         assert main(["bench", "hitl", str(small_dataset_dir), "--readme", str(tmp_path / "other.md")]) == 2
     capsys.readouterr()
     args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
@@ -314,7 +316,9 @@ def test_bench_classifier_measures_rows_with_the_models_box_quality(small_datase
 def test_bench_quality_checks_its_arguments_and_readme_before_running(
     small_dataset_dir, tmp_path, capsys, monkeypatch
 ):
-    monkeypatch.setattr("factorydet_core.heldout.bench_quality", lambda *a, **k: pytest.fail("ran"))
+    monkeypatch.setattr(
+        "factorydet_core.evaluation.quality.bench_quality", lambda *a, **k: pytest.fail("ran")
+    )
     base = ["bench", "quality", str(small_dataset_dir), "--scratch", str(tmp_path)]
     assert main([*base, "--methods", "magic"]) == 2
     assert "methods" in capsys.readouterr().err

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import viser
 
-from factorydet_core.inspect import describe_label
+from factorydet_core.evaluation.diagnostics import describe_label
 
 from ..clients import ClientView
 from . import from_user

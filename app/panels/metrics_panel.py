@@ -17,7 +17,7 @@ def _fmt(value: float | None) -> str:
 
 
 def errors_markdown(errors: dict) -> str:
-    """The kinds of errors at the operating point (``evaluation.error_breakdown``) as a table: how
+    """The kinds of errors at the operating point (``metrics.error_breakdown``) as a table: how
     many of each kind, and the total F-score if every error of that kind were fixed."""
     without = errors["f1_without"]
     rows = [

@@ -7,9 +7,9 @@ import dataclasses
 
 import viser
 
-from factorydet_core.dataset import annotation_min_points
-from factorydet_core.inspect import num_points_in_box, patches_in_box, review_item_markdown
-from factorydet_core.session import HIDE_LABELLED_IOU
+from factorydet_core.evaluation.diagnostics import num_points_in_box, patches_in_box, review_item_markdown
+from factorydet_core.io.dataset import annotation_min_points
+from factorydet_core.session.store import HIDE_LABELLED_IOU
 
 from ..clients import ClientView
 from . import from_user

@@ -8,8 +8,8 @@ import dataclasses
 
 import viser
 
-from factorydet_core.loop import comparison_markdown
-from factorydet_core.model import DEFAULT_MODEL, PAPER_MODEL, DetectionModel
+from factorydet_core.detection.model import DEFAULT_MODEL, PAPER_MODEL, DetectionModel
+from factorydet_core.evaluation.measure import comparison_markdown
 from factorydet_core.types import METHODS, InputError
 
 from ..state import AppState

@@ -38,9 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from factorydet_core.geometry import points_in_box
+from factorydet_core.geometry import apply_transforms, points_in_box
 from factorydet_core.io.npz import save_npz
-from factorydet_core.merge import merge_frame
 from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
 
 SUPPORTED_SUFFIXES: tuple[str, ...] = (
@@ -707,7 +706,7 @@ def read_frame(path: str | os.PathLike, *, class_names: Sequence[str] | None = N
 
 def _world_points(frame: Frame) -> np.ndarray:
     """(N, 3) float64 points in the vehicle frame with ``origin_offset`` added back."""
-    return merge_frame(frame).points.astype(np.float64) + frame.origin_offset
+    return apply_transforms(frame.T_vehicle_sensor, frame.sensor_ids, frame.points) + frame.origin_offset
 
 
 @contextlib.contextmanager

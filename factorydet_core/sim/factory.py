@@ -24,9 +24,9 @@ import dataclasses
 
 import numpy as np
 
-from ..types import CLASS_NAMES
-from . import meshes
-from .meshes import Mesh
+from factorydet_core.sim import meshes
+from factorydet_core.sim.meshes import Mesh
+from factorydet_core.types import CLASS_NAMES
 
 HALL_HALF_X, HALL_HALF_Y, HALL_HEIGHT = 24.0, 16.0, 8.0
 LEVEL_SPACING = 1.6

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 import trimesh
 
-from ..geometry import make_transform, rotation_ypr
+from factorydet_core.geometry import make_transform, rotation_ypr
 
 
 @dataclasses.dataclass(frozen=True)

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from ..geometry import make_transform, rotation_ypr
+from factorydet_core.geometry import make_transform, rotation_ypr
 
 NUM_SENSORS = 12
 HORIZONTAL_FOV_DEG = 120.0

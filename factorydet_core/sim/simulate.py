@@ -21,12 +21,19 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ..geometry import invert_transform, make_transform, rotation_ypr, transform_boxes
-from ..io.npz import save_npz
-from ..types import CLASS_NAMES
-from .factory import Factory, build_factory
-from .meshes import Mesh
-from .rig import HORIZONTAL_FOV_DEG, MAX_RANGE_M, VERTICAL_FOV_DEG, LoopPath, SensorRig, default_rig
+from factorydet_core.geometry import invert_transform, make_transform, rotation_ypr, transform_boxes
+from factorydet_core.io.npz import save_npz
+from factorydet_core.sim.factory import Factory, build_factory
+from factorydet_core.sim.meshes import Mesh
+from factorydet_core.sim.rig import (
+    HORIZONTAL_FOV_DEG,
+    MAX_RANGE_M,
+    VERTICAL_FOV_DEG,
+    LoopPath,
+    SensorRig,
+    default_rig,
+)
+from factorydet_core.types import CLASS_NAMES
 
 GENERATOR = "factorydet-sim"
 GENERATOR_VERSION = 1

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import io
-import shutil
-import time
 
 import numpy as np
 import pytest
@@ -12,35 +10,10 @@ import viser
 from PIL import Image
 
 from app.viewer import FactorydetApp
-from factorydet_core.dataset import open_dataset
-
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
+from factorydet_core.io.dataset import open_dataset
+from tests.app.polling import wait as _wait
 
 pytestmark = pytest.mark.browser
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if shutil.which(CHROMIUM) is None:
-        pytest.fail(
-            f"{CHROMIUM} is missing: `make test` installs Debian's chromium (apt-get install chromium)"
-        )
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-        yield browser
-        browser.close()
 
 
 @pytest.fixture
@@ -71,15 +44,6 @@ def _colourful_fraction(png: bytes) -> float:
     rgb = rgb[height // 4 : height - 80, 80 : int(width * 0.6)]
     saturation = rgb.max(axis=2) - rgb.min(axis=2)
     return float((saturation > 60).mean())
-
-
-def _wait(predicate, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_app_shows_controls_navigates_frames_and_draws(app, page):
@@ -159,7 +123,7 @@ def test_detection_layers_toggle_and_parameters_recompute(app, page):
 
 @pytest.fixture
 def app_with_model(small_dataset_dir, tiny_model_path):
-    from factorydet_core.model import DetectionModel
+    from factorydet_core.detection.model import DetectionModel
 
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     model = DetectionModel.load(tiny_model_path)

@@ -8,15 +8,14 @@ import pytest
 import viser
 
 from app.viewer import FactorydetApp
-from factorydet_core.dataset import open_dataset
-from factorydet_core.editing import camera_for_box
-from factorydet_core.loop import LoopSettings
-from factorydet_core.model import DetectionModel
-from factorydet_core.session import SessionDB, open_session
-from factorydet_core.training import TrainingRun
-
-from ..fakes import mined_item, queue_run
-from .test_browser import _wait, browser  # noqa: F401 - the module's browser fixture
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.editing import camera_for_box
+from factorydet_core.session.store import SessionDB, open_session
+from factorydet_core.training.loop import LoopSettings
+from factorydet_core.training.mining import TrainingRun
+from tests.app.polling import wait as _wait
+from tests.fakes import mined_item, queue_run
 
 pytestmark = pytest.mark.browser
 

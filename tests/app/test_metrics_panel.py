@@ -1,7 +1,7 @@
 import numpy as np
 
 from app.panels.metrics_panel import errors_markdown
-from factorydet_core.evaluation import error_breakdown
+from factorydet_core.metrics import error_breakdown
 
 BOX = np.array([0, 0, 0.5, 1, 1, 1, 0.0])
 

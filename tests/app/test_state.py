@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from app.state import AppState
-from factorydet_core.dataset import open_dataset
+from factorydet_core.io.dataset import open_dataset
 
 
 def test_frame_changes_are_clamped_counted_and_announced(small_dataset_dir):
@@ -56,10 +56,10 @@ def test_rgb_mode_falls_back_to_height_without_colours(small_dataset_dir):
 
 
 def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny_model_path):
-    from factorydet_core.detection import select_detections
-    from factorydet_core.detector import Detector
-    from factorydet_core.inspect import describe_detection, detection_markdown
-    from factorydet_core.model import DetectionModel
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.detection.scoring import select_detections
+    from factorydet_core.evaluation.diagnostics import describe_detection, detection_markdown
 
     dataset = open_dataset(small_dataset_dir)
     model = DetectionModel.load(tiny_model_path)
@@ -107,8 +107,8 @@ def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny
 def test_per_class_thresholds_until_the_slider_moves(small_dataset_dir, tiny_model_path):
     import dataclasses
 
-    from factorydet_core.detector import Detector
-    from factorydet_core.model import DetectionModel
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
 
     dataset = open_dataset(small_dataset_dir)
     base = DetectionModel.load(tiny_model_path)
@@ -141,8 +141,8 @@ def test_per_class_thresholds_until_the_slider_moves(small_dataset_dir, tiny_mod
 def test_session_labels_drive_the_view_and_a_model_switch_resets_detections(
     small_dataset_dir, tiny_model_path, tmp_path
 ):
-    from factorydet_core.model import DetectionModel
-    from factorydet_core.session import SessionDB, open_session
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.store import SessionDB, open_session
 
     dataset = open_dataset(small_dataset_dir)
     read_only = AppState(dataset)

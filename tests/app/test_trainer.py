@@ -6,11 +6,10 @@ import threading
 
 from app.state import AppState
 from app.trainer import TrainingWorker
-from factorydet_core.dataset import open_dataset
-from factorydet_core.loop import LoopSettings
-from factorydet_core.session import SessionDB, open_session
-
-from .test_browser import _wait
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.store import SessionDB, open_session
+from factorydet_core.training.loop import LoopSettings
+from tests.app.polling import wait as _wait
 
 
 def test_a_job_can_start_as_soon_as_the_last_one_says_done(small_dataset_dir, tmp_path):

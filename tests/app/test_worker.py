@@ -7,8 +7,8 @@ import time
 
 from app.state import AppState
 from app.worker import PipelineWorker
-from factorydet_core import detector as detector_module
-from factorydet_core.dataset import open_dataset
+from factorydet_core.detection import detector as detector_module
+from factorydet_core.io.dataset import open_dataset
 
 
 def _wire(state: AppState, worker: PipelineWorker) -> None:

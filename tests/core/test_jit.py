@@ -5,7 +5,7 @@ import threading
 import numpy as np
 
 from factorydet_core.boxes import fit_boxes
-from factorydet_core.jit import warm_up
+from factorydet_core.detection.warmup import warm_up
 
 
 def test_warm_up_compiles_every_kernel_without_error():

@@ -4,9 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from factorydet_core.dataset import open_dataset
 from factorydet_core.geometry import invert_transform, points_in_box, rotation_angle_deg
-from factorydet_core.merge import merge_frame
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.proposals.merge import merge_frame
 from factorydet_core.sim.rig import HORIZONTAL_FOV_DEG, MAX_RANGE_M, VERTICAL_FOV_DEG
 from factorydet_core.sim.simulate import FactorySimulator, SimConfig, simulate_dataset
 from factorydet_core.sim.truth import read_frame_truth, read_truth

@@ -1,0 +1,547 @@
+"""Box quality: which of a point set's box options fits the object, and how well.
+
+A point set has several box hypotheses (fitted, completed behind the visible side, headed along
+the view) and ``groups.BoxSizePrior`` adds the same boxes grown to its class's typical sizes.
+Measured on the simulator with the true classes given, choosing among those options by the prior's
+rule kept a detection F-score of 0.42 where the best option would give 0.59; and a classifier's
+probability alone says nothing about whether the chosen box is a fragment, a whole object, or an
+object with its neighbour. ``BoxQuality`` learns both from the annotations, as IoU-Net-style
+localisation confidence does: a gradient-boosted regressor predicts, for every option, its 3D IoU
+with the annotated object the set belongs to (0 for sets that overlap no annotation). A detection
+takes the option of highest predicted IoU, and its score becomes the class probability (to the
+model's ``probability_exponent``, 0.5 for the loop and the command line) times that predicted IoU.
+
+The regressor is scikit-learn's ``HistGradientBoostingRegressor``; for checkpoints it is exported to
+plain arrays (``to_arrays``) and evaluated by ``predict`` here, so loading a model never unpickles
+anything. ``tests/core/test_box_quality.py`` checks that ``predict`` equals scikit-learn's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+from factorydet_core.boxes import box_iou_3d
+from factorydet_core.detection.groups import (
+    DESCRIPTOR_NAMES,
+    BoxSizePrior,
+    ProposalGroups,
+    _horizontal_sorted_sizes,
+)
+from factorydet_core.jit import run_kernel
+from factorydet_core.proposals.visibility import FreeSpace, box_visibility
+from factorydet_core.types import InputError
+
+OPTION_FEATURE_NAMES: tuple[str, ...] = (
+    "log_length",
+    "log_width",
+    "log_height",
+    "log_length_over_fitted",
+    "log_width_over_fitted",
+    "log_height_over_fitted",
+    "log_distance_to_nearest_mode",
+    "prior_cost",
+    "hypothesis_rank",
+    "grown_to_mode",
+    "range_m",
+)
+"""Per box option, after the one-hot class and before the point set's descriptors."""
+
+ANCHORED_FEATURE_NAMES: tuple[str, ...] = (
+    "anchored",
+    "offset_from_viewer_m",
+    "offset_sideways_m",
+    "offset_up_m",
+)
+"""With anchored options (``BoxQuality.anchored``), after ``OPTION_FEATURE_NAMES``: whether the
+option is a mode-sized box placed by the fitted box (set into its corner, standing on the floor
+under it, or stacked inside it: ``groups.OPTION_KINDS``), and where its centre lies from the
+fitted box's centre: away from the viewer (the vehicle origin) in the ground plane, sideways
+(absolute) and up."""
+
+VISIBILITY_FEATURE_NAMES: tuple[str, ...] = ("seen_free_share", "seen_occupied_share")
+"""With ``BoxQuality.visibility``, after the anchored ones: the share of the option's volume that
+the frame's rays passed through, and the share where they ended (``visibility.box_visibility``).
+An object's box holds its visible surface and the unseen space behind it; a box grown the wrong
+way, or of the wrong size, holds space the scan saw empty."""
+
+
+def option_features(
+    boxes: np.ndarray,
+    class_id: int,
+    descriptors: np.ndarray,
+    prior: BoxSizePrior,
+    num_classes: int,
+    anchored: bool = False,
+    anchor_mask: np.ndarray | None = None,
+    free_space: FreeSpace | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A point set's box options for one class and what the regressor reads of each.
+
+    Args:
+        boxes: (M, 7) the set's box hypotheses, the fitted box first.
+        class_id: the class the options are grown for.
+        descriptors: (len(DESCRIPTOR_NAMES),) the set's geometric descriptors.
+        prior: the class size prior that grows the options.
+        num_classes: C, the number of object classes.
+        anchored: add the class's sizes placed by the fitted box (``BoxSizePrior.anchored``,
+            ``standing``, ``stacked``) to the options.
+        anchor_mask: (M,) bool, the boxes sizes are placed by (the fitted one is always among
+            them); ``None``: the fitted box alone.
+        free_space: the frame's rays; given, ``VISIBILITY_FEATURE_NAMES`` are added.
+
+    Returns:
+        ``(options, features)``: (K, 7) boxes (``BoxSizePrior.options``) and (K, F) features: the
+        one-hot class (C), ``OPTION_FEATURE_NAMES``, ``ANCHORED_FEATURE_NAMES`` when
+        ``anchored``, ``VISIBILITY_FEATURE_NAMES`` with ``free_space``, then the descriptors.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    options, features, _, _ = class_option_features(
+        boxes,
+        [np.arange(len(boxes))],
+        class_id,
+        np.asarray(descriptors, np.float64).reshape(1, -1),
+        prior,
+        num_classes,
+        anchored,
+        anchor_mask,
+        free_space,
+    )
+    return options, features
+
+
+def class_option_features(
+    proposal_boxes: np.ndarray,
+    members: Sequence[np.ndarray],
+    class_id: int,
+    descriptors: np.ndarray,
+    prior: BoxSizePrior,
+    num_classes: int,
+    anchored: bool = False,
+    anchor_mask: np.ndarray | None = None,
+    free_space: FreeSpace | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The box options of many point sets of one class and their features, set after set, each
+    set's options in ``BoxSizePrior.options``'s order (one call for all sets: per-set calls cost
+    more than the regressor at inference).
+
+    Args:
+        proposal_boxes: (M, 7) boxes of the proposals.
+        members: S arrays of proposal indices, one per set, its fitted box first.
+        class_id: the class of every one of these sets.
+        descriptors: (S, len(DESCRIPTOR_NAMES)) their descriptors.
+        prior: the class size prior.
+        num_classes: C.
+        anchored: add the class's sizes placed by each set's fitted box (corners, floor, stack).
+        anchor_mask: (M,) bool over ``proposal_boxes``, the boxes sizes are placed by besides each
+            set's fitted box (``Proposals.anchor_mask``: the scene-aligned ones); ``None``: the
+            fitted boxes alone.
+        free_space: the frame's rays; given, ``VISIBILITY_FEATURE_NAMES`` are added.
+
+    Returns:
+        ``(options, features, owners, sources)``: (K, 7) boxes, (K, F) features (as
+        ``option_features``), (K,) the set (0..S-1) of each row and (K,) the proposal its box came
+        from (an anchored box's is the box it was placed by).
+    """
+    counts = np.array([len(m) for m in members], np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    member_ids = np.concatenate(members).astype(np.int64)
+    boxes = np.asarray(proposal_boxes, np.float64)[member_ids]
+    owner = np.repeat(np.arange(len(members)), counts)
+    member = np.arange(len(boxes)) - np.repeat(starts, counts)
+    fitted = boxes[starts]
+    anchor_rows = starts
+    if anchor_mask is not None:
+        # Rows of boxes, set after set (members are listed set after set), each set's fitted first.
+        anchor_rows = np.union1d(starts, np.flatnonzero(np.asarray(anchor_mask, bool)[member_ids]))
+    has_size = np.isfinite(prior.sizes[class_id]).all()
+    options, cost, kinds, option_sources, mode_ids = prior.option_sources(
+        boxes,
+        class_id,
+        fitted_boxes=fitted[owner],
+        anchor_boxes=boxes[anchor_rows] if anchored and has_size else None,
+    )
+    from_boxes = kinds < 2  # hypotheses and grown ones come from a box; the others from an anchor
+    box_rows = np.where(from_boxes, option_sources, 0)
+    anchor_of = anchor_rows[np.where(from_boxes, 0, option_sources)] if len(anchor_rows) else box_rows
+    owner = np.where(from_boxes, owner[box_rows], owner[anchor_of])
+    member = np.where(from_boxes, member[box_rows], 0)
+    sources = np.where(from_boxes, member_ids[box_rows], member_ids[anchor_of])
+    grown = mode_ids + 1
+    is_anchored = ~from_boxes
+    # Set after set, each set's options in the order BoxSizePrior.options gives one set's (its
+    # blocks list the sets in order, so a stable sort by set keeps that order within each).
+    order = np.argsort(owner, kind="stable")
+    options, cost, owner, member, grown, sources, is_anchored = (
+        a[order] for a in (options, cost, owner, member, grown, sources, is_anchored)
+    )
+    log_dims = np.log(np.maximum(_horizontal_sorted_sizes(options), 1e-3))
+    log_fitted = np.log(np.maximum(_horizontal_sorted_sizes(fitted), 1e-3))[owner]
+    modes = prior.class_modes(class_id)
+    modes = modes[np.isfinite(modes).all(axis=1)] if len(modes) else modes
+    if len(modes):
+        to_mode = np.abs(log_dims[:, None, :] - np.log(modes)[None]).sum(axis=2).min(axis=1)
+    else:
+        to_mode = np.zeros(len(options))
+    one_hot = np.zeros((len(options), num_classes))
+    one_hot[:, class_id] = 1.0
+    columns = [
+        one_hot,
+        log_dims,
+        log_dims - log_fitted,
+        to_mode,
+        cost,
+        np.minimum(member, 2),
+        grown,
+        np.hypot(options[:, 0], options[:, 1]),
+    ]
+    if anchored:
+        columns += [is_anchored, *_offsets_from_fitted(options, fitted[owner])]
+    if free_space is not None:
+        columns.append(box_visibility(free_space, options))
+    features = np.column_stack([*columns, np.asarray(descriptors, np.float64)[owner]])
+    return options, features, owner, sources
+
+
+def _offsets_from_fitted(options: np.ndarray, fitted: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(away from the viewer, sideways (absolute), up) offsets in metres of (K, 7) options' centres
+    from their (K, 7) fitted boxes' centres; the viewer is the vehicle origin."""
+    offset = options[:, :3] - fitted[:, :3]
+    radial = fitted[:, :2] / np.maximum(np.linalg.norm(fitted[:, :2], axis=1), 1e-6)[:, None]
+    away = np.einsum("kd,kd->k", offset[:, :2], radial)
+    sideways = np.abs(offset[:, 0] * radial[:, 1] - offset[:, 1] * radial[:, 0])
+    return away, sideways, offset[:, 2]
+
+
+def num_option_features(num_classes: int, anchored: bool = False, visibility: bool = False) -> int:
+    extra = len(ANCHORED_FEATURE_NAMES) if anchored else 0
+    extra += len(VISIBILITY_FEATURE_NAMES) if visibility else 0
+    return num_classes + len(OPTION_FEATURE_NAMES) + extra + len(DESCRIPTOR_NAMES)
+
+
+@dataclasses.dataclass
+class BoxQuality:
+    """Predicts the 3D IoU of a point set's box options with the object it belongs to.
+
+    Args:
+        background_rate: share of the point sets that overlap no annotation (IoU below
+            ``min_overlap``) taken into training, each with a random class and the target 0 (their
+            options' best IoU with any annotation); they teach that structure and clutter fit no
+            object whatever the box.
+        min_overlap: a point set whose best proposal overlaps an annotated box at least this much
+            is trained towards the IoU of each option with the nearest annotated object of that
+            box's class (a set of several crates holds several right boxes, one per crate).
+        max_iter: boosting iterations (no early stopping: all of them are fitted).
+        max_leaf_nodes: leaves per tree. The earlier 300 trees of 31 leaves with early stopping
+            underfitted: on its own training frames it picked an option at IoU 0.6 for under a
+            third of the sets that had one. 500 of 63 chose and scored better on held-out frames;
+            2,000 of 127 overfitted (the issue notes of 2026-11-24 give the ad hoc runs).
+        seed: seeds the background sample, its classes and the regressor.
+        anchored: the options include each class size set into the fitted box's corners
+            (``BoxSizePrior.anchored``): the boxes of objects in a segment of several, and of
+            objects seen from one side. Checkpoints from before it load with ``False``.
+        visibility: the regressor also reads how much of each option the frame's rays saw empty
+            or occupied (``VISIBILITY_FEATURE_NAMES``; the point sets' groups must carry their
+            frame's ``free_space``). Checkpoints from before it load with ``False``.
+    """
+
+    background_rate: float = 0.1
+    min_overlap: float = 0.1
+    max_iter: int = 500
+    max_leaf_nodes: int = 63
+    learning_rate: float = 0.1
+    seed: int = 0
+    anchored: bool = True
+    visibility: bool = True
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.background_rate <= 1.0:
+            raise InputError(f"background_rate must lie in [0, 1], got {self.background_rate}")
+        if not 0.0 < self.min_overlap < 1.0:
+            raise InputError(f"min_overlap must lie in (0, 1), got {self.min_overlap}")
+        if self.max_iter < 1:
+            raise InputError(f"max_iter must be >= 1, got {self.max_iter}")
+        if self.max_leaf_nodes < 2:
+            raise InputError(f"max_leaf_nodes must be >= 2, got {self.max_leaf_nodes}")
+
+    def training_rows(
+        self,
+        frames: Sequence,
+        prior: BoxSizePrior,
+        num_classes: int,
+        excluded: dict[int, set[int]] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(R, F) features and (R,) target IoUs of every option of the training point sets.
+
+        Args:
+            frames: ``mining.FrameProposals`` with their labels.
+            prior: the size prior that grows the options.
+            num_classes: C.
+            excluded: per frame index, point sets (group ids) to leave out (real objects whose
+                segment is wrong, from a review).
+        """
+        rng = np.random.default_rng(self.seed)
+        rows, targets = [], []
+        for frame in frames:
+            if not len(frame.label_boxes):
+                continue
+            skip = (excluded or {}).get(frame.frame_index, set())
+            iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
+            for g, members in enumerate(frame.groups.members()):
+                best = iou[members].max(axis=0)
+                label = int(best.argmax())
+                overlapping = best[label] >= self.min_overlap
+                take_background = rng.random() < self.background_rate
+                random_class = int(rng.integers(num_classes))
+                if g in skip or not (overlapping or take_background):
+                    continue
+                class_id = int(frame.label_class_ids[label]) if overlapping else random_class
+                options, features = option_features(
+                    frame.proposal_boxes[members],
+                    class_id,
+                    frame.groups.descriptors[g],
+                    prior,
+                    num_classes,
+                    self.anchored,
+                    None if frame.groups.anchor_mask is None else frame.groups.anchor_mask[members],
+                    self.free_space_of(frame.groups),
+                )
+                # An overlapping set's options are right when they fit any object of its class (the
+                # neighbour's box in a stack of crates is no worse than the first one's); a
+                # background set's, when they fit anything.
+                same_class = frame.label_class_ids == class_id
+                reference = frame.label_boxes[same_class] if overlapping else frame.label_boxes
+                rows.append(features)
+                targets.append(box_iou_3d(options, reference).max(axis=1))
+        if not rows:
+            raise InputError("box quality: no training frame has annotations")
+        return np.concatenate(rows), np.concatenate(targets)
+
+    def free_space_of(self, groups: ProposalGroups) -> FreeSpace | None:
+        """The free space the features read from ``groups``: theirs with ``visibility``, else none."""
+        if not self.visibility:
+            return None
+        if groups.free_space is None:
+            raise InputError(
+                "box quality: this regressor reads free space, but the point sets carry none"
+                " (group them with Detector.group)"
+            )
+        return groups.free_space
+
+    def fit(self, features: np.ndarray, targets: np.ndarray) -> BoxQuality:
+        """Fit the regressor on (R, F) option features and their (R,) IoUs; returns self."""
+        from sklearn.ensemble import HistGradientBoostingRegressor
+
+        features = np.asarray(features, np.float64)
+        targets = np.asarray(targets, np.float64)
+        if features.ndim != 2 or targets.shape != (len(features),) or len(features) < 2:
+            raise InputError("box quality: features must be (R, F) and targets (R,), R >= 2")
+        if not (np.isfinite(features).all() and np.isfinite(targets).all()):
+            raise InputError("box quality: features and targets must be finite")
+        regressor = HistGradientBoostingRegressor(
+            max_iter=self.max_iter,
+            max_leaf_nodes=self.max_leaf_nodes,
+            learning_rate=self.learning_rate,
+            early_stopping=False,
+            random_state=self.seed,
+        ).fit(features, targets)
+        self.trees_ = _export_trees(regressor)
+        self.num_features_ = features.shape[1]
+        return self
+
+    def predict(self, features: np.ndarray) -> np.ndarray:
+        """(R,) predicted IoUs in [0, 1] of (R, F) option features."""
+        features = np.asarray(features, np.float64)
+        if features.ndim != 2 or features.shape[1] != self.num_features_:
+            raise InputError(
+                f"box quality: expected (R, {self.num_features_}) features, got {features.shape}"
+            )
+        return np.clip(_evaluate_trees(self.trees_, features), 0.0, 1.0)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The fitted trees as plain arrays (for ``np.savez``; ``from_arrays`` reads them back)."""
+        return {
+            **self.trees_,
+            "num_features": np.array(self.num_features_),
+            "anchored": np.array(self.anchored),
+            "visibility": np.array(self.visibility),
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> BoxQuality:
+        model = cls(
+            anchored=bool(arrays["anchored"]) if "anchored" in arrays else False,
+            visibility=bool(arrays["visibility"]) if "visibility" in arrays else False,
+        )
+        try:
+            model.trees_ = {key: np.asarray(arrays[key]) for key in _TREE_KEYS}
+            model.num_features_ = int(arrays["num_features"])
+        except KeyError as error:
+            raise InputError(f"box quality arrays lack {error}") from None
+        return model
+
+
+_TREE_KEYS = ("feature", "threshold", "left", "right", "is_leaf", "value", "roots", "baseline")
+
+
+def _export_trees(regressor) -> dict[str, np.ndarray]:
+    """A fitted ``HistGradientBoostingRegressor`` as flat node arrays over all its trees (children
+    indices made global); it relies on the estimator's ``_predictors`` and ``_baseline_prediction``,
+    whose use ``predict`` is tested against."""
+    parts: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("feature", "threshold", "left", "right", "is_leaf", "value")
+    }
+    roots, offset = [], 0
+    for (predictor,) in regressor._predictors:
+        nodes = predictor.nodes
+        if nodes["is_categorical"].any():
+            raise InputError("box quality: categorical splits are not exported")
+        roots.append(offset)
+        parts["feature"].append(nodes["feature_idx"].astype(np.int32))
+        parts["threshold"].append(nodes["num_threshold"].astype(np.float64))
+        parts["left"].append(nodes["left"].astype(np.int32) + offset)
+        parts["right"].append(nodes["right"].astype(np.int32) + offset)
+        parts["is_leaf"].append(nodes["is_leaf"].astype(bool))
+        parts["value"].append(nodes["value"].astype(np.float64))
+        offset += len(nodes)
+    out = {k: np.concatenate(v) for k, v in parts.items()}
+    out["roots"] = np.array(roots, np.int64)
+    out["baseline"] = np.asarray(regressor._baseline_prediction, np.float64).reshape(-1)[:1]
+    return out
+
+
+def _evaluate_trees(trees: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
+    """The baseline plus every tree's leaf value, as scikit-learn adds them (in tree order, so the
+    sums are those of one row at a time): compiled by numba, blocks of rows split over the cores,
+    each block walking one tree at a time while that tree is in cache, with each node's split
+    feature (-1 at a leaf) and children packed together. Several times faster than the vectorised
+    walk of ``_evaluate_trees_numpy``, and 1.6 times faster than walking every tree per row
+    (measured on a bench frame's 674k options). Features are finite, so the missing-value branch
+    of a split never applies."""
+    split_feature = np.where(trees["is_leaf"], -1, trees["feature"]).astype(np.int32)
+    children = np.stack([trees["left"], trees["right"]], axis=1).astype(np.int32)
+    return run_kernel(
+        _compile_walk,
+        np.ascontiguousarray(features, np.float64),
+        trees["roots"].astype(np.int64),
+        split_feature,
+        children,
+        trees["threshold"].astype(np.float64),
+        trees["value"].astype(np.float64),
+        float(trees["baseline"][0]),
+    )
+
+
+def _compile_walk():
+    import numba
+
+    block = 1024  # rows per block: a few hundred kB of features, while one tree stays in L1
+
+    @numba.njit(parallel=True, cache=True, nogil=True)
+    def walk(features, roots, split_feature, children, threshold, value, baseline):
+        num_rows = features.shape[0]
+        total = np.empty(num_rows)
+        for b in numba.prange((num_rows + block - 1) // block):
+            lo, hi = b * block, min((b + 1) * block, num_rows)
+            acc = np.full(hi - lo, baseline)
+            for t in range(roots.shape[0]):
+                for r in range(lo, hi):
+                    node = roots[t]
+                    feature = split_feature[node]
+                    while feature >= 0:
+                        # Values equal to a threshold go left, as in scikit-learn.
+                        node = (
+                            children[node, 0]
+                            if features[r, feature] <= threshold[node]
+                            else children[node, 1]
+                        )
+                        feature = split_feature[node]
+                    acc[r - lo] += value[node]
+            total[lo:hi] = acc
+        return total
+
+    return walk
+
+
+def _evaluate_trees_numpy(trees: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
+    """``_evaluate_trees`` in plain numpy (the reference its test compares with): one tree at a time,
+    all rows descending a level per step (a few hundred short vector steps; walking all trees at
+    once gathers over rows x trees and was several times slower). Features are finite, so the
+    missing-value branch of a split never applies."""
+    num_rows = len(features)
+    columns = np.ascontiguousarray(features.T)  # (F, R): one feature's values are contiguous
+    rows = np.arange(num_rows)
+    feature, threshold = trees["feature"], trees["threshold"]
+    left, right, is_leaf, value = trees["left"], trees["right"], trees["is_leaf"], trees["value"]
+    total = np.full(num_rows, float(trees["baseline"][0]))
+    for root in trees["roots"].tolist():
+        node = np.full(num_rows, root, np.int64)
+        leaf = is_leaf[node]
+        while not leaf.all():
+            go_left = columns[feature[node], rows] <= threshold[node]
+            node = np.where(leaf, node, np.where(go_left, left[node], right[node]))
+            leaf = is_leaf[node]
+        total += value[node]
+    return total
+
+
+def choose_boxes(
+    proposal_boxes: np.ndarray,
+    groups: ProposalGroups,
+    class_ids: np.ndarray,
+    prior: BoxSizePrior,
+    quality: BoxQuality,
+    subset: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point set's option of highest predicted IoU for its class.
+
+    Args:
+        proposal_boxes: (M, 7) boxes of the proposals.
+        groups: their point sets (G).
+        class_ids: (G,) the class of each set.
+        prior: grows the options.
+        quality: the fitted regressor.
+        subset: (S,) the sets to choose for (default: all).
+
+    Returns:
+        ``(boxes, proposal_ids, predicted_iou)``: (S, 7) chosen boxes, (S,) the proposal each
+        option came from, (S,) its predicted IoU, in the order of ``subset``.
+    """
+    num_classes = len(prior.sizes)
+    members = groups.members()
+    chosen = np.arange(groups.num_groups) if subset is None else np.asarray(subset, np.int64)
+    chosen_classes = np.asarray(class_ids)[chosen]
+    all_options, all_features, sources, owners = [], [], [], []
+    for class_id in np.unique(chosen_classes).tolist():
+        rows = np.flatnonzero(chosen_classes == class_id)
+        options, features, owner, source = class_option_features(
+            proposal_boxes,
+            [members[g] for g in chosen[rows].tolist()],
+            int(class_id),
+            groups.descriptors[chosen[rows]],
+            prior,
+            num_classes,
+            quality.anchored,
+            groups.anchor_mask,
+            quality.free_space_of(groups),
+        )
+        all_options.append(options)
+        all_features.append(features)
+        sources.append(source)
+        owners.append(rows[owner])
+    boxes = np.zeros((len(chosen), 7))
+    proposal_ids = np.zeros(len(chosen), np.int64)
+    predicted = np.zeros(len(chosen))
+    if not len(chosen):
+        return boxes, proposal_ids, predicted
+    options, owner, source = np.concatenate(all_options), np.concatenate(owners), np.concatenate(sources)
+    iou = quality.predict(np.concatenate(all_features))
+    # Best option per set: sort by (set, -iou) and take each set's first row.
+    order = np.lexsort((-iou, owner))
+    first = order[np.concatenate([[0], np.flatnonzero(np.diff(owner[order])) + 1])]
+    boxes[owner[first]] = options[first]
+    proposal_ids[owner[first]] = source[first]
+    predicted[owner[first]] = iou[first]
+    return boxes, proposal_ids, predicted

@@ -1,0 +1,552 @@
+"""Benchmark commands: each prints one JSON object; figures in the README come from here."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import re
+import statistics
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from factorydet_core.detection.box_quality import BoxQuality
+from factorydet_core.detection.classifier import ProposalClassifier
+from factorydet_core.detection.detector import Detector
+from factorydet_core.detection.groups import BoxSizePrior, best_option_iou
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.evaluation.evaluate import detector_for, measure
+from factorydet_core.evaluation.plots import plot_voxel_sweep
+from factorydet_core.geometry import rotation_angle_deg
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.metrics import best_box_iou, best_point_iou, proposal_point_lists, recall_table
+from factorydet_core.proposals.candidates import box_hypotheses
+from factorydet_core.proposals.features import fisher_vectors, fisher_vectors_reference
+from factorydet_core.proposals.settings import front_end_params, preset_for
+from factorydet_core.proposals.voxels import voxel_local_points
+from factorydet_core.sim.simulate import FactorySimulator, SimConfig
+from factorydet_core.sim.truth import read_frame_truth, read_truth
+from factorydet_core.training.mining import collect_proposals, train_with_mining
+from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
+
+
+def machine_info() -> dict:
+    """Where a benchmark ran: CPU model, cores, memory, Python and the main libraries."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    memory_gb = None
+    try:
+        memory_gb = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+    except (ValueError, OSError, AttributeError):
+        pass
+    import open3d
+
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory_gb": memory_gb,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "open3d": open3d.__version__,
+        "os": platform.platform(),
+    }
+
+
+def bench_simulate(num_frames: int = 10, points_per_frame: int = 80_000, seed: int = 0) -> dict:
+    """Seconds to ray-cast one 12-sensor frame, measured over ``num_frames`` frames."""
+    config = SimConfig(num_frames=num_frames, seed=seed, points_per_frame=points_per_frame)
+    start = time.perf_counter()
+    simulator = FactorySimulator(config)
+    setup_s = time.perf_counter() - start
+    seconds, num_points = [], []
+    for i in range(num_frames):
+        start = time.perf_counter()
+        frame = simulator.render(i)
+        seconds.append(time.perf_counter() - start)
+        num_points.append(len(frame.points))
+    return {
+        "benchmark": "simulate",
+        "command": f"factorydet bench simulate --frames {num_frames} --points {points_per_frame}"
+        f" --seed {seed}",
+        "num_frames": num_frames,
+        "num_sensors": simulator.rig.num_sensors,
+        "points_per_frame_median": int(statistics.median(num_points)),
+        "setup_s": round(setup_s, 3),
+        "seconds_per_frame_median": round(statistics.median(seconds), 4),
+        "seconds_per_frame_max": round(max(seconds), 4),
+        "first_frame_s": round(seconds[0], 4),
+        "target_seconds_per_frame": 0.5,
+        "machine": machine_info(),
+    }
+
+
+def check_readme_block(readme: str | os.PathLike, name: str) -> None:
+    """Raise ``InputError`` unless ``readme`` has a ``<!-- bench:name -->`` block (checked before a
+    long benchmark, not after it)."""
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", name):
+        raise InputError(f"README block names are letters, digits, '-' and '_', got {name!r}")
+    path = Path(readme)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    text = path.read_text()
+    if f"<!-- bench:{name} -->" not in text or f"<!-- /bench:{name} -->" not in text:
+        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
+
+
+def update_readme(
+    readme: str | os.PathLike, result: dict, name: str | None = None, markdown: str | None = None
+) -> None:
+    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with ``result``
+    as JSON, or with ``markdown`` (a table rendered from it) when given; ``name`` defaults to the
+    result's ``benchmark`` (a second block of the same benchmark, on other data, takes a name of
+    its own)."""
+    path = Path(readme)
+    name = result["benchmark"] if name is None else name
+    check_readme_block(path, name)
+    text = path.read_text()
+    body = f"```json\n{json.dumps(result, indent=2)}\n```" if markdown is None else markdown.strip()
+    block = f"<!-- bench:{name} -->\n{body}\n<!-- /bench:{name} -->"
+    pattern = re.compile(rf"<!-- bench:{name} -->.*?<!-- /bench:{name} -->", re.S)
+    if not pattern.search(text):
+        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
+    path.write_text(pattern.sub(lambda _: block, text))
+
+
+def _median(values: list[float]) -> float:
+    return round(float(statistics.median(values)), 1) if values else float("nan")
+
+
+def bench_features(points: np.ndarray, grid, reference_voxels: int = 200, seed: int = 0) -> dict:
+    """Feature throughput on a whole frame (the median of three runs), and the speed-up over the
+    float64 reference measured on the same subset of voxels in the same run."""
+
+    local = voxel_local_points(points, grid)
+    full = []
+    for _ in range(3):  # the median of three: the first call also starts the kernel's threads
+        start = time.perf_counter()
+        fisher_vectors(local, grid.point_voxel_ids, grid.num_voxels)
+        full.append(time.perf_counter() - start)
+    full_s = statistics.median(full)
+    rng = np.random.default_rng(seed)
+    chosen = rng.choice(grid.num_voxels, min(reference_voxels, grid.num_voxels), replace=False)
+    remap = np.full(grid.num_voxels, -1)
+    remap[chosen] = np.arange(len(chosen))
+    mask = remap[grid.point_voxel_ids] >= 0
+    subset_points, subset_ids = local[mask], remap[grid.point_voxel_ids[mask]]
+    fast, slow = [], []
+    for _ in range(3):
+        start = time.perf_counter()
+        fast_fv = fisher_vectors(subset_points, subset_ids, len(chosen))
+        fast.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        slow_fv = fisher_vectors_reference(subset_points, subset_ids, len(chosen))
+        slow.append(time.perf_counter() - start)
+    return {
+        "points": int(len(points)),
+        "voxels": int(grid.num_voxels),
+        "seconds": round(full_s, 3),
+        "points_per_second": int(len(points) / full_s),
+        "voxels_per_second": int(grid.num_voxels / full_s),
+        "reference_subset_voxels": int(len(chosen)),
+        "speedup_over_reference": round(statistics.median(slow) / statistics.median(fast), 1),
+        "max_abs_error_vs_reference": float(np.abs(fast_fv - slow_fv).max()),
+    }
+
+
+def bench_pipeline(
+    data: str | os.PathLike | list,
+    *,
+    preset: str | None = None,
+    overrides: dict | None = None,
+    max_frames: int = 4,
+    iou_threshold: float | None = None,
+    min_points: int = 50,
+    calibrate: bool = True,
+    T_vehicle_sensor: np.ndarray | None = None,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Stage times, feature throughput and per-class proposal recall of the front half.
+
+    On a simulated data set (a folder with ``truth/``) the reference is the hidden truth: every
+    instance of the seven classes with at least ``min_points`` points in the frame, annotated or not,
+    on the first ``max_frames`` test frames. On single files (one or a list, pooled) it is each
+    file's own boxes.
+    """
+    import dataclasses
+
+    paths = [Path(p) for p in data] if isinstance(data, (list, tuple)) else [Path(data)]
+    if not paths:
+        raise InputError("bench pipeline: no data given")
+    simulated = (paths[0] / "truth").is_dir()
+    if simulated and len(paths) > 1:
+        raise InputError("bench pipeline: give one simulated data set, or several single files")
+    data = paths[0]
+    dataset = open_dataset(data)
+    if preset is None:
+        preset = preset_for(dataset.num_sensors)
+    if iou_threshold is None:
+        iou_threshold = 0.6 if simulated else 0.25
+    params = front_end_params(preset, overrides)
+    detector = Detector(params, T_vehicle_sensor)
+    calibration = None
+    size_prior = None
+    if simulated:
+        test_frames = dataset.splits.get("test") or list(range(dataset.num_frames))
+        frame_indices = test_frames[:max_frames]
+        if calibrate and T_vehicle_sensor is None and dataset.num_sensors > 1:
+            T_true = np.array(read_truth(data)["T_vehicle_sensor_true"])
+            start = time.perf_counter()
+            detector.calibrate(dataset.frame(frame_indices[0]))
+            calib_s = time.perf_counter() - start
+
+            def errors(T: np.ndarray) -> dict:
+                rot = [rotation_angle_deg(T[s, :3, :3], T_true[s, :3, :3]) for s in range(len(T))]
+                trans = np.linalg.norm(T[:, :3, 3] - T_true[:, :3, 3], axis=1)
+                # Where a point 10 m in front of each sensor lands, against where it should.
+                ahead = np.array([10.0, 0.0, 0.0, 1.0])
+                shift = np.linalg.norm((T[:, :3] @ ahead) - (T_true[:, :3] @ ahead), axis=1)
+                return {
+                    "rotation_deg_median": round(float(np.median(rot)), 3),
+                    "translation_cm_median": round(float(np.median(trans)) * 100, 2),
+                    "point_10m_ahead_error_cm_median": round(float(np.median(shift)) * 100, 2),
+                }
+
+            calibration = {
+                "nominal": errors(dataset.T_vehicle_sensor),
+                "refined": errors(detector.T_vehicle_sensor),
+                "residual_rmse_cm_before": round(
+                    float(np.nanmedian(detector.calibration_.rmse_before)) * 100, 2
+                ),
+                "residual_rmse_cm_after": round(
+                    float(np.nanmedian(detector.calibration_.rmse_after)) * 100, 2
+                ),
+                "seconds": round(calib_s, 2),
+            }
+        items = [(dataset, index) for index in frame_indices]
+        # The class sizes a detector trained on this data set's annotated training frames knows.
+        train_frames = dataset.splits.get("train") or []
+        annotated = [dataset.frame(i).labels for i in train_frames]
+        size_prior = (
+            BoxSizePrior.from_boxes(
+                np.concatenate([labels.boxes for labels in annotated]),
+                np.concatenate([labels.class_ids for labels in annotated]),
+                len(dataset.class_names),
+            )
+            if annotated
+            else None
+        )
+    else:
+        items = [(open_dataset(path), 0) for path in paths]
+
+    def with_truth_ids(index: int):
+        frame = dataset.frame(index)
+        if not simulated:
+            return frame
+        truth = read_frame_truth(data, index)
+        return dataclasses.replace(frame, point_instance_ids=truth.point_instance_ids)
+
+    timings: dict[str, list[float]] = {}
+    class_ids, box_hits, point_hits, oracle_hits, option_hits = [], [], [], [], []
+    num_proposals, features = [], None
+    for n, (dataset, index) in enumerate(items):
+        history = [with_truth_ids(i) for i in range(max(0, index - params.history_frames), index)]
+        result = detector.propose(with_truth_ids(index), history)
+        for stage, ms in result.timings_ms.items():
+            timings.setdefault(stage, []).append(ms)
+        num_proposals.append(len(result.proposals))
+        if features is None:
+            features = bench_features(result.cloud.points, result.grid)
+        if simulated:
+            truth = read_frame_truth(data, index)
+            keep = (truth.instance_class_ids >= 0) & (truth.instance_num_points >= min_points)
+            ref_boxes, ref_ids, ref_classes = (
+                truth.instance_boxes[keep],
+                truth.instance_ids[keep],
+                truth.instance_class_ids[keep],
+            )
+        else:
+            frame = dataset.frame(index)
+            ref_boxes, ref_ids, ref_classes = (
+                frame.labels.boxes,
+                frame.labels.instance_ids,
+                frame.labels.class_ids,
+            )
+        class_ids.append(np.array(dataset.class_names, dtype=object)[ref_classes].astype(str))
+        box_hits.append(best_box_iou(ref_boxes, result.proposals.boxes) >= iou_threshold)
+        if size_prior is not None:
+            set_of: dict[tuple[int, ...], int] = {}
+            set_ids = np.array([set_of.setdefault(p, len(set_of)) for p in result.proposals.patch_sets])
+            option_iou = best_option_iou(
+                ref_boxes,
+                ref_classes,
+                result.proposals.boxes,
+                set_ids,
+                size_prior,
+                anchor_mask=result.proposals.anchor_mask,
+            )
+            option_hits.append(option_iou >= iou_threshold)
+        point_lists = proposal_point_lists(result.segmentation, result.proposals)
+        point_hits.append(best_point_iou(result.cloud, ref_ids, point_lists) >= iou_threshold)
+        # Upper bound of box fitting: the boxes the front half would propose for a segment that is
+        # exactly the instance's own points.
+        oracle = np.zeros(len(ref_ids), bool)
+        for r, (inst, box) in enumerate(zip(ref_ids, ref_boxes)):
+            own = result.cloud.points[result.cloud.point_instance_ids == inst]
+            if len(own):
+                hypotheses = box_hypotheses(
+                    own,
+                    result.floor_plane,
+                    complete_boxes=params.complete_boxes,
+                    heading=result.proposals.scene_heading,
+                )
+                oracle[r] = best_box_iou(box[None], hypotheses)[0] >= iou_threshold
+        oracle_hits.append(oracle)
+        if progress is not None:
+            progress(n + 1, len(items))
+    class_names = np.concatenate(class_ids)
+    names = tuple(sorted(set(class_names.tolist()), key=lambda c: (c not in dataset.class_names, c)))
+    class_ids = np.array([names.index(c) for c in class_names], np.int64)
+    return {
+        "benchmark": "pipeline" if simulated else "pipeline-real",
+        "command": command,
+        "data": ", ".join(p.name for p in paths),
+        "preset": preset,
+        "overrides": overrides or {},
+        "frames": [int(i) for _, i in items],
+        "iou_threshold": iou_threshold,
+        "stage_ms_median": {stage: _median(v) for stage, v in timings.items()},
+        "target_total_ms": 100,
+        "proposals_per_frame_median": int(statistics.median(num_proposals)),
+        "features": features,
+        "proposal_recall": recall_table(class_ids, np.concatenate(box_hits), names),
+        "segment_recall_point_iou": recall_table(class_ids, np.concatenate(point_hits), names),
+        "oracle_box_fit_recall": recall_table(class_ids, np.concatenate(oracle_hits), names),
+        "option_recall": (
+            recall_table(class_ids, np.concatenate(option_hits), names) if option_hits else None
+        ),
+        "calibration": calibration,
+        "T_vehicle_sensor": None if detector.T_vehicle_sensor is None else detector.T_vehicle_sensor.tolist(),
+        "machine": machine_info(),
+    }
+
+
+def bench_voxel_sweep(
+    data: str | os.PathLike,
+    voxel_sizes: list[float],
+    *,
+    max_frames: int = 2,
+    png: str | os.PathLike | None = None,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Proposal recall against voxel size (the paper's Fig. 7 for the front half), with the cut
+    pursuit run on the voxels; point-based segmentation, which does not depend on the voxel size,
+    is the reference line."""
+    base = bench_pipeline(data, max_frames=max_frames, command=command)
+    extrinsics = None if base["T_vehicle_sensor"] is None else np.array(base["T_vehicle_sensor"])
+    rows = []
+    for n, size in enumerate(voxel_sizes):
+        result = bench_pipeline(
+            data,
+            overrides={"voxel_size_m": size, "segment_on": "voxels"},
+            max_frames=max_frames,
+            T_vehicle_sensor=extrinsics,
+        )
+        rows.append(
+            {
+                "voxel_size_m": size,
+                "recall": {k: v["recall"] for k, v in result["proposal_recall"].items()},
+                "num": {k: v["num"] for k, v in result["proposal_recall"].items()},
+                "segment_recall": result["segment_recall_point_iou"]["all"]["recall"],
+                "total_ms": result["stage_ms_median"]["total"],
+            }
+        )
+        if progress is not None:
+            progress(n + 1, len(voxel_sizes))
+    summary = {
+        "benchmark": "voxel-sweep",
+        "command": command,
+        "data": Path(data).name,
+        "frames": base["frames"],
+        "iou_threshold": base["iou_threshold"],
+        "point_segmentation_recall": {k: v["recall"] for k, v in base["proposal_recall"].items()},
+        "voxel_segmentation": rows,
+        "machine": machine_info(),
+    }
+    if png is not None:
+        plot_voxel_sweep(summary, png)
+        summary["png"] = str(png)
+    return summary
+
+
+def bench_detect(
+    data: str | os.PathLike,
+    model_path: str | os.PathLike,
+    *,
+    max_frames: int = 4,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Time of the whole detection of a frame (front half, grouping, classification, NMS), median
+    over the first ``max_frames`` test frames, and the model's recorded training time per round."""
+
+    dataset = open_dataset(data)
+    model = DetectionModel.load(model_path)
+    detector = detector_for(model, dataset)
+    test = (dataset.splits.get("test") or list(range(dataset.num_frames)))[:max_frames]
+    timings: dict[str, list[float]] = {}
+    counts = []
+    for n, index in enumerate(test):
+        first = max(0, index - detector.params.history_frames)
+        result = detector.detect(dataset.frame(index), [dataset.frame(i) for i in range(first, index)])
+        for stage, ms in result.timings_ms.items():
+            timings.setdefault(stage, []).append(ms)
+        counts.append(int(result.detections.kept_mask.sum()))
+        if progress is not None:
+            progress(n + 1, len(test))
+    note = model.note
+    return {
+        "benchmark": "detect",
+        "command": command,
+        "data": Path(data).name,
+        "model": str(model_path),
+        "width": model.classifier.width,
+        "num_parameters": model.classifier.num_parameters_,
+        "frames": test,
+        "points_per_frame_median": int(statistics.median(len(dataset.frame(i).points) for i in test)),
+        "stage_ms_median": {stage: _median(v) for stage, v in timings.items()},
+        "target_total_ms": 100,
+        "detections_per_frame_median": int(statistics.median(counts)),
+        "training_seconds_per_round": [r.get("fit_seconds") for r in note.get("rounds_record", [])]
+        or note.get("fit_seconds"),
+        "machine": machine_info(),
+    }
+
+
+def bench_classifier(
+    data: str | os.PathLike,
+    *,
+    widths: list[float],
+    features: list[str],
+    geometry: Sequence[bool] = (True, False),
+    epochs: int = 20,
+    max_fit_seconds: float | None = None,
+    max_train_frames: int | None = None,
+    max_test_frames: int | None = None,
+    score_threshold: float = SCORE_THRESHOLD,
+    box_quality: bool = True,
+    command: str = "",
+    progress=None,
+    probability_exponent: float = PROBABILITY_EXPONENT,
+) -> dict:
+    """Recognition accuracy (the paper's Table 2) and detection F-score of classifiers of several
+    widths, proposal features and inputs (the 3DmFV tensor with or without the geometric
+    descriptors), trained on the same training frames (one round, no mining) and measured on the
+    same test frames against the truth; with the time per epoch. Every feature and input is
+    measured at ``widths[0]``, the other widths on ``features[0]`` with ``geometry[0]``.
+
+    Detections are made as the shipped model makes them: at ``score_threshold``, scored with
+    ``probability_exponent``, with one box
+    quality regressor (``box_quality``) fitted per feature on the training frames and shared by
+    every classifier of that feature, so that the rows differ only in the class probabilities."""
+
+    dataset = open_dataset(data)
+    simulated = (Path(data) / "truth").is_dir()
+    train = (dataset.splits.get("train") or [])[:max_train_frames]
+    test = (dataset.splits.get("test") or [])[:max_test_frames]
+    if not train or not test:
+        raise InputError(f"{dataset.name}: bench classifier needs train and test frames")
+    preset = preset_for(dataset.num_sensors)
+    calibrated = (
+        Detector(preset).calibrate(dataset.frame(train[0])).T_vehicle_sensor
+        if dataset.num_sensors > 1
+        else None
+    )
+    rows = []
+    # Every feature at the first width; the other widths on the first feature only (a full-width
+    # network takes minutes per epoch here, and its inference is slow too).
+    runs = [(feature, widths[0], g) for feature in features for g in geometry]
+    runs += [(features[0], w, geometry[0]) for w in widths[1:]]
+    for feature in features:
+        detector = Detector(front_end_params(preset, {"feature": feature}), calibrated)
+        train_frames = collect_proposals(dataset, train, detector)
+        test_frames = collect_proposals(dataset, test, detector)
+        quality = None  # fitted with the feature's first classifier, then shared
+        for _, width, with_geometry in [r for r in runs if r[0] == feature]:
+            classifier = ProposalClassifier(
+                width=width, epochs=epochs, max_fit_seconds=max_fit_seconds, geometry=with_geometry
+            )
+            run = train_with_mining(
+                train_frames,
+                classifier,
+                rounds=0,
+                score_threshold=score_threshold,
+                box_quality=BoxQuality() if box_quality and quality is None else None,
+                probability_exponent=probability_exponent,
+            )
+            quality = quality or run.model.box_quality
+            model = dataclasses.replace(run.model, box_quality=quality)
+            fitted = model.classifier
+            metrics = measure(model, dataset, test_frames, use_truth=simulated)
+            rows.append(
+                {
+                    "feature": feature,
+                    "geometry": with_geometry,
+                    "width": width,
+                    "num_parameters": fitted.num_parameters_,
+                    "epochs_run": len(fitted.history_),
+                    "fit_seconds": round(fitted.fit_seconds_, 1),
+                    "seconds_per_epoch": round(fitted.fit_seconds_ / max(len(fitted.history_), 1), 1),
+                    "final_train_loss": fitted.history_[-1]["loss"],
+                    "recognition_mean_class_accuracy": metrics["recognition"]["mean_class_accuracy"],
+                    "recognition_overall_accuracy": metrics["recognition"]["overall_accuracy"],
+                    "recognition_per_class": {
+                        k: v["accuracy"] for k, v in metrics["recognition"]["per_class"].items()
+                    },
+                    "detection_precision": metrics["precision"],
+                    "detection_recall": metrics["recall"],
+                    "detection_f1": metrics["f1"],
+                    "detection_map": metrics["map"],
+                }
+            )
+            if progress is not None:
+                progress(len(rows), len(runs))
+    return {
+        "benchmark": "classifier",
+        "command": command,
+        "data": Path(data).name,
+        "train_frames": train,
+        "test_frames": test,
+        "reference": "truth" if simulated else "annotations",
+        "epochs": epochs,
+        "max_fit_seconds": max_fit_seconds,
+        "score_threshold": score_threshold,
+        "probability_exponent": probability_exponent,
+        "box_quality": box_quality,
+        "rows": rows,
+        "machine": machine_info(),
+    }
+
+
+def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:
+    """``count`` frames spread evenly over ``frames`` (all of them for ``None`` or more than there
+    are), first and last included: a vehicle's consecutive frames are 1.5 m apart and nearly
+    repeat each other, so the first N would see one corner of the hall."""
+    frames = [int(i) for i in frames]
+    if count is None or count >= len(frames):
+        return frames
+    if count < 1:
+        raise InputError(f"frame count must be >= 1, got {count}")
+    picks = np.unique(np.round(np.linspace(0, len(frames) - 1, count)).astype(int))
+    return [frames[i] for i in picks]

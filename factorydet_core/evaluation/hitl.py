@@ -1,0 +1,414 @@
+"""The simulated reviewer and the review-loop benchmark (``factorydet bench hitl``): it answers
+the review queue from the simulator's hidden truth, so only benchmarks and tests may use it."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from factorydet_core.boxes import box_iou_3d
+from factorydet_core.detection.detector import Detector, params_for
+from factorydet_core.evaluation.bench import machine_info, spread_frames
+from factorydet_core.evaluation.evaluate import measure
+from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
+from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
+from factorydet_core.sim.truth import read_frame_truth
+from factorydet_core.training.loop import LoopSettings, cached_proposals, train_session
+from factorydet_core.types import (
+    InputError,
+)
+
+
+def truth_verdict(
+    dataset: Dataset,
+    item: dict,
+    positive_iou: float = 0.6,
+    object_overlap: float = 0.1,
+    min_points: int | None = None,
+) -> tuple[str, str | None, np.ndarray | None]:
+    """What a careful person would answer for a mined negative, read from the simulator's truth,
+    under the data set's annotation policy (objects of at least ``min_points`` points, by default
+    ``annotation_min_points``).
+
+    Returns:
+        ``(verdict, class_name, true_box)``: 'object' with the class when the mined box matches an
+        object of the policy at ``positive_iou``; 'wrong_box' with the object's class and true box
+        when it overlaps one by at least ``object_overlap`` IoU; 'skip' when it overlaps only real
+        objects too sparse for the policy (neither a label nor background: a person labelling to
+        the policy leaves them as the annotations and the truth references do); else 'background'.
+    """
+
+    if min_points is None:
+        min_points = annotation_min_points(dataset)
+    truth = read_frame_truth(dataset.path, item["frame_index"])
+    real = truth.instance_class_ids >= 0
+    if not real.any():
+        return "background", None, None
+    iou = box_iou_3d(np.asarray([item["box"]], np.float64), truth.instance_boxes[real])[0]
+    dense = truth.instance_num_points[real] >= min_points
+    if dense.any():
+        best = int(np.flatnonzero(dense)[iou[dense].argmax()])
+        name = dataset.class_names[int(truth.instance_class_ids[real][best])]
+        box = truth.instance_boxes[real][best]
+        if iou[best] >= positive_iou:
+            return "object", name, box
+        if iou[best] >= object_overlap:
+            return "wrong_box", name, box
+    if (iou[~dense] >= object_overlap).any():
+        return "skip", None, None
+    return "background", None, None
+
+
+def simulated_review(
+    db: SessionDB,
+    dataset: Dataset,
+    budget: int,
+    author: str = "simulated-reviewer",
+    positive_iou: float = 0.6,
+    max_label_iou: float | None = None,
+) -> dict:
+    """Answer the top ``budget`` pending items of the latest run's queue from the truth
+    (``truth_verdict``), one ``SessionDB.review`` call per item, as the review panel's buttons make
+    them. A 'wrong box' is followed by the box a person would draw (``SessionDB.add_label``). An
+    item on an object the session already labels (at ``positive_iou``, for instance one drawn for an
+    earlier item) is a part, a duplicate or a misplaced box of a labelled object: a negative, so
+    'background' when its box is off the object and 'skip' when it matches it (there is nothing to
+    add), as the full labels of ``bench hitl`` would mine and keep it.
+
+    Args:
+        max_label_iou: review the queue with the panel's "hide items on labelled objects" filter
+            (``SessionDB.review_queue``): an item whose box overlaps a current label at this IoU
+            or more, checked when its turn comes (the panel's queue follows the labels the
+            reviewer adds), is passed over and does not count against the budget.
+
+    Returns:
+        Counts per verdict, the number of boxes drawn and of items ``hidden`` by the filter.
+    """
+    counts = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0, "hidden": 0}
+    answered = 0
+    for item in db.review_queue(pending_only=True):
+        if answered == budget:
+            break
+        if max_label_iou is not None and on_labelled_object(db.label_overlap([item])[0], max_label_iou):
+            counts["hidden"] += 1
+            continue
+        verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)
+        if true_box is not None:
+            boxes, _, _ = db.frame_boxes(item["frame_index"])
+            if len(boxes) and box_iou_3d(true_box[None], boxes).max() >= positive_iou:
+                verdict, class_name = ("skip" if verdict == "object" else "background"), None
+        db.review(
+            [item["id"]],
+            verdict,
+            author,
+            class_name=class_name if verdict == "object" else None,
+            expected={item["id"]: item["verdict"]},
+        )
+        counts[verdict] += 1
+        answered += 1
+        if verdict == "wrong_box":
+            db.add_label(item["frame_index"], true_box, class_name, author)
+            counts["boxes_drawn"] += 1
+    return counts
+
+
+def _unannotated_truth(dataset: Dataset, index: int, min_points: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """The real objects of frame ``index`` the data set left unannotated, with at least
+    ``min_points`` points (``None``: ``annotation_min_points``): (boxes (M, 7), class_ids (M,))
+    from the simulator's truth."""
+
+    if min_points is None:
+        min_points = annotation_min_points(dataset)
+    truth = read_frame_truth(dataset.path, index)
+    missing = (
+        (truth.instance_class_ids >= 0) & ~truth.annotated_mask & (truth.instance_num_points >= min_points)
+    )
+    return truth.instance_boxes[missing], truth.instance_class_ids[missing]
+
+
+def add_truth_labels(
+    db: SessionDB, dataset: Dataset, frame_indices: Sequence[int], min_points: int | None = None
+) -> int:
+    """Label every real object the data set left unannotated (at least ``min_points`` points, by
+    default the annotation policy's) from the simulator's truth: the fully labelled upper bound of
+    ``bench hitl``.
+
+    Returns:
+        How many labels were added.
+    """
+    added = 0
+    for index in frame_indices:
+        boxes, class_ids = _unannotated_truth(dataset, index, min_points)
+        for box, class_id in zip(boxes, class_ids):
+            db.add_label(index, box, dataset.class_names[int(class_id)], "truth", origin="import")
+            added += 1
+    return added
+
+
+def unannotated_coverage(
+    db: SessionDB,
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    min_points: int | None = None,
+    iou_threshold: float = 0.6,
+) -> tuple[int, int]:
+    """How many of the objects the data set left unannotated (``add_truth_labels``' set) the
+    session now labels with their class at ``iou_threshold``: what the reviews gave back.
+
+    Returns:
+        ``(covered, total)``.
+    """
+    covered = total = 0
+    for index in frame_indices:
+        boxes, class_ids = _unannotated_truth(dataset, index, min_points)
+        total += len(boxes)
+        labels, label_class_ids, _ = db.frame_boxes(index)
+        if not len(boxes) or not len(labels):
+            continue
+        truth_names = np.asarray(dataset.class_names)[class_ids]
+        label_names = np.asarray(db.class_names)[label_class_ids]
+        same_class = truth_names[:, None] == label_names[None, :]
+        iou = np.where(same_class, box_iou_3d(boxes, labels), 0.0)
+        covered += int((iou.max(axis=1) >= iou_threshold).sum())
+    return covered, total
+
+
+def queue_reach(
+    db: SessionDB,
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    run_id: int | None = None,
+    object_overlap: float = 0.1,
+    min_points: int | None = None,
+) -> set[tuple[int, int]]:
+    """The objects the data set left unannotated (``add_truth_labels``' set) that some item of a
+    run's review queue (the latest by default) overlaps at ``object_overlap`` IoU: the ones a
+    reviewer answering the whole queue could label ('object' or 'wrong box'). Reviews cannot give
+    back more than this, whatever their budget.
+
+    Returns:
+        ``(frame_index, k)`` pairs, ``k`` indexing the frame's unannotated objects in
+        ``_unannotated_truth``'s order.
+    """
+    by_frame: dict[int, list[list[float]]] = {}
+    for item in db.review_queue(run_id):
+        by_frame.setdefault(int(item["frame_index"]), []).append(item["box"])
+    reached = set()
+    for index in frame_indices:
+        boxes, _ = _unannotated_truth(dataset, index, min_points)
+        items = by_frame.get(int(index))
+        if not len(boxes) or not items:
+            continue
+        iou = box_iou_3d(boxes, np.asarray(items, np.float64).reshape(-1, 7))
+        reached.update((int(index), int(k)) for k in np.flatnonzero(iou.max(axis=1) >= object_overlap))
+    return reached
+
+
+def bench_hitl(
+    data: str | os.PathLike,
+    *,
+    budgets: Sequence[int] = (50, 200),
+    rounds: int = 2,
+    settings=None,
+    seeds: Sequence[int] = (0,),
+    max_label_iou: float | None = None,
+    max_train_frames: int | None = None,
+    max_test_frames: int | None = None,
+    calibrate: bool = True,
+    workdir: str | os.PathLike | None = None,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
+    mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
+
+    (a) ``blind``: mining on the partial labels, as the paper;
+    (b) ``reviewed_K``: the same, with a simulated reviewer answering the top K items of each
+        round's queue from the truth, through ``SessionDB.review`` (the review panel's call);
+    (c) ``full``: mining on full labels (every object of the annotation policy labelled,
+        ``hitl.add_truth_labels``), the upper bound.
+
+    ``max_label_iou`` gives the reviewer the queue filter that hides items on labelled objects
+    (``SessionDB.review_queue``); hidden items cost no budget.
+
+    Every variant runs ``rounds + 1`` fits: a first fit that mines, then ``rounds`` next rounds.
+    Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
+    and the box quality regressor) trains every variant afresh; F-scores are the seeds' means,
+    and ``recovered[K]`` is (F(b) - F(a)) / (F(c) - F(a)) of the means. The training and test
+    frames are spread evenly over their splits (``spread_frames``).
+    """
+    import tempfile
+
+    dataset = open_dataset(data)
+    if not (Path(data) / "truth").is_dir():
+        raise InputError(
+            f"{dataset.name}: bench hitl needs a simulated data set (its reviewer reads the truth)"
+        )
+    seeds, budgets = [int(s) for s in seeds], [int(k) for k in budgets]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise InputError(f"bench hitl needs one or more distinct seeds >= 0, got {seeds}")
+    if not budgets or len(set(budgets)) != len(budgets) or min(budgets) < 1:
+        raise InputError(f"bench hitl needs one or more distinct review budgets K >= 1, got {budgets}")
+    if max_label_iou is not None and not 0.0 < max_label_iou <= 1.0:
+        raise InputError(f"bench hitl: the queue filter's IoU must lie in (0, 1], got {max_label_iou}")
+    settings = settings or LoopSettings()
+    settings = dataclasses.replace(settings, rounds=0)
+    train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
+    test = spread_frames(dataset.splits.get("test") or [], max_test_frames)
+    if not train or not test:
+        raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
+    plan = _HitlPlan(
+        dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command
+    )
+    if workdir is not None:
+        return _hitl_variants(plan, Path(workdir), progress)
+    with tempfile.TemporaryDirectory(prefix="factorydet_hitl_") as scratch_dir:
+        return _hitl_variants(plan, Path(scratch_dir), progress)
+
+
+def _recovered(f1: dict[str, float], budgets: Sequence[int]) -> tuple[float, dict[str, float | None]]:
+    """The gap F(full) - F(blind) and the share of it each ``reviewed_K`` recovers (``None``
+    when there is no gap)."""
+    gap = f1["full"] - f1["blind"]
+    return gap, {
+        str(k): None if gap <= 0 else round((f1[f"reviewed_{k}"] - f1["blind"]) / gap, 3) for k in budgets
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class _HitlPlan:
+    """``bench_hitl``'s checked arguments."""
+
+    dataset: object
+    data: str | os.PathLike
+    train: list[int]
+    test: list[int]
+    budgets: list[int]
+    rounds: int
+    settings: object
+    seeds: list[int]
+    max_label_iou: float | None
+    calibrate: bool
+    command: str
+
+
+def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
+    """``bench_hitl``'s work inside its sessions folder ``root``."""
+
+    dataset, data, train, test, budgets = plan.dataset, plan.data, plan.train, plan.test, plan.budgets
+    rounds, settings, seeds, max_label_iou = plan.rounds, plan.settings, plan.seeds, plan.max_label_iou
+    calibrate, command = plan.calibrate, plan.command
+    detector = Detector(params_for(None, dataset.num_sensors))
+    if calibrate and dataset.num_sensors > 1:
+        detector.calibrate(dataset.frame(train[0]))
+    scratch = SessionDB(open_session("proposals", root), dataset)
+    start = time.perf_counter()
+    train_frames = cached_proposals(scratch, dataset, detector, train)
+    test_frames = cached_proposals(scratch, dataset, detector, test)
+    proposal_seconds = time.perf_counter() - start
+    variants = [("blind", 0), *((f"reviewed_{k}", int(k)) for k in budgets), ("full", 0)]
+    steps, done = len(seeds) * len(variants) * (rounds + 1), 0
+    per_seed: dict[str, list[dict]] = {name: [] for name, _ in variants}
+    for seed in seeds:
+        seed_settings = dataclasses.replace(settings, seed=seed)
+        for name, budget in variants:
+            db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
+            added = add_truth_labels(db, dataset, train) if name == "full" else 0
+            reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)
+            fit_seconds = 0.0
+            reached: set = set()  # unannotated objects some reviewable queue item overlaps
+            for r in range(rounds + 1):
+                _, run = train_session(
+                    db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data)
+                )
+                fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
+                if name != "full" and r < rounds:
+                    reached |= queue_reach(db, dataset, train)
+                if budget and r < rounds:
+                    answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou)
+                    for key, value in answered.items():
+                        reviews[key] += value
+                done += 1
+                if progress is not None:
+                    progress(done, steps)
+            metrics = measure(run.model, dataset, test_frames, use_truth=True)
+            covered, unannotated = unannotated_coverage(db, dataset, train)
+            per_seed[name].append(
+                {
+                    "seed": seed,
+                    "f1": metrics["f1"],
+                    "precision": metrics["precision"],
+                    "recall": metrics["recall"],
+                    "map": metrics["map"],
+                    "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()},
+                    "num_reviews": sum(v for k, v in reviews.items() if k not in ("boxes_drawn", "hidden")),
+                    "reviews": reviews,
+                    "truth_labels_added": added,
+                    "unannotated_labelled": covered,
+                    "unannotated_total": unannotated,
+                    "unannotated_in_queue": None if name == "full" else len(reached),
+                    "fit_seconds": round(fit_seconds, 1),
+                }
+            )
+
+    def mean(values) -> float | None:
+        given = [v for v in values if v is not None]  # None: a class without references
+        return round(float(np.mean(given)), 4) if given else None
+
+    results = {}
+    for name, runs in per_seed.items():
+        results[name] = {
+            **{key: mean([r[key] for r in runs]) for key in ("f1", "precision", "recall", "map")},
+            "f1_per_seed": [r["f1"] for r in runs],
+            "f1_std": round(float(np.std([r["f1"] for r in runs], ddof=1)), 4) if len(runs) > 1 else None,
+            "per_class_f1": {c: mean([r["per_class_f1"][c] for r in runs]) for c in runs[0]["per_class_f1"]},
+            "num_reviews": mean([r["num_reviews"] for r in runs]),
+            "reviews": {k: mean([r["reviews"][k] for r in runs]) for k in runs[0]["reviews"]},
+            "truth_labels_added": mean([r["truth_labels_added"] for r in runs]),
+            # Of the objects the data set left unannotated on the training frames, the share the
+            # session labels at the end (full: all; blind: none; reviewed: what the reviews gave back).
+            "unannotated_labelled": mean(
+                [r["unannotated_labelled"] / max(r["unannotated_total"], 1) for r in runs]
+            ),
+            # Of those objects, the share some item of a reviewed round's queue overlaps (IoU 0.1):
+            # all that reviews of any budget could give back (None for full labels: no queue of
+            # unannotated objects to reach).
+            "unannotated_in_queue": None
+            if name == "full"
+            else mean([r["unannotated_in_queue"] / max(r["unannotated_total"], 1) for r in runs]),
+            "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
+        }
+    f1 = {name: r["f1"] for name, r in results.items()}
+    gap, recovered = _recovered(f1, budgets)
+    seed_recovered = [
+        _recovered({n: runs[i]["f1"] for n, runs in per_seed.items()}, budgets)[1] for i in range(len(seeds))
+    ]
+    recovered_per_seed = {str(k): [r[str(k)] for r in seed_recovered] for k in budgets}
+    return {
+        "benchmark": "hitl",
+        "command": command,
+        "data": Path(data).name,
+        "train_frames": train,
+        "test_frames": test,
+        "reference": "truth",
+        "iou_threshold": 0.6,
+        "mining_rounds": rounds,
+        "seeds": seeds,
+        # The reviewer's queue: highest score first, without the items that overlap a label at
+        # this IoU or more when set (the review panel's "hide items on labelled objects").
+        "queue_max_label_iou": max_label_iou,
+        "settings": {k: v for k, v in dataclasses.asdict(settings).items() if k != "seed"},
+        "f1": f1,
+        "recovered": recovered,
+        "recovered_per_seed": recovered_per_seed,
+        "gap_full_minus_blind": round(gap, 4),
+        "variants": results,
+        "per_seed": per_seed,
+        "proposal_seconds": round(proposal_seconds, 1),
+        "machine": machine_info(),
+    }

@@ -1,0 +1,638 @@
+"""The results report (``factorydet report``): every figure in it comes from this run."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from factorydet_core.boxes import box_iou_3d
+from factorydet_core.detection.box_quality import BoxQuality
+from factorydet_core.detection.classifier import FisherNet, count_parameters
+from factorydet_core.detection.detector import Detector, params_for
+from factorydet_core.detection.groups import best_option_iou
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.detection.scoring import select_detections
+from factorydet_core.evaluation.bench import machine_info
+from factorydet_core.evaluation.evaluate import (
+    PAPER_TABLE2,
+    PAPER_TABLE3,
+    Progress,
+    baseline_model,
+    detector_for,
+    measure,
+    reference_boxes,
+)
+from factorydet_core.evaluation.plots import plot_error_breakdown, plot_pr_curves, plot_sweep
+from factorydet_core.evaluation.quality import quality_markdown
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.metrics import FALSE_POSITIVE_KINDS, MISS_KINDS, OVERLAP_IOU
+from factorydet_core.training.mining import collect_proposals, group_overlaps, train_with_mining
+from factorydet_core.types import InputError
+
+
+def _fmt(value, digits: int = 3) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+METHOD_LABELS = {"paper": "3DmFV-Net", "box_head": "box head", "head_options": "box head + options"}
+"""How the report names each back half (``model.DetectionModel.method``) in its tables."""
+
+
+def model_text(model: DetectionModel) -> str:
+    """What the model's back half is, in one clause."""
+    if model.method == "paper":
+        return (
+            f"3DmFV-Net width {model.classifier.width} ({model.classifier.num_parameters_:,} parameters; "
+            f"width 1.0, the paper's network, has "
+            f"{count_parameters(FisherNet(len(model.classifier.labels_), 1.0)):,})"
+        )
+    num_parameters = model.classifier.num_parameters_
+    head = f"learned box head, a PointNet on each point set's points ({num_parameters:,} parameters)"
+    if model.method == "head_options":
+        return (
+            head
+            + ", whose class probabilities the box quality regressor boxes among the size prior's options"
+        )
+    return head + ", which boxes its own detections"
+
+
+def heldout_lines(quality: dict) -> list[str]:
+    """The held-out factory benchmark's table (``quality.quality_markdown``) under its heading."""
+
+    return [
+        "",
+        "## Held-out factories: the paper's method and the learned stages side by side",
+        "",
+        "The headline. Every method classifies the same proposals of factories no training, tuning "
+        "or threshold choice saw (`factorydet bench quality`, `docs/bench/quality.json`):",
+        "",
+        quality_markdown(quality).rstrip(),
+    ]
+
+
+def operating_text(model: DetectionModel) -> str:
+    """How a model's detections are scored and thresholded, in words, for the report."""
+    score = ""
+    if model.box_quality is not None:
+        power = "" if model.probability_exponent == 1 else f" to the power {model.probability_exponent:g}"
+        score = f"score = class probability{power} x predicted IoU; "
+    tuned = model.class_score_thresholds
+    if not tuned:
+        return f"{score}operating score threshold {model.score_threshold:g}"
+    per_class = ", ".join(f"{name} {tuned[name]:g}" for name in model.class_names if name in tuned)
+    rest = [name for name in model.class_names if name not in tuned]
+    return (
+        f"{score}per-class operating score thresholds, tuned on the training frames' annotations ({per_class}"
+        + (f"; {', '.join(rest)} {model.score_threshold:g}" if rest else "")
+        + ")"
+    )
+
+
+def _proposal_recall(dataset, frames, iou_threshold: float, model: DetectionModel) -> dict:
+    """Per class, the share of truth instances that some proposal box matches (``proposals``: the
+    bound on recall of boxes fitted to segments), and that some box option of the instance's own
+    class matches (``options``: the model's size prior grows the boxes and, with anchored box
+    quality, sets class sizes into their corners; the bound of a classifier that is always right).
+
+    Then where the model loses the rest, instance by instance (no one-to-one matching, so these
+    are shares of instances some box reaches, not the evaluation's recall): ``chosen`` some point
+    set's candidate names the instance's class and its chosen box reaches the IoU, at any score;
+    ``scored`` the same at the operating score; ``kept`` the same among the detections NMS keeps.
+    Each is a subset of the one before (``chosen`` of ``options``: a chosen box is one of the
+    options of its set and class)."""
+
+    anchored = model.box_quality is not None and model.box_quality.anchored
+    hits, option_hits, classes = [], [], []
+    funnel: dict[str, list[np.ndarray]] = {"chosen": [], "scored": [], "kept": []}
+    for frame in frames:
+        boxes, class_ids = reference_boxes(dataset, frame.frame_index, use_truth=True)
+        overlap = group_overlaps(frame, boxes)
+        hits.append(overlap.max(axis=0) >= iou_threshold if overlap.shape[0] else np.zeros(len(boxes), bool))
+        if model.box_prior is not None:
+            best = best_option_iou(
+                boxes,
+                class_ids,
+                frame.proposal_boxes,
+                frame.groups.group_ids,
+                model.box_prior,
+                anchored,
+                frame.groups.anchor_mask,
+            )
+            option_hits.append(best >= iou_threshold)
+        candidates = model.candidates(frame.proposal_boxes, frame.groups)
+        scored = select_detections(  # all of them
+            candidates,
+            model.score_threshold,
+            model.nms_iou,
+            class_score_thresholds=model.class_thresholds(),
+            vote_iou=model.vote_iou,
+        )
+        for name, chosen in (
+            ("chosen", candidates),
+            ("scored", scored),
+            ("kept", scored.subset(np.flatnonzero(scored.kept_mask))),
+        ):
+            match = (box_iou_3d(chosen.boxes, boxes) >= iou_threshold) & (
+                chosen.class_ids[:, None] == class_ids[None, :]
+            )
+            funnel[name].append(match.any(axis=0) if len(chosen.boxes) else np.zeros(len(boxes), bool))
+        classes.append(class_ids)
+    classes = np.concatenate(classes)
+
+    def table(hit_lists) -> dict:
+        hit = np.concatenate(hit_lists)
+        out = {
+            name: round(float(hit[classes == c].mean()), 3)
+            for c, name in enumerate(dataset.class_names)
+            if (classes == c).any()
+        }
+        out["total"] = round(float(hit.mean()), 3) if len(hit) else None
+        return out
+
+    return {
+        "proposals": table(hits),
+        "options": table(option_hits) if option_hits else None,
+        **{name: table(lists) for name, lists in funnel.items()},
+    }
+
+
+FEATURE_TEXT = {
+    "aggregated": "points-weighted mean of each point set's voxel features (the paper's Eq. 7)",
+    "direct": "3DmFV of each point set's own points (`feature=direct`)",
+}
+"""How the report names each proposal feature (``FrontEndParams.feature``)."""
+
+
+def _error_lines(errors: dict, reference: str, png: Path, method_label: str = "3DmFV-Net") -> list[str]:
+    """The report's section on the kinds of errors (``metrics.error_breakdown``)."""
+    names = list(errors["per_class"])
+    rows = [("true positives", lambda r: r["tp"], errors["tp"])]
+    rows += [
+        (f"false positive: {k}", lambda r, k=k: r["false_positives"][k], errors["false_positives"][k])
+        for k in FALSE_POSITIVE_KINDS
+    ]
+    rows += [
+        (f"missed: {k.replace('_', ' ')}", lambda r, k=k: r["misses"][k], errors["misses"][k])
+        for k in MISS_KINDS
+    ]
+    without = errors["f1_without"]
+    worst_fp = max(FALSE_POSITIVE_KINDS, key=lambda k: without[k])
+    worst_miss = max(MISS_KINDS, key=lambda k: without[k])
+    return [
+        "",
+        "## Where the errors are",
+        "",
+        f"Every {method_label} detection at the operating thresholds and every {reference} instance, "
+        "sorted by kind (after Hoiem et al., *Diagnosing error in object detectors*, 2012). A false "
+        "positive is a *duplicate* when an instance of its class fits it at the IoU but was already "
+        f"matched, *localization* when one of its class overlaps it at IoU {OVERLAP_IOU} or more but "
+        "less than the threshold, *confusion* when only an instance of another class overlaps it, "
+        "and *background* when none does. A missed instance has *no candidate* when no point set's "
+        "candidate of its class fits it at the IoU, whatever the score (no point set covers it, its "
+        "point set has a wrong class, or a wrong box was chosen among the options); is *below "
+        "threshold* when some do but all score below the operating threshold; and is *suppressed* "
+        "when one scored above it but NMS or the one-to-one matching took it, or box voting moved "
+        "its box below the IoU.",
+        "",
+        "| | " + " | ".join(names) + " | total |",
+        "|---|" + "---|" * (len(names) + 1),
+        *[
+            f"| {label} | " + " | ".join(str(get(errors["per_class"][n])) for n in names) + f" | {total} |"
+            for label, get, total in rows
+        ],
+        "",
+        f"Total F-score {errors['f1']:.3f}; with every false positive of one kind removed: "
+        + ", ".join(f"{k} {without[k]:.3f}" for k in FALSE_POSITIVE_KINDS)
+        + "; with every miss of one kind found: "
+        + ", ".join(f"{k.replace('_', ' ')} {without[k]:.3f}" for k in MISS_KINDS)
+        + f". The largest single gains: removing the {worst_fp} false positives "
+        f"({without[worst_fp]:.3f}), and finding the misses of kind "
+        f'"{worst_miss.replace("_", " ")}" ({without[worst_miss]:.3f}).',
+        "",
+        f"![errors by kind]({png.name})",
+    ]
+
+
+def voxel_sweep(
+    dataset,
+    model: DetectionModel,
+    sizes: list[float],
+    train_indices: list[int],
+    test_indices: list[int],
+    T_vehicle_sensor: np.ndarray | None,
+    iou_threshold: float,
+    progress: Progress | None = None,
+    train_dataset=None,
+    train_T_vehicle_sensor: np.ndarray | None = None,
+) -> list[dict]:
+    """F-score against the truth for each voxel size, retraining the classifier (one round, no
+    mining) on ``train_indices`` with the model's settings each time (the paper's Fig. 7): its
+    classifier settings, its operating threshold and score exponent, and a box quality regressor
+    when it has one.
+
+    The training frames are ``train_dataset``'s (with its own extrinsics ``train_T_vehicle_sensor``)
+    when given, else ``dataset``'s."""
+    if train_dataset is None:
+        train_dataset, train_T_vehicle_sensor = dataset, T_vehicle_sensor
+
+    base = params_for(model, train_dataset.num_sensors)
+    rows = []
+    for n, size in enumerate(sizes):
+        params = base.replace(voxel_size_m=size)
+        train = collect_proposals(train_dataset, train_indices, Detector(params, train_T_vehicle_sensor))
+        test = collect_proposals(dataset, test_indices, Detector(params, T_vehicle_sensor))
+        run = train_with_mining(
+            train,
+            type(model.classifier)(**model.classifier.get_params()),  # its settings, unfitted
+            rounds=0,
+            score_threshold=model.score_threshold,
+            tune_class_thresholds=model.class_score_thresholds is not None,
+            box_quality=None if model.box_quality is None else BoxQuality(),
+            probability_exponent=model.probability_exponent,
+        )
+        metrics = measure(run.model, dataset, test, iou_threshold=iou_threshold, use_truth=True)
+        rows.append({"voxel_size_m": size, "f1": metrics["f1"], "map": metrics["map"],
+                     "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()}})  # fmt: skip
+        if progress is not None:
+            progress("sweep", n + 1, len(sizes))
+    return rows
+
+
+def write_report(
+    data: str | os.PathLike,
+    model_path: str | os.PathLike,
+    out: str | os.PathLike = "docs/results.md",
+    *,
+    iou_threshold: float = 0.6,
+    max_frames: int | None = None,
+    sweep_sizes: list[float] | None = None,
+    sweep_frames: int = 4,
+    calibrate: bool = True,
+    command: str = "",
+    progress: Progress | None = None,
+    train_data: str | os.PathLike | None = None,
+) -> Path:
+    """Measure the model and the baseline and write the Markdown report, its PNGs and a JSON copy
+    of every number next to ``out``.
+
+    The baseline and the grid sweep are trained on the training frames of ``train_data`` (the data
+    set the model was trained on, so that both classifiers learn from the same frames), or of
+    ``data`` when it is not given."""
+    out = Path(out)
+    dataset = open_dataset(data)
+    model = DetectionModel.load(model_path)
+    label = METHOD_LABELS[model.method]
+    simulated = (Path(data) / "truth").is_dir()
+    train_dataset = dataset if train_data is None else open_dataset(train_data)
+    train_idx = train_dataset.splits.get("train") or []
+    test_idx = dataset.splits.get("test") or list(range(dataset.num_frames))
+    test_idx = test_idx[:max_frames] if max_frames else test_idx
+    detector = detector_for(model, dataset, calibrate)
+    train_detector = detector if train_data is None else detector_for(model, train_dataset, calibrate)
+    test = collect_proposals(dataset, test_idx, detector, progress)
+    train = collect_proposals(train_dataset, train_idx, train_detector, progress)
+    baseline = baseline_model(model, train)
+    references = ["annotations", "truth"] if simulated else ["annotations"]
+    results = {
+        ref: {
+            "deep": measure(model, dataset, test, iou_threshold=iou_threshold, use_truth=ref == "truth"),
+            "baseline": measure(
+                baseline, dataset, test, iou_threshold=iou_threshold, use_truth=ref == "truth"
+            ),
+        }
+        for ref in references
+    }
+    headline = references[-1]
+    stem = out.with_suffix("")
+    pr_png = Path(f"{stem}_pr.png")
+    errors_png = Path(f"{stem}_errors.png")
+    plot_error_breakdown(
+        results[headline]["deep"]["errors"],
+        errors_png,
+        f"{label} errors vs {headline} at the operating point, IoU {iou_threshold}",
+    )
+    plot_pr_curves(
+        results[headline]["deep"], pr_png, f"{label} detections vs {headline}, IoU {iou_threshold}"
+    )
+    sweep_rows, sweep_png = [], Path(f"{stem}_grid_sweep.png")
+    if sweep_sizes:
+        sweep_rows = voxel_sweep(
+            dataset, model, sweep_sizes, train_idx[:sweep_frames], test_idx, detector.T_vehicle_sensor,
+            iou_threshold, progress, train_dataset, train_detector.T_vehicle_sensor,
+        )  # fmt: skip
+        plot_sweep(
+            sweep_rows,
+            sweep_png,
+            f"F-score against voxel size ({len(train_idx[:sweep_frames])} train frames)",
+        )
+    bound = _proposal_recall(dataset, test, iou_threshold, model) if simulated else None
+    note = model.note
+    rounds = int(note.get("rounds", 1))
+    machine = machine_info()
+    quality_path = out.parent / "bench" / "quality.json"  # written by `factorydet bench quality`
+    class_names = model.class_names
+
+    lines = [
+        "# Results against the paper",
+        "",
+        f"Generated by `{command or 'factorydet report'}` on {datetime.date.today().isoformat()}; "
+        "do not edit by hand. Every figure below comes from that run.",
+        "",
+        f"- Data: `{data}`, test frames {test_idx} ({len(test_idx)}); training frames "
+        f"{note.get('train_frames', train_idx)} of `{train_data if train_data is not None else data}` "
+        "(the model's, the baseline's and the grid sweep's).",
+        f"- Instances in the test frames: {results[headline]['deep']['num_reference']} against the {headline}"
+        + (f" ({results['annotations']['deep']['num_reference']} annotated)" if simulated else ""),
+        f"- Model: `{model_path}`: {model_text(model)}, "
+        f"on the {FEATURE_TEXT[detector.params.feature]}, "
+        f"{rounds} training rounds ({max(rounds - 1, 0)} of hard-negative mining), "
+        f"training time of the final round {note.get('fit_seconds', 0):.0f} s; command: "
+        f"`{note.get('config', {}).get('command', '?')}`.",
+        f"- Matching: IoU ≥ {iou_threshold} with a reference of the same class; {operating_text(model)}, "
+        f"NMS IoU {model.nms_iou}. AP is the area under the interpolated PR curve.",
+        f"- Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory_gb']} GB, no GPU.",
+        *(heldout_lines(json.loads(quality_path.read_text())) if quality_path.is_file() else []),
+        "",
+        "## Table 2: recognition accuracy (%) of held-out point sets",
+        "",
+        "Test-frame point sets that match a reference instance at the IoU threshold take its class; "
+        "those that overlap none are background.",
+        "",
+        f"| class | n | {label} | baseline | paper |",
+        "|---|---|---|---|---|",
+    ]
+    rec_deep = results[headline]["deep"]["recognition"]
+    rec_base = results[headline]["baseline"]["recognition"]
+    if not rec_deep["per_class"]:
+        raise InputError("the test frames hold no point set to recognise")
+    for name, row in rec_deep["per_class"].items():
+        base_row = rec_base["per_class"].get(name, {})
+        lines.append(
+            f"| {name} | {row['num']} | {100 * row['accuracy']:.2f} | "
+            f"{_fmt(100 * base_row['accuracy'] if base_row else None, 2)} | – |"
+        )
+    lines.append(
+        f"| **mean over classes** | | **{100 * rec_deep['mean_class_accuracy']:.2f}** | "
+        f"{100 * rec_base['mean_class_accuracy']:.2f} | {PAPER_TABLE2['mean']:.2f} |"
+    )
+    lines += [
+        "",
+        f"## Table 3: detection F-score at IoU {iou_threshold}",
+        "",
+        f"| class | n | {label} P | R | **F** | AP | baseline F | baseline AP | paper F (IoU 0.6) "
+        "| paper 3D-DPM F (IoU 0.6) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for ref in references:
+        deep, base = results[ref]["deep"], results[ref]["baseline"]
+        lines.append(f"| *against the {ref}* | | | | | | | | | |")
+        for name in class_names:
+            d, b = deep["per_class"][name], base["per_class"][name]
+            lines.append(
+                f"| {name} | {d['num_reference']} | {_fmt(d['precision'])} | {_fmt(d['recall'])} | "
+                f"**{_fmt(d['f1'])}** | {_fmt(d['ap'])} | {_fmt(b['f1'])} | {_fmt(b['ap'])} | "
+                f"{_fmt(PAPER_TABLE3['ours'].get(name))} | – |"
+            )
+        lines.append(
+            f"| **total** | {deep['num_reference']} | {_fmt(deep['precision'])} | {_fmt(deep['recall'])} | "
+            f"**{_fmt(deep['f1'])}** | mAP {_fmt(deep['map'])} | {_fmt(base['f1'])} | "
+            f"mAP {_fmt(base['map'])} | "
+            f"{_fmt(PAPER_TABLE3['ours']['total'])} | {_fmt(PAPER_TABLE3['baseline_3d_dpm']['total'])} |"
+        )
+    deep = results[headline]["deep"]
+    base = results[headline]["baseline"]
+    below = [
+        n for n in class_names if deep["per_class"][n]["num_reference"] and deep["per_class"][n]["f1"] <= 0.5
+    ]
+    lines += [
+        "",
+        f"![precision-recall curves]({pr_png.name})",
+        "",
+        "## Targets",
+        "",
+        (
+            f"- Total F-score against the {headline}: {deep['f1']:.3f} against the paper's "
+            f"{PAPER_TABLE3['ours']['total']}: "
+            + (
+                "above."
+                if deep["f1"] > PAPER_TABLE3["ours"]["total"]
+                else f"short by {PAPER_TABLE3['ours']['total'] - deep['f1']:.3f}."
+            )
+            if iou_threshold == 0.6
+            else f"- Total F-score against the {headline}: {deep['f1']:.3f} (the paper's figures are at "
+            "IoU 0.6 and are not compared at this threshold)."
+        ),
+        f"- Classes at or below F = 0.5: {', '.join(below) if below else 'none'}.",
+        f"- {label} against the baseline (total F): {deep['f1']:.3f} against {base['f1']:.3f}"
+        + (" (ahead)." if deep["f1"] > base["f1"] else " (not ahead)."),
+    ]
+    if bound is not None:
+        lines += [
+            "",
+            "Why: no detection can be better than its proposal. The share of truth instances for which "
+            f"some proposal box reaches IoU {iou_threshold} on these test frames (the recall bound), and "
+            "for which some box option of the instance's own class does (the bound of a classifier "
+            "that is always right and picks the best option), is:",
+            "",
+            "| bound | " + " | ".join(bound["proposals"]) + " |",
+            "|---|" + "---|" * len(bound["proposals"]),
+            "| proposal boxes | " + " | ".join(_fmt(v) for v in bound["proposals"].values()) + " |",
+        ]
+        if bound["options"] is not None:
+            lines.append("| box options | " + " | ".join(_fmt(v) for v in bound["options"].values()) + " |")
+        for key, row in (
+            ("chosen", "chosen box of its class, any score"),
+            ("scored", "the same, at the operating threshold"),
+            ("kept", "the same, kept by NMS"),
+        ):
+            lines.append(f"| {row} | " + " | ".join(_fmt(v) for v in bound[key].values()) + " |")
+        lines += [
+            "",
+            "The options are each point set's boxes, the same grown to its class's typical sizes behind "
+            "the visible side"
+            + (
+                ", and boxes of those sizes placed by the fitted box and by the box at the scene's "
+                "heading (round objects' own boxes have no heading): set into each of its corners "
+                "(objects in a segment of several, flush stacks), standing on the floor under it "
+                "(objects whose lower part the vehicle does not see) and one object up from its "
+                "bottom or down from its top (the middle of a stack)"
+                if model.box_quality is not None and model.box_quality.anchored
+                else ""
+            )
+            + "."
+            + (
+                " The box quality regressor picks among them the one of highest predicted IoU "
+                "and multiplies the class probability by that IoU (for both classifiers)."
+                if model.box_quality is not None
+                else ""
+            ),
+            "",
+            f"The last three rows follow the {label}'s detections down from that bound: the share "
+            "of instances for which some point set's candidate names the instance's class and its "
+            "chosen box reaches the IoU, at any score (a wrong class on the set, or a wrong choice "
+            "among its options, loses an instance here), then at the operating score, then among "
+            "the detections NMS keeps. No one-to-one matching, so the last row can exceed the "
+            "recall of Table 3.",
+        ]
+    background_row = rec_deep["per_class"].get("background")
+    if background_row is not None:
+        lines += [
+            "",
+            f"The classifier is the other limit: it keeps {100 * background_row['accuracy']:.1f}% of "
+            f"the {background_row['num']} background point sets of the test frames as background "
+            f"(the baseline {100 * rec_base['per_class']['background']['accuracy']:.1f}%); "
+            f"{100 * (1 - deep['precision']):.0f}% of its detections at the operating thresholds "
+            f"are false positives (precision {deep['precision']:.3f}), and it recognises "
+            f"{100 * rec_deep['mean_class_accuracy']:.1f}% "
+            "of held-out point sets per class on average against the paper's "
+            f"{PAPER_TABLE2['mean']}%.",
+        ]
+    lines += _error_lines(deep["errors"], headline, errors_png, label)
+    if sweep_rows:
+        lines += [
+            "",
+            "## Fig. 7: F-score against grid resolution",
+            "",
+            "One training round (no mining) per voxel size on the first "
+            f"{len(train_idx[:sweep_frames])} training frames, with the model's settings (score "
+            f"threshold {model.score_threshold}"
+            + (
+                f", probability exponent {model.probability_exponent:g}"
+                if model.probability_exponent != 1
+                else ""
+            )
+            + (", per-class thresholds tuned on those frames" if model.class_score_thresholds else "")
+            + (", box quality" if model.box_quality is not None else "")
+            + "), measured on the test frames against the truth.",
+            "",
+            "| voxel size (m) | total F | mAP |",
+            "|---|---|---|",
+            *[f"| {r['voxel_size_m']} | {_fmt(r['f1'])} | {_fmt(r['map'])} |" for r in sweep_rows],
+            "",
+            f"![grid sweep]({sweep_png.name})",
+        ]
+    hitl_path = out.parent / "hitl.json"
+    if hitl_path.is_file():  # written by `factorydet bench hitl --out docs/hitl.json`
+        lines += ["", hitl_markdown(json.loads(hitl_path.read_text()))]
+    lines.append("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines))
+    record = {
+        "command": command,
+        "data": str(Path(data).name),
+        "model": str(model_path),
+        "test_frames": test_idx,
+        "results": {
+            ref: {k: {m: v for m, v in d.items() if m != "pr_curves"} for k, d in r.items()}
+            for ref, r in results.items()
+        },
+        "proposal_recall_bound": bound,
+        "grid_sweep": sweep_rows,
+        "machine": machine,
+    }
+    Path(f"{stem}.json").write_text(json.dumps(record, indent=2))
+    return out
+
+
+def hitl_markdown(result: dict, heading: bool = True) -> str:
+    """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
+    reviews, and full labels (means over the seeds, with each seed's total), the recovered
+    fraction of the gap and the reviews it took; ``heading=False`` leaves out the section title
+    (the README's block sits under a section of its own)."""
+    variants = result["variants"]
+    names = list(variants)
+    seeds = result.get("seeds", [result["settings"].get("seed", 0)])
+    classes = list(next(iter(variants.values()))["per_class_f1"])
+    head = "| class | " + " | ".join(names) + " |\n|---|" + "---|" * len(names)
+    rows = [
+        f"| {c} | " + " | ".join(_fmt(variants[n]["per_class_f1"][c]) for n in names) + " |" for c in classes
+    ]
+    rows.append("| **total F** | " + " | ".join(f"**{_fmt(variants[n]['f1'])}**" for n in names) + " |")
+    if all(variants[n].get("f1_std") is not None for n in names):
+        rows.append(
+            "| standard deviation over seeds | "
+            + " | ".join(_fmt(variants[n]["f1_std"]) for n in names)
+            + " |"
+        )
+    if len(seeds) > 1:
+        rows.append(
+            "| total F per seed | "
+            + " | ".join(", ".join(_fmt(f) for f in variants[n]["f1_per_seed"]) for n in names)
+            + " |"
+        )
+    rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
+    rows.append(
+        "| verdicts (skips too) | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |"
+    )
+    if any(variants[n].get("reviews", {}).get("hidden") for n in names):
+        rows.append(
+            "| queue items passed over by the filter | "
+            + " | ".join(f"{variants[n]['reviews'].get('hidden', 0):.0f}" for n in names)
+            + " |"
+        )
+    if any(variants[n].get("unannotated_in_queue") is not None for n in names):
+        rows.append(
+            "| unannotated training objects in the reviewed rounds' queues | "
+            + " | ".join(
+                "–"
+                if variants[n].get("unannotated_in_queue") is None
+                else f"{100 * variants[n]['unannotated_in_queue']:.0f}%"
+                for n in names
+            )
+            + " |"
+        )
+    if all("unannotated_labelled" in variants[n] for n in names):
+        rows.append(
+            "| unannotated training objects labelled | "
+            + " | ".join(f"{100 * variants[n]['unannotated_labelled']:.0f}%" for n in names)
+            + " |"
+        )
+
+    def share(v: float | None) -> str:
+        return "–" if v is None else f"{100 * v:.0f}%"
+
+    recovered = ", ".join(f"K = {k}: {share(v)}" for k, v in result["recovered"].items())
+    if len(seeds) > 1:
+        recovered += (
+            " (per seed: "
+            + "; ".join(
+                f"K = {k}: " + ", ".join(share(v) for v in values)
+                for k, values in result["recovered_per_seed"].items()
+            )
+            + ")"
+        )
+    settings = result["settings"]
+    hide = result.get("queue_max_label_iou")
+    queue_note = (
+        f" The reviewer's queue hides items whose box overlaps a label at IoU {hide:g} or more (the "
+        'review panel\'s "hide items on labelled objects"); hidden items cost no budget.'
+        if hide
+        else ""
+    )
+    mean_note = f" Means over seeds {', '.join(map(str, seeds))}." if len(seeds) > 1 else ""
+    return "\n".join(
+        [
+            *(["## Human in the loop: does reviewing the mined negatives help?", ""] if heading else []),
+            f"Generated by `{result.get('command') or 'factorydet bench hitl'}`. Data `{result['data']}`, "
+            f"training frames {result['train_frames']}, test frames {result['test_frames']}; "
+            f"{result['mining_rounds']} mining rounds after the first fit for every detector; 3DmFV-Net "
+            f"width {settings['width']}, {settings['epochs']} epochs per fit, "
+            f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
+            "per round. F-score at IoU "
+            f"{result['iou_threshold']} against the full truth. `blind`: mining on the partial labels (the "
+            "paper); `reviewed_K`: a simulated reviewer answers the top K items of each round's queue from "
+            "the truth through the review panel's own call, labelling to the data set's annotation "
+            "policy; `full`: every object of that policy labelled." + queue_note + mean_note,
+            "",
+            head,
+            *rows,
+            "",
+            "Recovered share of the gap between blind and full labels "
+            f"({_fmt(result['gap_full_minus_blind'])}): {recovered}. Target: at least 80% at K = 200.",
+            "",
+        ]
+    )

@@ -1,0 +1,142 @@
+"""Data sets: a simulated data set folder, or any single point-cloud file, as a sequence of frames."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import zipfile
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from factorydet_core.io.readers import read_frame
+from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
+
+MANIFEST = "manifest.json"
+
+
+class Dataset:
+    """Frames of one data set, read lazily.
+
+    A folder with a ``manifest.json`` is a simulated (or converted) multi-frame data set; any
+    supported point-cloud file opens as a one-frame data set.
+
+    Args:
+        path: the data set folder or file.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self._hash: str | None = None
+        if not self.path.exists():
+            raise InputError(f"{self.path}: no such file or folder")
+        if self.path.is_dir():
+            manifest_path = self.path / MANIFEST
+            if not manifest_path.is_file():
+                raise InputError(f"{self.path}: not a data set folder (no {MANIFEST})")
+            try:
+                self.manifest = json.loads(manifest_path.read_text())
+                self.class_names = tuple(self.manifest["classes"])
+                self._frame_paths = [self.path / p for p in self.manifest["frames"]]
+                self.T_vehicle_sensor = np.array(
+                    [s["T_vehicle_sensor"] for s in self.manifest["sensors"]], dtype=np.float64
+                ).reshape(-1, 4, 4)
+                self.splits = {k: list(v) for k, v in self.manifest.get("splits", {}).items()}
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+                raise InputError(f"{manifest_path}: malformed manifest ({exc})") from None
+            self._single = None
+        else:
+            self._single = read_frame(self.path)
+            self.manifest = {"generator": "file", "frames": [self.path.name]}
+            self.class_names = self._single.class_names
+            self._frame_paths = [self.path]
+            self.T_vehicle_sensor = np.asarray(self._single.T_vehicle_sensor)
+            self.splits = {"train": [], "test": [0]}
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    @property
+    def num_frames(self) -> int:
+        return len(self._frame_paths)
+
+    @property
+    def num_sensors(self) -> int:
+        return len(self.T_vehicle_sensor)
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def content_hash(self) -> str:
+        """A short SHA-256 of the manifest and every frame file, computed once: a session records it
+        so that its labels are never applied to a different data set."""
+        if self._hash is None:
+            digest = hashlib.sha256()
+            manifest = self.path / MANIFEST
+            for path in ([manifest] if manifest.is_file() else []) + self._frame_paths:
+                digest.update(path.name.encode() + b"\0")
+                with open(path, "rb") as f:
+                    for block in iter(lambda: f.read(1 << 20), b""):
+                        digest.update(block)
+            self._hash = digest.hexdigest()[:16]
+        return self._hash
+
+    def frame(self, index: int) -> Frame:
+        """Frame ``index`` (0-based); frames are cached, so repeated reads are free."""
+        if not 0 <= index < self.num_frames:
+            raise IndexError(f"{self.name}: frame {index} out of range [0, {self.num_frames})")
+        if self._single is not None:
+            return self._single
+        return self._read_frame(index)
+
+    @lru_cache(maxsize=8)  # noqa: B019 - a data set lives as long as the app; the cache is small.
+    def _read_frame(self, index: int) -> Frame:
+        path = self._frame_paths[index]
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except FileNotFoundError:
+            raise InputError(f"{path}: frame file missing") from None
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+            raise InputError(f"{path}: unreadable frame ({type(exc).__name__}: {exc})") from None
+        try:
+            labels = BoxLabels(
+                boxes=arrays["label_boxes"],
+                class_ids=arrays["label_class_ids"],
+                instance_ids=arrays["label_instance_ids"],
+                num_points=arrays["label_num_points"],
+            )
+            return Frame(
+                name=path.stem,
+                points=arrays["points"],
+                sensor_ids=arrays["sensor_ids"],
+                T_vehicle_sensor=self.T_vehicle_sensor,
+                T_world_vehicle=arrays["T_world_vehicle"],
+                labels=labels,
+                point_instance_ids=arrays["point_instance_ids"],
+                class_names=self.class_names,
+            )
+        except KeyError as exc:
+            raise InputError(f"{path}: frame lacks the array {exc}") from None
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+
+
+def annotation_min_points(dataset: Dataset, default: int | None = 50) -> int | None:
+    """The data set's annotation policy: objects with at least this many points in a frame are
+    annotated (the simulator's ``min_annotated_points``; ``default`` when the manifest does not
+    say, as for real scans). The truth references of the evaluation (``evaluate.reference_boxes``)
+    and the labels of the simulated reviewer and of the full labels of ``bench hitl`` follow it."""
+    value = dataset.manifest.get("config", {}).get("min_annotated_points")
+    return default if value is None else int(value)
+
+
+def open_dataset(path: str | os.PathLike) -> Dataset:
+    """Open a data set folder or a point-cloud file."""
+    return Dataset(path)
+
+
+__all__ = ["CLASS_NAMES", "Dataset", "annotation_min_points", "open_dataset"]

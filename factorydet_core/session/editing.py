@@ -1,0 +1,123 @@
+"""Geometry behind the label editor: boxes to and from a transform gizmo, points inside a screen
+rectangle, a camera pose that frames a box, splitting a point set in two. No GUI here; the app
+calls these."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from factorydet_core.boxes import fit_box
+from factorydet_core.geometry import wrap_angle
+from factorydet_core.types import InputError
+
+
+def box_to_pose(box) -> tuple[np.ndarray, np.ndarray]:
+    """The ``(position (3,), wxyz (4,))`` of a box's centre and yaw (a rotation about +z)."""
+    box = np.asarray(box, np.float64)
+    half = box[6] / 2
+    return box[:3].copy(), np.array([np.cos(half), 0.0, 0.0, np.sin(half)])
+
+
+def pose_to_box(position, wxyz, size) -> np.ndarray:
+    """(7,) box at ``position`` with ``size`` (dx, dy, dz) and the yaw of ``wxyz``.
+
+    A gizmo may tilt the box; only the rotation's heading about +z is kept, since every box of the
+    project is upright.
+    """
+    w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
+    # The rotated x axis, projected onto the ground plane, gives the heading.
+    heading_x = 1 - 2 * (y * y + z * z)
+    heading_y = 2 * (x * y + w * z)
+    yaw = float(np.arctan2(heading_y, heading_x))
+    size = np.asarray(size, np.float64)
+    if size.shape != (3,) or not (size > 0).all():
+        raise InputError(f"box size must be three positive numbers, got {size.tolist()}")
+    return np.array([*np.asarray(position, np.float64), *size, float(wrap_angle(yaw))])
+
+
+def points_in_screen_rect(
+    points: np.ndarray,
+    camera_position,
+    camera_wxyz,
+    fov: float,
+    aspect: float,
+    screen_min,
+    screen_max,
+) -> np.ndarray:
+    """(N,) bool: points in front of the camera whose projection falls in a screen rectangle.
+
+    Args:
+        points: (N, 3) world points.
+        camera_position: (3,) camera centre.
+        camera_wxyz: (4,) camera orientation in the OpenCV convention (+z forward, +y down), as
+            viser reports it.
+        fov: vertical field of view, radians.
+        aspect: width / height.
+        screen_min, screen_max: (2,) rectangle corners in [0, 1] screen coordinates, (0, 0) top left.
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    w, x, y, z = np.asarray(camera_wxyz, np.float64) / np.linalg.norm(camera_wxyz)
+    rotation = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    local = (points - np.asarray(camera_position, np.float64)) @ rotation  # camera frame
+    depth = local[:, 2]
+    ahead = depth > 1e-6
+    uv = np.zeros((len(points), 2))
+    scale = np.tan(fov / 2)
+    uv[ahead] = local[ahead, :2] / depth[ahead, None] / scale
+    uv[:, 0] /= aspect
+    uv = (uv + 1) / 2
+    lo, hi = np.minimum(screen_min, screen_max), np.maximum(screen_min, screen_max)
+    return ahead & (uv >= lo).all(axis=1) & (uv <= hi).all(axis=1)
+
+
+def camera_for_box(
+    box, distance_factor: float = 3.0, min_distance: float = 4.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(position (3,), look_at (3,))`` of a camera that frames a box from above and in front
+    of its heading's side, far enough to see its neighbours."""
+    box = np.asarray(box, np.float64)
+    centre = box[:3]
+    distance = max(min_distance, distance_factor * float(np.linalg.norm(box[3:6])))
+    direction = np.array([-np.cos(box[6] + 0.6), -np.sin(box[6] + 0.6), 0.9])
+    direction /= np.linalg.norm(direction)
+    return centre + distance * direction, centre
+
+
+def split_in_two(points: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """(N,) 0/1 labels cutting a point set in two (two-means in the ground plane, started from the
+    ends of its longest horizontal axis): how a person splits two objects one segment merged."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(points) < 2:
+        raise InputError("a segment needs at least two points to be split")
+    xy = points[:, :2]
+    centred = xy - xy.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    along = centred @ axes[0]
+    centres = np.stack([xy[along.argmin()], xy[along.argmax()]])
+    labels = (along > np.median(along)).astype(np.int64)
+    for _ in range(iterations):
+        distances = ((xy[:, None, :] - centres[None]) ** 2).sum(axis=2)
+        new = distances.argmin(axis=1)
+        if (new == labels).all() and _ > 0:
+            break
+        labels = new
+        for k in (0, 1):
+            if (labels == k).any():
+                centres[k] = xy[labels == k].mean(axis=0)
+    if labels.min() == labels.max():  # all in one: fall back to the median cut
+        labels = (along > np.median(along)).astype(np.int64)
+    return labels
+
+
+def box_of_points(points: np.ndarray) -> np.ndarray:
+    """(7,) the oriented box a new label gets from a selected segment's points."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(points) < 3:
+        raise InputError(f"a label box needs at least 3 points, the selection has {len(points)}")
+    return np.asarray(fit_box(points), np.float64)

@@ -1,0 +1,1207 @@
+"""Working sessions under ``sessions/``. This is the only module that writes there.
+
+A session is a folder ``sessions/NAME/``:
+
+    data/              the data set it works on (simulated or converted), unless the
+                       session refers to a data set elsewhere
+    session.db         SQLite (WAL, synchronous=FULL, foreign keys on, versioned schema): the data
+                       set reference and hash, the labels of every frame, the edit log that undo
+                       and redo walk, the training runs and their rounds, the negatives each round
+                       mined and the review verdicts on them
+    models/run_NNN/    checkpoints of run NNN: round_R.pt and final.pt, each with its .json note
+                       and .boxq.npz box quality arrays
+    cache/             derived data (proposals, features), deletable at any time
+
+Every write to the database is one transaction committed before the call returns, so an edit the
+app acknowledges survives a crash of the process that made it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime
+import json
+import os
+import re
+import shutil
+import sqlite3
+import threading
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from factorydet_core.boxes import box_iou_3d
+from factorydet_core.io.dataset import MANIFEST, Dataset, open_dataset
+from factorydet_core.types import InputError
+
+_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+
+HIDE_LABELLED_IOU = 0.25
+"""The review panel's "hide items on labelled objects" filter: items whose box overlaps a label at
+this IoU or more (``SessionDB.review_queue``'s ``max_label_iou``). Mined items overlap a label at
+most below ``positive_iou`` 0.6; boxes of neighbouring objects rarely reach 0.25."""
+
+
+def on_labelled_object(label_iou: float | None, max_label_iou: float) -> bool:
+    """Whether the labelled-objects filter hides a queue item of this ``label_iou``
+    (``SessionDB.label_overlap``; ``None``, an overlap not known, is never hidden)."""
+    return label_iou is not None and label_iou >= max_label_iou
+
+
+class SessionError(InputError):
+    """A bad session name or a session that cannot be opened."""
+
+
+def default_root() -> Path:
+    """``$FACTORYDET_SESSIONS`` if set, else ``sessions/`` in the working directory."""
+    return Path(os.environ.get("FACTORYDET_SESSIONS", "sessions"))
+
+
+def validate_name(name: str) -> str:
+    """Return ``name`` if it is a safe folder name: letters, digits, ``_ . -``, no path parts."""
+    if not isinstance(name, str) or not _NAME_RE.fullmatch(name) or ".." in name:
+        raise SessionError(
+            f"invalid session name {name!r}: use 1-64 letters, digits, '_', '.', '-',"
+            " starting with a letter or digit"
+        )
+    return name
+
+
+@dataclasses.dataclass(frozen=True)
+class Session:
+    """A session folder."""
+
+    name: str
+    root: Path
+
+    @property
+    def path(self) -> Path:
+        return self.root / self.name
+
+    @property
+    def data_dir(self) -> Path:
+        return self.path / "data"
+
+    @property
+    def has_data(self) -> bool:
+        return (self.data_dir / MANIFEST).is_file()
+
+    @property
+    def db_path(self) -> Path:
+        return self.path / "session.db"
+
+    @property
+    def cache_dir(self) -> Path:
+        return self.path / "cache"
+
+    @property
+    def models_dir(self) -> Path:
+        return self.path / "models"
+
+
+def open_session(name: str, root: str | os.PathLike | None = None) -> Session:
+    """The session ``name`` under ``root`` (created lazily when something is written)."""
+    root_path = Path(root) if root is not None else default_root()
+    return Session(validate_name(name), root_path)
+
+
+# --- Derived caches ---------------------------------------------------------------------------------
+
+_CACHE_KEY_RE = re.compile(r"[A-Za-z0-9_.-]{1,128}")
+
+
+def _cache_path(session: Session, key: str) -> Path:
+    if not _CACHE_KEY_RE.fullmatch(key) or ".." in key:
+        raise SessionError(f"invalid cache key {key!r}")
+    return session.cache_dir / f"{key}.npz"
+
+
+def write_cache(session: Session, key: str, arrays: dict) -> Path:
+    """Store derived arrays under ``cache/KEY.npz`` (written whole, then renamed into place)."""
+    import numpy as np
+
+    path = _cache_path(session, key)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f"{path.stem}.{os.getpid()}.{threading.get_ident()}.partial.npz")
+    np.savez(partial, **arrays)
+    os.replace(partial, path)
+    return path
+
+
+def read_cache(session: Session, key: str) -> dict | None:
+    """The arrays cached under ``key``, or ``None`` when missing or unreadable (then rebuilt)."""
+    import numpy as np
+
+    path = _cache_path(session, key)
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        path.unlink(missing_ok=True)
+        return None
+
+
+def clear_cache(session: Session) -> None:
+    """Delete every derived cache of the session."""
+    if session.cache_dir.exists():
+        shutil.rmtree(session.cache_dir)
+
+
+# --- The session database -------------------------------------------------------------------------
+
+SCHEMA_VERSION = 1
+"""The schema this code reads and writes (``PRAGMA user_version``). An older database is migrated
+on open; a newer one is refused untouched."""
+
+_SCHEMA_V1 = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE frames (frame_index INTEGER PRIMARY KEY, imported TEXT NOT NULL);
+CREATE TABLE labels (
+    id INTEGER PRIMARY KEY,
+    frame_index INTEGER NOT NULL,
+    box TEXT NOT NULL,
+    class_name TEXT NOT NULL,
+    origin TEXT NOT NULL CHECK (origin IN ('dataset', 'user', 'review', 'import')),
+    instance_id INTEGER,
+    created_by TEXT NOT NULL,
+    created TEXT NOT NULL,
+    modified_by TEXT NOT NULL,
+    modified TEXT NOT NULL,
+    version INTEGER NOT NULL DEFAULT 1,
+    deleted INTEGER NOT NULL DEFAULT 0 CHECK (deleted IN (0, 1))
+);
+CREATE INDEX labels_by_frame ON labels (frame_index);
+CREATE TABLE edits (
+    id INTEGER PRIMARY KEY,
+    author TEXT NOT NULL,
+    created TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    summary TEXT NOT NULL,
+    changes TEXT NOT NULL,
+    state TEXT NOT NULL DEFAULT 'done' CHECK (state IN ('done', 'undone', 'dropped'))
+);
+CREATE INDEX edits_by_author ON edits (author, state);
+CREATE TABLE label_snapshots (
+    id INTEGER PRIMARY KEY,
+    created TEXT NOT NULL,
+    last_edit_id INTEGER,
+    num_labels INTEGER NOT NULL,
+    labels TEXT NOT NULL
+);
+CREATE TABLE training_runs (
+    id INTEGER PRIMARY KEY,
+    created TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    data TEXT NOT NULL,
+    config TEXT NOT NULL,
+    train_frames TEXT NOT NULL,
+    snapshot_id INTEGER REFERENCES label_snapshots (id),
+    model_path TEXT NOT NULL,
+    metrics TEXT
+);
+CREATE TABLE training_rounds (
+    run_id INTEGER NOT NULL REFERENCES training_runs (id),
+    round INTEGER NOT NULL,
+    num_positives INTEGER NOT NULL,
+    num_background INTEGER NOT NULL,
+    num_false_positives INTEGER,
+    fit_seconds REAL NOT NULL,
+    train_metrics TEXT NOT NULL,
+    model_path TEXT NOT NULL,
+    PRIMARY KEY (run_id, round)
+);
+CREATE TABLE mined_negatives (
+    id INTEGER PRIMARY KEY,
+    run_id INTEGER NOT NULL REFERENCES training_runs (id),
+    round INTEGER NOT NULL,
+    frame_index INTEGER NOT NULL,
+    proposal INTEGER NOT NULL,
+    box TEXT NOT NULL,
+    patch_set TEXT NOT NULL,
+    score REAL NOT NULL,
+    predicted_class TEXT NOT NULL,
+    probabilities TEXT,
+    best_annotated_iou REAL NOT NULL
+);
+CREATE INDEX mined_by_run ON mined_negatives (run_id, frame_index);
+CREATE TABLE reviews (
+    negative_id INTEGER PRIMARY KEY REFERENCES mined_negatives (id),
+    verdict TEXT NOT NULL CHECK (verdict IN ('background', 'object', 'wrong_box', 'skip')),
+    class_name TEXT,
+    label_id INTEGER REFERENCES labels (id),
+    author TEXT NOT NULL,
+    created TEXT NOT NULL
+)
+"""
+
+_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1}
+"""Script that takes a database from version ``v - 1`` to ``v``."""
+
+VERDICTS = ("background", "object", "wrong_box", "skip")
+"""Review verdicts on a mined negative: confirmed background, a real object of a class (it becomes
+a label), a real object whose segment is wrong (to be boxed by hand), or not decided now."""
+DECIDED = ("background", "object", "wrong_box")
+ORIGINS = ("dataset", "user", "review", "import")
+
+
+class EditConflictError(SessionError):
+    """An edit made against a state that someone else has changed since: reload and try again."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Label:
+    """One labelled box of a frame, as stored."""
+
+    id: int
+    frame_index: int
+    box: tuple[float, ...]
+    """(7,) (cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame."""
+    class_name: str
+    origin: str
+    """'dataset' (the data set's annotation), 'user' (drawn by hand), 'review' (a mined negative
+    confirmed as an object) or 'import'."""
+    instance_id: int | None
+    """The data set's instance id for 'dataset' labels."""
+    created_by: str
+    created: str
+    modified_by: str
+    modified: str
+    version: int
+    """Bumped by every change: an edit names the version it was made against."""
+    deleted: bool
+
+
+class LabelBatch(list):
+    """Labels added together, with the id of the edit that added them."""
+
+    def __init__(self, labels, edit_id: int | None) -> None:
+        super().__init__(labels)
+        self.edit_id = edit_id
+
+
+@dataclasses.dataclass(frozen=True)
+class Edit:
+    """One entry of the edit log."""
+
+    id: int
+    author: str
+    created: str
+    kind: str
+    summary: str
+    state: str
+    """'done', 'undone', or 'dropped' (undone, then superseded by a newer edit of its author)."""
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
+
+
+def _box_json(box) -> str:
+    values = [float(v) for v in box]
+    if len(values) != 7 or not all(map(_finite, values)):
+        raise SessionError(f"a box is 7 finite numbers (cx, cy, cz, dx, dy, dz, yaw), got {box!r}")
+    if min(values[3:6]) <= 0:
+        raise SessionError(f"box sizes must be positive, got {values[3:6]}")
+    return json.dumps([round(v, 6) for v in values])
+
+
+def _finite(value: float) -> bool:
+    return value == value and abs(value) != float("inf")
+
+
+def _label(row: sqlite3.Row) -> Label:
+    return Label(
+        id=row["id"],
+        frame_index=row["frame_index"],
+        box=tuple(json.loads(row["box"])),
+        class_name=row["class_name"],
+        origin=row["origin"],
+        instance_id=row["instance_id"],
+        created_by=row["created_by"],
+        created=row["created"],
+        modified_by=row["modified_by"],
+        modified=row["modified"],
+        version=row["version"],
+        deleted=bool(row["deleted"]),
+    )
+
+
+# What an edit changes, per table: undo and redo compare and write only these columns.
+_CONTENT = {
+    "labels": ("frame_index", "box", "class_name", "deleted"),
+    "reviews": ("verdict", "class_name", "label_id"),
+}
+_KEYS = {"labels": "id", "reviews": "negative_id"}
+
+
+def check_database(path: str | os.PathLike) -> int:
+    """Check an existing session database without writing to it.
+
+    Returns:
+        Its schema version (0 for an empty file).
+
+    Raises:
+        SessionError: the file is not an SQLite database, is damaged, is not a factorydet session,
+            or was written by a newer version of factorydet.
+    """
+    path = Path(path)
+    try:
+        connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+    except sqlite3.Error as exc:
+        raise SessionError(f"{path}: cannot open the session database ({exc})") from None
+    try:
+        version = connection.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            raise SessionError(
+                f"{path}: session database schema {version} is newer than this factorydet's "
+                f"({SCHEMA_VERSION}); upgrade factorydet. The file was not modified."
+            )
+        check = connection.execute("PRAGMA quick_check").fetchone()[0]
+        if check != "ok":
+            raise SessionError(f"{path}: the session database is damaged ({check}); it was not modified")
+        tables = {r[0] for r in connection.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        if version == 0 and tables:
+            raise SessionError(f"{path}: an SQLite file that is not a factorydet session database")
+        missing = {"meta", "labels", "edits", "reviews"} - tables
+        if version >= 1 and missing:
+            raise SessionError(f"{path}: the session database lacks the tables {sorted(missing)}")
+    except sqlite3.DatabaseError as exc:
+        raise SessionError(f"{path}: not a readable session database ({exc}); it was not modified") from None
+    finally:
+        connection.close()
+    return version
+
+
+class SessionDB:
+    """The session database: labels, edits, reviews, training runs.
+
+    Every method is one transaction, committed before it returns. Methods may be called from any
+    thread; each call uses its own connection, and SQLite serialises the writers.
+
+    Args:
+        session: the session folder (``open_session``).
+        dataset: the data set the labels belong to. The first open records its reference and
+            content hash; a later open with a different data set is refused. Needed to import the
+            data set's annotations as the first labels of each frame.
+        data_ref: how to name the data set in the record (default: its path).
+    """
+
+    def __init__(self, session: Session, dataset=None, data_ref: str | None = None) -> None:
+        self.session = session
+        self.dataset = dataset
+        self.path = session.db_path
+        version = check_database(self.path) if self.path.exists() else 0
+        session.path.mkdir(parents=True, exist_ok=True)
+        if version < SCHEMA_VERSION:
+            self._migrate()
+        if dataset is not None:
+            self._bind(dataset, data_ref or str(dataset.path))
+
+    # -- connections
+
+    def _connect(self) -> sqlite3.Connection:
+        connection = sqlite3.connect(self.path, timeout=60, isolation_level=None, check_same_thread=False)
+        connection.row_factory = sqlite3.Row
+        connection.execute("PRAGMA foreign_keys = ON")
+        connection.execute("PRAGMA synchronous = FULL")
+        return connection
+
+    @contextlib.contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        """A write transaction (taken at once, so two writers never deadlock), committed on success."""
+        connection = self._connect()
+        try:
+            connection.execute("BEGIN IMMEDIATE")
+            try:
+                yield connection
+            except BaseException:
+                connection.execute("ROLLBACK")
+                raise
+            connection.execute("COMMIT")
+        finally:
+            connection.close()
+
+    @contextlib.contextmanager
+    def _read(self) -> Iterator[sqlite3.Connection]:
+        connection = self._connect()
+        try:
+            connection.execute("BEGIN")
+            yield connection
+            connection.execute("COMMIT")
+        finally:
+            connection.close()
+
+    def _migrate(self) -> None:
+        connection = self._connect()
+        try:
+            connection.execute("PRAGMA journal_mode = WAL")
+        finally:
+            connection.close()
+        with self._write() as db:
+            version = db.execute("PRAGMA user_version").fetchone()[0]
+            for target in range(version + 1, SCHEMA_VERSION + 1):
+                for statement in _MIGRATIONS[target].split(";"):
+                    if statement.strip():
+                        db.execute(statement)
+                if target == 1:
+                    db.execute("INSERT INTO meta VALUES ('created', ?)", (_now(),))
+                db.execute(f"PRAGMA user_version = {target}")
+
+    def _bind(self, dataset, data_ref: str) -> None:
+        digest = dataset.content_hash()
+        with self._write() as db:
+            meta = dict(db.execute("SELECT key, value FROM meta").fetchall())
+            if "data_hash" not in meta:
+                db.executemany(
+                    "INSERT INTO meta VALUES (?, ?)",
+                    [
+                        ("data", data_ref),
+                        ("data_hash", digest),
+                        ("class_names", json.dumps(list(dataset.class_names))),
+                        ("num_frames", str(dataset.num_frames)),
+                    ],
+                )
+            elif meta["data_hash"] != digest:
+                raise SessionError(
+                    f"session {self.session.name!r} was made on the data set {meta['data']} "
+                    f"(hash {meta['data_hash']}); {data_ref} (hash {digest}) differs. "
+                    "Open it with its own data set or start a new session."
+                )
+
+    # -- metadata
+
+    def meta(self) -> dict[str, str]:
+        """The data set reference and hash, the creation time."""
+        with self._read() as db:
+            return dict(db.execute("SELECT key, value FROM meta").fetchall())
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        if self.dataset is not None:
+            return tuple(self.dataset.class_names)
+        return tuple(json.loads(self.meta().get("class_names", "[]")))
+
+    def _check_class(self, class_name: str) -> str:
+        names = self.class_names
+        if names and class_name not in names:
+            raise SessionError(f"unknown class {class_name!r}; choose from {', '.join(names)}")
+        return class_name
+
+    def _check_frame(self, frame_index: int) -> int:
+        if self.dataset is not None and not 0 <= int(frame_index) < self.dataset.num_frames:
+            raise SessionError(f"frame {frame_index} out of range [0, {self.dataset.num_frames})")
+        return int(frame_index)
+
+    # -- labels
+
+    def _import_frame(self, db: sqlite3.Connection, frame_index: int) -> None:
+        """The data set's annotations become the frame's first labels (once per session)."""
+        if db.execute("SELECT 1 FROM frames WHERE frame_index = ?", (frame_index,)).fetchone():
+            return
+        if self.dataset is None:
+            raise SessionError(
+                f"frame {frame_index} has no labels yet and no data set is open to import them"
+            )
+        frame = self.dataset.frame(frame_index)
+        now = _now()
+        db.executemany(
+            "INSERT INTO labels (frame_index, box, class_name, origin, instance_id, created_by, created,"
+            " modified_by, modified) VALUES (?, ?, ?, 'dataset', ?, 'dataset', ?, 'dataset', ?)",
+            [
+                (frame_index, _box_json(box), frame.class_names[int(c)], int(i), now, now)
+                for box, c, i in zip(frame.labels.boxes, frame.labels.class_ids, frame.labels.instance_ids)
+            ],
+        )
+        db.execute("INSERT INTO frames VALUES (?, ?)", (frame_index, now))
+
+    def ensure_frames(self, frame_indices) -> None:
+        """Import the data set's annotations of any of ``frame_indices`` not imported yet."""
+        with self._read() as db:
+            done = {r[0] for r in db.execute("SELECT frame_index FROM frames")}
+        todo = [self._check_frame(i) for i in frame_indices if int(i) not in done]
+        if todo:
+            with self._write() as db:
+                for index in todo:
+                    self._import_frame(db, index)
+
+    def labels(self, frame_index: int, include_deleted: bool = False) -> list[Label]:
+        """The frame's labels, in creation order."""
+        self.ensure_frames([frame_index])
+        query = "SELECT * FROM labels WHERE frame_index = ?" + ("" if include_deleted else " AND deleted = 0")
+        with self._read() as db:
+            return [_label(r) for r in db.execute(query + " ORDER BY id", (int(frame_index),))]
+
+    def label(self, label_id: int) -> Label:
+        with self._read() as db:
+            row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
+        if row is None:
+            raise SessionError(f"no label {label_id}")
+        return _label(row)
+
+    def frame_boxes(self, frame_index: int) -> tuple:
+        """The frame's labels as arrays: ``(boxes (R, 7), class_ids (R,), label_ids (R,))``, class
+        ids indexing ``class_names``."""
+        import numpy as np
+
+        labels = self.labels(frame_index)
+        names = self.class_names
+        return (
+            np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
+            np.array([names.index(lab.class_name) for lab in labels], np.int64),
+            np.array([lab.id for lab in labels], np.int64),
+        )
+
+    def _edit(self, db: sqlite3.Connection, author: str, kind: str, summary: str, changes: list) -> int:
+        """Log an edit made in ``db``'s transaction; a new edit drops its author's redo stack."""
+        db.execute("UPDATE edits SET state = 'dropped' WHERE author = ? AND state = 'undone'", (author,))
+        return int(
+            db.execute(
+                "INSERT INTO edits (author, created, kind, summary, changes) VALUES (?, ?, ?, ?, ?)",
+                (author, _now(), kind, summary, json.dumps(changes)),
+            ).lastrowid
+        )
+
+    @staticmethod
+    def _content(db: sqlite3.Connection, table: str, key: int) -> dict | None:
+        columns = ", ".join(_CONTENT[table])
+        row = db.execute(f"SELECT {columns} FROM {table} WHERE {_KEYS[table]} = ?", (key,)).fetchone()
+        return None if row is None else dict(row)
+
+    @staticmethod
+    def _store(db: sqlite3.Connection, table: str, key: int, content: dict | None, author: str) -> None:
+        """Write ``content`` to a row (``None``: delete it); labels are never deleted, only flagged."""
+        if table == "labels":
+            db.execute(
+                "UPDATE labels SET frame_index = ?, box = ?, class_name = ?, deleted = ?,"
+                " version = version + 1, modified_by = ?, modified = ? WHERE id = ?",
+                (
+                    content["frame_index"],
+                    content["box"],
+                    content["class_name"],
+                    content["deleted"],
+                    author,
+                    _now(),
+                    key,
+                ),
+            )
+        elif content is None:
+            db.execute("DELETE FROM reviews WHERE negative_id = ?", (key,))
+        else:
+            db.execute(
+                "INSERT OR REPLACE INTO reviews VALUES (?, ?, ?, ?, ?, ?)",
+                (key, content["verdict"], content["class_name"], content["label_id"], author, _now()),
+            )
+
+    def _change(self, db, table: str, key: int, after: dict | None, author: str) -> dict:
+        before = self._content(db, table, key)
+        self._store(db, table, key, after, author)
+        return {"table": table, "key": key, "before": before, "after": after}
+
+    def _insert_label(
+        self, db, frame_index: int, box, class_name: str, origin: str, author: str
+    ) -> tuple[int, dict]:
+        now = _now()
+        label_id = int(
+            db.execute(
+                "INSERT INTO labels (frame_index, box, class_name, origin, created_by, created, modified_by,"
+                " modified, deleted) VALUES (?, ?, ?, ?, ?, ?, ?, ?, 1)",
+                (frame_index, _box_json(box), class_name, origin, author, now, author, now),
+            ).lastrowid
+        )
+        # Inserted deleted, then "undeleted" by a logged change, so undo simply flags it again.
+        created = {"frame_index": frame_index, "box": _box_json(box), "class_name": class_name, "deleted": 0}
+        return label_id, self._change(db, "labels", label_id, created, author)
+
+    def _locked_label(self, db, label_id: int, expected_version: int | None) -> sqlite3.Row:
+        row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
+        if row is None:
+            raise SessionError(f"no label {label_id}")
+        if expected_version is not None and row["version"] != expected_version:
+            raise EditConflictError(
+                f"label {label_id} was changed by {row['modified_by']} at {row['modified']} "
+                f"(version {row['version']}, you edited version {expected_version}); reload and try again"
+            )
+        return row
+
+    def add_label(self, frame_index: int, box, class_name: str, author: str, origin: str = "user") -> Label:
+        """A new label; returns it as stored."""
+        if origin not in ORIGINS:
+            raise SessionError(f"unknown label origin {origin!r}")
+        frame_index = self._check_frame(frame_index)
+        self._check_class(class_name)
+        self.ensure_frames([frame_index])
+        with self._write() as db:
+            label_id, change = self._insert_label(db, frame_index, box, class_name, origin, author)
+            self._edit(db, author, "add", f"add {class_name} to frame {frame_index}", [change])
+        return self.label(label_id)
+
+    def add_labels(self, items, author: str, origin: str = "import") -> LabelBatch:
+        """Several new labels as one undoable edit (returned with its ``edit_id``).
+
+        Args:
+            items: ``(frame_index, box, class_name)`` triples.
+        """
+        if origin not in ORIGINS:
+            raise SessionError(f"unknown label origin {origin!r}")
+        items = [(self._check_frame(f), box, self._check_class(c)) for f, box, c in items]
+        if not items:
+            return LabelBatch([], None)
+        self.ensure_frames({f for f, _, _ in items})
+        with self._write() as db:
+            ids, changes = [], []
+            for frame_index, box, class_name in items:
+                label_id, change = self._insert_label(db, frame_index, box, class_name, origin, author)
+                ids.append(label_id)
+                changes.append(change)
+            edit_id = self._edit(db, author, "add", f"{origin}: add {len(ids)} label(s)", changes)
+        return LabelBatch([self.label(i) for i in ids], edit_id)
+
+    def update_label(
+        self,
+        label_id: int,
+        author: str,
+        *,
+        expected_version: int | None = None,
+        box=None,
+        class_name: str | None = None,
+    ) -> Label:
+        """Change a label's box and/or class.
+
+        Args:
+            expected_version: the version the change was made against; if the label has changed
+                since, ``EditConflictError`` is raised and nothing is written.
+        """
+        if class_name is not None:
+            self._check_class(class_name)
+        with self._write() as db:
+            row = self._locked_label(db, label_id, expected_version)
+            if row["deleted"]:
+                raise EditConflictError(
+                    f"label {label_id} was deleted by {row['modified_by']} at {row['modified']}"
+                )
+            after = {
+                "frame_index": row["frame_index"],
+                "box": row["box"] if box is None else _box_json(box),
+                "class_name": row["class_name"] if class_name is None else class_name,
+                "deleted": 0,
+            }
+            what = "box" if class_name is None else ("class" if box is None else "box and class")
+            change = self._change(db, "labels", int(label_id), after, author)
+            self._edit(db, author, "update", f"change the {what} of label {label_id}", [change])
+        return self.label(label_id)
+
+    def delete_labels(self, label_ids, author: str, expected_versions: dict[int, int] | None = None) -> int:
+        """Delete labels (they stay in the database, flagged, so undo can restore them).
+
+        Returns:
+            The edit id.
+        """
+        expected_versions = expected_versions or {}
+        with self._write() as db:
+            changes = []
+            for label_id in label_ids:
+                row = self._locked_label(db, label_id, expected_versions.get(int(label_id)))
+                if row["deleted"]:
+                    raise EditConflictError(f"label {label_id} is already deleted (by {row['modified_by']})")
+                after = {**self._content(db, "labels", int(label_id)), "deleted": 1}
+                changes.append(self._change(db, "labels", int(label_id), after, author))
+            if not changes:
+                raise SessionError("no labels to delete")
+            return self._edit(db, author, "delete", f"delete {len(changes)} label(s)", changes)
+
+    # -- undo and redo
+
+    def _replay(self, author: str, undo: bool) -> Edit | None:
+        state, order, new_state = ("done", "DESC", "undone") if undo else ("undone", "ASC", "done")
+        with self._write() as db:
+            row = db.execute(
+                f"SELECT * FROM edits WHERE author = ? AND state = ? ORDER BY id {order} LIMIT 1",
+                (author, state),
+            ).fetchone()
+            if row is None:
+                return None
+            changes = json.loads(row["changes"])
+            for change in reversed(changes) if undo else changes:
+                expected, target = (
+                    (change["after"], change["before"]) if undo else (change["before"], change["after"])
+                )
+                current = self._content(db, change["table"], change["key"])
+                if current != expected:
+                    raise EditConflictError(
+                        f"cannot {'undo' if undo else 'redo'} '{row['summary']}': "
+                        f"{change['table'][:-1]} {change['key']} has been changed since"
+                    )
+                self._store(db, change["table"], change["key"], target, author)
+            db.execute("UPDATE edits SET state = ? WHERE id = ?", (new_state, row["id"]))
+            return self._edit_of(row, new_state)
+
+    @staticmethod
+    def _edit_of(row: sqlite3.Row, state: str | None = None) -> Edit:
+        return Edit(
+            row["id"], row["author"], row["created"], row["kind"], row["summary"], state or row["state"]
+        )
+
+    def undo(self, author: str) -> Edit | None:
+        """Undo ``author``'s latest edit that is not undone; ``None`` if there is none.
+
+        Raises:
+            EditConflictError: something it changed was changed again since (by anyone).
+        """
+        return self._replay(author, undo=True)
+
+    def redo(self, author: str) -> Edit | None:
+        """Redo ``author``'s most recently undone edit; ``None`` if there is none."""
+        return self._replay(author, undo=False)
+
+    def edits(self, author: str | None = None, limit: int = 50) -> list[Edit]:
+        """The edit log, newest first."""
+        query, args = "SELECT * FROM edits", []
+        if author is not None:
+            query, args = query + " WHERE author = ?", [author]
+        with self._read() as db:
+            rows = db.execute(query + " ORDER BY id DESC LIMIT ?", [*args, limit]).fetchall()
+        return [self._edit_of(r) for r in rows]
+
+    def can_undo(self, author: str) -> tuple[bool, bool]:
+        """Whether ``author`` has an edit to undo, and one to redo."""
+        with self._read() as db:
+            states = {
+                r[0] for r in db.execute("SELECT DISTINCT state FROM edits WHERE author = ?", (author,))
+            }
+        return "done" in states, "undone" in states
+
+    # -- label snapshots (what a training run learnt from)
+
+    def snapshot_labels(self, frame_indices) -> int:
+        """Store the current labels of ``frame_indices``; returns the snapshot id."""
+        self.ensure_frames(frame_indices)
+        frames = sorted({int(i) for i in frame_indices})
+        with self._write() as db:
+            rows = db.execute(
+                f"SELECT id, frame_index, box, class_name, origin, instance_id FROM labels WHERE deleted = 0"
+                f" AND frame_index IN ({','.join('?' * len(frames))}) ORDER BY id",
+                frames,
+            ).fetchall()
+            labels = [{**dict(r), "box": json.loads(r["box"])} for r in rows]
+            last_edit = db.execute("SELECT MAX(id) FROM edits").fetchone()[0]
+            return int(
+                db.execute(
+                    "INSERT INTO label_snapshots (created, last_edit_id, num_labels, labels)"
+                    " VALUES (?, ?, ?, ?)",
+                    (_now(), last_edit, len(labels), json.dumps({"frames": frames, "labels": labels})),
+                ).lastrowid
+            )
+
+    def snapshot_size(self, snapshot_id: int) -> int:
+        """How many labels a snapshot holds."""
+        with self._read() as db:
+            row = db.execute(
+                "SELECT num_labels FROM label_snapshots WHERE id = ?", (int(snapshot_id),)
+            ).fetchone()
+        if row is None:
+            raise SessionError(f"no label snapshot {snapshot_id}")
+        return int(row[0])
+
+    def snapshot(self, snapshot_id: int) -> dict:
+        """A stored snapshot: ``created``, ``last_edit_id``, ``frames`` and ``labels``."""
+        with self._read() as db:
+            row = db.execute("SELECT * FROM label_snapshots WHERE id = ?", (int(snapshot_id),)).fetchone()
+        if row is None:
+            raise SessionError(f"no label snapshot {snapshot_id}")
+        return {"id": row["id"], "created": row["created"], "last_edit_id": row["last_edit_id"]} | json.loads(
+            row["labels"]
+        )
+
+    # -- training runs
+
+    def save_training_run(
+        self, run, data: str, config: dict, *, kind: str = "mining", snapshot_id: int | None = None
+    ) -> int:
+        """Store a ``mining.TrainingRun``: a checkpoint per round under ``models/run_NNN/``, the
+        final one as ``final.pt``, and the rounds and mined negatives in the database.
+
+        Args:
+            kind: 'mining' (blind, from the labels), 'retrain', or whatever the caller names it.
+            snapshot_id: the label snapshot the run was trained on (``snapshot_labels``).
+
+        Returns:
+            The run id.
+        """
+        with self._write() as db:
+            # The row first: its id names the checkpoint folder, so two runs never share one.
+            run_id = int(
+                db.execute(
+                    "INSERT INTO training_runs (created, kind, data, config, train_frames, snapshot_id,"
+                    " model_path) VALUES (?, ?, ?, ?, ?, ?, '')",
+                    (_now(), kind, data, json.dumps(config), json.dumps(run.train_frames), snapshot_id),
+                ).lastrowid
+            )
+        # Checkpoints are written outside the transaction (they take seconds); the run only points
+        # at its final model once every file is in place.
+        run_dir = self.session.models_dir / f"run_{run_id:03d}"
+        note = {"data": data, "train_frames": run.train_frames, "config": config, "run_id": run_id}
+        paths = []
+        for record, model in zip(run.rounds, run.models):
+            path = run_dir / f"round_{record['round']}.pt"
+            model.save(path, {**note, "round": record["round"], "train_metrics": record["train_metrics"]})
+            paths.append(path)
+        final = run_dir / "final.pt"
+        run.model.save(
+            final,
+            {
+                **note,
+                "round": run.rounds[-1]["round"],
+                "rounds": len(run.rounds),
+                "rounds_record": rounds_record(run),
+            },
+        )
+        with self._write() as db:
+            for record, path in zip(run.rounds, paths):
+                db.execute(
+                    "INSERT INTO training_rounds VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        run_id,
+                        record["round"],
+                        record["num_positives"],
+                        record["num_background"],
+                        record.get("num_false_positives"),
+                        record["fit_seconds"],
+                        json.dumps(record["train_metrics"]),
+                        str(path.relative_to(self.session.path)),
+                    ),
+                )
+                db.executemany(
+                    "INSERT INTO mined_negatives (run_id, round, frame_index, proposal, box, patch_set,"
+                    " score, predicted_class, probabilities, best_annotated_iou)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    [
+                        (
+                            run_id,
+                            record["round"],
+                            m["frame_index"],
+                            m["proposal"],
+                            json.dumps(m["box"]),
+                            json.dumps(m["patch_set"]),
+                            m["score"],
+                            m["predicted_class"],
+                            json.dumps(m.get("probabilities"))
+                            if m.get("probabilities") is not None
+                            else None,
+                            m["best_annotated_iou"],
+                        )
+                        for m in record["mined"]
+                    ],
+                )
+            db.execute(
+                "UPDATE training_runs SET model_path = ? WHERE id = ?",
+                (str(final.relative_to(self.session.path)), run_id),
+            )
+        return run_id
+
+    def set_run_metrics(self, run_id: int, metrics: dict) -> None:
+        """Attach test-frame metrics (e.g. the before/after table) to a run."""
+        with self._write() as db:
+            db.execute(
+                "UPDATE training_runs SET metrics = ? WHERE id = ?", (json.dumps(metrics), int(run_id))
+            )
+
+    def training_runs(self) -> list[dict]:
+        """Every finished training run with its rounds, oldest first."""
+        with self._read() as db:
+            runs = [
+                dict(r) for r in db.execute("SELECT * FROM training_runs WHERE model_path != '' ORDER BY id")
+            ]
+            for run in runs:
+                run["config"] = json.loads(run["config"])
+                run["train_frames"] = json.loads(run["train_frames"])
+                run["metrics"] = json.loads(run["metrics"]) if run["metrics"] else None
+                run["rounds"] = [
+                    {**dict(r), "train_metrics": json.loads(r["train_metrics"])}
+                    for r in db.execute(
+                        "SELECT * FROM training_rounds WHERE run_id = ? ORDER BY round", (run["id"],)
+                    )
+                ]
+        return runs
+
+    def latest_run_id(self) -> int | None:
+        with self._read() as db:
+            return db.execute("SELECT MAX(id) FROM training_runs WHERE model_path != ''").fetchone()[0]
+
+    # -- the review queue
+
+    def review_queue(
+        self,
+        run_id: int | None = None,
+        *,
+        predicted_class: str | None = None,
+        frame_index: int | None = None,
+        pending_only: bool = False,
+        max_label_iou: float | None = None,
+    ) -> list[dict]:
+        """Negatives mined by a run (the latest by default), highest score first, each with its
+        verdict (``None`` if unreviewed), the verdict's class, label and reviewer, and
+        ``label_iou``: its box's highest IoU with the frame's current labels (``label_overlap``).
+
+        Args:
+            max_label_iou: leave out items whose box overlaps a current label at this IoU or more
+                (``None``: keep all). Such an item is a part, a duplicate or a loose box of an
+                object already labelled: it is trained as background whatever its verdict, so a
+                reviewer's time is better spent on the items that overlap no label, where the
+                unlabelled objects are.
+        """
+        if max_label_iou is not None and not 0.0 < max_label_iou <= 1.0:
+            raise InputError(f"max_label_iou must lie in (0, 1], got {max_label_iou}")
+        out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
+        label_iou = self.label_overlap(out)
+        for item, iou in zip(out, label_iou):
+            item["label_iou"] = iou
+        if max_label_iou is not None:
+            out = [item for item in out if not on_labelled_object(item["label_iou"], max_label_iou)]
+        return out
+
+    def _queue_rows(
+        self, run_id: int | None, predicted_class: str | None, frame_index: int | None, pending_only: bool
+    ) -> list[dict]:
+        """``review_queue``'s rows as stored, without the overlap with the labels."""
+        if run_id is None:
+            run_id = self.latest_run_id()
+        query = (
+            "SELECT m.*, r.verdict, r.class_name AS verdict_class, r.label_id, r.author AS reviewer,"
+            " r.created AS reviewed FROM mined_negatives m LEFT JOIN reviews r ON r.negative_id = m.id"
+            " WHERE m.run_id = ?"
+        )
+        args: list = [run_id]
+        if predicted_class is not None:
+            query, args = query + " AND m.predicted_class = ?", [*args, predicted_class]
+        if frame_index is not None:
+            query, args = query + " AND m.frame_index = ?", [*args, int(frame_index)]
+        if pending_only:
+            query += " AND (r.verdict IS NULL OR r.verdict = 'skip')"
+        with self._read() as db:
+            rows = db.execute(query + " ORDER BY m.score DESC, m.id", args).fetchall()
+        out = []
+        for r in rows:
+            item = dict(r)
+            item["box"] = json.loads(item["box"])
+            item["patch_set"] = json.loads(item["patch_set"])
+            item["probabilities"] = json.loads(item["probabilities"]) if item["probabilities"] else None
+            out.append(item)
+        return out
+
+    def label_overlap(self, items: list[dict]) -> list[float | None]:
+        """Each item's (a dict with ``frame_index`` and ``box``) highest box IoU with the current
+        labels of its frame (0 when it overlaps none; ``None`` for a frame whose labels were never
+        imported, when no data set is open to import them)."""
+        import numpy as np
+
+        by_frame: dict[int, list[int]] = {}
+        for i, item in enumerate(items):
+            by_frame.setdefault(int(item["frame_index"]), []).append(i)
+        readable = set(by_frame)
+        if self.dataset is None:
+            with self._read() as db:
+                readable &= {r[0] for r in db.execute("SELECT frame_index FROM frames")}
+        out: list[float | None] = [None] * len(items)
+        for index, positions in by_frame.items():
+            if index not in readable:
+                continue
+            boxes = self.frame_boxes(index)[0]
+            iou = np.zeros(len(positions))
+            if len(boxes):
+                item_boxes = np.array([items[i]["box"] for i in positions], np.float64).reshape(-1, 7)
+                iou = box_iou_3d(item_boxes, boxes).max(axis=1)
+            for i, value in zip(positions, iou):
+                out[i] = round(float(value), 4)
+        return out
+
+    def review_progress(self, run_id: int | None = None) -> dict:
+        """Counts of a run's queue: ``total``, ``reviewed`` (a decided verdict) and per verdict."""
+        queue = self._queue_rows(run_id, None, None, False)  # counts only: no label overlap
+        counts = {v: sum(item["verdict"] == v for item in queue) for v in VERDICTS}
+        return {"total": len(queue), "reviewed": sum(counts[v] for v in DECIDED), **counts}
+
+    def review(
+        self,
+        negative_ids,
+        verdict: str,
+        author: str,
+        *,
+        class_name: str | None = None,
+        expected: dict[int, str | None] | None = None,
+    ) -> int:
+        """Give one verdict on mined negatives, as one undoable edit.
+
+        'object' makes each a label of ``class_name`` (origin 'review', the mined box); a later
+        different verdict on it deletes that label again.
+
+        Args:
+            expected: per negative id, the verdict the reviewer saw (``None``: unreviewed). If
+                someone has given another since, ``EditConflictError`` is raised and nothing is written.
+
+        Returns:
+            The edit id.
+        """
+        if verdict not in VERDICTS:
+            raise SessionError(f"unknown verdict {verdict!r}; choose from {', '.join(VERDICTS)}")
+        if verdict == "object":
+            if class_name is None:
+                raise SessionError("an 'object' verdict needs a class")
+            self._check_class(class_name)
+        elif class_name is not None:
+            raise SessionError(f"a {verdict!r} verdict takes no class")
+        ids = [int(i) for i in negative_ids]
+        if not ids:
+            raise SessionError("no mined negatives to review")
+        with self._read() as db:
+            frames = {
+                r[0]
+                for r in db.execute(
+                    "SELECT DISTINCT frame_index FROM mined_negatives"
+                    f" WHERE id IN ({','.join('?' * len(ids))})",
+                    ids,
+                )
+            }
+        self.ensure_frames(frames)
+        with self._write() as db:
+            changes = []
+            for negative_id in ids:
+                item = db.execute("SELECT * FROM mined_negatives WHERE id = ?", (negative_id,)).fetchone()
+                if item is None:
+                    raise SessionError(f"no mined negative {negative_id}")
+                current = self._content(db, "reviews", negative_id)
+                if expected is not None and (current["verdict"] if current else None) != expected.get(
+                    negative_id
+                ):
+                    who = db.execute(
+                        "SELECT author FROM reviews WHERE negative_id = ?", (negative_id,)
+                    ).fetchone()
+                    raise EditConflictError(
+                        f"mined negative {negative_id} was given "
+                        f"{current['verdict'] if current else 'no verdict'} "
+                        f"by {who[0] if who else 'someone'} "
+                        "since you loaded it; reload and try again"
+                    )
+                label_id = current["label_id"] if current else None
+                if label_id is not None:
+                    label = self._content(db, "labels", label_id)
+                    made = {
+                        "class_name": current["class_name"],
+                        "deleted": 0 if current["verdict"] == "object" else 1,
+                    }
+                    if {k: label[k] for k in made} != made:
+                        raise EditConflictError(
+                            f"label {label_id}, made by the verdict on mined negative {negative_id}, was "
+                            "edited since; change or delete it in the Labels panel instead"
+                        )
+                    wanted = {**label, "deleted": 0 if verdict == "object" else 1}
+                    if verdict == "object":
+                        wanted["class_name"] = class_name
+                    if wanted != label:
+                        changes.append(self._change(db, "labels", label_id, wanted, author))
+                elif verdict == "object":
+                    label_id, change = self._insert_label(
+                        db, item["frame_index"], json.loads(item["box"]), class_name, "review", author
+                    )
+                    changes.append(change)
+                after = {"verdict": verdict, "class_name": class_name, "label_id": label_id}
+                changes.append(self._change(db, "reviews", negative_id, after, author))
+            what = verdict if class_name is None else f"{verdict} ({class_name})"
+            return self._edit(db, author, "review", f"review {len(ids)} mined negative(s) as {what}", changes)
+
+    def mined_patch_sets(self) -> dict[int, list[tuple[int, ...]]]:
+        """Point sets of every negative mined in the session (all runs), by frame."""
+        out: dict[int, list[tuple[int, ...]]] = {}
+        with self._read() as db:
+            for row in db.execute("SELECT DISTINCT frame_index, patch_set FROM mined_negatives"):
+                out.setdefault(row["frame_index"], []).append(tuple(json.loads(row["patch_set"])))
+        return out
+
+    def reviewed_patch_sets(self) -> dict[str, dict[int, list[tuple[int, ...]]]]:
+        """Point sets of every reviewed negative by verdict and frame: what the next training run
+        must treat as background ('background'), and must not mine again (all decided ones)."""
+        out: dict[str, dict[int, list[tuple[int, ...]]]] = {v: {} for v in DECIDED}
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT m.frame_index, m.patch_set, r.verdict FROM reviews r"
+                " JOIN mined_negatives m ON m.id = r.negative_id WHERE r.verdict != 'skip'"
+            ).fetchall()
+        for row in rows:
+            out[row["verdict"]].setdefault(row["frame_index"], []).append(tuple(json.loads(row["patch_set"])))
+        return out
+
+
+# --- Module-level helpers over a session's database -----------------------------------------------
+
+
+def rounds_record(run) -> list[dict]:
+    """Per round of a training run: sizes, times and the training-frame F-score (no mined lists)."""
+    return [
+        {
+            "round": r["round"],
+            "num_positives": r["num_positives"],
+            "num_background": r["num_background"],
+            "fit_seconds": r["fit_seconds"],
+            "score_seconds": r.get("score_seconds"),
+            "num_mined": len(r["mined"]),
+            "train_f1": r["train_metrics"]["f1"],
+        }
+        for r in run.rounds
+    ]
+
+
+def save_training_run(session: Session, run, data: str, config: dict, dataset=None, **kwargs) -> int:
+    """``SessionDB(session, dataset).save_training_run(...)``."""
+    return SessionDB(session, dataset).save_training_run(run, data, config, **kwargs)
+
+
+def training_runs(session: Session) -> list[dict]:
+    """Every training run of the session with its rounds, oldest first."""
+    if not session.db_path.is_file():
+        return []
+    return SessionDB(session).training_runs()
+
+
+def latest_model(session: Session) -> Path | None:
+    """The final checkpoint of the session's last training run, if any."""
+    runs = training_runs(session)
+    return session.path / runs[-1]["model_path"] if runs else None
+
+
+def mined_negatives(
+    session: Session, run_id: int | None = None, frame_index: int | None = None
+) -> list[dict]:
+    """The review queue of a run (the last by default), highest score first."""
+    if not session.db_path.is_file():
+        return []
+    return SessionDB(session).review_queue(run_id, frame_index=frame_index)
+
+
+def session_data(session: Session) -> Path | None:
+    """The data set a session labels: its own ``data/`` folder, else the one its database
+    recorded when it was made on a data set outside its folder; ``None`` when it has neither."""
+    if session.has_data:
+        return session.data_dir
+    if session.db_path.is_file():
+        recorded = SessionDB(session).meta().get("data")
+        return None if recorded is None else Path(recorded)
+    return None
+
+
+def open_session_data(
+    name: str, root: str | os.PathLike | None = None, data: str | os.PathLike | None = None
+) -> tuple[SessionDB, Dataset]:
+    """A session's database and the data set it labels: ``data`` if given, else
+    ``session_data``'s. What ``factorydet train``, ``review``, ``labels`` and the app open.
+
+    Raises:
+        SessionError: when the session has no data set and ``data`` is not given.
+    """
+    session = open_session(name, root)
+    data = data if data is not None else session_data(session)
+    if data is None:
+        raise SessionError(f"session {name!r} has no data set; pass --data DIR or FILE")
+    dataset = open_dataset(data)
+    return SessionDB(session, dataset), dataset

@@ -1,0 +1,359 @@
+"""The labelling loop: train from a session's corrected labels and review verdicts, compare the
+model before and after, and a simulated reviewer that answers the review queue from the
+simulator's hidden truth (for ``factorydet bench hitl`` only; the app never calls it).
+
+The loop, as the app and ``factorydet loop`` run it:
+
+1. ``train_session(..., mode="full")`` trains from the session's labels with blind hard-negative
+   mining (the paper's procedure) and mines one more batch after the last round. Every mined
+   negative goes to the review queue of that run.
+2. People review the queue (``SessionDB.review``): background, object of class C, wrong box, skip.
+3. ``train_session(..., mode="next")`` refits on the corrected labels. Its background set is the
+   random first sample, every negative mined so far except those reviewed as real objects, and
+   the confirmed background. It then mines the next queue.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from factorydet_core.detection.box_head import BoxHead
+from factorydet_core.detection.box_quality import BoxQuality
+from factorydet_core.detection.classifier import ProposalClassifier
+from factorydet_core.detection.detector import Detector
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.io.dataset import Dataset
+from factorydet_core.proposals.settings import FrontEndParams
+from factorydet_core.session.store import SessionDB, read_cache, write_cache
+from factorydet_core.training.mining import (
+    FrameProposals,
+    Progress,
+    TrainingRun,
+    collect_proposals,
+    group_overlaps,
+    proposals_from_arrays,
+    proposals_to_arrays,
+    train_with_mining,
+)
+from factorydet_core.types import (
+    DEFAULT_METHOD,
+    METHODS,
+    MINING_THRESHOLD,
+    PROBABILITY_EXPONENT,
+    SCORE_THRESHOLD,
+    InputError,
+)
+
+MODES = ("full", "next")
+_CACHE_FORMAT = 5  # bump when FrameProposals or the front half's output changes (5: sampled points)
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopSettings:
+    """How the loop trains: the classifier and the mining settings (``train_with_mining``)."""
+
+    width: float = 0.0625
+    epochs: int = 20
+    class_weight: str | None = "balanced"
+    rounds: int = 2
+    """Mining rounds of a full retrain (a 'next' round is always one fit)."""
+    negatives_per_round: int = 500
+    initial_negatives: int = 2000
+    positive_iou: float = 0.6
+    fragment_iou: float = 0.4
+    """Point sets overlapping a label at most this much start as background (0: the paper's start)."""
+    fragments_per_frame: int | None = None
+    """At most this many of them per frame (``None``: all)."""
+    score_threshold: float = SCORE_THRESHOLD
+    """Operating score; with box quality, the class probability to ``probability_exponent`` times
+    the predicted IoU."""
+    probability_exponent: float = PROBABILITY_EXPONENT
+    """With box quality, the class probability's power in the score (``types.PROBABILITY_EXPONENT``)."""
+    class_thresholds: bool = True
+    """Give the model a threshold per class, tuned on the training frames' labels
+    (``train_with_mining``'s ``tune_class_thresholds``); ``score_threshold`` is then the fallback
+    of classes without a labelled match."""
+    mining_threshold: float | None = MINING_THRESHOLD
+    """Least score of a mined (and queued) false positive; ``None``: the operating threshold. The
+    paper collects every false positive and adds the top N by score; with box quality a score is a
+    probability (to ``probability_exponent``) times a predicted IoU, and at the operating threshold
+    a few frames yield a few dozen
+    (``bench hitl`` on four frames: 46 in two rounds, so reviewing 50 or 200 made no difference).
+    0.05 is the score floor of AP and of the box quality regressor: below it nothing is reported."""
+    nms_iou: float = 0.25
+    seed: int = 0
+    num_threads: int | None = None
+    geometry: bool = True
+    """Feed the point sets' geometric descriptors to the network beside the 3DmFV tensor."""
+    box_quality: bool = True
+    """Pick each detection's box and weigh its score by a regressor of the box's IoU
+    (``box_quality.BoxQuality``); False keeps the size prior's box and the class probability."""
+    visibility: bool | None = None
+    """The box quality regressor also reads what the frame's rays saw of each box
+    (``BoxQuality.visibility``). ``None``: on for multi-sensor data, whose rays start at the
+    sensors of the merge's extrinsics; off for single scans (ScanNet and S3DIS clouds are sampled
+    from meshes and read with an identity extrinsic, so their free space means nothing)."""
+
+    def quality_visibility(self, dataset: Dataset | None) -> bool:
+        """Whether the box quality regressor reads free space for ``dataset`` (``visibility``)."""
+        if self.visibility is not None:
+            return self.visibility
+        return dataset is None or dataset.num_sensors > 1
+
+    method: str = DEFAULT_METHOD
+    """"paper": the 3DmFV-Net classifier and the size prior's box options (with ``box_quality``);
+    "box_head": the learned box head (``box_head.BoxHead``), which classifies and boxes each point
+    set in one pass (``width``, ``geometry`` and ``box_quality`` do not apply); "head_options":
+    the box head classifies, the box quality regressor boxes among the size prior's options
+    (``width`` and ``geometry`` do not apply; ``box_quality`` must be on)."""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.method == "head_options" and not self.box_quality:
+            raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
+
+    def classifier(self, class_names: Sequence[str]) -> ProposalClassifier | BoxHead:
+        if self.method in ("box_head", "head_options"):
+            return BoxHead(
+                class_names=tuple(class_names),
+                epochs=self.epochs,
+                class_weight=self.class_weight,
+                seed=self.seed,
+                num_threads=self.num_threads,
+            )
+        return ProposalClassifier(
+            class_names=tuple(class_names),
+            width=self.width,
+            epochs=self.epochs,
+            class_weight=self.class_weight,
+            seed=self.seed,
+            num_threads=self.num_threads,
+            geometry=self.geometry,
+        )
+
+
+def proposals_cache_key(dataset: Dataset, detector: Detector) -> str:
+    """Names the cached proposals of a data set under a front half's settings and calibration."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps([_CACHE_FORMAT, dataset.content_hash()]).encode())
+    digest.update(json.dumps(dataclasses.asdict(detector.params), sort_keys=True, default=str).encode())
+    if detector.T_vehicle_sensor is not None:
+        digest.update(np.round(detector.T_vehicle_sensor, 6).tobytes())
+    return f"proposals_{digest.hexdigest()[:16]}"
+
+
+def cached_proposals(
+    db: SessionDB,
+    dataset: Dataset,
+    detector: Detector,
+    frame_indices: Sequence[int],
+    progress: Progress | None = None,
+) -> list[FrameProposals]:
+    """``collect_proposals`` through the session's ``cache/``: frames proposed before under the same
+    settings are read back, the others proposed and added."""
+    key = proposals_cache_key(dataset, detector)
+    arrays = read_cache(db.session, key)
+    cached = {f.frame_index: f for f in proposals_from_arrays(arrays)} if arrays else {}
+    missing = [int(i) for i in frame_indices if int(i) not in cached]
+    if missing:
+        for frame in collect_proposals(dataset, missing, detector, progress):
+            cached[frame.frame_index] = frame
+        write_cache(db.session, key, proposals_to_arrays([cached[i] for i in sorted(cached)]))
+    return [cached[int(i)] for i in frame_indices]
+
+
+def session_references(
+    db: SessionDB, frame_indices: Sequence[int]
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Frame index -> (boxes (R, 7), class_ids (R,)) of the session's current labels."""
+    out = {}
+    for index in frame_indices:
+        boxes, class_ids, _ = db.frame_boxes(index)
+        out[int(index)] = (boxes, class_ids)
+    return out
+
+
+def with_session_labels(
+    db: SessionDB, frames: Sequence[FrameProposals], snapshot: dict | None = None
+) -> list[FrameProposals]:
+    """The frames with the session's labels in place of the data set's annotations: the current
+    ones, or those of a stored ``snapshot`` (``SessionDB.snapshot``), so that a run trains on
+    exactly the labels it records."""
+    names = db.class_names
+    if snapshot is None:
+        by_frame = {
+            f.frame_index: [
+                {
+                    "box": list(lab.box),
+                    "class_name": lab.class_name,
+                    "origin": lab.origin,
+                    "instance_id": lab.instance_id,
+                }
+                for lab in db.labels(f.frame_index)
+            ]
+            for f in frames
+        }
+    else:
+        by_frame = {f.frame_index: [] for f in frames}
+        for lab in snapshot["labels"]:
+            by_frame.setdefault(lab["frame_index"], []).append(lab)
+    out = []
+    for frame in frames:
+        labels = by_frame[frame.frame_index]
+        instance_classes = {
+            int(lab["instance_id"]): names.index(lab["class_name"])
+            for lab in labels
+            if lab["origin"] == "dataset" and lab.get("instance_id") is not None
+        }
+        out.append(
+            frame.with_labels(
+                np.array([lab["box"] for lab in labels], np.float64).reshape(-1, 7),
+                np.array([names.index(lab["class_name"]) for lab in labels], np.int64),
+                instance_classes,
+            )
+        )
+    return out
+
+
+def _merge(*maps: dict[int, list]) -> dict[int, list]:
+    out: dict[int, list] = {}
+    for m in maps:
+        for index, items in m.items():
+            out.setdefault(index, []).extend(items)
+    return out
+
+
+def train_session(
+    db: SessionDB,
+    frames: Sequence[FrameProposals],
+    settings: LoopSettings,
+    *,
+    mode: str = "next",
+    data_ref: str = "",
+    front_end: FrontEndParams | None = None,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    command: str = "",
+) -> tuple[int, TrainingRun]:
+    """Train on the session's labels and verdicts, store the run, and mine its review queue.
+
+    Args:
+        frames: the training frames' proposals (``cached_proposals``), with any labels: the
+            session's replace them.
+        mode: 'full' retrains from scratch with ``settings.rounds`` blind mining rounds; 'next'
+            runs one more round on top of everything mined and reviewed so far.
+        front_end: the front half's settings the frames were proposed with, saved whole in the
+            models and the run's record.
+        should_stop: cancels the run (``types.Cancelled``); nothing is stored then.
+
+    Returns:
+        ``(run_id, run)``.
+    """
+    if mode not in MODES:
+        raise InputError(f"unknown training mode {mode!r}; choose from {', '.join(MODES)}")
+    if not frames:
+        raise InputError("no training frames")
+    frame_indices = [f.frame_index for f in frames]
+    snapshot_id = db.snapshot_labels(frame_indices)
+    labelled = with_session_labels(db, frames, db.snapshot(snapshot_id))
+    reviewed = db.reviewed_patch_sets()
+    excluded = _merge(reviewed["object"], reviewed["wrong_box"])
+    if mode == "next":
+        background = _merge(db.mined_patch_sets(), reviewed["background"])
+        rounds = 0
+    else:
+        background = reviewed["background"]
+        rounds = settings.rounds
+    run = train_with_mining(
+        labelled,
+        settings.classifier(db.class_names),
+        rounds=rounds,
+        negatives_per_round=settings.negatives_per_round,
+        initial_negatives=settings.initial_negatives,
+        positive_iou=settings.positive_iou,
+        fragment_iou=settings.fragment_iou,
+        fragments_per_frame=settings.fragments_per_frame,
+        score_threshold=settings.score_threshold,
+        tune_class_thresholds=settings.class_thresholds,
+        probability_exponent=settings.probability_exponent,
+        mining_threshold=settings.mining_threshold,
+        nms_iou=settings.nms_iou,
+        seed=settings.seed,
+        box_quality=(
+            BoxQuality(seed=settings.seed, visibility=settings.quality_visibility(db.dataset))
+            if settings.box_quality and settings.method != "box_head"
+            else None
+        ),
+        progress=progress,
+        background_sets=background,
+        excluded_sets=excluded,
+        mine_after_last=True,
+        should_stop=should_stop,
+    )
+    for model in run.models:
+        model.front_end = front_end
+    config = {
+        "mode": mode,
+        "settings": dataclasses.asdict(settings),
+        "front_end": None if front_end is None else front_end.to_dict(),
+    }
+    if command:
+        config["command"] = command  # the checkpoints' notes say how to reproduce them
+    run_id = db.save_training_run(run, data_ref, config, kind=mode, snapshot_id=snapshot_id)
+    return run_id, run
+
+
+# --- The simulated reviewer (benchmarks only) -----------------------------------------------------
+
+
+def suspect_labels(
+    db: SessionDB,
+    model: DetectionModel,
+    frames: Sequence[FrameProposals],
+    min_iou: float = 0.5,
+    max_label_probability: float = 0.2,
+) -> list[dict]:
+    """Labels the classifier disagrees with strongly: the point set that best matches the label
+    (IoU >= ``min_iou``) gets at most ``max_label_probability`` for the label's class and a
+    different class (or background) on top. Most suspect first.
+
+    Returns:
+        Dicts with ``label_id``, ``frame_index``, ``class_name``, ``box``, ``label_probability``,
+        ``predicted_class`` and ``predicted_probability``.
+    """
+
+    names = (*model.class_names, "background")
+    out = []
+    for frame in frames:
+        labels = db.labels(frame.frame_index)
+        if not labels or not frame.groups.num_groups:
+            continue
+        probabilities = model.probabilities(frame.groups)
+        overlap = group_overlaps(frame, np.array([lab.box for lab in labels]))
+        for r, lab in enumerate(labels):
+            g = int(overlap[:, r].argmax())
+            if overlap[g, r] < min_iou or lab.class_name not in names:
+                continue
+            p = probabilities[g]
+            p_label = float(p[names.index(lab.class_name)])
+            top = int(p.argmax())
+            if p_label <= max_label_probability and names[top] != lab.class_name:
+                out.append(
+                    {
+                        "label_id": lab.id,
+                        "frame_index": lab.frame_index,
+                        "class_name": lab.class_name,
+                        "box": list(lab.box),
+                        "label_probability": round(p_label, 4),
+                        "predicted_class": names[top],
+                        "predicted_probability": round(float(p[top]), 4),
+                    }
+                )
+    out.sort(key=lambda s: s["label_probability"])
+    return out

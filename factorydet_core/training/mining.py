@@ -1,0 +1,645 @@
+"""Training data from proposals, and training with iterative hard-negative mining (paper §3.5).
+
+Positives are point sets whose proposals match an annotated instance; the first background set is
+a random sample of point sets that overlap no annotated instance. Each mining round scores the
+training frames, takes the detections that match no annotated instance, adds the highest scoring
+of them to the background set, and retrains. On a partially annotated data set some of those
+"false positives" are real, unannotated objects: they are mined blindly here, as in the paper, and
+every round is recorded so that people can review them (``store.save_training_run``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from factorydet_core.boxes import box_iou_3d, fit_boxes
+from factorydet_core.detection.box_head import BoxHead, HeadSamples, label_point_sets
+from factorydet_core.detection.box_quality import BoxQuality
+from factorydet_core.detection.classifier import ProposalClassifier
+from factorydet_core.detection.detector import Detector
+from factorydet_core.detection.groups import BoxSizePrior, ProposalGroups, describe_point_sets
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.detection.scoring import check_exponent
+from factorydet_core.io.dataset import Dataset
+from factorydet_core.metrics import detection_metrics
+from factorydet_core.metrics import tune_class_thresholds as tune_thresholds
+from factorydet_core.proposals.candidates import point_set_features
+from factorydet_core.proposals.visibility import FreeSpace
+from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_THRESHOLD, Cancelled, InputError
+
+Progress = Callable[[str, int, int], None]
+"""Called with (what, done, total)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameProposals:
+    """What training and evaluation keep of one frame's front half."""
+
+    frame_index: int
+    proposal_boxes: np.ndarray
+    """(M, 7) boxes of the proposals."""
+    patch_sets: tuple[tuple[int, ...], ...]
+    groups: ProposalGroups
+    label_boxes: np.ndarray
+    """(R, 7) annotated boxes."""
+    label_class_ids: np.ndarray
+    """(R,) their classes."""
+    annotation_features: np.ndarray
+    """(A, 20, 5, 5, 5) features of the annotated instances' own points (extra positives, as
+    detectors add ground-truth boxes to their proposals when training)."""
+    annotation_descriptors: np.ndarray
+    """(A, D) their geometric descriptors."""
+    annotation_class_ids: np.ndarray
+    """(A,) their classes."""
+    annotation_instance_ids: np.ndarray
+    """(A,) their data set instance ids."""
+
+    def with_labels(
+        self, boxes: np.ndarray, class_ids: np.ndarray, instance_classes: dict[int, int] | None = None
+    ) -> FrameProposals:
+        """The same proposals with other labels (a session's corrected ones).
+
+        Args:
+            boxes: (R, 7) label boxes.
+            class_ids: (R,) their classes.
+            instance_classes: data set instance id -> class id of the labels that are still the
+                data set's instances; only their own-point samples are kept, with that class.
+                ``None`` keeps them all as they are.
+        """
+        keep = np.ones(len(self.annotation_instance_ids), bool)
+        classes = np.array(self.annotation_class_ids)
+        if instance_classes is not None:
+            keep = np.array([int(i) in instance_classes for i in self.annotation_instance_ids], bool)
+            classes = np.array([instance_classes.get(int(i), -1) for i in self.annotation_instance_ids])
+        return dataclasses.replace(
+            self,
+            label_boxes=np.asarray(boxes, np.float64).reshape(-1, 7),
+            label_class_ids=np.asarray(class_ids, np.int64),
+            annotation_features=self.annotation_features[keep],
+            annotation_descriptors=self.annotation_descriptors[keep],
+            annotation_class_ids=classes[keep].astype(np.int64),
+            annotation_instance_ids=self.annotation_instance_ids[keep],
+        )
+
+    def point_set_ids(self, patch_sets) -> np.ndarray:
+        """Indices of the point sets (groups) made of the given patch sets; unknown ones are
+        dropped (a front half with other settings cut the frame differently)."""
+        lookup = {}
+        for proposal, group in enumerate(self.groups.group_ids):
+            lookup.setdefault(tuple(self.patch_sets[proposal]), int(group))
+        return np.array(sorted({lookup[tuple(p)] for p in patch_sets if tuple(p) in lookup}), np.int64)
+
+
+def _annotation_samples(
+    frame, result, detector: Detector
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Features, descriptors and classes of the annotated instances' points in the segmented cloud."""
+    cloud = result.cloud
+    lookup = dict(zip(frame.labels.instance_ids.tolist(), frame.labels.class_ids.tolist()))
+    ids, counts = np.unique(cloud.point_instance_ids, return_counts=True)
+    chosen = [int(i) for i, n in zip(ids, counts) if i in lookup and n >= detector.params.min_proposal_points]
+    point_lists = [np.flatnonzero(cloud.point_instance_ids == i) for i in chosen]
+    features = point_set_features(
+        cloud.points,
+        result.grid,
+        result.voxel_features,
+        point_lists,
+        detector.params.weighting,
+        detector.params.feature,
+    ).reshape(-1, 20, 5, 5, 5)
+    boxes = fit_boxes(cloud.points, point_lists)
+    num_voxels = np.array([len(np.unique(result.grid.point_voxel_ids[p])) for p in point_lists])
+    descriptors = describe_point_sets(cloud.points, point_lists, boxes, num_voxels, result.floor_plane)
+    return (
+        features,
+        descriptors,
+        np.array([lookup[i] for i in chosen], np.int64),
+        np.array(chosen, np.int64),
+    )
+
+
+def collect_proposals(
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    detector: Detector,
+    progress: Progress | None = None,
+) -> list[FrameProposals]:
+    """Run the front half on ``frame_indices`` and keep what the back half needs."""
+    out = []
+    for n, index in enumerate(frame_indices):
+        frame = dataset.frame(index)
+        history = [dataset.frame(i) for i in range(max(0, index - detector.params.history_frames), index)]
+        result = detector.propose(frame, history)
+        groups = detector.group(result)
+        annotated = _annotation_samples(frame, result, detector)
+        out.append(
+            FrameProposals(
+                frame_index=int(index),
+                proposal_boxes=np.array(result.proposals.boxes),
+                patch_sets=result.proposals.patch_sets,
+                groups=groups,
+                label_boxes=np.array(frame.labels.boxes),
+                label_class_ids=np.array(frame.labels.class_ids),
+                annotation_features=annotated[0],
+                annotation_descriptors=annotated[1],
+                annotation_class_ids=annotated[2],
+                annotation_instance_ids=annotated[3],
+            )
+        )
+        if progress is not None:
+            progress("proposals", n + 1, len(frame_indices))
+    return out
+
+
+def group_overlaps(frame: FrameProposals, reference_boxes: np.ndarray) -> np.ndarray:
+    """(G, R) the best IoU of any proposal of each point set with each reference box."""
+    iou = box_iou_3d(frame.proposal_boxes, reference_boxes)
+    best = np.zeros((frame.groups.num_groups, len(reference_boxes)))
+    np.maximum.at(best, frame.groups.group_ids, iou)
+    return best
+
+
+def group_labels(
+    frame: FrameProposals,
+    reference_boxes: np.ndarray,
+    reference_class_ids: np.ndarray,
+    background_id: int,
+    positive_iou: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Label each point set: the class of the reference it matches at ``positive_iou``, else
+    background.
+
+    Returns:
+        ``(labels, overlaps_any)``: (G,) label ids, and (G,) whether the set overlaps any reference.
+    """
+    labels, best_iou = _labels_and_best_iou(
+        frame, reference_boxes, reference_class_ids, background_id, positive_iou
+    )
+    return labels, best_iou > 0
+
+
+def _labels_and_best_iou(
+    frame: FrameProposals,
+    reference_boxes: np.ndarray,
+    reference_class_ids: np.ndarray,
+    background_id: int,
+    positive_iou: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``group_labels``' labels, with (G,) each set's best IoU with any reference (0 without any)."""
+    overlap = group_overlaps(frame, reference_boxes)
+    labels = np.full(frame.groups.num_groups, background_id, np.int64)
+    if not overlap.shape[1]:
+        return labels, np.zeros(len(labels))
+    best = overlap.argmax(axis=1)
+    best_iou = overlap[np.arange(len(best)), best]
+    hit = best_iou >= positive_iou
+    labels[hit] = np.asarray(reference_class_ids)[best[hit]]
+    return labels, best_iou
+
+
+@dataclasses.dataclass
+class TrainingRun:
+    """The result of ``train_with_mining``."""
+
+    model: DetectionModel
+    rounds: list[dict]
+    """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``metrics``
+    (detection on the training frames against the annotations) and ``mined`` (the negatives added
+    after that round: frame, proposal, box, patch set, score, class)."""
+    models: list[DetectionModel]
+    """The model after each round."""
+    train_frames: list[int]
+
+
+def _training_set(
+    frames: list[FrameProposals],
+    frame_labels: dict[int, np.ndarray],
+    background: dict[int, set[int]],
+    background_id: int,
+    annotation_positives: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Features, descriptors and labels: the positive point sets (``frame_labels``: each frame's
+    ``group_labels``), the background sets chosen so far, and the annotated instances' own points."""
+    features, descriptors, labels = [], [], []
+    if annotation_positives:
+        features += [f.annotation_features for f in frames]
+        descriptors += [f.annotation_descriptors for f in frames]
+        labels += [f.annotation_class_ids for f in frames]
+    for frame in frames:
+        set_labels = frame_labels[frame.frame_index]
+        positive = np.flatnonzero(set_labels != background_id)
+        negative = np.array(sorted(background.get(frame.frame_index, set())), np.int64)
+        chosen = np.concatenate([positive, negative])
+        features.append(frame.groups.features[chosen])
+        descriptors.append(frame.groups.descriptors[chosen])
+        labels.append(np.concatenate([set_labels[positive], np.full(len(negative), background_id)]))
+    return np.concatenate(features), np.concatenate(descriptors), np.concatenate(labels)
+
+
+def head_labels(frame: FrameProposals, background_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each point set's label for the box head by where its points lie
+    (``box_head.label_point_sets``): ``(labels, owners)``, -1 for sets left out of training."""
+    if frame.groups.points is None:
+        raise InputError("the box head needs each point set's points: collect the proposals again")
+    return label_point_sets(frame.groups.points, frame.label_boxes, frame.label_class_ids, background_id)
+
+
+def _head_training_set(
+    frames: list[FrameProposals],
+    frame_labels: dict[int, np.ndarray],
+    frame_owners: dict[int, np.ndarray],
+    background: dict[int, set[int]],
+    excluded: dict[int, set[int]],
+) -> tuple[HeadSamples, np.ndarray]:
+    """The box head's samples (every labelled point set of every frame, sets in ``excluded`` left
+    out) and (M,) which of them are hard negatives (the sets in ``background``)."""
+    parts, hard = [], []
+    for frame in frames:
+        labels = frame_labels[frame.frame_index].copy()
+        owners = frame_owners[frame.frame_index]
+        labels[sorted(excluded.get(frame.frame_index, ()))] = -1
+        keep = np.flatnonzero(labels >= 0)
+        targets = np.full((frame.groups.num_groups, 7), np.nan)
+        targets[owners >= 0] = frame.label_boxes[owners[owners >= 0]]
+        groups = frame.groups
+        parts.append(
+            HeadSamples(
+                points=groups.points[keep],
+                anchor_boxes=groups.fitted_boxes[keep],
+                descriptors=groups.descriptors[keep],
+                labels=labels[keep],
+                target_boxes=targets[keep],
+            )
+        )
+        hard.append(np.isin(keep, sorted(background.get(frame.frame_index, ()))))
+    return HeadSamples.concatenate(parts), np.concatenate(hard)
+
+
+def score_frames(
+    model: DetectionModel,
+    frames: list[FrameProposals],
+    score_threshold: float,
+    progress: Progress | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> list[dict]:
+    """Detections of every frame down to ``score_threshold``, with the annotated references
+    (``metrics.detection_metrics``'s input)."""
+    out = []
+    for n, frame in enumerate(frames):
+        if should_stop is not None and should_stop():
+            raise Cancelled("training cancelled")
+        if progress is not None:
+            progress("score", n, len(frames))
+        detections = model.detect(frame.proposal_boxes, frame.groups, score_threshold=score_threshold)
+        kept = detections.subset(detections.kept_mask)
+        out.append(
+            {
+                "frame_index": frame.frame_index,
+                "detections": kept,
+                "boxes": kept.boxes,
+                "class_ids": kept.class_ids,
+                "scores": kept.scores,
+                "reference_boxes": frame.label_boxes,
+                "reference_class_ids": frame.label_class_ids,
+            }
+        )
+    return out
+
+
+def with_tuned_thresholds(
+    model: DetectionModel, scored: list[dict], positive_iou: float = 0.6, max_threshold: float = 1.0
+) -> DetectionModel:
+    """``model`` with each class's score threshold tuned to its highest F-score on ``scored``
+    (``score_frames``'s output for ``model``, down to 0.05; ``metrics.tune_class_thresholds``,
+    none above ``max_threshold``); a class without a true positive keeps the global threshold."""
+    tuned = tune_thresholds(scored, model.class_names, positive_iou, max_threshold=max_threshold)
+    return dataclasses.replace(
+        model,
+        class_score_thresholds={
+            name: float(t) for name, t in zip(model.class_names, tuned) if np.isfinite(t)
+        },
+    )
+
+
+def train_with_mining(
+    frames: list[FrameProposals],
+    classifier: ProposalClassifier,
+    *,
+    rounds: int = 2,
+    negatives_per_round: int = 500,
+    initial_negatives: int = 2000,
+    positive_iou: float = 0.6,
+    fragment_iou: float = 0.4,
+    fragments_per_frame: int | None = None,
+    score_threshold: float = SCORE_THRESHOLD,
+    nms_iou: float = 0.25,
+    use_box_prior: bool = True,
+    annotation_positives: bool = True,
+    seed: int = 0,
+    progress: Progress | None = None,
+    background_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
+    excluded_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
+    mine_after_last: bool = False,
+    should_stop: Callable[[], bool] | None = None,
+    box_quality: BoxQuality | None = None,
+    mining_threshold: float | None = None,
+    tune_class_thresholds: bool = True,
+    probability_exponent: float = PROBABILITY_EXPONENT,
+) -> TrainingRun:
+    """Train, then ``rounds`` times mine hard negatives and retrain.
+
+    Args:
+        frames: training frames' proposals (``collect_proposals``).
+        classifier: an unfitted classifier; its settings are reused for every round.
+        rounds: mining rounds after the first training (0: no mining).
+        negatives_per_round: N, the highest scoring false positives added per round.
+        initial_negatives: size of the random first background set (the paper starts from ~2,000).
+        positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
+            a true positive when mining.
+        fragment_iou: point sets that overlap an annotated box, but at most at this IoU (parts of
+            an object, an object with its neighbours), all start in the background set: they are
+            the negatives a detector meets next to every object, and without them a fragment
+            scores as high as the whole object and wins NMS. Sets between this and
+            ``positive_iou`` are left out of training. 0 starts from the paper's set alone
+            (random sets overlapping nothing).
+        fragments_per_frame: at most this many fragments per frame, sampled at random (``None``:
+            all). A frame has about a thousand; on many frames they would dominate the fit's time.
+        score_threshold: the models' operating score threshold; detections scoring below it are
+            not mined unless ``mining_threshold`` says otherwise.
+        nms_iou: NMS threshold of the detections that are mined.
+        use_box_prior: box detections by the class sizes of the training annotations.
+        annotation_positives: also train on each annotated instance's own points.
+        seed: seeds the first background sample.
+        progress: called with ("fit", epoch, epochs), ("score", frame, frames) and
+            ("round", round, rounds + 1).
+        background_sets: per frame, patch sets that start in the background set (confirmed
+            background and negatives mined before), unless a label now makes them positives.
+        excluded_sets: per frame, patch sets that are never background nor mined (real objects
+            whose segment is wrong).
+        mine_after_last: also mine after the last round; those negatives go to the record (to be
+            reviewed) but into no fit.
+        should_stop: asked between batches and frames; True raises ``types.Cancelled``.
+        box_quality: an unfitted ``BoxQuality``, fitted once on the frames' labels (it does not
+            depend on the classifier) and shared by every round's model, so that mining sees the
+            scores the model will give; ``None`` keeps the size prior's box and the class
+            probability as score. Needs ``use_box_prior``.
+        mining_threshold: detections scoring at least this are mined (``None``: the operating
+            ``score_threshold``, as the paper). With box quality a score is a probability (to
+            ``probability_exponent``) times a predicted IoU, so few clear the operating threshold
+            on a few frames: a lower one fills the mined set and the review queue with the next
+            most confident false positives.
+        tune_class_thresholds: give each round's model a score threshold per class, the one up to
+            ``score_threshold`` of highest F-score at ``positive_iou`` on the training frames' annotations
+            (``metrics.tune_class_thresholds``; the scores mining computes anyway). The
+            classifier's probabilities differ in scale between classes, and one threshold drops
+            a whole class (``docs/default_model_validation.json``). ``False``: ``score_threshold``
+            for all.
+        probability_exponent: with ``box_quality``, the model's score is the class probability
+            to this power times the predicted IoU (``DetectionModel.probability_exponent``); it
+            ranks the mined negatives too. 1 is the plain product; the command line and the app
+            train with 0.5 (see ``loop.LoopSettings``).
+    """
+    if not frames:
+        raise InputError("train_with_mining: no training frames")
+    check_exponent(probability_exponent)
+    if mining_threshold is None:
+        mining_threshold = score_threshold
+    if not 0.0 <= mining_threshold <= 1.0:
+        raise InputError(f"mining_threshold must lie in [0, 1], got {mining_threshold}")
+    if rounds < 0 or negatives_per_round < 0 or initial_negatives < 0:
+        raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")
+    if not 0.0 <= fragment_iou < positive_iou:
+        raise InputError(f"fragment_iou must lie in [0, positive_iou), got {fragment_iou}")
+    if fragments_per_frame is not None and fragments_per_frame < 0:
+        raise InputError(f"fragments_per_frame must be >= 0 or None, got {fragments_per_frame}")
+    background_id = classifier.background_id
+    num_classes = len(classifier.class_names)
+    is_head = isinstance(classifier, BoxHead)
+    box_prior = None
+    if use_box_prior or is_head:
+        box_prior = BoxSizePrior.from_boxes(
+            np.concatenate([f.label_boxes for f in frames]),
+            np.concatenate([f.label_class_ids for f in frames]),
+            num_classes,
+        )
+    # Each point set's label and best overlap, fixed for the whole run: the annotations do not change.
+    # The head's sets are labelled by their points, not by their boxes, and it needs no overlaps.
+    frame_labels, frame_best_iou, frame_owners = {}, {}, {}
+    for frame in frames:
+        if is_head:
+            frame_labels[frame.frame_index], frame_owners[frame.frame_index] = head_labels(
+                frame, background_id
+            )
+        else:
+            frame_labels[frame.frame_index], frame_best_iou[frame.frame_index] = _labels_and_best_iou(
+                frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
+            )
+    by_index = {f.frame_index: f for f in frames}
+    excluded = {
+        index: set(by_index[index].point_set_ids(sets).tolist())
+        for index, sets in (excluded_sets or {}).items()
+        if index in by_index
+    }
+    # The first background set: point sets that overlap no annotated box, sampled evenly, and the
+    # fragments. None for the head (it has no overlaps): it draws its background afresh every
+    # epoch and keeps only hard negatives as a set.
+    rng = np.random.default_rng(seed)
+    pool = [
+        (index, int(g))
+        for index, best_iou in frame_best_iou.items()
+        for g in np.flatnonzero(best_iou == 0)
+        if int(g) not in excluded.get(index, ())
+    ]
+    picked = rng.choice(len(pool), min(initial_negatives, len(pool)), replace=False) if pool else []
+    background: dict[int, set[int]] = {}
+    for i in picked:
+        background.setdefault(pool[i][0], set()).add(pool[i][1])
+    if fragment_iou > 0:
+        for index, best_iou in frame_best_iou.items():
+            fragments = np.flatnonzero((best_iou > 0) & (best_iou <= fragment_iou))
+            fragments = fragments[frame_labels[index][fragments] == background_id]
+            if fragments_per_frame is not None and len(fragments) > fragments_per_frame:
+                fragments = np.sort(rng.choice(fragments, fragments_per_frame, replace=False))
+            if len(fragments):
+                background.setdefault(index, set()).update(
+                    int(g) for g in fragments if int(g) not in excluded.get(index, ())
+                )
+    for index, sets in (background_sets or {}).items():
+        if index not in by_index:
+            continue
+        for g in by_index[index].point_set_ids(sets):
+            if frame_labels[index][g] == background_id and int(g) not in excluded.get(index, ()):
+                background.setdefault(index, set()).add(int(g))
+
+    quality = None
+    if box_quality is not None and box_prior is not None:
+        if progress is not None:
+            progress("box quality", 0, 1)
+        rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
+        quality = dataclasses.replace(box_quality).fit(rows, targets)
+        if progress is not None:
+            progress("box quality", 1, 1)
+
+    records, models = [], []
+    for round_index in range(rounds + 1):
+        fit_progress = None if progress is None else (lambda e, n: progress("fit", e, n))
+        if is_head:
+            samples, hard = _head_training_set(frames, frame_labels, frame_owners, background, excluded)
+            labels = samples.labels
+            if not (labels != background_id).any():
+                raise InputError("no point set lies in an annotated box: nothing to learn from")
+            fitted = dataclasses.replace(classifier).fit(
+                samples, box_prior.sizes, hard, progress=fit_progress, should_stop=should_stop
+            )
+        else:
+            features, descriptors, labels = _training_set(
+                frames, frame_labels, background, background_id, annotation_positives
+            )
+            if not (labels != background_id).any():
+                raise InputError(
+                    f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
+                )
+            fitted = dataclasses.replace(classifier).fit(
+                features, labels, descriptors, progress=fit_progress, should_stop=should_stop
+            )
+        model = DetectionModel(
+            fitted,
+            box_prior,
+            score_threshold,
+            nms_iou,
+            box_quality=quality,
+            probability_exponent=probability_exponent,
+        )
+        start = time.perf_counter()
+        scored = score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
+        if tune_class_thresholds:
+            model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
+        metrics = detection_metrics(
+            scored, fitted.class_names, positive_iou, score_threshold, model.class_thresholds()
+        )
+        metrics.pop("pr_curves")
+        record = {
+            "round": round_index,
+            "num_positives": int((labels != background_id).sum()),
+            "num_background": int((labels == background_id).sum()),
+            "fit_seconds": round(fitted.fit_seconds_, 2),
+            "score_seconds": round(time.perf_counter() - start, 2),
+            "train_metrics": metrics,
+            "mined": [],
+        }
+        if round_index < rounds or mine_after_last:
+            mined = []
+            for frame, item in zip(frames, scored):
+                detections = item["detections"]
+                operating = detections.scores >= mining_threshold
+                best = (
+                    box_iou_3d(detections.boxes, frame.label_boxes).max(axis=1)
+                    if len(frame.label_boxes)
+                    else np.zeros(len(detections))
+                )
+                group_of = frame.groups.group_ids[detections.proposal_ids]
+                known = background.get(frame.frame_index, set()) | excluded.get(frame.frame_index, set())
+                # A point set that is a positive (some proposal of it matches an annotation) stays
+                # one, even when the box chosen for its detection does not match.
+                set_labels = frame_labels[frame.frame_index]
+                for k in np.flatnonzero(operating & (best < positive_iou)):
+                    if int(group_of[k]) in known or set_labels[group_of[k]] != background_id:
+                        continue
+                    proposal = int(detections.proposal_ids[k])
+                    mined.append(
+                        {
+                            "frame_index": frame.frame_index,
+                            "group": int(group_of[k]),
+                            "proposal": proposal,
+                            "box": [round(float(v), 4) for v in detections.boxes[k]],
+                            "patch_set": [int(p) for p in frame.patch_sets[proposal]],
+                            "score": round(float(detections.scores[k]), 4),
+                            "predicted_class": fitted.class_names[int(detections.class_ids[k])],
+                            "probabilities": [round(float(p), 4) for p in detections.probabilities[k]],
+                            "best_annotated_iou": round(float(best[k]), 4),
+                        }
+                    )
+            mined.sort(key=lambda m: -m["score"])
+            record["mined"] = mined[:negatives_per_round]
+            record["num_false_positives"] = len(mined)
+            for m in record["mined"]:
+                background.setdefault(m["frame_index"], set()).add(m["group"])
+        records.append(record)
+        models.append(model)
+        if progress is not None:
+            progress("round", round_index + 1, rounds + 1)
+    return TrainingRun(models[-1], records, models, [f.frame_index for f in frames])
+
+
+def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarray]:
+    """Flat arrays holding ``frames`` (for an ``.npz`` cache); ``proposals_from_arrays`` inverts it."""
+    out: dict[str, np.ndarray] = {"frame_indices": np.array([f.frame_index for f in frames], np.int64)}
+    for k, f in enumerate(frames):
+        sizes = np.array([len(p) for p in f.patch_sets], np.int64)
+        flat = np.array([i for p in f.patch_sets for i in p], np.int64)
+        arrays = {
+            "proposal_boxes": f.proposal_boxes,
+            "patch_set_sizes": sizes,
+            "patch_set_ids": flat,
+            "group_ids": f.groups.group_ids,
+            "representatives": f.groups.representatives,
+            "features": f.groups.features,
+            "descriptors": f.groups.descriptors,
+            "anchor_mask": (
+                np.zeros(len(f.proposal_boxes), bool)
+                if f.groups.anchor_mask is None
+                else f.groups.anchor_mask
+            ),
+            "label_boxes": f.label_boxes,
+            "label_class_ids": f.label_class_ids,
+            "annotation_features": f.annotation_features,
+            "annotation_descriptors": f.annotation_descriptors,
+            "annotation_class_ids": f.annotation_class_ids,
+            "annotation_instance_ids": f.annotation_instance_ids,
+        }
+        if f.groups.points is not None:
+            arrays["points"] = f.groups.points
+        if f.groups.free_space is not None:
+            arrays |= {f"free_space/{n}": v for n, v in f.groups.free_space.to_arrays().items()}
+        out |= {f"{k}/{name}": np.asarray(value) for name, value in arrays.items()}
+    return out
+
+
+def proposals_from_arrays(arrays: Mapping[str, np.ndarray]) -> list[FrameProposals]:
+    """The frames stored by ``proposals_to_arrays``."""
+    frames = []
+    for k, index in enumerate(np.asarray(arrays["frame_indices"]).tolist()):
+        a = {name.split("/", 1)[1]: v for name, v in arrays.items() if name.startswith(f"{k}/")}
+        bounds = np.concatenate([[0], np.cumsum(a["patch_set_sizes"])])
+        flat = a["patch_set_ids"].tolist()
+        patch_sets = tuple(tuple(flat[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:]))
+        space = {n.split("/", 1)[1]: v for n, v in a.items() if n.startswith("free_space/")}
+        groups = ProposalGroups(
+            a["group_ids"],
+            a["representatives"],
+            a["features"],
+            a["descriptors"],
+            a.get("anchor_mask"),
+            FreeSpace.from_arrays(space) if space else None,
+            a.get("points"),
+            a["proposal_boxes"][a["representatives"]],
+        )
+        frames.append(
+            FrameProposals(
+                frame_index=int(index),
+                proposal_boxes=a["proposal_boxes"],
+                patch_sets=patch_sets,
+                groups=groups,
+                label_boxes=a["label_boxes"],
+                label_class_ids=a["label_class_ids"],
+                annotation_features=a["annotation_features"],
+                annotation_descriptors=a["annotation_descriptors"],
+                annotation_class_ids=a["annotation_class_ids"],
+                annotation_instance_ids=a["annotation_instance_ids"],
+            )
+        )
+    return frames

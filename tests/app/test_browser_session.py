@@ -1,0 +1,111 @@
+"""Labelling and reviewing as two people do it, in-process: the browser tests only check that the
+clicks reach these actions."""
+
+from __future__ import annotations
+
+import pytest
+
+from app.browser_session import FAILED, BrowserSession
+from app.state import AppState
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.store import SessionDB, open_session
+from tests.fakes import mined_item, queue_run
+
+
+@pytest.fixture
+def state(small_dataset_dir, tiny_model_path, tmp_path):
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("people", tmp_path), dataset)
+    items = [
+        mined_item(
+            i % 2, i, [2.0 * i, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0], 0.9 - 0.05 * i, ["box", "barrel"][i % 2]
+        )
+        for i in range(6)
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    return AppState(dataset, db=db)
+
+
+def _person(state: AppState, name: str) -> BrowserSession:
+    person = BrowserSession(state, drawn_result=lambda: (None, state.frame_index))
+    person.author = name
+    return person
+
+
+def test_review_walks_the_pending_queue_and_the_verdict_is_stored(state):
+    alice = _person(state, "alice")
+    alice.verdict("background")  # nothing shown yet: show the first item, judge nothing
+    first = alice.current_item()
+    assert first is not None and first["verdict"] is None
+    assert state.frame_index == first["frame_index"]
+    alice.verdict("background")
+    assert state.db.review_queue()[0]["verdict"] == "background"
+    second = alice.current_item()
+    assert second is not None and second["id"] != first["id"] and second["verdict"] is None
+    alice.verdict("object", class_name="cone", advance=False)
+    stored = {q["id"]: q for q in state.db.review_queue()}[second["id"]]
+    assert stored["verdict"] == "object" and alice.current_item()["id"] == second["id"]
+    alice.step(+1)
+    assert alice.current_item()["verdict"] is None  # pending only, by default
+
+
+def test_filters_and_a_batch_verdict_are_one_undoable_edit(state):
+    alice = _person(state, "alice")
+    alice.filter_class = "barrel"
+    queue = alice.load_queue()
+    assert queue and {q["predicted_class"] for q in queue} == {"barrel"}
+    assert alice.batch_verdict("background") == len(queue)
+    verdicts = {q["id"]: q["verdict"] for q in state.db.review_queue()}
+    assert all(verdicts[q["id"]] == "background" for q in queue)
+    assert sum(v is None for v in verdicts.values()) == 6 - len(queue)
+    alice.undo()
+    assert all(q["verdict"] is None for q in state.db.review_queue())
+    assert alice.messages[-1][0] == "Undone"
+    assert alice.batch_verdict("background") == len(queue)
+    alice.filter_class = "cone"  # nothing pending there
+    assert alice.batch_verdict("background") == 0 and alice.messages[-1][0] == "Batch"
+
+
+def test_someone_elses_change_in_between_is_refused_not_overwritten(state):
+    label = state.db.add_labels([(0, (1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0), "box")], "importer")[0]
+    alice, bob = _person(state, "alice"), _person(state, "bob")
+    alice.select_label(label.id)
+    bob.select_label(label.id)
+    bob.set_class("cone")
+    assert state.db.label(label.id).class_name == "cone"
+    assert alice._edit_selected(
+        "Set class",
+        lambda i, v: state.db.update_label(i, alice.author, expected_version=v, class_name="barrel"),
+    ) is FAILED  # fmt: skip
+    title, _, error = alice.messages[-1]
+    assert error and "someone else got there first" in title
+    assert state.db.label(label.id).class_name == "cone"
+    # Alice now sees Bob's version: her next edit goes through.
+    alice.set_class("barrel")
+    assert state.db.label(label.id).class_name == "barrel"
+
+
+def test_undo_is_per_person_and_nothing_to_undo_says_so(state):
+    label = state.db.add_labels([(0, (1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0), "box")], "importer")[0]
+    alice, bob = _person(state, "alice"), _person(state, "bob")
+    alice.select_label(label.id)
+    alice.apply_box((1.5, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0))
+    bob.undo()
+    assert bob.messages[-1] == ("Undo", "Nothing to undo.", False)
+    assert state.db.label(label.id).box[0] == pytest.approx(1.5)
+    alice.undo()
+    assert state.db.label(label.id).box[0] == pytest.approx(1.0)
+    alice.undo(redo=True)
+    assert state.db.label(label.id).box[0] == pytest.approx(1.5)
+    alice.delete_selected()
+    assert state.db.label(label.id).deleted and alice.selected_label() is None
+
+
+def test_edits_need_a_selection_and_a_session(state):
+    alice = _person(state, "alice")
+    alice.set_class("box")
+    assert alice.messages[-1] == ("Set class", "Select a label first (click its box).", False)
+    alice.label_segment("box")
+    assert alice.messages[-1][0] == "Label segment"
+    alice.next_suspect()
+    assert alice.messages[-1][0] == "Suspect labels"

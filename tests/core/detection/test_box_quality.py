@@ -1,0 +1,384 @@
+"""Box quality: the exported trees predict as scikit-learn does, the regressor learns from the
+annotations, and detections take the option it rates best, scored by class probability times IoU."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from sklearn.ensemble import HistGradientBoostingRegressor
+
+from factorydet_core.detection.box_quality import (
+    OPTION_FEATURE_NAMES,
+    BoxQuality,
+    choose_boxes,
+    class_option_features,
+    num_option_features,
+    option_features,
+)
+from factorydet_core.detection.detector import Detector
+from factorydet_core.detection.groups import ANCHORS_PER_SIZE, GROW_VARIANTS, BoxSizePrior
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.detection.scoring import score_groups
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.training.mining import collect_proposals
+from factorydet_core.types import CLASS_NAMES, InputError
+
+NUM_CLASSES = len(CLASS_NAMES)
+
+
+@pytest.fixture(scope="module")
+def frames(small_dataset_dir):
+    return collect_proposals(open_dataset(small_dataset_dir), [0, 1], Detector("agv"))
+
+
+@pytest.fixture(scope="module")
+def prior(frames):
+    return BoxSizePrior.from_boxes(
+        np.concatenate([f.label_boxes for f in frames]),
+        np.concatenate([f.label_class_ids for f in frames]),
+        NUM_CLASSES,
+    )
+
+
+@pytest.fixture(scope="module")
+def fitted(frames, prior):
+    quality = BoxQuality(max_iter=40)
+    rows, targets = quality.training_rows(frames, prior, NUM_CLASSES)
+    return quality.fit(rows, targets), rows, targets
+
+
+def test_exported_trees_predict_exactly_as_scikit_learn(rng):
+    features = rng.normal(size=(600, 5))
+    targets = np.clip(0.5 + 0.3 * np.tanh(features[:, 0]) - 0.2 * (features[:, 1] > 0.3), 0, 1)
+    quality = BoxQuality(max_iter=30).fit(features, targets)
+    reference = HistGradientBoostingRegressor(
+        max_iter=30, max_leaf_nodes=quality.max_leaf_nodes, learning_rate=0.1, random_state=0
+    )
+    reference.fit(features, targets)
+    test = rng.normal(size=(300, 5)) * 1.5
+    np.testing.assert_allclose(quality.predict(test), np.clip(reference.predict(test), 0, 1), atol=1e-9)
+    # Thresholds exactly at a split go left, as in scikit-learn.
+    on_split = test.copy()
+    on_split[:, quality.trees_["feature"][0]] = quality.trees_["threshold"][0]
+    expected = np.clip(reference.predict(on_split), 0, 1)
+    np.testing.assert_allclose(quality.predict(on_split), expected, atol=1e-9)
+
+
+def test_arrays_round_trip_and_bad_input(rng):
+    features = rng.normal(size=(200, 3))
+    quality = BoxQuality(max_iter=10).fit(features, rng.uniform(size=200))
+    arrays = {k: np.array(v) for k, v in quality.to_arrays().items()}
+    again = BoxQuality.from_arrays(arrays)
+    assert again.anchored
+    # Checkpoints from before anchored options read their features without them.
+    assert not BoxQuality.from_arrays({k: v for k, v in arrays.items() if k != "anchored"}).anchored
+    np.testing.assert_array_equal(again.predict(features), quality.predict(features))
+    with pytest.raises(InputError):
+        again.predict(features[:, :2])
+    with pytest.raises(InputError):
+        BoxQuality.from_arrays({k: v for k, v in arrays.items() if k != "roots"})
+    with pytest.raises(InputError):
+        BoxQuality(background_rate=1.5)
+    with pytest.raises(InputError):
+        BoxQuality().fit(features, np.full(200, np.nan))
+
+
+@pytest.mark.parametrize("anchored", [False, True])
+def test_option_features_describe_every_option(frames, prior, anchored):
+    frame = frames[0]
+    members = frame.groups.members()
+    assert sorted(np.concatenate(members).tolist()) == list(range(len(frame.proposal_boxes)))
+    for g in range(min(20, frame.groups.num_groups)):
+        boxes = frame.proposal_boxes[members[g]]
+        np.testing.assert_array_equal(boxes[0], frame.proposal_boxes[frame.groups.representatives[g]])
+        options, features = option_features(
+            boxes, 2, frame.groups.descriptors[g], prior, NUM_CLASSES, anchored
+        )
+        assert features.shape == (len(options), num_option_features(NUM_CLASSES, anchored))
+        assert np.isfinite(features).all()
+        assert (features[:, 2] == 1).all() and features[:, :NUM_CLASSES].sum() == len(options)
+        # The set's own boxes come first, unchanged.
+        np.testing.assert_array_equal(options[: len(boxes)], boxes)
+        num_modes = len(prior.class_modes(2))
+        num_grown = len(boxes) * (1 + len(GROW_VARIANTS) * num_modes)
+        if not anchored:
+            assert len(options) == num_grown
+            continue
+        # After the grown blocks, per mode: the corners, the floor, the stack.
+        placed = []
+        for m in prior.class_modes(2):
+            fitted = boxes[:1]
+            placed += [prior.anchored(fitted, m), prior.standing(fitted, m)[0], prior.stacked(fitted, m)[0]]
+        placed = np.concatenate(placed)
+        assert len(placed) >= ANCHORS_PER_SIZE * num_modes
+        assert len(options) == num_grown + len(placed)
+        np.testing.assert_array_equal(options[num_grown:], placed)
+        flag = features[:, NUM_CLASSES + len(OPTION_FEATURE_NAMES)]
+        np.testing.assert_array_equal(flag, np.arange(len(options)) >= num_grown)
+
+
+@pytest.mark.parametrize("anchored", [False, True])
+def test_batched_options_equal_the_per_set_ones(frames, prior, anchored):
+    """Inference builds the options of all sets of a class at once; rows must be option_features's,
+    set after set (the regressor was trained on those)."""
+    frame = frames[0]
+    members = frame.groups.members()
+    anchor_mask = frame.groups.anchor_mask
+    # The front half's scene-aligned boxes are anchors besides the fitted ones, in some sets.
+    assert anchor_mask is not None
+    has_aligned_anchor = [anchor_mask[m[1:]].any() for m in members]
+    assert any(has_aligned_anchor) and not all(has_aligned_anchor)
+    sets = list(range(0, frame.groups.num_groups, 3))
+    for class_id in (0, 2, 4, 6):
+        options, features, owner, sources = class_option_features(
+            frame.proposal_boxes,
+            [members[g] for g in sets],
+            class_id,
+            frame.groups.descriptors[sets],
+            prior,
+            NUM_CLASSES,
+            anchored,
+            anchor_mask,
+            frame.groups.free_space if anchored else None,
+        )
+        expected = [
+            option_features(
+                frame.proposal_boxes[members[g]],
+                class_id,
+                frame.groups.descriptors[g],
+                prior,
+                NUM_CLASSES,
+                anchored,
+                anchor_mask[members[g]],
+                frame.groups.free_space if anchored else None,
+            )
+            for g in sets
+        ]
+        np.testing.assert_array_equal(options, np.concatenate([e[0] for e in expected]))
+        # Each set's options and costs are BoxSizePrior.options's for that set alone, its fitted
+        # box and its aligned one the anchors.
+        anchors_of = {g: members[g][(members[g] == members[g][0]) | anchor_mask[members[g]]] for g in sets}
+        reference = [
+            prior.option_sources(
+                frame.proposal_boxes[members[g]],
+                class_id,
+                anchor_boxes=frame.proposal_boxes[anchors_of[g]] if anchored else None,
+            )
+            for g in sets
+        ]
+        np.testing.assert_array_equal(options, np.concatenate([r[0] for r in reference]))
+        cost_column = NUM_CLASSES + OPTION_FEATURE_NAMES.index("prior_cost")
+        np.testing.assert_array_equal(features[:, cost_column], np.concatenate([r[1] for r in reference]))
+        np.testing.assert_array_equal(features, np.concatenate([e[1] for e in expected]))
+        np.testing.assert_array_equal(owner, np.repeat(np.arange(len(sets)), [len(e[0]) for e in expected]))
+        for row, g in enumerate(sets):
+            # Grown boxes come from the box they grew; placed ones from the anchor they were placed by.
+            _, _, kinds, option_rows, _ = reference[row]
+            expected_sources = np.where(
+                kinds < 2,
+                members[g][np.minimum(option_rows, len(members[g]) - 1)],
+                anchors_of[g][np.minimum(option_rows, len(anchors_of[g]) - 1)],
+            )
+            np.testing.assert_array_equal(sources[owner == row], expected_sources)
+        if anchored and class_id == 2:
+            assert any(len(anchors_of[g]) > 1 for g in sets)
+
+
+def test_regressor_learns_the_iou_of_options(fitted):
+    quality, rows, targets = fitted
+    assert len(rows) == len(targets) and ((targets >= 0) & (targets <= 1)).all()
+    # Both ends are in the training set: good boxes of annotated objects and background at 0.
+    assert (targets > 0.6).any() and (targets == 0).any()
+    predicted = quality.predict(rows)
+    assert ((predicted >= 0) & (predicted <= 1)).all()
+    # It ranks: options it rates high overlap their objects far more than those it rates low.
+    high, low = predicted >= np.quantile(predicted, 0.9), predicted <= np.quantile(predicted, 0.5)
+    assert targets[high].mean() > 0.3 + targets[low].mean()
+
+
+def test_an_option_fitting_another_object_of_the_class_is_right(frames, prior):
+    """A set that holds several objects of one class (a stack of crates) has one right box per
+    object: the option that fits the second object is trained towards IoU 1, not towards its
+    overlap with the object the set overlaps most."""
+    from factorydet_core.boxes import box_iou_3d
+
+    frame = frames[0]
+    members = frame.groups.members()
+    iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
+    g = next(g for g, m in enumerate(members) if iou[m].max() >= 0.5)
+    label = int(iou[members[g]].max(axis=0).argmax())
+    class_id = int(frame.label_class_ids[label])
+    options, features = option_features(
+        frame.proposal_boxes[members[g]],
+        class_id,
+        frame.groups.descriptors[g],
+        prior,
+        NUM_CLASSES,
+        True,
+        free_space=frame.groups.free_space,
+    )
+    overlap = box_iou_3d(options, frame.label_boxes[label : label + 1])[:, 0]
+    other = int(np.argmin(overlap))
+    assert overlap[other] < 0.5
+    # A second object of the class exactly where that option lies.
+    with_second = dataclasses.replace(
+        frame,
+        label_boxes=np.concatenate([frame.label_boxes, options[other : other + 1]]),
+        label_class_ids=np.concatenate([frame.label_class_ids, [class_id]]),
+    )
+    rows, targets = BoxQuality(background_rate=0.0).training_rows([with_second], prior, NUM_CLASSES)
+    same_row = np.flatnonzero((rows == features[other]).all(axis=1))
+    assert len(same_row) and targets[same_row] == pytest.approx(1.0)
+
+
+def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, prior, fitted):
+    quality = fitted[0]
+    frame = frames[0]
+    num_groups = frame.groups.num_groups
+    probabilities = np.full((num_groups, NUM_CLASSES + 1), 0.01, np.float32)
+    probabilities[:, 2] = 0.9  # every set a "box" with probability 0.9
+    plain = score_groups(frame.proposal_boxes, frame.groups, probabilities, prior)
+    rated = score_groups(frame.proposal_boxes, frame.groups, probabilities, prior, box_quality=quality)
+    boxes, proposal_ids, predicted = choose_boxes(
+        frame.proposal_boxes, frame.groups, np.full(num_groups, 2), prior, quality
+    )
+    np.testing.assert_allclose(rated.boxes, boxes)
+    np.testing.assert_array_equal(rated.proposal_ids, proposal_ids)
+    np.testing.assert_allclose(rated.scores, 0.9 * predicted, rtol=1e-5)
+    np.testing.assert_allclose(plain.scores, 0.9, rtol=1e-6)
+    members = frame.groups.members()
+    for g in range(0, num_groups, max(1, num_groups // 15)):
+        mask = frame.groups.anchor_mask[members[g]]
+        options, features = option_features(
+            frame.proposal_boxes[members[g]],
+            2,
+            frame.groups.descriptors[g],
+            prior,
+            NUM_CLASSES,
+            True,
+            mask,
+            frame.groups.free_space,
+        )
+        assert quality.predict(features).max() == pytest.approx(predicted[g])
+        assert proposal_ids[g] in members[g]
+    # Sets below the floor keep the prior's box and their probability.
+    probabilities[:5, 2] = 0.02
+    low = score_groups(frame.proposal_boxes, frame.groups, probabilities, prior, box_quality=quality)
+    np.testing.assert_allclose(low.scores[:5], 0.02, rtol=1e-5)
+    np.testing.assert_allclose(low.boxes[:5], plain.boxes[:5])
+    # The probability's power in the score: the same boxes, the square root of 0.9 times the IoU,
+    # and sets below the floor still keep their probability.
+    rooted = score_groups(
+        frame.proposal_boxes,
+        frame.groups,
+        probabilities,
+        prior,
+        box_quality=quality,
+        probability_exponent=0.5,
+    )
+    np.testing.assert_allclose(rooted.boxes, low.boxes)
+    np.testing.assert_allclose(rooted.scores[5:], np.sqrt(0.9) * predicted[5:], rtol=1e-5)
+    np.testing.assert_allclose(rooted.scores[:5], 0.02, rtol=1e-5)
+    with pytest.raises(InputError, match="probability_exponent"):
+        score_groups(frame.proposal_boxes, frame.groups, probabilities, prior, box_quality=quality,
+                     probability_exponent=0.0)  # fmt: skip
+
+
+def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
+    model = dataclasses.replace(DetectionModel.load(tiny_model_path), box_quality=fitted[0])
+    path = model.save(tmp_path / "q.pt")
+    loaded = DetectionModel.load(path)
+    assert loaded.note["box_quality"]["max_iter"] == 40
+    assert loaded.probability_exponent == 1.0
+    rooted = DetectionModel.load(dataclasses.replace(model, probability_exponent=0.5).save(tmp_path / "r.pt"))
+    assert rooted.probability_exponent == 0.5
+    note_path = tmp_path / "r.json"
+    note = json.loads(note_path.read_text())
+    del note["probability_exponent"]  # a checkpoint from before the exponent was kept
+    note_path.write_text(json.dumps(note))
+    assert DetectionModel.load(tmp_path / "r.pt").probability_exponent == 1.0
+    note_path.write_text(json.dumps({**note, "probability_exponent": -1}))
+    with pytest.raises(InputError, match="probability_exponent"):
+        DetectionModel.load(tmp_path / "r.pt")
+    # Box voting: kept, switched off (null), and the default for checkpoints from before it.
+    from factorydet_core.detection.scoring import BOX_VOTE_IOU
+
+    assert loaded.vote_iou == BOX_VOTE_IOU and loaded.note["vote_iou"] == BOX_VOTE_IOU
+    for value, expected in ((None, None), (0.6, 0.6)):
+        note_path.write_text(json.dumps({**note, "vote_iou": value}))
+        assert DetectionModel.load(tmp_path / "r.pt").vote_iou == expected
+    del note["vote_iou"]
+    note_path.write_text(json.dumps(note))
+    assert DetectionModel.load(tmp_path / "r.pt").vote_iou == BOX_VOTE_IOU
+    note_path.write_text(json.dumps({**note, "vote_iou": 1.5}))
+    with pytest.raises(InputError, match="vote_iou"):
+        DetectionModel.load(tmp_path / "r.pt")
+    rows = fitted[1][:50]
+    np.testing.assert_array_equal(loaded.box_quality.predict(rows), fitted[0].predict(rows))
+    (tmp_path / "q.boxq.npz").unlink()
+    with pytest.raises(InputError):
+        DetectionModel.load(path)
+
+
+def test_detection_details_show_the_predicted_iou(small_dataset_dir, prior, fitted):
+    from factorydet_core.evaluation.diagnostics import describe_detection
+
+    frame = open_dataset(small_dataset_dir).frame(0)
+    detector = Detector("agv")
+    result = detector.propose(frame)
+    groups = detector.group(result)
+    probabilities = np.full((groups.num_groups, NUM_CLASSES + 1), 0.01, np.float32)
+    probabilities[:, 2] = 0.9
+    rated = score_groups(result.proposals.boxes, groups, probabilities, prior, box_quality=fitted[0])
+    k = int(np.argmax(rated.scores))
+    info = describe_detection(rated, k, result.proposals, frame)
+    assert float(info["predicted box IoU"]) == pytest.approx(rated.scores[k] / 0.9, abs=0.006)
+    # With the square root of the probability in the score, the same IoU.
+    rooted = score_groups(
+        result.proposals.boxes, groups, probabilities, prior, box_quality=fitted[0], probability_exponent=0.5
+    )
+    info = describe_detection(rooted, k, result.proposals, frame, probability_exponent=0.5)
+    assert float(info["predicted box IoU"]) == pytest.approx(rated.scores[k] / 0.9, abs=0.006)
+    plain = score_groups(result.proposals.boxes, groups, probabilities, prior)
+    assert "predicted box IoU" not in describe_detection(plain, k, result.proposals, frame)
+
+
+def test_compiled_tree_walk_equals_the_numpy_walk_from_several_threads(rng):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from factorydet_core.detection.box_quality import _evaluate_trees, _evaluate_trees_numpy
+
+    features = rng.normal(size=(800, 6))
+    targets = np.clip(0.4 + 0.3 * np.sin(features[:, 0] * 2) + 0.1 * features[:, 2], 0, 1)
+    quality = BoxQuality(max_iter=50).fit(features, targets)
+    test = rng.normal(size=(2000, 6)) * 1.3
+    expected = _evaluate_trees_numpy(quality.trees_, test)
+    np.testing.assert_allclose(_evaluate_trees(quality.trees_, test), expected, atol=1e-12)
+    # The app predicts from its worker and its callbacks' threads at once.
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(lambda _: _evaluate_trees(quality.trees_, test), range(8)))
+    for result in results:
+        np.testing.assert_allclose(result, expected, atol=1e-12)
+
+
+def test_visibility_features_are_the_options_seen_free_and_occupied_shares(frames, prior, fitted):
+    from factorydet_core.detection.box_quality import ANCHORED_FEATURE_NAMES, VISIBILITY_FEATURE_NAMES
+    from factorydet_core.proposals.visibility import box_visibility
+
+    frame = frames[0]
+    members = frame.groups.members()
+    g = len(members) // 2
+    args = (frame.proposal_boxes[members[g]], 2, frame.groups.descriptors[g], prior, NUM_CLASSES, True)
+    options, features = option_features(*args, free_space=frame.groups.free_space)
+    _, without = option_features(*args)
+    assert features.shape[1] == num_option_features(NUM_CLASSES, True, True) == without.shape[1] + 2
+    start = NUM_CLASSES + len(OPTION_FEATURE_NAMES) + len(ANCHORED_FEATURE_NAMES)
+    shares = features[:, start : start + len(VISIBILITY_FEATURE_NAMES)]
+    np.testing.assert_array_equal(shares, box_visibility(frame.groups.free_space, options))
+    assert shares[:, 0].max() > 0  # some option of the set holds space the rays saw empty
+    # The shipped arrays keep the flag; arrays from before it load without visibility.
+    arrays = fitted[0].to_arrays()
+    assert fitted[0].visibility and BoxQuality.from_arrays(arrays).visibility
+    del arrays["visibility"]
+    assert not BoxQuality.from_arrays(arrays).visibility

@@ -1,0 +1,29 @@
+"""Text about review items for the app's panels."""
+
+from factorydet_core.evaluation.diagnostics import review_item_markdown
+
+ITEM = {
+    "id": 7,
+    "frame_index": 2,
+    "run_id": 1,
+    "round": 0,
+    "predicted_class": "box",
+    "score": 0.42,
+    "best_annotated_iou": 0.0,
+    "box": [1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0],
+    "patch_set": [3, 4],
+    "probabilities": [0.1, 0.0, 0.6, 0.0, 0.0, 0.0, 0.0, 0.3],
+}
+
+
+def test_review_item_markdown_gives_the_points_in_the_box_and_the_annotation_policy():
+    text = review_item_markdown(ITEM, [], 1, 5, num_points=37, min_points=50)
+    assert "**Item 1 of 5** (#7, frame 3" in text
+    assert "37 points in its box (the data set labels objects of at least 50 points)" in text
+    assert "box 0.60" in text and "background 0.30" in text
+    # A data set that states no policy, and a frame that is not drawn: no such claims.
+    assert "(the data set labels" not in review_item_markdown(ITEM, [], 1, 5, num_points=37)
+    assert "points in its box" not in review_item_markdown(ITEM, [], 1, 5)
+    # The queue's current overlap with the labels, beside the one at mining time.
+    assert "when mined 0.00, now 0.45" in review_item_markdown({**ITEM, "label_iou": 0.45}, [], 1, 5)
+    assert ", now" not in text

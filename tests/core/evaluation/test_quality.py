@@ -1,0 +1,54 @@
+"""The held-out factory benchmark: its plan's checks, a tiny run end to end, and its table."""
+
+import json
+
+import numpy as np
+import pytest
+
+from factorydet_core.evaluation.quality import QualityPlan, bench_quality, quality_markdown, write_outputs
+from factorydet_core.types import InputError
+
+
+def test_the_plan_refuses_the_training_factory_as_held_out(small_dataset_dir, tmp_path):
+    with pytest.raises(InputError, match="training factory's own seed"):
+        QualityPlan(train_data=small_dataset_dir, heldout_seeds=(7,), scratch=tmp_path)  # its seed is 7
+    with pytest.raises(InputError, match="methods"):
+        QualityPlan(train_data=small_dataset_dir, methods=("magic",), scratch=tmp_path)
+    with pytest.raises(InputError):
+        QualityPlan(train_data=small_dataset_dir, seeds=(), scratch=tmp_path)
+
+
+@pytest.mark.slow
+def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_dataset_dir, tmp_path):
+    plan = QualityPlan(
+        train_data=small_dataset_dir,
+        heldout_seeds=(501,),
+        heldout_frames=1,
+        train_frames=2,
+        seeds=(0, 1),
+        epochs=1,
+        rounds=0,
+        scratch=tmp_path,
+    )
+    result = bench_quality(plan, command="test")
+    assert result["num_heldout_frames"] == 1 and result["train_seed"] == 7
+    options, head, paper = (result["methods"][m] for m in ("head_options", "box_head", "paper"))
+    assert [r["seed"] for r in head["runs"]] == [0, 1] and len(paper["runs"]) == 1
+    # Both learned methods read the same head, trained once per seed.
+    assert [r["train_seconds"] for r in options["runs"]] == [r["train_seconds"] for r in head["runs"]]
+    for method in (options, head, paper):
+        run = method["runs"][0]
+        assert {"iou_0.6", "iou_0.5", "iou_0.25", "candidate_bound", "iou_0.6_without_ignore"} <= set(run)
+        # Every figure says how many truth objects it rests on, the same for both methods.
+        assert run["iou_0.6"]["num_reference"] == paper["runs"][0]["iou_0.6"]["num_reference"] > 0
+        f1 = [r["iou_0.6"]["f1"] for r in method["runs"]]
+        assert method["summary"]["f1"]["mean"] == pytest.approx(np.mean(f1), abs=1e-4)
+        assert method["summary"]["f1"]["std"] == pytest.approx(np.std(f1), abs=1e-4)
+    # The held-out factory was simulated once and its proposals cached: a second run reuses both.
+    assert len(list((tmp_path / "proposals").glob("*.npz"))) == 2
+    write_outputs(result, tmp_path / "bench" / "quality.json")
+    assert json.loads((tmp_path / "bench" / "quality.json").read_text())["benchmark"] == "quality"
+    table = (tmp_path / "bench" / "quality.md").read_text()
+    assert "| F-score, IoU 0.6 |" in table and "seeds 501" in table
+    assert "box_head" in table and "head_options" in table
+    assert table == quality_markdown(result)

@@ -1,0 +1,103 @@
+"""Label-editor geometry: gizmo poses, screen rectangles, camera framing, splitting."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from factorydet_core.geometry import wrap_angle
+from factorydet_core.session.editing import (
+    box_of_points,
+    box_to_pose,
+    camera_for_box,
+    points_in_screen_rect,
+    pose_to_box,
+    split_in_two,
+)
+from factorydet_core.types import InputError
+
+finite = st.floats(-50, 50, allow_nan=False)
+sizes = st.floats(0.05, 10, allow_nan=False)
+yaws = st.floats(-3.1, 3.1, allow_nan=False)
+
+
+@settings(max_examples=100, deadline=None)
+@given(finite, finite, finite, sizes, sizes, sizes, yaws)
+def test_box_pose_round_trip(cx, cy, cz, dx, dy, dz, yaw):
+    box = np.array([cx, cy, cz, dx, dy, dz, yaw])
+    position, wxyz = box_to_pose(box)
+    assert np.linalg.norm(wxyz) == pytest.approx(1.0)
+    again = pose_to_box(position, wxyz, box[3:6])
+    np.testing.assert_allclose(again[:6], box[:6], atol=1e-9)
+    assert abs(wrap_angle(again[6] - yaw)) < 1e-9
+
+
+def test_a_tilted_gizmo_keeps_only_the_heading():
+    # 30 degrees about z, then 20 degrees about x: the heading stays 30 degrees.
+    def quat(axis, angle):
+        return np.r_[np.cos(angle / 2), np.sin(angle / 2) * np.asarray(axis, float)]
+
+    def mul(a, b):
+        w1, x1, y1, z1 = a
+        w2, x2, y2, z2 = b
+        return np.array(
+            [
+                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            ]
+        )
+
+    wxyz = mul(quat([0, 0, 1], np.radians(30)), quat([1, 0, 0], np.radians(20)))
+    box = pose_to_box([0, 0, 0], wxyz, [1, 2, 3])
+    assert np.degrees(box[6]) == pytest.approx(30.0)
+    with pytest.raises(InputError, match="positive"):
+        pose_to_box([0, 0, 0], wxyz, [1, 0, 3])
+
+
+def test_points_in_screen_rect_follow_the_camera():
+    # Camera at the origin looking down +x (OpenCV: z forward = world +x, y down = world -z).
+    rotation = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # columns: camera axes in world
+    w = np.sqrt(1 + np.trace(rotation)) / 2
+    wxyz = np.array(
+        [
+            w,
+            (rotation[2, 1] - rotation[1, 2]) / (4 * w),
+            (rotation[0, 2] - rotation[2, 0]) / (4 * w),
+            (rotation[1, 0] - rotation[0, 1]) / (4 * w),
+        ]
+    )
+    points = np.array([[10, 0, 0], [10, 5, 0], [10, -5, 0], [-10, 0, 0], [10, 0, 4]], float)
+    full = points_in_screen_rect(points, [0, 0, 0], wxyz, np.radians(90), 1.0, [0, 0], [1, 1])
+    assert full.tolist() == [True, True, True, False, True]
+    # The left half of the screen is world +y (the camera's -x).
+    left = points_in_screen_rect(points, [0, 0, 0], wxyz, np.radians(90), 1.0, [0, 0], [0.45, 1])
+    assert left.tolist() == [False, True, False, False, False]
+    top = points_in_screen_rect(points, [0, 0, 0], wxyz, np.radians(90), 1.0, [0.4, 0], [0.6, 0.45])
+    assert top.tolist() == [False, False, False, False, True]
+
+
+def test_camera_frames_the_box():
+    box = np.array([5.0, 3.0, 0.5, 1.0, 1.0, 1.0, 0.3])
+    position, look_at = camera_for_box(box)
+    np.testing.assert_allclose(look_at, box[:3])
+    assert position[2] > box[2] and np.linalg.norm(position - look_at) >= 4.0
+
+
+def test_split_in_two_separates_two_clumps(rng):
+    a = rng.normal([0, 0, 0.5], 0.2, (300, 3))
+    b = rng.normal([2, 1, 0.5], 0.2, (200, 3))
+    labels = split_in_two(np.vstack([a, b]))
+    assert set(labels[:300]) != set(labels[300:])
+    assert len(set(labels[:300])) == 1 and len(set(labels[300:])) == 1
+    with pytest.raises(InputError):
+        split_in_two(np.zeros((1, 3)))
+
+
+def test_box_of_points_covers_them(rng):
+    points = rng.uniform([0, 0, 0], [2, 1, 1], (500, 3))
+    box = box_of_points(points)
+    np.testing.assert_allclose(box[3:6], [2, 1, 1], atol=0.1)
+    with pytest.raises(InputError, match="at least 3"):
+        box_of_points(points[:2])

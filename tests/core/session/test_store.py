@@ -1,0 +1,321 @@
+"""The session database: labels, the edit log with undo and redo, reviews, durability, refusal of
+bad files."""
+
+from __future__ import annotations
+
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.store import (
+    SCHEMA_VERSION,
+    EditConflictError,
+    SessionDB,
+    SessionError,
+    open_session,
+)
+from factorydet_core.training.mining import TrainingRun
+from tests.fakes import mined_item, queue_run
+
+BOX = (1.0, 2.0, 0.5, 1.2, 0.8, 1.0, 0.3)
+
+
+@pytest.fixture
+def dataset(small_dataset_dir):
+    return open_dataset(small_dataset_dir)
+
+
+@pytest.fixture
+def db(tmp_path, dataset):
+    return SessionDB(open_session("s", tmp_path), dataset)
+
+
+def _reopen(db: SessionDB) -> SessionDB:
+    return SessionDB(db.session, db.dataset)
+
+
+def _fake_run(model_path: Path, num_mined: int = 6) -> TrainingRun:
+    """A real model with a made-up mining record, to fill the review queue without training."""
+    items = [
+        mined_item(
+            i % 2,
+            i,
+            [float(i), 0.0, 0.5, 1.0, 1.0, 1.0, 0.0],
+            0.9 - 0.1 * i,
+            ["box", "barrel"][i % 2],
+            [0.1] * 8,
+        )
+        for i in range(num_mined)
+    ]
+    return queue_run(model_path, [items, []], train_frames=(0, 1))
+
+
+def test_first_access_imports_the_data_sets_annotations(db, dataset):
+    frame = dataset.frame(0)
+    labels = db.labels(0)
+    assert len(labels) == len(frame.labels) > 0
+    assert all(lab.origin == "dataset" and lab.version == 1 for lab in labels)
+    np.testing.assert_allclose([lab.box for lab in labels], frame.labels.boxes, atol=1e-6)
+    assert [lab.instance_id for lab in labels] == frame.labels.instance_ids.tolist()
+    boxes, class_ids, label_ids = db.frame_boxes(0)
+    assert boxes.shape == (len(labels), 7) and (class_ids == frame.labels.class_ids).all()
+    # Imported once: reopening does not duplicate them.
+    assert len(_reopen(db).labels(0)) == len(labels)
+
+
+def test_database_uses_wal_full_sync_foreign_keys_and_a_schema_version(db):
+    db.labels(0)
+    connection = db._connect()
+    try:
+        assert connection.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert connection.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
+        assert connection.execute("PRAGMA foreign_keys").fetchone()[0] == 1
+        assert connection.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+    finally:
+        connection.close()
+    assert db.path.name == "session.db"
+
+
+def test_every_label_edit_survives_close_and_reopen(db):
+    first, second = db.labels(0)[:2]
+    added = db.add_label(0, BOX, "cone", "ann")
+    moved = db.update_label(first.id, "ann", expected_version=first.version, box=BOX)
+    renamed = db.update_label(second.id, "bob", class_name="truck")
+    db.delete_labels([added.id], "ann")
+    again = _reopen(db)
+    assert again.label(added.id).deleted and again.label(added.id).origin == "user"
+    assert again.label(moved.id).box == pytest.approx(BOX)
+    assert again.label(renamed.id).class_name == "truck" and again.label(renamed.id).modified_by == "bob"
+    assert added.id not in [lab.id for lab in again.labels(0)]
+    assert [e.kind for e in again.edits()] == ["delete", "update", "update", "add"]
+
+
+def test_bad_edits_are_refused_without_writing(db):
+    count = len(db.edits())
+    with pytest.raises(SessionError, match="unknown class"):
+        db.add_label(0, BOX, "spaceship", "ann")
+    with pytest.raises(SessionError, match="7 finite numbers"):
+        db.add_label(0, BOX[:6], "box", "ann")
+    with pytest.raises(SessionError, match="positive"):
+        db.add_label(0, (*BOX[:3], 0.0, 1.0, 1.0, 0.0), "box", "ann")
+    with pytest.raises(SessionError, match="out of range"):
+        db.add_label(99, BOX, "box", "ann")
+    with pytest.raises(SessionError, match="no label"):
+        db.update_label(10**6, "ann", class_name="box")
+    assert len(db.edits()) == count
+
+
+def test_undo_and_redo_walk_the_authors_edits(db):
+    label = db.labels(0)[0]
+    db.update_label(label.id, "ann", class_name="truck")
+    added = db.add_label(0, BOX, "cone", "ann")
+    assert db.undo("ann").kind == "add"
+    assert db.label(added.id).deleted
+    assert db.undo("ann").kind == "update"
+    assert db.label(label.id).class_name == label.class_name
+    assert db.undo("ann") is None
+    assert db.redo("ann").kind == "update" and db.label(label.id).class_name == "truck"
+    assert db.redo("ann").kind == "add" and not db.label(added.id).deleted
+    assert db.redo("ann") is None
+    # A new edit drops what was left to redo.
+    db.undo("ann")
+    db.add_label(1, BOX, "box", "ann")
+    assert db.redo("ann") is None
+    assert db.can_undo("ann") == (True, False)
+
+
+def test_undo_is_per_author_and_refuses_to_overwrite_a_later_change(db):
+    label = db.labels(0)[0]
+    db.update_label(label.id, "ann", class_name="truck")
+    db.update_label(label.id, "bob", class_name="cone")
+    with pytest.raises(EditConflictError, match="changed since"):
+        db.undo("ann")
+    assert db.label(label.id).class_name == "cone"
+    assert db.undo("bob").kind == "update" and db.label(label.id).class_name == "truck"
+    assert db.undo("ann") is not None and db.label(label.id).class_name == label.class_name
+
+
+def test_a_stale_edit_is_told_not_applied(db):
+    label = db.labels(0)[0]
+    db.update_label(label.id, "ann", expected_version=label.version, class_name="truck")
+    with pytest.raises(EditConflictError, match="changed by ann"):
+        db.update_label(label.id, "bob", expected_version=label.version, class_name="cone")
+    with pytest.raises(EditConflictError):
+        db.delete_labels([label.id], "bob", {label.id: label.version})
+    assert db.label(label.id).class_name == "truck" and not db.label(label.id).deleted
+
+
+def test_concurrent_edits_from_two_threads_are_all_kept(db):
+    db.labels(0)
+    errors: list[BaseException] = []
+
+    def work(author: str) -> None:
+        try:
+            for k in range(40):
+                label = db.add_label(0, (k, 0, 0.5, 1, 1, 1, 0), "box", author)
+                db.update_label(label.id, author, expected_version=label.version, class_name="cone")
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(a,)) for a in ("ann", "bob")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    mine = [lab for lab in db.labels(0) if lab.origin == "user"]
+    assert len(mine) == 80 and all(lab.class_name == "cone" for lab in mine)
+    assert len(db.edits(limit=1000)) == 160
+
+
+_WRITER = """
+import sys
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.store import SessionDB, open_session
+db = SessionDB(open_session("s", sys.argv[1]), open_dataset(sys.argv[2]))
+print("READY", flush=True)
+k = 0
+while True:
+    label = db.add_label(0, (k, 0, 0.5, 1, 1, 1, 0), "box", "writer")
+    print("ACK", label.id, flush=True)
+    k += 1
+"""
+
+
+def test_sigkill_mid_stream_loses_no_acknowledged_edit(db, tmp_path):
+    db.labels(0)  # the database exists with the frame imported before the writers start
+    rng = np.random.default_rng(0)
+    acknowledged: list[int] = []
+    for _ in range(8):
+        writer = subprocess.Popen(
+            [sys.executable, "-c", _WRITER, str(db.session.root), str(db.dataset.path)],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert writer.stdout.readline().strip() == "READY"
+        stop_after = int(rng.integers(1, 30))
+        for _ in range(stop_after):
+            acknowledged.append(int(writer.stdout.readline().split()[1]))
+        time.sleep(float(rng.uniform(0, 0.01)))  # land the kill at a random point of the next edit
+        writer.send_signal(signal.SIGKILL)
+        writer.wait()
+        writer.stdout.close()
+    survived = {lab.id for lab in _reopen(db).labels(0)}
+    assert set(acknowledged) <= survived
+    assert len(acknowledged) >= 8
+
+
+def _assert_refused_untouched(path: Path, match: str, dataset) -> None:
+    before = path.read_bytes()
+    with pytest.raises(SessionError, match=match):
+        SessionDB(open_session(path.parent.name, path.parent.parent), dataset)
+    assert path.read_bytes() == before
+    assert not Path(str(path) + "-wal").exists()
+
+
+def test_newer_schema_is_refused_untouched(db, dataset):
+    db.labels(0)
+    connection = sqlite3.connect(db.path)
+    connection.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    connection.execute("PRAGMA journal_mode = DELETE")
+    connection.close()
+    _assert_refused_untouched(db.path, "newer than this factorydet", dataset)
+
+
+def test_garbage_and_truncated_databases_are_refused_untouched(db, dataset, tmp_path):
+    for k in range(30):
+        db.add_label(0, (k, 0, 0.5, 1, 1, 1, 0), "box", "ann")
+    connection = sqlite3.connect(db.path)
+    connection.execute("PRAGMA journal_mode = DELETE")  # fold the WAL into the file
+    connection.close()
+    data = db.path.read_bytes()
+    db.path.write_bytes(data[: len(data) // 2])
+    _assert_refused_untouched(db.path, "damaged|not a readable|malformed", dataset)
+    db.path.write_bytes(b"this is not a database at all" * 100)
+    _assert_refused_untouched(db.path, "not a readable", dataset)
+    other = tmp_path / "o" / "session.db"
+    other.parent.mkdir()
+    connection = sqlite3.connect(other)
+    connection.execute("CREATE TABLE stuff (x)")
+    connection.close()
+    _assert_refused_untouched(other, "not a factorydet session", dataset)
+
+
+def test_a_session_refuses_a_different_data_set(db, default_dataset_dir):
+    db.labels(0)
+    with pytest.raises(SessionError, match="differs"):
+        SessionDB(db.session, open_dataset(default_dataset_dir))
+
+
+def test_review_verdicts_labels_undo_and_conflicts(db, tiny_model_path):
+    run_id = db.save_training_run(_fake_run(tiny_model_path), "small", {"rounds": 1})
+    queue = db.review_queue()
+    assert [item["score"] for item in queue] == sorted((item["score"] for item in queue), reverse=True)
+    assert all(item["verdict"] is None for item in queue) and len(queue) == 6
+    assert len(db.review_queue(predicted_class="barrel")) == 3
+    assert len(db.review_queue(frame_index=1)) == 3
+    top, second, third = queue[0], queue[1], queue[2]
+
+    num_labels = len(db.labels(top["frame_index"]))
+    db.review([top["id"]], "object", "ann", class_name="bobbin", expected={top["id"]: None})
+    labels = db.labels(top["frame_index"])
+    assert len(labels) == num_labels + 1
+    assert labels[-1].origin == "review" and labels[-1].class_name == "bobbin"
+    assert labels[-1].box == pytest.approx(top["box"])
+    db.review([second["id"], third["id"]], "background", "bob")
+    progress = db.review_progress(run_id)
+    assert progress == {
+        "total": 6, "reviewed": 3, "background": 2, "object": 1, "wrong_box": 0, "skip": 0
+    }  # fmt: skip
+    # Someone who still sees the item unreviewed is told, not obeyed.
+    with pytest.raises(EditConflictError, match="by ann"):
+        db.review([top["id"]], "background", "bob", expected={top["id"]: None})
+    # Changing the verdict away from 'object' deletes the label it made; undo brings it back.
+    db.review([top["id"]], "wrong_box", "ann")
+    assert len(db.labels(top["frame_index"])) == num_labels
+    db.undo("ann")
+    assert len(db.labels(top["frame_index"])) == num_labels + 1
+    db.undo("ann")
+    assert len(db.labels(top["frame_index"])) == num_labels
+    assert db.review_queue()[0]["verdict"] is None
+    assert len(db.review_queue(pending_only=True)) == 4
+    reviewed = db.reviewed_patch_sets()
+    assert sum(len(v) for v in reviewed["background"].values()) == 2
+    with pytest.raises(SessionError, match="needs a class"):
+        db.review([top["id"]], "object", "ann")
+    with pytest.raises(SessionError, match="unknown verdict"):
+        db.review([top["id"]], "maybe", "ann")
+    # All of it is there after a reopen.
+    assert _reopen(db).review_progress(run_id)["background"] == 2
+
+
+def test_training_runs_point_at_their_checkpoints_and_label_snapshot(db, tiny_model_path):
+    snapshot_id = db.snapshot_labels([0, 1])
+    run_id = db.save_training_run(_fake_run(tiny_model_path), "small", {}, snapshot_id=snapshot_id)
+    db.add_label(0, BOX, "cone", "ann")  # after the snapshot: not part of it
+    run = db.training_runs()[0]
+    assert run["id"] == run_id and run["snapshot_id"] == snapshot_id
+    assert (db.session.path / run["model_path"]).is_file()
+    assert [r["round"] for r in run["rounds"]] == [0, 1]
+    snapshot = db.snapshot(snapshot_id)
+    assert snapshot["frames"] == [0, 1]
+    assert len(snapshot["labels"]) == len(db.labels(0)) - 1 + len(db.labels(1))
+
+
+def test_a_new_verdict_never_discards_an_edit_of_the_label_it_made(db, tiny_model_path):
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    item = db.review_queue()[0]
+    db.review([item["id"]], "object", "ann", class_name="box")
+    label_id = db.review_queue()[0]["label_id"]
+    db.update_label(label_id, "bob", class_name="truck")  # someone corrects the new label
+    with pytest.raises(EditConflictError, match="edited since"):
+        db.review([item["id"]], "background", "ann")
+    assert db.label(label_id).class_name == "truck" and not db.label(label_id).deleted

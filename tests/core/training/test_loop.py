@@ -1,0 +1,289 @@
+"""The labelling loop: training from a session's labels and verdicts, the proposal cache, the
+before/after comparison, and the simulated reviewer."""
+
+import numpy as np
+import pytest
+
+from factorydet_core.boxes import box_iou_3d
+from factorydet_core.detection.classifier import ProposalClassifier
+from factorydet_core.detection.detector import Detector
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.evaluation.hitl import (
+    add_truth_labels,
+    queue_reach,
+    simulated_review,
+    truth_verdict,
+    unannotated_coverage,
+)
+from factorydet_core.evaluation.measure import compare_models, comparison_markdown
+from factorydet_core.io.dataset import annotation_min_points, open_dataset
+from factorydet_core.session.store import SessionDB, open_session
+from factorydet_core.sim.truth import read_frame_truth
+from factorydet_core.training.loop import (
+    LoopSettings,
+    cached_proposals,
+    proposals_cache_key,
+    session_references,
+    suspect_labels,
+    train_session,
+    with_session_labels,
+)
+from factorydet_core.types import Cancelled, InputError
+from tests.fakes import mined_item, queue_run
+
+# Two epochs make a classifier whose probabilities times a predicted IoU rarely reach mining's
+# floor, so the plumbing tests of the loop train without the box quality regressor.
+SETTINGS = LoopSettings(
+    epochs=2, rounds=1, negatives_per_round=30, initial_negatives=120, score_threshold=0.05, box_quality=False
+)
+
+
+@pytest.fixture(scope="module")
+def dataset(small_dataset_dir):
+    return open_dataset(small_dataset_dir)
+
+
+@pytest.fixture(scope="module")
+def detector():
+    return Detector("agv")
+
+
+@pytest.fixture(scope="module")
+def db(tmp_path_factory, dataset):
+    return SessionDB(open_session("loop", tmp_path_factory.mktemp("sessions")), dataset)
+
+
+@pytest.fixture(scope="module")
+def frames(db, dataset, detector):
+    return cached_proposals(db, dataset, detector, [0, 1])
+
+
+def test_proposals_are_cached_and_read_back_equal(db, dataset, detector, frames, monkeypatch):
+    key = proposals_cache_key(dataset, detector)
+    assert (db.session.cache_dir / f"{key}.npz").is_file()
+    # A second call reads the cache: proposing again would fail.
+    monkeypatch.setattr(
+        "factorydet_core.training.loop.collect_proposals", lambda *a, **k: pytest.fail("re-proposed")
+    )
+    again = cached_proposals(db, dataset, detector, [1, 0])
+    assert [f.frame_index for f in again] == [1, 0]
+    for a, b in zip(frames, again[::-1]):
+        assert a.patch_sets == b.patch_sets
+        np.testing.assert_array_equal(a.groups.features, b.groups.features)
+        np.testing.assert_array_equal(a.annotation_instance_ids, b.annotation_instance_ids)
+    # Other front-half settings are another cache entry.
+    other = Detector(detector.params.replace(voxel_size_m=0.3))
+    assert proposals_cache_key(dataset, other) != key
+
+
+def test_session_labels_replace_the_annotations(db, frames):
+    frame = frames[0]
+    labels = db.labels(0)
+    db.update_label(labels[0].id, "ann", class_name="truck")
+    db.delete_labels([labels[1].id], "ann")
+    (relabelled,) = with_session_labels(db, [frame])
+    assert len(relabelled.label_boxes) == len(frame.label_boxes) - 1
+    truck = db.class_names.index("truck")
+    assert relabelled.label_class_ids[0] == truck
+    # The deleted instance's own points are no longer a positive; the renamed one's are a truck.
+    kept = dict(zip(relabelled.annotation_instance_ids.tolist(), relabelled.annotation_class_ids.tolist()))
+    assert labels[1].instance_id not in kept
+    if labels[0].instance_id in kept:
+        assert kept[labels[0].instance_id] == truck
+    db.undo("ann")
+    db.undo("ann")
+    assert len(with_session_labels(db, [frame])[0].label_boxes) == len(frame.label_boxes)
+
+
+def test_full_run_then_review_then_next_round(db, dataset, frames):
+    run_id, run = train_session(db, frames, SETTINGS, mode="full", data_ref="small")
+    assert [r["round"] for r in run.rounds] == [0, 1]
+    assert run.model.probability_exponent == SETTINGS.probability_exponent == 0.5  # the loop's default
+    queue = db.review_queue()
+    mined_total = sum(len(r["mined"]) for r in run.rounds)
+    assert len(queue) == mined_total > 0 and all(item["run_id"] == run_id for item in queue)
+    assert db.training_runs()[-1]["kind"] == "full"
+    assert db.training_runs()[-1]["snapshot_id"] is not None
+    # A run trained with no front-end note (scripts, the benchmark) still loads.
+    stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
+    assert stored.front_end is None and stored.class_names == run.model.class_names
+
+    counts = simulated_review(db, dataset, budget=10)
+    verdicts = ("background", "object", "wrong_box", "skip")
+    assert sum(counts[v] for v in verdicts) == min(10, len(queue))
+    # Drawn boxes are truth boxes, and no object ends up labelled twice.
+    for index in (0, 1):
+        labels, _, _ = db.frame_boxes(index)
+        overlap = box_iou_3d(labels, labels)
+        np.fill_diagonal(overlap, 0.0)
+        assert overlap.max(initial=0.0) < 0.6
+        truth_boxes = read_frame_truth(dataset.path, index).instance_boxes
+        for lab in db.labels(index):
+            if lab.created_by == "simulated-reviewer" and lab.origin == "user":
+                assert box_iou_3d(np.array([lab.box]), truth_boxes).max() > 0.999
+    progress = db.review_progress(run_id)
+    assert progress["reviewed"] == min(10, len(queue)) - counts["skip"]
+    # Every verdict agrees with the truth it was read from, except on an object the session
+    # labels already: that item is a negative (or, matching the label, nothing to add).
+    for item in db.review_queue(run_id):
+        if item["verdict"] is None:
+            continue
+        truth, _, true_box = truth_verdict(dataset, item)
+        if item["verdict"] != truth:
+            assert truth in ("object", "wrong_box")
+            assert item["verdict"] == {"object": "skip", "wrong_box": "background"}[truth]
+            labels, _, _ = db.frame_boxes(item["frame_index"])
+            assert box_iou_3d(true_box[None], labels).max() >= 0.6
+
+    confirmed = db.reviewed_patch_sets()["background"]
+    next_id, next_run = train_session(db, frames, SETTINGS, mode="next", data_ref="small")
+    assert next_id == run_id + 1 and len(next_run.rounds) == 1
+    # The next fit's background holds every earlier mined negative not reviewed as an object.
+    assert next_run.rounds[0]["num_background"] >= SETTINGS.initial_negatives
+    new_queue = db.review_queue()
+    mined_before = {(i["frame_index"], tuple(i["patch_set"])) for i in queue}
+    assert all((i["frame_index"], tuple(i["patch_set"])) not in mined_before for i in new_queue)
+    assert all((index, tuple(p)) in mined_before for index, sets in confirmed.items() for p in sets)
+
+    references = session_references(db, [0, 1])
+    table = compare_models({"before": run.model, "after": next_run.model}, frames, references)
+    assert set(table) == {"before", "after"}
+    assert 0 <= table["after"]["f1"] <= 1
+    assert "| **total** |" in comparison_markdown(table)
+
+
+def test_a_cancelled_run_stores_nothing(db, frames):
+    runs_before = len(db.training_runs())
+    with pytest.raises(Cancelled):
+        train_session(db, frames, SETTINGS, mode="next", should_stop=lambda: True)
+    assert len(db.training_runs()) == runs_before
+
+
+def _lone_sparse_box(truth):
+    """The box of a real object with under 50 points that no object of 50 or more touches."""
+    dense = truth.instance_num_points >= 50
+    sparse = np.flatnonzero((truth.instance_class_ids >= 0) & ~dense)
+    iou = box_iou_3d(truth.instance_boxes[sparse], truth.instance_boxes[dense])
+    return truth.instance_boxes[sparse[iou.max(axis=1, initial=0.0) < 0.1][0]]
+
+
+def test_truth_verdicts(dataset):
+    truth = read_frame_truth(dataset.path, 0)
+    real = np.flatnonzero((truth.instance_class_ids >= 0) & (truth.instance_num_points >= 50))[0]
+    box = truth.instance_boxes[real]
+    item = {"frame_index": 0, "box": box.tolist()}
+    verdict, name, _ = truth_verdict(dataset, item)
+    assert verdict == "object" and name == dataset.class_names[truth.instance_class_ids[real]]
+    shifted = {"frame_index": 0, "box": (box + [box[3] * 0.6, 0, 0, 0, 0, 0, 0]).tolist()}
+    assert truth_verdict(dataset, shifted)[0] == "wrong_box"
+    far = {"frame_index": 0, "box": [500.0, 500.0, 0.5, 1, 1, 1, 0]}
+    assert truth_verdict(dataset, far) == ("background", None, None)
+    # An object too sparse for the annotation policy is neither labelled nor background.
+    assert annotation_min_points(dataset) == 50
+    item = {"frame_index": 0, "box": _lone_sparse_box(truth).tolist()}
+    assert truth_verdict(dataset, item) == ("skip", None, None)
+    # With a policy that takes every visible object, it is an object.
+    assert truth_verdict(dataset, item, min_points=0)[0] == "object"
+
+
+def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
+    dataset, tmp_path, tiny_model_path
+):
+    db = SessionDB(open_session("reviewer", tmp_path), dataset)
+    truth = read_frame_truth(dataset.path, 0)
+    # An annotated object (the data set's label is its truth box), and a box shifted off it.
+    real = np.flatnonzero(truth.annotated_mask & (truth.instance_num_points >= 50))[0]
+    box = truth.instance_boxes[real]
+    shifted = box + [box[3] * 0.6, 0, 0, 0, 0, 0, 0]
+    assert truth_verdict(dataset, {"frame_index": 0, "box": shifted.tolist()})[0] == "wrong_box"
+    boxes = [shifted, box, _lone_sparse_box(truth)]
+    items = [mined_item(0, g, b, 0.9 - 0.1 * g, probabilities=[0.1] * 8) for g, b in enumerate(boxes)]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    num_labels = len(db.labels(0))
+    counts = simulated_review(db, dataset, budget=5)
+    # The shifted box is a misplaced box of a labelled object: a negative. The exact one repeats
+    # the label: nothing to add. The third touches only an object too sparse for the policy.
+    assert counts == {"background": 1, "object": 0, "wrong_box": 0, "skip": 2, "boxes_drawn": 0, "hidden": 0}
+    assert [item["verdict"] for item in db.review_queue()] == ["background", "skip", "skip"]
+    assert len(db.labels(0)) == num_labels
+
+
+def test_the_reviewer_with_the_labelled_filter_spends_its_budget_off_labelled_objects(
+    dataset, tmp_path, tiny_model_path
+):
+    db = SessionDB(open_session("filtered", tmp_path), dataset)
+    truth = read_frame_truth(dataset.path, 0)
+    real = (truth.instance_class_ids >= 0) & (truth.instance_num_points >= 50)
+    labelled = truth.instance_boxes[np.flatnonzero(real & truth.annotated_mask)[0]]
+    unlabelled = truth.instance_boxes[np.flatnonzero(real & ~truth.annotated_mask)[0]]
+    along = 0.5 * labelled[3] * np.array([np.cos(labelled[6]), np.sin(labelled[6])])
+    shifted = labelled + [*along, 0, 0, 0, 0, 0]  # half its length along its own axis: IoU 1/3
+    # Highest score first: two items on a labelled object, an unlabelled object, a duplicate of
+    # it (on a labelled object once the first is answered), and a lone sparse object.
+    boxes = [shifted, labelled, unlabelled, unlabelled, _lone_sparse_box(truth)]
+    items = [mined_item(0, g, b, 0.9 - 0.1 * g, probabilities=[0.1] * 8) for g, b in enumerate(boxes)]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    shown = db.review_queue(max_label_iou=0.25)
+    assert [item["proposal"] for item in shown] == [2, 3, 4]
+    # Of the unannotated objects (in truth order), the queue reaches the first, items 2 and 3.
+    assert queue_reach(db, dataset, [0, 1]) == {(0, 0)}
+    assert db.review_queue()[0]["label_iou"] == pytest.approx(1 / 3, abs=1e-3)
+
+    counts = simulated_review(db, dataset, budget=2, max_label_iou=0.25)
+    assert counts == {"background": 0, "object": 1, "wrong_box": 0, "skip": 1, "boxes_drawn": 0, "hidden": 3}
+    assert [item["verdict"] for item in db.review_queue()] == [None, None, "object", None, "skip"]
+    # The label the verdict made hides its duplicate from the filtered queue too.
+    assert [item["proposal"] for item in db.review_queue(max_label_iou=0.25)] == [4]
+    with pytest.raises(InputError, match="max_label_iou"):
+        db.review_queue(max_label_iou=0.0)
+
+
+def test_suspect_labels_are_the_ones_the_classifier_contradicts(db, frames, tiny_model_path):
+    model = DetectionModel.load(tiny_model_path)
+    suspects = suspect_labels(db, model, frames, max_label_probability=1.0)
+    assert suspects, "with no probability limit, every matched label the model ranks lower is listed"
+    probabilities = [s["label_probability"] for s in suspects]
+    assert probabilities == sorted(probabilities)
+    for s in suspects:
+        assert (
+            s["predicted_class"] != s["class_name"] and s["predicted_probability"] >= s["label_probability"]
+        )
+        assert db.label(s["label_id"]).class_name == s["class_name"]
+    strict = suspect_labels(db, model, frames, max_label_probability=0.05)
+    assert len(strict) <= len(suspects)
+    assert all(s["label_probability"] <= 0.05 for s in strict)
+
+
+def test_free_space_is_read_by_default_for_multi_sensor_data_only(dataset):
+    from types import SimpleNamespace
+
+    assert dataset.num_sensors > 1 and LoopSettings().quality_visibility(dataset)
+    single_scan = SimpleNamespace(num_sensors=1)  # an imported ScanNet room: one identity extrinsic
+    assert not LoopSettings().quality_visibility(single_scan)
+    assert LoopSettings(visibility=True).quality_visibility(single_scan)
+    assert not LoopSettings(visibility=False).quality_visibility(dataset)
+
+
+def test_unannotated_coverage_counts_the_truth_labels_a_session_gained(dataset, tmp_path):
+    db = SessionDB(open_session("coverage", tmp_path), dataset)
+    covered, total = unannotated_coverage(db, dataset, [0, 1])
+    assert covered == 0 and total > 0  # the data set's own labels are the annotated objects only
+    assert add_truth_labels(db, dataset, [0]) > 0
+    covered_0, total_0 = unannotated_coverage(db, dataset, [0])
+    assert covered_0 == total_0 and unannotated_coverage(db, dataset, [0, 1]) == (covered_0, total)
+    # A label of another class over the object does not count.
+    label = next(lab for lab in db.labels(0) if lab.origin == "import")
+    other = next(name for name in db.class_names if name != label.class_name)
+    db.update_label(label.id, "ann", class_name=other)
+    assert unannotated_coverage(db, dataset, [0]) == (covered_0 - 1, total_0)
+
+
+def test_the_loop_settings_name_a_back_half_and_check_it():
+    from factorydet_core.detection.box_head import BoxHead
+
+    assert isinstance(LoopSettings(method="head_options").classifier(("a", "b")), BoxHead)
+    assert isinstance(LoopSettings(method="paper").classifier(("a", "b")), ProposalClassifier)
+    with pytest.raises(InputError, match="box_quality"):
+        LoopSettings(method="head_options", box_quality=False)  # it boxes by the regressor
+    with pytest.raises(InputError, match="method"):
+        LoopSettings(method="magic")

@@ -1,0 +1,325 @@
+"""Training with hard-negative mining, its session record, and the trained model's detections."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from factorydet_core.detection.box_quality import BoxQuality
+from factorydet_core.detection.classifier import ProposalClassifier
+from factorydet_core.detection.detector import Detector
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.metrics import tune_class_thresholds
+from factorydet_core.session.store import mined_negatives, open_session, save_training_run, training_runs
+from factorydet_core.training import mining as training
+from factorydet_core.training.mining import (
+    collect_proposals,
+    group_labels,
+    group_overlaps,
+    score_frames,
+    train_with_mining,
+)
+from factorydet_core.types import InputError
+
+
+@pytest.fixture(scope="module")
+def frames(small_dataset_dir):
+    return collect_proposals(open_dataset(small_dataset_dir), [0, 1], Detector("agv"))
+
+
+@pytest.fixture(scope="module")
+def run(frames):
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    return train_with_mining(
+        frames,
+        classifier,
+        rounds=1,
+        negatives_per_round=40,
+        initial_negatives=150,
+        fragment_iou=0.0,  # the paper's start: random sets that overlap nothing
+        score_threshold=0.05,
+    )
+
+
+def test_collected_frames_group_proposals_and_keep_annotated_samples(frames):
+    for frame in frames:
+        assert len(frame.groups.group_ids) == len(frame.proposal_boxes)
+        assert frame.groups.num_groups <= len(frame.proposal_boxes)
+        # Proposals of one point set share it.
+        for g in range(min(frame.groups.num_groups, 20)):
+            members = np.flatnonzero(frame.groups.group_ids == g)
+            assert len({frame.patch_sets[m] for m in members}) == 1
+        assert len(frame.annotation_features) == len(frame.annotation_class_ids) > 0
+        assert np.isfinite(frame.annotation_features).all()
+
+
+def test_group_labels_follow_the_annotations(frames):
+    frame = frames[0]
+    labels, overlaps_any = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+    assert labels.shape == (frame.groups.num_groups,)
+    positive = labels != 7
+    assert overlaps_any[positive].all()
+    # Without references everything is background and overlaps nothing.
+    labels, overlaps_any = group_labels(frame, np.zeros((0, 7)), np.zeros(0, int), 7, 0.6)
+    assert (labels == 7).all() and not overlaps_any.any()
+
+
+def test_mining_adds_the_top_false_positives_to_the_background(run):
+    first, second = run.rounds
+    assert first["num_background"] == 150
+    mined = first["mined"]
+    assert 0 < len(mined) <= 40
+    assert second["num_background"] == 150 + len(mined)
+    scores = [m["score"] for m in mined]
+    assert scores == sorted(scores, reverse=True)
+    assert all(m["best_annotated_iou"] < 0.6 for m in mined)
+    assert first["num_false_positives"] >= len(mined)
+    assert second["mined"] == []  # the last round only measures
+    assert len(run.models) == 2 and run.model is run.models[-1]
+    assert {"f1", "precision", "recall", "per_class"} <= set(first["train_metrics"])
+
+
+def test_fragments_of_annotated_objects_start_in_the_background(frames):
+    """Point sets that overlap a label at IoU in (0, fragment_iou] are all background from the
+    start; sets between fragment_iou and positive_iou are left out."""
+    expected = 0
+    for frame in frames:
+        best = group_overlaps(frame, frame.label_boxes).max(axis=1)
+        labels, _ = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+        expected += int(((best > 0) & (best <= 0.4) & (labels == 7)).sum())
+    assert expected > 0
+    classifier = ProposalClassifier(width=0.0625, epochs=1, num_threads=1)
+    run = train_with_mining(frames, classifier, rounds=0, initial_negatives=0, fragment_iou=0.4)
+    assert run.rounds[0]["num_background"] == expected
+    with pytest.raises(InputError, match="fragment_iou"):
+        train_with_mining(frames, classifier, rounds=0, fragment_iou=0.6)
+    # A cap samples at most that many per frame.
+    per_frame = []
+    for frame in frames:
+        best = group_overlaps(frame, frame.label_boxes).max(axis=1)
+        labels, _ = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+        per_frame.append(int(((best > 0) & (best <= 0.4) & (labels == 7)).sum()))
+    cap = max(1, min(per_frame) // 2)
+    capped = train_with_mining(frames, classifier, rounds=0, initial_negatives=0, fragments_per_frame=cap)
+    assert capped.rounds[0]["num_background"] == sum(min(n, cap) for n in per_frame)
+    with pytest.raises(InputError, match="fragments_per_frame"):
+        train_with_mining(frames, classifier, rounds=0, fragments_per_frame=-1)
+
+
+def test_session_stores_checkpoints_rounds_and_the_review_queue(run, tmp_path):
+    session = open_session("t", tmp_path)
+    run_id = save_training_run(session, run, "small", {"rounds": 1})
+    assert run_id == 1
+    runs = training_runs(session)
+    assert len(runs) == 1 and [r["round"] for r in runs[0]["rounds"]] == [0, 1]
+    assert (session.path / runs[0]["model_path"]).is_file()
+    queue = mined_negatives(session)
+    assert len(queue) == len(run.rounds[0]["mined"])
+    assert queue[0]["verdict"] is None and len(queue[0]["box"]) == 7
+    assert save_training_run(session, run, "small", {}) == 2
+
+
+def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
+    run = train_with_mining(
+        frames,
+        ProposalClassifier(width=0.0625, epochs=1, num_threads=1),
+        rounds=1,
+        negatives_per_round=10,
+        initial_negatives=100,
+        box_quality=BoxQuality(max_iter=10),
+    )
+    quality = run.models[0].box_quality
+    assert quality is not None and all(m.box_quality is quality for m in run.models)
+    frame = frames[0]
+    detections = run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.0)
+    probability = detections.probabilities[np.arange(len(detections.scores)), detections.class_ids]
+    assert (detections.scores <= probability + 1e-6).all()  # probability times a predicted IoU
+
+
+def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
+    seen = []
+
+    def fake_tuning(scored, class_names, iou_threshold, max_threshold):
+        seen.append((len(scored), iou_threshold, max_threshold))
+        out = np.full(len(class_names), np.nan)
+        out[[1, 6]] = [0.45, 0.15]  # bobbins and trucks
+        return out
+
+    monkeypatch.setattr(training, "tune_thresholds", fake_tuning)
+    run = train_with_mining(
+        frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=1, initial_negatives=100
+    )
+    assert seen == [(len(frames), 0.6, 0.5)] * 2  # never above the global threshold
+    for model, record in zip(run.models, run.rounds):
+        assert model.class_score_thresholds == {"bobbin": 0.45, "truck": 0.15}
+        thresholds = record["train_metrics"]["class_score_thresholds"]
+        assert thresholds["bobbin"] == 0.45 and thresholds["truck"] == 0.15 and thresholds["box"] == 0.5
+    untuned = train_with_mining(
+        frames,
+        ProposalClassifier(width=0.0625, epochs=1, num_threads=1),
+        rounds=0,
+        initial_negatives=100,
+        tune_class_thresholds=False,
+        probability_exponent=0.5,
+    )
+    assert untuned.model.class_score_thresholds is None and len(seen) == 2
+    assert untuned.model.probability_exponent == 0.5 and run.model.probability_exponent == 1.0
+    for bad in (0, -1.0, float("inf"), True):  # refused before anything is fitted
+        with pytest.raises(InputError, match="probability_exponent"):
+            train_with_mining(frames, None, probability_exponent=bad)
+    assert "class_score_thresholds" not in untuned.rounds[0]["train_metrics"]
+
+
+def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_dataset_dir):
+    path = run.model.save(tmp_path / "m.pt")
+    loaded = DetectionModel.load(path)
+    frame = frames[0]
+    a = run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
+    np.testing.assert_allclose(a.boxes, b.boxes)
+    # Each round's model gets the per-class thresholds of highest F-score on the training frames'
+    # annotations, from the scores its round computed (none here: this two-epoch classifier
+    # matches no annotation above 0.1; test_each_round_takes_its_tuned_thresholds has some).
+    names = run.model.class_names
+    expected = tune_class_thresholds(score_frames(run.model, frames, 0.05), names, 0.6, max_threshold=0.05)
+    assert run.model.class_score_thresholds == {
+        c: float(t) for c, t in zip(names, expected) if np.isfinite(t)
+    }
+    # Per-class thresholds travel with the checkpoint and are the operating point when no
+    # threshold is asked for.
+    tuned = {names[0]: 0.9, names[1]: 0.06}
+    path = dataclasses.replace(run.model, class_score_thresholds=tuned).save(tmp_path / "t.pt")
+    loaded_tuned = DetectionModel.load(path)
+    assert loaded_tuned.class_score_thresholds == tuned
+    own = loaded_tuned.detect(frame.proposal_boxes, frame.groups)
+    kept = own.subset(own.kept_mask)
+    floor = np.array([tuned.get(names[c], loaded_tuned.score_threshold) for c in kept.class_ids])
+    assert (kept.scores >= floor).all()
+    note = json.loads(path.with_suffix(".json").read_text())
+    note["class_score_thresholds"] = {names[0]: 1.5}
+    path.with_suffix(".json").write_text(json.dumps(note))
+    with pytest.raises(InputError, match=rf"\[{names[0]!r}\] must lie in \[0, 1\], got 1.5"):
+        DetectionModel.load(path)
+    note["class_score_thresholds"] = {names[0]: "high"}
+    path.with_suffix(".json").write_text(json.dumps(note))
+    with pytest.raises(InputError, match="must be a number"):
+        DetectionModel.load(path)
+    # The whole pipeline in one call.
+    detector = Detector("agv", model=loaded)
+    result = detector.detect(open_dataset(small_dataset_dir).frame(0), score_threshold=0.05)
+    assert {"classification", "nms", "total"} <= set(result.timings_ms)
+    assert len(result.candidates) == result.groups.num_groups
+    kept = result.detections.kept_mask
+    assert (result.detections.scores >= 0.05).all()
+    assert np.all(np.diff(result.detections.scores) <= 0)
+    assert (result.detections.suppressed_by[~kept] >= 0).all()
+    with pytest.raises(InputError):
+        Detector("agv").detect(open_dataset(small_dataset_dir).frame(0))
+
+
+def test_training_without_frames_or_positives_is_an_input_error(frames):
+    with pytest.raises(InputError):
+        train_with_mining([], ProposalClassifier(epochs=1))
+    empty = [
+        type(frames[0])(**{**frames[0].__dict__, "label_boxes": np.zeros((0, 7)),
+                           "label_class_ids": np.zeros(0, int),
+                           "annotation_features": np.zeros((0, 20, 5, 5, 5), np.float32),
+                           "annotation_descriptors": np.zeros((0, 14), np.float32),
+                           "annotation_class_ids": np.zeros(0, int)})
+    ]  # fmt: skip
+    with pytest.raises(InputError):
+        train_with_mining(empty, ProposalClassifier(epochs=1), initial_negatives=10)
+
+
+def test_mined_sets_are_never_positives(run, frames):
+    for m in run.rounds[0]["mined"]:
+        frame = next(f for f in frames if f.frame_index == m["frame_index"])
+        labels, _ = group_labels(frame, frame.label_boxes, frame.label_class_ids, 7, 0.6)
+        assert labels[m["group"]] == 7
+
+
+def test_mining_threshold_decides_what_is_mined_not_the_operating_threshold(frames, run):
+    def first_round(**thresholds):
+        return train_with_mining(
+            frames,
+            ProposalClassifier(width=0.0625, epochs=2, num_threads=1),
+            rounds=0,
+            negatives_per_round=40,
+            initial_negatives=150,
+            fragment_iou=0.0,
+            mine_after_last=True,
+            **thresholds,
+        )
+
+    # Mining at 0.05 under a 0.5 operating threshold mines what the 0.05 run mined.
+    low = first_round(score_threshold=0.5, mining_threshold=0.05)
+    assert low.model.score_threshold == 0.5
+    assert [m["group"] for m in low.rounds[0]["mined"]] == [m["group"] for m in run.rounds[0]["mined"]]
+    # Without it, mining follows the operating threshold.
+    high = first_round(score_threshold=0.5)
+    assert all(m["score"] >= 0.5 for m in high.rounds[0]["mined"])
+    assert high.rounds[0]["num_false_positives"] <= low.rounds[0]["num_false_positives"]
+    with pytest.raises(InputError):
+        first_round(mining_threshold=1.5)
+
+
+def test_the_box_head_trains_with_mining_and_its_checkpoint_detects(frames, tmp_path, small_dataset_dir):
+    from factorydet_core.detection.box_head import BoxHead
+
+    head = BoxHead(channels=(16, 32), hidden=32, epochs=2, batch_size=64, num_threads=1)
+    run = train_with_mining(frames, head, rounds=1, negatives_per_round=30, score_threshold=0.05)
+    assert isinstance(run.model.classifier, BoxHead) and run.model.method == "box_head"
+    assert run.model.box_quality is None  # the head scores its own boxes
+    first, second = run.rounds
+    # Mined negatives are sets the head's labels call background, and they are in the next fit.
+    labels = {f.frame_index: training.head_labels(f, head.background_id)[0] for f in frames}
+    assert first["mined"] and all(labels[m["frame_index"]][m["group"]] == head.background_id
+                                  for m in first["mined"])  # fmt: skip
+    assert second["num_background"] >= first["num_background"]
+    path = run.model.save(tmp_path / "head.pt")
+    loaded = DetectionModel.load(path)
+    assert loaded.method == "box_head"
+    frame = frames[0]
+    a = run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
+    np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-6)
+    frame_0 = open_dataset(small_dataset_dir).frame(0)
+    result = Detector("agv", model=loaded).detect(frame_0, score_threshold=0.05)
+    assert len(result.candidates) == result.groups.num_groups
+    assert (result.detections.scores >= 0.05).all()
+
+
+def test_the_box_head_classifies_and_the_box_quality_regressor_boxes(frames, tmp_path):
+    from factorydet_core.detection.box_head import BoxHead
+    from factorydet_core.detection.scoring import score_groups
+
+    head = BoxHead(channels=(16, 32), hidden=32, epochs=2, batch_size=64, num_threads=1)
+    quality = BoxQuality(max_iter=20, max_leaf_nodes=8, visibility=False)
+    run = train_with_mining(frames, head, rounds=0, score_threshold=0.05, box_quality=quality)
+    model = run.model
+    assert model.method == "head_options" and model.box_quality is not None
+    frame = frames[0]
+    # The candidates are the paper pipeline's box choice over the head's class probabilities.
+    probabilities = model.probabilities(frame.groups)
+    assert probabilities.shape == (frame.groups.num_groups, len(model.class_names) + 1)
+    expected = score_groups(
+        frame.proposal_boxes, frame.groups, probabilities, model.box_prior, model.class_names,
+        model.box_quality, model.probability_exponent,
+    )  # fmt: skip
+    got = model.candidates(frame.proposal_boxes, frame.groups)
+    np.testing.assert_allclose(got.boxes, expected.boxes)
+    np.testing.assert_allclose(got.scores, expected.scores)
+    # They differ from the head's own boxes, which the same head without the regressor gives.
+    own = dataclasses.replace(model, box_quality=None)
+    assert own.method == "box_head"
+    assert not np.allclose(own.candidates(frame.proposal_boxes, frame.groups).boxes, got.boxes)
+    loaded = DetectionModel.load(model.save(tmp_path / "options.pt"))
+    assert loaded.method == "head_options"
+    a = model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
+    np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-4)  # the note keeps sizes to 0.1 mm
