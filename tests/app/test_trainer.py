@@ -61,3 +61,30 @@ def test_a_job_trains_with_the_method_and_epochs_it_was_started_with(small_datas
     trainer.join(10)
     assert seen == [("full", "box_head", 3)]
     assert trainer.settings.method == LoopSettings().method  # the worker's own settings are unchanged
+
+
+def test_the_app_retrains_through_the_same_function_as_the_command_line(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+):
+    from factorydet_core.detection.model import DetectionModel
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    state = AppState(
+        dataset, db=SessionDB(open_session("s", tmp_path), dataset), model=model, model_name="tiny"
+    )
+    calls = []
+
+    def retrain_session(db, data, settings, front_end, **options):
+        calls.append((data, settings, front_end, options))
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
+    trainer = TrainingWorker(state, calibrate=False)
+    assert trainer.start("full", epochs=2)
+    trainer.join(10)
+    assert state.training_status == "failed: stop here" and not state.training_busy
+    [(data, settings, front_end, options)] = calls
+    assert data is dataset and settings.epochs == 2 and options["mode"] == "full"
+    assert front_end == model.front_end  # the shown model's front half, whole
+    assert list(options["before"]) == ["before (tiny)"] and options["calibrate"] is False
