@@ -22,7 +22,7 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.detection.scoring import score_groups
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.training.mining import collect_proposals
-from factorydet_core.types import CLASS_NAMES, InputError
+from factorydet_core.types import CLASS_NAMES, PROBABILITY_EXPONENT, InputError
 
 NUM_CLASSES = len(CLASS_NAMES)
 
@@ -290,9 +290,10 @@ def test_checkpoint_keeps_the_regressor(tiny_model_path, fitted, tmp_path):
     path = model.save(tmp_path / "q.pt")
     loaded = DetectionModel.load(path)
     assert loaded.note["box_quality"]["max_iter"] == 40
-    assert loaded.probability_exponent == 1.0
-    rooted = DetectionModel.load(dataclasses.replace(model, probability_exponent=0.5).save(tmp_path / "r.pt"))
-    assert rooted.probability_exponent == 0.5
+    assert loaded.probability_exponent == model.probability_exponent == PROBABILITY_EXPONENT
+    rooted = dataclasses.replace(model, probability_exponent=0.75)
+    rooted = DetectionModel.load(rooted.save(tmp_path / "r.pt"))
+    assert rooted.probability_exponent == 0.75
     note_path = tmp_path / "r.json"
     note = json.loads(note_path.read_text())
     del note["probability_exponent"]  # a checkpoint from before the exponent was kept
