@@ -41,7 +41,7 @@ def test_grid_sweep_retrains_with_the_models_score_settings(monkeypatch):
     classifier = types.SimpleNamespace(labels_=["barrel", "background"], get_params=lambda: {"width": 0.0625})
     model = DetectionModel(classifier, score_threshold=0.35, box_quality=object(), probability_exponent=0.5,
                            class_score_thresholds={"barrel": 0.35})  # fmt: skip
-    rows = report.voxel_sweep(None, model, [0.2, 0.3], [0], [1], None, 0.6)
+    rows = report.voxel_sweep(types.SimpleNamespace(num_sensors=12), model, [0.2, 0.3], [0], [1], None, 0.6)
     assert [row["voxel_size_m"] for row in rows] == [0.2, 0.3]
     assert len(calls) == 2
     for kwargs in calls:
