@@ -149,8 +149,9 @@ def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
 
     monkeypatch.setattr(training, "tune_thresholds", fake_tuning)
     run = train_with_mining(
-        frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=1, initial_negatives=100
-    )
+        frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=1, initial_negatives=100,
+        score_threshold=0.5, probability_exponent=1.0,
+    )  # fmt: skip
     assert seen == [(len(frames), 0.6, 0.5)] * 2  # never above the global threshold
     for model, record in zip(run.models, run.rounds):
         assert model.class_score_thresholds == {"bobbin": 0.45, "truck": 0.15}
