@@ -19,7 +19,7 @@ import viser
 from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import SessionDB, open_session
-from factorydet_core.training.loop import LoopSettings
+from factorydet_core.training.settings import LoopSettings
 
 from .viewer import FactorydetApp
 

@@ -13,7 +13,8 @@ import threading
 import traceback
 
 from factorydet_core.detection.detector import Detector, params_for
-from factorydet_core.training.loop import LoopSettings, cached_proposals, suspect_labels
+from factorydet_core.training.loop import cached_proposals, suspect_labels
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled
 from factorydet_core.workflows import retrain_session
 

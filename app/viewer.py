@@ -20,7 +20,7 @@ from factorydet_core.evaluation.diagnostics import (
 )
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.session.editing import points_in_screen_rect
-from factorydet_core.training.loop import LoopSettings
+from factorydet_core.training.settings import LoopSettings
 
 from .clients import ClientView
 from .layers import LayerView

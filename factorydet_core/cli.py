@@ -10,9 +10,9 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import (
     BOX_KINDS,
-    DEFAULT_METHOD,
     LEVELS,
     METHODS,
     MINING_THRESHOLD,
@@ -207,7 +207,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
             elif args.name == "hitl":
                 from factorydet_core.evaluation.hitl import bench_hitl
-                from factorydet_core.training.loop import LoopSettings
+                from factorydet_core.training.settings import LoopSettings
 
                 result = bench_hitl(
                     args.data[0],
@@ -393,7 +393,7 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
 def _cmd_train(args: argparse.Namespace) -> int:
     from factorydet_core.detection.model import DetectionModel, quality_path
     from factorydet_core.proposals.settings import front_end_from_record, front_end_params
-    from factorydet_core.training.loop import LoopSettings
+    from factorydet_core.training.settings import LoopSettings
     from factorydet_core.workflows import retrain_session
 
     db, dataset = _open_session_db(args)
@@ -689,6 +689,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--limit", type=int, default=20, help="rows of the text listing")
     p.set_defaults(func=_cmd_propose)
 
+    # Every default is LoopSettings' own: the flags and the app's retrain cannot disagree.
+    loop = LoopSettings()
     p = sub.add_parser(
         "train",
         help="train the classifier into a session: a full run with blind hard-negative mining, or the"
@@ -703,14 +705,20 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["full", "next"],
         help="full: retrain from scratch with --rounds mining rounds; next: one more round",
     )
-    p.add_argument("--rounds", type=int, default=2, help="hard-negative mining rounds after the first fit")
-    p.add_argument("--negatives", type=int, default=500, help="mined negatives added per round (N)")
-    p.add_argument("--initial-negatives", type=int, default=2000, help="random background set to start")
-    p.add_argument("--width", type=float, default=0.0625, help="3DmFV-Net width (1.0 = the paper's, 46M)")
-    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument(
+        "--rounds", type=int, default=loop.rounds, help="hard-negative mining rounds after the first fit"
+    )
+    p.add_argument(
+        "--negatives", type=int, default=loop.negatives_per_round, help="mined negatives added per round (N)"
+    )
+    p.add_argument(
+        "--initial-negatives", type=int, default=loop.initial_negatives, help="random background set to start"
+    )
+    p.add_argument("--width", type=float, default=loop.width, help="3DmFV-Net width (1.0 = the paper's, 46M)")
+    p.add_argument("--epochs", type=int, default=loop.epochs)
     p.add_argument(
         "--class-weight",
-        default="balanced",
+        default=loop.class_weight or "none",
         choices=["balanced", "sqrt", "none"],
         help="loss weighting: inverse class frequency, its square root, or none (the paper's plain loss)",
     )
@@ -720,40 +728,40 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_false",
         help="the paper's network on the 3DmFV tensor alone (default: geometric descriptors as well)",
     )
-    p.add_argument("--positive-iou", type=float, default=0.6)
+    p.add_argument("--positive-iou", type=float, default=loop.positive_iou)
     p.add_argument(
         "--fragment-iou",
         type=float,
-        default=0.4,
+        default=loop.fragment_iou,
         help="point sets overlapping a label at most this much start as background (0: the paper's start)",
     )
     p.add_argument(
         "--fragments-per-frame",
         type=int,
-        default=None,
+        default=loop.fragments_per_frame,
         help="sample at most N of those per frame (default: all; bounds the fit's time on many frames)",
     )
     p.add_argument(
         "--score-threshold",
         type=float,
-        default=SCORE_THRESHOLD,
+        default=loop.score_threshold,
         help="operating score of the model and of mining; with box quality a score is the class "
         "probability to --probability-exponent times the predicted IoU "
-        f"(default {SCORE_THRESHOLD})",
+        f"(default {loop.score_threshold})",
     )
     p.add_argument(
         "--probability-exponent",
         type=float,
-        default=PROBABILITY_EXPONENT,
+        default=loop.probability_exponent,
         help="with box quality, the class probability's power in the score (1: the plain product; "
-        f"default {PROBABILITY_EXPONENT}, see the README)",
+        f"default {loop.probability_exponent}, see the pipeline page)",
     )
     p.add_argument(
         "--mining-threshold",
         type=float,
-        default=MINING_THRESHOLD,
+        default=loop.mining_threshold,
         help="mine (and queue for review) false positives scoring at least this; the top --negatives "
-        f"by score go to the background (default {MINING_THRESHOLD}: every reported false positive)",
+        f"by score go to the background (default {loop.mining_threshold}: every reported false positive)",
     )
     p.add_argument(
         "--no-class-thresholds",
@@ -762,12 +770,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="one operating threshold (--score-threshold) for every class (default: each class's own, "
         "the one of highest F-score on the training frames' annotations)",
     )
-    p.add_argument("--nms-iou", type=float, default=0.25)
+    p.add_argument("--nms-iou", type=float, default=loop.nms_iou)
     p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")
     p.add_argument("--preset", default=None)
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a front-half parameter")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=loop.seed)
     p.add_argument(
         "--compare",
         action="store_true",
@@ -792,7 +800,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         choices=METHODS,
-        default=DEFAULT_METHOD,
+        default=loop.method,
         help="paper: the 3DmFV-Net classifier choosing among the size prior's box options; box_head: "
         "the learned box head, which classifies and boxes each point set in one pass; head_options: "
         "the box head classifies, the box quality regressor boxes among the size prior's options",

@@ -13,8 +13,9 @@ from factorydet_core.evaluation.measure import compare_models
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.session.store import SessionDB
-from factorydet_core.training.loop import LoopSettings, cached_proposals, session_references, train_session
+from factorydet_core.training.loop import cached_proposals, session_references, train_session
 from factorydet_core.training.mining import FrameProposals, Progress, TrainingRun
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import InputError
 
 

@@ -330,3 +330,25 @@ def test_bench_quality_checks_its_arguments_and_readme_before_running(
     assert main(["bench", "quality", "--scratch", str(tmp_path)]) == 2
     assert main([*base, "--set", "no_such_setting=1"]) == 2
     assert "unknown parameter" in capsys.readouterr().err
+
+
+def test_the_train_flags_default_to_the_loop_settings():
+    import dataclasses
+
+    from factorydet_core.cli import build_parser
+    from factorydet_core.training.settings import LoopSettings
+
+    args = build_parser().parse_args(["train", "--session", "s"])
+    flags = {
+        "width": args.width, "epochs": args.epochs, "rounds": args.rounds,
+        "negatives_per_round": args.negatives, "initial_negatives": args.initial_negatives,
+        "positive_iou": args.positive_iou, "fragment_iou": args.fragment_iou,
+        "fragments_per_frame": args.fragments_per_frame, "score_threshold": args.score_threshold,
+        "probability_exponent": args.probability_exponent, "class_thresholds": args.class_thresholds,
+        "mining_threshold": args.mining_threshold, "nms_iou": args.nms_iou, "seed": args.seed,
+        "geometry": args.geometry, "box_quality": args.box_quality, "method": args.method,
+        "class_weight": None if args.class_weight == "none" else args.class_weight,
+    }  # fmt: skip
+    loop = LoopSettings()
+    assert flags == {name: getattr(loop, name) for name in flags}
+    assert set(flags) | {"num_threads", "visibility"} == {f.name for f in dataclasses.fields(LoopSettings)}

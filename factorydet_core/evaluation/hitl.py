@@ -18,7 +18,8 @@ from factorydet_core.evaluation.evaluate import measure
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
-from factorydet_core.training.loop import LoopSettings, cached_proposals, train_session
+from factorydet_core.training.loop import cached_proposals, train_session
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import (
     InputError,
 )

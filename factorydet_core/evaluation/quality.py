@@ -42,7 +42,7 @@ from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.session.models import resolve_model
 from factorydet_core.sim.simulate import SimConfig, simulate_dataset
-from factorydet_core.training.loop import LoopSettings, proposals_cache_key
+from factorydet_core.training.loop import proposals_cache_key
 from factorydet_core.training.mining import (
     FrameProposals,
     collect_proposals,
@@ -52,6 +52,7 @@ from factorydet_core.training.mining import (
     train_with_mining,
     with_tuned_thresholds,
 )
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import (
     METHODS,
     MINING_THRESHOLD,

@@ -12,8 +12,8 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.editing import camera_for_box
 from factorydet_core.session.store import SessionDB, open_session
-from factorydet_core.training.loop import LoopSettings
 from factorydet_core.training.mining import TrainingRun
+from factorydet_core.training.settings import LoopSettings
 from tests.app.polling import wait as _wait
 from tests.fakes import mined_item, queue_run
 

@@ -8,7 +8,7 @@ from app.state import AppState
 from app.trainer import TrainingWorker
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import SessionDB, open_session
-from factorydet_core.training.loop import LoopSettings
+from factorydet_core.training.settings import LoopSettings
 from tests.app.polling import wait as _wait
 
 

@@ -4,7 +4,7 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.proposals.settings import PRESETS
 from factorydet_core.session.store import SessionDB, open_session
-from factorydet_core.training.loop import LoopSettings
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import InputError
 from factorydet_core.workflows import retrain_session
 

@@ -20,14 +20,15 @@ from factorydet_core.io.dataset import annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import (
-    LoopSettings,
     cached_proposals,
+    new_classifier,
     proposals_cache_key,
     session_references,
     suspect_labels,
     train_session,
     with_session_labels,
 )
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled, InputError
 from tests.fakes import mined_item, queue_run
 
@@ -281,8 +282,8 @@ def test_unannotated_coverage_counts_the_truth_labels_a_session_gained(dataset, 
 def test_the_loop_settings_name_a_back_half_and_check_it():
     from factorydet_core.detection.box_head import BoxHead
 
-    assert isinstance(LoopSettings(method="head_options").classifier(("a", "b")), BoxHead)
-    assert isinstance(LoopSettings(method="paper").classifier(("a", "b")), ProposalClassifier)
+    assert isinstance(new_classifier(LoopSettings(method="head_options"), ("a", "b")), BoxHead)
+    assert isinstance(new_classifier(LoopSettings(method="paper"), ("a", "b")), ProposalClassifier)
     with pytest.raises(InputError, match="box_quality"):
         LoopSettings(method="head_options", box_quality=False)  # it boxes by the regressor
     with pytest.raises(InputError, match="method"):
