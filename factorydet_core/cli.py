@@ -167,9 +167,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             scratch=Path(args.scratch),
             calibrate=args.calibrate,
         )
+        earlier = None
+        if args.resume:
+            if not args.out:
+                raise InputError("bench quality --resume continues the result at --out; give --out")
+            if Path(args.out).is_file():
+                earlier = json.loads(Path(args.out).read_text())
         update, close = _training_progress()
         try:
-            result = bench_quality(plan, command=command, progress=update)
+            result = bench_quality(
+                plan, command=command, progress=update, earlier=earlier,
+                on_partial=(lambda partial: write_outputs(partial, args.out)) if args.out else None,
+            )  # fmt: skip
         finally:
             close()
         if args.out:
@@ -939,6 +948,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="classifier: first N training frames; hitl: N training frames spread over the split",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="quality: continue the (partial) result at --out, training only the seeds it lacks; a "
+        "quality run writes --out after every training seed",
     )
     p.add_argument(
         "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"

@@ -23,6 +23,7 @@ Methods, on the same proposals of the same front half:
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import json
 import os
 import time
@@ -96,6 +97,13 @@ class QualityPlan:
     scratch: Path = Path("/tmp/factorydet_heldout")
     """Where the held-out factories and the proposal caches are written."""
     calibrate: bool = True
+
+    def record(self) -> dict:
+        """The plan as JSON: a result is resumed only by a run of the same plan (its seeds aside)."""
+        values = dataclasses.asdict(self)
+        values.pop("scratch")
+        values["train_data"] = Path(self.train_data).name
+        return json.loads(json.dumps(values))
 
     def __post_init__(self) -> None:
         if not self.heldout_seeds or not self.seeds:
@@ -251,10 +259,50 @@ def summarize(runs: list[dict], class_names: Sequence[str]) -> dict:
     }
 
 
-def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | None = None) -> dict:
-    """Run ``plan``: the JSON record of every method on the held-out factories."""
+def resumable_runs(plan: QualityPlan, earlier: dict | None) -> dict[int, dict[str, dict]]:
+    """The finished training seeds of an earlier (partial) result of the same plan, as
+    ``{seed: {method: run}}``; nothing when the plans differ in anything but their seeds.
+
+    Raises:
+        InputError: when ``earlier`` is a record of another plan (it would mix two benchmarks).
+    """
+    if not earlier:
+        return {}
+    mine, theirs = plan.record(), dict(earlier.get("plan") or {})
+    mine.pop("seeds"), theirs.pop("seeds", None)
+    if mine != theirs:
+        changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+        raise InputError(
+            f"bench quality --resume: the earlier result ran another plan ({', '.join(changed)})"
+        )
+    learned = [m for m in plan.methods if m != "paper"]
+    done: dict[int, dict[str, dict]] = {}
+    for seed in plan.seeds:
+        found = {
+            m: next((r for r in earlier["methods"][m]["runs"] if r["seed"] == seed), None) for m in learned
+        }
+        if learned and all(found.values()):
+            done[seed] = found
+    return done
+
+
+def bench_quality(
+    plan: QualityPlan,
+    command: str = "",
+    progress: Progress | None = None,
+    earlier: dict | None = None,
+    on_partial: Callable[[dict], None] | None = None,
+) -> dict:
+    """Run ``plan``: the JSON record of every method on the held-out factories.
+
+    Training seeds are run one after the other; after each one the result so far
+    (``"complete": false``) goes to ``on_partial``, so a long run can be stopped and resumed:
+    ``earlier`` (a partial result of the same plan, ``resumable_runs``) gives the seeds already
+    done, which are not trained again.
+    """
 
     start = time.perf_counter()
+    resumed = resumable_runs(plan, earlier)  # a plan mismatch fails here, before any work
     paper = DetectionModel.load(resolve_model(plan.paper_model))
     train_dataset = open_dataset(plan.train_data)
     if tuple(paper.class_names) != tuple(train_dataset.class_names):
@@ -270,6 +318,7 @@ def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | Non
     result: dict = {
         "benchmark": "quality",
         "command": command,
+        "plan": plan.record(),
         "train_data": train_dataset.name,
         "train_seed": train_dataset.manifest.get("seed"),
         "train_frames": train_indices,
@@ -289,7 +338,23 @@ def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | Non
             {"seed": None, "checkpoint": plan.paper_model, **measure_heldout(paper, heldout)}
         )
     learned = [m for m in plan.methods if m != "paper"]
+
+    def summarized(complete: bool) -> dict:
+        out = dict(result, complete=complete, methods={})
+        if learned:  # the seeds measured so far
+            out["training_seeds"] = [r["seed"] for r in runs[learned[0]]]
+        for method in plan.methods:
+            out["methods"][method] = {
+                "summary": summarize(runs[method], paper.class_names),
+                "runs": list(runs[method]),
+            }
+        return out
+
     for seed in plan.seeds if learned else ():
+        if seed in resumed:
+            for method in learned:
+                runs[method].append(resumed[seed][method])
+            continue
         fit_start = time.perf_counter()
         run = train_with_mining(
             train,
@@ -319,17 +384,15 @@ def bench_quality(plan: QualityPlan, command: str = "", progress: Progress | Non
                     "seed": seed,
                     "train_seconds": round(fit_seconds, 1),
                     "class_score_thresholds": model.class_score_thresholds,
+                    "finished": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
                     **measure_heldout(model, heldout),
                 }
             )
-    for method in plan.methods:
-        result["methods"][method] = {
-            "summary": summarize(runs[method], paper.class_names),
-            "runs": runs[method],
-        }
+        if on_partial is not None:
+            on_partial(summarized(complete=False))
     result["seconds"] = round(time.perf_counter() - start, 1)
     result["machine"] = machine_info()
-    return result
+    return summarized(complete=True)
 
 
 def quality_markdown(result: dict) -> str:

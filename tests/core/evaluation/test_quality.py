@@ -1,5 +1,6 @@
 """The held-out factory benchmark: its plan's checks, a tiny run end to end, and its table."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -30,7 +31,17 @@ def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_data
         rounds=0,
         scratch=tmp_path,
     )
-    result = bench_quality(plan, command="test")
+    partials = []
+    result = bench_quality(plan, command="test", on_partial=partials.append)
+    assert [p["training_seeds"] for p in partials] == [[0], [0, 1]] and result["complete"]
+    assert not any(p["complete"] for p in partials)
+    # Stopped after seed 0 and resumed: seed 0 is read back, only seed 1 is trained again.
+    resumed = bench_quality(plan, command="test", earlier=partials[0])
+    head_runs = resumed["methods"]["box_head"]["runs"]
+    assert head_runs[0] == partials[0]["methods"]["box_head"]["runs"][0]
+    assert head_runs[1]["finished"] >= head_runs[0]["finished"] and resumed["training_seeds"] == [0, 1]
+    with pytest.raises(InputError, match="another plan .*epochs"):
+        bench_quality(dataclasses.replace(plan, epochs=2), earlier=partials[0])
     assert result["num_heldout_frames"] == 1 and result["train_seed"] == 7
     options, head, paper = (result["methods"][m] for m in ("head_options", "box_head", "paper"))
     assert [r["seed"] for r in head["runs"]] == [0, 1] and len(paper["runs"]) == 1
