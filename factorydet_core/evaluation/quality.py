@@ -311,10 +311,13 @@ def bench_quality(
     heldout = _heldout_set(plan, params, progress)
     train_split = train_dataset.splits.get("train") or list(range(train_dataset.num_frames))
     train_indices = spread_frames(train_split, plan.train_frames)
-    detector = Detector(params)
-    if plan.calibrate and train_dataset.num_sensors > 1:
-        detector.calibrate(train_dataset.frame(train_indices[0]))
-    train = _cached_proposals(train_dataset, detector, train_indices, plan.scratch, progress)
+    learned = [m for m in plan.methods if m != "paper"]
+    train = []
+    if learned and set(plan.seeds) - set(resumed):  # only what trains needs the training proposals
+        detector = Detector(params)
+        if plan.calibrate and train_dataset.num_sensors > 1:
+            detector.calibrate(train_dataset.frame(train_indices[0]))
+        train = _cached_proposals(train_dataset, detector, train_indices, plan.scratch, progress)
     result: dict = {
         "benchmark": "quality",
         "command": command,
@@ -337,7 +340,6 @@ def bench_quality(
         runs["paper"].append(
             {"seed": None, "checkpoint": plan.paper_model, **measure_heldout(paper, heldout)}
         )
-    learned = [m for m in plan.methods if m != "paper"]
 
     def summarized(complete: bool) -> dict:
         out = dict(result, complete=complete, methods={})
