@@ -57,6 +57,7 @@ def test_propose_json_on_a_simulated_frame(small_dataset_dir, capsys):
         assert proposal["num_points"] >= 30
 
 
+@pytest.mark.slow
 def test_propose_on_a_real_scan_picks_the_indoor_preset(capsys):
     import pytest
 
@@ -80,6 +81,7 @@ def test_propose_bad_input(small_dataset_dir, capsys):
     assert "unknown preset" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_bench_pipeline_prints_stage_times_and_recall(small_dataset_dir, capsys):
     assert main(["bench", "pipeline", str(small_dataset_dir), "--frames", "1", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
@@ -96,6 +98,7 @@ def test_bench_pipeline_prints_stage_times_and_recall(small_dataset_dir, capsys)
     )
 
 
+@pytest.mark.slow
 def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     root = tmp_path / "sessions"
     args = ["train", str(small_dataset_dir), "--session", "s", "--root", str(root), "--rounds", "1",
@@ -141,6 +144,7 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     assert (tmp_path / "pr.png").is_file()
 
 
+@pytest.mark.slow
 def test_the_labelling_loop_from_the_command_line(small_dataset_dir, tmp_path, capsys):
     root = str(tmp_path / "sessions")
     common = ["--session", "s", "--root", root]
@@ -192,6 +196,7 @@ def test_detect_without_a_model_is_an_input_error(small_dataset_dir, tmp_path, c
     assert "no trained model" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_path, tmp_path, capsys):
     out = tmp_path / "docs" / "results.md"
     # The baseline and the sweep train on another data set's frames (the model's training data).
@@ -232,6 +237,7 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
     assert main(["report", str(small_dataset_dir), "--model", str(tiny_model_path), "--sweep", "x"]) == 2
 
 
+@pytest.mark.slow
 def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     small_dataset_dir, tmp_path, capsys, monkeypatch
 ):
@@ -297,6 +303,7 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     assert main(["bench", "hitl", str(small_dataset_dir), "--hide-labelled", "0"]) == 2
 
 
+@pytest.mark.slow
 def test_bench_classifier_measures_rows_with_the_models_box_quality(small_dataset_dir, capsys):
     args = ["bench", "classifier", str(small_dataset_dir), "--widths", "0.0625", "--features", "aggregated",
             "--geometry", "on,off", "--epochs", "1", "--train-frames", "1", "--frames", "1"]  # fmt: skip

@@ -55,6 +55,7 @@ def test_rgb_mode_falls_back_to_height_without_colours(small_dataset_dir):
     assert (point_colors(frame, z, "rgb") == colors_by_height(z)).all()
 
 
+@pytest.mark.slow
 def test_detection_filters_refilter_and_feed_the_metrics(small_dataset_dir, tiny_model_path):
     from factorydet_core.detection.detector import Detector
     from factorydet_core.detection.model import DetectionModel

@@ -32,6 +32,7 @@ def test_full_width_is_the_papers_size_and_narrow_is_small():
     assert narrow(torch.zeros(2, 20, 5, 5, 5)).shape == (2, 8)
 
 
+@pytest.mark.slow
 def test_fit_learns_a_separable_problem_and_returns_self(rng):
     features, labels = _blobs(rng, 40)
     test_features, test_labels = _blobs(np.random.default_rng(1), 20)
@@ -106,6 +107,7 @@ def _sized(rng, num_per_class: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return features, descriptors, labels
 
 
+@pytest.mark.slow
 def test_geometry_learns_what_only_the_descriptors_tell(rng, tmp_path):
     """Classes told apart by size alone: only the network that reads the descriptors learns it,
     and its standardisation of them survives a checkpoint."""

@@ -222,6 +222,7 @@ def test_unknown_or_malformed_parameters_are_input_errors():
     assert params.replace(max_object_size_m=[3, 2]).segmentation.max_object_size_m == (3.0, 2.0)
 
 
+@pytest.mark.slow
 def test_detection_casts_rays_only_for_a_regressor_that_reads_them(
     small_dataset_dir, tiny_model_path, result
 ):

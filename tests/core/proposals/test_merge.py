@@ -131,6 +131,7 @@ def test_icp_recovers_a_known_transform(small_dataset_dir):
     np.testing.assert_allclose(result.T_vehicle_sensor[:, 3], [[0, 0, 0, 1]] * 12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_refine_extrinsics_repeats_exactly(small_dataset_dir):
     # open3d's parallel sums differ in the last bits from call to call; unsnapped, that grows into
     # different extrinsics and then into different segments, so no figure repeated run to run.

@@ -96,6 +96,7 @@ def test_session_labels_replace_the_annotations(db, frames):
     assert len(with_session_labels(db, [frame])[0].label_boxes) == len(frame.label_boxes)
 
 
+@pytest.mark.slow
 def test_full_run_then_review_then_next_round(db, dataset, frames):
     run_id, run = train_session(db, frames, SETTINGS, mode="full", data_ref="small")
     assert [r["round"] for r in run.rounds] == [0, 1]

@@ -81,6 +81,7 @@ def test_mining_adds_the_top_false_positives_to_the_background(run):
     assert {"f1", "precision", "recall", "per_class"} <= set(first["train_metrics"])
 
 
+@pytest.mark.slow
 def test_fragments_of_annotated_objects_start_in_the_background(frames):
     """Point sets that overlap a label at IoU in (0, fragment_iou] are all background from the
     start; sets between fragment_iou and positive_iou are left out."""
@@ -121,6 +122,7 @@ def test_session_stores_checkpoints_rounds_and_the_review_queue(run, tmp_path):
     assert save_training_run(session, run, "small", {}) == 2
 
 
+@pytest.mark.slow
 def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
     run = train_with_mining(
         frames,
@@ -138,6 +140,7 @@ def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
     assert (detections.scores <= probability + 1e-6).all()  # probability times a predicted IoU
 
 
+@pytest.mark.slow
 def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
     seen = []
 
@@ -173,6 +176,7 @@ def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
     assert "class_score_thresholds" not in untuned.rounds[0]["train_metrics"]
 
 
+@pytest.mark.slow
 def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_dataset_dir):
     path = run.model.save(tmp_path / "m.pt")
     loaded = DetectionModel.load(path)
@@ -242,6 +246,7 @@ def test_mined_sets_are_never_positives(run, frames):
         assert labels[m["group"]] == 7
 
 
+@pytest.mark.slow
 def test_mining_threshold_decides_what_is_mined_not_the_operating_threshold(frames, run):
     def first_round(**thresholds):
         return train_with_mining(
