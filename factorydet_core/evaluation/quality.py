@@ -426,13 +426,20 @@ def quality_markdown(result: dict) -> str:
     for name, get in rows:
         lines.append(f"| {name} | " + " | ".join(get(m["summary"]) for m in methods.values()) + " |")
     seeds = ", ".join(str(s["seed"]) for s in result["heldout_factories"])
+    trained = any(m != "paper" for m in methods)
+    spread = (
+        f" ± is the spread (standard deviation) over training seeds "
+        f"{', '.join(str(s) for s in result['training_seeds'])}; the paper column is one checkpoint."
+        if trained
+        else " The paper column is one checkpoint."
+    )
+    overrides = result.get("front_end_overrides") or {}
+    front = f" Front half changed for every method: {overrides}." if overrides else ""
     lines += [
         "",
         f"Trained on {result['train_data']} (seed {result['train_seed']}, {len(result['train_frames'])} "
         f"annotated training frames); measured on {result['num_heldout_frames']} frames of held-out "
-        f"factories (seeds {seeds}) against the truth. ± is the spread (standard deviation) over "
-        f"training seeds {', '.join(str(s) for s in result['training_seeds'])}; the paper column is "
-        "one checkpoint.",
+        f"factories (seeds {seeds}) against the truth.{spread}{front}",
     ]
     return "\n".join(lines) + "\n"
 

@@ -63,3 +63,14 @@ def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_data
     assert "| F-score, IoU 0.6 |" in table and "seeds 501" in table
     assert "box_head" in table and "head_options" in table
     assert table == quality_markdown(result)
+
+
+def test_a_run_that_trains_nothing_says_so_and_names_its_front_half():
+    from pathlib import Path
+
+    record = Path(__file__).parents[3] / "docs" / "bench" / "quality_history2.json"
+    result = json.loads(record.read_text())
+    table = quality_markdown(result)
+    assert "| paper |" in table and "spread" not in table
+    assert "{'history_frames': 2}" in table
+    assert table == (record.with_suffix(".md")).read_text()
