@@ -49,9 +49,8 @@ def _cmd_app(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_app_parser() -> argparse.ArgumentParser:
-    parser = build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+def add_app_command(sub) -> None:
+    """``factorydet app``, beside the library's commands."""
     p = sub.add_parser("app", help="serve the browser app")
     p.add_argument(
         "--session",
@@ -72,7 +71,10 @@ def build_app_parser() -> argparse.ArgumentParser:
         help="'default' (the shipped checkpoint), a .pt checkpoint, a session name, or 'none'",
     )
     p.set_defaults(func=_cmd_app)
-    return parser
+
+
+def build_app_parser():
+    return build_parser(add_app_command)
 
 
 def main(argv: list[str] | None = None) -> int:

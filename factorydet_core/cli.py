@@ -660,9 +660,14 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(
+    add_commands: Callable[[argparse._SubParsersAction], None] | None = None,
+) -> argparse.ArgumentParser:
+    """The ``factorydet`` parser; ``add_commands(subparsers)`` adds more commands (the app's)."""
     parser = argparse.ArgumentParser(prog="factorydet", description="Factory LiDAR detection tools.")
     sub = parser.add_subparsers(dest="command", required=True)
+    if add_commands is not None:
+        add_commands(sub)
 
     p = sub.add_parser("simulate", help="write a simulated factory data set")
     p.add_argument("--out", required=True, help="data set folder to write")
