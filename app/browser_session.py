@@ -12,6 +12,7 @@ is told (``EditConflictError``).
 
 from __future__ import annotations
 
+import collections
 import secrets
 import sqlite3
 import threading
@@ -60,8 +61,8 @@ class BrowserSession:
         self.dim = True
         self.queue: list[dict] = []
         self.suspect_index = -1
-        self.messages: list[tuple[str, str, bool]] = []
-        """Every notification given, ``(title, body, error)``, oldest first."""
+        self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
+        """The latest notifications given, ``(title, body, error)``, oldest first."""
 
     # -- what the browser shows: ``ClientView`` draws these
 

@@ -17,9 +17,9 @@ from factorydet_core.detection.scoring import BOX_VOTE_IOU, select_detections
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.metrics import detection_metrics, error_breakdown
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.types import Detections, Frame
+from factorydet_core.types import SCORE_FLOOR, Detections, Frame
 
-AP_SCORE_FLOOR = 0.05
+AP_SCORE_FLOOR = SCORE_FLOOR
 """Detections down to this score feed the metrics panel's PR curve."""
 
 LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals", "detections")

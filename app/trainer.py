@@ -141,7 +141,8 @@ class TrainingWorker:
         done_fits = [0]
 
         def progress(what: str, done: int, total: int) -> None:
-            if self._cancel.is_set():
+            # "compare" comes after the run is stored: too late to cancel without losing it.
+            if self._cancel.is_set() and what != "compare":
                 raise Cancelled("training cancelled")
             if what == "calibrate":
                 state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)

@@ -51,7 +51,7 @@ class FactorydetApp:
         model_name: how the model is named in the panel.
         db: the session's ``SessionDB``: labels become editable, the review queue and retraining
             appear. Without one, the data set's annotations are shown read-only.
-        training: how the Training panel trains (``loop.LoopSettings``).
+        training: how the Training panel trains (``settings.LoopSettings``).
     """
 
     def __init__(

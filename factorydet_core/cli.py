@@ -172,12 +172,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             if not args.out:
                 raise InputError("bench quality --resume continues the result at --out; give --out")
             if Path(args.out).is_file():
-                earlier = json.loads(Path(args.out).read_text())
+                try:
+                    earlier = json.loads(Path(args.out).read_text())
+                except ValueError as exc:
+                    raise InputError(f"bench quality --resume: {args.out} is not a result ({exc})") from None
         update, close = _training_progress()
         try:
             result = bench_quality(
                 plan, command=command, progress=update, earlier=earlier,
-                on_partial=(lambda partial: write_outputs(partial, args.out)) if args.out else None,
+                # Only a resumable run replaces --out before it is complete.
+                on_partial=(lambda partial: write_outputs(partial, args.out)) if args.resume else None,
             )  # fmt: skip
         finally:
             close()
@@ -957,8 +961,8 @@ def build_parser(
     p.add_argument(
         "--resume",
         action="store_true",
-        help="quality: continue the (partial) result at --out, training only the seeds it lacks; a "
-        "quality run writes --out after every training seed",
+        help="quality: continue the (partial) result at --out, training only the seeds it lacks; "
+        "with it, --out is also written after every training seed",
     )
     p.add_argument(
         "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"

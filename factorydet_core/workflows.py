@@ -66,7 +66,8 @@ def retrain_session(
         calibrate: refine the extrinsics by ICP on the first training frame (multi-sensor data).
         max_train_frames, max_test_frames: use only the first frames of each split.
         progress: called with (what, done, total); ``what`` is "calibrate", "proposals", "fit",
-            "box quality", "round" or "compare".
+            "box quality", "round" or "compare". "compare" comes after the run is stored: a
+            progress that raises to cancel must not raise then.
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
 
     Raises:

@@ -337,6 +337,11 @@ def test_bench_quality_checks_its_arguments_and_readme_before_running(
     assert main(["bench", "quality", "--scratch", str(tmp_path)]) == 2
     assert main([*base, "--set", "no_such_setting=1"]) == 2
     assert "unknown parameter" in capsys.readouterr().err
+    assert main([*base, "--resume"]) == 2
+    assert "give --out" in capsys.readouterr().err
+    (tmp_path / "cut.json").write_text('{"benchmark": "qual')  # a run killed while writing, before
+    assert main([*base, "--resume", "--out", str(tmp_path / "cut.json")]) == 2
+    assert "is not a result" in capsys.readouterr().err
 
 
 def test_the_train_flags_default_to_the_loop_settings():

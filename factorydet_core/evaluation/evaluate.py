@@ -27,7 +27,7 @@ from factorydet_core.training.mining import (
     score_frames,
     with_tuned_thresholds,
 )
-from factorydet_core.types import InputError
+from factorydet_core.types import SCORE_FLOOR, InputError
 
 PAPER_TABLE2 = {"mean": 99.84}
 """Recognition accuracy (%) of Negin et al. 2020, Table 2: only the average is quoted here (the
@@ -117,7 +117,7 @@ def baseline_model(
     )
     if model.class_score_thresholds is None:
         return out
-    return with_tuned_thresholds(out, score_frames(out, frames, 0.05), positive_iou)
+    return with_tuned_thresholds(out, score_frames(out, frames, SCORE_FLOOR), positive_iou)
 
 
 def measure(

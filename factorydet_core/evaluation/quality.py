@@ -449,8 +449,14 @@ def _per_class_cell(cell: Callable[[dict], str], name: str) -> Callable[[dict], 
 
 
 def write_outputs(result: dict, out: str | os.PathLike) -> None:
-    """The JSON at ``out`` and its table beside it (``.md``)."""
+    """The JSON at ``out`` and its table beside it (``.md``), each written whole or not at all (a
+    run stopped while writing leaves the previous file)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text(quality_markdown(result))
+    for path, text in (
+        (out, json.dumps(result, indent=2) + "\n"),
+        (out.with_suffix(".md"), quality_markdown(result)),
+    ):
+        partial = path.with_name(path.name + ".partial")
+        partial.write_text(text)
+        os.replace(partial, path)

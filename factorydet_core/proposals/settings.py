@@ -110,7 +110,10 @@ class FrontEndParams:
         seg_values = {k: tuple(v) if isinstance(v, list) else v for k, v in segmentation.items()}
         own = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         try:
-            return dataclasses.replace(cls().replace(**own), segmentation=SegmentationParams(**seg_values))
+            params = cls().replace(**own)  # segmentation names at the top level too
+            return dataclasses.replace(
+                params, segmentation=dataclasses.replace(params.segmentation, **seg_values)
+            )
         except TypeError as exc:
             raise InputError(f"front-end settings: bad value ({exc})") from None
 

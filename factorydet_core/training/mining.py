@@ -29,7 +29,7 @@ from factorydet_core.metrics import detection_metrics
 from factorydet_core.metrics import tune_class_thresholds as tune_thresholds
 from factorydet_core.proposals.candidates import point_set_features
 from factorydet_core.proposals.visibility import FreeSpace
-from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_THRESHOLD, Cancelled, InputError
+from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_FLOOR, SCORE_THRESHOLD, Cancelled, InputError
 
 Progress = Callable[[str, int, int], None]
 """Called with (what, done, total)."""
@@ -314,8 +314,9 @@ def with_tuned_thresholds(
     model: DetectionModel, scored: list[dict], positive_iou: float = 0.6, max_threshold: float = 1.0
 ) -> DetectionModel:
     """``model`` with each class's score threshold tuned to its highest F-score on ``scored``
-    (``score_frames``'s output for ``model``, down to 0.05; ``metrics.tune_class_thresholds``,
-    none above ``max_threshold``); a class without a true positive keeps the global threshold."""
+    (``score_frames``'s output for ``model``, down to ``types.SCORE_FLOOR``;
+    ``metrics.tune_class_thresholds``, none above ``max_threshold``); a class without a true
+    positive keeps the global threshold."""
     tuned = tune_thresholds(scored, model.class_names, positive_iou, max_threshold=max_threshold)
     return dataclasses.replace(
         model,
@@ -401,7 +402,7 @@ def train_with_mining(
         probability_exponent: with ``box_quality``, the model's score is the class probability
             to this power times the predicted IoU (``DetectionModel.probability_exponent``); it
             ranks the mined negatives too. 1 is the plain product; the command line and the app
-            train with 0.5 (see ``loop.LoopSettings``).
+            train with 0.5 (see ``settings.LoopSettings``).
     """
     if not frames:
         raise InputError("train_with_mining: no training frames")
@@ -515,7 +516,7 @@ def train_with_mining(
             probability_exponent=probability_exponent,
         )
         start = time.perf_counter()
-        scored = score_frames(model, frames, min(0.05, mining_threshold), progress, should_stop)
+        scored = score_frames(model, frames, min(SCORE_FLOOR, mining_threshold), progress, should_stop)
         if tune_class_thresholds:
             model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
         metrics = detection_metrics(

@@ -88,3 +88,31 @@ def test_the_app_retrains_through_the_same_function_as_the_command_line(
     assert data is dataset and settings.epochs == 2 and options["mode"] == "full"
     assert front_end == model.front_end  # the shown model's front half, whole
     assert list(options["before"]) == ["before (tiny)"] and options["calibrate"] is False
+
+
+def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+):
+    import types
+
+    from factorydet_core.detection.model import DetectionModel
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    state = AppState(
+        dataset, db=SessionDB(open_session("s", tmp_path), dataset), model=model, model_name="tiny"
+    )
+    trainer = TrainingWorker(state, calibrate=False)
+
+    def retrain_session(db, data, settings, front_end, progress, **options):
+        progress("round", 1, 1)
+        trainer.cancel()  # pressed while the stored run is being measured
+        progress("compare", 0, 1)  # must not raise: the run is in the database already
+        run = types.SimpleNamespace(model=model)
+        return types.SimpleNamespace(run_id=7, run=run, train_frames=[], comparison={"after (run 7)": {}})
+
+    monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
+    assert trainer.start("full")
+    trainer.join(10)
+    assert state.training_status.startswith("run 7 (full) done") and state.model_name == "session run 7"
+    assert state.training_comparison == {"after (run 7)": {}}

@@ -40,6 +40,10 @@ def test_from_dict_keeps_defaults_for_missing_names_and_rejects_unknown_ones():
     assert back.include_patches == FrontEndParams().include_patches
     assert back.segmentation.k_graph == FrontEndParams().segmentation.k_graph
     assert back.voxel_size_m == PRESETS["indoor"].voxel_size_m
+    # A segmentation setting given at the top level (as ``replace`` and ``--set`` take it) is kept.
+    assert FrontEndParams.from_dict({"k_graph": 5}).segmentation.k_graph == 5
+    nested = FrontEndParams.from_dict({"k_graph": 5, "segmentation": {"k_features": 12}}).segmentation
+    assert (nested.k_graph, nested.k_features) == (5, 12)
     with pytest.raises(InputError, match="unknown parameter"):
         FrontEndParams.from_dict({"voxel_size": 0.3})
     with pytest.raises(InputError, match="unknown segmentation setting"):
