@@ -319,3 +319,16 @@ def test_a_new_verdict_never_discards_an_edit_of_the_label_it_made(db, tiny_mode
     with pytest.raises(EditConflictError, match="edited since"):
         db.review([item["id"]], "background", "ann")
     assert db.label(label_id).class_name == "truck" and not db.label(label_id).deleted
+
+
+def test_a_session_opens_the_data_set_it_was_made_on(small_dataset_dir, tmp_path):
+    from factorydet_core.session.store import SessionError, open_session_data, session_data
+
+    with pytest.raises(SessionError, match="has no data set"):
+        open_session_data("fresh", tmp_path)
+    # Made on a data set outside its folder: the database remembers which.
+    db, dataset = open_session_data("outside", tmp_path, small_dataset_dir)
+    assert dataset.path == Path(small_dataset_dir) and db.meta()["data"]
+    again, dataset = open_session_data("outside", tmp_path)
+    assert dataset.path.resolve() == Path(small_dataset_dir).resolve()
+    assert session_data(again.session).resolve() == Path(small_dataset_dir).resolve()
