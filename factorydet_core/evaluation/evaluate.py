@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from factorydet_core.detection.baseline import BaselineClassifier
-from factorydet_core.detection.detector import Detector, params_for
+from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.measure import measure_against
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
@@ -48,8 +48,7 @@ def detector_for(model: DetectionModel | None, dataset: Dataset, calibrate: bool
             f"the model's classes {list(model.class_names)} differ from the data set's "
             f"{list(dataset.class_names)}"
         )
-    params = params_for(model, dataset.num_sensors)
-    detector = Detector(params, model=model)
+    detector = Detector.for_model(model, dataset.num_sensors)
     if calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(0))
     return detector

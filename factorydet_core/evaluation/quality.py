@@ -39,6 +39,7 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.bench import machine_info, spread_frames
 from factorydet_core.evaluation.evaluate import ignored_boxes, measure, reference_boxes
+from factorydet_core.io.atomic import atomic_path, write_text_atomic
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.session.models import resolve_model
@@ -142,9 +143,8 @@ def _cached_proposals(
             return proposals_from_arrays({k: arrays[k] for k in arrays.files})
     out = collect_proposals(dataset, frames, detector, progress)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".part.npz")
-    np.savez(tmp, **proposals_to_arrays(out))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez(tmp, **proposals_to_arrays(out))
     return out
 
 
@@ -453,10 +453,5 @@ def write_outputs(result: dict, out: str | os.PathLike) -> None:
     run stopped while writing leaves the previous file)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    for path, text in (
-        (out, json.dumps(result, indent=2) + "\n"),
-        (out.with_suffix(".md"), quality_markdown(result)),
-    ):
-        partial = path.with_name(path.name + ".partial")
-        partial.write_text(text)
-        os.replace(partial, path)
+    write_text_atomic(out, json.dumps(result, indent=2) + "\n")
+    write_text_atomic(out.with_suffix(".md"), quality_markdown(result))

@@ -29,7 +29,6 @@ Bad input raises ``InputError`` with one line naming the file and the problem.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
 import re
@@ -39,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from factorydet_core.geometry import apply_transforms, points_in_box
+from factorydet_core.io.atomic import atomic_path
 from factorydet_core.io.npz import save_npz
 from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
 
@@ -709,18 +709,6 @@ def _world_points(frame: Frame) -> np.ndarray:
     return apply_transforms(frame.T_vehicle_sensor, frame.sensor_ids, frame.points) + frame.origin_offset
 
 
-@contextlib.contextmanager
-def _atomic(path: Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path`` (same suffix) and move it onto ``path`` on success."""
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def _float_dtype(frame: Frame) -> type[np.floating]:
     """float64 when the frame was recentred (so the offset survives), else float32."""
     return np.float64 if np.any(frame.origin_offset != 0) else np.float32
@@ -748,7 +736,7 @@ def _write_ply(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) 
     ]
     header += [f"property {ply_type} {name}" for name, _, ply_type in fields]
     header.append("end_header\n")
-    with _atomic(path) as tmp, tmp.open("wb") as handle:
+    with atomic_path(path) as tmp, tmp.open("wb") as handle:
         handle.write("\n".join(header).encode("ascii"))
         handle.write(records.tobytes())
 
@@ -777,7 +765,7 @@ def _write_pcd(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) 
         f"COUNT {' '.join('1' for _ in fields)}\nWIDTH {len(points)}\nHEIGHT 1\n"
         f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA binary\n"
     )
-    with _atomic(path) as tmp, tmp.open("wb") as handle:
+    with atomic_path(path) as tmp, tmp.open("wb") as handle:
         handle.write(header.encode("ascii"))
         handle.write(records.tobytes())
 
@@ -794,7 +782,7 @@ def _write_text(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray)
         names += ["red", "green", "blue"]
     suffix = path.suffix.lower()
     delimiter = "," if suffix == ".csv" else " "
-    with _atomic(path) as tmp, tmp.open("w", encoding="utf-8") as handle:
+    with atomic_path(path) as tmp, tmp.open("w", encoding="utf-8") as handle:
         if suffix == ".pts":
             handle.write(f"{len(points)}\n")
         else:
@@ -818,19 +806,19 @@ def _write_las(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) 
     if frame.colors is not None:
         colors16 = frame.colors.astype(np.uint16) * 257
         las.red, las.green, las.blue = colors16[:, 0], colors16[:, 1], colors16[:, 2]
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         las.write(str(tmp), do_compress=path.suffix.lower() == ".laz")
 
 
 def _write_kitti_bin(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
     intensity = np.zeros(len(points)) if frame.intensity is None else frame.intensity
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         np.column_stack([points, intensity]).astype("<f4").tofile(tmp)
 
 
 def _write_npy(path: Path, frame: Frame, points: np.ndarray, boxes: np.ndarray) -> None:
     array = points if frame.intensity is None else np.column_stack([points, frame.intensity])
-    with _atomic(path) as tmp, tmp.open("wb") as handle:
+    with atomic_path(path) as tmp, tmp.open("wb") as handle:
         np.save(handle, array.astype(_float_dtype(frame)), allow_pickle=False)
 
 

@@ -22,6 +22,7 @@ import numpy as np
 import open3d as o3d
 
 from factorydet_core.geometry import invert_transform, make_transform, rotation_ypr, transform_boxes
+from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.npz import save_npz
 from factorydet_core.sim.factory import Factory, build_factory
 from factorydet_core.sim.meshes import Mesh
@@ -302,9 +303,7 @@ class FactorySimulator:
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
 def simulate_dataset(
