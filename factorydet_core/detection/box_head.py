@@ -40,14 +40,22 @@ import torch
 from torch import nn
 
 from factorydet_core.boxes import rectangle_corners, rectangle_intersection_areas
+from factorydet_core.detection.checkpoint import (
+    MAX_SEED,
+    Setting,
+    check_class_names,
+    check_note_record,
+    check_settings,
+    load_weights,
+    read_checkpoint_note,
+    write_checkpoint,
+)
 from factorydet_core.detection.classifier import (
+    CLASS_WEIGHTS,
     ClassOutputs,
     _torch_threads,
     class_weights,
     count_parameters,
-    load_weights,
-    read_checkpoint_note,
-    write_checkpoint,
 )
 from factorydet_core.detection.groups import DESCRIPTOR_NAMES, ProposalGroups
 from factorydet_core.detection.scoring import check_exponent
@@ -56,6 +64,32 @@ from factorydet_core.types import CLASS_NAMES, Cancelled, Detections, InputError
 SQUARE_RATIO = 0.9
 """A class whose template's width is at least this share of its length has a square footprint
 (a standing barrel's, a cone's): a quarter turn is the same box (heading symmetry 4)."""
+
+MAX_POINT_LAYERS = 8
+MAX_CHANNELS = 2048
+"""The per-point MLP of a ``BoxHead`` has at most ``MAX_POINT_LAYERS`` layers of at most this
+width, and its MLP after pooling at most ``2 * MAX_CHANNELS`` (``hidden``): about 50M parameters
+(0.2 GB) at the bounds with ``MAX_CLASSES`` classes, where the default head has 60k. A checkpoint's
+note is checked against them before its network is built."""
+
+SETTINGS: dict[str, Setting] = {
+    "hidden": Setting(int, 2, 2 * MAX_CHANNELS),
+    "heading_bins": Setting(int, 1, 360),
+    "epochs": Setting(int, 1, 1_000_000),
+    "batch_size": Setting(int, 2, 2**20),
+    "learning_rate": Setting(float, 0.0, 10.0, low_open=True),
+    "background_per_positive": Setting(float, 0.0, 1000.0),
+    "dropout": Setting(float, 0.0, 1.0),
+    "class_weight": Setting(str, optional=True, choices=tuple(w for w in CLASS_WEIGHTS if w)),
+    "augment": Setting(bool),
+    "square_ratio": Setting(float, 0.0, 1.0, low_open=True),
+    "corner_loss": Setting(float, 0.0, 1e6),
+    "seed": Setting(int, 0, MAX_SEED),
+    "num_threads": Setting(int, 1, 1024, optional=True),
+    "max_fit_seconds": Setting(float, 0.0, optional=True, low_open=True),
+}
+"""What each setting of ``BoxHead`` may be (checked when it is made, and so in a checkpoint's note
+before its network is built); ``channels`` and ``class_names`` are checked apart."""
 
 NUM_GLOBALS = len(DESCRIPTOR_NAMES) + 10
 """Per-set inputs besides the points: the descriptors, the log of the fitted box's length, width
@@ -481,14 +515,16 @@ class BoxHead(ClassOutputs):
     input_kind = "points"
 
     def __post_init__(self) -> None:
-        self.channels = tuple(int(c) for c in self.channels)
-        self.class_names = tuple(self.class_names)
-        if not self.channels or min(self.channels) < 1 or self.hidden < 2:
-            raise InputError("channels must be positive widths and hidden >= 2")
-        if self.heading_bins < 1 or self.epochs < 1 or self.batch_size < 2:
-            raise InputError("heading_bins and epochs must be >= 1, batch_size >= 2")
-        if not self.background_per_positive >= 0:
-            raise InputError(f"background_per_positive must be >= 0, got {self.background_per_positive}")
+        checked = check_settings(self.get_params(), SETTINGS)
+        if isinstance(self.channels, (str, bytes)) or not isinstance(self.channels, (list, tuple)):
+            raise InputError(f"channels must be a list of widths, got {self.channels!r}"[:200])
+        if not 1 <= len(self.channels) <= MAX_POINT_LAYERS:
+            raise InputError(f"channels must hold 1 to {MAX_POINT_LAYERS} widths, got {len(self.channels)}")
+        channel = Setting(int, 1, MAX_CHANNELS)
+        checked["channels"] = tuple(channel.check("channels", c) for c in self.channels)
+        checked["class_names"] = check_class_names(self.class_names)
+        for name, value in checked.items():
+            setattr(self, name, value)
 
     def _new_network(self) -> PointSetNet:
         return PointSetNet(len(self.class_names), self.channels, self.hidden, self.heading_bins, self.dropout)
@@ -790,32 +826,69 @@ class BoxHead(ClassOutputs):
         return write_checkpoint(self.network_, path, meta)
 
     @classmethod
+    def from_note(cls, meta: dict, note_path: Path) -> BoxHead:
+        """The unfitted head a checkpoint's note describes, with its ``templates_`` and
+        ``symmetry_``: every setting, the templates, the symmetries and the note's records checked;
+        no network is built."""
+        params = meta.get("params")
+        if not isinstance(params, dict) or "class_names" not in params or "templates" not in meta:
+            raise InputError(f"{note_path}: malformed box head note (no params, class_names or templates)")
+        known = {f.name for f in dataclasses.fields(cls)}
+        settings = {k: tuple(v) if isinstance(v, list) else v for k, v in params.items() if k in known}
+        try:
+            head = cls(**settings)
+            num_classes = len(head.class_names)
+            templates = _note_array(meta["templates"], np.float64, (num_classes, 3), "templates")
+            if not (templates > 0).all():
+                raise InputError("templates must be positive sizes in metres")
+            default = symmetry_orders(templates, head.square_ratio).tolist()
+            symmetry = _note_array(meta.get("symmetry", default), np.int64, (num_classes,), "symmetry")
+            if not np.isin(symmetry, (2, 4)).all():
+                raise InputError("symmetry must hold heading symmetries 2 or 4")
+        except InputError as exc:
+            raise InputError(f"{note_path}: {exc}") from None
+        check_note_record(meta, head.class_names, str(note_path))
+        head.templates_ = templates
+        head.symmetry_ = symmetry
+        return head
+
+    @classmethod
     def load(cls, path: str | os.PathLike) -> BoxHead:
         """A fitted head from ``save``'s checkpoint (``torch.load(weights_only=True)``); ``note_``
-        holds the JSON note."""
+        holds the JSON note. The note is checked before the network is built (``from_note``), and
+        the weights' shapes against the network's."""
         meta = read_checkpoint_note(path)
-        note_path = Path(path).with_suffix(".json")
-        try:
-            params = dict(meta["params"])
-            templates = np.array(meta["templates"], np.float64)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{note_path}: malformed box head note ({exc})") from None
-        known = {f.name for f in dataclasses.fields(cls)}
-        head = cls(**{k: v for k, v in params.items() if k in known})
-        if templates.shape != (len(head.class_names), 3):
-            raise InputError(f"{note_path}: templates must have shape ({len(head.class_names)}, 3)")
+        head = cls.from_note(meta, Path(path).with_suffix(".json"))
         network = load_weights(head._new_network(), path)
         head.network_ = network
-        head.templates_ = templates
-        head.symmetry_ = np.array(
-            meta.get("symmetry", symmetry_orders(templates, head.square_ratio)), np.int64
-        )
         head.history_ = meta.get("history", [])
         head.fit_seconds_ = float(meta.get("fit_seconds", 0.0))
         head.num_parameters_ = count_parameters(network)
         head.train_counts_ = meta.get("train_counts", {})
         head.note_ = meta
         return head
+
+
+def _note_array(value: object, dtype: type, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """A note's nested lists of numbers ``value`` as a finite array of ``dtype`` and ``shape``;
+    ``InputError`` naming ``name`` otherwise."""
+
+    def numbers(v: object, dims: tuple[int, ...]) -> bool:
+        if not dims:
+            return isinstance(v, (int, float)) and not isinstance(v, bool)
+        return isinstance(v, list) and len(v) == dims[0] and all(numbers(x, dims[1:]) for x in v)
+
+    if not numbers(value, shape):
+        raise InputError(f"{name} must be nested lists of numbers of shape {shape}")
+    try:
+        array = np.array(value, np.float64)
+    except OverflowError:  # an integer of hundreds of digits
+        raise InputError(f"{name} must hold finite numbers") from None
+    if not np.isfinite(array).all():
+        raise InputError(f"{name} must hold finite numbers")
+    if dtype is np.int64 and not (array == np.round(array)).all():
+        raise InputError(f"{name} must hold integers")
+    return array.astype(dtype)
 
 
 POSITIVE_SHARE = 0.8

@@ -13,13 +13,17 @@ model's ``probability_exponent``, 0.5 for the loop and the command line) times t
 
 The regressor is scikit-learn's ``HistGradientBoostingRegressor``; for checkpoints it is exported to
 plain arrays (``to_arrays``) and evaluated by ``predict`` here, so loading a model never unpickles
-anything. ``tests/core/test_box_quality.py`` checks that ``predict`` equals scikit-learn's.
+anything; ``BoxQuality.load`` checks the arrays first (``_check_trees``), since the compiled walk
+reads their indices unchecked. ``tests/core/test_box_quality.py`` checks that ``predict`` equals
+scikit-learn's.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -30,6 +34,8 @@ from factorydet_core.detection.groups import (
     ProposalGroups,
     _horizontal_sorted_sizes,
 )
+from factorydet_core.io.atomic import atomic_path
+from factorydet_core.io.npz import load_npz
 from factorydet_core.jit import run_kernel
 from factorydet_core.proposals.visibility import FreeSpace, box_visibility
 from factorydet_core.types import InputError
@@ -370,20 +376,148 @@ class BoxQuality:
         }
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> BoxQuality:
-        model = cls(
-            anchored=bool(arrays["anchored"]) if "anchored" in arrays else False,
-            visibility=bool(arrays["visibility"]) if "visibility" in arrays else False,
-        )
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], where: str = "box quality arrays") -> BoxQuality:
+        """The regressor ``to_arrays`` wrote, its trees checked (``_check_trees``) so that every walk
+        stays in bounds and ends; ``InputError`` starting with ``where`` otherwise."""
         try:
-            model.trees_ = {key: np.asarray(arrays[key]) for key in _TREE_KEYS}
-            model.num_features_ = int(arrays["num_features"])
-        except KeyError as error:
-            raise InputError(f"box quality arrays lack {error}") from None
+            flags = {name: _flag(arrays, name) for name in ("anchored", "visibility")}
+            missing = [key for key in (*_TREE_KEYS, "num_features") if key not in arrays]
+            if missing:
+                raise InputError(f"lacks {', '.join(missing)}")
+            num_features = np.asarray(arrays["num_features"])
+            if num_features.shape != () or num_features.dtype.kind not in "iu":
+                raise InputError(
+                    f"num_features must be an integer, got {num_features.dtype} {num_features.shape}"
+                )
+            if not 1 <= int(num_features) <= MAX_FEATURES:
+                raise InputError(f"num_features must lie in [1, {MAX_FEATURES}], got {int(num_features)}")
+            trees = _check_trees({key: np.asarray(arrays[key]) for key in _TREE_KEYS}, int(num_features))
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
+        model = cls(**flags)
+        model.trees_ = trees
+        model.num_features_ = int(num_features)
         return model
 
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write ``to_arrays`` to ``path`` (.npz), whole or not at all."""
+        path = Path(path)
+        with atomic_path(path) as tmp:
+            np.savez_compressed(tmp, **self.to_arrays())
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> BoxQuality:
+        """The regressor ``save`` wrote to ``path``, read as untrusted input: no array larger than
+        ``MAX_TREE_NODES`` is read and the trees are checked (``from_arrays``); ``InputError``
+        naming the file otherwise."""
+        path = Path(path)
+        return cls.from_arrays(_read_arrays(path, (*_TREE_KEYS, *_SCALAR_KEYS)), where=str(path))
+
+
+MAX_TREE_NODES = 2**22
+"""The most tree nodes a box quality file may hold: 67 times the 62,500 of the default regressor
+(500 trees of at most 125 nodes), some 120 MB of arrays. No array of the file larger than this is
+read."""
+
+MAX_FEATURES = 2**16
+"""The most option features a regressor may read (``num_option_features`` gives 38 for the 7
+classes, and under 300 for ``checkpoint.MAX_CLASSES``)."""
+
+MAX_FILE_BYTES = 2**30
 
 _TREE_KEYS = ("feature", "threshold", "left", "right", "is_leaf", "value", "roots", "baseline")
+_SCALAR_KEYS = ("num_features", "anchored", "visibility")
+
+
+def _flag(arrays: Mapping[str, np.ndarray], name: str) -> bool:
+    """A boolean scalar of ``arrays``; ``False`` when missing (files from before the option)."""
+    if name not in arrays:
+        return False
+    value = np.asarray(arrays[name])
+    if value.shape != () or value.dtype.kind != "b":
+        raise InputError(f"{name} must be a boolean, got {value.dtype} {value.shape}")
+    return bool(value)
+
+
+def _check_trees(trees: dict[str, np.ndarray], num_features: int) -> dict[str, np.ndarray]:
+    """``trees`` (``_export_trees``'s arrays) in the dtypes ``_evaluate_trees`` walks, checked so
+    that no walk reads out of bounds or loops: the compiled walk reads indices unchecked, and a
+    node that is its own descendant would never return (not even to a cancel).
+
+    Every tree is a contiguous run of nodes starting at its root, and as the fitter lays them out
+    (depth first), every split node's children come after it in its own tree: so each step of a
+    walk moves forward, and it ends at a leaf within that tree. A leaf's children and feature are
+    never read, so any values pass there.
+
+    Raises:
+        InputError: for a wrong dtype or shape, a child, root or feature index out of bounds or not
+            after its parent, or a NaN or infinite threshold, value or baseline.
+    """
+    kinds = {"i": ("iu", "integer"), "f": ("f", "float"), "b": ("b", "boolean")}
+    expected = {"feature": "i", "left": "i", "right": "i", "roots": "i", "is_leaf": "b"}
+    for key, array in trees.items():
+        allowed, name = kinds[expected.get(key, "f")]
+        if array.ndim != 1 or array.dtype.kind not in allowed:
+            raise InputError(f"{key} must be a 1-D {name} array, got {array.dtype} {array.shape}")
+    is_leaf = trees["is_leaf"]
+    num_nodes = len(is_leaf)
+    if not 1 <= num_nodes <= MAX_TREE_NODES:
+        raise InputError(f"the trees must hold 1 to {MAX_TREE_NODES} nodes, got {num_nodes}")
+    for key in ("feature", "threshold", "left", "right", "value"):
+        if len(trees[key]) != num_nodes:
+            raise InputError(f"{key} has {len(trees[key])} entries for {num_nodes} nodes")
+    baseline = trees["baseline"].astype(np.float64)
+    if baseline.shape != (1,) or not np.isfinite(baseline).all():
+        raise InputError(f"baseline must be one finite number, got {baseline.shape}")
+    # Integers compared in int64 (uint64 beyond it wraps negative, and is refused as such).
+    roots = trees["roots"].astype(np.int64)
+    if (
+        not 1 <= len(roots) <= num_nodes
+        or roots[0] != 0
+        or (np.diff(roots) <= 0).any()
+        or roots[-1] >= num_nodes
+    ):
+        raise InputError(f"roots must rise strictly from 0 to below {num_nodes}")
+    node = np.arange(num_nodes)
+    tree_end = np.append(roots[1:], num_nodes)[np.searchsorted(roots, node, side="right") - 1]
+    split = ~is_leaf
+    for key in ("left", "right"):
+        child = trees[key].astype(np.int64)[split]
+        bad = np.flatnonzero((child <= node[split]) | (child >= tree_end[split]))
+        if len(bad):
+            at = node[split][bad[0]]
+            raise InputError(f"{key}[{at}] = {child[bad[0]]} is not a later node of the same tree")
+    feature = trees["feature"].astype(np.int64)[split]
+    bad = np.flatnonzero((feature < 0) | (feature >= num_features))
+    if len(bad):
+        raise InputError(f"split feature {feature[bad[0]]} is not one of the {num_features} features")
+    threshold, value = trees["threshold"].astype(np.float64), trees["value"].astype(np.float64)
+    if not (np.isfinite(threshold[split]).all() and np.isfinite(value).all()):
+        raise InputError("thresholds and values must be finite")
+    # Leaves' children and features are never read: zeroed, they fit the walk's int32 too.
+    return {
+        "feature": np.where(split, trees["feature"], 0).astype(np.int32),
+        "threshold": threshold,
+        "left": np.where(split, trees["left"], 0).astype(np.int32),
+        "right": np.where(split, trees["right"], 0).astype(np.int32),
+        "is_leaf": is_leaf.copy(),
+        "value": value,
+        "roots": roots,
+        "baseline": baseline,
+    }
+
+
+def _read_arrays(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` of the ``.npz`` at ``path`` (those it has), each read only after its
+    header shows at most ``MAX_TREE_NODES`` rows and no Python objects (a few compressed bytes
+    can declare gigabytes); ``InputError`` naming ``path`` if it is unreadable."""
+    try:
+        if path.stat().st_size > MAX_FILE_BYTES:
+            raise InputError(f"{path}: box quality file larger than {MAX_FILE_BYTES // 2**20} MB")
+        return load_npz(path, keys, max_points=MAX_TREE_NODES)[1]
+    except OSError as exc:
+        raise InputError(f"{path}: unreadable box quality arrays ({exc.strerror or exc})") from None
 
 
 def _export_trees(regressor) -> dict[str, np.ndarray]:

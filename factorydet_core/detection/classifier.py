@@ -23,9 +23,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import hashlib
-import json
 import os
-import pickle
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -34,12 +32,43 @@ import numpy as np
 import torch
 from torch import nn
 
+from factorydet_core.detection.checkpoint import (
+    BACKGROUND,
+    MAX_SEED,
+    Setting,
+    check_class_names,
+    check_note_record,
+    check_settings,
+    load_weights,
+    read_checkpoint_note,
+    write_checkpoint,
+)
 from factorydet_core.detection.groups import DESCRIPTOR_NAMES
 from factorydet_core.types import CLASS_NAMES, Cancelled, InputError
 
-BACKGROUND = "background"
 CLASS_WEIGHTS = (None, "balanced", "sqrt")
 FEATURE_SHAPE = (20, 5, 5, 5)
+
+MAX_WIDTH = 2.0
+"""The widest ``FisherNet`` a classifier may have: twice the published network (``width=1``, 46M
+parameters), 183M parameters (0.7 GB). A hand-edited note's ``"width": 64`` asked for 5.8 GB."""
+
+SETTINGS: dict[str, Setting] = {
+    "width": Setting(float, 0.0, MAX_WIDTH, low_open=True),
+    "epochs": Setting(int, 1, 1_000_000),
+    "batch_size": Setting(int, 2, 2**20),
+    "learning_rate": Setting(float, 0.0, 10.0, low_open=True),
+    "lr_decay": Setting(float, 0.0, 1.0, low_open=True),
+    "decay_every_samples": Setting(int, 1),
+    "dropout": Setting(float, 0.0, 1.0),
+    "class_weight": Setting(str, optional=True, choices=tuple(w for w in CLASS_WEIGHTS if w)),
+    "seed": Setting(int, 0, MAX_SEED),
+    "num_threads": Setting(int, 1, 1024, optional=True),
+    "max_fit_seconds": Setting(float, 0.0, optional=True, low_open=True),
+    "geometry": Setting(bool),
+}
+"""What each setting of ``ProposalClassifier`` may be (checked when it is made, and so in a
+checkpoint's note before its network is built); ``class_names`` by ``check_class_names``."""
 
 
 def _conv(in_channels: int, out_channels: int, kernel: int) -> nn.Sequential:
@@ -210,45 +239,13 @@ class ClassOutputs:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
-def write_checkpoint(network: nn.Module, path: str | os.PathLike, note: dict) -> Path:
-    """A network's state dict at ``path`` (.pt) and ``note`` as JSON beside it (.json)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(network.state_dict(), path)
-    path.with_suffix(".json").write_text(json.dumps(note, indent=2))
-    return path
-
-
-def read_checkpoint_note(path: str | os.PathLike) -> dict:
-    """The JSON note of the checkpoint at ``path``; ``InputError`` if either file is missing or
-    the note is not JSON."""
-    path = Path(path)
-    note_path = path.with_suffix(".json")
-    if not path.is_file() or not note_path.is_file():
-        raise InputError(f"{path}: no checkpoint (needs {path.name} and {note_path.name})")
-    try:
-        return json.loads(note_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{note_path}: malformed checkpoint note ({exc})") from None
-
-
-def load_weights(network: nn.Module, path: str | os.PathLike) -> nn.Module:
-    """``network`` with the state dict at ``path`` (``torch.load(weights_only=True)``: a crafted
-    file runs no code), in eval mode; ``InputError`` if it does not fit."""
-    try:
-        network.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-    except (RuntimeError, OSError, ValueError, KeyError, pickle.UnpicklingError) as exc:
-        raise InputError(f"{path}: unreadable checkpoint ({exc})") from None
-    network.eval()
-    return network
-
-
 @dataclasses.dataclass
 class ProposalClassifier(ClassOutputs):
     """3DmFV-Net proposal classifier.
 
     Args:
-        width: channel multiplier of ``FisherNet`` (1.0 is the published network).
+        width: channel multiplier of ``FisherNet`` (1.0 is the published network), at most
+            ``MAX_WIDTH``.
         epochs: passes over the training set.
         batch_size: the paper's 64.
         learning_rate: Adam's initial rate (the paper's 0.001).
@@ -288,15 +285,10 @@ class ProposalClassifier(ClassOutputs):
         return "features+descriptors" if self.geometry else "features"
 
     def __post_init__(self) -> None:
-        if not self.width > 0:
-            raise InputError(f"width must be > 0, got {self.width}")
-        if self.epochs < 1 or self.batch_size < 2:
-            raise InputError("epochs must be >= 1 and batch_size >= 2")
-        if self.class_weight not in CLASS_WEIGHTS:
-            raise InputError(
-                f"class_weight must be one of {', '.join(map(str, CLASS_WEIGHTS))}, got {self.class_weight!r}"
-            )
-        self.class_names = tuple(self.class_names)
+        checked = check_settings(self.get_params(), SETTINGS)
+        checked["class_names"] = check_class_names(self.class_names)
+        for name, value in checked.items():
+            setattr(self, name, value)
 
     def _new_network(self) -> FisherNet:
         num_descriptors = len(DESCRIPTOR_NAMES) if self.geometry else 0
@@ -463,19 +455,30 @@ class ProposalClassifier(ClassOutputs):
         return write_checkpoint(self.network_, path, meta)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> ProposalClassifier:
-        """A fitted classifier from a checkpoint written by ``save``; ``note_`` holds the JSON note."""
-        meta = read_checkpoint_note(path)
-        try:
-            params = dict(meta["params"])
+    def from_note(cls, meta: dict, note_path: Path) -> ProposalClassifier:
+        """The unfitted classifier a checkpoint's note describes, every setting and record of the
+        note checked (``SETTINGS``, ``checkpoint.check_note_record``); no network is built."""
+        params = meta.get("params")
+        if not isinstance(params, dict) or "class_names" not in params:
+            raise InputError(f"{note_path}: malformed checkpoint note (no params with class_names)")
+        params = {"geometry": False, **params}  # checkpoints from before the option existed
+        if isinstance(params["class_names"], list):
             params["class_names"] = tuple(params["class_names"])
-            params.setdefault("geometry", False)  # checkpoints from before the option existed
-        except (KeyError, TypeError) as exc:
-            raise InputError(
-                f"{Path(path).with_suffix('.json')}: malformed checkpoint note ({exc})"
-            ) from None
         known = {f.name for f in dataclasses.fields(cls)}
-        model = cls(**{k: v for k, v in params.items() if k in known})
+        try:
+            model = cls(**{k: v for k, v in params.items() if k in known})
+        except InputError as exc:
+            raise InputError(f"{note_path}: {exc}") from None
+        check_note_record(meta, model.class_names, str(note_path))
+        return model
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> ProposalClassifier:
+        """A fitted classifier from a checkpoint written by ``save``; ``note_`` holds the JSON note.
+        The note is checked before the network is built (``from_note``), and the weights' shapes
+        against the network's (``checkpoint.read_state_dict``)."""
+        meta = read_checkpoint_note(path)
+        model = cls.from_note(meta, Path(path).with_suffix(".json"))
         network = load_weights(model._new_network(), path)
         model.network_ = network
         model.history_ = meta.get("history", [])

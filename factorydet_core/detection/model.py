@@ -6,14 +6,15 @@ regressor, ``NAME.boxq.npz``)."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
 from factorydet_core.detection.box_head import BoxHead, check_head_input, head_candidates
-from factorydet_core.detection.box_quality import BoxQuality
+from factorydet_core.detection.box_quality import BoxQuality, num_option_features
+from factorydet_core.detection.checkpoint import Setting, read_checkpoint_note
 from factorydet_core.detection.classifier import ProposalClassifier
 from factorydet_core.detection.groups import BoxSizePrior, ProposalGroups
 from factorydet_core.detection.scoring import (
@@ -23,6 +24,7 @@ from factorydet_core.detection.scoring import (
     score_groups,
     select_detections,
 )
+from factorydet_core.io.atomic import atomic_path
 from factorydet_core.proposals.settings import FrontEndParams, front_end_from_record
 from factorydet_core.types import Detections, InputError
 
@@ -141,48 +143,80 @@ class DetectionModel:
             "probability_exponent": self.probability_exponent,
             "vote_iou": self.vote_iou,
         }
-        written = self.classifier.save(path, {**extra, **(note or {})})
+        # The regressor first: the note, written last, is what says there is one.
         if self.box_quality is not None:
-            np.savez_compressed(quality_path(path), **self.box_quality.to_arrays())
-        return written
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            self.box_quality.save(quality_path(path))
+        return self.classifier.save(path, {**extra, **(note or {})})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> DetectionModel:
-        """A model from ``save``'s checkpoint (``torch.load(weights_only=True)``)."""
-        classifier = BoxHead.load(path) if _is_box_head(path) else ProposalClassifier.load(path)
-        note = classifier.note_
-        prior = note.get("box_prior")
+        """A model from ``save``'s checkpoint (``torch.load(weights_only=True)``). Every field of
+        its note and the box quality arrays are checked before any network is built, and the
+        weights against the network; ``InputError`` naming the file otherwise."""
+        note = read_checkpoint_note(path)
+        note_path = Path(path).with_suffix(".json")
+        kind = BoxHead if _is_box_head(note, note_path) else ProposalClassifier
+        class_names = kind.from_note(note, note_path).class_names
+        try:
+            prior = _box_prior_from_note(note.get("box_prior"), len(class_names))
+            fields = {
+                "score_threshold": _SCORE_THRESHOLD.check(
+                    "score_threshold", note.get("score_threshold", 0.5)
+                ),
+                "nms_iou": _NMS_IOU.check("nms_iou", note.get("nms_iou", 0.25)),
+                "front_end": _front_end_from_note(note.get("front_end")),
+                "class_score_thresholds": _class_thresholds_from_note(
+                    note.get("class_score_thresholds"), class_names
+                ),
+                "probability_exponent": _exponent_from_note(note.get("probability_exponent", 1.0)),
+                "vote_iou": _vote_iou_from_note(note.get("vote_iou", BOX_VOTE_IOU)),
+            }
+            quality_note = note.get("box_quality")
+            if quality_note is not None and not isinstance(quality_note, dict):
+                raise InputError(
+                    f"box_quality must be null or the regressor's settings, got {quality_note!r}"
+                )
+        except InputError as exc:
+            raise InputError(f"{note_path}: {str(exc)[:300]}") from None
         box_quality = None
-        if note.get("box_quality"):
-            arrays_path = quality_path(path)
-            try:
-                with np.load(arrays_path, allow_pickle=False) as arrays:
-                    box_quality = BoxQuality.from_arrays(dict(arrays))
-            except (OSError, ValueError) as exc:
-                raise InputError(f"{arrays_path}: unreadable box quality arrays ({exc})") from None
-        return cls(
-            classifier=classifier,
-            box_prior=None if prior is None else BoxSizePrior.from_json(prior),
-            score_threshold=float(note.get("score_threshold", 0.5)),
-            nms_iou=float(note.get("nms_iou", 0.25)),
-            front_end=front_end_from_record(note.get("front_end")),
-            box_quality=box_quality,
-            class_score_thresholds=_class_thresholds_from_note(note.get("class_score_thresholds")),
-            probability_exponent=_exponent_from_note(note.get("probability_exponent", 1.0)),
-            vote_iou=_vote_iou_from_note(note.get("vote_iou", BOX_VOTE_IOU)),
-        )
+        if quality_note:
+            box_quality = BoxQuality.load(quality_path(path))
+            expected = num_option_features(len(class_names), box_quality.anchored, box_quality.visibility)
+            if box_quality.num_features_ != expected:
+                raise InputError(
+                    f"{quality_path(path)}: the regressor reads {box_quality.num_features_} features where"
+                    f" this model's {len(class_names)} classes give {expected}"
+                )
+        classifier = kind.load(path)
+        return cls(classifier=classifier, box_prior=prior, box_quality=box_quality, **fields)
 
     @property
     def note(self) -> dict:
         return getattr(self.classifier, "note_", {})
 
 
-def _is_box_head(path: str | os.PathLike) -> bool:
-    """Whether the checkpoint at ``path`` holds a box head (its note's format says so)."""
-    try:
-        return describe_checkpoint(path).get("format", "").startswith("factorydet-box-head/")
-    except (OSError, json.JSONDecodeError, AttributeError):
-        return False  # the classifier's loader says what is wrong with it
+def _is_box_head(note: dict, note_path: Path) -> bool:
+    """Whether a checkpoint's note describes a box head (its format says so); a note of another
+    format is refused."""
+    kind = note.get("format", "factorydet-classifier/1")  # notes before formats were the classifier's
+    if kind not in ("factorydet-classifier/1", "factorydet-box-head/1"):
+        raise InputError(f"{note_path}: unknown checkpoint format {kind!r}"[:300])
+    return kind == "factorydet-box-head/1"
+
+
+def copy_checkpoint(source: str | os.PathLike, target: str | os.PathLike) -> Path:
+    """Copy the checkpoint at ``source`` (``NAME.pt``, its note and any box quality arrays) to
+    ``target`` (a .pt path), each file whole or not at all, the note last (``save``'s order)."""
+    source, target = Path(source), Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    pairs = [(source, target), (source.with_suffix(".json"), target.with_suffix(".json"))]
+    if quality_path(source).is_file():
+        pairs.insert(1, (quality_path(source), quality_path(target)))
+    for src, dst in pairs:
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+    return target
 
 
 def quality_path(path: str | os.PathLike) -> Path:
@@ -207,31 +241,100 @@ def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
 
 
 def describe_checkpoint(path: str | os.PathLike) -> dict:
-    """The JSON note of a checkpoint, without loading its weights."""
-    return json.loads(Path(path).with_suffix(".json").read_text())
+    """The JSON note of a checkpoint, without loading its weights (``InputError`` if unreadable)."""
+    return read_checkpoint_note(path)
+
+
+_SCORE_THRESHOLD = Setting(float, 0.0, 1.0)
+_NMS_IOU = Setting(float, 0.0, 1.0, low_open=True)
+MAX_MODES = 64
+"""The most size modes a note's prior may give a class (``BoxSizePrior.from_boxes`` keeps 8)."""
+
+
+def _size_rows(value: object, rows: int | None, name: str) -> np.ndarray:
+    """A note's (rows, 3) sizes in metres (``null`` for a class never seen: NaN), checked positive;
+    ``rows=None`` takes up to ``MAX_MODES`` rows."""
+    count_ok = isinstance(value, list) and (
+        len(value) == rows if rows is not None else len(value) <= MAX_MODES
+    )
+    if not count_ok or not all(isinstance(row, list) and len(row) == 3 for row in value):
+        want = f"{rows}" if rows is not None else f"at most {MAX_MODES}"
+        raise InputError(f"box_prior {name} must be {want} rows of three sizes")
+    if not all(
+        v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for row in value for v in row
+    ):
+        raise InputError(f"box_prior {name} must hold numbers or null")
+    try:
+        sizes = np.array([[np.nan if v is None else v for v in row] for row in value], np.float64)
+    except OverflowError:  # an integer of hundreds of digits
+        raise InputError(f"box_prior {name} must hold sizes in metres") from None
+    sizes = sizes.reshape(-1, 3)
+    known = sizes[~np.isnan(sizes)]
+    if not (np.isfinite(known).all() and (known > 0).all()):
+        raise InputError(f"box_prior {name} must hold positive sizes")
+    return sizes
+
+
+def _box_prior_from_note(value: object, num_classes: int) -> BoxSizePrior | None:
+    """A checkpoint note's class size prior (``BoxSizePrior.to_json``, or a plain list of
+    medians from before the range was kept), checked: one row per class, positive sizes."""
+    if value is None:
+        return None
+    if isinstance(value, list):
+        value = {"median": value}
+    if not isinstance(value, dict) or "median" not in value:
+        raise InputError("box_prior must be null, a list of sizes or the prior's fields")
+    if ("lower" in value) != ("upper" in value):
+        raise InputError("box_prior must give both lower and upper sizes, or neither")
+    checked = {
+        name: _size_rows(value[name], num_classes, name)
+        for name in ("median", "lower", "upper")
+        if name in value
+    }
+    modes = value.get("modes")
+    if modes is not None:
+        if not isinstance(modes, list) or len(modes) != num_classes:
+            raise InputError(f"box_prior modes must be {num_classes} lists of sizes")
+        modes = tuple(_size_rows(m, None, "modes") for m in modes)
+    return BoxSizePrior(checked["median"], checked.get("lower"), checked.get("upper"), modes)
+
+
+def _front_end_from_note(value: object) -> FrontEndParams | None:
+    """A checkpoint note's front-end settings (``front_end_from_record`` checks their names and
+    values), a clear error for a note whose settings are not a mapping."""
+    if value is not None and not isinstance(value, dict):
+        raise InputError(f"front_end must be null or the front half's settings, got {value!r}")
+    try:
+        return front_end_from_record(value)
+    except (TypeError, ValueError, AttributeError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"front_end: bad settings ({exc})") from None
 
 
 def _exponent_from_note(value) -> float:
-    """A checkpoint note's probability exponent, checked."""
-    check_exponent(value)
-    return float(value)
+    """A checkpoint note's probability exponent, checked (a finite number > 0)."""
+    exponent = Setting(float, 0.0, low_open=True).check("probability_exponent", value)
+    check_exponent(exponent)
+    return exponent
 
 
-def _class_thresholds_from_note(value) -> dict[str, float] | None:
-    """A checkpoint note's per-class thresholds, checked (a hand-edited note gets a clear error)."""
+def _class_thresholds_from_note(value, class_names: tuple[str, ...]) -> dict[str, float] | None:
+    """A checkpoint note's per-class thresholds, checked (a hand-edited note gets a clear error):
+    thresholds in [0, 1] of the model's own classes."""
     if value is None:
         return None
     if not isinstance(value, dict):
         raise InputError(f"class_score_thresholds must map class names to thresholds, got {value!r}")
     names = tuple(str(name) for name in value)
-    for name, threshold in zip(names, value.values()):
-        if (
-            isinstance(threshold, bool)
-            or not isinstance(threshold, (int, float))
-            or not np.isfinite(threshold)
-        ):
-            raise InputError(f"class_score_thresholds[{name!r}] must be a number, got {threshold!r}")
-    thresholds = np.array(list(value.values()), np.float64)
+    unknown = [name for name in names if name not in class_names]
+    if unknown:
+        raise InputError(f"class_score_thresholds names {unknown[0]!r}, not one of the model's classes")
+    number = Setting(float)
+    thresholds = np.array(
+        [number.check(f"class_score_thresholds[{name!r}]", t) for name, t in zip(names, value.values())],
+        np.float64,
+    )
     check_thresholds(thresholds, "class_score_thresholds", names)
     return dict(zip(names, thresholds.tolist()))
 
