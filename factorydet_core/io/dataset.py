@@ -5,12 +5,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import zipfile
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
+from factorydet_core.io.limits import resolve_max_points
+from factorydet_core.io.npz import load_npz
 from factorydet_core.io.readers import read_frame
 from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
 
@@ -25,10 +26,12 @@ class Dataset:
 
     Args:
         path: the data set folder or file.
+        max_points: refuse frame files holding more points (``io.limits.resolve_max_points``).
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, *, max_points: int | None = None) -> None:
         self.path = Path(path)
+        self.max_points = resolve_max_points(max_points)
         self._hash: str | None = None
         if not self.path.exists():
             raise InputError(f"{self.path}: no such file or folder")
@@ -46,9 +49,12 @@ class Dataset:
                 self.splits = {k: list(v) for k, v in self.manifest.get("splits", {}).items()}
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
                 raise InputError(f"{manifest_path}: malformed manifest ({exc})") from None
+            if not self._frame_paths:
+                # Every consumer starts at frame 0; say so here rather than with an IndexError there.
+                raise InputError(f"{self.path}: the data set has no frames ({MANIFEST} lists none)")
             self._single = None
         else:
-            self._single = read_frame(self.path)
+            self._single = read_frame(self.path, max_points=self.max_points)
             self.manifest = {"generator": "file", "frames": [self.path.name]}
             self.class_names = self._single.class_names
             self._frame_paths = [self.path]
@@ -96,12 +102,13 @@ class Dataset:
     def _read_frame(self, index: int) -> Frame:
         path = self._frame_paths[index]
         try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
+            _, arrays = load_npz(path, max_points=self.max_points)
         except FileNotFoundError:
             raise InputError(f"{path}: frame file missing") from None
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        except OSError as exc:
             raise InputError(f"{path}: unreadable frame ({type(exc).__name__}: {exc})") from None
+        except InputError as exc:
+            raise InputError(f"{path}: unreadable frame ({str(exc).removeprefix(f'{path}: ')})") from None
         try:
             labels = BoxLabels(
                 boxes=arrays["label_boxes"],
@@ -134,9 +141,9 @@ def annotation_min_points(dataset: Dataset, default: int | None = 50) -> int | N
     return default if value is None else int(value)
 
 
-def open_dataset(path: str | os.PathLike) -> Dataset:
-    """Open a data set folder or a point-cloud file."""
-    return Dataset(path)
+def open_dataset(path: str | os.PathLike, *, max_points: int | None = None) -> Dataset:
+    """Open a data set folder or a point-cloud file (``max_points``: see ``Dataset``)."""
+    return Dataset(path, max_points=max_points)
 
 
 __all__ = ["CLASS_NAMES", "Dataset", "annotation_min_points", "open_dataset"]

@@ -24,7 +24,14 @@ than ``LARGE_COORDINATE_M`` (georeferenced scans) are recentred in float64 befor
 cast to float32; the subtracted offset is kept in ``Frame.origin_offset`` and ``write_frame`` adds
 it back. Boxes are (cx, cy, cz, dx, dy, dz, yaw), z up, metres, yaw counter-clockwise about +z.
 
-Bad input raises ``InputError`` with one line naming the file and the problem.
+Bad input raises ``InputError`` with one line naming the file and the problem; never a traceback,
+a signal or unbounded memory. Each reader checks what a header declares before it allocates: sizes
+against the file's length (exactly where the format allows it, for LAZ a bound on compression), and
+the number of points against a cap, ``io.limits.MAX_POINTS`` (50 million) per file unless raised with
+``read_frame(..., max_points=...)`` or the ``FACTORYDET_MAX_POINTS`` environment variable. ``.npz``
+members are checked the same way (``io.npz.load_npz``: deflate bombs, lying array headers, pickles).
+LAZ is decoded in a child process whose address space is capped: the decoder (lazrs) aborts the
+whole process on some corrupt chunk tables, and there such an abort becomes an ``InputError``.
 """
 
 from __future__ import annotations
@@ -32,6 +39,11 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -39,7 +51,8 @@ import numpy as np
 
 from factorydet_core.geometry import apply_transforms, points_in_box
 from factorydet_core.io.atomic import atomic_path
-from factorydet_core.io.npz import save_npz
+from factorydet_core.io.limits import resolve_max_points, too_many_points
+from factorydet_core.io.npz import check_npy_array, load_npz, read_npy_header, save_npz
 from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
 
 SUPPORTED_SUFFIXES: tuple[str, ...] = (
@@ -256,7 +269,7 @@ def _parse_ply_header(path: Path, data: bytes) -> tuple[str, list[_PlyElement], 
     raise _error(path, "bad PLY header: no end_header line")  # pragma: no cover - _read_header_lines raises
 
 
-def _read_ply(path: Path) -> _RawCloud:
+def _read_ply(path: Path, max_points: int) -> _RawCloud:
     data = path.read_bytes()
     fmt, elements, body = _parse_ply_header(path, data)
     names = [element.name for element in elements]
@@ -264,6 +277,8 @@ def _read_ply(path: Path) -> _RawCloud:
         raise _error(path, "PLY header declares no vertex element")
     index = names.index("vertex")
     vertex = elements[index]
+    if vertex.count > max_points:
+        raise too_many_points(path, vertex.count, max_points, "the PLY header")
     if vertex.has_list:
         raise _error(path, "PLY vertex element with list properties is not supported")
     prop_names = [name.lower() for name, _ in vertex.properties]
@@ -327,7 +342,7 @@ def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], in
     raise _error(path, "bad PCD header: no DATA line")  # pragma: no cover - _read_header_lines raises
 
 
-def _read_pcd(path: Path) -> _RawCloud:
+def _read_pcd(path: Path, max_points: int) -> _RawCloud:
     data = path.read_bytes()
     header, body = _parse_pcd_header(path, data)
     try:
@@ -344,9 +359,13 @@ def _read_pcd(path: Path) -> _RawCloud:
         raise _error(path, "bad PCD header: FIELDS, SIZE, TYPE and COUNT differ in length")
     if num_points < 0 or min(counts) < 0:
         raise _error(path, "bad PCD header: negative POINTS or COUNT")
+    if num_points > max_points:
+        raise too_many_points(path, num_points, max_points, "the PCD header")
     codes = [_pcd_type(path, kind, size) for kind, size in zip(kinds, sizes, strict=True)]
 
     if mode == "binary_compressed":
+        record_size = sum(size * count for size, count in zip(sizes, counts, strict=True))
+        _check_pcd_compressed(path, data, body, num_points, record_size)
         return _read_with_open3d(path)
     if mode == "binary":
         layout = [
@@ -395,6 +414,39 @@ def _read_pcd(path: Path) -> _RawCloud:
     return _cloud_from_columns(path, columns, "PCD")
 
 
+_LZF_MAX_RATIO = 100
+"""LZF expands at most about 88-fold (a 3-byte back reference copies up to 264 bytes)."""
+
+
+def _check_pcd_compressed(path: Path, data: bytes, body: int, num_points: int, record_size: int) -> None:
+    """Check the sizes that open3d allocates from before it reads a ``binary_compressed`` body.
+
+    The body is u32 compressed size, u32 uncompressed size, then LZF data that inflates to
+    ``num_points`` records of ``record_size`` bytes (stored field after field).
+    """
+    available = len(data) - body - 8
+    if available < 0:
+        raise _error(
+            path, f"truncated PCD: {len(data) - body} bytes after the header, too few for a compressed body"
+        )
+    compressed, uncompressed = struct.unpack_from("<II", data, body)
+    if compressed > available:
+        raise _error(
+            path,
+            f"truncated PCD: the body declares {compressed} compressed bytes but only {available} follow",
+        )
+    if uncompressed != num_points * record_size:
+        raise _error(
+            path,
+            f"corrupt PCD: the body declares {uncompressed} uncompressed bytes, but {num_points} points of "
+            f"{record_size} bytes take {num_points * record_size}",
+        )
+    if uncompressed > max(compressed, 1) * _LZF_MAX_RATIO:
+        raise _error(
+            path, f"corrupt PCD: {compressed} LZF-compressed bytes cannot inflate to {uncompressed} bytes"
+        )
+
+
 def _read_with_open3d(path: Path) -> _RawCloud:
     """Read a file with Open3D (used for ``binary_compressed`` PCD): points and colours."""
     import open3d as o3d
@@ -424,9 +476,11 @@ def _is_number(token: str) -> bool:
     return True
 
 
-def _read_text(path: Path) -> _RawCloud:
+def _read_text(path: Path, max_points: int) -> _RawCloud:
     is_pts = path.suffix.lower() == ".pts"
     rows = []
+    # Bytes that are not UTF-8 become U+FFFD: a bad row then fails to parse with its line shown,
+    # and a stray Latin-1 byte in a comment or a header of names does no harm.
     for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
         line = line.strip()
         if not line or line.startswith("#") or (is_pts and line.isdigit()):
@@ -439,6 +493,8 @@ def _read_text(path: Path) -> _RawCloud:
     if not any(_is_number(token) for token in first):  # a header line of column names
         names = [token.lstrip("/").lower() for token in first]
         rows = rows[1:]
+    if len(rows) > max_points:
+        raise too_many_points(path, len(rows), max_points, "the file")
     if not rows:
         return _RawCloud(points=np.zeros((0, 3)))
     delimiter = "," if "," in rows[0] else (";" if ";" in rows[0] else None)
@@ -459,11 +515,192 @@ def _read_text(path: Path) -> _RawCloud:
     return cloud
 
 
-def _read_las(path: Path) -> _RawCloud:
+_LAZ_POINTS_PER_BYTE = 1000
+"""Bound on LAZ compression: two million identical points compress to 144 points a byte
+(laspy 2.7, lazrs 0.8); a header claiming more points per byte of point data is corrupt."""
+
+_VLR_HEADER_SIZE = 54
+"""Bytes of a LAS variable length record before its data."""
+
+_LAZ_CHILD_MEMORY = 1 << 30
+"""Address space of the LAZ decoding child beyond its output and input (interpreter, threads)."""
+
+# Runs in a child interpreter that imports only lazrs (about 50 ms). The address-space cap turns
+# a huge allocation from a corrupt chunk table into an abort of the child alone.
+_LAZ_CHILD = """
+import sys
+try:
+    import resource
+    limit = int(sys.argv[5])
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        limit = min(limit, soft)  # never raise a cap inherited from the parent
+    resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+except (ImportError, ValueError, OSError):
+    pass  # no address-space cap on this platform: an abort still ends only the child
+try:
+    import lazrs
+    out = bytearray(int(sys.argv[3]) * int(sys.argv[4]))
+    with open(sys.argv[1], "rb") as source:
+        source.seek(int(sys.argv[2]))
+        selection = lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL)
+        lazrs.ParLasZipDecompressor(source, bytes.fromhex(sys.stdin.read()), selection).decompress_many(out)
+except BaseException as exc:  # lazrs panics are BaseExceptions
+    sys.stderr.write(" ".join(f"{type(exc).__name__}: {exc}".split())[:300])
+    sys.exit(1)
+sys.stdout.buffer.write(out)
+"""
+
+
+def _check_las_header(path: Path, max_points: int) -> tuple[int, int, int, bool]:
+    """Check the fixed LAS header against the file's length before laspy or lazrs allocate from it.
+
+    Returns:
+        ``(point count, point record length, offset to the point data, compressed)``.
+    """
+    size = path.stat().st_size
+    with path.open("rb") as handle:
+        head = handle.read(375)  # the LAS 1.4 header; 1.0-1.3 headers are 227-235 bytes
+    if head[:4] != b"LASF":
+        raise _error(path, "not a LAS/LAZ file (no LASF signature)")
+    minor = head[25] if len(head) > 25 else 0
+    if len(head) < (255 if minor >= 4 else 227):
+        raise _error(path, f"truncated LAS/LAZ: {size} bytes is too short for a LAS 1.{minor} header")
+    header_size, offset, num_vlrs, point_format, record_length, count = struct.unpack_from(
+        "<HIIBHI", head, 94
+    )
+    if minor >= 4:  # laspy takes the 64-bit count of LAS 1.4
+        count = struct.unpack_from("<Q", head, 247)[0]
+    compressed = bool(point_format & 0xC0)
+    if offset > size:
+        raise _error(path, f"truncated LAS/LAZ: the points start at byte {offset} but the file has {size}")
+    # laspy reads as many VLRs as declared, past the end of the data: 4e9 empty ones for 0xFFFFFFFF.
+    if num_vlrs * _VLR_HEADER_SIZE > offset - header_size:
+        raise _error(
+            path,
+            f"corrupt LAS/LAZ header: {num_vlrs} VLRs do not fit in the {max(offset - header_size, 0)} bytes "
+            "before the points",
+        )
+    if count > max_points:
+        raise too_many_points(path, count, max_points, "the LAS header")
+    available = size - offset
+    if not compressed:
+        if count * record_length > available:
+            raise _error(
+                path,
+                f"truncated LAS: the header declares {count} points of {record_length} bytes "
+                f"({count * record_length} bytes) but only {available} bytes follow the header",
+            )
+        return count, record_length, offset, compressed
+    if count > available * _LAZ_POINTS_PER_BYTE:
+        raise _error(
+            path,
+            f"corrupt LAZ: the header declares {count} points, more than {available} compressed bytes hold",
+        )
+    if available >= 8:
+        with path.open("rb") as handle:
+            handle.seek(offset)
+            (table,) = struct.unpack("<q", handle.read(8))
+            if table != -1:  # -1: written by a streaming writer, no chunk table
+                if not offset + 8 <= table <= size - 8:
+                    raise _error(path, f"corrupt LAZ: chunk table at byte {table}, outside the point data")
+                handle.seek(table + 4)
+                (num_chunks,) = struct.unpack("<I", handle.read(4))
+                # lazrs reserves 16 bytes a chunk from this count (a corrupt count aborted it).
+                # Every chunk holds at least one point and one byte.
+                if num_chunks > max(count, 1) or num_chunks > table - offset:
+                    raise _error(
+                        path,
+                        f"corrupt LAZ: the chunk table lists {num_chunks} chunks for {count} points "
+                        f"in {table - offset} bytes",
+                    )
+    return count, record_length, offset, compressed
+
+
+def _decode_laz(path: Path, offset: int, count: int, record_length: int, laszip_vlr: bytes) -> bytearray:
+    """The (count * record_length) bytes of uncompressed point records of a LAZ file, decoded by
+    lazrs in a child process with a capped address space."""
+    num_bytes = count * record_length
+    limit = _LAZ_CHILD_MEMORY + 2 * num_bytes + 2 * (path.stat().st_size - offset)
+    command = [sys.executable, "-P", "-c", _LAZ_CHILD, str(path), str(offset), str(count), str(record_length)]
+    out = bytearray(num_bytes)
+    # stderr goes to a file: a pipe that nobody reads could fill and stall the child.
+    with tempfile.TemporaryFile() as errors:
+        proc = subprocess.Popen(
+            [*command, str(limit)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=errors,
+            env={**os.environ, "RUST_BACKTRACE": "0"},  # keep a panic's report short
+        )
+        try:
+            assert proc.stdin is not None and proc.stdout is not None
+            proc.stdin.write(laszip_vlr.hex().encode())
+            proc.stdin.close()
+            view, done = memoryview(out), 0
+            while done < num_bytes:
+                got = proc.stdout.readinto(view[done:])
+                if not got:
+                    break
+                done += got
+            code = proc.wait()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            for stream in (proc.stdin, proc.stdout):
+                if stream is not None:
+                    stream.close()
+        errors.seek(0)
+        lines = errors.read().decode("utf-8", "replace").splitlines()
+        detail = " ".join(" ".join(line for line in lines if not line.startswith("note: ")).split())
+    if code != 0 or done < num_bytes:
+        if code < 0:
+            try:
+                how = f"was killed by {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"was killed by signal {-code}"
+        else:
+            how = f"failed (exit code {code})" if code else f"returned {done} of {num_bytes} bytes"
+        raise _error(path, f"cannot decode LAZ (corrupt or truncated): the decoder {how}: {detail[-300:]}")
+    return out
+
+
+def _read_las(path: Path, max_points: int) -> _RawCloud:
     import laspy
 
+    count, record_length, offset, compressed = _check_las_header(path, max_points)
     try:
-        las = laspy.read(path)
+        # No EVLRs (their 64-bit lengths would be trusted) and no strict decoding of names.
+        with laspy.open(path, read_evlrs=False, encoding_errors="replace") as reader:
+            header = reader.header
+            consistent = (
+                header.point_count == count
+                and header.offset_to_point_data == offset
+                and header.point_format.size == record_length
+                and header.are_points_compressed == compressed
+            )
+            if not consistent:
+                raise _error(
+                    path, "corrupt LAS/LAZ header: its point count, offset or record length disagree"
+                )
+            if compressed:
+                vlrs = header.vlrs.get("LasZipVlr")
+                if not vlrs:
+                    raise _error(path, "corrupt LAZ: compressed points but no laszip VLR")
+                if count:
+                    buffer = _decode_laz(path, offset, count, record_length, vlrs[0].record_data)
+                    packed = laspy.PackedPointRecord.from_buffer(buffer, header.point_format, count)
+                    points = laspy.ScaleAwarePointRecord(
+                        packed.array, header.point_format, header.scales, header.offsets
+                    )
+                else:
+                    points = reader.read_points(0)
+            else:
+                points = reader.read_points(-1)
+        las = laspy.LasData(header=header, points=points)
+    except InputError:
+        raise
     except Exception as exc:  # laspy raises several types for corrupt files
         reason = f"{type(exc).__name__}: {exc}"
         raise _error(path, f"cannot read LAS/LAZ (corrupt or truncated): {reason}") from exc
@@ -481,7 +718,7 @@ def _read_las(path: Path) -> _RawCloud:
     return _RawCloud(points=points, colors=colors, intensity=intensity)
 
 
-def _read_kitti_bin(path: Path) -> _RawCloud:
+def _read_kitti_bin(path: Path, max_points: int) -> _RawCloud:
     size = path.stat().st_size
     if size % 16:
         raise _error(
@@ -489,6 +726,8 @@ def _read_kitti_bin(path: Path) -> _RawCloud:
             f"not a KITTI velodyne scan: {size} bytes is not a multiple of 16 "
             "(float32 x, y, z, intensity records)",
         )
+    if size // 16 > max_points:
+        raise too_many_points(path, size // 16, max_points, "the file size")
     values = np.fromfile(path, dtype="<f4").reshape(-1, 4)
     return _RawCloud(points=values[:, :3].astype(np.float64), intensity=values[:, 3].copy())
 
@@ -500,12 +739,20 @@ def _check_magic(path: Path, magic: bytes, problem: str) -> None:
             raise _error(path, problem)
 
 
-def _read_npy(path: Path) -> _RawCloud:
+def _read_npy(path: Path, max_points: int) -> _RawCloud:
     _check_magic(path, b"\x93NUMPY", "not a .npy file (bad magic bytes)")
-    try:
-        array = np.load(path, allow_pickle=False)
-    except Exception as exc:  # truncated or corrupt .npy
-        raise _error(path, f"corrupt .npy file: {type(exc).__name__}: {exc}") from exc
+    with path.open("rb") as handle:
+        try:
+            shape, dtype = read_npy_header(handle)
+        except Exception as exc:  # ValueError, SyntaxError from a mangled header dict, ...
+            raise _error(path, f"corrupt .npy header: {type(exc).__name__}: {exc}") from exc
+        available = path.stat().st_size - handle.tell()
+        check_npy_array(path, "the array", shape, dtype, available, max_points)
+        handle.seek(0)
+        try:
+            array = np.lib.format.read_array(handle, allow_pickle=False)
+        except Exception as exc:  # truncated or corrupt .npy
+            raise _error(path, f"corrupt .npy file: {type(exc).__name__}: {exc}") from exc
     if array.dtype.kind not in "fiu" or array.ndim != 2 or array.shape[1] < 3:
         raise _error(
             path, f"expected a numeric array of shape (N, 3) or (N, >=4), got {array.dtype} {array.shape}"
@@ -514,18 +761,10 @@ def _read_npy(path: Path) -> _RawCloud:
     return _RawCloud(points=array[:, :3].astype(np.float64), intensity=intensity)
 
 
-def _read_npz(path: Path) -> _RawCloud:
+def _read_npz(path: Path, max_points: int) -> _RawCloud:
     _check_magic(path, b"PK\x03\x04", "not an .npz archive (no zip signature)")
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            keys = list(archive.files)
-            arrays = {
-                key: archive[key]
-                for key in ("points", "boxes", "labels", "colors", "intensity")
-                if key in keys
-            }
-    except Exception as exc:  # zipfile.BadZipFile, zlib.error, ValueError (pickled objects), ...
-        raise _error(path, f"broken .npz archive: {type(exc).__name__}: {exc}") from exc
+    wanted = ("points", "boxes", "labels", "colors", "intensity")
+    keys, arrays = load_npz(path, wanted, max_points=max_points)
 
     if "points" not in arrays:
         raise _error(path, f"the .npz has no 'points' array (keys: {', '.join(keys) or 'none'})")
@@ -571,7 +810,7 @@ def _read_npz(path: Path) -> _RawCloud:
     return cloud
 
 
-_READERS: dict[str, Callable[[Path], _RawCloud]] = {
+_READERS: dict[str, Callable[[Path, int], _RawCloud]] = {
     ".ply": _read_ply,
     ".pcd": _read_pcd,
     ".xyz": _read_text,
@@ -614,9 +853,13 @@ def _build_frame(path: Path, cloud: _RawCloud, class_names: Sequence[str] | None
         raise _error(path, f"{count} of {num} intensity values are NaN or Inf")
 
     offset = np.zeros(3)
-    if np.abs(points).max() > LARGE_COORDINATE_M:
-        offset = np.round(points.mean(axis=0))
-    local = (points - offset).astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # coordinates near 1e308: checked below
+        if np.abs(points).max() > LARGE_COORDINATE_M:
+            offset = np.round(points.mean(axis=0))
+        local = (points - offset).astype(np.float32)
+    if not (np.isfinite(local).all() and np.isfinite(offset).all()):
+        span = float(np.abs(points).max())
+        raise _error(path, f"coordinates up to {span:.3g} m are too far apart for float32 points")
 
     labels = cloud.labels or []
     vocab = _vocabulary(path, labels, class_names)
@@ -659,13 +902,17 @@ def _build_frame(path: Path, cloud: _RawCloud, class_names: Sequence[str] | None
         raise _error(path, str(exc)) from exc
 
 
-def read_frame(path: str | os.PathLike, *, class_names: Sequence[str] | None = None) -> Frame:
+def read_frame(
+    path: str | os.PathLike, *, class_names: Sequence[str] | None = None, max_points: int | None = None
+) -> Frame:
     """Read one point-cloud file as a one-sensor ``Frame``.
 
     Args:
         path: a file whose suffix is in ``SUPPORTED_SUFFIXES`` (case-insensitive).
         class_names: class vocabulary for the boxes of an ``.npz`` scene. ``None`` takes the sorted
             unique labels of the file (``CLASS_NAMES`` when the file has no boxes).
+        max_points: refuse files declaring more points; ``None`` takes ``$FACTORYDET_MAX_POINTS``,
+            else ``io.limits.MAX_POINTS`` (50 million).
 
     Returns:
         A frame named after the file with ``points`` (N, 3) float32 (recentred by
@@ -677,9 +924,11 @@ def read_frame(path: str | os.PathLike, *, class_names: Sequence[str] | None = N
 
     Raises:
         InputError: one line naming the file and the problem (missing, unsupported suffix,
-            truncated or corrupt, NaN/Inf coordinates, no points, wrong array shapes, unknown classes).
+            truncated or corrupt, NaN/Inf coordinates, no points, more than ``max_points``, wrong
+            array shapes, unknown classes).
     """
     path = Path(path)
+    max_points = resolve_max_points(max_points)
     suffix = path.suffix.lower()
     if suffix not in _READERS:
         kind = suffix or "(no suffix)"
@@ -689,7 +938,10 @@ def read_frame(path: str | os.PathLike, *, class_names: Sequence[str] | None = N
     if not path.is_file():
         raise _error(path, "not a regular file")
     try:
-        cloud = _READERS[suffix](path)
+        # Casting hostile values (signalling NaNs, 1e300 into float32) warns; _build_frame reports
+        # non-finite values itself, in one line.
+        with np.errstate(invalid="ignore", over="ignore"):
+            cloud = _READERS[suffix](path, max_points)
     except InputError:
         raise
     except OSError as exc:

@@ -603,8 +603,12 @@ BAD_INPUTS: dict[str, tuple[Callable[[Path], Path], str]] = {
     "pcd unknown mode": (_write("bad.pcd", _pcd_header(1, mode="zipped") + bytes(12)), "DATA"),
     "pcd corrupt ascii": (_write("bad.pcd", _pcd_header(2, mode="ascii") + b"1 2 3\n4 5\n"), "corrupt"),
     "pcd truncated ascii": (_write("bad.pcd", _pcd_header(3, mode="ascii") + b"1 2 3\n"), "truncated"),
-    "pcd compressed garbage": (
+    "pcd compressed short body": (
         _write("bad.pcd", _pcd_header(5, mode="binary_compressed") + b"\x01" * 7),
+        "truncated PCD",
+    ),
+    "pcd compressed garbage": (
+        _write("bad.pcd", _pcd_header(5, mode="binary_compressed") + struct.pack("<II", 7, 60) + b"\x01" * 7),
         "open3d",
     ),
     "pcd nan": (
@@ -620,7 +624,7 @@ BAD_INPUTS: dict[str, tuple[Callable[[Path], Path], str]] = {
     "las garbage": (_write("bad.las", b"LASF" + bytes(50)), "LAS"),
     "las not las": (_write("bad.las", b"this is not a las file at all" * 20), "LAS"),
     "las truncated": (_truncated("cut.las", 2000), "LAS"),
-    "laz truncated": (_truncated("cut.laz", 600), "LAS"),
+    "laz truncated": (_truncated("cut.laz", 600), "LAZ"),
     "kitti size": (_write("0001.bin", bytes(30)), "multiple of 16"),
     "kitti empty": (_write("0002.bin", b""), "0 points"),
     "npy two columns": (_npy("two.npy", np.zeros((4, 2), np.float32)), "(N, 3)"),
