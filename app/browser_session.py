@@ -111,10 +111,19 @@ class BrowserSession:
 
     def _reload_selected_version(self) -> None:
         """After a conflict the person sees the label as it is now; their next edit is made
-        against that version."""
-        label = self.selected_label()
+        against that version. A deleted label keeps its version too: were it restored later (an
+        undo), an edit from here must be refused, not made unversioned over whatever changed."""
         with self.lock:
-            self.selected_label_version = None if label is None else label.version
+            label_id = self.selected_label_id
+        label = None
+        if label_id is not None and self.state.db is not None:
+            try:
+                label = self.state.db.label(label_id)
+            except InputError:  # gone altogether (another session's database): nothing to edit
+                label = None
+        with self.lock:
+            if self.selected_label_id == label_id:
+                self.selected_label_version = None if label is None else label.version
 
     def select_label(self, label_id: int | None) -> None:
         """Select a label; edits from here on are made against the version selected (or last
@@ -166,6 +175,9 @@ class BrowserSession:
             label_id, version = self.selected_label_id, self.selected_label_version
         if label_id is None:
             self.notify(what, "Select a label first (click its box).")
+            return FAILED
+        if version is None:  # never edit unversioned: someone else's change would be overwritten
+            self.notify(what, "That label is gone: select a label again.", error=True)
             return FAILED
         result = self._guarded(lambda: edit(label_id, version), what)
         if result is not FAILED and hasattr(result, "version"):
@@ -292,7 +304,7 @@ class BrowserSession:
                 verdict,
                 self.author,
                 class_name=class_name,
-                expected={item["id"]: item["verdict"]},
+                expected_versions={item["id"]: item["review_version"]},
             ),
             "Review",
         )
@@ -327,7 +339,7 @@ class BrowserSession:
                 verdict,
                 self.author,
                 class_name=class_name,
-                expected={q["id"]: q["verdict"] for q in items},
+                expected_versions={q["id"]: q["review_version"] for q in items},
             ),
             "Batch",
         )

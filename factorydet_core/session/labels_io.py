@@ -11,7 +11,9 @@ with the identity extrinsic between the vehicle and the camera:
 
 Import never drops a box silently: one that repeats a label (same class, IoU >= 0.95) is skipped and
 listed; one that overlaps a label of another class (IoU >= 0.5) is imported and listed as a
-conflict for a person to resolve.
+conflict for a person to resolve. Every box and frame index is checked first (``store.check_box``):
+a file with an absurd one is refused whole, with a one-line error naming it. Exports are written
+whole or not at all (``io.atomic``).
 """
 
 from __future__ import annotations
@@ -21,11 +23,14 @@ import os
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.geometry import points_in_box, wrap_angle
+from factorydet_core.io.atomic import atomic_path, write_text_atomic
+from factorydet_core.io.npz import load_npz
 from factorydet_core.proposals.merge import merge_frame
-from factorydet_core.session.store import SessionDB
+from factorydet_core.session.store import Label, SessionDB, check_box, check_frame_index
 from factorydet_core.types import InputError
 
 FORMATS = ("json", "kitti", "npz")
@@ -44,10 +49,9 @@ def _frames(db: SessionDB, frame_indices) -> list[int]:
 
 
 def export_json(db: SessionDB, path: str | os.PathLike, frame_indices=None) -> dict:
-    """Write every frame's labels to one JSON file; returns what was written."""
+    """Write every frame's labels to one JSON file (whole or not at all); returns what was written."""
     frames = []
-    for index in _frames(db, frame_indices):
-        labels = db.labels(index)
+    for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
         frames.append(
             {
                 "frame_index": index,
@@ -67,7 +71,7 @@ def export_json(db: SessionDB, path: str | os.PathLike, frame_indices=None) -> d
         "box_convention": BOX_CONVENTION,
         "frames": frames,
     }
-    Path(path).write_text(json.dumps(record, indent=1) + "\n")
+    write_text_atomic(path, json.dumps(record, indent=1) + "\n")
     return record
 
 
@@ -96,25 +100,25 @@ def parse_kitti_line(line: str, where: str = "") -> tuple[str, np.ndarray]:
 
 
 def export_kitti(db: SessionDB, folder: str | os.PathLike, frame_indices=None) -> list[Path]:
-    """One ``NNNNNN.txt`` per frame (its index) in ``folder``."""
+    """One ``NNNNNN.txt`` per frame (its index) in ``folder``, each written whole or not at all."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for index in _frames(db, frame_indices):
-        lines = [kitti_line(lab.box, lab.class_name) for lab in db.labels(index)]
+    for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
         path = folder / f"{index:06d}.txt"
-        path.write_text("".join(line + "\n" for line in lines))
+        write_text_atomic(path, "".join(kitti_line(lab.box, lab.class_name) + "\n" for lab in labels))
         paths.append(path)
     return paths
 
 
-def scene_arrays(db: SessionDB, frame_index: int) -> dict[str, np.ndarray]:
+def scene_arrays(db: SessionDB, frame_index: int, labels: list[Label] | None = None) -> dict[str, np.ndarray]:
     """A frame in the neutral ``.npz`` scene format: merged points in the vehicle frame, the
-    session's boxes and classes, and per-point instance (index into the boxes, plus 1; 0 none)
-    and class (into ``semantic_names``, 0 none) labels from the boxes."""
+    session's boxes and classes (``labels``, default: the frame's now), and per-point instance
+    (index into the boxes, plus 1; 0 none) and class (into ``semantic_names``, 0 none) labels
+    from the boxes."""
     frame = db.dataset.frame(frame_index)
     points = merge_frame(frame).points
-    labels = db.labels(frame_index)
+    labels = db.labels(frame_index) if labels is None else labels
     boxes = np.array([lab.box for lab in labels], np.float32).reshape(-1, 7)
     names = ("none", *db.class_names)
     point_instance = np.zeros(len(points), np.int32)
@@ -136,13 +140,14 @@ def scene_arrays(db: SessionDB, frame_index: int) -> dict[str, np.ndarray]:
 
 
 def export_npz(db: SessionDB, folder: str | os.PathLike, frame_indices=None) -> list[Path]:
-    """One ``frame_NNNNN.npz`` scene per frame in ``folder``."""
+    """One ``frame_NNNNN.npz`` scene per frame in ``folder``, each written whole or not at all."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for index in _frames(db, frame_indices):
+    for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
         path = folder / f"frame_{index:05d}.npz"
-        np.savez_compressed(path, **scene_arrays(db, index))
+        with atomic_path(path) as partial:
+            np.savez_compressed(partial, **scene_arrays(db, index, labels))
         paths.append(path)
     return paths
 
@@ -159,10 +164,102 @@ def export_labels(db: SessionDB, fmt: str, out: str | os.PathLike, frame_indices
     raise InputError(f"unknown label format {fmt!r}; choose from {', '.join(FORMATS)}")
 
 
+def _json_labels(path: Path, data_hash: str | None) -> list[tuple[int, np.ndarray, str]]:
+    """The boxes of a ``factorydet-labels`` JSON file, each checked."""
+    try:
+        record = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: not a factorydet label file ({type(exc).__name__}: {exc})") from None
+    except RecursionError:
+        raise InputError(f"{path}: not a factorydet label file (nested too deeply)") from None
+    if not isinstance(record, dict) or not isinstance(record.get("frames"), list):
+        raise InputError(f'{path}: not a factorydet label file (no "frames" list at the top level)')
+    if data_hash is not None and record.get("data_hash") not in (None, data_hash):
+        raise InputError(
+            f"{path}: exported from another data set (hash {str(record['data_hash'])[:40]}, the session's "
+            f"is {data_hash}); boxes would land on the wrong frames"
+        )
+    items = []
+    for k, frame in enumerate(record["frames"]):
+        where = f"{path}: frames[{k}]"
+        if not isinstance(frame, dict) or not {"frame_index", "boxes", "labels"} <= set(frame):
+            raise InputError(f'{where}: a frame has "frame_index", "boxes" and "labels"')
+        index = check_frame_index(frame["frame_index"], f"{where}.frame_index")
+        boxes, names = frame["boxes"], frame["labels"]
+        if not isinstance(boxes, list) or not isinstance(names, list) or len(boxes) != len(names):
+            raise InputError(f'{where}: "boxes" and "labels" are lists of the same length')
+        for j, (box, name) in enumerate(zip(boxes, names)):
+            if not isinstance(box, list) or not isinstance(name, str):
+                raise InputError(f"{where}: box {j} is not a list of 7 numbers with a class name")
+            items.append((index, np.array(check_box(box, f"{where} box {j}")), name))
+    return items
+
+
+def _kitti_labels(path: Path) -> list[tuple[int, np.ndarray, str]]:
+    """The boxes of a KITTI label file or a folder of them, each checked."""
+    files = sorted(f for f in path.glob("*.txt") if not f.name.startswith(".")) if path.is_dir() else [path]
+    items = []
+    for file in files:
+        if not file.stem.isdigit():
+            raise InputError(f"{file}: KITTI label files are named by frame index, e.g. 000003.txt")
+        index = check_frame_index(int(file.stem), str(file))
+        try:
+            text = file.read_bytes().decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise InputError(f"{file}: not a KITTI label text file (not UTF-8: {exc.reason})") from None
+        for n, line in enumerate(text.splitlines()):
+            if line.strip():
+                where = f"{file}:{n + 1}"
+                name, box = parse_kitti_line(line, where)
+                items.append((index, np.array(check_box(box, where)), name))
+    return items
+
+
+def _npz_labels(path: Path) -> list[tuple[int, np.ndarray, str]]:
+    """The boxes of a neutral ``.npz`` scene or a folder of them, each checked. Only the three
+    arrays needed are read, through ``io.npz.load_npz``, which checks each header first (a header
+    claiming 10**10 boxes is refused, not allocated)."""
+    files = sorted(f for f in path.glob("*.npz") if not f.name.startswith(".")) if path.is_dir() else [path]
+    items = []
+    for file in files:
+        _, data = load_npz(file, ("frame_index", "boxes", "labels"))
+        if "boxes" not in data or "labels" not in data:
+            raise InputError(f"{file}: not a scene file with boxes and labels")
+        if "frame_index" in data:
+            stored = data["frame_index"]
+            if stored.shape != ():
+                raise InputError(f"{file}: frame_index is one number, got shape {stored.shape}")
+            index = check_frame_index(stored.item(), f"{file}: frame_index")
+        elif file.stem.split("_")[-1].isdigit():
+            index = check_frame_index(int(file.stem.split("_")[-1]), str(file))
+        else:
+            raise InputError(f"{file}: no frame_index, and not named frame_NNNNN.npz")
+        try:
+            boxes = np.asarray(data["boxes"], np.float64)
+            names = [str(n) for n in np.asarray(data["labels"]).reshape(-1)]
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{file}: not a scene file with boxes and labels ({_brief(exc)})") from None
+        if (len(boxes) and (boxes.ndim != 2 or boxes.shape[1] != 7)) or len(boxes) != len(names):
+            raise InputError(f"{file}: boxes {boxes.shape} and labels ({len(names)}) do not pair up")
+        items += [
+            (index, np.array(check_box(box, f"{file} box {j}")), name)
+            for j, (box, name) in enumerate(zip(boxes.reshape(-1, 7), names, strict=True))
+        ]
+    return items
+
+
+def _brief(exc: BaseException) -> str:
+    return " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+
+
 def read_labels(
     path: str | os.PathLike, fmt: str | None = None, data_hash: str | None = None
 ) -> list[tuple[int, np.ndarray, str]]:
     """``(frame_index, box, class_name)`` of every box in an exported file or folder.
+
+    Every box is checked (``store.check_box``: 7 finite numbers, sizes and centre within bounds,
+    yaw wrapped) and every frame index is a true integer (``1.7`` or ``true`` is refused, not
+    truncated to frame 1); the first bad one is an ``InputError`` naming the file and item.
 
     Args:
         fmt: 'json', 'kitti' (a folder of ``NNNNNN.txt`` or one such file) or 'npz' (a folder of
@@ -180,56 +277,93 @@ def read_labels(
             fmt = "npz"
         else:
             fmt = "kitti"
-    items: list[tuple[int, np.ndarray, str]] = []
-    if fmt == "json":
-        try:
-            record = json.loads(path.read_text())
-            if data_hash is not None and record.get("data_hash") not in (None, data_hash):
-                raise InputError(
-                    f"{path}: exported from another data set (hash {record['data_hash']}, the session's "
-                    f"is {data_hash}); boxes would land on the wrong frames"
-                )
-            for frame in record["frames"]:
-                for box, name in zip(frame["boxes"], frame["labels"], strict=True):
-                    items.append((int(frame["frame_index"]), np.asarray(box, np.float64), str(name)))
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{path}: not a factorydet label file ({type(exc).__name__}: {exc})") from None
-    elif fmt == "kitti":
-        files = sorted(path.glob("*.txt")) if path.is_dir() else [path]
-        for file in files:
-            try:
-                index = int(file.stem)
-            except ValueError:
-                raise InputError(
-                    f"{file}: KITTI label files are named by frame index, e.g. 000003.txt"
-                ) from None
-            for n, line in enumerate(file.read_text().splitlines()):
-                if line.strip():
-                    name, box = parse_kitti_line(line, f"{file}:{n + 1}")
-                    items.append((index, box, name))
-    elif fmt == "npz":
-        files = sorted(path.glob("*.npz")) if path.is_dir() else [path]
-        for file in files:
-            try:
-                with np.load(file, allow_pickle=False) as data:
-                    index = (
-                        int(data["frame_index"])
-                        if "frame_index" in data.files
-                        else int(file.stem.split("_")[-1])
-                    )
-                    boxes, names = np.asarray(data["boxes"], np.float64), [str(n) for n in data["labels"]]
-            except (OSError, ValueError, KeyError) as exc:
-                raise InputError(f"{file}: not a scene file with boxes and labels ({exc})") from None
-            if (len(boxes) and (boxes.ndim != 2 or boxes.shape[1] != 7)) or len(boxes) != len(names):
-                raise InputError(f"{file}: boxes {boxes.shape} and labels ({len(names)}) do not pair up")
-            items += [(index, box, name) for box, name in zip(boxes.reshape(-1, 7), names, strict=True)]
-    else:
+    if fmt not in FORMATS:
         raise InputError(f"unknown label format {fmt!r}; choose from {', '.join(FORMATS)}")
-    return items
+    try:
+        if fmt == "json":
+            return _json_labels(path, data_hash)
+        if fmt == "kitti":
+            return _kitti_labels(path)
+        return _npz_labels(path)
+    except OSError as exc:  # a folder where a file was expected, a file that cannot be read
+        raise InputError(f"{path}: cannot read the labels ({_brief(exc)})") from None
+
+
+def _screen(
+    items: list[tuple[int, np.ndarray, str]], current: dict[int, list[Label]]
+) -> tuple[list[int], list[dict], list[dict]]:
+    """Which of ``items`` to add given the frames' ``current`` labels: ``(positions to add,
+    duplicates, conflicts)``, both lists in the order of ``items``.
+
+    An item repeats a label, or an earlier item of the same file, of its class (IoU >=
+    ``DUPLICATE_IOU``: left out) or overlaps one of another class (IoU >= ``CONFLICT_IOU``: added
+    and reported). Only pairs whose ground circles meet can overlap, so a k-d tree over the box
+    centres finds the few candidates of each item: linear in the file, not quadratic.
+    """
+    by_frame: dict[int, list[int]] = {}
+    for k, (frame_index, _, _) in enumerate(items):
+        by_frame.setdefault(frame_index, []).append(k)
+    keep, reports = [], []
+    for frame_index, positions in by_frame.items():
+        labels = current.get(frame_index, [])
+        num_labels = len(labels)
+        # The frame's labels first, then its items in the file's order; index j into all of them.
+        boxes = np.concatenate(
+            [
+                np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
+                np.array([items[k][1] for k in positions], np.float64).reshape(-1, 7),
+            ]
+        )
+        names = [lab.class_name for lab in labels] + [items[k][2] for k in positions]
+        label_ids = [lab.id for lab in labels] + [None] * len(positions)
+        radius = np.hypot(boxes[:, 3], boxes[:, 4]) / 2
+        tree = cKDTree(boxes[:, :2])
+        near = tree.query_ball_point(boxes[num_labels:, :2], radius[num_labels:] + radius.max())
+        kept = np.ones(len(boxes), bool)  # the labels, and the items not left out as repeats
+        for n, k in enumerate(positions):
+            j = num_labels + n
+            # Earlier boxes only (labels, earlier items), in that order: ties go to the first.
+            candidates = np.array(sorted(c for c in near[n] if c < j and kept[c]), np.int64)
+            found = None
+            if len(candidates):
+                iou = box_iou_3d(boxes[j][None], boxes[candidates])[0]
+                same = np.array([names[c] == names[j] for c in candidates])
+                if same.any() and iou[same].max() >= DUPLICATE_IOU:
+                    found, kind = int(np.flatnonzero(same)[iou[same].argmax()]), "duplicate"
+                elif (~same).any() and iou[~same].max() >= CONFLICT_IOU:
+                    found, kind = int(np.flatnonzero(~same)[iou[~same].argmax()]), "conflict"
+            if found is not None:
+                other = int(candidates[found])
+                reports.append(
+                    (
+                        k,
+                        kind,
+                        {
+                            "frame_index": frame_index,
+                            "class": names[j],
+                            "box": [round(float(v), 4) for v in boxes[j]],
+                            "label_id": label_ids[other],
+                            "label_class": names[other],
+                            "iou": round(float(iou[found]), 3),
+                        },
+                    )
+                )
+                if kind == "duplicate":
+                    kept[j] = False
+                    continue
+            keep.append(k)
+    reports.sort(key=lambda r: r[0])
+    duplicates = [r[2] for r in reports if r[1] == "duplicate"]
+    conflicts = [r[2] for r in reports if r[1] == "conflict"]
+    return sorted(keep), duplicates, conflicts
 
 
 def import_labels(db: SessionDB, path: str | os.PathLike, author: str, fmt: str | None = None) -> dict:
     """Add the boxes of an exported file to the session as one undoable edit.
+
+    The check for repeats and the write are one transaction (``SessionDB.add_labels``'s
+    ``screen``): two imports of one file at the same time add its boxes once, and the other
+    reports them as duplicates.
 
     Returns:
         ``{"imported": n, "duplicates": [...], "conflicts": [...], "edit": id}``; a duplicate
@@ -240,37 +374,12 @@ def import_labels(db: SessionDB, path: str | os.PathLike, author: str, fmt: str 
     unknown = sorted({name for _, _, name in items} - set(db.class_names))
     if unknown:
         raise InputError(f"{path}: classes {unknown} are not the session's {list(db.class_names)}")
-    duplicates, conflicts, keep = [], [], []
-    names = db.class_names
-    for frame_index, box, name in items:
-        boxes, class_ids, label_ids = db.frame_boxes(frame_index)
-        # Earlier boxes of the same file count as labels too, so a file's own repeats are caught.
-        earlier = [(b, n) for f, b, n in keep if f == frame_index]
-        all_boxes = np.concatenate([boxes, np.array([b for b, _ in earlier]).reshape(-1, 7)])
-        all_names = [names[int(c)] for c in class_ids] + [n for _, n in earlier]
-        all_ids = [int(i) for i in label_ids] + [None] * len(earlier)
-        if len(all_boxes):
-            iou = box_iou_3d(box[None], all_boxes)[0]
-            same = np.array([n == name for n in all_names])
+    found: dict[str, list[dict]] = {"duplicates": [], "conflicts": []}
 
-            found = None
-            if same.any() and iou[same].max() >= DUPLICATE_IOU:
-                found, kind = int(np.flatnonzero(same)[iou[same].argmax()]), duplicates
-            elif (~same).any() and iou[~same].max() >= CONFLICT_IOU:
-                found, kind = int(np.flatnonzero(~same)[iou[~same].argmax()]), conflicts
-            if found is not None:
-                kind.append(
-                    {
-                        "frame_index": frame_index,
-                        "class": name,
-                        "box": [round(float(v), 4) for v in box],
-                        "label_id": all_ids[found],
-                        "label_class": all_names[found],
-                        "iou": round(float(iou[found]), 3),
-                    }
-                )
-                if kind is duplicates:
-                    continue
-        keep.append((frame_index, box, name))
-    added = db.add_labels(keep, author, origin="import")
-    return {"imported": len(added), "duplicates": duplicates, "conflicts": conflicts, "edit": added.edit_id}
+    def screen(current: dict[int, list[Label]]) -> list[int]:
+        # Called once, inside the write transaction; its reports describe what was written.
+        keep, found["duplicates"], found["conflicts"] = _screen(items, current)
+        return keep
+
+    added = db.add_labels(items, author, origin="import", screen=screen)
+    return {"imported": len(added), **found, "edit": added.edit_id}

@@ -13,7 +13,11 @@ A session is a folder ``sessions/NAME/``:
     cache/             derived data (proposals, features), deletable at any time
 
 Every write to the database is one transaction committed before the call returns, so an edit the
-app acknowledges survives a crash of the process that made it.
+app acknowledges survives a crash of the process that made it. Writers queue for SQLite's one write
+lock (at most ``BUSY_TIMEOUT`` seconds, then ``SessionBusyError``); in WAL mode readers never wait
+for them, and a read-only open (``SessionDB(..., readonly=True)``) never writes at all. Every change
+of a label or a verdict is versioned: a writer that did not see the latest one is refused
+(``EditConflictError``), never silently obeyed.
 """
 
 from __future__ import annotations
@@ -22,13 +26,15 @@ import contextlib
 import dataclasses
 import datetime
 import json
+import math
+import numbers
 import os
 import re
 import shutil
 import sqlite3
 import threading
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from factorydet_core.boxes import box_iou_3d
@@ -51,6 +57,83 @@ def on_labelled_object(label_iou: float | None, max_label_iou: float) -> bool:
 
 class SessionError(InputError):
     """A bad session name or a session that cannot be opened."""
+
+
+class SessionBusyError(SessionError):
+    """Another process held the session database's write lock for longer than ``BUSY_TIMEOUT``."""
+
+
+BUSY_TIMEOUT = 10.0
+"""Seconds a write waits for another process's write transaction before ``SessionBusyError``. Every
+transaction here is short (the largest, an import of 10,000 boxes, takes about a second), so a
+longer wait means a stuck writer: better a one-line error than a minute of silence."""
+
+MAX_BOX_SIZE = 100.0
+"""Largest box edge accepted, metres: an order above the largest object of a factory hall."""
+MAX_BOX_DISTANCE = 10_000.0
+"""Largest distance of a box centre from the vehicle accepted, metres (far beyond any scan's reach;
+it keeps every stored coordinate exact in the float32 of the npz export)."""
+MAX_FRAME_INDEX = 2**31 - 1
+"""Largest frame index accepted (SQLite stores no integer past 2**63; no data set comes near)."""
+MAX_YAW = 1_000.0
+"""Largest |yaw| accepted before wrapping, radians. Beyond this a float64 yaw has lost its
+fractional part's precision, so the heading it meant is gone."""
+
+
+def _short(value, limit: int = 80) -> str:
+    """``repr(value)`` on one line, cut to ``limit`` characters (for error messages)."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def check_box(box, where: str = "box") -> list[float]:
+    """``box`` as 7 floats (cx, cy, cz, dx, dy, dz, yaw), yaw wrapped to [-pi, pi] if outside it.
+
+    Raises:
+        SessionError: not 7 finite numbers, a size outside (0, ``MAX_BOX_SIZE``], a centre farther
+            than ``MAX_BOX_DISTANCE`` or a yaw beyond ``MAX_YAW``; the message starts with ``where``.
+    """
+    try:
+        values = [float(v) for v in box]
+    except (TypeError, ValueError):
+        raise SessionError(
+            f"{where}: a box is 7 numbers (cx, cy, cz, dx, dy, dz, yaw), got {_short(box, 80)}"
+        ) from None
+    if len(values) != 7 or not all(map(math.isfinite, values)):
+        raise SessionError(
+            f"{where}: a box is 7 finite numbers (cx, cy, cz, dx, dy, dz, yaw), got {_short(box, 80)}"
+        )
+    if not all(0 < v <= MAX_BOX_SIZE for v in values[3:6]):
+        raise SessionError(
+            f"{where}: box sizes must be positive and at most {MAX_BOX_SIZE:g} m, got {values[3:6]}"
+        )
+    if math.hypot(*values[:3]) > MAX_BOX_DISTANCE:
+        raise SessionError(
+            f"{where}: box centre {values[:3]} is more than {MAX_BOX_DISTANCE:g} m from the vehicle"
+        )
+    if abs(values[6]) > MAX_YAW:
+        raise SessionError(
+            f"{where}: box yaw {values[6]:g} rad is beyond +-{MAX_YAW:g}; give it in [-pi, pi)"
+        )
+    if abs(values[6]) > math.pi:
+        values[6] = (values[6] + math.pi) % (2 * math.pi) - math.pi
+    return values
+
+
+def check_frame_index(value, where: str = "frame index") -> int:
+    """``value`` as a frame index: an integer, or a float without a fraction (JSON's ``3.0``).
+
+    Raises:
+        SessionError: a bool, a fractional or non-finite float, a string or anything else (``1.7``
+            and ``true`` would otherwise be truncated to frame 1), or a negative index.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise SessionError(f"{where}: a frame index is an integer, got {_short(value, 40)}")
+    if not isinstance(value, numbers.Integral) and not (math.isfinite(value) and float(value).is_integer()):
+        raise SessionError(f"{where}: a frame index is an integer, got {_short(value, 40)}")
+    if not 0 <= value <= MAX_FRAME_INDEX:
+        raise SessionError(f"{where}: a frame index lies in [0, {MAX_FRAME_INDEX}], got {_short(value, 40)}")
+    return int(value)
 
 
 def default_root() -> Path:
@@ -152,9 +235,10 @@ def clear_cache(session: Session) -> None:
 
 # --- The session database -------------------------------------------------------------------------
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 """The schema this code reads and writes (``PRAGMA user_version``). An older database is migrated
-on open; a newer one is refused untouched."""
+when it is opened for writing (a read-only open reads it as it is); a newer one is refused
+untouched."""
 
 _SCHEMA_V1 = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -237,7 +321,19 @@ CREATE TABLE reviews (
 )
 """
 
-_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1}
+# Version 2: every verdict is versioned like a label. The version lives on the mined negative,
+# whose row is never deleted, so that undoing a verdict (which deletes its row) still moves it on.
+_SCHEMA_V2 = """
+ALTER TABLE mined_negatives ADD COLUMN review_version INTEGER NOT NULL DEFAULT 0
+"""
+
+_TABLES = frozenset(
+    {"meta", "frames", "labels", "edits", "label_snapshots", "training_runs", "training_rounds"}
+    | {"mined_negatives", "reviews"}
+)
+"""The tables of every schema version: a database lacking one is refused."""
+
+_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1, 2: _SCHEMA_V2}
 """Script that takes a database from version ``v - 1`` to ``v``."""
 
 VERDICTS = ("background", "object", "wrong_box", "skip")
@@ -248,14 +344,29 @@ ORIGINS = ("dataset", "user", "review", "import")
 
 
 class EditConflictError(SessionError):
-    """An edit made against a state that someone else has changed since: reload and try again."""
+    """An edit made against a state that someone else has changed since: reload and try again.
+
+    Args:
+        message: one line, naming what was refused and why.
+        conflicts: per refused item, ``{"id": ..., "reason": ...}`` (a review of several items).
+    """
+
+    def __init__(self, message: str, conflicts: list[dict] | None = None) -> None:
+        super().__init__(message)
+        self.conflicts = list(conflicts or [])
+
+
+def _verdict_text(verdict: str, class_name: str | None) -> str:
+    return verdict if class_name is None else f"{verdict} ({class_name})"
 
 
 @dataclasses.dataclass(frozen=True)
 class Label:
     """One labelled box of a frame, as stored."""
 
-    id: int
+    id: int | None
+    """``None`` only for a data set annotation of a frame whose labels are not stored yet, as a
+    read-only open sees them (the first write stores them)."""
     frame_index: int
     box: tuple[float, ...]
     """(7,) (cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame."""
@@ -299,24 +410,36 @@ def _now() -> str:
     return datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
 
 
-def _box_json(box) -> str:
-    values = [float(v) for v in box]
-    if len(values) != 7 or not all(map(_finite, values)):
-        raise SessionError(f"a box is 7 finite numbers (cx, cy, cz, dx, dy, dz, yaw), got {box!r}")
-    if min(values[3:6]) <= 0:
-        raise SessionError(f"box sizes must be positive, got {values[3:6]}")
-    return json.dumps([round(v, 6) for v in values])
+def _box_json(box, where: str = "box") -> str:
+    return json.dumps([round(v, 6) for v in check_box(box, where)])
 
 
-def _finite(value: float) -> bool:
-    return value == value and abs(value) != float("inf")
+def _loads(text, what: str):
+    """A JSON field of the database; a damaged one is a one-line ``SessionError`` naming it."""
+    try:
+        return json.loads(text)
+    except (TypeError, ValueError, RecursionError):
+        raise SessionError(
+            f"the session database is damaged: {what} is not valid JSON ({_short(text, 60)})"
+        ) from None
 
 
 def _label(row: sqlite3.Row) -> Label:
+    """A stored label, checked: a damaged row is a one-line ``SessionError``, not a traceback later."""
+    what = f"label {row['id']}"
+    box = _loads(row["box"], f"the box of {what}")
+    if not isinstance(box, list):
+        raise SessionError(f"the session database is damaged: the box of {what} is {_short(box, 60)}")
+    box = check_box(box, f"the session database is damaged: {what}")
+    if not all(isinstance(row[k], int) for k in ("id", "frame_index", "version")):
+        raise SessionError(
+            f"the session database is damaged: {what} has frame {_short(row['frame_index'], 20)},"
+            f" version {_short(row['version'], 20)}"
+        )
     return Label(
         id=row["id"],
         frame_index=row["frame_index"],
-        box=tuple(json.loads(row["box"])),
+        box=tuple(box),
         class_name=row["class_name"],
         origin=row["origin"],
         instance_id=row["instance_id"],
@@ -337,7 +460,30 @@ _CONTENT = {
 _KEYS = {"labels": "id", "reviews": "negative_id"}
 
 
-def check_database(path: str | os.PathLike) -> int:
+def _one_line(exc: BaseException) -> str:
+    return " ".join(f"{type(exc).__name__}: {exc}".split())
+
+
+def _is_busy(exc: Exception) -> bool:
+    return isinstance(exc, sqlite3.OperationalError) and any(
+        word in str(exc) for word in ("database is locked", "database table is locked", "busy")
+    )
+
+
+def _connect_readonly(path: Path, timeout: float) -> sqlite3.Connection:
+    """A connection that cannot write: opened ``mode=ro``, with ``query_only`` on as well."""
+    connection = sqlite3.connect(
+        f"{path.resolve().as_uri()}?mode=ro",
+        uri=True,
+        timeout=timeout,
+        isolation_level=None,
+        check_same_thread=False,
+    )
+    connection.execute("PRAGMA query_only = ON")
+    return connection
+
+
+def check_database(path: str | os.PathLike, timeout: float | None = None) -> int:
     """Check an existing session database without writing to it.
 
     Returns:
@@ -346,32 +492,48 @@ def check_database(path: str | os.PathLike) -> int:
     Raises:
         SessionError: the file is not an SQLite database, is damaged, is not a factorydet session,
             or was written by a newer version of factorydet.
+        SessionBusyError: another process kept it locked (only a database not in WAL mode can).
     """
     path = Path(path)
+    timeout = BUSY_TIMEOUT if timeout is None else timeout
+    connection = None
     try:
-        connection = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
-    except sqlite3.Error as exc:
-        raise SessionError(f"{path}: cannot open the session database ({exc})") from None
-    try:
+        connection = _connect_readonly(path, timeout)
         version = connection.execute("PRAGMA user_version").fetchone()[0]
         if version > SCHEMA_VERSION:
             raise SessionError(
                 f"{path}: session database schema {version} is newer than this factorydet's "
                 f"({SCHEMA_VERSION}); upgrade factorydet. The file was not modified."
             )
+        if version < 0:
+            raise SessionError(f"{path}: session database schema {version} is not valid; it was not modified")
         check = connection.execute("PRAGMA quick_check").fetchone()[0]
         if check != "ok":
-            raise SessionError(f"{path}: the session database is damaged ({check}); it was not modified")
+            reason = " ".join(check.split())[:200]  # quick_check lists problems a line each
+            raise SessionError(f"{path}: the session database is damaged ({reason}); it was not modified")
         tables = {r[0] for r in connection.execute("SELECT name FROM sqlite_master WHERE type='table'")}
         if version == 0 and tables:
             raise SessionError(f"{path}: an SQLite file that is not a factorydet session database")
-        missing = {"meta", "labels", "edits", "reviews"} - tables
+        missing = _TABLES - tables
         if version >= 1 and missing:
-            raise SessionError(f"{path}: the session database lacks the tables {sorted(missing)}")
-    except sqlite3.DatabaseError as exc:
-        raise SessionError(f"{path}: not a readable session database ({exc}); it was not modified") from None
+            raise SessionError(
+                f"{path}: the session database lacks the tables {sorted(missing)}; it was not modified"
+            )
+    except (sqlite3.Error, UnicodeDecodeError) as exc:
+        if _is_busy(exc):
+            raise SessionBusyError(
+                f"{path}: another process has kept the session database locked for over {timeout:g} s;"
+                " try again when it is done"
+            ) from None
+        if isinstance(exc, sqlite3.OperationalError) and "unable to open" in str(exc):
+            readable = "" if os.access(path, os.R_OK) else "; the file is not readable by you"
+            raise SessionError(f"{path}: cannot open the session database ({exc}{readable})") from None
+        raise SessionError(
+            f"{path}: not a readable session database ({_one_line(exc)}); it was not modified"
+        ) from None
     finally:
-        connection.close()
+        if connection is not None:
+            connection.close()
     return version
 
 
@@ -387,60 +549,121 @@ class SessionDB:
             content hash; a later open with a different data set is refused. Needed to import the
             data set's annotations as the first labels of each frame.
         data_ref: how to name the data set in the record (default: its path).
+        readonly: open for reading only (``queue``, ``labels export``): nothing is ever written,
+            not even a migration or the data set record, so a read-only file or a busy writer does
+            not stop it. Frames whose labels were never stored read as the data set's annotations.
+        timeout: seconds a write waits for another process's write before ``SessionBusyError``
+            (default ``BUSY_TIMEOUT``).
     """
 
-    def __init__(self, session: Session, dataset=None, data_ref: str | None = None) -> None:
+    def __init__(
+        self,
+        session: Session,
+        dataset=None,
+        data_ref: str | None = None,
+        *,
+        readonly: bool = False,
+        timeout: float | None = None,
+    ) -> None:
         self.session = session
         self.dataset = dataset
         self.path = session.db_path
-        version = check_database(self.path) if self.path.exists() else 0
-        session.path.mkdir(parents=True, exist_ok=True)
-        if version < SCHEMA_VERSION:
-            self._migrate()
+        self.readonly = readonly
+        self.timeout = float(BUSY_TIMEOUT if timeout is None else timeout)
+        if readonly:
+            if not self.path.is_file():
+                raise SessionError(f"session {session.name!r} has no database ({self.path}) to read")
+            self.schema_version = check_database(self.path, self.timeout)
+            if self.schema_version == 0:
+                raise SessionError(f"{self.path}: an empty session database; nothing to read")
+        else:
+            version = check_database(self.path, self.timeout) if self.path.exists() else 0
+            session.path.mkdir(parents=True, exist_ok=True)
+            self._migrate(version)
+            self.schema_version = SCHEMA_VERSION
         if dataset is not None:
             self._bind(dataset, data_ref or str(dataset.path))
 
     # -- connections
 
     def _connect(self) -> sqlite3.Connection:
-        connection = sqlite3.connect(self.path, timeout=60, isolation_level=None, check_same_thread=False)
+        if self.readonly:
+            connection = _connect_readonly(self.path, self.timeout)
+        else:
+            connection = sqlite3.connect(
+                self.path, timeout=self.timeout, isolation_level=None, check_same_thread=False
+            )
+            connection.execute("PRAGMA synchronous = FULL")
         connection.row_factory = sqlite3.Row
         connection.execute("PRAGMA foreign_keys = ON")
-        connection.execute("PRAGMA synchronous = FULL")
         return connection
+
+    def _failure(self, exc: Exception) -> SessionError:
+        """A database error as the one-line error a person reads."""
+        if isinstance(exc, UnicodeDecodeError):
+            return SessionError(f"{self.path}: the session database is damaged (a text value is not UTF-8)")
+        if _is_busy(exc):
+            return SessionBusyError(
+                f"session {self.session.name!r} is busy: another process has held its database for over"
+                f" {self.timeout:g} s; try again when it is done"
+            )
+        return SessionError(f"{self.path}: the session database failed ({_one_line(exc)})")
 
     @contextlib.contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
-        """A write transaction (taken at once, so two writers never deadlock), committed on success."""
-        connection = self._connect()
+        """A write transaction (taken at once, so two writers never deadlock), committed on success.
+
+        Whatever the body reads and then writes is one atomic step: no other writer runs between.
+        """
+        if self.readonly:
+            raise SessionError(f"session {self.session.name!r} was opened read-only")
         try:
-            connection.execute("BEGIN IMMEDIATE")
+            connection = self._connect()
             try:
-                yield connection
-            except BaseException:
-                connection.execute("ROLLBACK")
-                raise
-            connection.execute("COMMIT")
-        finally:
-            connection.close()
+                connection.execute("BEGIN IMMEDIATE")
+                try:
+                    yield connection
+                except BaseException:
+                    if connection.in_transaction:
+                        connection.execute("ROLLBACK")
+                    raise
+                connection.execute("COMMIT")
+            finally:
+                connection.close()
+        except (sqlite3.Error, UnicodeDecodeError) as exc:  # a text value that is not UTF-8: damage
+            raise self._failure(exc) from None
 
     @contextlib.contextmanager
     def _read(self) -> Iterator[sqlite3.Connection]:
-        connection = self._connect()
+        """A read transaction: one consistent state, however many statements (WAL: never waits)."""
         try:
-            connection.execute("BEGIN")
-            yield connection
-            connection.execute("COMMIT")
-        finally:
-            connection.close()
+            connection = self._connect()
+            try:
+                connection.execute("BEGIN")
+                yield connection
+                connection.execute("COMMIT")
+            finally:
+                connection.close()
+        except (sqlite3.Error, UnicodeDecodeError) as exc:  # a text value that is not UTF-8: damage
+            raise self._failure(exc) from None
 
-    def _migrate(self) -> None:
-        connection = self._connect()
+    def _migrate(self, version: int) -> None:
+        """WAL mode if the database is not in it yet, then the schema brought up to date."""
         try:
-            connection.execute("PRAGMA journal_mode = WAL")
-        finally:
-            connection.close()
+            connection = self._connect()
+            try:
+                # Outside a transaction: the journal mode cannot change inside one. Only switched
+                # when needed, since switching waits for every other connection to close.
+                if connection.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
+                    connection.execute("PRAGMA journal_mode = WAL")
+            finally:
+                connection.close()
+        except (sqlite3.Error, UnicodeDecodeError) as exc:  # a text value that is not UTF-8: damage
+            raise self._failure(exc) from None
+        if version >= SCHEMA_VERSION:
+            return
         with self._write() as db:
+            # Read again inside the lock: another process may have migrated it meanwhile.
             version = db.execute("PRAGMA user_version").fetchone()[0]
             for target in range(version + 1, SCHEMA_VERSION + 1):
                 for statement in _MIGRATIONS[target].split(";"):
@@ -451,25 +674,30 @@ class SessionDB:
                 db.execute(f"PRAGMA user_version = {target}")
 
     def _bind(self, dataset, data_ref: str) -> None:
+        """Record the data set on the first open; refuse another data set on a later one. Only the
+        first open writes (a read-only open never does)."""
         digest = dataset.content_hash()
-        with self._write() as db:
-            meta = dict(db.execute("SELECT key, value FROM meta").fetchall())
-            if "data_hash" not in meta:
-                db.executemany(
-                    "INSERT INTO meta VALUES (?, ?)",
-                    [
-                        ("data", data_ref),
-                        ("data_hash", digest),
-                        ("class_names", json.dumps(list(dataset.class_names))),
-                        ("num_frames", str(dataset.num_frames)),
-                    ],
-                )
-            elif meta["data_hash"] != digest:
-                raise SessionError(
-                    f"session {self.session.name!r} was made on the data set {meta['data']} "
-                    f"(hash {meta['data_hash']}); {data_ref} (hash {digest}) differs. "
-                    "Open it with its own data set or start a new session."
-                )
+        meta = self.meta()
+        if "data_hash" not in meta and not self.readonly:
+            with self._write() as db:
+                meta = dict(db.execute("SELECT key, value FROM meta").fetchall())
+                if "data_hash" not in meta:
+                    db.executemany(
+                        "INSERT INTO meta VALUES (?, ?)",
+                        [
+                            ("data", data_ref),
+                            ("data_hash", digest),
+                            ("class_names", json.dumps(list(dataset.class_names))),
+                            ("num_frames", str(dataset.num_frames)),
+                        ],
+                    )
+                    return
+        if "data_hash" in meta and meta["data_hash"] != digest:
+            raise SessionError(
+                f"session {self.session.name!r} was made on the data set {meta.get('data')} "
+                f"(hash {meta['data_hash']}); {data_ref} (hash {digest}) differs. "
+                "Open it with its own data set or start a new session."
+            )
 
     # -- metadata
 
@@ -482,18 +710,22 @@ class SessionDB:
     def class_names(self) -> tuple[str, ...]:
         if self.dataset is not None:
             return tuple(self.dataset.class_names)
-        return tuple(json.loads(self.meta().get("class_names", "[]")))
+        names = _loads(self.meta().get("class_names", "[]"), "the class names")
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise SessionError(f"the session database is damaged: class names {_short(names, 60)}")
+        return tuple(names)
 
-    def _check_class(self, class_name: str) -> str:
-        names = self.class_names
+    def _check_class(self, class_name: str, names: tuple[str, ...] | None = None) -> str:
+        names = self.class_names if names is None else names
         if names and class_name not in names:
             raise SessionError(f"unknown class {class_name!r}; choose from {', '.join(names)}")
         return class_name
 
-    def _check_frame(self, frame_index: int) -> int:
-        if self.dataset is not None and not 0 <= int(frame_index) < self.dataset.num_frames:
+    def _check_frame(self, frame_index: int, where: str = "frame index") -> int:
+        index = check_frame_index(frame_index, where)
+        if self.dataset is not None and not index < self.dataset.num_frames:
             raise SessionError(f"frame {frame_index} out of range [0, {self.dataset.num_frames})")
-        return int(frame_index)
+        return index
 
     # -- labels
 
@@ -501,38 +733,79 @@ class SessionDB:
         """The data set's annotations become the frame's first labels (once per session)."""
         if db.execute("SELECT 1 FROM frames WHERE frame_index = ?", (frame_index,)).fetchone():
             return
-        if self.dataset is None:
-            raise SessionError(
-                f"frame {frame_index} has no labels yet and no data set is open to import them"
-            )
-        frame = self.dataset.frame(frame_index)
         now = _now()
         db.executemany(
             "INSERT INTO labels (frame_index, box, class_name, origin, instance_id, created_by, created,"
             " modified_by, modified) VALUES (?, ?, ?, 'dataset', ?, 'dataset', ?, 'dataset', ?)",
             [
-                (frame_index, _box_json(box), frame.class_names[int(c)], int(i), now, now)
-                for box, c, i in zip(frame.labels.boxes, frame.labels.class_ids, frame.labels.instance_ids)
+                (frame_index, _box_json(box), name, instance_id, now, now)
+                for box, name, instance_id in self._annotations(frame_index)
             ],
         )
         db.execute("INSERT INTO frames VALUES (?, ?)", (frame_index, now))
 
+    def _annotations(self, frame_index: int) -> list[tuple]:
+        """``(box, class_name, instance_id)`` of the data set's annotations of a frame."""
+        if self.dataset is None:
+            raise SessionError(
+                f"frame {frame_index} has no labels yet and no data set is open to import them"
+            )
+        frame = self.dataset.frame(frame_index)
+        return [
+            (box, frame.class_names[int(c)], int(i))
+            for box, c, i in zip(frame.labels.boxes, frame.labels.class_ids, frame.labels.instance_ids)
+        ]
+
     def ensure_frames(self, frame_indices) -> None:
-        """Import the data set's annotations of any of ``frame_indices`` not imported yet."""
+        """Import the data set's annotations of any of ``frame_indices`` not imported yet (a
+        read-only open never writes: it reads such frames from the data set instead)."""
+        if self.readonly:
+            return
+        todo = {self._check_frame(i) for i in frame_indices}
         with self._read() as db:
-            done = {r[0] for r in db.execute("SELECT frame_index FROM frames")}
-        todo = [self._check_frame(i) for i in frame_indices if int(i) not in done]
+            todo -= {r[0] for r in db.execute("SELECT frame_index FROM frames")}
         if todo:
             with self._write() as db:
-                for index in todo:
+                for index in sorted(todo):
                     self._import_frame(db, index)
+
+    def _stored_labels(self, frames: list[int], include_deleted: bool) -> dict[int, list[Label]]:
+        """The stored labels of those of ``frames`` whose labels were imported, in one read."""
+        out: dict[int, list[Label]] = {}
+        with self._read() as db:
+            imported = {r[0] for r in db.execute("SELECT frame_index FROM frames")}
+            wanted = [f for f in frames if f in imported]
+            for f in wanted:
+                out[f] = []
+            query = "SELECT * FROM labels WHERE frame_index IN (SELECT value FROM json_each(?))"
+            if not include_deleted:
+                query += " AND deleted = 0"
+            for row in db.execute(query + " ORDER BY id", (json.dumps(wanted),)):
+                out[row["frame_index"]].append(_label(row))
+        return out
+
+    def frame_labels(self, frame_indices, include_deleted: bool = False) -> dict[int, list[Label]]:
+        """The labels of several frames, in creation order, all read in one transaction (one
+        consistent state however many frames: what an export writes)."""
+        frames = sorted({self._check_frame(i) for i in frame_indices})
+        out = self._stored_labels(frames, include_deleted)
+        missing = [f for f in frames if f not in out]
+        if missing and self.readonly:
+            # What the first write will store, read without writing (ids come with the store).
+            for f in missing:
+                out[f] = [
+                    Label(None, f, tuple(json.loads(_box_json(box))), name, "dataset", instance_id,
+                          "dataset", "", "dataset", "", 0, False)
+                    for box, name, instance_id in self._annotations(f)
+                ]  # fmt: skip
+        elif missing:
+            self.ensure_frames(missing)
+            out.update(self._stored_labels(missing, include_deleted))
+        return {f: out[f] for f in frames}
 
     def labels(self, frame_index: int, include_deleted: bool = False) -> list[Label]:
         """The frame's labels, in creation order."""
-        self.ensure_frames([frame_index])
-        query = "SELECT * FROM labels WHERE frame_index = ?" + ("" if include_deleted else " AND deleted = 0")
-        with self._read() as db:
-            return [_label(r) for r in db.execute(query + " ORDER BY id", (int(frame_index),))]
+        return next(iter(self.frame_labels([frame_index], include_deleted).values()))
 
     def label(self, label_id: int) -> Label:
         with self._read() as db:
@@ -543,15 +816,21 @@ class SessionDB:
 
     def frame_boxes(self, frame_index: int) -> tuple:
         """The frame's labels as arrays: ``(boxes (R, 7), class_ids (R,), label_ids (R,))``, class
-        ids indexing ``class_names``."""
+        ids indexing ``class_names`` (label id -1: not stored yet, see ``Label.id``)."""
         import numpy as np
 
         labels = self.labels(frame_index)
         names = self.class_names
+        unknown = [lab for lab in labels if lab.class_name not in names]
+        if unknown:
+            raise SessionError(
+                f"the session database is damaged: label {unknown[0].id} has the class"
+                f" {_short(unknown[0].class_name, 40)}, not one of {list(names)}"
+            )
         return (
             np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
             np.array([names.index(lab.class_name) for lab in labels], np.int64),
-            np.array([lab.id for lab in labels], np.int64),
+            np.array([-1 if lab.id is None else lab.id for lab in labels], np.int64),
         )
 
     def _edit(self, db: sqlite3.Connection, author: str, kind: str, summary: str, changes: list) -> int:
@@ -587,33 +866,48 @@ class SessionDB:
                     key,
                 ),
             )
-        elif content is None:
-            db.execute("DELETE FROM reviews WHERE negative_id = ?", (key,))
         else:
-            db.execute(
-                "INSERT OR REPLACE INTO reviews VALUES (?, ?, ?, ?, ?, ?)",
-                (key, content["verdict"], content["class_name"], content["label_id"], author, _now()),
-            )
+            if content is None:
+                db.execute("DELETE FROM reviews WHERE negative_id = ?", (key,))
+            else:
+                db.execute(
+                    "INSERT OR REPLACE INTO reviews VALUES (?, ?, ?, ?, ?, ?)",
+                    (key, content["verdict"], content["class_name"], content["label_id"], author, _now()),
+                )
+            db.execute("UPDATE mined_negatives SET review_version = review_version + 1 WHERE id = ?", (key,))
 
     def _change(self, db, table: str, key: int, after: dict | None, author: str) -> dict:
         before = self._content(db, table, key)
         self._store(db, table, key, after, author)
         return {"table": table, "key": key, "before": before, "after": after}
 
+    def _insert_labels(
+        self, db, items: list[tuple[int, str, str]], origin: str, author: str
+    ) -> tuple[list[int], list[dict]]:
+        """Insert labels ``(frame_index, box JSON, class_name)``; returns their ids and changes.
+
+        Each is logged as created deleted, then undeleted (version 2): undo simply flags it again.
+        """
+        now = _now()
+        ids, changes = [], []
+        for frame_index, box, class_name in items:
+            label_id = db.execute(
+                "INSERT INTO labels (frame_index, box, class_name, origin, created_by, created, modified_by,"
+                " modified, version, deleted) VALUES (?, ?, ?, ?, ?, ?, ?, ?, 2, 0)",
+                (frame_index, box, class_name, origin, author, now, author, now),
+            ).lastrowid
+            ids.append(int(label_id))
+            before = {"frame_index": frame_index, "box": box, "class_name": class_name, "deleted": 1}
+            changes.append(
+                {"table": "labels", "key": int(label_id), "before": before, "after": {**before, "deleted": 0}}
+            )
+        return ids, changes
+
     def _insert_label(
         self, db, frame_index: int, box, class_name: str, origin: str, author: str
     ) -> tuple[int, dict]:
-        now = _now()
-        label_id = int(
-            db.execute(
-                "INSERT INTO labels (frame_index, box, class_name, origin, created_by, created, modified_by,"
-                " modified, deleted) VALUES (?, ?, ?, ?, ?, ?, ?, ?, 1)",
-                (frame_index, _box_json(box), class_name, origin, author, now, author, now),
-            ).lastrowid
-        )
-        # Inserted deleted, then "undeleted" by a logged change, so undo simply flags it again.
-        created = {"frame_index": frame_index, "box": _box_json(box), "class_name": class_name, "deleted": 0}
-        return label_id, self._change(db, "labels", label_id, created, author)
+        ids, changes = self._insert_labels(db, [(frame_index, _box_json(box), class_name)], origin, author)
+        return ids[0], changes[0]
 
     def _locked_label(self, db, label_id: int, expected_version: int | None) -> sqlite3.Row:
         row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
@@ -628,36 +922,64 @@ class SessionDB:
 
     def add_label(self, frame_index: int, box, class_name: str, author: str, origin: str = "user") -> Label:
         """A new label; returns it as stored."""
-        if origin not in ORIGINS:
-            raise SessionError(f"unknown label origin {origin!r}")
-        frame_index = self._check_frame(frame_index)
-        self._check_class(class_name)
-        self.ensure_frames([frame_index])
-        with self._write() as db:
-            label_id, change = self._insert_label(db, frame_index, box, class_name, origin, author)
-            self._edit(db, author, "add", f"add {class_name} to frame {frame_index}", [change])
-        return self.label(label_id)
+        return self.add_labels(
+            [(frame_index, box, class_name)],
+            author,
+            origin,
+            summary=f"add {class_name} to frame {frame_index}",
+        )[0]
 
-    def add_labels(self, items, author: str, origin: str = "import") -> LabelBatch:
+    def add_labels(
+        self,
+        items,
+        author: str,
+        origin: str = "import",
+        *,
+        screen: Callable[[dict[int, list[Label]]], list[int]] | None = None,
+        summary: str | None = None,
+    ) -> LabelBatch:
         """Several new labels as one undoable edit (returned with its ``edit_id``).
 
         Args:
             items: ``(frame_index, box, class_name)`` triples.
+            screen: called with the current labels of the items' frames, inside the transaction that
+                writes, and returns the positions in ``items`` to add (an import leaves out the boxes
+                that repeat a label). Checking and writing in one transaction is what keeps two
+                imports of one file at the same time from both adding its boxes.
+            summary: the edit log's line (default: "<origin>: add N label(s)").
         """
         if origin not in ORIGINS:
             raise SessionError(f"unknown label origin {origin!r}")
-        items = [(self._check_frame(f), box, self._check_class(c)) for f, box, c in items]
-        if not items:
+        names = self.class_names
+        rows = [(self._check_frame(f), _box_json(box), self._check_class(c, names)) for f, box, c in items]
+        if not rows:
             return LabelBatch([], None)
-        self.ensure_frames({f for f, _, _ in items})
+        frames = sorted({f for f, _, _ in rows})
         with self._write() as db:
-            ids, changes = [], []
-            for frame_index, box, class_name in items:
-                label_id, change = self._insert_label(db, frame_index, box, class_name, origin, author)
-                ids.append(label_id)
-                changes.append(change)
-            edit_id = self._edit(db, author, "add", f"{origin}: add {len(ids)} label(s)", changes)
-        return LabelBatch([self.label(i) for i in ids], edit_id)
+            for index in frames:
+                self._import_frame(db, index)
+            if screen is not None:
+                current: dict[int, list[Label]] = {f: [] for f in frames}
+                for row in db.execute(
+                    "SELECT * FROM labels WHERE deleted = 0"
+                    " AND frame_index IN (SELECT value FROM json_each(?)) ORDER BY id",
+                    (json.dumps(frames),),
+                ):
+                    current[row["frame_index"]].append(_label(row))
+                rows = [rows[k] for k in screen(current)]
+                if not rows:
+                    return LabelBatch([], None)
+            ids, changes = self._insert_labels(db, rows, origin, author)
+            edit_id = self._edit(db, author, "add", summary or f"{origin}: add {len(ids)} label(s)", changes)
+            wanted = set(ids)
+            added = [
+                _label(r)
+                for r in db.execute(
+                    "SELECT * FROM labels WHERE id BETWEEN ? AND ? ORDER BY id", (min(ids), max(ids))
+                )
+                if r["id"] in wanted
+            ]
+        return LabelBatch(added, edit_id)
 
     def update_label(
         self,
@@ -723,7 +1045,7 @@ class SessionDB:
             ).fetchone()
             if row is None:
                 return None
-            changes = json.loads(row["changes"])
+            changes = _loads(row["changes"], f"edit {row['id']}")
             for change in reversed(changes) if undo else changes:
                 expected, target = (
                     (change["after"], change["before"]) if undo else (change["before"], change["after"])
@@ -785,7 +1107,7 @@ class SessionDB:
                 f" AND frame_index IN ({','.join('?' * len(frames))}) ORDER BY id",
                 frames,
             ).fetchall()
-            labels = [{**dict(r), "box": json.loads(r["box"])} for r in rows]
+            labels = [{**dict(r), "box": _loads(r["box"], f"the box of label {r['id']}")} for r in rows]
             last_edit = db.execute("SELECT MAX(id) FROM edits").fetchone()[0]
             return int(
                 db.execute(
@@ -811,8 +1133,8 @@ class SessionDB:
             row = db.execute("SELECT * FROM label_snapshots WHERE id = ?", (int(snapshot_id),)).fetchone()
         if row is None:
             raise SessionError(f"no label snapshot {snapshot_id}")
-        return {"id": row["id"], "created": row["created"], "last_edit_id": row["last_edit_id"]} | json.loads(
-            row["labels"]
+        return {"id": row["id"], "created": row["created"], "last_edit_id": row["last_edit_id"]} | _loads(
+            row["labels"], f"label snapshot {snapshot_id}"
         )
 
     # -- training runs
@@ -915,11 +1237,16 @@ class SessionDB:
                 dict(r) for r in db.execute("SELECT * FROM training_runs WHERE model_path != '' ORDER BY id")
             ]
             for run in runs:
-                run["config"] = json.loads(run["config"])
-                run["train_frames"] = json.loads(run["train_frames"])
-                run["metrics"] = json.loads(run["metrics"]) if run["metrics"] else None
+                run["config"] = _loads(run["config"], f"the config of run {run['id']}")
+                run["train_frames"] = _loads(run["train_frames"], f"the frames of run {run['id']}")
+                run["metrics"] = (
+                    _loads(run["metrics"], f"the metrics of run {run['id']}") if run["metrics"] else None
+                )
                 run["rounds"] = [
-                    {**dict(r), "train_metrics": json.loads(r["train_metrics"])}
+                    {
+                        **dict(r),
+                        "train_metrics": _loads(r["train_metrics"], f"the metrics of run {run['id']}"),
+                    }
                     for r in db.execute(
                         "SELECT * FROM training_rounds WHERE run_id = ? ORDER BY round", (run["id"],)
                     )
@@ -985,9 +1312,15 @@ class SessionDB:
         out = []
         for r in rows:
             item = dict(r)
-            item["box"] = json.loads(item["box"])
-            item["patch_set"] = json.loads(item["patch_set"])
-            item["probabilities"] = json.loads(item["probabilities"]) if item["probabilities"] else None
+            what = f"mined negative {item['id']}"
+            item["box"] = _loads(item["box"], f"the box of {what}")
+            item["patch_set"] = _loads(item["patch_set"], f"the points of {what}")
+            item["probabilities"] = (
+                _loads(item["probabilities"], f"the probabilities of {what}")
+                if item["probabilities"]
+                else None
+            )
+            item.setdefault("review_version", 0)  # a schema 1 database, read-only: not versioned yet
             out.append(item)
         return out
 
@@ -1030,16 +1363,28 @@ class SessionDB:
         author: str,
         *,
         class_name: str | None = None,
+        expected_versions: dict[int, int] | None = None,
         expected: dict[int, str | None] | None = None,
+        override: bool = False,
     ) -> int:
         """Give one verdict on mined negatives, as one undoable edit.
 
         'object' makes each a label of ``class_name`` (origin 'review', the mined box); a later
-        different verdict on it deletes that label again.
+        different verdict on it deletes that label again. An item that already has this verdict is
+        left as it is.
 
-        Args:
-            expected: per negative id, the verdict the reviewer saw (``None``: unreviewed). If
-                someone has given another since, ``EditConflictError`` is raised and nothing is written.
+        Every verdict is versioned (the queue item's ``review_version``), so a reviewer who did not
+        see the latest verdict on an item is refused, not obeyed. Per item:
+
+        - with ``expected_versions`` (what the app sends): refused if its verdict changed since that
+          version, by anyone, an undo included;
+        - with ``expected`` (the verdict seen, ``None`` for unreviewed): refused if it differs;
+        - without either (the command line, a script): refused if someone else gave it a decided
+          verdict (background, object, wrong box), unless ``override``. A skip is no decision.
+
+        Raises:
+            EditConflictError: naming every refused item (also in its ``conflicts``); then nothing
+                at all is written.
 
         Returns:
             The edit id.
@@ -1052,63 +1397,81 @@ class SessionDB:
             self._check_class(class_name)
         elif class_name is not None:
             raise SessionError(f"a {verdict!r} verdict takes no class")
-        ids = [int(i) for i in negative_ids]
+        ids = list(dict.fromkeys(int(i) for i in negative_ids))
         if not ids:
             raise SessionError("no mined negatives to review")
-        with self._read() as db:
-            frames = {
-                r[0]
-                for r in db.execute(
-                    "SELECT DISTINCT frame_index FROM mined_negatives"
-                    f" WHERE id IN ({','.join('?' * len(ids))})",
-                    ids,
-                )
-            }
-        self.ensure_frames(frames)
+        expected_versions = expected_versions or {}
         with self._write() as db:
-            changes = []
+            changes, conflicts = [], []
             for negative_id in ids:
                 item = db.execute("SELECT * FROM mined_negatives WHERE id = ?", (negative_id,)).fetchone()
                 if item is None:
                     raise SessionError(f"no mined negative {negative_id}")
+                row = db.execute("SELECT * FROM reviews WHERE negative_id = ?", (negative_id,)).fetchone()
                 current = self._content(db, "reviews", negative_id)
-                if expected is not None and (current["verdict"] if current else None) != expected.get(
-                    negative_id
-                ):
-                    who = db.execute(
-                        "SELECT author FROM reviews WHERE negative_id = ?", (negative_id,)
-                    ).fetchone()
-                    raise EditConflictError(
-                        f"mined negative {negative_id} was given "
-                        f"{current['verdict'] if current else 'no verdict'} "
-                        f"by {who[0] if who else 'someone'} "
-                        "since you loaded it; reload and try again"
-                    )
+                if negative_id in expected_versions:
+                    stale = item["review_version"] != expected_versions[negative_id]
+                elif expected is not None and negative_id in expected:
+                    stale = (row["verdict"] if row else None) != expected[negative_id]
+                else:
+                    stale = False
+                    if row is not None and row["author"] != author and row["verdict"] in DECIDED:
+                        if not override and (row["verdict"], row["class_name"]) != (verdict, class_name):
+                            given = f"{_verdict_text(row['verdict'], row['class_name'])} by {row['author']}"
+                            reason = f"mined negative {negative_id} already has the verdict {given}"
+                            conflicts.append({"id": negative_id, "reason": reason})
+                            continue
+                if stale:
+                    given = "no verdict" if row is None else _verdict_text(row["verdict"], row["class_name"])
+                    by = "" if row is None else f" by {row['author']}"
+                    reason = f"mined negative {negative_id} was given {given}{by} since you loaded it"
+                    conflicts.append({"id": negative_id, "reason": reason})
+                    continue
                 label_id = current["label_id"] if current else None
-                if label_id is not None:
-                    label = self._content(db, "labels", label_id)
+                label = None if label_id is None else self._content(db, "labels", label_id)
+                if label is not None:
                     made = {
                         "class_name": current["class_name"],
                         "deleted": 0 if current["verdict"] == "object" else 1,
                     }
                     if {k: label[k] for k in made} != made:
-                        raise EditConflictError(
-                            f"label {label_id}, made by the verdict on mined negative {negative_id}, was "
-                            "edited since; change or delete it in the Labels panel instead"
+                        reason = (
+                            f"label {label_id}, made by the verdict on mined negative {negative_id}, was"
+                            " edited since; change or delete it in the Labels panel"
                         )
+                        conflicts.append({"id": negative_id, "reason": reason})
+                        continue
+                if row is not None and (row["verdict"], row["class_name"]) == (verdict, class_name):
+                    continue  # already so: nothing to change, nothing for anyone's undo to trip on
+                if label is not None:
                     wanted = {**label, "deleted": 0 if verdict == "object" else 1}
                     if verdict == "object":
                         wanted["class_name"] = class_name
                     if wanted != label:
                         changes.append(self._change(db, "labels", label_id, wanted, author))
                 elif verdict == "object":
+                    self._import_frame(db, item["frame_index"])
+                    box = _loads(item["box"], f"the box of mined negative {negative_id}")
                     label_id, change = self._insert_label(
-                        db, item["frame_index"], json.loads(item["box"]), class_name, "review", author
+                        db, item["frame_index"], box, class_name, "review", author
                     )
                     changes.append(change)
                 after = {"verdict": verdict, "class_name": class_name, "label_id": label_id}
                 changes.append(self._change(db, "reviews", negative_id, after, author))
-            what = verdict if class_name is None else f"{verdict} ({class_name})"
+            if conflicts:
+                # Raised inside the transaction: what the loop wrote for the other items is rolled back.
+                shown = "; ".join(c["reason"] for c in conflicts[:5])
+                more = f"; and {len(conflicts) - 5} more" if len(conflicts) > 5 else ""
+                hint = (
+                    " (pass --override to replace another reviewer's verdict)"
+                    if any("already has" in c["reason"] for c in conflicts)
+                    else "; reload and try again"
+                )
+                raise EditConflictError(
+                    f"{len(conflicts)} of {len(ids)} item(s) refused, nothing written: {shown}{more}{hint}",
+                    conflicts,
+                )
+            what = _verdict_text(verdict, class_name)
             return self._edit(db, author, "review", f"review {len(ids)} mined negative(s) as {what}", changes)
 
     def mined_patch_sets(self) -> dict[int, list[tuple[int, ...]]]:
@@ -1116,7 +1479,9 @@ class SessionDB:
         out: dict[int, list[tuple[int, ...]]] = {}
         with self._read() as db:
             for row in db.execute("SELECT DISTINCT frame_index, patch_set FROM mined_negatives"):
-                out.setdefault(row["frame_index"], []).append(tuple(json.loads(row["patch_set"])))
+                out.setdefault(row["frame_index"], []).append(
+                    tuple(_loads(row["patch_set"], "a mined point set"))
+                )
         return out
 
     def reviewed_patch_sets(self) -> dict[str, dict[int, list[tuple[int, ...]]]]:
@@ -1129,7 +1494,9 @@ class SessionDB:
                 " JOIN mined_negatives m ON m.id = r.negative_id WHERE r.verdict != 'skip'"
             ).fetchall()
         for row in rows:
-            out[row["verdict"]].setdefault(row["frame_index"], []).append(tuple(json.loads(row["patch_set"])))
+            out[row["verdict"]].setdefault(row["frame_index"], []).append(
+                tuple(_loads(row["patch_set"], "a mined point set"))
+            )
         return out
 
 
@@ -1161,7 +1528,7 @@ def training_runs(session: Session) -> list[dict]:
     """Every training run of the session with its rounds, oldest first."""
     if not session.db_path.is_file():
         return []
-    return SessionDB(session).training_runs()
+    return SessionDB(session, readonly=True).training_runs()
 
 
 def latest_model(session: Session) -> Path | None:
@@ -1176,7 +1543,7 @@ def mined_negatives(
     """The review queue of a run (the last by default), highest score first."""
     if not session.db_path.is_file():
         return []
-    return SessionDB(session).review_queue(run_id, frame_index=frame_index)
+    return SessionDB(session, readonly=True).review_queue(run_id, frame_index=frame_index)
 
 
 def session_data(session: Session) -> Path | None:
@@ -1185,16 +1552,24 @@ def session_data(session: Session) -> Path | None:
     if session.has_data:
         return session.data_dir
     if session.db_path.is_file():
-        recorded = SessionDB(session).meta().get("data")
+        recorded = SessionDB(session, readonly=True).meta().get("data")
         return None if recorded is None else Path(recorded)
     return None
 
 
 def open_session_data(
-    name: str, root: str | os.PathLike | None = None, data: str | os.PathLike | None = None
+    name: str,
+    root: str | os.PathLike | None = None,
+    data: str | os.PathLike | None = None,
+    *,
+    readonly: bool = False,
 ) -> tuple[SessionDB, Dataset]:
     """A session's database and the data set it labels: ``data`` if given, else
     ``session_data``'s. What ``factorydet train``, ``review``, ``labels`` and the app open.
+
+    Args:
+        readonly: open it read-only (``queue``, ``labels export``), if it exists; a session without
+            a database yet is created as usual, since there is nothing to read without writing.
 
     Raises:
         SessionError: when the session has no data set and ``data`` is not given.
@@ -1204,4 +1579,4 @@ def open_session_data(
     if data is None:
         raise SessionError(f"session {name!r} has no data set; pass --data DIR or FILE")
     dataset = open_dataset(data)
-    return SessionDB(session, dataset), dataset
+    return SessionDB(session, dataset, readonly=readonly and session.db_path.is_file()), dataset

@@ -109,3 +109,36 @@ def test_edits_need_a_selection_and_a_session(state):
     assert alice.messages[-1][0] == "Label segment"
     alice.next_suspect()
     assert alice.messages[-1][0] == "Suspect labels"
+
+
+def test_an_edit_after_a_was_deleted_conflict_is_still_versioned(state):
+    label = state.db.add_labels([(0, (1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0), "box")], "importer")[0]
+    alice, bob = _person(state, "alice"), _person(state, "bob")
+    alice.select_label(label.id)
+    bob.select_label(label.id)
+    bob.delete_selected()
+    alice.set_class("cone")
+    assert alice.messages[-1][2] and "someone else got there first" in alice.messages[-1][0]
+    # Bob restores it and moves it: Alice, who last saw it deleted, is refused, not obeyed.
+    bob.undo()
+    bob.select_label(label.id)
+    bob.apply_box((5.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0))
+    alice.set_class("cone")
+    assert "someone else got there first" in alice.messages[-1][0]
+    assert state.db.label(label.id).class_name == "box" and state.db.label(label.id).box[0] == 5.0
+    alice.set_class("cone")  # she now sees Bob's version
+    assert state.db.label(label.id).class_name == "cone" and state.db.label(label.id).box[0] == 5.0
+
+
+def test_a_verdict_on_an_item_changed_since_it_was_shown_is_refused(state):
+    alice, bob = _person(state, "alice"), _person(state, "bob")
+    alice.step(0)
+    shown = alice.current_item()
+    bob.step(0)
+    bob.verdict("object", class_name="box", advance=False)
+    bob.undo()  # unreviewed again, as Alice sees it, yet changed twice since
+    alice.verdict("background")
+    assert "someone else got there first" in alice.messages[-1][0]
+    assert {q["id"]: q["verdict"] for q in state.db.review_queue()}[shown["id"]] is None
+    alice.verdict("background")  # reloaded: now it goes through
+    assert {q["id"]: q["verdict"] for q in state.db.review_queue()}[shown["id"]] == "background"

@@ -152,3 +152,192 @@ def test_repeats_inside_one_file_and_other_data_sets_are_caught(db, tmp_path):
     out.write_text(json.dumps(record))
     with pytest.raises(InputError, match="another data set"):
         import_labels(db, out, "bob")
+
+
+# --- Import checks, one transaction, linear time; atomic exports (issue 29) -----------------------
+
+
+def _labels_file(path, frames) -> None:
+    import json
+
+    path.write_text(json.dumps({"format": "factorydet-labels", "version": 1, "frames": frames}))
+
+
+@pytest.mark.parametrize(
+    ("frame", "match"),
+    [
+        (
+            {"frame_index": 0, "boxes": [[0, 0, 0.5, 1e300, 1, 1, 0]], "labels": ["box"]},
+            r"frames\[0\] box 0.*sizes",
+        ),
+        ({"frame_index": 0, "boxes": [[1e12, 0, 0.5, 1, 1, 1, 0]], "labels": ["box"]}, "from the vehicle"),
+        ({"frame_index": 0, "boxes": [[0, 0, 0.5, 1, 1, 1, 1e20]], "labels": ["box"]}, "yaw"),
+        ({"frame_index": 0, "boxes": [[0, 0, 0.5, 1, 1, 1]], "labels": ["box"]}, "7 finite numbers"),
+        ({"frame_index": 0, "boxes": [["a", 0, 0.5, 1, 1, 1, 0]], "labels": ["box"]}, "7 numbers"),
+        ({"frame_index": 1.7, "boxes": [], "labels": []}, r"frames\[0\].frame_index.*integer"),
+        ({"frame_index": True, "boxes": [], "labels": []}, "integer"),
+        ({"frame_index": "1", "boxes": [], "labels": []}, "integer"),
+        ({"frame_index": 0, "boxes": [[0, 0, 0.5, 1, 1, 1, 0]], "labels": []}, "same length"),
+        ({"frame_index": 0, "boxes": 5, "labels": 5}, "lists"),
+        ([1, 2], "frame_index"),
+    ],
+)
+def test_absurd_boxes_and_frame_indices_are_refused_naming_the_item(db, tmp_path, frame, match):
+    out = tmp_path / "bad.json"
+    _labels_file(out, [frame])
+    edits = len(db.edits())
+    with pytest.raises(InputError, match=match) as caught:
+        import_labels(db, out, "bob")
+    assert "\n" not in str(caught.value) and str(out) in str(caught.value)
+    assert len(db.edits()) == edits
+
+
+def test_malformed_label_files_are_one_line_errors(db, tmp_path):
+    cases = {
+        "list.json": b"[1, 2, 3]",
+        "nested.json": b"[" * 100_000 + b"]" * 100_000,
+        "latin1.json": '{"frames": [], "note": "d\u00e9j\u00e0"}'.encode("latin-1"),
+        "npz_bad.npz": b"PK\x03\x04 not a zip",
+    }
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError) as caught:
+            import_labels(db, tmp_path / name, "bob")
+        assert "\n" not in str(caught.value), name
+    kitti = tmp_path / "kitti"
+    kitti.mkdir()
+    (kitti / "000000.txt").write_bytes("box 0 0 0 0 0 0 0 1 1 1 0 0 5 0 \u00e9\n".encode("latin-1"))
+    with pytest.raises(InputError, match="UTF-8"):
+        import_labels(db, kitti, "bob")
+    (kitti / "000000.txt").write_text("box 0 0 0 0 0 0 0 1 1 -1 0 0 5 0\n")  # a negative length
+    with pytest.raises(InputError, match=r"000000.txt:1.*sizes"):
+        import_labels(db, kitti, "bob")
+
+
+def _screen_reference(items, current):
+    """The import's duplicate and conflict rules, box by box against everything before it."""
+    from factorydet_core.boxes import box_iou_3d
+    from factorydet_core.session.labels_io import CONFLICT_IOU, DUPLICATE_IOU
+
+    keep, duplicates, conflicts = [], [], []
+    for k, (frame_index, box, name) in enumerate(items):
+        labels = current.get(frame_index, [])
+        earlier = [(items[j][1], items[j][2]) for j in keep if items[j][0] == frame_index]
+        boxes = np.array([lab.box for lab in labels] + [b for b, _ in earlier]).reshape(-1, 7)
+        names = [lab.class_name for lab in labels] + [n for _, n in earlier]
+        ids = [lab.id for lab in labels] + [None] * len(earlier)
+        if len(boxes):
+            iou = box_iou_3d(np.asarray(box)[None], boxes)[0]
+            same = np.array([n == name for n in names])
+            if same.any() and iou[same].max() >= DUPLICATE_IOU:
+                duplicates.append((k, ids[int(np.flatnonzero(same)[iou[same].argmax()])]))
+                continue
+            if (~same).any() and iou[~same].max() >= CONFLICT_IOU:
+                conflicts.append((k, ids[int(np.flatnonzero(~same)[iou[~same].argmax()])]))
+        keep.append(k)
+    return keep, duplicates, conflicts
+
+
+def test_the_linear_screen_finds_what_the_box_by_box_check_finds(db):
+    from factorydet_core.session.labels_io import _screen
+
+    rng = np.random.default_rng(3)
+    current = {f: db.labels(f) for f in range(3)}
+    items = []
+    for k in range(600):
+        frame_index = int(rng.integers(3))
+        if k > 20 and rng.random() < 0.4:  # a near copy of an earlier item or a label
+            source = items[int(rng.integers(len(items)))] if rng.random() < 0.5 else None
+            if source is None and current[frame_index]:
+                lab = current[frame_index][int(rng.integers(len(current[frame_index])))]
+                source = (frame_index, np.array(lab.box), lab.class_name)
+            if source is not None:
+                box = source[1] + rng.normal(0, 0.02, 7) * [1, 1, 1, 0, 0, 0, 1]
+                name = source[2] if rng.random() < 0.7 else "cone"
+                items.append((source[0], box, name))
+                continue
+        box = np.array([*rng.uniform(-15, 15, 2), 0.5, *rng.uniform(0.3, 3, 3), rng.uniform(-3, 3)])
+        items.append((frame_index, box, ["box", "cone", "barrel"][int(rng.integers(3))]))
+    keep, duplicates, conflicts = _screen(items, current)
+    want_keep, want_duplicates, want_conflicts = _screen_reference(items, current)
+    assert keep == want_keep
+    assert len(duplicates) == len(want_duplicates) > 20 and len(conflicts) == len(want_conflicts) > 20
+    assert [d["label_id"] for d in duplicates] == [i for _, i in want_duplicates]
+    assert [c["label_id"] for c in conflicts] == [i for _, i in want_conflicts]
+
+
+def test_two_imports_of_one_file_at_once_add_each_box_once(db, dataset, tmp_path):
+    import threading
+
+    boxes = [[2.0 * k - 20, 15.0, 0.5, 1.0, 1.0, 1.0, 0.0] for k in range(40)]
+    out = tmp_path / "new.json"
+    _labels_file(out, [{"frame_index": f, "boxes": boxes, "labels": ["box"] * 40} for f in (0, 1)])
+    before = sum(len(db.labels(f)) for f in (0, 1))
+    reports, barrier = [], threading.Barrier(2)
+
+    def run(author: str) -> None:
+        mine = SessionDB(db.session, dataset)
+        barrier.wait()
+        reports.append(import_labels(mine, out, author))
+
+    threads = [threading.Thread(target=run, args=(a,)) for a in ("ann", "bob")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(r["imported"] for r in reports) == [0, 80]
+    assert sorted(len(r["duplicates"]) for r in reports) == [0, 80]
+    assert sum(len(db.labels(f)) for f in (0, 1)) == before + 80
+
+
+def test_an_export_stopped_midway_leaves_the_old_file(db, tmp_path, monkeypatch):
+    from pathlib import Path
+
+    def cut_off(self, data, *args, **kwargs):
+        with open(self, "w") as f:
+            f.write(data[: len(data) // 2])
+        raise KeyboardInterrupt  # the process stopped mid-write
+
+    def savez_cut_off(file, **arrays):
+        Path(file).write_bytes(b"PK\x03\x04")
+        raise KeyboardInterrupt
+
+    for fmt, out, written in (
+        ("json", tmp_path / "l.json", tmp_path / "l.json"),
+        ("kitti", tmp_path / "k", tmp_path / "k" / "000000.txt"),
+        ("npz", tmp_path / "n", tmp_path / "n" / "frame_00000.npz"),
+    ):
+        export_labels(db, fmt, out, [0])
+        old = written.read_bytes()
+        with monkeypatch.context() as patch:
+            patch.setattr(Path, "write_text", cut_off)
+            patch.setattr(np, "savez_compressed", savez_cut_off)
+            with pytest.raises(KeyboardInterrupt):
+                export_labels(db, fmt, out, [0])
+        assert written.read_bytes() == old
+        assert [p.name for p in written.parent.iterdir() if p.name.startswith(".")] == []
+
+
+@pytest.mark.slow
+def test_ten_thousand_boxes_import_in_seconds(db, tmp_path):
+    import time
+
+    grid = np.arange(3334)
+    frames = [
+        {
+            "frame_index": f,
+            "boxes": [[3.0 * (g % 58) - 90, 3.0 * (g // 58) - 90, 0.5, 1.0, 1.5, 1.0, 0.2] for g in grid],
+            "labels": ["box"] * len(grid),
+        }
+        for f in range(3)
+    ]
+    out = tmp_path / "many.json"
+    _labels_file(out, frames)
+    start = time.perf_counter()
+    report = import_labels(db, out, "bob")
+    assert report["imported"] == 3 * 3334
+    assert time.perf_counter() - start < 5.0
+    start = time.perf_counter()
+    again = import_labels(db, out, "bob")  # every box now repeats a label
+    assert again["imported"] == 0 and len(again["duplicates"]) == 3 * 3334
+    assert time.perf_counter() - start < 5.0

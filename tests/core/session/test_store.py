@@ -3,6 +3,8 @@ bad files."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
 import sqlite3
 import subprocess
@@ -332,3 +334,214 @@ def test_a_session_opens_the_data_set_it_was_made_on(small_dataset_dir, tmp_path
     again, dataset = open_session_data("outside", tmp_path)
     assert dataset.path.resolve() == Path(small_dataset_dir).resolve()
     assert session_data(again.session).resolve() == Path(small_dataset_dir).resolve()
+
+
+# --- Read-only opens, busy writers, damaged files (issue 29) --------------------------------------
+
+
+@pytest.fixture
+def write_lock(db):
+    """Hold the database's write lock from another connection, as a writing process would."""
+    db.labels(0)
+    holder = sqlite3.connect(db.path, isolation_level=None)
+    holder.execute("BEGIN IMMEDIATE")
+    holder.execute("UPDATE meta SET value = value WHERE key = 'created'")
+    yield holder
+    holder.execute("ROLLBACK")
+    holder.close()
+
+
+def test_a_read_only_open_neither_writes_nor_waits_for_a_writer(db, dataset, tiny_model_path, write_lock):
+    write_lock.execute("ROLLBACK")
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    write_lock.execute("BEGIN IMMEDIATE")
+    before = db.path.read_bytes()
+    start = time.perf_counter()
+    reader = SessionDB(db.session, dataset, readonly=True)
+    queue = reader.review_queue()
+    labels = reader.frame_labels([0, 2])
+    assert time.perf_counter() - start < 5.0  # a writer held the lock all along
+    assert len(queue) == 6 and all(item["review_version"] == 0 for item in queue)
+    # Frame 2 was never stored: read from the data set as the first write will store it.
+    assert [lab.id for lab in labels[2]] == [None] * len(dataset.frame(2).labels)
+    assert all(lab.id is not None for lab in labels[0])
+    with pytest.raises(SessionError, match="read-only"):
+        reader.add_label(0, BOX, "box", "ann")
+    assert db.path.read_bytes() == before
+
+
+def test_a_busy_writer_is_a_one_line_error_after_a_bounded_wait(db, dataset, write_lock):
+    from factorydet_core.session.store import SessionBusyError
+
+    writer = SessionDB(db.session, dataset, timeout=0.3)
+    start = time.perf_counter()
+    with pytest.raises(SessionBusyError, match="busy") as caught:
+        writer.add_label(0, BOX, "box", "ann")
+    assert time.perf_counter() - start < 5.0
+    assert "\n" not in str(caught.value)
+
+
+@contextlib.contextmanager
+def _unwritable(path: Path):
+    """``path`` made unwritable for this process: read-only mode, and for root (who writes any
+    file) the immutable attribute as well."""
+    path.chmod(0o444)
+    immutable = os.geteuid() == 0
+    if immutable:
+        subprocess.run(["chattr", "+i", str(path)], check=True)
+    try:
+        yield
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(path)], check=True)
+        path.chmod(0o644)
+
+
+def test_a_read_only_session_file_can_be_read(db, dataset):
+    db.labels(0)
+    with _unwritable(db.path):
+        with pytest.raises(OSError):
+            db.path.open("ab")  # really unwritable, also for root
+        assert len(SessionDB(db.session, dataset, readonly=True).labels(0)) == len(dataset.frame(0).labels)
+
+
+def test_a_schema_1_database_is_read_as_it_is_and_migrated_by_a_writer(tmp_path, dataset):
+    from factorydet_core.session.store import _SCHEMA_V1
+
+    session = open_session("old", tmp_path)
+    session.path.mkdir()
+    connection = sqlite3.connect(session.db_path, isolation_level=None)
+    connection.executescript(_SCHEMA_V1 + ";PRAGMA user_version = 1;")
+    connection.execute("INSERT INTO meta VALUES ('created', 'then')")
+    connection.close()
+    before = session.db_path.read_bytes()
+    reader = SessionDB(session, dataset, readonly=True)
+    assert reader.schema_version == 1 and reader.review_queue() == []
+    assert len(reader.labels(0)) == len(dataset.frame(0).labels)
+    assert session.db_path.read_bytes() == before
+    SessionDB(session, dataset).labels(0)
+    connection = sqlite3.connect(session.db_path)
+    assert connection.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+    assert "review_version" in {r[1] for r in connection.execute("PRAGMA table_info(mined_negatives)")}
+    connection.close()
+
+
+def _damage(path: Path, statements: list[str]) -> None:
+    connection = sqlite3.connect(path, isolation_level=None)
+    for statement in statements:
+        connection.execute(statement)
+    connection.close()
+
+
+@pytest.mark.parametrize(
+    "statements",
+    [
+        ["PRAGMA user_version = -1"],
+        ["PRAGMA user_version = 99"],
+        [
+            "PRAGMA writable_schema = ON",
+            "UPDATE sqlite_master SET sql = substr(sql, 1, 20) || ' garbage' WHERE name = 'labels'",
+        ],
+        ["PRAGMA foreign_keys = OFF", "DROP TABLE frames"],
+        ["UPDATE labels SET box = 'not json' WHERE id = (SELECT min(id) FROM labels)"],
+        ["UPDATE labels SET box = '[1,2]' WHERE id = (SELECT min(id) FROM labels)"],
+        ["UPDATE labels SET box = '[1e999,0,0,1,1,1,0]' WHERE id = (SELECT min(id) FROM labels)"],
+        ["UPDATE labels SET box = '{}' WHERE id = (SELECT min(id) FROM labels)"],
+        ["UPDATE labels SET frame_index = 'x', box = 'nan' WHERE id = (SELECT min(id) FROM labels)"],
+        ["UPDATE labels SET class_name = 'zzz' WHERE id = (SELECT min(id) FROM labels)"],
+        ["UPDATE edits SET changes = 'garbage'"],
+    ],
+    ids=[
+        "version-1",
+        "version99",
+        "schema",
+        "no-frames",
+        "box-text",
+        "box-short",
+        "box-inf",
+        "box-dict",
+        "frame-text",
+        "class",
+        "edit-log",
+    ],
+)
+def test_a_damaged_database_is_a_one_line_error_and_is_never_written(db, dataset, statements):
+    db.labels(0)
+    db.update_label(db.labels(0)[0].id, "ann", class_name="cone")
+    _damage(db.path, statements)
+    before = db.path.read_bytes()
+    with pytest.raises(SessionError) as caught:
+        # What the commands and the app do first.
+        opened = SessionDB(db.session)
+        opened.frame_boxes(0)
+        opened.edits()
+        opened.training_runs()
+        opened.review_progress()
+        opened.undo("ann")
+    assert "\n" not in str(caught.value)
+    assert db.path.read_bytes() == before
+
+
+# --- Every verdict is versioned (issue 29) --------------------------------------------------------
+
+
+def test_another_reviewers_verdict_is_a_conflict_unless_overridden(db, tiny_model_path):
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    first, second, third = db.review_queue()[:3]
+    num_labels = len(db.labels(first["frame_index"]))
+    db.review([first["id"]], "object", "ann", class_name="box")
+    # Bob, from the command line (no expectation), is told item by item; nothing is written.
+    with pytest.raises(EditConflictError, match=r"1 of 2 item\(s\) refused.*object \(box\) by ann") as caught:
+        db.review([first["id"], second["id"]], "background", "bob")
+    assert [c["id"] for c in caught.value.conflicts] == [first["id"]]
+    assert {q["id"]: q["verdict"] for q in db.review_queue()}[second["id"]] is None
+    assert len(db.labels(first["frame_index"])) == num_labels + 1
+    # The same verdict is no conflict, and a skip is no decision: both go through.
+    db.review([first["id"]], "object", "bob", class_name="box")
+    db.review([third["id"]], "skip", "ann")
+    db.review([third["id"]], "background", "bob")
+    # Overridden explicitly: Bob's verdict stands, and Ann's undo is refused, not silent.
+    db.review([first["id"]], "background", "bob", override=True)
+    assert len(db.labels(first["frame_index"])) == num_labels
+    with pytest.raises(EditConflictError, match="changed since"):
+        db.undo("ann")
+
+
+def test_a_verdict_against_a_stale_version_is_refused_even_if_it_looks_the_same(db, tiny_model_path):
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    seen = db.review_queue()[0]  # Alice's screen: unreviewed, version 0
+    db.review([seen["id"]], "background", "bob")
+    db.undo("bob")  # unreviewed again, as Alice saw it, but not the same state any more
+    now = db.review_queue()[0]
+    assert now["verdict"] is None and now["review_version"] == seen["review_version"] + 2
+    with pytest.raises(EditConflictError, match="since you loaded it"):
+        db.review([seen["id"]], "object", "alice", class_name="box", expected_versions={seen["id"]: 0})
+    db.review([seen["id"]], "object", "alice", class_name="box", expected_versions={seen["id"]: 2})
+    assert db.review_queue()[0]["review_version"] == 3
+
+
+@pytest.mark.parametrize(
+    ("box", "match"),
+    [
+        ((0, 0, 0, 1e300, 1, 1, 0), "sizes"),
+        ((0, 0, 0, 0, 1, 1, 0), "sizes"),
+        ((1e12, 0, 0, 1, 1, 1, 0), "from the vehicle"),
+        ((0, 0, 0, 1, 1, 1, 1e20), "yaw"),
+        ((0, 0, 0, 1, 1, 1, float("nan")), "finite"),
+        ((0, 0, 0, 1, 1, 1), "7 finite numbers"),
+        (("a", 0, 0, 1, 1, 1, 0), "7 numbers"),
+    ],
+)
+def test_absurd_boxes_are_refused(db, box, match):
+    with pytest.raises(SessionError, match=match):
+        db.add_label(0, box, "box", "ann")
+
+
+def test_a_yaw_is_wrapped_and_frame_indices_are_true_integers(db):
+    from factorydet_core.session.store import check_frame_index
+
+    assert db.add_label(0, (0, 0, 0.5, 1, 1, 1, 7.0), "box", "ann").box[6] == pytest.approx(7.0 - 2 * np.pi)
+    assert check_frame_index(3) == check_frame_index(3.0) == check_frame_index(np.int64(3)) == 3
+    for bad in (1.7, True, np.bool_(True), "1", None, -1, float("inf"), 2**70):
+        with pytest.raises(SessionError, match="frame index"):
+            check_frame_index(bad)
