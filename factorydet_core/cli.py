@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import getpass
 import json
-import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -131,6 +130,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         bench_pipeline,
         bench_simulate,
         bench_voxel_sweep,
+        machine_info,
         update_readme,
     )
 
@@ -143,6 +143,34 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         args.frames = {"simulate": 10, "hitl": None}.get(args.name, 4)
     if args.name == "simulate":
         result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
+    elif args.name == "fuzz":
+        from factorydet_core.evaluation.fuzz import (
+            TARGETS,
+            fuzz_campaign,
+            fuzz_markdown,
+            write_fuzz_outputs,
+        )
+
+        update, close = progress_bar("fuzz", unit="case")
+        try:
+            result = fuzz_campaign(
+                num_cases=args.cases,
+                seed=args.seed,
+                targets=tuple(_choices(args.targets, "--targets", TARGETS)) if args.targets else TARGETS,
+                model=None if args.model == "default" else args.model,
+                memory_limit_mb=args.memory_limit_mb,
+                keep=args.keep,
+                progress=update,
+            )
+        finally:
+            close()
+        result["command"] = command
+        result["machine"] = machine_info()
+        if args.out:
+            write_fuzz_outputs(result, args.out)
+        print(json.dumps(result, indent=2))
+        print(fuzz_markdown(result), file=sys.stderr)
+        return 0 if result["num_failures"] == 0 else 1
     elif args.name == "quality":
         from factorydet_core.evaluation.quality import (
             QualityPlan,
@@ -368,11 +396,12 @@ def parse_ints(text: str, option: str = "--ids") -> list[int]:
     return values
 
 
-def _open_session_db(args: argparse.Namespace):
-    """The session's database and data set (``session.store.open_session_data``)."""
+def _open_session_db(args: argparse.Namespace, readonly: bool = False):
+    """The session's database and data set (``session.store.open_session_data``); ``readonly``
+    for the commands that only read, so that they never wait for a writer nor need write access."""
     from factorydet_core.session.store import open_session_data
 
-    return open_session_data(args.session, args.root, getattr(args, "data", None))
+    return open_session_data(args.session, args.root, getattr(args, "data", None), readonly=readonly)
 
 
 def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], None]]:
@@ -404,7 +433,7 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from factorydet_core.detection.model import DetectionModel, quality_path
+    from factorydet_core.detection.model import DetectionModel, copy_checkpoint
     from factorydet_core.proposals.settings import front_end_from_record, front_end_params
     from factorydet_core.training.settings import LoopSettings
     from factorydet_core.workflows import retrain_session
@@ -478,21 +507,16 @@ def _cmd_train(args: argparse.Namespace) -> int:
             name: {k: m[k] for k in ("precision", "recall", "f1")} for name, m in done.comparison.items()
         }
     if args.export:
-        # The run's final checkpoint as it is, with its note (settings, rounds, command).
-        final = Path(summary["model"])
-        export = Path(args.export)
-        export.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(final, export)
-        shutil.copyfile(final.with_suffix(".json"), export.with_suffix(".json"))
-        if quality_path(final).is_file():
-            shutil.copyfile(quality_path(final), quality_path(export))
+        # The run's final checkpoint as it is, with its note (settings, rounds, command), each file
+        # replaced whole (an interrupted export over default.pt leaves the old one).
+        copy_checkpoint(summary["model"], args.export)
         summary["exported"] = args.export
     print(json.dumps(summary, indent=2))
     return 0
 
 
 def _cmd_queue(args: argparse.Namespace) -> int:
-    db, _ = _open_session_db(args)
+    db, _ = _open_session_db(args, readonly=True)
     queue = db.review_queue(
         args.run, predicted_class=args.class_name, frame_index=args.frame, pending_only=args.pending
     )
@@ -512,8 +536,16 @@ def _cmd_queue(args: argparse.Namespace) -> int:
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
+    from factorydet_core.session.store import EditConflictError
+
     db, _ = _open_session_db(args)
-    edit_id = db.review(parse_ints(args.ids), args.verdict, args.author, class_name=args.class_name)
+    try:
+        ids, author = parse_ints(args.ids), args.author
+        edit_id = db.review(ids, args.verdict, author, class_name=args.class_name, override=args.override)
+    except EditConflictError as exc:
+        # Every refused item on stdout (the one-line error on stderr says why, for the first few).
+        print(json.dumps({"edit": None, "conflicts": exc.conflicts}))
+        raise
     print(json.dumps({"edit": edit_id, "progress": db.review_progress()}))
     return 0
 
@@ -521,7 +553,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
 def _cmd_labels(args: argparse.Namespace) -> int:
     from factorydet_core.session.labels_io import export_labels, import_labels
 
-    db, _ = _open_session_db(args)
+    db, _ = _open_session_db(args, readonly=args.action == "export")
     frames = parse_ints(args.frames, "--frames") if args.frames else None
     if args.action == "export":
         paths = export_labels(db, args.format or "json", args.path, frames)
@@ -847,6 +879,11 @@ def build_parser(
     p.add_argument("--verdict", required=True, choices=["background", "object", "wrong_box", "skip"])
     p.add_argument("--class", dest="class_name", default=None, help="the object's class (verdict object)")
     p.add_argument("--author", default=getpass.getuser(), help="who reviews (default: the login name)")
+    p.add_argument(
+        "--override",
+        action="store_true",
+        help="replace verdicts other reviewers gave (without it they are reported and nothing is written)",
+    )
     p.set_defaults(func=_cmd_review)
 
     p = sub.add_parser("labels", help="export a session's labels, or import labels into it")
@@ -913,7 +950,7 @@ def build_parser(
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
     p.add_argument(
-        "name", choices=["simulate", "pipeline", "sweep", "detect", "classifier", "hitl", "quality"]
+        "name", choices=["simulate", "pipeline", "sweep", "detect", "classifier", "hitl", "quality", "fuzz"]
     )
     p.add_argument(
         "data",
@@ -927,7 +964,13 @@ def build_parser(
         help="frames to run (simulate: 10, hitl: all test frames, spread evenly if fewer; others: 4)",
     )
     p.add_argument("--points", type=int, default=80_000, help="simulate: points per frame")
-    p.add_argument("--seed", type=int, default=0, help="simulate: seed")
+    p.add_argument("--seed", type=int, default=0, help="simulate, fuzz: seed")
+    p.add_argument("--cases", type=int, default=1000, help="fuzz: mutated files to try")
+    p.add_argument("--targets", default=None, help="fuzz: comma-separated targets (default: all)")
+    p.add_argument(
+        "--memory-limit-mb", type=float, default=2048.0, help="fuzz: a case using more fails (default 2048)"
+    )
+    p.add_argument("--keep", default=None, help="fuzz: copy the failing cases' files into this folder")
     p.add_argument("--preset", default=None, help="pipeline: agv or indoor (default: by data)")
     p.add_argument(
         "--set",
