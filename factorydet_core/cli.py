@@ -140,9 +140,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         check_readme_block(args.readme, args.readme_block or args.name)  # before a long run, not after
     if args.frames is None:
-        args.frames = {"simulate": 10, "hitl": None}.get(args.name, 4)
+        args.frames = {"simulate": 10, "hitl": None, "import": 3}.get(args.name, 4)
     if args.name == "simulate":
         result = bench_simulate(num_frames=args.frames, points_per_frame=args.points, seed=args.seed)
+    elif args.name == "import":
+        from factorydet_core.evaluation.bench import bench_label_import
+
+        result = {"command": command, **bench_label_import(args.boxes, args.frames)}
+        if args.out:
+            from factorydet_core.io.atomic import write_text_atomic
+
+            write_text_atomic(Path(args.out), json.dumps(result, indent=2) + "\n")
     elif args.name == "fuzz":
         from factorydet_core.evaluation.fuzz import (
             TARGETS,
@@ -950,7 +958,18 @@ def build_parser(
 
     p = sub.add_parser("bench", help="benchmarks; each prints one JSON object")
     p.add_argument(
-        "name", choices=["simulate", "pipeline", "sweep", "detect", "classifier", "hitl", "quality", "fuzz"]
+        "name",
+        choices=[
+            "simulate",
+            "pipeline",
+            "sweep",
+            "detect",
+            "classifier",
+            "hitl",
+            "quality",
+            "fuzz",
+            "import",
+        ],
     )
     p.add_argument(
         "data",
@@ -966,6 +985,7 @@ def build_parser(
     p.add_argument("--points", type=int, default=80_000, help="simulate: points per frame")
     p.add_argument("--seed", type=int, default=0, help="simulate, fuzz: seed")
     p.add_argument("--cases", type=int, default=1000, help="fuzz: mutated files to try")
+    p.add_argument("--boxes", type=int, default=10_000, help="import: boxes in the imported file")
     p.add_argument("--targets", default=None, help="fuzz: comma-separated targets (default: all)")
     p.add_argument(
         "--memory-limit-mb", type=float, default=2048.0, help="fuzz: a case using more fails (default 2048)"
@@ -1050,7 +1070,9 @@ def build_parser(
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument(
-        "--out", default=None, help="hitl, quality: also write the JSON here, and its table beside it (.md)"
+        "--out",
+        default=None,
+        help="hitl, quality, fuzz: also write the JSON here, and its table beside it (.md); import: the JSON",
     )
     p.add_argument(
         "--heldout-seeds",

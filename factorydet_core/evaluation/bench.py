@@ -28,7 +28,7 @@ from factorydet_core.proposals.candidates import box_hypotheses
 from factorydet_core.proposals.features import fisher_vectors, fisher_vectors_reference
 from factorydet_core.proposals.settings import front_end_params, preset_for
 from factorydet_core.proposals.voxels import voxel_local_points
-from factorydet_core.sim.simulate import FactorySimulator, SimConfig
+from factorydet_core.sim.simulate import FactorySimulator, SimConfig, simulate_dataset
 from factorydet_core.sim.truth import read_frame_truth, read_truth
 from factorydet_core.training.mining import collect_proposals, train_with_mining
 from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
@@ -430,6 +430,58 @@ def bench_detect(
         "detections_per_frame_median": int(statistics.median(counts)),
         "training_seconds_per_round": [r.get("fit_seconds") for r in note.get("rounds_record", [])]
         or note.get("fit_seconds"),
+        "machine": machine_info(),
+    }
+
+
+def bench_label_import(num_boxes: int = 10_000, num_frames: int = 3, repeats: int = 3) -> dict:
+    """Time to import ``num_boxes`` labels (a JSON file, boxes spread over ``num_frames`` frames of
+    a small simulated data set) into a fresh session, and to import the same file again (every box
+    then repeats a label and is screened out); medians over ``repeats`` fresh sessions."""
+    import tempfile
+
+    from factorydet_core.session.labels_io import import_labels
+    from factorydet_core.session.store import SessionDB, open_session
+
+    if num_boxes < 1 or num_frames < 1 or repeats < 1:
+        raise InputError("bench import: --boxes, --frames and repeats must be at least 1")
+    per_frame = -(-num_boxes // num_frames)
+    side = int(np.ceil(np.sqrt(per_frame)))
+    first, fresh, again = [], [], []
+    with tempfile.TemporaryDirectory(prefix="factorydet_import_") as scratch:
+        root = Path(scratch)
+        config = SimConfig(num_frames=num_frames, seed=0, points_per_frame=4000)
+        dataset = open_dataset(simulate_dataset(root / "data", config))
+        frames = []
+        for frame in range(num_frames):
+            count = min(per_frame, num_boxes - frame * per_frame)
+            grid = np.arange(max(count, 0))
+            boxes = [[3.0 * (g % side) - 1.5 * side, 3.0 * (g // side) - 1.5 * side, 0.5, 1.0, 1.5, 1.0, 0.2]
+                     for g in grid]  # fmt: skip
+            frames.append({"frame_index": frame, "boxes": boxes, "labels": ["box"] * len(boxes)})
+        labels_file = root / "labels.json"
+        labels_file.write_text(json.dumps({"format": "factorydet-labels", "version": 1, "frames": frames}))
+        for repeat in range(repeats):
+            db = SessionDB(open_session(f"s{repeat}", root / "sessions"), dataset)
+            db.ensure_frames(range(num_frames))  # the data set's own labels, imported on first use
+            start = time.perf_counter()
+            report = import_labels(db, labels_file, "bench")
+            fresh.append(time.perf_counter() - start)
+            first.append(report["imported"])
+            start = time.perf_counter()
+            repeat_report = import_labels(db, labels_file, "bench")
+            again.append(time.perf_counter() - start)
+            if repeat_report["imported"] != 0:
+                raise RuntimeError("bench import: a repeated import added labels")
+    return {
+        "benchmark": "import",
+        "num_boxes": num_boxes,
+        "num_frames": num_frames,
+        "repeats": repeats,
+        "imported": first,
+        "import_seconds_median": round(statistics.median(fresh), 3),
+        "reimport_all_duplicates_seconds_median": round(statistics.median(again), 3),
+        "target_seconds": 5.0,
         "machine": machine_info(),
     }
 

@@ -319,9 +319,8 @@ def test_an_export_stopped_midway_leaves_the_old_file(db, tmp_path, monkeypatch)
 
 
 @pytest.mark.slow
-def test_ten_thousand_boxes_import_in_seconds(db, tmp_path):
-    import time
-
+def test_ten_thousand_boxes_import_once(db, tmp_path):
+    # Its time is measured by `factorydet bench import` (docs/bench/label_import.json), not here.
     grid = np.arange(3334)
     frames = [
         {
@@ -333,11 +332,35 @@ def test_ten_thousand_boxes_import_in_seconds(db, tmp_path):
     ]
     out = tmp_path / "many.json"
     _labels_file(out, frames)
-    start = time.perf_counter()
     report = import_labels(db, out, "bob")
     assert report["imported"] == 3 * 3334
-    assert time.perf_counter() - start < 5.0
-    start = time.perf_counter()
     again = import_labels(db, out, "bob")  # every box now repeats a label
     assert again["imported"] == 0 and len(again["duplicates"]) == 3 * 3334
-    assert time.perf_counter() - start < 5.0
+
+
+@pytest.mark.parametrize("fmt", ["json", "kitti", "npz"])
+def test_mutated_label_files_import_or_give_one_line_errors(db, tmp_path, fmt):
+    """The fuzzing campaign's mutations (``evaluation.fuzz``), in-process: every mutated export
+    imports or is refused with one line, never another exception."""
+    from hypothesis import HealthCheck
+
+    from factorydet_core.evaluation.fuzz import make_case
+
+    out = tmp_path / ("labels.json" if fmt == "json" else fmt)
+    written = export_labels(db, fmt, out)
+    seed_file = out if fmt == "json" else written[0]
+    target = f"labels-{fmt}"
+    counter = iter(range(10**6))
+
+    @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(st.integers(0, 2**32 - 1))
+    def check(seed):
+        case = make_case(next(counter), target, seed_file, tmp_path / "cases", np.random.default_rng(seed))
+        try:
+            report = import_labels(db, case.path, "fuzz", fmt)
+        except InputError as exc:
+            assert "\n" not in str(exc).strip(), str(exc)
+        else:
+            assert report["imported"] >= 0
+
+    check()
