@@ -8,7 +8,6 @@ finished, and labels are only ever read here.
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import traceback
 
@@ -49,19 +48,16 @@ class TrainingWorker:
         """End the job: publish its final status, which frees the trainer."""
         self.state.set_training(busy=False, **training)
 
-    def start(self, mode: str, epochs: int | None = None, method: str | None = None) -> bool:
-        """Start a job ('next' or 'full'), with the settings' epochs and back half (``METHODS``)
-        unless given; False when one is already running or there is no session."""
+    def start(self, mode: str, settings: LoopSettings | None = None) -> bool:
+        """Start a job ('next' or 'full') with ``settings`` (default: the worker's own, e.g. as
+        the Training panel's controls set them); False when one is already running or there is
+        no session."""
         with self._lock:
             if self.busy or self.state.db is None:
                 return False
             if mode == "next" and self.state.db.latest_run_id() is None:
                 mode = "full"  # nothing to continue from yet
-            settings = self.settings
-            if epochs is not None:
-                settings = dataclasses.replace(settings, epochs=int(epochs))
-            if method is not None:
-                settings = dataclasses.replace(settings, method=method)
+            settings = self.settings if settings is None else settings
             self._cancel.clear()
             self.state.set_training(busy=True, status=f"starting ({mode})", progress=0.0)
             self._thread = threading.Thread(

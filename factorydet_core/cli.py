@@ -9,7 +9,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from factorydet_core.training.settings import LoopSettings
+from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, loop_settings_from
 from factorydet_core.types import (
     BOX_KINDS,
     LEVELS,
@@ -443,7 +443,6 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
 def _cmd_train(args: argparse.Namespace) -> int:
     from factorydet_core.detection.model import DetectionModel, copy_checkpoint
     from factorydet_core.proposals.settings import front_end_from_record, front_end_params
-    from factorydet_core.training.settings import LoopSettings
     from factorydet_core.workflows import retrain_session
 
     db, dataset = _open_session_db(args)
@@ -459,27 +458,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         front_end = front_end_from_record(previous["config"].get("front_end"))
     if front_end is None:
         front_end = front_end_params(args.preset, parse_overrides(args.set), dataset.num_sensors)
-    settings = LoopSettings(
-        width=args.width,
-        epochs=args.epochs,
-        class_weight=None if args.class_weight == "none" else args.class_weight,
-        rounds=args.rounds,
-        negatives_per_round=args.negatives,
-        initial_negatives=args.initial_negatives,
-        positive_iou=args.positive_iou,
-        fragment_iou=args.fragment_iou,
-        fragments_per_frame=args.fragments_per_frame,
-        score_threshold=args.score_threshold,
-        probability_exponent=args.probability_exponent,
-        class_thresholds=args.class_thresholds,
-        mining_threshold=args.mining_threshold,
-        nms_iou=args.nms_iou,
-        seed=args.seed,
-        geometry=args.geometry,
-        box_quality=args.box_quality,
-        visibility={"auto": None, "on": True, "off": False}[args.visibility],
-        method=args.method,
-    )
+    settings = loop_settings_from_args(args)
     before = {}
     if args.compare and previous is not None:
         before = {f"run {previous['id']}": DetectionModel.load(db.session.path / previous["model_path"])}
@@ -704,6 +683,41 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_loop_flags(parser: argparse.ArgumentParser) -> None:
+    """A flag per ``training.settings.LOOP_CONTROLS`` entry, its default ``LoopSettings()``'s."""
+    for control in LOOP_CONTROLS:
+        default = control.default
+        shown = control.shown(default)
+        if control.kind is bool:
+            parser.add_argument(
+                control.cli_flag,
+                dest=control.field,
+                action="store_false" if default else "store_true",
+                help=f"{control.help} ({'on; this flag turns it off' if default else 'off by default'})",
+            )
+        elif control.choices is not None:
+            parser.add_argument(
+                control.cli_flag,
+                dest=control.field,
+                choices=[text for text, _ in control.choices],
+                default=shown,
+                help=f"{control.help} (default {shown})",
+            )
+        else:
+            parser.add_argument(
+                control.cli_flag,
+                dest=control.field,
+                type=control.kind,
+                default=default,
+                help=f"{control.help} (default {shown})",
+            )
+
+
+def loop_settings_from_args(args: argparse.Namespace) -> LoopSettings:
+    """The ``LoopSettings`` of ``add_loop_flags``' flags (checked by ``LOOP_CONTROLS``)."""
+    return loop_settings_from({control.field: getattr(args, control.field) for control in LOOP_CONTROLS})
+
+
 def build_parser(
     add_commands: Callable[[argparse._SubParsersAction], None] | None = None,
 ) -> argparse.ArgumentParser:
@@ -747,8 +761,6 @@ def build_parser(
     p.add_argument("--limit", type=int, default=20, help="rows of the text listing")
     p.set_defaults(func=_cmd_propose)
 
-    # Every default is LoopSettings' own: the flags and the app's retrain cannot disagree.
-    loop = LoopSettings()
     p = sub.add_parser(
         "train",
         help="train the classifier into a session: a full run with blind hard-negative mining, or the"
@@ -763,106 +775,18 @@ def build_parser(
         choices=["full", "next"],
         help="full: retrain from scratch with --rounds mining rounds; next: one more round",
     )
-    p.add_argument(
-        "--rounds", type=int, default=loop.rounds, help="hard-negative mining rounds after the first fit"
-    )
-    p.add_argument(
-        "--negatives", type=int, default=loop.negatives_per_round, help="mined negatives added per round (N)"
-    )
-    p.add_argument(
-        "--initial-negatives", type=int, default=loop.initial_negatives, help="random background set to start"
-    )
-    p.add_argument("--width", type=float, default=loop.width, help="3DmFV-Net width (1.0 = the paper's, 46M)")
-    p.add_argument("--epochs", type=int, default=loop.epochs)
-    p.add_argument(
-        "--class-weight",
-        default=loop.class_weight or "none",
-        choices=["balanced", "sqrt", "none"],
-        help="loss weighting: inverse class frequency, its square root, or none (the paper's plain loss)",
-    )
-    p.add_argument(
-        "--no-geometry",
-        dest="geometry",
-        action="store_false",
-        help="the paper's network on the 3DmFV tensor alone (default: geometric descriptors as well)",
-    )
-    p.add_argument("--positive-iou", type=float, default=loop.positive_iou)
-    p.add_argument(
-        "--fragment-iou",
-        type=float,
-        default=loop.fragment_iou,
-        help="point sets overlapping a label at most this much start as background (0: the paper's start)",
-    )
-    p.add_argument(
-        "--fragments-per-frame",
-        type=int,
-        default=loop.fragments_per_frame,
-        help="sample at most N of those per frame (default: all; bounds the fit's time on many frames)",
-    )
-    p.add_argument(
-        "--score-threshold",
-        type=float,
-        default=loop.score_threshold,
-        help="operating score of the model and of mining; with box quality a score is the class "
-        "probability to --probability-exponent times the predicted IoU "
-        f"(default {loop.score_threshold})",
-    )
-    p.add_argument(
-        "--probability-exponent",
-        type=float,
-        default=loop.probability_exponent,
-        help="with box quality, the class probability's power in the score (1: the plain product; "
-        f"default {loop.probability_exponent}, see the pipeline page)",
-    )
-    p.add_argument(
-        "--mining-threshold",
-        type=float,
-        default=loop.mining_threshold,
-        help="mine (and queue for review) false positives scoring at least this; the top --negatives "
-        f"by score go to the background (default {loop.mining_threshold}: every reported false positive)",
-    )
-    p.add_argument(
-        "--no-class-thresholds",
-        dest="class_thresholds",
-        action="store_false",
-        help="one operating threshold (--score-threshold) for every class (default: each class's own, "
-        "the one of highest F-score on the training frames' annotations)",
-    )
-    p.add_argument("--nms-iou", type=float, default=loop.nms_iou)
+    # One flag per LOOP_CONTROLS entry: the flags and the app's Training panel cannot disagree.
+    add_loop_flags(p)
     p.add_argument("--frames", type=int, default=None, help="use only the first N training frames")
     p.add_argument("--preset", default=None)
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a front-half parameter")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
-    p.add_argument("--seed", type=int, default=loop.seed)
     p.add_argument(
         "--compare",
         action="store_true",
         help="measure the previous and the new model on the test frames against the session's labels",
     )
     p.add_argument("--test-frames", type=int, default=None, help="with --compare: the first N test frames")
-    p.add_argument(
-        "--no-box-quality",
-        dest="box_quality",
-        action="store_false",
-        help="keep the size prior's box and the class probability as score, without the regressor of "
-        "each box's IoU",
-    )
-    p.add_argument(
-        "--visibility",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="whether the box quality regressor reads what the frame's rays saw empty or occupied "
-        "in each box (auto: on for multi-sensor data, off for single scans such as ScanNet's, "
-        "whose clouds come from meshes)",
-    )
-    p.add_argument(
-        "--method",
-        choices=METHODS,
-        default=loop.method,
-        help="paper: the 3DmFV-Net classifier choosing among the size prior's box options; box_head: "
-        "the learned box head, which classifies and boxes each point set in one pass; head_options: "
-        "the box head classifies, the box quality regressor boxes among the size prior's options",
-    )
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     p.set_defaults(func=_cmd_train)
 

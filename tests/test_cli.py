@@ -5,6 +5,7 @@ import pytest
 
 from app.cli import main
 from factorydet_core.detection.model import DetectionModel
+from factorydet_core.types import InputError
 
 
 def test_simulate_info_and_bench(tmp_path, capsys):
@@ -347,20 +348,28 @@ def test_bench_quality_checks_its_arguments_and_readme_before_running(
 def test_the_train_flags_default_to_the_loop_settings():
     import dataclasses
 
-    from factorydet_core.cli import build_parser
-    from factorydet_core.training.settings import LoopSettings
+    from factorydet_core.cli import build_parser, loop_settings_from_args
+    from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings
 
     args = build_parser().parse_args(["train", "--session", "s"])
-    flags = {
-        "width": args.width, "epochs": args.epochs, "rounds": args.rounds,
-        "negatives_per_round": args.negatives, "initial_negatives": args.initial_negatives,
-        "positive_iou": args.positive_iou, "fragment_iou": args.fragment_iou,
-        "fragments_per_frame": args.fragments_per_frame, "score_threshold": args.score_threshold,
-        "probability_exponent": args.probability_exponent, "class_thresholds": args.class_thresholds,
-        "mining_threshold": args.mining_threshold, "nms_iou": args.nms_iou, "seed": args.seed,
-        "geometry": args.geometry, "box_quality": args.box_quality, "method": args.method,
-        "class_weight": None if args.class_weight == "none" else args.class_weight,
-    }  # fmt: skip
-    loop = LoopSettings()
-    assert flags == {name: getattr(loop, name) for name in flags}
-    assert set(flags) | {"num_threads", "visibility"} == {f.name for f in dataclasses.fields(LoopSettings)}
+    assert loop_settings_from_args(args) == LoopSettings()
+    # Every setting but the machine's thread count has a flag (and so a control in the app).
+    assert {c.field for c in LOOP_CONTROLS} | {"num_threads"} == {
+        f.name for f in dataclasses.fields(LoopSettings)
+    }
+
+
+def test_the_train_flags_set_and_check_the_loop_settings():
+    from factorydet_core.cli import build_parser, loop_settings_from_args
+
+    argv = ["train", "--session", "s", "--negatives", "30", "--class-weight", "none", "--no-geometry",
+            "--visibility", "off", "--fragments-per-frame", "7", "--method", "box_head"]  # fmt: skip
+    settings = loop_settings_from_args(build_parser().parse_args(argv))
+    assert settings.negatives_per_round == 30 and settings.class_weight is None and not settings.geometry
+    assert (
+        settings.visibility is False and settings.fragments_per_frame == 7 and settings.method == "box_head"
+    )
+    with pytest.raises(InputError, match="Score threshold"):
+        loop_settings_from_args(
+            build_parser().parse_args(["train", "--session", "s", "--score-threshold", "3"])
+        )

@@ -10,7 +10,8 @@ import viser
 
 from factorydet_core.detection.model import DEFAULT_MODEL, PAPER_MODEL, DetectionModel
 from factorydet_core.evaluation.measure import comparison_markdown
-from factorydet_core.types import METHODS, InputError
+from factorydet_core.training.settings import LOOP_CONTROLS, Control, LoopSettings, loop_settings_from
+from factorydet_core.types import InputError
 
 from ..state import AppState
 from ..trainer import TrainingWorker
@@ -18,10 +19,31 @@ from ..trainer import TrainingWorker
 MODES = {"next round": "next", "full retrain": "full"}
 SHIPPED = "shipped default model"
 SHIPPED_PAPER = "shipped paper pipeline"
-METHOD_HINT = (
-    "paper: the 3DmFV-Net classifier picks among box options; box_head: a learned head classifies "
-    "and boxes each point set; head_options: the head classifies, the box quality regressor boxes"
-)
+FIRST_CONTROLS = ("method", "epochs")
+"""Shown above the Train button; the other ``LOOP_CONTROLS`` sit in a "Settings" folder below."""
+
+
+def add_control(server: viser.ViserServer, control: Control, value: object):
+    """The GUI handle of one training setting, showing ``value`` (``Control.shown``)."""
+    shown = control.shown(value)
+    if control.kind is bool:
+        return server.gui.add_checkbox(control.label, initial_value=bool(shown), hint=control.help)
+    if control.choices is not None:
+        texts = [text for text, _ in control.choices]
+        return server.gui.add_dropdown(control.label, texts, initial_value=shown, hint=control.help)
+    return server.gui.add_number(
+        control.label,
+        initial_value=shown,
+        min=control.minimum,
+        max=control.maximum,
+        step=control.step,
+        hint=control.help,
+    )
+
+
+def settings_of(controls: dict[str, object], base: LoopSettings) -> LoopSettings:
+    """The settings the controls show (``InputError`` for a value outside a setting's bounds)."""
+    return loop_settings_from({field: handle.value for field, handle in controls.items()}, base)
 
 
 def model_choices(state: AppState) -> dict[str, str]:
@@ -60,8 +82,8 @@ def runs_markdown(state: AppState) -> str:
 @dataclasses.dataclass
 class TrainingPanel:
     mode: viser.GuiDropdownHandle
-    method: viser.GuiDropdownHandle
-    epochs: viser.GuiNumberHandle
+    controls: dict[str, object]
+    """One handle per ``LOOP_CONTROLS`` field."""
     train: viser.GuiButtonHandle
     cancel: viser.GuiButtonHandle
     progress: viser.GuiProgressBarHandle
@@ -99,10 +121,8 @@ class TrainingPanel:
 def build_training_panel(server: viser.ViserServer, state: AppState, worker: TrainingWorker) -> TrainingPanel:
     with server.gui.add_folder("Training", order=40, expand_by_default=False):
         mode = server.gui.add_dropdown("Mode", list(MODES), initial_value="next round")
-        method = server.gui.add_dropdown(
-            "Method", list(METHODS), initial_value=worker.settings.method, hint=METHOD_HINT
-        )
-        epochs = server.gui.add_number("Epochs", initial_value=worker.settings.epochs, min=1, max=500, step=1)
+        by_field = {c.field: c for c in LOOP_CONTROLS}
+        controls = {f: add_control(server, by_field[f], getattr(worker.settings, f)) for f in FIRST_CONTROLS}
         train = server.gui.add_button(
             "Train", color="green", hint="On the corrected labels and the review verdicts, in the background"
         )
@@ -114,13 +134,25 @@ def build_training_panel(server: viser.ViserServer, state: AppState, worker: Tra
         choices = list(model_choices(state)) or ["(none)"]
         model = server.gui.add_dropdown("Model", choices, initial_value=choices[0])
         show_model = server.gui.add_button("Show this model")
+        with server.gui.add_folder("Settings", expand_by_default=False):
+            for control in LOOP_CONTROLS:
+                if control.field not in controls:
+                    controls[control.field] = add_control(
+                        server, control, getattr(worker.settings, control.field)
+                    )
     panel = TrainingPanel(
-        mode, method, epochs, train, cancel, progress, status, comparison, runs, model, show_model
+        mode, controls, train, cancel, progress, status, comparison, runs, model, show_model
     )
 
     @train.on_click
     def _(event: viser.GuiEvent) -> None:
-        if not worker.start(MODES[mode.value], int(epochs.value), method.value) and event.client is not None:
+        try:
+            settings = settings_of(controls, worker.settings)
+        except InputError as exc:
+            if event.client is not None:
+                event.client.add_notification("Training", str(exc), color="red", auto_close_seconds=8)
+            return
+        if not worker.start(MODES[mode.value], settings) and event.client is not None:
             event.client.add_notification(
                 "Training", "A training job is already running.", auto_close_seconds=5
             )

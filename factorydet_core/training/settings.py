@@ -81,3 +81,142 @@ class LoopSettings:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if self.method == "head_options" and not self.box_quality:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
+
+
+@dataclasses.dataclass(frozen=True)
+class Control:
+    """How people set one field of ``LoopSettings``: ``factorydet train``'s flag and the app's
+    Training panel control are both built from it, so their defaults, bounds and help agree.
+
+    Args:
+        field: the ``LoopSettings`` field.
+        label: the app's label.
+        help: one line for the flag's help and the control's hint.
+        kind: ``int``, ``float``, ``bool`` or ``str`` (a choice).
+        minimum, maximum, step: a number's bounds (inclusive) and the app's step.
+        choices: for a choice, ``(text, value)`` pairs: what is typed or picked, what it means.
+        none_as: for a number whose field may be ``None``, the number that stands for ``None``
+            (``fragments_per_frame``: 0 means all).
+        flag: the command-line flag (default ``--field-name``; a bool that defaults to True is
+            turned off by ``--no-field-name``).
+    """
+
+    field: str
+    label: str
+    help: str
+    kind: type = float
+    minimum: float | None = None
+    maximum: float | None = None
+    step: float | None = None
+    choices: tuple[tuple[str, object], ...] | None = None
+    none_as: float | None = None
+    flag: str | None = None
+
+    @property
+    def default(self) -> object:
+        return getattr(LoopSettings(), self.field)
+
+    @property
+    def cli_flag(self) -> str:
+        if self.flag is not None:
+            return self.flag
+        name = self.field.replace("_", "-")
+        return f"--no-{name}" if self.kind is bool and self.default else f"--{name}"
+
+    def text_of(self, value: object) -> str:
+        """A choice's text for ``value``."""
+        for text, meaning in self.choices or ():
+            if meaning == value:
+                return text
+        raise InputError(f"{self.field}: {value!r} is none of {[t for t, _ in self.choices or ()]}")
+
+    def shown(self, value: object) -> object:
+        """``value`` as the app's control shows it (a choice's text, ``none_as`` for ``None``)."""
+        if self.choices is not None:
+            return self.text_of(value)
+        if value is None and self.none_as is not None:
+            return self.kind(self.none_as)
+        return value
+
+    def parse(self, raw: object) -> object:
+        """The field's value of what a flag or a control gave, checked; ``InputError`` otherwise."""
+        if self.choices is not None:
+            for text, meaning in self.choices:
+                if raw == text:
+                    return meaning
+            raise InputError(
+                f"{self.label}: choose one of {', '.join(t for t, _ in self.choices)}, got {raw!r}"
+            )
+        if self.kind is bool:
+            if not isinstance(raw, bool):
+                raise InputError(f"{self.label}: expected true or false, got {raw!r}")
+            return raw
+        if raw is None:
+            return None
+        try:
+            number = float(raw)
+        except (TypeError, ValueError):
+            raise InputError(f"{self.label}: expected a number, got {raw!r}") from None
+        if self.none_as is not None and number == self.none_as:
+            return None
+        if self.kind is int and number != int(number):
+            raise InputError(f"{self.label}: expected a whole number, got {raw!r}")
+        if (self.minimum is not None and number < self.minimum) or (
+            self.maximum is not None and number > self.maximum
+        ):
+            raise InputError(f"{self.label}: {raw!r} is outside [{self.minimum:g}, {self.maximum:g}]")
+        return int(number) if self.kind is int else number
+
+
+LOOP_CONTROLS: tuple[Control, ...] = (
+    Control("method", "Method", "back half: paper (3DmFV-Net and box options), box_head (the learned head "
+            "classifies and boxes), head_options (the head classifies, the box quality regressor boxes)",
+            str, choices=tuple((m, m) for m in METHODS)),
+    Control("epochs", "Epochs", "passes over the training set per fit", int, 1, 500, 1),
+    Control("rounds", "Mining rounds", "hard-negative mining rounds after the first fit (full retrain)",
+            int, 0, 20, 1),
+    Control("negatives_per_round", "Negatives per round", "mined negatives added per round (N)", int, 0,
+            1_000_000, 50, flag="--negatives"),
+    Control("initial_negatives", "Initial negatives", "random background set to start", int, 0, 1_000_000,
+            100),
+    Control("width", "Network width", "3DmFV-Net width (1.0 = the paper's, 46M parameters)", float, 0.015625,
+            2.0, 0.015625),
+    Control("class_weight", "Class weight", "loss weighting: inverse class frequency, its square root, or "
+            "none (the paper's plain loss)", str,
+            choices=(("balanced", "balanced"), ("sqrt", "sqrt"), ("none", None))),
+    Control("geometry", "Geometric descriptors", "feed the point sets' descriptors to the network beside the "
+            "3DmFV tensor (off: the paper's network on the tensor alone)", bool),
+    Control("positive_iou", "Positive IoU", "a point set is an object if its box overlaps a label this much",
+            float, 0.05, 1.0, 0.05),
+    Control("fragment_iou", "Fragment IoU", "point sets overlapping a label at most this much start as "
+            "background (0: the paper's start)", float, 0.0, 1.0, 0.05),
+    Control("fragments_per_frame", "Fragments per frame", "sample at most N of those per frame (0: all; "
+            "bounds the fit's time on many frames)", int, 0, 1_000_000, 10, none_as=0),
+    Control("score_threshold", "Score threshold", "operating score of the model and of mining (with box "
+            "quality: class probability to the exponent times the predicted IoU)", float, 0.0, 1.0, 0.05),
+    Control("probability_exponent", "Probability exponent", "with box quality, the class probability's "
+            "power in the score (1: the plain product)", float, 0.05, 10.0, 0.05),
+    Control("mining_threshold", "Mining threshold", "mine (and queue for review) false positives scoring at "
+            "least this; the top N by score go to the background", float, 0.0, 1.0, 0.01),
+    Control("class_thresholds", "Per-class thresholds", "each class's own operating threshold, tuned on the "
+            "training frames' labels (off: the score threshold for every class)", bool),
+    Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
+    Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
+    Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "
+            "IoU and weigh the score by it (off: the size prior's box and the class probability)", bool),
+    Control("visibility", "Free space", "the box quality regressor reads what the rays saw in each box "
+            "(auto: on for multi-sensor data, off for single scans)", str,
+            choices=(("auto", None), ("on", True), ("off", False))),
+)  # fmt: skip
+"""Every ``LoopSettings`` field people set (``num_threads`` is the machine's, not the model's)."""
+
+
+def loop_settings_from(values: dict[str, object], base: LoopSettings | None = None) -> LoopSettings:
+    """``base`` (default ``LoopSettings()``) with the fields of ``values`` (raw flag or control
+    values by field name) parsed by their ``LOOP_CONTROLS``; ``InputError`` for a bad one."""
+    controls = {c.field: c for c in LOOP_CONTROLS}
+    unknown = sorted(set(values) - set(controls))
+    if unknown:
+        raise InputError(f"unknown training settings {unknown}")
+    parsed = {name: controls[name].parse(raw) for name, raw in values.items()}
+    return dataclasses.replace(base or LoopSettings(), **parsed)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 from app.state import AppState
@@ -56,7 +57,7 @@ def test_a_job_trains_with_the_method_and_epochs_it_was_started_with(small_datas
         done.set()
 
     trainer._train = job
-    assert trainer.start("full", epochs=3, method="box_head")
+    assert trainer.start("full", dataclasses.replace(LoopSettings(), epochs=3, method="box_head"))
     assert done.wait(10)
     trainer.join(10)
     assert seen == [("full", "box_head", 3)]
@@ -81,7 +82,7 @@ def test_the_app_retrains_through_the_same_function_as_the_command_line(
 
     monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
     trainer = TrainingWorker(state, calibrate=False)
-    assert trainer.start("full", epochs=2)
+    assert trainer.start("full", dataclasses.replace(LoopSettings(), epochs=2))
     trainer.join(10)
     assert state.training_status == "failed: stop here" and not state.training_busy
     [(data, settings, front_end, options)] = calls

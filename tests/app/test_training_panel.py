@@ -1,0 +1,46 @@
+"""The Training panel's controls are built from the library's training settings (in-process, a
+viser server without a browser)."""
+
+import dataclasses
+
+import pytest
+import viser
+
+from app.panels.training_panel import build_training_panel, settings_of
+from app.state import AppState
+from app.trainer import TrainingWorker
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.store import SessionDB, open_session
+from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings
+from factorydet_core.types import InputError
+
+
+@pytest.fixture
+def server():
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    yield server
+    server.stop()
+
+
+def test_every_training_setting_has_a_control_showing_the_workers_value(server, small_dataset_dir, tmp_path):
+    dataset = open_dataset(small_dataset_dir)
+    state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
+    base = dataclasses.replace(LoopSettings(), epochs=7, class_weight=None, visibility=False)
+    worker = TrainingWorker(state, settings=base, calibrate=False)
+    panel = build_training_panel(server, state, worker)
+
+    assert set(panel.controls) == {c.field for c in LOOP_CONTROLS}
+    assert panel.controls["epochs"].value == 7
+    assert panel.controls["class_weight"].value == "none"
+    assert panel.controls["visibility"].value == "off"
+    assert settings_of(panel.controls, LoopSettings()) == base  # what is shown is what trains
+
+    panel.controls["method"].value = "box_head"
+    panel.controls["negatives_per_round"].value = 40
+    panel.controls["geometry"].value = False
+    chosen = settings_of(panel.controls, base)
+    assert (chosen.method, chosen.negatives_per_round, chosen.geometry) == ("box_head", 40, False)
+
+    panel.controls["score_threshold"].value = 1.5  # a value typed past the control's bounds
+    with pytest.raises(InputError, match="Score threshold"):
+        settings_of(panel.controls, base)

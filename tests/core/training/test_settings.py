@@ -1,0 +1,64 @@
+"""The training settings' controls: what a flag or an app control may set, parsed and checked in
+one place."""
+
+import dataclasses
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, loop_settings_from
+from factorydet_core.types import InputError
+
+CONTROLS = {c.field: c for c in LOOP_CONTROLS}
+
+
+def test_every_control_shows_and_parses_back_its_default():
+    defaults = LoopSettings()
+    values = {c.field: c.shown(c.default) for c in LOOP_CONTROLS}
+    assert loop_settings_from(values) == defaults
+    for control in LOOP_CONTROLS:
+        assert control.default == getattr(defaults, control.field)
+        if control.kind in (int, float) and control.default is not None:
+            assert control.minimum <= control.default <= control.maximum, control.field
+
+
+@given(st.sampled_from([c for c in LOOP_CONTROLS if c.kind in (int, float)]), st.floats(-1e6, 1e6))
+def test_a_number_is_taken_inside_its_bounds_and_refused_outside(control, value):
+    if control.kind is int:
+        value = float(round(value))
+    inside = control.minimum <= value <= control.maximum
+    if control.none_as is not None and value == control.none_as:
+        assert control.parse(value) is None
+    elif inside:
+        assert control.parse(value) == value
+    else:
+        with pytest.raises(InputError, match=control.label):
+            control.parse(value)
+
+
+@pytest.mark.parametrize(
+    ("field", "raw", "expected"),
+    [("class_weight", "none", None), ("visibility", "auto", None), ("visibility", "on", True),
+     ("fragments_per_frame", 0, None), ("fragments_per_frame", 12, 12), ("geometry", False, False)],
+)  # fmt: skip
+def test_choices_and_none_stand_ins(field, raw, expected):
+    assert CONTROLS[field].parse(raw) == expected
+    assert CONTROLS[field].shown(expected) == raw
+
+
+@pytest.mark.parametrize(
+    ("values", "match"),
+    [({"epochs": 2.5}, "whole number"), ({"class_weight": "heavy"}, "choose one of"),
+     ({"geometry": "yes"}, "true or false"), ({"epochs": "many"}, "a number"),
+     ({"num_threads": 2}, "unknown")],
+)  # fmt: skip
+def test_bad_values_are_one_line_errors(values, match):
+    with pytest.raises(InputError, match=match):
+        loop_settings_from(values)
+
+
+def test_the_settings_still_check_themselves():
+    with pytest.raises(InputError, match="box_quality must be on"):
+        loop_settings_from({"method": "head_options", "box_quality": False})
+    assert dataclasses.replace(LoopSettings(), epochs=3) == loop_settings_from({"epochs": 3})
