@@ -36,7 +36,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check factorydet_core app tests
 	$(BIN)/lint-imports --no-cache
 
-# Re-runs every benchmark: JSON under docs/, tables into docs/benchmarks.md, docs/labelling.md and the README (an hour or more).
+# Re-runs every benchmark: records under docs/bench/, tables into docs/benchmarks.md, docs/labelling.md and the README (an hour or more).
 BENCH_DATA ?= /tmp/bench_sim
 REAL := ../shared/data/real
 bench: $(STAMP) corpus
@@ -56,7 +56,7 @@ bench: $(STAMP) corpus
 	$(BIN)/factorydet bench fuzz --cases 1000 --seed 0 --out docs/bench/fuzz.json
 	$(BIN)/factorydet bench import --boxes 10000 --out docs/bench/label_import.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/hitl.json --readme docs/labelling.md
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/bench/hitl.json --readme docs/labelling.md
 
 # Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
 screenshots: $(STAMP) demo browserdeps

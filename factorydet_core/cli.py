@@ -283,10 +283,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
                 if args.out:
                     from factorydet_core.evaluation.report import hitl_markdown
+                    from factorydet_core.io.atomic import write_text_atomic
 
                     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-                    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
-                    Path(args.out).with_suffix(".md").write_text(hitl_markdown(result))
+                    write_text_atomic(Path(args.out), json.dumps(result, indent=2) + "\n")
+                    write_text_atomic(Path(args.out).with_suffix(".md"), hitl_markdown(result))
             elif args.name == "detect":
                 from factorydet_core.evaluation.bench import bench_detect
                 from factorydet_core.session.models import resolve_model
@@ -323,7 +324,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     print(json.dumps(result, indent=2))
     if args.readme:
         markdown = None
-        if args.name == "hitl":  # a table people read, where the other benchmarks keep their JSON
+        # hitl renders its own table and writes its record at --out; the others' tables come from
+        # their renderers (bench_tables), with the record at bench/<block>.json beside the page.
+        if args.name == "hitl":
             from factorydet_core.evaluation.report import hitl_markdown
 
             markdown = hitl_markdown(result, heading=False)
@@ -1014,7 +1017,12 @@ def build_parser(
         "--scratch", default="/tmp/factorydet_heldout", help="quality: held-out factories and caches"
     )
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
-    p.add_argument("--readme", default=None, help="also write the result into this README's bench block")
+    p.add_argument(
+        "--readme",
+        default=None,
+        help="also write a table of the result into this page's bench block, and the whole record "
+        "to bench/BLOCK.json beside the page (hitl and quality: their record goes to --out)",
+    )
     p.add_argument(
         "--readme-block",
         default=None,

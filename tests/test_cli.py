@@ -27,15 +27,21 @@ def test_bench_writes_the_readme_block(tmp_path, capsys):
     readme.write_text("before\n<!-- bench:simulate -->\nold\n<!-- /bench:simulate -->\nafter\n")
     assert main(["bench", "simulate", "--frames", "1", "--points", "4000", "--readme", str(readme)]) == 0
     text = readme.read_text()
-    assert "old" not in text and '"seconds_per_frame_median"' in text and text.endswith("after\n")
+    # The block gets a table and a link to the record, written beside the page in bench/.
+    assert "old" not in text and "| s per frame (median) |" in text and text.endswith("after\n")
+    assert "[bench/simulate.json](bench/simulate.json)" in text
+    record = json.loads((tmp_path / "bench" / "simulate.json").read_text())
+    assert record["benchmark"] == "simulate" and f"| {record['seconds_per_frame_median']} |" in text
     # A block of its own name: the default block is left alone.
     readme.write_text(text + "<!-- bench:sim-b -->\nold\n<!-- /bench:sim-b -->\n")
     args = ["bench", "simulate", "--frames", "1", "--points", "4000", "--readme", str(readme)]
     assert main([*args, "--readme-block", "sim-b"]) == 0
     assert readme.read_text().startswith(text) and "old" not in readme.read_text()
+    assert (tmp_path / "bench" / "sim-b.json").is_file()
     assert main([*args, "--readme-block", "missing"]) == 2
     assert "no '<!-- bench:missing -->' block" in capsys.readouterr().err
     assert main([*args, "--readme-block", "a b"]) == 2
+    assert sorted(p.name for p in (tmp_path / "bench").iterdir()) == ["sim-b.json", "simulate.json"]
 
 
 def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys):

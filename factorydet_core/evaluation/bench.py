@@ -1,4 +1,5 @@
-"""Benchmark commands: each prints one JSON object; figures in the README come from here."""
+"""Benchmark commands: each prints one JSON object, its record; ``update_readme`` writes the record to
+``bench/<block>.json`` beside a page and a table of its headline figures into the page's block."""
 
 from __future__ import annotations
 
@@ -19,9 +20,11 @@ from factorydet_core.detection.classifier import ProposalClassifier
 from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.groups import BoxSizePrior, best_option_iou
 from factorydet_core.detection.model import DetectionModel
+from factorydet_core.evaluation.bench_tables import record_line, render_record
 from factorydet_core.evaluation.evaluate import detector_for, measure
 from factorydet_core.evaluation.plots import plot_voxel_sweep
 from factorydet_core.geometry import rotation_angle_deg
+from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.metrics import best_box_iou, best_point_iou, proposal_point_lists, recall_table
 from factorydet_core.proposals.candidates import box_hypotheses
@@ -103,23 +106,43 @@ def check_readme_block(readme: str | os.PathLike, name: str) -> None:
         raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
 
 
+def record_path(readme: str | os.PathLike, name: str) -> Path:
+    """Where ``update_readme`` keeps the record of block ``name``: ``bench/<name>.json`` beside the
+    page, so that the page links to it as ``bench/<name>.json``."""
+    return Path(readme).parent / "bench" / f"{name}.json"
+
+
 def update_readme(
     readme: str | os.PathLike, result: dict, name: str | None = None, markdown: str | None = None
 ) -> None:
-    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with ``result``
-    as JSON, or with ``markdown`` (a table rendered from it) when given; ``name`` defaults to the
-    result's ``benchmark`` (a second block of the same benchmark, on other data, takes a name of
-    its own)."""
+    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with a table of
+    ``result``'s headline figures; ``name`` defaults to the result's ``benchmark`` (a second block
+    of the same benchmark, on other data, takes a name of its own).
+
+    Without ``markdown`` the table comes from the benchmark's renderer (``bench_tables``), the whole
+    record goes to ``record_path(readme, name)`` and the block ends with a line linking it and
+    naming the command. With ``markdown`` the block is that text alone: its caller renders the
+    table and writes the record itself (``bench hitl`` and ``bench quality`` with ``--out``). A
+    missing block, or a benchmark without a renderer, is refused before anything is written; each
+    file is written whole or not at all.
+    """
     path = Path(readme)
     name = result["benchmark"] if name is None else name
     check_readme_block(path, name)
     text = path.read_text()
-    body = f"```json\n{json.dumps(result, indent=2)}\n```" if markdown is None else markdown.strip()
-    block = f"<!-- bench:{name} -->\n{body}\n<!-- /bench:{name} -->"
     pattern = re.compile(rf"<!-- bench:{name} -->.*?<!-- /bench:{name} -->", re.S)
     if not pattern.search(text):
         raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
-    path.write_text(pattern.sub(lambda _: block, text))
+    record = None
+    if markdown is None:
+        record = record_path(path, name)
+        link = record.relative_to(path.parent).as_posix()
+        markdown = render_record(result).strip() + "\n\n" + record_line(result, link)
+    block = f"<!-- bench:{name} -->\n{markdown.strip()}\n<!-- /bench:{name} -->"
+    if record is not None:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(record, json.dumps(result, indent=2) + "\n")
+    write_text_atomic(path, pattern.sub(lambda _: block, text))
 
 
 def _median(values: list[float]) -> float:

@@ -515,8 +515,8 @@ def write_report(
             "",
             f"![grid sweep]({sweep_png.name})",
         ]
-    hitl_path = out.parent / "hitl.json"
-    if hitl_path.is_file():  # written by `factorydet bench hitl --out docs/hitl.json`
+    hitl_path = out.parent / "bench" / "hitl.json"
+    if hitl_path.is_file():  # written by `factorydet bench hitl --out docs/bench/hitl.json`
         lines += ["", hitl_markdown(json.loads(hitl_path.read_text()))]
     lines.append("")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,293 @@
+"""Short Markdown tables of the benchmarks' headline figures, one renderer per benchmark.
+
+A page shows the figures people compare (times, recalls, F-scores); the whole record, every class,
+setting and machine detail, goes to a JSON file beside the page (``bench/<block>.json``) that the
+table links to. Every number in a table is read from the record here, never typed into a page.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from factorydet_core.types import InputError
+
+Renderer = Callable[[dict], str]
+"""A pure function from a benchmark's record to Markdown (a table and a line or two of context)."""
+
+RENDERERS: dict[str, Renderer] = {}
+"""Renderers by the record's ``benchmark`` field (not by the page block: two blocks of one
+benchmark, on different data, share a renderer)."""
+
+
+def register(*benchmarks: str) -> Callable[[Renderer], Renderer]:
+    """Decorator: render the records of ``benchmarks`` with the decorated function."""
+
+    def decorate(render: Renderer) -> Renderer:
+        for name in benchmarks:
+            RENDERERS[name] = render
+        return render
+
+    return decorate
+
+
+def render_record(result: dict) -> str:
+    """The Markdown of ``result`` by its benchmark's renderer; ``InputError`` for a benchmark with
+    none (its caller must render its own table)."""
+    name = result.get("benchmark")
+    if name not in RENDERERS:
+        raise InputError(f"no table renderer for benchmark {name!r} (have {', '.join(sorted(RENDERERS))})")
+    return RENDERERS[name](result)
+
+
+def record_line(result: dict, link: str) -> str:
+    """The line under a table: a link to the whole record, where it ran and the command that
+    produced it."""
+    parts = [f"Record: [{link}]({link})"]
+    machine = result.get("machine")
+    if machine:
+        parts.append(f"measured on {machine_text(machine)}")
+    if result.get("command"):
+        parts.append(f"by `{result['command']}`")
+    return ", ".join(parts) + "."
+
+
+def machine_text(machine: dict) -> str:
+    """``Intel(R) Xeon(R) Processor, 2 cores, 23.5 GB``: what a time was measured on."""
+    text = str(machine.get("cpu", "unknown CPU"))
+    if machine.get("cores"):
+        text += f", {machine['cores']} cores"
+    if machine.get("memory_gb"):
+        text += f", {machine['memory_gb']} GB"
+    return text
+
+
+def fmt(value: object, digits: int | None = None) -> str:
+    """A figure as recorded: thousands separated, ``digits`` decimals when given (recalls and
+    F-scores line up at three), an en dash for a figure the run did not measure."""
+    if value is None:
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float) and digits is not None:
+        return f"{value:,.{digits}f}"
+    if isinstance(value, (int, float)):
+        return f"{value:,}"
+    return str(value).replace("|", "\\|")  # A pipe would end the table cell.
+
+
+def table(header: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table of ``rows`` under ``header``."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _frames(frames: list[int]) -> str:
+    """``16–23`` for a run of consecutive frames, commas between runs: twenty test frames stay short."""
+    runs: list[list[int]] = []
+    for i in frames:
+        if runs and i == runs[-1][-1] + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    return ", ".join(f"{run[0]}–{run[-1]}" if len(run) > 2 else ", ".join(map(str, run)) for run in runs)
+
+
+@register("simulate")
+def simulate_markdown(result: dict) -> str:
+    """Seconds per 12-sensor frame (median, max, first), set-up time and points per frame."""
+    header = [
+        "frames",
+        "sensors",
+        "points per frame (median)",
+        "s per frame (median)",
+        "s per frame (max)",
+        "first frame (s)",
+        "set-up (s)",
+        "target (s per frame)",
+    ]
+    row = [
+        fmt(result["num_frames"]),
+        fmt(result["num_sensors"]),
+        fmt(result["points_per_frame_median"]),
+        fmt(result["seconds_per_frame_median"]),
+        fmt(result["seconds_per_frame_max"]),
+        fmt(result["first_frame_s"]),
+        fmt(result["setup_s"]),
+        fmt(result["target_seconds_per_frame"]),
+    ]
+    return table(header, [row]) + "\n"
+
+
+@register("pipeline", "pipeline-real")
+def pipeline_markdown(result: dict) -> str:
+    """Per class: instances, proposal recall and its three bounds (segment, box fit on the true
+    segment, box options); then the stage times, feature throughput and ICP calibration errors."""
+    recall = result["proposal_recall"]
+    bounds = [
+        result.get("segment_recall_point_iou"),
+        result.get("oracle_box_fit_recall"),
+        result.get("option_recall"),
+    ]
+    rows = []
+    for name, entry in recall.items():
+        cells = [fmt(b[name]["recall"], 3) if b and name in b else fmt(None) for b in bounds]
+        rows.append(
+            [f"**{name}**" if name == "all" else name, fmt(entry["num"]), fmt(entry["recall"], 3), *cells]
+        )
+    iou = result["iou_threshold"]
+    recall_table = table(
+        [
+            "class",
+            "instances",
+            f"proposal recall, box IoU {iou}",
+            f"segment recall, point IoU {iou}",
+            "box fit on the true segment",
+            "best box option",
+        ],
+        rows,
+    )
+    stages = result["stage_ms_median"]
+    stage_table = table(
+        [*stages, "target", "proposals per frame"],
+        [
+            [
+                *(fmt(ms) for ms in stages.values()),
+                fmt(result["target_total_ms"]),
+                fmt(result["proposals_per_frame_median"]),
+            ]
+        ],
+    )
+    context = f"Data `{result['data']}`, frames {_frames(result['frames'])}, preset `{result['preset']}`"
+    if result.get("overrides"):
+        context += f", settings changed: {result['overrides']}"
+    lines = [recall_table, "", "Stage times, ms per frame (median over the frames):", "", stage_table]
+    notes = [context + "."]
+    features = result.get("features")
+    if features:
+        notes.append(
+            f"Features: {fmt(features['points_per_second'])} points/s, "
+            f"{fmt(features['speedup_over_reference'])} times the float64 reference."
+        )
+    calibration = result.get("calibration")
+    if calibration:
+        before, after = calibration["nominal"], calibration["refined"]
+        notes.append(
+            "ICP calibration (median over sensors, nominal → refined): rotation "
+            f"{fmt(before['rotation_deg_median'])}° → {fmt(after['rotation_deg_median'])}°, translation "
+            f"{fmt(before['translation_cm_median'])} → {fmt(after['translation_cm_median'])} cm, a point "
+            f"10 m ahead {fmt(before['point_10m_ahead_error_cm_median'])} → "
+            f"{fmt(after['point_10m_ahead_error_cm_median'])} cm."
+        )
+    return "\n".join(lines) + "\n\n" + " ".join(notes) + "\n"
+
+
+@register("voxel-sweep")
+def voxel_sweep_markdown(result: dict) -> str:
+    """A row per voxel size: proposal recall per class with the cut pursuit on voxels, the segment
+    recall and the front half's time; the point-segmentation recall as the reference row."""
+    sizes = result["voxel_segmentation"]
+    reference = result["point_segmentation_recall"]
+    classes = list(reference)
+    header = ["voxel size (m)", *classes, "segment recall", "total ms (median)"]
+    rows = []
+    if sizes:
+        counts = sizes[0]["num"]  # The same frames at every size: the same instances.
+        rows.append(["instances", *(fmt(counts.get(c)) for c in classes), "", ""])
+    rows.append(["points (reference)", *(fmt(reference[c], 3) for c in classes), fmt(None), fmt(None)])
+    for size in sizes:
+        rows.append(
+            [
+                fmt(size["voxel_size_m"]),
+                *(fmt(size["recall"].get(c), 3) for c in classes),
+                fmt(size["segment_recall"], 3),
+                fmt(size["total_ms"]),
+            ]
+        )
+    return (
+        table(header, rows)
+        + f"\n\nProposal recall at box IoU {result['iou_threshold']}; data `{result['data']}`, "
+        f"frames {_frames(result['frames'])}.\n"
+    )
+
+
+@register("classifier")
+def classifier_markdown(result: dict) -> str:
+    """A row per configuration (feature, descriptors, width): size, training time and epochs run,
+    detection F-score, mAP, precision, recall and mean recognition accuracy."""
+    header = [
+        "feature",
+        "geometry",
+        "width",
+        "parameters",
+        "epochs run",
+        "fit (s)",
+        "F-score",
+        "mAP",
+        "precision",
+        "recall",
+        "recognition (mean over classes)",
+    ]
+    rows = [
+        [
+            fmt(row["feature"]),
+            fmt(row["geometry"]),
+            fmt(row["width"]),
+            fmt(row["num_parameters"]),
+            fmt(row["epochs_run"]),
+            fmt(row["fit_seconds"]),
+            fmt(row["detection_f1"], 3),
+            fmt(row["detection_map"], 3),
+            fmt(row["detection_precision"], 3),
+            fmt(row["detection_recall"], 3),
+            fmt(row["recognition_mean_class_accuracy"], 3),
+        ]
+        for row in result["rows"]
+    ]
+    quality = ", with box quality" if result.get("box_quality") else ", without box quality"
+    return (
+        table(header, rows)
+        + f"\n\nData `{result['data']}`: training frames {_frames(result['train_frames'])}, test frames "
+        f"{_frames(result['test_frames'])} against the {result['reference']}; up to {fmt(result['epochs'])} "
+        f"epochs or {fmt(result['max_fit_seconds'])} s per fit; score threshold "
+        f"{fmt(result['score_threshold'])} (probability exponent {fmt(result['probability_exponent'])})"
+        f"{quality}.\n"
+    )
+
+
+@register("detect")
+def detect_markdown(result: dict) -> str:
+    """The whole detection's stage times (median ms per frame) and total, with detections per frame
+    and the model's training time per round."""
+    stages = result["stage_ms_median"]
+    stage_table = table(
+        [*stages, "target"],
+        [[*(fmt(ms) for ms in stages.values()), fmt(result["target_total_ms"])]],
+    )
+    training = result.get("training_seconds_per_round")
+    if isinstance(training, list):
+        training = ", ".join(fmt(s) for s in training)
+    return (
+        "Stage times, ms per frame (median over the frames):\n\n"
+        + stage_table
+        + f"\n\nModel `{Path(str(result['model'])).name}` (width {fmt(result['width'])}, "
+        f"{fmt(result['num_parameters'])} parameters) on data `{result['data']}`, frames "
+        f"{_frames(result['frames'])} ({fmt(result['points_per_frame_median'])} points per frame, "
+        f"median): {fmt(result['detections_per_frame_median'])} detections per frame (median). "
+        f"Training, s per round: {fmt(training)}.\n"
+    )
+
+
+@register("import")
+def import_markdown(result: dict) -> str:
+    """Seconds to import the boxes into a fresh session, and to import them again (all duplicates)."""
+    header = ["boxes", "frames", "import (s, median)", "again, all duplicates (s, median)", "target (s)"]
+    row = [
+        fmt(result["num_boxes"]),
+        fmt(result["num_frames"]),
+        fmt(result["import_seconds_median"]),
+        fmt(result["reimport_all_duplicates_seconds_median"]),
+        fmt(result["target_seconds"]),
+    ]
+    return table(header, [row]) + f"\n\nMedians over {fmt(result['repeats'])} fresh sessions.\n"

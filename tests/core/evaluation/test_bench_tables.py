@@ -1,0 +1,177 @@
+import copy
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from factorydet_core.evaluation.bench import record_path, update_readme
+from factorydet_core.evaluation.bench_tables import RENDERERS, fmt, record_line, render_record
+from factorydet_core.types import InputError
+
+DOCS = Path(__file__).parents[3] / "docs"
+BLOCKS = ("simulate", "pipeline", "pipeline-corpus", "pipeline-real", "voxel-sweep", "classifier", "detect")
+
+
+def _record(name: str) -> dict:
+    """A benchmark's real record, migrated from the page (a fixture that is also the page's source)."""
+    return json.loads((DOCS / "bench" / f"{name}.json").read_text())
+
+
+def _rows(markdown: str, first_cell: str) -> list[list[str]]:
+    """The cells of every table row whose first cell is ``first_cell``."""
+    rows = [
+        [c.strip() for c in line.strip("|").split("|")]
+        for line in markdown.splitlines()
+        if line.startswith("|")
+    ]
+    return [row for row in rows if row[0] == first_cell]
+
+
+def test_every_benchmark_on_the_page_has_a_renderer():
+    assert {_record(name)["benchmark"] for name in BLOCKS} <= set(RENDERERS)
+    with pytest.raises(InputError, match="no table renderer for benchmark 'nope'"):
+        render_record({"benchmark": "nope"})
+
+
+def test_simulate_table_gives_seconds_per_frame_and_points():
+    record = _record("simulate")
+    (row,) = _rows(render_record(record), fmt(record["num_frames"]))
+    assert fmt(record["seconds_per_frame_median"]) in row and fmt(record["seconds_per_frame_max"]) in row
+    assert fmt(record["points_per_frame_median"]) in row
+
+
+@pytest.mark.parametrize("name", ["pipeline", "pipeline-corpus", "pipeline-real"])
+def test_pipeline_table_gives_recall_and_bounds_per_class_and_stage_times(name):
+    record = _record(name)
+    text = render_record(record)
+    for cls, entry in record["proposal_recall"].items():
+        (row,) = _rows(text, f"**{cls}**" if cls == "all" else cls)
+        segment = record["segment_recall_point_iou"][cls]["recall"]
+        option = record["option_recall"][cls]["recall"] if record["option_recall"] else None
+        assert row[1:4] == [fmt(entry["num"]), fmt(entry["recall"], 3), fmt(segment, 3)]
+        assert row[-1] == fmt(option, 3)
+    (stage_row,) = _rows(text, fmt(record["stage_ms_median"]["merge"]))
+    assert fmt(record["stage_ms_median"]["total"]) in stage_row
+    assert fmt(record["features"]["points_per_second"]) in text
+    assert (record["calibration"] is None) == ("ICP calibration" not in text)
+
+
+def test_pipeline_table_without_calibration_or_options():
+    record = copy.deepcopy(_record("pipeline"))
+    record["option_recall"], record["calibration"], record["overrides"] = None, None, {"voxel_size_m": 0.2}
+    text = render_record(record)
+    (row,) = _rows(text, "barrel")
+    assert row[-1] == "–" and "ICP" not in text and "{'voxel_size_m': 0.2}" in text
+
+
+def test_voxel_sweep_table_has_a_row_per_voxel_size():
+    record = _record("voxel-sweep")
+    text = render_record(record)
+    classes = list(record["point_segmentation_recall"])
+    for size in record["voxel_segmentation"]:
+        (row,) = _rows(text, fmt(size["voxel_size_m"]))
+        assert row[1:] == [
+            *(fmt(size["recall"][c], 3) for c in classes),
+            fmt(size["segment_recall"], 3),
+            fmt(size["total_ms"]),
+        ]
+    (reference,) = _rows(text, "points (reference)")
+    assert reference[1 : 1 + len(classes)] == [
+        fmt(record["point_segmentation_recall"][c], 3) for c in classes
+    ]
+
+
+def test_classifier_table_has_a_row_per_configuration():
+    record = _record("classifier")
+    text = render_record(record)
+    rows = [r for r in (_rows(text, "aggregated") + _rows(text, "direct"))]
+    assert len(rows) == len(record["rows"])
+    for configuration in record["rows"]:
+        key = [fmt(configuration[k]) for k in ("feature", "geometry", "width")]
+        (row,) = [r for r in rows if r[:3] == key]
+        assert fmt(configuration["detection_f1"], 3) in row and fmt(configuration["detection_map"], 3) in row
+        assert fmt(configuration["epochs_run"]) == row[4]
+
+
+def test_detect_table_gives_each_stage_and_the_total():
+    record = _record("detect")
+    text = render_record(record)
+    stages = record["stage_ms_median"]
+    header = next(line for line in text.splitlines() if line.startswith("| merge"))
+    assert "| total |" in header and "| classification |" in header
+    (row,) = _rows(text, fmt(stages["merge"]))
+    assert row[: len(stages)] == [fmt(ms) for ms in stages.values()]
+    assert f"{record['detections_per_frame_median']} detections per frame" in text
+
+
+def test_import_table_gives_both_times():
+    record = json.loads((DOCS / "bench" / "label_import.json").read_text())
+    (row,) = _rows(render_record(record), fmt(record["num_boxes"]))
+    assert fmt(record["import_seconds_median"]) in row
+    assert fmt(record["reimport_all_duplicates_seconds_median"]) in row
+
+
+def test_figures_are_formatted_as_recorded():
+    assert fmt(None) == "–" and fmt(True) == "yes" and fmt(1638) == "1,638" and fmt(1645.5) == "1,645.5"
+    assert fmt(0.5, 3) == "0.500" and fmt(0.0642) == "0.0642" and fmt("a|b") == "a\\|b"
+
+
+@pytest.mark.parametrize("name", BLOCKS)
+def test_the_page_shows_what_its_records_render_to(name):
+    # No figure on the page is typed by hand: each block is its record's rendering. After changing a
+    # renderer, re-render with update_readme(page, json.loads(record.read_text()), name).
+    page = (DOCS / "benchmarks.md").read_text()
+    block = re.search(rf"<!-- bench:{name} -->\n(.*?)\n<!-- /bench:{name} -->", page, re.S).group(1)
+    record = _record(name)
+    assert block == render_record(record).strip() + "\n\n" + record_line(record, f"bench/{name}.json")
+
+
+def _page(tmp_path: Path) -> Path:
+    page = tmp_path / "docs" / "benchmarks.md"
+    page.parent.mkdir()
+    page.write_text(
+        "# B\n\n<!-- bench:simulate -->\nold\n<!-- /bench:simulate -->\n\n"
+        "<!-- bench:sim-b -->\nold b\n<!-- /bench:sim-b -->\nend\n"
+    )
+    return page
+
+
+def test_update_readme_writes_the_record_beside_and_its_table_in_the_block(tmp_path):
+    page = _page(tmp_path)
+    record = _record("simulate")
+    update_readme(page, record)
+    assert record_path(page, "simulate") == tmp_path / "docs" / "bench" / "simulate.json"
+    assert json.loads(record_path(page, "simulate").read_text()) == record
+    text = page.read_text()
+    assert "old\n" not in text and "old b" in text and text.endswith("<!-- /bench:sim-b -->\nend\n")
+    assert f"| {fmt(record['seconds_per_frame_median'])} |" in text
+    assert "[bench/simulate.json](bench/simulate.json)" in text and f"`{record['command']}`" in text
+    assert '"seconds_per_frame_median"' not in text  # The JSON is in its file, not on the page.
+    # A second block of the same benchmark gets its own record.
+    update_readme(page, record, "sim-b")
+    assert record_path(page, "sim-b").is_file() and "old b" not in page.read_text()
+    assert "[bench/sim-b.json](bench/sim-b.json)" in page.read_text()
+
+
+def test_update_readme_with_its_callers_markdown_writes_no_record(tmp_path):
+    page = _page(tmp_path)
+    update_readme(page, {"benchmark": "simulate"}, markdown="| a |\n|---|\n| 1 |\n")
+    assert "<!-- bench:simulate -->\n| a |\n|---|\n| 1 |\n<!-- /bench:simulate -->" in page.read_text()
+    assert not (tmp_path / "docs" / "bench").exists()
+
+
+@pytest.mark.parametrize(
+    ("record", "name", "message"),
+    [
+        ({"benchmark": "simulate"}, "missing", "no '<!-- bench:missing -->' block"),
+        ({"benchmark": "simulate"}, "a b", "letters, digits"),
+        ({"benchmark": "fuzz"}, "simulate", "no table renderer"),
+    ],
+)
+def test_update_readme_refuses_before_writing_anything(tmp_path, record, name, message):
+    page = _page(tmp_path)
+    before = page.read_text()
+    with pytest.raises(InputError, match=re.escape(message)):
+        update_readme(page, record, name)
+    assert page.read_text() == before and not (tmp_path / "docs" / "bench").exists()
