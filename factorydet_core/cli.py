@@ -9,6 +9,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from factorydet_core.threads import configure_threads
 from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, loop_settings_from
 from factorydet_core.types import (
     BOX_KINDS,
@@ -726,6 +727,13 @@ def build_parser(
 ) -> argparse.ArgumentParser:
     """The ``factorydet`` parser; ``add_commands(subparsers)`` adds more commands (the app's)."""
     parser = argparse.ArgumentParser(prog="factorydet", description="Factory LiDAR detection tools.")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="threads of every pool (numba, torch, OpenMP, BLAS; default: FACTORYDET_THREADS, "
+        "OMP_NUM_THREADS or the cores this process may use)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     if add_commands is not None:
         add_commands(sub)
@@ -1038,6 +1046,7 @@ def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     # The command line as typed (for the records that say how to reproduce a result).
     args.command_line = "factorydet " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
+        configure_threads(args.threads)  # before any command loads numba, torch or open3d
         return args.func(args)
     except InputError as exc:
         print(f"factorydet {args.command}: error: {exc}", file=sys.stderr)

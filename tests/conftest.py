@@ -8,6 +8,11 @@ import numpy as np
 import pytest
 
 from factorydet_core.sim.simulate import SimConfig, simulate_dataset
+from factorydet_core.threads import configure_threads
+
+# The library's thread pools sized once, as the command line does (a test process beside a browser
+# or an app server would otherwise oversubscribe the cores).
+configure_threads()
 
 SHARED_REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 
