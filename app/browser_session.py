@@ -79,14 +79,20 @@ class BrowserSession:
     def _object_class_shown(self, name: str) -> None:
         """Show ``name`` as the chosen class in every panel that shows it."""
 
-    def _guarded(self, action: Callable[[], object], what: str) -> object:
+    def _guarded(self, action: Callable[[], object], what: str, reload_selection: bool = True) -> object:
         """Run an edit; a conflict, a refused edit or a database failure becomes a notification
-        (and ``FAILED`` is returned), never an exception in viser's callback thread."""
+        (and ``FAILED`` is returned), never an exception in viser's callback thread.
+
+        Args:
+            reload_selection: after a conflict, take in the selected label as it is now (the
+                conflict was about it). Off for an undo, whose conflict may be about any label.
+        """
         try:
             result = action()
         except EditConflictError as exc:
             self.notify(f"{what}: someone else got there first", str(exc), error=True)
-            self._reload_selected_version()
+            if reload_selection:
+                self._reload_selected_version()
             self.state.session_changed()
             return FAILED
         except InputError as exc:  # SessionError included
@@ -226,13 +232,22 @@ class BrowserSession:
             self.select_label(added[-1].id)
 
     def undo(self, redo: bool = False) -> None:
+        """Undo (redo) this browser's latest edit. The selection follows the undo only where the
+        undo moved it on from the version this browser had: a change someone else made to the
+        selected label in between is still refused at the next edit, not taken in silently."""
         what = "Redo" if redo else "Undo"
         edit = self._guarded(
-            lambda: self.state.db.redo(self.author) if redo else self.state.db.undo(self.author), what
+            lambda: self.state.db.redo(self.author) if redo else self.state.db.undo(self.author),
+            what,
+            reload_selection=False,
         )
         if edit is FAILED:
             return
-        self._reload_selected_version()
+        if edit is not None:
+            with self.lock:
+                versions = edit.label_versions.get(self.selected_label_id)
+                if versions is not None and versions[0] == self.selected_label_version:
+                    self.selected_label_version = versions[1]
         if edit is None:
             self.notify(what, "Nothing to " + ("redo." if redo else "undo."))
         else:

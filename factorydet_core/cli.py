@@ -147,7 +147,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     elif args.name == "import":
         from factorydet_core.evaluation.bench import bench_label_import
 
-        result = {"command": command, **bench_label_import(args.boxes, args.frames)}
+        result = {"command": command, **bench_label_import(args.boxes, args.frames, large_box=args.large_box)}
         if args.out:
             from factorydet_core.io.atomic import write_text_atomic
 
@@ -297,6 +297,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     args.data[0],
                     resolve_model(args.model),
                     max_frames=args.frames,
+                    repeats=args.repeats,
+                    compare_model=resolve_model(args.compare_model) if args.compare_model else None,
+                    compare_overrides=parse_overrides(args.compare_set),
                     command=command,
                     progress=update,
                 )
@@ -416,6 +419,29 @@ def _open_session_db(args: argparse.Namespace, readonly: bool = False):
     return open_session_data(args.session, args.root, getattr(args, "data", None), readonly=readonly)
 
 
+SHARED_LOGINS = ("root",)
+"""Logins people share (a container, a lab machine): never taken as a reviewer's name."""
+
+
+def _author(args: argparse.Namespace) -> str:
+    """``--author``, else the login name. The conflict rule of ``review`` and the undo stack are
+    per author, so on a login people share (root) the login would make every reviewer one person:
+    one would replace another's verdicts and undo another's edits without a word. There the name
+    must be given."""
+    if args.author is not None:
+        return args.author
+    try:
+        login = getpass.getuser()
+    except (OSError, KeyError):  # no login name in this environment (a bare container)
+        login = None
+    if login is None or login in SHARED_LOGINS:
+        who = "no login name" if login is None else f"the login {login!r}, which people share"
+        raise InputError(
+            f"pass --author NAME: {who} cannot tell reviewers apart (verdicts and undo are per author)"
+        )
+    return login
+
+
 def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], None]]:
     bars: dict = {}
 
@@ -458,8 +484,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise InputError("--compare needs test frames (the data set has no test split)")
     front_end = None
     if args.mode == "next" and args.preset is None and not args.set:
-        # The same front half as the run it continues, so that the point sets compare.
-        front_end = front_end_from_record(previous["config"].get("front_end"))
+        # The same front half as the run it continues, so that the point sets compare. The record is
+        # read from the session database: checked like a checkpoint's note.
+        config = previous["config"]
+        try:
+            front_end = front_end_from_record(config.get("front_end") if isinstance(config, dict) else config)
+        except InputError as exc:
+            raise InputError(f"the front-half settings of run {previous['id']}: {exc}") from None
     if front_end is None:
         front_end = front_end_params(args.preset, parse_overrides(args.set), dataset.num_sensors)
     settings = loop_settings_from_args(args)
@@ -531,7 +562,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
 
     db, _ = _open_session_db(args)
     try:
-        ids, author = parse_ints(args.ids), args.author
+        ids, author = parse_ints(args.ids), _author(args)
         edit_id = db.review(ids, args.verdict, author, class_name=args.class_name, override=args.override)
     except EditConflictError as exc:
         # Every refused item on stdout (the one-line error on stderr says why, for the first few).
@@ -556,10 +587,11 @@ def _cmd_labels(args: argparse.Namespace) -> int:
 
 
 def _cmd_undo(args: argparse.Namespace) -> int:
+    author = _author(args)
     db, _ = _open_session_db(args)
-    edit = db.redo(args.author) if args.redo else db.undo(args.author)
+    edit = db.redo(author) if args.redo else db.undo(author)
     if edit is None:
-        print(f"nothing to {'redo' if args.redo else 'undo'} for {args.author}")
+        print(f"nothing to {'redo' if args.redo else 'undo'} for {author}")
         return 1
     print(f"{'redid' if args.redo else 'undid'} edit {edit.id}: {edit.summary}")
     return 0
@@ -816,12 +848,25 @@ def build_parser(
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_cmd_queue)
 
-    p = sub.add_parser("review", help="give a verdict on mined negatives (one undoable edit)")
+    p = sub.add_parser(
+        "review",
+        help="give a verdict on mined negatives (one undoable edit)",
+        description="Give a verdict on mined negatives, as one undoable edit. Verdicts are told apart "
+        "by author name: an item another author has decided is refused unless --override, while the "
+        "same author may change their own verdicts freely. The name defaults to the login, so on an "
+        "account people share every reviewer would be the same author and replace each other's "
+        "verdicts without a conflict; as root, --author is therefore required.",
+    )
     session_args(p)
     p.add_argument("--ids", required=True, help="comma-separated queue item ids")
     p.add_argument("--verdict", required=True, choices=["background", "object", "wrong_box", "skip"])
     p.add_argument("--class", dest="class_name", default=None, help="the object's class (verdict object)")
-    p.add_argument("--author", default=getpass.getuser(), help="who reviews (default: the login name)")
+    p.add_argument(
+        "--author",
+        default=None,
+        help="who reviews: verdicts and undo are per author name (default: the login name; required "
+        "as root, a login people share)",
+    )
     p.add_argument(
         "--override",
         action="store_true",
@@ -840,7 +885,11 @@ def build_parser(
 
     p = sub.add_parser("undo", help="undo (or --redo) an author's latest edit of a session")
     session_args(p)
-    p.add_argument("--author", default=getpass.getuser())
+    p.add_argument(
+        "--author",
+        default=None,
+        help="whose edit (default: the login name; required as root, a shared login)",
+    )
     p.add_argument("--redo", action="store_true")
     p.set_defaults(func=_cmd_undo)
 
@@ -921,6 +970,9 @@ def build_parser(
     p.add_argument("--seed", type=int, default=0, help="simulate, fuzz: seed")
     p.add_argument("--cases", type=int, default=1000, help="fuzz: mutated files to try")
     p.add_argument("--boxes", type=int, default=10_000, help="import: boxes in the imported file")
+    p.add_argument(
+        "--large-box", action="store_true", help="import: add one 100 x 100 m box to the first frame"
+    )
     p.add_argument("--targets", default=None, help="fuzz: comma-separated targets (default: all)")
     p.add_argument(
         "--memory-limit-mb", type=float, default=2048.0, help="fuzz: a case using more fails (default 2048)"
@@ -940,6 +992,18 @@ def build_parser(
         default="default",
         help="detect: checkpoint, session name, 'default' or 'paper'; quality: the paper pipeline's "
         "checkpoint ('paper': the shipped one)",
+    )
+    p.add_argument("--repeats", type=int, default=1, help="detect: runs of each frame")
+    p.add_argument(
+        "--compare-model",
+        default=None,
+        help="detect: a second model run on the same frames, interleaved; the record gives the ratios",
+    )
+    p.add_argument(
+        "--compare-set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="detect: a second configuration with this front-half setting changed, interleaved",
     )
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
@@ -1051,6 +1115,16 @@ def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"factorydet {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except MemoryError as exc:
+        # The readers' caps (io.limits) are meant to prevent this; when they do not, one line
+        # says what ran out and how to lower the footprint, instead of a traceback.
+        what = " ".join(str(exc).split())[:200] or "an allocation failed"
+        print(
+            f"factorydet {args.command}: error: out of memory ({what}); lower FACTORYDET_MAX_READ_BYTES "
+            "or free memory",
+            file=sys.stderr,
+        )
+        return 3
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into head and friends

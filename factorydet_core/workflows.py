@@ -71,10 +71,12 @@ def retrain_session(
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
 
     Raises:
-        InputError: for a "next" round on a session without a run to continue.
+        InputError: for a "next" round on a session without a run to continue, or a session that
+            cannot be written (checked first: the run would be lost only after minutes of work).
     """
     if mode == "next" and db.latest_run_id() is None:
         raise InputError(f"session {db.session.name!r} has no training run to continue; use mode 'full'")
+    db.check_writable()
     report = progress or (lambda what, done, total: None)
     train = dataset.splits.get("train") or list(range(dataset.num_frames))
     train = list(train[:max_train_frames] if max_train_frames else train)

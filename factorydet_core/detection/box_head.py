@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -42,10 +42,8 @@ from torch import nn
 from factorydet_core.boxes import rectangle_corners, rectangle_intersection_areas
 from factorydet_core.detection.checkpoint import (
     MAX_SEED,
-    Setting,
     check_class_names,
     check_note_record,
-    check_settings,
     load_weights,
     read_checkpoint_note,
     write_checkpoint,
@@ -59,6 +57,7 @@ from factorydet_core.detection.classifier import (
 )
 from factorydet_core.detection.groups import DESCRIPTOR_NAMES, ProposalGroups
 from factorydet_core.detection.scoring import check_exponent
+from factorydet_core.settings_check import Setting, check_settings
 from factorydet_core.types import CLASS_NAMES, Cancelled, Detections, InputError
 
 SQUARE_RATIO = 0.9
@@ -801,9 +800,15 @@ class BoxHead(ClassOutputs):
         """(M, C + 1) class probabilities (``predict``)."""
         return self.predict(points, anchor_boxes, descriptors).probabilities
 
-    def save(self, path: str | os.PathLike, note: dict | None = None) -> Path:
+    def save(
+        self,
+        path: str | os.PathLike,
+        note: dict | None = None,
+        companions: Mapping[str, str | os.PathLike] | None = None,
+    ) -> Path:
         """Write the state dict to ``path`` (.pt) and a JSON note beside it (``path`` with .json):
-        the settings, labels, size templates, parameter count, history and ``note``."""
+        the settings, labels, size templates, parameter count, history and ``note``. The note
+        records the files' sizes and hashes, with those of ``companions`` (``write_checkpoint``)."""
         if not hasattr(self, "network_"):
             raise InputError("the box head is not fitted; nothing to save")
         params = self.get_params()
@@ -823,7 +828,7 @@ class BoxHead(ClassOutputs):
             "history": self.history_,
             **(note or {}),
         }
-        return write_checkpoint(self.network_, path, meta)
+        return write_checkpoint(self.network_, path, meta, companions)
 
     @classmethod
     def from_note(cls, meta: dict, note_path: Path) -> BoxHead:

@@ -2,30 +2,30 @@
 (``NAME.json``).
 
 Both are written whole or not at all (``io.atomic``), and read back as untrusted input: a checkpoint
-may be hand-edited, cut off, or not ours. Every setting of a note is checked (``Setting``) before
-any network is built from it, the state dict's archive size is bounded by the network's own before
-it is read, and its tensors' names, shapes and dtypes are compared with the network's before they
-are loaded. Whatever is wrong is one line of ``InputError`` naming the file; torch reads the weights
-with ``weights_only=True``, so a crafted file runs no code.
+may be hand-edited, cut off, or not ours. Every setting of a note is checked
+(``settings_check.Setting``) before any network is built from it, the state dict's archive size is
+bounded by the network's own before it is read, and its tensors' names, shapes and dtypes are
+compared with the network's before they are loaded. Whatever is wrong is one line of ``InputError``
+naming the file; torch reads the weights with ``weights_only=True``, so a crafted file runs no code.
+The note, written last, records the size and SHA-256 of the files it belongs with
+(``check_checkpoint_files``): files replaced one by one can be of different saves.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import hashlib
 import json
-import math
-import numbers
 import os
 import pickle
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import nn
 
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
+from factorydet_core.settings_check import Setting, short_repr
 from factorydet_core.types import InputError
 
 BACKGROUND = "background"
@@ -48,71 +48,6 @@ small records (about 10 kB for the shipped checkpoints)."""
 MAX_SEED = 2**63 - 1
 
 
-@dataclasses.dataclass(frozen=True)
-class Setting:
-    """What one setting of a learned stage may hold (its constructor and a checkpoint's note are
-    checked against it).
-
-    Args:
-        kind: ``int``, ``float`` (an int is taken too), ``bool`` or ``str``.
-        low: least value of a number; ``low_open`` excludes it.
-        high: greatest value of a number.
-        optional: ``None`` is allowed.
-        choices: the allowed values of a ``str``.
-    """
-
-    kind: type
-    low: float = -math.inf
-    high: float = math.inf
-    optional: bool = False
-    choices: tuple[str, ...] | None = None
-    low_open: bool = False
-
-    def check(self, name: str, value: object) -> object:
-        """``value`` as a plain Python value of ``kind`` (or ``None``); ``InputError`` naming
-        ``name`` if it is not one this setting allows."""
-        if value is None:
-            if self.optional:
-                return None
-            raise InputError(f"{name} must not be null")
-        if self.kind is bool:
-            if not isinstance(value, (bool, np.bool_)):
-                raise InputError(f"{name} must be true or false, got {_short(value)}")
-            return bool(value)
-        if self.kind is str:
-            if not isinstance(value, str) or (self.choices is not None and value not in self.choices):
-                allowed = f"one of {', '.join(self.choices)}" if self.choices is not None else "a text"
-                raise InputError(f"{name} must be {allowed}, got {_short(value)}")
-            return value
-        # bool is an Integral too, but a flag is never a count.
-        integral = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-        real = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-        if self.kind is int and not integral:
-            raise InputError(f"{name} must be an integer, got {_short(value)}")
-        if not real:
-            raise InputError(f"{name} must be a number, got {_short(value)}")
-        try:
-            # A JSON integer may have hundreds of digits: too large for a float.
-            number = int(value) if self.kind is int else float(value)
-        except OverflowError:
-            number = math.inf
-        if isinstance(number, float) and not math.isfinite(number):
-            raise InputError(f"{name} must be a finite number, got {_short(value)}")
-        above_low = number > self.low if self.low_open else number >= self.low
-        if not (above_low and number <= self.high):
-            bracket = "(" if self.low_open else "["
-            raise InputError(f"{name} must lie in {bracket}{self.low}, {self.high}], got {_short(number)}")
-        return number
-
-
-def check_settings(values: Mapping[str, object], settings: Mapping[str, Setting]) -> dict[str, object]:
-    """``values`` checked by their ``settings`` (names without a setting pass unchanged)."""
-    return {
-        name: settings[name].check(name, value) if name in settings else value
-        for name, value in values.items()
-    }
-
-
 def check_class_names(names: object) -> tuple[str, ...]:
     """Class names as a tuple: 1 to ``MAX_CLASSES`` distinct, non-empty texts of at most
     ``MAX_CLASS_NAME_CHARS`` characters, none of them "background" (the extra output column)."""
@@ -123,7 +58,7 @@ def check_class_names(names: object) -> tuple[str, ...]:
     for name in names:
         if not isinstance(name, str) or not 0 < len(name) <= MAX_CLASS_NAME_CHARS:
             raise InputError(
-                f"class_names must be texts of 1 to {MAX_CLASS_NAME_CHARS} characters, got {_short(name)}"
+                f"class_names must be texts of 1 to {MAX_CLASS_NAME_CHARS} characters, got {short_repr(name)}"
             )
     if BACKGROUND in names:
         raise InputError(f"class_names must not include {BACKGROUND!r} (the extra output column)")
@@ -132,15 +67,110 @@ def check_class_names(names: object) -> tuple[str, ...]:
     return tuple(names)
 
 
-def write_checkpoint(network: nn.Module, path: str | os.PathLike, note: dict) -> Path:
+def write_checkpoint(
+    network: nn.Module,
+    path: str | os.PathLike,
+    note: dict,
+    companions: Mapping[str, str | os.PathLike] | None = None,
+) -> Path:
     """A network's state dict at ``path`` (.pt) and ``note`` as JSON beside it (.json), each written
-    whole or not at all. The note goes last: a reader that finds a new note finds its weights."""
+    whole or not at all.
+
+    The note goes last and records the size and SHA-256 of the weights and of each of
+    ``companions`` (role -> a file of the same checkpoint written before it, such as the box quality
+    arrays) under ``FILES_KEY``: the files are replaced one by one, so an interrupted save can leave
+    new files beside an old note, and ``check_checkpoint_files`` tells. Any ``FILES_KEY`` of
+    ``note`` itself (a loaded model's note saved again) is replaced.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         torch.save(network.state_dict(), tmp)
-    write_text_atomic(path.with_suffix(".json"), json.dumps(note, indent=2))
+        files = {"weights": file_record(tmp)}  # the bytes written, whoever replaces the file later
+    for role, companion in (companions or {}).items():
+        files[role] = file_record(companion)
+    write_text_atomic(path.with_suffix(".json"), json.dumps({**note, FILES_KEY: files}, indent=2))
     return path
+
+
+FILES_KEY = "files"
+"""The note's record of the files it was saved with: role -> ``file_record``."""
+
+MAX_CHECKPOINT_FILE_BYTES = 2**31
+"""The largest file a note may record (the shipped weights and box quality arrays take under 1 MB
+each, the largest networks the note's settings allow some hundred MB): it bounds the hashing a
+note can ask for."""
+
+
+def file_record(path: str | os.PathLike) -> dict[str, object]:
+    """The size and SHA-256 of the file at ``path``, as a note records them."""
+    path = Path(path)
+    return {"bytes": path.stat().st_size, "sha256": _sha256(path)}
+
+
+def check_checkpoint_files(note: Mapping[str, object], paths: Mapping[str, Path], note_path: Path) -> None:
+    """Check that the files of a checkpoint are the ones its note was saved with (``write_checkpoint``).
+
+    Args:
+        note: the checkpoint's note; without ``FILES_KEY`` (the shipped checkpoints, those saved
+            before the files were recorded) there is nothing to compare and the check passes.
+        paths: role -> where that file of the checkpoint is ("weights": the .pt and any
+            companions); a role the note records but ``paths`` lacks is refused.
+        note_path: the note's file, named in the error.
+
+    Raises:
+        InputError: one line naming the note: a malformed record, or a file of another save (or
+            missing), which an interrupted save or a copy of only some of the files leaves.
+    """
+    files = note.get(FILES_KEY)
+    if files is None:
+        return
+    if not isinstance(files, dict) or not all(isinstance(role, str) and role in paths for role in files):
+        raise InputError(
+            f"{note_path}: {FILES_KEY} must map the checkpoint's files ({', '.join(paths)}) to their"
+            f" sizes and hashes, got {short_repr(files)}"
+        )
+    expected = {}
+    for role, record in files.items():
+        if not isinstance(record, dict) or set(record) != {"bytes", "sha256"}:
+            raise InputError(
+                f"{note_path}: {FILES_KEY}[{role!r}] must hold bytes and sha256, got {short_repr(record)}"
+            )
+        size = Setting(int, 0, MAX_CHECKPOINT_FILE_BYTES).check(
+            f"{note_path}: {FILES_KEY}[{role!r}] bytes", record["bytes"]
+        )
+        digest = record["sha256"]
+        if not (
+            isinstance(digest, str) and len(digest) == 64 and all(c in "0123456789abcdef" for c in digest)
+        ):
+            raise InputError(
+                f"{note_path}: {FILES_KEY}[{role!r}] sha256 must be 64 hex digits, got {short_repr(digest)}"
+            )
+        expected[role] = (size, digest)
+    # The sizes first: a file of another save is usually told apart without reading it.
+    for role, (size, digest) in expected.items():
+        path = paths[role]
+        try:
+            matches = path.stat().st_size == size and _sha256(path) == digest
+        except FileNotFoundError:
+            matches = False
+        except OSError as exc:
+            raise InputError(f"{path}: unreadable checkpoint file ({exc.strerror or exc})") from None
+        if not matches:
+            raise InputError(
+                f"{note_path}: the checkpoint's files are from different saves ({path.name} is not the"
+                " file this note was saved with, e.g. after an interrupted save): re-export or re-train"
+                " the model"
+            )
+
+
+def _sha256(path: Path) -> str:
+    """The SHA-256 of a file, read in 1 MB blocks."""
+    digest = hashlib.sha256()
+    with path.open("rb") as file:
+        while block := file.read(2**20):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def read_checkpoint_note(path: str | os.PathLike) -> dict:
@@ -258,12 +288,6 @@ def check_note_record(meta: Mapping[str, object], class_names: tuple[str, ...], 
         raise InputError(f"{where}: train_counts must map labels to counts")
     for label, count in counts.items():
         Setting(int, low=0).check(f"{where}: train_counts[{label!r}]", count)
-
-
-def _short(value: object) -> str:
-    """``repr(value)``, cut to 40 characters (a note may hold a text or a number of any length)."""
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _first_line(exc: BaseException) -> str:

@@ -25,7 +25,7 @@ import dataclasses
 import hashlib
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -35,15 +35,14 @@ from torch import nn
 from factorydet_core.detection.checkpoint import (
     BACKGROUND,
     MAX_SEED,
-    Setting,
     check_class_names,
     check_note_record,
-    check_settings,
     load_weights,
     read_checkpoint_note,
     write_checkpoint,
 )
 from factorydet_core.detection.groups import DESCRIPTOR_NAMES
+from factorydet_core.settings_check import Setting, check_settings
 from factorydet_core.types import CLASS_NAMES, Cancelled, InputError
 
 CLASS_WEIGHTS = (None, "balanced", "sqrt")
@@ -436,9 +435,15 @@ class ProposalClassifier(ClassOutputs):
         """(M,) most probable label ids."""
         return self.predict_proba(features, descriptors).argmax(axis=1)
 
-    def save(self, path: str | os.PathLike, note: dict | None = None) -> Path:
+    def save(
+        self,
+        path: str | os.PathLike,
+        note: dict | None = None,
+        companions: Mapping[str, str | os.PathLike] | None = None,
+    ) -> Path:
         """Write the state dict to ``path`` (.pt) and a JSON note beside it (``path`` with .json):
-        the settings, labels, training data hash, parameter count, history and ``note``."""
+        the settings, labels, training data hash, parameter count, history and ``note``. The note
+        records the files' sizes and hashes, with those of ``companions`` (``write_checkpoint``)."""
         if not hasattr(self, "network_"):
             raise InputError("the classifier is not fitted; nothing to save")
         meta = {
@@ -452,7 +457,7 @@ class ProposalClassifier(ClassOutputs):
             "history": self.history_,
             **(note or {}),
         }
-        return write_checkpoint(self.network_, path, meta)
+        return write_checkpoint(self.network_, path, meta, companions)
 
     @classmethod
     def from_note(cls, meta: dict, note_path: Path) -> ProposalClassifier:

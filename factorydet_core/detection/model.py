@@ -14,7 +14,7 @@ import numpy as np
 
 from factorydet_core.detection.box_head import BoxHead, check_head_input, head_candidates
 from factorydet_core.detection.box_quality import BoxQuality, num_option_features
-from factorydet_core.detection.checkpoint import Setting, read_checkpoint_note
+from factorydet_core.detection.checkpoint import check_checkpoint_files, read_checkpoint_note
 from factorydet_core.detection.classifier import ProposalClassifier
 from factorydet_core.detection.groups import BoxSizePrior, ProposalGroups
 from factorydet_core.detection.scoring import (
@@ -26,6 +26,7 @@ from factorydet_core.detection.scoring import (
 )
 from factorydet_core.io.atomic import atomic_path
 from factorydet_core.proposals.settings import FrontEndParams, front_end_from_record
+from factorydet_core.settings_check import Setting
 from factorydet_core.types import Detections, InputError
 
 DEFAULT_MODEL = Path(__file__).parent.parent / "models" / "default.pt"
@@ -143,17 +144,21 @@ class DetectionModel:
             "probability_exponent": self.probability_exponent,
             "vote_iou": self.vote_iou,
         }
-        # The regressor first: the note, written last, is what says there is one.
+        # The regressor first: the note, written last, is what says there is one, and records its
+        # hash beside the weights' so that files of different saves are told apart on loading.
+        companions: dict[str, Path] = {}
         if self.box_quality is not None:
             Path(path).parent.mkdir(parents=True, exist_ok=True)
-            self.box_quality.save(quality_path(path))
-        return self.classifier.save(path, {**extra, **(note or {})})
+            companions["box_quality"] = self.box_quality.save(quality_path(path))
+        return self.classifier.save(path, {**extra, **(note or {})}, companions)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> DetectionModel:
         """A model from ``save``'s checkpoint (``torch.load(weights_only=True)``). Every field of
         its note and the box quality arrays are checked before any network is built, and the
-        weights against the network; ``InputError`` naming the file otherwise."""
+        weights against the network; ``InputError`` naming the file otherwise. A note that records
+        its files' hashes (every checkpoint saved since they were) must find those very files: an
+        interrupted save leaves new files beside the old note."""
         note = read_checkpoint_note(path)
         note_path = Path(path).with_suffix(".json")
         kind = BoxHead if _is_box_head(note, note_path) else ProposalClassifier
@@ -179,6 +184,7 @@ class DetectionModel:
                 )
         except InputError as exc:
             raise InputError(f"{note_path}: {str(exc)[:300]}") from None
+        check_checkpoint_files(note, {"weights": Path(path), "box_quality": quality_path(path)}, note_path)
         box_quality = None
         if quality_note:
             box_quality = BoxQuality.load(quality_path(path))
@@ -207,7 +213,9 @@ def _is_box_head(note: dict, note_path: Path) -> bool:
 
 def copy_checkpoint(source: str | os.PathLike, target: str | os.PathLike) -> Path:
     """Copy the checkpoint at ``source`` (``NAME.pt``, its note and any box quality arrays) to
-    ``target`` (a .pt path), each file whole or not at all, the note last (``save``'s order)."""
+    ``target`` (a .pt path), each file whole or not at all, the note last (``save``'s order). The
+    copies are byte for byte, so the hashes the note records still hold; a copy cut short leaves
+    the target's old note, which refuses the new files beside it if it records its own."""
     source, target = Path(source), Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     pairs = [(source, target), (source.with_suffix(".json"), target.with_suffix(".json"))]

@@ -413,54 +413,119 @@ def bench_voxel_sweep(
     return summary
 
 
+def _percentile(values: list[float], q: float) -> float:
+    return round(float(np.percentile(values, q)), 1)
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory so far (MB)."""
+    import resource
+
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+
+
 def bench_detect(
     data: str | os.PathLike,
     model_path: str | os.PathLike,
     *,
     max_frames: int = 4,
+    repeats: int = 1,
+    compare_model: str | os.PathLike | None = None,
+    compare_overrides: dict[str, object] | None = None,
     command: str = "",
     progress=None,
 ) -> dict:
-    """Time of the whole detection of a frame (front half, grouping, classification, NMS), median
-    over the first ``max_frames`` test frames, and the model's recorded training time per round."""
+    """Time of the whole detection of a frame (front half, grouping, classification, NMS) per
+    stage, median and 90th percentile over the first ``max_frames`` test frames (each run
+    ``repeats`` times), the process's peak memory, and the model's recorded training time per round.
 
+    With ``compare_model`` and/or ``compare_overrides`` (front-half settings changed from the
+    model's), a second configuration runs on the same frames, interleaved frame by frame with the
+    first so that both see the same machine load, and the record gives each stage's ratio of
+    medians (compared / reference): a speed claim is a ratio measured side by side.
+    """
     dataset = open_dataset(data)
     model = DetectionModel.load(model_path)
-    detector = detector_for(model, dataset)
+    configs = {"reference": detector_for(model, dataset)}
+    if compare_model is not None or compare_overrides:
+        other = DetectionModel.load(compare_model) if compare_model is not None else model
+        detector = detector_for(other, dataset, calibrate=False)
+        detector.params = detector.params.replace(**(compare_overrides or {}))
+        # The same extrinsics as the reference, so that only the compared change differs.
+        detector.T_vehicle_sensor = configs["reference"].T_vehicle_sensor
+        detector.calibration_ = configs["reference"].calibration_
+        configs["compared"] = detector
     test = (dataset.splits.get("test") or list(range(dataset.num_frames)))[:max_frames]
-    timings: dict[str, list[float]] = {}
-    counts = []
-    for n, index in enumerate(test):
-        first = max(0, index - detector.params.history_frames)
-        result = detector.detect(dataset.frame(index), [dataset.frame(i) for i in range(first, index)])
-        for stage, ms in result.timings_ms.items():
-            timings.setdefault(stage, []).append(ms)
-        counts.append(int(result.detections.kept_mask.sum()))
-        if progress is not None:
-            progress(n + 1, len(test))
+    timings = {name: {} for name in configs}
+    counts: dict[str, list[int]] = {name: [] for name in configs}
+    total_runs = len(test) * repeats * len(configs)
+    done = 0
+    for index in test:
+        frame = dataset.frame(index)
+        for _ in range(repeats):
+            for name, detector in configs.items():
+                earlier = range(max(0, index - detector.params.history_frames), index)
+                result = detector.detect(frame, [dataset.frame(i) for i in earlier])
+                for stage, ms in result.timings_ms.items():
+                    timings[name].setdefault(stage, []).append(ms)
+                counts[name].append(int(result.detections.kept_mask.sum()))
+                done += 1
+                if progress is not None:
+                    progress(done, total_runs)
+
+    def summary(name: str) -> dict:
+        return {
+            "stage_ms_median": {stage: _median(v) for stage, v in timings[name].items()},
+            "stage_ms_p90": {stage: _percentile(v, 90) for stage, v in timings[name].items()},
+            "detections_per_frame_median": int(statistics.median(counts[name])),
+        }
+
     note = model.note
-    return {
+    record = {
         "benchmark": "detect",
         "command": command,
         "data": Path(data).name,
         "model": str(model_path),
-        "width": model.classifier.width,
+        "method": model.method,
+        "width": getattr(model.classifier, "width", None),
         "num_parameters": model.classifier.num_parameters_,
         "frames": test,
+        "repeats": repeats,
         "points_per_frame_median": int(statistics.median(len(dataset.frame(i).points) for i in test)),
-        "stage_ms_median": {stage: _median(v) for stage, v in timings.items()},
+        **summary("reference"),
         "target_total_ms": 100,
-        "detections_per_frame_median": int(statistics.median(counts)),
+        "peak_rss_mb": _peak_rss_mb(),
         "training_seconds_per_round": [r.get("fit_seconds") for r in note.get("rounds_record", [])]
         or note.get("fit_seconds"),
         "machine": machine_info(),
     }
+    if "compared" in configs:
+        compared = summary("compared")
+        reference = record["stage_ms_median"]
+        record["compare"] = {
+            "model": str(compare_model or model_path),
+            "overrides": compare_overrides or {},
+            **compared,
+            "ratio_of_medians": {
+                stage: round(ms / reference[stage], 3)
+                for stage, ms in compared["stage_ms_median"].items()
+                if reference.get(stage)
+            },
+        }
+    return record
 
 
-def bench_label_import(num_boxes: int = 10_000, num_frames: int = 3, repeats: int = 3) -> dict:
+def bench_label_import(
+    num_boxes: int = 10_000, num_frames: int = 3, repeats: int = 3, *, large_box: bool = False
+) -> dict:
     """Time to import ``num_boxes`` labels (a JSON file, boxes spread over ``num_frames`` frames of
     a small simulated data set) into a fresh session, and to import the same file again (every box
-    then repeats a label and is screened out); medians over ``repeats`` fresh sessions."""
+    then repeats a label and is screened out); medians over ``repeats`` fresh sessions.
+
+    Args:
+        large_box: add one 100 x 100 m box to the first frame (a hall outline), the case that
+            made a screen with one search radius for all boxes quadratic.
+    """
     import tempfile
 
     from factorydet_core.session.labels_io import import_labels
@@ -481,6 +546,8 @@ def bench_label_import(num_boxes: int = 10_000, num_frames: int = 3, repeats: in
             grid = np.arange(max(count, 0))
             boxes = [[3.0 * (g % side) - 1.5 * side, 3.0 * (g // side) - 1.5 * side, 0.5, 1.0, 1.5, 1.0, 0.2]
                      for g in grid]  # fmt: skip
+            if large_box and frame == 0:
+                boxes.append([0.0, 0.0, 5.0, 100.0, 100.0, 10.0, 0.0])
             frames.append({"frame_index": frame, "boxes": boxes, "labels": ["box"] * len(boxes)})
         labels_file = root / "labels.json"
         labels_file.write_text(json.dumps({"format": "factorydet-labels", "version": 1, "frames": frames}))
@@ -498,7 +565,8 @@ def bench_label_import(num_boxes: int = 10_000, num_frames: int = 3, repeats: in
                 raise RuntimeError("bench import: a repeated import added labels")
     return {
         "benchmark": "import",
-        "num_boxes": num_boxes,
+        "num_boxes": num_boxes + int(large_box),
+        "large_box": large_box,
         "num_frames": num_frames,
         "repeats": repeats,
         "imported": first,

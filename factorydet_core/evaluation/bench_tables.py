@@ -261,15 +261,27 @@ def detect_markdown(result: dict) -> str:
     """The whole detection's stage times (median ms per frame) and total, with detections per frame
     and the model's training time per round."""
     stages = result["stage_ms_median"]
-    stage_table = table(
-        [*stages, "target"],
-        [[*(fmt(ms) for ms in stages.values()), fmt(result["target_total_ms"])]],
-    )
+    rows = [["median", *(fmt(ms) for ms in stages.values()), fmt(result["target_total_ms"])]]
+    if "stage_ms_p90" in result:  # records from before the profile have medians only
+        rows.append(["90th percentile", *(fmt(result["stage_ms_p90"].get(s)) for s in stages), ""])
+    compare = result.get("compare")
+    if compare:
+        rows.append(["compared, median", *(fmt(compare["stage_ms_median"].get(s)) for s in stages), ""])
+        rows.append(["compared / reference", *(fmt(compare["ratio_of_medians"].get(s)) for s in stages), ""])
+    stage_table = table(["", *stages, "target"], rows)
+    if compare:
+        changed = ", ".join(f"{k}={v}" for k, v in compare["overrides"].items()) or "no setting changed"
+        stage_table += (
+            f"\n\nCompared: model `{Path(str(compare['model'])).name}`, {changed}; run interleaved "
+            "with the reference on the same frames."
+        )
+    if "peak_rss_mb" in result:
+        stage_table += f"\n\nPeak memory of the process: {fmt(result['peak_rss_mb'])} MB."
     training = result.get("training_seconds_per_round")
     if isinstance(training, list):
         training = ", ".join(fmt(s) for s in training)
     return (
-        "Stage times, ms per frame (median over the frames):\n\n"
+        "Stage times, ms per frame over the frames:\n\n"
         + stage_table
         + f"\n\nModel `{Path(str(result['model'])).name}` (width {fmt(result['width'])}, "
         f"{fmt(result['num_parameters'])} parameters) on data `{result['data']}`, frames "

@@ -10,12 +10,18 @@ command would call. Its outcome is one of ``OUTCOMES``:
 - ``ok``: a valid result; ``input_error``: a one-line ``InputError`` (the wanted refusal);
 - ``traceback``: any other exception, or an ``InputError`` spanning lines;
 - ``signal``: the child died (SIGSEGV, an abort); ``timeout``: no answer within the case's time;
-- ``memory``: a ``MemoryError`` (the child's address space is capped at its start-up size plus
-  ``memory_limit_mb``), or a peak resident size above ``memory_limit_mb`` over the start-up size.
+- ``memory``: the case used more than ``memory_limit_mb`` over the worker's start-up size.
 
-The last four are failures. Cases run one after another in a worker process started with
-``spawn``; a worker that dies or hangs is replaced and the next case goes on. The campaign is
-deterministic for a seed.
+The last four are failures. Memory is measured from outside, so that a reader that catches a
+``MemoryError`` and reports it as bad input cannot hide a bomb: a watchdog thread in the parent
+reads the worker's resident size every ``WATCHDOG_INTERVAL_S`` and kills it above the limit; the
+worker's peak resident size (VmHWM, reset per case) is checked after each case; and an
+``InputError`` (or any exception) that mentions or stems from a ``MemoryError`` counts as
+``memory``. The worker's address space is capped too, but only as a guard of the machine, at
+``ADDRESS_SPACE_FACTOR`` times the limit over its start-up size.
+
+Cases run one after another in a worker process started with ``spawn``; a worker that dies, hangs
+or is killed is replaced and the next case goes on. The campaign is deterministic for a seed.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import signal
 import sqlite3
 import statistics
 import tempfile
+import threading
 import time
 import traceback
 import zipfile
@@ -43,6 +50,16 @@ from factorydet_core.types import InputError
 
 OUTCOMES = ("ok", "input_error", "traceback", "signal", "memory", "timeout")
 FAILURES = ("traceback", "signal", "memory", "timeout")
+
+WATCHDOG_INTERVAL_S = 0.02
+"""How often the parent reads a running case's resident size."""
+
+ADDRESS_SPACE_FACTOR = 4
+"""The worker's address space is capped at start-up + this x ``memory_limit_mb``: a guard of the
+machine, not the measurement (a capped allocation raises a ``MemoryError`` the case may catch)."""
+
+WORKER_START_S = 300.0
+"""How long a new worker may take to import everything before its first case."""
 
 CLOUD_TARGETS = (
     "ply",
@@ -157,7 +174,9 @@ def _write_cloud_seeds(folder: Path) -> dict[str, Path]:
 
 
 def _write_session_seeds(folder: Path) -> tuple[dict[str, Path], Path, Path]:
-    """Label files exported from a pristine two-frame session, the session's root and its data set."""
+    """Label files exported from a pristine two-frame session, the session's root and its data set,
+    and (``session-db``) the database of a second session that has every kind of row: labels, a
+    few edits (add, update, delete), a training run with a queue of mined negatives and verdicts."""
     from factorydet_core.io.dataset import open_dataset
     from factorydet_core.session.labels_io import export_labels
     from factorydet_core.session.store import SessionDB, open_session
@@ -175,8 +194,56 @@ def _write_session_seeds(folder: Path) -> tuple[dict[str, Path], Path, Path]:
     ):
         written = export_labels(db, fmt, out)
         seeds[target] = out if fmt == "json" else written[0]
-    seeds["session-db"] = db.path
+    seeds["session-db"] = _worked_session(SessionDB(open_session("worked", root), open_dataset(data)), data)
     return seeds, root, data
+
+
+SEED_AUTHOR = "fuzz"
+"""Who made the seed session's edits and verdicts (the session-db runner undoes the last one)."""
+
+
+def _worked_session(db, data: Path) -> Path:
+    """Fill ``db`` (a ``SessionDB`` on the two-frame data set) with edits, a mined-negative queue
+    and verdicts, without training; returns its database file."""
+    from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
+    from factorydet_core.training.mining import TrainingRun
+
+    db.ensure_frames([0, 1])
+    name = db.class_names[0]
+    added = db.add_label(0, [0.5, 0.5, 0.5, 1.0, 1.0, 1.0, 0.0], name, SEED_AUTHOR)
+    db.update_label(added.id, SEED_AUTHOR, box=[0.6, 0.5, 0.5, 1.0, 1.2, 1.0, 0.2])
+    spare = db.add_label(1, [2.0, 1.0, 0.5, 0.8, 0.8, 1.0, 0.0], name, SEED_AUTHOR)
+    db.delete_labels([spare.id], SEED_AUTHOR)
+
+    # A training run as train_with_mining records one (one round, a few mined negatives); its
+    # model is the shipped one, since only the queue's rows are exercised.
+    def mined(frame_index: int, group: int, box: list[float], score: float) -> dict:
+        return {
+            "frame_index": frame_index,
+            "group": group,
+            "proposal": group,
+            "box": box,
+            "patch_set": [group],
+            "score": score,
+            "predicted_class": name,
+            "probabilities": [score, 1.0 - score],
+            "best_annotated_iou": 0.0,
+        }
+
+    items = [
+        mined(0, 3, [1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0], 0.9),
+        mined(0, 7, [-2.0, 1.0, 0.4, 0.6, 0.6, 0.8, 0.3], 0.7),
+        mined(1, 2, [3.0, -1.0, 0.5, 1.2, 0.8, 1.0, 1.0], 0.6),
+        mined(1, 5, [0.0, 0.0, 0.3, 0.4, 0.4, 0.6, 0.0], 0.4),
+    ]
+    model = DetectionModel.load(DEFAULT_MODEL)
+    record = {"round": 0, "num_positives": 5, "num_background": 9, "fit_seconds": 1.0}
+    rounds = [{**record, "train_metrics": {"f1": 0.5}, "mined": items}]
+    run_id = db.save_training_run(TrainingRun(model, rounds, [model], [0]), str(data), {"seed": "fuzz"})
+    queue = db.review_queue(run_id)
+    db.review([queue[0]["id"]], "background", SEED_AUTHOR)
+    db.review([queue[1]["id"]], "object", SEED_AUTHOR, class_name=name)
+    return db.path
 
 
 def _write_checkpoint_seeds(folder: Path, model: Path) -> dict[str, Path]:
@@ -433,10 +500,36 @@ def _mutate_state_dict(path: Path, rng: np.random.Generator) -> str:
     return f"pt: {kind}"
 
 
+_DB_MUTATIONS = {
+    "user_version": 0.1,
+    "schema": 0.1,
+    "label-row": 0.2,
+    "mined-row": 0.22,
+    "edit-row": 0.18,
+    "review-row": 0.08,
+    "drop-table": 0.12,
+}
+"""Structured mutations of a session database and their probabilities."""
+
+_MINED_VALUES = {
+    "box": ("[1,2]", "nan", "[1e999,0,0,1,1,1,0]", "{}", "not json", "null", "[1,2,3,4,5,6,-7]"),
+    "patch_set": ("[]", "not json", "[-1]", "[1e30]", "{}", "null"),
+    "probabilities": ("[NaN]", "not json", "[]", "{}", "[1e999]"),
+    "frame_index": ("x", -1, 10**9, 2**62),
+    "score": ("x", -1e308, 1e308, "1e999"),
+    "predicted_class": ("zzz", "", 42),
+    "review_version": (-1, "x", 2**62),
+    "run_id": (10**6, -1, "x"),
+}
+"""Hostile values of the mined-negative columns (JSON columns also get ``_mutate_json``)."""
+
+
 def _mutate_session_db(path: Path, rng: np.random.Generator) -> str:
-    kind = rng.choice(["user_version", "schema", "label-row", "drop-table"], p=[0.25, 0.25, 0.35, 0.15])
+    kind = rng.choice(list(_DB_MUTATIONS), p=list(_DB_MUTATIONS.values()))
     connection = sqlite3.connect(path, isolation_level=None)
     try:
+        # A damaged file breaks the schema's rules too (CHECK and NOT NULL are not re-checked).
+        connection.execute("PRAGMA ignore_check_constraints = ON")
         if kind == "user_version":
             value = int(rng.choice([-1, 0, 2**31 - 1, 99]))
             connection.execute(f"PRAGMA user_version = {value}")
@@ -457,7 +550,45 @@ def _mutate_session_db(path: Path, rng: np.random.Generator) -> str:
                 f"UPDATE labels SET {column} = ? WHERE id = (SELECT min(id) FROM labels)", (value,)
             )
             return f"db: labels.{column}={value}"
-        table = ["edits", "reviews", "meta", "frames"][int(rng.integers(4))]
+        if kind == "mined-row":
+            # The highest-scored item: the first of the queue, the one the runner reviews.
+            ids = [r[0] for r in connection.execute("SELECT id FROM mined_negatives ORDER BY score DESC")]
+            row_id = ids[int(rng.integers(len(ids)))] if ids and rng.random() < 0.5 else (ids or [0])[0]
+            column = sorted(_MINED_VALUES)[int(rng.integers(len(_MINED_VALUES)))]
+            options = _MINED_VALUES[column]
+            value = options[int(rng.integers(len(options)))]
+            if column in ("box", "patch_set", "probabilities") and rng.random() < 0.5:
+                (text,) = connection.execute(
+                    f"SELECT {column} FROM mined_negatives WHERE id = ?", (row_id,)
+                ).fetchone() or ("[]",)
+                data, _ = _mutate_json((text or "[]").encode(), rng)
+                value = data.decode("utf-8", "replace")
+            connection.execute(f"UPDATE mined_negatives SET {column} = ? WHERE id = ?", (value, row_id))
+            return f"db: mined_negatives[{row_id}].{column}={str(value)[:60]}"
+        if kind == "edit-row":
+            # The latest edit: the one an undo replays.
+            column = ["changes", "changes", "changes", "state", "author", "kind"][int(rng.integers(6))]
+            row = connection.execute(f"SELECT id, {column} FROM edits ORDER BY id DESC LIMIT 1").fetchone()
+            if row is None:
+                return "db: no edit to damage"
+            if column == "changes":
+                value = _mutate_json(str(row[1]).encode(), rng)[0].decode("utf-8", "replace")
+                if rng.random() < 0.3:
+                    value = ["not json", "[]", "{}", "null", "[{}]", "[1]"][int(rng.integers(6))]
+            else:
+                value = {"state": "zzz", "author": 42, "kind": "zzz"}[column]
+            connection.execute(f"UPDATE edits SET {column} = ? WHERE id = ?", (value, row[0]))
+            return f"db: edits[{row[0]}].{column}={str(value)[:60]}"
+        if kind == "review-row":
+            column = ["verdict", "class_name", "label_id", "negative_id"][int(rng.integers(4))]
+            value = {"verdict": "zzz", "class_name": "zzz", "label_id": 10**6, "negative_id": 10**6}[column]
+            connection.execute(
+                f"UPDATE reviews SET {column} = ? WHERE negative_id = (SELECT max(negative_id) FROM reviews)",
+                (value,),
+            )
+            return f"db: reviews.{column}={value}"
+        tables = ["edits", "reviews", "meta", "frames", "mined_negatives", "training_runs"]
+        table = tables[int(rng.integers(len(tables)))]
         connection.execute("PRAGMA foreign_keys = OFF")
         connection.execute(f"DROP TABLE IF EXISTS {table}")
         return f"db: dropped {table}"
@@ -507,8 +638,14 @@ class _Context:
     data: str
 
 
-def _status_kb(field: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
+def _status_kb(field: str, pid: int | str = "self") -> int | None:
+    """A ``/proc/<pid>/status`` field in KB (``VmRSS``, ``VmHWM``, ``VmSize``); ``None`` once the
+    process is gone."""
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    for line in text.splitlines():
         if line.startswith(field + ":"):
             return int(line.split()[1])
     return 0
@@ -560,6 +697,13 @@ def run_target(target: str, path: Path, context: _Context) -> None:
             db.edits()
             db.training_runs()
             db.review_progress()
+            queue = db.review_queue()
+            # Writes, on this copy: undo the seed's last verdict, then give one.
+            db.undo(SEED_AUTHOR)
+            if queue:
+                pending = [item for item in queue if item["verdict"] is None] or queue
+                db.review([pending[0]["id"]], "background", "fuzz-runner", override=True)
+                db.review_queue()
         finally:
             shutil.rmtree(root, ignore_errors=True)
     else:
@@ -571,18 +715,36 @@ Runner = Callable[[str, Path, object], None]
 spawned, so it is passed by its qualified name)."""
 
 
+def _stems_from_memory_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is, mentions or was raised from a ``MemoryError`` (a reader that turned
+    one into an ``InputError`` must not hide a bomb)."""
+    seen: set[int] = set()
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:
+        seen.add(id(link))
+        if isinstance(link, MemoryError) or "MemoryError" in str(link):
+            return True
+        link = link.__cause__ or link.__context__
+    return False
+
+
 def _worker(connection, runner: Runner, context: object, memory_limit_mb: float) -> None:
     import resource
 
-    # Warm every import first, so that the cap and the peak measure the case, not the start-up.
+    # Warm every import first, so that the limit and the peak measure the case, not the start-up.
     import factorydet_core.detection.model  # noqa: F401
     import factorydet_core.io.readers  # noqa: F401
     import factorydet_core.session.labels_io  # noqa: F401
 
-    baseline_kb = _status_kb("VmSize")
-    limit = int((baseline_kb + memory_limit_mb * 1024) * 1024)
-    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    rss_kb = _status_kb("VmRSS")
+    size_kb = _status_kb("VmSize") or 0
+    limit = int((size_kb + ADDRESS_SPACE_FACTOR * memory_limit_mb * 1024) * 1024)
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    for inherited in (soft, hard):  # never raise a cap set from outside (ulimit -v)
+        if inherited != resource.RLIM_INFINITY:
+            limit = min(limit, inherited)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    rss_kb = _status_kb("VmRSS") or 0
+    connection.send(("ready", rss_kb))
     while True:
         try:
             case = connection.recv()
@@ -595,51 +757,121 @@ def _worker(connection, runner: Runner, context: object, memory_limit_mb: float)
         try:
             runner(case.target, Path(case.path), context)
             outcome, detail = "ok", ""
-        except MemoryError:
-            outcome, detail = "memory", "MemoryError"
+        except MemoryError as exc:
+            outcome, detail = "memory", f"MemoryError: {str(exc)[:200]}"
         except InputError as exc:
             message = str(exc)
             outcome = "input_error" if "\n" not in message.strip() else "traceback"
             detail = message[:300]
+            if _stems_from_memory_error(exc):
+                outcome = "memory"
         except RecursionError as exc:
             outcome, detail = "traceback", f"RecursionError: {str(exc)[:200]}"
         except Exception as exc:  # noqa: BLE001 - the campaign counts every unexpected exception
             frames = traceback.extract_tb(exc.__traceback__)
             where = f"{Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else "?"
             outcome, detail = "traceback", f"{type(exc).__name__} at {where}: {str(exc)[:200]}"
+            if _stems_from_memory_error(exc):
+                outcome = "memory"
         seconds = time.perf_counter() - start
-        peak_mb = max(0.0, (_status_kb("VmHWM") - rss_kb) / 1024)
+        peak_mb = max(0.0, ((_status_kb("VmHWM") or 0) - rss_kb) / 1024)
         if outcome != "memory" and peak_mb > memory_limit_mb:
             outcome, detail = "memory", f"peak {peak_mb:.0f} MB above start-up"
         connection.send((outcome, detail, round(peak_mb, 1), round(seconds, 4)))
 
 
+class _Watchdog(threading.Thread):
+    """Reads a worker's resident size every ``WATCHDOG_INTERVAL_S`` while a case runs and kills
+    the worker once it holds more than ``limit_kb`` over ``baseline_kb``."""
+
+    def __init__(self, pid: int, baseline_kb: int, limit_kb: float) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.baseline_kb, self.limit_kb = pid, baseline_kb, limit_kb
+        self.peak_kb = 0
+        self.killed_at_kb: int | None = None
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        while not self._stop_event.is_set():
+            rss = _status_kb("VmRSS", self.pid)
+            if rss is None:
+                return  # the worker is gone
+            above = rss - self.baseline_kb
+            self.peak_kb = max(self.peak_kb, above)
+            if above > self.limit_kb:
+                self.killed_at_kb = above
+                try:
+                    os.kill(self.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                return
+            self._stop_event.wait(WATCHDOG_INTERVAL_S)
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        self.join()
+
+
 class _Worker:
-    """A spawned process running cases one after another; replaced when a case kills or hangs it."""
+    """A spawned process running cases one after another; replaced when a case kills or hangs it,
+    or uses too much memory."""
 
     def __init__(self, runner: Runner, context: object, memory_limit_mb: float) -> None:
         spawn = multiprocessing.get_context("spawn")
+        self.memory_limit_mb = memory_limit_mb
         self.connection, child = spawn.Pipe()
         self.process = spawn.Process(
             target=_worker, args=(child, runner, context, memory_limit_mb), daemon=True
         )
         self.process.start()
         child.close()
+        # The start-up (imports) is not part of any case's time or memory.
+        try:
+            if not self.connection.poll(WORKER_START_S):
+                raise EOFError(f"no answer in {WORKER_START_S:g} s")
+            _, self.baseline_kb = self.connection.recv()
+        except (EOFError, OSError) as exc:
+            self.process.kill()
+            self.process.join()
+            raise RuntimeError(
+                f"fuzz: the worker did not start ({exc or 'it died'}; exit code {self.process.exitcode})"
+            ) from None
+
+    @property
+    def alive(self) -> bool:
+        return self.process.is_alive()
 
     def run(self, case: FuzzCase, timeout_s: float) -> tuple[str, str, float, float]:
-        """``(outcome, detail, peak_mb, seconds)``; after ``signal`` or ``timeout`` the worker is dead."""
+        """``(outcome, detail, peak_mb, seconds)``; after ``signal``, ``timeout`` or a ``memory``
+        kill the worker is dead (``alive`` is false)."""
         start = time.perf_counter()
+        assert self.process.pid is not None
+        watchdog = _Watchdog(self.process.pid, self.baseline_kb, self.memory_limit_mb * 1024)
+        answer, timed_out = None, False
         try:
             self.connection.send(case)
+            watchdog.start()
             if self.connection.poll(timeout_s):
-                return self.connection.recv()
-            timed_out = True
+                answer = self.connection.recv()
+            else:
+                timed_out = True
         except (EOFError, OSError):  # the worker died before or while answering
-            timed_out = False
+            pass
+        finally:
+            if watchdog.ident is not None:  # started
+                watchdog.stop()
+        seconds = round(time.perf_counter() - start, 4)
+        if watchdog.killed_at_kb is not None:
+            # Killed for its memory, maybe just after it answered: the worker is gone either way.
+            self.process.join()
+            above_mb = watchdog.killed_at_kb / 1024
+            detail = f"resident {above_mb:.0f} MB above start-up: killed by the watchdog"
+            return "memory", detail, round(above_mb, 1), seconds
+        if answer is not None:
+            return answer
         if timed_out and self.process.is_alive():
             self.process.kill()
         self.process.join()
-        seconds = round(time.perf_counter() - start, 4)
         if timed_out:
             return "timeout", f"no answer in {timeout_s:g} s", float("nan"), seconds
         code = self.process.exitcode
@@ -671,7 +903,7 @@ def run_guarded(
     try:
         for case in cases:
             result = CaseResult(case, *worker.run(case, timeout_s))
-            if result.outcome in ("signal", "timeout"):
+            if not worker.alive:
                 worker = _Worker(runner, context, memory_limit_mb)
             results.append(result)
             if on_result is not None:
@@ -699,8 +931,8 @@ def fuzz_campaign(
     Args:
         model: the checkpoint the checkpoint targets mutate (default: the shipped paper
             pipeline's, which has a box quality regressor).
-        memory_limit_mb: a case using more than this over the worker's start-up fails as
-            ``memory``; its address space is capped there too.
+        memory_limit_mb: a case holding more than this over the worker's start-up (resident,
+            watched every ``WATCHDOG_INTERVAL_S``, and at its peak) fails as ``memory``.
         timeout_s: a case answering later fails as ``timeout``.
         keep: folder to copy the failing cases' files into (to reproduce them).
 

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import hashlib
-import json
+import math
 import os
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from factorydet_core.io.limits import resolve_max_points
+from factorydet_core.io.jsonfile import read_json
+from factorydet_core.io.limits import resolve_max_points, resolve_max_read_bytes
 from factorydet_core.io.npz import load_npz
 from factorydet_core.io.readers import read_frame
 from factorydet_core.types import CLASS_NAMES, BoxLabels, Frame, InputError
@@ -27,11 +28,16 @@ class Dataset:
     Args:
         path: the data set folder or file.
         max_points: refuse frame files holding more points (``io.limits.resolve_max_points``).
+        max_read_bytes: refuse frame files whose read would allocate more bytes
+            (``io.limits.resolve_max_read_bytes``).
     """
 
-    def __init__(self, path: str | os.PathLike, *, max_points: int | None = None) -> None:
+    def __init__(
+        self, path: str | os.PathLike, *, max_points: int | None = None, max_read_bytes: int | None = None
+    ) -> None:
         self.path = Path(path)
         self.max_points = resolve_max_points(max_points)
+        self.max_read_bytes = resolve_max_read_bytes(max_read_bytes)
         self._hash: str | None = None
         if not self.path.exists():
             raise InputError(f"{self.path}: no such file or folder")
@@ -39,22 +45,25 @@ class Dataset:
             manifest_path = self.path / MANIFEST
             if not manifest_path.is_file():
                 raise InputError(f"{self.path}: not a data set folder (no {MANIFEST})")
+            self.manifest = read_json(manifest_path, what="manifest")
             try:
-                self.manifest = json.loads(manifest_path.read_text())
                 self.class_names = tuple(self.manifest["classes"])
                 self._frame_paths = [self.path / p for p in self.manifest["frames"]]
                 self.T_vehicle_sensor = np.array(
                     [s["T_vehicle_sensor"] for s in self.manifest["sensors"]], dtype=np.float64
                 ).reshape(-1, 4, 4)
                 self.splits = {k: list(v) for k, v in self.manifest.get("splits", {}).items()}
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-                raise InputError(f"{manifest_path}: malformed manifest ({exc})") from None
+            except (KeyError, TypeError, ValueError, AttributeError, RecursionError) as exc:
+                reason = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+                raise InputError(f"{manifest_path}: malformed manifest ({reason})") from None
             if not self._frame_paths:
                 # Every consumer starts at frame 0; say so here rather than with an IndexError there.
                 raise InputError(f"{self.path}: the data set has no frames ({MANIFEST} lists none)")
             self._single = None
         else:
-            self._single = read_frame(self.path, max_points=self.max_points)
+            self._single = read_frame(
+                self.path, max_points=self.max_points, max_read_bytes=self.max_read_bytes
+            )
             self.manifest = {"generator": "file", "frames": [self.path.name]}
             self.class_names = self._single.class_names
             self._frame_paths = [self.path]
@@ -102,7 +111,15 @@ class Dataset:
     def _read_frame(self, index: int) -> Frame:
         path = self._frame_paths[index]
         try:
-            _, arrays = load_npz(path, max_points=self.max_points)
+            # The arrays and their frozen copies in the Frame.
+            _, arrays = load_npz(
+                path,
+                max_points=self.max_points,
+                max_read_bytes=self.max_read_bytes,
+                conversion_bytes=lambda headers: sum(
+                    math.prod(shape) * dtype.itemsize for shape, dtype in headers.values()
+                ),
+            )
         except FileNotFoundError:
             raise InputError(f"{path}: frame file missing") from None
         except OSError as exc:
@@ -137,13 +154,22 @@ def annotation_min_points(dataset: Dataset, default: int | None = 50) -> int | N
     annotated (the simulator's ``min_annotated_points``; ``default`` when the manifest does not
     say, as for real scans). The truth references of the evaluation (``evaluate.reference_boxes``)
     and the labels of the simulated reviewer and of the full labels of ``bench hitl`` follow it."""
-    value = dataset.manifest.get("config", {}).get("min_annotated_points")
-    return default if value is None else int(value)
+    config = dataset.manifest.get("config", {})
+    value = config.get("min_annotated_points") if isinstance(config, dict) else None
+    if value is None:
+        return default
+    try:
+        return int(value)
+    except (TypeError, ValueError, OverflowError):
+        shown = f"{value!r:.60}"
+        raise InputError(f"{dataset.path}: malformed manifest (min_annotated_points = {shown})") from None
 
 
-def open_dataset(path: str | os.PathLike, *, max_points: int | None = None) -> Dataset:
-    """Open a data set folder or a point-cloud file (``max_points``: see ``Dataset``)."""
-    return Dataset(path, max_points=max_points)
+def open_dataset(
+    path: str | os.PathLike, *, max_points: int | None = None, max_read_bytes: int | None = None
+) -> Dataset:
+    """Open a data set folder or a point-cloud file (``max_points``, ``max_read_bytes``: see ``Dataset``)."""
+    return Dataset(path, max_points=max_points, max_read_bytes=max_read_bytes)
 
 
 __all__ = ["CLASS_NAMES", "Dataset", "annotation_min_points", "open_dataset"]

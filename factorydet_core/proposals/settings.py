@@ -6,15 +6,49 @@ half it was trained on."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
-from typing import Literal
+from collections.abc import Iterable, Mapping
+from typing import Literal, get_args
 
 from factorydet_core.proposals.candidates import FeatureKind, Weighting
 from factorydet_core.proposals.segment import SegmentationParams
 from factorydet_core.proposals.voxels import DEFAULT_VOXEL_SIZE
-from factorydet_core.types import (
-    InputError,
-)
+from factorydet_core.settings_check import Setting, short_repr
+from factorydet_core.types import InputError
+
+MAX_HISTORY_FRAMES = 10
+"""The most earlier frames accumulated with the current one: each is one more frame of points
+through the whole front half (the benchmarks measured 2)."""
+
+MAX_EXTENT_M = 1000.0
+"""The farthest a crop reaches from the vehicle, metres: a factory hall, not a city."""
+
+MIN_CELL_M = 0.001
+"""The smallest down-sampling cell, metres: below a millimetre every point is its own cell anyway,
+and a tiny cell would overflow the cell indices of a far point."""
+
+_HEIGHT = Setting(float, -MAX_EXTENT_M, MAX_EXTENT_M)
+
+_SETTINGS: dict[str, Setting] = {
+    "history_frames": Setting(int, 0, MAX_HISTORY_FRAMES),
+    "icp_between_frames": Setting(bool),
+    "crop_radius_m": Setting(float, 0.0, MAX_EXTENT_M, low_open=True, optional=True),
+    "prune_m": Setting(float, 0.0, 10.0),
+    "remove_floor": Setting(bool),
+    "floor_distance_m": Setting(float, 0.0, 10.0),
+    # Each occupied voxel's Fisher vector takes 10 kB (20 x 5 x 5 x 5 float32): a centimetre cell
+    # already holds about one point, and finer ones would only cost memory.
+    "voxel_size_m": Setting(float, 0.01, 10.0),
+    "segment_on": Setting(str, choices=("points", "voxels")),
+    "min_proposal_points": Setting(int, 1, 1_000_000),
+    "weighting": Setting(str, choices=get_args(Weighting)),
+    "feature": Setting(str, choices=get_args(FeatureKind)),
+    "include_history": Setting(bool),
+    "complete_boxes": Setting(bool),
+    "align_to_scene": Setting(bool),
+    "include_patches": Setting(bool),
+}
+"""The scalar settings of ``FrontEndParams`` and what each may hold (``crop_z_m`` and
+``segmentation`` are checked on their own)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,26 +92,23 @@ class FrontEndParams:
     """Also propose single patches (an object may be exactly one patch that merging then grew)."""
 
     def __post_init__(self) -> None:
+        # Every value is checked whatever built it (a checkpoint's note, a run's record in the
+        # session database, ``--set``, code), and kept as a plain Python value.
+        for name, setting in _SETTINGS.items():
+            object.__setattr__(self, name, setting.check(name, getattr(self, name)))
+        if 0 < self.prune_m < MIN_CELL_M:
+            raise InputError(
+                f"prune_m must be 0 (keep every point) or at least {MIN_CELL_M} m, got {self.prune_m}"
+            )
         if self.crop_z_m is not None:
-            try:
-                low, high = (float(v) for v in self.crop_z_m)
-            except (TypeError, ValueError):
-                raise InputError(f"crop_z_m must be two heights in metres, got {self.crop_z_m!r}") from None
-            if not low < high:  # also false for NaN
-                raise InputError(f"crop_z_m must be (low, high) with low < high, got {self.crop_z_m!r}")
+            low, high = _HEIGHT.check_tuple("crop_z_m", self.crop_z_m, length=2)
+            if not low < high:
+                raise InputError(f"crop_z_m must be (low, high) with low < high, got {(low, high)}")
             object.__setattr__(self, "crop_z_m", (low, high))
-        if self.crop_radius_m is not None and not self.crop_radius_m > 0:
-            raise InputError(f"crop_radius_m must be > 0 (or None: no crop), got {self.crop_radius_m}")
-        if self.history_frames < 0:
-            raise InputError(f"history_frames must be >= 0, got {self.history_frames}")
-        if not self.voxel_size_m > 0:
-            raise InputError(f"voxel_size_m must be > 0, got {self.voxel_size_m}")
-        if self.prune_m < 0:
-            raise InputError(f"prune_m must be >= 0, got {self.prune_m}")
-        if self.segment_on not in ("points", "voxels"):
-            raise InputError(f"segment_on must be 'points' or 'voxels', got {self.segment_on!r}")
-        if self.min_proposal_points < 1:
-            raise InputError(f"min_proposal_points must be >= 1, got {self.min_proposal_points}")
+        if not isinstance(self.segmentation, SegmentationParams):
+            raise InputError(
+                f"segmentation must be a SegmentationParams, got {short_repr(self.segmentation)}"
+            )
 
     def to_dict(self) -> dict:
         """Every setting, JSON-ready (tuples as lists, ``segmentation`` as a nested dict)."""
@@ -99,45 +130,64 @@ class FrontEndParams:
         Raises:
             InputError: for an unknown name or a bad value.
         """
+        if not isinstance(values, Mapping):
+            raise InputError(f"front-end settings must map names to values, got {short_repr(values)}")
         values = dict(values)
-        segmentation = values.pop("segmentation", None) or {}
+        segmentation = values.pop("segmentation", None)
+        if segmentation is None:
+            segmentation = {}
         if not isinstance(segmentation, Mapping):
-            raise InputError(f"front-end settings: segmentation must be a mapping, got {segmentation!r}")
-        seg_names = {f.name for f in dataclasses.fields(SegmentationParams)}
-        unknown = sorted(set(segmentation) - seg_names)
-        if unknown:
-            raise InputError(f"front-end settings: unknown segmentation setting {', '.join(unknown)}")
-        seg_values = {k: tuple(v) if isinstance(v, list) else v for k, v in segmentation.items()}
-        own = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
-        try:
-            params = cls().replace(**own)  # segmentation names at the top level too
-            return dataclasses.replace(
-                params, segmentation=dataclasses.replace(params.segmentation, **seg_values)
+            raise InputError(
+                f"front-end settings: segmentation must be a mapping, got {short_repr(segmentation)}"
             )
-        except TypeError as exc:
-            raise InputError(f"front-end settings: bad value ({exc})") from None
+        unknown = set(segmentation) - _SEGMENTATION_NAMES
+        if unknown:
+            raise InputError(f"front-end settings: unknown segmentation setting {_names(unknown)}")
+        params = cls().with_changes(values)  # segmentation names at the top level too
+        return dataclasses.replace(
+            params, segmentation=dataclasses.replace(params.segmentation, **segmentation)
+        )
 
-    def replace(self, **changes) -> FrontEndParams:
+    def replace(self, **changes: object) -> FrontEndParams:
         """A copy with ``changes``; ``segmentation`` fields may be given by name too.
 
         Raises:
-            InputError: for an unknown name or a value of the wrong kind.
+            InputError: for an unknown name or a bad value.
         """
-        seg_fields = {f.name for f in dataclasses.fields(SegmentationParams)}
-        own_fields = {f.name for f in dataclasses.fields(self)} - {"segmentation"}
-        unknown = sorted(set(changes) - seg_fields - own_fields)
+        return self.with_changes(changes)
+
+    def with_changes(self, changes: Mapping[str, object]) -> FrontEndParams:
+        """``replace`` with the changes as a mapping (a parsed ``--set`` or a record's overrides,
+        whose names need not even be texts).
+
+        Raises:
+            InputError: for an unknown name or a bad value.
+        """
+        if not isinstance(changes, Mapping):
+            raise InputError(f"front-end overrides must map names to values, got {short_repr(changes)}")
+        own_names = {f.name for f in dataclasses.fields(self)} - {"segmentation"}
+        unknown = set(changes) - _SEGMENTATION_NAMES - own_names
         if unknown:
             raise InputError(
-                f"unknown parameter {', '.join(unknown)}; "
-                f"choose from {', '.join(sorted(own_fields | seg_fields))}"
+                f"unknown parameter {_names(unknown)}; "
+                f"choose from {', '.join(sorted(own_names | _SEGMENTATION_NAMES))}"
             )
-        seg_changes = {k: changes.pop(k) for k in list(changes) if k in seg_fields}
-        try:
-            if seg_changes:
-                changes["segmentation"] = dataclasses.replace(self.segmentation, **seg_changes)
-            return dataclasses.replace(self, **changes)
-        except TypeError as exc:  # e.g. a text where a number belongs
-            raise InputError(f"bad parameter value: {exc}") from None
+        own = {name: value for name, value in changes.items() if name in own_names}
+        segmentation = {name: value for name, value in changes.items() if name in _SEGMENTATION_NAMES}
+        if segmentation:
+            own["segmentation"] = dataclasses.replace(self.segmentation, **segmentation)
+        return dataclasses.replace(self, **own)
+
+
+_SEGMENTATION_NAMES = frozenset(f.name for f in dataclasses.fields(SegmentationParams))
+
+
+def _names(names: Iterable[object]) -> str:
+    """Setting names for a one-line message: sorted, at most five, any that is not a plain name
+    quoted and cut short (a hand-edited file's key may hold anything, line breaks included)."""
+    shown = sorted(n if isinstance(n, str) and n.isidentifier() else short_repr(n) for n in names)
+    more = f" and {len(shown) - 5} more" if len(shown) > 5 else ""
+    return ", ".join(shown[:5]) + more
 
 
 PRESETS: dict[str, FrontEndParams] = {
@@ -186,25 +236,30 @@ def front_end_params(
     Raises:
         InputError: for an unknown preset, name or value.
     """
-    preset = preset or preset_for(num_sensors)
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    return PRESETS[preset].replace(**dict(overrides or {}))
+    if preset is None or (isinstance(preset, str) and not preset):
+        preset = preset_for(num_sensors)
+    if not isinstance(preset, str) or preset not in PRESETS:
+        raise InputError(f"unknown preset {short_repr(preset)}; choose from {', '.join(PRESETS)}")
+    return PRESETS[preset].with_changes(overrides if overrides is not None else {})
 
 
-def front_end_from_record(record: Mapping[str, object] | None) -> FrontEndParams | None:
+def front_end_from_record(record: object) -> FrontEndParams | None:
     """The settings a checkpoint's note or a training run's record holds: ``to_dict``'s output,
     or (checkpoints from before the settings were saved whole) ``{"preset": ..., "overrides":
     {...}}``. ``None`` when it names none: the data's preset then applies.
 
     Raises:
-        InputError: for an unknown preset, name or value.
+        InputError: for a record that is not a mapping, an unknown preset, name or value.
     """
+    if record is None:
+        return None
+    if not isinstance(record, Mapping):
+        raise InputError(f"front-end settings must map names to values, got {short_repr(record)}")
     if not record:
         return None
-    record = dict(record)
     if set(record) <= {"preset", "overrides"}:
-        if not record.get("preset"):
+        preset, overrides = record.get("preset"), record.get("overrides")
+        if preset is None or preset == "":
             return None
-        return front_end_params(str(record["preset"]), record.get("overrides") or {})
+        return front_end_params(preset, {} if overrides is None else overrides)
     return FrontEndParams.from_dict(record)

@@ -13,13 +13,16 @@ Import never drops a box silently: one that repeats a label (same class, IoU >= 
 listed; one that overlaps a label of another class (IoU >= 0.5) is imported and listed as a
 conflict for a person to resolve. Every box and frame index is checked first (``store.check_box``):
 a file with an absurd one is refused whole, with a one-line error naming it. Exports are written
-whole or not at all (``io.atomic``).
+whole or not at all (``io.atomic``), into folders made if missing; a target that cannot be written
+is a one-line ``InputError`` naming it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +51,36 @@ def _frames(db: SessionDB, frame_indices) -> list[int]:
     return [int(i) for i in frame_indices]
 
 
+@contextlib.contextmanager
+def _writing(target: Path) -> Iterator[None]:
+    """An export's writes to ``target``: a failure (a missing or read-only folder, a folder where
+    a file goes) is an ``InputError`` naming ``target``, not the temporary file written first."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(f"cannot write {target}: {exc.strerror or _brief(exc)}") from None
+
+
+def _export_folder(folder: str | os.PathLike) -> Path:
+    """The folder a KITTI or npz export writes into, made with its parents if missing."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"cannot write {folder}: a file, not a folder (this format writes a folder)")
+    with _writing(folder):
+        folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
 def export_json(db: SessionDB, path: str | os.PathLike, frame_indices=None) -> dict:
-    """Write every frame's labels to one JSON file (whole or not at all); returns what was written."""
+    """Write every frame's labels to one JSON file (whole or not at all), making its folder if
+    missing, as the other commands' outputs do; returns what was written.
+
+    Raises:
+        InputError: ``path`` is a folder, or cannot be written (naming it).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"cannot write {path}: a folder; give a .json file, or --format kitti or npz")
     frames = []
     for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
         frames.append(
@@ -71,7 +102,9 @@ def export_json(db: SessionDB, path: str | os.PathLike, frame_indices=None) -> d
         "box_convention": BOX_CONVENTION,
         "frames": frames,
     }
-    write_text_atomic(path, json.dumps(record, indent=1) + "\n")
+    with _writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(path, json.dumps(record, indent=1) + "\n")
     return record
 
 
@@ -100,13 +133,14 @@ def parse_kitti_line(line: str, where: str = "") -> tuple[str, np.ndarray]:
 
 
 def export_kitti(db: SessionDB, folder: str | os.PathLike, frame_indices=None) -> list[Path]:
-    """One ``NNNNNN.txt`` per frame (its index) in ``folder``, each written whole or not at all."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    """One ``NNNNNN.txt`` per frame (its index) in ``folder`` (made if missing), each written whole
+    or not at all; a folder that cannot be written is an ``InputError`` naming it."""
+    folder = _export_folder(folder)
     paths = []
     for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
         path = folder / f"{index:06d}.txt"
-        write_text_atomic(path, "".join(kitti_line(lab.box, lab.class_name) + "\n" for lab in labels))
+        with _writing(path):
+            write_text_atomic(path, "".join(kitti_line(lab.box, lab.class_name) + "\n" for lab in labels))
         paths.append(path)
     return paths
 
@@ -140,14 +174,15 @@ def scene_arrays(db: SessionDB, frame_index: int, labels: list[Label] | None = N
 
 
 def export_npz(db: SessionDB, folder: str | os.PathLike, frame_indices=None) -> list[Path]:
-    """One ``frame_NNNNN.npz`` scene per frame in ``folder``, each written whole or not at all."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    """One ``frame_NNNNN.npz`` scene per frame in ``folder`` (made if missing), each written whole
+    or not at all; a folder that cannot be written is an ``InputError`` naming it."""
+    folder = _export_folder(folder)
     paths = []
     for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
         path = folder / f"frame_{index:05d}.npz"
-        with atomic_path(path) as partial:
-            np.savez_compressed(partial, **scene_arrays(db, index, labels))
+        arrays = scene_arrays(db, index, labels)
+        with _writing(path), atomic_path(path) as partial:
+            np.savez_compressed(partial, **arrays)
         paths.append(path)
     return paths
 
@@ -168,8 +203,8 @@ def _json_labels(path: Path, data_hash: str | None) -> list[tuple[int, np.ndarra
     """The boxes of a ``factorydet-labels`` JSON file, each checked."""
     try:
         record = json.loads(path.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: not a factorydet label file ({type(exc).__name__}: {exc})") from None
+    except ValueError as exc:  # not UTF-8, not JSON, an integer of more digits than Python converts
+        raise InputError(f"{path}: not a factorydet label file ({_brief(exc)})") from None
     except RecursionError:
         raise InputError(f"{path}: not a factorydet label file (nested too deeply)") from None
     if not isinstance(record, dict) or not isinstance(record.get("frames"), list):
@@ -234,6 +269,8 @@ def _npz_labels(path: Path) -> list[tuple[int, np.ndarray, str]]:
             index = check_frame_index(int(file.stem.split("_")[-1]), str(file))
         else:
             raise InputError(f"{file}: no frame_index, and not named frame_NNNNN.npz")
+        if data["boxes"].dtype.kind not in "iuf":  # complex: numpy would drop the imaginary part
+            raise InputError(f"{file}: boxes are {data['boxes'].dtype} values, not real numbers")
         try:
             boxes = np.asarray(data["boxes"], np.float64)
             names = [str(n) for n in np.asarray(data["labels"]).reshape(-1)]
@@ -289,6 +326,50 @@ def read_labels(
         raise InputError(f"{path}: cannot read the labels ({_brief(exc)})") from None
 
 
+_VOLUME_CLASSES_APART = int(np.ceil(np.log2(1 / min(CONFLICT_IOU, DUPLICATE_IOU)))) + 1
+"""How many volume classes (factors of 2) apart two boxes overlapping at ``CONFLICT_IOU`` can be:
+their volumes differ by at most 1 / ``CONFLICT_IOU``, plus one class for where the classes' edges
+fall (and floating point at a ratio of exactly 2)."""
+
+
+def _size_classes(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per box (N, 7), its volume class and its ground-radius class: ``floor(log2)`` of each."""
+    log_volume = np.log2(boxes[:, 3]) + np.log2(boxes[:, 4]) + np.log2(boxes[:, 5])
+    radius = np.hypot(boxes[:, 3], boxes[:, 4]) / 2
+    return np.floor(log_volume).astype(np.int64), np.floor(np.log2(radius)).astype(np.int64)
+
+
+def _near(boxes: np.ndarray, first: int) -> list[list[int]]:
+    """For each of ``boxes[first:]``, the indices of every box of ``boxes`` (N, 7) it may overlap
+    at IoU ``CONFLICT_IOU`` or more, itself included: a superset, the exact IoU decides.
+
+    IoU >= t needs the smaller volume to be at least t times the larger (the intersection is at
+    most the smaller, the union at least the larger): with volume classes a factor 2 wide, a
+    box's matches lie within ``_VOLUME_CLASSES_APART`` of its class. And the ground circles must
+    meet. So the boxes are grouped by volume class and radius class, each group gets its own
+    k-d tree, and a box asks only the groups of a volume it can match, each within its own radius
+    plus that group's largest: one 100 m box widens the search of its own group alone, not that of
+    every other box.
+    """
+    volume_class, radius_class = _size_classes(boxes)
+    radius = np.hypot(boxes[:, 3], boxes[:, 4]) / 2
+    near: list[list[int]] = [[] for _ in range(len(boxes) - first)]
+    groups: dict[tuple[int, int], list[int]] = {}
+    for index, key in enumerate(zip(volume_class.tolist(), radius_class.tolist())):
+        groups.setdefault(key, []).append(index)
+    asking = np.arange(first, len(boxes))
+    for (group_volume, _), members in groups.items():
+        ask = asking[np.abs(volume_class[first:] - group_volume) <= _VOLUME_CLASSES_APART]
+        if not len(ask):
+            continue
+        members_array = np.array(members, np.int64)
+        tree = cKDTree(boxes[members_array, :2])
+        found = tree.query_ball_point(boxes[ask, :2], radius[ask] + radius[members_array].max())
+        for index, hits in zip(ask.tolist(), found):
+            near[index - first].extend(members_array[hits].tolist())
+    return near
+
+
 def _screen(
     items: list[tuple[int, np.ndarray, str]], current: dict[int, list[Label]]
 ) -> tuple[list[int], list[dict], list[dict]]:
@@ -297,8 +378,9 @@ def _screen(
 
     An item repeats a label, or an earlier item of the same file, of its class (IoU >=
     ``DUPLICATE_IOU``: left out) or overlaps one of another class (IoU >= ``CONFLICT_IOU``: added
-    and reported). Only pairs whose ground circles meet can overlap, so a k-d tree over the box
-    centres finds the few candidates of each item: linear in the file, not quadratic.
+    and reported). Only pairs whose ground circles meet and whose volumes are alike can match, so
+    k-d trees over the box centres, one per size class (``_size_classes``), find the few
+    candidates of each item: linear in the file, not quadratic, even with a few huge boxes.
     """
     by_frame: dict[int, list[int]] = {}
     for k, (frame_index, _, _) in enumerate(items):
@@ -316,9 +398,7 @@ def _screen(
         )
         names = [lab.class_name for lab in labels] + [items[k][2] for k in positions]
         label_ids = [lab.id for lab in labels] + [None] * len(positions)
-        radius = np.hypot(boxes[:, 3], boxes[:, 4]) / 2
-        tree = cKDTree(boxes[:, :2])
-        near = tree.query_ball_point(boxes[num_labels:, :2], radius[num_labels:] + radius.max())
+        near = _near(boxes, num_labels)
         kept = np.ones(len(boxes), bool)  # the labels, and the items not left out as repeats
         for n, k in enumerate(positions):
             j = num_labels + n
@@ -374,6 +454,11 @@ def import_labels(db: SessionDB, path: str | os.PathLike, author: str, fmt: str 
     unknown = sorted({name for _, _, name in items} - set(db.class_names))
     if unknown:
         raise InputError(f"{path}: classes {unknown} are not the session's {list(db.class_names)}")
+    outside = sorted({index for index, _, _ in items if index >= db.dataset.num_frames})
+    if outside:
+        raise InputError(
+            f"{path}: frame {outside[0]} out of range: the data set has {db.dataset.num_frames} frame(s)"
+        )
     found: dict[str, list[dict]] = {"duplicates": [], "conflicts": []}
 
     def screen(current: dict[int, list[Label]]) -> list[int]:

@@ -17,7 +17,9 @@ app acknowledges survives a crash of the process that made it. Writers queue for
 lock (at most ``BUSY_TIMEOUT`` seconds, then ``SessionBusyError``); in WAL mode readers never wait
 for them, and a read-only open (``SessionDB(..., readonly=True)``) never writes at all. Every change
 of a label or a verdict is versioned: a writer that did not see the latest one is refused
-(``EditConflictError``), never silently obeyed.
+(``EditConflictError``), never silently obeyed. Every row is checked where it is read (``_COLUMNS``,
+one place per table), and what undo and redo write back is checked likewise: a damaged or
+hand-edited file is a one-line ``SessionError`` naming the table and the row, never a traceback.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import os
 import re
 import shutil
 import sqlite3
+import tempfile
 import threading
 import zipfile
 from collections.abc import Callable, Iterator
@@ -70,6 +73,10 @@ longer wait means a stuck writer: better a one-line error than a minute of silen
 
 MAX_BOX_SIZE = 100.0
 """Largest box edge accepted, metres: an order above the largest object of a factory hall."""
+MIN_BOX_SIZE = 0.001
+"""Smallest box edge kept, metres. A person's box must have edges at least this long (a smaller one
+would round to zero in the 6 decimals stored); a data set annotation with a thinner edge (a flat
+box, ``dz = 0``) is thickened to it, so that its volume, and every IoU with it, is defined."""
 MAX_BOX_DISTANCE = 10_000.0
 """Largest distance of a box centre from the vehicle accepted, metres (far beyond any scan's reach;
 it keeps every stored coordinate exact in the float32 of the npz export)."""
@@ -78,6 +85,9 @@ MAX_FRAME_INDEX = 2**31 - 1
 MAX_YAW = 1_000.0
 """Largest |yaw| accepted before wrapping, radians. Beyond this a float64 yaw has lost its
 fractional part's precision, so the heading it meant is gone."""
+MAX_STORED_VALUE = 1e9
+"""Largest magnitude of any number of a stored box (``usable_box``): far outside the plausibility
+bounds above, yet small enough that volumes and IoUs of such boxes stay finite numbers."""
 
 
 def _short(value, limit: int = 80) -> str:
@@ -86,26 +96,49 @@ def _short(value, limit: int = 80) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def check_box(box, where: str = "box") -> list[float]:
-    """``box`` as 7 floats (cx, cy, cz, dx, dy, dz, yaw), yaw wrapped to [-pi, pi] if outside it.
-
-    Raises:
-        SessionError: not 7 finite numbers, a size outside (0, ``MAX_BOX_SIZE``], a centre farther
-            than ``MAX_BOX_DISTANCE`` or a yaw beyond ``MAX_YAW``; the message starts with ``where``.
-    """
+def _box_values(box, where: str) -> list[float]:
+    """``box`` as 7 finite floats; anything but 7 real numbers is refused, not converted (``true``,
+    ``"1"`` and complex numbers included: ``float`` would take the first two and numpy would drop
+    an imaginary part silently)."""
     try:
-        values = [float(v) for v in box]
-    except (TypeError, ValueError):
+        items = list(box)
+    except TypeError:
+        items = None
+    if items is None or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in items):
         raise SessionError(
             f"{where}: a box is 7 numbers (cx, cy, cz, dx, dy, dz, yaw), got {_short(box, 80)}"
-        ) from None
+        )
+    try:
+        values = [float(v) for v in items]
+    except (OverflowError, ValueError):  # an integer too large for a float
+        values = [math.inf]
     if len(values) != 7 or not all(map(math.isfinite, values)):
         raise SessionError(
             f"{where}: a box is 7 finite numbers (cx, cy, cz, dx, dy, dz, yaw), got {_short(box, 80)}"
         )
-    if not all(0 < v <= MAX_BOX_SIZE for v in values[3:6]):
+    return values
+
+
+def _wrapped(values: list[float]) -> list[float]:
+    if abs(values[6]) > math.pi:
+        values[6] = (values[6] + math.pi) % (2 * math.pi) - math.pi
+    return values
+
+
+def check_box(box, where: str = "box") -> list[float]:
+    """``box`` as 7 floats (cx, cy, cz, dx, dy, dz, yaw), yaw wrapped to [-pi, pi] if outside it: the
+    check of a box a person or a file gives.
+
+    Raises:
+        SessionError: not 7 finite real numbers, a size outside [``MIN_BOX_SIZE``,
+            ``MAX_BOX_SIZE``], a centre farther than ``MAX_BOX_DISTANCE`` or a yaw beyond
+            ``MAX_YAW``; the message starts with ``where``.
+    """
+    values = _box_values(box, where)
+    if not all(MIN_BOX_SIZE <= v <= MAX_BOX_SIZE for v in values[3:6]):
         raise SessionError(
-            f"{where}: box sizes must be positive and at most {MAX_BOX_SIZE:g} m, got {values[3:6]}"
+            f"{where}: box sizes must be positive (at least {MIN_BOX_SIZE:g} m) and at most"
+            f" {MAX_BOX_SIZE:g} m, got {values[3:6]}"
         )
     if math.hypot(*values[:3]) > MAX_BOX_DISTANCE:
         raise SessionError(
@@ -115,9 +148,28 @@ def check_box(box, where: str = "box") -> list[float]:
         raise SessionError(
             f"{where}: box yaw {values[6]:g} rad is beyond +-{MAX_YAW:g}; give it in [-pi, pi)"
         )
-    if abs(values[6]) > math.pi:
-        values[6] = (values[6] + math.pi) % (2 * math.pi) - math.pi
-    return values
+    return _wrapped(values)
+
+
+def usable_box(box, where: str = "box") -> list[float]:
+    """``box`` as 7 floats a session can compute with: the check of the data set's own annotations
+    and of every box read back from the database. The data set's boxes are the user's data, so the
+    plausibility bounds of ``check_box`` do not apply to them: a 150 m hall outline or a box 20 km
+    out is kept as it is. Only what no computation survives is refused.
+
+    Sizes below ``MIN_BOX_SIZE`` (a flat box, ``dz = 0``) are raised to it; yaw is wrapped.
+
+    Raises:
+        SessionError: not 7 finite real numbers, a negative size, or a number beyond
+            ``MAX_STORED_VALUE``; the message starts with ``where``.
+    """
+    values = _box_values(box, where)
+    if any(v < 0 for v in values[3:6]):
+        raise SessionError(f"{where}: box sizes must not be negative, got {values[3:6]}")
+    if any(abs(v) > MAX_STORED_VALUE for v in values):
+        raise SessionError(f"{where}: a box number beyond +-{MAX_STORED_VALUE:g}, got {_short(box, 80)}")
+    values[3:6] = [max(v, MIN_BOX_SIZE) for v in values[3:6]]
+    return _wrapped(values)
 
 
 def check_frame_index(value, where: str = "frame index") -> int:
@@ -404,6 +456,9 @@ class Edit:
     summary: str
     state: str
     """'done', 'undone', or 'dropped' (undone, then superseded by a newer edit of its author)."""
+    label_versions: dict[int, tuple[int, int]] = dataclasses.field(default_factory=dict)
+    """For an edit just undone or redone: each label it changed, ``id -> (version before, version
+    after)``, so that a browser follows its own undo without taking in anyone else's change."""
 
 
 def _now() -> str:
@@ -411,7 +466,13 @@ def _now() -> str:
 
 
 def _box_json(box, where: str = "box") -> str:
+    """A box a person or a file gives (``check_box``), as stored."""
     return json.dumps([round(v, 6) for v in check_box(box, where)])
+
+
+def _usable_box_json(box, where: str = "box") -> str:
+    """A data set annotation (``usable_box``), as stored."""
+    return json.dumps([round(v, 6) for v in usable_box(box, where)])
 
 
 def _loads(text, what: str):
@@ -424,31 +485,213 @@ def _loads(text, what: str):
         ) from None
 
 
-def _label(row: sqlite3.Row) -> Label:
-    """A stored label, checked: a damaged row is a one-line ``SessionError``, not a traceback later."""
-    what = f"label {row['id']}"
-    box = _loads(row["box"], f"the box of {what}")
-    if not isinstance(box, list):
-        raise SessionError(f"the session database is damaged: the box of {what} is {_short(box, 60)}")
-    box = check_box(box, f"the session database is damaged: {what}")
-    if not all(isinstance(row[k], int) for k in ("id", "frame_index", "version")):
-        raise SessionError(
-            f"the session database is damaged: {what} has frame {_short(row['frame_index'], 20)},"
-            f" version {_short(row['version'], 20)}"
-        )
+# --- Every row read from the database is checked, column by column --------------------------------
+# Each checker takes a column's value as SQLite returns it and gives it back as the code uses it
+# (JSON decoded, a box checked), or raises ``ValueError`` with the reason. SQLite keeps whatever a
+# damaged or hand-edited file holds ('abc' in a REAL column, '[1,2]' as a box), so a row is checked
+# where it is read, before anything computes with it: one-line error, never a traceback later.
+
+
+def _integer(value) -> int:
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise ValueError(f"{_short(value, 40)} is not an integer")
+    return value
+
+
+def _flag(value) -> int:
+    if _integer(value) not in (0, 1):
+        raise ValueError(f"{value} is not 0 or 1")
+    return value
+
+
+def _real(value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{_short(value, 40)} is not a finite number")
+    return float(value)
+
+
+def _text(value) -> str:
+    if not isinstance(value, str):
+        raise ValueError(f"{_short(value, 40)} is not text")
+    return value
+
+
+def _frame(value) -> int:
+    try:
+        return check_frame_index(value)
+    except SessionError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def _optional(check: Callable) -> Callable:
+    return lambda value: None if value is None else check(value)
+
+
+def _choice(options: tuple) -> Callable:
+    def check(value):
+        if isinstance(value, bool) or value not in options:
+            raise ValueError(f"{_short(value, 40)} is not one of {', '.join(map(str, options))}")
+        return value
+
+    return check
+
+
+def _json(value):
+    """A JSON column (text); a list given as it is (a box inside an edit or a snapshot)."""
+    if isinstance(value, (list, dict)):
+        return value
+    try:
+        return json.loads(_text(value))
+    except RecursionError:
+        raise ValueError("is JSON nested too deeply") from None
+    except ValueError:
+        raise ValueError(f"{_short(value, 40)} is not valid JSON") from None
+
+
+def _json_of(kind: type, item: Callable | None = None) -> Callable:
+    """A JSON column holding a ``kind`` (list or dict), each list item checked by ``item``."""
+
+    def check(value):
+        decoded = _json(value)
+        if not isinstance(decoded, kind):
+            raise ValueError(f"{_short(value, 40)} is not a JSON {kind.__name__}")
+        if item is not None:
+            decoded = [item(v) for v in decoded]
+        return decoded
+
+    return check
+
+
+def _stored_box(value) -> tuple[float, ...]:
+    try:
+        return tuple(usable_box(_json_of(list)(value), "box"))
+    except SessionError as exc:
+        raise ValueError(str(exc).removeprefix("box: ")) from None
+
+
+_STATES = ("done", "undone", "dropped")
+_COLUMNS: dict[str, dict[str, Callable]] = {
+    "meta": {"key": _text, "value": _text},
+    "frames": {"frame_index": _frame, "imported": _text},
+    "labels": {
+        "id": _integer,
+        "frame_index": _frame,
+        "box": _stored_box,
+        "class_name": _text,
+        "origin": _choice(ORIGINS),
+        "instance_id": _optional(_integer),
+        "created_by": _text,
+        "created": _text,
+        "modified_by": _text,
+        "modified": _text,
+        "version": _integer,
+        "deleted": _flag,
+    },
+    "edits": {
+        "id": _integer,
+        "author": _text,
+        "created": _text,
+        "kind": _text,
+        "summary": _text,
+        "changes": _json_of(list),
+        "state": _choice(_STATES),
+    },
+    "label_snapshots": {
+        "id": _integer,
+        "created": _text,
+        "last_edit_id": _optional(_integer),
+        "num_labels": _integer,
+        "labels": _json_of(dict),
+    },
+    "training_runs": {
+        "id": _integer,
+        "created": _text,
+        "kind": _text,
+        "data": _text,
+        "config": _json_of(dict),
+        "train_frames": _json_of(list, _frame),
+        "snapshot_id": _optional(_integer),
+        "model_path": _text,
+        "metrics": _optional(_json_of(dict)),
+    },
+    "training_rounds": {
+        "run_id": _integer,
+        "round": _integer,
+        "num_positives": _integer,
+        "num_background": _integer,
+        "num_false_positives": _optional(_integer),
+        "fit_seconds": _real,
+        "train_metrics": _json_of(dict),
+        "model_path": _text,
+    },
+    "mined_negatives": {
+        "id": _integer,
+        "run_id": _integer,
+        "round": _integer,
+        "frame_index": _frame,
+        "proposal": _integer,
+        "box": _stored_box,
+        "patch_set": _json_of(list, _integer),
+        "score": _real,
+        "predicted_class": _text,
+        "probabilities": _optional(_json_of(list, _real)),
+        "best_annotated_iou": _real,
+        "review_version": _integer,
+    },
+    "reviews": {
+        "negative_id": _integer,
+        "verdict": _choice(VERDICTS),
+        "class_name": _optional(_text),
+        "label_id": _optional(_integer),
+        "author": _text,
+        "created": _text,
+    },
+}
+"""Per table, per column: how a value read back is checked (and decoded). The one place that says
+what a table's rows may hold; ``_row`` applies it."""
+_ROW_ID = {"meta": "key", "frames": "frame_index", "reviews": "negative_id", "training_rounds": "run_id"}
+"""The column naming a row in error messages (``id`` where not listed)."""
+_VERDICT_COLUMNS = {
+    "id": "negative_id",
+    "verdict": "verdict",
+    "verdict_class": "class_name",
+    "label_id": "label_id",
+    "reviewer": "author",
+    "reviewed": "created",
+}
+"""The review queue's names for the columns of ``reviews`` it joins to each mined negative."""
+_SNAPSHOT_LABEL = ("id", "frame_index", "box", "class_name", "origin", "instance_id")
+"""The columns of ``labels`` a label snapshot keeps of each label."""
+
+
+def _row(table: str, row: sqlite3.Row | dict, where: str | None = None) -> dict:
+    """A row of ``table`` (all its columns or some) as a dict, each column checked and decoded
+    (``_COLUMNS``); columns of other tables are left as they are.
+
+    Args:
+        where: what names the row in an error (default: "TABLE row ID", by its ``_ROW_ID`` column).
+
+    Raises:
+        SessionError: one line naming the table, the row and the column.
+    """
+    out = dict(row)
+    checks = _COLUMNS[table]
+    for column, value in out.items():
+        if column in checks:
+            try:
+                out[column] = checks[column](value)
+            except (TypeError, ValueError) as exc:
+                if where is None:
+                    where = f"{table} row {_short(out.get(_ROW_ID.get(table, 'id')), 24)}"
+                raise SessionError(f"the session database is damaged: {where}, {column}: {exc}") from None
+    return out
+
+
+def _label(row: sqlite3.Row | dict) -> Label:
+    """A stored label, checked (``_row``): a damaged row is a one-line ``SessionError``."""
+    checked = _row("labels", row)
     return Label(
-        id=row["id"],
-        frame_index=row["frame_index"],
-        box=tuple(box),
-        class_name=row["class_name"],
-        origin=row["origin"],
-        instance_id=row["instance_id"],
-        created_by=row["created_by"],
-        created=row["created"],
-        modified_by=row["modified_by"],
-        modified=row["modified"],
-        version=row["version"],
-        deleted=bool(row["deleted"]),
+        **{f.name: checked[f.name] for f in dataclasses.fields(Label)} | {"deleted": bool(checked["deleted"])}
     )
 
 
@@ -471,16 +714,51 @@ def _is_busy(exc: Exception) -> bool:
 
 
 def _connect_readonly(path: Path, timeout: float) -> sqlite3.Connection:
-    """A connection that cannot write: opened ``mode=ro``, with ``query_only`` on as well."""
+    """A connection that cannot write: opened ``mode=ro``, with ``query_only`` on as well.
+
+    Reading a WAL database needs its ``-shm`` file, which SQLite creates beside it. In a folder
+    nobody can write (a read-only mount, a folder made immutable) that fails, and the database is
+    then opened ``immutable=1``: safe, since no writer can work there either (a writer needs the
+    ``-wal`` and ``-shm`` files too), so the file cannot change under the reader.
+    """
+    uri = path.resolve().as_uri()
+    connection = _open_uri(f"{uri}?mode=ro", timeout)
+    try:
+        connection.execute("PRAGMA user_version").fetchone()  # opens the WAL index, if it can
+    except sqlite3.OperationalError as exc:
+        connection.close()
+        if "unable to open" not in str(exc) or not _frozen_folder(path):
+            raise
+        connection = _open_uri(f"{uri}?mode=ro&immutable=1", timeout)
+    return connection
+
+
+def _open_uri(uri: str, timeout: float) -> sqlite3.Connection:
     connection = sqlite3.connect(
-        f"{path.resolve().as_uri()}?mode=ro",
-        uri=True,
-        timeout=timeout,
-        isolation_level=None,
-        check_same_thread=False,
+        uri, uri=True, timeout=timeout, isolation_level=None, check_same_thread=False
     )
     connection.execute("PRAGMA query_only = ON")
     return connection
+
+
+def _frozen_folder(path: Path) -> bool:
+    """Whether a read of the database at ``path`` failed only for want of a ``-shm`` file in a
+    folder nobody can write, so that an immutable open reads exactly what is stored.
+
+    Raises:
+        SessionError: a ``-wal`` file holds changes not yet in the database: an immutable open
+            would not see them, and reading them needs the ``-shm`` file that cannot be made.
+    """
+    if Path(f"{path}-shm").exists() or os.access(path.parent, os.W_OK):
+        return False
+    wal = Path(f"{path}-wal")
+    if wal.exists() and wal.stat().st_size > 0:
+        raise SessionError(
+            f"{path}: cannot read the session database: {wal.name} holds changes not yet written into"
+            f" it and its folder is not writable (SQLite needs to create {path.name}-shm there);"
+            " make the folder writable to read it"
+        )
+    return True
 
 
 def check_database(path: str | os.PathLike, timeout: float | None = None) -> int:
@@ -535,6 +813,11 @@ def check_database(path: str | os.PathLike, timeout: float | None = None) -> int
         if connection is not None:
             connection.close()
     return version
+
+
+def _imported_frames(db: sqlite3.Connection) -> set[int]:
+    """The frames whose labels are stored (``frames``, checked)."""
+    return {_row("frames", r)["frame_index"] for r in db.execute("SELECT frame_index FROM frames")}
 
 
 class SessionDB:
@@ -699,12 +982,44 @@ class SessionDB:
                 "Open it with its own data set or start a new session."
             )
 
+    def check_writable(self) -> None:
+        """Refuse, now and in one line, a session this process cannot write: what a long job (a
+        training run, minutes of proposals and fitting) calls first, rather than losing its
+        result at the end. Writes nothing but the folders a run makes anyway.
+
+        Raises:
+            SessionError: the database, or the folders a run writes (``models/``, ``cache/``),
+                cannot be written (a read-only file, folder or mount; a read-only open).
+            SessionBusyError: another process held the write lock for over the timeout.
+        """
+        if self.readonly:
+            raise SessionError(f"session {self.session.name!r} was opened read-only")
+        for folder in (self.session.path, self.session.models_dir, self.session.cache_dir):
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                with tempfile.TemporaryFile(dir=folder):
+                    pass
+            except OSError as exc:
+                raise SessionError(
+                    f"session {self.session.name!r} cannot be written: cannot write in {folder}"
+                    f" ({exc.strerror or _one_line(exc)})"
+                ) from None
+        try:
+            with self._write() as db:
+                # A write statement that changes nothing: a read-only file refuses it all the same.
+                db.execute("UPDATE meta SET value = value WHERE 0")
+        except SessionBusyError:
+            raise
+        except SessionError as exc:
+            raise SessionError(f"session {self.session.name!r} cannot be written: {exc}") from None
+
     # -- metadata
 
     def meta(self) -> dict[str, str]:
         """The data set reference and hash, the creation time."""
         with self._read() as db:
-            return dict(db.execute("SELECT key, value FROM meta").fetchall())
+            rows = [_row("meta", r) for r in db.execute("SELECT key, value FROM meta")]
+        return {r["key"]: r["value"] for r in rows}
 
     @property
     def class_names(self) -> tuple[str, ...]:
@@ -716,10 +1031,24 @@ class SessionDB:
         return tuple(names)
 
     def _check_class(self, class_name: str, names: tuple[str, ...] | None = None) -> str:
+        """``class_name`` if it is one of the session's classes: a session's labels only ever have
+        its classes (a data set without classes takes no labels at all)."""
         names = self.class_names if names is None else names
-        if names and class_name not in names:
-            raise SessionError(f"unknown class {class_name!r}; choose from {', '.join(names)}")
+        if class_name not in names:
+            choose = f"choose from {', '.join(names)}" if names else "the data set names no classes"
+            raise SessionError(f"unknown class {_short(class_name, 40)}; {choose}")
         return class_name
+
+    def _label(self, row: sqlite3.Row | dict, names: tuple[str, ...]) -> Label:
+        """A stored label, checked (``_label``), whose class must be one of ``names``, the
+        session's: one of another class can only be damage."""
+        label = _label(row)
+        if label.class_name not in names:
+            raise SessionError(
+                f"the session database is damaged: labels row {label.id}, class_name:"
+                f" {_short(label.class_name, 40)} is not one of the session's classes {list(names)}"
+            )
+        return label
 
     def _check_frame(self, frame_index: int, where: str = "frame index") -> int:
         index = check_frame_index(frame_index, where)
@@ -738,23 +1067,36 @@ class SessionDB:
             "INSERT INTO labels (frame_index, box, class_name, origin, instance_id, created_by, created,"
             " modified_by, modified) VALUES (?, ?, ?, 'dataset', ?, 'dataset', ?, 'dataset', ?)",
             [
-                (frame_index, _box_json(box), name, instance_id, now, now)
+                (frame_index, box, name, instance_id, now, now)
                 for box, name, instance_id in self._annotations(frame_index)
             ],
         )
         db.execute("INSERT INTO frames VALUES (?, ?)", (frame_index, now))
 
-    def _annotations(self, frame_index: int) -> list[tuple]:
-        """``(box, class_name, instance_id)`` of the data set's annotations of a frame."""
+    def _annotations(self, frame_index: int) -> list[tuple[str, str, int]]:
+        """``(box JSON, class_name, instance_id)`` of the data set's annotations of a frame.
+
+        They are the user's data: kept as they are, past the bounds a person's box is held to,
+        only made usable (``usable_box``: a flat box thickened to ``MIN_BOX_SIZE``).
+
+        Raises:
+            SessionError: an annotation no computation can use (a negative size, a number beyond
+                ``MAX_STORED_VALUE``), naming the data set, the frame and the box. (The data set
+                reader has refused non-finite numbers and class ids out of range already.)
+        """
         if self.dataset is None:
             raise SessionError(
                 f"frame {frame_index} has no labels yet and no data set is open to import them"
             )
         frame = self.dataset.frame(frame_index)
-        return [
-            (box, frame.class_names[int(c)], int(i))
-            for box, c, i in zip(frame.labels.boxes, frame.labels.class_ids, frame.labels.instance_ids)
-        ]
+        names = frame.class_names
+        out = []
+        for k, (box, c, i) in enumerate(
+            zip(frame.labels.boxes, frame.labels.class_ids, frame.labels.instance_ids)
+        ):
+            where = f"{self.dataset.path}: frame {frame_index} ({frame.name}), annotation {k}"
+            out.append((_usable_box_json(box, where), names[int(c)], int(i)))
+        return out
 
     def ensure_frames(self, frame_indices) -> None:
         """Import the data set's annotations of any of ``frame_indices`` not imported yet (a
@@ -763,7 +1105,7 @@ class SessionDB:
             return
         todo = {self._check_frame(i) for i in frame_indices}
         with self._read() as db:
-            todo -= {r[0] for r in db.execute("SELECT frame_index FROM frames")}
+            todo -= _imported_frames(db)
         if todo:
             with self._write() as db:
                 for index in sorted(todo):
@@ -772,8 +1114,9 @@ class SessionDB:
     def _stored_labels(self, frames: list[int], include_deleted: bool) -> dict[int, list[Label]]:
         """The stored labels of those of ``frames`` whose labels were imported, in one read."""
         out: dict[int, list[Label]] = {}
+        names = self.class_names
         with self._read() as db:
-            imported = {r[0] for r in db.execute("SELECT frame_index FROM frames")}
+            imported = _imported_frames(db)
             wanted = [f for f in frames if f in imported]
             for f in wanted:
                 out[f] = []
@@ -781,7 +1124,8 @@ class SessionDB:
             if not include_deleted:
                 query += " AND deleted = 0"
             for row in db.execute(query + " ORDER BY id", (json.dumps(wanted),)):
-                out[row["frame_index"]].append(_label(row))
+                label = self._label(row, names)
+                out[label.frame_index].append(label)
         return out
 
     def frame_labels(self, frame_indices, include_deleted: bool = False) -> dict[int, list[Label]]:
@@ -794,7 +1138,7 @@ class SessionDB:
             # What the first write will store, read without writing (ids come with the store).
             for f in missing:
                 out[f] = [
-                    Label(None, f, tuple(json.loads(_box_json(box))), name, "dataset", instance_id,
+                    Label(None, f, tuple(json.loads(box)), name, "dataset", instance_id,
                           "dataset", "", "dataset", "", 0, False)
                     for box, name, instance_id in self._annotations(f)
                 ]  # fmt: skip
@@ -812,21 +1156,15 @@ class SessionDB:
             row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
         if row is None:
             raise SessionError(f"no label {label_id}")
-        return _label(row)
+        return self._label(row, self.class_names)
 
     def frame_boxes(self, frame_index: int) -> tuple:
         """The frame's labels as arrays: ``(boxes (R, 7), class_ids (R,), label_ids (R,))``, class
         ids indexing ``class_names`` (label id -1: not stored yet, see ``Label.id``)."""
         import numpy as np
 
-        labels = self.labels(frame_index)
+        labels = self.labels(frame_index)  # every class checked to be one of the session's
         names = self.class_names
-        unknown = [lab for lab in labels if lab.class_name not in names]
-        if unknown:
-            raise SessionError(
-                f"the session database is damaged: label {unknown[0].id} has the class"
-                f" {_short(unknown[0].class_name, 40)}, not one of {list(names)}"
-            )
         return (
             np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
             np.array([names.index(lab.class_name) for lab in labels], np.int64),
@@ -845,9 +1183,13 @@ class SessionDB:
 
     @staticmethod
     def _content(db: sqlite3.Connection, table: str, key: int) -> dict | None:
+        """What an edit changes of a row (``_CONTENT``), checked, as stored (undo compares it)."""
         columns = ", ".join(_CONTENT[table])
         row = db.execute(f"SELECT {columns} FROM {table} WHERE {_KEYS[table]} = ?", (key,)).fetchone()
-        return None if row is None else dict(row)
+        if row is None:
+            return None
+        _row(table, row, where=f"{table} row {key}")
+        return dict(row)
 
     @staticmethod
     def _store(db: sqlite3.Connection, table: str, key: int, content: dict | None, author: str) -> None:
@@ -904,15 +1246,18 @@ class SessionDB:
         return ids, changes
 
     def _insert_label(
-        self, db, frame_index: int, box, class_name: str, origin: str, author: str
+        self, db, frame_index: int, box, class_name: str, origin: str, author: str, where: str = "box"
     ) -> tuple[int, dict]:
-        ids, changes = self._insert_labels(db, [(frame_index, _box_json(box), class_name)], origin, author)
+        ids, changes = self._insert_labels(
+            db, [(frame_index, _box_json(box, where), class_name)], origin, author
+        )
         return ids[0], changes[0]
 
     def _locked_label(self, db, label_id: int, expected_version: int | None) -> sqlite3.Row:
         row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
         if row is None:
             raise SessionError(f"no label {label_id}")
+        self._label(row, self.class_names)  # checked; the row itself is what the edit compares
         if expected_version is not None and row["version"] != expected_version:
             raise EditConflictError(
                 f"label {label_id} was changed by {row['modified_by']} at {row['modified']} "
@@ -965,7 +1310,8 @@ class SessionDB:
                     " AND frame_index IN (SELECT value FROM json_each(?)) ORDER BY id",
                     (json.dumps(frames),),
                 ):
-                    current[row["frame_index"]].append(_label(row))
+                    label = self._label(row, names)
+                    current[label.frame_index].append(label)
                 rows = [rows[k] for k in screen(current)]
                 if not rows:
                     return LabelBatch([], None)
@@ -973,7 +1319,7 @@ class SessionDB:
             edit_id = self._edit(db, author, "add", summary or f"{origin}: add {len(ids)} label(s)", changes)
             wanted = set(ids)
             added = [
-                _label(r)
+                self._label(r, names)
                 for r in db.execute(
                     "SELECT * FROM labels WHERE id BETWEEN ? AND ? ORDER BY id", (min(ids), max(ids))
                 )
@@ -1038,6 +1384,7 @@ class SessionDB:
 
     def _replay(self, author: str, undo: bool) -> Edit | None:
         state, order, new_state = ("done", "DESC", "undone") if undo else ("undone", "ASC", "done")
+        names = self.class_names
         with self._write() as db:
             row = db.execute(
                 f"SELECT * FROM edits WHERE author = ? AND state = ? ORDER BY id {order} LIMIT 1",
@@ -1045,7 +1392,9 @@ class SessionDB:
             ).fetchone()
             if row is None:
                 return None
-            changes = _loads(row["changes"], f"edit {row['id']}")
+            edit = _row("edits", row)
+            changes = self._changes(edit, names)
+            versions: dict[int, tuple[int, int]] = {}
             for change in reversed(changes) if undo else changes:
                 expected, target = (
                     (change["after"], change["before"]) if undo else (change["before"], change["after"])
@@ -1053,15 +1402,53 @@ class SessionDB:
                 current = self._content(db, change["table"], change["key"])
                 if current != expected:
                     raise EditConflictError(
-                        f"cannot {'undo' if undo else 'redo'} '{row['summary']}': "
+                        f"cannot {'undo' if undo else 'redo'} '{edit['summary']}': "
                         f"{change['table'][:-1]} {change['key']} has been changed since"
                     )
+                if change["table"] == "labels":
+                    version = db.execute("SELECT version FROM labels WHERE id = ?", (change["key"],))
+                    before = _row("labels", version.fetchone(), f"labels row {change['key']}")["version"]
+                    versions[change["key"]] = (versions.get(change["key"], (before,))[0], before + 1)
                 self._store(db, change["table"], change["key"], target, author)
-            db.execute("UPDATE edits SET state = ? WHERE id = ?", (new_state, row["id"]))
-            return self._edit_of(row, new_state)
+            db.execute("UPDATE edits SET state = ? WHERE id = ?", (new_state, edit["id"]))
+            return dataclasses.replace(self._edit_of(edit, new_state), label_versions=versions)
+
+    def _changes(self, edit: dict, names: tuple[str, ...]) -> list[dict]:
+        """An edit's changes (its ``changes`` column, decoded), every one checked as what undo and
+        redo compare and write back: the table, the key, and the content on both sides, column
+        by column as the table's rows are (``_COLUMNS``), classes among the session's ``names``.
+
+        Raises:
+            SessionError: one line naming the edit and the change.
+        """
+        for k, change in enumerate(edit["changes"]):
+            place = f"edits row {edit['id']}, change {k}"
+            where = f"the session database is damaged: {place}"
+            if not isinstance(change, dict) or set(change) != {"table", "key", "before", "after"}:
+                raise SessionError(f"{where} is {_short(change, 60)}, not a change of a row")
+            table = change["table"]
+            if table not in _CONTENT:
+                raise SessionError(f"{where} names the table {_short(table, 30)}, not one an edit changes")
+            try:
+                _integer(change["key"])
+            except ValueError as exc:
+                raise SessionError(f"{where}: key {exc}") from None
+            for side in ("before", "after"):
+                content = change[side]
+                if content is None and table == "reviews":  # no verdict on that side
+                    continue
+                if not isinstance(content, dict) or set(content) != set(_CONTENT[table]):
+                    raise SessionError(f"{where}, {side}: {_short(content, 60)} is not a {table} row")
+                _row(table, content, where=f"{place}, {side} ({table} row {change['key']})")
+                if content["class_name"] is not None and content["class_name"] not in names:
+                    raise SessionError(
+                        f"{where}, {side}: class {_short(content['class_name'], 40)} is not one of the"
+                        f" session's {list(names)}"
+                    )
+        return edit["changes"]
 
     @staticmethod
-    def _edit_of(row: sqlite3.Row, state: str | None = None) -> Edit:
+    def _edit_of(row: dict, state: str | None = None) -> Edit:
         return Edit(
             row["id"], row["author"], row["created"], row["kind"], row["summary"], state or row["state"]
         )
@@ -1085,7 +1472,7 @@ class SessionDB:
             query, args = query + " WHERE author = ?", [author]
         with self._read() as db:
             rows = db.execute(query + " ORDER BY id DESC LIMIT ?", [*args, limit]).fetchall()
-        return [self._edit_of(r) for r in rows]
+        return [self._edit_of(_row("edits", r)) for r in rows]
 
     def can_undo(self, author: str) -> tuple[bool, bool]:
         """Whether ``author`` has an edit to undo, and one to redo."""
@@ -1103,11 +1490,13 @@ class SessionDB:
         frames = sorted({int(i) for i in frame_indices})
         with self._write() as db:
             rows = db.execute(
-                f"SELECT id, frame_index, box, class_name, origin, instance_id FROM labels WHERE deleted = 0"
+                f"SELECT {', '.join(_SNAPSHOT_LABEL)} FROM labels WHERE deleted = 0"
                 f" AND frame_index IN ({','.join('?' * len(frames))}) ORDER BY id",
                 frames,
             ).fetchall()
-            labels = [{**dict(r), "box": _loads(r["box"], f"the box of label {r['id']}")} for r in rows]
+            labels = [_row("labels", r) for r in rows]
+            for label in labels:
+                label["box"] = list(label["box"])  # stored as JSON
             last_edit = db.execute("SELECT MAX(id) FROM edits").fetchone()[0]
             return int(
                 db.execute(
@@ -1121,11 +1510,11 @@ class SessionDB:
         """How many labels a snapshot holds."""
         with self._read() as db:
             row = db.execute(
-                "SELECT num_labels FROM label_snapshots WHERE id = ?", (int(snapshot_id),)
+                "SELECT id, num_labels FROM label_snapshots WHERE id = ?", (int(snapshot_id),)
             ).fetchone()
         if row is None:
             raise SessionError(f"no label snapshot {snapshot_id}")
-        return int(row[0])
+        return _row("label_snapshots", row)["num_labels"]
 
     def snapshot(self, snapshot_id: int) -> dict:
         """A stored snapshot: ``created``, ``last_edit_id``, ``frames`` and ``labels``."""
@@ -1133,9 +1522,29 @@ class SessionDB:
             row = db.execute("SELECT * FROM label_snapshots WHERE id = ?", (int(snapshot_id),)).fetchone()
         if row is None:
             raise SessionError(f"no label snapshot {snapshot_id}")
-        return {"id": row["id"], "created": row["created"], "last_edit_id": row["last_edit_id"]} | _loads(
-            row["labels"], f"label snapshot {snapshot_id}"
-        )
+        snapshot = _row("label_snapshots", row)
+        stored = snapshot["labels"]
+        try:
+            frames = _json_of(list, _frame)(stored.get("frames"))
+            labels = _json_of(list)(stored.get("labels"))
+        except ValueError as exc:
+            raise SessionError(
+                f"the session database is damaged: label_snapshots row {snapshot_id}, labels: {exc}"
+            ) from None
+        for k, label in enumerate(labels):
+            if not isinstance(label, dict) or set(label) != set(_SNAPSHOT_LABEL):
+                raise SessionError(
+                    f"the session database is damaged: label_snapshots row {snapshot_id}, labels:"
+                    f" {_short(label, 60)} is not a label"
+                )
+            _row("labels", label, where=f"label_snapshots row {snapshot_id}, label {k}")
+        return {
+            "id": snapshot["id"],
+            "created": snapshot["created"],
+            "last_edit_id": snapshot["last_edit_id"],
+            "frames": frames,
+            "labels": labels,
+        }
 
     # -- training runs
 
@@ -1234,19 +1643,12 @@ class SessionDB:
         """Every finished training run with its rounds, oldest first."""
         with self._read() as db:
             runs = [
-                dict(r) for r in db.execute("SELECT * FROM training_runs WHERE model_path != '' ORDER BY id")
+                _row("training_runs", r)
+                for r in db.execute("SELECT * FROM training_runs WHERE model_path != '' ORDER BY id")
             ]
             for run in runs:
-                run["config"] = _loads(run["config"], f"the config of run {run['id']}")
-                run["train_frames"] = _loads(run["train_frames"], f"the frames of run {run['id']}")
-                run["metrics"] = (
-                    _loads(run["metrics"], f"the metrics of run {run['id']}") if run["metrics"] else None
-                )
                 run["rounds"] = [
-                    {
-                        **dict(r),
-                        "train_metrics": _loads(r["train_metrics"], f"the metrics of run {run['id']}"),
-                    }
+                    _row("training_rounds", r, f"training_rounds row ({run['id']}, {_short(r['round'], 20)})")
                     for r in db.execute(
                         "SELECT * FROM training_rounds WHERE run_id = ? ORDER BY round", (run["id"],)
                     )
@@ -1311,15 +1713,9 @@ class SessionDB:
             rows = db.execute(query + " ORDER BY m.score DESC, m.id", args).fetchall()
         out = []
         for r in rows:
-            item = dict(r)
-            what = f"mined negative {item['id']}"
-            item["box"] = _loads(item["box"], f"the box of {what}")
-            item["patch_set"] = _loads(item["patch_set"], f"the points of {what}")
-            item["probabilities"] = (
-                _loads(item["probabilities"], f"the probabilities of {what}")
-                if item["probabilities"]
-                else None
-            )
+            item = _row("mined_negatives", r)
+            if item["reviewed"] is not None or item["verdict"] is not None:  # the joined verdict
+                _row("reviews", {column: item[alias] for alias, column in _VERDICT_COLUMNS.items()})
             item.setdefault("review_version", 0)  # a schema 1 database, read-only: not versioned yet
             out.append(item)
         return out
@@ -1336,7 +1732,7 @@ class SessionDB:
         readable = set(by_frame)
         if self.dataset is None:
             with self._read() as db:
-                readable &= {r[0] for r in db.execute("SELECT frame_index FROM frames")}
+                readable &= _imported_frames(db)
         out: list[float | None] = [None] * len(items)
         for index, positions in by_frame.items():
             if index not in readable:
@@ -1407,7 +1803,9 @@ class SessionDB:
                 item = db.execute("SELECT * FROM mined_negatives WHERE id = ?", (negative_id,)).fetchone()
                 if item is None:
                     raise SessionError(f"no mined negative {negative_id}")
+                item = _row("mined_negatives", item)
                 row = db.execute("SELECT * FROM reviews WHERE negative_id = ?", (negative_id,)).fetchone()
+                row = None if row is None else _row("reviews", row)
                 current = self._content(db, "reviews", negative_id)
                 if negative_id in expected_versions:
                     stale = item["review_version"] != expected_versions[negative_id]
@@ -1450,11 +1848,11 @@ class SessionDB:
                     if wanted != label:
                         changes.append(self._change(db, "labels", label_id, wanted, author))
                 elif verdict == "object":
-                    self._import_frame(db, item["frame_index"])
-                    box = _loads(item["box"], f"the box of mined negative {negative_id}")
+                    self._import_frame(db, self._check_frame(item["frame_index"]))
                     label_id, change = self._insert_label(
-                        db, item["frame_index"], box, class_name, "review", author
-                    )
+                        db, item["frame_index"], item["box"], class_name, "review", author,
+                        where=f"mined negative {negative_id}",
+                    )  # fmt: skip
                     changes.append(change)
                 after = {"verdict": verdict, "class_name": class_name, "label_id": label_id}
                 changes.append(self._change(db, "reviews", negative_id, after, author))
@@ -1476,13 +1874,15 @@ class SessionDB:
 
     def mined_patch_sets(self) -> dict[int, list[tuple[int, ...]]]:
         """Point sets of every negative mined in the session (all runs), by frame."""
-        out: dict[int, list[tuple[int, ...]]] = {}
+        out: dict[int, dict[tuple[int, ...], None]] = {}
         with self._read() as db:
-            for row in db.execute("SELECT DISTINCT frame_index, patch_set FROM mined_negatives"):
-                out.setdefault(row["frame_index"], []).append(
-                    tuple(_loads(row["patch_set"], "a mined point set"))
-                )
-        return out
+            rows = [
+                _row("mined_negatives", r)
+                for r in db.execute("SELECT id, frame_index, patch_set FROM mined_negatives")
+            ]
+        for row in rows:
+            out.setdefault(row["frame_index"], {})[tuple(row["patch_set"])] = None  # distinct, in order
+        return {frame: list(sets) for frame, sets in out.items()}
 
     def reviewed_patch_sets(self) -> dict[str, dict[int, list[tuple[int, ...]]]]:
         """Point sets of every reviewed negative by verdict and frame: what the next training run
@@ -1490,13 +1890,13 @@ class SessionDB:
         out: dict[str, dict[int, list[tuple[int, ...]]]] = {v: {} for v in DECIDED}
         with self._read() as db:
             rows = db.execute(
-                "SELECT m.frame_index, m.patch_set, r.verdict FROM reviews r"
+                "SELECT m.id, m.frame_index, m.patch_set, r.verdict FROM reviews r"
                 " JOIN mined_negatives m ON m.id = r.negative_id WHERE r.verdict != 'skip'"
             ).fetchall()
         for row in rows:
-            out[row["verdict"]].setdefault(row["frame_index"], []).append(
-                tuple(_loads(row["patch_set"], "a mined point set"))
-            )
+            item = _row("mined_negatives", row)
+            verdict = _row("reviews", {"negative_id": item["id"], "verdict": item["verdict"]})["verdict"]
+            out[verdict].setdefault(item["frame_index"], []).append(tuple(item["patch_set"]))
         return out
 
 

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from pathlib import Path
 
 import numpy as np
+
+from factorydet_core.io.jsonfile import read_json
+from factorydet_core.io.npz import load_npz
+from factorydet_core.types import InputError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,10 +33,29 @@ class FrameTruth:
 
 
 def read_truth(dataset_dir: str | os.PathLike) -> dict:
-    """The data set's truth record: true extrinsics and every instance with its class."""
-    return json.loads((Path(dataset_dir) / "truth" / "truth.json").read_text())
+    """The data set's truth record: true extrinsics and every instance with its class.
+
+    Raises:
+        InputError: the record is missing, unreadable, malformed or not a JSON object.
+    """
+    path = Path(dataset_dir) / "truth" / "truth.json"
+    record = read_json(path, what="truth record")
+    if not isinstance(record, dict):
+        raise InputError(f"{path}: malformed truth record (not a JSON object)")
+    return record
 
 
 def read_frame_truth(dataset_dir: str | os.PathLike, frame_index: int) -> FrameTruth:
-    with np.load(Path(dataset_dir) / "truth" / f"frame_{frame_index:05d}.npz") as data:
-        return FrameTruth(**{field.name: data[field.name] for field in dataclasses.fields(FrameTruth)})
+    """The truth of one frame, read through ``io.npz.load_npz`` (its headers checked first).
+
+    Raises:
+        InputError: a broken or hostile file, or one lacking an array.
+        OSError: the file cannot be opened (``FileNotFoundError`` for a frame without truth).
+    """
+    path = Path(dataset_dir) / "truth" / f"frame_{frame_index:05d}.npz"
+    names = [field.name for field in dataclasses.fields(FrameTruth)]
+    _, arrays = load_npz(path, names)
+    missing = [name for name in names if name not in arrays]
+    if missing:
+        raise InputError(f"{path}: the truth lacks the arrays {', '.join(missing)}")
+    return FrameTruth(**arrays)

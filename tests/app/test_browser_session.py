@@ -142,3 +142,41 @@ def test_a_verdict_on_an_item_changed_since_it_was_shown_is_refused(state):
     assert {q["id"]: q["verdict"] for q in state.db.review_queue()}[shown["id"]] is None
     alice.verdict("background")  # reloaded: now it goes through
     assert {q["id"]: q["verdict"] for q in state.db.review_queue()}[shown["id"]] == "background"
+
+
+def test_an_undo_does_not_take_in_someone_elses_change_to_the_selected_label(state):
+    label = state.db.add_labels([(0, (1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0), "box")], "importer")[0]
+    alice, bob = _person(state, "alice"), _person(state, "bob")
+    alice.select_label(label.id)
+    alice.step(0)
+    alice.verdict("background", advance=False)  # an edit that is not of the selected label
+    bob.select_label(label.id)
+    bob.set_class("cone")
+    alice.undo()  # undoes her verdict; Bob's change of her selected label stays unseen by her
+    assert alice.messages[-1][0] == "Undone"
+    alice.set_class("barrel")
+    assert "someone else got there first" in alice.messages[-1][0]
+    assert state.db.label(label.id).class_name == "cone"
+    # Her own edit of the label and its undo: followed, so her next edit goes through.
+    alice.set_class("barrel")  # she has seen Bob's version since the refusal
+    alice.undo()
+    assert state.db.label(label.id).class_name == "cone"
+    alice.set_class("pallet")
+    assert state.db.label(label.id).class_name == "pallet" and not alice.messages[-1][2]
+
+
+def test_a_refused_undo_does_not_take_in_someone_elses_change_either(state):
+    label = state.db.add_labels([(0, (1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0), "box")], "importer")[0]
+    alice, bob = _person(state, "alice"), _person(state, "bob")
+    alice.select_label(label.id)
+    alice.step(0)
+    item = alice.current_item()
+    alice.verdict("background", advance=False)
+    state.db.review([item["id"]], "skip", "bob", override=True)  # what her undo would restore
+    bob.select_label(label.id)
+    bob.set_class("cone")
+    alice.undo()
+    assert "someone else got there first" in alice.messages[-1][0]
+    alice.set_class("barrel")  # the refused undo was about the verdict, not about this label
+    assert "someone else got there first" in alice.messages[-1][0]
+    assert state.db.label(label.id).class_name == "cone"

@@ -4,6 +4,7 @@ huge allocation), and checkpoints are written whole or not at all."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pickle
 import shutil
@@ -18,13 +19,21 @@ import torch
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
+import factorydet_core.detection.checkpoint as checkpoint_module
 import factorydet_core.detection.classifier as classifier_module
 from factorydet_core.detection.box_head import BoxHead, symmetry_orders
 from factorydet_core.detection.box_quality import BoxQuality, _evaluate_trees_numpy, num_option_features
-from factorydet_core.detection.checkpoint import write_checkpoint
+from factorydet_core.detection.checkpoint import FILES_KEY, file_record, write_checkpoint
 from factorydet_core.detection.classifier import ProposalClassifier
 from factorydet_core.detection.groups import BoxSizePrior
-from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel, copy_checkpoint, quality_path
+from factorydet_core.detection.model import (
+    DEFAULT_MODEL,
+    PAPER_MODEL,
+    DetectionModel,
+    copy_checkpoint,
+    quality_path,
+)
+from factorydet_core.proposals.settings import PRESETS
 from factorydet_core.types import InputError
 
 CLASSES = ("a", "b")
@@ -74,6 +83,15 @@ def _edit_note(path: Path, edit: Callable[[dict], object]) -> None:
     path.with_suffix(".json").write_text(json.dumps(note))
 
 
+def _reseal(path: Path) -> None:
+    """Record the checkpoint's files as they are now in its note (dropping any missing one), as a
+    crafted checkpoint would: its files' own checks must then refuse what is wrong in them."""
+    files = {"weights": path, "box_quality": quality_path(path)}
+    _edit_note(
+        path, lambda n: n.update({FILES_KEY: {r: file_record(p) for r, p in files.items() if p.is_file()}})
+    )
+
+
 def test_a_checkpoint_round_trips_and_leaves_no_temporary_files(saved, copy):
     a, b = DetectionModel.load(saved), DetectionModel.load(copy)
     features = np.random.default_rng(1).normal(size=(4, 20, 5, 5, 5)).astype(np.float32)
@@ -106,6 +124,76 @@ def test_an_interrupted_write_or_export_leaves_the_old_checkpoint(copy, saved, m
     with pytest.raises(KeyboardInterrupt):
         write_checkpoint(torch.nn.Linear(2, 2), copy, {})
     assert {name: (copy.parent / name).read_bytes() for name in _files(copy.parent)} == before
+
+
+def _another_save(saved: Path, folder: Path) -> Path:
+    """The model at ``saved`` with other weights and another box quality regressor, saved whole
+    in ``folder`` as ``m.pt``."""
+    model = DetectionModel.load(saved)
+    with torch.no_grad():
+        next(model.classifier.network_.parameters()).add_(1.0)
+    rng = np.random.default_rng(7)
+    rows = rng.normal(size=(60, model.box_quality.num_features_))
+    model.box_quality = BoxQuality(max_iter=3, max_leaf_nodes=4).fit(rows, rng.uniform(size=60))
+    folder.mkdir()
+    return model.save(folder / "m.pt")
+
+
+@pytest.mark.parametrize(
+    "how", ["save interrupted", "export interrupted", "new box quality only", "new weights only"]
+)
+def test_files_of_different_saves_are_refused(copy, saved, tmp_path, monkeypatch, how):
+    """The files are replaced one by one; an interruption between them leaves new files beside the
+    old note, which must not load as one model."""
+    other = _another_save(saved, tmp_path / "other")
+    if how == "save interrupted":  # the weights and box quality are written, the note is not
+
+        def interrupted(path, text):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(checkpoint_module, "write_text_atomic", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            DetectionModel.load(other).save(copy)
+    elif how == "export interrupted":
+        copyfile = shutil.copyfile
+
+        def note_cut_off(source, target):
+            if str(source).endswith(".json"):
+                raise KeyboardInterrupt
+            copyfile(source, target)
+
+        monkeypatch.setattr(shutil, "copyfile", note_cut_off)
+        with pytest.raises(KeyboardInterrupt):
+            copy_checkpoint(other, copy)
+    elif how == "new box quality only":
+        shutil.copyfile(quality_path(other), quality_path(copy))
+    else:
+        shutil.copyfile(other, copy)
+    monkeypatch.undo()
+    _refused(lambda: DetectionModel.load(copy), copy.with_suffix(".json"), "different saves", "re-export")
+    # Each save on its own loads.
+    assert DetectionModel.load(other).box_quality is not None and DetectionModel.load(saved)
+
+
+def test_a_save_records_its_own_files(saved, tmp_path):
+    note = json.loads(saved.with_suffix(".json").read_text())
+    assert note[FILES_KEY] == {"weights": file_record(saved), "box_quality": file_record(quality_path(saved))}
+    # A loaded model's record of its old files, passed on in a note, gives way to the new files'.
+    model = DetectionModel.load(saved)
+    stale = {FILES_KEY: model.note[FILES_KEY]}
+    again = dataclasses.replace(model, box_quality=None).save(tmp_path / "again.pt", stale)
+    assert json.loads(again.with_suffix(".json").read_text())[FILES_KEY] == {"weights": file_record(again)}
+    assert DetectionModel.load(again).box_quality is None
+
+
+def test_notes_without_file_records_still_load(copy):
+    """Checkpoints saved before the notes recorded their files: the shipped ones, older sessions'."""
+    _edit_note(copy, lambda n: n.pop(FILES_KEY))
+    assert DetectionModel.load(copy).box_quality is not None
+    for shipped in (DEFAULT_MODEL, PAPER_MODEL):
+        assert FILES_KEY not in json.loads(shipped.with_suffix(".json").read_text())
+        model = DetectionModel.load(shipped)
+        assert model.box_quality is not None and model.front_end is not None
 
 
 class _Payload:
@@ -157,6 +245,7 @@ def _bad_weights(kind: str, copy: Path) -> None:
 )  # fmt: skip
 def test_malformed_weights_are_refused_in_one_line(copy, kind, capsys):
     _bad_weights(kind, copy)
+    _reseal(copy)
     message = _refused(lambda: DetectionModel.load(copy), copy)
     assert "weights_only" not in message and "this ran" not in capsys.readouterr().out
     if kind == "code":
@@ -204,6 +293,32 @@ NOTE_EDITS: dict[str, Callable[[dict], object]] = {
     "unknown class threshold": lambda n: n.update(class_score_thresholds={"zzz": 0.5}),
     "front end kind": lambda n: n.update(front_end="fast"),
     "front end value": lambda n: n.update(front_end={"history_frames": "x"}),
+    # The review's cases: each ran for a minute and took gigabytes, or ended in a traceback.
+    "front end k_graph 1e8": lambda n: n.update(front_end={"preset": "agv", "overrides": {"k_graph": 1e8}}),
+    "front end k_features 1e8": lambda n: n.update(
+        front_end={"preset": "agv", "overrides": {"k_features": 10**8}}
+    ),
+    "front end crop 1e300": lambda n: n.update(
+        front_end={"preset": "agv", "overrides": {"crop_z_m": [0, 1e300]}}
+    ),
+    "front end count true": lambda n: n.update(
+        front_end={"preset": "agv", "overrides": {"min_proposal_points": True}}
+    ),
+    "front end whole k_graph": lambda n: n.update(
+        front_end={**PRESETS["agv"].to_dict(), "segmentation": {"k_graph": 10**8}}
+    ),
+    "front end overrides list": lambda n: n.update(
+        front_end={"preset": "agv", "overrides": [["k_graph", 5]]}
+    ),
+    "front end preset number": lambda n: n.update(front_end={"preset": 3}),
+    "files kind": lambda n: n.update(files=[1]),
+    "files role": lambda n: n.update(files={"optimizer": {"bytes": 1, "sha256": "0" * 64}}),
+    "files record": lambda n: n.update(files={"weights": {"bytes": 1}}),
+    "files bytes": lambda n: n["files"]["weights"].update(bytes=-1),
+    "files bytes bool": lambda n: n["files"]["weights"].update(bytes=True),
+    "files hash": lambda n: n["files"]["weights"].update(sha256="not hex"),
+    "files other hash": lambda n: n["files"]["box_quality"].update(sha256="0" * 64),
+    "files other size": lambda n: n["files"]["weights"].update(bytes=n["files"]["weights"]["bytes"] + 1),
     "box quality kind": lambda n: n.update(box_quality=5),
     "exponent": lambda n: n.update(probability_exponent=-1),
     "vote iou": lambda n: n.update(vote_iou=2),
@@ -334,6 +449,7 @@ def test_malformed_box_quality_files_are_refused(copy, saved, edit):
     else:
         ARRAY_EDITS[edit](arrays)
         np.savez(path, **arrays)
+    _reseal(copy)
     _refused(lambda: DetectionModel.load(copy), path)
 
 

@@ -98,11 +98,29 @@ def test_detect_table_gives_each_stage_and_the_total():
     record = _record("detect")
     text = render_record(record)
     stages = record["stage_ms_median"]
-    header = next(line for line in text.splitlines() if line.startswith("| merge"))
+    header = next(line for line in text.splitlines() if "| merge |" in line)
     assert "| total |" in header and "| classification |" in header
-    (row,) = _rows(text, fmt(stages["merge"]))
-    assert row[: len(stages)] == [fmt(ms) for ms in stages.values()]
+    (row,) = _rows(text, "median")
+    assert row[1 : 1 + len(stages)] == [fmt(ms) for ms in stages.values()]
     assert f"{record['detections_per_frame_median']} detections per frame" in text
+
+
+def test_detect_table_gives_the_90th_percentile_peak_memory_and_the_comparison():
+    record = {
+        **_record("detect"),
+        "stage_ms_median": {"merge": 10.0, "total": 40.0},
+        "stage_ms_p90": {"merge": 12.5, "total": 44.0},
+        "peak_rss_mb": 812.5,
+        "compare": {
+            "model": "m.pt", "overrides": {"voxel_size": 0.2},
+            "stage_ms_median": {"merge": 5.0, "total": 30.0},
+            "ratio_of_medians": {"merge": 0.5, "total": 0.75},
+        },
+    }  # fmt: skip
+    text = render_record(record)
+    assert _rows(text, "90th percentile")[0][1:3] == [fmt(12.5), fmt(44.0)]
+    assert _rows(text, "compared / reference")[0][1:3] == ["0.5", "0.75"]
+    assert "voxel_size=0.2" in text and "812.5 MB" in text
 
 
 def test_import_table_gives_both_times():

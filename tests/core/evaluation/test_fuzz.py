@@ -34,6 +34,17 @@ def misbehave(target: str, path: Path, context: object) -> None:
     elif target == "greedy":
         block = np.ones(700 * 2**20 // 8)  # 700 MB touched, under the address cap, over the limit
         del block
+    elif target == "swallowed":
+        # A reader's catch-all that turns the capped allocation's MemoryError into bad input.
+        try:
+            np.ones(3 * 2**30 // 8)
+        except MemoryError as exc:
+            raise InputError(f"{path}: cannot read: {type(exc).__name__}: {exc}") from None
+    elif target == "hoard":
+        # Holds 600 MB and waits: only the watchdog sees it before the timeout.
+        blocks = [np.ones(60 * 2**20 // 8) for _ in range(10)]
+        time.sleep(60)
+        del blocks
     elif target == "traceback":
         raise KeyError("boxes")
     elif target == "two-lines":
@@ -43,7 +54,8 @@ def misbehave(target: str, path: Path, context: object) -> None:
 
 
 def test_guard_classifies_every_way_a_case_can_end():
-    names = ["ok", "segv", "refused", "hang", "bomb", "traceback", "greedy", "two-lines", "ok"]
+    names = ["ok", "segv", "refused", "hang", "bomb", "traceback", "greedy", "two-lines", "swallowed"]
+    names += ["hoard", "ok"]
     cases = [FuzzCase(i, name, "none", f"/nowhere/{i}") for i, name in enumerate(names)]
     results = run_guarded(cases, misbehave, memory_limit_mb=512, timeout_s=3)
     outcomes = [r.outcome for r in results]
@@ -56,10 +68,15 @@ def test_guard_classifies_every_way_a_case_can_end():
         "traceback",
         "memory",
         "traceback",
-        "ok",  # a new worker took over after the crash and the hang
+        "memory",  # an InputError hiding a MemoryError is still a memory bomb
+        "memory",  # killed by the watchdog, long before the timeout
+        "ok",  # a new worker took over after the crash, the hang and the kills
     ]
     assert results[1].detail == "SIGSEGV"
     assert "KeyError" in results[5].detail
+    assert "MemoryError" in results[8].detail
+    assert "watchdog" in results[9].detail and results[9].seconds < 2.5
+    assert 512 < results[9].peak_mb < 1024
 
 
 def test_mutations_are_deterministic_for_a_seed(tmp_path):

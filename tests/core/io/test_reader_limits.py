@@ -1,17 +1,22 @@
 """Tests of the readers' guards against hostile files: header-driven memory bombs, the points cap,
-LAZ decoder aborts, zip bombs and undecodable text all give one-line ``InputError``s.
+the byte budget of a read, compression bombs (deflate, LAZ), LAZ decoder aborts and undecodable
+text all give one-line ``InputError``s, and a ``MemoryError`` is never disguised as one.
 
-The files are tiny; the caps are tested with a lowered ``max_points`` rather than big arrays.
+The files are small on disk; the caps are tested with lowered limits rather than big arrays, and
+the bombs (49 million zero rows, 20 million LAZ records) are refused before anything inflates.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 import struct
 import tempfile
 import time
+import tracemalloc
 import zipfile
+import zlib
 from pathlib import Path
 
 import laspy
@@ -21,11 +26,23 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import factorydet_core.io.npz as npz_module
+import factorydet_core.io.readers as readers_module
 from factorydet_core.cli import main as cli_main
 from factorydet_core.io.dataset import open_dataset
-from factorydet_core.io.limits import MAX_POINTS, MAX_POINTS_ENV, resolve_max_points
+from factorydet_core.io.limits import (
+    MAX_INFLATION,
+    MAX_POINTS,
+    MAX_POINTS_ENV,
+    MAX_READ_BYTES,
+    MAX_READ_BYTES_ENV,
+    check_read_bytes,
+    resolve_max_points,
+    resolve_max_read_bytes,
+)
 from factorydet_core.io.npz import load_npz, save_npz
 from factorydet_core.io.readers import read_frame, write_frame
+from factorydet_core.sim.truth import read_frame_truth, read_truth
 from factorydet_core.types import Frame, InputError
 
 from .test_readers import make_frame
@@ -86,6 +103,80 @@ def test_every_format_honours_the_cap(tmp_path: Path, suffix: str) -> None:
     path = written(tmp_path, f"scan{suffix}")
     assert "limit of 199 points" in refused(path, max_points=199)
     assert read_frame(path, max_points=200).num_points == 200
+
+
+# ------------------------------------------------------------------------------------------------
+# The byte budget of one read
+# ------------------------------------------------------------------------------------------------
+
+
+def test_byte_budget_default_env_and_argument(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.delenv(MAX_READ_BYTES_ENV, raising=False)
+    assert resolve_max_read_bytes() == MAX_READ_BYTES <= 2_000_000_000  # well under 2 GB a read
+    for text, value in [
+        ("4000000000", 4 * 10**9),
+        ("4e9", 4 * 10**9),
+        ("4G", 4 * 10**9),
+        ("2500MB", 25 * 10**8),
+    ]:
+        monkeypatch.setenv(MAX_READ_BYTES_ENV, text)
+        assert resolve_max_read_bytes() == value
+    path = written(tmp_path, "scan.ply", 2000)
+    monkeypatch.setenv(MAX_READ_BYTES_ENV, "100k")
+    message = refused(path)
+    assert "allowed for one read" in message and MAX_READ_BYTES_ENV in message
+    assert read_frame(path, max_read_bytes=10**8).num_points == 2000  # the argument wins
+    monkeypatch.setenv(MAX_READ_BYTES_ENV, "lots")
+    with pytest.raises(InputError, match=MAX_READ_BYTES_ENV):
+        read_frame(path)
+    with pytest.raises(InputError, match="positive"):
+        resolve_max_read_bytes(0)
+
+
+FORMATS = (".ply", ".pcd", ".xyz", ".csv", ".pts", ".las", ".laz", ".bin", ".npy", ".npz")
+
+
+@pytest.mark.parametrize("suffix", FORMATS)
+def test_every_reader_estimates_at_least_its_peak(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, suffix: str
+) -> None:
+    """The estimate each reader checks before allocating covers what the read really allocates
+    (numpy and Python memory, traced), and is not wildly above it."""
+    path = tmp_path / f"scan{suffix}"
+    write_frame(path, make_frame(60_000))
+    estimates: list[int] = []
+
+    def spy(path: Path, needed: int, max_read_bytes: int, what: str) -> None:
+        estimates.append(needed)
+        check_read_bytes(path, needed, max_read_bytes, what)
+
+    monkeypatch.setattr(readers_module, "check_read_bytes", spy)
+    monkeypatch.setattr(npz_module, "check_read_bytes", spy)
+    read_frame(path)  # imports and caches first
+    estimates.clear()
+    tracemalloc.start()
+    try:
+        read_frame(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    (estimate,) = estimates
+    assert peak <= estimate <= 4 * peak, (peak, estimate)
+    assert "allowed for one read" in refused(path, max_read_bytes=estimate - 1)
+    assert read_frame(path, max_read_bytes=estimate).num_points == 60_000
+
+
+def test_text_is_parsed_as_it_streams(tmp_path: Path) -> None:
+    path = tmp_path / "mac.xyz"
+    path.write_bytes(b"x y z\r1 2 3\r4 5 6\r\r7 8 9")  # old Mac line ends, a blank line, no final one
+    np.testing.assert_array_equal(read_frame(path).points, [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    path = tmp_path / "long.xyz"
+    path.write_bytes(b"1 2 3\n" + b"4 " * 40_000 + b"\n")
+    assert "longer than" in refused(path)
+    path = tmp_path / "rows.csv"
+    path.write_text("# comment\n" * 300 + "1,2,3\n" * 100)
+    assert read_frame(path, max_points=100).num_points == 100  # comment lines are not points
+    assert "limit of 99 points" in refused(path, max_points=99)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -234,7 +325,7 @@ def test_npz_member_declaring_a_false_size(tmp_path: Path) -> None:
     central = data.rindex(b"PK\x01\x02")
     struct.pack_into("<I", data, central + 24, 1 << 30)
     path.write_bytes(bytes(data))
-    assert "broken .npz" in refused(path)
+    assert f"claim {1 << 30} bytes inflated" in refused(path)  # a stored member "inflating" 5 million-fold
 
 
 @pytest.mark.parametrize("cut", [30, 200, -30])
@@ -243,6 +334,130 @@ def test_npz_bad_zip(tmp_path: Path, cut: int) -> None:
     data = path.read_bytes()
     path.write_bytes(data[:cut])
     assert "npz" in refused(path)
+
+
+def zero_npz(path: Path, members: dict[str, tuple[tuple[int, ...], str]]) -> Path:
+    """A valid .npz whose members are zero arrays of the given shapes and dtypes, written without
+    compressing gigabytes: a block of 16 MiB of zeros is deflated once and repeated (a full flush
+    makes each block independent), the same bytes a deflating writer would give in a few seconds."""
+    block = 1 << 24
+    compressor = zlib.compressobj(6, zlib.DEFLATED, -15)
+    zeros = compressor.compress(bytes(block)) + compressor.flush(zlib.Z_FULL_FLUSH)
+    with path.open("wb") as out:
+        central = []
+        for name, (shape, descr) in members.items():
+            header = npy_header(shape, descr)
+            size = len(header) + math.prod(shape) * np.dtype(descr).itemsize
+            head = zlib.compressobj(6, zlib.DEFLATED, -15)
+            data = [head.compress(header) + head.flush(zlib.Z_FULL_FLUSH)]
+            crc, left = zlib.crc32(header), size - len(header)
+            whole, rest = divmod(left, block)
+            data += [zeros] * whole
+            tail = zlib.compressobj(6, zlib.DEFLATED, -15)
+            data.append(tail.compress(bytes(rest)) + tail.flush())
+            for _ in range(whole):
+                crc = zlib.crc32(bytes(block), crc)
+            crc = zlib.crc32(bytes(rest), crc)
+            compressed = sum(len(d) for d in data)
+            filename = f"{name}.npy".encode()
+            fields = struct.pack("<HHHHHIII", 20, 0, 8, 0, 33, crc, compressed, size)
+            central.append((out.tell(), filename, fields))
+            out.write(b"PK\x03\x04" + fields + struct.pack("<HH", len(filename), 0) + filename)
+            for chunk in data:
+                out.write(chunk)
+        start = out.tell()
+        for offset, filename, fields in central:
+            # made by, the local header's fields, name, extra, comment, disk, attributes, offset
+            out.write(b"PK\x01\x02" + struct.pack("<H", 20) + fields)
+            out.write(struct.pack("<HHHHHII", len(filename), 0, 0, 0, 0, 0o644 << 16, offset))
+            out.write(filename)
+        end = out.tell()
+        count = len(central)
+        out.write(b"PK\x05\x06" + struct.pack("<HHHHIIH", 0, 0, count, count, end - start, start, 0))
+    return path
+
+
+def test_zero_filled_npz_bomb_is_refused_before_inflating(tmp_path: Path) -> None:
+    """49 million rows of zero (N, 3) float64 points and colours and (N,) intensity: 2.7 GB in a
+    2.7 MB file. It once passed every check and took 6.3 GB; now it is refused from the central
+    directory, allocating nothing."""
+    n = 49_000_000
+    members = {"points": ((n, 3), "<f8"), "colors": ((n, 3), "<f8"), "intensity": ((n,), "<f8")}
+    path = zero_npz(tmp_path / "bomb1.npz", members)
+    assert path.stat().st_size < 4_000_000
+    with zipfile.ZipFile(path) as archive:  # a valid archive, as a writer would make it
+        assert archive.getinfo("points.npy").file_size > n * 24
+        with archive.open("intensity.npy") as member:
+            assert member.read(1 << 20).count(0) > (1 << 20) - 200
+    tracemalloc.start()
+    try:
+        message = refused(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert "bytes inflated" in message and f"more than {MAX_INFLATION}x" in message
+    assert peak < 10 * 2**20
+    # Even where the ratio allows it, the byte budget refuses what the arrays and copies need.
+    small = zero_npz(tmp_path / "small.npz", {"points": ((2_000_000, 3), "<f8")})
+    assert "allowed for one read" in refused(small, max_read_bytes=200_000_000)
+
+
+def test_npz_bomb_from_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = zero_npz(tmp_path / "bomb.npz", {"points": ((20_000_000, 3), "<f8")})
+    assert cli_main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "bytes inflated" in err and "\n" not in err
+
+
+def test_laz_claiming_20_million_records_is_refused_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A 2000-point LAZ of 234-byte records whose header claims 20 million points (4.7 GB): no
+    decoding child is started and nothing is allocated for the records."""
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.add_extra_dims([laspy.ExtraBytesParams(f"pad{i}", "f8") for i in range(25)])  # 200 bytes
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(0)
+    las.x, las.y, las.z = rng.uniform(0, 50, (3, 2000))
+    path = tmp_path / "bomb.laz"
+    las.write(str(path))
+    assert struct.unpack_from("<H", path.read_bytes(), 105)[0] == 234
+    assert read_frame(path).num_points == 2000
+    patch(path, 107, "<I", 20_000_000)
+
+    def no_child(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the decoder was started")
+
+    monkeypatch.setattr(readers_module.subprocess, "Popen", no_child)
+    tracemalloc.start()
+    try:
+        message = refused(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert "corrupt LAZ: 20000000 point records claim 4680000000 bytes inflated" in message
+    assert peak < 10 * 2**20
+
+
+def test_memory_errors_are_never_called_bad_input(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = written(tmp_path, "scan.npz")
+
+    def exhausted(*args: object, **kwargs: object) -> None:
+        raise MemoryError("Unable to allocate 2.5 GiB")
+
+    monkeypatch.setattr(npz_module.np.lib.format, "read_array", exhausted)
+    with pytest.raises(MemoryError):
+        load_npz(path)
+    with pytest.raises(MemoryError):
+        read_frame(path)
+    assert cli_main(["info", str(path)]) == 3
+    err = capsys.readouterr().err.strip()
+    assert "out of memory" in err and "\n" not in err
+    monkeypatch.setitem(readers_module._READERS, ".ply", exhausted)
+    with pytest.raises(MemoryError):
+        read_frame(written(tmp_path, "scan.ply"))
 
 
 def test_load_npz_reads_selected_members(tmp_path: Path) -> None:
@@ -293,6 +508,41 @@ def test_data_set_frame_bomb(tmp_path: Path) -> None:
     save_npz(folder / "frame_00000.npz", {"points": np.zeros((100_000, 3), np.float32)})
     with pytest.raises(InputError, match="unreadable frame .*limit of 1000 points"):
         open_dataset(folder, max_points=1000).frame(0)
+
+
+def test_deeply_nested_manifest(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "nested"
+    folder.mkdir()
+    (folder / "manifest.json").write_text("[" * 200_000 + "]" * 200_000)
+    with pytest.raises(InputError, match="nested too deeply"):
+        open_dataset(folder)
+    assert cli_main(["info", str(folder)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "manifest" in err and "\n" not in err
+    (folder / "manifest.json").write_bytes(b'{"classes": ["\xff"]}')
+    with pytest.raises(InputError, match="malformed manifest"):
+        open_dataset(folder)
+    (folder / "manifest.json").write_text(json.dumps({"classes": ["box"], "frames": {"a": 1}, "sensors": 5}))
+    with pytest.raises(InputError, match="malformed manifest"):
+        open_dataset(folder)
+
+
+def test_simulator_truth_is_read_through_the_guards(tmp_path: Path) -> None:
+    truth = tmp_path / "truth"
+    truth.mkdir()
+    (truth / "truth.json").write_text("[" * 100_000)
+    with pytest.raises(InputError, match="truth record"):
+        read_truth(tmp_path)
+    (truth / "truth.json").write_text("[1, 2]")
+    with pytest.raises(InputError, match="not a JSON object"):
+        read_truth(tmp_path)
+    with zipfile.ZipFile(truth / "frame_00000.npz", "w") as archive:
+        archive.writestr("point_instance_ids.npy", npy_header((10**10,), "<i8") + bytes(64))
+    with pytest.raises(InputError, match="bytes follow"):
+        read_frame_truth(tmp_path, 0)
+    save_npz(truth / "frame_00001.npz", {"T_world_vehicle": np.eye(4)})
+    with pytest.raises(InputError, match="lacks the arrays point_instance_ids"):
+        read_frame_truth(tmp_path, 1)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,5 +1,9 @@
 """Label export and import round trips (JSON, KITTI, npz scenes) and conflict reports."""
 
+import contextlib
+import os
+import subprocess
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -174,6 +178,9 @@ def _labels_file(path, frames) -> None:
         ({"frame_index": 0, "boxes": [[0, 0, 0.5, 1, 1, 1, 1e20]], "labels": ["box"]}, "yaw"),
         ({"frame_index": 0, "boxes": [[0, 0, 0.5, 1, 1, 1]], "labels": ["box"]}, "7 finite numbers"),
         ({"frame_index": 0, "boxes": [["a", 0, 0.5, 1, 1, 1, 0]], "labels": ["box"]}, "7 numbers"),
+        ({"frame_index": 0, "boxes": [[True, 0, 0.5, 1, 1, 1, 0]], "labels": ["box"]}, "7 numbers"),
+        ({"frame_index": 0, "boxes": [["1", 0, 0.5, 1, 1, 1, 0]], "labels": ["box"]}, "7 numbers"),
+        ({"frame_index": 99, "boxes": [[0, 0, 0.5, 1, 1, 1, 0]], "labels": ["box"]}, "frame 99 out of range"),
         ({"frame_index": 1.7, "boxes": [], "labels": []}, r"frames\[0\].frame_index.*integer"),
         ({"frame_index": True, "boxes": [], "labels": []}, "integer"),
         ({"frame_index": "1", "boxes": [], "labels": []}, "integer"),
@@ -239,10 +246,19 @@ def _screen_reference(items, current):
 
 
 def test_the_linear_screen_finds_what_the_box_by_box_check_finds(db):
+    import dataclasses
+
     from factorydet_core.session.labels_io import _screen
 
     rng = np.random.default_rng(3)
     current = {f: db.labels(f) for f in range(3)}
+    # Large labels already in the session: a 100 m hall outline, and a long thin box of the
+    # volume of the small ones (size classes must not hide them, nor make the screen quadratic).
+    template = current[0][0]
+    for n, box in enumerate(
+        [(0.0, 0.0, 5.0, 100.0, 100.0, 10.0, 0.0), (0.0, 3.0, 0.5, 60.0, 0.05, 1.0, 0.1)]
+    ):
+        current[0].append(dataclasses.replace(template, id=10_000 + n, box=box, class_name="box"))
     items = []
     for k in range(600):
         frame_index = int(rng.integers(3))
@@ -258,6 +274,18 @@ def test_the_linear_screen_finds_what_the_box_by_box_check_finds(db):
                 continue
         box = np.array([*rng.uniform(-15, 15, 2), 0.5, *rng.uniform(0.3, 3, 3), rng.uniform(-3, 3)])
         items.append((frame_index, box, ["box", "cone", "barrel"][int(rng.integers(3))]))
+    # Large items among them: copies of the large labels (one of another class), a large box of
+    # their own, its near copy, and boxes of every size class in between.
+    items += [
+        (0, np.array(current[0][-2].box), "box"),
+        (0, np.array(current[0][-1].box) + [0.01, 0, 0, 0, 0, 0, 0], "cone"),
+        (1, np.array([5.0, 5.0, 2.0, 80.0, 90.0, 4.0, 0.3]), "box"),
+        (1, np.array([5.1, 5.0, 2.0, 80.0, 90.0, 4.0, 0.3]), "box"),
+        (1, np.array([5.1, 5.0, 2.0, 80.0, 90.0, 3.0, 0.3]), "cone"),
+    ]
+    for size in 2.0 ** np.arange(-3, 7):
+        box = np.array([*rng.uniform(-5, 5, 2), 0.5, size, size * 0.7, min(size, 50.0), 0.0])
+        items += [(2, box, "box"), (2, box * [1, 1, 1, 1.2, 1, 1, 1], "barrel")]
     keep, duplicates, conflicts = _screen(items, current)
     want_keep, want_duplicates, want_conflicts = _screen_reference(items, current)
     assert keep == want_keep
@@ -364,3 +392,55 @@ def test_mutated_label_files_import_or_give_one_line_errors(db, tmp_path, fmt):
             assert report["imported"] >= 0
 
     check()
+
+
+def test_a_label_file_with_a_huge_integer_is_a_one_line_error(db, tmp_path):
+    out = tmp_path / "huge.json"
+    out.write_text('{"frames": [{"frame_index": ' + "1" * 5000 + ', "boxes": [], "labels": []}]}')
+    with pytest.raises(InputError, match="not a factorydet label file.*digits") as caught:
+        import_labels(db, out, "bob")
+    assert "\n" not in str(caught.value) and str(out) in str(caught.value)
+
+
+def test_complex_npz_boxes_are_refused_not_cut_to_their_real_part(db, tmp_path):
+    scene = tmp_path / "frame_00000.npz"
+    np.savez(scene, boxes=np.array([[0, 0, 0.5, 1, 1, 1, 0]], np.complex128) + 1j, labels=np.array(["box"]))
+    with pytest.raises(InputError, match="complex128 values, not real numbers"):
+        import_labels(db, scene, "bob")
+
+
+@contextlib.contextmanager
+def _unwritable_folder(path):
+    """A folder nobody may write in: read-only mode, and for root the immutable attribute too."""
+    path.chmod(0o555)
+    immutable = os.geteuid() == 0
+    if immutable:
+        subprocess.run(["chattr", "+i", str(path)], check=True)
+    try:
+        yield
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(path)], check=True)
+        path.chmod(0o755)
+
+
+@pytest.mark.parametrize("fmt", ["json", "kitti", "npz"])
+def test_exports_make_missing_folders_and_name_what_they_cannot_write(db, tmp_path, fmt):
+    name = "labels.json" if fmt == "json" else fmt
+    written = export_labels(db, fmt, tmp_path / "new" / "deeper" / name, [0])
+    assert all(p.is_file() for p in written)
+    cases = [tmp_path / "locked" / name]
+    (tmp_path / "locked").mkdir()
+    if fmt == "json":
+        (tmp_path / "folder.json").mkdir()
+        cases.append(tmp_path / "folder.json")
+    else:
+        (tmp_path / "file").write_text("")
+        cases.append(tmp_path / "file")
+    with _unwritable_folder(tmp_path / "locked"):
+        for target in cases:
+            with pytest.raises(InputError) as caught:
+                export_labels(db, fmt, target, [0])
+            message = str(caught.value)
+            assert message.startswith(f"cannot write {target}") and "\n" not in message, message
+            assert ".tmp" not in message

@@ -25,6 +25,7 @@ from factorydet_core.session.store import (
     open_session,
 )
 from factorydet_core.training.mining import TrainingRun
+from factorydet_core.types import InputError
 from tests.fakes import mined_item, queue_run
 
 BOX = (1.0, 2.0, 0.5, 1.2, 0.8, 1.0, 0.3)
@@ -545,3 +546,337 @@ def test_a_yaw_is_wrapped_and_frame_indices_are_true_integers(db):
     for bad in (1.7, True, np.bool_(True), "1", None, -1, float("inf"), 2**70):
         with pytest.raises(SessionError, match="frame index"):
             check_frame_index(bad)
+
+
+# --- Every row read is checked; undo writes back only what it checked (issue 29 review) --------
+
+
+def _queue_db(db: SessionDB, tiny_model_path) -> list[dict]:
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    return db.review_queue()
+
+
+_QUEUE_READS = ("review_queue", "review_progress", "review")
+
+
+@pytest.mark.parametrize(
+    ("statement", "match", "reads"),
+    [
+        ("UPDATE mined_negatives SET score = 'abc' WHERE id = {item}", "score", _QUEUE_READS),
+        ("UPDATE mined_negatives SET box = '[1,2]' WHERE id = {item}", "box", _QUEUE_READS),
+        ("UPDATE mined_negatives SET box = '{{}}' WHERE id = {item}", "box", _QUEUE_READS),
+        ("UPDATE mined_negatives SET frame_index = 'x' WHERE id = {item}", "frame_index", _QUEUE_READS),
+        (
+            "UPDATE mined_negatives SET patch_set = '[\"a\"]' WHERE id = {item}",
+            "patch_set",
+            (*_QUEUE_READS, "mined_patch_sets"),
+        ),
+        ("UPDATE reviews SET label_id = 'x'", "label_id", ("review_queue", "review_progress")),
+        ("UPDATE training_runs SET config = '[1]'", "config", ("training_runs",)),
+        ("UPDATE training_rounds SET fit_seconds = 'x'", "fit_seconds", ("training_runs",)),
+    ],
+    ids=["score", "box-short", "box-dict", "frame", "patch-set", "review", "config", "round"],
+)
+def test_a_damaged_row_of_any_table_is_a_one_line_error_naming_it(
+    db, tiny_model_path, statement, match, reads
+):
+    queue = _queue_db(db, tiny_model_path)
+    item = queue[0]["id"]
+    db.review([item], "background", "ann")
+    _damage(db.path, [statement.format(item=item)])
+    before = db.path.read_bytes()
+    reader = SessionDB(db.session, db.dataset, readonly=True)
+    table = statement.split()[1]
+    for name in reads:
+        read = (
+            (lambda: _reopen(db).review([item], "object", "bob", class_name="box", override=True))
+            if name == "review"
+            else getattr(reader, name)
+        )
+        with pytest.raises(SessionError, match=rf"damaged: {table} row [(\d, )]+\)?, {match}:") as caught:
+            read()
+        assert "\n" not in str(caught.value), name
+    assert db.path.read_bytes() == before
+
+
+def test_the_commands_refuse_damaged_mined_negatives_in_one_line(db, tiny_model_path, capsys):
+    from factorydet_core import cli
+
+    item = _queue_db(db, tiny_model_path)[0]["id"]
+    common = ["--session", "s", "--root", str(db.session.root), "--data", str(db.dataset.path)]
+    for statement, commands in (
+        (f"UPDATE mined_negatives SET score = 'abc' WHERE id = {item}", [["queue"]]),
+        (f"UPDATE mined_negatives SET box = '[1,2]' WHERE id = {item}", [["queue"], ["queue", "--json"]]),
+        (f"UPDATE mined_negatives SET box = '{{}}' WHERE id = {item}", [["queue"], ["queue", "--json"]]),
+        (
+            f"UPDATE mined_negatives SET frame_index = 'x' WHERE id = {item}",
+            [
+                ["queue"],
+                ["review", "--ids", str(item), "--verdict", "object", "--class", "box", "--author", "a"],
+            ],
+        ),
+    ):
+        _damage(db.path, [statement])
+        for command in commands:
+            capsys.readouterr()
+            assert cli.main([command[0], *common, *command[1:]]) == 2, (statement, command)
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and f"mined_negatives row {item}" in err, err
+        _damage(
+            db.path,
+            [
+                f"UPDATE mined_negatives SET score = 0.5, box = '[0,0,0.5,1,1,1,0]', frame_index = 0"
+                f" WHERE id = {item}"
+            ],
+        )
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [
+        ("[1]", "change 0 is 1"),
+        ('[{"table": "meta", "key": 1, "before": null, "after": null}]', "names the table 'meta'"),
+        ('{"a": 1}', "changes: .* is not a JSON list"),
+        ("box", r"change 0, before \(labels row \d+\), box: .*1e\+300"),
+        ("class", "class 'spaceship' is not one of the session's"),
+        ("deleted", "deleted: True is not an integer"),
+    ],
+)
+def test_undo_and_redo_check_what_the_edit_log_would_write_back(db, changes, match):
+    import json
+
+    label = db.labels(0)[0]
+    db.update_label(label.id, "ann", box=BOX)
+    connection = sqlite3.connect(db.path)
+    (logged,) = connection.execute("SELECT changes FROM edits ORDER BY id DESC LIMIT 1").fetchone()
+    connection.close()
+    change = json.loads(logged)[0]
+    if changes == "box":
+        change["before"]["box"] = "[0, 0, 0.5, 1e300, 1, 1, 0]"
+    elif changes == "class":
+        change["before"]["class_name"] = "spaceship"
+    elif changes == "deleted":
+        change["before"]["deleted"] = True
+    text = json.dumps([change]) if changes in ("box", "class", "deleted") else changes
+    _damage(db.path, [f"UPDATE edits SET changes = '{text}'"])
+    stored = db.label(label.id)
+    with pytest.raises(SessionError, match=f"edits row \\d+.*{match}") as caught:
+        db.undo("ann")
+    assert "\n" not in str(caught.value)
+    assert db.label(label.id) == stored  # nothing written back
+    connection = sqlite3.connect(db.path)
+    assert connection.execute("SELECT state FROM edits ORDER BY id DESC LIMIT 1").fetchone()[0] == "done"
+    connection.close()
+
+
+def test_a_label_of_a_class_the_session_does_not_have_is_refused_where_it_is_read(db, tmp_path):
+    from factorydet_core.session.labels_io import export_labels
+
+    label = db.labels(0)[0]
+    _damage(db.path, [f"UPDATE labels SET class_name = 'spaceship' WHERE id = {label.id}"])
+    for read in (
+        lambda: db.label(label.id),
+        lambda: db.labels(0),
+        lambda: export_labels(db, "json", tmp_path / "out.json"),
+    ):
+        with pytest.raises(SessionError, match=f"labels row {label.id}, class_name: 'spaceship'"):
+            read()
+    assert not (tmp_path / "out.json").exists()
+    # The door a data set without classes left open (any class was taken) is closed.
+    db.dataset.class_names = ()
+    with pytest.raises(SessionError, match="the data set names no classes"):
+        db.add_label(1, BOX, "spaceship", "ann")
+
+
+# --- The data set's own annotations are the user's data (issue 29 review) ----------------------
+
+
+def _dataset_with_boxes(source: Path, target: Path, boxes: list, class_ids: list | None = None) -> Path:
+    """A copy of the data set ``source`` whose frame 0 has ``boxes`` as its annotations."""
+    import shutil
+
+    shutil.copytree(source, target)
+    frame_file = target / "frames" / "frame_00000.npz"
+    with np.load(frame_file) as stored:
+        arrays = {name: stored[name] for name in stored.files}
+    arrays["label_boxes"] = np.array(boxes, np.float64).reshape(-1, 7)
+    count = len(arrays["label_boxes"])
+    arrays["label_class_ids"] = np.array(class_ids or [2] * count, np.int32)
+    arrays["label_instance_ids"] = np.arange(1, count + 1, dtype=np.int64)
+    arrays["label_num_points"] = np.zeros(count, np.int64)
+    np.savez(frame_file, **arrays)
+    return target
+
+
+def test_the_data_sets_own_odd_annotations_are_kept_and_usable(small_dataset_dir, tmp_path):
+    from factorydet_core.session.labels_io import export_labels, import_labels, read_labels
+    from factorydet_core.session.store import MIN_BOX_SIZE
+
+    odd = [
+        [1.0, 2.0, 0.5, 1.0, 1.0, 0.0, 0.0],  # flat: dz = 0
+        [0.0, 0.0, 5.0, 150.0, 80.0, 10.0, 0.0],  # a hall outline, over the 100 m a person may draw
+        [20_000.0, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0],  # 20 km out
+    ]
+    dataset = open_dataset(_dataset_with_boxes(small_dataset_dir, tmp_path / "odd", odd))
+    db = SessionDB(open_session("odd", tmp_path / "sessions"), dataset)
+    readonly_first = SessionDB(db.session, dataset, readonly=True).labels(0)  # before any write
+    labels = db.labels(0)
+    assert [lab.box for lab in readonly_first] == [lab.box for lab in labels]
+    assert labels[0].box[5] == MIN_BOX_SIZE  # thickened, so that its volume and IoU are defined
+    assert [lab.box[:5] for lab in labels] == [tuple(b[:5]) for b in odd]
+    assert db.frame_boxes(0)[0].shape == (3, 7)
+    # Export, import into the frame, a class change: all work on that frame.
+    export_labels(db, "json", tmp_path / "odd.json")
+    # A file is held to the bounds a person's boxes are: the export of these does not import back.
+    with pytest.raises(InputError, match="at most 100 m"):
+        read_labels(tmp_path / "odd.json")
+    other = tmp_path / "new.json"
+    other.write_text(
+        '{"frames": [{"frame_index": 0, "boxes": [[1, 2, 0.5, 1, 1, 0.001, 0], [5, 5, 0.5, 1, 1, 1, 0]],'
+        ' "labels": ["box", "box"]}]}'
+    )
+    report = import_labels(db, other, "ann")
+    assert report["imported"] == 1 and len(report["duplicates"]) == 1  # the flat one repeats label 0
+    db.update_label(labels[1].id, "ann", class_name="truck")
+    db.undo("ann")
+    assert db.label(labels[1].id).box == labels[1].box
+
+
+@pytest.mark.parametrize(
+    ("box", "class_id", "match"),
+    [
+        ([0.0, 0.0, 0.5, 1.0, -1.0, 1.0, 0.0], 2, "sizes must not be negative"),
+        ([0.0, 0.0, 0.5, 1e12, 1.0, 1.0, 0.0], 2, "beyond"),
+        ([0.0, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0], 99, "class ids must lie"),  # the reader's own check
+    ],
+)
+def test_an_unusable_data_set_annotation_names_the_data_set_frame_and_box(
+    small_dataset_dir, tmp_path, box, class_id, match
+):
+    good = [0.0, 5.0, 0.5, 1.0, 1.0, 1.0, 0.0]
+    data = _dataset_with_boxes(small_dataset_dir, tmp_path / "bad", [good, box], [2, class_id])
+    dataset = open_dataset(data)
+    db = SessionDB(open_session("bad", tmp_path / "sessions"), dataset)
+    for read in (lambda: db.labels(0), lambda: SessionDB(db.session, dataset, readonly=True).labels(0)):
+        with pytest.raises(InputError, match=match) as caught:
+            read()
+        message = str(caught.value)
+        assert "\n" not in message and str(data) in message and "frame_00000" in message
+        assert class_id == 99 or f"{data}: frame 0 (frame_00000), annotation 1:" in message
+    assert len(db.labels(1)) == len(dataset.frame(1).labels)  # the other frames are unaffected
+
+
+# --- Read-only folders and sessions (issue 29 review) ------------------------------------------
+
+
+@contextlib.contextmanager
+def _unwritable_folder(path: Path):
+    """A folder nobody may write in: read-only mode, and for root the immutable attribute too."""
+    path.chmod(0o555)
+    immutable = os.geteuid() == 0
+    if immutable:
+        subprocess.run(["chattr", "+i", str(path)], check=True)
+    try:
+        yield
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(path)], check=True)
+        path.chmod(0o755)
+
+
+def test_a_wal_session_in_a_read_only_folder_can_be_read(db, dataset, tiny_model_path, tmp_path):
+    from factorydet_core.session.labels_io import export_labels
+
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    db.labels(0)
+    assert not Path(f"{db.path}-shm").exists()  # every connection closed: no WAL index left
+    with _unwritable_folder(db.session.path):
+        with pytest.raises(OSError):
+            (db.session.path / "probe").write_text("x")  # really unwritable, also for root
+        reader = SessionDB(db.session, dataset, readonly=True)
+        assert len(reader.review_queue()) == 6
+        assert len(reader.labels(0)) == len(dataset.frame(0).labels)
+        export_labels(reader, "json", tmp_path / "out.json", [0, 1])
+        assert not Path(f"{db.path}-shm").exists()
+    assert (tmp_path / "out.json").is_file()
+
+
+def test_a_wal_with_changes_in_a_read_only_folder_is_a_clear_error(db, dataset, tmp_path):
+    import shutil
+
+    db.labels(0)
+    holder = sqlite3.connect(db.path, isolation_level=None)
+    try:
+        holder.execute("PRAGMA wal_autocheckpoint = 0")
+        holder.execute("UPDATE labels SET modified = 'later'")  # committed, in the WAL only
+        copy = open_session("copy", tmp_path)
+        copy.path.mkdir()
+        for name in ("session.db", "session.db-wal"):  # a copy without the WAL index (-shm)
+            shutil.copy(db.session.path / name, copy.path / name)
+    finally:
+        holder.close()
+    with _unwritable_folder(copy.path):
+        with pytest.raises(SessionError, match="holds changes not yet written") as caught:
+            SessionDB(copy, dataset, readonly=True).labels(0)
+    assert "\n" not in str(caught.value)
+
+
+def test_a_session_that_cannot_be_written_is_refused_before_training(dataset, tmp_path, monkeypatch):
+    from factorydet_core.proposals.settings import front_end_params
+    from factorydet_core.training.settings import LoopSettings
+    from factorydet_core.workflows import retrain_session
+
+    SessionDB(open_session("ok", tmp_path), dataset).check_writable()  # writable: nothing said
+    monkeypatch.setattr(
+        "factorydet_core.workflows.cached_proposals", lambda *a, **k: pytest.fail("proposed first")
+    )
+    for name, match in (("file", "readonly database"), ("folder", "cannot write in")):
+        db = SessionDB(open_session(name, tmp_path), dataset)
+        db.labels(0)
+        unwritable = _unwritable(db.path) if name == "file" else _unwritable_folder(db.session.path)
+        with (
+            unwritable,
+            pytest.raises(SessionError, match=f"session '{name}' cannot be written.*{match}") as exc,
+        ):
+            retrain_session(db, dataset, LoopSettings(), front_end_params("agv"), mode="full")
+        assert "\n" not in str(exc.value)
+
+
+# --- Boxes are real numbers (issue 29 review) ---------------------------------------------------
+
+
+def test_a_box_of_bools_strings_or_complex_numbers_is_refused(db):
+    from factorydet_core.session.store import check_box
+
+    for bad in ([True, 0, 0.5, 1, 1, 1, 0], ["1", 0, 0.5, 1, 1, 1, 0], [1j, 0, 0.5, 1, 1, 1, 0], "1234567"):
+        with pytest.raises(SessionError, match="7 numbers"):
+            check_box(bad)
+    with pytest.raises(SessionError, match="7 finite numbers"):
+        check_box([10**400, 0, 0.5, 1, 1, 1, 0])
+    with pytest.raises(SessionError, match="at least 0.001"):
+        db.add_label(0, (0, 0, 0.5, 1e-7, 1, 1, 0), "box", "ann")  # would be stored as 0
+    assert check_box(np.array([0, 0, 0.5, 1, 1, 1, 0], np.float32)) == [0, 0, 0.5, 1, 1, 1, 0]
+
+
+# --- Reviewers are told apart by name (issue 29 review) -----------------------------------------
+
+
+def test_review_and_undo_as_root_need_an_explicit_author(db, tiny_model_path, capsys, monkeypatch):
+    from factorydet_core import cli
+
+    item = _queue_db(db, tiny_model_path)[0]["id"]
+    common = ["--session", "s", "--root", str(db.session.root), "--data", str(db.dataset.path)]
+    review = ["review", *common, "--ids", str(item), "--verdict", "background"]
+    monkeypatch.setattr("getpass.getuser", lambda: "root")
+    for command in (review, ["undo", *common]):
+        capsys.readouterr()
+        assert cli.main(command) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "pass --author NAME" in err and "'root'" in err
+    assert db.review_progress()["reviewed"] == 0
+    assert cli.main([*review, "--author", "ann"]) == 0
+    monkeypatch.setattr("getpass.getuser", lambda: "bob")  # a personal login is a name
+    assert cli.main(["undo", *common]) == 1 and "nothing to undo for bob" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        cli.main(["review", "--help"])
+    assert "as root, --author is therefore required" in " ".join(capsys.readouterr().out.split())
