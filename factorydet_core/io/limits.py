@@ -21,16 +21,19 @@ import re
 from factorydet_core.types import InputError
 
 MAX_POINTS = 50_000_000
-"""Default cap on the points of one file. The byte budget usually binds first: the default
-``MAX_READ_BYTES`` reads 8-10 million points in any format."""
+"""Default cap on the points of one file (the default ``MAX_READ_BYTES`` reads about as many)."""
 
 MAX_POINTS_ENV = "FACTORYDET_MAX_POINTS"
 """Environment variable that replaces ``MAX_POINTS`` (a positive integer)."""
 
-MAX_READ_BYTES = 1_500_000_000
-"""Default byte budget of one read (1.5 GB): the decoded arrays plus the conversion copies up to
-the ``Frame``, at their peak. A 5-million-point scan with colours and intensity is estimated at
-0.72-0.92 GB in every format (its measured peak resident size is 0.24-0.64 GB), so it reads."""
+MAX_READ_BYTES = 8_000_000_000
+"""Default byte budget of one read (8 GB): the decoded arrays plus the conversion copies up to the
+``Frame``, at their peak, as estimated before anything is allocated. A 5-million-point scan with
+colours and intensity is estimated at 0.72-0.92 GB in every format (its measured peak resident size
+is 0.24-0.64 GB), so the default reads about ``MAX_POINTS`` points on a machine with the memory for
+them. Hostile files never get near it: their claimed sizes are checked against the file's length,
+and compressed data against ``MAX_INFLATION``; a machine with less memory lowers it with
+``FACTORYDET_MAX_READ_BYTES``."""
 
 MAX_READ_BYTES_ENV = "FACTORYDET_MAX_READ_BYTES"
 """Environment variable that replaces ``MAX_READ_BYTES``: bytes, optionally with a decimal unit

@@ -30,7 +30,7 @@ a signal or unbounded memory. Each reader checks what a header declares before i
 ``.npz`` members, inflation at most ``MAX_INFLATION`` times the compressed size), the number of
 points against ``MAX_POINTS`` (``max_points=`` or ``FACTORYDET_MAX_POINTS``), and the bytes the
 read will hold at its peak, the decoded records and every conversion copy up to the ``Frame``,
-against ``MAX_READ_BYTES`` (1.5 GB; ``max_read_bytes=`` or ``FACTORYDET_MAX_READ_BYTES``). Binary
+against ``MAX_READ_BYTES`` (8 GB; ``max_read_bytes=`` or ``FACTORYDET_MAX_READ_BYTES``). Binary
 bodies are read from the file (never the whole file into memory) and text is parsed as it streams,
 after its lines are counted, so that the estimate bounds the read's real peak. LAZ is decoded in a child
 process whose address space is capped: the decoder (lazrs) aborts the whole process on some corrupt
@@ -1110,7 +1110,7 @@ def read_frame(
             else ``io.limits.MAX_POINTS`` (50 million).
         max_read_bytes: refuse files whose read would allocate more bytes at its peak (decoded
             records and every conversion copy); ``None`` takes ``$FACTORYDET_MAX_READ_BYTES``, else
-            ``io.limits.MAX_READ_BYTES`` (1.5 GB).
+            ``io.limits.MAX_READ_BYTES`` (8 GB).
 
     Returns:
         A frame named after the file with ``points`` (N, 3) float32 (recentred by

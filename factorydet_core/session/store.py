@@ -71,13 +71,14 @@ BUSY_TIMEOUT = 10.0
 transaction here is short (the largest, an import of 10,000 boxes, takes about a second), so a
 longer wait means a stuck writer: better a one-line error than a minute of silence."""
 
-MAX_BOX_SIZE = 100.0
-"""Largest box edge accepted, metres: an order above the largest object of a factory hall."""
+MAX_BOX_SIZE = 1000.0
+"""Largest box edge accepted, metres: far above any object of a factory hall, so that a data set's
+own odd annotation (a 150 m region box) exported from a session imports back."""
 MIN_BOX_SIZE = 0.001
 """Smallest box edge kept, metres. A person's box must have edges at least this long (a smaller one
 would round to zero in the 6 decimals stored); a data set annotation with a thinner edge (a flat
 box, ``dz = 0``) is thickened to it, so that its volume, and every IoU with it, is defined."""
-MAX_BOX_DISTANCE = 10_000.0
+MAX_BOX_DISTANCE = 100_000.0
 """Largest distance of a box centre from the vehicle accepted, metres (far beyond any scan's reach;
 it keeps every stored coordinate exact in the float32 of the npz export)."""
 MAX_FRAME_INDEX = 2**31 - 1
@@ -1440,6 +1441,12 @@ class SessionDB:
                 if not isinstance(content, dict) or set(content) != set(_CONTENT[table]):
                     raise SessionError(f"{where}, {side}: {_short(content, 60)} is not a {table} row")
                 _row(table, content, where=f"{place}, {side} ({table} row {change['key']})")
+                frame = content.get("frame_index")
+                if frame is not None and self.dataset is not None and frame >= self.dataset.num_frames:
+                    raise SessionError(
+                        f"{where}, {side}: frame {frame} is not one of the data set's "
+                        f"{self.dataset.num_frames} frames"
+                    )
                 if content["class_name"] is not None and content["class_name"] not in names:
                     raise SessionError(
                         f"{where}, {side}: class {_short(content['class_name'], 40)} is not one of the"

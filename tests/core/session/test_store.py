@@ -640,6 +640,7 @@ def test_the_commands_refuse_damaged_mined_negatives_in_one_line(db, tiny_model_
         ("box", r"change 0, before \(labels row \d+\), box: .*1e\+300"),
         ("class", "class 'spaceship' is not one of the session's"),
         ("deleted", "deleted: True is not an integer"),
+        ("frame", "frame 77 is not one of the data set's"),
     ],
 )
 def test_undo_and_redo_check_what_the_edit_log_would_write_back(db, changes, match):
@@ -657,7 +658,9 @@ def test_undo_and_redo_check_what_the_edit_log_would_write_back(db, changes, mat
         change["before"]["class_name"] = "spaceship"
     elif changes == "deleted":
         change["before"]["deleted"] = True
-    text = json.dumps([change]) if changes in ("box", "class", "deleted") else changes
+    elif changes == "frame":
+        change["before"]["frame_index"] = 77
+    text = json.dumps([change]) if changes in ("box", "class", "deleted", "frame") else changes
     _damage(db.path, [f"UPDATE edits SET changes = '{text}'"])
     stored = db.label(label.id)
     with pytest.raises(SessionError, match=f"edits row \\d+.*{match}") as caught:
@@ -714,7 +717,7 @@ def test_the_data_sets_own_odd_annotations_are_kept_and_usable(small_dataset_dir
 
     odd = [
         [1.0, 2.0, 0.5, 1.0, 1.0, 0.0, 0.0],  # flat: dz = 0
-        [0.0, 0.0, 5.0, 150.0, 80.0, 10.0, 0.0],  # a hall outline, over the 100 m a person may draw
+        [0.0, 0.0, 5.0, 150.0, 80.0, 10.0, 0.0],  # a hall outline
         [20_000.0, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0],  # 20 km out
     ]
     dataset = open_dataset(_dataset_with_boxes(small_dataset_dir, tmp_path / "odd", odd))
@@ -727,9 +730,11 @@ def test_the_data_sets_own_odd_annotations_are_kept_and_usable(small_dataset_dir
     assert db.frame_boxes(0)[0].shape == (3, 7)
     # Export, import into the frame, a class change: all work on that frame.
     export_labels(db, "json", tmp_path / "odd.json")
-    # A file is held to the bounds a person's boxes are: the export of these does not import back.
-    with pytest.raises(InputError, match="at most 100 m"):
-        read_labels(tmp_path / "odd.json")
+    # The export imports back: every box (the odd ones of frame 0 too) repeats a label.
+    exported = read_labels(tmp_path / "odd.json")
+    assert sum(frame == 0 for frame, _, _ in exported) == 3
+    again = import_labels(db, tmp_path / "odd.json", "ann")
+    assert again["imported"] == 0 and len(again["duplicates"]) == len(exported)
     other = tmp_path / "new.json"
     other.write_text(
         '{"frames": [{"frame_index": 0, "boxes": [[1, 2, 0.5, 1, 1, 0.001, 0], [5, 5, 0.5, 1, 1, 1, 0]],'
