@@ -55,6 +55,7 @@ bench: $(STAMP) corpus
 	  --heldout-frames 12 --epochs 20 --rounds 1 --out docs/bench/quality.json --readme README.md
 	$(BIN)/factorydet bench fuzz --cases 1000 --seed 0 --out docs/bench/fuzz.json
 	$(BIN)/factorydet bench import --boxes 10000 --out docs/bench/label_import.json
+	$(BIN)/factorydet bench import --boxes 10000 --large-box --out docs/bench/label_import_large_box.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/bench/hitl.json --readme docs/labelling.md
 
