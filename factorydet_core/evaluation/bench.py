@@ -456,6 +456,10 @@ def bench_detect(
         detector.calibration_ = configs["reference"].calibration_
         configs["compared"] = detector
     test = (dataset.splits.get("test") or list(range(dataset.num_frames)))[:max_frames]
+    # One untimed run of each configuration first: numba compiles (or loads) its kernels and torch
+    # builds its pools on first use, which would otherwise be timed as the first frame's work.
+    for detector in configs.values():
+        detector.detect(dataset.frame(test[0]), [])
     timings = {name: {} for name in configs}
     counts: dict[str, list[int]] = {name: [] for name in configs}
     total_runs = len(test) * repeats * len(configs)
