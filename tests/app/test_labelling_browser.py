@@ -235,7 +235,8 @@ def test_two_browsers_see_each_others_edits(session_app, browser):  # noqa: F811
         assert view_b.current_item_id is None
         # B, still seeing the item A decided as unreviewed, is told instead of overwriting it.
         decided = db.review_queue()[0]
-        view_b.queue = [{**decided, "verdict": None}]
+        # As B saw it before A's verdict: no verdict, the version before it.
+        view_b.queue = [{**decided, "verdict": None, "review_version": decided["review_version"] - 1}]
         view_b.current_item_id = decided["id"]
         view_b.verdict("object", "box")
         assert db.review_queue()[0]["verdict"] == "background"
