@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import subprocess
 from collections.abc import Sequence
+from pathlib import Path
 
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.training.mining import TrainingRun
@@ -35,3 +39,20 @@ def queue_run(model_path, rounds_mined: Sequence[list[dict]], train_frames=(0,))
         for r, mined in enumerate(rounds_mined)
     ]
     return TrainingRun(model, rounds, [model] * len(rounds), list(train_frames))
+
+
+@contextlib.contextmanager
+def unwritable(path: Path):
+    """``path`` (a file or a folder) made unwritable for this process: read-only mode, and for
+    root, who writes anything, the immutable attribute as well (``chattr``); undone on exit."""
+    folder = path.is_dir()
+    path.chmod(0o555 if folder else 0o444)
+    immutable = os.geteuid() == 0
+    if immutable:
+        subprocess.run(["chattr", "+i", str(path)], check=True)
+    try:
+        yield
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(path)], check=True)
+        path.chmod(0o755 if folder else 0o644)

@@ -1,9 +1,5 @@
 """Label export and import round trips (JSON, KITTI, npz scenes) and conflict reports."""
 
-import contextlib
-import os
-import subprocess
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -21,6 +17,7 @@ from factorydet_core.session.labels_io import (
 )
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.types import InputError
+from tests.fakes import unwritable
 
 
 @pytest.fixture
@@ -409,21 +406,6 @@ def test_complex_npz_boxes_are_refused_not_cut_to_their_real_part(db, tmp_path):
         import_labels(db, scene, "bob")
 
 
-@contextlib.contextmanager
-def _unwritable_folder(path):
-    """A folder nobody may write in: read-only mode, and for root the immutable attribute too."""
-    path.chmod(0o555)
-    immutable = os.geteuid() == 0
-    if immutable:
-        subprocess.run(["chattr", "+i", str(path)], check=True)
-    try:
-        yield
-    finally:
-        if immutable:
-            subprocess.run(["chattr", "-i", str(path)], check=True)
-        path.chmod(0o755)
-
-
 @pytest.mark.parametrize("fmt", ["json", "kitti", "npz"])
 def test_exports_make_missing_folders_and_name_what_they_cannot_write(db, tmp_path, fmt):
     name = "labels.json" if fmt == "json" else fmt
@@ -437,7 +419,7 @@ def test_exports_make_missing_folders_and_name_what_they_cannot_write(db, tmp_pa
     else:
         (tmp_path / "file").write_text("")
         cases.append(tmp_path / "file")
-    with _unwritable_folder(tmp_path / "locked"):
+    with unwritable(tmp_path / "locked"):
         for target in cases:
             with pytest.raises(InputError) as caught:
                 export_labels(db, fmt, target, [0])

@@ -3,8 +3,6 @@ bad files."""
 
 from __future__ import annotations
 
-import contextlib
-import os
 import signal
 import sqlite3
 import subprocess
@@ -26,7 +24,7 @@ from factorydet_core.session.store import (
 )
 from factorydet_core.training.mining import TrainingRun
 from factorydet_core.types import InputError
-from tests.fakes import mined_item, queue_run
+from tests.fakes import mined_item, queue_run, unwritable
 
 BOX = (1.0, 2.0, 0.5, 1.2, 0.8, 1.0, 0.3)
 
@@ -382,25 +380,9 @@ def test_a_busy_writer_is_a_one_line_error_after_a_bounded_wait(db, dataset, wri
     assert "\n" not in str(caught.value)
 
 
-@contextlib.contextmanager
-def _unwritable(path: Path):
-    """``path`` made unwritable for this process: read-only mode, and for root (who writes any
-    file) the immutable attribute as well."""
-    path.chmod(0o444)
-    immutable = os.geteuid() == 0
-    if immutable:
-        subprocess.run(["chattr", "+i", str(path)], check=True)
-    try:
-        yield
-    finally:
-        if immutable:
-            subprocess.run(["chattr", "-i", str(path)], check=True)
-        path.chmod(0o644)
-
-
 def test_a_read_only_session_file_can_be_read(db, dataset):
     db.labels(0)
-    with _unwritable(db.path):
+    with unwritable(db.path):
         with pytest.raises(OSError):
             db.path.open("ab")  # really unwritable, also for root
         assert len(SessionDB(db.session, dataset, readonly=True).labels(0)) == len(dataset.frame(0).labels)
@@ -774,28 +756,13 @@ def test_an_unusable_data_set_annotation_names_the_data_set_frame_and_box(
 # --- Read-only folders and sessions (issue 29 review) ------------------------------------------
 
 
-@contextlib.contextmanager
-def _unwritable_folder(path: Path):
-    """A folder nobody may write in: read-only mode, and for root the immutable attribute too."""
-    path.chmod(0o555)
-    immutable = os.geteuid() == 0
-    if immutable:
-        subprocess.run(["chattr", "+i", str(path)], check=True)
-    try:
-        yield
-    finally:
-        if immutable:
-            subprocess.run(["chattr", "-i", str(path)], check=True)
-        path.chmod(0o755)
-
-
 def test_a_wal_session_in_a_read_only_folder_can_be_read(db, dataset, tiny_model_path, tmp_path):
     from factorydet_core.session.labels_io import export_labels
 
     db.save_training_run(_fake_run(tiny_model_path), "small", {})
     db.labels(0)
     assert not Path(f"{db.path}-shm").exists()  # every connection closed: no WAL index left
-    with _unwritable_folder(db.session.path):
+    with unwritable(db.session.path):
         with pytest.raises(OSError):
             (db.session.path / "probe").write_text("x")  # really unwritable, also for root
         reader = SessionDB(db.session, dataset, readonly=True)
@@ -820,7 +787,7 @@ def test_a_wal_with_changes_in_a_read_only_folder_is_a_clear_error(db, dataset, 
             shutil.copy(db.session.path / name, copy.path / name)
     finally:
         holder.close()
-    with _unwritable_folder(copy.path):
+    with unwritable(copy.path):
         with pytest.raises(SessionError, match="holds changes not yet written") as caught:
             SessionDB(copy, dataset, readonly=True).labels(0)
     assert "\n" not in str(caught.value)
@@ -838,9 +805,9 @@ def test_a_session_that_cannot_be_written_is_refused_before_training(dataset, tm
     for name, match in (("file", "readonly database"), ("folder", "cannot write in")):
         db = SessionDB(open_session(name, tmp_path), dataset)
         db.labels(0)
-        unwritable = _unwritable(db.path) if name == "file" else _unwritable_folder(db.session.path)
+        locked = unwritable(db.path if name == "file" else db.session.path)
         with (
-            unwritable,
+            locked,
             pytest.raises(SessionError, match=f"session '{name}' cannot be written.*{match}") as exc,
         ):
             retrain_session(db, dataset, LoopSettings(), front_end_params("agv"), mode="full")
