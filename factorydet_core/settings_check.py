@@ -4,7 +4,8 @@ the session database, ``--set KEY=VALUE`` on the command line, a hand-edited JSO
 A ``Setting`` says what kind of value one setting holds and its range; ``check`` returns the value
 as a plain Python value or raises one line of ``InputError`` naming the setting. It lives in the
 base layer so that every stage's settings (the front half's ``FrontEndParams``, the learned stages'
-constructors) are checked by the same rules, wherever they were built from.
+constructors) are checked by the same rules, wherever they were built from. ``short_repr`` and
+``exception_line`` put a value or an exception on one line of such a message.
 """
 
 from __future__ import annotations
@@ -98,10 +99,16 @@ def check_settings(values: Mapping[str, object], settings: Mapping[str, Setting]
     }
 
 
-def short_repr(value: object) -> str:
-    """``repr(value)``, cut to 40 characters (a note may hold a text or a number of any length)."""
+def short_repr(value: object, limit: int = 40) -> str:
+    """``repr(value)`` on one line, cut to ``limit`` characters (a note or a database row may hold
+    a text or a number of any length)."""
     try:
-        text = repr(value)
+        text = " ".join(repr(value).split())
     except Exception:  # a hostile object's own __repr__ may fail; its type is enough to name it
         text = f"<{type(value).__name__}>"
-    return text if len(text) <= 40 else text[:37] + "..."
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def exception_line(exc: BaseException, limit: int | None = None) -> str:
+    """``"Type: message"`` of an exception on one line, cut to ``limit`` characters if given."""
+    return " ".join(f"{type(exc).__name__}: {exc}".split())[:limit]

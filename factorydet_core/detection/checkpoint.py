@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
+from factorydet_core.io.jsonfile import read_json
 from factorydet_core.settings_check import Setting, short_repr
 from factorydet_core.types import InputError
 
@@ -180,16 +181,7 @@ def read_checkpoint_note(path: str | os.PathLike) -> dict:
     note_path = path.with_suffix(".json")
     if not path.is_file() or not note_path.is_file():
         raise InputError(f"{path}: no checkpoint (needs {path.name} and {note_path.name})")
-    try:
-        if note_path.stat().st_size > MAX_NOTE_BYTES:
-            raise InputError(f"{note_path}: checkpoint note larger than {MAX_NOTE_BYTES // 2**20} MB")
-        note = json.loads(note_path.read_bytes())
-    except InputError:  # an InputError is a ValueError: not a malformed note's
-        raise
-    except OSError as exc:
-        raise InputError(f"{note_path}: unreadable checkpoint note ({exc.strerror or exc})") from None
-    except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-        raise InputError(f"{note_path}: malformed checkpoint note ({_first_line(exc)})") from None
+    note = read_json(note_path, what="checkpoint note", max_bytes=MAX_NOTE_BYTES)
     if not isinstance(note, dict):
         raise InputError(f"{note_path}: malformed checkpoint note (not a JSON object)")
     return note

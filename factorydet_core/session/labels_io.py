@@ -34,6 +34,7 @@ from factorydet_core.io.atomic import atomic_path, write_text_atomic
 from factorydet_core.io.npz import load_npz
 from factorydet_core.proposals.merge import merge_frame
 from factorydet_core.session.store import Label, SessionDB, check_box, check_frame_index
+from factorydet_core.settings_check import exception_line
 from factorydet_core.types import InputError
 
 FORMATS = ("json", "kitti", "npz")
@@ -58,7 +59,7 @@ def _writing(target: Path) -> Iterator[None]:
     try:
         yield
     except OSError as exc:
-        raise InputError(f"cannot write {target}: {exc.strerror or _brief(exc)}") from None
+        raise InputError(f"cannot write {target}: {exc.strerror or exception_line(exc, 200)}") from None
 
 
 def _export_folder(folder: str | os.PathLike) -> Path:
@@ -204,7 +205,7 @@ def _json_labels(path: Path, data_hash: str | None) -> list[tuple[int, np.ndarra
     try:
         record = json.loads(path.read_bytes().decode("utf-8"))
     except ValueError as exc:  # not UTF-8, not JSON, an integer of more digits than Python converts
-        raise InputError(f"{path}: not a factorydet label file ({_brief(exc)})") from None
+        raise InputError(f"{path}: not a factorydet label file ({exception_line(exc, 200)})") from None
     except RecursionError:
         raise InputError(f"{path}: not a factorydet label file (nested too deeply)") from None
     if not isinstance(record, dict) or not isinstance(record.get("frames"), list):
@@ -275,7 +276,9 @@ def _npz_labels(path: Path) -> list[tuple[int, np.ndarray, str]]:
             boxes = np.asarray(data["boxes"], np.float64)
             names = [str(n) for n in np.asarray(data["labels"]).reshape(-1)]
         except (TypeError, ValueError) as exc:
-            raise InputError(f"{file}: not a scene file with boxes and labels ({_brief(exc)})") from None
+            raise InputError(
+                f"{file}: not a scene file with boxes and labels ({exception_line(exc, 200)})"
+            ) from None
         if (len(boxes) and (boxes.ndim != 2 or boxes.shape[1] != 7)) or len(boxes) != len(names):
             raise InputError(f"{file}: boxes {boxes.shape} and labels ({len(names)}) do not pair up")
         items += [
@@ -283,10 +286,6 @@ def _npz_labels(path: Path) -> list[tuple[int, np.ndarray, str]]:
             for j, (box, name) in enumerate(zip(boxes.reshape(-1, 7), names, strict=True))
         ]
     return items
-
-
-def _brief(exc: BaseException) -> str:
-    return " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
 
 
 def read_labels(
@@ -323,7 +322,7 @@ def read_labels(
             return _kitti_labels(path)
         return _npz_labels(path)
     except OSError as exc:  # a folder where a file was expected, a file that cannot be read
-        raise InputError(f"{path}: cannot read the labels ({_brief(exc)})") from None
+        raise InputError(f"{path}: cannot read the labels ({exception_line(exc, 200)})") from None
 
 
 _VOLUME_CLASSES_APART = int(np.ceil(np.log2(1 / min(CONFLICT_IOU, DUPLICATE_IOU)))) + 1

@@ -42,6 +42,7 @@ from pathlib import Path
 
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.io.dataset import MANIFEST, Dataset, open_dataset
+from factorydet_core.settings_check import exception_line, short_repr
 from factorydet_core.types import InputError
 
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
@@ -91,12 +92,6 @@ MAX_STORED_VALUE = 1e9
 bounds above, yet small enough that volumes and IoUs of such boxes stay finite numbers."""
 
 
-def _short(value, limit: int = 80) -> str:
-    """``repr(value)`` on one line, cut to ``limit`` characters (for error messages)."""
-    text = " ".join(repr(value).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def _box_values(box, where: str) -> list[float]:
     """``box`` as 7 finite floats; anything but 7 real numbers is refused, not converted (``true``,
     ``"1"`` and complex numbers included: ``float`` would take the first two and numpy would drop
@@ -107,7 +102,7 @@ def _box_values(box, where: str) -> list[float]:
         items = None
     if items is None or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in items):
         raise SessionError(
-            f"{where}: a box is 7 numbers (cx, cy, cz, dx, dy, dz, yaw), got {_short(box, 80)}"
+            f"{where}: a box is 7 numbers (cx, cy, cz, dx, dy, dz, yaw), got {short_repr(box, 80)}"
         )
     try:
         values = [float(v) for v in items]
@@ -115,7 +110,7 @@ def _box_values(box, where: str) -> list[float]:
         values = [math.inf]
     if len(values) != 7 or not all(map(math.isfinite, values)):
         raise SessionError(
-            f"{where}: a box is 7 finite numbers (cx, cy, cz, dx, dy, dz, yaw), got {_short(box, 80)}"
+            f"{where}: a box is 7 finite numbers (cx, cy, cz, dx, dy, dz, yaw), got {short_repr(box, 80)}"
         )
     return values
 
@@ -168,7 +163,7 @@ def usable_box(box, where: str = "box") -> list[float]:
     if any(v < 0 for v in values[3:6]):
         raise SessionError(f"{where}: box sizes must not be negative, got {values[3:6]}")
     if any(abs(v) > MAX_STORED_VALUE for v in values):
-        raise SessionError(f"{where}: a box number beyond +-{MAX_STORED_VALUE:g}, got {_short(box, 80)}")
+        raise SessionError(f"{where}: a box number beyond +-{MAX_STORED_VALUE:g}, got {short_repr(box, 80)}")
     values[3:6] = [max(v, MIN_BOX_SIZE) for v in values[3:6]]
     return _wrapped(values)
 
@@ -181,11 +176,11 @@ def check_frame_index(value, where: str = "frame index") -> int:
             and ``true`` would otherwise be truncated to frame 1), or a negative index.
     """
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise SessionError(f"{where}: a frame index is an integer, got {_short(value, 40)}")
+        raise SessionError(f"{where}: a frame index is an integer, got {short_repr(value)}")
     if not isinstance(value, numbers.Integral) and not (math.isfinite(value) and float(value).is_integer()):
-        raise SessionError(f"{where}: a frame index is an integer, got {_short(value, 40)}")
+        raise SessionError(f"{where}: a frame index is an integer, got {short_repr(value)}")
     if not 0 <= value <= MAX_FRAME_INDEX:
-        raise SessionError(f"{where}: a frame index lies in [0, {MAX_FRAME_INDEX}], got {_short(value, 40)}")
+        raise SessionError(f"{where}: a frame index lies in [0, {MAX_FRAME_INDEX}], got {short_repr(value)}")
     return int(value)
 
 
@@ -482,7 +477,7 @@ def _loads(text, what: str):
         return json.loads(text)
     except (TypeError, ValueError, RecursionError):
         raise SessionError(
-            f"the session database is damaged: {what} is not valid JSON ({_short(text, 60)})"
+            f"the session database is damaged: {what} is not valid JSON ({short_repr(text, 60)})"
         ) from None
 
 
@@ -495,7 +490,7 @@ def _loads(text, what: str):
 
 def _integer(value) -> int:
     if not isinstance(value, int) or isinstance(value, bool):
-        raise ValueError(f"{_short(value, 40)} is not an integer")
+        raise ValueError(f"{short_repr(value)} is not an integer")
     return value
 
 
@@ -507,13 +502,13 @@ def _flag(value) -> int:
 
 def _real(value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{_short(value, 40)} is not a finite number")
+        raise ValueError(f"{short_repr(value)} is not a finite number")
     return float(value)
 
 
 def _text(value) -> str:
     if not isinstance(value, str):
-        raise ValueError(f"{_short(value, 40)} is not text")
+        raise ValueError(f"{short_repr(value)} is not text")
     return value
 
 
@@ -531,7 +526,7 @@ def _optional(check: Callable) -> Callable:
 def _choice(options: tuple) -> Callable:
     def check(value):
         if isinstance(value, bool) or value not in options:
-            raise ValueError(f"{_short(value, 40)} is not one of {', '.join(map(str, options))}")
+            raise ValueError(f"{short_repr(value)} is not one of {', '.join(map(str, options))}")
         return value
 
     return check
@@ -546,7 +541,7 @@ def _json(value):
     except RecursionError:
         raise ValueError("is JSON nested too deeply") from None
     except ValueError:
-        raise ValueError(f"{_short(value, 40)} is not valid JSON") from None
+        raise ValueError(f"{short_repr(value)} is not valid JSON") from None
 
 
 def _json_of(kind: type, item: Callable | None = None) -> Callable:
@@ -555,7 +550,7 @@ def _json_of(kind: type, item: Callable | None = None) -> Callable:
     def check(value):
         decoded = _json(value)
         if not isinstance(decoded, kind):
-            raise ValueError(f"{_short(value, 40)} is not a JSON {kind.__name__}")
+            raise ValueError(f"{short_repr(value)} is not a JSON {kind.__name__}")
         if item is not None:
             decoded = [item(v) for v in decoded]
         return decoded
@@ -683,7 +678,7 @@ def _row(table: str, row: sqlite3.Row | dict, where: str | None = None) -> dict:
                 out[column] = checks[column](value)
             except (TypeError, ValueError) as exc:
                 if where is None:
-                    where = f"{table} row {_short(out.get(_ROW_ID.get(table, 'id')), 24)}"
+                    where = f"{table} row {short_repr(out.get(_ROW_ID.get(table, 'id')), 24)}"
                 raise SessionError(f"the session database is damaged: {where}, {column}: {exc}") from None
     return out
 
@@ -702,10 +697,6 @@ _CONTENT = {
     "reviews": ("verdict", "class_name", "label_id"),
 }
 _KEYS = {"labels": "id", "reviews": "negative_id"}
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(f"{type(exc).__name__}: {exc}".split())
 
 
 def _is_busy(exc: Exception) -> bool:
@@ -808,7 +799,7 @@ def check_database(path: str | os.PathLike, timeout: float | None = None) -> int
             readable = "" if os.access(path, os.R_OK) else "; the file is not readable by you"
             raise SessionError(f"{path}: cannot open the session database ({exc}{readable})") from None
         raise SessionError(
-            f"{path}: not a readable session database ({_one_line(exc)}); it was not modified"
+            f"{path}: not a readable session database ({exception_line(exc)}); it was not modified"
         ) from None
     finally:
         if connection is not None:
@@ -891,7 +882,7 @@ class SessionDB:
                 f"session {self.session.name!r} is busy: another process has held its database for over"
                 f" {self.timeout:g} s; try again when it is done"
             )
-        return SessionError(f"{self.path}: the session database failed ({_one_line(exc)})")
+        return SessionError(f"{self.path}: the session database failed ({exception_line(exc)})")
 
     @contextlib.contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
@@ -1003,7 +994,7 @@ class SessionDB:
             except OSError as exc:
                 raise SessionError(
                     f"session {self.session.name!r} cannot be written: cannot write in {folder}"
-                    f" ({exc.strerror or _one_line(exc)})"
+                    f" ({exc.strerror or exception_line(exc)})"
                 ) from None
         try:
             with self._write() as db:
@@ -1028,7 +1019,7 @@ class SessionDB:
             return tuple(self.dataset.class_names)
         names = _loads(self.meta().get("class_names", "[]"), "the class names")
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-            raise SessionError(f"the session database is damaged: class names {_short(names, 60)}")
+            raise SessionError(f"the session database is damaged: class names {short_repr(names, 60)}")
         return tuple(names)
 
     def _check_class(self, class_name: str, names: tuple[str, ...] | None = None) -> str:
@@ -1037,7 +1028,7 @@ class SessionDB:
         names = self.class_names if names is None else names
         if class_name not in names:
             choose = f"choose from {', '.join(names)}" if names else "the data set names no classes"
-            raise SessionError(f"unknown class {_short(class_name, 40)}; {choose}")
+            raise SessionError(f"unknown class {short_repr(class_name)}; {choose}")
         return class_name
 
     def _label(self, row: sqlite3.Row | dict, names: tuple[str, ...]) -> Label:
@@ -1047,7 +1038,7 @@ class SessionDB:
         if label.class_name not in names:
             raise SessionError(
                 f"the session database is damaged: labels row {label.id}, class_name:"
-                f" {_short(label.class_name, 40)} is not one of the session's classes {list(names)}"
+                f" {short_repr(label.class_name)} is not one of the session's classes {list(names)}"
             )
         return label
 
@@ -1426,10 +1417,12 @@ class SessionDB:
             place = f"edits row {edit['id']}, change {k}"
             where = f"the session database is damaged: {place}"
             if not isinstance(change, dict) or set(change) != {"table", "key", "before", "after"}:
-                raise SessionError(f"{where} is {_short(change, 60)}, not a change of a row")
+                raise SessionError(f"{where} is {short_repr(change, 60)}, not a change of a row")
             table = change["table"]
             if table not in _CONTENT:
-                raise SessionError(f"{where} names the table {_short(table, 30)}, not one an edit changes")
+                raise SessionError(
+                    f"{where} names the table {short_repr(table, 30)}, not one an edit changes"
+                )
             try:
                 _integer(change["key"])
             except ValueError as exc:
@@ -1439,7 +1432,7 @@ class SessionDB:
                 if content is None and table == "reviews":  # no verdict on that side
                     continue
                 if not isinstance(content, dict) or set(content) != set(_CONTENT[table]):
-                    raise SessionError(f"{where}, {side}: {_short(content, 60)} is not a {table} row")
+                    raise SessionError(f"{where}, {side}: {short_repr(content, 60)} is not a {table} row")
                 _row(table, content, where=f"{place}, {side} ({table} row {change['key']})")
                 frame = content.get("frame_index")
                 if frame is not None and self.dataset is not None and frame >= self.dataset.num_frames:
@@ -1449,7 +1442,7 @@ class SessionDB:
                     )
                 if content["class_name"] is not None and content["class_name"] not in names:
                     raise SessionError(
-                        f"{where}, {side}: class {_short(content['class_name'], 40)} is not one of the"
+                        f"{where}, {side}: class {short_repr(content['class_name'])} is not one of the"
                         f" session's {list(names)}"
                     )
         return edit["changes"]
@@ -1542,7 +1535,7 @@ class SessionDB:
             if not isinstance(label, dict) or set(label) != set(_SNAPSHOT_LABEL):
                 raise SessionError(
                     f"the session database is damaged: label_snapshots row {snapshot_id}, labels:"
-                    f" {_short(label, 60)} is not a label"
+                    f" {short_repr(label, 60)} is not a label"
                 )
             _row("labels", label, where=f"label_snapshots row {snapshot_id}, label {k}")
         return {
@@ -1655,7 +1648,11 @@ class SessionDB:
             ]
             for run in runs:
                 run["rounds"] = [
-                    _row("training_rounds", r, f"training_rounds row ({run['id']}, {_short(r['round'], 20)})")
+                    _row(
+                        "training_rounds",
+                        r,
+                        f"training_rounds row ({run['id']}, {short_repr(r['round'], 20)})",
+                    )
                     for r in db.execute(
                         "SELECT * FROM training_rounds WHERE run_id = ? ORDER BY round", (run["id"],)
                     )

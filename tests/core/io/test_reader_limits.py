@@ -17,7 +17,9 @@ import time
 import tracemalloc
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import laspy
 import lazrs
@@ -55,6 +57,20 @@ def refused(path: Path, **kwargs) -> str:
     message = str(info.value)
     assert "\n" not in message and path.name in message, message
     return message
+
+
+T = TypeVar("T")
+
+
+def traced_peak(call: Callable[[], T]) -> tuple[T, int]:
+    """``call()``'s result and the peak bytes Python allocated while it ran (tracemalloc)."""
+    tracemalloc.start()
+    try:
+        result = call()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return result, peak
 
 
 def written(folder: Path, name: str, num: int = 200) -> Path:
@@ -154,12 +170,7 @@ def test_every_reader_estimates_at_least_its_peak(
     monkeypatch.setattr(npz_module, "check_read_bytes", spy)
     read_frame(path)  # imports and caches first
     estimates.clear()
-    tracemalloc.start()
-    try:
-        read_frame(path)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    _, peak = traced_peak(lambda: read_frame(path))
     (estimate,) = estimates
     assert peak <= estimate <= 4 * peak, (peak, estimate)
     assert "allowed for one read" in refused(path, max_read_bytes=estimate - 1)
@@ -389,12 +400,7 @@ def test_zero_filled_npz_bomb_is_refused_before_inflating(tmp_path: Path) -> Non
         assert archive.getinfo("points.npy").file_size > n * 24
         with archive.open("intensity.npy") as member:
             assert member.read(1 << 20).count(0) > (1 << 20) - 200
-    tracemalloc.start()
-    try:
-        message = refused(path)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    message, peak = traced_peak(lambda: refused(path))
     assert "bytes inflated" in message and f"more than {MAX_INFLATION}x" in message
     assert peak < 10 * 2**20
     # Even where the ratio allows it, the byte budget refuses what the arrays and copies need.
@@ -429,12 +435,7 @@ def test_laz_claiming_20_million_records_is_refused_before_decoding(
         raise AssertionError("the decoder was started")
 
     monkeypatch.setattr(readers_module.subprocess, "Popen", no_child)
-    tracemalloc.start()
-    try:
-        message = refused(path)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    message, peak = traced_peak(lambda: refused(path))
     assert "corrupt LAZ: 20000000 point records claim 4680000000 bytes inflated" in message
     assert peak < 10 * 2**20
 
