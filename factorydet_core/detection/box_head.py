@@ -44,7 +44,6 @@ from factorydet_core.detection.checkpoint import (
     MAX_SEED,
     check_class_names,
     check_note_record,
-    load_weights,
     read_checkpoint_note,
     write_checkpoint,
 )
@@ -863,15 +862,7 @@ class BoxHead(ClassOutputs):
         holds the JSON note. The note is checked before the network is built (``from_note``), and
         the weights' shapes against the network's."""
         meta = read_checkpoint_note(path)
-        head = cls.from_note(meta, Path(path).with_suffix(".json"))
-        network = load_weights(head._new_network(), path)
-        head.network_ = network
-        head.history_ = meta.get("history", [])
-        head.fit_seconds_ = float(meta.get("fit_seconds", 0.0))
-        head.num_parameters_ = count_parameters(network)
-        head.train_counts_ = meta.get("train_counts", {})
-        head.note_ = meta
-        return head
+        return cls.from_note(meta, Path(path).with_suffix(".json")).with_weights(path, meta)
 
 
 def _note_array(value: object, dtype: type, shape: tuple[int, ...], name: str) -> np.ndarray:

@@ -237,6 +237,18 @@ class ClassOutputs:
     def get_params(self) -> dict:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
+    def with_weights(self, path: str | os.PathLike, meta: dict):
+        """This unfitted model (``from_note(meta, ...)``) fitted with the weights at ``path``
+        (checked against its network, ``checkpoint.load_weights``) and its note's records;
+        ``note_`` holds the note. Returns ``self``."""
+        self.network_ = load_weights(self._new_network(), path)
+        self.history_ = meta.get("history", [])
+        self.fit_seconds_ = float(meta.get("fit_seconds", 0.0))
+        self.num_parameters_ = count_parameters(self.network_)
+        self.train_counts_ = meta.get("train_counts", {})
+        self.note_ = meta
+        return self
+
 
 @dataclasses.dataclass
 class ProposalClassifier(ClassOutputs):
@@ -483,13 +495,10 @@ class ProposalClassifier(ClassOutputs):
         The note is checked before the network is built (``from_note``), and the weights' shapes
         against the network's (``checkpoint.read_state_dict``)."""
         meta = read_checkpoint_note(path)
-        model = cls.from_note(meta, Path(path).with_suffix(".json"))
-        network = load_weights(model._new_network(), path)
-        model.network_ = network
-        model.history_ = meta.get("history", [])
-        model.fit_seconds_ = float(meta.get("fit_seconds", 0.0))
-        model.num_parameters_ = count_parameters(network)
-        model.train_hash_ = meta.get("train_hash", "")
-        model.train_counts_ = meta.get("train_counts", {})
-        model.note_ = meta
-        return model
+        return cls.from_note(meta, Path(path).with_suffix(".json")).with_weights(path, meta)
+
+    def with_weights(self, path: str | os.PathLike, meta: dict) -> ProposalClassifier:
+        """``ClassOutputs.with_weights``, and the hash of the data it was trained on."""
+        super().with_weights(path, meta)
+        self.train_hash_ = meta.get("train_hash", "")
+        return self

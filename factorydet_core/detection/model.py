@@ -162,7 +162,8 @@ class DetectionModel:
         note = read_checkpoint_note(path)
         note_path = Path(path).with_suffix(".json")
         kind = BoxHead if _is_box_head(note, note_path) else ProposalClassifier
-        class_names = kind.from_note(note, note_path).class_names
+        unfitted = kind.from_note(note, note_path)
+        class_names = unfitted.class_names
         try:
             prior = _box_prior_from_note(note.get("box_prior"), len(class_names))
             fields = {
@@ -194,7 +195,8 @@ class DetectionModel:
                     f"{quality_path(path)}: the regressor reads {box_quality.num_features_} features where"
                     f" this model's {len(class_names)} classes give {expected}"
                 )
-        classifier = kind.load(path)
+        # The note read and checked once above is the one the classifier keeps.
+        classifier = unfitted.with_weights(path, note)
         return cls(classifier=classifier, box_prior=prior, box_quality=box_quality, **fields)
 
     @property
