@@ -3,17 +3,35 @@ classifier and NMS when the app has a model).
 
 Requests come from state changes (frame, parameters); only the latest matters, so a request that
 arrives while a frame computes replaces any waiting one, and a result that is stale when it
-finishes is dropped. The GUI thread never computes.
+finishes is kept for later but not shown. The GUI thread never computes.
+
+Results are kept for the last few frames (``CACHED_RESULTS``), and while nothing is asked for the
+worker computes the shown frame's next and previous ones ahead (``PREFETCH_OFFSETS``, not while a
+training runs): flipping through frames shows a cached frame at once, and an asked-for frame that
+is being computed ahead is taken over rather than started again. A computation ahead gives way to
+a request for another frame at its next stage.
 """
 
 from __future__ import annotations
 
+import collections
 import threading
 import traceback
 
 from factorydet_core.detection.detector import Detector
 
 from .state import AppState
+
+CACHED_RESULTS = 5
+"""Results kept (the shown frame, the ones computed ahead, the last few shown); an 80k-point
+frame's result with its voxel features is some 20-60 MB."""
+
+PREFETCH_OFFSETS = (1, -1)
+"""Frames computed ahead, relative to the shown one, in this order."""
+
+
+class _GaveWayError(Exception):
+    """A computation ahead stops for a request of another frame."""
 
 
 class PipelineWorker:
@@ -29,6 +47,9 @@ class PipelineWorker:
         self.state = state
         self.calibrate = calibrate
         self._refined_extrinsics = None
+        self._cache: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
+        self._cache_lock = threading.Lock()
+        self._ahead_key: tuple | None = None  # what is being computed ahead, if anything
         self._pending = False
         self._stopped = False
         self._wake = threading.Condition()
@@ -42,12 +63,56 @@ class PipelineWorker:
 
     def maybe_request(self) -> None:
         """Request a run when the state's frame or parameters differ from the last result's (and
-        from the last failed run's, which is not retried until something changes)."""
+        from the last failed run's, which is not retried until something changes). A result in
+        the cache is shown at once, on the calling thread."""
         key = self.state.pipeline_key()
         with self.state.lock:
             done = key in (self.state.pipeline_result_key, self.state.pipeline_failed_key)
-        if not done:
-            self.request()
+            busy = self.state.pipeline_busy
+        if done:
+            with self._cache_lock:
+                computing_ahead = self._ahead_key is not None
+            if busy and computing_ahead:
+                # Back to the shown frame from one that was being computed ahead: nothing the user
+                # waits for is running.
+                self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
+            return
+        if self._publish_cached(key):
+            self.request()  # the worker goes on computing ahead of the new frame
+            return
+        with self._cache_lock:
+            taken_over = key == self._ahead_key
+        if taken_over and not busy:  # (setting the progress notifies, which calls this again)
+            self.state.set_pipeline_progress(f"frame {key[0] + 1}: computing (started ahead)", 0.5)
+        self.request()
+
+    def cached_frames(self) -> list[int]:
+        """The frames whose results are cached for the state's current parameters and model."""
+        current = self.state.pipeline_key()[1:]
+        with self._cache_lock:
+            return sorted(key[0] for key in self._cache if key[1:] == current)
+
+    def _publish_cached(self, key: tuple) -> bool:
+        with self._cache_lock:
+            entry = self._cache.get(key)
+            if entry is not None:
+                self._cache.move_to_end(key)
+        if entry is None:
+            return False
+        kind, result, status = entry
+        status = f"{status} (from the cache)"
+        if kind == "detection":
+            self.state.set_detection_result(key, result, status)
+        else:
+            self.state.set_pipeline_result(key, result, status)
+        return True
+
+    def _remember(self, key: tuple, kind: str, result, status: str) -> None:
+        with self._cache_lock:
+            self._cache[key] = (kind, result, status)
+            self._cache.move_to_end(key)
+            while len(self._cache) > CACHED_RESULTS:
+                self._cache.popitem(last=False)
 
     def stop(self) -> None:
         with self._wake:
@@ -63,15 +128,53 @@ class PipelineWorker:
                 self._pending = False
             key = self.state.pipeline_key()
             with self.state.lock:
-                if key in (self.state.pipeline_result_key, self.state.pipeline_failed_key):
-                    continue
-            try:
-                self._compute(key)
-            except Exception as exc:  # keep the app alive; show what went wrong
-                traceback.print_exc()
-                self.state.set_pipeline_failed(key, f"failed: {exc}")
+                done = key in (self.state.pipeline_result_key, self.state.pipeline_failed_key)
+            if not done and not self._publish_cached(key):
+                try:
+                    self._compute(key)
+                except Exception as exc:  # keep the app alive; show what went wrong
+                    traceback.print_exc()
+                    self.state.set_pipeline_failed(key, f"failed: {exc}")
+            self._compute_ahead()
 
-    def _compute(self, key: tuple) -> None:
+    def _compute_ahead(self) -> None:
+        """Compute the shown frame's neighbours into the cache until a request comes."""
+        key = self.state.pipeline_key()
+        with self.state.lock:
+            if self.state.training_busy or key != self.state.pipeline_result_key:
+                return
+        num_frames = self.state.dataset.num_frames
+        for offset in PREFETCH_OFFSETS:
+            index = key[0] + offset
+            ahead = (index, *key[1:])
+            with self._cache_lock:
+                cached = ahead in self._cache
+            if cached or not 0 <= index < num_frames:
+                continue
+            with self._wake:
+                if self._pending or self._stopped:
+                    return
+            with self._cache_lock:
+                self._ahead_key = ahead
+            try:
+                self._compute(ahead, ahead=True)
+            except _GaveWayError:
+                return
+            except Exception:  # the frame's own run, when asked for, reports what went wrong
+                traceback.print_exc()
+                return
+            finally:
+                with self._cache_lock:
+                    self._ahead_key = None
+
+    def _shown(self, key: tuple) -> bool:
+        """Whether ``key`` is what the state asks for now."""
+        return self.state.pipeline_key() == key
+
+    def _compute(self, key: tuple, ahead: bool = False) -> None:
+        """Compute ``key``'s result into the cache and show it if it is still asked for. Ahead of
+        a request (``ahead``), progress stays quiet until the frame is asked for, and a request
+        for another frame stops the work at the next stage (``_GaveWayError``)."""
         frame_index, params, use_refined, _ = key
         dataset = self.state.dataset
         if use_refined and self.calibrate and dataset.num_sensors > 1 and self._refined_extrinsics is None:
@@ -85,22 +188,20 @@ class PipelineWorker:
         history = [dataset.frame(i) for i in range(first, frame_index)]
 
         def progress(stage: str, fraction: float) -> None:
+            if ahead and not self._shown(key):
+                with self._wake:
+                    if self._pending or self._stopped:
+                        raise _GaveWayError
+                return
             self.state.set_pipeline_progress(f"frame {frame_index + 1}: {stage} done", fraction)
 
-        self.state.set_pipeline_progress(f"frame {frame_index + 1}: merging", 0.05)
+        if not ahead:
+            self.state.set_pipeline_progress(f"frame {frame_index + 1}: merging", 0.05)
         if detector.model is not None:
             detection = detector.detect(frame, history, progress=progress)
             result = detection.proposal
         else:
             detection, result = None, detector.propose(frame, history, progress=progress)
-        if self.state.pipeline_key() != key:
-            # The user moved on: a newer request is queued, unless they came back to the frame
-            # and parameters of the result already shown, which is then current again.
-            with self.state.lock:
-                back_to_shown = self.state.pipeline_result_key == self.state.pipeline_key()
-            if back_to_shown:
-                self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
-            return
         segmentation = result.segmentation
         status = (
             f"frame {frame_index + 1}: {len(result.proposals):,} proposals, {segmentation.num_segments:,} "
@@ -108,8 +209,19 @@ class PipelineWorker:
             f"{result.timings_ms['total'] / 1000:.1f} s"
             + (" (refined extrinsics)" if extrinsics is not None else "")
         )
-        if detection is None:
-            self.state.set_pipeline_result(key, result, status)
+        if detection is not None:
+            status += f"; classified and NMS in {detection.timings_ms['total'] / 1000:.1f} s in all"
+        kind, kept = ("proposal", result) if detection is None else ("detection", detection)
+        self._remember(key, kind, kept, status)
+        if not self._shown(key):
+            # The user moved on: a newer request is queued, unless they came back to the frame
+            # and parameters of the result already shown, which is then current again.
+            with self.state.lock:
+                back_to_shown = self.state.pipeline_result_key == self.state.pipeline_key()
+            if back_to_shown and not ahead:
+                self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
             return
-        status += f"; classified and NMS in {detection.timings_ms['total'] / 1000:.1f} s in all"
-        self.state.set_detection_result(key, detection, status)
+        if kind == "detection":
+            self.state.set_detection_result(key, kept, status)
+        else:
+            self.state.set_pipeline_result(key, kept, status)

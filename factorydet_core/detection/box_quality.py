@@ -251,6 +251,12 @@ class BoxQuality:
         visibility: the regressor also reads how much of each option the frame's rays saw empty
             or occupied (``VISIBILITY_FEATURE_NAMES``; the point sets' groups must carry their
             frame's ``free_space``). Checkpoints from before it load with ``False``.
+        screen_trees: at inference, ``predict_best`` first sums this many trees over every option
+            and walks the rest only for each set's ``screen_keep`` best by that partial sum
+            (0: every tree over every option). The choice and the predicted IoU of an option it
+            keeps are those of the full walk, bit for bit; a set's choice differs only when its
+            best option ranks below ``screen_keep`` after ``screen_trees`` trees.
+        screen_keep: options per set that the screen keeps.
     """
 
     background_rate: float = 0.1
@@ -261,6 +267,8 @@ class BoxQuality:
     seed: int = 0
     anchored: bool = True
     visibility: bool = True
+    screen_trees: int = 0
+    screen_keep: int = 32
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.background_rate <= 1.0:
@@ -271,6 +279,12 @@ class BoxQuality:
             raise InputError(f"max_iter must be >= 1, got {self.max_iter}")
         if self.max_leaf_nodes < 2:
             raise InputError(f"max_leaf_nodes must be >= 2, got {self.max_leaf_nodes}")
+        for name in ("screen_trees", "screen_keep"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+                raise InputError(f"{name} must be an integer >= 0, got {value!r}")
+        if self.screen_trees and self.screen_keep < 1:
+            raise InputError("screen_keep must be >= 1 when screen_trees is on")
 
     def training_rows(
         self,
@@ -366,6 +380,42 @@ class BoxQuality:
             )
         return np.clip(_evaluate_trees(self.trees_, features), 0.0, 1.0)
 
+    def predict_best(self, features: np.ndarray, owners: np.ndarray) -> np.ndarray:
+        """(R,) predicted IoUs of (R, F) option features of the sets ``owners`` (R,) names, each
+        set's best option's exactly as ``predict`` gives it, with the screen (``screen_trees``,
+        ``screen_keep``): options it drops get -1, below every prediction. Without it, ``predict``.
+        """
+        num_trees = len(self.trees_["roots"])
+        if not self.screen_trees or self.screen_trees >= num_trees:
+            return self.predict(features)
+        features = np.asarray(features, np.float64)
+        owners = np.asarray(owners, np.int64)
+        if features.ndim != 2 or features.shape[1] != self.num_features_ or owners.shape != (len(features),):
+            raise InputError(
+                f"box quality: expected (R, {self.num_features_}) features and (R,) owners, got"
+                f" {features.shape} and {owners.shape}"
+            )
+        partial = _evaluate_trees(self.trees_, features, last_tree=self.screen_trees)
+        # Each set's rows by falling partial sum; the first screen_keep of each set walk on.
+        order = np.lexsort((-partial, owners))
+        sorted_owners = owners[order]
+        starts = np.flatnonzero(np.r_[True, sorted_owners[1:] != sorted_owners[:-1]])
+        rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+        kept = np.sort(order[rank < self.screen_keep])
+        out = np.full(len(features), -1.0)
+        out[kept] = np.clip(
+            _evaluate_trees(self.trees_, features[kept], first_tree=self.screen_trees, initial=partial[kept]),
+            0.0,
+            1.0,
+        )
+        return out
+
+    def with_screen(self, screen_trees: int, screen_keep: int) -> BoxQuality:
+        """A copy of this fitted regressor that screens options as given (``screen_trees`` 0: off)."""
+        screened = dataclasses.replace(self, screen_trees=screen_trees, screen_keep=screen_keep)
+        screened.trees_, screened.num_features_ = self.trees_, self.num_features_
+        return screened
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The fitted trees as plain arrays (for ``np.savez``; ``from_arrays`` reads them back)."""
         return {
@@ -373,6 +423,8 @@ class BoxQuality:
             "num_features": np.array(self.num_features_),
             "anchored": np.array(self.anchored),
             "visibility": np.array(self.visibility),
+            "screen_trees": np.array(self.screen_trees),
+            "screen_keep": np.array(self.screen_keep),
         }
 
     @classmethod
@@ -392,9 +444,11 @@ class BoxQuality:
             if not 1 <= int(num_features) <= MAX_FEATURES:
                 raise InputError(f"num_features must lie in [1, {MAX_FEATURES}], got {int(num_features)}")
             trees = _check_trees({key: np.asarray(arrays[key]) for key in _TREE_KEYS}, int(num_features))
+            screen = {name: _count(arrays, name) for name in ("screen_trees", "screen_keep")}
+            screen = {name: value for name, value in screen.items() if value is not None}
+            model = cls(**flags, **screen)
         except InputError as exc:
             raise InputError(f"{where}: {exc}") from None
-        model = cls(**flags)
         model.trees_ = trees
         model.num_features_ = int(num_features)
         return model
@@ -427,7 +481,7 @@ classes, and under 300 for ``checkpoint.MAX_CLASSES``)."""
 MAX_FILE_BYTES = 2**30
 
 _TREE_KEYS = ("feature", "threshold", "left", "right", "is_leaf", "value", "roots", "baseline")
-_SCALAR_KEYS = ("num_features", "anchored", "visibility")
+_SCALAR_KEYS = ("num_features", "anchored", "visibility", "screen_trees", "screen_keep")
 
 
 def _flag(arrays: Mapping[str, np.ndarray], name: str) -> bool:
@@ -438,6 +492,18 @@ def _flag(arrays: Mapping[str, np.ndarray], name: str) -> bool:
     if value.shape != () or value.dtype.kind != "b":
         raise InputError(f"{name} must be a boolean, got {value.dtype} {value.shape}")
     return bool(value)
+
+
+def _count(arrays: Mapping[str, np.ndarray], name: str) -> int | None:
+    """A non-negative integer scalar of ``arrays``; ``None`` when missing (files from before it)."""
+    if name not in arrays:
+        return None
+    value = np.asarray(arrays[name])
+    if value.shape != () or value.dtype.kind not in "iu":
+        raise InputError(f"{name} must be an integer, got {value.dtype} {value.shape}")
+    if not 0 <= int(value) <= MAX_TREE_NODES:
+        raise InputError(f"{name} must lie in [0, {MAX_TREE_NODES}], got {int(value)}")
+    return int(value)
 
 
 def _check_trees(trees: dict[str, np.ndarray], num_features: int) -> dict[str, np.ndarray]:
@@ -546,25 +612,38 @@ def _export_trees(regressor) -> dict[str, np.ndarray]:
     return out
 
 
-def _evaluate_trees(trees: dict[str, np.ndarray], features: np.ndarray) -> np.ndarray:
+def _evaluate_trees(
+    trees: dict[str, np.ndarray],
+    features: np.ndarray,
+    first_tree: int = 0,
+    last_tree: int | None = None,
+    initial: np.ndarray | None = None,
+) -> np.ndarray:
     """The baseline plus every tree's leaf value, as scikit-learn adds them (in tree order, so the
     sums are those of one row at a time): compiled by numba, blocks of rows split over the cores,
     each block walking one tree at a time while that tree is in cache, with each node's split
     feature (-1 at a leaf) and children packed together. Several times faster than the vectorised
     walk of ``_evaluate_trees_numpy``, and 1.6 times faster than walking every tree per row
     (measured on a bench frame's 674k options). Features are finite, so the missing-value branch
-    of a split never applies."""
+    of a split never applies.
+
+    With ``first_tree``, ``last_tree`` and ``initial`` ((R,) sums so far), only trees
+    ``first_tree:last_tree`` are added to ``initial``: a sum continued this way is bit for bit the
+    sum of one walk over all trees (``BoxQuality.predict_best`` relies on it).
+    """
     split_feature = np.where(trees["is_leaf"], -1, trees["feature"]).astype(np.int32)
     children = np.stack([trees["left"], trees["right"]], axis=1).astype(np.int32)
+    if initial is None:
+        initial = np.full(len(features), float(trees["baseline"][0]))
     return run_kernel(
         _compile_walk,
         np.ascontiguousarray(features, np.float64),
-        trees["roots"].astype(np.int64),
+        trees["roots"][first_tree:last_tree].astype(np.int64),
         split_feature,
         children,
         trees["threshold"].astype(np.float64),
         trees["value"].astype(np.float64),
-        float(trees["baseline"][0]),
+        np.ascontiguousarray(initial, np.float64),
     )
 
 
@@ -574,12 +653,12 @@ def _compile_walk():
     block = 1024  # rows per block: a few hundred kB of features, while one tree stays in L1
 
     @numba.njit(parallel=True, cache=True, nogil=True)
-    def walk(features, roots, split_feature, children, threshold, value, baseline):
+    def walk(features, roots, split_feature, children, threshold, value, initial):
         num_rows = features.shape[0]
         total = np.empty(num_rows)
         for b in numba.prange((num_rows + block - 1) // block):
             lo, hi = b * block, min((b + 1) * block, num_rows)
-            acc = np.full(hi - lo, baseline)
+            acc = initial[lo:hi].copy()
             for t in range(roots.shape[0]):
                 for r in range(lo, hi):
                     node = roots[t]
@@ -671,7 +750,7 @@ def choose_boxes(
     if not len(chosen):
         return boxes, proposal_ids, predicted
     options, owner, source = np.concatenate(all_options), np.concatenate(owners), np.concatenate(sources)
-    iou = quality.predict(np.concatenate(all_features))
+    iou = quality.predict_best(np.concatenate(all_features), owner)
     # Best option per set: sort by (set, -iou) and take each set's first row.
     order = np.lexsort((-iou, owner))
     first = order[np.concatenate([[0], np.flatnonzero(np.diff(owner[order])) + 1])]

@@ -1,14 +1,19 @@
-"""The background worker: latest request wins, failures are shown and not retried in a loop."""
+"""The background worker: latest request wins, failures are shown and not retried in a loop, the
+next and previous frames are computed ahead and a cached frame shows at once."""
 
 from __future__ import annotations
 
 import threading
 import time
 
+import numpy as np
+
 from app.state import AppState
 from app.worker import PipelineWorker
 from factorydet_core.detection import detector as detector_module
 from factorydet_core.io.dataset import open_dataset
+
+from .polling import wait
 
 
 def _wire(state: AppState, worker: PipelineWorker) -> None:
@@ -64,6 +69,72 @@ def test_coming_back_to_the_shown_frame_clears_the_busy_state(small_dataset_dir,
         release.set()
         assert state.wait_for(lambda: not state.pipeline_busy, timeout=120), state.pipeline_status
         assert state.pipeline_result_key[0] == 0
+    finally:
+        release.set()
+        worker.stop()
+
+
+def test_neighbours_are_computed_ahead_and_a_cached_frame_shows_at_once(small_dataset_dir, monkeypatch):
+    state = AppState(open_dataset(small_dataset_dir))
+    worker = PipelineWorker(state, calibrate=False)
+    _wire(state, worker)
+    try:
+        worker.request()
+        assert state.wait_for(lambda: state.pipeline_result is not None, timeout=120)
+        assert wait(lambda: 1 in worker.cached_frames(), timeout=120), worker.cached_frames()
+        original = detector_module.Detector.propose
+        computed = []
+
+        def recording(self, frame, history=(), progress=None):
+            computed.append(frame.name)
+            return original(self, frame, history, progress)
+
+        monkeypatch.setattr(detector_module.Detector, "propose", recording)
+        state.set_frame(1)
+        # Shown on the calling thread, before this returns: nothing computed it again.
+        with state.lock:
+            assert state.pipeline_result_key[0] == 1 and not state.pipeline_busy
+            assert state.pipeline_status.endswith("(from the cache)")
+            shown = state.pipeline_result
+        assert "frame_00001" not in computed
+        fresh = detector_module.Detector(state.params).propose(state.frame)
+        np.testing.assert_array_equal(shown.proposals.boxes, fresh.proposals.boxes)
+        # The new frame's next one is computed ahead in turn.
+        assert wait(lambda: 2 in worker.cached_frames(), timeout=120), worker.cached_frames()
+        # Other parameters: nothing of the cache applies.
+        state.set_params(merge_threshold=0.5)
+        assert worker.cached_frames() == [] or state.pipeline_busy
+    finally:
+        worker.stop()
+
+
+def test_a_computation_ahead_gives_way_to_a_request_for_another_frame(small_dataset_dir, monkeypatch):
+    original = detector_module.Detector.propose
+    started, release = threading.Event(), threading.Event()
+    computed = []
+
+    def slow_on_frame_1(self, frame, history=(), progress=None):
+        computed.append(frame.name)
+        if frame.name == "frame_00001":
+            started.set()
+            release.wait(60)
+        return original(self, frame, history, progress)
+
+    monkeypatch.setattr(detector_module.Detector, "propose", slow_on_frame_1)
+    state = AppState(open_dataset(small_dataset_dir))
+    worker = PipelineWorker(state, calibrate=False)
+    _wire(state, worker)
+    try:
+        worker.request()
+        assert state.wait_for(lambda: state.pipeline_result is not None, timeout=120)
+        assert started.wait(60)  # frame 1 is being computed ahead
+        assert not state.pipeline_busy  # quietly
+        state.set_frame(2)  # the small data set's last frame
+        release.set()
+        assert state.wait_for(lambda: state.pipeline_result_key[0] == 2, timeout=120), state.pipeline_status
+        # Frame 1's work stopped at its first stage: it is not cached, and frame 2 ran next.
+        assert 1 not in worker.cached_frames()
+        assert computed[:3] == ["frame_00000", "frame_00001", "frame_00002"]
     finally:
         release.set()
         worker.stop()

@@ -65,6 +65,50 @@ def test_exported_trees_predict_exactly_as_scikit_learn(rng):
     np.testing.assert_allclose(quality.predict(on_split), expected, atol=1e-9)
 
 
+def test_screen_keeps_the_full_walk_of_the_options_it_keeps(rng):
+    features = rng.normal(size=(3000, 6))
+    targets = np.clip(0.5 + 0.3 * np.tanh(features[:, 0]) - 0.2 * (features[:, 1] > 0.3), 0, 1)
+    quality = BoxQuality(max_iter=60).fit(features, targets)
+    owners = np.sort(rng.integers(0, 120, size=len(features)))
+    full = quality.predict(features)
+    screened = quality.with_screen(10, 5).predict_best(features, owners)
+    kept = screened >= 0
+    # Kept options carry the full walk's sum, bit for bit; each set keeps its 5 best (or all).
+    np.testing.assert_array_equal(screened[kept], full[kept])
+    assert np.all(screened[~kept] == -1.0)
+    per_set = np.bincount(owners[kept], minlength=120)
+    np.testing.assert_array_equal(per_set, np.minimum(np.bincount(owners, minlength=120), 5))
+    # Keeping every option, or screening with every tree, is the full walk.
+    np.testing.assert_array_equal(quality.with_screen(10, 10_000).predict_best(features, owners), full)
+    np.testing.assert_array_equal(quality.with_screen(60, 1).predict_best(features, owners), full)
+    np.testing.assert_array_equal(quality.predict_best(features, owners), full)
+    # The screen picks the set's best in most sets on this smooth target.
+    best_full = np.array([full[owners == g].max() for g in np.unique(owners)])
+    best_screened = np.array([screened[owners == g].max() for g in np.unique(owners)])
+    assert np.mean(best_full == best_screened) > 0.8
+    with pytest.raises(InputError):
+        quality.with_screen(10, 5).predict_best(features, owners[:-1])
+    with pytest.raises(InputError):
+        BoxQuality(screen_trees=5, screen_keep=0)
+    with pytest.raises(InputError):
+        BoxQuality(screen_trees=-1)
+
+
+def test_screen_travels_with_the_arrays(rng):
+    features = rng.normal(size=(200, 3))
+    quality = BoxQuality(max_iter=10).fit(features, rng.uniform(size=200)).with_screen(4, 7)
+    arrays = {k: np.array(v) for k, v in quality.to_arrays().items()}
+    again = BoxQuality.from_arrays(arrays)
+    assert (again.screen_trees, again.screen_keep) == (4, 7)
+    # Files from before the screen walk every tree.
+    older = BoxQuality.from_arrays({k: v for k, v in arrays.items() if not k.startswith("screen")})
+    assert older.screen_trees == 0
+    with pytest.raises(InputError, match="screen_keep"):
+        BoxQuality.from_arrays({**arrays, "screen_keep": np.array(-3)})
+    with pytest.raises(InputError, match="screen_trees"):
+        BoxQuality.from_arrays({**arrays, "screen_trees": np.array(1.5)})
+
+
 def test_arrays_round_trip_and_bad_input(rng):
     features = rng.normal(size=(200, 3))
     quality = BoxQuality(max_iter=10).fit(features, rng.uniform(size=200))
