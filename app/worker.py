@@ -15,10 +15,12 @@ a request for another frame at its next stage.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import threading
 import traceback
 
 from factorydet_core.detection.detector import Detector
+from factorydet_core.proposals.voxels import voxel_fisher_vectors
 
 from .state import AppState
 
@@ -202,6 +204,13 @@ class PipelineWorker:
             result = detection.proposal
         else:
             detection, result = None, detector.propose(frame, history, progress=progress)
+        if result.voxel_features is None:
+            # The detector skips them when its proposals do not read them; the voxels layer does.
+            result = dataclasses.replace(
+                result, voxel_features=voxel_fisher_vectors(result.cloud, result.grid)
+            )
+            if detection is not None:
+                detection = dataclasses.replace(detection, proposal=result)
         segmentation = result.segmentation
         status = (
             f"frame {frame_index + 1}: {len(result.proposals):,} proposals, {segmentation.num_segments:,} "

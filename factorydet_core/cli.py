@@ -229,6 +229,22 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.readme:
             update_readme(args.readme, result, args.readme_block, quality_markdown(result))
         return 0
+    elif args.name == "memory":
+        from factorydet_core.evaluation.bench import bench_memory
+        from factorydet_core.session.models import resolve_model
+
+        update, close = progress_bar("memory", unit="scan")
+        try:
+            result = bench_memory(
+                resolve_model(args.model),
+                points=parse_ints(args.sizes, "--sizes"),
+                seed=args.seed,
+                overrides=parse_overrides(args.set),
+                command=command,
+                progress=update,
+            )
+        finally:
+            close()
     else:
         if not args.data:
             raise InputError(f"bench {args.name} needs a DATA folder or file")
@@ -953,6 +969,7 @@ def build_parser(
             "quality",
             "fuzz",
             "import",
+            "memory",
         ],
     )
     p.add_argument(
@@ -967,7 +984,13 @@ def build_parser(
         help="frames to run (simulate: 10, hitl: all test frames, spread evenly if fewer; others: 4)",
     )
     p.add_argument("--points", type=int, default=80_000, help="simulate: points per frame")
-    p.add_argument("--seed", type=int, default=0, help="simulate, fuzz: seed")
+    p.add_argument("--seed", type=int, default=0, help="simulate, fuzz, memory: seed")
+    p.add_argument(
+        "--sizes",
+        default="1000000,5000000",
+        help="memory: points of the dense simulated scans, comma-separated (each detected in a child "
+        "process)",
+    )
     p.add_argument("--cases", type=int, default=1000, help="fuzz: mutated files to try")
     p.add_argument("--boxes", type=int, default=10_000, help="import: boxes in the imported file")
     p.add_argument(
@@ -983,7 +1006,8 @@ def build_parser(
         "--set",
         action="append",
         metavar="KEY=VALUE",
-        help="pipeline, quality: override a front-half parameter (quality: e.g. history_frames=2)",
+        help="pipeline, quality, memory: override a front-half parameter (quality: e.g. history_frames=2; "
+        "memory: e.g. max_points=null)",
     )
     p.add_argument("--voxel-sizes", default="0.1,0.15,0.2,0.3,0.4", help="sweep: comma-separated sizes (m)")
     p.add_argument("--png", default=None, help="sweep: write the plot here")

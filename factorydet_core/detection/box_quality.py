@@ -722,10 +722,43 @@ def choose_boxes(
         ``(boxes, proposal_ids, predicted_iou)``: (S, 7) chosen boxes, (S,) the proposal each
         option came from, (S,) its predicted IoU, in the order of ``subset``.
     """
-    num_classes = len(prior.sizes)
     members = groups.members()
     chosen = np.arange(groups.num_groups) if subset is None else np.asarray(subset, np.int64)
-    chosen_classes = np.asarray(class_ids)[chosen]
+    boxes = np.zeros((len(chosen), 7))
+    proposal_ids = np.zeros(len(chosen), np.int64)
+    predicted = np.zeros(len(chosen))
+    # A few thousand sets at a time: a dense scan's tens of thousands of sets have millions of
+    # options, whose features alone would take gigabytes at once.
+    for lo in range(0, len(chosen), SETS_PER_CHUNK):
+        block = slice(lo, lo + SETS_PER_CHUNK)
+        boxes[block], proposal_ids[block], predicted[block] = _choose_chunk(
+            proposal_boxes,
+            groups,
+            members,
+            chosen[block],
+            np.asarray(class_ids)[chosen[block]],
+            prior,
+            quality,
+        )
+    return boxes, proposal_ids, predicted
+
+
+SETS_PER_CHUNK = 2048
+"""Point sets whose options ``choose_boxes`` builds and rates at once (some 400,000 options and
+120 MB of features at the default prior's 200 options per set)."""
+
+
+def _choose_chunk(
+    proposal_boxes: np.ndarray,
+    groups: ProposalGroups,
+    members: list[np.ndarray],
+    chosen: np.ndarray,
+    chosen_classes: np.ndarray,
+    prior: BoxSizePrior,
+    quality: BoxQuality,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``choose_boxes`` for the sets ``chosen`` (S,) of classes ``chosen_classes`` (S,)."""
+    num_classes = len(prior.sizes)
     all_options, all_features, sources, owners = [], [], [], []
     for class_id in np.unique(chosen_classes).tolist():
         rows = np.flatnonzero(chosen_classes == class_id)
@@ -749,6 +782,15 @@ def choose_boxes(
     predicted = np.zeros(len(chosen))
     if not len(chosen):
         return boxes, proposal_ids, predicted
+    options, owner, source = np.concatenate(all_options), np.concatenate(owners), np.concatenate(sources)
+    iou = quality.predict_best(np.concatenate(all_features), owner)
+    # Best option per set: sort by (set, -iou) and take each set's first row.
+    order = np.lexsort((-iou, owner))
+    first = order[np.concatenate([[0], np.flatnonzero(np.diff(owner[order])) + 1])]
+    boxes[owner[first]] = options[first]
+    proposal_ids[owner[first]] = source[first]
+    predicted[owner[first]] = iou[first]
+    return boxes, proposal_ids, predicted
     options, owner, source = np.concatenate(all_options), np.concatenate(owners), np.concatenate(sources)
     iou = quality.predict_best(np.concatenate(all_features), owner)
     # Best option per set: sort by (set, -iou) and take each set's first row.

@@ -17,7 +17,7 @@ import numpy as np
 from factorydet_core.detection.groups import ProposalGroups, group_proposals
 from factorydet_core.detection.scoring import select_detections
 from factorydet_core.proposals.candidates import build_proposals
-from factorydet_core.proposals.cloud import crop, floor_mask, prune
+from factorydet_core.proposals.cloud import cap_points, crop, floor_mask, prune
 from factorydet_core.proposals.merge import ExtrinsicRefinement, accumulate, refine_extrinsics
 from factorydet_core.proposals.segment import segment
 from factorydet_core.proposals.settings import FrontEndParams, front_end_params
@@ -58,8 +58,10 @@ class ProposalResult:
     floor_plane: np.ndarray
     """(4,) floor plane (a, b, c, d), NaN when none was found or removal is off."""
     grid: VoxelGrid
-    voxel_features: np.ndarray
-    """(V, 20, 5, 5, 5) float32 per-voxel Fisher vectors."""
+    voxel_features: np.ndarray | None
+    """(V, 20, 5, 5, 5) float32 per-voxel Fisher vectors; ``None`` when the proposals' features are
+    their points' own (``feature`` "direct"), which do not read them (``voxels.voxel_fisher_vectors``
+    of ``cloud`` and ``grid`` computes them)."""
     segmentation: Segmentation
     proposals: Proposals
     timings_ms: dict[str, float]
@@ -69,6 +71,10 @@ class ProposalResult:
 FREE_SPACE_MAX_RADIUS_M = 40.0
 """``Detector.group``'s free-space grid spans at most this radius (0.1 m cells: 800 x 800 x 50 at
 40 m, 32 MB); a larger crop leaves objects beyond it unseen to the box quality regressor."""
+
+FREE_SPACE_MAX_RAYS = 500_000
+"""``Detector.group`` casts rays to at most this many points (``cloud.cap_points`` of the merged
+cloud); an AGV frame's 80,000 are all cast."""
 
 ProgressCallback = Callable[[str, float], None]
 """Called with (stage name, fraction of the front half done) as stages finish."""
@@ -198,11 +204,15 @@ class Detector:
         if params.remove_floor:
             is_floor, floor_plane = floor_mask(cloud, distance_m=params.floor_distance_m)
             cloud = cloud.select(~is_floor)
+        # The cap counts what is segmented: the floor, when removed, is not.
+        cloud = cap_points(cloud, params.max_points, params.prune_m)
         done("prune")
 
         grid = voxelize(cloud.points, params.voxel_size_m)
         done("voxelize")
-        voxel_features = voxel_fisher_vectors(cloud, grid)
+        # Direct proposal features read the points, not the voxels': skipping the voxels' saves a
+        # dense scan's largest array (10 kB per voxel).
+        voxel_features = None if params.feature == "direct" else voxel_fisher_vectors(cloud, grid)
         done("features")
         segmentation = self._segment(cloud, grid)
         done("segmentation")
@@ -246,7 +256,9 @@ class Detector:
                 extent["radius_m"] = min(self.params.crop_radius_m, FREE_SPACE_MAX_RADIUS_M)
             if self.params.crop_z_m is not None:
                 extent["z_range_m"] = self.params.crop_z_m
-            space = free_space(proposal.merged, **extent)
+            # A dense scan's millions of rays end in the same few hundred thousand cells: rays
+            # to one point per cell of a cloud thinned to FREE_SPACE_MAX_RAYS see the same space.
+            space = free_space(cap_points(proposal.merged, FREE_SPACE_MAX_RAYS, 0.0), **extent)
         return group_proposals(
             proposal.proposals, proposal.cloud.points, proposal.segmentation, proposal.floor_plane, space
         )

@@ -519,6 +519,101 @@ def bench_detect(
     return record
 
 
+def _dense_scan(num_points: int, seed: int, scratch: Path) -> Path:
+    """A simulated one-frame factory of ``num_points`` points (written to ``scratch`` once)."""
+    folder = Path(scratch) / f"dense_seed{seed}_{num_points}pts"
+    if not (folder / "manifest.json").is_file():
+        simulate_dataset(folder, SimConfig(num_frames=1, seed=seed, points_per_frame=num_points))
+    return folder
+
+
+def detect_once(data: str | os.PathLike, model_path: str | os.PathLike) -> dict:
+    """Detect frame 0 of ``data`` with the checkpoint at ``model_path``: the points at each step, the
+    stage times, and this process's peak memory (what ``bench_memory`` runs in a child process)."""
+    dataset = open_dataset(data)
+    model = DetectionModel.load(model_path)
+    detector = detector_for(model, dataset, calibrate=False)
+    frame = dataset.frame(0)
+    start = time.perf_counter()
+    result = detector.detect(frame)
+    return {
+        "points_read": len(frame.points),
+        "points_after_crop_prune_cap": result.proposal.cloud.num_points,
+        "num_voxels": result.proposal.grid.num_voxels,
+        "num_proposals": len(result.proposal.proposals),
+        "num_point_sets": result.groups.num_groups,
+        "num_detections": int(result.detections.kept_mask.sum()),
+        "stage_ms": {stage: round(ms, 1) for stage, ms in result.timings_ms.items()},
+        "seconds": round(time.perf_counter() - start, 2),
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+
+
+def bench_memory(
+    model_path: str | os.PathLike,
+    *,
+    points: Sequence[int] = (1_000_000, 5_000_000),
+    seed: int = 5,
+    scratch: str | os.PathLike = "/tmp/factorydet_dense",
+    overrides: dict[str, object] | None = None,
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Peak memory and time of detecting one dense simulated frame of each size in ``points``, each
+    in a fresh child process (its peak is its own: reading, merging and detecting), with the
+    front-half settings of the model changed by ``overrides`` (e.g. ``max_points`` to compare the
+    uncapped path)."""
+    import subprocess
+    import sys
+
+    runs = []
+    for done, num_points in enumerate(points):
+        folder = _dense_scan(int(num_points), seed, Path(scratch))
+        script = (
+            "import json, sys\n"
+            "from factorydet_core.threads import configure_threads\n"
+            "configure_threads()\n"
+            "from factorydet_core.evaluation.bench import detect_once\n"
+            "print(json.dumps(detect_once(sys.argv[1], sys.argv[2])))\n"
+        )
+        model = Path(model_path)
+        if overrides:
+            # The child reads a checkpoint: a copy whose note carries the changed front half.
+            changed = DetectionModel.load(model_path)
+            changed = dataclasses.replace(
+                changed,
+                front_end=(changed.front_end or front_end_params(preset_for(12))).replace(**overrides),
+            )
+            model = Path(scratch) / "overridden" / "model.pt"
+            model.parent.mkdir(parents=True, exist_ok=True)
+            changed.save(model)
+        out = subprocess.run(
+            [sys.executable, "-c", script, str(folder), str(model)], capture_output=True, text=True
+        )
+        if out.returncode != 0:
+            tail = out.stderr.strip().splitlines()[-1:] or ["no message"]
+            runs.append({"points": int(num_points), "error": f"exit {out.returncode}: {tail[0][:300]}"})
+        else:
+            runs.append({"points": int(num_points), **json.loads(out.stdout.strip().splitlines()[-1])})
+        if progress is not None:
+            progress(done + 1, len(points))
+    timed = [r for r in runs if "seconds" in r]
+    record = {
+        "benchmark": "memory",
+        "command": command,
+        "model": str(model_path),
+        "overrides": overrides or {},
+        "runs": runs,
+        "target_peak_mb": 2048,
+        "machine": machine_info(),
+    }
+    if len(timed) >= 2:
+        first, last = timed[0], timed[-1]
+        record["seconds_ratio_largest_to_smallest"] = round(last["seconds"] / first["seconds"], 2)
+        record["points_ratio_largest_to_smallest"] = round(last["points"] / first["points"], 2)
+    return record
+
+
 def bench_label_import(
     num_boxes: int = 10_000, num_frames: int = 3, repeats: int = 3, *, large_box: bool = False
 ) -> dict:

@@ -186,7 +186,7 @@ def build_proposals(
     points: np.ndarray,
     segmentation: Segmentation,
     grid: VoxelGrid,
-    voxel_features: np.ndarray,
+    voxel_features: np.ndarray | None,
     *,
     min_points: int = 30,
     weighting: Weighting = "points",
@@ -205,7 +205,8 @@ def build_proposals(
         points: (N, 3) points the segmentation and the grid were built from.
         segmentation: patches and segments of those points.
         grid: their voxel grid.
-        voxel_features: (V, 20, 5, 5, 5) per-voxel Fisher vectors.
+        voxel_features: (V, 20, 5, 5, 5) per-voxel Fisher vectors; ``None`` with ``feature``
+            "direct", which does not read them.
         min_points: smaller candidates are dropped.
         weighting: voxel weights of the aggregation, "points" (c_v = points of the proposal in the
             voxel) or "uniform" (c_v = 1).
@@ -235,7 +236,9 @@ def build_proposals(
     num_points = len(points)
     if len(segmentation.patch_ids) != num_points or len(grid.point_voxel_ids) != num_points:
         raise InputError("build_proposals: points, segmentation and grid must describe the same cloud")
-    if len(voxel_features) != grid.num_voxels:
+    if voxel_features is None and feature != "direct":
+        raise InputError('build_proposals: feature "aggregated" needs the voxel features')
+    if voxel_features is not None and len(voxel_features) != grid.num_voxels:
         raise InputError(
             f"build_proposals: {len(voxel_features)} voxel features for {grid.num_voxels} voxels"
         )

@@ -38,6 +38,10 @@ def crop(
     return cloud.select(mask)
 
 
+MIN_CELL_M = 0.001
+"""The finest cell ``cap_points`` prunes with (``settings.MIN_CELL_M``'s bound on ``prune_m``)."""
+
+
 def prune(cloud: MergedCloud, voxel_size: float) -> MergedCloud:
     """Voxel down-sampling: keep one measured point per ``voxel_size`` cell (the one closest to the
     cell's mean), so that per-point attributes (sensor, instance) stay true.
@@ -61,6 +65,32 @@ def prune(cloud: MergedCloud, voxel_size: float) -> MergedCloud:
     keep = np.zeros(cloud.num_points, bool)
     keep[order[first]] = True
     return cloud.select(keep)
+
+
+def cap_points(cloud: MergedCloud, max_points: int | None, voxel_size: float) -> MergedCloud:
+    """``cloud``, which ``prune`` left at ``voxel_size`` (0: not pruned), pruned again with the
+    finest cell from ``voxel_size`` up that leaves at most ``max_points`` points; ``cloud`` itself
+    when it has no more than that (or ``max_points`` is ``None``).
+
+    Surfaces hold points by their area, so the cell grows by the square root of the excess at each
+    try (at least by 5%); each try thins the previous one's cloud, so a few passes over ever fewer
+    points do it.
+    """
+    if max_points is None or cloud.num_points <= max_points:
+        return cloud
+    if max_points < 1:
+        raise InputError(f"cap_points: max_points must be >= 1, got {max_points}")
+    if voxel_size <= 0:
+        # Unpruned: start from the spacing of the points spread over the faces of their bounding
+        # box (scans are surfaces), where pruning removes little.
+        dx, dy, dz = np.maximum(np.ptp(cloud.points, axis=0).astype(np.float64), 1e-3)
+        voxel_size = float(np.sqrt((dx * dy + dx * dz + dy * dz) / cloud.num_points))
+        cloud = prune(cloud, voxel_size)
+    cell = max(voxel_size, MIN_CELL_M)
+    while cloud.num_points > max_points:
+        cell *= max(1.05, float(np.sqrt(cloud.num_points / max_points)))
+        cloud = prune(cloud, cell)
+    return cloud
 
 
 def _cell_ids(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

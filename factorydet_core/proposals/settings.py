@@ -33,6 +33,7 @@ _SETTINGS: dict[str, Setting] = {
     "icp_between_frames": Setting(bool),
     "crop_radius_m": Setting(float, 0.0, MAX_EXTENT_M, low_open=True, optional=True),
     "prune_m": Setting(float, 0.0, 10.0),
+    "max_points": Setting(int, 1_000, 100_000_000, optional=True),
     "remove_floor": Setting(bool),
     "floor_distance_m": Setting(float, 0.0, 10.0),
     # Each occupied voxel's Fisher vector takes 10 kB (20 x 5 x 5 x 5 float32): a centimetre cell
@@ -65,6 +66,11 @@ class FrontEndParams:
     """Height range kept (drops the roof); ``None`` keeps everything."""
     prune_m: float = 0.05
     """Voxel down-sampling cell; 0 keeps every point."""
+    max_points: int | None = 120_000
+    """A cropped and pruned cloud of more points is pruned again with a coarser cell, the finest
+    that leaves at most this many (``cloud.cap_points``): what follows costs time and memory by
+    the points, and a dense scan (millions of points, terrestrial or accumulated) then costs what
+    a sparse frame does. An AGV frame of 80,000 points is below it. ``None``: no cap."""
     remove_floor: bool = True
     """Remove the floor plane, which touches every object."""
     floor_distance_m: float = 0.06

@@ -276,6 +276,22 @@ def test_an_option_fitting_another_object_of_the_class_is_right(frames, prior):
     assert len(same_row) and targets[same_row] == pytest.approx(1.0)
 
 
+def test_sets_rated_in_chunks_choose_as_all_at_once(frames, prior, fitted, monkeypatch, rng):
+    from factorydet_core.detection import box_quality as module
+
+    frame = frames[0]
+    class_ids = rng.integers(0, NUM_CLASSES, frame.groups.num_groups)
+    whole = choose_boxes(frame.proposal_boxes, frame.groups, class_ids, prior, fitted[0])
+    monkeypatch.setattr(module, "SETS_PER_CHUNK", 7)
+    chunked = choose_boxes(frame.proposal_boxes, frame.groups, class_ids, prior, fitted[0])
+    for a, b in zip(whole, chunked):
+        np.testing.assert_array_equal(a, b)
+    subset = np.arange(0, frame.groups.num_groups, 3)
+    some = choose_boxes(frame.proposal_boxes, frame.groups, class_ids, prior, fitted[0], subset)
+    for a, b in zip(whole, some):
+        np.testing.assert_array_equal(a[subset], b)
+
+
 def test_detections_take_the_best_rated_option_and_its_iou_in_the_score(frames, prior, fitted):
     quality = fitted[0]
     frame = frames[0]

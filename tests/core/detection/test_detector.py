@@ -8,7 +8,7 @@ from factorydet_core.detection.detector import STAGES, Detector, ProposalResult
 from factorydet_core.geometry import invert_transform, points_in_box
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.proposals.candidates import build_proposals
-from factorydet_core.proposals.settings import PRESETS, FrontEndParams
+from factorydet_core.proposals.settings import PRESETS, FrontEndParams, front_end_params
 from factorydet_core.types import BoxLabels, InputError
 
 
@@ -245,3 +245,15 @@ def test_detection_casts_rays_only_for_a_regressor_that_reads_them(
         detector.model = dataclasses.replace(model, box_quality=box_quality)
         groups = detector.detect(dataset.frame(0)).groups
         assert (groups.free_space is not None) == reads
+
+
+def test_a_dense_cloud_is_thinned_to_the_cap_before_segmentation(small_dataset_dir):
+    frame = open_dataset(small_dataset_dir).frame(0)
+    uncapped = Detector(front_end_params("agv", {"max_points": None})).propose(frame)
+    default = Detector("agv").propose(frame)
+    # A small frame is under the default cap: nothing changes.
+    np.testing.assert_array_equal(default.cloud.points, uncapped.cloud.points)
+    np.testing.assert_array_equal(default.proposals.boxes, uncapped.proposals.boxes)
+    capped = Detector(front_end_params("agv", {"max_points": 3000})).propose(frame)
+    assert capped.cloud.num_points <= 3000 < uncapped.cloud.num_points
+    assert len(capped.proposals) > 0

@@ -98,6 +98,13 @@ def test_direct_feature_is_the_fisher_vector_of_the_proposals_points():
         ids = np.zeros(len(chosen), np.int64)
         expected = fisher_vectors(to_unit_sphere(points[chosen], ids), ids)[0]
         np.testing.assert_allclose(proposals.features[index], expected, atol=1e-5)
+    # Direct features do not read the voxels' (the detector then skips computing them).
+    without = build_proposals(
+        points, segmentation, grid, None, min_points=1, complete_boxes=False, feature="direct"
+    )
+    np.testing.assert_array_equal(without.features, proposals.features)
+    with pytest.raises(InputError, match="voxel features"):
+        build_proposals(points, segmentation, grid, None, min_points=1, feature="aggregated")
 
 
 def test_boxes_are_fitted_to_the_proposals_points():

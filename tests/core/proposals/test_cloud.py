@@ -4,7 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from factorydet_core.geometry import rotation_ypr
-from factorydet_core.proposals.cloud import _cell_ids, crop, floor_mask, prune, remove_floor
+from factorydet_core.proposals.cloud import _cell_ids, cap_points, crop, floor_mask, prune, remove_floor
 from factorydet_core.types import InputError, MergedCloud
 
 
@@ -113,6 +113,26 @@ def test_cell_ids_are_those_of_unique_rows(seed, span):
     _, expected_ids, expected_counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
     np.testing.assert_array_equal(ids, expected_ids.reshape(-1))
     np.testing.assert_array_equal(counts, expected_counts)
+
+
+@given(st.integers(0, 2**31 - 1), st.integers(1_000, 20_000), st.sampled_from([0.0, 0.01, 0.05]))
+@settings(max_examples=25, deadline=None)
+def test_cap_points_thins_a_dense_cloud_below_the_cap_and_no_further_than_needed(seed, cap, cell):
+    rng = np.random.default_rng(seed)
+    # A dense wall and floor: surfaces, as scans are.
+    wall = np.column_stack([rng.uniform(0, 4, 30_000), np.full(30_000, 2.0), rng.uniform(0, 3, 30_000)])
+    floor = np.column_stack([rng.uniform(0, 4, 30_000), rng.uniform(0, 2, 30_000), np.zeros(30_000)])
+    points = np.concatenate([wall, floor]).astype(np.float32)
+    cloud = prune(make_cloud(points, np.arange(len(points))), cell)
+    capped = cap_points(cloud, cap, cell)
+    assert capped.num_points <= cap
+    # Thinned, not emptied: a surface cloud keeps a good share of the cap.
+    assert capped.num_points >= cap / 4
+    # Every kept point is a measured one.
+    np.testing.assert_array_equal(capped.points, points[capped.point_instance_ids])
+    # Under the cap, nothing changes.
+    assert cap_points(capped, cap, cell) is capped
+    assert cap_points(cloud, None, cell) is cloud
 
 
 def test_prune_zero_and_invalid_sizes():
