@@ -316,6 +316,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     repeats=args.repeats,
                     compare_model=resolve_model(args.compare_model) if args.compare_model else None,
                     compare_overrides=parse_overrides(args.compare_set),
+                    heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
+                    heldout_frames=args.heldout_frames,
                     command=command,
                     progress=update,
                 )
@@ -1027,7 +1029,14 @@ def build_parser(
         "--compare-set",
         action="append",
         metavar="KEY=VALUE",
-        help="detect: a second configuration with this front-half setting changed, interleaved",
+        help="detect: a second configuration with this setting changed, interleaved (a front-half "
+        "setting, or the box quality screen: screen_trees, screen_keep)",
+    )
+    p.add_argument(
+        "--heldout",
+        action="store_true",
+        help="detect: also measure both configurations on the held-out factories (--heldout-seeds, "
+        "--heldout-frames)",
     )
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
@@ -1100,9 +1109,12 @@ def build_parser(
     p.add_argument(
         "--heldout-seeds",
         default="101,102,103",
-        help="quality: simulator seeds of the held-out factories (never the training factory's)",
+        help="quality, detect --heldout: simulator seeds of the held-out factories (never the training "
+        "factory's)",
     )
-    p.add_argument("--heldout-frames", type=int, default=12, help="quality: frames per held-out factory")
+    p.add_argument(
+        "--heldout-frames", type=int, default=12, help="quality, detect: frames per held-out factory"
+    )
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

@@ -98,6 +98,13 @@ class DetectionModel:
             return "head_options" if self.box_quality is not None else "box_head"
         return "paper"
 
+    def with_screen(self, screen_trees: int, screen_keep: int) -> DetectionModel:
+        """This model with its box quality regressor screening options as given
+        (``BoxQuality.screen_trees``, ``screen_keep``; 0 trees: every tree over every option)."""
+        if self.box_quality is None:
+            raise InputError("this model has no box quality regressor to screen options with")
+        return dataclasses.replace(self, box_quality=self.box_quality.with_screen(screen_trees, screen_keep))
+
     def candidates(self, proposal_boxes: np.ndarray, groups: ProposalGroups) -> Detections:
         """Every point set as a candidate detection (no threshold, no NMS), in point-set order."""
         if self.method == "box_head":

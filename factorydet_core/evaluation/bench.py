@@ -432,6 +432,8 @@ def bench_detect(
     repeats: int = 1,
     compare_model: str | os.PathLike | None = None,
     compare_overrides: dict[str, object] | None = None,
+    heldout_seeds: Sequence[int] = (),
+    heldout_frames: int = 12,
     command: str = "",
     progress=None,
 ) -> dict:
@@ -442,15 +444,30 @@ def bench_detect(
     With ``compare_model`` and/or ``compare_overrides`` (front-half settings changed from the
     model's), a second configuration runs on the same frames, interleaved frame by frame with the
     first so that both see the same machine load, and the record gives each stage's ratio of
-    medians (compared / reference): a speed claim is a ratio measured side by side.
+    medians (compared / reference): a speed claim is a ratio measured side by side. Overrides
+    named in ``BACK_HALF_SETTINGS`` change the compared model's box quality screen instead.
+
+    With ``heldout_seeds``, both configurations are also measured on those held-out simulated
+    factories (``quality.measure_heldout``: F-score, mAP, precision and recall at IoU 0.6 against
+    the truth), so that a faster path shows what it costs in quality in the same run.
     """
     dataset = open_dataset(data)
     model = DetectionModel.load(model_path)
     configs = {"reference": detector_for(model, dataset)}
+    front_overrides = dict(compare_overrides or {})
+    back_overrides = {k: front_overrides.pop(k) for k in list(front_overrides) if k in BACK_HALF_SETTINGS}
     if compare_model is not None or compare_overrides:
         other = DetectionModel.load(compare_model) if compare_model is not None else model
+        if back_overrides:
+            quality = other.box_quality
+            if quality is None:
+                raise InputError("screen_trees and screen_keep need a model with a box quality regressor")
+            other = other.with_screen(
+                int(back_overrides.get("screen_trees", quality.screen_trees)),
+                int(back_overrides.get("screen_keep", quality.screen_keep)),
+            )
         detector = detector_for(other, dataset, calibrate=False)
-        detector.params = detector.params.replace(**(compare_overrides or {}))
+        detector.params = detector.params.replace(**front_overrides)
         # The same extrinsics as the reference, so that only the compared change differs.
         detector.T_vehicle_sensor = configs["reference"].T_vehicle_sensor
         detector.calibration_ = configs["reference"].calibration_
@@ -503,6 +520,8 @@ def bench_detect(
         or note.get("fit_seconds"),
         "machine": machine_info(),
     }
+    if heldout_seeds:
+        record["heldout"] = _heldout_pair(data, configs, heldout_seeds, heldout_frames, progress)
     if "compared" in configs:
         compared = summary("compared")
         reference = record["stage_ms_median"]
@@ -612,6 +631,32 @@ def bench_memory(
         record["seconds_ratio_largest_to_smallest"] = round(last["seconds"] / first["seconds"], 2)
         record["points_ratio_largest_to_smallest"] = round(last["points"] / first["points"], 2)
     return record
+
+
+BACK_HALF_SETTINGS = ("screen_trees", "screen_keep")
+"""``bench_detect``'s compared settings that belong to the model's back half (the box quality
+regressor's screen), not to its front half."""
+
+
+def _heldout_pair(
+    data: str | os.PathLike, configs: dict, seeds: Sequence[int], num_frames: int, progress
+) -> dict:
+    """Each configuration's headline figures on the held-out factories, and their differences."""
+    from factorydet_core.evaluation.quality import QualityPlan, _heldout_set, measure_heldout
+
+    plan = QualityPlan(
+        train_data=Path(data), heldout_seeds=tuple(seeds), heldout_frames=num_frames, seeds=(0,)
+    )
+    out = {"seeds": list(seeds), "frames_per_factory": num_frames}
+    for name, detector in configs.items():
+        measured = measure_heldout(detector.model, _heldout_set(plan, detector.params, None))
+        head = measured["iou_0.6"]
+        out[name] = {key: head[key] for key in ("f1", "map", "precision", "recall")}
+        out[name]["back_half_ms_per_frame"] = measured["back_half_ms_per_frame"]
+    if "compared" in out:
+        out["f1_difference"] = round(out["compared"]["f1"] - out["reference"]["f1"], 4)
+        out["map_difference"] = round(out["compared"]["map"] - out["reference"]["map"], 4)
+    return out
 
 
 def bench_label_import(

@@ -277,6 +277,25 @@ def detect_markdown(result: dict) -> str:
         )
     if "peak_rss_mb" in result:
         stage_table += f"\n\nPeak memory of the process: {fmt(result['peak_rss_mb'])} MB."
+    heldout = result.get("heldout")
+    if heldout:
+        names = [n for n in ("reference", "compared") if n in heldout]
+        rows = [
+            [name, *(fmt(heldout[name][k], 3) for k in ("f1", "map", "precision", "recall")),
+             fmt(heldout[name]["back_half_ms_per_frame"])]
+            for name in names
+        ]  # fmt: skip
+        stage_table += (
+            "\n\nOn the held-out factories (seeds "
+            + ", ".join(str(s) for s in heldout["seeds"])
+            + f", {heldout['frames_per_factory']} frames each), IoU 0.6 against the truth:\n\n"
+            + table(["", "F-score", "mAP", "precision", "recall", "back half, ms per frame"], rows)
+        )
+        if "f1_difference" in heldout:
+            stage_table += (
+                f"\n\nCompared minus reference: F-score {heldout['f1_difference']:+.4f}, "
+                f"mAP {heldout['map_difference']:+.4f}."
+            )
     training = result.get("training_seconds_per_round")
     if isinstance(training, list):
         training = ", ".join(fmt(s) for s in training)
@@ -289,6 +308,48 @@ def detect_markdown(result: dict) -> str:
         f"median): {fmt(result['detections_per_frame_median'])} detections per frame (median). "
         f"Training, s per round: {fmt(training)}.\n"
     )
+
+
+@register("memory")
+def memory_markdown(result: dict) -> str:
+    """Per dense scan: its points, what crop, pruning and the cap leave, the point sets, the time and
+    the child process's peak memory against the target."""
+    header = [
+        "points read",
+        "after crop, prune, cap",
+        "point sets",
+        "detections",
+        "seconds",
+        "peak MB",
+        "target MB",
+    ]
+    rows = []
+    for run in result["runs"]:
+        if "error" in run:
+            rows.append([fmt(run["points"]), run["error"], "", "", "", "", fmt(result["target_peak_mb"])])
+            continue
+        rows.append(
+            [
+                fmt(run["points_read"]),
+                fmt(run["points_after_crop_prune_cap"]),
+                fmt(run["num_point_sets"]),
+                fmt(run["num_detections"]),
+                fmt(run["seconds"]),
+                fmt(run["peak_rss_mb"]),
+                fmt(result["target_peak_mb"]),
+            ]
+        )
+    changed = ", ".join(f"{k}={v}" for k, v in result.get("overrides", {}).items()) or "none"
+    text = (
+        table(header, rows)
+        + f"\n\nModel `{Path(str(result['model'])).name}`; front-half settings changed: {changed}."
+    )
+    if "seconds_ratio_largest_to_smallest" in result:
+        text += (
+            f" Largest scan against smallest: {fmt(result['points_ratio_largest_to_smallest'])} times the"
+            f" points, {fmt(result['seconds_ratio_largest_to_smallest'])} times the time."
+        )
+    return text + "\n"
 
 
 @register("import")
