@@ -318,6 +318,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     compare_overrides=parse_overrides(args.compare_set),
                     heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
                     heldout_frames=args.heldout_frames,
+                    busy=args.busy,
                     command=command,
                     progress=update,
                 )
@@ -1031,6 +1032,12 @@ def build_parser(
         metavar="KEY=VALUE",
         help="detect: a second configuration with this setting changed, interleaved (a front-half "
         "setting, or the box quality screen: screen_trees, screen_keep)",
+    )
+    p.add_argument(
+        "--busy",
+        action="store_true",
+        help="detect: also run each reference frame beside a process spinning one core; the record "
+        "gives the slowdown",
     )
     p.add_argument(
         "--heldout",

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -434,6 +435,7 @@ def bench_detect(
     compare_overrides: dict[str, object] | None = None,
     heldout_seeds: Sequence[int] = (),
     heldout_frames: int = 12,
+    busy: bool = False,
     command: str = "",
     progress=None,
 ) -> dict:
@@ -446,6 +448,11 @@ def bench_detect(
     first so that both see the same machine load, and the record gives each stage's ratio of
     medians (compared / reference): a speed claim is a ratio measured side by side. Overrides
     named in ``BACK_HALF_SETTINGS`` change the compared model's box quality screen instead.
+
+    With ``busy``, each reference run is repeated beside one other process that keeps a core busy
+    (what the app's server or a browser does to a detection on a shared machine), and the record
+    gives the slowdown per stage: with the thread pools sized by ``threads``, it should be about
+    proportional, not a collapse.
 
     With ``heldout_seeds``, both configurations are also measured on those held-out simulated
     factories (``quality.measure_heldout``: F-score, mAP, precision and recall at IoU 0.6 against
@@ -477,16 +484,21 @@ def bench_detect(
     # builds its pools on first use, which would otherwise be timed as the first frame's work.
     for detector in configs.values():
         detector.detect(dataset.frame(test[0]), [])
-    timings = {name: {} for name in configs}
-    counts: dict[str, list[int]] = {name: [] for name in configs}
-    total_runs = len(test) * repeats * len(configs)
+    runs = dict(configs)
+    if busy:
+        runs["busy"] = configs["reference"]  # the reference again, beside a busy process
+    timings = {name: {} for name in runs}
+    counts: dict[str, list[int]] = {name: [] for name in runs}
+    total_runs = len(test) * repeats * len(runs)
     done = 0
     for index in test:
         frame = dataset.frame(index)
         for _ in range(repeats):
-            for name, detector in configs.items():
+            for name, detector in runs.items():
                 earlier = range(max(0, index - detector.params.history_frames), index)
-                result = detector.detect(frame, [dataset.frame(i) for i in earlier])
+                history = [dataset.frame(i) for i in earlier]
+                with _busy_process() if name == "busy" else contextlib.nullcontext():
+                    result = detector.detect(frame, history)
                 for stage, ms in result.timings_ms.items():
                     timings[name].setdefault(stage, []).append(ms)
                 counts[name].append(int(result.detections.kept_mask.sum()))
@@ -520,6 +532,17 @@ def bench_detect(
         or note.get("fit_seconds"),
         "machine": machine_info(),
     }
+    if busy:
+        loaded = summary("busy")
+        record["busy"] = {
+            "what": "the reference beside one other process spinning a core, interleaved with the quiet runs",
+            **loaded,
+            "ratio_of_medians": {
+                stage: round(ms / record["stage_ms_median"][stage], 3)
+                for stage, ms in loaded["stage_ms_median"].items()
+                if record["stage_ms_median"].get(stage)
+            },
+        }
     if heldout_seeds:
         record["heldout"] = _heldout_pair(data, configs, heldout_seeds, heldout_frames, progress)
     if "compared" in configs:
@@ -631,6 +654,21 @@ def bench_memory(
         record["seconds_ratio_largest_to_smallest"] = round(last["seconds"] / first["seconds"], 2)
         record["points_ratio_largest_to_smallest"] = round(last["points"] / first["points"], 2)
     return record
+
+
+@contextlib.contextmanager
+def _busy_process():
+    """A child process spinning one core for the duration of the block."""
+    import subprocess
+    import sys
+
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    time.sleep(0.2)  # let it start spinning before the timed work
+    try:
+        yield
+    finally:
+        spinner.kill()
+        spinner.wait()
 
 
 BACK_HALF_SETTINGS = ("screen_trees", "screen_keep")

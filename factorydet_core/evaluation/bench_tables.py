@@ -277,6 +277,18 @@ def detect_markdown(result: dict) -> str:
         )
     if "peak_rss_mb" in result:
         stage_table += f"\n\nPeak memory of the process: {fmt(result['peak_rss_mb'])} MB."
+    busy = result.get("busy")
+    if busy:
+        stage_table += (
+            "\n\nBeside one other process spinning a core (the reference, interleaved):\n\n"
+            + table(
+                ["", *stages],
+                [
+                    ["busy, median", *(fmt(busy["stage_ms_median"].get(s)) for s in stages)],
+                    ["busy / quiet", *(fmt(busy["ratio_of_medians"].get(s)) for s in stages)],
+                ],
+            )
+        )
     heldout = result.get("heldout")
     if heldout:
         names = [n for n in ("reference", "compared") if n in heldout]

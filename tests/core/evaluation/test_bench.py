@@ -30,8 +30,11 @@ def test_bench_detect_profiles_and_compares_side_by_side(small_dataset_dir, tiny
     from factorydet_core.evaluation.bench_tables import render_record
 
     record = bench_detect(
-        small_dataset_dir, tiny_model_path, max_frames=2, compare_overrides={"voxel_size_m": 0.3}
+        small_dataset_dir, tiny_model_path, max_frames=2, compare_overrides={"voxel_size_m": 0.3}, busy=True
     )
+    busy = record["busy"]
+    assert set(busy["ratio_of_medians"]) == set(record["stage_ms_median"])
+    assert busy["ratio_of_medians"]["total"] > 0
     stages = record["stage_ms_median"]
     assert "total" in stages and set(record["stage_ms_p90"]) == set(stages)
     assert all(record["stage_ms_p90"][s] >= stages[s] - 0.05 for s in stages)  # rounding to 0.1 ms
@@ -41,6 +44,7 @@ def test_bench_detect_profiles_and_compares_side_by_side(small_dataset_dir, tiny
     ratio = compare["ratio_of_medians"]["total"]
     assert ratio == round(compare["stage_ms_median"]["total"] / stages["total"], 3)
     assert "compared / reference" in render_record(record)
+    assert "busy / quiet" in render_record(record)
 
 
 @pytest.mark.slow
