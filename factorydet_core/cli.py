@@ -289,6 +289,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                         probability_exponent=args.probability_exponent,
                         mining_threshold=args.mining_threshold,
                         box_quality=args.box_quality,
+                        method=args.method,
+                        class_weight=None if args.class_weight == "none" else args.class_weight,
                     ),
                     seeds=parse_ints(args.seeds, "--seeds"),
                     max_label_iou=args.hide_labelled,
@@ -1121,6 +1123,18 @@ def build_parser(
     )
     p.add_argument(
         "--heldout-frames", type=int, default=12, help="quality, detect: frames per held-out factory"
+    )
+    p.add_argument(
+        "--method",
+        default=LoopSettings().method,
+        choices=METHODS,
+        help=f"hitl: the back half the loop trains (default {LoopSettings().method})",
+    )
+    p.add_argument(
+        "--class-weight",
+        default=LoopSettings().class_weight or "none",
+        choices=("balanced", "sqrt", "none"),
+        help=f"hitl: the loop's loss weighting (default {LoopSettings().class_weight})",
     )
     p.add_argument(
         "--methods",

@@ -157,7 +157,7 @@ def test_the_labelling_loop_from_the_command_line(small_dataset_dir, tmp_path, c
     common = ["--session", "s", "--root", root]
     train = ["train", str(small_dataset_dir), *common, "--rounds", "0", "--epochs", "2", "--frames", "2",
              "--initial-negatives", "150", "--negatives", "20", "--score-threshold", "0.05",
-             "--no-calibrate", "--no-box-quality"]  # fmt: skip
+             "--no-calibrate", "--no-box-quality", "--method", "paper"]  # fmt: skip
     assert main(train) == 0
     first = json.loads(capsys.readouterr().out)
     assert first["mode"] == "full" and first["review_queue"] > 0
@@ -261,7 +261,8 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     capsys.readouterr()
     args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
             "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
-            "--seeds", "0,1", "--train-frames", "1", "--no-calibrate", "--no-box-quality", "--out", str(out),
+            "--seeds", "0,1", "--train-frames", "1", "--no-calibrate", "--no-box-quality",
+            "--method", "paper", "--class-weight", "balanced", "--out", str(out),
             "--readme", str(readme), "--hide-labelled", "0.25"]  # fmt: skip
     assert main(args) == 0
     # The README gets the table (no JSON, no section title of its own), the rest untouched.

@@ -23,7 +23,9 @@ class LoopSettings:
 
     width: float = 0.0625
     epochs: int = 20
-    class_weight: str | None = "balanced"
+    class_weight: str | None = "sqrt"
+    """The box head learns best with the square root of the inverse class frequencies (its own
+    default); the paper model was trained with "balanced" (``make paper-model``)."""
     rounds: int = 2
     """Mining rounds of a full retrain (a 'next' round is always one fit)."""
     negatives_per_round: int = 500

@@ -8,7 +8,9 @@ from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import InputError
 from factorydet_core.workflows import retrain_session
 
-TINY = LoopSettings(epochs=1, rounds=0, initial_negatives=100, negatives_per_round=20, box_quality=False)
+TINY = LoopSettings(
+    epochs=1, rounds=0, initial_negatives=100, negatives_per_round=20, box_quality=False, method="paper"
+)
 
 
 @pytest.mark.slow

@@ -10,7 +10,16 @@ from factorydet_core.evaluation.bench_tables import RENDERERS, fmt, record_line,
 from factorydet_core.types import InputError
 
 DOCS = Path(__file__).parents[3] / "docs"
-BLOCKS = ("simulate", "pipeline", "pipeline-corpus", "pipeline-real", "voxel-sweep", "classifier", "detect")
+BLOCKS = (
+    ("benchmarks.md", "simulate"),
+    ("benchmarks.md", "pipeline"),
+    ("benchmarks.md", "pipeline-corpus"),
+    ("benchmarks.md", "pipeline-real"),
+    ("benchmarks.md", "voxel-sweep"),
+    ("benchmarks.md", "classifier"),
+    ("performance.md", "detect"),
+    ("performance.md", "memory"),
+)
 
 
 def _record(name: str) -> dict:
@@ -135,11 +144,11 @@ def test_figures_are_formatted_as_recorded():
     assert fmt(0.5, 3) == "0.500" and fmt(0.0642) == "0.0642" and fmt("a|b") == "a\\|b"
 
 
-@pytest.mark.parametrize("name", BLOCKS)
-def test_the_page_shows_what_its_records_render_to(name):
+@pytest.mark.parametrize(("page_name", "name"), BLOCKS)
+def test_the_page_shows_what_its_records_render_to(page_name, name):
     # No figure on the page is typed by hand: each block is its record's rendering. After changing a
     # renderer, re-render with update_readme(page, json.loads(record.read_text()), name).
-    page = (DOCS / "benchmarks.md").read_text()
+    page = (DOCS / page_name).read_text()
     block = re.search(rf"<!-- bench:{name} -->\n(.*?)\n<!-- /bench:{name} -->", page, re.S).group(1)
     record = _record(name)
     assert block == render_record(record).strip() + "\n\n" + record_line(record, f"bench/{name}.json")

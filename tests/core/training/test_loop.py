@@ -35,7 +35,13 @@ from tests.fakes import mined_item, queue_run
 # Two epochs make a classifier whose probabilities times a predicted IoU rarely reach mining's
 # floor, so the plumbing tests of the loop train without the box quality regressor.
 SETTINGS = LoopSettings(
-    epochs=2, rounds=1, negatives_per_round=30, initial_negatives=120, score_threshold=0.05, box_quality=False
+    epochs=2,
+    rounds=1,
+    negatives_per_round=30,
+    initial_negatives=120,
+    score_threshold=0.05,
+    box_quality=False,
+    method="paper",
 )
 
 
