@@ -25,7 +25,7 @@ def warm_up() -> None:
     _absorb_small(patch_ids, source, target, min_points=4)
     run_kernel(
         _compile_walk, points, np.zeros(1, np.int64), np.full(1, -1, np.int32), np.zeros((1, 2), np.int32),
-        np.zeros(1), np.zeros(1), 0.0,
+        np.zeros(1), np.zeros(1), np.zeros(12),
     )  # fmt: skip
     cloud = MergedCloud(points, np.zeros(12, np.int16), np.zeros(12, np.int64), np.eye(4)[None])
     box_visibility(free_space(cloud, radius_m=2.0), np.zeros((1, 7)))

@@ -7,7 +7,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import platform
 import re
 import statistics
 import time
@@ -24,6 +23,7 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.bench_tables import record_line, render_record
 from factorydet_core.evaluation.evaluate import detector_for, measure
 from factorydet_core.evaluation.plots import plot_voxel_sweep
+from factorydet_core.evaluation.records import machine_info
 from factorydet_core.geometry import rotation_angle_deg
 from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.dataset import open_dataset
@@ -36,34 +36,6 @@ from factorydet_core.sim.simulate import FactorySimulator, SimConfig, simulate_d
 from factorydet_core.sim.truth import read_frame_truth, read_truth
 from factorydet_core.training.mining import collect_proposals, train_with_mining
 from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
-
-
-def machine_info() -> dict:
-    """Where a benchmark ran: CPU model, cores, memory, Python and the main libraries."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    memory_gb = None
-    try:
-        memory_gb = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
-    except (ValueError, OSError, AttributeError):
-        pass
-    import open3d
-
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "memory_gb": memory_gb,
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "open3d": open3d.__version__,
-        "os": platform.platform(),
-    }
 
 
 def bench_simulate(num_frames: int = 10, points_per_frame: int = 80_000, seed: int = 0) -> dict:
@@ -862,16 +834,3 @@ def bench_classifier(
         "rows": rows,
         "machine": machine_info(),
     }
-
-
-def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:
-    """``count`` frames spread evenly over ``frames`` (all of them for ``None`` or more than there
-    are), first and last included: a vehicle's consecutive frames are 1.5 m apart and nearly
-    repeat each other, so the first N would see one corner of the hall."""
-    frames = [int(i) for i in frames]
-    if count is None or count >= len(frames):
-        return frames
-    if count < 1:
-        raise InputError(f"frame count must be >= 1, got {count}")
-    picks = np.unique(np.round(np.linspace(0, len(frames) - 1, count)).astype(int))
-    return [frames[i] for i in picks]

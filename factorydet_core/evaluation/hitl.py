@@ -13,8 +13,8 @@ import numpy as np
 
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.detector import Detector, params_for
-from factorydet_core.evaluation.bench import machine_info, spread_frames
 from factorydet_core.evaluation.evaluate import measure
+from factorydet_core.evaluation.records import machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth

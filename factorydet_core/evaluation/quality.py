@@ -37,8 +37,8 @@ from factorydet_core.detection.box_head import BoxHead
 from factorydet_core.detection.box_quality import BoxQuality
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.detection.model import DetectionModel
-from factorydet_core.evaluation.bench import machine_info, spread_frames
 from factorydet_core.evaluation.evaluate import ignored_boxes, measure, reference_boxes
+from factorydet_core.evaluation.records import machine_info, spread_frames
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.proposals.settings import FrontEndParams

@@ -16,7 +16,6 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.detection.groups import best_option_iou
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.detection.scoring import select_detections
-from factorydet_core.evaluation.bench import machine_info
 from factorydet_core.evaluation.evaluate import (
     PAPER_TABLE2,
     PAPER_TABLE3,
@@ -28,6 +27,7 @@ from factorydet_core.evaluation.evaluate import (
 )
 from factorydet_core.evaluation.plots import plot_error_breakdown, plot_pr_curves, plot_sweep
 from factorydet_core.evaluation.quality import quality_markdown
+from factorydet_core.evaluation.records import machine_info
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.metrics import FALSE_POSITIVE_KINDS, MISS_KINDS, OVERLAP_IOU
 from factorydet_core.training.mining import collect_proposals, group_overlaps, train_with_mining

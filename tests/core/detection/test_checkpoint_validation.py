@@ -190,8 +190,10 @@ def test_notes_without_file_records_still_load(copy):
     """Checkpoints saved before the notes recorded their files: the shipped ones, older sessions'."""
     _edit_note(copy, lambda n: n.pop(FILES_KEY))
     assert DetectionModel.load(copy).box_quality is not None
+    # The paper checkpoint predates the record; the default one has it.
+    assert FILES_KEY not in json.loads(PAPER_MODEL.with_suffix(".json").read_text())
+    assert FILES_KEY in json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())
     for shipped in (DEFAULT_MODEL, PAPER_MODEL):
-        assert FILES_KEY not in json.loads(shipped.with_suffix(".json").read_text())
         model = DetectionModel.load(shipped)
         assert model.box_quality is not None and model.front_end is not None
 

@@ -145,10 +145,10 @@ def test_checkpoint_from_before_the_geometry_option_loads_as_the_papers_network(
     np.testing.assert_allclose(loaded.predict_proba(features), model.predict_proba(features), atol=1e-6)
 
 
-def test_the_shipped_checkpoint_loads():
-    from factorydet_core.detection.model import DEFAULT_MODEL
+def test_the_shipped_paper_checkpoint_loads():
+    from factorydet_core.detection.model import PAPER_MODEL
 
-    model = ProposalClassifier.load(DEFAULT_MODEL)
+    model = ProposalClassifier.load(PAPER_MODEL)
     features = np.zeros((2, 20, 5, 5, 5), np.float32)
     descriptors = np.ones((2, len(DESCRIPTOR_NAMES)), np.float32)
     proba = model.predict_proba(features, descriptors if model.geometry else None)

@@ -2,7 +2,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from factorydet_core.evaluation.bench import spread_frames
+from factorydet_core.evaluation.records import spread_frames
 from factorydet_core.types import InputError
 
 

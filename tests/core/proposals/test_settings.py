@@ -262,7 +262,7 @@ def _assert_plain_and_in_range(params: FrontEndParams) -> None:
     for name, value in values.items():
         default = defaults[name]
         if value is None:
-            assert name in ("crop_radius_m", "crop_z_m", "structure_size_m"), name
+            assert name in ("crop_radius_m", "crop_z_m", "structure_size_m", "max_points"), name
         elif isinstance(default, list):
             assert isinstance(value, list), name
         elif name != "segmentation":

@@ -1,0 +1,55 @@
+"""What every benchmark record carries: the machine it ran on, and the frames it ran on."""
+
+from __future__ import annotations
+
+import os
+import platform
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from factorydet_core.types import InputError
+
+__all__ = ["machine_info", "spread_frames"]
+
+
+def machine_info() -> dict:
+    """Where a benchmark ran: CPU model, cores, memory, Python and the main libraries."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    memory_gb = None
+    try:
+        memory_gb = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+    except (ValueError, OSError, AttributeError):
+        pass
+    import open3d
+
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory_gb": memory_gb,
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "open3d": open3d.__version__,
+        "os": platform.platform(),
+    }
+
+
+def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:
+    """``count`` frames spread evenly over ``frames`` (all of them for ``None`` or more than there
+    are), first and last included: a vehicle's consecutive frames are 1.5 m apart and nearly
+    repeat each other, so the first N would see one corner of the hall."""
+    frames = [int(i) for i in frames]
+    if count is None or count >= len(frames):
+        return frames
+    if count < 1:
+        raise InputError(f"frame count must be >= 1, got {count}")
+    picks = np.unique(np.round(np.linspace(0, len(frames) - 1, count)).astype(int))
+    return [frames[i] for i in picks]
