@@ -100,18 +100,36 @@ def _prior_boxes(
     subset: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(G, 7) the box ``box_prior.options`` prefers for each set's class and (G,) its proposal;
-    with ``subset``, only those sets get it and the others keep their first (fitted) box."""
+    with ``subset``, only those sets get it and the others keep their first (fitted) box.
+
+    The options of all sets of a class are grown in one call (``option_sources`` with each box's
+    own set's fitted box), and each set takes its option of least cost, the first in the set's own
+    option order on ties: the same choice as one ``options`` call per set.
+    """
     boxes = proposal_boxes[groups.representatives].copy()
     proposal_ids = groups.representatives.copy()
-    if groups.num_groups:
-        all_members = groups.members()
-        for g in range(groups.num_groups) if subset is None else subset.tolist():
-            members = all_members[g]
-            c = int(class_ids[g])
-            options, cost = box_prior.options(proposal_boxes[members], c)
-            best = int(np.argmin(cost))
-            boxes[g] = options[best]
-            proposal_ids[g] = members[best % len(members)]
+    if not groups.num_groups:
+        return boxes, proposal_ids
+    chosen = np.arange(groups.num_groups) if subset is None else np.asarray(subset, np.int64)
+    all_members = groups.members()
+    chosen_classes = np.asarray(class_ids)[chosen]
+    for class_id in np.unique(chosen_classes).tolist():
+        sets = chosen[chosen_classes == class_id]
+        members = [all_members[g] for g in sets.tolist()]
+        counts = np.array([len(m) for m in members], np.int64)
+        member_ids = np.concatenate(members).astype(np.int64)
+        owner_of_row = np.repeat(np.arange(len(sets)), counts)
+        first_row = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        rows = proposal_boxes[member_ids]
+        options, cost, _, sources, _ = box_prior.option_sources(
+            rows, int(class_id), fitted_boxes=rows[first_row][owner_of_row]
+        )
+        owner = owner_of_row[sources]
+        # Least cost per set; on ties the earliest option, which is the earliest in the set's order.
+        order = np.lexsort((np.arange(len(options)), cost, owner))
+        first = order[np.concatenate([[0], np.flatnonzero(np.diff(owner[order])) + 1])]
+        boxes[sets[owner[first]]] = options[first]
+        proposal_ids[sets[owner[first]]] = member_ids[sources[first]]
     return boxes, proposal_ids
 
 

@@ -466,3 +466,21 @@ def test_the_shipped_screen_chooses_as_the_full_walk_on_small_frames(frames, pri
     assert same.mean() >= 0.99
     assert lost.min() >= 0.0  # the full walk's choice is the best there is
     assert lost.max() <= 0.1
+
+
+def test_prior_boxes_of_all_sets_at_once_are_those_of_one_set_at_a_time(frames, prior, rng):
+    from factorydet_core.detection.scoring import _prior_boxes
+
+    frame = frames[1]
+    class_ids = rng.integers(0, NUM_CLASSES, frame.groups.num_groups)
+    subset = np.flatnonzero(rng.random(frame.groups.num_groups) < 0.7)
+    boxes, proposal_ids = _prior_boxes(frame.proposal_boxes, frame.groups, class_ids, prior, subset)
+    members = frame.groups.members()
+    for g in range(frame.groups.num_groups):
+        if g not in set(subset.tolist()):
+            np.testing.assert_array_equal(boxes[g], frame.proposal_boxes[frame.groups.representatives[g]])
+            continue
+        options, cost = prior.options(frame.proposal_boxes[members[g]], int(class_ids[g]))
+        best = int(np.argmin(cost))
+        np.testing.assert_array_equal(boxes[g], options[best])
+        assert proposal_ids[g] == members[g][best % len(members[g])]
