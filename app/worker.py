@@ -24,9 +24,10 @@ from factorydet_core.proposals.voxels import voxel_fisher_vectors
 
 from .state import AppState
 
-CACHED_RESULTS = 5
-"""Results kept (the shown frame, the ones computed ahead, the last few shown); an 80k-point
-frame's result with its voxel features is some 20-60 MB."""
+CACHED_RESULTS = 3
+"""Results kept: the shown frame's and its next and previous frames' (computed ahead). An
+80k-point frame's result with its voxel features (for the voxels layer) takes some 300 MB, most
+of it the proposals' and voxels' 3DmFV tensors (10 kB each)."""
 
 PREFETCH_OFFSETS = (1, -1)
 """Frames computed ahead, relative to the shown one, in this order."""
