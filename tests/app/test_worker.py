@@ -3,6 +3,7 @@ next and previous frames are computed ahead and a cached frame shows at once."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -47,49 +48,55 @@ def test_a_failing_run_is_reported_once_and_retried_only_after_a_change(small_da
         worker.stop()
 
 
-def test_coming_back_to_the_shown_frame_clears_the_busy_state(small_dataset_dir, monkeypatch):
+def _record_propose(monkeypatch, hold_frame_1: threading.Event | None = None) -> tuple[list, threading.Event]:
+    """Record the frames the detector proposes; with ``hold_frame_1``, frame 1 waits for it (and
+    the returned event says it started)."""
     original = detector_module.Detector.propose
-    release = threading.Event()
+    computed, started = [], threading.Event()
 
-    def slow_on_frame_1(self, frame, history=(), progress=None):
-        if frame.name == "frame_00001":
-            release.wait(20)
+    def recording(self, frame, history=(), progress=None):
+        computed.append(frame.name)
+        if hold_frame_1 is not None and frame.name == "frame_00001":
+            started.set()
+            hold_frame_1.wait(60)
         return original(self, frame, history, progress)
 
-    monkeypatch.setattr(detector_module.Detector, "propose", slow_on_frame_1)
-    state = AppState(open_dataset(small_dataset_dir))
+    monkeypatch.setattr(detector_module.Detector, "propose", recording)
+    return computed, started
+
+
+@contextlib.contextmanager
+def _running_worker(dataset_dir, release: threading.Event | None = None):
+    """A wired worker whose first frame is shown; stopped (and ``release`` set) on leaving."""
+    state = AppState(open_dataset(dataset_dir))
     worker = PipelineWorker(state, calibrate=False)
     _wire(state, worker)
     try:
         worker.request()
         assert state.wait_for(lambda: state.pipeline_result is not None, timeout=120)
-        state.set_frame(1)  # starts the slow run
+        yield state, worker
+    finally:
+        if release is not None:
+            release.set()
+        worker.stop()
+
+
+def test_coming_back_to_the_shown_frame_clears_the_busy_state(small_dataset_dir, monkeypatch):
+    release = threading.Event()
+    _record_propose(monkeypatch, hold_frame_1=release)
+    with _running_worker(small_dataset_dir, release) as (state, _):
+        state.set_frame(1)  # starts the slow run (or takes over the one computed ahead)
         assert state.wait_for(lambda: state.pipeline_busy, timeout=20)
         state.set_frame(0)  # back to the result that is shown
         release.set()
         assert state.wait_for(lambda: not state.pipeline_busy, timeout=120), state.pipeline_status
         assert state.pipeline_result_key[0] == 0
-    finally:
-        release.set()
-        worker.stop()
 
 
 def test_neighbours_are_computed_ahead_and_a_cached_frame_shows_at_once(small_dataset_dir, monkeypatch):
-    state = AppState(open_dataset(small_dataset_dir))
-    worker = PipelineWorker(state, calibrate=False)
-    _wire(state, worker)
-    try:
-        worker.request()
-        assert state.wait_for(lambda: state.pipeline_result is not None, timeout=120)
+    with _running_worker(small_dataset_dir) as (state, worker):
         assert wait(lambda: 1 in worker.cached_frames(), timeout=120), worker.cached_frames()
-        original = detector_module.Detector.propose
-        computed = []
-
-        def recording(self, frame, history=(), progress=None):
-            computed.append(frame.name)
-            return original(self, frame, history, progress)
-
-        monkeypatch.setattr(detector_module.Detector, "propose", recording)
+        computed, _ = _record_propose(monkeypatch)
         state.set_frame(1)
         # Shown on the calling thread, before this returns: nothing computed it again.
         with state.lock:
@@ -104,29 +111,12 @@ def test_neighbours_are_computed_ahead_and_a_cached_frame_shows_at_once(small_da
         # Other parameters: nothing of the cache applies.
         state.set_params(merge_threshold=0.5)
         assert worker.cached_frames() == [] or state.pipeline_busy
-    finally:
-        worker.stop()
 
 
 def test_a_computation_ahead_gives_way_to_a_request_for_another_frame(small_dataset_dir, monkeypatch):
-    original = detector_module.Detector.propose
-    started, release = threading.Event(), threading.Event()
-    computed = []
-
-    def slow_on_frame_1(self, frame, history=(), progress=None):
-        computed.append(frame.name)
-        if frame.name == "frame_00001":
-            started.set()
-            release.wait(60)
-        return original(self, frame, history, progress)
-
-    monkeypatch.setattr(detector_module.Detector, "propose", slow_on_frame_1)
-    state = AppState(open_dataset(small_dataset_dir))
-    worker = PipelineWorker(state, calibrate=False)
-    _wire(state, worker)
-    try:
-        worker.request()
-        assert state.wait_for(lambda: state.pipeline_result is not None, timeout=120)
+    release = threading.Event()
+    computed, started = _record_propose(monkeypatch, hold_frame_1=release)
+    with _running_worker(small_dataset_dir, release) as (state, worker):
         assert started.wait(60)  # frame 1 is being computed ahead
         assert not state.pipeline_busy  # quietly
         state.set_frame(2)  # the small data set's last frame
@@ -135,6 +125,3 @@ def test_a_computation_ahead_gives_way_to_a_request_for_another_frame(small_data
         # Frame 1's work stopped at its first stage: it is not cached, and frame 2 ran next.
         assert 1 not in worker.cached_frames()
         assert computed[:3] == ["frame_00000", "frame_00001", "frame_00002"]
-    finally:
-        release.set()
-        worker.stop()

@@ -81,7 +81,7 @@ def test_screen_keeps_the_full_walk_of_the_options_it_keeps(rng):
     # Keeping every option, or screening with every tree, is the full walk.
     np.testing.assert_array_equal(quality.with_screen(10, 10_000).predict_best(features, owners), full)
     np.testing.assert_array_equal(quality.with_screen(60, 1).predict_best(features, owners), full)
-    np.testing.assert_array_equal(quality.predict_best(features, owners), full)
+    np.testing.assert_array_equal(quality.with_screen(0, 32).predict_best(features, owners), full)
     # The screen picks the set's best in most sets on this smooth target.
     best_full = np.array([full[owners == g].max() for g in np.unique(owners)])
     best_screened = np.array([screened[owners == g].max() for g in np.unique(owners)])
@@ -449,9 +449,10 @@ def test_the_shipped_screen_chooses_as_the_full_walk_on_small_frames(frames, pri
     # The fast path against the reference on the small frames' every point set and class: with
     # the screen the shipped model uses, nearly every set's chosen option and predicted IoU are the
     # full walk's, and a set that chooses otherwise loses little predicted IoU.
-    quality = BoxQuality(max_iter=100)
+    quality = BoxQuality(max_iter=100, screen_trees=0)
     quality.fit(*quality.training_rows(frames, prior, NUM_CLASSES))
-    screened = quality.with_screen(50, 32)
+    screened = quality.with_screen(BoxQuality.screen_trees, BoxQuality.screen_keep)
+    assert (screened.screen_trees, screened.screen_keep) == (50, 32)
     same, lost = [], []
     for frame in frames:
         for class_id in range(NUM_CLASSES):
