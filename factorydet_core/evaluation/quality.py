@@ -397,6 +397,70 @@ def bench_quality(
     return summarized(complete=True)
 
 
+HELDOUT_TARGETS: dict[str, float] = {
+    "f1": 0.60,
+    "per_class_f1": 0.40,
+    "map": 0.55,
+    "recognition_mean": 0.95,
+    "recognition_background": 0.97,
+    "back_half_ms_per_frame": 150.0,
+}
+"""The learned stage's targets on the held-out factories (the box head issue): total F and mAP at
+IoU 0.6, every class's F, recognition (Table 2) mean and background, and the back half's time."""
+
+
+def target_lines(result: dict, method: str) -> list[str]:
+    """One line per ``HELDOUT_TARGETS`` entry: ``method``'s mean over training seeds against the
+    target, met or short by how much."""
+    summary = result["methods"][method]["summary"]
+    targets = HELDOUT_TARGETS
+
+    def line(
+        what: str, value: float | None, target: float, higher_is_better: bool = True, unit: str = ""
+    ) -> str:
+        def shown(x: float) -> str:
+            return f"{x:,.0f}{unit}" if unit else f"{x:.3f}"
+
+        if value is None:
+            return f"- {what}: not measured (target {shown(target)})."
+        met = value >= target if higher_is_better else value <= target
+        gap = shown(abs(target - value))
+        verdict = "met" if met else f"short by {gap}" if higher_is_better else f"over by {gap}"
+        return f"- {what}: {shown(value)} against {shown(target)}: {verdict}."
+
+    per_class = summary["per_class_f1"]
+    below = [
+        c for c, stat in per_class.items() if stat["mean"] is None or stat["mean"] < targets["per_class_f1"]
+    ]
+    background = summary["recognition_per_class"].get("background", {}).get("mean")
+    return [
+        line("Total F-score at IoU 0.6", summary["f1"]["mean"], targets["f1"]),
+        line("mAP at IoU 0.6", summary["map"]["mean"], targets["map"]),
+        f"- Every class at F {targets['per_class_f1']:g} or more: "
+        + (
+            "met."
+            if not below
+            else "short for "
+            + ", ".join(
+                f"{c} ({'n/a' if per_class[c]['mean'] is None else format(per_class[c]['mean'], '.3f')})"
+                for c in below
+            )
+            + "."
+        ),
+        line(
+            "Recognition, mean over classes", summary["recognition_mean"]["mean"], targets["recognition_mean"]
+        ),
+        line("Recognition, background", background, targets["recognition_background"]),
+        line(
+            "Back half (classification and boxes), ms per frame",
+            summary["back_half_ms_per_frame"]["mean"],
+            targets["back_half_ms_per_frame"],
+            higher_is_better=False,
+            unit=" ms",
+        ),
+    ]
+
+
 def quality_markdown(result: dict) -> str:
     """A short table of ``bench_quality``'s result: per method, the mean (and spread over training
     seeds) of the total and per-class F-score at IoU 0.6, mAP, recognition and the back half's

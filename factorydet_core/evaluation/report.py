@@ -26,7 +26,7 @@ from factorydet_core.evaluation.evaluate import (
     reference_boxes,
 )
 from factorydet_core.evaluation.plots import plot_error_breakdown, plot_pr_curves, plot_sweep
-from factorydet_core.evaluation.quality import quality_markdown
+from factorydet_core.evaluation.quality import quality_markdown, target_lines
 from factorydet_core.evaluation.records import machine_info
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.metrics import FALSE_POSITIVE_KINDS, MISS_KINDS, OVERLAP_IOU
@@ -60,10 +60,11 @@ def model_text(model: DetectionModel) -> str:
     return head + ", which boxes its own detections"
 
 
-def heldout_lines(quality: dict) -> list[str]:
-    """The held-out factory benchmark's table (``quality.quality_markdown``) under its heading."""
+def heldout_lines(quality: dict, method: str | None = None) -> list[str]:
+    """The held-out factory benchmark's table (``quality.quality_markdown``) under its heading, and
+    ``method``'s figures (the shipped model's) against the learned stage's targets."""
 
-    return [
+    lines = [
         "",
         "## Held-out factories: the paper's method and the learned stages side by side",
         "",
@@ -72,6 +73,14 @@ def heldout_lines(quality: dict) -> list[str]:
         "",
         quality_markdown(quality).rstrip(),
     ]
+    if method is not None and method in quality.get("methods", {}):
+        lines += [
+            "",
+            f"Against the targets ({method}, the shipped model's method; means over the training seeds):",
+            "",
+            *target_lines(quality, method),
+        ]
+    return lines
 
 
 def operating_text(model: DetectionModel) -> str:
@@ -355,7 +364,11 @@ def write_report(
         f"- Matching: IoU ≥ {iou_threshold} with a reference of the same class; {operating_text(model)}, "
         f"NMS IoU {model.nms_iou}. AP is the area under the interpolated PR curve.",
         f"- Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory_gb']} GB, no GPU.",
-        *(heldout_lines(json.loads(quality_path.read_text())) if quality_path.is_file() else []),
+        *(
+            heldout_lines(json.loads(quality_path.read_text()), model.method)
+            if quality_path.is_file()
+            else []
+        ),
         "",
         "## Table 2: recognition accuracy (%) of held-out point sets",
         "",

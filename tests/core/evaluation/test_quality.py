@@ -74,3 +74,25 @@ def test_a_run_that_trains_nothing_says_so_and_names_its_front_half():
     assert "| paper |" in table and "spread" not in table
     assert "{'history_frames': 2}" in table
     assert table == (record.with_suffix(".md")).read_text()
+
+
+def test_target_lines_say_what_is_met_and_by_how_much_the_rest_is_short():
+    from factorydet_core.evaluation.quality import target_lines
+
+    def stat(mean):
+        return {"mean": mean, "std": 0.0}
+
+    summary = {
+        "f1": stat(0.61),
+        "map": stat(0.30),
+        "per_class_f1": {"barrel": stat(0.5), "pallet": stat(0.1), "cone": stat(None)},
+        "recognition_mean": stat(0.96),
+        "recognition_per_class": {"background": stat(0.9)},
+        "back_half_ms_per_frame": stat(400.0),
+    }
+    lines = target_lines({"methods": {"m": {"summary": summary}}}, "m")
+    assert lines[0] == "- Total F-score at IoU 0.6: 0.610 against 0.600: met."
+    assert lines[1] == "- mAP at IoU 0.6: 0.300 against 0.550: short by 0.250."
+    assert lines[2] == "- Every class at F 0.4 or more: short for pallet (0.100), cone (n/a)."
+    assert lines[3].endswith(": met.") and lines[4].endswith("short by 0.070.")
+    assert lines[5].endswith("400 ms against 150 ms: over by 250 ms.")
