@@ -33,6 +33,8 @@ from factorydet_core.detection.groups import (
     BoxSizePrior,
     ProposalGroups,
     _horizontal_sorted_sizes,
+    flatten_sets,
+    rank_within_sets,
 )
 from factorydet_core.io.atomic import atomic_path
 from factorydet_core.io.npz import load_npz
@@ -151,12 +153,9 @@ def class_option_features(
         ``option_features``), (K,) the set (0..S-1) of each row and (K,) the proposal its box came
         from (an anchored box's is the box it was placed by).
     """
-    counts = np.array([len(m) for m in members], np.int64)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    member_ids = np.concatenate(members).astype(np.int64)
+    member_ids, owner, starts = flatten_sets(members)
     boxes = np.asarray(proposal_boxes, np.float64)[member_ids]
-    owner = np.repeat(np.arange(len(members)), counts)
-    member = np.arange(len(boxes)) - np.repeat(starts, counts)
+    member = np.arange(len(boxes)) - starts[owner]
     fitted = boxes[starts]
     anchor_rows = starts
     if anchor_mask is not None:
@@ -398,12 +397,8 @@ class BoxQuality:
                 f" {features.shape} and {owners.shape}"
             )
         partial = _evaluate_trees(self.trees_, features, last_tree=self.screen_trees)
-        # Each set's rows by falling partial sum; the first screen_keep of each set walk on.
-        order = np.lexsort((-partial, owners))
-        sorted_owners = owners[order]
-        starts = np.flatnonzero(np.r_[True, sorted_owners[1:] != sorted_owners[:-1]])
-        rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
-        kept = np.sort(order[rank < self.screen_keep])
+        # Each set's screen_keep best rows by partial sum walk on.
+        kept = np.flatnonzero(rank_within_sets(owners, -partial) < self.screen_keep)
         out = np.full(len(features), -1.0)
         out[kept] = np.clip(
             _evaluate_trees(self.trees_, features[kept], first_tree=self.screen_trees, initial=partial[kept]),
@@ -790,9 +785,7 @@ def _choose_chunk(
         return boxes, proposal_ids, predicted
     options, owner, source = np.concatenate(all_options), np.concatenate(owners), np.concatenate(sources)
     iou = quality.predict_best(np.concatenate(all_features), owner)
-    # Best option per set: sort by (set, -iou) and take each set's first row.
-    order = np.lexsort((-iou, owner))
-    first = order[np.concatenate([[0], np.flatnonzero(np.diff(owner[order])) + 1])]
+    first = np.flatnonzero(rank_within_sets(owner, -iou) == 0)  # each set's best option
     boxes[owner[first]] = options[first]
     proposal_ids[owner[first]] = source[first]
     predicted[owner[first]] = iou[first]

@@ -10,6 +10,7 @@ visible sides, the least grown one whose size the class's annotations cover (``B
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -79,6 +80,26 @@ class ProposalGroups:
 
 SAMPLED_POINTS = 64
 """Points kept of each point set for the learned box head (``box_head.BoxHead``)."""
+
+
+def flatten_sets(members: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """S point sets' proposal ids listed set after set: ``(member_ids, owners, starts)``, (M,) the
+    ids, (M,) the set (0..S-1) of each row and (S,) the row where each set starts."""
+    counts = np.array([len(m) for m in members], np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    member_ids = np.concatenate(members).astype(np.int64) if len(members) else np.zeros(0, np.int64)
+    return member_ids, np.repeat(np.arange(len(members)), counts), starts
+
+
+def rank_within_sets(owners: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """(R,) each row's rank among the rows of its set (``owners``, (R,)) by increasing ``key``
+    (R,), the earlier row first on ties: 0 marks each set's least."""
+    order = np.lexsort((key, owners))
+    sorted_owners = owners[order]
+    starts = np.flatnonzero(np.r_[True, sorted_owners[1:] != sorted_owners[:-1]])
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+    return rank
 
 
 def floor_height(floor_plane: np.ndarray | None) -> float:

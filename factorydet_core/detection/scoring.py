@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 
 from factorydet_core.detection.box_quality import BoxQuality, choose_boxes
-from factorydet_core.detection.groups import BoxSizePrior, ProposalGroups
+from factorydet_core.detection.groups import BoxSizePrior, ProposalGroups, flatten_sets, rank_within_sets
 from factorydet_core.detection.nms import nms_3d, vote_boxes
 from factorydet_core.types import CLASS_NAMES, SCORE_FLOOR, Detections, InputError
 
@@ -115,19 +115,14 @@ def _prior_boxes(
     chosen_classes = np.asarray(class_ids)[chosen]
     for class_id in np.unique(chosen_classes).tolist():
         sets = chosen[chosen_classes == class_id]
-        members = [all_members[g] for g in sets.tolist()]
-        counts = np.array([len(m) for m in members], np.int64)
-        member_ids = np.concatenate(members).astype(np.int64)
-        owner_of_row = np.repeat(np.arange(len(sets)), counts)
-        first_row = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        member_ids, owner_of_row, first_row = flatten_sets([all_members[g] for g in sets.tolist()])
         rows = proposal_boxes[member_ids]
         options, cost, _, sources, _ = box_prior.option_sources(
             rows, int(class_id), fitted_boxes=rows[first_row][owner_of_row]
         )
         owner = owner_of_row[sources]
         # Least cost per set; on ties the earliest option, which is the earliest in the set's order.
-        order = np.lexsort((np.arange(len(options)), cost, owner))
-        first = order[np.concatenate([[0], np.flatnonzero(np.diff(owner[order])) + 1])]
+        first = np.flatnonzero(rank_within_sets(owner, cost) == 0)
         boxes[sets[owner[first]]] = options[first]
         proposal_ids[sets[owner[first]]] = member_ids[sources[first]]
     return boxes, proposal_ids

@@ -39,7 +39,9 @@ def crop(
 
 
 MIN_CELL_M = 0.001
-"""The finest cell ``cap_points`` prunes with (``settings.MIN_CELL_M``'s bound on ``prune_m``)."""
+"""The smallest down-sampling cell, metres: below a millimetre every point is its own cell anyway,
+and a tiny cell would overflow the cell indices of a far point (the bound of ``prune_m``, and the
+finest cell ``cap_points`` prunes with)."""
 
 
 def prune(cloud: MergedCloud, voxel_size: float) -> MergedCloud:

@@ -10,6 +10,7 @@ from collections.abc import Iterable, Mapping
 from typing import Literal, get_args
 
 from factorydet_core.proposals.candidates import FeatureKind, Weighting
+from factorydet_core.proposals.cloud import MIN_CELL_M
 from factorydet_core.proposals.segment import SegmentationParams
 from factorydet_core.proposals.voxels import DEFAULT_VOXEL_SIZE
 from factorydet_core.settings_check import Setting, short_repr
@@ -21,10 +22,6 @@ through the whole front half (the benchmarks measured 2)."""
 
 MAX_EXTENT_M = 1000.0
 """The farthest a crop reaches from the vehicle, metres: a factory hall, not a city."""
-
-MIN_CELL_M = 0.001
-"""The smallest down-sampling cell, metres: below a millimetre every point is its own cell anyway,
-and a tiny cell would overflow the cell indices of a far point."""
 
 _HEIGHT = Setting(float, -MAX_EXTENT_M, MAX_EXTENT_M)
 

@@ -13,6 +13,8 @@ from factorydet_core.detection.groups import (
     ProposalGroups,
     _size_modes,
     describe_point_sets,
+    flatten_sets,
+    rank_within_sets,
 )
 from factorydet_core.detection.scoring import score_groups, select_detections
 from factorydet_core.types import InputError
@@ -362,3 +364,20 @@ def test_a_rare_kind_of_object_keeps_its_size_mode():
     # A single odd box is no mode.
     odd = np.vstack([forklifts, pallet_trucks[:1]])
     assert len(BoxSizePrior.from_boxes(odd, np.zeros(29, int), 1).class_modes(0)) == 1
+
+
+@given(st.lists(st.tuples(st.integers(0, 5), st.integers(-3, 3)), min_size=1, max_size=60))
+def test_rank_within_sets_orders_each_sets_rows_by_key_earlier_first_on_ties(rows):
+    owners = np.array([o for o, _ in rows], np.int64)
+    key = np.array([k for _, k in rows], np.float64)
+    rank = rank_within_sets(owners, key)
+    for owner in np.unique(owners):
+        mine = np.flatnonzero(owners == owner)
+        expected = sorted(mine.tolist(), key=lambda r: (key[r], r))
+        assert rank[expected].tolist() == list(range(len(mine)))
+
+
+def test_flatten_sets_lists_members_set_after_set():
+    member_ids, owners, starts = flatten_sets([np.array([4, 2]), np.array([7]), np.array([1, 0, 3])])
+    assert member_ids.tolist() == [4, 2, 7, 1, 0, 3]
+    assert owners.tolist() == [0, 0, 1, 2, 2, 2] and starts.tolist() == [0, 2, 3]
