@@ -103,12 +103,15 @@ class PipelineWorker:
         if entry is None:
             return False
         kind, result, status = entry
-        status = f"{status} (from the cache)"
+        self._show(key, kind, result, f"{status} (from the cache)")
+        return True
+
+    def _show(self, key: tuple, kind: str, result, status: str) -> None:
+        """Make ``result`` (a "detection" or a "proposal" result) the state's shown one."""
         if kind == "detection":
             self.state.set_detection_result(key, result, status)
         else:
             self.state.set_pipeline_result(key, result, status)
-        return True
 
     def _remember(self, key: tuple, kind: str, result, status: str) -> None:
         with self._cache_lock:
@@ -231,7 +234,4 @@ class PipelineWorker:
             if back_to_shown and not ahead:
                 self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
             return
-        if kind == "detection":
-            self.state.set_detection_result(key, kept, status)
-        else:
-            self.state.set_pipeline_result(key, kept, status)
+        self._show(key, kind, kept, status)

@@ -6,7 +6,7 @@ import argparse
 import getpass
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 
 from factorydet_core.threads import configure_threads
@@ -273,24 +273,25 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
             elif args.name == "hitl":
                 from factorydet_core.evaluation.hitl import bench_hitl
-                from factorydet_core.training.settings import LoopSettings
 
                 result = bench_hitl(
                     args.data[0],
                     budgets=parse_ints(args.budgets, "--budgets"),
                     rounds=args.rounds,
-                    settings=LoopSettings(
-                        epochs=args.epochs,
-                        negatives_per_round=args.negatives,
-                        initial_negatives=args.initial_negatives,
-                        score_threshold=(
-                            SCORE_THRESHOLD if args.score_threshold is None else args.score_threshold
-                        ),
-                        probability_exponent=args.probability_exponent,
-                        mining_threshold=args.mining_threshold,
-                        box_quality=args.box_quality,
-                        method=args.method,
-                        class_weight=None if args.class_weight == "none" else args.class_weight,
+                    settings=loop_settings_from(
+                        {
+                            "epochs": args.epochs,
+                            "negatives_per_round": args.negatives,
+                            "initial_negatives": args.initial_negatives,
+                            "score_threshold": (
+                                SCORE_THRESHOLD if args.score_threshold is None else args.score_threshold
+                            ),
+                            "probability_exponent": args.probability_exponent,
+                            "mining_threshold": args.mining_threshold,
+                            "box_quality": args.box_quality,
+                            "method": args.method,
+                            "class_weight": args.class_weight,
+                        }
                     ),
                     seeds=parse_ints(args.seeds, "--seeds"),
                     max_label_iou=args.hide_labelled,
@@ -740,9 +741,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_loop_flags(parser: argparse.ArgumentParser) -> None:
-    """A flag per ``training.settings.LOOP_CONTROLS`` entry, its default ``LoopSettings()``'s."""
+def add_loop_flags(parser: argparse.ArgumentParser, fields: Collection[str] | None = None) -> None:
+    """A flag per ``training.settings.LOOP_CONTROLS`` entry (those of ``fields`` only, when given),
+    its default ``LoopSettings()``'s."""
     for control in LOOP_CONTROLS:
+        if fields is not None and control.field not in fields:
+            continue
         default = control.default
         shown = control.shown(default)
         if control.kind is bool:
@@ -1124,18 +1128,7 @@ def build_parser(
     p.add_argument(
         "--heldout-frames", type=int, default=12, help="quality, detect: frames per held-out factory"
     )
-    p.add_argument(
-        "--method",
-        default=LoopSettings().method,
-        choices=METHODS,
-        help=f"hitl: the back half the loop trains (default {LoopSettings().method})",
-    )
-    p.add_argument(
-        "--class-weight",
-        default=LoopSettings().class_weight or "none",
-        choices=("balanced", "sqrt", "none"),
-        help=f"hitl: the loop's loss weighting (default {LoopSettings().class_weight})",
-    )
+    add_loop_flags(p, fields=("method", "class_weight"))  # hitl: what the loop trains
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

@@ -504,31 +504,30 @@ def bench_detect(
         or note.get("fit_seconds"),
         "machine": machine_info(),
     }
+
+    def against_reference(name: str) -> dict:
+        """``name``'s summary and each stage's ratio of its median to the reference's."""
+        reference = record["stage_ms_median"]
+        out = summary(name)
+        out["ratio_of_medians"] = {
+            stage: round(ms / reference[stage], 3)
+            for stage, ms in out["stage_ms_median"].items()
+            if reference.get(stage)
+        }
+        return out
+
     if busy:
-        loaded = summary("busy")
         record["busy"] = {
             "what": "the reference beside one other process spinning a core, interleaved with the quiet runs",
-            **loaded,
-            "ratio_of_medians": {
-                stage: round(ms / record["stage_ms_median"][stage], 3)
-                for stage, ms in loaded["stage_ms_median"].items()
-                if record["stage_ms_median"].get(stage)
-            },
+            **against_reference("busy"),
         }
     if heldout_seeds:
-        record["heldout"] = _heldout_pair(data, configs, heldout_seeds, heldout_frames, progress)
+        record["heldout"] = _heldout_pair(data, configs, heldout_seeds, heldout_frames)
     if "compared" in configs:
-        compared = summary("compared")
-        reference = record["stage_ms_median"]
         record["compare"] = {
             "model": str(compare_model or model_path),
             "overrides": compare_overrides or {},
-            **compared,
-            "ratio_of_medians": {
-                stage: round(ms / reference[stage], 3)
-                for stage, ms in compared["stage_ms_median"].items()
-                if reference.get(stage)
-            },
+            **against_reference("compared"),
         }
     return record
 
@@ -580,27 +579,27 @@ def bench_memory(
     import subprocess
     import sys
 
+    script = (
+        "import json, sys\n"
+        "from factorydet_core.threads import configure_threads\n"
+        "configure_threads()\n"
+        "from factorydet_core.evaluation.bench import detect_once\n"
+        "print(json.dumps(detect_once(sys.argv[1], sys.argv[2])))\n"
+    )
+    model = Path(model_path)
+    if overrides:
+        # The child reads a checkpoint: a copy whose note carries the changed front half.
+        changed = DetectionModel.load(model_path)
+        changed = dataclasses.replace(
+            changed,
+            front_end=(changed.front_end or front_end_params(preset_for(12))).replace(**overrides),
+        )
+        model = Path(scratch) / "overridden" / "model.pt"
+        model.parent.mkdir(parents=True, exist_ok=True)
+        changed.save(model)
     runs = []
     for done, num_points in enumerate(points):
         folder = _dense_scan(int(num_points), seed, Path(scratch))
-        script = (
-            "import json, sys\n"
-            "from factorydet_core.threads import configure_threads\n"
-            "configure_threads()\n"
-            "from factorydet_core.evaluation.bench import detect_once\n"
-            "print(json.dumps(detect_once(sys.argv[1], sys.argv[2])))\n"
-        )
-        model = Path(model_path)
-        if overrides:
-            # The child reads a checkpoint: a copy whose note carries the changed front half.
-            changed = DetectionModel.load(model_path)
-            changed = dataclasses.replace(
-                changed,
-                front_end=(changed.front_end or front_end_params(preset_for(12))).replace(**overrides),
-            )
-            model = Path(scratch) / "overridden" / "model.pt"
-            model.parent.mkdir(parents=True, exist_ok=True)
-            changed.save(model)
         out = subprocess.run(
             [sys.executable, "-c", script, str(folder), str(model)], capture_output=True, text=True
         )
@@ -648,18 +647,16 @@ BACK_HALF_SETTINGS = ("screen_trees", "screen_keep")
 regressor's screen), not to its front half."""
 
 
-def _heldout_pair(
-    data: str | os.PathLike, configs: dict, seeds: Sequence[int], num_frames: int, progress
-) -> dict:
+def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], num_frames: int) -> dict:
     """Each configuration's headline figures on the held-out factories, and their differences."""
-    from factorydet_core.evaluation.quality import QualityPlan, _heldout_set, measure_heldout
+    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
 
     plan = QualityPlan(
         train_data=Path(data), heldout_seeds=tuple(seeds), heldout_frames=num_frames, seeds=(0,)
     )
     out = {"seeds": list(seeds), "frames_per_factory": num_frames}
     for name, detector in configs.items():
-        measured = measure_heldout(detector.model, _heldout_set(plan, detector.params, None))
+        measured = measure_heldout(detector.model, heldout_set(plan, detector.params, None))
         head = measured["iou_0.6"]
         out[name] = {key: head[key] for key in ("f1", "map", "precision", "recall")}
         out[name]["back_half_ms_per_frame"] = measured["back_half_ms_per_frame"]

@@ -161,8 +161,9 @@ class HeldoutSet:
     """Frame -> (factory, its own frame index)."""
 
 
-def _heldout_set(plan: QualityPlan, params, progress: Progress | None) -> HeldoutSet:
-
+def heldout_set(plan: QualityPlan, params, progress: Progress | None) -> HeldoutSet:
+    """The plan's held-out factories (simulated once into its scratch folder), proposed with the
+    front-half settings ``params`` (cached per settings), with their truth."""
     frames, references, ignored, sources = [], {}, {}, []
     for seed in plan.heldout_seeds:
         folder = heldout_factory(seed, plan.heldout_frames, plan.scratch)
@@ -308,7 +309,7 @@ def bench_quality(
     if tuple(paper.class_names) != tuple(train_dataset.class_names):
         raise InputError("the paper model's classes differ from the training data's")
     params = params_for(paper, train_dataset.num_sensors).replace(**dict(plan.overrides))
-    heldout = _heldout_set(plan, params, progress)
+    heldout = heldout_set(plan, params, progress)
     train_split = train_dataset.splits.get("train") or list(range(train_dataset.num_frames))
     train_indices = spread_frames(train_split, plan.train_frames)
     learned = [m for m in plan.methods if m != "paper"]
