@@ -59,7 +59,7 @@ bench: $(STAMP) corpus
 	$(BIN)/factorydet bench import --boxes 10000 --out docs/bench/label_import.json
 	$(BIN)/factorydet bench import --boxes 10000 --large-box --out docs/bench/label_import_large_box.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --method paper --class-weight balanced --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/bench/hitl.json --readme docs/labelling.md
+	  --round-epochs 0 --method paper --class-weight balanced --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --out docs/bench/hitl.json --readme docs/labelling.md
 
 # Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
 screenshots: $(STAMP) demo browserdeps
@@ -75,11 +75,11 @@ corpus: $(STAMP)
 # paper's pipeline as paper.pt, the benchmarks' reference.
 default-model: $(STAMP) corpus
 	$(BIN)/factorydet train $(CORPUS) --session corpus-head --method head_options --rounds 1 --epochs 20 \
-	  --class-weight sqrt --set feature=direct --export factorydet_core/models/default.pt
+	  --round-epochs 0 --class-weight sqrt --set feature=direct --export factorydet_core/models/default.pt
 
 paper-model: $(STAMP) corpus
 	$(BIN)/factorydet train $(CORPUS) --session corpus-paper --method paper --rounds 1 --epochs 10 \
-	  --class-weight balanced --fragments-per-frame 300 --score-threshold 0.35 --probability-exponent 0.5 \
+	  --round-epochs 0 --class-weight balanced --fragments-per-frame 300 --score-threshold 0.35 --probability-exponent 0.5 \
 	  --set feature=direct --export factorydet_core/models/paper.pt
 
 # Regenerates docs/results.md (tables, PR curve, grid sweep) for the shipped model on the demo data;

@@ -291,6 +291,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "box_quality": args.box_quality,
                             "method": args.method,
                             "class_weight": args.class_weight,
+                            "round_epochs": args.round_epochs,
                         }
                     ),
                     seeds=parse_ints(args.seeds, "--seeds"),
@@ -1128,7 +1129,7 @@ def build_parser(
     p.add_argument(
         "--heldout-frames", type=int, default=12, help="quality, detect: frames per held-out factory"
     )
-    add_loop_flags(p, fields=("method", "class_weight"))  # hitl: what the loop trains
+    add_loop_flags(p, fields=("method", "class_weight", "round_epochs"))  # hitl: what the loop trains
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

@@ -49,8 +49,10 @@ from factorydet_core.detection.checkpoint import (
 )
 from factorydet_core.detection.classifier import (
     CLASS_WEIGHTS,
+    FINE_TUNE_RATE,
     ClassOutputs,
     _torch_threads,
+    check_init_model,
     class_weights,
     count_parameters,
 )
@@ -542,9 +544,14 @@ class BoxHead(ClassOutputs):
         hard_mask: np.ndarray | None = None,
         progress: Callable[[int, int], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
+        init_model: BoxHead | None = None,
     ) -> BoxHead:
         """Train from scratch on ``samples`` with the (C, 3) size ``templates`` (each class's
-        median (length, width, height); NaN rows for classes never seen are set to 1 m).
+        median (length, width, height); NaN rows for classes never seen are set to 1 m), or go on
+        training ``init_model`` (a fitted head of the same classes and network; it is not changed):
+        its weights and input normalisation are the start, and the ``epochs`` run at
+        ``classifier.FINE_TUNE_RATE`` times the learning rate. Hard-negative mining rounds after
+        the first go on from the previous round's head this way.
 
         Every epoch sees every object set, every background set of ``hard_mask`` (M,) (hard
         negatives: mined or confirmed by a reviewer) and a fresh random draw of the other
@@ -570,24 +577,33 @@ class BoxHead(ClassOutputs):
         templates = np.asarray(templates, np.float64).reshape(num_classes, 3)
         templates = np.where(np.isfinite(templates) & (templates > 0), templates, 1.0)
         symmetry = symmetry_orders(templates, self.square_ratio)
+        learning_rate = self.learning_rate
+        if init_model is not None:
+            check_init_model(self, init_model, ("channels", "hidden", "heading_bins"))
+            learning_rate *= FINE_TUNE_RATE
         start = time.perf_counter()
         rng = np.random.default_rng(self.seed)
         with _torch_threads(self.num_threads):
             torch.manual_seed(self.seed)
             network = self._new_network()
-            _, fitted_heading = canonical_frame(samples.anchor_boxes)
-            globals_all = global_inputs(samples.anchor_boxes, samples.descriptors, fitted_heading)
-            network.global_mean.copy_(torch.from_numpy(globals_all.mean(axis=0)))
-            network.global_scale.copy_(torch.from_numpy(globals_all.std(axis=0)).clamp_min(1e-3))
+            if init_model is not None:
+                network.load_state_dict(init_model.network_.state_dict())
+            else:
+                _, fitted_heading = canonical_frame(samples.anchor_boxes)
+                globals_all = global_inputs(samples.anchor_boxes, samples.descriptors, fitted_heading)
+                network.global_mean.copy_(torch.from_numpy(globals_all.mean(axis=0)))
+                network.global_scale.copy_(torch.from_numpy(globals_all.std(axis=0)).clamp_min(1e-3))
             counts = np.bincount(labels, minlength=num_classes + 1).astype(np.float64)
             counts[-1] = min(counts[-1], len(positives) * self.background_per_positive + hard.sum())
             loss_fn = nn.CrossEntropyLoss(weight=class_weights(counts, self.class_weight))
-            optimizer = torch.optim.AdamW(network.parameters(), lr=self.learning_rate, weight_decay=1e-4)
+            optimizer = torch.optim.AdamW(network.parameters(), lr=learning_rate, weight_decay=1e-4)
             drawn_per_epoch = min(len(background), int(len(positives) * self.background_per_positive))
             per_epoch = len(positives) + len(hard_background) + drawn_per_epoch
-            total_steps = self.epochs * max(1, -(-per_epoch // self.batch_size))
+            # At least two warm-up steps and one after: torch's one-cycle schedule divides by
+            # zero when a phase is a single step (a short fine-tune of a few batches).
+            total_steps = max(3, self.epochs * max(1, -(-per_epoch // self.batch_size)))
             scheduler = torch.optim.lr_scheduler.OneCycleLR(
-                optimizer, self.learning_rate, total_steps=total_steps, pct_start=0.1
+                optimizer, learning_rate, total_steps=total_steps, pct_start=max(0.1, 2.0 / total_steps)
             )
             history, step = [], 0
             out_of_time = False

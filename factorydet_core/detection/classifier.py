@@ -192,6 +192,25 @@ def class_weights(counts: np.ndarray, kind: str | None) -> torch.Tensor | None:
     return torch.as_tensor(w, dtype=torch.float32)
 
 
+FINE_TUNE_RATE = 0.25
+"""A fit that goes on from a fitted model (``init_model``) runs at this share of the learning
+rate: hard-negative mining rounds fine-tune the previous round's network instead of training
+afresh, and at the full rate the first steps would undo much of what it had learnt."""
+
+
+def check_init_model(model, init_model, architecture: tuple[str, ...]) -> None:
+    """Raise ``InputError`` unless ``init_model`` is a fitted model of ``model``'s type whose
+    class names and ``architecture`` settings are ``model``'s: a fit can go on from its weights."""
+    if type(init_model) is not type(model) or not hasattr(init_model, "network_"):
+        kind = type(model).__name__
+        raise InputError(f"init_model must be a fitted {kind}, got {type(init_model).__name__}")
+    differing = [
+        name for name in ("class_names", *architecture) if getattr(init_model, name) != getattr(model, name)
+    ]
+    if differing:
+        raise InputError(f"init_model differs in {', '.join(differing)}: its weights cannot be continued")
+
+
 def count_parameters(module: nn.Module) -> int:
     return int(sum(p.numel() for p in module.parameters()))
 
@@ -334,8 +353,9 @@ class ProposalClassifier(ClassOutputs):
         descriptors: np.ndarray | None = None,
         progress: Callable[[int, int], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
+        init_model: ProposalClassifier | None = None,
     ) -> ProposalClassifier:
-        """Train from scratch.
+        """Train from scratch, or go on training ``init_model``.
 
         Args:
             features: (M, 20, 5, 5, 5) proposal features.
@@ -345,11 +365,16 @@ class ProposalClassifier(ClassOutputs):
             progress: called with (epoch, epochs) after each epoch.
             should_stop: asked before every batch; when it returns True, fit raises ``Cancelled``
                 and the classifier is left as it was.
+            init_model: a fitted classifier of the same classes and network whose weights (and
+                descriptor normalisation) the fit starts from, for ``epochs`` more epochs at
+                ``FINE_TUNE_RATE`` times the learning rate; it is not changed. ``None``: fresh weights.
 
         Returns:
             self, with ``network_``, ``history_`` (loss and accuracy per epoch) and ``fit_seconds_``.
         """
         features, descriptors = self._check_inputs(features, descriptors)
+        if init_model is not None:
+            check_init_model(self, init_model, ("width", "geometry"))
         labels = np.asarray(labels, np.int64)
         if labels.shape != (len(features),):
             raise InputError(f"labels: expected shape ({len(features)},), got {labels.shape}")
@@ -361,15 +386,18 @@ class ProposalClassifier(ClassOutputs):
         with _torch_threads(self.num_threads):
             torch.manual_seed(self.seed)
             network = self._new_network()
-            d_all = None
-            if descriptors is not None:
-                d_all = torch.from_numpy(descriptors)
+            d_all = None if descriptors is None else torch.from_numpy(descriptors)
+            learning_rate = self.learning_rate
+            if init_model is not None:
+                network.load_state_dict(init_model.network_.state_dict())
+                learning_rate *= FINE_TUNE_RATE
+            elif d_all is not None:
                 network.descriptor_mean.copy_(d_all.mean(dim=0))
                 network.descriptor_scale.copy_(d_all.std(dim=0).clamp_min(1e-3))
             counts = np.bincount(labels, minlength=len(self.labels_)).astype(np.float64)
             weight = class_weights(counts, self.class_weight)
             loss_fn = nn.CrossEntropyLoss(weight=weight)
-            optimizer = torch.optim.Adam(network.parameters(), lr=self.learning_rate)
+            optimizer = torch.optim.Adam(network.parameters(), lr=learning_rate)
             x_all = torch.from_numpy(features)
             y_all = torch.from_numpy(labels)
             generator = torch.Generator().manual_seed(self.seed)
@@ -394,7 +422,7 @@ class ProposalClassifier(ClassOutputs):
                         continue
                     decays = samples_seen // self.decay_every_samples
                     for group in optimizer.param_groups:
-                        group["lr"] = max(self.learning_rate * self.lr_decay**decays, 1e-5)
+                        group["lr"] = max(learning_rate * self.lr_decay**decays, 1e-5)
                     logits = network(x_all[batch], None if d_all is None else d_all[batch])
                     loss = loss_fn(logits, y_all[batch])
                     optimizer.zero_grad()

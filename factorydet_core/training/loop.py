@@ -8,9 +8,10 @@ The loop, as the app and ``factorydet loop`` run it:
    mining (the paper's procedure) and mines one more batch after the last round. Every mined
    negative goes to the review queue of that run.
 2. People review the queue (``SessionDB.review``): background, object of class C, wrong box, skip.
-3. ``train_session(..., mode="next")`` refits on the corrected labels. Its background set is the
-   random first sample, every negative mined so far except those reviewed as real objects, and
-   the confirmed background. It then mines the next queue.
+3. ``train_session(..., mode="next")`` goes on training the latest model on the corrected labels
+   (``LoopSettings.round_epochs``). Its background set is the random first sample, every negative
+   mined so far except those reviewed as real objects, and the confirmed background. It then
+   mines the next queue.
 """
 
 from __future__ import annotations
@@ -24,12 +25,12 @@ import numpy as np
 
 from factorydet_core.detection.box_head import BoxHead
 from factorydet_core.detection.box_quality import BoxQuality
-from factorydet_core.detection.classifier import ProposalClassifier
+from factorydet_core.detection.classifier import ProposalClassifier, check_init_model
 from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.session.store import SessionDB, read_cache, write_cache
+from factorydet_core.session.store import SessionDB, latest_model, read_cache, write_cache
 from factorydet_core.training.mining import (
     FrameProposals,
     Progress,
@@ -68,6 +69,39 @@ def new_classifier(settings: LoopSettings, class_names: Sequence[str]) -> Propos
         num_threads=settings.num_threads,
         geometry=settings.geometry,
     )
+
+
+def continued_model(
+    db: SessionDB, settings: LoopSettings, classifier: ProposalClassifier | BoxHead
+) -> tuple[int | None, DetectionModel | None, str]:
+    """The session's latest model, if a 'next' round under ``settings`` can go on from it.
+
+    Returns:
+        ``(run_id, model, why)``: the run and its model, or ``None`` for both and why it cannot
+        (no run, ``round_epochs`` 0, another method, classes or network).
+    """
+    run_id = db.latest_run_id()
+    if run_id is None:
+        return None, None, "the session has no training run"
+    if not settings.round_epochs:
+        return None, None, "round_epochs is 0: every round trains afresh"
+    path = latest_model(db.session)
+    model = DetectionModel.load(path)
+    if model.method != settings.method:
+        return None, None, f"the latest model is a {model.method} model, the settings train {settings.method}"
+    try:
+        check_init_model(classifier, model.classifier, CONTINUED_ARCHITECTURE[settings.method])
+    except InputError as exc:
+        return None, None, str(exc)
+    return run_id, model, ""
+
+
+CONTINUED_ARCHITECTURE = {
+    "paper": ("width", "geometry"),
+    "box_head": ("channels", "hidden", "heading_bins"),
+    "head_options": ("channels", "hidden", "heading_bins"),
+}
+"""The settings of each method's network that a fit going on from its weights must share."""
 
 
 def proposals_cache_key(dataset: Dataset, detector: Detector) -> str:
@@ -179,7 +213,10 @@ def train_session(
         frames: the training frames' proposals (``cached_proposals``), with any labels: the
             session's replace them.
         mode: 'full' retrains from scratch with ``settings.rounds`` blind mining rounds; 'next'
-            runs one more round on top of everything mined and reviewed so far.
+            runs one more round on top of everything mined and reviewed so far, going on from the
+            session's latest model (``continued_model``: its network trained on for
+            ``settings.round_epochs`` epochs, its box quality regressor kept) when it can, else
+            afresh (the run's config says why).
         front_end: the front half's settings the frames were proposed with, saved whole in the
             models and the run's record.
         should_stop: cancels the run (``types.Cancelled``); nothing is stored then.
@@ -196,15 +233,25 @@ def train_session(
     labelled = with_session_labels(db, frames, db.snapshot(snapshot_id))
     reviewed = db.reviewed_patch_sets()
     excluded = _merge(reviewed["object"], reviewed["wrong_box"])
+    classifier = new_classifier(settings, db.class_names)
+    box_quality = (
+        BoxQuality(seed=settings.seed, visibility=settings.quality_visibility(db.dataset))
+        if settings.box_quality and settings.method != "box_head"
+        else None
+    )
+    continued_run, continued, why = None, None, ""
     if mode == "next":
         background = _merge(db.mined_patch_sets(), reviewed["background"])
         rounds = 0
+        continued_run, continued, why = continued_model(db, settings, classifier)
+        if continued is not None and continued.box_quality is not None and box_quality is not None:
+            box_quality = continued.box_quality
     else:
         background = reviewed["background"]
         rounds = settings.rounds
     run = train_with_mining(
         labelled,
-        new_classifier(settings, db.class_names),
+        classifier,
         rounds=rounds,
         negatives_per_round=settings.negatives_per_round,
         initial_negatives=settings.initial_negatives,
@@ -217,24 +264,25 @@ def train_session(
         mining_threshold=settings.mining_threshold,
         nms_iou=settings.nms_iou,
         seed=settings.seed,
-        box_quality=(
-            BoxQuality(seed=settings.seed, visibility=settings.quality_visibility(db.dataset))
-            if settings.box_quality and settings.method != "box_head"
-            else None
-        ),
+        box_quality=box_quality,
         progress=progress,
         background_sets=background,
         excluded_sets=excluded,
         mine_after_last=True,
         should_stop=should_stop,
+        round_epochs=settings.round_epochs,
+        init_model=None if continued is None else continued.classifier,
     )
     for model in run.models:
         model.front_end = front_end
     config = {
         "mode": mode,
+        "continued_run": continued_run,
         "settings": dataclasses.asdict(settings),
         "front_end": None if front_end is None else front_end.to_dict(),
     }
+    if why and mode == "next":
+        config["afresh_because"] = why
     if command:
         config["command"] = command  # the checkpoints' notes say how to reproduce them
     run_id = db.save_training_run(run, data_ref, config, kind=mode, snapshot_id=snapshot_id)

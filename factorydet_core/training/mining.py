@@ -350,6 +350,8 @@ def train_with_mining(
     mining_threshold: float | None = None,
     tune_class_thresholds: bool = True,
     probability_exponent: float = PROBABILITY_EXPONENT,
+    round_epochs: int = 0,
+    init_model: ProposalClassifier | BoxHead | None = None,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -357,6 +359,13 @@ def train_with_mining(
         frames: training frames' proposals (``collect_proposals``).
         classifier: an unfitted classifier; its settings are reused for every round.
         rounds: mining rounds after the first training (0: no mining).
+        round_epochs: with more than 0, every round after the first goes on training the previous
+            round's classifier for this many epochs (``fit``'s ``init_model``) instead of training
+            afresh for the classifier's ``epochs``: a round then costs a fraction of a first fit.
+            0 trains every round afresh (the paper's procedure).
+        init_model: a fitted classifier (``classifier``'s type, classes and network) that even the
+            first round goes on from, for ``round_epochs`` epochs: a 'next' round continuing a
+            session's model. Needs ``round_epochs`` > 0.
         negatives_per_round: N, the highest scoring false positives added per round.
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
@@ -386,8 +395,9 @@ def train_with_mining(
         should_stop: asked between batches and frames; True raises ``types.Cancelled``.
         box_quality: an unfitted ``BoxQuality``, fitted once on the frames' labels (it does not
             depend on the classifier) and shared by every round's model, so that mining sees the
-            scores the model will give; ``None`` keeps the size prior's box and the class
-            probability as score. Needs ``use_box_prior``.
+            scores the model will give, or a fitted one (a model's that the run continues), used as
+            it is; ``None`` keeps the size prior's box and the class probability as score. Needs
+            ``use_box_prior``.
         mining_threshold: detections scoring at least this are mined (``None``: the operating
             ``score_threshold``, as the paper). With box quality a score is a probability (to
             ``probability_exponent``) times a predicted IoU, so few clear the operating threshold
@@ -417,6 +427,10 @@ def train_with_mining(
         raise InputError(f"fragment_iou must lie in [0, positive_iou), got {fragment_iou}")
     if fragments_per_frame is not None and fragments_per_frame < 0:
         raise InputError(f"fragments_per_frame must be >= 0 or None, got {fragments_per_frame}")
+    if isinstance(round_epochs, bool) or not isinstance(round_epochs, (int, np.integer)) or round_epochs < 0:
+        raise InputError(f"round_epochs must be an integer >= 0, got {round_epochs!r}")
+    if init_model is not None and not round_epochs:
+        raise InputError("init_model is trained on for round_epochs epochs: set round_epochs > 0")
     background_id = classifier.background_id
     num_classes = len(classifier.class_names)
     is_head = isinstance(classifier, BoxHead)
@@ -477,7 +491,9 @@ def train_with_mining(
                 background.setdefault(index, set()).add(int(g))
 
     quality = None
-    if box_quality is not None and box_prior is not None:
+    if box_quality is not None and box_prior is not None and hasattr(box_quality, "trees_"):
+        quality = box_quality
+    elif box_quality is not None and box_prior is not None:
         if progress is not None:
             progress("box quality", 0, 1)
         rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
@@ -486,15 +502,27 @@ def train_with_mining(
             progress("box quality", 1, 1)
 
     records, models = [], []
+    previous = init_model
     for round_index in range(rounds + 1):
         fit_progress = None if progress is None else (lambda e, n: progress("fit", e, n))
+        start_from = previous if round_epochs else None
+        trainer = (
+            dataclasses.replace(classifier)
+            if start_from is None
+            else dataclasses.replace(classifier, epochs=round_epochs)
+        )
         if is_head:
             samples, hard = _head_training_set(frames, frame_labels, frame_owners, background, excluded)
             labels = samples.labels
             if not (labels != background_id).any():
                 raise InputError("no point set lies in an annotated box: nothing to learn from")
-            fitted = dataclasses.replace(classifier).fit(
-                samples, box_prior.sizes, hard, progress=fit_progress, should_stop=should_stop
+            fitted = trainer.fit(
+                samples,
+                box_prior.sizes,
+                hard,
+                progress=fit_progress,
+                should_stop=should_stop,
+                init_model=start_from,
             )
         else:
             features, descriptors, labels = _training_set(
@@ -504,9 +532,15 @@ def train_with_mining(
                 raise InputError(
                     f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
                 )
-            fitted = dataclasses.replace(classifier).fit(
-                features, labels, descriptors, progress=fit_progress, should_stop=should_stop
+            fitted = trainer.fit(
+                features,
+                labels,
+                descriptors,
+                progress=fit_progress,
+                should_stop=should_stop,
+                init_model=start_from,
             )
+        previous = fitted
         model = DetectionModel(
             fitted,
             box_prior,
@@ -528,6 +562,8 @@ def train_with_mining(
             "num_positives": int((labels != background_id).sum()),
             "num_background": int((labels == background_id).sum()),
             "fit_seconds": round(fitted.fit_seconds_, 2),
+            "epochs": trainer.epochs,
+            "continued": start_from is not None,
             "score_seconds": round(time.perf_counter() - start, 2),
             "train_metrics": metrics,
             "mined": [],

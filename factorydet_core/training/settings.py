@@ -23,6 +23,13 @@ class LoopSettings:
 
     width: float = 0.0625
     epochs: int = 20
+    round_epochs: int = 5
+    """Epochs of a fit that goes on from a model instead of training afresh: each mining round
+    after a full retrain's first fit goes on from the previous round's network, and a 'next'
+    round goes on from the session's latest model and keeps its box quality regressor (a full
+    retrain refits it on the current labels). 0: every fit trains afresh for ``epochs`` and a
+    'next' round refits the regressor (the paper's procedure, several times slower; the default
+    and paper checkpoints were trained so). ``factorydet bench mining`` measures both."""
     class_weight: str | None = "sqrt"
     """The box head learns best with the square root of the inverse class frequencies (its own
     default); the paper model was trained with "balanced" (``make paper-model``)."""
@@ -175,6 +182,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "classifies and boxes), head_options (the head classifies, the box quality regressor boxes)",
             str, choices=tuple((m, m) for m in METHODS)),
     Control("epochs", "Epochs", "passes over the training set per fit", int, 1, 500, 1),
+    Control("round_epochs", "Epochs per round", "epochs of a mining round or next round that goes on from "
+            "the previous model (0: every round trains afresh, the paper's procedure)", int, 0, 500, 1),
     Control("rounds", "Mining rounds", "hard-negative mining rounds after the first fit (full retrain)",
             int, 0, 20, 1),
     Control("negatives_per_round", "Negatives per round", "mined negatives added per round (N)", int, 0,

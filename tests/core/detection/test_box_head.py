@@ -292,3 +292,41 @@ def test_corner_loss_is_zero_on_the_target_and_blind_to_its_symmetry(rng):
     # A whole turn of the folded heading (12 bins) is the box turned by its symmetry: no loss.
     assert loss(encoded.centre, encoded.log_size, encoded.heading_residual + 12) == pytest.approx(0, abs=1e-4)
     assert loss(encoded.centre, encoded.log_size, encoded.heading_residual + 3) > 0.05
+
+
+def test_a_fit_goes_on_from_a_fitted_head_and_leaves_it_as_it_was(rng):
+    import torch
+
+    samples, templates = _toy_samples(rng, 8)
+    kwargs = {"channels": (8,), "hidden": 8, "batch_size": 16, "class_names": ("cube", "bar"),
+              "num_threads": 1}  # fmt: skip
+    first = BoxHead(epochs=2, **kwargs).fit(samples, templates)
+    before = {k: v.clone() for k, v in first.network_.state_dict().items()}
+    # Out of time before its first step, a continued fit is its start (a copy of the weights).
+    start = BoxHead(epochs=1, max_fit_seconds=1e-9, **kwargs).fit(samples, templates, init_model=first)
+    assert all(torch.equal(v, before[k]) for k, v in start.network_.state_dict().items())
+    assert start.network_ is not first.network_
+    a = first.predict(samples.points, samples.anchor_boxes, samples.descriptors)
+    b = start.predict(samples.points, samples.anchor_boxes, samples.descriptors)
+    np.testing.assert_allclose(a.probabilities, b.probabilities, atol=1e-6)
+    # An epoch from there moves the new weights and not the start's.
+    tuned = BoxHead(epochs=1, **kwargs).fit(samples, templates, init_model=first)
+    assert any(not torch.equal(v, before[k]) for k, v in tuned.network_.state_dict().items())
+    assert all(torch.equal(v, before[k]) for k, v in first.network_.state_dict().items())
+    # Another network, other classes or an unfitted head cannot be gone on from.
+    with pytest.raises(InputError, match="channels"):
+        BoxHead(epochs=1, **{**kwargs, "channels": (16,)}).fit(samples, templates, init_model=first)
+    with pytest.raises(InputError, match="class_names"):
+        swapped = BoxHead(epochs=1, **{**kwargs, "class_names": ("bar", "cube")})
+        swapped.fit(samples, templates, init_model=first)
+    with pytest.raises(InputError, match="fitted"):
+        BoxHead(epochs=1, **kwargs).fit(samples, templates, init_model=BoxHead(**kwargs))
+
+
+@pytest.mark.parametrize("epochs", [1, 2, 3, 10, 11])
+def test_a_fit_of_a_few_steps_runs_its_learning_rate_schedule(rng, epochs):
+    # One batch per epoch: torch's one-cycle schedule divided by zero at ten steps.
+    samples, templates = _toy_samples(rng, 4)
+    head = BoxHead(channels=(8,), hidden=8, epochs=epochs, batch_size=12, class_names=("cube", "bar"),
+                   num_threads=1)  # fmt: skip
+    assert len(head.fit(samples, templates).history_) == epochs

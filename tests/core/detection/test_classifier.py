@@ -153,3 +153,19 @@ def test_the_shipped_paper_checkpoint_loads():
     descriptors = np.ones((2, len(DESCRIPTOR_NAMES)), np.float32)
     proba = model.predict_proba(features, descriptors if model.geometry else None)
     np.testing.assert_allclose(proba.sum(axis=1), 1.0, atol=1e-5)
+
+
+def test_a_fit_goes_on_from_a_fitted_classifier_and_leaves_it_as_it_was(rng):
+    features, labels = _blobs(rng, 10)
+    kwargs = {"width": 0.0625, "class_names": ("a", "b"), "num_threads": 1, "geometry": False}
+    first = ProposalClassifier(epochs=1, **kwargs).fit(features, labels)
+    before = {k: v.clone() for k, v in first.network_.state_dict().items()}
+    start = ProposalClassifier(epochs=1, max_fit_seconds=1e-9, **kwargs)
+    start.fit(features, labels, init_model=first)
+    assert all(torch.equal(v, before[k]) for k, v in start.network_.state_dict().items())
+    np.testing.assert_allclose(start.predict_proba(features), first.predict_proba(features), atol=1e-6)
+    tuned = ProposalClassifier(epochs=1, **kwargs).fit(features, labels, init_model=first)
+    assert any(not torch.equal(v, before[k]) for k, v in tuned.network_.state_dict().items())
+    assert all(torch.equal(v, before[k]) for k, v in first.network_.state_dict().items())
+    with pytest.raises(InputError, match="width"):
+        ProposalClassifier(epochs=1, **{**kwargs, "width": 0.125}).fit(features, labels, init_model=first)

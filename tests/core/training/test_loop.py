@@ -36,6 +36,7 @@ from tests.fakes import mined_item, queue_run
 # floor, so the plumbing tests of the loop train without the box quality regressor.
 SETTINGS = LoopSettings(
     epochs=2,
+    round_epochs=1,
     rounds=1,
     negatives_per_round=30,
     initial_negatives=120,
@@ -106,6 +107,8 @@ def test_session_labels_replace_the_annotations(db, frames):
 def test_full_run_then_review_then_next_round(db, dataset, frames):
     run_id, run = train_session(db, frames, SETTINGS, mode="full", data_ref="small")
     assert [r["round"] for r in run.rounds] == [0, 1]
+    # The mining round goes on from the first fit's network for round_epochs.
+    assert [(r["continued"], r["epochs"]) for r in run.rounds] == [(False, 2), (True, 1)]
     assert run.model.probability_exponent == SETTINGS.probability_exponent == 0.5  # the loop's default
     queue = db.review_queue()
     mined_total = sum(len(r["mined"]) for r in run.rounds)
@@ -146,6 +149,8 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     confirmed = db.reviewed_patch_sets()["background"]
     next_id, next_run = train_session(db, frames, SETTINGS, mode="next", data_ref="small")
     assert next_id == run_id + 1 and len(next_run.rounds) == 1
+    # It went on from the latest run's model.
+    assert next_run.rounds[0]["continued"] and db.training_runs()[-1]["config"]["continued_run"] == run_id
     # The next fit's background holds every earlier mined negative not reviewed as an object.
     assert next_run.rounds[0]["num_background"] >= SETTINGS.initial_negatives
     new_queue = db.review_queue()

@@ -329,3 +329,41 @@ def test_the_box_head_classifies_and_the_box_quality_regressor_boxes(frames, tmp
     b = loaded.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
     np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
     np.testing.assert_allclose(a.boxes, b.boxes, atol=1e-4)  # the note keeps sizes to 0.1 mm
+
+
+def test_rounds_after_the_first_go_on_from_the_previous_round(frames, monkeypatch):
+    from factorydet_core.detection.box_head import BoxHead
+
+    calls = []
+    real_fit = BoxHead.fit
+
+    def spy(self, *args, init_model=None, **kwargs):
+        fitted = real_fit(self, *args, init_model=init_model, **kwargs)
+        calls.append((self.epochs, init_model, fitted))
+        return fitted
+
+    monkeypatch.setattr(BoxHead, "fit", spy)
+    head = BoxHead(channels=(16, 32), hidden=32, epochs=2, batch_size=64, num_threads=1)
+    quality = BoxQuality(max_iter=20, max_leaf_nodes=8, visibility=False)
+    run = train_with_mining(frames, head, rounds=1, score_threshold=0.05, box_quality=quality, round_epochs=1)
+    first, second = run.rounds
+    assert (first["continued"], first["epochs"], second["continued"], second["epochs"]) == (False, 2, True, 1)
+    (epochs_0, start_0, fitted_0), (epochs_1, start_1, fitted_1) = calls
+    assert (epochs_0, start_0, epochs_1) == (2, None, 1) and start_1 is fitted_0
+    assert run.models[0].classifier is fitted_0 and run.model.classifier is fitted_1
+    # A run that goes on from a model (a 'next' round) continues it in its first round, and a
+    # fitted regressor is used as it is.
+    calls.clear()
+    kept = run.model.box_quality
+    again = train_with_mining(frames, head, rounds=0, score_threshold=0.05, box_quality=kept,
+                              round_epochs=1, init_model=run.model.classifier)  # fmt: skip
+    assert again.rounds[0]["continued"] and calls[0][1] is run.model.classifier
+    assert again.model.box_quality is kept
+    # Without round_epochs every round trains afresh, and a model to go on from is refused.
+    calls.clear()
+    train_with_mining(frames, head, rounds=1, score_threshold=0.05, round_epochs=0)
+    assert [(e, s) for e, s, _ in calls] == [(2, None), (2, None)]
+    with pytest.raises(InputError, match="round_epochs"):
+        train_with_mining(frames, head, rounds=0, init_model=run.model.classifier)
+    with pytest.raises(InputError, match="round_epochs"):
+        train_with_mining(frames, head, rounds=0, round_epochs=-1)
