@@ -229,6 +229,27 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.readme:
             update_readme(args.readme, result, args.readme_block, quality_markdown(result))
         return 0
+    elif args.name == "mining":
+        from factorydet_core.evaluation.bench import bench_mining
+
+        if args.session is None:
+            raise InputError("bench mining needs --session: the session whose next round is timed")
+        if len(args.data) > 1:
+            raise InputError("bench mining takes at most one DATA folder (default: the session's)")
+        update, close = progress_bar("mining", unit="round")
+        try:
+            result = bench_mining(
+                args.session,
+                root=args.root,
+                data=args.data[0] if args.data else None,
+                round_epochs=(0, args.round_epochs) if args.round_epochs else (0,),
+                heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
+                heldout_frames=args.heldout_frames,
+                command=command,
+                progress=update,
+            )
+        finally:
+            close()
     elif args.name == "memory":
         from factorydet_core.evaluation.bench import bench_memory
         from factorydet_core.session.models import resolve_model
@@ -980,6 +1001,7 @@ def build_parser(
             "fuzz",
             "import",
             "memory",
+            "mining",
         ],
     )
     p.add_argument(
@@ -1049,9 +1071,15 @@ def build_parser(
     p.add_argument(
         "--heldout",
         action="store_true",
-        help="detect: also measure both configurations on the held-out factories (--heldout-seeds, "
-        "--heldout-frames)",
+        help="detect, mining: also measure both configurations on the held-out factories "
+        "(--heldout-seeds, --heldout-frames)",
     )
+    p.add_argument(
+        "--session",
+        default=None,
+        help="mining: the session whose next round is timed (a copy of it: the session is not changed)",
+    )
+    p.add_argument("--root", default=None, help="mining: sessions folder (default: ./sessions)")
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
     p.add_argument(
@@ -1129,7 +1157,8 @@ def build_parser(
     p.add_argument(
         "--heldout-frames", type=int, default=12, help="quality, detect: frames per held-out factory"
     )
-    add_loop_flags(p, fields=("method", "class_weight", "round_epochs"))  # hitl: what the loop trains
+    # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
+    add_loop_flags(p, fields=("method", "class_weight", "round_epochs"))
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

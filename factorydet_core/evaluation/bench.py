@@ -666,6 +666,129 @@ def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], 
     return out
 
 
+MINING_TARGET_SECONDS = 300.0
+"""The speed issue's target for one hard-negative mining round on the shipped model's 40 training
+frames."""
+
+
+def bench_mining(
+    session_name: str,
+    *,
+    root: str | os.PathLike | None = None,
+    data: str | os.PathLike | None = None,
+    round_epochs: Sequence[int] = (0, 5),
+    heldout_seeds: Sequence[int] = (),
+    heldout_frames: int = 12,
+    scratch: str | os.PathLike = "/tmp/factorydet_mining",
+    train_args: Sequence[str] = (),
+    command: str = "",
+    progress=None,
+) -> dict:
+    """Time one more hard-negative mining round of a session (``factorydet train --mode next``),
+    once per value of ``round_epochs``, each on a fresh copy of the session (its proposals' cache
+    included, so the frames are not proposed again) in a child process of its own, one after the
+    other: 0 trains the round afresh and refits the box quality regressor (the paper's round), a
+    positive value goes on from the session's latest model. The session itself is not changed.
+
+    Per configuration: the wall-clock seconds of the whole command and the child's peak memory;
+    from the run's record, the seconds of the box quality fit, the classifier's fit and the scoring
+    of the training frames (what remains is reading the cached proposals, mining and storing); and,
+    with ``heldout_seeds``, the new model's figures on those held-out factories (the quality
+    benchmark's, ``quality.heldout_set``). ``train_args`` are more ``factorydet train`` flags for
+    both (other training settings).
+    """
+    import subprocess
+    import sys
+
+    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
+    from factorydet_core.session.store import copy_session, open_session, training_runs
+
+    values = [int(k) for k in round_epochs]
+    if not values or len(set(values)) != len(values) or min(values) < 0:
+        raise InputError(
+            f"bench mining: round epochs must be distinct integers >= 0, got {list(round_epochs)}"
+        )
+    session = open_session(session_name, root)
+    runs = training_runs(session)
+    if not runs:
+        raise InputError(f"bench mining: session {session_name!r} has no training run to go on from")
+    script = (
+        "import json, resource, sys, time\n"
+        "from factorydet_core.cli import main\n"
+        "start = time.perf_counter()\n"
+        "code = main(sys.argv[1:])\n"
+        "print(json.dumps({'exit': code, 'seconds': round(time.perf_counter() - start, 1),"
+        " 'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))\n"
+    )
+    configs = []
+    heldout = None
+    for done, epochs in enumerate(values):
+        copy = copy_session(session, Path(scratch) / f"round_epochs_{epochs}")
+        argv = ["train", *([str(data)] if data is not None else []), "--session", copy.name,
+                "--root", str(copy.root), "--mode", "next", *train_args,
+                "--round-epochs", str(epochs)]  # fmt: skip
+        out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True)
+        lines = out.stdout.strip().splitlines()
+        if out.returncode != 0 or not lines:
+            tail = (out.stderr.strip().splitlines() or ["no message"])[-1]
+            raise InputError(f"bench mining: the round with {epochs} round epochs failed: {tail[:300]}")
+        child = json.loads(lines[-1])
+        run = training_runs(copy)[-1]
+        model = DetectionModel.load(copy.path / run["model_path"])
+        (record,) = model.classifier.note_["rounds_record"]
+        parts = {
+            key: float(record.get(key) or 0.0)
+            for key in ("box_quality_seconds", "fit_seconds", "score_seconds")
+        }
+        config = {
+            "round_epochs": epochs,
+            "continued": bool(record.get("continued")),
+            "epochs": record.get("epochs"),
+            "continued_run": run["config"].get("continued_run"),
+            "seconds": child["seconds"],
+            **{key: round(value, 1) for key, value in parts.items()},
+            "other_seconds": round(child["seconds"] - sum(parts.values()), 1),
+            "peak_rss_mb": child["peak_rss_mb"],
+            "num_positives": record["num_positives"],
+            "num_background": record["num_background"],
+            "train_f1": record["train_f1"],
+            "num_train_frames": len(run["train_frames"]),
+        }
+        if heldout_seeds:
+            if heldout is None:
+                plan = QualityPlan(
+                    train_data=Path(run["data"]), heldout_seeds=tuple(int(s) for s in heldout_seeds),
+                    heldout_frames=heldout_frames, seeds=(0,),
+                )  # fmt: skip
+                heldout = heldout_set(plan, model.front_end or Detector(model=model).params, None)
+            measured = measure_heldout(model, heldout)["iou_0.6"]
+            config["heldout"] = {key: measured[key] for key in ("f1", "map", "precision", "recall")}
+        configs.append(config)
+        if progress is not None:
+            progress(done + 1, len(values))
+    record = {
+        "benchmark": "mining",
+        "command": command,
+        "session": session_name,
+        "train_args": list(train_args),
+        "continues_run": runs[-1]["id"],
+        "configs": configs,
+        "target_seconds": MINING_TARGET_SECONDS,
+        "machine": machine_info(),
+    }
+    if heldout_seeds:
+        record["heldout"] = {"seeds": [int(s) for s in heldout_seeds], "frames_per_factory": heldout_frames}
+    afresh = [c for c in configs if c["round_epochs"] == 0]
+    if afresh:
+        for config in configs:
+            config["speedup_vs_afresh"] = round(afresh[0]["seconds"] / config["seconds"], 2)
+            if "heldout" in config:
+                config["heldout_f1_minus_afresh"] = round(
+                    config["heldout"]["f1"] - afresh[0]["heldout"]["f1"], 4
+                )
+    return record
+
+
 def bench_label_import(
     num_boxes: int = 10_000, num_frames: int = 3, repeats: int = 3, *, large_box: bool = False
 ) -> dict:

@@ -364,6 +364,54 @@ def memory_markdown(result: dict) -> str:
     return text + "\n"
 
 
+@register("mining")
+def mining_markdown(result: dict) -> str:
+    """Per configuration of one more mining round: where its seconds went, its peak memory, the
+    ratio to the round trained afresh and, when measured, its held-out figures."""
+    heldout = "heldout" in result
+    header = ["round", "seconds", "box quality s", "fit s", "score s", "other s", "peak MB", "speed-up"]
+    if heldout:
+        header += ["held-out F", "held-out mAP", "F minus afresh"]
+    rows = []
+    for config in result["configs"]:
+        name = (
+            f"continued, {config['epochs']} epochs"
+            if config["continued"]
+            else f"afresh, {config['epochs']} epochs"
+        )
+        row = [
+            name,
+            fmt(config["seconds"]),
+            fmt(config["box_quality_seconds"]),
+            fmt(config["fit_seconds"]),
+            fmt(config["score_seconds"]),
+            fmt(config["other_seconds"]),
+            fmt(config["peak_rss_mb"]),
+            fmt(config.get("speedup_vs_afresh")),
+        ]
+        if heldout:
+            row += [
+                fmt(config["heldout"]["f1"], 3),
+                fmt(config["heldout"]["map"], 3),
+                fmt(config.get("heldout_f1_minus_afresh"), 4),
+            ]
+        rows.append(row)
+    frames = result["configs"][0]["num_train_frames"]
+    text = (
+        table(header, rows) + f"\n\nOne more round of session `{result['session']}` (going on from its run"
+        f" {result['continues_run']}) on its {frames} training frames, each configuration on a fresh"
+        f" copy of the session in a child process; target {fmt(result['target_seconds'])} s per round."
+        " 'other' is reading the cached proposals, mining and storing the run."
+    )
+    if heldout:
+        seeds = ", ".join(str(s) for s in result["heldout"]["seeds"])
+        text += (
+            f" Held-out: F-score and mAP at IoU 0.6 on {result['heldout']['frames_per_factory']} frames"
+            f" of each held-out factory (seeds {seeds}), one training seed."
+        )
+    return text + "\n"
+
+
 @register("import")
 def import_markdown(result: dict) -> str:
     """Seconds to import the boxes into a fresh session, and to import them again (all duplicates)."""

@@ -281,6 +281,48 @@ def clear_cache(session: Session) -> None:
         shutil.rmtree(session.cache_dir)
 
 
+def copy_session(session: Session, root: str | os.PathLike) -> Session:
+    """A copy of ``session`` under ``root`` (replacing one of that name there), for benchmarks that
+    must not change the session they measure: the database through SQLite's backup (consistent
+    while the app writes), the models copied, the data and caches hard-linked where the file system
+    allows (every writer replaces those files whole, never writes into them: ``write_cache``),
+    copied otherwise."""
+    if not session.db_path.is_file():
+        raise SessionError(f"session {session.name!r} has no database to copy")
+    copy = Session(session.name, Path(root))
+    if copy.path.resolve() == session.path.resolve():
+        raise SessionError(f"copy_session: {root} is the session's own folder")
+    if copy.path.exists():
+        shutil.rmtree(copy.path)
+    copy.path.mkdir(parents=True)
+
+    def link_or_copy(source: str, target: str) -> None:
+        try:
+            os.link(source, target)
+        except OSError:
+            shutil.copy2(source, target)
+
+    for folder, copy_function in (
+        (session.data_dir, link_or_copy),
+        (session.cache_dir, link_or_copy),
+        (session.models_dir, shutil.copy2),
+    ):
+        if folder.is_dir():
+            target = copy.path / folder.relative_to(session.path)
+            partial = shutil.ignore_patterns("*.partial.*")
+            shutil.copytree(folder, target, copy_function=copy_function, ignore=partial)
+    source_db = sqlite3.connect(f"file:{session.db_path}?mode=ro", uri=True)
+    try:
+        target_db = sqlite3.connect(copy.db_path)
+        try:
+            source_db.backup(target_db)
+        finally:
+            target_db.close()
+    finally:
+        source_db.close()
+    return copy
+
+
 # --- The session database -------------------------------------------------------------------------
 
 SCHEMA_VERSION = 2
@@ -1916,6 +1958,9 @@ def rounds_record(run) -> list[dict]:
             "num_background": r["num_background"],
             "fit_seconds": r["fit_seconds"],
             "score_seconds": r.get("score_seconds"),
+            "box_quality_seconds": r.get("box_quality_seconds"),
+            "epochs": r.get("epochs"),
+            "continued": r.get("continued"),
             "num_mined": len(r["mined"]),
             "train_f1": r["train_metrics"]["f1"],
         }

@@ -207,9 +207,11 @@ class TrainingRun:
 
     model: DetectionModel
     rounds: list[dict]
-    """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``metrics``
-    (detection on the training frames against the annotations) and ``mined`` (the negatives added
-    after that round: frame, proposal, box, patch set, score, class)."""
+    """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``epochs``,
+    ``continued`` (the fit went on from a model), ``box_quality_seconds`` (the regressor's fit, in
+    round 0), ``score_seconds``, ``train_metrics`` (detection on the training frames against the
+    annotations) and ``mined`` (the negatives added after that round: frame, proposal, box, patch
+    set, score, class)."""
     models: list[DetectionModel]
     """The model after each round."""
     train_frames: list[int]
@@ -491,13 +493,17 @@ def train_with_mining(
                 background.setdefault(index, set()).add(int(g))
 
     quality = None
+    quality_seconds = 0.0
     if box_quality is not None and box_prior is not None and hasattr(box_quality, "trees_"):
         quality = box_quality
     elif box_quality is not None and box_prior is not None:
         if progress is not None:
             progress("box quality", 0, 1)
+        start = time.perf_counter()
         rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
         quality = dataclasses.replace(box_quality).fit(rows, targets)
+        quality_seconds = time.perf_counter() - start
+        del rows, targets
         if progress is not None:
             progress("box quality", 1, 1)
 
@@ -564,6 +570,8 @@ def train_with_mining(
             "fit_seconds": round(fitted.fit_seconds_, 2),
             "epochs": trainer.epochs,
             "continued": start_from is not None,
+            # The regressor is fitted once, before the first round (0 when kept from a model).
+            "box_quality_seconds": round(quality_seconds, 2) if round_index == 0 else 0.0,
             "score_seconds": round(time.perf_counter() - start, 2),
             "train_metrics": metrics,
             "mined": [],

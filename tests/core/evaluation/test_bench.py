@@ -97,3 +97,40 @@ def test_bench_memory_detects_dense_scans_in_child_processes(tiny_model_path, tm
         assert run["peak_rss_mb"] > 100  # the child's own peak: it imports torch
     assert record["points_ratio_largest_to_smallest"] == 2.0
     assert "peak" in render_record(record).lower()
+
+
+@pytest.mark.slow
+def test_bench_mining_times_a_round_afresh_and_continued_on_session_copies(small_dataset_dir, tmp_path):
+    from factorydet_core.evaluation.bench import bench_mining
+    from factorydet_core.evaluation.bench_tables import render_record
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.settings import front_end_params
+    from factorydet_core.session.store import SessionDB, open_session
+    from factorydet_core.training.settings import LoopSettings
+    from factorydet_core.workflows import retrain_session
+
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("timed", tmp_path / "sessions"), dataset)
+    settings = LoopSettings(epochs=1, round_epochs=1, rounds=0, method="paper", box_quality=False,
+                            initial_negatives=100)  # fmt: skip
+    retrain_session(db, dataset, settings, front_end_params("agv"), mode="full", compare=False,
+                    calibrate=False, max_train_frames=2)  # fmt: skip
+    before = db.training_runs()
+    record = bench_mining(
+        "timed", root=tmp_path / "sessions", round_epochs=(0, 1), scratch=tmp_path / "scratch",
+        train_args=["--epochs", "1", "--method", "paper", "--no-box-quality", "--frames", "2",
+                    "--no-calibrate", "--initial-negatives", "100"],
+    )  # fmt: skip
+    afresh, continued = record["configs"]
+    assert (afresh["continued"], afresh["continued_run"]) == (False, None)
+    assert (continued["continued"], continued["epochs"]) == (True, 1)
+    assert continued["continued_run"] == before[-1]["id"]
+    for config in record["configs"]:
+        assert config["num_train_frames"] == 2 and config["peak_rss_mb"] > 100  # the child's own: torch
+        assert config["fit_seconds"] > 0 and config["box_quality_seconds"] == 0.0  # no regressor here
+        assert config["seconds"] >= config["fit_seconds"] + config["score_seconds"]
+    assert afresh["speedup_vs_afresh"] == 1.0
+    assert len(db.training_runs()) == len(before)  # the session itself is not changed
+    assert "continued, 1 epochs" in render_record(record)
+    with pytest.raises(InputError, match="distinct"):
+        bench_mining("timed", root=tmp_path / "sessions", round_epochs=(1, 1))

@@ -852,3 +852,28 @@ def test_review_and_undo_as_root_need_an_explicit_author(db, tiny_model_path, ca
     with pytest.raises(SystemExit):
         cli.main(["review", "--help"])
     assert "as root, --author is therefore required" in " ".join(capsys.readouterr().out.split())
+
+
+def test_a_copied_session_changes_without_changing_the_original(db, tmp_path):
+    from factorydet_core.session.store import copy_session, read_cache, write_cache
+
+    label = db.add_label(0, BOX, "box", "ann")
+    write_cache(db.session, "proposals_x", {"a": np.arange(3)})
+    (db.session.models_dir / "run_001").mkdir(parents=True)
+    (db.session.models_dir / "run_001" / "final.json").write_text("{}")
+    copy = copy_session(db.session, tmp_path / "copies")
+    assert copy.name == db.session.name and copy.root == tmp_path / "copies"
+    copied = SessionDB(copy, db.dataset)
+    assert [lab.id for lab in copied.labels(0)] == [lab.id for lab in db.labels(0)]
+    assert (copy.models_dir / "run_001" / "final.json").read_text() == "{}"
+    # Edits, caches and models written to the copy stay there.
+    copied.delete_labels([label.id], "ann")
+    write_cache(copy, "proposals_x", {"a": np.arange(5)})
+    (copy.models_dir / "run_001" / "final.json").write_text('{"changed": 1}')
+    assert label.id in [lab.id for lab in _reopen(db).labels(0)]
+    np.testing.assert_array_equal(read_cache(db.session, "proposals_x")["a"], np.arange(3))
+    assert (db.session.models_dir / "run_001" / "final.json").read_text() == "{}"
+    with pytest.raises(SessionError, match="own folder"):
+        copy_session(db.session, db.session.root)
+    with pytest.raises(SessionError, match="no database"):
+        copy_session(open_session("none", tmp_path), tmp_path / "copies")
