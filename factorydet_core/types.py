@@ -344,8 +344,9 @@ class Proposals:
 
     boxes: np.ndarray
     """(M, 7) float64: (cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame."""
-    features: np.ndarray
-    """(M, 20, 5, 5, 5) float32: aggregated 3DmFV of each proposal."""
+    features: np.ndarray | None
+    """(M, 20, 5, 5, 5) float32: aggregated 3DmFV of each proposal; ``None`` when the front half
+    computes none (``feature`` "none": the back half reads the points)."""
     patch_sets: tuple[tuple[int, ...], ...]
     """The patches each proposal is made of."""
     num_points: np.ndarray
@@ -372,7 +373,8 @@ class Proposals:
     def __post_init__(self) -> None:
         num = len(self.boxes) if isinstance(self.boxes, np.ndarray) else -1
         check_array(self.boxes, (None, 7), name="proposal boxes", finite=True)
-        check_array(self.features, (num, 20, 5, 5, 5), name="proposal features")
+        if self.features is not None:
+            check_array(self.features, (num, 20, 5, 5, 5), name="proposal features")
         check_array(self.num_points, (num,), name="proposal num_points")
         check_array(self.num_voxels, (num,), name="proposal num_voxels")
         check_array(self.level, (num,), name="proposal level")
@@ -382,7 +384,8 @@ class Proposals:
         if len(self.patch_sets) != num:
             raise InputError(f"proposal patch_sets: expected {num}, got {len(self.patch_sets)}")
         for field in ("boxes", "features", "num_points", "num_voxels", "level", "box_kind"):
-            object.__setattr__(self, field, _frozen(getattr(self, field)))
+            if getattr(self, field) is not None:
+                object.__setattr__(self, field, _frozen(getattr(self, field)))
 
     def __len__(self) -> int:
         return len(self.boxes)

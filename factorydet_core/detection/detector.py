@@ -60,8 +60,8 @@ class ProposalResult:
     grid: VoxelGrid
     voxel_features: np.ndarray | None
     """(V, 20, 5, 5, 5) float32 per-voxel Fisher vectors; ``None`` when the proposals' features are
-    their points' own (``feature`` "direct"), which do not read them (``voxels.voxel_fisher_vectors``
-    of ``cloud`` and ``grid`` computes them)."""
+    their points' own or none (``feature`` "direct" or "none"), which do not read them
+    (``voxels.voxel_fisher_vectors`` of ``cloud`` and ``grid`` computes them)."""
     segmentation: Segmentation
     proposals: Proposals
     timings_ms: dict[str, float]
@@ -212,7 +212,7 @@ class Detector:
         done("voxelize")
         # Direct proposal features read the points, not the voxels': skipping the voxels' saves a
         # dense scan's largest array (10 kB per voxel).
-        voxel_features = None if params.feature == "direct" else voxel_fisher_vectors(cloud, grid)
+        voxel_features = None if params.feature != "aggregated" else voxel_fisher_vectors(cloud, grid)
         done("features")
         segmentation = self._segment(cloud, grid)
         done("segmentation")

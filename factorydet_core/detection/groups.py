@@ -50,8 +50,9 @@ class ProposalGroups:
     """(M,) int64: the point set of each proposal."""
     representatives: np.ndarray
     """(G,) int64: the first proposal of each point set."""
-    features: np.ndarray
-    """(G, 20, 5, 5, 5) float32: the 3DmFV feature of each point set."""
+    features: np.ndarray | None
+    """(G, 20, 5, 5, 5) float32: the 3DmFV feature of each point set; ``None`` when the proposals
+    carry none (``feature`` "none")."""
     descriptors: np.ndarray
     """(G, len(DESCRIPTOR_NAMES)) float32: geometric descriptors of each point set (its fitted box)."""
     anchor_mask: np.ndarray | None = None
@@ -165,7 +166,7 @@ def group_proposals(
     keys = {}
     group_ids = np.array([keys.setdefault(s, len(keys)) for s in proposals.patch_sets], np.int64)
     representatives = np.unique(group_ids, return_index=True)[1].astype(np.int64)  # first of each
-    features = proposals.features[representatives]
+    features = None if proposals.features is None else proposals.features[representatives]
     point_lists = point_sets(segmentation.patch_ids, [proposals.patch_sets[i] for i in representatives])
     descriptors = describe_point_sets(
         points,

@@ -252,6 +252,11 @@ def group_probabilities(classifier, groups: ProposalGroups) -> np.ndarray:
         return classifier.predict_proba(groups.points, groups.fitted_boxes, groups.descriptors)
     if kind == "descriptors":
         return classifier.predict_proba(groups.descriptors)
+    if groups.features is None:
+        raise InputError(
+            "this model reads each point set's 3DmFV, and these proposals were built without"
+            ' (front-half feature "none"): propose with feature "aggregated" or "direct"'
+        )
     if kind == "features+descriptors":
         return classifier.predict_proba(groups.features, groups.descriptors)
     return classifier.predict_proba(groups.features)

@@ -3,7 +3,8 @@
 A proposal's feature is the weighted mean of the Fisher vectors of the voxels its points occupy
 (Eq. 7; weights = the proposal's points in each voxel by default, or 1 per voxel), renormalised per
 channel across the Gaussians. The alternative ``feature="direct"`` computes the 3DmFV of the
-proposal's own points scaled into the unit sphere instead.
+proposal's own points scaled into the unit sphere instead, and ``feature="none"`` computes none, for
+back halves that read the point sets' points (the learned box head).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from factorydet_core.proposals.features import NUM_CHANNELS, NUM_GAUSSIANS, fish
 from factorydet_core.types import InputError, Proposals, Segmentation, VoxelGrid
 
 Weighting = Literal["points", "uniform"]
-FeatureKind = Literal["aggregated", "direct"]
+FeatureKind = Literal["aggregated", "direct", "none"]
 
 
 def candidate_patch_sets(
@@ -206,11 +207,12 @@ def build_proposals(
         segmentation: patches and segments of those points.
         grid: their voxel grid.
         voxel_features: (V, 20, 5, 5, 5) per-voxel Fisher vectors; ``None`` with ``feature``
-            "direct", which does not read them.
+            "direct" or "none", which do not read them.
         min_points: smaller candidates are dropped.
         weighting: voxel weights of the aggregation, "points" (c_v = points of the proposal in the
             voxel) or "uniform" (c_v = 1).
-        feature: "aggregated" (Eq. 7) or "direct" (3DmFV of the proposal's points).
+        feature: "aggregated" (Eq. 7), "direct" (3DmFV of the proposal's points) or "none" (no
+            3DmFV: ``Proposals.features`` is ``None``; for back halves that read the points).
         include_history: also propose the intermediate unions of the merge hierarchy.
         include_patches: also propose single patches.
         floor_plane: (4,) floor plane (a, b, c, d); a box whose bottom is within ``ground_snap_m`` of
@@ -231,12 +233,12 @@ def build_proposals(
     """
     if weighting not in ("points", "uniform"):
         raise InputError(f"weighting must be 'points' or 'uniform', got {weighting!r}")
-    if feature not in ("aggregated", "direct"):
-        raise InputError(f"feature must be 'aggregated' or 'direct', got {feature!r}")
+    if feature not in ("aggregated", "direct", "none"):
+        raise InputError(f"feature must be 'aggregated', 'direct' or 'none', got {feature!r}")
     num_points = len(points)
     if len(segmentation.patch_ids) != num_points or len(grid.point_voxel_ids) != num_points:
         raise InputError("build_proposals: points, segmentation and grid must describe the same cloud")
-    if voxel_features is None and feature != "direct":
+    if voxel_features is None and feature == "aggregated":
         raise InputError('build_proposals: feature "aggregated" needs the voxel features')
     if voxel_features is not None and len(voxel_features) != grid.num_voxels:
         raise InputError(
@@ -254,7 +256,7 @@ def build_proposals(
     if not sets:
         return Proposals(
             boxes=np.zeros((0, 7)),
-            features=np.zeros((0, NUM_CHANNELS, 5, 5, 5), np.float32),
+            features=None if feature == "none" else np.zeros((0, NUM_CHANNELS, 5, 5, 5), np.float32),
             patch_sets=(),
             num_points=np.zeros(0, np.int64),
             num_voxels=np.zeros(0, np.int64),
@@ -273,8 +275,10 @@ def build_proposals(
     num_voxels = np.diff(proposal_voxel.indptr).astype(np.int64)
 
     point_lists = point_sets(segmentation.patch_ids, sets)
-    features = point_set_features(
-        points, grid, voxel_features, point_lists, weighting, feature, proposal_voxel
+    features = (
+        None
+        if feature == "none"
+        else point_set_features(points, grid, voxel_features, point_lists, weighting, feature, proposal_voxel)
     )
 
     fitted_and_view = _fitted_and_view_boxes(points, point_lists).reshape(-1, 2, 7)
@@ -321,8 +325,9 @@ def build_proposals(
     _, first = np.unique(key, axis=0, return_index=True)
     unique = np.sort(first)
     boxes, box_kind, chosen = boxes[unique], box_kind[unique], origin[unique]
-    features = features[chosen]
-    features.flags.writeable = False  # a fresh array nobody else holds: Proposals need not copy it
+    if features is not None:
+        features = features[chosen]
+        features.flags.writeable = False  # a fresh array nobody else holds: Proposals need not copy it
     sets = [sets[i] for i in chosen]
     num_points_kept, num_voxels, levels = num_points_kept[chosen], num_voxels[chosen], levels[chosen]
     return Proposals(

@@ -83,7 +83,9 @@ class FrontEndParams:
     weighting: Weighting = "points"
     """Voxel weights when aggregating Fisher vectors (Eq. 7)."""
     feature: FeatureKind = "aggregated"
-    """Proposal feature: "aggregated" voxel features, or "direct" 3DmFV of the proposal's points."""
+    """Proposal feature: "aggregated" voxel features, "direct" 3DmFV of the proposal's points, or
+    "none" (no 3DmFV: for back halves that read the points, as the learned box head does;
+    ``detector.params_for`` proposes so for such models whatever their note says)."""
     include_history: bool = True
     """Also propose the intermediate unions of the merge hierarchy."""
     complete_boxes: bool = True

@@ -48,9 +48,10 @@ class FrameProposals:
     """(R, 7) annotated boxes."""
     label_class_ids: np.ndarray
     """(R,) their classes."""
-    annotation_features: np.ndarray
+    annotation_features: np.ndarray | None
     """(A, 20, 5, 5, 5) features of the annotated instances' own points (extra positives, as
-    detectors add ground-truth boxes to their proposals when training)."""
+    detectors add ground-truth boxes to their proposals when training); ``None`` when the front
+    half computes no 3DmFV (``feature`` "none")."""
     annotation_descriptors: np.ndarray
     """(A, D) their geometric descriptors."""
     annotation_class_ids: np.ndarray
@@ -79,7 +80,7 @@ class FrameProposals:
             self,
             label_boxes=np.asarray(boxes, np.float64).reshape(-1, 7),
             label_class_ids=np.asarray(class_ids, np.int64),
-            annotation_features=self.annotation_features[keep],
+            annotation_features=None if self.annotation_features is None else self.annotation_features[keep],
             annotation_descriptors=self.annotation_descriptors[keep],
             annotation_class_ids=classes[keep].astype(np.int64),
             annotation_instance_ids=self.annotation_instance_ids[keep],
@@ -103,14 +104,16 @@ def _annotation_samples(
     ids, counts = np.unique(cloud.point_instance_ids, return_counts=True)
     chosen = [int(i) for i, n in zip(ids, counts) if i in lookup and n >= detector.params.min_proposal_points]
     point_lists = [np.flatnonzero(cloud.point_instance_ids == i) for i in chosen]
-    features = point_set_features(
-        cloud.points,
-        result.grid,
-        result.voxel_features,
-        point_lists,
-        detector.params.weighting,
-        detector.params.feature,
-    ).reshape(-1, 20, 5, 5, 5)
+    features = None
+    if detector.params.feature != "none":
+        features = point_set_features(
+            cloud.points,
+            result.grid,
+            result.voxel_features,
+            point_lists,
+            detector.params.weighting,
+            detector.params.feature,
+        ).reshape(-1, 20, 5, 5, 5)
     boxes = fit_boxes(cloud.points, point_lists)
     num_voxels = np.array([len(np.unique(result.grid.point_voxel_ids[p])) for p in point_lists])
     descriptors = describe_point_sets(cloud.points, point_lists, boxes, num_voxels, result.floor_plane)
@@ -226,6 +229,11 @@ def _training_set(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Features, descriptors and labels: the positive point sets (``frame_labels``: each frame's
     ``group_labels``), the background sets chosen so far, and the annotated instances' own points."""
+    if any(f.groups.features is None for f in frames):
+        raise InputError(
+            'this classifier reads each point set\'s 3DmFV: propose the frames with feature "aggregated"'
+            ' or "direct", not "none"'
+        )
     features, descriptors, labels = [], [], []
     if annotation_positives:
         features += [f.annotation_features for f in frames]
@@ -632,7 +640,6 @@ def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarra
             "patch_set_ids": flat,
             "group_ids": f.groups.group_ids,
             "representatives": f.groups.representatives,
-            "features": f.groups.features,
             "descriptors": f.groups.descriptors,
             "anchor_mask": (
                 np.zeros(len(f.proposal_boxes), bool)
@@ -641,11 +648,13 @@ def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarra
             ),
             "label_boxes": f.label_boxes,
             "label_class_ids": f.label_class_ids,
-            "annotation_features": f.annotation_features,
             "annotation_descriptors": f.annotation_descriptors,
             "annotation_class_ids": f.annotation_class_ids,
             "annotation_instance_ids": f.annotation_instance_ids,
         }
+        if f.groups.features is not None:
+            arrays["features"] = f.groups.features
+            arrays["annotation_features"] = f.annotation_features
         if f.groups.points is not None:
             arrays["points"] = f.groups.points
         if f.groups.free_space is not None:
@@ -666,7 +675,7 @@ def proposals_from_arrays(arrays: Mapping[str, np.ndarray]) -> list[FrameProposa
         groups = ProposalGroups(
             a["group_ids"],
             a["representatives"],
-            a["features"],
+            a.get("features"),
             a["descriptors"],
             a.get("anchor_mask"),
             FreeSpace.from_arrays(space) if space else None,
@@ -681,7 +690,7 @@ def proposals_from_arrays(arrays: Mapping[str, np.ndarray]) -> list[FrameProposa
                 groups=groups,
                 label_boxes=a["label_boxes"],
                 label_class_ids=a["label_class_ids"],
-                annotation_features=a["annotation_features"],
+                annotation_features=a.get("annotation_features"),
                 annotation_descriptors=a["annotation_descriptors"],
                 annotation_class_ids=a["annotation_class_ids"],
                 annotation_instance_ids=a["annotation_instance_ids"],

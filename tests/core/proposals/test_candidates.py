@@ -107,6 +107,21 @@ def test_direct_feature_is_the_fisher_vector_of_the_proposals_points():
         build_proposals(points, segmentation, grid, None, min_points=1, feature="aggregated")
 
 
+def test_feature_none_gives_the_same_proposals_without_their_3dmfv():
+    points, segmentation, grid, voxel_features, _ = hand_made_case()
+    direct = build_proposals(points, segmentation, grid, None, min_points=1, feature="direct")
+    none = build_proposals(points, segmentation, grid, None, min_points=1, feature="none")
+    assert none.features is None and direct.features is not None
+    assert none.patch_sets == direct.patch_sets
+    np.testing.assert_array_equal(none.boxes, direct.boxes)
+    np.testing.assert_array_equal(none.box_kind, direct.box_kind)
+    np.testing.assert_array_equal(none.num_voxels, direct.num_voxels)
+    empty = build_proposals(points, segmentation, grid, None, min_points=100, feature="none")
+    assert len(empty) == 0 and empty.features is None
+    with pytest.raises(InputError, match="'none'"):
+        build_proposals(points, segmentation, grid, None, min_points=1, feature="raw")
+
+
 def test_boxes_are_fitted_to_the_proposals_points():
     points, segmentation, grid, voxel_features, _ = hand_made_case()
     proposals = build_proposals(

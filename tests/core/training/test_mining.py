@@ -367,3 +367,31 @@ def test_rounds_after_the_first_go_on_from_the_previous_round(frames, monkeypatc
         train_with_mining(frames, head, rounds=0, init_model=run.model.classifier)
     with pytest.raises(InputError, match="round_epochs"):
         train_with_mining(frames, head, rounds=0, round_epochs=-1)
+
+
+def test_the_box_head_trains_and_detects_on_proposals_without_3dmfv(small_dataset_dir, frames, run):
+    from factorydet_core.detection.box_head import BoxHead
+    from factorydet_core.proposals.settings import PRESETS
+
+    dataset = open_dataset(small_dataset_dir)
+    plain = collect_proposals(dataset, [0, 1], Detector(dataclasses.replace(PRESETS["agv"], feature="none")))
+    assert all(f.groups.features is None and f.annotation_features is None for f in plain)
+    # The proposals' cache keeps them so.
+    again = training.proposals_from_arrays(training.proposals_to_arrays(plain))
+    assert all(f.groups.features is None and f.annotation_features is None for f in again)
+    np.testing.assert_array_equal(again[0].groups.points, plain[0].groups.points)
+    head = BoxHead(channels=(16, 32), hidden=32, epochs=1, batch_size=64, num_threads=1)
+    quality = BoxQuality(max_iter=10, max_leaf_nodes=8, visibility=False)
+    head_run = train_with_mining(plain, head, rounds=0, score_threshold=0.05, box_quality=quality)
+    # The point-reading model detects the same on point sets with and without their 3DmFV.
+    frame = frames[0]
+    stripped = dataclasses.replace(frame.groups, features=None)
+    a = head_run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.05)
+    b = head_run.model.detect(frame.proposal_boxes, stripped, score_threshold=0.05)
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+    np.testing.assert_array_equal(a.scores, b.scores)
+    # The paper's classifier reads the 3DmFV: it says so rather than failing deep inside.
+    with pytest.raises(InputError, match='"none"'):
+        train_with_mining(plain, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=0)
+    with pytest.raises(InputError, match='"none"'):
+        run.model.detect(frame.proposal_boxes, stripped)  # the module's paper-method run
