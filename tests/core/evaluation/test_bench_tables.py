@@ -202,3 +202,17 @@ def test_update_readme_refuses_before_writing_anything(tmp_path, record, name, m
     with pytest.raises(InputError, match=re.escape(message)):
         update_readme(page, record, name)
     assert page.read_text() == before and not (tmp_path / "docs" / "bench").exists()
+
+
+def test_mining_table_gives_each_configurations_time_parts_and_heldout_figures():
+    record = _record("mining")
+    text = render_record(record)
+    for config in record["configs"]:
+        kind = "continued" if config["continued"] else "afresh"
+        (row,) = _rows(text, f"{kind}, {config['epochs']} epochs")
+        assert row[1:5] == [fmt(config[k]) for k in ("seconds", "box_quality_seconds", "fit_seconds",
+                                                     "score_seconds")]  # fmt: skip
+        assert fmt(config["peak_rss_mb"]) in row and fmt(config["speedup_vs_afresh"]) in row
+        if "heldout" in record:
+            assert fmt(config["heldout"]["f1"], 3) in row
+    assert f"target {fmt(record['target_seconds'])} s" in text
