@@ -1060,7 +1060,8 @@ def build_parser(
         action="append",
         metavar="KEY=VALUE",
         help="detect: a second configuration with this setting changed, interleaved (a front-half "
-        "setting, or the box quality screen: screen_trees, screen_keep)",
+        "setting, the box quality screen: screen_trees, screen_keep, or skip_unread_features=0: "
+        "the proposals' 3DmFV computed for a model that reads none)",
     )
     p.add_argument(
         "--busy",

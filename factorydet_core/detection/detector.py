@@ -103,6 +103,11 @@ class Detector:
         T_vehicle_sensor: (S, 4, 4) extrinsics to merge with; each frame's nominal ones by default.
             ``calibrate`` sets them by ICP.
         model: the trained back half (``model.DetectionModel``) that ``detect`` needs.
+        skip_unread_features: ``detect`` builds the proposals without 3DmFV (feature "none") when
+            the model reads none (``DetectionModel.reads_features``: the box head reads points),
+            whatever ``params.feature`` says; the detections are the same, and computing the 3DmFV
+            of every proposal was about half of the aggregation stage. False computes them anyway
+            (the reference path of ``bench detect``).
     """
 
     def __init__(
@@ -110,6 +115,7 @@ class Detector:
         params: FrontEndParams | str = "agv",
         T_vehicle_sensor: np.ndarray | None = None,
         model: DetectionModel | None = None,
+        skip_unread_features: bool = True,
     ) -> None:
         if isinstance(params, str):
             params = front_end_params(params)
@@ -117,6 +123,7 @@ class Detector:
         self.T_vehicle_sensor = None if T_vehicle_sensor is None else np.asarray(T_vehicle_sensor, float)
         self.calibration_: ExtrinsicRefinement | None = None
         self.model = model
+        self.skip_unread_features = skip_unread_features
 
     @classmethod
     def for_model(
@@ -160,6 +167,8 @@ class Detector:
         frame: Frame,
         history: Sequence[Frame] = (),
         progress: ProgressCallback | None = None,
+        *,
+        with_features: bool = True,
     ) -> ProposalResult:
         """Run the front half on ``frame``.
 
@@ -167,6 +176,8 @@ class Detector:
             frame: the current frame.
             history: earlier frames, oldest first; the last ``params.history_frames`` are used.
             progress: optional callback for a progress bar.
+            with_features: False builds the proposals without 3DmFV (feature "none") whatever
+                ``params.feature`` says.
 
         Returns:
             All intermediate results and the proposals (empty for a frame with too few points).
@@ -212,7 +223,8 @@ class Detector:
         done("voxelize")
         # Direct proposal features read the points, not the voxels': skipping the voxels' saves a
         # dense scan's largest array (10 kB per voxel).
-        voxel_features = None if params.feature != "aggregated" else voxel_fisher_vectors(cloud, grid)
+        feature = params.feature if with_features else "none"
+        voxel_features = None if feature != "aggregated" else voxel_fisher_vectors(cloud, grid)
         done("features")
         segmentation = self._segment(cloud, grid)
         done("segmentation")
@@ -223,7 +235,7 @@ class Detector:
             voxel_features,
             min_points=params.min_proposal_points,
             weighting=params.weighting,
-            feature=params.feature,
+            feature=feature,
             include_history=params.include_history,
             include_patches=params.include_patches,
             complete_boxes=params.complete_boxes,
@@ -279,7 +291,8 @@ class Detector:
             if progress is not None:
                 progress(stage, 0.8 * fraction)
 
-        proposal = self.propose(frame, history, front_progress)
+        with_features = self.model.reads_features or not self.skip_unread_features
+        proposal = self.propose(frame, history, front_progress, with_features=with_features)
         timings = {k: v for k, v in proposal.timings_ms.items() if k != "total"}
         clock = time.perf_counter()
         # Casting the rays costs about 0.17 s a frame: only for a regressor that reads them.

@@ -89,6 +89,12 @@ class DetectionModel:
         return group_probabilities(self.classifier, groups)
 
     @property
+    def reads_features(self) -> bool:
+        """Whether the classifier reads the point sets' 3DmFV (the box head reads their points and
+        a descriptor baseline their descriptors: neither does)."""
+        return "features" in getattr(self.classifier, "input_kind", "features")
+
+    @property
     def method(self) -> str:
         """Which back half this is (``METHODS``): "box_head" for the learned box head
         (``box_head.BoxHead``) boxing its own detections, "head_options" for the box head's class

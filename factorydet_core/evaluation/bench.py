@@ -419,7 +419,8 @@ def bench_detect(
     model's), a second configuration runs on the same frames, interleaved frame by frame with the
     first so that both see the same machine load, and the record gives each stage's ratio of
     medians (compared / reference): a speed claim is a ratio measured side by side. Overrides
-    named in ``BACK_HALF_SETTINGS`` change the compared model's box quality screen instead.
+    named in ``BACK_HALF_SETTINGS`` change the compared model's box quality screen instead, and
+    those in ``DETECTOR_SETTINGS`` the compared ``Detector``'s own.
 
     With ``busy``, each reference run is repeated beside one other process that keeps a core busy
     (what the app's server or a browser does to a detection on a shared machine), and the record
@@ -435,6 +436,7 @@ def bench_detect(
     configs = {"reference": detector_for(model, dataset)}
     front_overrides = dict(compare_overrides or {})
     back_overrides = {k: front_overrides.pop(k) for k in list(front_overrides) if k in BACK_HALF_SETTINGS}
+    detector_overrides = {k: front_overrides.pop(k) for k in list(front_overrides) if k in DETECTOR_SETTINGS}
     if compare_model is not None or compare_overrides:
         other = DetectionModel.load(compare_model) if compare_model is not None else model
         if back_overrides:
@@ -447,6 +449,8 @@ def bench_detect(
             )
         detector = detector_for(other, dataset, calibrate=False)
         detector.params = detector.params.replace(**front_overrides)
+        for name, value in detector_overrides.items():
+            setattr(detector, name, str(value).lower() not in ("0", "false", "no", "off"))
         # The same extrinsics as the reference, so that only the compared change differs.
         detector.T_vehicle_sensor = configs["reference"].T_vehicle_sensor
         detector.calibration_ = configs["reference"].calibration_
@@ -645,6 +649,10 @@ def _busy_process():
 BACK_HALF_SETTINGS = ("screen_trees", "screen_keep")
 """``bench_detect``'s compared settings that belong to the model's back half (the box quality
 regressor's screen), not to its front half."""
+
+DETECTOR_SETTINGS = ("skip_unread_features",)
+"""``bench_detect``'s compared settings of the ``Detector`` itself (0 computes the proposals' 3DmFV
+even for a model that reads none: the path before it was skipped)."""
 
 
 def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], num_frames: int) -> dict:

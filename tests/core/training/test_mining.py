@@ -221,6 +221,7 @@ def test_saved_model_detects_like_the_trained_one(run, frames, tmp_path, small_d
     assert (result.detections.scores >= 0.05).all()
     assert np.all(np.diff(result.detections.scores) <= 0)
     assert (result.detections.suppressed_by[~kept] >= 0).all()
+    assert loaded.reads_features and result.groups.features is not None  # the paper's classifier reads them
     with pytest.raises(InputError):
         Detector("agv").detect(open_dataset(small_dataset_dir).frame(0))
 
@@ -297,6 +298,11 @@ def test_the_box_head_trains_with_mining_and_its_checkpoint_detects(frames, tmp_
     result = Detector("agv", model=loaded).detect(frame_0, score_threshold=0.05)
     assert len(result.candidates) == result.groups.num_groups
     assert (result.detections.scores >= 0.05).all()
+    # The head reads no 3DmFV: the detector builds none unless told to.
+    assert not loaded.reads_features and result.proposal.proposals.features is None
+    computed = Detector("agv", model=loaded, skip_unread_features=False).detect(frame_0)
+    assert computed.proposal.proposals.features is not None and computed.groups.features is not None
+    assert run.models[0].reads_features is False
 
 
 def test_the_box_head_classifies_and_the_box_quality_regressor_boxes(frames, tmp_path):
