@@ -133,7 +133,9 @@ class BrowserSession:
 
     def select_label(self, label_id: int | None) -> None:
         """Select a label; edits from here on are made against the version selected (or last
-        edited by this browser), so someone else's change in between is reported, not overwritten."""
+        edited by this browser), so someone else's change in between is reported, not overwritten.
+        The chosen class becomes the label's own, so that Set class [C] changes nothing until
+        another class is picked."""
         label = None
         if label_id is not None and self.state.db is not None:
             label = self.state.db.label(label_id)
@@ -141,6 +143,8 @@ class BrowserSession:
             self.selected_label_id = label_id
             self.selected_label_version = None if label is None else label.version
             self.selected_patch_ids = set()
+        if label is not None and label.class_name in self.state.dataset.class_names:
+            self.set_object_class(label.class_name)
         self.refresh()
 
     def select_patches(self, patch_ids, add: bool = False) -> None:
@@ -283,12 +287,16 @@ class BrowserSession:
             return next((q for q in self.queue if q["id"] == self.current_item_id), None)
 
     def go_to(self, item: dict | None) -> None:
-        """Show a queue item: its frame, the camera on it, its box highlighted in a dimmed scene."""
+        """Show a queue item: its frame, the camera on it, its box highlighted in a dimmed scene;
+        the chosen class becomes its predicted one (what Object [O] labels it unless another is
+        picked)."""
         with self.lock:
             self.current_item_id = None if item is None else item["id"]
         if item is None:
             self.refresh()
             return
+        if item.get("predicted_class") in self.state.dataset.class_names:
+            self.set_object_class(item["predicted_class"])
         self.state.set_frame(item["frame_index"])
         self.look_at_box(item["box"])
         self.refresh()

@@ -25,9 +25,9 @@ from factorydet_core.proposals.voxels import voxel_fisher_vectors
 from .state import AppState
 
 CACHED_RESULTS = 3
-"""Results kept: the shown frame's and its next and previous frames' (computed ahead). An
-80k-point frame's result with its voxel features (for the voxels layer) takes some 300 MB, most
-of it the proposals' and voxels' 3DmFV tensors (10 kB each)."""
+"""Results kept: the shown frame's and its next and previous frames' (computed ahead). Most of a
+result is the voxels' 3DmFV (10 kB per voxel, for the voxels layer; some 200 MB on a demo frame)
+and, for a model that reads them, the proposals' (a box head's detections carry none)."""
 
 PREFETCH_OFFSETS = (1, -1)
 """Frames computed ahead, relative to the shown one, in this order."""

@@ -180,3 +180,18 @@ def test_a_refused_undo_does_not_take_in_someone_elses_change_either(state):
     alice.set_class("barrel")  # the refused undo was about the verdict, not about this label
     assert "someone else got there first" in alice.messages[-1][0]
     assert state.db.label(label.id).class_name == "cone"
+
+
+def test_the_chosen_class_follows_the_selected_label_and_the_shown_item(state):
+    label = state.db.add_labels([(0, (1.0, 2.0, 0.5, 1.0, 1.0, 1.0, 0.0), "cone")], "importer")[0]
+    alice = _person(state, "alice")
+    shown = []
+    alice._object_class_shown = shown.append  # what the dropdowns would show
+    assert alice.object_class == state.dataset.class_names[0]
+    alice.select_label(label.id)
+    assert alice.object_class == "cone" and shown[-1] == "cone"
+    alice.set_class(alice.object_class)  # C without picking another class: no silent relabel
+    assert state.db.label(label.id).class_name == "cone"
+    alice.step(+1)  # the review queue's first item, a box predicted as such
+    item = alice.current_item()
+    assert alice.object_class == item["predicted_class"] == shown[-1]
