@@ -22,8 +22,9 @@ class FramePanel:
         """Show the state's frame in the slider and the status line."""
         with state.lock:
             index, frame = state.frame_index, state.frame
-        if self.slider.value != index:
-            self.slider.value = index
+        # The slider counts frames from 1, as the status line does.
+        if self.slider.value != index + 1:
+            self.slider.value = index + 1
         self.previous.disabled = index == 0
         self.next.disabled = index >= state.dataset.num_frames - 1
         _, class_ids, _ = state.frame_labels(index)
@@ -50,7 +51,7 @@ def build_frame_panel(server: viser.ViserServer, state: AppState) -> FramePanel:
     num_frames = state.dataset.num_frames
     with server.gui.add_folder("Frame", order=10):
         slider = server.gui.add_slider(
-            "Frame", min=0, max=max(num_frames - 1, 1), step=1, initial_value=0, disabled=num_frames <= 1
+            "Frame", min=1, max=max(num_frames, 2), step=1, initial_value=1, disabled=num_frames <= 1
         )
         with server.gui.add_folder("Step", expand_by_default=True):
             previous = server.gui.add_button("Previous frame", icon=viser.Icon.ARROW_LEFT, disabled=True)
@@ -61,7 +62,7 @@ def build_frame_panel(server: viser.ViserServer, state: AppState) -> FramePanel:
     def _(event: viser.GuiEvent) -> None:
         if not from_user(event):
             return
-        state.set_frame(int(slider.value))
+        state.set_frame(int(slider.value) - 1)
 
     @previous.on_click
     def _(event: viser.GuiEvent) -> None:

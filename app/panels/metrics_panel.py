@@ -36,6 +36,16 @@ def errors_markdown(errors: dict) -> str:
     )
 
 
+def class_row(name: str, row: dict) -> str:
+    """A class's row of the table: references, precision, recall, F-score and AP; a dash where a
+    figure is undefined (precision without a detection of the class, recall without a reference)."""
+    precision = row["precision"] if row["num_detections"] else None
+    return (
+        f"| {name} | {row['num_reference']} | {_fmt(precision)} | {_fmt(row['recall'])} | "
+        f"{_fmt(row['f1'])} | {_fmt(row['ap'])} |"
+    )
+
+
 @dataclasses.dataclass
 class MetricsPanel:
     table: viser.GuiMarkdownHandle
@@ -54,8 +64,7 @@ class MetricsPanel:
             return
         self._shown = id(metrics)
         rows = [
-            f"| {name} | {row['num_reference']} | {row['precision']:.2f} | {_fmt(row['recall'])} | "
-            f"{_fmt(row['f1'])} | {_fmt(row['ap'])} |"
+            class_row(name, row)
             for name, row in metrics["per_class"].items()
             if row["num_reference"] or row["num_detections"]
         ]

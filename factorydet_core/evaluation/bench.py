@@ -657,14 +657,20 @@ even for a model that reads none: the path before it was skipped)."""
 
 def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], num_frames: int) -> dict:
     """Each configuration's headline figures on the held-out factories, and their differences."""
-    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
+    from factorydet_core.evaluation.quality import (
+        QualityPlan,
+        heldout_set,
+        measure_heldout,
+        params_for_reading,
+    )
 
     plan = QualityPlan(
         train_data=Path(data), heldout_seeds=tuple(seeds), heldout_frames=num_frames, seeds=(0,)
     )
     out = {"seeds": list(seeds), "frames_per_factory": num_frames}
     for name, detector in configs.items():
-        measured = measure_heldout(detector.model, heldout_set(plan, detector.params, None))
+        params = params_for_reading(detector.model, detector.params)
+        measured = measure_heldout(detector.model, heldout_set(plan, params, None))
         head = measured["iou_0.6"]
         out[name] = {key: head[key] for key in ("f1", "map", "precision", "recall")}
         out[name]["back_half_ms_per_frame"] = measured["back_half_ms_per_frame"]
@@ -708,7 +714,12 @@ def bench_mining(
     import subprocess
     import sys
 
-    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
+    from factorydet_core.evaluation.quality import (
+        QualityPlan,
+        heldout_set,
+        measure_heldout,
+        params_for_reading,
+    )
     from factorydet_core.session.store import copy_session, open_session, training_runs
 
     values = [int(k) for k in round_epochs]
@@ -768,7 +779,8 @@ def bench_mining(
                     train_data=Path(run["data"]), heldout_seeds=tuple(int(s) for s in heldout_seeds),
                     heldout_frames=heldout_frames, seeds=(0,),
                 )  # fmt: skip
-                heldout = heldout_set(plan, model.front_end or Detector(model=model).params, None)
+                params = params_for_reading(model, model.front_end or Detector(model=model).params)
+                heldout = heldout_set(plan, params, None)
             measured = measure_heldout(model, heldout)["iou_0.6"]
             config["heldout"] = {key: measured[key] for key in ("f1", "map", "precision", "recall")}
         configs.append(config)

@@ -21,3 +21,13 @@ def test_errors_markdown_lists_every_kind_with_its_count_and_f_if_fixed():
     assert "| FP: background | 1 | 0.67 |" in text
     assert "| missed: no candidate | 1 | 0.80 |" in text
     assert "| FP: localization | 0 | 0.50 |" in text
+
+
+def test_a_class_without_detections_shows_no_precision_and_one_without_references_no_recall():
+    from app.panels.metrics_panel import class_row
+
+    missed = {"num_reference": 3, "num_detections": 0, "precision": 0.0, "recall": 0.0, "f1": 0.0, "ap": 0.0}
+    assert class_row("cone", missed) == "| cone | 3 | – | 0.00 | 0.00 | 0.00 |"
+    unseen = {"num_reference": 0, "num_detections": 2, "precision": 0.0, "recall": None, "f1": None,
+              "ap": None}  # fmt: skip
+    assert class_row("truck", unseen) == "| truck | 0 | 0.00 | – | – | – |"
