@@ -11,6 +11,28 @@ from factorydet_core.session.demo import DEMO_SESSION, ensure_demo
 from factorydet_core.session.store import latest_model, open_session, open_session_data, session_data
 
 
+def session_model(db, model, model_name: str) -> tuple[object, str]:
+    """The model a session shows when the app opens it: the one last chosen with **Show this
+    model** (``SessionDB.shown_model``), else the session's latest run's, which is then recorded
+    as chosen (sessions from before the choice was kept), else ``model`` (the shipped one).
+    A retrain never changes it: only a choice does."""
+    from factorydet_core.detection.model import DetectionModel
+
+    chosen = db.shown_model()
+    if chosen is not None and chosen[1].is_file():
+        return DetectionModel.load(chosen[1]), chosen[0]
+    latest = latest_model(db.session)
+    if latest is None:
+        return model, model_name
+    from .trainer import run_choice
+
+    runs = db.training_runs()
+    name = run_choice(runs[-1]["id"], runs[-1]["kind"])
+    if not db.readonly:
+        db.set_shown_model(name, latest)
+    return DetectionModel.load(latest), name
+
+
 def _cmd_app(args: argparse.Namespace) -> int:
     from .viewer import serve
 
@@ -42,9 +64,7 @@ def _cmd_app(args: argparse.Namespace) -> int:
         path = resolve_model(args.model, args.root)
         model, model_name = DetectionModel.load(path), str(path)
     if db is not None and args.model == "default":
-        latest = latest_model(db.session)
-        if latest is not None:  # the session's own latest model beats the shipped one
-            model, model_name = DetectionModel.load(latest), f"session run {db.latest_run_id()}"
+        model, model_name = session_model(db, model, model_name)
     serve(dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name, db=db)
     return 0
 

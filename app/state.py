@@ -49,6 +49,7 @@ class AppState:
         self.training_status = "idle"
         self.training_progress = 0.0
         self.training_comparison: dict | None = None  # the last run's before/after table
+        self.offered_model: str | None = None  # a new run's model the Training panel offers
         self.suspects: list[dict] = []  # labels the shown model contradicts (loop.suspect_labels)
         self.title = title or dataset.name
         self.lock = threading.RLock()
@@ -215,6 +216,22 @@ class AppState:
             self.detections = None
             self.frame_detections = {}
             self.metrics = None
+            self.changed.notify_all()
+        self._notify()
+
+    def choose_model(self, model, name: str, path) -> None:
+        """Show ``model`` (a checkpoint at ``path``) and remember the choice in the session
+        (``SessionDB.set_shown_model``), so that the app shows it again when reopened."""
+        self.set_model(model, name)
+        with self.lock:
+            self.offered_model = None
+        if self.db is not None:
+            self.db.set_shown_model(name, path)
+
+    def offer_model(self, choice: str) -> None:
+        """Offer a new run's model (its Training panel name) without showing it."""
+        with self.lock:
+            self.offered_model = choice
             self.changed.notify_all()
         self._notify()
 

@@ -1,6 +1,8 @@
 """Retraining from the app: one background thread runs the next mining round or a full retrain on
 the session's corrected labels and verdicts, reports progress into the state, can be cancelled,
-and ends with a before/after table on the test frames and the new model shown.
+and ends with a before/after table on the test frames and the new model offered, not shown: people
+decide from the table whether to show it (the Training panel's **Show this model**, which the
+session remembers), so a retrain that came out worse never replaces the model in use.
 
 A crash or a cancel of the job never touches the labels: the run is stored only once it has
 finished, and labels are only ever read here.
@@ -18,6 +20,11 @@ from factorydet_core.types import Cancelled
 from factorydet_core.workflows import retrain_session
 
 from .state import AppState
+
+
+def run_choice(run_id: int, kind: str) -> str:
+    """The Training panel's name of a run's final model (``panels.training_panel.model_choices``)."""
+    return f"run {run_id} ({kind}) final"
 
 
 class TrainingWorker:
@@ -164,13 +171,12 @@ class TrainingWorker:
             should_stop=self._cancel.is_set,
         )  # fmt: skip
         self.last_run_id = done.run_id
-        state.set_model(done.run.model, f"session run {done.run_id}")
-        state.set_training(status="looking for suspect labels", progress=0.95)
-        state.set_suspects(suspect_labels(db, done.run.model, done.train_frames))
         queue = len(db.review_queue(done.run_id))
+        state.offer_model(run_choice(done.run_id, mode))
         state.session_changed()
         self._finish(
-            status=f"run {done.run_id} ({mode}) done: {queue} mined negatives to review",
+            status=f"run {done.run_id} ({mode}) done: {queue} mined negatives to review; the table "
+            "compares it with the shown model, and **Show this model** uses it",
             progress=1.0,
             comparison=done.comparison,
         )

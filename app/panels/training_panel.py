@@ -14,7 +14,7 @@ from factorydet_core.training.settings import LOOP_CONTROLS, Control, LoopSettin
 from factorydet_core.types import InputError
 
 from ..state import AppState
-from ..trainer import TrainingWorker
+from ..trainer import TrainingWorker, run_choice
 
 MODES = {"next round": "next", "full retrain": "full"}
 SHIPPED = "shipped default model"
@@ -53,7 +53,7 @@ def model_choices(state: AppState) -> dict[str, str]:
     if state.db is None:
         return choices
     for run in reversed(state.db.training_runs()):
-        choices[f"run {run['id']} ({run['kind']}) final"] = str(state.db.session.path / run["model_path"])
+        choices[run_choice(run["id"], run["kind"])] = str(state.db.session.path / run["model_path"])
         for r in reversed(run["rounds"]):
             choices[f"run {run['id']} round {r['round']}"] = str(state.db.session.path / r["model_path"])
     return choices
@@ -98,13 +98,14 @@ class TrainingPanel:
         with state.lock:
             busy, status, progress = state.training_busy, state.training_status, state.training_progress
             comparison, revision, model_name = state.training_comparison, state.revision, state.model_name
+            offered = state.offered_model
             method = getattr(state.model, "method", None)
         self.train.disabled = busy or state.db is None
         self.cancel.disabled = not busy
         self.progress.value = round(100.0 * progress, 1)
         shown = f"`{model_name or 'none'}`" + (f" ({method})" if method else "")
         self.status.content = f"**Training:** {status} · shown model {shown}"
-        key = (revision, id(comparison))
+        key = (revision, id(comparison), offered)
         if key == self._seen:
             return
         self._seen = key
@@ -115,6 +116,8 @@ class TrainingPanel:
         choices = list(model_choices(state))
         if choices and tuple(self.model.options) != tuple(choices):
             self.model.options = choices
+        if offered in choices and self.model.value != offered:
+            self.model.value = offered  # one click on Show this model uses the new run
         self.show_model.disabled = not choices
 
 
@@ -170,7 +173,11 @@ def build_training_panel(server: viser.ViserServer, state: AppState, worker: Tra
             if event.client is not None:
                 event.client.add_notification("Model", f"cannot load {path}: {exc}", color="red")
             return
-        state.set_model(loaded, model.value)
+        try:
+            state.choose_model(loaded, model.value, path)
+        except InputError as exc:  # shown, but the session could not record it
+            if event.client is not None:
+                event.client.add_notification("Model", f"not remembered in the session: {exc}", color="red")
 
     panel.refresh(state)
     return panel

@@ -1055,6 +1055,31 @@ class SessionDB:
             rows = [_row("meta", r) for r in db.execute("SELECT key, value FROM meta")]
         return {r["key"]: r["value"] for r in rows}
 
+    def set_shown_model(self, name: str, path: str | os.PathLike) -> None:
+        """Record the model people chose to show (the app's **Show this model**): the app shows it
+        again when it reopens the session, and a retrain never replaces it by itself. ``path`` is
+        kept relative to the session folder when it lies inside it (a copied session keeps it)."""
+        path = Path(path)
+        with contextlib.suppress(ValueError):
+            path = path.resolve().relative_to(self.session.path.resolve())
+        value = json.dumps({"name": str(name), "path": str(path)})
+        with self._write() as db:
+            db.execute("INSERT OR REPLACE INTO meta VALUES ('shown_model', ?)", (value,))
+
+    def shown_model(self) -> tuple[str, Path] | None:
+        """``(name, checkpoint path)`` of the model last chosen to be shown (``set_shown_model``),
+        or ``None`` if none was."""
+        raw = self.meta().get("shown_model")
+        if raw is None:
+            return None
+        value = _loads(raw, "meta 'shown_model'")
+        if not isinstance(value, dict) or not all(isinstance(value.get(k), str) for k in ("name", "path")):
+            raise SessionError(
+                f"the session database is damaged: meta 'shown_model' is {short_repr(raw, 60)}"
+            )
+        path = Path(value["path"])
+        return value["name"], path if path.is_absolute() else self.session.path / path
+
     @property
     def class_names(self) -> tuple[str, ...]:
         if self.dataset is not None:

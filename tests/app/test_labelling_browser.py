@@ -197,10 +197,16 @@ def test_retrain_from_the_browser_shows_progress_and_the_before_after_table(sess
         assert "done" in app.state.training_status, app.state.training_status
         assert app.state.training_progress == 1.0 and len(seen) > 2  # it moved, not just jumped
         assert len(db.training_runs()) == runs_before + 1
-        assert app.state.model_name == f"session run {db.latest_run_id()}"
+        latest = db.training_runs()[-1]
+        offered = f"run {latest['id']} ({latest['kind']}) final"
+        # Offered beside the table, not shown: the person decides from the table.
+        assert app.state.offered_model == offered and app.state.model_name != offered
         page.get_by_text("done:", exact=False).first.wait_for(timeout=20_000)
         page.get_by_text("Before / after", exact=False).first.wait_for(timeout=20_000)
-        assert db.training_runs()[-1]["metrics"]["compare"]
+        assert latest["metrics"]["compare"]
+        page.get_by_role("button", name="Show this model").click()
+        assert _wait(lambda: app.state.model_name == offered, 20), app.state.model_name
+        assert db.shown_model()[0] == offered  # and so it is shown when the app opens the session again
 
         # Suspect labels from the browser: the shown model is asked in the background.
         page.get_by_text("Suspect labels", exact=True).first.click()

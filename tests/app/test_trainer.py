@@ -115,5 +115,39 @@ def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
     monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
     assert trainer.start("full")
     trainer.join(10)
-    assert state.training_status.startswith("run 7 (full) done") and state.model_name == "session run 7"
+    assert state.training_status.startswith("run 7 (full) done")
+    # The new model is offered, not shown: people decide from the table.
+    assert state.model_name == "tiny" and state.offered_model == "run 7 (full) final"
     assert state.training_comparison == {"after (run 7)": {}}
+
+
+def test_the_chosen_model_is_what_the_session_shows_again(small_dataset_dir, tiny_model_path, tmp_path):
+    import shutil
+
+    from app.cli import session_model
+    from factorydet_core.detection.model import DetectionModel
+    from tests.fakes import queue_run
+
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    shipped = DetectionModel.load(tiny_model_path)
+    assert session_model(db, shipped, "shipped") == (shipped, "shipped")  # no run yet
+    db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {}, kind="full")
+    # A session from before the choice was kept shows its latest run, and records it as chosen.
+    _, name = session_model(db, shipped, "shipped")
+    assert name == "run 1 (full) final" and db.shown_model()[0] == name
+    # A newer run is not shown on reopening until someone chooses it.
+    db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {}, kind="next")
+    assert session_model(db, shipped, "shipped")[1] == "run 1 (full) final"
+    state = AppState(dataset, db=db, model=shipped, model_name="shipped")
+    path = db.session.path / db.training_runs()[-1]["model_path"]
+    state.choose_model(DetectionModel.load(path), "run 2 (next) final", path)
+    assert state.model_name == "run 2 (next) final" and state.offered_model is None
+    assert session_model(db, shipped, "shipped")[1] == "run 2 (next) final"
+    # The record is relative to the session folder: a moved session keeps its choice.
+    assert not str(db.meta()["shown_model"]).count(str(tmp_path))
+    moved = tmp_path / "moved"
+    shutil.copytree(db.session.path, moved / "s")
+    assert SessionDB(open_session("s", moved), dataset).shown_model()[1] == moved / "s" / path.relative_to(
+        db.session.path
+    )
