@@ -243,6 +243,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 root=args.root,
                 data=args.data[0] if args.data else None,
                 round_epochs=(0, args.round_epochs) if args.round_epochs else (0,),
+                full_run=args.full_run,
+                before_after=args.before_after,
                 heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
                 heldout_frames=args.heldout_frames,
                 command=command,
@@ -1081,6 +1083,18 @@ def build_parser(
         help="mining: the session whose next round is timed (a copy of it: the session is not changed)",
     )
     p.add_argument("--root", default=None, help="mining: sessions folder (default: ./sessions)")
+    p.add_argument(
+        "--full-run",
+        action="store_true",
+        help="mining: first time a full retrain on each copy, which the next round continues (what the "
+        "app's Train does on a session without a run)",
+    )
+    p.add_argument(
+        "--before-after",
+        action="store_true",
+        help="mining: each run also measures the models before and after on the test frames, as the app's "
+        "retrain does",
+    )
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")
     p.add_argument(

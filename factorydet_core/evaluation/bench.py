@@ -691,6 +691,8 @@ def bench_mining(
     root: str | os.PathLike | None = None,
     data: str | os.PathLike | None = None,
     round_epochs: Sequence[int] = (0, 5),
+    full_run: bool = False,
+    before_after: bool = False,
     heldout_seeds: Sequence[int] = (),
     heldout_frames: int = 12,
     scratch: str | os.PathLike = "/tmp/factorydet_mining",
@@ -710,6 +712,12 @@ def bench_mining(
     with ``heldout_seeds``, the new model's figures on those held-out factories (the quality
     benchmark's, ``quality.heldout_set``). ``train_args`` are more ``factorydet train`` flags for
     both (other training settings).
+
+    Args:
+        full_run: first time a full retrain (``--mode full``) on each copy, which the next round
+            then continues: what the app's Train does on a session without a run (the demo's).
+        before_after: each command also measures the models before and after on the test frames
+            (``--compare``), as the app's retrain does.
     """
     import subprocess
     import sys
@@ -729,8 +737,10 @@ def bench_mining(
         )
     session = open_session(session_name, root)
     runs = training_runs(session)
-    if not runs:
-        raise InputError(f"bench mining: session {session_name!r} has no training run to go on from")
+    if not runs and not full_run:
+        raise InputError(
+            f"bench mining: session {session_name!r} has no training run to go on from (--full-run makes one)"
+        )
     script = (
         "import json, resource, sys, time\n"
         "from factorydet_core.cli import main\n"
@@ -739,19 +749,33 @@ def bench_mining(
         "print(json.dumps({'exit': code, 'seconds': round(time.perf_counter() - start, 1),"
         " 'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))\n"
     )
-    configs = []
-    heldout = None
-    for done, epochs in enumerate(values):
-        copy = copy_session(session, Path(scratch) / f"round_epochs_{epochs}")
+
+    def train(copy, mode: str, epochs: int) -> dict:
         argv = ["train", *([str(data)] if data is not None else []), "--session", copy.name,
-                "--root", str(copy.root), "--mode", "next", *train_args,
-                "--round-epochs", str(epochs)]  # fmt: skip
+                "--root", str(copy.root), "--mode", mode, *train_args,
+                *(["--compare"] if before_after else []), "--round-epochs", str(epochs)]  # fmt: skip
         out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True)
         lines = out.stdout.strip().splitlines()
         if out.returncode != 0 or not lines:
             tail = (out.stderr.strip().splitlines() or ["no message"])[-1]
-            raise InputError(f"bench mining: the round with {epochs} round epochs failed: {tail[:300]}")
-        child = json.loads(lines[-1])
+            raise InputError(f"bench mining: the {mode} run with {epochs} round epochs failed: {tail[:300]}")
+        return json.loads(lines[-1])
+
+    configs = []
+    heldout = None
+    for done, epochs in enumerate(values):
+        copy = copy_session(session, Path(scratch) / f"round_epochs_{epochs}")
+        full = None
+        if full_run:
+            child = train(copy, "full", epochs)
+            first = training_runs(copy)[-1]
+            full = {
+                "seconds": child["seconds"],
+                "peak_rss_mb": child["peak_rss_mb"],
+                "rounds": len(first["rounds"]),
+                "run": first["id"],
+            }
+        child = train(copy, "next", epochs)
         run = training_runs(copy)[-1]
         model = DetectionModel.load(copy.path / run["model_path"])
         (record,) = model.classifier.note_["rounds_record"]
@@ -773,6 +797,8 @@ def bench_mining(
             "train_f1": record["train_f1"],
             "num_train_frames": len(run["train_frames"]),
         }
+        if full is not None:
+            config["full_run"] = full
         if heldout_seeds:
             if heldout is None:
                 plan = QualityPlan(
@@ -791,7 +817,8 @@ def bench_mining(
         "command": command,
         "session": session_name,
         "train_args": list(train_args),
-        "continues_run": runs[-1]["id"],
+        "before_after": before_after,
+        "continues_run": runs[-1]["id"] if runs else None,
         "configs": configs,
         "target_seconds": MINING_TARGET_SECONDS,
         "machine": machine_info(),

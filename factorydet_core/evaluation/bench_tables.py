@@ -369,7 +369,10 @@ def mining_markdown(result: dict) -> str:
     """Per configuration of one more mining round: where its seconds went, its peak memory, the
     ratio to the round trained afresh and, when measured, its held-out figures."""
     heldout = "heldout" in result
+    full = any("full_run" in c for c in result["configs"])
     header = ["round", "seconds", "box quality s", "fit s", "score s", "other s", "peak MB", "speed-up"]
+    if full:
+        header += ["full run s", "full run peak MB"]
     if heldout:
         header += ["held-out F", "held-out mAP", "F minus afresh"]
     rows = []
@@ -389,6 +392,8 @@ def mining_markdown(result: dict) -> str:
             fmt(config["peak_rss_mb"]),
             fmt(config.get("speedup_vs_afresh")),
         ]
+        if full:
+            row += [fmt(config["full_run"]["seconds"]), fmt(config["full_run"]["peak_rss_mb"])]
         if heldout:
             row += [
                 fmt(config["heldout"]["f1"], 3),
@@ -397,11 +402,20 @@ def mining_markdown(result: dict) -> str:
             ]
         rows.append(row)
     frames = result["configs"][0]["num_train_frames"]
+    start = (
+        "after a full retrain, its rounds trained as each configuration says"
+        if full
+        else f"going on from its run {result['continues_run']}"
+    )
+    measured = (
+        ", and measuring the models before and after on the test frames" if result.get("before_after") else ""
+    )
     text = (
-        table(header, rows) + f"\n\nOne more round of session `{result['session']}` (going on from its run"
-        f" {result['continues_run']}) on its {frames} training frames, each configuration on a fresh"
-        f" copy of the session in a child process; target {fmt(result['target_seconds'])} s per round."
-        " 'other' is reading the cached proposals, mining and storing the run."
+        table(header, rows)
+        + f"\n\nOne more round of session `{result['session']}` ({start}) on its {frames} training"
+        " frames, each configuration on a fresh copy of the session in a child process; target"
+        f" {fmt(result['target_seconds'])} s per round. 'other' is reading the cached proposals,"
+        f" mining and storing the run{measured}."
     )
     if heldout:
         seeds = ", ".join(str(s) for s in result["heldout"]["seeds"])

@@ -134,3 +134,15 @@ def test_bench_mining_times_a_round_afresh_and_continued_on_session_copies(small
     assert "continued, 1 epochs" in render_record(record)
     with pytest.raises(InputError, match="distinct"):
         bench_mining("timed", root=tmp_path / "sessions", round_epochs=(1, 1))
+    # A session without a run: a full retrain first (the app's first Train), then the next round.
+    SessionDB(open_session("fresh", tmp_path / "sessions"), dataset)
+    with pytest.raises(InputError, match="--full-run"):
+        bench_mining("fresh", root=tmp_path / "sessions")
+    record = bench_mining(
+        "fresh", root=tmp_path / "sessions", round_epochs=(1,), full_run=True, scratch=tmp_path / "scratch",
+        train_args=["--epochs", "1", "--method", "paper", "--no-box-quality", "--frames", "2",
+                    "--no-calibrate", "--initial-negatives", "100", "--rounds", "1"],
+    )  # fmt: skip
+    (config,) = record["configs"]
+    assert config["full_run"]["rounds"] == 2 and config["continued_run"] == config["full_run"]["run"]
+    assert config["full_run"]["seconds"] > 0 and "full run s" in render_record(record)
