@@ -8,7 +8,7 @@ import dataclasses
 import viser
 
 from ..state import AppState
-from . import from_user
+from . import from_user, short_name
 
 
 @dataclasses.dataclass
@@ -54,7 +54,8 @@ class DetectionsPanel:
         if not has_model:
             self.summary.content = "_No model: run `factorydet train` or start with the default model._"
         elif detections is None:
-            self.summary.content = f"Model `{model_name}`; waiting for the first frame's detections."
+            name = short_name(model_name)
+            self.summary.content = f"Model `{name}`; waiting for the first frame's detections."
         else:
             kept = int(detections.kept_mask.sum())
             threshold = (
@@ -64,7 +65,7 @@ class DetectionsPanel:
             )
             self.summary.content = (
                 f"**{kept} detections** shown ({len(detections) - kept} suppressed by NMS)"
-                f" · model `{model_name}` · {threshold}"
+                f" · model `{short_name(model_name)}` · {threshold}"
             )
 
 

@@ -15,6 +15,7 @@ from factorydet_core.types import InputError
 
 from ..state import AppState
 from ..trainer import TrainingWorker, run_choice
+from . import short_name
 
 MODES = {"next round": "next", "full retrain": "full"}
 SHIPPED = "shipped default model"
@@ -103,7 +104,7 @@ class TrainingPanel:
         self.train.disabled = busy or state.db is None
         self.cancel.disabled = not busy
         self.progress.value = round(100.0 * progress, 1)
-        shown = f"`{model_name or 'none'}`" + (f" ({method})" if method else "")
+        shown = f"`{short_name(model_name) if model_name else 'none'}`" + (f" ({method})" if method else "")
         self.status.content = f"**Training:** {status} · shown model {shown}"
         key = (revision, id(comparison), offered)
         if key == self._seen:
