@@ -395,3 +395,6 @@ class BrowserSession:
         self.state.set_frame(suspect["frame_index"])
         self.look_at_box(suspect["box"])
         self.select_label(suspect["label_id"])
+        if suspect.get("predicted_class") in self.state.dataset.class_names:
+            # What the model says it is: Set class [C] takes it unless another class is picked.
+            self.set_object_class(suspect["predicted_class"])

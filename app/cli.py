@@ -11,11 +11,11 @@ from factorydet_core.session.demo import DEMO_SESSION, ensure_demo
 from factorydet_core.session.store import latest_model, open_session, open_session_data, session_data
 
 
-def session_model(db, model, model_name: str) -> tuple[object, str]:
+def session_model(db, model, model_name: str, model_path=None) -> tuple[object, str]:
     """The model a session shows when the app opens it: the one last chosen with **Show this
-    model** (``SessionDB.shown_model``), else the session's latest run's, which is then recorded
-    as chosen (sessions from before the choice was kept), else ``model`` (the shipped one).
-    A retrain never changes it: only a choice does."""
+    model** (``SessionDB.shown_model``). A session without a choice records one now: its latest
+    run's (a session from before the choice was kept), else ``model`` (the shipped one, at
+    ``model_path``), so that a retrain never changes what is shown: only a choice does."""
     from factorydet_core.detection.model import DetectionModel
 
     chosen = db.shown_model()
@@ -23,6 +23,8 @@ def session_model(db, model, model_name: str) -> tuple[object, str]:
         return DetectionModel.load(chosen[1]), chosen[0]
     latest = latest_model(db.session)
     if latest is None:
+        if model is not None and model_path is not None and not db.readonly:
+            db.set_shown_model(model_name, model_path)
         return model, model_name
     from .trainer import run_choice
 
@@ -55,7 +57,7 @@ def _cmd_app(args: argparse.Namespace) -> int:
     from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
     from factorydet_core.session.models import resolve_model
 
-    model, model_name = None, ""
+    model, model_name, path = None, "", None
     if args.model == "default" and not DEFAULT_MODEL.is_file():
         print(
             f"factorydet: no shipped model at {DEFAULT_MODEL}; showing the front half only", file=sys.stderr
@@ -64,7 +66,7 @@ def _cmd_app(args: argparse.Namespace) -> int:
         path = resolve_model(args.model, args.root)
         model, model_name = DetectionModel.load(path), str(path)
     if db is not None and args.model == "default":
-        model, model_name = session_model(db, model, model_name)
+        model, model_name = session_model(db, model, model_name, path)
     serve(dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name, db=db)
     return 0
 

@@ -216,6 +216,7 @@ class AppState:
             self.detections = None
             self.frame_detections = {}
             self.metrics = None
+            self.suspects = []  # another model's verdicts on the labels
             self.changed.notify_all()
         self._notify()
 

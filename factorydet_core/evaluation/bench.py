@@ -669,7 +669,12 @@ def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], 
     )
     out = {"seeds": list(seeds), "frames_per_factory": num_frames}
     for name, detector in configs.items():
-        params = params_for_reading(detector.model, detector.params)
+        # As the configuration's own detect proposes: without unread 3DmFV unless told otherwise.
+        params = (
+            params_for_reading(detector.model, detector.params)
+            if detector.skip_unread_features
+            else detector.params
+        )
         measured = measure_heldout(detector.model, heldout_set(plan, params, None))
         head = measured["iou_0.6"]
         out[name] = {key: head[key] for key in ("f1", "map", "precision", "recall")}
@@ -777,6 +782,9 @@ def bench_mining(
             }
         child = train(copy, "next", epochs)
         run = training_runs(copy)[-1]
+        if epochs and run["config"].get("continued_run") is None:
+            why = run["config"].get("afresh_because", "unknown")
+            raise InputError(f"bench mining: the round with {epochs} round epochs trained afresh: {why}")
         model = DetectionModel.load(copy.path / run["model_path"])
         (record,) = model.classifier.note_["rounds_record"]
         parts = {

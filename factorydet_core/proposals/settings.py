@@ -85,7 +85,7 @@ class FrontEndParams:
     feature: FeatureKind = "aggregated"
     """Proposal feature: "aggregated" voxel features, "direct" 3DmFV of the proposal's points, or
     "none" (no 3DmFV: for back halves that read the points, as the learned box head does;
-    ``detector.params_for`` proposes so for such models whatever their note says)."""
+    ``Detector.detect`` proposes so for a model that reads none whatever this says)."""
     include_history: bool = True
     """Also propose the intermediate unions of the merge hierarchy."""
     complete_boxes: bool = True

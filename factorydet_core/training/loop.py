@@ -30,7 +30,7 @@ from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.session.store import SessionDB, latest_model, read_cache, write_cache
+from factorydet_core.session.store import SessionDB, read_cache, write_cache
 from factorydet_core.training.mining import (
     FrameProposals,
     Progress,
@@ -72,23 +72,43 @@ def new_classifier(settings: LoopSettings, class_names: Sequence[str]) -> Propos
 
 
 def continued_model(
-    db: SessionDB, settings: LoopSettings, classifier: ProposalClassifier | BoxHead
+    db: SessionDB,
+    settings: LoopSettings,
+    classifier: ProposalClassifier | BoxHead,
+    front_end: FrontEndParams | None = None,
 ) -> tuple[int | None, DetectionModel | None, str]:
-    """The session's latest model, if a 'next' round under ``settings`` can go on from it.
+    """The session model a 'next' round under ``settings`` goes on from, if it can: the run whose
+    model people chose to show (``SessionDB.shown_model``; a run they did not choose is not built
+    on), else the latest run's.
+
+    Args:
+        front_end: the front half the round proposes with; a model trained on another one is not
+            continued (its inputs would come from another distribution).
 
     Returns:
         ``(run_id, model, why)``: the run and its model, or ``None`` for both and why it cannot
-        (no run, ``round_epochs`` 0, another method, classes or network).
+        (no run, ``round_epochs`` 0, an unreadable checkpoint, another method, classes, network or
+        front half).
     """
-    run_id = db.latest_run_id()
-    if run_id is None:
+    runs = {run["id"]: run for run in db.training_runs() if run["model_path"]}
+    if not runs:
         return None, None, "the session has no training run"
     if not settings.round_epochs:
         return None, None, "round_epochs is 0: every round trains afresh"
-    path = latest_model(db.session)
-    model = DetectionModel.load(path)
+    run_id = max(runs)
+    chosen = db.shown_model()
+    if chosen is not None:
+        shown = [i for i, run in runs.items() if db.session.path / run["model_path"] == chosen[1]]
+        run_id = shown[0] if shown else run_id
+    try:
+        model = DetectionModel.load(db.session.path / runs[run_id]["model_path"])
+    except (InputError, OSError) as exc:
+        return None, None, f"run {run_id}'s model does not load: {exc}"
     if model.method != settings.method:
-        return None, None, f"the latest model is a {model.method} model, the settings train {settings.method}"
+        kinds = f"a {model.method} model, the settings train {settings.method}"
+        return None, None, f"run {run_id}'s model is {kinds}"
+    if front_end is not None and model.front_end is not None and model.front_end != front_end:
+        return None, None, f"run {run_id}'s model was trained on another front half"
     try:
         check_init_model(classifier, model.classifier, CONTINUED_ARCHITECTURE[settings.method])
     except InputError as exc:
@@ -243,7 +263,7 @@ def train_session(
     if mode == "next":
         background = _merge(db.mined_patch_sets(), reviewed["background"])
         rounds = 0
-        continued_run, continued, why = continued_model(db, settings, classifier)
+        continued_run, continued, why = continued_model(db, settings, classifier, front_end)
         if continued is not None and continued.box_quality is not None and box_quality is not None:
             box_quality = continued.box_quality
     else:

@@ -195,3 +195,9 @@ def test_the_chosen_class_follows_the_selected_label_and_the_shown_item(state):
     alice.step(+1)  # the review queue's first item, a box predicted as such
     item = alice.current_item()
     assert alice.object_class == item["predicted_class"] == shown[-1]
+    # A suspect label: the class the model says it is, ready for Set class [C].
+    suspect = {"label_id": label.id, "frame_index": 0, "box": list(label.box), "class_name": "cone",
+               "label_probability": 0.01, "predicted_class": "pallet", "predicted_probability": 0.9}
+    state.set_suspects([suspect])
+    alice.next_suspect()
+    assert alice.selected_label_id == label.id and alice.object_class == "pallet"

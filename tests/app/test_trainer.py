@@ -144,6 +144,11 @@ def test_the_chosen_model_is_what_the_session_shows_again(small_dataset_dir, tin
     state.choose_model(DetectionModel.load(path), "run 2 (next) final", path)
     assert state.model_name == "run 2 (next) final" and state.offered_model is None
     assert session_model(db, shipped, "shipped")[1] == "run 2 (next) final"
+    # A new session records the shipped model it opens with: its first run is offered, not shown.
+    fresh = SessionDB(open_session("fresh", tmp_path), dataset)
+    assert session_model(fresh, shipped, "shipped", tiny_model_path) == (shipped, "shipped")
+    fresh.save_training_run(queue_run(tiny_model_path, [[]]), "small", {}, kind="full")
+    assert session_model(fresh, shipped, "shipped", tiny_model_path)[1] == "shipped"
     # The record is relative to the session folder: a moved session keeps its choice.
     assert not str(db.meta()["shown_model"]).count(str(tmp_path))
     moved = tmp_path / "moved"

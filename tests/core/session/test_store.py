@@ -863,6 +863,8 @@ def test_a_copied_session_changes_without_changing_the_original(db, tmp_path):
     (db.session.models_dir / "run_001" / "final.json").write_text("{}")
     copy = copy_session(db.session, tmp_path / "copies")
     assert copy.name == db.session.name and copy.root == tmp_path / "copies"
+    cached = "cache/proposals_x.npz"  # hard-linked: safe because every writer replaces the file
+    assert (copy.path / cached).stat().st_ino == (db.session.path / cached).stat().st_ino
     copied = SessionDB(copy, db.dataset)
     assert [lab.id for lab in copied.labels(0)] == [lab.id for lab in db.labels(0)]
     assert (copy.models_dir / "run_001" / "final.json").read_text() == "{}"

@@ -300,3 +300,29 @@ def test_the_loop_settings_name_a_back_half_and_check_it():
         LoopSettings(method="head_options", box_quality=False)  # it boxes by the regressor
     with pytest.raises(InputError, match="method"):
         LoopSettings(method="magic")
+
+
+def test_a_next_round_goes_on_from_the_shown_run_trained_on_the_same_front_half(
+    dataset, tiny_model_path, tmp_path
+):
+    from factorydet_core.proposals.settings import front_end_params
+    from factorydet_core.training.loop import continued_model
+
+    db = SessionDB(open_session("continue", tmp_path), dataset)
+    settings = LoopSettings(method="paper", round_epochs=2)
+    classifier = new_classifier(settings, db.class_names)
+    tiny = DetectionModel.load(tiny_model_path)
+    assert continued_model(db, settings, classifier)[2] == "the session has no training run"
+    first = db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {}, kind="full")
+    second = db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {}, kind="next")
+    run_id, model, why = continued_model(db, settings, classifier, tiny.front_end)
+    assert (run_id, why) == (second, "") and model is not None  # no choice made: the latest run
+    db.set_shown_model("run 1", db.session.path / db.training_runs()[0]["model_path"])
+    assert continued_model(db, settings, classifier, tiny.front_end)[0] == first  # the chosen one
+    other = front_end_params("agv").replace(voxel_size_m=0.3)
+    assert continued_model(db, settings, classifier, other)[2].endswith("another front half")
+    assert "box_head" in continued_model(db, LoopSettings(method="box_head", round_epochs=2), classifier)[2]
+    afresh = LoopSettings(method="paper", round_epochs=0)
+    assert "round_epochs is 0" in continued_model(db, afresh, classifier)[2]
+    (db.session.path / db.training_runs()[0]["model_path"]).write_bytes(b"not a checkpoint")
+    assert "does not load" in continued_model(db, settings, classifier)[2]
