@@ -709,7 +709,8 @@ def bench_mining(
     once per value of ``round_epochs``, each on a fresh copy of the session (its proposals' cache
     included, so the frames are not proposed again) in a child process of its own, one after the
     other: 0 trains the round afresh and refits the box quality regressor (the paper's round), a
-    positive value goes on from the session's latest model. The session itself is not changed.
+    positive value goes on from the session's model (``loop.continued_model``). The session itself
+    is not changed.
 
     Per configuration: the wall-clock seconds of the whole command and the child's peak memory;
     from the run's record, the seconds of the box quality fit, the classifier's fit and the scoring
