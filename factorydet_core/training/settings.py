@@ -27,9 +27,10 @@ class LoopSettings:
     """Epochs of a fit that goes on from a model instead of training afresh: each mining round
     after a full retrain's first fit goes on from the previous round's network, and a 'next'
     round goes on from the session's chosen (else latest) model (``loop.continued_model``) and
-    keeps its box quality regressor (a full retrain refits it on the current labels). 0: every fit trains afresh for ``epochs`` and a
-    'next' round refits the regressor (the paper's procedure, several times slower; the default
-    and paper checkpoints were trained so). ``factorydet bench mining`` measures both."""
+    keeps its box quality regressor (a full retrain refits it on the current labels). 0: every
+    fit trains afresh for ``epochs`` and a 'next' round refits the regressor (the paper's
+    procedure, several times slower; the default and paper checkpoints were trained so).
+    ``factorydet bench mining`` measures both."""
     class_weight: str | None = "sqrt"
     """The box head learns best with the square root of the inverse class frequencies (its own
     default); the paper model was trained with "balanced" (``make paper-model``)."""
