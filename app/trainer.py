@@ -11,6 +11,7 @@ finished, and labels are only ever read here.
 from __future__ import annotations
 
 import threading
+import time
 import traceback
 
 from factorydet_core.detection.detector import Detector, params_for
@@ -20,6 +21,26 @@ from factorydet_core.types import Cancelled
 from factorydet_core.workflows import retrain_session
 
 from .state import AppState
+
+_clock = time.perf_counter
+"""The clock of the time-left estimate (a test sets its own)."""
+
+
+def epochs_left(
+    mode: str, settings: LoopSettings, round_index: int, epochs_done: int, epochs_total: int
+) -> int:
+    """Epochs still to fit in a run: the rest of the current round's, and every later round's
+    (a full retrain's rounds after the first fit ``round_epochs`` each, or ``epochs`` afresh)."""
+    rounds = settings.rounds + 1 if mode == "full" else 1
+    later = max(0, rounds - round_index - 1) * (settings.round_epochs or settings.epochs)
+    return max(0, epochs_total - epochs_done) + later
+
+
+def time_left_text(seconds: float) -> str:
+    """``about 40 s`` / ``about 3 min``: an estimate, said as one."""
+    if seconds < 90:
+        return f"about {max(5, round(seconds / 5) * 5):.0f} s"
+    return f"about {round(seconds / 60):.0f} min"
 
 
 def run_choice(run_id: int, kind: str) -> str:
@@ -142,6 +163,7 @@ class TrainingWorker:
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75
         done_fits = [0]
+        fit_started = [0.0, -1, 0]  # this round's first reported epoch: when, which round, which epoch
 
         def progress(what: str, done: int, total: int) -> None:
             # "compare" comes after the run is stored: too late to cancel without losing it.
@@ -153,10 +175,16 @@ class TrainingWorker:
                 state.set_training(status=f"proposals: frame {done} of {total}", progress=0.1 * done / total)
             elif what == "fit":
                 fraction = (done_fits[0] + done / total) / rounds
-                state.set_training(
-                    status=f"round {done_fits[0] + 1} of {rounds}: epoch {done} of {total}",
-                    progress=0.1 + fit_share * fraction,
-                )
+                status = f"round {done_fits[0] + 1} of {rounds}: epoch {done} of {total}"
+                if fit_started[1] != done_fits[0]:
+                    fit_started[:] = [_clock(), done_fits[0], done]
+                elif done > fit_started[2]:
+                    # The epochs left at this round's pace since its first reported epoch; scoring
+                    # and the comparison come on top.
+                    per_epoch = (_clock() - fit_started[0]) / (done - fit_started[2])
+                    left = per_epoch * epochs_left(mode, settings, done_fits[0], done, total)
+                    status += f" · {time_left_text(left)} of fitting left"
+                state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "box quality" and done == 0:
                 state.set_training(status="fitting the box quality regressor", progress=0.1)
             elif what == "round":

@@ -156,3 +156,45 @@ def test_the_chosen_model_is_what_the_session_shows_again(small_dataset_dir, tin
     assert SessionDB(open_session("s", moved), dataset).shown_model()[1] == moved / "s" / path.relative_to(
         db.session.path
     )
+
+
+def test_the_time_left_counts_the_epochs_of_this_round_and_of_the_rounds_after_it():
+    from app.trainer import epochs_left, time_left_text
+
+    full = LoopSettings(epochs=20, round_epochs=5, rounds=2)
+    assert epochs_left("full", full, 0, 4, 20) == 16 + 2 * 5
+    assert epochs_left("full", full, 2, 5, 5) == 0
+    assert epochs_left("full", dataclasses.replace(full, round_epochs=0), 1, 10, 20) == 10 + 20
+    assert epochs_left("next", full, 0, 2, 5) == 3
+    assert time_left_text(12) == "about 10 s" and time_left_text(1) == "about 5 s"
+    assert time_left_text(200) == "about 3 min"
+
+
+def test_the_training_status_gives_the_fitting_time_left(small_dataset_dir, tmp_path, monkeypatch):
+    dataset = open_dataset(small_dataset_dir)
+    state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
+    trainer = TrainingWorker(state, calibrate=False)
+    statuses = []
+    real_set = state.set_training
+
+    def set_training(**changes):
+        statuses.append(changes.get("status"))
+        real_set(**changes)
+
+    monkeypatch.setattr(state, "set_training", set_training)
+    clock = iter(range(0, 1000, 10))  # each reading, ten seconds later
+    monkeypatch.setattr("app.trainer._clock", lambda: float(next(clock)))
+
+    def retrain_session(db, data, settings, front_end, progress, **options):
+        for epoch in (1, 2, 3):
+            progress("fit", epoch, 5)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
+    # (A session without a run trains in full: no mining round here.)
+    assert trainer.start("full", dataclasses.replace(LoopSettings(), rounds=0))
+    trainer.join(10)
+    fits = [s for s in statuses if s and s.startswith("round 1 of 1")]
+    # Ten seconds an epoch: after epoch 2, three are left (30 s); after epoch 3, two (20 s).
+    assert fits == ["round 1 of 1: epoch 1 of 5", "round 1 of 1: epoch 2 of 5 · about 30 s of fitting left",
+                    "round 1 of 1: epoch 3 of 5 · about 20 s of fitting left"]  # fmt: skip
