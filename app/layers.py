@@ -12,7 +12,7 @@ from factorydet_core import colors
 from factorydet_core.detection.detector import ProposalResult
 from factorydet_core.geometry import box_wireframe_segments
 from factorydet_core.metrics import match_detections
-from factorydet_core.proposals.voxels import fisher_vector_colors
+from factorydet_core.proposals.voxels import voxel_colors
 from factorydet_core.types import Detections
 
 from .state import LAYERS
@@ -83,9 +83,14 @@ class LayerView:
                 precision="float32",
                 visible=layers["merged"],
             )
-            if self._voxel_colors is None or self._voxel_colors[0] != id(result):
+            if result.voxel_colors is not None:  # the worker's
+                self._voxel_colors = (id(result), result.voxel_colors)
+            elif self._voxel_colors is None or self._voxel_colors[0] != id(result):
                 # Once per result: moving the height slider must not redo the projection.
-                self._voxel_colors = (id(result), fisher_vector_colors(result.voxel_features))
+                self._voxel_colors = (
+                    id(result),
+                    voxel_colors(result.cloud, result.grid, result.voxel_features),
+                )
             voxel_low = result.grid.below(max_height)
             self.nodes["voxels"] = self.server.scene.add_point_cloud(
                 "/pipeline/voxels",

@@ -20,14 +20,14 @@ import threading
 import traceback
 
 from factorydet_core.detection.detector import Detector
-from factorydet_core.proposals.voxels import voxel_fisher_vectors
+from factorydet_core.proposals.voxels import voxel_colors
 
 from .state import AppState
 
 CACHED_RESULTS = 3
-"""Results kept: the shown frame's and its next and previous frames' (computed ahead). Most of a
-result is the voxels' 3DmFV (10 kB per voxel, for the voxels layer; some 200 MB on a demo frame)
-and, for a model that reads them, the proposals' (a box head's detections carry none)."""
+"""Results kept: the shown frame's and its next and previous frames' (computed ahead). A result
+keeps its voxels' colours, not their 3DmFV, and the proposals' 3DmFV only for a model that reads
+them (a box head's detections carry none)."""
 
 PREFETCH_OFFSETS = (1, -1)
 """Frames computed ahead, relative to the shown one, in this order."""
@@ -208,13 +208,15 @@ class PipelineWorker:
             result = detection.proposal
         else:
             detection, result = None, detector.propose(frame, history, progress=progress)
-        if result.voxel_features is None:
-            # The detector skips them when its proposals do not read them; the voxels layer does.
-            result = dataclasses.replace(
-                result, voxel_features=voxel_fisher_vectors(result.cloud, result.grid)
-            )
-            if detection is not None:
-                detection = dataclasses.replace(detection, proposal=result)
+        # The voxels layer's colours, computed here in the background rather than when drawing; the
+        # vectors themselves (10 kB a voxel, most of a result) are not kept.
+        result = dataclasses.replace(
+            result,
+            voxel_features=None,
+            voxel_colors=voxel_colors(result.cloud, result.grid, result.voxel_features),
+        )
+        if detection is not None:
+            detection = dataclasses.replace(detection, proposal=result)
         segmentation = result.segmentation
         status = (
             f"frame {frame_index + 1}: {len(result.proposals):,} proposals, {segmentation.num_segments:,} "

@@ -66,6 +66,9 @@ class ProposalResult:
     proposals: Proposals
     timings_ms: dict[str, float]
     """Wall time of each of ``STAGES`` and the total, milliseconds."""
+    voxel_colors: np.ndarray | None = None
+    """(V, 3) uint8 display colours of the voxels by their 3DmFV (``voxels.voxel_colors``), for a
+    viewer that keeps these instead of the (V, 20, 5, 5, 5) vectors; ``None``: not computed."""
 
 
 FREE_SPACE_MAX_RADIUS_M = 40.0

@@ -106,6 +106,8 @@ def test_neighbours_are_computed_ahead_and_a_cached_frame_shows_at_once(small_da
         assert "frame_00001" not in computed
         fresh = detector_module.Detector(state.params).propose(state.frame)
         np.testing.assert_array_equal(shown.proposals.boxes, fresh.proposals.boxes)
+        # A result keeps its voxels' colours for the voxels layer, not their 3DmFV (10 kB a voxel).
+        assert shown.voxel_features is None and shown.voxel_colors.shape == (shown.grid.num_voxels, 3)
         # The new frame's next one is computed ahead in turn.
         assert wait(lambda: 2 in worker.cached_frames(), timeout=120), worker.cached_frames()
         # Other parameters: nothing of the cache applies.

@@ -145,3 +145,16 @@ def test_fisher_vector_colors_are_one_rgb_triple_per_voxel():
     np.testing.assert_array_equal(doubled[0], doubled[-1])
     assert fisher_vector_colors(features[:0]).shape == (0, 3)
     assert fisher_vector_colors(features[:1]).shape == (1, 3)
+
+
+def test_voxel_colors_are_the_colours_of_the_voxels_3dmfv(small_dataset_dir):
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.voxels import fisher_vector_colors, voxel_colors, voxel_fisher_vectors
+
+    result = Detector("agv").propose(open_dataset(small_dataset_dir).frame(0), with_features=False)
+    features = voxel_fisher_vectors(result.cloud, result.grid)
+    colours = voxel_colors(result.cloud, result.grid)
+    assert colours.shape == (result.grid.num_voxels, 3) and colours.dtype == np.uint8
+    np.testing.assert_array_equal(colours, fisher_vector_colors(features))
+    np.testing.assert_array_equal(voxel_colors(result.cloud, result.grid, features), colours)
