@@ -34,6 +34,7 @@ import os
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -513,6 +514,9 @@ class BoxHead(ClassOutputs):
     max_fit_seconds: float | None = None
 
     input_kind = "points"
+    ARCHITECTURE: ClassVar[tuple[str, ...]] = ("channels", "hidden", "heading_bins")
+    """The settings that shape the network's weights: a fit goes on only from a head that shares
+    them (``classifier.check_init_model``)."""
 
     def __post_init__(self) -> None:
         checked = check_settings(self.get_params(), SETTINGS)
@@ -579,7 +583,7 @@ class BoxHead(ClassOutputs):
         symmetry = symmetry_orders(templates, self.square_ratio)
         learning_rate = self.learning_rate
         if init_model is not None:
-            check_init_model(self, init_model, ("channels", "hidden", "heading_bins"))
+            check_init_model(self, init_model)
             learning_rate *= FINE_TUNE_RATE
         start = time.perf_counter()
         rng = np.random.default_rng(self.seed)

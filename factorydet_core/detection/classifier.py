@@ -27,6 +27,7 @@ import os
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -198,14 +199,17 @@ rate: hard-negative mining rounds fine-tune the previous round's network instead
 afresh, and at the full rate the first steps would undo much of what it had learnt."""
 
 
-def check_init_model(model, init_model, architecture: tuple[str, ...]) -> None:
+def check_init_model(model, init_model) -> None:
     """Raise ``InputError`` unless ``init_model`` is a fitted model of ``model``'s type whose
-    class names and ``architecture`` settings are ``model``'s: a fit can go on from its weights."""
+    class names and network settings (its class's ``ARCHITECTURE``) are ``model``'s: a fit can go
+    on from its weights."""
     if type(init_model) is not type(model) or not hasattr(init_model, "network_"):
         kind = type(model).__name__
         raise InputError(f"init_model must be a fitted {kind}, got {type(init_model).__name__}")
     differing = [
-        name for name in ("class_names", *architecture) if getattr(init_model, name) != getattr(model, name)
+        name
+        for name in ("class_names", *model.ARCHITECTURE)
+        if getattr(init_model, name) != getattr(model, name)
     ]
     if differing:
         raise InputError(f"init_model differs in {', '.join(differing)}: its weights cannot be continued")
@@ -309,6 +313,10 @@ class ProposalClassifier(ClassOutputs):
     max_fit_seconds: float | None = None
     geometry: bool = True
 
+    ARCHITECTURE: ClassVar[tuple[str, ...]] = ("width", "geometry")
+    """The settings that shape the network's weights: a fit goes on only from a classifier that
+    shares them (``check_init_model``)."""
+
     @property
     def input_kind(self) -> str:
         """What ``predict_proba`` reads from ``groups.ProposalGroups``."""
@@ -374,7 +382,7 @@ class ProposalClassifier(ClassOutputs):
         """
         features, descriptors = self._check_inputs(features, descriptors)
         if init_model is not None:
-            check_init_model(self, init_model, ("width", "geometry"))
+            check_init_model(self, init_model)
         labels = np.asarray(labels, np.int64)
         if labels.shape != (len(features),):
             raise InputError(f"labels: expected shape ({len(features)},), got {labels.shape}")

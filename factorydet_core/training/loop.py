@@ -110,18 +110,10 @@ def continued_model(
     if front_end is not None and model.front_end is not None and model.front_end != front_end:
         return None, None, f"run {run_id}'s model was trained on another front half"
     try:
-        check_init_model(classifier, model.classifier, CONTINUED_ARCHITECTURE[settings.method])
+        check_init_model(classifier, model.classifier)
     except InputError as exc:
         return None, None, str(exc)
     return run_id, model, ""
-
-
-CONTINUED_ARCHITECTURE = {
-    "paper": ("width", "geometry"),
-    "box_head": ("channels", "hidden", "heading_bins"),
-    "head_options": ("channels", "hidden", "heading_bins"),
-}
-"""The settings of each method's network that a fit going on from its weights must share."""
 
 
 def proposals_cache_key(dataset: Dataset, detector: Detector) -> str:
