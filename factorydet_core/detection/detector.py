@@ -128,6 +128,15 @@ class Detector:
         self.model = model
         self.skip_unread_features = skip_unread_features
 
+    @property
+    def detect_params(self) -> FrontEndParams:
+        """The front-half settings ``detect`` proposes with: ``params``, with feature "none" for a
+        model that reads no 3DmFV while ``skip_unread_features`` is on. A held-out set measured
+        for this detector's model is proposed with them, as its detections are."""
+        if self.model is None or self.model.reads_features or not self.skip_unread_features:
+            return self.params
+        return self.params.replace(feature="none")
+
     @classmethod
     def for_model(
         cls, model: DetectionModel | None, num_sensors: int, T_vehicle_sensor: np.ndarray | None = None
@@ -171,7 +180,7 @@ class Detector:
         history: Sequence[Frame] = (),
         progress: ProgressCallback | None = None,
         *,
-        with_features: bool = True,
+        params: FrontEndParams | None = None,
     ) -> ProposalResult:
         """Run the front half on ``frame``.
 
@@ -179,13 +188,13 @@ class Detector:
             frame: the current frame.
             history: earlier frames, oldest first; the last ``params.history_frames`` are used.
             progress: optional callback for a progress bar.
-            with_features: False builds the proposals without 3DmFV (feature "none") whatever
-                ``params.feature`` says.
+            params: the front-half settings to propose with (default ``self.params``; ``detect``
+                passes ``detect_params``).
 
         Returns:
             All intermediate results and the proposals (empty for a frame with too few points).
         """
-        params = self.params
+        params = self.params if params is None else params
         timings: dict[str, float] = {}
         clock = time.perf_counter()
 
@@ -224,10 +233,9 @@ class Detector:
 
         grid = voxelize(cloud.points, params.voxel_size_m)
         done("voxelize")
-        # Direct proposal features read the points, not the voxels': skipping the voxels' saves a
-        # dense scan's largest array (10 kB per voxel).
-        feature = params.feature if with_features else "none"
-        voxel_features = None if feature != "aggregated" else voxel_fisher_vectors(cloud, grid)
+        # Direct proposal features read the points, not the voxels', and "none" reads neither:
+        # skipping the voxels' saves a dense scan's largest array (10 kB per voxel).
+        voxel_features = None if params.feature != "aggregated" else voxel_fisher_vectors(cloud, grid)
         done("features")
         segmentation = self._segment(cloud, grid)
         done("segmentation")
@@ -238,7 +246,7 @@ class Detector:
             voxel_features,
             min_points=params.min_proposal_points,
             weighting=params.weighting,
-            feature=feature,
+            feature=params.feature,
             include_history=params.include_history,
             include_patches=params.include_patches,
             complete_boxes=params.complete_boxes,
@@ -294,8 +302,7 @@ class Detector:
             if progress is not None:
                 progress(stage, 0.8 * fraction)
 
-        with_features = self.model.reads_features or not self.skip_unread_features
-        proposal = self.propose(frame, history, front_progress, with_features=with_features)
+        proposal = self.propose(frame, history, front_progress, params=self.detect_params)
         timings = {k: v for k, v in proposal.timings_ms.items() if k != "total"}
         clock = time.perf_counter()
         # Casting the rays costs about 0.17 s a frame: only for a regressor that reads them.

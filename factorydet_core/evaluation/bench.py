@@ -657,25 +657,15 @@ even for a model that reads none: the path before it was skipped)."""
 
 def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], num_frames: int) -> dict:
     """Each configuration's headline figures on the held-out factories, and their differences."""
-    from factorydet_core.evaluation.quality import (
-        QualityPlan,
-        heldout_set,
-        measure_heldout,
-        params_for_reading,
-    )
+    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
 
     plan = QualityPlan(
         train_data=Path(data), heldout_seeds=tuple(seeds), heldout_frames=num_frames, seeds=(0,)
     )
     out = {"seeds": list(seeds), "frames_per_factory": num_frames}
     for name, detector in configs.items():
-        # As the configuration's own detect proposes: without unread 3DmFV unless told otherwise.
-        params = (
-            params_for_reading(detector.model, detector.params)
-            if detector.skip_unread_features
-            else detector.params
-        )
-        measured = measure_heldout(detector.model, heldout_set(plan, params, None))
+        # Proposed as the configuration's own detections are (``Detector.detect_params``).
+        measured = measure_heldout(detector.model, heldout_set(plan, detector.detect_params, None))
         head = measured["iou_0.6"]
         out[name] = {key: head[key] for key in ("f1", "map", "precision", "recall")}
         out[name]["back_half_ms_per_frame"] = measured["back_half_ms_per_frame"]
@@ -728,12 +718,7 @@ def bench_mining(
     import subprocess
     import sys
 
-    from factorydet_core.evaluation.quality import (
-        QualityPlan,
-        heldout_set,
-        measure_heldout,
-        params_for_reading,
-    )
+    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
     from factorydet_core.session.store import copy_session, open_session, training_runs
 
     values = [int(k) for k in round_epochs]
@@ -814,7 +799,7 @@ def bench_mining(
                     train_data=Path(run["data"]), heldout_seeds=tuple(int(s) for s in heldout_seeds),
                     heldout_frames=heldout_frames, seeds=(0,),
                 )  # fmt: skip
-                params = params_for_reading(model, model.front_end or Detector(model=model).params)
+                params = Detector(model.front_end or "agv", model=model).detect_params
                 heldout = heldout_set(plan, params, None)
             measured = measure_heldout(model, heldout)["iou_0.6"]
             config["heldout"] = {key: measured[key] for key in ("f1", "map", "precision", "recall")}

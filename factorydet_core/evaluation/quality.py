@@ -161,14 +161,6 @@ class HeldoutSet:
     """Frame -> (factory, its own frame index)."""
 
 
-def params_for_reading(model, params):
-    """``params`` as a held-out set for ``model`` alone needs them: without the proposals' 3DmFV
-    (feature "none") when the model reads none (``DetectionModel.reads_features``), as its
-    ``Detector`` proposes; the point sets, and so the figures, are the same, and the cache a
-    fraction of the size."""
-    return params if model.reads_features else params.replace(feature="none")
-
-
 def heldout_set(plan: QualityPlan, params, progress: Progress | None) -> HeldoutSet:
     """The plan's held-out factories (simulated once into its scratch folder), proposed with the
     front-half settings ``params`` (cached per settings), with their truth."""

@@ -257,3 +257,15 @@ def test_a_dense_cloud_is_thinned_to_the_cap_before_segmentation(small_dataset_d
     capped = Detector(front_end_params("agv", {"max_points": 3000})).propose(frame)
     assert capped.cloud.num_points <= 3000 < uncapped.cloud.num_points
     assert len(capped.proposals) > 0
+
+
+def test_detect_proposes_without_3dmfv_for_a_model_that_reads_none():
+    import types
+
+    params = dataclasses.replace(PRESETS["agv"], feature="direct")
+    reads = types.SimpleNamespace(reads_features=True)
+    reads_none = types.SimpleNamespace(reads_features=False)
+    assert Detector(params, model=reads).detect_params is params
+    assert Detector(params).detect_params is params  # no model yet: the front half as set
+    assert Detector(params, model=reads_none).detect_params == dataclasses.replace(params, feature="none")
+    assert Detector(params, model=reads_none, skip_unread_features=False).detect_params is params

@@ -96,16 +96,3 @@ def test_target_lines_say_what_is_met_and_by_how_much_the_rest_is_short():
     assert lines[2] == "- Every class at F 0.4 or more: short for pallet (0.100), cone (n/a)."
     assert lines[3].endswith(": met.") and lines[4].endswith("short by 0.070.")
     assert lines[5].endswith("400 ms against 150 ms: over by 250 ms.")
-
-
-def test_a_model_that_reads_no_3dmfv_is_measured_on_proposals_without_it():
-    import types
-
-    from factorydet_core.evaluation.quality import params_for_reading
-    from factorydet_core.proposals.settings import front_end_params
-
-    params = front_end_params("agv").replace(feature="direct")
-    reads = types.SimpleNamespace(reads_features=True)
-    reads_none = types.SimpleNamespace(reads_features=False)
-    assert params_for_reading(reads, params) is params
-    assert params_for_reading(reads_none, params) == params.replace(feature="none")

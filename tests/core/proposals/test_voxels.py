@@ -152,7 +152,10 @@ def test_voxel_colors_are_the_colours_of_the_voxels_3dmfv(small_dataset_dir):
     from factorydet_core.io.dataset import open_dataset
     from factorydet_core.proposals.voxels import fisher_vector_colors, voxel_colors, voxel_fisher_vectors
 
-    result = Detector("agv").propose(open_dataset(small_dataset_dir).frame(0), with_features=False)
+    detector = Detector("agv")
+    result = detector.propose(
+        open_dataset(small_dataset_dir).frame(0), params=detector.params.replace(feature="none")
+    )
     features = voxel_fisher_vectors(result.cloud, result.grid)
     colours = voxel_colors(result.cloud, result.grid)
     assert colours.shape == (result.grid.num_voxels, 3) and colours.dtype == np.uint8
