@@ -143,7 +143,7 @@ class BrowserSession:
             self.selected_label_id = label_id
             self.selected_label_version = None if label is None else label.version
             self.selected_patch_ids = set()
-        if label is not None and label.class_name in self.state.dataset.class_names:
+        if label is not None:
             self.set_object_class(label.class_name)
         self.refresh()
 
@@ -295,8 +295,7 @@ class BrowserSession:
         if item is None:
             self.refresh()
             return
-        if item.get("predicted_class") in self.state.dataset.class_names:
-            self.set_object_class(item["predicted_class"])
+        self.set_object_class(item.get("predicted_class"))
         self.state.set_frame(item["frame_index"])
         self.look_at_box(item["box"])
         self.refresh()
@@ -370,9 +369,12 @@ class BrowserSession:
         self.refresh()
         return len(items) if done is not FAILED else 0
 
-    def set_object_class(self, name: str) -> None:
+    def set_object_class(self, name: str | None) -> None:
         """The class the Labels and Review panels (and the O, C, L, K keys) use: one per browser,
-        shown in both panels' dropdowns."""
+        shown in both panels' dropdowns. A name that is no object class of the data set
+        ("background", none) leaves it as it is."""
+        if name not in self.state.dataset.class_names:
+            return
         with self.lock:
             self.object_class = name
         self._object_class_shown(name)
@@ -395,6 +397,5 @@ class BrowserSession:
         self.state.set_frame(suspect["frame_index"])
         self.look_at_box(suspect["box"])
         self.select_label(suspect["label_id"])
-        if suspect.get("predicted_class") in self.state.dataset.class_names:
-            # What the model says it is: Set class [C] takes it unless another class is picked.
-            self.set_object_class(suspect["predicted_class"])
+        # What the model says it is: Set class [C] takes it unless another class is picked.
+        self.set_object_class(suspect.get("predicted_class"))

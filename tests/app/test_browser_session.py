@@ -201,3 +201,7 @@ def test_the_chosen_class_follows_the_selected_label_and_the_shown_item(state):
     state.set_suspects([suspect])
     alice.next_suspect()
     assert alice.selected_label_id == label.id and alice.object_class == "pallet"
+    # Background is no class to label with: the label's own class stays chosen.
+    state.set_suspects([{**suspect, "predicted_class": "background"}])
+    alice.next_suspect()
+    assert alice.object_class == "cone"
