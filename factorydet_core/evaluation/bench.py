@@ -390,6 +390,20 @@ def _percentile(values: list[float], q: float) -> float:
     return round(float(np.percentile(values, q)), 1)
 
 
+def _child_json(script: str, args: Sequence[str]) -> tuple[dict | None, str]:
+    """Run ``script`` in a fresh Python process with ``args`` (its peak memory is its own), and
+    read the JSON object it prints last: ``(result, "")``, or ``(None, why)`` when it failed."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True)
+    lines = out.stdout.strip().splitlines()
+    if out.returncode != 0 or not lines:
+        tail = (out.stderr.strip().splitlines() or ["no message"])[-1]
+        return None, f"exit {out.returncode}: {tail[:300]}"
+    return json.loads(lines[-1]), ""
+
+
 def _peak_rss_mb() -> float:
     """This process's peak resident memory so far (MB)."""
     import resource
@@ -580,8 +594,6 @@ def bench_memory(
     in a fresh child process (its peak is its own: reading, merging and detecting), with the
     front-half settings of the model changed by ``overrides`` (e.g. ``max_points`` to compare the
     uncapped path)."""
-    import subprocess
-    import sys
 
     script = (
         "import json, sys\n"
@@ -604,14 +616,8 @@ def bench_memory(
     runs = []
     for done, num_points in enumerate(points):
         folder = _dense_scan(int(num_points), seed, Path(scratch))
-        out = subprocess.run(
-            [sys.executable, "-c", script, str(folder), str(model)], capture_output=True, text=True
-        )
-        if out.returncode != 0:
-            tail = out.stderr.strip().splitlines()[-1:] or ["no message"]
-            runs.append({"points": int(num_points), "error": f"exit {out.returncode}: {tail[0][:300]}"})
-        else:
-            runs.append({"points": int(num_points), **json.loads(out.stdout.strip().splitlines()[-1])})
+        result, error = _child_json(script, [str(folder), str(model)])
+        runs.append({"points": int(num_points), **(result if result is not None else {"error": error})})
         if progress is not None:
             progress(done + 1, len(points))
     timed = [r for r in runs if "seconds" in r]
@@ -715,8 +721,6 @@ def bench_mining(
         before_after: each command also measures the models before and after on the test frames
             (``--compare``), as the app's retrain does.
     """
-    import subprocess
-    import sys
 
     from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
     from factorydet_core.session.store import copy_session, open_session, training_runs
@@ -733,24 +737,23 @@ def bench_mining(
             f"bench mining: session {session_name!r} has no training run to go on from (--full-run makes one)"
         )
     script = (
-        "import json, resource, sys, time\n"
+        "import json, sys, time\n"
         "from factorydet_core.cli import main\n"
+        "from factorydet_core.evaluation.bench import _peak_rss_mb\n"
         "start = time.perf_counter()\n"
         "code = main(sys.argv[1:])\n"
         "print(json.dumps({'exit': code, 'seconds': round(time.perf_counter() - start, 1),"
-        " 'peak_rss_mb': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))\n"
+        " 'peak_rss_mb': _peak_rss_mb()}))\n"
     )
 
     def train(copy, mode: str, epochs: int) -> dict:
         argv = ["train", *([str(data)] if data is not None else []), "--session", copy.name,
                 "--root", str(copy.root), "--mode", mode, *train_args,
                 *(["--compare"] if before_after else []), "--round-epochs", str(epochs)]  # fmt: skip
-        out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True)
-        lines = out.stdout.strip().splitlines()
-        if out.returncode != 0 or not lines:
-            tail = (out.stderr.strip().splitlines() or ["no message"])[-1]
-            raise InputError(f"bench mining: the {mode} run with {epochs} round epochs failed: {tail[:300]}")
-        return json.loads(lines[-1])
+        result, error = _child_json(script, argv)
+        if result is None:
+            raise InputError(f"bench mining: the {mode} run with {epochs} round epochs failed: {error}")
+        return result
 
     configs = []
     heldout = None
