@@ -739,9 +739,10 @@ def bench_mining(
     script = (
         "import json, sys, time\n"
         "from factorydet_core.cli import main\n"
-        "from factorydet_core.evaluation.bench import _peak_rss_mb\n"
         "start = time.perf_counter()\n"
         "code = main(sys.argv[1:])\n"
+        # Imported after the command: it sizes the thread pools before torch and numba load.
+        "from factorydet_core.evaluation.bench import _peak_rss_mb\n"
         "print(json.dumps({'exit': code, 'seconds': round(time.perf_counter() - start, 1),"
         " 'peak_rss_mb': _peak_rss_mb()}))\n"
     )
