@@ -9,7 +9,7 @@ back halves that read the point sets' points (the learned box head).
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 import scipy.sparse
@@ -233,7 +233,7 @@ def build_proposals(
     """
     if weighting not in ("points", "uniform"):
         raise InputError(f"weighting must be 'points' or 'uniform', got {weighting!r}")
-    if feature not in ("aggregated", "direct", "none"):
+    if feature not in get_args(FeatureKind):
         raise InputError(f"feature must be 'aggregated', 'direct' or 'none', got {feature!r}")
     num_points = len(points)
     if len(segmentation.patch_ids) != num_points or len(grid.point_voxel_ids) != num_points:

@@ -8,10 +8,10 @@ The loop, as the app and ``factorydet loop`` run it:
    mining (the paper's procedure) and mines one more batch after the last round. Every mined
    negative goes to the review queue of that run.
 2. People review the queue (``SessionDB.review``): background, object of class C, wrong box, skip.
-3. ``train_session(..., mode="next")`` goes on training the latest model on the corrected labels
-   (``LoopSettings.round_epochs``). Its background set is the random first sample, every negative
-   mined so far except those reviewed as real objects, and the confirmed background. It then
-   mines the next queue.
+3. ``train_session(..., mode="next")`` goes on training the session's chosen (else latest) model
+   on the corrected labels (``continued_model``, ``LoopSettings.round_epochs``). Its background
+   set is the random first sample, every negative mined so far except those reviewed as real
+   objects, and the confirmed background. It then mines the next queue.
 """
 
 from __future__ import annotations
@@ -226,7 +226,7 @@ def train_session(
             session's replace them.
         mode: 'full' retrains from scratch with ``settings.rounds`` blind mining rounds; 'next'
             runs one more round on top of everything mined and reviewed so far, going on from the
-            session's latest model (``continued_model``: its network trained on for
+            session's chosen (else latest) model (``continued_model``: its network trained on for
             ``settings.round_epochs`` epochs, its box quality regressor kept) when it can, else
             afresh (the run's config says why).
         front_end: the front half's settings the frames were proposed with, saved whole in the
