@@ -431,6 +431,9 @@ VERDICTS = ("background", "object", "wrong_box", "skip")
 a label), a real object whose segment is wrong (to be boxed by hand), or not decided now."""
 DECIDED = ("background", "object", "wrong_box")
 ORIGINS = ("dataset", "user", "review", "import")
+NEW_OBJECT_ID = 1 << 32
+"""The first instance id given to an object labelled in the session (the data set's own ids,
+which frames not imported yet may still bring, stay below it)."""
 
 
 class EditConflictError(SessionError):
@@ -465,7 +468,10 @@ class Label:
     """'dataset' (the data set's annotation), 'user' (drawn by hand), 'review' (a mined negative
     confirmed as an object) or 'import'."""
     instance_id: int | None
-    """The data set's instance id for 'dataset' labels."""
+    """The object the label boxes: the data set's instance id for 'dataset' labels, a new id (at or
+    above ``NEW_OBJECT_ID``) for an object labelled once in every frame that shows it; every label
+    of an object is that object in its frame (``SessionDB.object_labels``). ``None``: this frame
+    only."""
     created_by: str
     created: str
     modified_by: str
@@ -1282,10 +1288,17 @@ class SessionDB:
         self._store(db, table, key, after, author)
         return {"table": table, "key": key, "before": before, "after": after}
 
+    @staticmethod
+    def _new_object_id(db) -> int:
+        """An instance id no label has (``NEW_OBJECT_ID`` or above), read in the writing transaction."""
+        row = db.execute("SELECT MAX(instance_id) FROM labels").fetchone()
+        return max(NEW_OBJECT_ID, (row[0] or 0) + 1)
+
     def _insert_labels(
-        self, db, items: list[tuple[int, str, str]], origin: str, author: str
+        self, db, items: list[tuple[int, str, str]], origin: str, author: str, instance_id: int | None = None
     ) -> tuple[list[int], list[dict]]:
-        """Insert labels ``(frame_index, box JSON, class_name)``; returns their ids and changes.
+        """Insert labels ``(frame_index, box JSON, class_name)``, all of object ``instance_id`` when
+        given; returns their ids and changes.
 
         Each is logged as created deleted, then undeleted (version 2): undo simply flags it again.
         """
@@ -1293,9 +1306,9 @@ class SessionDB:
         ids, changes = [], []
         for frame_index, box, class_name in items:
             label_id = db.execute(
-                "INSERT INTO labels (frame_index, box, class_name, origin, created_by, created, modified_by,"
-                " modified, version, deleted) VALUES (?, ?, ?, ?, ?, ?, ?, ?, 2, 0)",
-                (frame_index, box, class_name, origin, author, now, author, now),
+                "INSERT INTO labels (frame_index, box, class_name, origin, instance_id, created_by, created,"
+                " modified_by, modified, version, deleted) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 2, 0)",
+                (frame_index, box, class_name, origin, instance_id, author, now, author, now),
             ).lastrowid
             ids.append(int(label_id))
             before = {"frame_index": frame_index, "box": box, "class_name": class_name, "deleted": 1}
@@ -1341,11 +1354,14 @@ class SessionDB:
         *,
         screen: Callable[[dict[int, list[Label]]], list[int]] | None = None,
         summary: str | None = None,
+        as_object: bool = False,
     ) -> LabelBatch:
         """Several new labels as one undoable edit (returned with its ``edit_id``).
 
         Args:
             items: ``(frame_index, box, class_name)`` triples.
+            as_object: the items are one object in several frames (label once,
+                ``world.place_box``): they share a new instance id.
             screen: called with the current labels of the items' frames, inside the transaction that
                 writes, and returns the positions in ``items`` to add (an import leaves out the boxes
                 that repeat a label). Checking and writing in one transaction is what keeps two
@@ -1374,7 +1390,8 @@ class SessionDB:
                 rows = [rows[k] for k in screen(current)]
                 if not rows:
                     return LabelBatch([], None)
-            ids, changes = self._insert_labels(db, rows, origin, author)
+            instance_id = self._new_object_id(db) if as_object else None
+            ids, changes = self._insert_labels(db, rows, origin, author, instance_id)
             edit_id = self._edit(db, author, "add", summary or f"{origin}: add {len(ids)} label(s)", changes)
             wanted = set(ids)
             added = [
@@ -1420,14 +1437,118 @@ class SessionDB:
             self._edit(db, author, "update", f"change the {what} of label {label_id}", [change])
         return self.label(label_id)
 
-    def delete_labels(self, label_ids, author: str, expected_versions: dict[int, int] | None = None) -> int:
+    @staticmethod
+    def _members(db, row) -> list[sqlite3.Row]:
+        """The live labels of the object ``row`` boxes, in frame order (``row`` alone without one)."""
+        if row["instance_id"] is None:
+            return [row]
+        return db.execute(
+            "SELECT * FROM labels WHERE instance_id = ? AND deleted = 0 ORDER BY frame_index, id",
+            (row["instance_id"],),
+        ).fetchall()
+
+    def object_labels(self, label_id: int) -> list[Label]:
+        """Every live label of the object label ``label_id`` boxes, in frame order (the label alone
+        when it has no instance id: a box of this frame only)."""
+        names = self.class_names
+        with self._read() as db:
+            row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
+            if row is None:
+                raise SessionError(f"no label {label_id}")
+            return [self._label(r, names) for r in self._members(db, row)]
+
+    def update_object(
+        self,
+        label_id: int,
+        author: str,
+        *,
+        expected_version: int | None = None,
+        boxes: dict | None = None,
+        class_name: str | None = None,
+        origin: str = "user",
+    ) -> Label:
+        """Change an object in every frame at once, as one undoable edit (label once).
+
+        Args:
+            label_id: the label the person edited; the change applies to every live label of its
+                object (``object_labels``).
+            expected_version: the version of ``label_id`` the change was made against
+                (``EditConflictError`` if it changed since; nothing is written).
+            boxes: ``{frame_index: box}``, the object's box in each frame it should have one
+                (``world.Placement.boxes_by_frame``): each of its labels in these frames takes its
+                frame's box, the others keep theirs, and each of these frames without one gets a
+                new label of the object (``origin``). A label of this frame only becomes an object.
+            class_name: the class of all its labels.
+
+        Returns:
+            ``label_id`` as stored after the change.
+        """
+        names = self.class_names
+        if class_name is not None:
+            self._check_class(class_name, names)
+        wanted = {self._check_frame(f): _box_json(b, f"box of frame {f}") for f, b in (boxes or {}).items()}
+        with self._write() as db:
+            row = self._locked_label(db, label_id, expected_version)
+            if row["deleted"]:
+                raise EditConflictError(
+                    f"label {label_id} was deleted by {row['modified_by']} at {row['modified']}"
+                )
+            instance_id = row["instance_id"]
+            if instance_id is None and set(wanted) - {row["frame_index"]}:
+                instance_id = self._new_object_id(db)
+                db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, int(label_id)))
+                row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
+            for index in sorted(set(wanted)):  # the data set's own labels of the object come first
+                self._import_frame(db, index)
+            members = self._members(db, row)
+            changes = []
+            new_class = row["class_name"] if class_name is None else class_name
+            for member in members:
+                after = {
+                    "frame_index": member["frame_index"],
+                    "box": wanted.get(member["frame_index"], member["box"]),
+                    "class_name": new_class,
+                    "deleted": 0,
+                }
+                if after != self._content(db, "labels", int(member["id"])):
+                    changes.append(self._change(db, "labels", int(member["id"]), after, author))
+            labelled = {m["frame_index"] for m in members}
+            added = [(f, box, new_class) for f, box in sorted(wanted.items()) if f not in labelled]
+            if added:
+                changes += self._insert_labels(db, added, origin, author, instance_id)[1]
+            if not changes:
+                return self._label(row, names)
+            what = "box" if class_name is None else ("class" if not wanted else "box and class")
+            where = f"label {label_id}" if len(changes) == 1 else f"an object in {len(changes)} frames"
+            self._edit(db, author, "update", f"change the {what} of {where}", changes)
+        return self.label(label_id)
+
+    def delete_labels(
+        self,
+        label_ids,
+        author: str,
+        expected_versions: dict[int, int] | None = None,
+        whole_objects: bool = False,
+    ) -> int:
         """Delete labels (they stay in the database, flagged, so undo can restore them).
+
+        Args:
+            expected_versions: ``{label id: version}`` the deletion was made against.
+            whole_objects: delete every live label of each one's object too (label once).
 
         Returns:
             The edit id.
         """
         expected_versions = expected_versions or {}
         with self._write() as db:
+            if whole_objects:
+                ids = []
+                for label_id in label_ids:
+                    row = self._locked_label(db, label_id, expected_versions.get(int(label_id)))
+                    ids += [int(label_id)] + [
+                        int(m["id"]) for m in self._members(db, row) if int(m["id"]) != int(label_id)
+                    ]
+                label_ids = list(dict.fromkeys(ids))
             changes = []
             for label_id in label_ids:
                 row = self._locked_label(db, label_id, expected_versions.get(int(label_id)))

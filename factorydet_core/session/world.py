@@ -1,0 +1,227 @@
+"""Label once: the session's frames placed in one world frame, so that a static object's box drawn
+in one frame is the same object's box in every frame where it has points.
+
+The paper annotated each object of its factory once, in the global map, and projected it into the
+frames. Here the map is the frames themselves: each frame's pose is its odometry corrected by ICP
+against the frame before (odometry drifts by a degree of heading over a dozen metres, which moves
+a box 15 m away by a quarter of a metre; the chained ICP stays within a tenth of a degree on the
+simulator), and a box moves between frames by those poses. No GUI here: the app and the command
+line call these, and ``store.SessionDB`` writes what they place.
+
+People and trucks move: their boxes are per frame (``MOVING_CLASSES``); a class change still
+applies to the whole object.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from factorydet_core.geometry import invert_transform, points_in_box, rotation_z, transform_boxes
+from factorydet_core.proposals.merge import merge_frame
+from factorydet_core.types import Frame, InputError, check_array
+
+MOVING_CLASSES: frozenset[str] = frozenset({"person", "truck"})
+"""Classes whose objects move between frames: their boxes are not carried from frame to frame."""
+
+REGISTRATION_VOXEL_M = 0.1
+"""Thinning of each frame's cloud before ICP."""
+COUNT_VOXEL_M = 0.05
+"""Thinning of each frame's cloud kept for counting an object's points (a 0.6 m barrel seen from
+one side keeps dozens of points; the floor under it is left out by ``FLOOR_MARGIN_M``)."""
+FLOOR_MARGIN_M = 0.05
+"""The bottom of a box that does not count its points: boxes stand on the floor, whose points
+would otherwise make every box 'visible'."""
+MIN_POINTS = 2
+"""A frame shows an object when at least this many of its (thinned) points lie in the box."""
+MIN_FITNESS = 0.3
+"""The least ICP fitness (share of points with a correspondence) trusted; below it the frame keeps
+its odometry step."""
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldFrames:
+    """Every frame of a data set placed in one world frame, with what each frame saw."""
+
+    T_world_vehicle: np.ndarray
+    """(F, 4, 4) float64: each frame's corrected pose, a rotation about +z only (boxes stay upright)."""
+    fitness: np.ndarray
+    """(F,) float64: ICP fitness of each frame against the one before (1 for the first frame, 0 where
+    the odometry step was kept)."""
+    clouds: tuple[np.ndarray, ...]
+    """F arrays (K_f, 3) float32: each frame's merged points in its vehicle frame, thinned to
+    ``COUNT_VOXEL_M``."""
+
+    def __post_init__(self) -> None:
+        check_array(self.T_world_vehicle, (None, 4, 4), name="T_world_vehicle", finite=True)
+        num_frames = len(self.T_world_vehicle)
+        check_array(self.fitness, (num_frames,), name="fitness")
+        if len(self.clouds) != num_frames:
+            raise InputError(f"WorldFrames: {len(self.clouds)} clouds for {num_frames} poses")
+        for k, cloud in enumerate(self.clouds):
+            check_array(cloud, (None, 3), name=f"cloud of frame {k}")
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.T_world_vehicle)
+
+
+@dataclasses.dataclass(frozen=True)
+class Placement:
+    """One box carried into every frame."""
+
+    boxes: np.ndarray
+    """(F, 7) float64: the box in each frame's vehicle frame."""
+    num_points: np.ndarray
+    """(F,) int64: each frame's thinned points inside the box (its bottom ``FLOOR_MARGIN_M`` left out)."""
+    visible_mask: np.ndarray
+    """(F,) bool: frames that show the object (``MIN_POINTS`` or more, and the frame it was drawn in)."""
+
+    def boxes_by_frame(self, frames=None) -> dict[int, tuple[float, ...]]:
+        """``{frame index: box}`` for the visible frames and any of ``frames`` besides."""
+        wanted = set(np.flatnonzero(self.visible_mask).tolist()) | {int(f) for f in frames or ()}
+        return {f: tuple(float(v) for v in self.boxes[f]) for f in sorted(wanted)}
+
+
+def planar(transform: np.ndarray) -> np.ndarray:
+    """(4, 4) the transform with its rotation reduced to its heading about +z (translation kept)."""
+    transform = np.asarray(transform, np.float64)
+    out = np.eye(4)
+    out[:3, :3] = rotation_z(np.arctan2(transform[1, 0], transform[0, 0]))
+    out[:3, 3] = transform[:3, 3]
+    return out
+
+
+def _thinned(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(K, 3) float32: the first point of every occupied voxel (deterministic, no library)."""
+    if not len(points):
+        return np.zeros((0, 3), np.float32)
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.ascontiguousarray(points[np.sort(first)], dtype=np.float32)
+
+
+def register_frames(
+    frames: Sequence[Frame],
+    T_vehicle_sensor: np.ndarray | None = None,
+    *,
+    use_icp: bool = True,
+    max_correspondence_m: float = 0.5,
+    progress: Callable[[int, int], None] | None = None,
+) -> WorldFrames:
+    """Place every frame in one world frame: the first frame's odometry pose, then each next frame
+    by point-to-plane ICP against the one before, started from their odometry step.
+
+    Args:
+        frames: the data set's frames in time order (a ``Dataset`` reads them one at a time).
+        T_vehicle_sensor: (S, 4, 4) extrinsics to merge with; each frame's nominal ones by default.
+        use_icp: False keeps the odometry (what ``bench world-labels`` compares against).
+        max_correspondence_m: the first ICP pass's correspondence distance; a second pass uses a
+            third of it.
+        progress: called with ``(frames done, frames)``.
+
+    Returns:
+        The frames' poses, ICP fitness and thinned clouds.
+    """
+    num_frames = len(frames)
+    if num_frames == 0:
+        raise InputError("register_frames: no frames given")
+    poses = np.zeros((num_frames, 4, 4))
+    fitness = np.zeros(num_frames)
+    clouds: list[np.ndarray] = []
+    previous_target = None
+    previous_odometry = None
+    for index in range(num_frames):
+        frame = frames[index]
+        points = merge_frame(frame, T_vehicle_sensor).points
+        clouds.append(_thinned(points, COUNT_VOXEL_M))
+        odometry = planar(frame.T_world_vehicle)
+        if index == 0:
+            poses[0], fitness[0] = odometry, 1.0
+        else:
+            step = invert_transform(previous_odometry) @ odometry
+            if use_icp and len(points) >= 10 and previous_target is not None:
+                step, fitness[index] = _icp_step(points, previous_target, step, max_correspondence_m)
+            poses[index] = planar(poses[index - 1] @ step)
+        previous_odometry = odometry
+        previous_target = _icp_target(points) if use_icp and len(points) >= 10 else None
+        if progress is not None:
+            progress(index + 1, num_frames)
+    return WorldFrames(T_world_vehicle=poses, fitness=fitness, clouds=tuple(clouds))
+
+
+def _o3d_points(points: np.ndarray):
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.asarray(points, np.float64))
+    return cloud
+
+
+def _icp_target(points: np.ndarray):
+    import open3d as o3d
+
+    target = _o3d_points(points).voxel_down_sample(REGISTRATION_VOXEL_M)
+    target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
+    return target
+
+
+def _icp_step(points: np.ndarray, target, start: np.ndarray, distance_m: float) -> tuple[np.ndarray, float]:
+    """The step from the previous frame to this one by ICP, coarse then fine; the odometry step
+    ``start`` where ICP finds too few correspondences (``MIN_FITNESS``)."""
+    import open3d as o3d
+
+    source = _o3d_points(points).voxel_down_sample(REGISTRATION_VOXEL_M)
+    estimation = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+    transform = start
+    result = None
+    for distance in (distance_m, distance_m / 3):
+        result = o3d.pipelines.registration.registration_icp(source, target, distance, transform, estimation)
+        transform = result.transformation
+    if result is None or result.fitness < MIN_FITNESS:
+        return start, 0.0
+    # open3d sums in parallel: snap the last bits so that a re-run places boxes identically.
+    return np.round(np.asarray(transform), 10), float(result.fitness)
+
+
+def count_points(world: WorldFrames, boxes: np.ndarray) -> np.ndarray:
+    """(F,) int64: each frame's thinned points inside its own box ``boxes[f]`` (F, 7), the bottom
+    ``FLOOR_MARGIN_M`` of the box left out (the floor it stands on)."""
+    check_array(boxes, (world.num_frames, 7), name="boxes", finite=True)
+    counted = np.array(boxes, np.float64)
+    tall = counted[:, 5] > 2 * FLOOR_MARGIN_M
+    counted[tall, 2] += FLOOR_MARGIN_M / 2
+    counted[tall, 5] -= FLOOR_MARGIN_M
+    out = np.zeros(world.num_frames, np.int64)
+    for f, (cloud, box) in enumerate(zip(world.clouds, counted)):
+        if not len(cloud):
+            continue
+        # A cheap square around the box first: most of a frame is far from any one box.
+        reach = float(np.hypot(box[3], box[4])) / 2
+        near = (np.abs(cloud[:, 0] - box[0]) <= reach) & (np.abs(cloud[:, 1] - box[1]) <= reach)
+        if near.any():
+            out[f] = int(points_in_box(cloud[near], box).sum())
+    return out
+
+
+def place_box(world: WorldFrames, frame_index: int, box, *, min_points: int = MIN_POINTS) -> Placement:
+    """Carry a box drawn in one frame into every frame, and say where the object shows.
+
+    Args:
+        frame_index: the frame whose vehicle frame ``box`` is in.
+        box: (7,) ``(cx, cy, cz, dx, dy, dz, yaw)``.
+        min_points: the least thinned points in the box for a frame to show the object.
+    """
+    if not 0 <= int(frame_index) < world.num_frames:
+        raise InputError(f"frame {frame_index} is not one of the {world.num_frames} frames placed")
+    box = np.asarray(box, np.float64).reshape(7)
+    check_array(box, (7,), name="box", finite=True)
+    in_world = transform_boxes(world.T_world_vehicle[int(frame_index)], box[None])
+    boxes = np.stack([transform_boxes(invert_transform(T), in_world)[0] for T in world.T_world_vehicle])
+    boxes[int(frame_index)] = box  # exactly as drawn, no round trip
+    num_points = count_points(world, boxes)
+    visible = num_points >= min_points
+    visible[int(frame_index)] = True
+    return Placement(boxes=boxes, num_points=num_points, visible_mask=visible)

@@ -1,0 +1,176 @@
+"""Label once: frames placed in one world frame, boxes carried between them, and the session's
+object edits (one edit, every frame, one undo)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from factorydet_core.boxes import box_iou_3d
+from factorydet_core.geometry import make_transform, rotation_z
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, SessionDB, open_session
+from factorydet_core.session.world import MOVING_CLASSES, WorldFrames, place_box, planar, register_frames
+from factorydet_core.sim.truth import read_frame_truth
+from factorydet_core.types import InputError
+
+
+def _pose(x: float, y: float, yaw: float) -> np.ndarray:
+    return make_transform(rotation_z(yaw), np.array([x, y, 0.0]))
+
+
+def _cube_points(centre, size: float = 0.5, num: int = 50, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return (np.asarray(centre) + rng.uniform(-size / 2, size / 2, (num, 3))).astype(np.float32)
+
+
+def _two_frames(object_in_second: bool = True) -> WorldFrames:
+    """Two frames 3 m and a quarter turn apart, seeing one cube at world (5, 1, 0.5)."""
+    poses = np.stack([_pose(0.0, 0.0, 0.0), _pose(3.0, 0.0, np.pi / 2)])
+    world_centre = np.array([5.0, 1.0, 0.5])
+    clouds = []
+    for k, pose in enumerate(poses):
+        local = np.linalg.inv(pose) @ np.append(world_centre, 1.0)
+        seen = k == 0 or object_in_second
+        clouds.append(_cube_points(local[:3], seed=k) if seen else np.zeros((0, 3), np.float32))
+    return WorldFrames(T_world_vehicle=poses, fitness=np.ones(2), clouds=tuple(clouds))
+
+
+def test_a_box_is_carried_by_the_poses_and_shown_only_where_its_object_has_points():
+    world = _two_frames()
+    box = np.array([5.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.2])
+    placement = place_box(world, 0, box)
+    # Frame 1 sits at (3, 0) facing +y: the cube is 1 m to its right and 2 m ahead.
+    np.testing.assert_allclose(placement.boxes[1][:3], [1.0, -2.0, 0.5], atol=1e-9)
+    assert placement.boxes[1][6] == pytest.approx(0.2 - np.pi / 2)
+    np.testing.assert_array_equal(placement.boxes[0], box)
+    assert placement.visible_mask.tolist() == [True, True] and (placement.num_points > 10).all()
+    hidden = place_box(_two_frames(object_in_second=False), 0, box)
+    assert hidden.visible_mask.tolist() == [True, False] and hidden.num_points[1] == 0
+    assert list(hidden.boxes_by_frame()) == [0] and list(hidden.boxes_by_frame([1])) == [0, 1]
+
+
+def test_the_floor_under_a_box_does_not_make_it_visible():
+    world = _two_frames(object_in_second=False)
+    floor = np.stack(np.meshgrid(np.linspace(0, 2, 41), np.linspace(-3, -1, 41), [0.0]), -1).reshape(-1, 3)
+    world = WorldFrames(world.T_world_vehicle, world.fitness, (world.clouds[0], floor.astype(np.float32)))
+    placement = place_box(world, 0, [5.0, 1.0, 0.3, 0.6, 0.6, 0.6, 0.0])  # its bottom at z = 0
+    assert placement.num_points[1] == 0 and not placement.visible_mask[1]
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.floats(-20, 20),
+    st.floats(-20, 20),
+    st.floats(-np.pi, np.pi),
+    st.floats(-np.pi, np.pi),
+    st.floats(-np.pi, np.pi),
+)
+def test_carrying_a_box_there_and_back_gives_it_back(x, y, yaw_pose, yaw_box, yaw_other):
+    poses = np.stack([_pose(x, y, yaw_pose), _pose(-y, x, yaw_other)])
+    world = WorldFrames(poses, np.ones(2), (np.zeros((0, 3), np.float32),) * 2)
+    box = np.array([x / 2, 3.0, 0.4, 1.0, 0.5, 0.8, yaw_box])
+    there = place_box(world, 0, box).boxes[1]
+    back = place_box(world, 1, there).boxes[0]
+    np.testing.assert_allclose(back[:6], box[:6], atol=1e-7)
+    assert np.cos(back[6] - box[6]) == pytest.approx(1.0)
+    assert planar(poses[0]) == pytest.approx(poses[0])
+
+
+def test_place_box_refuses_a_frame_it_has_not_placed():
+    with pytest.raises(InputError, match="not one of the 2 frames"):
+        place_box(_two_frames(), 2, [0, 0, 0, 1, 1, 1, 0])
+
+
+@pytest.mark.slow
+def test_icp_poses_carry_the_data_sets_boxes_onto_its_own_boxes(small_dataset_dir):
+    """Each static object annotated in the first and a later frame: the first frame's box, carried
+    by the registered poses, is the later frame's box (truth poses say how far odometry was off)."""
+    dataset = open_dataset(small_dataset_dir)
+    frames = [dataset.frame(i) for i in range(dataset.num_frames)]
+    world = register_frames(frames)
+    odometry = register_frames(frames, use_icp=False)
+    assert world.fitness[0] == 1.0 and (world.fitness[1:] > 0.5).all()
+    truth = [read_frame_truth(small_dataset_dir, i) for i in range(dataset.num_frames)]
+
+    def step_error(poses):
+        errors = []
+        for k in range(1, len(truth)):
+            true_step = np.linalg.inv(truth[k - 1].T_world_vehicle) @ truth[k].T_world_vehicle
+            step = np.linalg.inv(poses[k - 1]) @ poses[k]
+            errors.append(np.linalg.norm(step[:3, 3] - true_step[:3, 3]))
+        return max(errors)
+
+    assert step_error(world.T_world_vehicle) < 0.03
+    assert step_error(world.T_world_vehicle) < step_error(odometry.T_world_vehicle)
+    names = frames[0].class_names
+    last = frames[-1].labels
+    ious = []
+    for box, class_id, instance_id in zip(
+        frames[0].labels.boxes, frames[0].labels.class_ids, frames[0].labels.instance_ids
+    ):
+        later = np.flatnonzero(last.instance_ids == instance_id)
+        if names[class_id] in MOVING_CLASSES or not len(later):
+            continue
+        placement = place_box(world, 0, box)
+        assert placement.visible_mask[-1]  # annotated there: it has points there
+        ious.append(box_iou_3d(placement.boxes[-1][None], last.boxes[later])[0, 0])
+    assert len(ious) >= 3 and min(ious) > 0.6 and np.median(ious) > 0.8
+
+
+# -- the session's objects
+
+
+@pytest.fixture
+def db(tmp_path, small_dataset_dir):
+    return SessionDB(open_session("s", tmp_path), open_dataset(small_dataset_dir))
+
+
+def _boxes(x: float) -> dict[int, tuple]:
+    return {f: (x + f, 1.0, 0.4, 0.6, 0.6, 0.8, 0.0) for f in range(3)}
+
+
+def test_an_object_labelled_once_is_one_edit_in_every_frame_and_one_undo(db):
+    added = db.add_labels([(f, b, "barrel") for f, b in _boxes(30.0).items()], "ann", "user", as_object=True)
+    assert len({lab.instance_id for lab in added}) == 1 and added[0].instance_id >= NEW_OBJECT_ID
+    first = added[0]
+    assert [lab.frame_index for lab in db.object_labels(first.id)] == [0, 1, 2]
+    # Moving it in frame 0 moves it in every frame; a class change reaches them all.
+    moved = db.update_object(
+        first.id, "ann", expected_version=first.version, boxes=_boxes(40.0), class_name="cone"
+    )
+    members = db.object_labels(first.id)
+    assert [lab.box[0] for lab in members] == [40.0, 41.0, 42.0]
+    assert {lab.class_name for lab in members} == {"cone"} and moved.version == first.version + 1
+    db.undo("ann")
+    members = db.object_labels(first.id)
+    assert [lab.box[0] for lab in members] == [30.0, 31.0, 32.0] and {lab.class_name for lab in members} == {
+        "barrel"
+    }
+    db.redo("ann")
+    # Deleting the whole object from one frame deletes it everywhere, and one undo brings it back.
+    db.delete_labels([members[1].id], "ann", {members[1].id: members[1].version + 1}, whole_objects=True)
+    assert all(not any(lab.instance_id == first.instance_id for lab in db.labels(f)) for f in range(3))
+    db.undo("ann")
+    assert len(db.object_labels(first.id)) == 3
+
+
+def test_an_object_edit_adds_the_frames_that_show_it_and_refuses_a_stale_version(db):
+    label = db.add_label(1, (30.0, 1.0, 0.4, 0.6, 0.6, 0.8, 0.0), "box", "ann")
+    assert label.instance_id is None  # this frame only, until it is placed in others
+    updated = db.update_object(label.id, "ann", expected_version=label.version, boxes=_boxes(50.0))
+    members = db.object_labels(label.id)
+    assert [lab.frame_index for lab in members] == [0, 1, 2] and updated.instance_id >= NEW_OBJECT_ID
+    assert [lab.box[0] for lab in members] == [50.0, 51.0, 52.0]
+    with pytest.raises(EditConflictError):
+        db.update_object(label.id, "other", expected_version=label.version, class_name="cone")
+    # A data set object carried into every frame keeps its instance id; its new labels are the user's.
+    dataset_label = next(lab for lab in db.labels(0) if lab.origin == "dataset")
+    before = {lab.frame_index for lab in db.object_labels(dataset_label.id)}
+    db.update_object(dataset_label.id, "ann", boxes=_boxes(60.0))
+    after = db.object_labels(dataset_label.id)
+    assert {lab.frame_index for lab in after} == {0, 1, 2} >= before
+    assert {lab.instance_id for lab in after} == {dataset_label.instance_id}
+    assert {lab.origin for lab in after if lab.frame_index not in before} <= {"user"}
