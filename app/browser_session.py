@@ -22,6 +22,7 @@ import numpy as np
 
 from factorydet_core.session.editing import box_of_points, split_in_two
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
+from factorydet_core.session.world import MOVING_CLASSES, place_box
 from factorydet_core.types import InputError
 
 from .state import AppState
@@ -52,6 +53,9 @@ class BrowserSession:
         self.selected_patch_ids: set[int] = set()
         self.selected_frame: int | None = None
         self.object_class = state.dataset.class_names[0]
+        self.label_once = True
+        """Edits apply to the selected object in every frame (label once, ``world``), not to this
+        frame's box alone."""
         # Review: filters, the item shown, whether the scene is dimmed around it.
         self.filter_class: str | None = None
         self.filter_frame: int | None = None
@@ -195,22 +199,44 @@ class BrowserSession:
                 self.selected_label_version = result.version
         return result
 
+    def _world_for(self, class_name: str):
+        """The frames' world placement when an edit of a ``class_name`` object is carried to every
+        frame (label once on, placed already, a class that stands still), else ``None``."""
+        if not self.label_once or class_name in MOVING_CLASSES:
+            return None
+        with self.state.lock:
+            return self.state.world
+
     def set_class(self, class_name: str) -> None:
-        self._edit_selected(
-            "Set class",
-            lambda i, v: self.state.db.update_label(
-                i, self.author, expected_version=v, class_name=class_name
-            ),
-        )
+        """The selected label's class; with label once, its object's in every frame."""
+        db = self.state.db
+        if self.label_once:
+            edit = lambda i, v: db.update_object(i, self.author, expected_version=v, class_name=class_name)  # noqa: E731
+        else:
+            edit = lambda i, v: db.update_label(i, self.author, expected_version=v, class_name=class_name)  # noqa: E731
+        self._edit_selected("Set class", edit)
 
     def apply_box(self, box) -> None:
-        self._edit_selected(
-            "Move box", lambda i, v: self.state.db.update_label(i, self.author, expected_version=v, box=box)
-        )
+        """The selected label's box; with label once, its object's box in every frame that shows it
+        (carried by the frames' poses; a person or a truck moves: its box changes here only)."""
+        db = self.state.db
+
+        def edit(label_id: int, version: int):
+            label = db.label(label_id)
+            world = self._world_for(label.class_name)
+            if world is None:
+                return db.update_label(label_id, self.author, expected_version=version, box=box)
+            frames = [lab.frame_index for lab in db.object_labels(label_id)]
+            boxes = place_box(world, label.frame_index, box).boxes_by_frame(frames)
+            return db.update_object(label_id, self.author, expected_version=version, boxes=boxes)
+
+        self._edit_selected("Move box", edit)
 
     def delete_selected(self) -> None:
+        """Delete the selected label; with label once, its object in every frame."""
         done = self._edit_selected(
-            "Delete", lambda i, v: self.state.db.delete_labels([i], self.author, {i: v})
+            "Delete",
+            lambda i, v: self.state.db.delete_labels([i], self.author, {i: v}, whole_objects=self.label_once),
         )
         if done is not FAILED:
             self.select_label(None)
@@ -227,13 +253,25 @@ class BrowserSession:
         def add():
             parts = [points] if not split else [points[split_in_two(points) == k] for k in (0, 1)]
             boxes = [box_of_points(part) for part in parts]  # all boxes first: nothing half-written
+            world = self._world_for(class_name)
+            if world is None or split:  # (two new objects: each is placed in every frame by moving it)
+                return self.state.db.add_labels(
+                    [(frame_index, b, class_name) for b in boxes], self.author, "user"
+                )
+            placement = place_box(world, frame_index, boxes[0])
+            frames = placement.boxes_by_frame()
             return self.state.db.add_labels(
-                [(frame_index, b, class_name) for b in boxes], self.author, "user"
+                [(f, b, class_name) for f, b in frames.items()],
+                self.author,
+                "user",
+                as_object=True,
+                summary=f"add a {class_name} in {len(frames)} frame(s)",
             )
 
         added = self._guarded(add, "Split segment" if split else "Label segment")
         if added is not FAILED and added:
-            self.select_label(added[-1].id)
+            here = [lab for lab in added if lab.frame_index == frame_index]
+            self.select_label((here or added)[-1].id)
 
     def undo(self, redo: bool = False) -> None:
         """Undo (redo) this browser's latest edit. The selection follows the undo only where the

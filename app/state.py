@@ -92,6 +92,10 @@ class AppState:
         self.detections: Detections | None = None
         self.frame_detections: dict[int, dict] = {}  # frame -> candidates and labels, for metrics
         self.metrics: dict | None = None
+        # Label once: the frames placed in one world frame (``world.session_world``), computed in the
+        # background when the app opens a session; ``None`` until then (edits stay in their frame).
+        self.world = None
+        self.world_status = "" if db is None else "placing the frames in one world frame"
         self._listeners: list[Callable[[], None]] = []
         self.changed = threading.Condition(self.lock)
 
@@ -198,6 +202,15 @@ class AppState:
                 boxes, class_ids, _ = self.frame_labels(index)
                 item["reference_boxes"], item["reference_class_ids"] = boxes, class_ids
             self._refilter()
+            self.changed.notify_all()
+        self._notify()
+
+    def set_world(self, world, status: str) -> None:
+        """The frames' world placement (``None`` while it computes or after it failed) and a line
+        saying where it stands."""
+        with self.lock:
+            self.world = world
+            self.world_status = status
             self.changed.notify_all()
         self._notify()
 

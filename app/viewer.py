@@ -36,7 +36,7 @@ from .panels.training_panel import build_training_panel
 from .scene import SceneView
 from .state import AppState
 from .trainer import TrainingWorker
-from .worker import PipelineWorker
+from .worker import PipelineWorker, place_frames
 
 
 class FactorydetApp:
@@ -95,6 +95,10 @@ class FactorydetApp:
         self._clients_lock = threading.Lock()
         self._clients_key: tuple | None = None
         self.worker = PipelineWorker(self.state, calibrate=calibrate)
+        if db is not None:
+            threading.Thread(
+                target=place_frames, args=(self.state,), name="factorydet-world", daemon=True
+            ).start()
         self.state.on_change(self.redraw)
         server.scene.on_click()(self._on_click)
         server.scene.on_click(modifier="shift")(lambda event: self._on_click(event, add=True))

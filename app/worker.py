@@ -21,6 +21,8 @@ import traceback
 
 from factorydet_core.detection.detector import Detector
 from factorydet_core.proposals.voxels import voxel_colors
+from factorydet_core.session.world import session_world
+from factorydet_core.types import InputError
 
 from .state import AppState
 
@@ -237,3 +239,24 @@ class PipelineWorker:
                 self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
             return
         self._show(key, kind, kept, status)
+
+
+def place_frames(state: AppState) -> None:
+    """Place the session's frames in one world frame (label once), reporting progress in
+    ``state.world_status``; run once on its own thread when the app opens a session. A failure
+    leaves labels per frame and says why."""
+    dataset = state.dataset
+    # The first frame's detections are what a person waits for: ICP would share the two cores
+    # with them, so it starts once they are shown (or have failed), or after a minute anyway.
+    state.wait_for(lambda: state.pipeline_result is not None or state.pipeline_failed_key is not None, 60.0)
+
+    def progress(done: int, total: int) -> None:
+        state.set_world(None, f"placing the frames in one world frame: {done}/{total}")
+
+    try:
+        world, from_cache = session_world(state.db.session, dataset, progress)
+    except (InputError, OSError, RuntimeError) as exc:
+        state.set_world(None, f"labels stay per frame: placing the frames failed ({exc})")
+        return
+    placed = "placed (poses from the session's cache)" if from_cache else "placed by ICP"
+    state.set_world(world, f"{world.num_frames} frames {placed}")

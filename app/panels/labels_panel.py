@@ -18,6 +18,8 @@ from . import from_user
 class LabelsPanel:
     author: viser.GuiTextHandle
     selection: viser.GuiMarkdownHandle
+    label_once: viser.GuiCheckboxHandle
+    world_status: viser.GuiMarkdownHandle
     class_name: viser.GuiDropdownHandle
     set_class: viser.GuiButtonHandle
     delete: viser.GuiButtonHandle
@@ -39,6 +41,11 @@ class LabelsPanel:
             self.selection.content = "_This data set is open without a session: labels are read-only._"
         elif label is not None:
             self.selection.content = describe_label(label, state.db.labels(label.frame_index))
+            frames = [lab.frame_index + 1 for lab in state.db.object_labels(label.id)]
+            if len(frames) > 1:
+                self.selection.content += (
+                    f"\n\nThe same object is labelled in {len(frames)} frames ({_spans(frames)})."
+                )
         elif len(points):
             self.selection.content = (
                 f"**Segment** of {len(view.selected_patch_ids)} patch(es), {len(points):,} points. "
@@ -67,9 +74,23 @@ class LabelsPanel:
             for handle, value in zip((self.centre, self.size, self.yaw_deg), values):
                 if handle.value != value:
                     handle.value = value
+        with state.lock:
+            world_status = state.world_status
+        self.world_status.content = f"_{world_status}_" if world_status else ""
         if state.db is not None:
             can_undo, can_redo = state.db.can_undo(view.author)
             self.undo.disabled, self.redo.disabled = not can_undo, not can_redo
+
+
+def _spans(numbers: list[int]) -> str:
+    """``[1, 2, 3, 5]`` as "1-3, 5"."""
+    spans: list[list[int]] = []
+    for n in sorted(set(numbers)):
+        if spans and n == spans[-1][1] + 1:
+            spans[-1][1] = n
+        else:
+            spans.append([n, n])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in spans)
 
 
 def build_labels_panel(view: ClientView) -> LabelsPanel:
@@ -80,6 +101,13 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             "Your name", initial_value=view.author, hint="Edits and reviews are signed with it"
         )
         selection = gui.add_markdown("")
+        label_once = gui.add_checkbox(
+            "Label once, every frame",
+            initial_value=view.label_once,
+            hint="A new label, a class, a box move or a delete applies to the object in every frame that "
+            "shows it (people and trucks move: their boxes stay per frame). Off: this frame only.",
+        )
+        world_status = gui.add_markdown("")
         class_name = gui.add_dropdown("Class", names, initial_value=view.object_class)
         set_class = gui.add_button("Set class [C]", hint="Give the selected label the class above")
         delete = gui.add_button("Delete label [Delete]", color="red")
@@ -95,8 +123,8 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
         undo = gui.add_button("Undo [Z]")
         redo = gui.add_button("Redo [Y]")
     panel = LabelsPanel(
-        author, selection, class_name, set_class, delete, label_segment, split_segment,
-        centre, size, yaw_deg, apply_box, undo, redo,
+        author, selection, label_once, world_status, class_name, set_class, delete, label_segment,
+        split_segment, centre, size, yaw_deg, apply_box, undo, redo,
     )  # fmt: skip
 
     @author.on_update
@@ -107,6 +135,11 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             view.refresh()
 
     view.class_dropdowns.append(class_name)
+
+    @label_once.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if from_user(event):
+            view.label_once = bool(label_once.value)
 
     @class_name.on_update
     def _(event: viser.GuiEvent) -> None:

@@ -109,6 +109,7 @@ def register_frames(
     *,
     use_icp: bool = True,
     max_correspondence_m: float = 0.5,
+    poses: np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> WorldFrames:
     """Place every frame in one world frame: the first frame's odometry pose, then each next frame
@@ -120,6 +121,8 @@ def register_frames(
         use_icp: False keeps the odometry (what ``bench world-labels`` compares against).
         max_correspondence_m: the first ICP pass's correspondence distance; a second pass uses a
             third of it.
+        poses: (F, 4, 4) poses registered before (``session_world``'s cache): only the clouds
+            are read.
         progress: called with ``(frames done, frames)``.
 
     Returns:
@@ -128,7 +131,11 @@ def register_frames(
     num_frames = len(frames)
     if num_frames == 0:
         raise InputError("register_frames: no frames given")
-    poses = np.zeros((num_frames, 4, 4))
+    known = poses is not None
+    if known:
+        check_array(poses, (num_frames, 4, 4), name="poses", finite=True)
+        use_icp = False
+    poses = np.array(poses, np.float64) if known else np.zeros((num_frames, 4, 4))
     fitness = np.zeros(num_frames)
     clouds: list[np.ndarray] = []
     previous_target = None
@@ -138,7 +145,9 @@ def register_frames(
         points = merge_frame(frame, T_vehicle_sensor).points
         clouds.append(_thinned(points, COUNT_VOXEL_M))
         odometry = planar(frame.T_world_vehicle)
-        if index == 0:
+        if known:
+            pass
+        elif index == 0:
             poses[0], fitness[0] = odometry, 1.0
         else:
             step = invert_transform(previous_odometry) @ odometry
@@ -225,3 +234,44 @@ def place_box(world: WorldFrames, frame_index: int, box, *, min_points: int = MI
     visible = num_points >= min_points
     visible[int(frame_index)] = True
     return Placement(boxes=boxes, num_points=num_points, visible_mask=visible)
+
+
+def session_world(
+    session, dataset, progress: Callable[[int, int], None] | None = None
+) -> tuple[WorldFrames, bool]:
+    """The session's data set placed in one world frame; the poses are registered once and cached
+    with the session (by the data set's content hash), the clouds read again each time.
+
+    Args:
+        session: a ``store.Session``.
+        dataset: its ``Dataset`` (frames with their odometry).
+
+    Returns:
+        ``(world, from_cache)``.
+    """
+    from factorydet_core.session.store import read_cache, write_cache
+
+    key = f"world-poses-{dataset.content_hash()}"
+    cached = read_cache(session, key)
+    poses = None
+    if cached is not None and cached.get("T_world_vehicle", np.zeros(0)).shape == (len(dataset), 4, 4):
+        poses = cached["T_world_vehicle"]
+    world = register_frames(_Frames(dataset), poses=poses, progress=progress)
+    if poses is None:
+        write_cache(session, key, {"T_world_vehicle": world.T_world_vehicle, "fitness": world.fitness})
+    else:
+        world = dataclasses.replace(world, fitness=cached.get("fitness", world.fitness))
+    return world, poses is not None
+
+
+class _Frames(Sequence):
+    """A data set's frames as a sequence, read one at a time."""
+
+    def __init__(self, dataset) -> None:
+        self.dataset = dataset
+
+    def __len__(self) -> int:
+        return self.dataset.num_frames
+
+    def __getitem__(self, index):
+        return self.dataset.frame(index)

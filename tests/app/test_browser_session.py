@@ -3,12 +3,14 @@ clicks reach these actions."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from app.browser_session import FAILED, BrowserSession
 from app.state import AppState
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import SessionDB, open_session
+from factorydet_core.session.world import WorldFrames
 from tests.fakes import mined_item, queue_run
 
 
@@ -205,3 +207,64 @@ def test_the_chosen_class_follows_the_selected_label_and_the_shown_item(state):
     state.set_suspects([{**suspect, "predicted_class": "background"}])
     alice.next_suspect()
     assert alice.object_class == "cone"
+
+
+def _cube(centre, num: int = 60):
+    rng = np.random.default_rng(3)
+    return (np.asarray(centre) + rng.uniform(-0.25, 0.25, (num, 3))).astype(np.float32)
+
+
+def _placed_world(state: AppState, seen_in: tuple[int, ...]):
+    """The small data set's three frames placed 2 m apart along x; a cube stands at world
+    (10, 1, 0.5), seen only in ``seen_in``."""
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, 0, 3] = [0.0, 2.0, 4.0]
+    clouds = tuple(
+        _cube((10.0 - 2.0 * f, 1.0, 0.5)) if f in seen_in else np.zeros((0, 3), np.float32) for f in range(3)
+    )
+    state.set_world(WorldFrames(poses, np.ones(3), clouds), "3 frames placed")
+
+
+def test_label_once_labels_moves_and_deletes_an_object_in_every_frame_that_shows_it(state):
+    person = _person(state, "ann")
+    points = _cube((10.0, 1.0, 0.5))
+    person.drawn_result = lambda: (None, 0)
+    person.selected_points = lambda: points
+    person.selected_frame = 0
+    # Not placed yet: the label stays in its frame.
+    person.label_segment("barrel")
+    assert [lab.frame_index for lab in state.db.object_labels(person.selected_label_id)] == [0]
+    state.db.undo("ann")
+    _placed_world(state, seen_in=(0, 2))
+    person.label_segment("barrel")
+    members = state.db.object_labels(person.selected_label_id)
+    assert [lab.frame_index for lab in members] == [0, 2]  # frame 1 does not show it
+    np.testing.assert_allclose(members[1].box[0], members[0].box[0] - 4.0)
+    # Moving it in frame 0 moves it in frame 2, one edit; the class follows everywhere.
+    moved = (10.5, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0)
+    person.apply_box(moved)
+    person.set_class("cone")
+    members = state.db.object_labels(person.selected_label_id)
+    assert [lab.box[0] for lab in members] == pytest.approx([10.5, 6.5])
+    assert {lab.class_name for lab in members} == {"cone"}
+    person.undo()
+    person.undo()
+    assert {lab.class_name for lab in state.db.object_labels(person.selected_label_id)} == {"barrel"}
+    # Off: this frame only.
+    person.label_once = False
+    person.set_class("box")
+    assert [lab.class_name for lab in state.db.object_labels(person.selected_label_id)] == ["box", "barrel"]
+    person.label_once = True
+    person.delete_selected()
+    assert not any(lab.class_name in ("box", "barrel") and lab.box[0] > 5 for lab in state.db.labels(0))
+    assert all(lab.instance_id != members[0].instance_id for f in (0, 2) for lab in state.db.labels(f))
+
+
+def test_a_person_or_truck_moves_so_its_box_changes_in_its_frame_only(state):
+    person = _person(state, "ann")
+    _placed_world(state, seen_in=(0, 1, 2))
+    person.drawn_result = lambda: (None, 0)
+    person.selected_points = lambda: _cube((10.0, 1.0, 0.5))
+    person.selected_frame = 0
+    person.label_segment("person")
+    assert len(state.db.object_labels(person.selected_label_id)) == 1
