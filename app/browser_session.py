@@ -22,7 +22,7 @@ import numpy as np
 
 from factorydet_core.session.editing import box_of_points, split_in_two
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
-from factorydet_core.session.world import MOVING_CLASSES, place_box
+from factorydet_core.session.world import MOVING_CLASSES, place_box, spread_session
 from factorydet_core.types import InputError
 
 from .state import AppState
@@ -272,6 +272,28 @@ class BrowserSession:
         if added is not FAILED and added:
             here = [lab for lab in added if lab.frame_index == frame_index]
             self.select_label((here or added)[-1].id)
+
+    def spread_labels(self) -> None:
+        """Label once what is labelled per frame: every object that stands still gets a label in
+        each frame that shows it and has none (``world.spread_session``), as one undoable edit."""
+        with self.state.lock:
+            world = self.state.world
+        if world is None:
+            self.notify(
+                "Label every frame", "The frames are not placed in one world frame yet: try again shortly."
+            )
+            return
+        added = self._guarded(lambda: spread_session(self.state.db, world, self.author), "Label every frame")
+        if added is FAILED:
+            return
+        objects = len({lab.instance_id for lab in added})
+        if added:
+            self.notify(
+                "Label every frame",
+                f"{len(added)} label(s) added to {objects} object(s); Undo [Z] takes them back.",
+            )
+        else:
+            self.notify("Label every frame", "Every object is labelled in every frame that shows it already.")
 
     def undo(self, redo: bool = False) -> None:
         """Undo (redo) this browser's latest edit. The selection follows the undo only where the

@@ -18,6 +18,7 @@ import collections
 import dataclasses
 import threading
 import traceback
+from collections.abc import Callable
 
 from factorydet_core.detection.detector import Detector
 from factorydet_core.proposals.voxels import voxel_colors
@@ -60,6 +61,11 @@ class PipelineWorker:
         self._wake = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="factorydet-pipeline", daemon=True)
         self._thread.start()
+
+    @property
+    def refined_extrinsics(self):
+        """(S, 4, 4) the extrinsics refined for the drawn frames, ``None`` until the first frame."""
+        return self._refined_extrinsics
 
     def request(self) -> None:
         with self._wake:
@@ -241,10 +247,15 @@ class PipelineWorker:
         self._show(key, kind, kept, status)
 
 
-def place_frames(state: AppState) -> None:
+def place_frames(state: AppState, extrinsics: Callable[[], object] | None = None) -> None:
     """Place the session's frames in one world frame (label once), reporting progress in
     ``state.world_status``; run once on its own thread when the app opens a session. A failure
-    leaves labels per frame and says why."""
+    leaves labels per frame and says why.
+
+    Args:
+        extrinsics: returns the extrinsics the viewer draws the frames with (``None`` until it
+            has refined them): boxes are carried in the frame the person sees the points in.
+    """
     dataset = state.dataset
     # The first frame's detections are what a person waits for: ICP would share the two cores
     # with them, so it starts once they are shown (or have failed), or after a minute anyway.
@@ -254,7 +265,8 @@ def place_frames(state: AppState) -> None:
         state.set_world(None, f"placing the frames in one world frame: {done}/{total}")
 
     try:
-        world, from_cache = session_world(state.db.session, dataset, progress)
+        drawn_with = extrinsics() if extrinsics is not None and state.use_refined_extrinsics else None
+        world, from_cache = session_world(state.db.session, dataset, drawn_with, progress)
     except (InputError, OSError, RuntimeError) as exc:
         state.set_world(None, f"labels stay per frame: placing the frames failed ({exc})")
         return

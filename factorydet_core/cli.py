@@ -252,6 +252,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             )
         finally:
             close()
+    elif args.name == "world-labels":
+        from factorydet_core.evaluation.world_labels import bench_world_labels
+
+        update, close = progress_bar("world labels", unit="factory x poses")
+        try:
+            result = bench_world_labels(
+                seeds=parse_ints(args.heldout_seeds, "--heldout-seeds"),
+                num_frames=args.heldout_frames,
+                command=command,
+                progress=update,
+            )
+        finally:
+            close()
     elif args.name == "memory":
         from factorydet_core.evaluation.bench import bench_memory
         from factorydet_core.session.models import resolve_model
@@ -622,6 +635,20 @@ def _cmd_labels(args: argparse.Namespace) -> int:
     from factorydet_core.session.labels_io import export_labels, import_labels
 
     db, _ = _open_session_db(args, readonly=args.action == "export")
+    if args.action == "spread":
+        from factorydet_core.session.world import session_world, spread_session
+
+        update, close = progress_bar("placing the frames")
+        try:
+            world, _ = session_world(db.session, db.dataset, progress=update)
+        finally:
+            close()
+        added = spread_session(db, world, args.author)
+        print(json.dumps({"added": len(added), "objects": len({lab.instance_id for lab in added}),
+                          "edit": added.edit_id}))  # fmt: skip
+        return 0
+    if args.path is None:
+        raise InputError(f"labels {args.action}: give the path to {args.action} (a file or folder)")
     frames = parse_ints(args.frames, "--frames") if args.frames else None
     if args.action == "export":
         paths = export_labels(db, args.format or "json", args.path, frames)
@@ -923,9 +950,15 @@ def build_parser(
     )
     p.set_defaults(func=_cmd_review)
 
-    p = sub.add_parser("labels", help="export a session's labels, or import labels into it")
-    p.add_argument("action", choices=["export", "import"])
-    p.add_argument("path", help="export: a .json file or a folder (kitti, npz); import: a file or folder")
+    p = sub.add_parser(
+        "labels",
+        help="export a session's labels, import labels into it, or spread them (label once: each "
+        "object that stands still labelled in every frame that shows it)",
+    )
+    p.add_argument("action", choices=["export", "import", "spread"])
+    p.add_argument(
+        "path", nargs="?", help="export: a .json file or a folder (kitti, npz); import: a file or folder"
+    )
     session_args(p)
     p.add_argument("--format", default=None, choices=["json", "kitti", "npz"], help="default: json / guessed")
     p.add_argument("--frames", default=None, help="export: comma-separated frame indices (default: all)")
@@ -1004,6 +1037,7 @@ def build_parser(
             "import",
             "memory",
             "mining",
+            "world-labels",
         ],
     )
     p.add_argument(
@@ -1166,11 +1200,14 @@ def build_parser(
     p.add_argument(
         "--heldout-seeds",
         default="101,102,103",
-        help="quality, detect --heldout: simulator seeds of the held-out factories (never the training "
-        "factory's)",
+        help="quality, detect --heldout, world-labels: simulator seeds of the held-out factories (never "
+        "the training factory's)",
     )
     p.add_argument(
-        "--heldout-frames", type=int, default=12, help="quality, detect: frames per held-out factory"
+        "--heldout-frames",
+        type=int,
+        default=12,
+        help="quality, detect, world-labels: frames per held-out factory",
     )
     # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
     add_loop_flags(p, fields=("method", "class_weight", "round_epochs"))

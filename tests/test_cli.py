@@ -380,3 +380,18 @@ def test_the_train_flags_set_and_check_the_loop_settings():
         loop_settings_from_args(
             build_parser().parse_args(["train", "--session", "s", "--score-threshold", "3"])
         )
+
+
+@pytest.mark.slow
+def test_labels_spread_places_the_frames_and_labels_each_object_in_every_frame_that_shows_it(
+    small_dataset_dir, tmp_path, capsys
+):
+    common = ["--session", "s", "--root", str(tmp_path), "--data", str(small_dataset_dir), "--author", "ann"]
+    assert main(["labels", "spread", *common]) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["added"] > 0 and first["objects"] > 0 and first["edit"] is not None
+    assert (tmp_path / "s" / "cache").is_dir()  # the poses, for the next time
+    assert main(["labels", "spread", *common]) == 0
+    assert json.loads(capsys.readouterr().out) == {"added": 0, "objects": 0, "edit": None}
+    assert main(["labels", "export", *common]) == 2
+    assert "give the path" in capsys.readouterr().err

@@ -20,6 +20,7 @@ class LabelsPanel:
     selection: viser.GuiMarkdownHandle
     label_once: viser.GuiCheckboxHandle
     world_status: viser.GuiMarkdownHandle
+    spread: viser.GuiButtonHandle
     class_name: viser.GuiDropdownHandle
     set_class: viser.GuiButtonHandle
     delete: viser.GuiButtonHandle
@@ -77,6 +78,7 @@ class LabelsPanel:
         with state.lock:
             world_status = state.world_status
         self.world_status.content = f"_{world_status}_" if world_status else ""
+        self.spread.disabled = state.world is None or not state.editable
         if state.db is not None:
             can_undo, can_redo = state.db.can_undo(view.author)
             self.undo.disabled, self.redo.disabled = not can_undo, not can_redo
@@ -108,6 +110,11 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             "shows it (people and trucks move: their boxes stay per frame). Off: this frame only.",
         )
         world_status = gui.add_markdown("")
+        spread = gui.add_button(
+            "Label every frame that shows them",
+            hint="Each labelled object that stands still gets a label in every frame whose points show it "
+            "and that has none (one edit: Undo takes it back)",
+        )
         class_name = gui.add_dropdown("Class", names, initial_value=view.object_class)
         set_class = gui.add_button("Set class [C]", hint="Give the selected label the class above")
         delete = gui.add_button("Delete label [Delete]", color="red")
@@ -123,7 +130,7 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
         undo = gui.add_button("Undo [Z]")
         redo = gui.add_button("Redo [Y]")
     panel = LabelsPanel(
-        author, selection, label_once, world_status, class_name, set_class, delete, label_segment,
+        author, selection, label_once, world_status, spread, class_name, set_class, delete, label_segment,
         split_segment, centre, size, yaw_deg, apply_box, undo, redo,
     )  # fmt: skip
 
@@ -146,6 +153,7 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
         if from_user(event):
             view.set_object_class(class_name.value)
 
+    spread.on_click(lambda _: view.spread_labels())
     set_class.on_click(lambda _: view.set_class(class_name.value))
     delete.on_click(lambda _: view.delete_selected())
     label_segment.on_click(lambda _: view.label_segment(class_name.value))

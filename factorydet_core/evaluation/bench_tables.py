@@ -438,3 +438,42 @@ def import_markdown(result: dict) -> str:
         fmt(result["target_seconds"]),
     ]
     return table(header, [row]) + f"\n\nMedians over {fmt(result['repeats'])} fresh sessions.\n"
+
+
+@register("world-labels")
+def world_labels_markdown(result: dict) -> str:
+    """Label once: how a box carried between frames by odometry and by ICP matches truth, and how
+    often a frame shows the object, by the object's points there."""
+    methods = result["methods"]
+    bins = list(next(iter(methods.values()))["shown_by_points"])
+    header = ["poses", "drift max (m)", "drift max (deg)", "IoU median", "IoU p10", "IoU >= 0.6"]
+    header += [f"shown, {b} points" for b in bins] + ["shown, no points"]
+    rows = []
+    for name, method in methods.items():
+        factories = method["per_factory"]
+        rows.append(
+            [
+                name,
+                fmt(max(f["drift_m_max"] for f in factories), 3),
+                fmt(max(f["drift_deg_max"] for f in factories), 2),
+                fmt(method["transfer_iou"]["median"], 3),
+                fmt(method["transfer_iou"]["p10"], 3),
+                fmt(method["transfer_iou"]["share_at_least_0.6"], 3),
+                *[fmt(method["shown_by_points"][b], 3) for b in bins],
+                fmt(method["shown_without_points"], 3),
+            ]
+        )
+    spread = result["spread"]
+    seeds = ", ".join(str(s) for s in result["seeds"])
+    return (
+        table(header, rows)
+        + f"\n\nEvery static object of {len(result['seeds'])} held-out factories (seeds {seeds},"
+        f" {result['frames_per_factory']} frames each): its truth box where it has the most points,"
+        " carried into every other frame and compared with the truth box there; 'shown' is the share"
+        f" of frames the app labels it in (at least {result['min_points']} points in the box), by"
+        " the points truth says it has there. `factorydet labels spread` on the same factories"
+        f" adds {fmt(spread['labels_added'])} labels to {fmt(spread['annotations'])} annotations"
+        f" ({fmt(spread['objects'])} objects); {fmt(100 * spread['share_with_points'], 1)}% box an"
+        f" object with points there, at a median IoU of {fmt(spread['iou'].get('median'), 3)} with"
+        f" truth ({fmt(100 * spread['iou'].get('share_at_least_0.6', 0), 1)}% at 0.6 or more).\n"
+    )

@@ -1295,20 +1295,22 @@ class SessionDB:
         return max(NEW_OBJECT_ID, (row[0] or 0) + 1)
 
     def _insert_labels(
-        self, db, items: list[tuple[int, str, str]], origin: str, author: str, instance_id: int | None = None
+        self, db, items: list[tuple], origin: str, author: str, instance_id: int | None = None
     ) -> tuple[list[int], list[dict]]:
-        """Insert labels ``(frame_index, box JSON, class_name)``, all of object ``instance_id`` when
-        given; returns their ids and changes.
+        """Insert labels ``(frame_index, box JSON, class_name[, instance_id])``, of object
+        ``instance_id`` where an item names none; returns their ids and changes.
 
         Each is logged as created deleted, then undeleted (version 2): undo simply flags it again.
         """
         now = _now()
         ids, changes = [], []
-        for frame_index, box, class_name in items:
+        for item in items:
+            frame_index, box, class_name = item[:3]
+            object_id = item[3] if len(item) > 3 and item[3] is not None else instance_id
             label_id = db.execute(
                 "INSERT INTO labels (frame_index, box, class_name, origin, instance_id, created_by, created,"
                 " modified_by, modified, version, deleted) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 2, 0)",
-                (frame_index, box, class_name, origin, instance_id, author, now, author, now),
+                (frame_index, box, class_name, origin, object_id, author, now, author, now),
             ).lastrowid
             ids.append(int(label_id))
             before = {"frame_index": frame_index, "box": box, "class_name": class_name, "deleted": 1}
@@ -1359,7 +1361,9 @@ class SessionDB:
         """Several new labels as one undoable edit (returned with its ``edit_id``).
 
         Args:
-            items: ``(frame_index, box, class_name)`` triples.
+            items: ``(frame_index, box, class_name)`` triples, or with a fourth item, the instance
+                id of the object the label boxes (``world.spread_objects``: the data set's objects
+                carried into more frames).
             as_object: the items are one object in several frames (label once,
                 ``world.place_box``): they share a new instance id.
             screen: called with the current labels of the items' frames, inside the transaction that
@@ -1371,10 +1375,18 @@ class SessionDB:
         if origin not in ORIGINS:
             raise SessionError(f"unknown label origin {origin!r}")
         names = self.class_names
-        rows = [(self._check_frame(f), _box_json(box), self._check_class(c, names)) for f, box, c in items]
+        rows = [
+            (
+                self._check_frame(item[0]),
+                _box_json(item[1]),
+                self._check_class(item[2], names),
+                None if len(item) < 4 or item[3] is None else int(item[3]),
+            )
+            for item in items
+        ]
         if not rows:
             return LabelBatch([], None)
-        frames = sorted({f for f, _, _ in rows})
+        frames = sorted({row[0] for row in rows})
         with self._write() as db:
             for index in frames:
                 self._import_frame(db, index)

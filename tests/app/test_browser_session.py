@@ -198,8 +198,15 @@ def test_the_chosen_class_follows_the_selected_label_and_the_shown_item(state):
     item = alice.current_item()
     assert alice.object_class == item["predicted_class"] == shown[-1]
     # A suspect label: the class the model says it is, ready for Set class [C].
-    suspect = {"label_id": label.id, "frame_index": 0, "box": list(label.box), "class_name": "cone",
-               "label_probability": 0.01, "predicted_class": "pallet", "predicted_probability": 0.9}
+    suspect = {
+        "label_id": label.id,
+        "frame_index": 0,
+        "box": list(label.box),
+        "class_name": "cone",
+        "label_probability": 0.01,
+        "predicted_class": "pallet",
+        "predicted_probability": 0.9,
+    }
     state.set_suspects([suspect])
     alice.next_suspect()
     assert alice.selected_label_id == label.id and alice.object_class == "pallet"
@@ -268,3 +275,24 @@ def test_a_person_or_truck_moves_so_its_box_changes_in_its_frame_only(state):
     person.selected_frame = 0
     person.label_segment("person")
     assert len(state.db.object_labels(person.selected_label_id)) == 1
+
+
+def test_label_every_frame_waits_for_the_placement_then_is_one_undoable_edit(state):
+    person = _person(state, "ann")
+    person.spread_labels()
+    assert "not placed" in person.messages[-1][1]
+    labelled = [lab for lab in state.db.labels(0) if lab.instance_id is not None]
+    poses = np.stack([np.eye(4)] * 3)
+    clouds = tuple(
+        np.concatenate([_cube(lab.box[:3], num=10) for lab in labelled]).astype(np.float32) for _ in range(3)
+    )
+    state.set_world(WorldFrames(poses, np.ones(3), clouds), "3 frames placed")
+    before = {f: len(state.db.labels(f)) for f in range(3)}
+    person.spread_labels()
+    assert "label(s) added" in person.messages[-1][1]
+    assert sum(len(state.db.labels(f)) for f in range(3)) > sum(before.values())
+    person.undo()
+    assert {f: len(state.db.labels(f)) for f in range(3)} == before
+    person.spread_labels()
+    person.spread_labels()
+    assert "already" in person.messages[-1][1]

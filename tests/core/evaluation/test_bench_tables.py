@@ -19,6 +19,7 @@ BLOCKS = (
     ("benchmarks.md", "classifier"),
     ("performance.md", "detect"),
     ("performance.md", "memory"),
+    ("labelling.md", "world-labels"),
 )
 
 

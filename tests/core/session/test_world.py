@@ -11,8 +11,18 @@ from hypothesis import strategies as st
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.geometry import make_transform, rotation_z
 from factorydet_core.io.dataset import open_dataset
-from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, SessionDB, open_session
-from factorydet_core.session.world import MOVING_CLASSES, WorldFrames, place_box, planar, register_frames
+from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, Label, SessionDB, open_session
+from factorydet_core.session.world import (
+    MOVING_CLASSES,
+    WorldFrames,
+    calibrated_extrinsics,
+    place_box,
+    planar,
+    register_frames,
+    session_world,
+    spread_objects,
+    spread_session,
+)
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.types import InputError
 
@@ -90,8 +100,9 @@ def test_icp_poses_carry_the_data_sets_boxes_onto_its_own_boxes(small_dataset_di
     by the registered poses, is the later frame's box (truth poses say how far odometry was off)."""
     dataset = open_dataset(small_dataset_dir)
     frames = [dataset.frame(i) for i in range(dataset.num_frames)]
-    world = register_frames(frames)
-    odometry = register_frames(frames, use_icp=False)
+    extrinsics = calibrated_extrinsics(dataset)
+    world = register_frames(frames, extrinsics)
+    odometry = register_frames(frames, extrinsics, use_icp=False)
     assert world.fitness[0] == 1.0 and (world.fitness[1:] > 0.5).all()
     truth = [read_frame_truth(small_dataset_dir, i) for i in range(dataset.num_frames)]
 
@@ -103,7 +114,7 @@ def test_icp_poses_carry_the_data_sets_boxes_onto_its_own_boxes(small_dataset_di
             errors.append(np.linalg.norm(step[:3, 3] - true_step[:3, 3]))
         return max(errors)
 
-    assert step_error(world.T_world_vehicle) < 0.03
+    assert step_error(world.T_world_vehicle) < 0.01
     assert step_error(world.T_world_vehicle) < step_error(odometry.T_world_vehicle)
     names = frames[0].class_names
     last = frames[-1].labels
@@ -174,3 +185,62 @@ def test_an_object_edit_adds_the_frames_that_show_it_and_refuses_a_stale_version
     assert {lab.frame_index for lab in after} == {0, 1, 2} >= before
     assert {lab.instance_id for lab in after} == {dataset_label.instance_id}
     assert {lab.origin for lab in after if lab.frame_index not in before} <= {"user"}
+
+
+def test_spread_carries_each_static_object_from_its_best_seen_label_into_the_frames_that_show_it():
+    world = _two_frames()  # the cube is seen in both frames
+    box = (5.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0)
+    far = (50.0, 0.0, 0.5, 0.6, 0.6, 0.6, 0.0)  # no points anywhere
+
+    def label(frame, box, name, instance_id):
+        return Label(None, frame, box, name, "dataset", instance_id, "", "", "", "", 1, False)
+
+    labels = {
+        0: [label(0, box, "barrel", 7), label(0, far, "box", 8), label(0, box, "person", 9)],
+        1: [],
+    }
+    items = spread_objects(labels, world)
+    # The barrel is carried into frame 1; the box shows nowhere else; a person moves.
+    assert [(f, name, i) for f, _, name, i in items] == [(1, "barrel", 7)]
+    np.testing.assert_allclose(items[0][1], place_box(world, 0, box).boxes[1])
+    # Nothing to carry once every frame that shows it has a label of it.
+    labels[1] = [label(1, items[0][1], "barrel", 7)]
+    assert spread_objects(labels, world) == []
+
+
+def test_spread_session_is_one_undoable_edit_of_the_users(db):
+    frame_count = db.dataset.num_frames
+    boxes = [np.array(lab.box) for lab in db.labels(0)]
+    # A world of the data set's frames that all see every labelled box of frame 0 (a cube of
+    # points in each), at the same place: each frame-0 object should reach every frame.
+    clouds = tuple(
+        np.concatenate([_cube_points(b[:3], size=0.2, num=20) for b in boxes]) for _ in range(frame_count)
+    )
+    world = WorldFrames(np.stack([np.eye(4)] * frame_count), np.ones(frame_count), clouds)
+    added = spread_session(db, world, "ann")
+    assert added.edit_id is not None and {lab.origin for lab in added} == {"user"}
+    for lab in added:
+        assert lab.instance_id in {x.instance_id for x in db.labels(0)}
+        assert lab.frame_index != 0
+    per_frame = {f: {lab.instance_id for lab in db.labels(f)} for f in range(frame_count)}
+    moving = {lab.instance_id for lab in db.labels(0) if lab.class_name in MOVING_CLASSES}
+    assert all(per_frame[0] - moving <= per_frame[f] for f in range(frame_count))
+    assert len(spread_session(db, world, "ann")) == 0  # nothing left to carry
+    db.undo("ann")
+    assert not any(lab.id in {a.id for a in added} for f in range(frame_count) for lab in db.labels(f))
+
+
+@pytest.mark.slow
+def test_session_world_registers_once_and_reads_the_poses_back(tmp_path, small_dataset_dir):
+    dataset = open_dataset(small_dataset_dir)
+    session = open_session("s", tmp_path)
+    done = []
+    first, cached = session_world(session, dataset, progress=lambda k, n: done.append((k, n)))
+    assert not cached and done[-1] == (dataset.num_frames, dataset.num_frames)
+    again, cached = session_world(session, dataset)
+    assert cached
+    np.testing.assert_array_equal(again.T_world_vehicle, first.T_world_vehicle)
+    np.testing.assert_array_equal(again.fitness, first.fitness)
+    # Frames drawn with other extrinsics are registered again, on those.
+    nominal, cached = session_world(session, dataset, np.asarray(dataset.T_vehicle_sensor))
+    assert not cached and not np.array_equal(nominal.T_world_vehicle, first.T_world_vehicle)

@@ -1,0 +1,268 @@
+"""``bench world-labels``: how well a box labelled once is carried into every frame, against the
+simulator's truth, on held-out factories (simulator seeds no setting of ``session.world`` was
+chosen on).
+
+For each static object (a class that does not move) the truth box of the frame where it has the
+most points is carried into every other frame by the frames' poses (odometry alone, then ICP
+chained on it, with the nominal extrinsics and with the calibrated ones, the app's way) and
+compared there with the truth box: IoU where the object has
+points, and whether the frame shows it (``world.place_box``'s visibility) against how many points
+truth says it has there.
+
+Boxes are compared in the frame the app draws the points in: the sensors' points merged with the
+extrinsics in use, which sit off the true vehicle frame by the rig's common calibration error (a
+fraction of a degree of heading: 8 mm sideways on every 1.5 m step). A person's box fits
+the drawn points, so the truth boxes are moved by that offset (``_drawn_from_true``, from the
+simulator's true extrinsics) before the comparison; the data set's own annotations, in the true
+vehicle frame, are compared as they are.
+
+``spread`` measures ``world.spread_objects`` on the data set's own annotations (what ``factorydet
+labels spread`` adds): the labels it adds, how many box an object with points there, and their IoU
+with truth.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from factorydet_core.boxes import box_iou_3d
+from factorydet_core.evaluation.quality import heldout_factory
+from factorydet_core.evaluation.records import machine_info
+from factorydet_core.geometry import transform_boxes
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.store import Label
+from factorydet_core.session.world import (
+    MIN_POINTS,
+    MOVING_CLASSES,
+    calibrated_extrinsics,
+    place_box,
+    planar,
+    register_frames,
+    spread_objects,
+)
+from factorydet_core.sim.truth import read_frame_truth, read_truth
+
+POINT_BINS: tuple[tuple[int, int | None], ...] = ((1, 4), (5, 19), (20, 49), (50, None))
+"""Truth points of an object in a frame, binned: how often a frame with that many shows it."""
+
+
+def _bin_name(low: int, high: int | None) -> str:
+    return f"{low}+" if high is None else f"{low}-{high}"
+
+
+def _quantiles(values: Sequence[float]) -> dict:
+    values = np.asarray(values, np.float64)
+    if not len(values):
+        return {"count": 0}
+    return {
+        "count": int(len(values)),
+        "median": round(float(np.median(values)), 4),
+        "p10": round(float(np.percentile(values, 10)), 4),
+        "share_at_least_0.6": round(float(np.mean(values >= 0.6)), 4),
+    }
+
+
+def _pose_errors(poses: np.ndarray, true_poses: np.ndarray) -> dict:
+    """Step (frame to frame) and drift (frame 0 to each frame) errors of ``poses`` (F, 4, 4)."""
+
+    def error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+        d = np.linalg.inv(a) @ b
+        return float(np.linalg.norm(d[:3, 3])), abs(float(np.degrees(np.arctan2(d[1, 0], d[0, 0]))))
+
+    steps, drifts = [], []
+    for k in range(1, len(poses)):
+        steps.append(
+            error(np.linalg.inv(true_poses[k - 1]) @ true_poses[k], np.linalg.inv(poses[k - 1]) @ poses[k])
+        )
+        drifts.append(error(np.linalg.inv(true_poses[0]) @ true_poses[k], np.linalg.inv(poses[0]) @ poses[k]))
+    steps_arr, drifts_arr = np.array(steps).reshape(-1, 2), np.array(drifts).reshape(-1, 2)
+    return {
+        "step_error_m_median": round(float(np.median(steps_arr[:, 0])), 4) if len(steps) else 0.0,
+        "step_error_deg_median": round(float(np.median(steps_arr[:, 1])), 4) if len(steps) else 0.0,
+        "drift_m_max": round(float(drifts_arr[:, 0].max()), 4) if len(drifts) else 0.0,
+        "drift_deg_max": round(float(drifts_arr[:, 1].max()), 4) if len(drifts) else 0.0,
+    }
+
+
+def _drawn_from_true(extrinsics: np.ndarray, folder: Path) -> np.ndarray:
+    """(4, 4) the rig's common calibration offset: from the true vehicle frame to the frame the
+    points are merged in with ``extrinsics`` (S, 4, 4), the mean over sensors, heading only."""
+    from scipy.spatial.transform import Rotation
+
+    true = np.asarray(read_truth(folder)["T_vehicle_sensor_true"], np.float64)
+    offsets = np.asarray(extrinsics, np.float64) @ np.linalg.inv(true)
+    mean = np.eye(4)
+    mean[:3, :3] = Rotation.from_matrix(offsets[:, :3, :3]).mean().as_matrix()
+    mean[:3, 3] = offsets[:, :3, 3].mean(axis=0)
+    return planar(mean)
+
+
+APP_METHOD = "ICP, calibrated extrinsics (the app)"
+METHODS: dict[str, tuple[bool, bool]] = {
+    "odometry": (False, True),
+    "ICP, nominal extrinsics": (True, False),
+    APP_METHOD: (True, True),
+}
+"""How the frames are placed: ``(ICP between frames, merged with the calibrated extrinsics)``;
+``APP_METHOD`` is the app's way (``world.session_world``)."""
+
+
+def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_icp: bool) -> dict:
+    """One factory's figures for one way of placing the frames (merged with ``extrinsics``)."""
+    offset = _drawn_from_true(extrinsics, folder)
+    names = dataset.class_names
+    start = time.perf_counter()
+    world = register_frames(frames, extrinsics, use_icp=use_icp)
+    register_seconds = time.perf_counter() - start
+    # Every static object's truth box and points in every frame that has points of it.
+    objects: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
+    for f, truth in enumerate(truths):
+        for instance_id, class_id, box, num_points in zip(
+            truth.instance_ids, truth.instance_class_ids, truth.instance_boxes, truth.instance_num_points
+        ):
+            if class_id >= 0 and names[class_id] not in MOVING_CLASSES:
+                drawn = transform_boxes(offset, np.asarray(box, np.float64)[None])[0]
+                objects.setdefault(int(instance_id), {})[f] = (drawn, int(num_points))
+    ious: list[float] = []
+    shown = {_bin_name(*b): [0, 0] for b in POINT_BINS}
+    shown_without = [0, 0]
+    place_ms = []
+    for per_frame in objects.values():
+        source = max(per_frame, key=lambda f: (per_frame[f][1], -f))
+        start = time.perf_counter()
+        placement = place_box(world, source, per_frame[source][0])
+        place_ms.append(1000 * (time.perf_counter() - start))
+        for f in range(world.num_frames):
+            if f == source:
+                continue
+            if f not in per_frame:
+                shown_without[0] += 1
+                shown_without[1] += int(placement.visible_mask[f])
+                continue
+            box, num_points = per_frame[f]
+            ious.append(float(box_iou_3d(placement.boxes[f][None], box[None])[0, 0]))
+            for low, high in POINT_BINS:
+                if num_points >= low and (high is None or num_points <= high):
+                    counts = shown[_bin_name(low, high)]
+                    counts[0] += 1
+                    counts[1] += int(placement.visible_mask[f])
+    # The true poses of the frame the points are drawn in (the offset conjugates them).
+    true_poses = np.stack([t.T_world_vehicle @ np.linalg.inv(offset) for t in truths])
+    record = {
+        **_pose_errors(world.T_world_vehicle, true_poses),
+        "register_seconds_per_frame": round(register_seconds / len(frames), 3),
+        "place_box_ms_median": round(float(np.median(place_ms)), 2) if place_ms else None,
+        "num_objects": len(objects),
+        "iou": ious,
+        "shown": shown,
+        "shown_without_points": shown_without,
+    }
+    return record, world
+
+
+def _spread(dataset, frames, truths, world) -> dict:
+    """What ``spread_objects`` adds to the data set's annotations, against truth."""
+    names = dataset.class_names
+    labels_by_frame = {
+        f: [
+            Label(None, f, tuple(box), names[c], "dataset", int(i), "", "", "", "", 1, False)
+            for box, c, i in zip(frame.labels.boxes, frame.labels.class_ids, frame.labels.instance_ids)
+        ]
+        for f, frame in enumerate(frames)
+    }
+    items = spread_objects(labels_by_frame, world)
+    with_points, ious = 0, []
+    for f, box, _, instance_id in items:
+        truth = truths[f]
+        where = np.flatnonzero(truth.instance_ids == instance_id)
+        if len(where):
+            with_points += 1
+            ious.append(float(box_iou_3d(np.asarray(box)[None], truth.instance_boxes[where])[0, 0]))
+    return {
+        "annotations": int(sum(len(fr.labels) for fr in frames)),
+        "labels_added": len(items),
+        "objects": len({item[3] for item in items}),
+        "with_points": with_points,
+        "iou": ious,
+    }
+
+
+def bench_world_labels(
+    seeds: Sequence[int] = (101, 102, 103),
+    num_frames: int = 12,
+    scratch: str | Path = "/tmp/factorydet_heldout",
+    command: str = "",
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Carry every static object's box through the frames of each held-out factory, by each of
+    ``METHODS``, and compare with truth (module docstring). Returns the JSON record."""
+    methods: dict[str, list] = {}
+    spread: list[dict] = []
+    total = len(METHODS) * len(seeds)
+    done = 0
+    for seed in seeds:
+        folder = heldout_factory(int(seed), num_frames, Path(scratch))
+        dataset = open_dataset(folder)
+        frames = [dataset.frame(i) for i in range(dataset.num_frames)]
+        truths = [read_frame_truth(folder, i) for i in range(dataset.num_frames)]
+        start = time.perf_counter()
+        calibrated = calibrated_extrinsics(dataset)
+        calibrate_seconds = time.perf_counter() - start
+        for method, (use_icp, use_calibrated) in METHODS.items():
+            extrinsics = calibrated if use_calibrated else np.asarray(dataset.T_vehicle_sensor)
+            result, world = _factory(dataset, frames, truths, folder, extrinsics, use_icp)
+            result["calibrate_seconds"] = round(calibrate_seconds, 2) if use_calibrated else 0.0
+            methods.setdefault(method, []).append(result)
+            if method == APP_METHOD:
+                spread.append(_spread(dataset, frames, truths, world))
+            done += 1
+            if progress is not None:
+                progress(done, total)
+    out = {}
+    for method, results in methods.items():
+        shown = {
+            name: round(
+                sum(r["shown"][name][1] for r in results) / max(1, sum(r["shown"][name][0] for r in results)),
+                4,
+            )
+            for name in results[0]["shown"]
+        }
+        without = [sum(r["shown_without_points"][i] for r in results) for i in (0, 1)]
+        out[method] = {
+            "per_factory": [
+                {
+                    key: value
+                    for key, value in r.items()
+                    if key not in ("iou", "shown", "shown_without_points")
+                }
+                for r in results
+            ],
+            "transfer_iou": _quantiles([v for r in results for v in r["iou"]]),
+            "shown_by_points": shown,
+            "frames_by_points": {
+                name: sum(r["shown"][name][0] for r in results) for name in results[0]["shown"]
+            },
+            "shown_without_points": round(without[1] / max(1, without[0]), 4),
+        }
+    return {
+        "benchmark": "world-labels",
+        "command": command,
+        "machine": machine_info(),
+        "seeds": [int(s) for s in seeds],
+        "frames_per_factory": int(num_frames),
+        "min_points": MIN_POINTS,
+        "methods": out,
+        "spread": {
+            "annotations": sum(s["annotations"] for s in spread),
+            "labels_added": sum(s["labels_added"] for s in spread),
+            "objects": sum(s["objects"] for s in spread),
+            "share_with_points": round(
+                sum(s["with_points"] for s in spread) / max(1, sum(s["labels_added"] for s in spread)), 4
+            ),
+            "iou": _quantiles([v for s in spread for v in s["iou"]]),
+        },
+    }
