@@ -151,6 +151,25 @@ class BrowserSession:
             self.set_object_class(label.class_name)
         self.refresh()
 
+    def follow_object(self) -> None:
+        """After a frame change, the selected label becomes its object's label in the shown frame
+        (label once: the same object stays selected while flipping through frames); with no label
+        of it there, the selection stays where it was."""
+        with self.lock:
+            label_id = self.selected_label_id
+        frame_index = self.state.frame_index
+        if label_id is None or self.state.db is None:
+            return
+        label = self.state.db.label(label_id)
+        if label.frame_index == frame_index or label.instance_id is None or label.deleted:
+            return
+        here = [lab for lab in self.state.db.object_labels(label_id) if lab.frame_index == frame_index]
+        if here:
+            with self.lock:
+                if self.selected_label_id == label_id:
+                    self.selected_label_id = here[0].id
+                    self.selected_label_version = here[0].version
+
     def select_patches(self, patch_ids, add: bool = False) -> None:
         """Select the segment made of ``patch_ids`` of the drawn result (``add``: extend it)."""
         _, frame_index = self.drawn_result()

@@ -74,6 +74,7 @@ class ClientView(BrowserSession):
         if self.closed:
             return
         with self._refresh_lock:
+            self.follow_object()
             self._draw_highlights()
             for panel in self.panels:
                 panel.refresh(self)

@@ -265,7 +265,10 @@ def place_frames(state: AppState, extrinsics: Callable[[], object] | None = None
         state.set_world(None, f"placing the frames in one world frame: {done}/{total}")
 
     try:
-        drawn_with = extrinsics() if extrinsics is not None and state.use_refined_extrinsics else None
+        if not state.use_refined_extrinsics:  # the viewer draws the nominal extrinsics
+            drawn_with = dataset.T_vehicle_sensor
+        else:  # its refined ones (else session_world refines them the same way)
+            drawn_with = extrinsics() if extrinsics is not None else None
         world, from_cache = session_world(state.db.session, dataset, drawn_with, progress)
     except (InputError, OSError, RuntimeError) as exc:
         state.set_world(None, f"labels stay per frame: placing the frames failed ({exc})")

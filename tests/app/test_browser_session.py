@@ -257,6 +257,18 @@ def test_label_once_labels_moves_and_deletes_an_object_in_every_frame_that_shows
     person.undo()
     person.undo()
     assert {lab.class_name for lab in state.db.object_labels(person.selected_label_id)} == {"barrel"}
+    # Flipping to frame 2 selects the same object there; frame 1 has no label of it: it stays.
+    state.set_frame(1)
+    person.follow_object()
+    assert person.selected_label().frame_index == 0
+    state.set_frame(2)
+    person.follow_object()
+    assert (
+        person.selected_label().frame_index == 2
+        and person.selected_label().instance_id == members[0].instance_id
+    )
+    state.set_frame(0)
+    person.follow_object()
     # Off: this frame only.
     person.label_once = False
     person.set_class("box")
