@@ -68,6 +68,16 @@ class BrowserSession:
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
         """The latest notifications given, ``(title, body, error)``, oldest first."""
 
+    def set_author(self, name: str) -> bool:
+        """Sign this browser's edits with ``name`` (letters, digits, space and ``.-_@``, at most 64
+        characters; anything else is dropped); False, and nothing changed, for a name left empty."""
+        name = "".join(c for c in str(name) if c.isalnum() or c in " .-_@")[:64].strip()
+        if not name:
+            return False
+        with self.lock:
+            self.author = name
+        return True
+
     # -- what the browser shows: ``ClientView`` draws these
 
     def notify(self, title: str, body: str, error: bool = False) -> None:
@@ -94,7 +104,10 @@ class BrowserSession:
         try:
             result = action()
         except EditConflictError as exc:
-            self.notify(f"{what}: someone else got there first", str(exc), error=True)
+            body = str(exc).removesuffix("; reload and try again")
+            if reload_selection:
+                body += ". The selection now holds it as it is: make your edit again."
+            self.notify(f"{what}: someone else got there first", body, error=True)
             if reload_selection:
                 self._reload_selected_version()
             self.state.session_changed()

@@ -20,6 +20,10 @@ REVIEW_RGB = (255, 0, 200)
 DIM_FACTOR = 0.25
 
 
+AUTHOR_KEY = "factorydet.author"
+"""The browser's localStorage key of the name its edits are signed with."""
+
+
 class ClientView(BrowserSession):
     """One browser's session drawn in its viser client.
 
@@ -47,6 +51,24 @@ class ClientView(BrowserSession):
         self.class_dropdowns: list = []  # every dropdown showing object_class
         self._refresh_lock = threading.Lock()  # one refresh at a time (redraw and callback threads)
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
+
+    def restore_author(self, timeout: float = 10.0) -> None:
+        """Sign edits with the name this browser used before (kept in its localStorage), so that
+        a reload keeps its undo stack; a browser new to the app keeps its generated name, stored
+        for next time. Run off viser's callback threads: it waits for the browser's answer."""
+        try:
+            stored = self.client.local_storage.get_item(AUTHOR_KEY, timeout=timeout)
+        except (RuntimeError, TimeoutError):  # gone, or storage blocked: the generated name stays
+            return
+        if stored and self.set_author(stored):
+            self.refresh()
+        else:
+            self.remember_author()
+
+    def remember_author(self) -> None:
+        """Keep this browser's author name in its localStorage for the next page load."""
+        if not self.closed:
+            self.client.local_storage.set_item(AUTHOR_KEY, self.author)
 
     def notify(self, title: str, body: str, error: bool = False) -> None:
         super().notify(title, body, error)

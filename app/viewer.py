@@ -195,6 +195,8 @@ class FactorydetApp:
         with self._clients_lock:
             self.clients[client.client_id] = view
         view.refresh()
+        if self.state.editable:
+            threading.Thread(target=view.restore_author, name="factorydet-author", daemon=True).start()
 
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
         with self._clients_lock:

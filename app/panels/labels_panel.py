@@ -36,6 +36,8 @@ class LabelsPanel:
 
     def refresh(self, view: ClientView) -> None:
         state = view.state
+        if self.author.value != view.author:  # a name read back from the browser's storage
+            self.author.value = view.author
         label = view.selected_label()
         points = view.selected_points()
         if not state.editable:
@@ -136,9 +138,8 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
 
     @author.on_update
     def _(event: viser.GuiEvent) -> None:
-        name = "".join(c for c in author.value if c.isalnum() or c in " .-_@")[:64].strip()
-        if from_user(event) and name:
-            view.author = name
+        if from_user(event) and view.set_author(author.value):
+            view.remember_author()
             view.refresh()
 
     view.class_dropdowns.append(class_name)

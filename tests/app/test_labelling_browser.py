@@ -253,3 +253,31 @@ def test_two_browsers_see_each_others_edits(session_app, browser):  # noqa: F811
     finally:
         context_a.close()
         context_b.close()
+
+
+def test_a_reload_keeps_the_name_and_so_the_undo_history(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context, page, view = _open(browser, app)
+    try:
+        generated = view.author
+        # The generated name is stored in the browser; a name typed in is stored instead.
+        # (viser's label is not tied to its input: the input is in the label's row)
+        name_field = page.locator("label", has_text="Your name").locator("xpath=../../..").locator("input")
+        name_field.fill("ann")
+        name_field.press("Enter")
+        assert _wait(lambda: view.author == "ann", 20), f"the name never reached the server ({view.author})"
+        label = db.labels(0)[0]
+        view.select_label(label.id)
+        view.delete_selected()
+        assert db.label(label.id).deleted and generated != "ann"
+        before = {c for c in app.server.get_clients()}
+        page.reload()
+        page.wait_for_selector("canvas[data-engine]", timeout=30_000)
+        assert _wait(lambda: len(set(app.server.get_clients()) - before) == 1, 30)
+        reloaded = app.client_view((set(app.server.get_clients()) - before).pop())
+        assert _wait(lambda: reloaded is not None and reloaded.author == "ann", 30), "the name was lost"
+        page.get_by_role("button", name="Undo [Z]").click()
+        assert _wait(lambda: not db.label(label.id).deleted, 20), "the reloaded page could not undo"
+    finally:
+        context.close()
