@@ -27,6 +27,11 @@ from factorydet_core.types import InputError
 
 from .state import AppState
 
+NUDGE_M = 0.01
+"""How far one keyboard nudge moves the selected box, metres."""
+NUDGE_DEG = 1.0
+"""How far one keyboard nudge turns it, degrees."""
+
 FAILED = object()
 """What ``BrowserSession._guarded`` returns when the edit was refused (the person has been told)."""
 
@@ -263,6 +268,20 @@ class BrowserSession:
             return db.update_object(label_id, self.author, expected_version=version, boxes=boxes)
 
         self._edit_selected("Move box", edit)
+
+    def nudge(self, forward: float = 0.0, left: float = 0.0, up: float = 0.0, yaw_deg: float = 0.0) -> None:
+        """Move the selected box along its own heading (``forward``), across it (``left``) and up,
+        in metres, and turn it by ``yaw_deg`` counter-clockwise; one edit (``apply_box``)."""
+        label = self.selected_label()
+        if label is None:
+            self.notify("Move box", "Select a label first (click its box).")
+            return
+        box = np.array(label.box, np.float64)
+        heading = np.array([np.cos(box[6]), np.sin(box[6])])
+        box[:2] += forward * heading + left * np.array([-heading[1], heading[0]])
+        box[2] += up
+        box[6] = (box[6] + np.radians(yaw_deg) + np.pi) % (2 * np.pi) - np.pi
+        self.apply_box(tuple(box))
 
     def delete_selected(self) -> None:
         """Delete the selected label; with label once, its object in every frame."""

@@ -156,8 +156,11 @@ class ClientView(BrowserSession):
         position, wxyz = box_to_pose(label.box)
         if self.gizmo is None:
             gizmo = self.client.scene.add_transform_controls(
-                "/client/gizmo", scale=1.5, disable_sliders=True, depth_test=False
-            )
+                # x and y arrows and the ring about z only: boxes stay upright (a tilt was
+                # dropped on release); heights change in the Box fields or with shift+Y/H.
+                "/client/gizmo", scale=1.5, active_axes=(True, True, False), disable_sliders=True,
+                depth_test=False,
+            )  # fmt: skip
 
             @gizmo.on_update
             def _(event) -> None:

@@ -5,15 +5,17 @@ from __future__ import annotations
 
 import viser
 
+from ..browser_session import NUDGE_DEG, NUDGE_M
 from ..clients import ClientView
 from .review_panel import wrong_box
 
 # (key, what it does, the action on a ClientView given the panels' current class)
+# No W, A, S, D, Q, E or arrow keys: viser's camera moves on those (with any modifier).
 HOTKEYS: tuple[tuple[str, str], ...] = (
     ("B", "review: background"),
     ("O", "review: object of the chosen class"),
-    ("W", "review: wrong box"),
-    ("S", "review: skip"),
+    ("R", "review: wrong box (re-box it)"),
+    ("X", "review: skip"),
     ("N", "review: next item"),
     ("P", "review: previous item"),
     ("U", "next suspect label (one the model contradicts)"),
@@ -25,7 +27,24 @@ HOTKEYS: tuple[tuple[str, str], ...] = (
     ("Y", "redo"),
     ("escape", "clear the selection"),
     ("1-7", "choose the class (barrel … truck)"),
+    ("page down / page up", "next / previous frame"),
+    ("shift+I / shift+K", "move the selected box 1 cm forward / back along its heading"),
+    ("shift+J / shift+L", "move it 1 cm to its left / right"),
+    ("shift+Y / shift+H", "move it 1 cm up / down"),
+    ("shift+U / shift+O", "turn it 1 degree left / right"),
 )
+
+NUDGES: dict[str, tuple[str, dict]] = {
+    "I": ("forward", {"forward": NUDGE_M}),
+    "K": ("back", {"forward": -NUDGE_M}),
+    "J": ("left", {"left": NUDGE_M}),
+    "L": ("right", {"left": -NUDGE_M}),
+    "Y": ("up", {"up": NUDGE_M}),
+    "H": ("down", {"up": -NUDGE_M}),
+    "U": ("turn left", {"yaw_deg": NUDGE_DEG}),
+    "O": ("turn right", {"yaw_deg": -NUDGE_DEG}),
+}
+"""Shift + key: how the selected box moves (``BrowserSession.nudge``)."""
 
 
 def help_markdown(class_names: tuple[str, ...]) -> str:
@@ -50,8 +69,8 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
     actions = {
         "B": ("Review: background", lambda: view.verdict("background")),
         "O": ("Review: object", lambda: view.verdict("object", chosen_class())),
-        "W": ("Review: wrong box", lambda: wrong_box(view)),
-        "S": ("Review: skip", lambda: view.verdict("skip")),
+        "R": ("Review: wrong box", lambda: wrong_box(view)),
+        "X": ("Review: skip", lambda: view.verdict("skip")),
         "N": ("Review: next item", lambda: view.step(1)),
         "P": ("Review: previous item", lambda: view.step(-1)),
         "U": ("Next suspect label", view.next_suspect),
@@ -62,11 +81,17 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
         "Z": ("Undo", view.undo),
         "Y": ("Redo", lambda: view.undo(redo=True)),
         "escape": ("Clear the selection", view.clear_selection),
+        "pagedown": ("Next frame", lambda: view.state.step_frame(1)),
+        "pageup": ("Previous frame", lambda: view.state.step_frame(-1)),
     }
     handles = []
     for key, (label, action) in actions.items():
         handle = gui.add_command(label, hotkey=key)
         handle.on_trigger(lambda _event, action=action: action())
+        handles.append(handle)
+    for key, (what, step) in NUDGES.items():
+        handle = gui.add_command(f"Box: {what}", hotkey=key, modifier="shift")
+        handle.on_trigger(lambda _event, step=step: view.nudge(**step))
         handles.append(handle)
     for i, name in enumerate(names[:9]):
 

@@ -123,11 +123,12 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
         label_segment = gui.add_button("Label segment [L]", hint="A new label boxing the selected segment")
         split_segment = gui.add_button("Split segment into two [K]")
         with gui.add_folder("Box", expand_by_default=False):
-            centre = gui.add_vector3("Centre (m)", initial_value=(0.0, 0.0, 0.0), step=0.05)
+            # Millimetres and tenths of a degree: the numbers a labeller checks a box with.
+            centre = gui.add_vector3("Centre (m)", initial_value=(0.0, 0.0, 0.0), step=0.001)
             size = gui.add_vector3(
-                "Size (m)", initial_value=(1.0, 1.0, 1.0), min=(0.02, 0.02, 0.02), step=0.05
+                "Size (m)", initial_value=(1.0, 1.0, 1.0), min=(0.02, 0.02, 0.02), step=0.001
             )
-            yaw_deg = gui.add_number("Yaw (deg)", initial_value=0.0, step=1.0)
+            yaw_deg = gui.add_number("Yaw (deg)", initial_value=0.0, step=0.1)
             apply_box = gui.add_button("Apply box", hint="Or drag the gizmo on the selected box")
         undo = gui.add_button("Undo [Z]")
         redo = gui.add_button("Redo [Y]")

@@ -114,11 +114,11 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
             ),
             "object": gui.add_button("Object [O]", color="green", hint="A real object of the class above"),
             "wrong_box": gui.add_button(
-                "Wrong box [W]",
+                "Wrong box [R]",
                 color="orange",
                 hint="A real object with no label yet, but the segment is wrong",
             ),
-            "skip": gui.add_button("Skip [S]"),
+            "skip": gui.add_button("Skip [X]"),
             "previous": gui.add_button("Previous [P]"),
             "next": gui.add_button("Next [N]"),
             "batch": gui.add_button(

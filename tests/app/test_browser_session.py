@@ -308,3 +308,20 @@ def test_label_every_frame_waits_for_the_placement_then_is_one_undoable_edit(sta
     person.spread_labels()
     person.spread_labels()
     assert "already" in person.messages[-1][1]
+
+
+def test_nudges_move_the_selected_box_along_its_heading_in_centimetres(state):
+    person = _person(state, "ann")
+    person.label_once = False
+    label = state.db.add_label(0, (1.0, 2.0, 0.5, 1.0, 0.5, 0.8, np.pi / 2), "box", "ann")
+    person.select_label(label.id)
+    person.nudge(forward=0.01)  # heading +y
+    person.nudge(left=0.01)  # its left is -x
+    person.nudge(up=-0.01, yaw_deg=1.0)
+    box = np.array(state.db.label(label.id).box)
+    np.testing.assert_allclose(box[:3], [0.99, 2.01, 0.49], atol=1e-9)
+    assert box[6] == pytest.approx(np.pi / 2 + np.radians(1.0))
+    assert len([e for e in state.db.edits("ann") if e.kind == "update"]) == 3
+    person.clear_selection()
+    person.nudge(forward=0.01)
+    assert "Select a label first" in person.messages[-1][1]

@@ -92,6 +92,16 @@ def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
         page.get_by_role("button", name="Undo [Z]").click()
         assert _wait(lambda: db.review_progress()["object"] == 0, 20)
         assert db.label(item["label_id"]).deleted
+        # 'X' skips (not 'S', one of viser's camera keys); shift+I nudges the selected box 1 cm.
+        page.keyboard.press("x")
+        assert _wait(lambda: db.review_progress()["skip"] == 1, 20), "the skip hotkey was not stored"
+        label = db.labels(0)[0]
+        view.select_label(label.id)
+        page.keyboard.press("Shift+I")
+        assert _wait(lambda: db.label(label.id).version > label.version, 20), "the nudge was not stored"
+        heading = np.array([np.cos(label.box[6]), np.sin(label.box[6]), 0.0])
+        moved = np.array(db.label(label.id).box[:3]) - np.array(label.box[:3])
+        np.testing.assert_allclose(moved, 0.01 * heading, atol=1e-6)
 
         # The filter that hides items on labelled objects: a label on the last item hides it.
         last = db.review_queue()[-1]
