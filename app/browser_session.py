@@ -58,6 +58,8 @@ class BrowserSession:
         self.selected_patch_ids: set[int] = set()
         self.selected_frame: int | None = None
         self.object_class = state.dataset.class_names[0]
+        self.suggestion: tuple[int, object] | None = None
+        """``(frame_index, editing.Suggestion)``: the model's box for the object last clicked."""
         self.label_once = True
         """Edits apply to the selected object in every frame (label once, ``world``), not to this
         frame's box alone."""
@@ -165,6 +167,7 @@ class BrowserSession:
             self.selected_label_id = label_id
             self.selected_label_version = None if label is None else label.version
             self.selected_patch_ids = set()
+            self.suggestion = None
         if label is not None:
             self.set_object_class(label.class_name)
         self.refresh()
@@ -198,6 +201,7 @@ class BrowserSession:
             self.selected_frame = frame_index
             self.selected_label_id = None
             self.selected_label_version = None
+            self.suggestion = None
         self.refresh()
 
     def clear_selection(self) -> None:
@@ -205,6 +209,7 @@ class BrowserSession:
             self.selected_label_id = None
             self.selected_label_version = None
             self.selected_patch_ids = set()
+            self.suggestion = None
         self.refresh()
 
     def selected_points(self) -> np.ndarray:
@@ -292,6 +297,46 @@ class BrowserSession:
         if done is not FAILED:
             self.select_label(None)
 
+    def suggest(self, frame_index: int, suggestion) -> None:
+        """Show the model's box for the object just clicked (``editing.suggest_box``; ``None``:
+        none there); Accept [G] makes it a label. The chosen class becomes its class."""
+        with self.lock:
+            self.suggestion = None if suggestion is None else (int(frame_index), suggestion)
+        if suggestion is not None:
+            self.set_object_class(suggestion.class_name)
+        self.refresh()
+
+    def accept_suggestion(self) -> None:
+        """The suggested box becomes a label of the chosen class (in every frame that shows it,
+        with label once), and is selected."""
+        with self.lock:
+            suggested = self.suggestion
+            class_name = self.object_class
+        if suggested is None:
+            self.notify("Accept box", "Click an object first: the model's box for it is suggested.")
+            return
+        frame_index, suggestion = suggested
+        added = self._guarded(
+            lambda: self._add_object(frame_index, np.asarray(suggestion.box), class_name), "Accept box"
+        )
+        if added is not FAILED and added:
+            here = [lab for lab in added if lab.frame_index == frame_index]
+            self.select_label((here or added)[-1].id)
+
+    def _add_object(self, frame_index: int, box: np.ndarray, class_name: str):
+        """A new label, placed in every frame that shows it when label once applies (one edit)."""
+        world = self._world_for(class_name)
+        if world is None:
+            return self.state.db.add_labels([(frame_index, box, class_name)], self.author, "user")
+        frames = place_box(world, frame_index, box).boxes_by_frame()
+        return self.state.db.add_labels(
+            [(f, b, class_name) for f, b in frames.items()],
+            self.author,
+            "user",
+            as_object=True,
+            summary=f"add a {class_name} in {len(frames)} frame(s)",
+        )
+
     def label_segment(self, class_name: str, split: bool = False) -> None:
         """A new label (two with ``split``, as one edit) boxing the selected segment's points."""
         points = self.selected_points()
@@ -304,20 +349,11 @@ class BrowserSession:
         def add():
             parts = [points] if not split else [points[split_in_two(points) == k] for k in (0, 1)]
             boxes = [box_of_points(part) for part in parts]  # all boxes first: nothing half-written
-            world = self._world_for(class_name)
-            if world is None or split:  # (two new objects: each is placed in every frame by moving it)
+            if split:  # (two new objects, one edit: each is placed in every frame once it is moved)
                 return self.state.db.add_labels(
                     [(frame_index, b, class_name) for b in boxes], self.author, "user"
                 )
-            placement = place_box(world, frame_index, boxes[0])
-            frames = placement.boxes_by_frame()
-            return self.state.db.add_labels(
-                [(f, b, class_name) for f, b in frames.items()],
-                self.author,
-                "user",
-                as_object=True,
-                summary=f"add a {class_name} in {len(frames)} frame(s)",
-            )
+            return self._add_object(frame_index, boxes[0], class_name)
 
         added = self._guarded(add, "Split segment" if split else "Label segment")
         if added is not FAILED and added:

@@ -20,6 +20,8 @@ REVIEW_RGB = (255, 0, 200)
 DIM_FACTOR = 0.25
 
 
+SUGGESTION_RGB = (0, 200, 220)
+"""The model's suggested box for the object last clicked (cyan: neither a label nor a detection)."""
 AUTHOR_KEY = "factorydet.author"
 """The browser's localStorage key of the name its edits are signed with."""
 
@@ -109,6 +111,12 @@ class ClientView(BrowserSession):
             boxes.append((np.asarray(label.box), HIGHLIGHT_RGB, "/client/selected_box"))
         else:
             scene.remove_by_name("/client/selected_box")
+        with self.lock:
+            suggested = self.suggestion
+        if suggested is not None and suggested[0] == self.state.frame_index:
+            boxes.append((np.asarray(suggested[1].box), SUGGESTION_RGB, "/client/suggested_box"))
+        else:
+            scene.remove_by_name("/client/suggested_box")
         item = self.current_item()
         if item is not None and item["frame_index"] == self.state.frame_index:
             boxes.append((np.asarray(item["box"]), REVIEW_RGB, "/client/review_box"))

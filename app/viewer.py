@@ -19,7 +19,7 @@ from factorydet_core.evaluation.diagnostics import (
     segment_patch_ids,
 )
 from factorydet_core.io.dataset import Dataset
-from factorydet_core.session.editing import points_in_screen_rect
+from factorydet_core.session.editing import Suggestion, points_in_screen_rect, suggest_box
 from factorydet_core.training.settings import LoopSettings
 
 from .clients import ClientView
@@ -243,6 +243,17 @@ class FactorydetApp:
                     exponent = getattr(self.state.model, "probability_exponent", 1.0)
                 info = describe_detection(detections, k, detection_result.proposal.proposals, frame, exponent)
                 self.state.set_selection(detection_markdown(info))
+                if view is not None and self.state.editable and not add:
+                    proposal = int(detections.proposal_ids[k])
+                    view.suggest(
+                        detection_frame,
+                        Suggestion(
+                            box=tuple(float(v) for v in detections.boxes[k]),
+                            class_name=detections.class_names[int(detections.class_ids[k])],
+                            score=float(detections.scores[k]),
+                            num_patches=len(detection_result.proposal.proposals.patch_sets[proposal]),
+                        ),
+                    )
                 return
         with self.state.lock:
             layers = dict(self.state.layers)
@@ -254,14 +265,24 @@ class FactorydetApp:
             distances = ray_box_distances(origin, direction, result.proposals.boxes[proposal_ids])
             if np.isfinite(distances).any():
                 info = describe_proposal(result, frame, int(proposal_ids[int(np.argmin(distances))]))
-        if info is None and (layers["patches"] or layers["segments"]):
+        if info is None:
+            # Points are clickable in every layer: the click selects their segment and, with a
+            # model, suggests its box for the object (Accept [G]).
             shown = np.flatnonzero(result.cloud.below(max_height))
             hit = nearest_point_on_ray(result.cloud.points[shown], origin, direction, max_distance=0.15)
             if hit is not None:
-                patch_id = int(result.segmentation.patch_ids[shown[hit]])
+                point = int(shown[hit])
+                patch_id = int(result.segmentation.patch_ids[point])
                 info = describe_patch(result, frame, patch_id)
                 if view is not None:
                     view.select_patches(segment_patch_ids(result, patch_id), add=add)
+                    same_cloud = (
+                        detection_result is not None
+                        and detection_frame == frame_index
+                        and detection_result.proposal.cloud.num_points == result.cloud.num_points
+                    )
+                    if same_cloud and self.state.editable and not add:
+                        view.suggest(frame_index, suggest_box(detection_result, point))
         if info is None and view is not None and not add:
             view.clear_selection()
         self.state.set_selection(description_markdown(info) if info else "_Nothing under the cursor._")

@@ -20,6 +20,7 @@ HOTKEYS: tuple[tuple[str, str], ...] = (
     ("P", "review: previous item"),
     ("U", "next suspect label (one the model contradicts)"),
     ("C", "label: set the chosen class"),
+    ("G", "accept the suggested box (the model's, for the object clicked) as a label"),
     ("L", "label the selected segment"),
     ("K", "split the selected segment into two labels"),
     ("delete", "delete the selected label"),
@@ -53,8 +54,9 @@ def help_markdown(class_names: tuple[str, ...]) -> str:
     return (
         "| key | action |\n|---|---|\n" + rows + "\n\n"
         f"Classes: {classes}.  \nMouse: click a box to select it, click points to select their "
-        "segment, shift-click to add a segment, shift-drag to select a rectangle. Drag the gizmo to "
-        "move or turn the selected box. Ctrl/Cmd+K lists every command."
+        "segment (with a model, its box for the object is suggested in cyan), shift-click to add a "
+        "segment, shift-drag to select a rectangle. Drag the gizmo to move or turn the selected box. "
+        "Ctrl/Cmd+K lists every command."
     )
 
 
@@ -75,6 +77,7 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
         "P": ("Review: previous item", lambda: view.step(-1)),
         "U": ("Next suspect label", view.next_suspect),
         "C": ("Label: set class", lambda: view.set_class(chosen_class())),
+        "G": ("Accept the suggested box", view.accept_suggestion),
         "L": ("Label the selected segment", lambda: view.label_segment(chosen_class())),
         "K": ("Split the selected segment", lambda: view.label_segment(chosen_class(), split=True)),
         "delete": ("Delete the selected label", view.delete_selected),

@@ -21,6 +21,7 @@ class LabelsPanel:
     label_once: viser.GuiCheckboxHandle
     world_status: viser.GuiMarkdownHandle
     spread: viser.GuiButtonHandle
+    accept: viser.GuiButtonHandle
     class_name: viser.GuiDropdownHandle
     set_class: viser.GuiButtonHandle
     delete: viser.GuiButtonHandle
@@ -41,24 +42,33 @@ class LabelsPanel:
         label = view.selected_label()
         points = view.selected_points()
         if not state.editable:
-            self.selection.content = "_This data set is open without a session: labels are read-only._"
+            text = "_This data set is open without a session: labels are read-only._"
         elif label is not None:
-            self.selection.content = describe_label(label, state.db.labels(label.frame_index))
+            text = describe_label(label, state.db.labels(label.frame_index))
             frames = [lab.frame_index + 1 for lab in state.db.object_labels(label.id)]
             if len(frames) > 1:
-                self.selection.content += (
-                    f"\n\nThe same object is labelled in {len(frames)} frames ({_spans(frames)})."
-                )
+                text += f"\n\nThe same object is labelled in {len(frames)} frames ({_spans(frames)})."
         elif len(points):
-            self.selection.content = (
+            text = (
                 f"**Segment** of {len(view.selected_patch_ids)} patch(es), {len(points):,} points. "
                 "**Label segment** boxes it as a new label of the class above; **Split** makes two."
             )
         else:
-            self.selection.content = (
+            text = (
                 "_Click a label box to select it; click points to select their segment "
                 "(shift-click adds another; shift-drag selects a rectangle)._"
             )
+        with view.lock:
+            suggested = view.suggestion
+        if suggested is not None and label is None and state.editable:
+            suggestion = suggested[1]
+            size = " x ".join(f"{v:.2f}" for v in suggestion.box[3:6])
+            text += (
+                f"\n\n**Suggested box** (cyan): {suggestion.class_name}, score {suggestion.score:.2f},"
+                f" {size} m. **Accept suggested box [G]** labels it as the class above."
+            )
+        self.selection.content = text
+        self.accept.disabled = suggested is None or not state.editable
         for button in (self.set_class, self.delete, self.apply_box):
             button.disabled = label is None
         for button in (self.label_segment, self.split_segment):
@@ -120,6 +130,11 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
         class_name = gui.add_dropdown("Class", names, initial_value=view.object_class)
         set_class = gui.add_button("Set class [C]", hint="Give the selected label the class above")
         delete = gui.add_button("Delete label [Delete]", color="red")
+        accept = gui.add_button(
+            "Accept suggested box [G]",
+            hint="Click an object's points or detection: the model's box for it is suggested (cyan); "
+            "this makes it a label of the class above",
+        )
         label_segment = gui.add_button("Label segment [L]", hint="A new label boxing the selected segment")
         split_segment = gui.add_button("Split segment into two [K]")
         with gui.add_folder("Box", expand_by_default=False):
@@ -133,8 +148,8 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
         undo = gui.add_button("Undo [Z]")
         redo = gui.add_button("Redo [Y]")
     panel = LabelsPanel(
-        author, selection, label_once, world_status, spread, class_name, set_class, delete, label_segment,
-        split_segment, centre, size, yaw_deg, apply_box, undo, redo,
+        author, selection, label_once, world_status, spread, accept, class_name, set_class, delete,
+        label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo,
     )  # fmt: skip
 
     @author.on_update
@@ -156,6 +171,7 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             view.set_object_class(class_name.value)
 
     spread.on_click(lambda _: view.spread_labels())
+    accept.on_click(lambda _: view.accept_suggestion())
     set_class.on_click(lambda _: view.set_class(class_name.value))
     delete.on_click(lambda _: view.delete_selected())
     label_segment.on_click(lambda _: view.label_segment(class_name.value))

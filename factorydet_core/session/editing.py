@@ -1,8 +1,10 @@
 """Geometry behind the label editor: boxes to and from a transform gizmo, points inside a screen
-rectangle, a camera pose that frames a box, splitting a point set in two. No GUI here; the app
-calls these."""
+rectangle, a camera pose that frames a box, splitting a point set in two, the model's box for a
+clicked point. No GUI here; the app calls these."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -121,3 +123,47 @@ def box_of_points(points: np.ndarray) -> np.ndarray:
     if len(points) < 3:
         raise InputError(f"a label box needs at least 3 points, the selection has {len(points)}")
     return np.asarray(fit_box(points), np.float64)
+
+
+@dataclasses.dataclass(frozen=True)
+class Suggestion:
+    """The model's box for an object a person pointed at (model-assisted labelling)."""
+
+    box: tuple[float, ...]
+    """(7,) the candidate's box in the vehicle frame."""
+    class_name: str
+    score: float
+    num_patches: int
+    """Patches (cut-pursuit pieces) of the candidate's point set."""
+
+
+def suggest_box(result, point_index: int) -> Suggestion | None:
+    """The model's box for the object a clicked point belongs to: of the scored candidates (one
+    per point set, whatever its score: a box below the threshold is still the model's best guess)
+    whose point set holds the point's patch, the highest-scoring one.
+
+    Args:
+        result: a ``detector.DetectionResult`` of the frame.
+        point_index: index of the clicked point in ``result.proposal.cloud``.
+
+    Returns:
+        ``None`` when the point is in no proposal (floor, structure, a patch too small).
+    """
+    segmentation = result.proposal.segmentation
+    if not 0 <= int(point_index) < len(segmentation.patch_ids):
+        raise InputError(f"point {point_index} is not one of the cloud's {len(segmentation.patch_ids)}")
+    patch = int(segmentation.patch_ids[int(point_index)])
+    candidates = result.candidates
+    if patch < 0 or not len(candidates):
+        return None
+    patch_sets = result.proposal.proposals.patch_sets
+    holds = np.array([patch in patch_sets[int(p)] for p in candidates.proposal_ids], bool)
+    if not holds.any():
+        return None
+    best = int(np.flatnonzero(holds)[np.argmax(candidates.scores[holds])])
+    return Suggestion(
+        box=tuple(float(v) for v in candidates.boxes[best]),
+        class_name=candidates.class_names[int(candidates.class_ids[best])],
+        score=float(candidates.scores[best]),
+        num_patches=len(patch_sets[int(candidates.proposal_ids[best])]),
+    )

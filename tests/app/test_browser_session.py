@@ -325,3 +325,23 @@ def test_nudges_move_the_selected_box_along_its_heading_in_centimetres(state):
     person.clear_selection()
     person.nudge(forward=0.01)
     assert "Select a label first" in person.messages[-1][1]
+
+
+def test_an_accepted_suggestion_is_a_label_of_the_chosen_class_in_every_frame_that_shows_it(state):
+    from factorydet_core.session.editing import Suggestion
+
+    person = _person(state, "ann")
+    person.accept_suggestion()
+    assert "Click an object first" in person.messages[-1][1]
+    _placed_world(state, seen_in=(0, 1))
+    suggestion = Suggestion(
+        box=(10.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0), class_name="cone", score=0.4, num_patches=2
+    )
+    person.suggest(0, suggestion)
+    assert person.object_class == "cone"  # the suggestion's class is the chosen one
+    person.set_object_class("barrel")  # a person may correct it before accepting
+    person.accept_suggestion()
+    label = person.selected_label()
+    assert label.class_name == "barrel" and label.frame_index == 0 and label.box == suggestion.box
+    assert [lab.frame_index for lab in state.db.object_labels(label.id)] == [0, 1]
+    assert person.suggestion is None  # selecting the new label clears it

@@ -1,4 +1,5 @@
-"""Label-editor geometry: gizmo poses, screen rectangles, camera framing, splitting."""
+"""Label-editor geometry: gizmo poses, screen rectangles, camera framing, splitting, the model's
+box for a clicked point."""
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from factorydet_core.session.editing import (
     points_in_screen_rect,
     pose_to_box,
     split_in_two,
+    suggest_box,
 )
 from factorydet_core.types import InputError
 
@@ -101,3 +103,41 @@ def test_box_of_points_covers_them(rng):
     np.testing.assert_allclose(box[3:6], [2, 1, 1], atol=0.1)
     with pytest.raises(InputError, match="at least 3"):
         box_of_points(points[:2])
+
+
+@pytest.fixture(scope="module")
+def detected(small_dataset_dir, tiny_model_path):
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.evaluation.evaluate import detector_for
+    from factorydet_core.io.dataset import open_dataset
+
+    dataset = open_dataset(small_dataset_dir)
+    detector = detector_for(DetectionModel.load(tiny_model_path), dataset, calibrate=False)
+    return detector.detect(dataset.frame(0))
+
+
+def test_a_clicked_point_suggests_the_best_candidate_whose_point_set_holds_it(detected):
+    candidates, proposals = detected.candidates, detected.proposal.proposals
+    patch_ids = detected.proposal.segmentation.patch_ids
+    best = int(np.argmax(candidates.scores))
+    patch = proposals.patch_sets[int(candidates.proposal_ids[best])][0]
+    point = int(np.flatnonzero(patch_ids == patch)[0])
+    suggestion = suggest_box(detected, point)
+    # The best candidate overall holds the point: it is the suggestion.
+    assert suggestion.score == pytest.approx(float(candidates.scores[best]))
+    np.testing.assert_allclose(suggestion.box, candidates.boxes[best])
+    assert suggestion.class_name == candidates.class_names[int(candidates.class_ids[best])]
+    # Any point: the suggestion's point set holds its patch, and no candidate that does scores higher.
+    for point in np.random.default_rng(0).choice(len(patch_ids), 50, replace=False):
+        suggestion = suggest_box(detected, int(point))
+        holding = [
+            k
+            for k, p in enumerate(candidates.proposal_ids)
+            if int(patch_ids[point]) in proposals.patch_sets[int(p)]
+        ]
+        if patch_ids[point] < 0 or not holding:
+            assert suggestion is None
+        else:
+            assert suggestion.score == pytest.approx(max(float(candidates.scores[k]) for k in holding))
+    with pytest.raises(InputError, match="not one of the cloud's"):
+        suggest_box(detected, len(patch_ids))
