@@ -21,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from factorydet_core.session.editing import box_of_points, split_in_two
+from factorydet_core.session.labels_io import export_bytes
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import MOVING_CLASSES, place_box, spread_session
 from factorydet_core.types import InputError
@@ -381,6 +382,19 @@ class BrowserSession:
             )
         else:
             self.notify("Label every frame", "Every object is labelled in every frame that shows it already.")
+
+    def export_labels(self, fmt: str) -> tuple[str, bytes] | None:
+        """The session's labels of every frame as ``(file name, bytes)`` for a download (the same
+        export as ``factorydet labels export``; KITTI and npz as a ZIP), else ``None`` (told why)."""
+        if self.state.db is None:
+            self.notify(
+                "Export labels", "This data set is open without a session: there is nothing to export."
+            )
+            return None
+        exported = self._guarded(
+            lambda: export_bytes(self.state.db, fmt), "Export labels", reload_selection=False
+        )
+        return None if exported is FAILED else exported
 
     def undo(self, redo: bool = False) -> None:
         """Undo (redo) this browser's latest edit. The selection follows the undo only where the

@@ -72,6 +72,14 @@ class ClientView(BrowserSession):
         if not self.closed:
             self.client.local_storage.set_item(AUTHOR_KEY, self.author)
 
+    def download_labels(self, fmt: str) -> None:
+        """Send the session's labels in ``fmt`` to this browser as a file download."""
+        exported = self.export_labels(fmt)
+        if exported is not None and not self.closed:
+            name, content = exported
+            self.client.send_file_download(name, content, save_immediately=True)
+            self.notify("Export labels", f"{name}: {len(content):,} bytes, every frame's labels.")
+
     def notify(self, title: str, body: str, error: bool = False) -> None:
         super().notify(title, body, error)
         if self.closed:

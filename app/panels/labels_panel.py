@@ -9,6 +9,7 @@ import numpy as np
 import viser
 
 from factorydet_core.evaluation.diagnostics import describe_label
+from factorydet_core.session.labels_io import FORMATS as EXPORT_FORMATS
 
 from ..clients import ClientView
 from . import from_user
@@ -147,6 +148,14 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             apply_box = gui.add_button("Apply box", hint="Or drag the gizmo on the selected box")
         undo = gui.add_button("Undo [Z]")
         redo = gui.add_button("Redo [Y]")
+        with gui.add_folder("Export", expand_by_default=False):
+            export_format = gui.add_dropdown(
+                "Format", list(EXPORT_FORMATS), initial_value="json",
+                hint="JSON boxes; KITTI label files or npz scenes with per-point labels (as a ZIP)",
+            )  # fmt: skip
+            export = gui.add_button(
+                "Download labels", hint="Every frame's labels, as `factorydet labels export`"
+            )
     panel = LabelsPanel(
         author, selection, label_once, world_status, spread, accept, class_name, set_class, delete,
         label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo,
@@ -176,6 +185,7 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
     delete.on_click(lambda _: view.delete_selected())
     label_segment.on_click(lambda _: view.label_segment(class_name.value))
     split_segment.on_click(lambda _: view.label_segment(class_name.value, split=True))
+    export.on_click(lambda _: view.download_labels(export_format.value))
     undo.on_click(lambda _: view.undo())
     redo.on_click(lambda _: view.undo(redo=True))
 

@@ -200,6 +200,28 @@ def export_labels(db: SessionDB, fmt: str, out: str | os.PathLike, frame_indices
     raise InputError(f"unknown label format {fmt!r}; choose from {', '.join(FORMATS)}")
 
 
+def export_bytes(db: SessionDB, fmt: str, frame_indices=None) -> tuple[str, bytes]:
+    """``export_labels`` into memory, for a download: ``(file name, content)``; the folder formats
+    (KITTI, npz) come as one ZIP archive of their files."""
+    import io
+    import tempfile
+    import zipfile
+
+    if fmt not in FORMATS:
+        raise InputError(f"unknown label format {fmt!r}; choose from {', '.join(FORMATS)}")
+    stem = f"{db.session.name}_labels"
+    with tempfile.TemporaryDirectory(prefix="factorydet-export-") as folder:
+        target = Path(folder) / (f"{stem}.json" if fmt == "json" else f"{stem}_{fmt}")
+        paths = export_labels(db, fmt, target, frame_indices)
+        if fmt == "json":
+            return target.name, target.read_bytes()
+        buffer = io.BytesIO()
+        with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+            for path in sorted(paths):
+                archive.write(path, f"{target.name}/{path.relative_to(target).as_posix()}")
+        return f"{target.name}.zip", buffer.getvalue()
+
+
 def _json_labels(path: Path, data_hash: str | None) -> list[tuple[int, np.ndarray, str]]:
     """The boxes of a ``factorydet-labels`` JSON file, each checked."""
     try:

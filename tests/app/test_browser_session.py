@@ -345,3 +345,20 @@ def test_an_accepted_suggestion_is_a_label_of_the_chosen_class_in_every_frame_th
     assert label.class_name == "barrel" and label.frame_index == 0 and label.box == suggestion.box
     assert [lab.frame_index for lab in state.db.object_labels(label.id)] == [0, 1]
     assert person.suggestion is None  # selecting the new label clears it
+
+
+@pytest.mark.parametrize("fmt", ["json", "kitti", "npz"])
+def test_labels_export_for_a_download_as_the_command_line_writes_them(state, fmt):
+    import io
+    import json
+    import zipfile
+
+    person = _person(state, "ann")
+    name, content = person.export_labels(fmt)
+    if fmt == "json":
+        record = json.loads(content)
+        assert name == "people_labels.json" and len(record["frames"]) == state.dataset.num_frames
+    else:
+        files = zipfile.ZipFile(io.BytesIO(content)).namelist()
+        assert name == f"people_labels_{fmt}.zip" and len(files) == state.dataset.num_frames
+    assert person.export_labels("las") is None and "unknown label format" in person.messages[-1][1]
