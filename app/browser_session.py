@@ -206,11 +206,14 @@ class BrowserSession:
         self.refresh()
 
     def clear_selection(self) -> None:
+        """Nothing selected (Escape): no label, segment or suggestion, and no description of the
+        last thing clicked."""
         with self.lock:
             self.selected_label_id = None
             self.selected_label_version = None
             self.selected_patch_ids = set()
             self.suggestion = None
+        self.state.set_selection("")
         self.refresh()
 
     def selected_points(self) -> np.ndarray:

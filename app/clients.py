@@ -130,6 +130,15 @@ class ClientView(BrowserSession):
             boxes.append((np.asarray(item["box"]), REVIEW_RGB, "/client/review_box"))
         else:
             scene.remove_by_name("/client/review_box")
+        if label is not None and label.frame_index == self.state.frame_index:
+            box = np.asarray(label.box)
+            scene.add_label(
+                "/client/selected_name",
+                text=label.class_name,
+                position=(box[0], box[1], box[2] + box[5] / 2 + 0.1),
+            )
+        else:
+            scene.remove_by_name("/client/selected_name")
         for box, rgb, name in boxes:
             segments = box_wireframe_segments(box[None]).astype(np.float32).reshape(-1, 2, 3)
             scene.add_line_segments(

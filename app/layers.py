@@ -148,10 +148,11 @@ class LayerView:
         show_suppressed: bool,
         color_by_match: bool,
         labels: tuple[np.ndarray, np.ndarray] | None,
+        names: bool = True,
     ) -> None:
         """Replace the detection boxes: kept ones coloured by class (or by match against
         ``labels``, ``(boxes (R, 7), class_ids (R,))``: true positive, false positive, missed
-        label), with a class-and-score label; suppressed ones grey when asked."""
+        label), with a class-and-score label when ``names``; suppressed ones grey when asked."""
         with self.server.atomic():
             for node in self.detection_nodes:
                 node.remove()
@@ -172,7 +173,7 @@ class LayerView:
                 rgb = np.where(tp[:, None], MATCH_RGB["tp"], MATCH_RGB["fp"])
                 missed = label_boxes[np.setdiff1d(np.arange(len(label_boxes)), matched[matched >= 0])]
             self._add_boxes("/pipeline/detections", detections.boxes[kept], rgb, 3.0)
-            for n, k in enumerate(kept[:MAX_LABELS]):
+            for n, k in enumerate(kept[:MAX_LABELS] if names else ()):
                 box = detections.boxes[k]
                 self.detection_nodes.append(
                     self.server.scene.add_label(

@@ -58,9 +58,15 @@ class SceneView:
         )
 
     def draw_labels(
-        self, boxes: np.ndarray, class_ids: np.ndarray, class_names: tuple[str, ...], visible: bool
+        self,
+        boxes: np.ndarray,
+        class_ids: np.ndarray,
+        class_names: tuple[str, ...],
+        visible: bool,
+        names: bool = True,
     ) -> None:
-        """Replace the label boxes (wireframes in the class colour, with the class name on top)."""
+        """Replace the label boxes (wireframes in the class colour, with the class name on top
+        when ``names``)."""
         with self.server.atomic():
             for node in self._label_nodes:
                 node.remove()
@@ -78,6 +84,8 @@ class SceneView:
                     thickness_units="screen",
                 )
             )
+            if not names:
+                return
             tops = boxes[:, :3] + np.c_[np.zeros((len(boxes), 2)), boxes[:, 5] / 2 + 0.1]
             for i, (top, class_id) in enumerate(zip(tops, class_ids)):
                 self._label_nodes.append(

@@ -60,6 +60,9 @@ class AppState:
         )
         self.point_size = 0.04
         self.show_boxes = True
+        # Names on every box overlap into an unreadable cloud of text at the default view: off, only
+        # the selected box is named (each browser's own) and a click on a box describes it.
+        self.show_box_names = False
         self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
         self.num_frame_changes = 0
         # Detection front half: which layers show, its parameters, and the worker's progress.
@@ -133,6 +136,7 @@ class AppState:
         point_size: float | None = None,
         show_boxes: bool | None = None,
         max_height: float | None = None,
+        show_box_names: bool | None = None,
     ) -> None:
         """Change how the frame is drawn; ``None`` leaves a setting as it is."""
         with self.lock:
@@ -146,6 +150,8 @@ class AppState:
                 self.show_boxes = bool(show_boxes)
             if max_height is not None:
                 self.max_height = float(max_height)
+            if show_box_names is not None:
+                self.show_box_names = bool(show_box_names)
             self.changed.notify_all()
         self._notify()
 

@@ -115,7 +115,12 @@ class FactorydetApp:
         with self._draw_lock:
             with self.state.lock:
                 key = (self.state.frame_index, self.state.color_mode, self.state.max_height)
-                labels_key = (self.state.frame_index, self.state.revision, self.state.show_boxes)
+                labels_key = (
+                    self.state.frame_index,
+                    self.state.revision,
+                    self.state.show_boxes,
+                    self.state.show_box_names,
+                )
                 point_size = self.state.point_size
                 frame = self.state.frame
             if key != self._drawn:
@@ -125,7 +130,9 @@ class FactorydetApp:
                 self.scene.set_point_size(point_size)
             if labels_key != self._labels_key:
                 boxes, class_ids, _ = self.state.frame_labels(labels_key[0])
-                self.scene.draw_labels(boxes, class_ids, self.state.dataset.class_names, labels_key[2])
+                self.scene.draw_labels(
+                    boxes, class_ids, self.state.dataset.class_names, labels_key[2], names=labels_key[3]
+                )
                 self._labels_key = labels_key
             with self.state.lock:
                 result = self.state.pipeline_result
@@ -149,13 +156,14 @@ class FactorydetApp:
                     layers["detections"],
                     self.state.show_suppressed,
                     self.state.color_by_match,
+                    self.state.show_box_names,
                 )
             if detections_key != self._detections_key:
                 labels = None
                 if detections is not None:
                     boxes, class_ids, _ = self.state.frame_labels(detection_frame)
                     labels = (boxes, class_ids)
-                self.layers.draw_detections(detections, *detections_key[1:], labels)
+                self.layers.draw_detections(detections, *detections_key[1:4], labels, names=detections_key[4])
                 self.layers.detection_source = (detection_result, detection_frame)
                 self._detections_key = detections_key
             self.frame_panel.refresh(self.state)
@@ -166,7 +174,14 @@ class FactorydetApp:
             if self.training_panel is not None:
                 self.training_panel.refresh(self.state)
             with self.state.lock:
-                clients_key = (self.state.revision, self.state.frame_index, id(self.layers.drawn_result))
+                # (the suspects and the world placement's progress show in each browser's panels)
+                clients_key = (
+                    self.state.revision,
+                    self.state.frame_index,
+                    id(self.layers.drawn_result),
+                    id(self.state.suspects),
+                    self.state.world_status,
+                )
             if clients_key != self._clients_key:
                 self._clients_key = clients_key
                 for view in self._client_views():

@@ -26,11 +26,15 @@ class DisplayPanel:
     point_size: viser.GuiSliderHandle
     show_boxes: viser.GuiCheckboxHandle
     max_height: viser.GuiSliderHandle
+    show_box_names: viser.GuiCheckboxHandle
 
     def refresh(self, state: AppState) -> None:
         """Show the state's display settings (another client or the code may have changed them)."""
         with state.lock:
             mode, size, boxes, height = state.color_mode, state.point_size, state.show_boxes, state.max_height
+            names = state.show_box_names
+        if self.show_box_names.value != names:
+            self.show_box_names.value = names
         if self.color_mode.value != _MODE_LABELS[mode]:
             self.color_mode.value = _MODE_LABELS[mode]
         if self.point_size.value != size:
@@ -51,6 +55,12 @@ def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPa
             "Point size (m)", min=0.005, max=0.2, step=0.005, initial_value=state.point_size
         )
         show_boxes = server.gui.add_checkbox("Show boxes", initial_value=state.show_boxes)
+        show_box_names = server.gui.add_checkbox(
+            "Box names",
+            initial_value=state.show_box_names,
+            hint="Every label's class and every detection's class and score over its box; off, only the "
+            "selected box is named",
+        )
         max_height = server.gui.add_slider(
             "Hide above (m)",
             min=0.5,
@@ -78,10 +88,16 @@ def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPa
             return
         state.set_display(show_boxes=bool(show_boxes.value))
 
+    @show_box_names.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
+        state.set_display(show_box_names=bool(show_box_names.value))
+
     @max_height.on_update
     def _(event: viser.GuiEvent) -> None:
         if not from_user(event):
             return
         state.set_display(max_height=float(max_height.value))
 
-    return DisplayPanel(color_mode, point_size, show_boxes, max_height)
+    return DisplayPanel(color_mode, point_size, show_boxes, max_height, show_box_names)

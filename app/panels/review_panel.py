@@ -68,7 +68,7 @@ class ReviewPanel:
                 min_points=annotation_min_points(state.dataset, default=None),
             )
         for name, button in self.buttons.items():
-            button.disabled = not queue and name not in ("previous", "next", "find_suspects", "next_suspect")
+            button.disabled = not queue and name not in ("find_suspects", "next_suspect")
         suspect = view.current_suspect()
         count = len(state.suspects)
         text = (

@@ -362,3 +362,10 @@ def test_labels_export_for_a_download_as_the_command_line_writes_them(state, fmt
         files = zipfile.ZipFile(io.BytesIO(content)).namelist()
         assert name == f"people_labels_{fmt}.zip" and len(files) == state.dataset.num_frames
     assert person.export_labels("las") is None and "unknown label format" in person.messages[-1][1]
+
+
+def test_escape_clears_the_description_of_the_last_thing_clicked(state):
+    person = _person(state, "ann")
+    state.set_selection("**Patch 10**: 25 points")
+    person.clear_selection()
+    assert state.selection_markdown == "" and person.suggestion is None
