@@ -6,13 +6,26 @@ import numpy as np
 import viser
 
 from factorydet_core import colors
-from factorydet_core.geometry import box_wireframe_segments
+from factorydet_core.geometry import box_wireframe_segments, point_box_ids
 from factorydet_core.proposals.merge import merge_frame
 from factorydet_core.types import Frame
 
 
-def point_colors(frame: Frame, points_z: np.ndarray, mode: str) -> np.ndarray:
-    """(N, 3) uint8 colours of all the frame's points in colour ``mode``."""
+def point_colors(frame: Frame, points: np.ndarray, mode: str, labels: tuple | None = None) -> np.ndarray:
+    """(N, 3) uint8 colours of the frame's merged ``points`` (N, 3) in colour ``mode``.
+
+    Args:
+        labels: ``(boxes (R, 7), class_ids (R,))``, the session's labels of the frame: the class
+            and annotated modes colour the points inside them (the data set's per-point
+            annotations without a session), so that they follow every edit.
+    """
+    points_z = points[:, 2]
+    if mode in ("class", "annotated") and labels is not None:
+        box_ids = point_box_ids(points, np.asarray(labels[0], np.float64).reshape(-1, 7))
+        if mode == "annotated":
+            return colors.colors_by_annotation(box_ids + 1)
+        class_ids = np.append(np.asarray(labels[1], np.int64), -1)[box_ids]  # -1 (none) stays -1
+        return colors.colors_by_class(class_ids, frame.class_names)
     if mode == "sensor":
         return colors.colors_by_sensor(frame.sensor_ids, frame.num_sensors)
     if mode == "rgb" and frame.colors is not None:
@@ -41,10 +54,19 @@ class SceneView:
         server.scene.configure_environment_map(None)
         server.scene.add_grid("/grid", width=60.0, height=60.0, cell_size=1.0, section_size=5.0, plane="xy")
 
-    def draw(self, frame: Frame, *, color_mode: str, point_size: float, max_height: float) -> None:
-        """Replace the shown scan with ``frame``'s, points above ``max_height`` hidden."""
+    def draw(
+        self,
+        frame: Frame,
+        *,
+        color_mode: str,
+        point_size: float,
+        max_height: float,
+        labels: tuple | None = None,
+    ) -> None:
+        """Replace the shown scan with ``frame``'s, points above ``max_height`` hidden (``labels``:
+        the session's, for the class and annotated colours, see ``point_colors``)."""
         merged = merge_frame(frame)
-        rgb = point_colors(frame, merged.points[:, 2], color_mode)
+        rgb = point_colors(frame, merged.points, color_mode, labels)
         keep = merged.below(max_height)
         merged, rgb = merged.select(keep), rgb[keep]
         self.shown = (merged.points, rgb)

@@ -114,7 +114,14 @@ class FactorydetApp:
         """Bring the scene and the panels up to date with the state."""
         with self._draw_lock:
             with self.state.lock:
-                key = (self.state.frame_index, self.state.color_mode, self.state.max_height)
+                # Colours from the labels follow every edit: the session's revision is part of the key.
+                by_labels = self.state.color_mode in ("class", "annotated") and self.state.editable
+                key = (
+                    self.state.frame_index,
+                    self.state.color_mode,
+                    self.state.max_height,
+                    self.state.revision if by_labels else None,
+                )
                 labels_key = (
                     self.state.frame_index,
                     self.state.revision,
@@ -124,7 +131,10 @@ class FactorydetApp:
                 point_size = self.state.point_size
                 frame = self.state.frame
             if key != self._drawn:
-                self.scene.draw(frame, color_mode=key[1], point_size=point_size, max_height=key[2])
+                labels = self.state.frame_labels(key[0])[:2] if by_labels else None
+                self.scene.draw(
+                    frame, color_mode=key[1], point_size=point_size, max_height=key[2], labels=labels
+                )
                 self._drawn = key
             else:
                 self.scene.set_point_size(point_size)

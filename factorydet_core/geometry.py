@@ -114,6 +114,22 @@ def points_in_box(points: np.ndarray, box: np.ndarray, margin: float = 0.0) -> n
     return (np.abs(local) <= box[3:6] / 2 + margin).all(axis=1)
 
 
+def point_box_ids(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(N,) int64: the first of the (M, 7) ``boxes`` each of the (N, 3) ``points`` lies in, -1 for
+    none (per-point labels from boxes)."""
+    check_array(points, (None, 3), name="points")
+    check_array(boxes, (None, 7), name="boxes", finite=True)
+    out = np.full(len(points), -1, np.int64)
+    for k in range(len(boxes) - 1, -1, -1):  # backwards, so that the first box wins
+        reach = float(np.hypot(boxes[k, 3], boxes[k, 4])) / 2
+        near = np.flatnonzero(
+            (np.abs(points[:, 0] - boxes[k, 0]) <= reach) & (np.abs(points[:, 1] - boxes[k, 1]) <= reach)
+        )
+        if len(near):
+            out[near[points_in_box(points[near], boxes[k])]] = k
+    return out
+
+
 def transform_boxes(transform: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     """Move (M, 7) boxes by a (4, 4) transform whose rotation is about z only; returns (M, 7)."""
     check_array(boxes, (None, 7), name="boxes", finite=True)

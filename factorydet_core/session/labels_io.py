@@ -29,7 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from factorydet_core.boxes import box_iou_3d
-from factorydet_core.geometry import points_in_box, wrap_angle
+from factorydet_core.geometry import point_box_ids, wrap_angle
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
 from factorydet_core.io.npz import load_npz
 from factorydet_core.proposals.merge import merge_frame
@@ -156,12 +156,10 @@ def scene_arrays(db: SessionDB, frame_index: int, labels: list[Label] | None = N
     labels = db.labels(frame_index) if labels is None else labels
     boxes = np.array([lab.box for lab in labels], np.float32).reshape(-1, 7)
     names = ("none", *db.class_names)
-    point_instance = np.zeros(len(points), np.int32)
-    point_semantic = np.zeros(len(points), np.int32)
-    for k, lab in enumerate(labels):
-        inside = points_in_box(points, np.asarray(lab.box, np.float64)) & (point_instance == 0)
-        point_instance[inside] = k + 1
-        point_semantic[inside] = names.index(lab.class_name)
+    box_ids = point_box_ids(points, boxes.astype(np.float64))  # a point in two boxes: the first
+    point_instance = (box_ids + 1).astype(np.int32)
+    label_semantic = np.array([names.index(lab.class_name) for lab in labels] + [0], np.int32)
+    point_semantic = label_semantic[box_ids]  # -1 (none) picks the trailing 0
     return {
         "points": points.astype(np.float32),
         "boxes": boxes,

@@ -41,8 +41,8 @@ def test_real_files_open_in_their_own_colours():
     state = AppState(open_dataset(path))
     assert state.color_mode == "rgb" and state.dataset.num_frames == 1
     frame = state.frame
-    assert (point_colors(frame, frame.points[:, 2], "rgb") == frame.colors).all()
-    by_class = point_colors(frame, frame.points[:, 2], "class")
+    assert (point_colors(frame, frame.points, "rgb") == frame.colors).all()
+    by_class = point_colors(frame, frame.points, "class")
     assert by_class.shape == (frame.num_points, 3) and len(np.unique(by_class, axis=0)) > 5
 
 
@@ -52,7 +52,21 @@ def test_rgb_mode_falls_back_to_height_without_colours(small_dataset_dir):
 
     frame = open_dataset(small_dataset_dir).frame(0)
     z = frame.points[:, 2]
-    assert (point_colors(frame, z, "rgb") == colors_by_height(z)).all()
+    assert (point_colors(frame, frame.points, "rgb") == colors_by_height(z)).all()
+
+
+def test_class_and_annotated_colours_follow_the_sessions_labels(small_dataset_dir):
+    from app.scene import point_colors
+    from factorydet_core.colors import colors_by_class
+
+    frame = open_dataset(small_dataset_dir).frame(0)
+    points = np.array([[0.0, 0.0, 0.5], [5.0, 0.0, 0.5], [5.1, 0.0, 0.5], [20.0, 0.0, 0.5]], np.float32)
+    boxes = np.array([[0.0, 0.0, 0.5, 1, 1, 1, 0], [5.0, 0.0, 0.5, 1, 1, 1, 0]], np.float64)
+    by_class = point_colors(frame, points, "class", (boxes, np.array([3, 0])))
+    expected = colors_by_class(np.array([3, 0, 0, -1]), frame.class_names)
+    assert (by_class == expected).all()
+    labelled = point_colors(frame, points, "annotated", (boxes, np.array([3, 0])))
+    assert (labelled[:3] == labelled[0]).all() and not (labelled[3] == labelled[0]).all()
 
 
 @pytest.mark.slow

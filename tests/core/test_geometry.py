@@ -89,3 +89,19 @@ def test_group_bounds_are_each_groups_min_and_max(seed, num_points, num_groups):
             assert np.isposinf(lo[group]).all() and np.isneginf(hi[group]).all()
     with pytest.raises(ValueError, match="group ids"):
         group_bounds(points, np.zeros(num_points + 1, np.int64), num_groups)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 6), st.integers(0, 10_000))
+def test_point_box_ids_give_the_first_box_holding_each_point(num_boxes, seed):
+    from factorydet_core.geometry import point_box_ids, points_in_box
+
+    rng = np.random.default_rng(seed)
+    boxes = np.c_[
+        rng.uniform(-3, 3, (num_boxes, 3)), rng.uniform(0.2, 3, (num_boxes, 3)), rng.uniform(-3, 3, num_boxes)
+    ]
+    points = rng.uniform(-5, 5, (300, 3))
+    ids = point_box_ids(points, boxes)
+    inside = np.array([points_in_box(points, b) for b in boxes]).reshape(num_boxes, len(points))
+    expected = np.where(inside.any(axis=0), inside.argmax(axis=0), -1) if num_boxes else np.full(300, -1)
+    np.testing.assert_array_equal(ids, expected)
