@@ -207,7 +207,7 @@ class AppState:
             for index, item in self.frame_detections.items():
                 boxes, class_ids, _ = self.frame_labels(index)
                 item["reference_boxes"], item["reference_class_ids"] = boxes, class_ids
-            self._refilter()
+            self._update_metrics()  # the detections are the same: only what they are measured against
             self.changed.notify_all()
         self._notify()
 
@@ -334,6 +334,11 @@ class AppState:
 
     def _refilter(self) -> None:
         """Recompute the shown detections and the metrics (under the lock)."""
+        self._select_shown()
+        self._update_metrics()
+
+    def _select_shown(self) -> None:
+        """The shown frame's detections at the current thresholds (under the lock)."""
         result = self.detection_result
         per_class = self.class_thresholds()
         self.detections = (
@@ -347,18 +352,24 @@ class AppState:
                 vote_iou=self._vote_iou(),
             )
         )
+
+    def _update_metrics(self) -> None:
+        """The metrics over the frames viewed (under the lock). Each frame's detections down to the
+        AP floor are kept with the thresholds they were selected at: a label edit changes only
+        the references, so it recomputes no NMS (that took seconds per edit)."""
+        per_class = self.class_thresholds()
         if self.model is None or not self.frame_detections:
             self.metrics = None
             return
         scored = []
+        floor_key = (min(AP_SCORE_FLOOR, self.score_threshold), self.nms_iou, self._vote_iou())
         for item in self.frame_detections.values():
-            floor = select_detections(
-                item["candidates"],
-                min(AP_SCORE_FLOOR, self.score_threshold),
-                self.nms_iou,
-                vote_iou=self._vote_iou(),
-            )
-            kept = floor.subset(floor.kept_mask)
+            if item.get("floor_key") != floor_key:
+                floor = select_detections(
+                    item["candidates"], floor_key[0], floor_key[1], vote_iou=floor_key[2]
+                )
+                item["floor"], item["floor_key"] = floor.subset(floor.kept_mask), floor_key
+            kept = item["floor"]
             scored.append(
                 {
                     "boxes": kept.boxes,

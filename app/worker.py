@@ -67,6 +67,18 @@ class PipelineWorker:
         """(S, 4, 4) the extrinsics refined for the drawn frames, ``None`` until the first frame."""
         return self._refined_extrinsics
 
+    @property
+    def idle(self) -> bool:
+        """Nothing asked for and nothing computed ahead (the shown frame's neighbours are cached
+        or out of range)."""
+        with self._wake:
+            pending = self._pending
+        with self._cache_lock:
+            ahead = self._ahead_key is not None
+        with self.state.lock:
+            busy = self.state.pipeline_busy
+        return not (pending or ahead or busy)
+
     def request(self) -> None:
         with self._wake:
             self._pending = True

@@ -23,7 +23,88 @@ def _inside(points: np.ndarray, rectangles: np.ndarray) -> np.ndarray:
 
 
 def rectangle_intersection_areas(corners_a: np.ndarray, corners_b: np.ndarray) -> np.ndarray:
-    """Areas of the intersections of pairs of convex quadrilaterals, vectorised over pairs.
+    """Areas of the intersections of pairs of convex quadrilaterals: each of ``corners_a`` clipped
+    by the four edges of its pair in ``corners_b`` (Sutherland-Hodgman), in a compiled kernel.
+
+    NMS of a frame's candidates down to the AP floor compares some 300,000 pairs of boxes; the
+    vectorised NumPy construction (``_intersection_areas_numpy``, kept as the reference the tests
+    compare against) took 7 microseconds a pair, two seconds a frame.
+
+    Args:
+        corners_a: (K, 4, 2) counter-clockwise corners.
+        corners_b: (K, 4, 2) counter-clockwise corners.
+
+    Returns:
+        (K,) areas.
+    """
+    corners_a = np.ascontiguousarray(corners_a, np.float64).reshape(-1, 4, 2)
+    corners_b = np.ascontiguousarray(corners_b, np.float64).reshape(-1, 4, 2)
+    out = np.zeros(len(corners_a))
+    if len(out):
+        run_kernel(_compile_intersection_areas, corners_a, corners_b, out)
+    return out
+
+
+def _compile_intersection_areas():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def areas(corners_a, corners_b, out):
+        polygon = np.empty((12, 2))
+        clipped = np.empty((12, 2))
+        for k in range(out.shape[0]):
+            num = 4
+            for i in range(4):
+                polygon[i, 0] = corners_a[k, i, 0]
+                polygon[i, 1] = corners_a[k, i, 1]
+            # Rounding tolerance as the reference's: a corner on an edge (flush or identical boxes)
+            # counts as inside.
+            scale = 0.0
+            for e in range(4):
+                f = (e + 1) % 4
+                scale = max(
+                    scale,
+                    abs(corners_b[k, f, 0] - corners_b[k, e, 0])
+                    + abs(corners_b[k, f, 1] - corners_b[k, e, 1]),
+                )
+            tolerance = 1e-12 * scale * scale
+            for e in range(4):
+                if num == 0:
+                    break
+                f = (e + 1) % 4
+                x0, y0 = corners_b[k, e, 0], corners_b[k, e, 1]
+                ex, ey = corners_b[k, f, 0] - x0, corners_b[k, f, 1] - y0
+                count = 0
+                for i in range(num):
+                    j = (i + 1) % num
+                    px, py = polygon[i, 0], polygon[i, 1]
+                    qx, qy = polygon[j, 0], polygon[j, 1]
+                    side_p = ex * (py - y0) - ey * (px - x0)  # >= 0: left of the CCW edge, inside
+                    side_q = ex * (qy - y0) - ey * (qx - x0)
+                    inside_p, inside_q = side_p >= -tolerance, side_q >= -tolerance
+                    if inside_p:
+                        clipped[count, 0], clipped[count, 1] = px, py
+                        count += 1
+                    if inside_p != inside_q:
+                        t = side_p / (side_p - side_q)
+                        clipped[count, 0] = px + t * (qx - px)
+                        clipped[count, 1] = py + t * (qy - py)
+                        count += 1
+                for i in range(count):
+                    polygon[i, 0], polygon[i, 1] = clipped[i, 0], clipped[i, 1]
+                num = count
+            twice_area = 0.0
+            for i in range(num):
+                j = (i + 1) % num
+                twice_area += polygon[i, 0] * polygon[j, 1] - polygon[j, 0] * polygon[i, 1]
+            out[k] = abs(twice_area) / 2 if num >= 3 else 0.0
+
+    return areas
+
+
+def _intersection_areas_numpy(corners_a: np.ndarray, corners_b: np.ndarray) -> np.ndarray:
+    """The same areas, vectorised over pairs in NumPy: the reference the compiled kernel is tested
+    against.
 
     The intersection of two convex polygons is the convex hull of the corners of each that lie
     inside the other and of their edge crossings; all of these lie on that hull, so sorting them

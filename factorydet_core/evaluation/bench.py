@@ -7,7 +7,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import re
 import statistics
 import time
 from collections.abc import Sequence
@@ -20,12 +19,15 @@ from factorydet_core.detection.classifier import ProposalClassifier
 from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.groups import BoxSizePrior, best_option_iou
 from factorydet_core.detection.model import DetectionModel
-from factorydet_core.evaluation.bench_tables import record_line, render_record
+from factorydet_core.evaluation.bench_tables import (  # noqa: F401 - the page writers, re-exported
+    check_readme_block,
+    record_path,
+    update_readme,
+)
 from factorydet_core.evaluation.evaluate import detector_for, measure
 from factorydet_core.evaluation.plots import plot_voxel_sweep
 from factorydet_core.evaluation.records import machine_info
 from factorydet_core.geometry import rotation_angle_deg
-from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.metrics import best_box_iou, best_point_iou, proposal_point_lists, recall_table
 from factorydet_core.proposals.candidates import box_hypotheses
@@ -64,58 +66,6 @@ def bench_simulate(num_frames: int = 10, points_per_frame: int = 80_000, seed: i
         "target_seconds_per_frame": 0.5,
         "machine": machine_info(),
     }
-
-
-def check_readme_block(readme: str | os.PathLike, name: str) -> None:
-    """Raise ``InputError`` unless ``readme`` has a ``<!-- bench:name -->`` block (checked before a
-    long benchmark, not after it)."""
-    if not re.fullmatch(r"[A-Za-z0-9_-]+", name):
-        raise InputError(f"README block names are letters, digits, '-' and '_', got {name!r}")
-    path = Path(readme)
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
-    text = path.read_text()
-    if f"<!-- bench:{name} -->" not in text or f"<!-- /bench:{name} -->" not in text:
-        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
-
-
-def record_path(readme: str | os.PathLike, name: str) -> Path:
-    """Where ``update_readme`` keeps the record of block ``name``: ``bench/<name>.json`` beside the
-    page, so that the page links to it as ``bench/<name>.json``."""
-    return Path(readme).parent / "bench" / f"{name}.json"
-
-
-def update_readme(
-    readme: str | os.PathLike, result: dict, name: str | None = None, markdown: str | None = None
-) -> None:
-    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with a table of
-    ``result``'s headline figures; ``name`` defaults to the result's ``benchmark`` (a second block
-    of the same benchmark, on other data, takes a name of its own).
-
-    Without ``markdown`` the table comes from the benchmark's renderer (``bench_tables``), the whole
-    record goes to ``record_path(readme, name)`` and the block ends with a line linking it and
-    naming the command. With ``markdown`` the block is that text alone: its caller renders the
-    table and writes the record itself (``bench hitl`` and ``bench quality`` with ``--out``). A
-    missing block, or a benchmark without a renderer, is refused before anything is written; each
-    file is written whole or not at all.
-    """
-    path = Path(readme)
-    name = result["benchmark"] if name is None else name
-    check_readme_block(path, name)
-    text = path.read_text()
-    pattern = re.compile(rf"<!-- bench:{name} -->.*?<!-- /bench:{name} -->", re.S)
-    if not pattern.search(text):
-        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
-    record = None
-    if markdown is None:
-        record = record_path(path, name)
-        link = record.relative_to(path.parent).as_posix()
-        markdown = render_record(result).strip() + "\n\n" + record_line(result, link)
-    block = f"<!-- bench:{name} -->\n{markdown.strip()}\n<!-- /bench:{name} -->"
-    if record is not None:
-        record.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(record, json.dumps(result, indent=2) + "\n")
-    write_text_atomic(path, pattern.sub(lambda _: block, text))
 
 
 def _median(values: list[float]) -> float:

@@ -1,4 +1,5 @@
-"""Short Markdown tables of the benchmarks' headline figures, one renderer per benchmark.
+"""Short Markdown tables of the benchmarks' headline figures, one renderer per benchmark, and the
+writer of a page's benchmark blocks (``update_readme``).
 
 A page shows the figures people compare (times, recalls, F-scores); the whole record, every class,
 setting and machine detail, goes to a JSON file beside the page (``bench/<block>.json``) that the
@@ -7,9 +8,13 @@ table links to. Every number in a table is read from the record here, never type
 
 from __future__ import annotations
 
+import json
+import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 
+from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.types import InputError
 
 Renderer = Callable[[dict], str]
@@ -29,6 +34,58 @@ def register(*benchmarks: str) -> Callable[[Renderer], Renderer]:
         return render
 
     return decorate
+
+
+def check_readme_block(readme: str | os.PathLike, name: str) -> None:
+    """Raise ``InputError`` unless ``readme`` has a ``<!-- bench:name -->`` block (checked before a
+    long benchmark, not after it)."""
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", name):
+        raise InputError(f"README block names are letters, digits, '-' and '_', got {name!r}")
+    path = Path(readme)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    text = path.read_text()
+    if f"<!-- bench:{name} -->" not in text or f"<!-- /bench:{name} -->" not in text:
+        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
+
+
+def record_path(readme: str | os.PathLike, name: str) -> Path:
+    """Where ``update_readme`` keeps the record of block ``name``: ``bench/<name>.json`` beside the
+    page, so that the page links to it as ``bench/<name>.json``."""
+    return Path(readme).parent / "bench" / f"{name}.json"
+
+
+def update_readme(
+    readme: str | os.PathLike, result: dict, name: str | None = None, markdown: str | None = None
+) -> None:
+    """Replace the block between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` with a table of
+    ``result``'s headline figures; ``name`` defaults to the result's ``benchmark`` (a second block
+    of the same benchmark, on other data, takes a name of its own).
+
+    Without ``markdown`` the table comes from the benchmark's renderer (``bench_tables``), the whole
+    record goes to ``record_path(readme, name)`` and the block ends with a line linking it and
+    naming the command. With ``markdown`` the block is that text alone: its caller renders the
+    table and writes the record itself (``bench hitl`` and ``bench quality`` with ``--out``). A
+    missing block, or a benchmark without a renderer, is refused before anything is written; each
+    file is written whole or not at all.
+    """
+    path = Path(readme)
+    name = result["benchmark"] if name is None else name
+    check_readme_block(path, name)
+    text = path.read_text()
+    pattern = re.compile(rf"<!-- bench:{name} -->.*?<!-- /bench:{name} -->", re.S)
+    if not pattern.search(text):
+        raise InputError(f"{path}: no '<!-- bench:{name} -->' block to update")
+    record = None
+    if markdown is None:
+        record = record_path(path, name)
+        link = record.relative_to(path.parent).as_posix()
+        markdown = render_record(result).strip() + "\n\n" + record_line(result, link)
+    block = f"<!-- bench:{name} -->\n{markdown.strip()}\n<!-- /bench:{name} -->"
+    if record is not None:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(record, json.dumps(result, indent=2) + "\n")
+    write_text_atomic(path, pattern.sub(lambda _: block, text))
 
 
 def render_record(result: dict) -> str:
@@ -476,4 +533,34 @@ def world_labels_markdown(result: dict) -> str:
         f" ({fmt(spread['objects'])} objects); {fmt(100 * spread['share_with_points'], 1)}% box an"
         f" object with points there, at a median IoU of {fmt(spread['iou'].get('median'), 3)} with"
         f" truth ({fmt(100 * spread['iou'].get('share_at_least_0.6', 0), 1)}% at 0.6 or more).\n"
+    )
+
+
+@register("walkthrough")
+def walkthrough_markdown(result: dict) -> str:
+    """A labeller's edits and frame changes, timed to the server and to the page, against the targets."""
+    rows = []
+    for step, figures in result["steps"].items():
+        target = result["target_frame_ms"] if step.startswith("frame change") else result["target_edit_ms"]
+        rows.append(
+            [
+                step,
+                fmt(figures["stored_median_ms"]),
+                fmt(figures["shown_median_ms"]),
+                fmt(figures["shown_max_ms"]),
+                fmt(target),
+            ]
+        )
+    render = result.get("browser_render") or {}
+    header = ["step", "stored (server), median ms", "shown (page), median ms", "shown, max ms", "target ms"]
+    return (
+        table(header, rows)
+        + f"\n\n{result['repeats']} rounds of key presses in headless Chromium on `{result['data']}` with"
+        " the shipped model and label once on (an edit reaches every frame that shows the object), once"
+        " the frames ahead are computed; 'stored' is when the database holds the edit (for a frame"
+        " change: its cached detections drawn into the scene), 'shown' when the page shows it. In this"
+        f" browser a notification alone takes {fmt(render.get('notification_alone_median_ms'))} ms to"
+        f" show and {fmt(render.get('with_a_scene_change_median_ms'))} ms with a scene change in the same"
+        " update: headless Chromium renders the scene's 80k points in software WebGL before it shows"
+        " anything else, which a browser with a GPU does in milliseconds.\n"
     )

@@ -363,3 +363,48 @@ def test_fit_boxes_matches_the_plain_fit_of_each_set():
         fit_boxes(points, lists, np.zeros(2))
     with pytest.raises(InputError, match="boolean mask"):
         fit_boxes(points, [np.arange(len(points)) < 10])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.floats(-2, 2),
+            st.floats(-2, 2),
+            st.floats(0.01, 3),
+            st.floats(0.01, 3),
+            st.floats(-4, 4),
+            st.sampled_from(["random", "same", "flush", "inside"]),
+        ),
+        min_size=1,
+        max_size=20,
+    )
+)
+def test_the_compiled_intersection_areas_equal_the_numpy_reference(pairs):
+    from factorydet_core.boxes import (
+        _intersection_areas_numpy,
+        rectangle_corners,
+        rectangle_intersection_areas,
+    )
+
+    boxes_a, boxes_b = [], []
+    for x, y, dx, dy, yaw, kind in pairs:
+        a = [x, y, 0.0, dx, dy, 1.0, yaw]
+        b = {
+            "random": [y, x, 0.0, dy, dx, 1.0, -yaw],
+            "same": a,
+            "flush": [x + dx * np.cos(yaw), y + dx * np.sin(yaw), 0.0, dx, dy, 1.0, yaw],  # sharing an edge
+            "inside": [x, y, 0.0, dx / 2, dy / 2, 1.0, yaw],
+        }[kind]
+        boxes_a.append(a)
+        boxes_b.append(b)
+    corners_a, corners_b = rectangle_corners(np.array(boxes_a)), rectangle_corners(np.array(boxes_b))
+    fast = rectangle_intersection_areas(corners_a, corners_b)
+    np.testing.assert_allclose(fast, _intersection_areas_numpy(corners_a, corners_b), atol=1e-9)
+    for (_x, _y, dx, dy, _yaw, kind), area in zip(pairs, fast):
+        if kind == "same":
+            assert area == pytest.approx(dx * dy, rel=1e-9)
+        elif kind == "inside":
+            assert area == pytest.approx(dx * dy / 4, rel=1e-9)
+        elif kind == "flush":
+            assert area == pytest.approx(0.0, abs=1e-9)

@@ -1,0 +1,241 @@
+"""``bench walkthrough``: a labeller's edits timed as the browser sees them, by driving the real app
+in headless Chromium with the keyboard.
+
+    .venv/bin/python -m app.walkthrough DATA [--repeats 5] [--out docs/bench/walkthrough.json]
+        [--readme docs/labelling.md]
+
+Each step is a key press, timed until the server has stored its effect (the label's new version,
+polled from the database; for a frame change, its detections drawn into the scene) and until the
+page shows it (the selected label's new version in the Labels panel, the new frame number). The
+record also gives what one scene change costs this browser to render (``_render_cost``): in
+headless Chromium that is software WebGL, which a browser with a GPU does not pay. Runs in a
+scratch session on the data set (nothing is written under ``sessions/``), with the shipped model,
+label once on (edits reach every frame that shows the object). Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+
+import numpy as np
+import viser
+
+from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
+from factorydet_core.evaluation.bench_tables import update_readme
+from factorydet_core.evaluation.records import machine_info
+from factorydet_core.io.atomic import write_text_atomic
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.session.editing import Suggestion
+from factorydet_core.session.store import SessionDB, open_session
+
+from .screenshots import ARGS, CHROMIUM
+from .viewer import FactorydetApp
+
+TARGET_EDIT_MS = 200.0
+"""Issue target: an edit's round trip in the browser."""
+TARGET_FRAME_MS = 1000.0
+"""Issue target: a cached frame change with its detections."""
+
+
+def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.005)
+    raise TimeoutError(f"timed out waiting for {what}")
+
+
+def _timed(
+    action: Callable[[], None], stored: Callable[[], bool], shown: Callable[[], None]
+) -> tuple[float, float]:
+    """Milliseconds from ``action`` until the server has ``stored`` its effect (polled) and until
+    the page has ``shown`` it."""
+    start = time.perf_counter()
+    action()
+    _wait(stored, 60, "the edit stored")
+    stored_at = time.perf_counter()
+    shown()
+    return 1000.0 * (stored_at - start), 1000.0 * (time.perf_counter() - start)
+
+
+def _render_cost(page, view, repeats: int = 5) -> dict:
+    """What one scene change costs this browser: a notification's round trip alone, and with a
+    small scene change in the same update (the page renders the whole scene again before it shows
+    the notification; in headless Chromium that is software WebGL)."""
+    alone, with_scene = [], []
+    for k in range(repeats):
+        for scene_change, into in ((False, alone), (True, with_scene)):
+            start = time.perf_counter()
+            if scene_change:
+                view.client.scene.add_box(
+                    "/client/probe",
+                    color=(0, 0, 0),
+                    dimensions=(0.01, 0.01, 0.01),
+                    position=(float(k), 0.0, -5.0),
+                )
+            view.client.add_notification("probe", f"probe {k} {scene_change}", auto_close_seconds=0.5)
+            page.get_by_text(f"probe {k} {scene_change}", exact=False).first.wait_for(timeout=30_000)
+            into.append(1000.0 * (time.perf_counter() - start))
+            time.sleep(0.3)
+    view.client.scene.remove_by_name("/client/probe")
+    return {
+        "notification_alone_median_ms": round(statistics.median(alone), 1),
+        "with_a_scene_change_median_ms": round(statistics.median(with_scene), 1),
+    }
+
+
+def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = None) -> dict:
+    """Drive the app through the steps ``repeats`` times; returns the record."""
+    from playwright.sync_api import sync_playwright
+
+    dataset = open_dataset(data)
+    steps: dict[str, dict[str, list[float]]] = {}
+    render: dict = {}
+
+    def note(step: str, times: tuple[float, float]) -> None:
+        record = steps.setdefault(step, {"stored": [], "shown": []})
+        record["stored"].append(round(times[0], 1))
+        record["shown"].append(round(times[1], 1))
+        if progress is not None:
+            progress(f"{step}: stored after {times[0]:.0f} ms, shown after {times[1]:.0f} ms")
+
+    with tempfile.TemporaryDirectory() as root:
+        db = SessionDB(open_session("walkthrough", root), dataset)
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+        model = DetectionModel.load(DEFAULT_MODEL) if DEFAULT_MODEL.is_file() else None
+        app = FactorydetApp(server, dataset, model=model, model_name="shipped default", db=db)
+        try:
+            with sync_playwright() as pw:
+                browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+                page = browser.new_context(viewport={"width": 1400, "height": 1400}).new_page()
+                page.goto(f"http://127.0.0.1:{server.get_port()}/")
+                page.wait_for_selector("canvas[data-engine]", timeout=60_000)
+                _wait(lambda: app.clients, 60, "the browser")
+                view = next(iter(app.clients.values()))
+                _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
+                _wait(lambda: app.layers.detection_source[0] is not None, 600, "the first detections")
+                canvas = page.locator("canvas[data-engine]")
+                canvas.click(position={"x": 5, "y": 5})  # keys go to the page, not a panel
+                _wait(lambda: app.worker.idle, 600, "the frames ahead")
+                render.update(_render_cost(page, view))
+
+                def shows(text: str) -> Callable[[], None]:
+                    return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
+
+                for k in range(repeats):
+                    frame_index = app.state.frame_index
+                    label = next(lab for lab in db.labels(frame_index) if lab.instance_id is not None)
+                    view.select_label(label.id)
+                    page.get_by_text(f"Label #{label.id}:", exact=False).first.wait_for(timeout=30_000)
+                    # Timed once the frames ahead are computed: on two cores an edit would share
+                    # them with that work.
+                    _wait(lambda: app.worker.idle, 600, "the frames ahead")
+                    version = label.version
+                    for step, key in (
+                        ("nudge (shift+I)", "Shift+I"),
+                        ("undo (Z)", "z"),
+                        ("redo (Y)", "y"),
+                        ("set class (C)", "c"),
+                    ):
+                        if key == "c":
+                            name = "cone" if db.label(label.id).class_name != "cone" else "barrel"
+                            page.keyboard.press(str(dataset.class_names.index(name) + 1))
+                            _wait(lambda name=name: view.object_class == name, 30, "the class key")
+                        version += 1
+                        note(
+                            step,
+                            _timed(
+                                lambda key=key: page.keyboard.press(key),
+                                lambda version=version, label_id=label.id: (
+                                    db.label(label_id).version >= version
+                                ),
+                                shows(f"(version {version})"),
+                            ),
+                        )
+                    # The model's box for an object, accepted: the new label is selected in the page.
+                    box = tuple(float(v) for v in np.asarray(label.box) + [3.0, 3.0, 0, 0, 0, 0, 0])
+                    view.suggest(frame_index, Suggestion(box, "box", 0.9, 1))
+                    before = {lab.id for lab in db.labels(frame_index)}
+
+                    def new_ids(frame_index: int = frame_index, before: set = before) -> set:
+                        return {lab.id for lab in db.labels(frame_index)} - before
+
+                    def accepted(new_ids=new_ids) -> None:
+                        shows(f"Label #{min(new_ids())}:")()
+
+                    note(
+                        "accept suggested box (G)",
+                        _timed(
+                            lambda: page.keyboard.press("g"),
+                            lambda new_ids=new_ids: bool(new_ids()),
+                            accepted,
+                        ),
+                    )
+                    # The next frame, computed ahead while this one was shown.
+                    target = frame_index + 1
+                    if target >= dataset.num_frames:
+                        app.state.set_frame(0)
+                        continue
+                    _wait(lambda t=target: t in app.worker.cached_frames(), 600, "the next frame ahead")
+                    note(
+                        "frame change with its detections (PageDown)",
+                        _timed(
+                            lambda: page.keyboard.press("PageDown"),
+                            lambda t=target: app.layers.detection_source[1] == t,
+                            shows(f"{target + 1} / {dataset.num_frames}"),
+                        ),
+                    )
+                    if progress is not None:
+                        progress(f"round {k + 1} of {repeats} done")
+                browser.close()
+        finally:
+            app.close()
+            server.stop()
+    return {
+        "benchmark": "walkthrough",
+        "machine": machine_info(),
+        "data": str(data),
+        "repeats": int(repeats),
+        "label_once": True,
+        "target_edit_ms": TARGET_EDIT_MS,
+        "target_frame_ms": TARGET_FRAME_MS,
+        "browser_render": render,
+        "steps": {
+            step: {
+                "stored_median_ms": round(statistics.median(values["stored"]), 1),
+                "shown_median_ms": round(statistics.median(values["shown"]), 1),
+                "shown_max_ms": round(max(values["shown"]), 1),
+                "runs": values,
+            }
+            for step, values in steps.items()
+        },
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", help="a data set folder (e.g. sessions/demo/data)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", default=None, help="also write the JSON here")
+    parser.add_argument("--readme", default=None, help="update the page's walkthrough block (and its record)")
+    args = parser.parse_args(argv)
+    record = run(args.data, args.repeats, progress=lambda line: print(line, file=sys.stderr))
+    record["command"] = "python -m app.walkthrough " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = json.dumps(record, indent=2)
+    print(text)
+    if args.out:
+        write_text_atomic(args.out, text + "\n")
+    if args.readme:
+        update_readme(args.readme, record)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
