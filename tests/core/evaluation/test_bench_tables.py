@@ -20,6 +20,7 @@ BLOCKS = (
     ("performance.md", "detect"),
     ("performance.md", "memory"),
     ("labelling.md", "world-labels"),
+    ("labelling.md", "walkthrough"),
 )
 
 
