@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from factorydet_core.session.editing import box_of_points, split_in_two
+from factorydet_core.session.editing import box_of_points, camera_view_of_box, split_in_two
 from factorydet_core.session.labels_io import export_bytes
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import MOVING_CLASSES, place_box, spread_session
@@ -94,6 +94,17 @@ class BrowserSession:
 
     def look_at_box(self, box) -> None:
         """Put this browser's camera on ``box`` (7,)."""
+
+    def set_camera(self, position, look_at, up) -> None:
+        """Put this browser's camera at ``position`` looking at ``look_at`` with ``up`` up."""
+
+    def view_selected(self, view: str) -> None:
+        """Look at the selected box from above, its side or its front (``editing.BOX_VIEWS``)."""
+        label = self.selected_label()
+        if label is None:
+            self.notify("Box view", "Select a label first (click its box).")
+            return
+        self.set_camera(*camera_view_of_box(label.box, view))
 
     def refresh(self) -> None:
         """Bring this browser's panels and highlights up to date."""

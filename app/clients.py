@@ -94,6 +94,12 @@ class ClientView(BrowserSession):
             self.client.camera.position = tuple(position)
             self.client.camera.look_at = tuple(look_at)  # after position: setting it moves look_at
 
+    def set_camera(self, position, look_at, up) -> None:
+        with self.client.atomic():
+            self.client.camera.up_direction = tuple(float(v) for v in up)
+            self.client.camera.position = tuple(float(v) for v in position)
+            self.client.camera.look_at = tuple(float(v) for v in look_at)  # after position: it drags look_at
+
     def _object_class_shown(self, name: str) -> None:
         with self.lock:
             dropdowns = list(self.class_dropdowns)

@@ -48,6 +48,17 @@ for (const el of document.querySelectorAll('[class*="Notification-root"], [role=
 screenshots' scene."""
 
 
+def open_app_page(pw, app: FactorydetApp, width: int, height: int) -> tuple:
+    """Headless Chromium on ``app``'s page, once it is connected: ``(browser, page, the page's
+    ClientView)``."""
+    browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+    page = browser.new_context(viewport={"width": width, "height": height}).new_page()
+    page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
+    page.wait_for_selector("canvas[data-engine]", timeout=60_000)
+    _wait(lambda: app.clients, 60, "the browser")
+    return browser, page, next(iter(app.clients.values()))
+
+
 def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
     from playwright.sync_api import sync_playwright
 
@@ -65,12 +76,7 @@ def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
         shots = []
         try:
             with sync_playwright() as pw:
-                browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-                page = browser.new_context(viewport={"width": 1500, "height": 1200}).new_page()
-                page.goto(f"http://127.0.0.1:{server.get_port()}/")
-                page.wait_for_selector("canvas[data-engine]", timeout=60_000)
-                _wait(lambda: app.clients, 60, "the browser")
-                view = next(iter(app.clients.values()))
+                browser, page, view = open_app_page(pw, app, 1500, 1200)
                 for folder in ("Display", "Detection layers", "Segmentation", "Selection", "Detections"):
                     # Fold the viewing panels so the labelling ones fit on the page.
                     title = page.get_by_text(folder, exact=True).first

@@ -34,7 +34,7 @@ from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.editing import Suggestion
 from factorydet_core.session.store import SessionDB, open_session
 
-from .screenshots import ARGS, CHROMIUM
+from .screenshots import open_app_page
 from .viewer import FactorydetApp
 
 TARGET_EDIT_MS = 200.0
@@ -113,12 +113,7 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
         app = FactorydetApp(server, dataset, model=model, model_name="shipped default", db=db)
         try:
             with sync_playwright() as pw:
-                browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-                page = browser.new_context(viewport={"width": 1400, "height": 1400}).new_page()
-                page.goto(f"http://127.0.0.1:{server.get_port()}/")
-                page.wait_for_selector("canvas[data-engine]", timeout=60_000)
-                _wait(lambda: app.clients, 60, "the browser")
-                view = next(iter(app.clients.values()))
+                browser, page, view = open_app_page(pw, app, 1400, 1400)
                 _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
                 _wait(lambda: app.layers.detection_source[0] is not None, 600, "the first detections")
                 canvas = page.locator("canvas[data-engine]")

@@ -28,6 +28,7 @@ HOTKEYS: tuple[tuple[str, str], ...] = (
     ("Y", "redo"),
     ("escape", "clear the selection"),
     ("1-7", "choose the class (barrel … truck)"),
+    ("T / V / F", "look at the selected box from the top / its side / its front"),
     ("page down / page up", "next / previous frame"),
     ("shift+I / shift+K", "move the selected box 1 cm forward / back along its heading"),
     ("shift+J / shift+L", "move it 1 cm to its left / right"),
@@ -84,6 +85,9 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
         "Z": ("Undo", view.undo),
         "Y": ("Redo", lambda: view.undo(redo=True)),
         "escape": ("Clear the selection", view.clear_selection),
+        "T": ("View the selected box from the top", lambda: view.view_selected("top")),
+        "V": ("View the selected box from its side", lambda: view.view_selected("side")),
+        "F": ("View the selected box from its front", lambda: view.view_selected("front")),
         "pagedown": ("Next frame", lambda: view.state.step_frame(1)),
         "pageup": ("Previous frame", lambda: view.state.step_frame(-1)),
     }

@@ -146,6 +146,7 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             )
             yaw_deg = gui.add_number("Yaw (deg)", initial_value=0.0, step=0.1)
             apply_box = gui.add_button("Apply box", hint="Or drag the gizmo on the selected box")
+            box_view = gui.add_button_group("View it from", ("top [T]", "side [V]", "front [F]"))
         undo = gui.add_button("Undo [Z]")
         redo = gui.add_button("Redo [Y]")
         with gui.add_folder("Export", expand_by_default=False):
@@ -188,6 +189,8 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
     export.on_click(lambda _: view.download_labels(export_format.value))
     undo.on_click(lambda _: view.undo())
     redo.on_click(lambda _: view.undo(redo=True))
+
+    box_view.on_click(lambda _: view.view_selected(box_view.value.split(" ")[0]))
 
     @apply_box.on_click
     def _(_) -> None:

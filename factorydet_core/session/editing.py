@@ -91,6 +91,31 @@ def camera_for_box(
     return centre + distance * direction, centre
 
 
+BOX_VIEWS: tuple[str, ...] = ("top", "side", "front")
+"""The views of a selected box a labeller checks it from (``camera_view_of_box``)."""
+
+
+def camera_view_of_box(box, view: str, margin: float = 2.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(position (3,), look_at (3,), up (3,))`` of a camera looking at a box straight from above
+    (its heading pointing up the screen), from its left side, or from its front (along its
+    heading), far enough that the box fills about 1 / ``margin`` of the view.
+
+    Raises:
+        InputError: a view not in ``BOX_VIEWS``.
+    """
+    box = np.asarray(box, np.float64).reshape(7)
+    if view not in BOX_VIEWS:
+        raise InputError(f"unknown box view {view!r}; choose from {', '.join(BOX_VIEWS)}")
+    centre = box[:3]
+    heading = np.array([np.cos(box[6]), np.sin(box[6]), 0.0])
+    left = np.array([-heading[1], heading[0], 0.0])
+    distance = max(1.5, margin * float(np.max(box[3:6])))
+    if view == "top":
+        return centre + [0.0, 0.0, distance], centre, heading
+    direction = left if view == "side" else heading
+    return centre + distance * direction, centre, np.array([0.0, 0.0, 1.0])
+
+
 def split_in_two(points: np.ndarray, iterations: int = 20) -> np.ndarray:
     """(N,) 0/1 labels cutting a point set in two (two-means in the ground plane, started from the
     ends of its longest horizontal axis): how a person splits two objects one segment merged."""

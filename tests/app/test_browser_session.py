@@ -369,3 +369,16 @@ def test_escape_clears_the_description_of_the_last_thing_clicked(state):
     state.set_selection("**Patch 10**: 25 points")
     person.clear_selection()
     assert state.selection_markdown == "" and person.suggestion is None
+
+
+def test_box_views_move_this_browsers_camera_onto_the_selected_box(state):
+    person = _person(state, "ann")
+    cameras = []
+    person.set_camera = lambda position, look_at, up: cameras.append((position, look_at, up))
+    person.view_selected("top")
+    assert not cameras and "Select a label first" in person.messages[-1][1]
+    label = state.db.add_label(0, (1.0, 2.0, 0.5, 1.0, 0.5, 0.8, 0.0), "box", "ann")
+    person.select_label(label.id)
+    person.view_selected("front")
+    np.testing.assert_allclose(cameras[-1][1], [1.0, 2.0, 0.5])
+    assert cameras[-1][0][0] > 1.0  # in front of it, along its heading (+x)

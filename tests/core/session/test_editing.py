@@ -141,3 +141,22 @@ def test_a_clicked_point_suggests_the_best_candidate_whose_point_set_holds_it(de
             assert suggestion.score == pytest.approx(max(float(candidates.scores[k]) for k in holding))
     with pytest.raises(InputError, match="not one of the cloud's"):
         suggest_box(detected, len(patch_ids))
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.7, -2.5])
+def test_box_views_look_at_the_box_from_above_its_side_and_its_front(yaw):
+    from factorydet_core.session.editing import camera_view_of_box
+
+    box = np.array([3.0, -2.0, 0.5, 1.2, 0.6, 1.0, yaw])
+    heading = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    position, look_at, up = camera_view_of_box(box, "top")
+    np.testing.assert_allclose(look_at, box[:3])
+    np.testing.assert_allclose((position - look_at) / np.linalg.norm(position - look_at), [0, 0, 1])
+    np.testing.assert_allclose(up, heading)  # the box's heading points up the screen
+    position, look_at, up = camera_view_of_box(box, "front")
+    np.testing.assert_allclose((position - look_at) / np.linalg.norm(position - look_at), heading, atol=1e-12)
+    position, _, up = camera_view_of_box(box, "side")
+    assert abs(np.dot(position - box[:3], heading)) < 1e-9 and up.tolist() == [0, 0, 1]
+    assert np.linalg.norm(position - box[:3]) >= 1.5
+    with pytest.raises(InputError, match="unknown box view"):
+        camera_view_of_box(box, "back")
