@@ -23,7 +23,7 @@ import numpy as np
 from factorydet_core.session.editing import box_of_points, camera_view_of_box, split_in_two
 from factorydet_core.session.labels_io import export_bytes
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
-from factorydet_core.session.world import MOVING_CLASSES, place_box, spread_session
+from factorydet_core.session.world import MOVING_CLASSES, not_labelled_yet, place_box, spread_session
 from factorydet_core.types import InputError
 
 from .state import AppState
@@ -283,9 +283,14 @@ class BrowserSession:
             world = self._world_for(label.class_name)
             if world is None:
                 return db.update_label(label_id, self.author, expected_version=version, box=box)
-            frames = [lab.frame_index for lab in db.object_labels(label_id)]
-            boxes = place_box(world, label.frame_index, box).boxes_by_frame(frames)
-            return db.update_object(label_id, self.author, expected_version=version, boxes=boxes)
+            placement = place_box(world, label.frame_index, box)
+            return db.update_object(
+                label_id,
+                self.author,
+                expected_version=version,
+                boxes={f: tuple(b) for f, b in enumerate(placement.boxes.tolist())},
+                show_in=np.flatnonzero(placement.visible_mask).tolist(),
+            )
 
         self._edit_selected("Move box", edit)
 
@@ -331,6 +336,9 @@ class BrowserSession:
             self.notify("Accept box", "Click an object first: the model's box for it is suggested.")
             return
         frame_index, suggestion = suggested
+        if frame_index != self.state.frame_index:
+            self.notify("Accept box", "The suggested box is another frame's: click the object in this one.")
+            return
         added = self._guarded(
             lambda: self._add_object(frame_index, np.asarray(suggestion.box), class_name), "Accept box"
         )
@@ -343,13 +351,15 @@ class BrowserSession:
         world = self._world_for(class_name)
         if world is None:
             return self.state.db.add_labels([(frame_index, box, class_name)], self.author, "user")
-        frames = place_box(world, frame_index, box).boxes_by_frame()
+        items = [(f, b, class_name) for f, b in place_box(world, frame_index, box).boxes_by_frame().items()]
         return self.state.db.add_labels(
-            [(f, b, class_name) for f, b in frames.items()],
+            items,
             self.author,
             "user",
             as_object=True,
-            summary=f"add a {class_name} in {len(frames)} frame(s)",
+            # Not where the object is labelled already (the data set's label of it, say).
+            screen=lambda current: not_labelled_yet(items, current, keep_frame=frame_index),
+            summary=f"add a {class_name} in the frames that show it",
         )
 
     def label_segment(self, class_name: str, split: bool = False) -> None:

@@ -97,7 +97,10 @@ class FactorydetApp:
         self.worker = PipelineWorker(self.state, calibrate=calibrate)
         if db is not None:
             threading.Thread(
-                target=place_frames, args=(self.state,), name="factorydet-world", daemon=True
+                target=place_frames,
+                args=(self.state, lambda: self.worker.refined_extrinsics),
+                name="factorydet-world",
+                daemon=True,
             ).start()
         self.state.on_change(self.redraw)
         server.scene.on_click()(self._on_click)
@@ -301,11 +304,7 @@ class FactorydetApp:
                 info = describe_patch(result, frame, patch_id)
                 if view is not None:
                     view.select_patches(segment_patch_ids(result, patch_id), add=add)
-                    same_cloud = (
-                        detection_result is not None
-                        and detection_frame == frame_index
-                        and detection_result.proposal.cloud.num_points == result.cloud.num_points
-                    )
+                    same_cloud = detection_result is not None and detection_result.proposal is result
                     if same_cloud and self.state.editable and not add:
                         view.suggest(frame_index, suggest_box(detection_result, point))
         if info is None and view is not None and not add:

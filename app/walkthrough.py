@@ -33,6 +33,7 @@ from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.editing import Suggestion
 from factorydet_core.session.store import SessionDB, open_session
+from factorydet_core.session.world import MOVING_CLASSES
 
 from .screenshots import open_app_page
 from .viewer import FactorydetApp
@@ -126,7 +127,11 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
 
                 for k in range(repeats):
                     frame_index = app.state.frame_index
-                    label = next(lab for lab in db.labels(frame_index) if lab.instance_id is not None)
+                    label = next(  # an object that stands still: its edits reach every frame showing it
+                        lab
+                        for lab in db.labels(frame_index)
+                        if lab.instance_id is not None and lab.class_name not in MOVING_CLASSES
+                    )
                     view.select_label(label.id)
                     page.get_by_text(f"Label #{label.id}:", exact=False).first.wait_for(timeout=30_000)
                     # Timed once the frames ahead are computed: on two cores an edit would share

@@ -23,7 +23,6 @@ from collections.abc import Callable
 from factorydet_core.detection.detector import Detector
 from factorydet_core.proposals.voxels import voxel_colors
 from factorydet_core.session.world import session_world
-from factorydet_core.types import InputError
 
 from .state import AppState
 
@@ -282,8 +281,10 @@ def place_frames(state: AppState, extrinsics: Callable[[], object] | None = None
         else:  # its refined ones (else session_world refines them the same way)
             drawn_with = extrinsics() if extrinsics is not None else None
         world, from_cache = session_world(state.db.session, dataset, drawn_with, progress)
-    except (InputError, OSError, RuntimeError) as exc:
-        state.set_world(None, f"labels stay per frame: placing the frames failed ({exc})")
+    except Exception as exc:  # noqa: BLE001 - a thread of its own: say why, keep labels per frame
+        state.set_world(
+            None, f"labels stay per frame: placing the frames failed ({type(exc).__name__}: {exc})"
+        )
         return
     placed = "placed (poses from the session's cache)" if from_cache else "placed by ICP"
     state.set_world(world, f"{world.num_frames} frames {placed}")

@@ -50,8 +50,10 @@ def _compile_intersection_areas():
 
     @numba.njit(cache=True, nogil=True)
     def areas(corners_a, corners_b, out):
-        polygon = np.empty((12, 2))
-        clipped = np.empty((12, 2))
+        # Exact clipping of a quadrilateral by four half-planes leaves at most 8 corners; the
+        # room beyond that (and the guard below) keeps rounding on near-degenerate boxes in bounds.
+        polygon = np.empty((32, 2))
+        clipped = np.empty((32, 2))
         for k in range(out.shape[0]):
             num = 4
             for i in range(4):
@@ -82,6 +84,8 @@ def _compile_intersection_areas():
                     side_p = ex * (py - y0) - ey * (px - x0)  # >= 0: left of the CCW edge, inside
                     side_q = ex * (qy - y0) - ey * (qx - x0)
                     inside_p, inside_q = side_p >= -tolerance, side_q >= -tolerance
+                    if count >= 30:
+                        break
                     if inside_p:
                         clipped[count, 0], clipped[count, 1] = px, py
                         count += 1

@@ -431,6 +431,9 @@ VERDICTS = ("background", "object", "wrong_box", "skip")
 a label), a real object whose segment is wrong (to be boxed by hand), or not decided now."""
 DECIDED = ("background", "object", "wrong_box")
 ORIGINS = ("dataset", "user", "review", "import")
+SAME_OBJECT_IOU = 0.25
+"""Label once never adds a label where another label overlaps the object's box this much: that
+object is labelled there already (the data set's label of it, say, under its own id)."""
 NEW_OBJECT_ID = 1 << 32
 """The first instance id given to an object labelled in the session (the data set's own ids,
 which frames not imported yet may still bring, stay below it)."""
@@ -1450,6 +1453,24 @@ class SessionDB:
         return self.label(label_id)
 
     @staticmethod
+    def _overlapped(db, frame_index: int, box_json: str, instance_id: int | None) -> bool:
+        """Whether a live label of another object in the frame overlaps the box (IoU at least
+        ``SAME_OBJECT_IOU``): the object is labelled there already, under another id."""
+        import numpy as np
+
+        others = [
+            json.loads(r["box"])
+            for r in db.execute(
+                "SELECT box, instance_id FROM labels WHERE frame_index = ? AND deleted = 0", (frame_index,)
+            )
+            if instance_id is None or r["instance_id"] != instance_id
+        ]
+        if not others:
+            return False
+        iou = box_iou_3d(np.array([json.loads(box_json)], np.float64), np.array(others, np.float64))
+        return bool(iou.max() >= SAME_OBJECT_IOU)
+
+    @staticmethod
     def _members(db, row) -> list[sqlite3.Row]:
         """The live labels of the object ``row`` boxes, in frame order (``row`` alone without one)."""
         if row["instance_id"] is None:
@@ -1476,6 +1497,7 @@ class SessionDB:
         *,
         expected_version: int | None = None,
         boxes: dict | None = None,
+        show_in=None,
         class_name: str | None = None,
         origin: str = "user",
     ) -> Label:
@@ -1486,11 +1508,15 @@ class SessionDB:
                 object (``object_labels``).
             expected_version: the version of ``label_id`` the change was made against
                 (``EditConflictError`` if it changed since; nothing is written).
-            boxes: ``{frame_index: box}``, the object's box in each frame it should have one
-                (``world.Placement.boxes_by_frame``): each of its labels in these frames takes its
-                frame's box, the others keep theirs, and each of these frames without one gets a
-                new label of the object (``origin``). A label of this frame only becomes an object.
-            class_name: the class of all its labels.
+            boxes: ``{frame_index: box}``, the object's box in each frame (``world.Placement``):
+                each of its labels in these frames takes its frame's box, the others keep theirs.
+                A label of this frame only becomes an object (undo leaves it that id: an object of
+                one label is a label of one frame).
+            show_in: the frames among ``boxes`` that show the object (default: all of them): each
+                without a label of it gets one (``origin``), unless another label there overlaps
+                the box (IoU ``SAME_OBJECT_IOU`` or more: the object is labelled there already).
+                Decided here, in the writing transaction, so labels added meanwhile count.
+            class_name: the class of all its labels (``None``: each keeps its own).
 
         Returns:
             ``label_id`` as stored after the change.
@@ -1519,13 +1545,19 @@ class SessionDB:
                 after = {
                     "frame_index": member["frame_index"],
                     "box": wanted.get(member["frame_index"], member["box"]),
-                    "class_name": new_class,
+                    # A box move leaves each frame's class as it is; a class change sets them all.
+                    "class_name": member["class_name"] if class_name is None else class_name,
                     "deleted": 0,
                 }
                 if after != self._content(db, "labels", int(member["id"])):
                     changes.append(self._change(db, "labels", int(member["id"]), after, author))
             labelled = {m["frame_index"] for m in members}
-            added = [(f, box, new_class) for f, box in sorted(wanted.items()) if f not in labelled]
+            shown = set(wanted) if show_in is None else {int(f) for f in show_in} & set(wanted)
+            added = [
+                (f, wanted[f], new_class)
+                for f in sorted(shown - labelled)
+                if not self._overlapped(db, f, wanted[f], instance_id)
+            ]
             if added:
                 changes += self._insert_labels(db, added, origin, author, instance_id)[1]
             if not changes:

@@ -245,20 +245,26 @@ def spread_objects(labels_by_frame: dict, world: WorldFrames, *, min_points: int
     points of its own frame, with that label's class; its existing labels are left as they are.
 
     Args:
-        labels_by_frame: ``{frame_index: [store.Label]}`` of every frame (``SessionDB.frame_labels``).
+        labels_by_frame: ``{frame_index: [store.Label]}`` of every frame (``SessionDB.frame_labels``,
+            deleted ones included: a frame where someone deleted the object's label is left alone).
         world: the frames placed in one world frame.
 
     Returns:
         ``(frame_index, box, class_name, instance_id)`` items for ``SessionDB.add_labels``.
     """
     objects: dict[int, list] = {}
+    deleted_in: dict[int, set[int]] = {}
     for labels in labels_by_frame.values():
         for label in labels:
-            if label.instance_id is not None and not label.deleted and label.class_name not in MOVING_CLASSES:
+            if label.instance_id is None:
+                continue
+            if label.deleted:  # someone took the object out of that frame: it stays out
+                deleted_in.setdefault(int(label.instance_id), set()).add(label.frame_index)
+            elif label.class_name not in MOVING_CLASSES:
                 objects.setdefault(int(label.instance_id), []).append(label)
     items = []
     for instance_id, members in sorted(objects.items()):
-        labelled = {m.frame_index for m in members}
+        labelled = {m.frame_index for m in members} | deleted_in.get(instance_id, set())
         source = max(
             members,
             key=lambda m: (_count(world.clouds[m.frame_index], m.box), -m.frame_index),
@@ -347,6 +353,38 @@ class _Frames(Sequence):
         return self.dataset.frame(index)
 
 
+def not_labelled_yet(items: list[tuple], current: dict, keep_frame: int | None = None) -> list[int]:
+    """Positions in ``items`` (``(frame_index, box, class_name[, instance_id])``) whose frame has no
+    live label overlapping the box (IoU ``store.SAME_OBJECT_IOU`` or more) nor, with an instance id,
+    a label of that object: where label once may add the object without labelling it twice.
+    ``keep_frame``'s items are kept whatever (the frame the person drew it in).
+
+    Args:
+        current: ``{frame_index: [store.Label]}``, the frames' live labels (``add_labels``'s screen
+            reads them in its writing transaction).
+    """
+    from factorydet_core.boxes import box_iou_3d
+    from factorydet_core.session.store import SAME_OBJECT_IOU
+
+    keep = []
+    for k, item in enumerate(items):
+        frame, box = int(item[0]), np.asarray(item[1], np.float64).reshape(1, 7)
+        labels = [lab for lab in current.get(frame, []) if not lab.deleted]
+        if frame == keep_frame:
+            keep.append(k)
+            continue
+        instance_id = item[3] if len(item) > 3 else None
+        if instance_id is not None and any(lab.instance_id == instance_id for lab in labels):
+            continue
+        if (
+            labels
+            and box_iou_3d(box, np.array([lab.box for lab in labels], np.float64)).max() >= SAME_OBJECT_IOU
+        ):
+            continue
+        keep.append(k)
+    return keep
+
+
 def spread_session(db, world: WorldFrames, author: str, *, min_points: int = MIN_POINTS):
     """Label once what the session labels per frame: every object that stands still gets a label in
     each frame that shows it and has none (``spread_objects``), as one undoable edit. The CLI's
@@ -359,18 +397,13 @@ def spread_session(db, world: WorldFrames, author: str, *, min_points: int = MIN
         The labels added (a ``store.LabelBatch``; empty when every object is labelled everywhere).
     """
     frames = range(db.dataset.num_frames)
-    items = spread_objects(db.frame_labels(frames), world, min_points=min_points)
-
-    def still_missing(current: dict) -> list[int]:
-        # Read again in the writing transaction: someone may have labelled one meanwhile.
-        labelled = {(f, lab.instance_id) for f, labels in current.items() for lab in labels}
-        return [k for k, item in enumerate(items) if (item[0], item[3]) not in labelled]
+    items = spread_objects(db.frame_labels(frames, include_deleted=True), world, min_points=min_points)
 
     num_objects = len({item[3] for item in items})
     return db.add_labels(
         items,
         author,
         "user",
-        screen=still_missing,
+        screen=lambda current: not_labelled_yet(items, current),  # read again in the writing transaction
         summary=f"label once: {num_objects} object(s) labelled in {len(items)} more frame label(s)",
     )

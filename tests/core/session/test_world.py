@@ -244,3 +244,35 @@ def test_session_world_registers_once_and_reads_the_poses_back(tmp_path, small_d
     # Frames drawn with other extrinsics are registered again, on those.
     nominal, cached = session_world(session, dataset, np.asarray(dataset.T_vehicle_sensor))
     assert not cached and not np.array_equal(nominal.T_world_vehicle, first.T_world_vehicle)
+
+
+def test_label_once_never_labels_an_object_twice_nor_undoes_a_deletion(db):
+    # A box move keeps each frame's own class.
+    label = db.add_label(0, (30.0, 1.0, 0.4, 0.6, 0.6, 0.8, 0.0), "box", "ann")
+    db.update_object(label.id, "ann", boxes=_boxes(30.0))
+    other = next(lab for lab in db.object_labels(label.id) if lab.frame_index == 2)
+    db.update_label(other.id, "ann", class_name="pallet")
+    db.update_object(label.id, "ann", boxes=_boxes(31.0))
+    assert [lab.class_name for lab in db.object_labels(label.id)] == ["box", "box", "pallet"]
+    # A frame where another label overlaps the box gets no second label of the object.
+    lone = db.add_label(0, (70.0, 1.0, 0.4, 0.6, 0.6, 0.8, 0.0), "cone", "ann")
+    db.add_label(
+        1, (71.02, 1.0, 0.4, 0.6, 0.6, 0.8, 0.0), "cone", "bob"
+    )  # the same cone, labelled in frame 1
+    db.update_object(lone.id, "ann", boxes=_boxes(70.0), show_in=[0, 1, 2])
+    assert [lab.frame_index for lab in db.object_labels(lone.id)] == [0, 2]
+    # The spread leaves a frame where someone deleted the object's label.
+    dataset_label = next(
+        lab for lab in db.labels(0) if lab.origin == "dataset" and lab.class_name not in MOVING_CLASSES
+    )
+    world = WorldFrames(
+        np.stack([np.eye(4)] * 3),
+        np.ones(3),
+        tuple(_cube_points(dataset_label.box[:3], size=0.2, num=20) for _ in range(3)),
+    )
+    spread_session(db, world, "ann")
+    spread = {lab.frame_index: lab for lab in db.object_labels(dataset_label.id)}
+    assert set(spread) == {0, 1, 2}
+    db.delete_labels([spread[2].id], "ann")
+    assert len(spread_session(db, world, "ann")) == 0
+    assert 2 not in {lab.frame_index for lab in db.object_labels(dataset_label.id)}
