@@ -346,6 +346,20 @@ class BrowserSession:
             here = [lab for lab in added if lab.frame_index == frame_index]
             self.select_label((here or added)[-1].id)
 
+    def _placer(self, class_name: str | None):
+        """``place(frame_index, box) -> ({frame: box}, frames that show it)`` for an 'object'
+        verdict when label once applies to ``class_name`` (``SessionDB.review``), else ``None``."""
+        world = None if class_name is None else self._world_for(class_name)
+        if world is None:
+            return None
+
+        def place(frame_index: int, box) -> tuple[dict, list]:
+            placement = place_box(world, frame_index, box)
+            boxes = {f: tuple(b) for f, b in enumerate(placement.boxes.tolist())}
+            return boxes, np.flatnonzero(placement.visible_mask).tolist()
+
+        return place
+
     def _add_object(self, frame_index: int, box: np.ndarray, class_name: str):
         """A new label, placed in every frame that shows it when label once applies (one edit)."""
         world = self._world_for(class_name)
@@ -512,6 +526,7 @@ class BrowserSession:
                 self.author,
                 class_name=class_name,
                 expected_versions={item["id"]: item["review_version"]},
+                place=self._placer(class_name),
             ),
             "Review",
         )
@@ -547,6 +562,7 @@ class BrowserSession:
                 self.author,
                 class_name=class_name,
                 expected_versions={q["id"]: q["review_version"] for q in items},
+                place=self._placer(class_name),
             ),
             "Batch",
         )

@@ -1998,6 +1998,7 @@ class SessionDB:
         expected_versions: dict[int, int] | None = None,
         expected: dict[int, str | None] | None = None,
         override: bool = False,
+        place: Callable[[int, tuple], tuple[dict, list]] | None = None,
     ) -> int:
         """Give one verdict on mined negatives, as one undoable edit.
 
@@ -2013,6 +2014,11 @@ class SessionDB:
         - with ``expected`` (the verdict seen, ``None`` for unreviewed): refused if it differs;
         - without either (the command line, a script): refused if someone else gave it a decided
           verdict (background, object, wrong box), unless ``override``. A skip is no decision.
+
+        With ``place`` (label once: ``place(frame_index, box) -> ({frame: box}, frames that show
+        it)``), an 'object' label is the object in every frame that shows it (labels of origin
+        'review' sharing its instance id, never where another label overlaps the box), and a
+        later different verdict deletes them with it.
 
         Raises:
             EditConflictError: naming every refused item (also in its ``conflicts``); then nothing
@@ -2083,6 +2089,8 @@ class SessionDB:
                         wanted["class_name"] = class_name
                     if wanted != label:
                         changes.append(self._change(db, "labels", label_id, wanted, author))
+                    if verdict != "object":
+                        changes += self._delete_review_siblings(db, label_id, author)
                 elif verdict == "object":
                     self._import_frame(db, self._check_frame(item["frame_index"]))
                     label_id, change = self._insert_label(
@@ -2090,6 +2098,8 @@ class SessionDB:
                         where=f"mined negative {negative_id}",
                     )  # fmt: skip
                     changes.append(change)
+                if verdict == "object" and place is not None:
+                    changes += self._place_review_label(db, label_id, class_name, place, author)
                 after = {"verdict": verdict, "class_name": class_name, "label_id": label_id}
                 changes.append(self._change(db, "reviews", negative_id, after, author))
             if conflicts:
@@ -2107,6 +2117,47 @@ class SessionDB:
                 )
             what = _verdict_text(verdict, class_name)
             return self._edit(db, author, "review", f"review {len(ids)} mined negative(s) as {what}", changes)
+
+    def _place_review_label(
+        self, db, label_id: int, class_name: str, place: Callable, author: str
+    ) -> list[dict]:
+        """Label once for an 'object' verdict: the label's object added to the frames ``place``
+        says show it and that have no label of it (nor one overlapping it); the changes."""
+        row = db.execute("SELECT * FROM labels WHERE id = ?", (label_id,)).fetchone()
+        instance_id = row["instance_id"]
+        if instance_id is None:
+            instance_id = self._new_object_id(db)
+            db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, label_id))
+        boxes, show_in = place(row["frame_index"], tuple(json.loads(row["box"])))
+        labelled = {
+            r[0]
+            for r in db.execute(
+                "SELECT frame_index FROM labels WHERE instance_id = ? AND deleted = 0", (instance_id,)
+            )
+        }
+        items = []
+        for frame_index in sorted({int(f) for f in show_in} - labelled):
+            self._import_frame(db, self._check_frame(frame_index))
+            box = _box_json(boxes[frame_index], f"box of frame {frame_index}")
+            if not self._overlapped(db, frame_index, box, instance_id):
+                items.append((frame_index, box, class_name))
+        return self._insert_labels(db, items, "review", author, instance_id)[1]
+
+    def _delete_review_siblings(self, db, label_id: int, author: str) -> list[dict]:
+        """The other live 'review' labels of a verdict's label's object, deleted (the verdict is
+        no longer 'object'); the changes."""
+        row = db.execute("SELECT instance_id FROM labels WHERE id = ?", (label_id,)).fetchone()
+        if row is None or row["instance_id"] is None:
+            return []
+        siblings = db.execute(
+            "SELECT id FROM labels WHERE instance_id = ? AND id != ? AND deleted = 0 AND origin = 'review'",
+            (row["instance_id"], label_id),
+        ).fetchall()
+        changes = []
+        for sibling in siblings:
+            after = {**self._content(db, "labels", int(sibling["id"])), "deleted": 1}
+            changes.append(self._change(db, "labels", int(sibling["id"]), after, author))
+        return changes
 
     def mined_patch_sets(self) -> dict[int, list[tuple[int, ...]]]:
         """Point sets of every negative mined in the session (all runs), by frame."""

@@ -382,3 +382,26 @@ def test_box_views_move_this_browsers_camera_onto_the_selected_box(state):
     person.view_selected("front")
     np.testing.assert_allclose(cameras[-1][1], [1.0, 2.0, 0.5])
     assert cameras[-1][0][0] > 1.0  # in front of it, along its heading (+x)
+
+
+def test_an_object_verdict_labels_the_object_in_every_frame_and_a_later_verdict_takes_it_back(state):
+    person = _person(state, "ann")
+    person.step(0)
+    item = person.current_item()
+    centre = item["box"][:3]
+    # Every frame sees the item's object at the same place.
+    state.set_world(
+        WorldFrames(np.stack([np.eye(4)] * 3), np.ones(3), tuple(_cube(centre, num=30) for _ in range(3))),
+        "3 frames placed",
+    )
+    person.verdict("object", "box", advance=False)
+    label_id = next(q for q in state.db.review_queue() if q["id"] == item["id"])["label_id"]
+    members = state.db.object_labels(label_id)
+    assert sorted(lab.frame_index for lab in members) == [0, 1, 2]
+    assert {lab.origin for lab in members} == {"review"} and {lab.class_name for lab in members} == {"box"}
+    person.verdict("background", advance=False)
+    assert all(state.db.label(lab.id).deleted for lab in members)
+    person.undo()  # the background verdict: the object is back in every frame
+    assert not any(state.db.label(lab.id).deleted for lab in members)
+    person.undo()  # the object verdict: gone everywhere
+    assert all(state.db.label(lab.id).deleted for lab in members)
