@@ -17,6 +17,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import threading
+import time
 import traceback
 from collections.abc import Callable
 
@@ -272,8 +273,14 @@ def place_frames(state: AppState, extrinsics: Callable[[], object] | None = None
     # with them, so it starts once they are shown (or have failed), or after a minute anyway.
     state.wait_for(lambda: state.pipeline_result is not None or state.pipeline_failed_key is not None, 60.0)
 
+    last = [0.0]
+
     def progress(done: int, total: int) -> None:
-        state.set_world(None, f"placing the frames in one world frame: {done}/{total}")
+        # Each report refreshes every browser's panels: at most one a second.
+        now = time.monotonic()
+        if now - last[0] >= 1.0 or done == total:
+            last[0] = now
+            state.set_world(None, f"placing the frames in one world frame: {done}/{total}")
 
     try:
         if not state.use_refined_extrinsics:  # the viewer draws the nominal extrinsics
