@@ -283,13 +283,9 @@ class BrowserSession:
             world = self._world_for(label.class_name)
             if world is None:
                 return db.update_label(label_id, self.author, expected_version=version, box=box)
-            placement = place_box(world, label.frame_index, box)
+            boxes, show_in = place_box(world, label.frame_index, box).for_store()
             return db.update_object(
-                label_id,
-                self.author,
-                expected_version=version,
-                boxes={f: tuple(b) for f, b in enumerate(placement.boxes.tolist())},
-                show_in=np.flatnonzero(placement.visible_mask).tolist(),
+                label_id, self.author, expected_version=version, boxes=boxes, show_in=show_in
             )
 
         self._edit_selected("Move box", edit)
@@ -353,12 +349,7 @@ class BrowserSession:
         if world is None:
             return None
 
-        def place(frame_index: int, box) -> tuple[dict, list]:
-            placement = place_box(world, frame_index, box)
-            boxes = {f: tuple(b) for f, b in enumerate(placement.boxes.tolist())}
-            return boxes, np.flatnonzero(placement.visible_mask).tolist()
-
-        return place
+        return lambda frame_index, box: place_box(world, frame_index, box).for_store()
 
     def _add_object(self, frame_index: int, box: np.ndarray, class_name: str):
         """A new label, placed in every frame that shows it when label once applies (one edit)."""

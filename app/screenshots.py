@@ -30,12 +30,13 @@ ARGS = [
 ]  # fmt: skip
 
 
-def _wait(predicate, timeout: float, what: str) -> None:
+def wait_until(predicate, timeout: float, what: str, poll: float = 0.2) -> None:
+    """Poll ``predicate`` every ``poll`` seconds until it holds; ``TimeoutError`` after ``timeout``."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():
             return
-        time.sleep(0.2)
+        time.sleep(poll)
     raise TimeoutError(f"timed out waiting for {what}")
 
 
@@ -55,7 +56,7 @@ def open_app_page(pw, app: FactorydetApp, width: int, height: int) -> tuple:
     page = browser.new_context(viewport={"width": width, "height": height}).new_page()
     page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
     page.wait_for_selector("canvas[data-engine]", timeout=60_000)
-    _wait(lambda: app.clients, 60, "the browser")
+    wait_until(lambda: app.clients, 60, "the browser")
     return browser, page, next(iter(app.clients.values()))
 
 
@@ -84,12 +85,12 @@ def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
                         title.click()
                 page.get_by_text("Training", exact=True).first.click()
                 page.get_by_role("button", name="Train", exact=True).click()
-                _wait(lambda: app.state.training_busy, 30, "training to start")
-                _wait(lambda: not app.state.training_busy, 3600, "the first training run")
+                wait_until(lambda: app.state.training_busy, 30, "training to start")
+                wait_until(lambda: not app.state.training_busy, 3600, "the first training run")
                 page.get_by_text("Training", exact=True).first.click()  # fold it again
                 page.get_by_text("Labels", exact=True).first.click()  # fold: the queue fits
                 page.get_by_role("button", name="Next [N]").click()
-                _wait(lambda: view.current_item_id is not None, 30, "the first queue item")
+                wait_until(lambda: view.current_item_id is not None, 30, "the first queue item")
                 time.sleep(3)  # the dimmed scene and the camera move reach the canvas
                 page.evaluate(_HIDE_WEBGL_NOTICE)
                 page.get_by_text("Review queue", exact=True).first.scroll_into_view_if_needed()
@@ -100,8 +101,8 @@ def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
                     time.sleep(0.5)
                 page.get_by_text("Training", exact=True).first.click()
                 page.get_by_role("button", name="Train", exact=True).click()
-                _wait(lambda: app.state.training_busy, 30, "training to start")
-                _wait(lambda: not app.state.training_busy, 3600, "the next round")
+                wait_until(lambda: app.state.training_busy, 30, "training to start")
+                wait_until(lambda: not app.state.training_busy, 3600, "the next round")
                 page.get_by_text("Review queue", exact=True).first.click()  # fold it
                 page.get_by_text("Frame", exact=True).first.click()  # fold: the table fits
                 page.get_by_text("Before / after", exact=False).first.wait_for(timeout=30_000)

@@ -19,7 +19,7 @@ from factorydet_core.evaluation.diagnostics import (
     segment_patch_ids,
 )
 from factorydet_core.io.dataset import Dataset
-from factorydet_core.session.editing import Suggestion, points_in_screen_rect, suggest_box
+from factorydet_core.session.editing import points_in_screen_rect, suggest_box, suggestion_of
 from factorydet_core.training.settings import LoopSettings
 
 from .clients import ClientView
@@ -272,15 +272,8 @@ class FactorydetApp:
                 info = describe_detection(detections, k, detection_result.proposal.proposals, frame, exponent)
                 self.state.set_selection(detection_markdown(info))
                 if view is not None and self.state.editable and not add:
-                    proposal = int(detections.proposal_ids[k])
                     view.suggest(
-                        detection_frame,
-                        Suggestion(
-                            box=tuple(float(v) for v in detections.boxes[k]),
-                            class_name=detections.class_names[int(detections.class_ids[k])],
-                            score=float(detections.scores[k]),
-                            num_patches=len(detection_result.proposal.proposals.patch_sets[proposal]),
-                        ),
+                        detection_frame, suggestion_of(detections, k, detection_result.proposal.proposals)
                     )
                 return
         with self.state.lock:

@@ -35,7 +35,7 @@ from factorydet_core.session.editing import Suggestion
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.session.world import MOVING_CLASSES
 
-from .screenshots import open_app_page
+from .screenshots import open_app_page, wait_until
 from .viewer import FactorydetApp
 
 TARGET_EDIT_MS = 200.0
@@ -45,12 +45,7 @@ TARGET_FRAME_MS = 1000.0
 
 
 def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.005)
-    raise TimeoutError(f"timed out waiting for {what}")
+    wait_until(predicate, timeout, what, poll=0.005)  # finely: it times what it waits for
 
 
 def _timed(

@@ -110,8 +110,14 @@ def points_in_box(points: np.ndarray, box: np.ndarray, margin: float = 0.0) -> n
     """(N,) bool mask of the (N, 3) points inside one (7,) box grown by ``margin`` on every side."""
     check_array(points, (None, 3), name="points")
     check_array(box, (7,), name="box", finite=True)
-    local = (points.astype(np.float64) - box[:3]) @ rotation_z(box[6])  # R_z(-yaw) applied row-wise.
-    return (np.abs(local) <= box[3:6] / 2 + margin).all(axis=1)
+    # A cheap square around the box first (most points of a frame are far from any one box); the
+    # rotation only for the points in it.
+    reach = float(np.hypot(box[3], box[4])) / 2 + max(margin, 0.0)
+    near = np.flatnonzero((np.abs(points[:, 0] - box[0]) <= reach) & (np.abs(points[:, 1] - box[1]) <= reach))
+    local = (points[near].astype(np.float64) - box[:3]) @ rotation_z(box[6])  # R_z(-yaw) applied row-wise.
+    inside = np.zeros(len(points), bool)
+    inside[near] = (np.abs(local) <= box[3:6] / 2 + margin).all(axis=1)
+    return inside
 
 
 def point_box_ids(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
@@ -121,12 +127,7 @@ def point_box_ids(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     check_array(boxes, (None, 7), name="boxes", finite=True)
     out = np.full(len(points), -1, np.int64)
     for k in range(len(boxes) - 1, -1, -1):  # backwards, so that the first box wins
-        reach = float(np.hypot(boxes[k, 3], boxes[k, 4])) / 2
-        near = np.flatnonzero(
-            (np.abs(points[:, 0] - boxes[k, 0]) <= reach) & (np.abs(points[:, 1] - boxes[k, 1]) <= reach)
-        )
-        if len(near):
-            out[near[points_in_box(points[near], boxes[k])]] = k
+        out[points_in_box(points, boxes[k])] = k
     return out
 
 

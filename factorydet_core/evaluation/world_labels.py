@@ -34,6 +34,7 @@ from factorydet_core.evaluation.quality import heldout_factory
 from factorydet_core.evaluation.records import machine_info
 from factorydet_core.geometry import transform_boxes
 from factorydet_core.io.dataset import open_dataset
+from factorydet_core.proposals.merge import mean_transform
 from factorydet_core.session.store import Label
 from factorydet_core.session.world import (
     MIN_POINTS,
@@ -91,14 +92,8 @@ def _pose_errors(poses: np.ndarray, true_poses: np.ndarray) -> dict:
 def _drawn_from_true(extrinsics: np.ndarray, folder: Path) -> np.ndarray:
     """(4, 4) the rig's common calibration offset: from the true vehicle frame to the frame the
     points are merged in with ``extrinsics`` (S, 4, 4), the mean over sensors, heading only."""
-    from scipy.spatial.transform import Rotation
-
     true = np.asarray(read_truth(folder)["T_vehicle_sensor_true"], np.float64)
-    offsets = np.asarray(extrinsics, np.float64) @ np.linalg.inv(true)
-    mean = np.eye(4)
-    mean[:3, :3] = Rotation.from_matrix(offsets[:, :3, :3]).mean().as_matrix()
-    mean[:3, 3] = offsets[:, :3, 3].mean(axis=0)
-    return planar(mean)
+    return planar(mean_transform(np.asarray(extrinsics, np.float64) @ np.linalg.inv(true)))
 
 
 APP_METHOD = "ICP, calibrated extrinsics (the app)"

@@ -49,7 +49,8 @@ class ExtrinsicRefinement:
     """(S,) share of each sensor's points that found a neighbour within the correspondence distance."""
 
 
-def _o3d_cloud(points: np.ndarray):
+def o3d_cloud(points: np.ndarray):
+    """An open3d point cloud of (N, 3) ``points`` (open3d imported here, when first needed)."""
     import open3d as o3d
 
     cloud = o3d.geometry.PointCloud()
@@ -120,8 +121,8 @@ def refine_extrinsics(
         if not len(source) or not sum(len(o) for o in others):
             return None
         return (
-            _o3d_cloud(source).voxel_down_sample(downsample_m),
-            _o3d_cloud(np.concatenate(others)).voxel_down_sample(downsample_m),
+            o3d_cloud(source).voxel_down_sample(downsample_m),
+            o3d_cloud(np.concatenate(others)).voxel_down_sample(downsample_m),
         )
 
     def residual(sensor: int, T: np.ndarray) -> tuple[float, float]:
@@ -174,7 +175,7 @@ def refine_extrinsics(
                 corrections.append(np.round(result.transformation, 10))
             if corrections:
                 # One ICP per frame (frames do not share correspondences), then the mean correction.
-                refined[sensor] = _mean_transform(np.array(corrections)) @ refined[sensor]
+                refined[sensor] = mean_transform(np.array(corrections)) @ refined[sensor]
     if remove_common_motion:
         refined = _remove_common_correction(extrinsics, refined)
     if level_to_floor:
@@ -188,7 +189,7 @@ def refine_extrinsics(
     )
 
 
-def _mean_transform(transforms: np.ndarray) -> np.ndarray:
+def mean_transform(transforms: np.ndarray) -> np.ndarray:
     """(4, 4) mean of (K, 4, 4) rigid transforms: chordal mean rotation, mean translation."""
     from scipy.spatial.transform import Rotation
 
@@ -230,7 +231,7 @@ def _level_to_floor(frames: list[Frame], T_vehicle_sensor: np.ndarray, radius_m:
 def _remove_common_correction(start: np.ndarray, refined: np.ndarray) -> np.ndarray:
     """Remove the mean rigid correction of all sensors from ``refined``."""
     corrections = refined @ np.linalg.inv(start)  # (S, 4, 4) in the vehicle frame
-    return np.linalg.inv(_mean_transform(corrections))[None] @ refined
+    return np.linalg.inv(mean_transform(corrections))[None] @ refined
 
 
 def accumulate(
@@ -268,10 +269,10 @@ def accumulate(
             import open3d as o3d
 
             if target is None:
-                target = _o3d_cloud(current_cloud.points).voxel_down_sample(0.1)
+                target = o3d_cloud(current_cloud.points).voxel_down_sample(0.1)
                 target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
             result = o3d.pipelines.registration.registration_icp(
-                _o3d_cloud(cloud.points).voxel_down_sample(0.1),
+                o3d_cloud(cloud.points).voxel_down_sample(0.1),
                 target,
                 max_correspondence_m,
                 T_current_frame,

@@ -186,9 +186,15 @@ def suggest_box(result, point_index: int) -> Suggestion | None:
     if not holds.any():
         return None
     best = int(np.flatnonzero(holds)[np.argmax(candidates.scores[holds])])
+    return suggestion_of(candidates, best, result.proposal.proposals)
+
+
+def suggestion_of(detections, k: int, proposals) -> Suggestion:
+    """Detection (or candidate) ``k`` of ``detections`` as a suggestion; ``proposals`` are the ones
+    its ``proposal_ids`` index."""
     return Suggestion(
-        box=tuple(float(v) for v in candidates.boxes[best]),
-        class_name=candidates.class_names[int(candidates.class_ids[best])],
-        score=float(candidates.scores[best]),
-        num_patches=len(patch_sets[int(candidates.proposal_ids[best])]),
+        box=tuple(float(v) for v in detections.boxes[k]),
+        class_name=detections.class_names[int(detections.class_ids[k])],
+        score=float(detections.scores[k]),
+        num_patches=len(proposals.patch_sets[int(detections.proposal_ids[k])]),
     )

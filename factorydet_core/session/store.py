@@ -434,6 +434,19 @@ ORIGINS = ("dataset", "user", "review", "import")
 SAME_OBJECT_IOU = 0.25
 """Label once never adds a label where another label overlaps the object's box this much: that
 object is labelled there already (the data set's label of it, say, under its own id)."""
+
+
+def labelled_there(box, other_boxes) -> bool:
+    """Whether any of ``other_boxes`` (R, 7) overlaps ``box`` (7,) by ``SAME_OBJECT_IOU`` or more:
+    the one rule label once uses to keep from labelling an object twice in a frame."""
+    import numpy as np
+
+    other_boxes = np.asarray(other_boxes, np.float64).reshape(-1, 7)
+    if not len(other_boxes):
+        return False
+    return bool(box_iou_3d(np.asarray(box, np.float64).reshape(1, 7), other_boxes).max() >= SAME_OBJECT_IOU)
+
+
 NEW_OBJECT_ID = 1 << 32
 """The first instance id given to an object labelled in the session (the data set's own ids,
 which frames not imported yet may still bring, stay below it)."""
@@ -1456,8 +1469,6 @@ class SessionDB:
     def _overlapped(db, frame_index: int, box_json: str, instance_id: int | None) -> bool:
         """Whether a live label of another object in the frame overlaps the box (IoU at least
         ``SAME_OBJECT_IOU``): the object is labelled there already, under another id."""
-        import numpy as np
-
         others = [
             json.loads(r["box"])
             for r in db.execute(
@@ -1465,10 +1476,7 @@ class SessionDB:
             )
             if instance_id is None or r["instance_id"] != instance_id
         ]
-        if not others:
-            return False
-        iou = box_iou_3d(np.array([json.loads(box_json)], np.float64), np.array(others, np.float64))
-        return bool(iou.max() >= SAME_OBJECT_IOU)
+        return labelled_there(json.loads(box_json), others)
 
     @staticmethod
     def _members(db, row) -> list[sqlite3.Row]:
@@ -1551,15 +1559,8 @@ class SessionDB:
                 }
                 if after != self._content(db, "labels", int(member["id"])):
                     changes.append(self._change(db, "labels", int(member["id"]), after, author))
-            labelled = {m["frame_index"] for m in members}
             shown = set(wanted) if show_in is None else {int(f) for f in show_in} & set(wanted)
-            added = [
-                (f, wanted[f], new_class)
-                for f in sorted(shown - labelled)
-                if not self._overlapped(db, f, wanted[f], instance_id)
-            ]
-            if added:
-                changes += self._insert_labels(db, added, origin, author, instance_id)[1]
+            changes += self._add_to_frames(db, instance_id, wanted, shown, new_class, origin, author)
             if not changes:
                 return self._label(row, names)
             what = "box" if class_name is None else ("class" if not wanted else "box and class")
@@ -2129,19 +2130,29 @@ class SessionDB:
             instance_id = self._new_object_id(db)
             db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, label_id))
         boxes, show_in = place(row["frame_index"], tuple(json.loads(row["box"])))
+        wanted = {self._check_frame(f): _box_json(boxes[f], f"box of frame {f}") for f in show_in}
+        return self._add_to_frames(db, instance_id, wanted, set(wanted), class_name, "review", author)
+
+    def _add_to_frames(
+        self, db, instance_id: int, boxes: dict, frames: set, class_name: str, origin: str, author: str
+    ) -> list[dict]:
+        """Label once: object ``instance_id`` added to each of ``frames`` (box JSON from ``boxes``)
+        that has no live label of it nor another label overlapping the box (``_overlapped``); the
+        frames are imported first, so that the data set's labels there count. Returns the changes."""
+        for frame_index in sorted(frames):
+            self._import_frame(db, frame_index)
         labelled = {
             r[0]
             for r in db.execute(
                 "SELECT frame_index FROM labels WHERE instance_id = ? AND deleted = 0", (instance_id,)
             )
         }
-        items = []
-        for frame_index in sorted({int(f) for f in show_in} - labelled):
-            self._import_frame(db, self._check_frame(frame_index))
-            box = _box_json(boxes[frame_index], f"box of frame {frame_index}")
-            if not self._overlapped(db, frame_index, box, instance_id):
-                items.append((frame_index, box, class_name))
-        return self._insert_labels(db, items, "review", author, instance_id)[1]
+        items = [
+            (f, boxes[f], class_name)
+            for f in sorted(set(frames) - labelled)
+            if not self._overlapped(db, f, boxes[f], instance_id)
+        ]
+        return self._insert_labels(db, items, origin, author, instance_id)[1] if items else []
 
     def _delete_review_siblings(self, db, label_id: int, author: str) -> list[dict]:
         """The other live 'review' labels of a verdict's label's object, deleted (the verdict is

@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from factorydet_core.geometry import invert_transform, points_in_box, rotation_z, transform_boxes
-from factorydet_core.proposals.merge import merge_frame, refine_extrinsics
+from factorydet_core.proposals.merge import merge_frame, o3d_cloud, refine_extrinsics
 from factorydet_core.types import Frame, InputError, check_array
 
 MOVING_CLASSES: frozenset[str] = frozenset({"person", "truck"})
@@ -78,6 +78,12 @@ class Placement:
     """(F,) int64: each frame's thinned points inside the box (its bottom ``FLOOR_MARGIN_M`` left out)."""
     visible_mask: np.ndarray
     """(F,) bool: frames that show the object (``MIN_POINTS`` or more, and the frame it was drawn in)."""
+
+    def for_store(self) -> tuple[dict[int, tuple[float, ...]], list[int]]:
+        """``({frame: box} of every frame, frames that show it)``: what ``SessionDB.update_object``
+        (``boxes``, ``show_in``) and ``SessionDB.review``'s ``place`` take."""
+        boxes = {f: tuple(box) for f, box in enumerate(self.boxes.tolist())}
+        return boxes, np.flatnonzero(self.visible_mask).tolist()
 
     def boxes_by_frame(self, frames=None) -> dict[int, tuple[float, ...]]:
         """``{frame index: box}`` for the visible frames and any of ``frames`` besides."""
@@ -145,11 +151,9 @@ def register_frames(
         points = merge_frame(frame, T_vehicle_sensor).points
         clouds.append(_thinned(points, COUNT_VOXEL_M))
         odometry = planar(frame.T_world_vehicle)
-        if known:
-            pass
-        elif index == 0:
+        if not known and index == 0:
             poses[0], fitness[0] = odometry, 1.0
-        else:
+        elif not known:
             step = invert_transform(previous_odometry) @ odometry
             if use_icp and len(points) >= 10 and previous_target is not None:
                 step, fitness[index] = _icp_step(points, previous_target, step, max_correspondence_m)
@@ -161,18 +165,10 @@ def register_frames(
     return WorldFrames(T_world_vehicle=poses, fitness=fitness, clouds=tuple(clouds))
 
 
-def _o3d_points(points: np.ndarray):
-    import open3d as o3d
-
-    cloud = o3d.geometry.PointCloud()
-    cloud.points = o3d.utility.Vector3dVector(np.asarray(points, np.float64))
-    return cloud
-
-
 def _icp_target(points: np.ndarray):
     import open3d as o3d
 
-    target = _o3d_points(points).voxel_down_sample(REGISTRATION_VOXEL_M)
+    target = o3d_cloud(points).voxel_down_sample(REGISTRATION_VOXEL_M)
     target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
     return target
 
@@ -182,7 +178,7 @@ def _icp_step(points: np.ndarray, target, start: np.ndarray, distance_m: float) 
     ``start`` where ICP finds too few correspondences (``MIN_FITNESS``)."""
     import open3d as o3d
 
-    source = _o3d_points(points).voxel_down_sample(REGISTRATION_VOXEL_M)
+    source = o3d_cloud(points).voxel_down_sample(REGISTRATION_VOXEL_M)
     estimation = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     transform = start
     result = None
@@ -208,12 +204,7 @@ def _count(cloud: np.ndarray, box) -> int:
     if box[5] > 2 * FLOOR_MARGIN_M:
         box[2] += FLOOR_MARGIN_M / 2
         box[5] -= FLOOR_MARGIN_M
-    if not len(cloud):
-        return 0
-    # A cheap square around the box first: most of a frame is far from any one box.
-    reach = float(np.hypot(box[3], box[4])) / 2
-    near = (np.abs(cloud[:, 0] - box[0]) <= reach) & (np.abs(cloud[:, 1] - box[1]) <= reach)
-    return int(points_in_box(cloud[near], box).sum()) if near.any() else 0
+    return int(points_in_box(cloud, box).sum())
 
 
 def place_box(world: WorldFrames, frame_index: int, box, *, min_points: int = MIN_POINTS) -> Placement:
@@ -363,12 +354,11 @@ def not_labelled_yet(items: list[tuple], current: dict, keep_frame: int | None =
         current: ``{frame_index: [store.Label]}``, the frames' live labels (``add_labels``'s screen
             reads them in its writing transaction).
     """
-    from factorydet_core.boxes import box_iou_3d
-    from factorydet_core.session.store import SAME_OBJECT_IOU
+    from factorydet_core.session.store import labelled_there
 
     keep = []
     for k, item in enumerate(items):
-        frame, box = int(item[0]), np.asarray(item[1], np.float64).reshape(1, 7)
+        frame, box = int(item[0]), item[1]
         labels = [lab for lab in current.get(frame, []) if not lab.deleted]
         if frame == keep_frame:
             keep.append(k)
@@ -376,10 +366,7 @@ def not_labelled_yet(items: list[tuple], current: dict, keep_frame: int | None =
         instance_id = item[3] if len(item) > 3 else None
         if instance_id is not None and any(lab.instance_id == instance_id for lab in labels):
             continue
-        if (
-            labels
-            and box_iou_3d(box, np.array([lab.box for lab in labels], np.float64)).max() >= SAME_OBJECT_IOU
-        ):
+        if labelled_there(box, [lab.box for lab in labels]):
             continue
         keep.append(k)
     return keep
