@@ -199,14 +199,25 @@ class AppState:
         labels = self.dataset.frame(index).labels
         return np.array(labels.boxes), np.array(labels.class_ids), np.full(len(labels), -1)
 
+    def references(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a frame's detections are measured against: ``(boxes (R, 7), class_ids (R,),
+        ignore_boxes (Q, 7))``, the labels a person made or confirmed, and the model's pre-labels
+        nobody has confirmed yet (not truth: a detection on one is not counted either way)."""
+        if self.db is None:
+            boxes, class_ids, _ = self.frame_labels(frame_index)
+            return boxes, class_ids, np.zeros((0, 7))
+        boxes, class_ids, _ = self.db.frame_boxes(frame_index, reviewed=True)
+        return boxes, class_ids, self.db.frame_boxes(frame_index, reviewed=False)[0]
+
     def session_changed(self) -> None:
         """Something was written to the session database: every view refreshes, and the metrics
         are recomputed against the corrected labels."""
         with self.lock:
             self.revision += 1
             for index, item in self.frame_detections.items():
-                boxes, class_ids, _ = self.frame_labels(index)
-                item["reference_boxes"], item["reference_class_ids"] = boxes, class_ids
+                item["reference_boxes"], item["reference_class_ids"], item["ignore_boxes"] = self.references(
+                    index
+                )
             self._update_metrics()  # the detections are the same: only what they are measured against
             self.changed.notify_all()
         self._notify()
@@ -310,13 +321,14 @@ class AppState:
         make its front half the shown result, all at once."""
         with self.lock:
             # Read under the lock, so an edit's session_changed cannot slip in between.
-            boxes, class_ids, _ = self.frame_labels(key[0])
+            boxes, class_ids, ignore_boxes = self.references(key[0])
             self.detection_result = result
             self.detection_frame_index = key[0]
             self.frame_detections[key[0]] = {
                 "candidates": result.candidates,
                 "reference_boxes": boxes,
                 "reference_class_ids": class_ids,
+                "ignore_boxes": ignore_boxes,
             }
             self._refilter()
             self._set_result(key, result.proposal, status)
@@ -377,6 +389,7 @@ class AppState:
                     "scores": kept.scores,
                     "reference_boxes": item["reference_boxes"],
                     "reference_class_ids": item["reference_class_ids"],
+                    "ignore_boxes": item["ignore_boxes"],
                     "candidate_boxes": item["candidates"].boxes,
                     "candidate_class_ids": item["candidates"].class_ids,
                     "candidate_scores": item["candidates"].scores,

@@ -16,6 +16,7 @@ from factorydet_core.types import (
     LEVELS,
     METHODS,
     MINING_THRESHOLD,
+    PRELABEL_SCORE,
     PROBABILITY_EXPONENT,
     SCORE_THRESHOLD,
     InputError,
@@ -647,6 +648,8 @@ def _cmd_labels(args: argparse.Namespace) -> int:
         print(json.dumps({"added": len(added), "objects": len({lab.instance_id for lab in added}),
                           "edit": added.edit_id}))  # fmt: skip
         return 0
+    if args.action == "prelabel":
+        return _prelabel(db, args)
     if args.path is None:
         raise InputError(f"labels {args.action}: give the path to {args.action} (a file or folder)")
     frames = parse_ints(args.frames, "--frames") if args.frames else None
@@ -656,6 +659,47 @@ def _cmd_labels(args: argparse.Namespace) -> int:
         return 0
     report = import_labels(db, args.path, args.author, args.format)
     print(json.dumps(report, indent=2))
+    return 0
+
+
+def _prelabel(db, args: argparse.Namespace) -> int:
+    """``labels prelabel``: the model's detections of each frame become pre-labels, one undoable
+    edit per frame, as the app's *Pre-label this frame* makes them (``editing.prelabel_frame``)."""
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.editing import prelabel_frame
+    from factorydet_core.session.models import resolve_model
+    from factorydet_core.session.world import calibrated_extrinsics
+
+    if not 0.0 <= args.min_score <= 1.0:
+        raise InputError(f"--min-score must lie in [0, 1], got {args.min_score:g}")
+    dataset = db.dataset
+    chosen = db.shown_model() if args.model is None else None
+    if chosen is not None and chosen[1].is_file():
+        path = chosen[1]
+    else:
+        path = resolve_model(args.model or "default", args.root)
+    model = DetectionModel.load(path)
+    # The extrinsics the app detects with (refined between the sensors), so that the boxes are the
+    # ones a person sees there.
+    detector = Detector.for_model(model, dataset.num_sensors, calibrated_extrinsics(dataset))
+    frames = parse_ints(args.frames, "--frames") if args.frames else list(range(dataset.num_frames))
+    report = {"model": str(path), "min_score": args.min_score, "frames": {}}
+    update, close = progress_bar("pre-labelling")
+    try:
+        for n, index in enumerate(frames):
+            update(n, len(frames))
+            frame = dataset.frame(index)
+            first = max(0, index - detector.params.history_frames)
+            history = [dataset.frame(i) for i in range(first, index)]
+            detections = detector.detect(frame, history, score_threshold=args.min_score).detections
+            added = prelabel_frame(db, index, detections, args.author, args.min_score)
+            report["frames"][str(index)] = len(added)
+        update(len(frames), len(frames))
+    finally:
+        close()
+    report["added"] = sum(report["frames"].values())
+    print(json.dumps(report))
     return 0
 
 
@@ -952,17 +996,30 @@ def build_parser(
 
     p = sub.add_parser(
         "labels",
-        help="export a session's labels, import labels into it, or spread them (label once: each "
-        "object that stands still labelled in every frame that shows it)",
+        help="export a session's labels, import labels into it, spread them (label once: each "
+        "object that stands still labelled in every frame that shows it), or pre-label frames with "
+        "the model (its detections as labels a person confirms in the app)",
     )
-    p.add_argument("action", choices=["export", "import", "spread"])
+    p.add_argument("action", choices=["export", "import", "spread", "prelabel"])
     p.add_argument(
         "path", nargs="?", help="export: a .json file or a folder (kitti, npz); import: a file or folder"
     )
     session_args(p)
     p.add_argument("--format", default=None, choices=["json", "kitti", "npz"], help="default: json / guessed")
-    p.add_argument("--frames", default=None, help="export: comma-separated frame indices (default: all)")
-    p.add_argument("--author", default=getpass.getuser(), help="import: who the labels are signed by")
+    p.add_argument(
+        "--frames", default=None, help="export, prelabel: comma-separated frame indices (default: all)"
+    )
+    p.add_argument(
+        "--author", default=getpass.getuser(), help="import, spread, prelabel: who the labels are signed by"
+    )
+    p.add_argument(
+        "--model", default=None,
+        help="prelabel: a checkpoint, 'default' or a session (default: the model the session shows)",
+    )  # fmt: skip
+    p.add_argument(
+        "--min-score", type=float, default=PRELABEL_SCORE,
+        help=f"prelabel: the lowest detection score that becomes a pre-label (default {PRELABEL_SCORE})",
+    )  # fmt: skip
     p.set_defaults(func=_cmd_labels)
 
     p = sub.add_parser("undo", help="undo (or --redo) an author's latest edit of a session")

@@ -38,6 +38,9 @@ against the predicted IoU and evens out the classes' score scales: on the defaul
 frames it raised total F at the best threshold on two disjoint frame sets and on the demo's test
 frames, and the per-class thresholds training tunes all came out equal (README, "The default
 model")."""
+PRELABEL_SCORE = 0.5
+"""Pre-labelling (``session.editing.prelabel_frame``) takes the model's detections scoring this
+much or more, by default: above the operating threshold, since each one costs a person a look."""
 SCORE_THRESHOLD = 0.35
 """The loop's and the command line's operating score, the best single threshold of that score on
 the default corpus's frames 40-49."""

@@ -395,3 +395,34 @@ def test_labels_spread_places_the_frames_and_labels_each_object_in_every_frame_t
     assert json.loads(capsys.readouterr().out) == {"added": 0, "objects": 0, "edit": None}
     assert main(["labels", "export", *common]) == 2
     assert "give the path" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_labels_prelabel_adds_the_models_detections_as_pre_labels_once(
+    small_dataset_dir, tiny_model_path, tmp_path, capsys
+):
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.session.store import SessionDB, open_session
+
+    common = ["--session", "s", "--root", str(tmp_path), "--data", str(small_dataset_dir), "--author", "ann"]
+    argv = [
+        "labels",
+        "prelabel",
+        *common,
+        "--model",
+        str(tiny_model_path),
+        "--frames",
+        "0",
+        "--min-score",
+        "0.05",
+    ]
+    assert main(argv) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["frames"] == {"0": report["added"]} and report["added"] > 0
+    db = SessionDB(open_session("s", tmp_path), open_dataset(small_dataset_dir))
+    unreviewed = db.unreviewed_labels()
+    assert len(unreviewed) == report["added"] and all(lab.score >= 0.05 for lab in unreviewed)
+    assert main(argv) == 0  # every detection is labelled now: nothing twice
+    assert json.loads(capsys.readouterr().out)["added"] == 0
+    assert main([*argv[:-1], "2"]) == 2
+    assert "--min-score must lie in [0, 1], got 2" in capsys.readouterr().err

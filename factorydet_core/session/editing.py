@@ -10,7 +10,7 @@ import numpy as np
 
 from factorydet_core.boxes import fit_box
 from factorydet_core.geometry import wrap_angle
-from factorydet_core.types import InputError
+from factorydet_core.types import PRELABEL_SCORE, InputError
 
 
 def box_to_pose(box) -> tuple[np.ndarray, np.ndarray]:
@@ -197,4 +197,48 @@ def suggestion_of(detections, k: int, proposals) -> Suggestion:
         class_name=detections.class_names[int(detections.class_ids[k])],
         score=float(detections.scores[k]),
         num_patches=len(proposals.patch_sets[int(detections.proposal_ids[k])]),
+    )
+
+
+def prelabel_frame(db, frame_index: int, detections, author: str, min_score: float = PRELABEL_SCORE):
+    """The model's detections of a frame scoring ``min_score`` or more become pre-labels (origin
+    'model', unreviewed until a person confirms or edits them), one undoable edit. A detection on a
+    place labelled already (``store.labelled_there``: a label, or a pre-label from before) is left
+    out, decided in the transaction that writes.
+
+    Args:
+        db: the session's ``SessionDB``.
+        detections: the frame's detections (``types.Detections``; only the kept ones count).
+        author: who asked for them (the edit and its undo are theirs).
+
+    Returns:
+        The labels added (a ``store.LabelBatch``; empty when every detection is labelled already).
+    """
+    from factorydet_core.session.store import PRELABEL_ORIGIN, labelled_there
+
+    if not 0.0 <= float(min_score) <= 1.0:
+        raise InputError(f"min_score must lie in [0, 1], got {min_score}")
+    chosen = np.flatnonzero(detections.kept_mask & (detections.scores >= float(min_score)))
+    chosen = chosen[np.argsort(-detections.scores[chosen], kind="stable")]
+    items = [
+        (int(frame_index), detections.boxes[k], detections.class_names[int(detections.class_ids[k])])
+        for k in chosen
+    ]
+
+    def screen(current) -> list[int]:
+        taken = [lab.box for lab in current[int(frame_index)]]
+        out = []
+        for position, (_, box, _) in enumerate(items):
+            if not labelled_there(box, taken):
+                out.append(position)
+                taken.append(tuple(box))  # two detections of one object: the better one only
+        return out
+
+    return db.add_labels(
+        items,
+        author,
+        PRELABEL_ORIGIN,
+        screen=screen,
+        summary=f"pre-label frame {int(frame_index)} (score >= {float(min_score):.2f})",
+        scores=[float(detections.scores[k]) for k in chosen],
     )

@@ -72,6 +72,12 @@ def _export_folder(folder: str | os.PathLike) -> Path:
     return folder
 
 
+def _truth(labelled: dict[int, list[Label]]) -> dict[int, list[Label]]:
+    """The labels an export writes: a person's (the model's pre-labels nobody confirmed yet are
+    not truth, and are left out)."""
+    return {index: [lab for lab in labels if lab.reviewed] for index, labels in labelled.items()}
+
+
 def export_json(db: SessionDB, path: str | os.PathLike, frame_indices=None) -> dict:
     """Write every frame's labels to one JSON file (whole or not at all), making its folder if
     missing, as the other commands' outputs do; returns what was written.
@@ -83,7 +89,9 @@ def export_json(db: SessionDB, path: str | os.PathLike, frame_indices=None) -> d
     if path.is_dir():
         raise InputError(f"cannot write {path}: a folder; give a .json file, or --format kitti or npz")
     frames = []
-    for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
+    labelled = db.frame_labels(_frames(db, frame_indices))
+    num_unreviewed = sum(not lab.reviewed for labels in labelled.values() for lab in labels)
+    for index, labels in _truth(labelled).items():
         frames.append(
             {
                 "frame_index": index,
@@ -101,6 +109,7 @@ def export_json(db: SessionDB, path: str | os.PathLike, frame_indices=None) -> d
         "data_hash": db.meta().get("data_hash"),
         "class_names": list(db.class_names),
         "box_convention": BOX_CONVENTION,
+        "unreviewed_pre_labels_left_out": num_unreviewed,
         "frames": frames,
     }
     with _writing(path):
@@ -138,7 +147,7 @@ def export_kitti(db: SessionDB, folder: str | os.PathLike, frame_indices=None) -
     or not at all; a folder that cannot be written is an ``InputError`` naming it."""
     folder = _export_folder(folder)
     paths = []
-    for index, labels in db.frame_labels(_frames(db, frame_indices)).items():
+    for index, labels in _truth(db.frame_labels(_frames(db, frame_indices))).items():
         path = folder / f"{index:06d}.txt"
         with _writing(path):
             write_text_atomic(path, "".join(kitti_line(lab.box, lab.class_name) + "\n" for lab in labels))
@@ -153,7 +162,7 @@ def scene_arrays(db: SessionDB, frame_index: int, labels: list[Label] | None = N
     from the boxes."""
     frame = db.dataset.frame(frame_index)
     points = merge_frame(frame).points
-    labels = db.labels(frame_index) if labels is None else labels
+    labels = [lab for lab in (db.labels(frame_index) if labels is None else labels) if lab.reviewed]
     boxes = np.array([lab.box for lab in labels], np.float32).reshape(-1, 7)
     names = ("none", *db.class_names)
     box_ids = point_box_ids(points, boxes.astype(np.float64))  # a point in two boxes: the first

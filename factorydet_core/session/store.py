@@ -325,7 +325,7 @@ def copy_session(session: Session, root: str | os.PathLike) -> Session:
 
 # --- The session database -------------------------------------------------------------------------
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """The schema this code reads and writes (``PRAGMA user_version``). An older database is migrated
 when it is opened for writing (a read-only open reads it as it is); a newer one is refused
 untouched."""
@@ -417,20 +417,58 @@ _SCHEMA_V2 = """
 ALTER TABLE mined_negatives ADD COLUMN review_version INTEGER NOT NULL DEFAULT 0
 """
 
+# Version 3: pre-labels and interpolated boxes. A label made by the model ('model') waits for a
+# person to confirm it (``reviewed`` 0; its ``score`` kept to sort the queue by); a moving object's
+# box between two keyframes is computed ('interpolated'). SQLite cannot widen a CHECK in place: the
+# table is rebuilt (with foreign keys off, checked before the migration commits).
+_SCHEMA_V3 = """
+CREATE TABLE labels_v3 (
+    id INTEGER PRIMARY KEY,
+    frame_index INTEGER NOT NULL,
+    box TEXT NOT NULL,
+    class_name TEXT NOT NULL,
+    origin TEXT NOT NULL
+        CHECK (origin IN ('dataset', 'user', 'review', 'import', 'model', 'interpolated')),
+    instance_id INTEGER,
+    created_by TEXT NOT NULL,
+    created TEXT NOT NULL,
+    modified_by TEXT NOT NULL,
+    modified TEXT NOT NULL,
+    version INTEGER NOT NULL DEFAULT 1,
+    deleted INTEGER NOT NULL DEFAULT 0 CHECK (deleted IN (0, 1)),
+    reviewed INTEGER NOT NULL DEFAULT 1 CHECK (reviewed IN (0, 1)),
+    score REAL
+);
+INSERT INTO labels_v3 (id, frame_index, box, class_name, origin, instance_id, created_by, created,
+    modified_by, modified, version, deleted)
+    SELECT id, frame_index, box, class_name, origin, instance_id, created_by, created, modified_by,
+    modified, version, deleted FROM labels;
+DROP TABLE labels;
+ALTER TABLE labels_v3 RENAME TO labels;
+CREATE INDEX labels_by_frame ON labels (frame_index);
+CREATE INDEX labels_by_instance ON labels (instance_id)
+"""
+
 _TABLES = frozenset(
     {"meta", "frames", "labels", "edits", "label_snapshots", "training_runs", "training_rounds"}
     | {"mined_negatives", "reviews"}
 )
 """The tables of every schema version: a database lacking one is refused."""
 
-_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1, 2: _SCHEMA_V2}
+_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1, 2: _SCHEMA_V2, 3: _SCHEMA_V3}
 """Script that takes a database from version ``v - 1`` to ``v``."""
 
 VERDICTS = ("background", "object", "wrong_box", "skip")
 """Review verdicts on a mined negative: confirmed background, a real object of a class (it becomes
 a label), a real object whose segment is wrong (to be boxed by hand), or not decided now."""
 DECIDED = ("background", "object", "wrong_box")
-ORIGINS = ("dataset", "user", "review", "import")
+ORIGINS = ("dataset", "user", "review", "import", "model", "interpolated")
+"""Where a label comes from: the data set's annotation, drawn by hand, a mined negative confirmed as
+an object, a file imported, the model's detection (a pre-label: unreviewed until a person confirms
+or edits it), or a moving object's box computed between two of its keyframes (``world``)."""
+PRELABEL_ORIGIN = "model"
+COMPUTED_ORIGINS = ("interpolated",)
+"""Origins of boxes the session computes from others: an edit of one makes it a person's."""
 SAME_OBJECT_IOU = 0.25
 """Label once never adds a label where another label overlaps the object's box this much: that
 object is labelled there already (the data set's label of it, say, under its own id)."""
@@ -465,6 +503,13 @@ class EditConflictError(SessionError):
         self.conflicts = list(conflicts or [])
 
 
+def _by_a_person(content: dict) -> dict:
+    """What a person's edit of a label's box or class makes of it: a pre-label reviewed, a
+    computed (interpolated) box the person's own."""
+    origin = "user" if content.get("origin") in COMPUTED_ORIGINS else content.get("origin")
+    return {**content, "origin": origin, "reviewed": 1}
+
+
 def _verdict_text(verdict: str, class_name: str | None) -> str:
     return verdict if class_name is None else f"{verdict} ({class_name})"
 
@@ -481,8 +526,7 @@ class Label:
     """(7,) (cx, cy, cz, dx, dy, dz, yaw) in the vehicle frame."""
     class_name: str
     origin: str
-    """'dataset' (the data set's annotation), 'user' (drawn by hand), 'review' (a mined negative
-    confirmed as an object) or 'import'."""
+    """One of ``ORIGINS``."""
     instance_id: int | None
     """The object the label boxes: the data set's instance id for 'dataset' labels, a new id (at or
     above ``NEW_OBJECT_ID``) for an object labelled once in every frame that shows it; every label
@@ -495,6 +539,11 @@ class Label:
     version: int
     """Bumped by every change: an edit names the version it was made against."""
     deleted: bool
+    reviewed: bool = True
+    """False for a pre-label (origin 'model') no person has confirmed or edited yet: training
+    ignores its place (neither object nor background) and the metrics do not count it as truth."""
+    score: float | None = None
+    """The model's score of a pre-label."""
 
 
 class LabelBatch(list):
@@ -646,6 +695,8 @@ _COLUMNS: dict[str, dict[str, Callable]] = {
         "modified": _text,
         "version": _integer,
         "deleted": _flag,
+        "reviewed": _flag,
+        "score": _optional(_real),
     },
     "edits": {
         "id": _integer,
@@ -720,8 +771,9 @@ _VERDICT_COLUMNS = {
     "reviewed": "created",
 }
 """The review queue's names for the columns of ``reviews`` it joins to each mined negative."""
-_SNAPSHOT_LABEL = ("id", "frame_index", "box", "class_name", "origin", "instance_id")
-"""The columns of ``labels`` a label snapshot keeps of each label."""
+_SNAPSHOT_LABEL = ("id", "frame_index", "box", "class_name", "origin", "instance_id", "reviewed")
+"""The columns of ``labels`` a label snapshot keeps of each label (a snapshot taken before schema 3
+has no ``reviewed``: every label of it was a person's)."""
 
 
 def _row(table: str, row: sqlite3.Row | dict, where: str | None = None) -> dict:
@@ -750,16 +802,29 @@ def _row(table: str, row: sqlite3.Row | dict, where: str | None = None) -> dict:
 def _label(row: sqlite3.Row | dict) -> Label:
     """A stored label, checked (``_row``): a damaged row is a one-line ``SessionError``."""
     checked = _row("labels", row)
+    fields = {f.name: checked[f.name] for f in dataclasses.fields(Label) if f.name in checked}
+    # (a database of schema 2 or older, read as it is, has no ``reviewed`` or ``score``)
     return Label(
-        **{f.name: checked[f.name] for f in dataclasses.fields(Label)} | {"deleted": bool(checked["deleted"])}
+        **fields | {"deleted": bool(checked["deleted"]), "reviewed": bool(checked.get("reviewed", 1))}
     )
 
 
 # What an edit changes, per table: undo and redo compare and write only these columns.
 _CONTENT = {
-    "labels": ("frame_index", "box", "class_name", "deleted"),
+    "labels": ("frame_index", "box", "class_name", "deleted", "origin", "reviewed"),
     "reviews": ("verdict", "class_name", "label_id"),
 }
+_LATER_CONTENT = {"labels": frozenset({"origin", "reviewed"}), "reviews": frozenset()}
+"""Columns an edit logged by an older schema does not name: undo and redo leave them as they are."""
+
+
+def _same_content(current: dict | None, expected: dict | None) -> bool:
+    """Whether a row's content is what an edit expects, on the columns the edit names."""
+    if current is None or expected is None:
+        return current is expected
+    return {k: current.get(k) for k in expected} == expected
+
+
 _KEYS = {"labels": "id", "reviews": "negative_id"}
 
 
@@ -925,7 +990,7 @@ class SessionDB:
 
     # -- connections
 
-    def _connect(self) -> sqlite3.Connection:
+    def _connect(self, foreign_keys: bool = True) -> sqlite3.Connection:
         if self.readonly:
             connection = _connect_readonly(self.path, self.timeout)
         else:
@@ -934,7 +999,8 @@ class SessionDB:
             )
             connection.execute("PRAGMA synchronous = FULL")
         connection.row_factory = sqlite3.Row
-        connection.execute("PRAGMA foreign_keys = ON")
+        if foreign_keys:
+            connection.execute("PRAGMA foreign_keys = ON")
         return connection
 
     def _failure(self, exc: Exception) -> SessionError:
@@ -949,15 +1015,16 @@ class SessionDB:
         return SessionError(f"{self.path}: the session database failed ({exception_line(exc)})")
 
     @contextlib.contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
+    def _write(self, foreign_keys: bool = True) -> Iterator[sqlite3.Connection]:
         """A write transaction (taken at once, so two writers never deadlock), committed on success.
 
         Whatever the body reads and then writes is one atomic step: no other writer runs between.
+        ``foreign_keys=False`` only for a migration that rebuilds a table (checked before it commits).
         """
         if self.readonly:
             raise SessionError(f"session {self.session.name!r} was opened read-only")
         try:
-            connection = self._connect()
+            connection = self._connect(foreign_keys)
             try:
                 connection.execute("BEGIN IMMEDIATE")
                 try:
@@ -1001,7 +1068,7 @@ class SessionDB:
             raise self._failure(exc) from None
         if version >= SCHEMA_VERSION:
             return
-        with self._write() as db:
+        with self._write(foreign_keys=False) as db:  # SQLite's way to rebuild a referenced table
             # Read again inside the lock: another process may have migrated it meanwhile.
             version = db.execute("PRAGMA user_version").fetchone()[0]
             for target in range(version + 1, SCHEMA_VERSION + 1):
@@ -1011,6 +1078,12 @@ class SessionDB:
                 if target == 1:
                     db.execute("INSERT INTO meta VALUES ('created', ?)", (_now(),))
                 db.execute(f"PRAGMA user_version = {target}")
+            broken = db.execute("PRAGMA foreign_key_check").fetchall()
+            if broken:
+                raise SessionError(
+                    f"{self.path}: the session database is damaged ({len(broken)} row(s) refer to rows"
+                    " that do not exist); it was not migrated"
+                )
 
     def _bind(self, dataset, data_ref: str) -> None:
         """Record the data set on the first open; refuse another data set on a later one. Only the
@@ -1239,12 +1312,19 @@ class SessionDB:
             raise SessionError(f"no label {label_id}")
         return self._label(row, self.class_names)
 
-    def frame_boxes(self, frame_index: int) -> tuple:
+    def frame_boxes(self, frame_index: int, reviewed: bool | None = None) -> tuple:
         """The frame's labels as arrays: ``(boxes (R, 7), class_ids (R,), label_ids (R,))``, class
-        ids indexing ``class_names`` (label id -1: not stored yet, see ``Label.id``)."""
+        ids indexing ``class_names`` (label id -1: not stored yet, see ``Label.id``).
+
+        Args:
+            reviewed: ``True``: only the labels a person made or confirmed (the truth metrics and
+                training count); ``False``: only the unreviewed pre-labels; ``None``: all.
+        """
         import numpy as np
 
         labels = self.labels(frame_index)  # every class checked to be one of the session's
+        if reviewed is not None:
+            labels = [lab for lab in labels if lab.reviewed == reviewed]
         names = self.class_names
         return (
             np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
@@ -1276,18 +1356,11 @@ class SessionDB:
     def _store(db: sqlite3.Connection, table: str, key: int, content: dict | None, author: str) -> None:
         """Write ``content`` to a row (``None``: delete it); labels are never deleted, only flagged."""
         if table == "labels":
+            columns = [c for c in _CONTENT["labels"] if c in content]  # an older edit names fewer
             db.execute(
-                "UPDATE labels SET frame_index = ?, box = ?, class_name = ?, deleted = ?,"
+                f"UPDATE labels SET {', '.join(f'{c} = ?' for c in columns)},"
                 " version = version + 1, modified_by = ?, modified = ? WHERE id = ?",
-                (
-                    content["frame_index"],
-                    content["box"],
-                    content["class_name"],
-                    content["deleted"],
-                    author,
-                    _now(),
-                    key,
-                ),
+                (*(content[c] for c in columns), author, _now(), key),
             )
         else:
             if content is None:
@@ -1311,25 +1384,38 @@ class SessionDB:
         return max(NEW_OBJECT_ID, (row[0] or 0) + 1)
 
     def _insert_labels(
-        self, db, items: list[tuple], origin: str, author: str, instance_id: int | None = None
+        self,
+        db,
+        items: list[tuple],
+        origin: str,
+        author: str,
+        instance_id: int | None = None,
+        scores: list[float | None] | None = None,
     ) -> tuple[list[int], list[dict]]:
         """Insert labels ``(frame_index, box JSON, class_name[, instance_id])``, of object
-        ``instance_id`` where an item names none; returns their ids and changes.
+        ``instance_id`` where an item names none; returns their ids and changes. Labels of origin
+        'model' are pre-labels (unreviewed), with the model's ``scores``.
 
         Each is logged as created deleted, then undeleted (version 2): undo simply flags it again.
         """
         now = _now()
+        reviewed = int(origin != PRELABEL_ORIGIN)
         ids, changes = [], []
-        for item in items:
+        for k, item in enumerate(items):
             frame_index, box, class_name = item[:3]
             object_id = item[3] if len(item) > 3 and item[3] is not None else instance_id
+            score = None if scores is None else scores[k]
             label_id = db.execute(
                 "INSERT INTO labels (frame_index, box, class_name, origin, instance_id, created_by, created,"
-                " modified_by, modified, version, deleted) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 2, 0)",
-                (frame_index, box, class_name, origin, object_id, author, now, author, now),
+                " modified_by, modified, version, deleted, reviewed, score)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, 2, 0, ?, ?)",
+                (frame_index, box, class_name, origin, object_id, author, now, author, now, reviewed, score),
             ).lastrowid
             ids.append(int(label_id))
-            before = {"frame_index": frame_index, "box": box, "class_name": class_name, "deleted": 1}
+            before = {
+                "frame_index": frame_index, "box": box, "class_name": class_name, "deleted": 1,
+                "origin": origin, "reviewed": reviewed,
+            }  # fmt: skip
             changes.append(
                 {"table": "labels", "key": int(label_id), "before": before, "after": {**before, "deleted": 0}}
             )
@@ -1373,6 +1459,7 @@ class SessionDB:
         screen: Callable[[dict[int, list[Label]]], list[int]] | None = None,
         summary: str | None = None,
         as_object: bool = False,
+        scores=None,
     ) -> LabelBatch:
         """Several new labels as one undoable edit (returned with its ``edit_id``).
 
@@ -1382,6 +1469,7 @@ class SessionDB:
                 carried into more frames).
             as_object: the items are one object in several frames (label once,
                 ``world.place_box``): they share a new instance id.
+            scores: per item, the model's score of a pre-label (origin 'model').
             screen: called with the current labels of the items' frames, inside the transaction that
                 writes, and returns the positions in ``items`` to add (an import leaves out the boxes
                 that repeat a label). Checking and writing in one transaction is what keeps two
@@ -1400,6 +1488,10 @@ class SessionDB:
             )
             for item in items
         ]
+        scores = [None] * len(rows) if scores is None else [float(v) for v in scores]
+        if len(scores) != len(rows):
+            raise SessionError(f"{len(scores)} scores for {len(rows)} labels")
+        rows = [(*row, score) for row, score in zip(rows, scores)]
         if not rows:
             return LabelBatch([], None)
         frames = sorted({row[0] for row in rows})
@@ -1419,7 +1511,9 @@ class SessionDB:
                 if not rows:
                     return LabelBatch([], None)
             instance_id = self._new_object_id(db) if as_object else None
-            ids, changes = self._insert_labels(db, rows, origin, author, instance_id)
+            ids, changes = self._insert_labels(
+                db, [row[:4] for row in rows], origin, author, instance_id, [row[4] for row in rows]
+            )
             edit_id = self._edit(db, author, "add", summary or f"{origin}: add {len(ids)} label(s)", changes)
             wanted = set(ids)
             added = [
@@ -1454,12 +1548,13 @@ class SessionDB:
                 raise EditConflictError(
                     f"label {label_id} was deleted by {row['modified_by']} at {row['modified']}"
                 )
-            after = {
-                "frame_index": row["frame_index"],
-                "box": row["box"] if box is None else _box_json(box),
-                "class_name": row["class_name"] if class_name is None else class_name,
-                "deleted": 0,
-            }
+            after = _by_a_person(
+                {
+                    **self._content(db, "labels", int(label_id)),
+                    "box": row["box"] if box is None else _box_json(box),
+                    "class_name": row["class_name"] if class_name is None else class_name,
+                }
+            )
             what = "box" if class_name is None else ("class" if box is None else "box and class")
             change = self._change(db, "labels", int(label_id), after, author)
             self._edit(db, author, "update", f"change the {what} of label {label_id}", [change])
@@ -1550,14 +1645,15 @@ class SessionDB:
             changes = []
             new_class = row["class_name"] if class_name is None else class_name
             for member in members:
+                content = self._content(db, "labels", int(member["id"]))
                 after = {
-                    "frame_index": member["frame_index"],
+                    **content,
                     "box": wanted.get(member["frame_index"], member["box"]),
                     # A box move leaves each frame's class as it is; a class change sets them all.
                     "class_name": member["class_name"] if class_name is None else class_name,
-                    "deleted": 0,
                 }
-                if after != self._content(db, "labels", int(member["id"])):
+                if after != content:
+                    after = _by_a_person(after)
                     changes.append(self._change(db, "labels", int(member["id"]), after, author))
             shown = set(wanted) if show_in is None else {int(f) for f in show_in} & set(wanted)
             changes += self._add_to_frames(db, instance_id, wanted, shown, new_class, origin, author)
@@ -1605,6 +1701,45 @@ class SessionDB:
                 raise SessionError("no labels to delete")
             return self._edit(db, author, "delete", f"delete {len(changes)} label(s)", changes)
 
+    # -- pre-labels (the model's boxes, waiting for a person)
+
+    def confirm_labels(self, label_ids, author: str, expected_versions: dict[int, int] | None = None) -> int:
+        """A person confirms pre-labels as they are (one undoable edit); returns the edit id.
+
+        Raises:
+            EditConflictError: one was changed since the version given, deleted, or confirmed
+                already; nothing is written.
+        """
+        expected_versions = expected_versions or {}
+        with self._write() as db:
+            changes = []
+            for label_id in dict.fromkeys(int(i) for i in label_ids):
+                row = self._locked_label(db, label_id, expected_versions.get(label_id))
+                if row["deleted"]:
+                    raise EditConflictError(f"label {label_id} was deleted by {row['modified_by']}")
+                content = self._content(db, "labels", label_id)
+                if content["reviewed"]:
+                    raise EditConflictError(
+                        f"label {label_id} is confirmed already (by {row['modified_by']})"
+                    )
+                changes.append(self._change(db, "labels", label_id, _by_a_person(content), author))
+            if not changes:
+                raise SessionError("no pre-labels to confirm")
+            return self._edit(db, author, "confirm", f"confirm {len(changes)} pre-label(s)", changes)
+
+    def unreviewed_labels(self) -> list[Label]:
+        """The live pre-labels no person has confirmed or edited yet: frame by frame, the model's
+        most confident first (the queue a person confirms them from)."""
+        names = self.class_names
+        with self._read() as db:
+            columns = {r[1] for r in db.execute("PRAGMA table_info(labels)")}
+            if "reviewed" not in columns:  # schema 2 or older, read as it is: no pre-labels
+                return []
+            rows = db.execute(
+                "SELECT * FROM labels WHERE deleted = 0 AND reviewed = 0 ORDER BY frame_index, score DESC, id"
+            ).fetchall()
+            return [self._label(r, names) for r in rows]
+
     # -- undo and redo
 
     def _replay(self, author: str, undo: bool) -> Edit | None:
@@ -1625,7 +1760,7 @@ class SessionDB:
                     (change["after"], change["before"]) if undo else (change["before"], change["after"])
                 )
                 current = self._content(db, change["table"], change["key"])
-                if current != expected:
+                if not _same_content(current, expected):
                     raise EditConflictError(
                         f"cannot {'undo' if undo else 'redo'} '{edit['summary']}': "
                         f"{change['table'][:-1]} {change['key']} has been changed since"
@@ -1664,7 +1799,9 @@ class SessionDB:
                 content = change[side]
                 if content is None and table == "reviews":  # no verdict on that side
                     continue
-                if not isinstance(content, dict) or set(content) != set(_CONTENT[table]):
+                if not isinstance(content, dict) or not (
+                    set(_CONTENT[table]) - _LATER_CONTENT[table] <= set(content) <= set(_CONTENT[table])
+                ):
                     raise SessionError(f"{where}, {side}: {short_repr(content, 60)} is not a {table} row")
                 _row(table, content, where=f"{place}, {side} ({table} row {change['key']})")
                 frame = content.get("frame_index")
@@ -1765,7 +1902,9 @@ class SessionDB:
                 f"the session database is damaged: label_snapshots row {snapshot_id}, labels: {exc}"
             ) from None
         for k, label in enumerate(labels):
-            if not isinstance(label, dict) or set(label) != set(_SNAPSHOT_LABEL):
+            if not isinstance(label, dict) or not set(_SNAPSHOT_LABEL) - {"reviewed"} <= set(label) <= set(
+                _SNAPSHOT_LABEL
+            ):
                 raise SessionError(
                     f"the session database is damaged: label_snapshots row {snapshot_id}, labels:"
                     f" {short_repr(label, 60)} is not a label"

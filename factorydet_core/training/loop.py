@@ -149,10 +149,11 @@ def cached_proposals(
 def session_references(
     db: SessionDB, frame_indices: Sequence[int]
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Frame index -> (boxes (R, 7), class_ids (R,)) of the session's current labels."""
+    """Frame index -> (boxes (R, 7), class_ids (R,)) of the session's current labels (those a
+    person made or confirmed: the model's unconfirmed pre-labels are not truth)."""
     out = {}
     for index in frame_indices:
-        boxes, class_ids, _ = db.frame_boxes(index)
+        boxes, class_ids, _ = db.frame_boxes(index, reviewed=True)
         out[int(index)] = (boxes, class_ids)
     return out
 
@@ -162,7 +163,8 @@ def with_session_labels(
 ) -> list[FrameProposals]:
     """The frames with the session's labels in place of the data set's annotations: the current
     ones, or those of a stored ``snapshot`` (``SessionDB.snapshot``), so that a run trains on
-    exactly the labels it records."""
+    exactly the labels it records. The model's pre-labels nobody has confirmed yet are neither
+    objects nor background: their places are left out of training (``FrameProposals.ignore_boxes``)."""
     names = db.class_names
     if snapshot is None:
         by_frame = {
@@ -172,6 +174,7 @@ def with_session_labels(
                     "class_name": lab.class_name,
                     "origin": lab.origin,
                     "instance_id": lab.instance_id,
+                    "reviewed": lab.reviewed,
                 }
                 for lab in db.labels(f.frame_index)
             ]
@@ -183,7 +186,9 @@ def with_session_labels(
             by_frame.setdefault(lab["frame_index"], []).append(lab)
     out = []
     for frame in frames:
-        labels = by_frame[frame.frame_index]
+        given = by_frame[frame.frame_index]
+        labels = [lab for lab in given if lab.get("reviewed", True)]
+        unreviewed = [lab["box"] for lab in given if not lab.get("reviewed", True)]
         instance_classes = {
             int(lab["instance_id"]): names.index(lab["class_name"])
             for lab in labels
@@ -194,6 +199,7 @@ def with_session_labels(
                 np.array([lab["box"] for lab in labels], np.float64).reshape(-1, 7),
                 np.array([names.index(lab["class_name"]) for lab in labels], np.int64),
                 instance_classes,
+                np.array(unreviewed, np.float64).reshape(-1, 7),
             )
         )
     return out
@@ -323,7 +329,8 @@ def suspect_labels(
     names = (*model.class_names, "background")
     out = []
     for frame in frames:
-        labels = db.labels(frame.frame_index)
+        # (a pre-label nobody confirmed is the model's own box: its queue is where it is checked)
+        labels = [lab for lab in db.labels(frame.frame_index) if lab.reviewed]
         if not labels or not frame.groups.num_groups:
             continue
         probabilities = model.probabilities(frame.groups)

@@ -17,7 +17,13 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from factorydet_core.boxes import box_iou_3d, fit_boxes
-from factorydet_core.detection.box_head import BoxHead, HeadSamples, label_point_sets
+from factorydet_core.detection.box_head import (
+    BACKGROUND_SHARE,
+    BoxHead,
+    HeadSamples,
+    label_point_sets,
+    share_inside,
+)
 from factorydet_core.detection.box_quality import BoxQuality
 from factorydet_core.detection.classifier import ProposalClassifier
 from factorydet_core.detection.detector import Detector
@@ -25,7 +31,7 @@ from factorydet_core.detection.groups import BoxSizePrior, ProposalGroups, descr
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.detection.scoring import check_exponent
 from factorydet_core.io.dataset import Dataset
-from factorydet_core.metrics import detection_metrics
+from factorydet_core.metrics import IGNORE_IOU, detection_metrics
 from factorydet_core.metrics import tune_class_thresholds as tune_thresholds
 from factorydet_core.proposals.candidates import point_set_features
 from factorydet_core.proposals.visibility import FreeSpace
@@ -58,9 +64,16 @@ class FrameProposals:
     """(A,) their classes."""
     annotation_instance_ids: np.ndarray
     """(A,) their data set instance ids."""
+    ignore_boxes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 7)))
+    """(Q, 7) places that are neither object nor background for training (a session's pre-labels
+    no person has confirmed yet): the point sets on them are left out (``ignored_point_sets``)."""
 
     def with_labels(
-        self, boxes: np.ndarray, class_ids: np.ndarray, instance_classes: dict[int, int] | None = None
+        self,
+        boxes: np.ndarray,
+        class_ids: np.ndarray,
+        instance_classes: dict[int, int] | None = None,
+        ignore_boxes: np.ndarray | None = None,
     ) -> FrameProposals:
         """The same proposals with other labels (a session's corrected ones).
 
@@ -70,6 +83,7 @@ class FrameProposals:
             instance_classes: data set instance id -> class id of the labels that are still the
                 data set's instances; only their own-point samples are kept, with that class.
                 ``None`` keeps them all as they are.
+            ignore_boxes: (Q, 7) places training leaves out (``None``: none).
         """
         keep = np.ones(len(self.annotation_instance_ids), bool)
         classes = np.array(self.annotation_class_ids)
@@ -84,7 +98,21 @@ class FrameProposals:
             annotation_descriptors=self.annotation_descriptors[keep],
             annotation_class_ids=classes[keep].astype(np.int64),
             annotation_instance_ids=self.annotation_instance_ids[keep],
+            ignore_boxes=np.asarray([] if ignore_boxes is None else ignore_boxes, np.float64).reshape(-1, 7),
         )
+
+    def ignored_point_sets(self) -> np.ndarray:
+        """Indices of the point sets on an ignored place: half or more of the set's sampled points
+        in an ``ignore_boxes`` box (``box_head.BACKGROUND_SHARE``, what keeps a set out of the
+        background next to a label), or, without sampled points, a proposal of the set overlapping
+        one at ``metrics.IGNORE_IOU`` or more (what keeps a detection there out of the metrics)."""
+        if not len(self.ignore_boxes) or not self.groups.num_groups:
+            return np.zeros(0, np.int64)
+        if self.groups.points is not None:
+            share = share_inside(self.groups.points, self.ignore_boxes)
+            return np.flatnonzero(share.max(axis=1) >= BACKGROUND_SHARE).astype(np.int64)
+        on_ignored = box_iou_3d(self.proposal_boxes, self.ignore_boxes).max(axis=1) >= IGNORE_IOU
+        return np.unique(self.groups.group_ids[on_ignored]).astype(np.int64)
 
     def point_set_ids(self, patch_sets) -> np.ndarray:
         """Indices of the point sets (groups) made of the given patch sets; unknown ones are
@@ -315,6 +343,7 @@ def score_frames(
                 "scores": kept.scores,
                 "reference_boxes": frame.label_boxes,
                 "reference_class_ids": frame.label_class_ids,
+                "ignore_boxes": frame.ignore_boxes,
             }
         )
     return out
@@ -469,6 +498,12 @@ def train_with_mining(
         for index, sets in (excluded_sets or {}).items()
         if index in by_index
     }
+    # Sets on a place nobody has decided on yet (an unconfirmed pre-label) are neither object
+    # nor background: left out as the excluded ones are, mined neither.
+    for frame in frames:
+        ignored = frame.ignored_point_sets()
+        if len(ignored):
+            excluded.setdefault(frame.frame_index, set()).update(ignored.tolist())
     # The first background set: point sets that overlap no annotated box, sampled evenly, and the
     # fragments. None for the head (it has no overlaps): it draws its background afresh every
     # epoch and keeps only hard negatives as a set.

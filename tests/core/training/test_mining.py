@@ -417,3 +417,28 @@ def test_the_box_head_trains_and_detects_on_proposals_without_3dmfv(small_datase
         train_with_mining(plain, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=0)
     with pytest.raises(InputError, match='"none"'):
         run.model.detect(frame.proposal_boxes, stripped)  # the module's paper-method run
+
+
+def test_places_nobody_decided_on_are_neither_background_nor_mined(frames, run):
+    """An unconfirmed pre-label's place (``ignore_boxes``) is left out: no point set on it is
+    sampled as background or mined, and the metrics do not count a detection there."""
+    mined = run.rounds[0]["mined"]
+    ignoring = []
+    for frame in frames:
+        boxes = [m["box"] for m in mined if m["frame_index"] == frame.frame_index]
+        ignoring.append(frame.with_labels(frame.label_boxes, frame.label_class_ids, None, np.array(boxes)))
+    ignored = {f.frame_index: set(f.ignored_point_sets().tolist()) for f in ignoring}
+    assert sum(map(len, ignored.values())) >= len(mined) > 0
+    mined_groups = {(m["frame_index"], m["group"]) for m in mined}
+    assert mined_groups <= {(i, g) for i, groups in ignored.items() for g in groups}
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    again = train_with_mining(
+        ignoring, classifier, rounds=1, negatives_per_round=40, initial_negatives=150, fragment_iou=0.0,
+        score_threshold=0.05,
+    )  # fmt: skip
+    assert not any(m["group"] in ignored[m["frame_index"]] for m in again.rounds[0]["mined"])
+    # Without sampled points the proposals' boxes decide (metrics.IGNORE_IOU).
+    frame = ignoring[0]
+    without_points = dataclasses.replace(frame, groups=dataclasses.replace(frame.groups, points=None))
+    by_boxes = set(without_points.ignored_point_sets().tolist())
+    assert {m["group"] for m in mined if m["frame_index"] == frame.frame_index} <= by_boxes
