@@ -20,11 +20,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from factorydet_core.session.editing import box_of_points, camera_view_of_box, split_in_two
+from factorydet_core.session.editing import box_of_points, camera_view_of_box, prelabel_frame, split_in_two
 from factorydet_core.session.labels_io import export_bytes
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import MOVING_CLASSES, not_labelled_yet, place_box, spread_session
-from factorydet_core.types import InputError
+from factorydet_core.types import PRELABEL_SCORE, InputError
 
 from .state import AppState
 
@@ -61,6 +61,8 @@ class BrowserSession:
         self.object_class = state.dataset.class_names[0]
         self.suggestion: tuple[int, object] | None = None
         """``(frame_index, editing.Suggestion)``: the model's box for the object last clicked."""
+        self.prelabel_score: Callable[[], float] = lambda: PRELABEL_SCORE
+        """The lowest score a pre-label takes (the Pre-labels panel's slider, once built)."""
         self.label_once = True
         """Edits apply to the selected object in every frame (label once, ``world``), not to this
         frame's box alone."""
@@ -341,6 +343,78 @@ class BrowserSession:
         if added is not FAILED and added:
             here = [lab for lab in added if lab.frame_index == frame_index]
             self.select_label((here or added)[-1].id)
+
+    # -- pre-labels: the model's detections, confirmed (or fixed, or deleted) one by one
+
+    def prelabel_frame(self, min_score: float) -> None:
+        """The shown frame's detections scoring ``min_score`` or more become pre-labels
+        (``editing.prelabel_frame``, one undoable edit), and the first of them is selected."""
+        frame_index, detections = self.state.detections_at(min_score)
+        if detections is None:
+            self.notify("Pre-label", "This frame's detections are not computed yet: wait for them.")
+            return
+        db, author = self.state.db, self.author
+        added = self._guarded(
+            lambda: prelabel_frame(db, frame_index, detections, author, min_score), "Pre-label"
+        )
+        if added is FAILED:
+            return
+        if not added:
+            self.notify("Pre-label", f"No new detection scores {min_score:.2f} or more here: nothing added.")
+            return
+        self.notify(
+            "Pre-label",
+            f"{len(added)} pre-label(s) added (corner brackets). Confirm [Enter] each one that is right, "
+            "fix or delete the others; Undo [Z] takes them all back.",
+        )
+        self.select_label(added[0].id)
+
+    def next_prelabel(self, delta: int = 1) -> None:
+        """Select the next pre-label nobody has confirmed (frame by frame, the model's most
+        confident first) and put the camera on it."""
+        queue = self.state.db.unreviewed_labels() if self.state.db is not None else []
+        if not queue:
+            self.notify("Pre-labels", "None waits for a confirmation.")
+            return
+        with self.lock:
+            current = self.selected_label_id
+        ids = [lab.id for lab in queue]
+        if current in ids:
+            position = (ids.index(current) + delta) % len(queue)
+        else:  # from the shown frame on
+            after = [k for k, lab in enumerate(queue) if lab.frame_index >= self.state.frame_index]
+            position = after[0] if after and delta > 0 else (0 if delta > 0 else len(queue) - 1)
+        label = queue[position]
+        self.state.set_frame(label.frame_index)
+        self.look_at_box(label.box)
+        self.select_label(label.id)
+
+    def confirm_selected(self) -> None:
+        """The selected pre-label is right as it is: confirmed, and the next one selected."""
+        label = self.selected_label()
+        if label is None or label.reviewed:
+            self.notify("Confirm", "Select a pre-label first (corner brackets; Next pre-label [J]).")
+            return
+        done = self._edit_selected(
+            "Confirm", lambda i, v: self.state.db.confirm_labels([i], self.author, {i: v})
+        )
+        if done is not FAILED:
+            self.next_prelabel()
+
+    def confirm_frame(self) -> None:
+        """Every pre-label of the shown frame is right: all confirmed, one edit."""
+        frame_index = self.state.frame_index
+        waiting = [lab for lab in self.state.db.labels(frame_index) if not lab.reviewed]
+        if not waiting:
+            self.notify("Confirm", "No pre-label waits in this frame.")
+            return
+        self._guarded(
+            lambda: self.state.db.confirm_labels(
+                [lab.id for lab in waiting], self.author, {lab.id: lab.version for lab in waiting}
+            ),
+            "Confirm",
+            reload_selection=False,
+        )
 
     def _placer(self, class_name: str | None):
         """``place(frame_index, box) -> ({frame: box}, frames that show it)`` for an 'object'

@@ -10,7 +10,7 @@ import viser
 
 from factorydet_core import colors
 from factorydet_core.detection.detector import ProposalResult
-from factorydet_core.geometry import box_wireframe_segments
+from factorydet_core.geometry import box_dashed_segments, box_wireframe_segments
 from factorydet_core.metrics import match_detections
 from factorydet_core.proposals.voxels import voxel_colors
 from factorydet_core.types import Detections
@@ -23,11 +23,13 @@ MATCH_RGB = {"tp": (30, 170, 60), "fp": (220, 40, 40), "missed": (40, 90, 230)}
 MAX_LABELS = 60  # text sprites are one node each; beyond this the view is unreadable anyway
 
 
-def _wireframes(boxes: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(S, 2, 3) segments and (S, 2, 3) colours of boxes with one (K, 3) colour each."""
+def _wireframes(boxes: np.ndarray, rgb: np.ndarray, dashed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(S, 2, 3) segments and (S, 2, 3) colours of boxes with one (K, 3) colour each; ``dashed``
+    for the model's boxes (labels are solid, ``scene``)."""
     if not len(boxes):
         return np.zeros((0, 2, 3), np.float32), np.zeros((0, 2, 3), np.uint8)
-    segments = box_wireframe_segments(boxes).astype(np.float32).reshape(-1, 2, 3)
+    draw = box_dashed_segments if dashed else box_wireframe_segments
+    segments = draw(boxes).astype(np.float32).reshape(-1, 2, 3)
     per_box = len(segments) // len(boxes)
     return segments, np.repeat(np.asarray(rgb, np.uint8), per_box, axis=0)[:, None].repeat(2, axis=1)
 
@@ -172,7 +174,8 @@ class LayerView:
                 )  # fmt: skip
                 rgb = np.where(tp[:, None], MATCH_RGB["tp"], MATCH_RGB["fp"])
                 missed = label_boxes[np.setdiff1d(np.arange(len(label_boxes)), matched[matched >= 0])]
-            self._add_boxes("/pipeline/detections", detections.boxes[kept], rgb, 3.0)
+            # Dashed: a detection is the model's, a label (solid) a person's, in the same colours.
+            self._add_boxes("/pipeline/detections", detections.boxes[kept], rgb, 3.0, dashed=True)
             for n, k in enumerate(kept[:MAX_LABELS] if names else ()):
                 box = detections.boxes[k]
                 self.detection_nodes.append(
@@ -195,9 +198,11 @@ class LayerView:
                 )
             self.shown_detection_ids = shown
 
-    def _add_boxes(self, name: str, boxes: np.ndarray, rgb: np.ndarray, thickness: float) -> None:
+    def _add_boxes(
+        self, name: str, boxes: np.ndarray, rgb: np.ndarray, thickness: float, dashed: bool = False
+    ) -> None:
         """Draw (K, 7) boxes as wireframes, one (K, 3) colour each, as one detection node."""
-        segments, segment_rgb = _wireframes(boxes, rgb)
+        segments, segment_rgb = _wireframes(boxes, rgb, dashed)
         self.detection_nodes.append(
             self.server.scene.add_line_segments(
                 name, points=segments, colors=segment_rgb, thickness=thickness, thickness_units="screen"

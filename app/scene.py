@@ -6,7 +6,7 @@ import numpy as np
 import viser
 
 from factorydet_core import colors
-from factorydet_core.geometry import box_wireframe_segments, point_box_ids
+from factorydet_core.geometry import box_corner_segments, box_wireframe_segments, point_box_ids
 from factorydet_core.proposals.merge import merge_frame
 from factorydet_core.types import Frame
 
@@ -86,9 +86,11 @@ class SceneView:
         class_names: tuple[str, ...],
         visible: bool,
         names: bool = True,
+        prelabel_mask: np.ndarray | None = None,
     ) -> None:
-        """Replace the label boxes (wireframes in the class colour, with the class name on top
-        when ``names``)."""
+        """Replace the label boxes: wireframes in the class colour, the model's pre-labels nobody
+        has confirmed (``prelabel_mask``, (R,)) as corner brackets, with the class name on top when
+        ``names`` (detections are dashed: ``layers``)."""
         with self.server.atomic():
             for node in self._label_nodes:
                 node.remove()
@@ -96,16 +98,24 @@ class SceneView:
             if not visible or not len(boxes):
                 return
             class_rgb = colors.class_colors(class_names)[class_ids]
-            segments = box_wireframe_segments(boxes)
-            self._label_nodes.append(
-                self.server.scene.add_line_segments(
-                    "/labels/boxes",
-                    points=segments.astype(np.float32),
-                    colors=np.repeat(class_rgb, 12, axis=0)[:, None].repeat(2, axis=1),
-                    thickness=2.0,
-                    thickness_units="screen",
+            pre = np.zeros(len(boxes), bool) if prelabel_mask is None else np.asarray(prelabel_mask, bool)
+            for name, mask, draw, thickness in (
+                ("/labels/boxes", ~pre, box_wireframe_segments, 2.0),
+                ("/labels/pre_labels", pre, box_corner_segments, 4.0),
+            ):
+                if not mask.any():
+                    continue
+                segments = draw(boxes[mask])
+                per_box = len(segments) // int(mask.sum())
+                self._label_nodes.append(
+                    self.server.scene.add_line_segments(
+                        name,
+                        points=segments.astype(np.float32),
+                        colors=np.repeat(class_rgb[mask], per_box, axis=0)[:, None].repeat(2, axis=1),
+                        thickness=thickness,
+                        thickness_units="screen",
+                    )
                 )
-            )
             if not names:
                 return
             tops = boxes[:, :3] + np.c_[np.zeros((len(boxes), 2)), boxes[:, 5] / 2 + 0.1]

@@ -199,6 +199,20 @@ class AppState:
         labels = self.dataset.frame(index).labels
         return np.array(labels.boxes), np.array(labels.class_ids), np.full(len(labels), -1)
 
+    def drawn_labels(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(boxes (R, 7), class_ids (R,), prelabel_mask (R,))`` of a frame's labels, read at once:
+        the mask flags the model's pre-labels nobody has confirmed yet (drawn apart)."""
+        if self.db is None:
+            boxes, class_ids, _ = self.frame_labels(frame_index)
+            return boxes, class_ids, np.zeros(len(boxes), bool)
+        labels = self.db.labels(int(frame_index))
+        names = self.dataset.class_names
+        return (
+            np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
+            np.array([names.index(lab.class_name) for lab in labels], np.int64),
+            np.array([not lab.reviewed for lab in labels], bool),
+        )
+
     def references(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What a frame's detections are measured against: ``(boxes (R, 7), class_ids (R,),
         ignore_boxes (Q, 7))``, the labels a person made or confirmed, and the model's pre-labels
@@ -333,6 +347,17 @@ class AppState:
             self._refilter()
             self._set_result(key, result.proposal, status)
         self._notify()
+
+    def detections_at(self, min_score: float) -> tuple[int, Detections | None]:
+        """``(frame index, detections)`` of the shown frame down to ``min_score`` (one threshold
+        for every class, the NMS and voting in force), what pre-labelling takes; ``None`` until the
+        frame's detections are computed."""
+        with self.lock:
+            frame_index, result = self.frame_index, self.detection_result
+            if result is None or self.detection_frame_index != frame_index:
+                return frame_index, None
+            nms_iou, vote_iou = self.nms_iou, self._vote_iou()
+        return frame_index, select_detections(result.candidates, float(min_score), nms_iou, vote_iou=vote_iou)
 
     def class_thresholds(self):
         """(C,) the per-class thresholds in force, or ``None`` (one threshold; under the lock)."""

@@ -142,10 +142,11 @@ class FactorydetApp:
             else:
                 self.scene.set_point_size(point_size)
             if labels_key != self._labels_key:
-                boxes, class_ids, _ = self.state.frame_labels(labels_key[0])
+                boxes, class_ids, prelabel_mask = self.state.drawn_labels(labels_key[0])
                 self.scene.draw_labels(
-                    boxes, class_ids, self.state.dataset.class_names, labels_key[2], names=labels_key[3]
-                )
+                    boxes, class_ids, self.state.dataset.class_names, labels_key[2], names=labels_key[3],
+                    prelabel_mask=prelabel_mask,
+                )  # fmt: skip
                 self._labels_key = labels_key
             with self.state.lock:
                 result = self.state.pipeline_result

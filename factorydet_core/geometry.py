@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from factorydet_core.types import check_array
+from factorydet_core.types import InputError, check_array
 
 BOX_EDGES = np.array(
     [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]]
@@ -104,6 +104,30 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
 def box_wireframe_segments(boxes: np.ndarray) -> np.ndarray:
     """Edges of (M, 7) boxes as (M * 12, 2, 3) line segments."""
     return box_corners(boxes)[:, BOX_EDGES].reshape(-1, 2, 3)
+
+
+def box_dashed_segments(boxes: np.ndarray, num_dashes: int = 4) -> np.ndarray:
+    """Edges of (M, 7) boxes as dashes, (M * 12 * num_dashes, 2, 3): each edge cut in ``num_dashes``
+    equal parts, the first half of each drawn (how the app tells a detection from a label)."""
+    if num_dashes < 1:
+        raise InputError(f"num_dashes must be >= 1, got {num_dashes}")
+    edges = box_wireframe_segments(boxes)
+    start, step = edges[:, 0], (edges[:, 1] - edges[:, 0]) / num_dashes
+    k = np.arange(num_dashes)[None, :, None]
+    begin = start[:, None] + k * step[:, None]
+    return np.stack([begin, begin + step[:, None] / 2], axis=2).reshape(-1, 2, 3)
+
+
+def box_corner_segments(boxes: np.ndarray, fraction: float = 0.25) -> np.ndarray:
+    """Edges of (M, 7) boxes as corner brackets, (M * 24, 2, 3): the ``fraction`` of each edge next
+    to either end (how the app draws a pre-label nobody has confirmed)."""
+    if not 0.0 < fraction <= 0.5:
+        raise InputError(f"fraction must lie in (0, 0.5], got {fraction}")
+    edges = box_wireframe_segments(boxes)
+    reach = (edges[:, 1] - edges[:, 0]) * fraction
+    first = np.stack([edges[:, 0], edges[:, 0] + reach], axis=1)
+    last = np.stack([edges[:, 1] - reach, edges[:, 1]], axis=1)
+    return np.stack([first, last], axis=1).reshape(-1, 2, 3)
 
 
 def points_in_box(points: np.ndarray, box: np.ndarray, margin: float = 0.0) -> np.ndarray:

@@ -10,6 +10,7 @@ import viser
 
 from factorydet_core.evaluation.diagnostics import describe_label
 from factorydet_core.session.labels_io import FORMATS as EXPORT_FORMATS
+from factorydet_core.types import PRELABEL_SCORE
 
 from ..clients import ClientView
 from . import from_user
@@ -34,6 +35,11 @@ class LabelsPanel:
     apply_box: viser.GuiButtonHandle
     undo: viser.GuiButtonHandle
     redo: viser.GuiButtonHandle
+    prelabel: viser.GuiButtonHandle
+    prelabel_status: viser.GuiMarkdownHandle
+    next_prelabel: viser.GuiButtonHandle
+    confirm: viser.GuiButtonHandle
+    confirm_frame: viser.GuiButtonHandle
     _shown: tuple | None = None
 
     def refresh(self, view: ClientView) -> None:
@@ -95,6 +101,19 @@ class LabelsPanel:
         if state.db is not None:
             can_undo, can_redo = state.db.can_undo(view.author)
             self.undo.disabled, self.redo.disabled = not can_undo, not can_redo
+            waiting = state.db.unreviewed_labels()
+            here = sum(lab.frame_index == state.frame_index for lab in waiting)
+            self.prelabel_status.content = (
+                f"{len(waiting)} pre-label(s) wait for a confirmation, {here} in this frame."
+                if waiting
+                else "_No pre-label waits for a confirmation._"
+            )
+            self.next_prelabel.disabled = not waiting
+            self.confirm_frame.disabled = not here
+            self.confirm.disabled = label is None or label.reviewed
+        with state.lock:
+            ready = state.detection_result is not None and state.detection_frame_index == state.frame_index
+        self.prelabel.disabled = not ready or not state.editable
 
 
 def _spans(numbers: list[int]) -> str:
@@ -147,6 +166,20 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             yaw_deg = gui.add_number("Yaw (deg)", initial_value=0.0, step=0.1)
             apply_box = gui.add_button("Apply box", hint="Or drag the gizmo on the selected box")
             box_view = gui.add_button_group("View it from", ("top [T]", "side [V]", "front [F]"))
+        with gui.add_folder("Pre-labels", expand_by_default=False):
+            min_score = gui.add_slider(
+                "Lowest score", min=0.05, max=1.0, step=0.05, initial_value=PRELABEL_SCORE,
+                hint="Detections scoring this much or more become pre-labels",
+            )  # fmt: skip
+            prelabel = gui.add_button(
+                "Pre-label this frame [M]",
+                hint="The model's detections of this frame become labels waiting for your confirmation "
+                "(drawn as corner brackets; training and metrics leave them out until confirmed)",
+            )
+            prelabel_status = gui.add_markdown("")
+            next_prelabel = gui.add_button("Next pre-label [J]")
+            confirm = gui.add_button("Confirm [Enter]", hint="The selected pre-label is right as it is")
+            confirm_frame = gui.add_button("Confirm all in this frame")
         undo = gui.add_button("Undo [Z]")
         redo = gui.add_button("Redo [Y]")
         with gui.add_folder("Export", expand_by_default=False):
@@ -159,7 +192,8 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             )
     panel = LabelsPanel(
         author, selection, label_once, world_status, spread, accept, class_name, set_class, delete,
-        label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo,
+        label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo, prelabel,
+        prelabel_status, next_prelabel, confirm, confirm_frame,
     )  # fmt: skip
 
     @author.on_update
@@ -187,6 +221,11 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
     label_segment.on_click(lambda _: view.label_segment(class_name.value))
     split_segment.on_click(lambda _: view.label_segment(class_name.value, split=True))
     export.on_click(lambda _: view.download_labels(export_format.value))
+    prelabel.on_click(lambda _: view.prelabel_frame(float(min_score.value)))
+    next_prelabel.on_click(lambda _: view.next_prelabel())
+    confirm.on_click(lambda _: view.confirm_selected())
+    confirm_frame.on_click(lambda _: view.confirm_frame())
+    view.prelabel_score = lambda: float(min_score.value)
     undo.on_click(lambda _: view.undo())
     redo.on_click(lambda _: view.undo(redo=True))
 

@@ -233,8 +233,15 @@ def _box_text(box) -> str:
 def describe_label(label, frame_labels) -> str:
     """Markdown about a stored label (``store.Label``) and its neighbours among ``frame_labels``."""
     near = _neighbours(label.box, frame_labels, exclude_id=label.id)
+    waiting = ""
+    if not getattr(label, "reviewed", True):
+        score = "" if label.score is None else f", score {label.score:.2f}"
+        waiting = (
+            f"**Pre-label** from the model{score}, not confirmed yet: **Confirm [Enter]** if it is right,"
+            " fix its class or box (that confirms it too), or delete it.  \n"
+        )
     return (
-        f"**Label #{label.id}: {label.class_name}** (frame {label.frame_index + 1})  \n"
+        waiting + f"**Label #{label.id}: {label.class_name}** (frame {label.frame_index + 1})  \n"
         f"{_box_text(label.box)}  \n"
         f"origin *{label.origin}*, made by {label.created_by}, last changed by {label.modified_by} "
         f"at {label.modified[:19].replace('T', ' ')} (version {label.version})  \n"

@@ -405,3 +405,57 @@ def test_an_object_verdict_labels_the_object_in_every_frame_and_a_later_verdict_
     assert not any(state.db.label(lab.id).deleted for lab in members)
     person.undo()  # the object verdict: gone everywhere
     assert all(state.db.label(lab.id).deleted for lab in members)
+
+
+def _detected(state: AppState, boxes, scores) -> None:
+    """The shown frame's detections are in (only their candidates matter to pre-labelling)."""
+    from types import SimpleNamespace
+
+    from tests.core.session.test_prelabels import _detections
+
+    with state.lock:
+        state.detection_result = SimpleNamespace(candidates=_detections(boxes, scores))
+        state.detection_frame_index = state.frame_index
+
+
+def test_pre_labels_are_added_walked_confirmed_and_fixed_from_the_queue(state):
+    from tests.core.session.test_prelabels import FAR
+
+    ann = _person(state, "ann")
+    ann.prelabel_frame(0.5)
+    assert "not computed yet" in ann.messages[-1][1]
+    _detected(state, FAR[:3], [0.9, 0.7, 0.3])
+    ann.prelabel_frame(0.5)
+    waiting = state.db.unreviewed_labels()
+    assert len(waiting) == 2 and ann.selected_label_id == waiting[0].id  # the best first
+    ann.confirm_selected()  # right as it is: confirmed, and the next one selected
+    assert ann.selected_label_id == waiting[1].id
+    assert [lab.id for lab in state.db.unreviewed_labels()] == [waiting[1].id]
+    ann.set_class("person")  # a fix confirms it too
+    assert state.db.unreviewed_labels() == []
+    ann.confirm_selected()
+    assert "Select a pre-label first" in ann.messages[-1][1]
+    ann.next_prelabel()
+    assert "None waits" in ann.messages[-1][1]
+    # Lower: the third one only (the others are labelled there now), then all of the frame at once.
+    ann.prelabel_frame(0.2)
+    assert [lab.score for lab in state.db.unreviewed_labels()] == [pytest.approx(0.3)]
+    ann.confirm_frame()
+    assert state.db.unreviewed_labels() == []
+    assert state.references(0)[2].shape == (0, 7)  # nothing ignored any more: all truth
+    ann.undo()
+    assert len(state.references(0)[2]) == 1  # the unconfirmed one is neither truth nor a miss
+    boxes, _, prelabel_mask = state.drawn_labels(0)
+    assert prelabel_mask.sum() == 1 and len(boxes) == len(prelabel_mask)
+
+
+def test_next_pre_label_moves_to_its_frame(state):
+    from tests.core.session.test_prelabels import FAR
+
+    _detected(state, FAR[:1], [0.9])
+    ann = _person(state, "ann")
+    ann.prelabel_frame(0.5)
+    ann.clear_selection()
+    state.set_frame(1)
+    ann.next_prelabel()  # none from frame 1 on: round to the first
+    assert state.frame_index == 0 and ann.selected_label().score == pytest.approx(0.9)

@@ -4,7 +4,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from factorydet_core.geometry import (
+    box_corner_segments,
     box_corners,
+    box_dashed_segments,
     box_wireframe_segments,
     group_bounds,
     invert_transform,
@@ -64,6 +66,34 @@ def test_wireframe_has_twelve_edges_per_box():
     assert segments.shape == (24, 2, 3)
     lengths = np.linalg.norm(segments[:12, 1] - segments[:12, 0], axis=1)
     assert sorted(np.round(lengths, 9).tolist()) == [1.0] * 8 + [2.0] * 4
+
+
+@settings(max_examples=50, deadline=None)
+@given(finite, finite, size, size, size, angle, st.integers(1, 6), st.floats(0.05, 0.5))
+def test_dashes_and_corner_brackets_lie_on_the_edges_and_cover_their_share(
+    cx, cy, dx, dy, dz, yaw, num_dashes, fraction
+):
+    box = np.array([[cx, cy, 0.5, dx, dy, dz, yaw]])
+    edges = box_wireframe_segments(box)
+    edge_length = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).sum()
+    for pieces, share in (
+        (box_dashed_segments(box, num_dashes), 0.5),
+        (box_corner_segments(box, fraction), 2 * fraction),
+    ):
+        lengths = np.linalg.norm(pieces[:, 1] - pieces[:, 0], axis=1)
+        assert lengths.sum() == pytest.approx(share * edge_length, rel=1e-9)
+        # Every piece's ends lie on the box's surface: inside the box grown by a hair.
+        ends = pieces.reshape(-1, 3)
+        assert points_in_box(ends, box[0], margin=1e-6).all()
+    assert box_dashed_segments(box, num_dashes).shape == (12 * num_dashes, 2, 3)
+    assert box_corner_segments(box, fraction).shape == (24, 2, 3)
+
+
+def test_dash_and_bracket_settings_are_checked():
+    with pytest.raises(ValueError, match="num_dashes"):
+        box_dashed_segments(np.zeros((1, 7)) + 1, 0)
+    with pytest.raises(ValueError, match="fraction"):
+        box_corner_segments(np.zeros((1, 7)) + 1, 0.7)
 
 
 def test_transform_boxes_refuses_tilting_transforms():
