@@ -35,6 +35,7 @@ class LabelsPanel:
     apply_box: viser.GuiButtonHandle
     undo: viser.GuiButtonHandle
     redo: viser.GuiButtonHandle
+    min_score: viser.GuiSliderHandle
     prelabel: viser.GuiButtonHandle
     prelabel_status: viser.GuiMarkdownHandle
     next_prelabel: viser.GuiButtonHandle
@@ -192,8 +193,8 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             )
     panel = LabelsPanel(
         author, selection, label_once, world_status, spread, accept, class_name, set_class, delete,
-        label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo, prelabel,
-        prelabel_status, next_prelabel, confirm, confirm_frame,
+        label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo, min_score,
+        prelabel, prelabel_status, next_prelabel, confirm, confirm_frame,
     )  # fmt: skip
 
     @author.on_update

@@ -194,6 +194,28 @@ def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  #
         context.close()
 
 
+def test_pre_label_a_frame_and_confirm_with_the_keyboard(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context, page, view = _open(browser, app)
+    try:
+        assert _wait(lambda: app.state.detections_at(0.05)[1] is not None, 120), "no detections came"
+        view.panels[0].min_score.value = 0.05  # the tiny model scores low
+        canvas = page.locator("canvas[data-engine]")
+        canvas.click(position={"x": 5, "y": 5})  # focus the canvas (a click on nothing)
+        page.keyboard.press("m")
+        assert _wait(lambda: len(db.unreviewed_labels()) > 0, 30), "M did not pre-label the frame"
+        waiting = db.unreviewed_labels()
+        page.get_by_text("Pre-labels", exact=True).click()  # the folder opens
+        page.get_by_text(f"{len(waiting)} pre-label(s) wait", exact=False).wait_for(timeout=20_000)
+        assert _wait(lambda: view.selected_label_id == waiting[0].id, 20)
+        canvas.focus()  # (a click would clear the selection: it selects what is under it)
+        page.keyboard.press("Enter")
+        assert _wait(lambda: db.label(waiting[0].id).reviewed, 20), "Enter did not confirm it"
+    finally:
+        context.close()
+
+
 def test_retrain_from_the_browser_shows_progress_and_the_before_after_table(session_app, browser):  # noqa: F811
     app = session_app
     db = app.state.db
