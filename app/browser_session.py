@@ -23,7 +23,13 @@ import numpy as np
 from factorydet_core.session.editing import box_of_points, camera_view_of_box, prelabel_frame, split_in_two
 from factorydet_core.session.labels_io import export_bytes
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
-from factorydet_core.session.world import MOVING_CLASSES, not_labelled_yet, place_box, spread_session
+from factorydet_core.session.world import (
+    MOVING_CLASSES,
+    interpolate_boxes,
+    not_labelled_yet,
+    place_box,
+    spread_session,
+)
 from factorydet_core.types import PRELABEL_SCORE, InputError
 
 from .state import AppState
@@ -266,6 +272,51 @@ class BrowserSession:
         with self.state.lock:
             return self.state.world
 
+    def _tracker(self, class_name: str):
+        """``keyframes -> {frame: box}`` between them (``world.interpolate_boxes``) when an edit
+        of a ``class_name`` object recomputes its boxes between keyframes (label once on, placed
+        already, a class that moves), else ``None``."""
+        if not self.label_once or class_name not in MOVING_CLASSES:
+            return None
+        with self.state.lock:
+            world = self.state.world
+        return None if world is None else (lambda keyframes: interpolate_boxes(world, keyframes))
+
+    def keyframe_here(self) -> None:
+        """The selected person or truck, labelled in another frame, gets a box in the shown frame
+        too (where the frames' poses carry its box: move it onto the object), and its boxes in
+        the frames between its keyframes are computed; one edit."""
+        label = self.selected_label()
+        frame_index = self.state.frame_index
+        if label is None:
+            self.notify("Keyframe", "Select a person or truck first (click its box in a frame that has it).")
+            return
+        if label.class_name not in MOVING_CLASSES:
+            self.notify(
+                "Keyframe",
+                f"A {label.class_name} stands still: with label once it is in every frame that shows it "
+                "already. Keyframes are for people and trucks.",
+            )
+            return
+        if label.frame_index == frame_index:
+            self.notify("Keyframe", "The object is labelled in this frame already: move its box here.")
+            return
+        with self.state.lock:
+            world = self.state.world
+        if world is None:
+            self.notify("Keyframe", "The frames are not placed in one world frame yet: wait for it.")
+            return
+        box = place_box(world, label.frame_index, label.box).boxes[frame_index]
+        tracker = self._tracker(label.class_name)
+        added = self._edit_selected(
+            "Keyframe",
+            lambda i, v: self.state.db.add_keyframe(
+                i, frame_index, box, self.author, expected_version=v, track=tracker
+            ),
+        )
+        if added is not FAILED:
+            self.select_label(added.id)
+
     def set_class(self, class_name: str) -> None:
         """The selected label's class; with label once, its object's in every frame."""
         db = self.state.db
@@ -283,8 +334,9 @@ class BrowserSession:
         def edit(label_id: int, version: int):
             label = db.label(label_id)
             world = self._world_for(label.class_name)
-            if world is None:
-                return db.update_label(label_id, self.author, expected_version=version, box=box)
+            if world is None:  # a moving object's boxes between its keyframes follow, if any
+                track = self._tracker(label.class_name)
+                return db.update_label(label_id, self.author, expected_version=version, box=box, track=track)
             boxes, show_in = place_box(world, label.frame_index, box).for_store()
             return db.update_object(
                 label_id, self.author, expected_version=version, boxes=boxes, show_in=show_in

@@ -10,6 +10,7 @@ import viser
 
 from factorydet_core.evaluation.diagnostics import describe_label
 from factorydet_core.session.labels_io import FORMATS as EXPORT_FORMATS
+from factorydet_core.session.world import MOVING_CLASSES
 from factorydet_core.types import PRELABEL_SCORE
 
 from ..clients import ClientView
@@ -27,6 +28,7 @@ class LabelsPanel:
     class_name: viser.GuiDropdownHandle
     set_class: viser.GuiButtonHandle
     delete: viser.GuiButtonHandle
+    keyframe: viser.GuiButtonHandle
     label_segment: viser.GuiButtonHandle
     split_segment: viser.GuiButtonHandle
     centre: viser.GuiVector3Handle
@@ -53,9 +55,22 @@ class LabelsPanel:
             text = "_This data set is open without a session: labels are read-only._"
         elif label is not None:
             text = describe_label(label, state.db.labels(label.frame_index))
-            frames = [lab.frame_index + 1 for lab in state.db.object_labels(label.id)]
+            members = state.db.object_labels(label.id)
+            frames = [lab.frame_index + 1 for lab in members]
             if len(frames) > 1:
                 text += f"\n\nThe same object is labelled in {len(frames)} frames ({_spans(frames)})."
+            computed = [lab.frame_index + 1 for lab in members if lab.origin == "interpolated"]
+            if computed:
+                keyframes = sorted(set(frames) - set(computed))
+                text += (
+                    f" Keyframes: {_spans(keyframes)}; computed between them: {_spans(computed)}"
+                    " (moving a computed box makes it a keyframe)."
+                )
+            elif label.class_name in MOVING_CLASSES:
+                text += (
+                    "\n\nA moving object: select it, go to another frame and press **Keyframe here [H]**;"
+                    " the frames between keyframes get computed boxes."
+                )
         elif len(points):
             text = (
                 f"**Segment** of {len(view.selected_patch_ids)} patch(es), {len(points):,} points. "
@@ -79,6 +94,7 @@ class LabelsPanel:
         self.accept.disabled = suggested is None or not state.editable
         for button in (self.set_class, self.delete, self.apply_box):
             button.disabled = label is None
+        self.keyframe.disabled = label is None or label.class_name not in MOVING_CLASSES
         for button in (self.label_segment, self.split_segment):
             button.disabled = not len(points)
         # Fill the Box fields only when another label or version is shown: a refresh caused by
@@ -157,6 +173,11 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             "this makes it a label of the class above",
         )
         label_segment = gui.add_button("Label segment [L]", hint="A new label boxing the selected segment")
+        keyframe = gui.add_button(
+            "Keyframe here [H]",
+            hint="The selected person or truck, labelled in another frame, gets a box in this frame; the "
+            "frames between its keyframes get computed boxes",
+        )
         split_segment = gui.add_button("Split segment into two [K]")
         with gui.add_folder("Box", expand_by_default=False):
             # Millimetres and tenths of a degree: the numbers a labeller checks a box with.
@@ -193,7 +214,7 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
             )
     panel = LabelsPanel(
         author, selection, label_once, world_status, spread, accept, class_name, set_class, delete,
-        label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo, min_score,
+        keyframe, label_segment, split_segment, centre, size, yaw_deg, apply_box, undo, redo, min_score,
         prelabel, prelabel_status, next_prelabel, confirm, confirm_frame,
     )  # fmt: skip
 
@@ -220,6 +241,7 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
     set_class.on_click(lambda _: view.set_class(class_name.value))
     delete.on_click(lambda _: view.delete_selected())
     label_segment.on_click(lambda _: view.label_segment(class_name.value))
+    keyframe.on_click(lambda _: view.keyframe_here())
     split_segment.on_click(lambda _: view.label_segment(class_name.value, split=True))
     export.on_click(lambda _: view.download_labels(export_format.value))
     prelabel.on_click(lambda _: view.prelabel_frame(float(min_score.value)))

@@ -503,11 +503,13 @@ class EditConflictError(SessionError):
         self.conflicts = list(conflicts or [])
 
 
-def _by_a_person(content: dict) -> dict:
-    """What a person's edit of a label's box or class makes of it: a pre-label reviewed, a
-    computed (interpolated) box the person's own."""
-    origin = "user" if content.get("origin") in COMPUTED_ORIGINS else content.get("origin")
-    return {**content, "origin": origin, "reviewed": 1}
+def _by_a_person(content: dict, before: dict | None = None) -> dict:
+    """What a person's edit makes of a label's ``content`` (``before`` it: the stored one): a
+    pre-label reviewed; a computed (interpolated) box whose box the person moved their own (a
+    keyframe), one whose class alone changed still computed."""
+    moved = before is None or content.get("box") != before.get("box")
+    computed = content.get("origin") in COMPUTED_ORIGINS
+    return {**content, "origin": "user" if computed and moved else content.get("origin"), "reviewed": 1}
 
 
 def _verdict_text(verdict: str, class_name: str | None) -> str:
@@ -1533,12 +1535,16 @@ class SessionDB:
         expected_version: int | None = None,
         box=None,
         class_name: str | None = None,
+        track: Callable[[dict], dict] | None = None,
     ) -> Label:
         """Change a label's box and/or class.
 
         Args:
             expected_version: the version the change was made against; if the label has changed
                 since, ``EditConflictError`` is raised and nothing is written.
+            track: for a moving object's label, ``keyframes -> {frame: box}`` of the frames between
+                them (``world.interpolate_boxes``): the label becomes a keyframe (an interpolated
+                one too) and the object's computed boxes follow, in the same edit.
         """
         if class_name is not None:
             self._check_class(class_name)
@@ -1548,17 +1554,127 @@ class SessionDB:
                 raise EditConflictError(
                     f"label {label_id} was deleted by {row['modified_by']} at {row['modified']}"
                 )
+            content = self._content(db, "labels", int(label_id))
             after = _by_a_person(
                 {
-                    **self._content(db, "labels", int(label_id)),
+                    **content,
                     "box": row["box"] if box is None else _box_json(box),
                     "class_name": row["class_name"] if class_name is None else class_name,
-                }
+                },
+                content,
             )
             what = "box" if class_name is None else ("class" if box is None else "box and class")
-            change = self._change(db, "labels", int(label_id), after, author)
-            self._edit(db, author, "update", f"change the {what} of label {label_id}", [change])
+            changes = [self._change(db, "labels", int(label_id), after, author)]
+            if track is not None and row["instance_id"] is not None:
+                changes += self._retrack(db, row["instance_id"], track, author)
+            self._edit(db, author, "update", f"change the {what} of label {label_id}", changes)
         return self.label(label_id)
+
+    def _retrack(self, db, instance_id: int, track: Callable[[dict], dict], author: str) -> list[dict]:
+        """A moving object's computed boxes (origin 'interpolated') brought in line with its
+        keyframes (its other labels): each frame ``track(keyframes)`` gives gets its box (a new
+        label where the object has none and no other label overlaps it, ``SAME_OBJECT_IOU``), and
+        computed boxes outside them are deleted. Returns the changes."""
+        members = db.execute(
+            "SELECT * FROM labels WHERE instance_id = ? AND deleted = 0 ORDER BY frame_index, id",
+            (instance_id,),
+        ).fetchall()
+        keyframes = {
+            m["frame_index"]: json.loads(m["box"]) for m in members if m["origin"] not in COMPUTED_ORIGINS
+        }
+        if not keyframes:
+            return []
+        class_name = next(m["class_name"] for m in members if m["origin"] not in COMPUTED_ORIGINS)
+        wanted = {
+            self._check_frame(f): _box_json(b, f"box of frame {f}")
+            for f, b in track(keyframes).items()
+            if int(f) not in keyframes
+        }
+        changes = []
+        for member in members:
+            if member["origin"] not in COMPUTED_ORIGINS:
+                continue
+            content = self._content(db, "labels", int(member["id"]))
+            box = wanted.pop(member["frame_index"], None)
+            after = (
+                {**content, "deleted": 1}
+                if box is None
+                else {**content, "box": box, "class_name": class_name}
+            )
+            if after != content:
+                changes.append(self._change(db, "labels", int(member["id"]), after, author))
+        items = []
+        for frame_index, box in sorted(wanted.items()):
+            self._import_frame(db, frame_index)
+            if not self._overlapped(db, frame_index, box, instance_id):
+                items.append((frame_index, box, class_name))
+        if items:
+            changes += self._insert_labels(db, items, "interpolated", author, instance_id)[1]
+        return changes
+
+    def add_keyframe(
+        self,
+        label_id: int,
+        frame_index: int,
+        box,
+        author: str,
+        *,
+        expected_version: int | None = None,
+        track: Callable[[dict], dict] | None = None,
+    ) -> Label:
+        """A moving object (person, truck) labelled in one more frame: a keyframe of the object
+        label ``label_id`` boxes, with its class, and (given ``track``, see ``update_label``) its
+        boxes in the frames between its keyframes computed; one edit. Returns the new label.
+
+        Raises:
+            EditConflictError: the label changed since ``expected_version`` or was deleted, or the
+                object is labelled in that frame already (move that label instead).
+        """
+        frame_index = self._check_frame(frame_index)
+        box_json = _box_json(box)
+        names = self.class_names
+        with self._write() as db:
+            row = self._locked_label(db, label_id, expected_version)
+            if row["deleted"]:
+                raise EditConflictError(
+                    f"label {label_id} was deleted by {row['modified_by']} at {row['modified']}"
+                )
+            self._import_frame(db, frame_index)
+            instance_id = row["instance_id"]
+            if instance_id is None:
+                instance_id = self._new_object_id(db)
+                db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, int(label_id)))
+            there = db.execute(
+                "SELECT id, origin FROM labels WHERE instance_id = ? AND frame_index = ? AND deleted = 0",
+                (instance_id, frame_index),
+            ).fetchone()
+            if there is not None and there["origin"] not in COMPUTED_ORIGINS:
+                raise EditConflictError(
+                    f"the object is labelled in frame {frame_index} already (label {there['id']}):"
+                    " move that one"
+                )
+            changes = []
+            if there is not None:  # a computed box there becomes the keyframe
+                content = self._content(db, "labels", int(there["id"]))
+                after = _by_a_person({**content, "box": box_json})
+                changes.append(self._change(db, "labels", int(there["id"]), after, author))
+                new_id = int(there["id"])
+            else:
+                ids, inserted = self._insert_labels(
+                    db, [(frame_index, box_json, row["class_name"])], "user", author, instance_id
+                )
+                changes += inserted
+                new_id = ids[0]
+            if track is not None:
+                changes += self._retrack(db, instance_id, track, author)
+            self._edit(
+                db,
+                author,
+                "add",
+                f"add a keyframe of label {label_id}'s object in frame {frame_index}",
+                changes,
+            )
+            return self._label(db.execute("SELECT * FROM labels WHERE id = ?", (new_id,)).fetchone(), names)
 
     @staticmethod
     def _overlapped(db, frame_index: int, box_json: str, instance_id: int | None) -> bool:
@@ -1653,7 +1769,7 @@ class SessionDB:
                     "class_name": member["class_name"] if class_name is None else class_name,
                 }
                 if after != content:
-                    after = _by_a_person(after)
+                    after = _by_a_person(after, content)
                     changes.append(self._change(db, "labels", int(member["id"]), after, author))
             shown = set(wanted) if show_in is None else {int(f) for f in show_in} & set(wanted)
             changes += self._add_to_frames(db, instance_id, wanted, shown, new_class, origin, author)

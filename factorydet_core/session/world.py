@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from factorydet_core.geometry import invert_transform, points_in_box, rotation_z, transform_boxes
+from factorydet_core.geometry import invert_transform, points_in_box, rotation_z, transform_boxes, wrap_angle
 from factorydet_core.proposals.merge import merge_frame, o3d_cloud, refine_extrinsics
 from factorydet_core.types import Frame, InputError, check_array
 
@@ -226,6 +226,41 @@ def place_box(world: WorldFrames, frame_index: int, box, *, min_points: int = MI
     visible = num_points >= min_points
     visible[int(frame_index)] = True
     return Placement(boxes=boxes, num_points=num_points, visible_mask=visible)
+
+
+def interpolate_boxes(world: WorldFrames, keyframes: dict) -> dict[int, tuple[float, ...]]:
+    """A moving object's boxes in the frames between its keyframes (people and trucks: their boxes
+    are drawn in some frames, the keyframes, and computed in the frames between).
+
+    Between two consecutive keyframes, in the world frame (the frames' poses), the centre and the
+    size go linearly with the frame index and the heading turns the shorter way; each box is then
+    carried into its own frame. Frames before the first keyframe and after the last get none.
+
+    Args:
+        keyframes: ``{frame_index: box (7,)}`` in each frame's vehicle frame.
+
+    Returns:
+        ``{frame_index: box}`` of every frame strictly between two keyframes.
+    """
+    frames = sorted(int(f) for f in keyframes)
+    for f in frames:
+        if not 0 <= f < world.num_frames:
+            raise InputError(f"keyframe {f} is not one of the {world.num_frames} frames placed")
+    in_world = {
+        f: transform_boxes(world.T_world_vehicle[f], np.asarray(keyframes[f], np.float64).reshape(1, 7))[0]
+        for f in frames
+    }
+    out: dict[int, tuple[float, ...]] = {}
+    for a, b in zip(frames[:-1], frames[1:]):
+        start, end = in_world[a], in_world[b]
+        turn = float(wrap_angle(end[6] - start[6]))
+        for f in range(a + 1, b):
+            t = (f - a) / (b - a)
+            box = start + t * (end - start)
+            box[6] = wrap_angle(start[6] + t * turn)
+            local = transform_boxes(invert_transform(world.T_world_vehicle[f]), box[None])[0]
+            out[f] = tuple(float(v) for v in local)
+    return out
 
 
 def spread_objects(labels_by_frame: dict, world: WorldFrames, *, min_points: int = MIN_POINTS) -> list[tuple]:

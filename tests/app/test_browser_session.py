@@ -459,3 +459,39 @@ def test_next_pre_label_moves_to_its_frame(state):
     state.set_frame(1)
     ann.next_prelabel()  # none from frame 1 on: round to the first
     assert state.frame_index == 0 and ann.selected_label().score == pytest.approx(0.9)
+
+
+def test_a_keyframe_in_another_frame_computes_the_boxes_between(state):
+    person = _person(state, "ann")
+    person.keyframe_here()
+    assert "Select a person or truck" in person.messages[-1][1]
+    person.drawn_result = lambda: (None, 0)
+    person.selected_points = lambda: _cube((10.0, 1.0, 0.5))
+    person.selected_frame = 0
+    person.label_segment("person")
+    first = person.selected_label()
+    state.set_frame(2)
+    person.keyframe_here()
+    assert "not placed" in person.messages[-1][1]
+    _placed_world(state, seen_in=(0, 1, 2))
+    person.keyframe_here()
+    end = person.selected_label()
+    assert end.frame_index == 2 and end.instance_id == state.db.label(first.id).instance_id
+    # Carried by the poses (frame 2 is 4 m further along x); then moved 1 m onto the person.
+    assert end.box[0] == pytest.approx(first.box[0] - 4.0)
+    person.apply_box((end.box[0] + 1.0, *end.box[1:]))
+    middle = [lab for lab in state.db.object_labels(first.id) if lab.frame_index == 1]
+    assert len(middle) == 1 and middle[0].origin == "interpolated"
+    # Half way in the world: frame 1 sits 2 m along x, so 0.5 m past the start carried there.
+    assert middle[0].box[0] == pytest.approx(first.box[0] - 2.0 + 0.5)
+    person.keyframe_here()
+    assert "labelled in this frame already" in person.messages[-1][1]
+    person.undo()
+    person.undo()
+    assert [lab.frame_index for lab in state.db.object_labels(first.id)] == [0]
+    state.set_frame(0)
+    person.select_label(first.id)
+    person.set_class("box")
+    state.set_frame(1)
+    person.keyframe_here()
+    assert "stands still" in person.messages[-1][1]

@@ -9,13 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from factorydet_core.boxes import box_iou_3d
-from factorydet_core.geometry import make_transform, rotation_z
+from factorydet_core.geometry import make_transform, rotation_z, transform_boxes
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, Label, SessionDB, open_session
 from factorydet_core.session.world import (
     MOVING_CLASSES,
     WorldFrames,
     calibrated_extrinsics,
+    interpolate_boxes,
     place_box,
     planar,
     register_frames,
@@ -87,6 +88,44 @@ def test_carrying_a_box_there_and_back_gives_it_back(x, y, yaw_pose, yaw_box, ya
     np.testing.assert_allclose(back[:6], box[:6], atol=1e-7)
     assert np.cos(back[6] - box[6]) == pytest.approx(1.0)
     assert planar(poses[0]) == pytest.approx(poses[0])
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.lists(st.floats(-np.pi, np.pi), min_size=5, max_size=5),
+    st.floats(-np.pi, np.pi),
+    st.floats(-np.pi, np.pi),
+    st.integers(2, 4),
+)
+def test_boxes_between_keyframes_go_straight_in_the_world_and_turn_the_short_way(
+    pose_yaws, yaw_start, yaw_end, last
+):
+    """Whatever the frames' poses, the computed boxes lie on the straight world path between the
+    keyframes, evenly by frame, and their heading turns by at most half a turn in all."""
+    poses = np.stack([_pose(2.0 * f, -1.0 * f, yaw) for f, yaw in enumerate(pose_yaws)])
+    world = WorldFrames(poses, np.ones(5), (np.zeros((0, 3), np.float32),) * 5)
+    start_world = np.array([10.0, 2.0, 0.9, 0.6, 0.5, 1.8, yaw_start])
+    end_world = np.array([14.0, -2.0, 0.9, 0.6, 0.5, 1.8, yaw_end])
+
+    def local(box, f):
+        return place_box(
+            WorldFrames(np.stack([np.eye(4), poses[f]]), np.ones(2), world.clouds[:2]), 0, box
+        ).boxes[1]
+
+    keyframes = {0: local(start_world, 0), last: local(end_world, last)}
+    between = interpolate_boxes(world, keyframes)
+    assert sorted(between) == list(range(1, last))
+    turn = np.angle(np.exp(1j * (yaw_end - yaw_start)))
+    for f, box in between.items():
+        t = f / last
+        in_world = transform_boxes(poses[f], np.asarray(box)[None])[0]
+        np.testing.assert_allclose(
+            in_world[:6], start_world[:6] + t * (end_world[:6] - start_world[:6]), atol=1e-7
+        )
+        assert np.cos(in_world[6] - (yaw_start + t * turn)) == pytest.approx(1.0)
+    assert interpolate_boxes(world, {3: keyframes[0]}) == {}  # one keyframe: nothing between
+    with pytest.raises(InputError, match="keyframe 7"):
+        interpolate_boxes(world, {0: keyframes[0], 7: keyframes[0]})
 
 
 def test_place_box_refuses_a_frame_it_has_not_placed():
@@ -276,3 +315,46 @@ def test_label_once_never_labels_an_object_twice_nor_undoes_a_deletion(db):
     db.delete_labels([spread[2].id], "ann")
     assert len(spread_session(db, world, "ann")) == 0
     assert 2 not in {lab.frame_index for lab in db.object_labels(dataset_label.id)}
+
+
+def test_a_moving_objects_boxes_between_its_keyframes_follow_every_edit_in_one_undo(db):
+    """Keyframes of a person in frames 0 and 2: frame 1 gets a computed box; moving a keyframe
+    moves it, moving the computed one makes it a keyframe; each is one edit, one undo."""
+
+    def track(keyframes):  # the middle of its neighbours (a world without motion)
+        frames = sorted(keyframes)
+        out = {}
+        for a, b in zip(frames[:-1], frames[1:]):
+            for f in range(a + 1, b):
+                t = (f - a) / (b - a)
+                out[f] = tuple(
+                    np.asarray(keyframes[a]) + t * (np.asarray(keyframes[b]) - np.asarray(keyframes[a]))
+                )
+        return out
+
+    first = db.add_label(0, (30.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), "person", "ann")
+    end = db.add_keyframe(
+        first.id, 2, (34.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), "ann", expected_version=first.version, track=track
+    )
+    members = db.object_labels(first.id)
+    assert [(lab.frame_index, lab.origin) for lab in members] == [
+        (0, "user"),
+        (1, "interpolated"),
+        (2, "user"),
+    ]
+    assert members[1].box[0] == pytest.approx(32.0) and members[1].class_name == "person"
+    with pytest.raises(EditConflictError, match="labelled in frame 2 already"):
+        db.add_keyframe(first.id, 2, end.box, "ann", track=track)
+    db.update_label(end.id, "ann", box=(36.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), track=track)
+    assert db.object_labels(first.id)[1].box[0] == pytest.approx(33.0)
+    middle = db.object_labels(first.id)[1]
+    db.update_label(middle.id, "ann", box=(32.5, 1.2, 0.9, 0.6, 0.5, 1.8, 0.0), track=track)
+    assert db.label(middle.id).origin == "user"  # a keyframe now
+    db.update_object(first.id, "ann", class_name="truck")  # a class change keeps computed boxes computed
+    db.undo("ann")
+    db.undo("ann")
+    assert db.label(middle.id).origin == "interpolated" and db.label(middle.id).box[0] == pytest.approx(33.0)
+    db.undo("ann")
+    assert db.label(middle.id).box[0] == pytest.approx(32.0)
+    db.undo("ann")  # the keyframe and its computed box go together
+    assert [lab.frame_index for lab in db.object_labels(first.id)] == [0]
