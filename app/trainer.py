@@ -43,6 +43,31 @@ def time_left_text(seconds: float) -> str:
     return f"about {round(seconds / 60):.0f} min"
 
 
+class Pace:
+    """Time left in a phase of counted steps (frames of proposals, frames scored), at the pace
+    since the phase's first reported step: the first report only starts the clock."""
+
+    def __init__(self) -> None:
+        self._phase: object = None
+        self._start = 0.0
+        self._first = 0
+
+    def left(self, phase: object, done: int, total: int) -> float | None:
+        """Seconds left in ``phase`` after ``done`` of ``total`` steps; ``None`` until a step has
+        been timed (a new phase restarts the clock)."""
+        if phase != self._phase:
+            self._phase, self._start, self._first = phase, _clock(), done
+            return None
+        if done <= self._first:
+            return None
+        return (_clock() - self._start) / (done - self._first) * max(0, total - done)
+
+    def text(self, phase: object, done: int, total: int) -> str:
+        """`` · about 40 s left`` once known, else empty."""
+        left = self.left(phase, done, total)
+        return "" if left is None else f" · {time_left_text(left)} left"
+
+
 def run_choice(run_id: int, kind: str) -> str:
     """The Training panel's name of a run's final model (``panels.training_panel.model_choices``)."""
     return f"run {run_id} ({kind}) final"
@@ -162,8 +187,10 @@ class TrainingWorker:
         rounds = settings.rounds + 1 if mode == "full" else 1
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75
+        score_share = 0.2  # of each round's share: its scoring (the fit has the rest)
         done_fits = [0]
         fit_started = [0.0, -1, 0]  # this round's first reported epoch: when, which round, which epoch
+        pace = Pace()
 
         def progress(what: str, done: int, total: int) -> None:
             # "compare" comes after the run is stored: too late to cancel without losing it.
@@ -172,9 +199,16 @@ class TrainingWorker:
             if what == "calibrate":
                 state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
             elif what == "proposals":
-                state.set_training(status=f"proposals: frame {done} of {total}", progress=0.1 * done / total)
+                status = f"proposals: frame {done} of {total}" + pace.text(what, done, total)
+                state.set_training(status=status, progress=0.1 * done / total)
+            elif what == "score":
+                # Each round scores every training frame (what mining and the thresholds read).
+                fraction = (done_fits[0] + (1 - score_share) + score_share * done / total) / rounds
+                status = f"round {done_fits[0] + 1} of {rounds}: scoring frame {done + 1} of {total}"
+                status += pace.text((what, done_fits[0]), done, total)
+                state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "fit":
-                fraction = (done_fits[0] + done / total) / rounds
+                fraction = (done_fits[0] + (1 - score_share) * done / total) / rounds
                 status = f"round {done_fits[0] + 1} of {rounds}: epoch {done} of {total}"
                 if fit_started[1] != done_fits[0]:
                     fit_started[:] = [_clock(), done_fits[0], done]
