@@ -20,7 +20,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from factorydet_core.session.editing import box_of_points, camera_view_of_box, prelabel_frame, split_in_two
+from factorydet_core.session.editing import (
+    box_of_points,
+    camera_view_of_box,
+    nudge_box,
+    prelabel_frame,
+    split_in_two,
+)
 from factorydet_core.session.labels_io import export_bytes
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import (
@@ -344,19 +350,15 @@ class BrowserSession:
 
         self._edit_selected("Move box", edit)
 
-    def nudge(self, forward: float = 0.0, left: float = 0.0, up: float = 0.0, yaw_deg: float = 0.0) -> None:
-        """Move the selected box along its own heading (``forward``), across it (``left``) and up,
-        in metres, and turn it by ``yaw_deg`` counter-clockwise; one edit (``apply_box``)."""
+    def nudge(self, **step: float) -> None:
+        """Move, turn or resize the selected box by ``step`` (``editing.nudge_box``'s keywords:
+        ``forward``, ``left``, ``up`` in metres, ``yaw_deg``, ``longer``, ``wider``, ``taller``);
+        one edit (``apply_box``)."""
         label = self.selected_label()
         if label is None:
             self.notify("Move box", "Select a label first (click its box).")
             return
-        box = np.array(label.box, np.float64)
-        heading = np.array([np.cos(box[6]), np.sin(box[6])])
-        box[:2] += forward * heading + left * np.array([-heading[1], heading[0]])
-        box[2] += up
-        box[6] = (box[6] + np.radians(yaw_deg) + np.pi) % (2 * np.pi) - np.pi
-        self.apply_box(tuple(box))
+        self.apply_box(tuple(nudge_box(label.box, **step)))
 
     def delete_selected(self) -> None:
         """Delete the selected label; with label once, its object in every frame."""

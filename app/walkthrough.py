@@ -42,6 +42,10 @@ TARGET_EDIT_MS = 200.0
 """Issue target: an edit's round trip in the browser."""
 TARGET_FRAME_MS = 1000.0
 """Issue target: a cached frame change with its detections."""
+TARGET_NEXT_ROUND_S = 180.0
+"""Issue target: a next-round retrain from the app on the demo."""
+NUM_VERDICTS = 5
+"""Review verdicts given with the keyboard, each timed."""
 
 
 def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
@@ -87,6 +91,87 @@ def _render_cost(page, view, repeats: int = 5) -> dict:
     }
 
 
+def _prelabels(app, page, view, note, shows) -> None:
+    """Pre-label the shown frame (M) and confirm the first pre-label (Enter), each timed."""
+    db = app.state.db
+    page.get_by_text("Pre-labels", exact=True).first.click()  # the folder opens: its count shows
+    page.locator("canvas[data-engine]").focus()
+    before = len(db.unreviewed_labels())
+    note(
+        "pre-label the frame (M)",
+        _timed(
+            lambda: page.keyboard.press("m"),
+            lambda: len(db.unreviewed_labels()) > before,
+            lambda: shows(f"{len(db.unreviewed_labels())} pre-label(s) wait")(),
+        ),
+    )
+    waiting = db.unreviewed_labels()
+    _wait(lambda: view.selected_label_id == waiting[0].id, 30, "the first pre-label selected")
+    note(
+        "confirm a pre-label (Enter)",
+        _timed(
+            lambda: page.keyboard.press("Enter"),
+            lambda: db.label(waiting[0].id).reviewed,
+            lambda: shows(
+                f"{len(waiting) - 1} pre-label(s) wait" if len(waiting) > 1 else "No pre-label waits"
+            )(),
+        ),
+    )
+
+
+def _train_from_the_page(app, page, timeout: float) -> float:
+    """Click Train (the panel's mode: next round, a full run in a session without one) and wait
+    until the page shows the run done and its before/after table; returns the seconds."""
+    runs = len(app.state.db.training_runs())
+    start = time.perf_counter()
+    page.get_by_role("button", name="Train", exact=True).click()
+    _wait(
+        lambda: len(app.state.db.training_runs()) > runs and not app.state.training_busy, timeout, "the run"
+    )
+    if "done" not in app.state.training_status:
+        raise RuntimeError(f"the retrain did not finish: {app.state.training_status}")
+    page.get_by_text("done:", exact=False).first.wait_for(timeout=60_000)
+    page.get_by_text("Before / after", exact=False).first.wait_for(timeout=60_000)
+    return time.perf_counter() - start
+
+
+def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
+    """The loop the app exists for, from the page: Train (a full run first, in a session without
+    one), ``NUM_VERDICTS`` review verdicts with the keyboard, each timed, then Train again (a next
+    round) until its before/after table shows."""
+    db = app.state.db
+    page.get_by_text("Training", exact=True).first.click()  # the folder starts collapsed
+    out = {}
+    if not db.training_runs():
+        out["full_run_shown_s"] = round(_train_from_the_page(app, page, 3600), 1)
+        if progress is not None:
+            progress(f"full run from the page: {out['full_run_shown_s']:.0f} s")
+    page.get_by_text("Review queue", exact=True).first.click()
+    canvas = page.locator("canvas[data-engine]")
+    canvas.focus()
+    page.keyboard.press("n")
+    _wait(lambda: view.current_item_id is not None, 60, "the first queue item")
+    for key in ("b", "x", "b", "b", "x")[:NUM_VERDICTS]:
+        _wait(lambda: app.worker.idle, 600, "the frames ahead")
+        item = view.current_item_id
+
+        def judged(item=item) -> bool:
+            return {q["id"]: q["verdict"] for q in db.review_queue()}.get(item) is not None
+
+        def next_item_shown(item=item) -> None:
+            _wait(lambda: view.current_item_id not in (None, item), 30, "the next queue item")
+            shows(f"(#{view.current_item_id}, frame")()
+
+        note(
+            "review verdict (B / X)",
+            _timed(lambda key=key: page.keyboard.press(key), judged, next_item_shown),
+        )
+    out["next_round_shown_s"] = round(_train_from_the_page(app, page, 3600), 1)
+    if progress is not None:
+        progress(f"next round from the page: {out['next_round_shown_s']:.0f} s")
+    return out
+
+
 def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = None) -> dict:
     """Drive the app through the steps ``repeats`` times; returns the record."""
     from playwright.sync_api import sync_playwright
@@ -94,6 +179,7 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
     dataset = open_dataset(data)
     steps: dict[str, dict[str, list[float]]] = {}
     render: dict = {}
+    retrain: dict = {}
 
     def note(step: str, times: tuple[float, float]) -> None:
         record = steps.setdefault(step, {"stored": [], "shown": []})
@@ -189,6 +275,8 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
                     )
                     if progress is not None:
                         progress(f"round {k + 1} of {repeats} done")
+                _prelabels(app, page, view, note, shows)
+                retrain.update(_retrain_and_review(app, page, view, note, shows, progress))
                 browser.close()
         finally:
             app.close()
@@ -202,6 +290,8 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
         "browser_render": render,
+        "retrain": retrain,
+        "target_next_round_s": TARGET_NEXT_ROUND_S,
         "steps": {
             step: {
                 "stored_median_ms": round(statistics.median(values["stored"]), 1),

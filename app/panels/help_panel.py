@@ -38,6 +38,9 @@ HOTKEYS: tuple[tuple[str, str], ...] = (
     ("shift+J / shift+L", "move it 1 cm to its left / right"),
     ("shift+Y / shift+H", "move it 1 cm up / down"),
     ("shift+U / shift+O", "turn it 1 degree left / right"),
+    ("alt+I / alt+K", "make it 1 cm longer / shorter (about its centre)"),
+    ("alt+L / alt+J", "make it 1 cm wider / narrower"),
+    ("alt+Y / alt+H", "make it 1 cm taller / lower (its bottom stays)"),
 )
 
 NUDGES: dict[str, tuple[str, dict]] = {
@@ -51,6 +54,16 @@ NUDGES: dict[str, tuple[str, dict]] = {
     "O": ("turn right", {"yaw_deg": -NUDGE_DEG}),
 }
 """Shift + key: how the selected box moves (``BrowserSession.nudge``)."""
+
+RESIZES: dict[str, tuple[str, dict]] = {
+    "I": ("longer", {"longer": NUDGE_M}),
+    "K": ("shorter", {"longer": -NUDGE_M}),
+    "L": ("wider", {"wider": NUDGE_M}),
+    "J": ("narrower", {"wider": -NUDGE_M}),
+    "Y": ("taller", {"taller": NUDGE_M}),
+    "H": ("lower", {"taller": -NUDGE_M}),
+}
+"""Alt + key: how the selected box is resized, centimetre steps (``BrowserSession.nudge``)."""
 
 
 def help_markdown(class_names: tuple[str, ...]) -> str:
@@ -106,6 +119,10 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
         handles.append(handle)
     for key, (what, step) in NUDGES.items():
         handle = gui.add_command(f"Box: {what}", hotkey=key, modifier="shift")
+        handle.on_trigger(lambda _event, step=step: view.nudge(**step))
+        handles.append(handle)
+    for key, (what, step) in RESIZES.items():
+        handle = gui.add_command(f"Box: {what}", hotkey=key, modifier="alt")
         handle.on_trigger(lambda _event, step=step: view.nudge(**step))
         handles.append(handle)
     for i, name in enumerate(names[:9]):

@@ -562,5 +562,19 @@ def walkthrough_markdown(result: dict) -> str:
         f" browser a notification alone takes {fmt(render.get('notification_alone_median_ms'))} ms to"
         f" show and {fmt(render.get('with_a_scene_change_median_ms'))} ms with a scene change in the same"
         " update: headless Chromium renders the scene's 80k points in software WebGL before it shows"
-        " anything else, which a browser with a GPU does in milliseconds.\n"
+        " anything else, which a browser with a GPU does in milliseconds." + _retrain_text(result) + "\n"
+    )
+
+
+def _retrain_text(result: dict) -> str:
+    """The walkthrough's retrain from the page, in a sentence (records before it had none)."""
+    retrain = result.get("retrain") or {}
+    if "next_round_shown_s" not in retrain:
+        return ""
+    full = retrain.get("full_run_shown_s")
+    first = f" Train ran a full run (the session's first) in {fmt(full)} s;" if full is not None else ""
+    return (
+        f" Then, from the page:{first} after the review verdicts above (keyboard), a next round took"
+        f" {fmt(retrain['next_round_shown_s'])} s until its before/after"
+        f" table showed (target {fmt(result.get('target_next_round_s'))} s)."
     )

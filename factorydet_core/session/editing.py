@@ -116,6 +116,41 @@ def camera_view_of_box(box, view: str, margin: float = 2.5) -> tuple[np.ndarray,
     return centre + distance * direction, centre, np.array([0.0, 0.0, 1.0])
 
 
+MIN_BOX_SIZE_M = 0.02
+"""The least size of a box side a resize leaves (the Box fields' minimum)."""
+
+
+def nudge_box(
+    box,
+    *,
+    forward: float = 0.0,
+    left: float = 0.0,
+    up: float = 0.0,
+    yaw_deg: float = 0.0,
+    longer: float = 0.0,
+    wider: float = 0.0,
+    taller: float = 0.0,
+) -> np.ndarray:
+    """A box moved along its own heading (``forward``), across it (``left``) and up, turned by
+    ``yaw_deg`` counter-clockwise, and grown (negative: shrunk) along its length and width about
+    its centre and in height from its bottom (it stands on something); metres. No side goes below
+    ``MIN_BOX_SIZE_M``.
+
+    Returns:
+        (7,) the new box.
+    """
+    box = np.array(box, np.float64).reshape(7)
+    heading = np.array([np.cos(box[6]), np.sin(box[6])])
+    box[:2] += forward * heading + left * np.array([-heading[1], heading[0]])
+    box[2] += up
+    if yaw_deg:  # (else the heading stays to the bit)
+        box[6] = wrap_angle(box[6] + np.radians(yaw_deg))
+    bottom = box[2] - box[5] / 2
+    box[3:6] = np.maximum(box[3:6] + [longer, wider, taller], MIN_BOX_SIZE_M)
+    box[2] = bottom + box[5] / 2
+    return box
+
+
 def split_in_two(points: np.ndarray, iterations: int = 20) -> np.ndarray:
     """(N,) 0/1 labels cutting a point set in two (two-means in the ground plane, started from the
     ends of its longest horizontal axis): how a person splits two objects one segment merged."""

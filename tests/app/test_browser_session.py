@@ -322,6 +322,10 @@ def test_nudges_move_the_selected_box_along_its_heading_in_centimetres(state):
     np.testing.assert_allclose(box[:3], [0.99, 2.01, 0.49], atol=1e-9)
     assert box[6] == pytest.approx(np.pi / 2 + np.radians(1.0))
     assert len([e for e in state.db.edits("ann") if e.kind == "update"]) == 3
+    person.nudge(taller=0.01)  # alt+Y: its bottom stays on the floor
+    person.nudge(longer=-0.01)  # alt+K
+    box = np.array(state.db.label(label.id).box)
+    np.testing.assert_allclose(box[2:6], [0.495, 0.99, 0.5, 0.81], atol=1e-9)
     person.clear_selection()
     person.nudge(forward=0.01)
     assert "Select a label first" in person.messages[-1][1]

@@ -8,9 +8,11 @@ from hypothesis import strategies as st
 
 from factorydet_core.geometry import wrap_angle
 from factorydet_core.session.editing import (
+    MIN_BOX_SIZE_M,
     box_of_points,
     box_to_pose,
     camera_for_box,
+    nudge_box,
     points_in_screen_rect,
     pose_to_box,
     split_in_two,
@@ -160,3 +162,33 @@ def test_box_views_look_at_the_box_from_above_its_side_and_its_front(yaw):
     assert np.linalg.norm(position - box[:3]) >= 1.5
     with pytest.raises(InputError, match="unknown box view"):
         camera_view_of_box(box, "back")
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    finite,
+    finite,
+    sizes,
+    sizes,
+    sizes,
+    yaws,
+    st.floats(-0.5, 0.5),
+    st.floats(-0.5, 0.5),
+    st.floats(-0.5, 0.5),
+)
+def test_nudges_move_along_the_heading_and_resizes_keep_the_centre_and_the_bottom(
+    cx, cy, dx, dy, dz, yaw, longer, wider, taller
+):
+    box = np.array([cx, cy, dz / 2, dx, dy, dz, yaw])
+    moved = nudge_box(box, forward=0.01)
+    np.testing.assert_allclose(moved[:2] - box[:2], 0.01 * np.array([np.cos(yaw), np.sin(yaw)]), atol=1e-12)
+    left = nudge_box(box, left=0.01)
+    np.testing.assert_allclose(left[:2] - box[:2], 0.01 * np.array([-np.sin(yaw), np.cos(yaw)]), atol=1e-12)
+    turned = nudge_box(box, yaw_deg=1.0)
+    assert abs(wrap_angle(turned[6] - yaw - np.radians(1.0))) < 1e-12
+    grown = nudge_box(box, longer=longer, wider=wider, taller=taller)
+    np.testing.assert_allclose(grown[:2], box[:2])  # length and width about the centre
+    assert grown[2] - grown[5] / 2 == pytest.approx(box[2] - box[5] / 2)  # the bottom stays
+    expected = np.maximum(box[3:6] + [longer, wider, taller], MIN_BOX_SIZE_M)
+    np.testing.assert_allclose(grown[3:6], expected)
+    assert grown[6] == yaw
