@@ -245,7 +245,7 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
 
 
 @pytest.mark.slow
-def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
+def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     small_dataset_dir, tmp_path, capsys, monkeypatch
 ):
     out = tmp_path / "hitl.json"
@@ -275,7 +275,25 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     )
     result = json.loads(capsys.readouterr().out)
     assert result == json.loads(out.read_text())
-    assert set(result["f1"]) == {"blind", "reviewed_5", "full"}
+    assert set(result["f1"]) == {"blind", "blind_safe", "reviewed_5", "full"}
+    # blind_safe holds what the model scores at its operating score (0.05 here) or more.
+    assert result["hold_confident"] == 0.05 and result["variants"]["blind_safe"]["num_reviews"] == 0
+    # Paired per-seed differences against blind, with their 95% intervals.
+    for name in ("blind_safe", "reviewed_5", "full"):
+        difference = result["variants"][name]["difference_vs_blind"]
+        per_seed = [
+            a - b
+            for a, b in zip(
+                result["variants"][name]["f1_per_seed"], result["variants"]["blind"]["f1_per_seed"]
+            )
+        ]
+        assert difference["mean"] == pytest.approx(sum(per_seed) / 2, abs=1e-4)
+        low, high = difference["ci95"]
+        assert low <= difference["mean"] <= high and difference["num_seeds"] == 2
+    assert result["gap_significant"] == (
+        result["gap_full_minus_blind"]
+        > 2 * result["variants"]["full"]["difference_vs_blind"]["standard_error"]
+    )
     assert all(0 <= f <= 1 for f in result["f1"].values())
     assert set(result["recovered"]) == {"5"}
     reviewed = result["variants"]["reviewed_5"]
@@ -296,6 +314,8 @@ def test_bench_hitl_prints_three_f_scores_and_the_recovered_fraction(
     assert len(result["recovered_per_seed"]["5"]) == 2
     markdown = out.with_suffix(".md").read_text()
     assert "| total F per seed |" in markdown and "Means over seeds 0, 1." in markdown
+    assert "| F minus blind's, per seed: mean [95% interval] |" in markdown
+    assert ("Recovered share" in markdown) == result["gap_significant"]
     # What the reviews gave back: full labels cover every unannotated object, blind ones none.
     assert result["variants"]["full"]["unannotated_labelled"] == 1.0
     assert result["variants"]["blind"]["unannotated_labelled"] == 0.0

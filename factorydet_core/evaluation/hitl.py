@@ -272,6 +272,25 @@ def bench_hitl(
         return _hitl_variants(plan, Path(scratch_dir), progress)
 
 
+def paired_difference(values: Sequence[float], baseline: Sequence[float]) -> dict:
+    """The per-seed (paired) difference ``values - baseline``: its mean, standard error and 95%
+    confidence interval (Student's t over the seeds; ``None`` with fewer than two seeds)."""
+    from scipy import stats
+
+    differences = np.asarray(values, np.float64) - np.asarray(baseline, np.float64)
+    mean = float(differences.mean())
+    if len(differences) < 2:
+        return {"mean": round(mean, 4), "standard_error": None, "ci95": None, "num_seeds": len(differences)}
+    error = float(differences.std(ddof=1) / np.sqrt(len(differences)))
+    half = float(stats.t.ppf(0.975, len(differences) - 1) * error)
+    return {
+        "mean": round(mean, 4),
+        "standard_error": round(error, 4),
+        "ci95": [round(mean - half, 4), round(mean + half, 4)],
+        "num_seeds": len(differences),
+    }
+
+
 def _recovered(f1: dict[str, float], budgets: Sequence[int]) -> tuple[float, dict[str, float | None]]:
     """The gap F(full) - F(blind) and the share of it each ``reviewed_K`` recovers (``None``
     when there is no gap)."""
@@ -312,12 +331,20 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
     train_frames = cached_proposals(scratch, dataset, detector, train)
     test_frames = cached_proposals(scratch, dataset, detector, test)
     proposal_seconds = time.perf_counter() - start
-    variants = [("blind", 0), *((f"reviewed_{k}", int(k)) for k in budgets), ("full", 0)]
+    # blind_safe: blind mining that holds the negatives the model scores at its operating score or
+    # more out of the background until reviewed (nobody reviews them here).
+    hold = settings.hold_confident if settings.hold_confident is not None else settings.score_threshold
+    variants = [
+        ("blind", 0, None),
+        ("blind_safe", 0, hold),
+        *((f"reviewed_{k}", int(k), None) for k in budgets),
+        ("full", 0, None),
+    ]
     steps, done = len(seeds) * len(variants) * (rounds + 1), 0
-    per_seed: dict[str, list[dict]] = {name: [] for name, _ in variants}
+    per_seed: dict[str, list[dict]] = {name: [] for name, _, _ in variants}
     for seed in seeds:
-        seed_settings = dataclasses.replace(settings, seed=seed)
-        for name, budget in variants:
+        for name, budget, variant_hold in variants:
+            seed_settings = dataclasses.replace(settings, seed=seed, hold_confident=variant_hold)
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
             reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)
@@ -385,7 +412,15 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
     f1 = {name: r["f1"] for name, r in results.items()}
+    for name in results:
+        results[name]["difference_vs_blind"] = paired_difference(
+            [r["f1"] for r in per_seed[name]], [r["f1"] for r in per_seed["blind"]]
+        )
     gap, recovered = _recovered(f1, budgets)
+    gap_stats = results["full"]["difference_vs_blind"]
+    # A share of a gap no larger than its noise says nothing: stated only where the gap is more
+    # than twice its standard error over the seeds.
+    gap_significant = gap_stats["standard_error"] is not None and gap > 2 * gap_stats["standard_error"]
     seed_recovered = [
         _recovered({n: runs[i]["f1"] for n, runs in per_seed.items()}, budgets)[1] for i in range(len(seeds))
     ]
@@ -408,6 +443,8 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
         "recovered": recovered,
         "recovered_per_seed": recovered_per_seed,
         "gap_full_minus_blind": round(gap, 4),
+        "gap_significant": bool(gap_significant),
+        "hold_confident": hold,
         "variants": results,
         "per_seed": per_seed,
         "proposal_seconds": round(proposal_seconds, 1),

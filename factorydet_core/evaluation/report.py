@@ -551,6 +551,23 @@ def write_report(
     return out
 
 
+def _recovered_text(result: dict, recovered: str) -> str:
+    """The recovered shares, stated only where the blind-to-full gap is larger than twice its
+    standard error over the seeds (a share of noise is no result)."""
+    gap = _fmt(result["gap_full_minus_blind"])
+    if result.get("gap_significant", True):
+        return (
+            f"Recovered share of the gap between blind and full labels ({gap}): {recovered}."
+            " Target: at least 80% at K = 200."
+        )
+    error = result["variants"]["full"].get("difference_vs_blind", {}).get("standard_error")
+    return (
+        f"The gap between blind and full labels ({gap}) is not larger than twice its standard error over the"
+        f" seeds ({_fmt(error)}): these seeds cannot tell whether full labels help, so no recovered share"
+        " is stated."
+    )
+
+
 def hitl_markdown(result: dict, heading: bool = True) -> str:
     """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
     reviews, and full labels (means over the seeds, with each seed's total), the recovered
@@ -575,6 +592,19 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
         rows.append(
             "| total F per seed | "
             + " | ".join(", ".join(_fmt(f) for f in variants[n]["f1_per_seed"]) for n in names)
+            + " |"
+        )
+    if all(variants[n].get("difference_vs_blind", {}).get("ci95") for n in names):
+        rows.append(
+            "| F minus blind's, per seed: mean [95% interval] | "
+            + " | ".join(
+                "–"
+                if n == "blind"
+                else "{:+.3f} [{:+.3f}, {:+.3f}]".format(
+                    variants[n]["difference_vs_blind"]["mean"], *variants[n]["difference_vs_blind"]["ci95"]
+                )
+                for n in names
+            )
             + " |"
         )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
@@ -639,13 +669,21 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             f"{result['iou_threshold']} against the full truth. `blind`: mining on the partial labels (the "
             "paper); `reviewed_K`: a simulated reviewer answers the top K items of each round's queue from "
             "the truth through the review panel's own call, labelling to the data set's annotation "
-            "policy; `full`: every object of that policy labelled." + queue_note + mean_note,
+            "policy; `full`: every object of that policy labelled."
+            + (
+                " `blind_safe`: blind mining that holds the negatives scoring"
+                f" {result['hold_confident']:g} or more out of the background (neither object nor"
+                " background) until reviewed; nobody reviews them here."
+                if "blind_safe" in variants
+                else ""
+            )
+            + queue_note
+            + mean_note,
             "",
             head,
             *rows,
             "",
-            "Recovered share of the gap between blind and full labels "
-            f"({_fmt(result['gap_full_minus_blind'])}): {recovered}. Target: at least 80% at K = 200.",
+            _recovered_text(result, recovered),
             "",
         ]
     )

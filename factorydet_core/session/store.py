@@ -2425,14 +2425,32 @@ class SessionDB:
             changes.append(self._change(db, "labels", int(sibling["id"]), after, author))
         return changes
 
-    def mined_patch_sets(self) -> dict[int, list[tuple[int, ...]]]:
-        """Point sets of every negative mined in the session (all runs), by frame."""
+    def mined_patch_sets(
+        self,
+        below_score: float | None = None,
+        at_least_score: float | None = None,
+        undecided_only: bool = False,
+    ) -> dict[int, list[tuple[int, ...]]]:
+        """Point sets of every negative mined in the session (all runs), by frame.
+
+        Args:
+            below_score, at_least_score: only those the model scored below / at least this when
+                it mined them (``LoopSettings.hold_confident``: confident ones are held).
+            undecided_only: only those without a verdict other than skip.
+        """
         out: dict[int, dict[tuple[int, ...], None]] = {}
+        query = "SELECT id, frame_index, patch_set, score FROM mined_negatives m WHERE 1"
+        values: list = []
+        if below_score is not None:
+            query, values = query + " AND score < ?", [*values, float(below_score)]
+        if at_least_score is not None:
+            query, values = query + " AND score >= ?", [*values, float(at_least_score)]
+        if undecided_only:
+            query += (
+                " AND NOT EXISTS (SELECT 1 FROM reviews r WHERE r.negative_id = m.id AND r.verdict != 'skip')"
+            )
         with self._read() as db:
-            rows = [
-                _row("mined_negatives", r)
-                for r in db.execute("SELECT id, frame_index, patch_set FROM mined_negatives")
-            ]
+            rows = [_row("mined_negatives", r) for r in db.execute(query + " ORDER BY id", values)]
         for row in rows:
             out.setdefault(row["frame_index"], {})[tuple(row["patch_set"])] = None  # distinct, in order
         return {frame: list(sets) for frame, sets in out.items()}

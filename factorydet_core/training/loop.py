@@ -259,7 +259,10 @@ def train_session(
     )
     continued_run, continued, why = None, None, ""
     if mode == "next":
-        background = _merge(db.mined_patch_sets(), reviewed["background"])
+        hold = settings.hold_confident
+        background = _merge(db.mined_patch_sets(below_score=hold), reviewed["background"])
+        if hold is not None:  # held negatives nobody has decided on: neither background nor mined
+            excluded = _merge(excluded, db.mined_patch_sets(at_least_score=hold, undecided_only=True))
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
         if continued is not None and continued.box_quality is not None and box_quality is not None:
@@ -287,6 +290,7 @@ def train_session(
         background_sets=background,
         excluded_sets=excluded,
         mine_after_last=True,
+        hold_score=settings.hold_confident,
         should_stop=should_stop,
         round_epochs=settings.round_epochs,
         init_model=None if continued is None else continued.classifier,

@@ -384,6 +384,7 @@ def train_with_mining(
     background_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
     excluded_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
     mine_after_last: bool = False,
+    hold_score: float | None = None,
     should_stop: Callable[[], bool] | None = None,
     box_quality: BoxQuality | None = None,
     mining_threshold: float | None = None,
@@ -431,6 +432,9 @@ def train_with_mining(
             whose segment is wrong).
         mine_after_last: also mine after the last round; those negatives go to the record (to be
             reviewed) but into no fit.
+        hold_score: mined negatives scoring at least this are held out of the background (left
+            out of training, not mined again) instead of added to it (``LoopSettings.hold_confident``);
+            they stay in the record, to be reviewed. ``None``: all go to the background (the paper).
         should_stop: asked between batches and frames; True raises ``types.Cancelled``.
         box_quality: an unfitted ``BoxQuality``, fitted once on the frames' labels (it does not
             depend on the classifier) and shared by every round's model, so that mining sees the
@@ -468,6 +472,8 @@ def train_with_mining(
         raise InputError(f"fragments_per_frame must be >= 0 or None, got {fragments_per_frame}")
     if isinstance(round_epochs, bool) or not isinstance(round_epochs, (int, np.integer)) or round_epochs < 0:
         raise InputError(f"round_epochs must be an integer >= 0, got {round_epochs!r}")
+    if hold_score is not None and not 0.0 < hold_score <= 1.0:
+        raise InputError(f"hold_score must lie in (0, 1] or be None, got {hold_score}")
     if init_model is not None and not round_epochs:
         raise InputError("init_model is trained on for round_epochs epochs: set round_epochs > 0")
     background_id = classifier.background_id
@@ -654,8 +660,15 @@ def train_with_mining(
             mined.sort(key=lambda m: -m["score"])
             record["mined"] = mined[:negatives_per_round]
             record["num_false_positives"] = len(mined)
+            record["num_held"] = 0
             for m in record["mined"]:
-                background.setdefault(m["frame_index"], set()).add(m["group"])
+                if hold_score is not None and m["score"] >= hold_score:
+                    # Confident: perhaps a real object nobody labelled. Neither background nor
+                    # mined again until a person decides (it stays in the review queue).
+                    excluded.setdefault(m["frame_index"], set()).add(m["group"])
+                    record["num_held"] += 1
+                else:
+                    background.setdefault(m["frame_index"], set()).add(m["group"])
         records.append(record)
         models.append(model)
         if progress is not None:

@@ -59,6 +59,12 @@ class LoopSettings:
     a few frames yield a few dozen
     (``bench hitl`` on four frames: 46 in two rounds, so reviewing 50 or 200 made no difference).
     0.05 is the score floor of AP and of the box quality regressor: below it nothing is reported."""
+    hold_confident: float | None = None
+    """Mined negatives scoring at least this are held out of the background (neither object nor
+    background, as background recalibration ignores confident unlabelled detections) until someone
+    reviews them: on a partially annotated data set the model's most confident false positives are
+    the likeliest real, unlabelled objects. They stay in the review queue; a verdict moves each to
+    the background or to a label. ``None``: every mined negative is background, as the paper."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -212,6 +218,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "least this; the top N by score go to the background", float, 0.0, 1.0, 0.01),
     Control("class_thresholds", "Per-class thresholds", "each class's own operating threshold, tuned on the "
             "training frames' labels (off: the score threshold for every class)", bool),
+    Control("hold_confident", "Hold confident negatives", "mined negatives scoring at least this are neither "
+            "background nor object until reviewed (0: off, every mined negative is background, as the "
+            "paper)", float, 0.0, 1.0, 0.05, none_as=0),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

@@ -879,3 +879,18 @@ def test_a_copied_session_changes_without_changing_the_original(db, tmp_path):
         copy_session(db.session, db.session.root)
     with pytest.raises(SessionError, match="no database"):
         copy_session(open_session("none", tmp_path), tmp_path / "copies")
+
+
+def test_mined_point_sets_by_score_and_by_whether_someone_decided(db, tiny_model_path):
+    items = [
+        mined_item(0, g, [2.0 * g, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0], score)
+        for g, score in enumerate((0.9, 0.6, 0.3))
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    assert db.mined_patch_sets() == {0: [(0,), (1,), (2,)]}
+    assert db.mined_patch_sets(below_score=0.6) == {0: [(2,)]}
+    assert db.mined_patch_sets(at_least_score=0.6) == {0: [(0,), (1,)]}
+    ids = {q["score"]: q["id"] for q in db.review_queue()}
+    db.review([ids[0.9]], "background", "ann")
+    db.review([ids[0.6]], "skip", "ann")  # a skip decides nothing
+    assert db.mined_patch_sets(at_least_score=0.6, undecided_only=True) == {0: [(1,)]}

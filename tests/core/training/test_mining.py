@@ -442,3 +442,28 @@ def test_places_nobody_decided_on_are_neither_background_nor_mined(frames, run):
     without_points = dataclasses.replace(frame, groups=dataclasses.replace(frame.groups, points=None))
     by_boxes = set(without_points.ignored_point_sets().tolist())
     assert {m["group"] for m in mined if m["frame_index"] == frame.frame_index} <= by_boxes
+
+
+def test_held_negatives_stay_out_of_the_background_and_are_not_mined_again(frames, run):
+    """``hold_score``: mined negatives the model scores that confidently are neither background
+    nor mined again (background recalibration); they stay in the record for review."""
+    first = run.rounds[0]["mined"]
+    hold = float(np.median([m["score"] for m in first]))
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    held_run = train_with_mining(
+        frames, classifier, rounds=2, negatives_per_round=40, initial_negatives=150, fragment_iou=0.0,
+        score_threshold=0.05, hold_score=hold,
+    )  # fmt: skip
+    rounds = held_run.rounds
+    for before, after in zip(rounds[:-1], rounds[1:]):
+        held = [m for m in before["mined"] if m["score"] >= hold]
+        assert before["num_held"] == len(held)
+        assert after["num_background"] == before["num_background"] + len(before["mined"]) - len(held)
+    assert sum(r["num_held"] for r in rounds[:-1]) > 0
+    # What was held once is never mined again.
+    for k, record in enumerate(rounds[:-1]):
+        held = {(m["frame_index"], m["group"]) for m in record["mined"] if m["score"] >= hold}
+        later = {(m["frame_index"], m["group"]) for r in rounds[k + 1 :] for m in r["mined"]}
+        assert not held & later
+    with pytest.raises(InputError, match="hold_score"):
+        train_with_mining(frames, classifier, rounds=0, hold_score=0.0)
