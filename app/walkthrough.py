@@ -146,7 +146,6 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
         out["full_run_shown_s"] = round(_train_from_the_page(app, page, 3600), 1)
         if progress is not None:
             progress(f"full run from the page: {out['full_run_shown_s']:.0f} s")
-    page.get_by_text("Review queue", exact=True).first.click()
     canvas = page.locator("canvas[data-engine]")
     canvas.focus()
     page.keyboard.press("n")
