@@ -47,7 +47,7 @@ class ClientView(BrowserSession):
         super().__init__(state, drawn_result)
         self.client = client
         self._scene_points = scene_points
-        self._dimmed = False
+        self._dimmed: tuple | None = None  # (scan points, point size) this browser has a dimmed copy of
         self.panels: list = []
         self.gizmo: viser.TransformControlsHandle | None = None
         self.class_dropdowns: list = []  # every dropdown showing object_class
@@ -162,13 +162,18 @@ class ClientView(BrowserSession):
         dim = self.dim and item is not None
         if dim:
             scene_points, scene_colors = self._scene_points()
-            # The same node name as the shared scan shadows it for this browser only.
-            scene.add_point_cloud(
-                "/scan", points=scene_points, colors=(scene_colors * DIM_FACTOR).astype(np.uint8),
-                point_size=self.state.point_size, point_shape="square", precision="float32",
-            )  # fmt: skip
-            self._dimmed = True
-        elif self._dimmed:
+            point_size = self.state.point_size
+            # Sent again only for another scan (a frame change, a colour mode) or point size: an
+            # 80k-point copy is a megabyte, which every refresh (anyone's edit) would otherwise send.
+            dimmed = self._dimmed
+            if dimmed is None or dimmed[0] is not scene_points or dimmed[1] != point_size:
+                # The same node name as the shared scan shadows it for this browser only.
+                scene.add_point_cloud(
+                    "/scan", points=scene_points, colors=(scene_colors * DIM_FACTOR).astype(np.uint8),
+                    point_size=point_size, point_shape="square", precision="float32",
+                )  # fmt: skip
+                self._dimmed = (scene_points, point_size)
+        elif self._dimmed is not None:
             # Removing this browser's copy would remove the scan from its view altogether: send
             # the undimmed colours under the same name instead.
             scene_points, scene_colors = self._scene_points()
@@ -176,7 +181,7 @@ class ClientView(BrowserSession):
                 "/scan", points=scene_points, colors=scene_colors,
                 point_size=self.state.point_size, point_shape="square", precision="float32",
             )  # fmt: skip
-            self._dimmed = False
+            self._dimmed = None
 
     def _draw_gizmo(self, label) -> None:
         if label is None or label.frame_index != self.state.frame_index:
