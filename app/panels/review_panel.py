@@ -66,6 +66,7 @@ class ReviewPanel:
                 len(queue),
                 num_points=num_points_in_box(result, item["box"]) if shown else None,
                 min_points=annotation_min_points(state.dataset, default=None),
+                hold=state.db.hold_score(item["run_id"]),
             )
         for name, button in self.buttons.items():
             button.disabled = not queue and name not in ("find_suspects", "next_suspect")

@@ -256,8 +256,10 @@ def review_item_markdown(
     total: int,
     num_points: int | None = None,
     min_points: int | None = None,
+    hold: float | None = None,
 ) -> str:
     """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``), with
+    whether its run held it out of the background (``hold``: the run's ``hold_confident``), with
     the number of points in its box when known and the data set's annotation policy (objects of
     at least ``min_points`` points are labelled)."""
     lines = [
@@ -288,6 +290,11 @@ def review_item_markdown(
     if item.get("verdict"):
         verdict = item["verdict"] + (f" ({item['verdict_class']})" if item.get("verdict_class") else "")
         lines.append(f"Verdict: **{verdict}** by {item['reviewer']}")
+    elif hold is not None and item["score"] >= hold:
+        lines.append(
+            f"**Held**: scored {hold:g} or more, so training keeps it out of the background (a likely"
+            " unlabelled object) until a verdict says what it is"
+        )
     return "  \n".join(lines)
 
 

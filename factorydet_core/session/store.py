@@ -2147,6 +2147,16 @@ class SessionDB:
                 ]
         return runs
 
+    def hold_score(self, run_id: int) -> float | None:
+        """The score at or above which run ``run_id`` held its mined negatives out of the
+        background until reviewed (``LoopSettings.hold_confident``; ``None``: it held none)."""
+        with self._read() as db:
+            row = db.execute("SELECT id, config FROM training_runs WHERE id = ?", (int(run_id),)).fetchone()
+        if row is None:
+            raise SessionError(f"no training run {run_id}")
+        hold = (_row("training_runs", row)["config"].get("settings") or {}).get("hold_confident")
+        return None if hold is None else float(hold)
+
     def latest_run_id(self) -> int | None:
         with self._read() as db:
             return db.execute("SELECT MAX(id) FROM training_runs WHERE model_path != ''").fetchone()[0]

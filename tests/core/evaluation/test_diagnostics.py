@@ -27,3 +27,11 @@ def test_review_item_markdown_gives_the_points_in_the_box_and_the_annotation_pol
     # The queue's current overlap with the labels, beside the one at mining time.
     assert "when mined 0.00, now 0.45" in review_item_markdown({**ITEM, "label_iou": 0.45}, [], 1, 5)
     assert ", now" not in text
+
+
+def test_a_held_item_says_training_keeps_it_out_of_the_background_until_a_verdict():
+    assert "**Held**: scored 0.35 or more" in review_item_markdown(ITEM, [], 1, 5, hold=0.35)
+    assert "Held" not in review_item_markdown(ITEM, [], 1, 5, hold=0.5)  # below: background already
+    assert "Held" not in review_item_markdown(ITEM, [], 1, 5)
+    decided = {**ITEM, "verdict": "background", "verdict_class": None, "reviewer": "ann"}
+    assert "Held" not in review_item_markdown(decided, [], 1, 5, hold=0.35)

@@ -894,3 +894,13 @@ def test_mined_point_sets_by_score_and_by_whether_someone_decided(db, tiny_model
     db.review([ids[0.9]], "background", "ann")
     db.review([ids[0.6]], "skip", "ann")  # a skip decides nothing
     assert db.mined_patch_sets(at_least_score=0.6, undecided_only=True) == {0: [(1,)]}
+
+
+def test_a_runs_hold_score_is_read_from_its_settings(db, tiny_model_path):
+    first = db.save_training_run(
+        queue_run(tiny_model_path, [[]]), "small", {"settings": {"hold_confident": 0.35}}
+    )
+    second = db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {})
+    assert db.hold_score(first) == 0.35 and db.hold_score(second) is None
+    with pytest.raises(SessionError, match="no training run 99"):
+        db.hold_score(99)
