@@ -31,6 +31,7 @@ from factorydet_core.session.labels_io import export_bytes
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import (
     MOVING_CLASSES,
+    group_by_place,
     interpolate_boxes,
     not_labelled_yet,
     place_box,
@@ -47,6 +48,24 @@ NUDGE_DEG = 1.0
 
 FAILED = object()
 """What ``BrowserSession._guarded`` returns when the edit was refused (the person has been told)."""
+
+
+def _by_place(queue: list[dict], places: list[list[int]], current_id: int | None) -> list[dict]:
+    """One entry per place of ``queue`` (``world.group_by_place``'s order): its best item (the
+    shown one, if it is of the place), with ``place_versions`` ({item id: review version} of all
+    its items, what its verdict answers) and ``place_frames``."""
+    out = []
+    for members in places:
+        items = [queue[k] for k in members]
+        shown = next((q for q in items if q["id"] == current_id), items[0])
+        out.append(
+            {
+                **shown,
+                "place_versions": {q["id"]: q["review_version"] for q in items},
+                "place_frames": sorted({q["frame_index"] for q in items}),
+            }
+        )
+    return out
 
 
 class BrowserSession:
@@ -83,6 +102,9 @@ class BrowserSession:
         self.filter_frame: int | None = None
         self.pending_only = True
         self.hide_labelled = False
+        self.group_places = True
+        """One queue entry per place (``world.group_by_place``: an object mined in several frames),
+        whose verdict answers all its items; needs the frames placed."""
         self.current_item_id: int | None = None
         self.dim = True
         self.queue: list[dict] = []
@@ -597,6 +619,12 @@ class BrowserSession:
                 if not on_labelled_object(q["label_iou"], HIDE_LABELLED_IOU) or q["id"] == current_id
             ]
         with self.lock:
+            group = self.group_places
+        with self.state.lock:
+            world = self.state.world
+        if group and world is not None and queue:
+            queue = _by_place(queue, group_by_place(world, queue), current_id)
+        with self.lock:
             self.queue = queue
         return queue
 
@@ -638,14 +666,17 @@ class BrowserSession:
             if self.current_item() is None:
                 self.notify("Review", "The queue is empty: train a model from the Training panel first.")
             return
+        # A place's verdict answers every item of it (one object mined in several frames).
+        versions = item.get("place_versions") or {item["id"]: item["review_version"]}
         done = self._guarded(
             lambda: self.state.db.review(
-                [item["id"]],
+                list(versions),
                 verdict,
                 self.author,
                 class_name=class_name,
-                expected_versions={item["id"]: item["review_version"]},
+                expected_versions=versions,
                 place=self._placer(class_name),
+                one_object=len(versions) > 1,
             ),
             "Review",
         )
@@ -674,13 +705,16 @@ class BrowserSession:
         if not items:
             self.notify("Batch", "No pending items in the current filter.")
             return 0
+        versions = {}
+        for q in items:
+            versions.update(q.get("place_versions") or {q["id"]: q["review_version"]})
         done = self._guarded(
             lambda: self.state.db.review(
-                [q["id"] for q in items],
+                list(versions),
                 verdict,
                 self.author,
                 class_name=class_name,
-                expected_versions={q["id"]: q["review_version"] for q in items},
+                expected_versions=versions,
                 place=self._placer(class_name),
             ),
             "Batch",

@@ -68,6 +68,12 @@ class ReviewPanel:
                 min_points=annotation_min_points(state.dataset, default=None),
                 hold=state.db.hold_score(item["run_id"]),
             )
+            place = item.get("place_versions") or {}
+            if len(place) > 1:
+                frames = ", ".join(str(f + 1) for f in item["place_frames"])
+                self.item.content += (
+                    f"  \n**One place, {len(place)} items** (frames {frames}): the verdict answers them all"
+                )
         for name, button in self.buttons.items():
             button.disabled = not queue and name not in ("find_suspects", "next_suspect")
         suspect = view.current_suspect()
@@ -103,6 +109,12 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
             initial_value=view.hide_labelled,
             hint=f"Items whose box overlaps a label at IoU {HIDE_LABELLED_IOU} or more: parts, duplicates "
             "and loose boxes of labelled objects, trained as background whatever the verdict",
+        )
+        group_places = gui.add_checkbox(
+            "One entry per place",
+            initial_value=view.group_places,
+            hint="An object mined in several frames (or twice in one) is one entry, and one verdict "
+            "answers all its items; needs the frames placed in one world frame",
         )
         dim = gui.add_checkbox("Dim the scene", initial_value=view.dim)
         item = gui.add_markdown("")
@@ -141,11 +153,12 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
             view.filter_frame = None if filter_frame.value == ALL else int(filter_frame.value) - 1
             view.pending_only = bool(pending_only.value)
             view.hide_labelled = bool(hide_labelled.value)
+            view.group_places = bool(group_places.value)
             view.dim = bool(dim.value)
             view.current_item_id = None
         view.step(0)
 
-    for handle in (filter_class, filter_frame, pending_only, hide_labelled, dim):
+    for handle in (filter_class, filter_frame, pending_only, hide_labelled, group_places, dim):
         handle.on_update(lambda event: set_filter() if from_user(event) else None)
 
     view.class_dropdowns.append(object_class)

@@ -2265,6 +2265,7 @@ class SessionDB:
         expected: dict[int, str | None] | None = None,
         override: bool = False,
         place: Callable[[int, tuple], tuple[dict, list]] | None = None,
+        one_object: bool = False,
     ) -> int:
         """Give one verdict on mined negatives, as one undoable edit.
 
@@ -2285,6 +2286,10 @@ class SessionDB:
         it)``), an 'object' label is the object in every frame that shows it (labels of origin
         'review' sharing its instance id, never where another label overlaps the box), and a
         later different verdict deletes them with it.
+
+        With ``one_object`` the items are one place of the queue (``world.group_by_place``: one
+        object mined in several frames): an 'object' verdict labels it as one object, each item
+        taking the object's label in its frame where the first item's placement put one.
 
         Raises:
             EditConflictError: naming every refused item (also in its ``conflicts``); then nothing
@@ -2307,7 +2312,11 @@ class SessionDB:
         expected_versions = expected_versions or {}
         with self._write() as db:
             changes, conflicts = [], []
+            object_id = None  # one_object: the instance the first 'object' item labelled
             for negative_id in ids:
+                # Labels this call changed already (a place's shared label, deleted or restored by
+                # an earlier item of it): not someone else's edit, and not to change twice.
+                touched = {c["key"] for c in changes if c["table"] == "labels"}
                 item = db.execute("SELECT * FROM mined_negatives WHERE id = ?", (negative_id,)).fetchone()
                 if item is None:
                     raise SessionError(f"no mined negative {negative_id}")
@@ -2335,7 +2344,7 @@ class SessionDB:
                     continue
                 label_id = current["label_id"] if current else None
                 label = None if label_id is None else self._content(db, "labels", label_id)
-                if label is not None:
+                if label is not None and label_id not in touched:
                     made = {
                         "class_name": current["class_name"],
                         "deleted": 0 if current["verdict"] == "object" else 1,
@@ -2349,7 +2358,10 @@ class SessionDB:
                         continue
                 if row is not None and (row["verdict"], row["class_name"]) == (verdict, class_name):
                     continue  # already so: nothing to change, nothing for anyone's undo to trip on
-                if label is not None:
+                linked = False
+                if label is not None and label_id in touched:
+                    pass  # an earlier item of the same place brought its shared label where it belongs
+                elif label is not None:
                     wanted = {**label, "deleted": 0 if verdict == "object" else 1}
                     if verdict == "object":
                         wanted["class_name"] = class_name
@@ -2359,13 +2371,34 @@ class SessionDB:
                         changes += self._delete_review_siblings(db, label_id, author)
                 elif verdict == "object":
                     self._import_frame(db, self._check_frame(item["frame_index"]))
-                    label_id, change = self._insert_label(
-                        db, item["frame_index"], item["box"], class_name, "review", author,
-                        where=f"mined negative {negative_id}",
-                    )  # fmt: skip
-                    changes.append(change)
-                if verdict == "object" and place is not None:
+                    there = None
+                    if one_object and object_id is not None:
+                        there = db.execute(
+                            "SELECT id FROM labels WHERE instance_id = ? AND frame_index = ? AND deleted = 0",
+                            (object_id, item["frame_index"]),
+                        ).fetchone()
+                    if there is not None:  # the place's object is labelled in this frame already
+                        label_id, linked = int(there["id"]), True
+                    else:
+                        label_id, change = self._insert_label(
+                            db, item["frame_index"], item["box"], class_name, "review", author,
+                            where=f"mined negative {negative_id}",
+                        )  # fmt: skip
+                        changes.append(change)
+                        if one_object and object_id is not None:
+                            db.execute(
+                                "UPDATE labels SET instance_id = ? WHERE id = ?", (object_id, label_id)
+                            )
+                if verdict == "object" and place is not None and not linked and object_id is None:
                     changes += self._place_review_label(db, label_id, class_name, place, author)
+                if verdict == "object" and one_object and object_id is None and label_id is not None:
+                    row_label = db.execute(
+                        "SELECT instance_id FROM labels WHERE id = ?", (label_id,)
+                    ).fetchone()
+                    object_id = row_label["instance_id"]
+                    if object_id is None:
+                        object_id = self._new_object_id(db)
+                        db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (object_id, label_id))
                 after = {"verdict": verdict, "class_name": class_name, "label_id": label_id}
                 changes.append(self._change(db, "reviews", negative_id, after, author))
             if conflicts:

@@ -263,6 +263,53 @@ def interpolate_boxes(world: WorldFrames, keyframes: dict) -> dict[int, tuple[fl
     return out
 
 
+PLACE_IOU = 0.25
+"""Two queue items whose boxes, carried into the world frame, overlap this much are one place (the
+same rule label once uses to keep from labelling an object twice in a frame)."""
+
+
+def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = PLACE_IOU) -> list[list[int]]:
+    """The review queue's items by place: items of one object mined in several frames (and
+    duplicates in one frame) are one place, so that one verdict answers them all.
+
+    Items whose boxes, carried into the world frame by the frames' poses, overlap at ``min_iou`` or
+    more are one place, and so on transitively. Places come most likely an object first: by the
+    chance that at least one of their items is one, ``1 - prod(1 - score)`` (a place the model
+    finds again and again in frame after frame is likelier real than one confident detection).
+
+    Args:
+        items: dicts with ``frame_index``, ``box`` (7,) in that frame and ``score``.
+
+    Returns:
+        Lists of positions in ``items``, each place's items by decreasing score.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from factorydet_core.boxes import box_iou_3d
+
+    if not len(items):
+        return []
+    in_world = np.stack(
+        [
+            transform_boxes(
+                world.T_world_vehicle[int(item["frame_index"])], np.asarray(item["box"], np.float64)[None]
+            )[0]
+            for item in items
+        ]
+    )
+    overlap = box_iou_3d(in_world, in_world) >= min_iou
+    rows, cols = np.nonzero(overlap)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(items), len(items)))
+    _, place_of = connected_components(graph, directed=False)
+    scores = np.array([float(item["score"]) for item in items])
+    places: dict[int, list[int]] = {}
+    for position in np.argsort(-scores, kind="stable"):
+        places.setdefault(int(place_of[position]), []).append(int(position))
+    chance = {p: 1.0 - float(np.prod(1.0 - np.clip(scores[m], 0.0, 1.0))) for p, m in places.items()}
+    return [places[p] for p in sorted(places, key=lambda p: (-chance[p], places[p][0]))]
+
+
 def spread_objects(labels_by_frame: dict, world: WorldFrames, *, min_points: int = MIN_POINTS) -> list[tuple]:
     """What carries each labelled object that stands still into every frame that shows it and has
     no label of it yet (the data set annotates an object only where it has enough points).

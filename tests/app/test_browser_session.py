@@ -499,3 +499,28 @@ def test_a_keyframe_in_another_frame_computes_the_boxes_between(state):
     state.set_frame(1)
     person.keyframe_here()
     assert "stands still" in person.messages[-1][1]
+
+
+def test_one_queue_entry_per_place_and_its_verdict_answers_every_item(state, tiny_model_path):
+    person = _person(state, "ann")
+    before = len(person.load_queue())
+    # One object at world (10, 1, 0.5) mined in each of the three frames (placed 2 m apart).
+    items = [
+        mined_item(f, 50 + f, [10.0 - 2.0 * f, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0], 0.95 - 0.01 * f)
+        for f in range(3)
+    ]
+    state.db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    person.group_places = False
+    assert len(person.load_queue()) == 3  # the new run's queue, item by item
+    person.group_places = True
+    assert len(person.load_queue()) == 3  # not placed yet: nothing to group by
+    _placed_world(state, seen_in=(0, 1, 2))
+    queue = person.load_queue()
+    assert len(queue) == 1 and queue[0]["place_frames"] == [0, 1, 2]
+    person.step(0)
+    person.verdict("object", "cone")
+    verdicts = [q["verdict"] for q in state.db.review_queue()]
+    assert verdicts == ["object"] * 3
+    cones = [lab for f in range(3) for lab in state.db.labels(f) if lab.origin == "review"]
+    assert len(cones) == 3 and len({lab.instance_id for lab in cones}) == 1
+    assert {lab.class_name for lab in cones} == {"cone"} and before == 6

@@ -16,6 +16,7 @@ from factorydet_core.session.world import (
     MOVING_CLASSES,
     WorldFrames,
     calibrated_extrinsics,
+    group_by_place,
     interpolate_boxes,
     place_box,
     planar,
@@ -358,3 +359,56 @@ def test_a_moving_objects_boxes_between_its_keyframes_follow_every_edit_in_one_u
     assert db.label(middle.id).box[0] == pytest.approx(32.0)
     db.undo("ann")  # the keyframe and its computed box go together
     assert [lab.frame_index for lab in db.object_labels(first.id)] == [0]
+
+
+def test_queue_items_of_one_place_are_one_entry_most_likely_object_first():
+    world = _two_frames()
+    # The cube at world (5, 1, 0.5) mined in both frames (each in its own vehicle frame), and a
+    # single more confident item elsewhere; a second place mined twice but each time less sure.
+    cube_first = (5.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0)
+    cube_second = tuple(place_box(world, 0, cube_first).boxes[1])
+    items = [
+        {"frame_index": 0, "box": cube_first, "score": 0.6},
+        {"frame_index": 0, "box": (20.0, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0), "score": 0.7},
+        {"frame_index": 1, "box": cube_second, "score": 0.5},
+    ]
+    places = group_by_place(world, items)
+    # 1 - 0.4 * 0.5 = 0.8 beats 0.7: found twice outranks found once.
+    assert places == [[0, 2], [1]]
+    assert group_by_place(world, []) == []
+
+
+def test_a_verdict_on_a_place_labels_its_object_once_and_takes_it_back_as_one(db, tiny_model_path):
+    from tests.fakes import mined_item, queue_run
+
+    box = (30.0, 1.0, 0.4, 0.6, 0.6, 0.8, 0.0)
+    items = [mined_item(f, f, box, 0.9 - 0.1 * f) for f in range(3)]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    queue = db.review_queue()
+    versions = {q["id"]: q["review_version"] for q in queue}
+
+    def place(frame_index, placed):  # a world without motion, every frame showing it
+        return {f: placed for f in range(3)}, [0, 1, 2]
+
+    db.review(
+        list(versions),
+        "object",
+        "ann",
+        class_name="cone",
+        expected_versions=versions,
+        place=place,
+        one_object=True,
+    )
+    labelled = [lab for f in range(3) for lab in db.labels(f) if lab.origin == "review"]
+    assert len(labelled) == 3 and len({lab.instance_id for lab in labelled}) == 1  # one object, once a frame
+    queue = db.review_queue()
+    assert {q["label_id"] for q in queue} == {lab.id for lab in labelled}
+    # The place judged again, as one: every label goes, and nothing is refused as someone's edit.
+    versions = {q["id"]: q["review_version"] for q in queue}
+    db.review(list(versions), "background", "ann", expected_versions=versions, one_object=True)
+    assert not [lab for f in range(3) for lab in db.labels(f) if lab.origin == "review"]
+    db.undo("ann")
+    assert len([lab for f in range(3) for lab in db.labels(f) if lab.origin == "review"]) == 3
+    db.undo("ann")
+    assert not [lab for f in range(3) for lab in db.labels(f) if lab.origin == "review"]
+    assert all(q["verdict"] is None for q in db.review_queue())
