@@ -475,6 +475,7 @@ class BrowserSession:
             "Confirm", lambda i, v: self.state.db.confirm_labels([i], self.author, {i: v})
         )
         if done is not FAILED:
+            self._reload_selected_version()  # (the confirmation moved it on: edits go on from there)
             self.next_prelabel()
 
     def confirm_frame(self) -> None:
@@ -491,6 +492,7 @@ class BrowserSession:
             "Confirm",
             reload_selection=False,
         )
+        self._reload_selected_version()
 
     def _placer(self, class_name: str | None):
         """``place(frame_index, box) -> ({frame: box}, frames that show it)`` for an 'object'

@@ -69,7 +69,6 @@ class SceneView:
         rgb = point_colors(frame, merged.points, color_mode, labels)
         keep = merged.below(max_height)
         merged, rgb = merged.select(keep), rgb[keep]
-        self.shown = (merged.points, rgb)
         self._cloud = self.server.scene.add_point_cloud(
             "/scan",
             points=merged.points,
@@ -78,6 +77,8 @@ class SceneView:
             point_shape="square",
             precision="float32",
         )
+        # After the shared scan is sent: a browser's dimmed copy made from it must come after it.
+        self.shown = (merged.points, rgb)
 
     def draw_labels(
         self,

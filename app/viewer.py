@@ -174,9 +174,8 @@ class FactorydetApp:
                 )
             if detections_key != self._detections_key:
                 labels = None
-                if detections is not None:
-                    boxes, class_ids, _ = self.state.frame_labels(detection_frame)
-                    labels = (boxes, class_ids)
+                if detections is not None:  # what the metrics count as truth (no pre-labels)
+                    labels = self.state.references(detection_frame)[:2]
                 self.layers.draw_detections(detections, *detections_key[1:4], labels, names=detections_key[4])
                 self.layers.detection_source = (detection_result, detection_frame)
                 self._detections_key = detections_key

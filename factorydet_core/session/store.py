@@ -1001,8 +1001,9 @@ class SessionDB:
             )
             connection.execute("PRAGMA synchronous = FULL")
         connection.row_factory = sqlite3.Row
-        if foreign_keys:
-            connection.execute("PRAGMA foreign_keys = ON")
+        # Off only for a migration that rebuilds a table, said explicitly: some SQLite builds
+        # switch foreign keys on by default.
+        connection.execute(f"PRAGMA foreign_keys = {'ON' if foreign_keys else 'OFF'}")
         return connection
 
     def _failure(self, exc: Exception) -> SessionError:
@@ -1566,29 +1567,51 @@ class SessionDB:
             what = "box" if class_name is None else ("class" if box is None else "box and class")
             changes = [self._change(db, "labels", int(label_id), after, author)]
             if track is not None and row["instance_id"] is not None:
-                changes += self._retrack(db, row["instance_id"], track, author)
+                changes += self._retrack(db, row["instance_id"], track, author, class_name)
             self._edit(db, author, "update", f"change the {what} of label {label_id}", changes)
         return self.label(label_id)
 
-    def _retrack(self, db, instance_id: int, track: Callable[[dict], dict], author: str) -> list[dict]:
+    def _retrack(
+        self,
+        db,
+        instance_id: int,
+        track: Callable[[dict], dict],
+        author: str,
+        class_name: str | None = None,
+    ) -> list[dict]:
         """A moving object's computed boxes (origin 'interpolated') brought in line with its
-        keyframes (its other labels): each frame ``track(keyframes)`` gives gets its box (a new
-        label where the object has none and no other label overlaps it, ``SAME_OBJECT_IOU``), and
-        computed boxes outside them are deleted. Returns the changes."""
-        members = db.execute(
-            "SELECT * FROM labels WHERE instance_id = ? AND deleted = 0 ORDER BY frame_index, id",
+        keyframes (its other live labels a person made or confirmed): each frame
+        ``track(keyframes)`` gives gets its box (a new label where the object has none, no other
+        label overlaps it, ``SAME_OBJECT_IOU``, and no person deleted it), and computed boxes
+        outside them are deleted. Their class is ``class_name`` (default: the first keyframe's).
+        Returns the changes."""
+        span = db.execute(
+            "SELECT MIN(frame_index), MAX(frame_index) FROM labels WHERE instance_id = ? AND deleted = 0",
             (instance_id,),
+        ).fetchone()
+        if span[0] is None:
+            return []
+        # The data set's own labels of the object in the frames between come in first: they are
+        # keyframes, not places for a computed box.
+        for frame_index in range(int(span[0]), int(span[1]) + 1):
+            self._import_frame(db, frame_index)
+        rows = db.execute(
+            "SELECT * FROM labels WHERE instance_id = ? ORDER BY frame_index, id", (instance_id,)
         ).fetchall()
-        keyframes = {
-            m["frame_index"]: json.loads(m["box"]) for m in members if m["origin"] not in COMPUTED_ORIGINS
-        }
+        members = [m for m in rows if not m["deleted"]]
+        # Where a person deleted the object's box (a delete of a computed box makes it theirs,
+        # ``delete_labels``), it stays out: the object is hidden there.
+        deleted_in = {m["frame_index"] for m in rows if m["deleted"] and m["origin"] not in COMPUTED_ORIGINS}
+        keys = [m for m in members if m["origin"] not in COMPUTED_ORIGINS and m["reviewed"]]
+        keyframes = {m["frame_index"]: json.loads(m["box"]) for m in keys}
         if not keyframes:
             return []
-        class_name = next(m["class_name"] for m in members if m["origin"] not in COMPUTED_ORIGINS)
+        class_name = class_name or keys[0]["class_name"]
+        taken = {m["frame_index"] for m in members if m["origin"] not in COMPUTED_ORIGINS}
         wanted = {
             self._check_frame(f): _box_json(b, f"box of frame {f}")
             for f, b in track(keyframes).items()
-            if int(f) not in keyframes
+            if int(f) not in taken and int(f) not in deleted_in
         }
         changes = []
         for member in members:
@@ -1640,6 +1663,12 @@ class SessionDB:
                     f"label {label_id} was deleted by {row['modified_by']} at {row['modified']}"
                 )
             self._import_frame(db, frame_index)
+            changes = []
+            source = self._content(db, "labels", int(label_id))
+            if not source["reviewed"]:  # a pre-label carried to another frame: a person's choice
+                changes.append(
+                    self._change(db, "labels", int(label_id), _by_a_person(source, source), author)
+                )
             instance_id = row["instance_id"]
             if instance_id is None:
                 instance_id = self._new_object_id(db)
@@ -1653,7 +1682,6 @@ class SessionDB:
                     f"the object is labelled in frame {frame_index} already (label {there['id']}):"
                     " move that one"
                 )
-            changes = []
             if there is not None:  # a computed box there becomes the keyframe
                 content = self._content(db, "labels", int(there["id"]))
                 after = _by_a_person({**content, "box": box_json})
@@ -1811,7 +1839,10 @@ class SessionDB:
                 row = self._locked_label(db, label_id, expected_versions.get(int(label_id)))
                 if row["deleted"]:
                     raise EditConflictError(f"label {label_id} is already deleted (by {row['modified_by']})")
-                after = {**self._content(db, "labels", int(label_id)), "deleted": 1}
+                content = self._content(db, "labels", int(label_id))
+                # A person deleting a computed box says the object is not there: theirs, kept out.
+                origin = "user" if content["origin"] in COMPUTED_ORIGINS else content["origin"]
+                after = {**content, "deleted": 1, "origin": origin}
                 changes.append(self._change(db, "labels", int(label_id), after, author))
             if not changes:
                 raise SessionError("no labels to delete")

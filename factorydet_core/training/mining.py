@@ -505,9 +505,11 @@ def train_with_mining(
         if index in by_index
     }
     # Sets on a place nobody has decided on yet (an unconfirmed pre-label) are neither object
-    # nor background: left out as the excluded ones are, mined neither.
+    # nor background: left out as the excluded ones are, mined neither. A set a confirmed label
+    # makes an object stays one.
     for frame in frames:
         ignored = frame.ignored_point_sets()
+        ignored = ignored[frame_labels[frame.frame_index][ignored] == background_id]
         if len(ignored):
             excluded.setdefault(frame.frame_index, set()).update(ignored.tolist())
     # The first background set: point sets that overlap no annotated box, sampled evenly, and the

@@ -524,3 +524,17 @@ def test_one_queue_entry_per_place_and_its_verdict_answers_every_item(state, tin
     cones = [lab for f in range(3) for lab in state.db.labels(f) if lab.origin == "review"]
     assert len(cones) == 3 and len({lab.instance_id for lab in cones}) == 1
     assert {lab.class_name for lab in cones} == {"cone"} and before == 6
+
+
+def test_after_confirming_the_last_pre_label_the_selection_can_still_be_edited(state):
+    from tests.core.session.test_prelabels import FAR
+
+    _detected(state, FAR[:1], [0.9])
+    ann = _person(state, "ann")
+    ann.prelabel_frame(0.5)
+    (waiting,) = state.db.unreviewed_labels()
+    ann.confirm_selected()  # the last one: the selection stays on it
+    assert ann.selected_label_id == waiting.id
+    ann.nudge(forward=0.01)  # made against the confirmed version: no conflict
+    assert not any(error for _, _, error in ann.messages)
+    assert state.db.label(waiting.id).box[0] != waiting.box[0]

@@ -412,3 +412,44 @@ def test_a_verdict_on_a_place_labels_its_object_once_and_takes_it_back_as_one(db
     db.undo("ann")
     assert not [lab for f in range(3) for lab in db.labels(f) if lab.origin == "review"]
     assert all(q["verdict"] is None for q in db.review_queue())
+
+
+def _midway(keyframes):
+    """Boxes halfway between keyframes (a world without motion)."""
+    frames = sorted(keyframes)
+    out = {}
+    for a, b in zip(frames[:-1], frames[1:]):
+        for f in range(a + 1, b):
+            t = (f - a) / (b - a)
+            out[f] = tuple(
+                np.asarray(keyframes[a]) + t * (np.asarray(keyframes[b]) - np.asarray(keyframes[a]))
+            )
+    return out
+
+
+def test_the_data_sets_own_boxes_of_a_moving_object_are_keyframes_not_places_for_computed_ones(db):
+    truck = next(lab for lab in db.labels(0) if lab.class_name == "truck")
+    end = next(lab for lab in db.labels(2) if lab.instance_id == truck.instance_id)  # frame 1 not read yet
+    db.update_label(end.id, "ann", box=(*end.box[:2], end.box[2] + 0.01, *end.box[3:]), track=_midway)
+    members = db.object_labels(truck.id)
+    assert [(lab.frame_index, lab.origin) for lab in members] == [
+        (0, "dataset"),
+        (1, "dataset"),
+        (2, "dataset"),
+    ]
+
+
+def test_keyframes_confirm_a_pre_label_leave_deleted_frames_out_and_keep_a_class_change(db):
+    (pre,) = db.add_labels(
+        [(0, (30.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), "person")], "ann", "model", scores=[0.8]
+    )
+    assert not pre.reviewed
+    end = db.add_keyframe(pre.id, 2, (34.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), "ann", track=_midway)
+    assert db.label(pre.id).reviewed  # carried to another frame: a person's choice
+    middle = next(lab for lab in db.object_labels(pre.id) if lab.frame_index == 1)
+    assert middle.origin == "interpolated" and middle.reviewed
+    db.update_label(middle.id, "ann", class_name="truck", track=_midway)  # a class alone: still computed
+    assert db.label(middle.id).class_name == "truck" and db.label(middle.id).origin == "interpolated"
+    db.delete_labels([middle.id], "ann")  # the person is hidden in frame 1
+    db.update_label(end.id, "ann", box=(35.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), track=_midway)
+    assert [lab.frame_index for lab in db.object_labels(pre.id)] == [0, 2]  # not brought back

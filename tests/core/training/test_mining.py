@@ -467,3 +467,16 @@ def test_held_negatives_stay_out_of_the_background_and_are_not_mined_again(frame
         assert not held & later
     with pytest.raises(InputError, match="hold_score"):
         train_with_mining(frames, classifier, rounds=0, hold_score=0.0)
+
+
+def test_an_unconfirmed_pre_label_on_a_labelled_object_takes_none_of_its_positives(frames):
+    from factorydet_core.detection.box_head import BoxHead
+
+    # The box head: its training set drops excluded sets, positives included.
+    classifier = BoxHead(channels=(16, 32), hidden=32, epochs=1, batch_size=64, num_threads=1)
+    plain = train_with_mining(frames, classifier, rounds=0, initial_negatives=50, fragment_iou=0.0)
+    # Pre-labels exactly on every label: the sets there are the labels' positives, not ignored.
+    on_labels = [f.with_labels(f.label_boxes, f.label_class_ids, None, f.label_boxes) for f in frames]
+    assert sum(len(f.ignored_point_sets()) for f in on_labels) > 0
+    both = train_with_mining(on_labels, classifier, rounds=0, initial_negatives=50, fragment_iou=0.0)
+    assert both.rounds[0]["num_positives"] == plain.rounds[0]["num_positives"] > 0
