@@ -333,6 +333,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     ),
                     seeds=parse_ints(args.seeds, "--seeds"),
                     max_label_iou=args.hide_labelled,
+                    review_by=args.review_by,
                     max_train_frames=args.train_frames,
                     max_test_frames=args.frames,
                     calibrate=args.calibrate,
@@ -1211,6 +1212,11 @@ def build_parser(
         "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"
     )
     p.add_argument("--budgets", default="50,200", help="hitl: reviews per round K, comma-separated")
+    p.add_argument(
+        "--review-by", default="item", choices=["item", "place"],
+        help="hitl: the reviewer answers queue items one by one, or places as the app shows them by "
+        "default (one verdict per object mined in several frames, objects labelled once)",
+    )  # fmt: skip
     p.add_argument("--rounds", type=int, default=2, help="hitl, quality: mining rounds after the first fit")
     p.add_argument("--negatives", type=int, default=500, help="hitl: mined negatives per round")
     p.add_argument("--initial-negatives", type=int, default=2000, help="hitl: first random background set")

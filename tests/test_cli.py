@@ -263,7 +263,7 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
             "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
             "--seeds", "0,1", "--train-frames", "1", "--no-calibrate", "--no-box-quality",
             "--method", "paper", "--class-weight", "balanced", "--out", str(out),
-            "--readme", str(readme), "--hide-labelled", "0.25"]  # fmt: skip
+            "--readme", str(readme), "--hide-labelled", "0.25", "--review-by", "place"]  # fmt: skip
     assert main(args) == 0
     # The README gets the table (no JSON, no section title of its own), the rest untouched.
     text = readme.read_text()
@@ -299,6 +299,7 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     reviewed = result["variants"]["reviewed_5"]
     assert 0 < reviewed["num_reviews"] <= 5  # one review round (rounds=1), at most K items
     assert result["queue_max_label_iou"] == 0.25 and reviewed["reviews"]["hidden"] >= 0
+    assert result["review_by"] == "place"  # one verdict per place, as the app's queue
     assert result["variants"]["blind"]["num_reviews"] == 0
     assert result["variants"]["full"]["truth_labels_added"] > 0
     assert set(reviewed["per_class_f1"]) >= {"barrel", "truck"}

@@ -16,7 +16,7 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.evaluate import measure
 from factorydet_core.evaluation.records import machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
-from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
+from factorydet_core.session.store import SessionDB, labelled_there, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import cached_proposals, train_session
 from factorydet_core.training.settings import LoopSettings
@@ -72,6 +72,7 @@ def simulated_review(
     author: str = "simulated-reviewer",
     positive_iou: float = 0.6,
     max_label_iou: float | None = None,
+    world=None,
 ) -> dict:
     """Answer the top ``budget`` pending items of the latest run's queue from the truth
     (``truth_verdict``), one ``SessionDB.review`` call per item, as the review panel's buttons make
@@ -86,23 +87,27 @@ def simulated_review(
             (``SessionDB.review_queue``): an item whose box overlaps a current label at this IoU
             or more, checked when its turn comes (the panel's queue follows the labels the
             reviewer adds), is passed over and does not count against the budget.
+        world: the frames placed in one world frame (``world.session_world``): review as the
+            app does by default, one entry per place (``world.group_by_place``, most likely an
+            object first), the verdict on its best item answering all its items, an object (or
+            a box drawn for a wrong one) labelled in every frame that shows it (label once).
+            ``budget`` then counts places.
 
     Returns:
         Counts per verdict, the number of boxes drawn and of items ``hidden`` by the filter.
     """
     counts = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0, "hidden": 0}
     answered = 0
-    for item in db.review_queue(pending_only=True):
+    queue = db.review_queue(pending_only=True)
+    if world is not None:
+        return _review_places(db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts)
+    for item in queue:
         if answered == budget:
             break
         if max_label_iou is not None and on_labelled_object(db.label_overlap([item])[0], max_label_iou):
             counts["hidden"] += 1
             continue
-        verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)
-        if true_box is not None:
-            boxes, _, _ = db.frame_boxes(item["frame_index"])
-            if len(boxes) and box_iou_3d(true_box[None], boxes).max() >= positive_iou:
-                verdict, class_name = ("skip" if verdict == "object" else "background"), None
+        verdict, class_name, true_box = _truth_answer(db, dataset, item, positive_iou)
         db.review(
             [item["id"]],
             verdict,
@@ -179,6 +184,81 @@ def unannotated_coverage(
     return covered, total
 
 
+def _truth_answer(db: SessionDB, dataset: Dataset, item: dict, positive_iou: float):
+    """``truth_verdict`` as the reviewer answers it, knowing the session's labels: an object that
+    is labelled already makes the item a negative ('skip' on its box, 'background' off it)."""
+    verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)
+    if true_box is not None:
+        boxes, _, _ = db.frame_boxes(item["frame_index"])
+        if len(boxes) and box_iou_3d(true_box[None], boxes).max() >= positive_iou:
+            verdict, class_name = ("skip" if verdict == "object" else "background"), None
+    return verdict, class_name, true_box
+
+
+def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts) -> dict:
+    """``simulated_review`` by place, as the app's review panel shows the queue by default."""
+    from factorydet_core.session.world import MOVING_CLASSES, group_by_place, place_box
+
+    def placer(class_name):
+        if class_name is None or class_name in MOVING_CLASSES:
+            return None
+        return lambda frame_index, box: place_box(world, frame_index, box).for_store()
+
+    answered = 0
+    done: set[int] = set()  # items answered with an earlier place (the queue is read once)
+    for members in group_by_place(world, queue):
+        if answered == budget:
+            break
+        items = [queue[k] for k in members if queue[k]["id"] not in done]
+        if not items:
+            continue
+        item = items[0]  # what the panel shows of the place: its best item
+        if max_label_iou is not None and on_labelled_object(db.label_overlap([item])[0], max_label_iou):
+            counts["hidden"] += 1
+            continue
+        verdict, class_name, true_box = _truth_answer(db, dataset, item, positive_iou)
+        current = {q["id"]: q for q in db.review_queue(item["run_id"])}
+        ids = [q["id"] for q in items if current[q["id"]]["verdict"] in (None, "skip")]
+        if not ids:
+            continue
+        db.review(
+            ids,
+            verdict,
+            author,
+            class_name=class_name if verdict == "object" else None,
+            expected={i: current[i]["verdict"] for i in ids},
+            place=placer(class_name) if verdict == "object" else None,
+            one_object=len(ids) > 1,
+        )
+        done.update(ids)
+        counts[verdict] += 1
+        answered += 1
+        if verdict == "wrong_box":
+            place = placer(class_name)
+            frame_index = item["frame_index"]
+            if place is None:
+                db.add_label(frame_index, true_box, class_name, author)
+            else:  # label once: the drawn box reaches every frame that shows the object
+                _draw_object(db, author, frame_index, class_name, *place(frame_index, tuple(true_box)))
+            counts["boxes_drawn"] += 1
+    return counts
+
+
+def _draw_object(db: SessionDB, author: str, frame_index: int, class_name: str, boxes: dict, show_in) -> None:
+    """A box drawn in ``frame_index`` as the app's label once adds it: one object in every frame
+    of ``show_in`` (``boxes`` by frame), except where a label overlaps it already."""
+    frames = sorted(set(show_in) | {int(frame_index)})
+
+    def screen(current) -> list[int]:
+        return [
+            k
+            for k, f in enumerate(frames)
+            if f == frame_index or not labelled_there(boxes[f], [lab.box for lab in current[f]])
+        ]
+
+    db.add_labels([(f, boxes[f], class_name) for f in frames], author, "user", as_object=True, screen=screen)
+
+
 def queue_reach(
     db: SessionDB,
     dataset: Dataset,
@@ -224,6 +304,7 @@ def bench_hitl(
     workdir: str | os.PathLike | None = None,
     command: str = "",
     progress=None,
+    review_by: str = "item",
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
     mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -235,7 +316,10 @@ def bench_hitl(
         ``hitl.add_truth_labels``), the upper bound.
 
     ``max_label_iou`` gives the reviewer the queue filter that hides items on labelled objects
-    (``SessionDB.review_queue``); hidden items cost no budget.
+    (``SessionDB.review_queue``); hidden items cost no budget. ``review_by`` "place" reviews as the
+    app does by default once the frames are placed: one verdict per place of the queue, objects
+    labelled once in every frame that shows them (``simulated_review``'s ``world``); K then counts
+    places.
 
     Every variant runs ``rounds + 1`` fits: a first fit that mines, then ``rounds`` next rounds.
     Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
@@ -257,6 +341,8 @@ def bench_hitl(
         raise InputError(f"bench hitl needs one or more distinct review budgets K >= 1, got {budgets}")
     if max_label_iou is not None and not 0.0 < max_label_iou <= 1.0:
         raise InputError(f"bench hitl: the queue filter's IoU must lie in (0, 1], got {max_label_iou}")
+    if review_by not in ("item", "place"):
+        raise InputError(f"bench hitl: review by 'item' or 'place', got {review_by!r}")
     settings = settings or LoopSettings()
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
@@ -264,8 +350,9 @@ def bench_hitl(
     if not train or not test:
         raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
     plan = _HitlPlan(
-        dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command
-    )
+        dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command,
+        review_by,
+    )  # fmt: skip
     if workdir is not None:
         return _hitl_variants(plan, Path(workdir), progress)
     with tempfile.TemporaryDirectory(prefix="factorydet_hitl_") as scratch_dir:
@@ -315,6 +402,7 @@ class _HitlPlan:
     max_label_iou: float | None
     calibrate: bool
     command: str
+    review_by: str = "item"
 
 
 def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
@@ -331,6 +419,11 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
     train_frames = cached_proposals(scratch, dataset, detector, train)
     test_frames = cached_proposals(scratch, dataset, detector, test)
     proposal_seconds = time.perf_counter() - start
+    world = None
+    if plan.review_by == "place":
+        from factorydet_core.session.world import session_world
+
+        world, _ = session_world(scratch.session, dataset, detector.T_vehicle_sensor)
     # blind_safe: blind mining that holds the negatives the model scores at its operating score or
     # more out of the background until reviewed (nobody reviews them here).
     hold = settings.hold_confident if settings.hold_confident is not None else settings.score_threshold
@@ -358,7 +451,7 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                 if name != "full" and r < rounds:
                     reached |= queue_reach(db, dataset, train)
                 if budget and r < rounds:
-                    answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou)
+                    answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou, world=world)
                     for key, value in answered.items():
                         reviews[key] += value
                 done += 1
@@ -438,6 +531,7 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
         # The reviewer's queue: highest score first, without the items that overlap a label at
         # this IoU or more when set (the review panel's "hide items on labelled objects").
         "queue_max_label_iou": max_label_iou,
+        "review_by": plan.review_by,
         "settings": {k: v for k, v in dataclasses.asdict(settings).items() if k != "seed"},
         "f1": f1,
         "recovered": recovered,

@@ -326,3 +326,35 @@ def test_a_next_round_goes_on_from_the_shown_run_trained_on_the_same_front_half(
     assert "round_epochs is 0" in continued_model(db, afresh, classifier)[2]
     (db.session.path / db.training_runs()[0]["model_path"]).write_bytes(b"not a checkpoint")
     assert "does not load" in continued_model(db, settings, classifier)[2]
+
+
+@pytest.mark.slow
+def test_the_reviewer_by_place_answers_an_object_mined_in_two_frames_once_and_labels_it_once(
+    dataset, tmp_path, tiny_model_path
+):
+    from factorydet_core.session.world import register_frames
+
+    world = register_frames([dataset.frame(i) for i in range(dataset.num_frames)], use_icp=False)
+    first, second = read_frame_truth(dataset.path, 0), read_frame_truth(dataset.path, 1)
+    # An object the data set left unannotated, dense enough for the policy in both frames.
+    dense = (first.instance_num_points >= 50) & ~first.annotated_mask & (first.instance_class_ids >= 0)
+    ids = [
+        i
+        for i in first.instance_ids[dense]
+        if i in set(second.instance_ids[second.instance_num_points >= 50])
+    ]
+    assert ids, "the small data set has no unannotated object seen in frames 0 and 1"
+    box0 = first.instance_boxes[list(first.instance_ids).index(ids[0])]
+    box1 = second.instance_boxes[list(second.instance_ids).index(ids[0])]
+    items = [
+        mined_item(0, 1, box0, 0.9, probabilities=[0.1] * 8),
+        mined_item(1, 2, box1, 0.8, probabilities=[0.1] * 8),
+    ]
+    db = SessionDB(open_session("places", tmp_path), dataset)
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    counts = simulated_review(db, dataset, budget=1, world=world)
+    assert counts["object"] == 1 and sum(counts[v] for v in ("background", "wrong_box", "skip")) == 0
+    assert [q["verdict"] for q in db.review_queue()] == ["object", "object"]
+    labels = [lab for f in range(dataset.num_frames) for lab in db.labels(f) if lab.origin == "review"]
+    assert {lab.frame_index for lab in labels} >= {0, 1} and len({lab.instance_id for lab in labels}) == 1
+    assert len({lab.frame_index for lab in labels}) == len(labels)  # once in each frame
