@@ -272,10 +272,13 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
     """The review queue's items by place: items of one object mined in several frames (and
     duplicates in one frame) are one place, so that one verdict answers them all.
 
-    Items whose boxes, carried into the world frame by the frames' poses, overlap at ``min_iou`` or
-    more are one place, and so on transitively. Places come most likely an object first: by the
-    chance that at least one of their items is one, ``1 - prod(1 - score)`` (a place the model
-    finds again and again in frame after frame is likelier real than one confident detection).
+    Greedily, most confident first: each item not yet placed starts a place and takes every item
+    not yet placed whose box, carried into the world frame by the frames' poses, overlaps its own
+    at ``min_iou`` or more. Overlap with the place's first item, not a chain of overlaps: on a
+    shelf of boxes a chain would join neighbour to neighbour into one place. Places come most
+    likely an object first: by the chance that at least one of their items is one,
+    ``1 - prod(1 - score)`` (a place the model finds again in frame after frame is likelier real
+    than one confident detection).
 
     Args:
         items: dicts with ``frame_index``, ``box`` (7,) in that frame and ``score``.
@@ -283,9 +286,6 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
     Returns:
         Lists of positions in ``items``, each place's items by decreasing score.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     from factorydet_core.boxes import box_iou_3d
 
     if not len(items):
@@ -299,15 +299,19 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
         ]
     )
     overlap = box_iou_3d(in_world, in_world) >= min_iou
-    rows, cols = np.nonzero(overlap)
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(items), len(items)))
-    _, place_of = connected_components(graph, directed=False)
     scores = np.array([float(item["score"]) for item in items])
-    places: dict[int, list[int]] = {}
-    for position in np.argsort(-scores, kind="stable"):
-        places.setdefault(int(place_of[position]), []).append(int(position))
-    chance = {p: 1.0 - float(np.prod(1.0 - np.clip(scores[m], 0.0, 1.0))) for p, m in places.items()}
-    return [places[p] for p in sorted(places, key=lambda p: (-chance[p], places[p][0]))]
+    order = np.argsort(-scores, kind="stable")
+    placed = np.zeros(len(items), bool)
+    places = []
+    for seed in order:
+        if placed[seed]:
+            continue
+        members = [int(k) for k in order if not placed[k] and overlap[seed, k]]  # the seed included
+        placed[members] = True
+        places.append(members)
+    chance = [1.0 - float(np.prod(1.0 - np.clip(scores[m], 0.0, 1.0))) for m in places]
+    ranked = sorted(range(len(places)), key=lambda p: (-chance[p], places[p][0]))
+    return [places[p] for p in ranked]
 
 
 def spread_objects(labels_by_frame: dict, world: WorldFrames, *, min_points: int = MIN_POINTS) -> list[tuple]:

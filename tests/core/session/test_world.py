@@ -453,3 +453,15 @@ def test_keyframes_confirm_a_pre_label_leave_deleted_frames_out_and_keep_a_class
     db.delete_labels([middle.id], "ann")  # the person is hidden in frame 1
     db.update_label(end.id, "ann", box=(35.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), track=_midway)
     assert [lab.frame_index for lab in db.object_labels(pre.id)] == [0, 2]  # not brought back
+
+
+def test_a_row_of_overlapping_boxes_is_not_chained_into_one_place():
+    world = _two_frames()
+    # Five boxes along x, each overlapping the next by half (IoU 1/3): chained, they would be one.
+    items = [
+        {"frame_index": 0, "box": (10.0 + 0.5 * k, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0), "score": 0.9 - 0.1 * k}
+        for k in range(5)
+    ]
+    places = group_by_place(world, items)
+    assert sorted(map(len, places)) == [1, 2, 2]  # each seed takes its own overlaps only
+    assert all(abs(items[a]["box"][0] - items[b]["box"][0]) <= 0.5 for p in places for a in p for b in p)
