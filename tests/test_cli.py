@@ -323,6 +323,8 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     # Reviews give back at most what the reviewed queues reach.
     assert result["variants"]["full"]["unannotated_in_queue"] is None
     assert 0 <= reviewed["unannotated_labelled"] <= reviewed["unannotated_in_queue"] <= 1
+    assert 0 <= reviewed["unannotated_in_top_k"] <= reviewed["unannotated_in_queue"]
+    assert result["variants"]["blind"]["unannotated_in_top_k"] is None
     assert "| unannotated training objects in the reviewed rounds' queues |" in markdown
     assert "| unannotated training objects labelled |" in markdown
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "1,1"]) == 2

@@ -266,18 +266,30 @@ def queue_reach(
     run_id: int | None = None,
     object_overlap: float = 0.1,
     min_points: int | None = None,
+    top: int | None = None,
+    world=None,
 ) -> set[tuple[int, int]]:
     """The objects the data set left unannotated (``add_truth_labels``' set) that some item of a
     run's review queue (the latest by default) overlaps at ``object_overlap`` IoU: the ones a
     reviewer answering the whole queue could label ('object' or 'wrong box'). Reviews cannot give
-    back more than this, whatever their budget.
+    back more than this, whatever their budget. ``top``: only the first ``top`` entries of the
+    queue, items, or with ``world`` places (``world.group_by_place``, every item of each): what a
+    reviewer answering ``top`` entries can reach.
 
     Returns:
         ``(frame_index, k)`` pairs, ``k`` indexing the frame's unannotated objects in
         ``_unannotated_truth``'s order.
     """
+    queue = db.review_queue(run_id)
+    if world is not None:
+        from factorydet_core.session.world import group_by_place
+
+        places = group_by_place(world, queue)[:top]
+        queue = [queue[k] for place in places for k in place]
+    elif top is not None:
+        queue = queue[:top]
     by_frame: dict[int, list[list[float]]] = {}
-    for item in db.review_queue(run_id):
+    for item in queue:
         by_frame.setdefault(int(item["frame_index"]), []).append(item["box"])
     reached = set()
     for index in frame_indices:
@@ -443,6 +455,7 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
             reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)
             fit_seconds = 0.0
             reached: set = set()  # unannotated objects some reviewable queue item overlaps
+            reached_top: set = set()  # ... some of the first K entries the reviewer answers overlaps
             for r in range(rounds + 1):
                 _, run = train_session(
                     db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data)
@@ -450,6 +463,8 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                 fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
                 if name != "full" and r < rounds:
                     reached |= queue_reach(db, dataset, train)
+                if budget and r < rounds:
+                    reached_top |= queue_reach(db, dataset, train, top=budget, world=world)
                 if budget and r < rounds:
                     answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou, world=world)
                     for key, value in answered.items():
@@ -473,6 +488,7 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                     "unannotated_labelled": covered,
                     "unannotated_total": unannotated,
                     "unannotated_in_queue": None if name == "full" else len(reached),
+                    "unannotated_in_top_k": len(reached_top) if budget else None,
                     "fit_seconds": round(fit_seconds, 1),
                 }
             )
@@ -502,6 +518,11 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
             "unannotated_in_queue": None
             if name == "full"
             else mean([r["unannotated_in_queue"] / max(r["unannotated_total"], 1) for r in runs]),
+            # ... and the share the first K entries of the reviewed rounds' queues reach (the
+            # reviewer's budget: items, or places with --review-by place).
+            "unannotated_in_top_k": None
+            if runs[0]["unannotated_in_top_k"] is None
+            else mean([r["unannotated_in_top_k"] / max(r["unannotated_total"], 1) for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
     f1 = {name: r["f1"] for name, r in results.items()}

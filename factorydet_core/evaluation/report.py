@@ -628,6 +628,17 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             )
             + " |"
         )
+    if any(variants[n].get("unannotated_in_top_k") is not None for n in names):
+        rows.append(
+            "| unannotated training objects in the first K entries reviewed | "
+            + " | ".join(
+                "–"
+                if variants[n].get("unannotated_in_top_k") is None
+                else f"{100 * variants[n]['unannotated_in_top_k']:.0f}%"
+                for n in names
+            )
+            + " |"
+        )
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "

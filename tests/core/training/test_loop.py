@@ -240,6 +240,10 @@ def test_the_reviewer_with_the_labelled_filter_spends_its_budget_off_labelled_ob
     assert [item["proposal"] for item in shown] == [2, 3, 4]
     # Of the unannotated objects (in truth order), the queue reaches the first, items 2 and 3.
     assert queue_reach(db, dataset, [0, 1]) == {(0, 0)}
+    # A reviewer answering the first K entries reaches only what those overlap.
+    assert queue_reach(db, dataset, [0, 1], top=2) == set() and queue_reach(db, dataset, [0, 1], top=3) == {
+        (0, 0)
+    }
     assert db.review_queue()[0]["label_iou"] == pytest.approx(1 / 3, abs=1e-3)
 
     counts = simulated_review(db, dataset, budget=2, max_label_iou=0.25)
