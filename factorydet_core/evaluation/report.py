@@ -617,28 +617,15 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(f"{variants[n]['reviews'].get('hidden', 0):.0f}" for n in names)
             + " |"
         )
-    if any(variants[n].get("unannotated_in_queue") is not None for n in names):
-        rows.append(
-            "| unannotated training objects in the reviewed rounds' queues | "
-            + " | ".join(
-                "–"
-                if variants[n].get("unannotated_in_queue") is None
-                else f"{100 * variants[n]['unannotated_in_queue']:.0f}%"
-                for n in names
+    for key, what in (
+        ("unannotated_in_queue", "unannotated training objects in the reviewed rounds' queues"),
+        ("unannotated_in_top_k", "unannotated training objects in the first K entries reviewed"),
+    ):
+        if any(variants[n].get(key) is not None for n in names):
+            shares = (
+                "–" if variants[n].get(key) is None else f"{100 * variants[n][key]:.0f}%" for n in names
             )
-            + " |"
-        )
-    if any(variants[n].get("unannotated_in_top_k") is not None for n in names):
-        rows.append(
-            "| unannotated training objects in the first K entries reviewed | "
-            + " | ".join(
-                "–"
-                if variants[n].get("unannotated_in_top_k") is None
-                else f"{100 * variants[n]['unannotated_in_top_k']:.0f}%"
-                for n in names
-            )
-            + " |"
-        )
+            rows.append(f"| {what} | " + " | ".join(shares) + " |")
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "

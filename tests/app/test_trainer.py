@@ -170,69 +170,55 @@ def test_the_time_left_counts_the_epochs_of_this_round_and_of_the_rounds_after_i
     assert time_left_text(200) == "about 3 min"
 
 
-def test_the_training_status_gives_the_fitting_time_left(small_dataset_dir, tmp_path, monkeypatch):
+def _reports_of(small_dataset_dir, tmp_path, monkeypatch, seconds_per_reading: int, reports) -> list:
+    """``(status, progress)`` pairs a full run shows while the given ``reports`` (``(what, done,
+    total)`` progress calls) come in, the clock moving ``seconds_per_reading`` at each reading."""
     dataset = open_dataset(small_dataset_dir)
     state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
     trainer = TrainingWorker(state, calibrate=False)
-    statuses = []
+    shown = []
     real_set = state.set_training
 
     def set_training(**changes):
-        statuses.append(changes.get("status"))
+        shown.append((changes.get("status"), changes.get("progress")))
         real_set(**changes)
 
     monkeypatch.setattr(state, "set_training", set_training)
-    clock = iter(range(0, 1000, 10))  # each reading, ten seconds later
+    clock = iter(range(0, 10_000, seconds_per_reading))
     monkeypatch.setattr("app.trainer._clock", lambda: float(next(clock)))
 
     def retrain_session(db, data, settings, front_end, progress, **options):
-        for epoch in (1, 2, 3):
-            progress("fit", epoch, 5)
+        for report in reports:
+            progress(*report)
         raise RuntimeError("stop here")
 
     monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
     # (A session without a run trains in full: no mining round here.)
     assert trainer.start("full", dataclasses.replace(LoopSettings(), rounds=0))
     trainer.join(10)
-    fits = [s for s in statuses if s and s.startswith("round 1 of 1")]
+    return shown
+
+
+def test_the_training_status_gives_the_fitting_time_left(small_dataset_dir, tmp_path, monkeypatch):
+    reports = [("fit", epoch, 5) for epoch in (1, 2, 3)]
+    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 10, reports)
+    fits = [s for s, _ in shown if s and s.startswith("round 1 of 1")]
     # Ten seconds an epoch: after epoch 2, three are left (30 s); after epoch 3, two (20 s).
     assert fits == ["round 1 of 1: epoch 1 of 5", "round 1 of 1: epoch 2 of 5 · about 30 s of fitting left",
                     "round 1 of 1: epoch 3 of 5 · about 20 s of fitting left"]  # fmt: skip
 
 
 def test_proposals_and_scoring_move_the_bar_and_say_the_time_left(small_dataset_dir, tmp_path, monkeypatch):
-    dataset = open_dataset(small_dataset_dir)
-    state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
-    trainer = TrainingWorker(state, calibrate=False)
-    reports = []
-    real_set = state.set_training
-
-    def set_training(**changes):
-        reports.append((changes.get("status"), changes.get("progress")))
-        real_set(**changes)
-
-    monkeypatch.setattr(state, "set_training", set_training)
-    clock = iter(range(0, 1000, 4))  # each reading, four seconds later
-    monkeypatch.setattr("app.trainer._clock", lambda: float(next(clock)))
-
-    def retrain_session(db, data, settings, front_end, progress, **options):
-        for frame in range(4):
-            progress("proposals", frame, 8)
-        progress("fit", 5, 5)
-        for frame in range(3):
-            progress("score", frame, 10)
-        raise RuntimeError("stop here")
-
-    monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
-    assert trainer.start("full", dataclasses.replace(LoopSettings(), rounds=0))
-    trainer.join(10)
-    proposals = [(s, p) for s, p in reports if s and s.startswith("proposals")]
+    reports = [("proposals", frame, 8) for frame in range(4)] + [("fit", 5, 5)]
+    reports += [("score", frame, 10) for frame in range(3)]
+    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 4, reports)
+    proposals = [(s, p) for s, p in shown if s and s.startswith("proposals")]
     # Four seconds a frame: after frame 1, seven are left (28 s).
     assert proposals[0][0] == "proposals: frame 0 of 8"
     assert proposals[1][0] == "proposals: frame 1 of 8 · about 30 s left"
-    scoring = [(s, p) for s, p in reports if s and "scoring" in s]
+    scoring = [(s, p) for s, p in shown if s and "scoring" in s]
     assert scoring[0][0] == "round 1 of 1: scoring frame 1 of 10"
     assert scoring[2][0] == "round 1 of 1: scoring frame 3 of 10 · about 30 s left"  # 8 x 4 s
-    fitted = [p for s, p in reports if s and "epoch 5 of 5" in s][0]
+    fitted = [p for s, p in shown if s and "epoch 5 of 5" in s][0]
     progress = [p for _, p in scoring]
     assert fitted <= progress[0] < progress[1] < progress[2] < 0.1 + 0.75  # the bar moves while scoring

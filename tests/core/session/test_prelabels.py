@@ -9,7 +9,6 @@ import sqlite3
 import numpy as np
 import pytest
 
-from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.editing import prelabel_frame
 from factorydet_core.session.labels_io import export_json, scene_arrays
 from factorydet_core.session.store import (
@@ -21,16 +20,6 @@ from factorydet_core.session.store import (
     open_session,
 )
 from factorydet_core.types import CLASS_NAMES, Detections, InputError
-
-
-@pytest.fixture
-def dataset(small_dataset_dir):
-    return open_dataset(small_dataset_dir)
-
-
-@pytest.fixture
-def db(tmp_path, dataset):
-    return SessionDB(open_session("s", tmp_path), dataset)
 
 
 def _detections(boxes, scores, class_ids=None, suppressed_by=None) -> Detections:

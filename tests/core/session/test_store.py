@@ -29,16 +29,6 @@ from tests.fakes import mined_item, queue_run, unwritable
 BOX = (1.0, 2.0, 0.5, 1.2, 0.8, 1.0, 0.3)
 
 
-@pytest.fixture
-def dataset(small_dataset_dir):
-    return open_dataset(small_dataset_dir)
-
-
-@pytest.fixture
-def db(tmp_path, dataset):
-    return SessionDB(open_session("s", tmp_path), dataset)
-
-
 def _reopen(db: SessionDB) -> SessionDB:
     return SessionDB(db.session, db.dataset)
 

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.geometry import make_transform, rotation_z, transform_boxes
 from factorydet_core.io.dataset import open_dataset
-from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, Label, SessionDB, open_session
+from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, Label, open_session
 from factorydet_core.session.world import (
     MOVING_CLASSES,
     WorldFrames,
@@ -174,11 +174,6 @@ def test_icp_poses_carry_the_data_sets_boxes_onto_its_own_boxes(small_dataset_di
 # -- the session's objects
 
 
-@pytest.fixture
-def db(tmp_path, small_dataset_dir):
-    return SessionDB(open_session("s", tmp_path), open_dataset(small_dataset_dir))
-
-
 def _boxes(x: float) -> dict[int, tuple]:
     return {f: (x + f, 1.0, 0.4, 0.6, 0.6, 0.8, 0.0) for f in range(3)}
 
@@ -318,24 +313,31 @@ def test_label_once_never_labels_an_object_twice_nor_undoes_a_deletion(db):
     assert 2 not in {lab.frame_index for lab in db.object_labels(dataset_label.id)}
 
 
+def _midway(keyframes):
+    """Boxes halfway between keyframes (a world without motion)."""
+    frames = sorted(keyframes)
+    out = {}
+    for a, b in zip(frames[:-1], frames[1:]):
+        for f in range(a + 1, b):
+            t = (f - a) / (b - a)
+            out[f] = tuple(
+                np.asarray(keyframes[a]) + t * (np.asarray(keyframes[b]) - np.asarray(keyframes[a]))
+            )
+    return out
+
+
 def test_a_moving_objects_boxes_between_its_keyframes_follow_every_edit_in_one_undo(db):
     """Keyframes of a person in frames 0 and 2: frame 1 gets a computed box; moving a keyframe
     moves it, moving the computed one makes it a keyframe; each is one edit, one undo."""
 
-    def track(keyframes):  # the middle of its neighbours (a world without motion)
-        frames = sorted(keyframes)
-        out = {}
-        for a, b in zip(frames[:-1], frames[1:]):
-            for f in range(a + 1, b):
-                t = (f - a) / (b - a)
-                out[f] = tuple(
-                    np.asarray(keyframes[a]) + t * (np.asarray(keyframes[b]) - np.asarray(keyframes[a]))
-                )
-        return out
-
     first = db.add_label(0, (30.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), "person", "ann")
     end = db.add_keyframe(
-        first.id, 2, (34.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), "ann", expected_version=first.version, track=track
+        first.id,
+        2,
+        (34.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0),
+        "ann",
+        expected_version=first.version,
+        track=_midway,
     )
     members = db.object_labels(first.id)
     assert [(lab.frame_index, lab.origin) for lab in members] == [
@@ -345,11 +347,11 @@ def test_a_moving_objects_boxes_between_its_keyframes_follow_every_edit_in_one_u
     ]
     assert members[1].box[0] == pytest.approx(32.0) and members[1].class_name == "person"
     with pytest.raises(EditConflictError, match="labelled in frame 2 already"):
-        db.add_keyframe(first.id, 2, end.box, "ann", track=track)
-    db.update_label(end.id, "ann", box=(36.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), track=track)
+        db.add_keyframe(first.id, 2, end.box, "ann", track=_midway)
+    db.update_label(end.id, "ann", box=(36.0, 1.0, 0.9, 0.6, 0.5, 1.8, 0.0), track=_midway)
     assert db.object_labels(first.id)[1].box[0] == pytest.approx(33.0)
     middle = db.object_labels(first.id)[1]
-    db.update_label(middle.id, "ann", box=(32.5, 1.2, 0.9, 0.6, 0.5, 1.8, 0.0), track=track)
+    db.update_label(middle.id, "ann", box=(32.5, 1.2, 0.9, 0.6, 0.5, 1.8, 0.0), track=_midway)
     assert db.label(middle.id).origin == "user"  # a keyframe now
     db.update_object(first.id, "ann", class_name="truck")  # a class change keeps computed boxes computed
     db.undo("ann")
@@ -412,19 +414,6 @@ def test_a_verdict_on_a_place_labels_its_object_once_and_takes_it_back_as_one(db
     db.undo("ann")
     assert not [lab for f in range(3) for lab in db.labels(f) if lab.origin == "review"]
     assert all(q["verdict"] is None for q in db.review_queue())
-
-
-def _midway(keyframes):
-    """Boxes halfway between keyframes (a world without motion)."""
-    frames = sorted(keyframes)
-    out = {}
-    for a, b in zip(frames[:-1], frames[1:]):
-        for f in range(a + 1, b):
-            t = (f - a) / (b - a)
-            out[f] = tuple(
-                np.asarray(keyframes[a]) + t * (np.asarray(keyframes[b]) - np.asarray(keyframes[a]))
-            )
-    return out
 
 
 def test_the_data_sets_own_boxes_of_a_moving_object_are_keyframes_not_places_for_computed_ones(db):
