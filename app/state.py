@@ -266,12 +266,13 @@ class AppState:
 
     def choose_model(self, model, name: str, path) -> None:
         """Show ``model`` (a checkpoint at ``path``) and remember the choice in the session
-        (``SessionDB.set_shown_model``), so that the app shows it again when reopened."""
-        self.set_model(model, name)
-        with self.lock:
-            self.offered_model = None
+        (``SessionDB.set_shown_model``), so that the app shows it again when reopened. The choice
+        is stored first: once a browser shows the model, a reopen shows it too."""
         if self.db is not None:
             self.db.set_shown_model(name, path)
+        with self.lock:
+            self.offered_model = None
+        self.set_model(model, name)
 
     def offer_model(self, choice: str) -> None:
         """Offer a new run's model (its Training panel name) without showing it."""
