@@ -1380,6 +1380,24 @@ class SessionDB:
         self._store(db, table, key, after, author)
         return {"table": table, "key": key, "before": before, "after": after}
 
+    def _object_id(self, db, label_id: int) -> int:
+        """The instance id of the object label ``label_id`` boxes; a label of one frame only is
+        given a new one (it becomes an object), in the writing transaction."""
+        row = db.execute("SELECT instance_id FROM labels WHERE id = ?", (int(label_id),)).fetchone()
+        if row["instance_id"] is not None:
+            return int(row["instance_id"])
+        instance_id = self._new_object_id(db)
+        db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, int(label_id)))
+        return instance_id
+
+    @staticmethod
+    def _object_label_in(db, instance_id: int, frame_index: int) -> sqlite3.Row | None:
+        """The live label of object ``instance_id`` in a frame (``id``, ``origin``), if any."""
+        return db.execute(
+            "SELECT id, origin FROM labels WHERE instance_id = ? AND frame_index = ? AND deleted = 0",
+            (instance_id, frame_index),
+        ).fetchone()
+
     @staticmethod
     def _new_object_id(db) -> int:
         """An instance id no label has (``NEW_OBJECT_ID`` or above), read in the writing transaction."""
@@ -1669,14 +1687,8 @@ class SessionDB:
                 changes.append(
                     self._change(db, "labels", int(label_id), _by_a_person(source, source), author)
                 )
-            instance_id = row["instance_id"]
-            if instance_id is None:
-                instance_id = self._new_object_id(db)
-                db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, int(label_id)))
-            there = db.execute(
-                "SELECT id, origin FROM labels WHERE instance_id = ? AND frame_index = ? AND deleted = 0",
-                (instance_id, frame_index),
-            ).fetchone()
+            instance_id = self._object_id(db, label_id)
+            there = self._object_label_in(db, instance_id, frame_index)
             if there is not None and there["origin"] not in COMPUTED_ORIGINS:
                 raise EditConflictError(
                     f"the object is labelled in frame {frame_index} already (label {there['id']}):"
@@ -1780,8 +1792,7 @@ class SessionDB:
                 )
             instance_id = row["instance_id"]
             if instance_id is None and set(wanted) - {row["frame_index"]}:
-                instance_id = self._new_object_id(db)
-                db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, int(label_id)))
+                instance_id = self._object_id(db, label_id)
                 row = db.execute("SELECT * FROM labels WHERE id = ?", (int(label_id),)).fetchone()
             for index in sorted(set(wanted)):  # the data set's own labels of the object come first
                 self._import_frame(db, index)
@@ -2389,7 +2400,6 @@ class SessionDB:
                         continue
                 if row is not None and (row["verdict"], row["class_name"]) == (verdict, class_name):
                     continue  # already so: nothing to change, nothing for anyone's undo to trip on
-                linked = False
                 if label is not None and label_id in touched:
                     pass  # an earlier item of the same place brought its shared label where it belongs
                 elif label is not None:
@@ -2404,12 +2414,9 @@ class SessionDB:
                     self._import_frame(db, self._check_frame(item["frame_index"]))
                     there = None
                     if one_object and object_id is not None:
-                        there = db.execute(
-                            "SELECT id FROM labels WHERE instance_id = ? AND frame_index = ? AND deleted = 0",
-                            (object_id, item["frame_index"]),
-                        ).fetchone()
+                        there = self._object_label_in(db, object_id, item["frame_index"])
                     if there is not None:  # the place's object is labelled in this frame already
-                        label_id, linked = int(there["id"]), True
+                        label_id = int(there["id"])
                     else:
                         label_id, change = self._insert_label(
                             db, item["frame_index"], item["box"], class_name, "review", author,
@@ -2420,16 +2427,11 @@ class SessionDB:
                             db.execute(
                                 "UPDATE labels SET instance_id = ? WHERE id = ?", (object_id, label_id)
                             )
-                if verdict == "object" and place is not None and not linked and object_id is None:
+                # (the place's first object item places it; the later ones link or join it)
+                if verdict == "object" and place is not None and object_id is None:
                     changes += self._place_review_label(db, label_id, class_name, place, author)
                 if verdict == "object" and one_object and object_id is None and label_id is not None:
-                    row_label = db.execute(
-                        "SELECT instance_id FROM labels WHERE id = ?", (label_id,)
-                    ).fetchone()
-                    object_id = row_label["instance_id"]
-                    if object_id is None:
-                        object_id = self._new_object_id(db)
-                        db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (object_id, label_id))
+                    object_id = self._object_id(db, label_id)
                 after = {"verdict": verdict, "class_name": class_name, "label_id": label_id}
                 changes.append(self._change(db, "reviews", negative_id, after, author))
             if conflicts:
@@ -2453,11 +2455,8 @@ class SessionDB:
     ) -> list[dict]:
         """Label once for an 'object' verdict: the label's object added to the frames ``place``
         says show it and that have no label of it (nor one overlapping it); the changes."""
+        instance_id = self._object_id(db, label_id)
         row = db.execute("SELECT * FROM labels WHERE id = ?", (label_id,)).fetchone()
-        instance_id = row["instance_id"]
-        if instance_id is None:
-            instance_id = self._new_object_id(db)
-            db.execute("UPDATE labels SET instance_id = ? WHERE id = ?", (instance_id, label_id))
         boxes, show_in = place(row["frame_index"], tuple(json.loads(row["box"])))
         wanted = {self._check_frame(f): _box_json(boxes[f], f"box of frame {f}") for f in show_in}
         return self._add_to_frames(db, instance_id, wanted, set(wanted), class_name, "review", author)
