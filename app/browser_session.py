@@ -68,6 +68,12 @@ def _by_place(queue: list[dict], places: list[list[int]], current_id: int | None
     return out
 
 
+def _answered(entry: dict) -> dict[int, int]:
+    """``{item id: review version}`` a verdict on a queue entry answers: every item of its place
+    (one object mined in several frames), else the item alone."""
+    return entry.get("place_versions") or {entry["id"]: entry["review_version"]}
+
+
 class BrowserSession:
     """One browser's selection, review cursor, undo author and class choice, with every action a
     person takes on them; no viser here (``clients.ClientView`` draws it), so that the labelling
@@ -668,8 +674,7 @@ class BrowserSession:
             if self.current_item() is None:
                 self.notify("Review", "The queue is empty: train a model from the Training panel first.")
             return
-        # A place's verdict answers every item of it (one object mined in several frames).
-        versions = item.get("place_versions") or {item["id"]: item["review_version"]}
+        versions = _answered(item)
         done = self._guarded(
             lambda: self.state.db.review(
                 list(versions),
@@ -709,7 +714,7 @@ class BrowserSession:
             return 0
         versions = {}
         for q in items:
-            versions.update(q.get("place_versions") or {q["id"]: q["review_version"]})
+            versions.update(_answered(q))
         done = self._guarded(
             lambda: self.state.db.review(
                 list(versions),

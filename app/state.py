@@ -17,6 +17,7 @@ from factorydet_core.detection.scoring import BOX_VOTE_IOU, select_detections
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.metrics import detection_metrics, error_breakdown
 from factorydet_core.proposals.settings import FrontEndParams
+from factorydet_core.session.store import label_arrays
 from factorydet_core.types import SCORE_FLOOR, Detections, Frame
 
 AP_SCORE_FLOOR = SCORE_FLOOR
@@ -206,12 +207,8 @@ class AppState:
             boxes, class_ids, _ = self.frame_labels(frame_index)
             return boxes, class_ids, np.zeros(len(boxes), bool)
         labels = self.db.labels(int(frame_index))
-        names = self.dataset.class_names
-        return (
-            np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
-            np.array([names.index(lab.class_name) for lab in labels], np.int64),
-            np.array([not lab.reviewed for lab in labels], bool),
-        )
+        boxes, class_ids, _ = label_arrays(labels, self.db.class_names)
+        return boxes, class_ids, np.array([not lab.reviewed for lab in labels], bool)
 
     def references(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What a frame's detections are measured against: ``(boxes (R, 7), class_ids (R,),
@@ -220,8 +217,10 @@ class AppState:
         if self.db is None:
             boxes, class_ids, _ = self.frame_labels(frame_index)
             return boxes, class_ids, np.zeros((0, 7))
-        boxes, class_ids, _ = self.db.frame_boxes(frame_index, reviewed=True)
-        return boxes, class_ids, self.db.frame_boxes(frame_index, reviewed=False)[0]
+        labels = self.db.labels(int(frame_index))  # one read for both (every edit redoes each frame's)
+        names = self.db.class_names
+        boxes, class_ids, _ = label_arrays([lab for lab in labels if lab.reviewed], names)
+        return boxes, class_ids, label_arrays([lab for lab in labels if not lab.reviewed], names)[0]
 
     def session_changed(self) -> None:
         """Something was written to the session database: every view refreshes, and the metrics

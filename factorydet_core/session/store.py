@@ -485,6 +485,18 @@ def labelled_there(box, other_boxes) -> bool:
     return bool(box_iou_3d(np.asarray(box, np.float64).reshape(1, 7), other_boxes).max() >= SAME_OBJECT_IOU)
 
 
+def label_arrays(labels, class_names) -> tuple:
+    """``(boxes (R, 7), class_ids (R,), label_ids (R,))`` of ``Label``s, class ids indexing
+    ``class_names`` (label id -1: not stored yet, see ``Label.id``)."""
+    import numpy as np
+
+    return (
+        np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
+        np.array([class_names.index(lab.class_name) for lab in labels], np.int64),
+        np.array([-1 if lab.id is None else lab.id for lab in labels], np.int64),
+    )
+
+
 NEW_OBJECT_ID = 1 << 32
 """The first instance id given to an object labelled in the session (the data set's own ids,
 which frames not imported yet may still bring, stay below it)."""
@@ -1323,17 +1335,10 @@ class SessionDB:
             reviewed: ``True``: only the labels a person made or confirmed (the truth metrics and
                 training count); ``False``: only the unreviewed pre-labels; ``None``: all.
         """
-        import numpy as np
-
         labels = self.labels(frame_index)  # every class checked to be one of the session's
         if reviewed is not None:
             labels = [lab for lab in labels if lab.reviewed == reviewed]
-        names = self.class_names
-        return (
-            np.array([lab.box for lab in labels], np.float64).reshape(-1, 7),
-            np.array([names.index(lab.class_name) for lab in labels], np.int64),
-            np.array([-1 if lab.id is None else lab.id for lab in labels], np.int64),
-        )
+        return label_arrays(labels, self.class_names)
 
     def _edit(self, db: sqlite3.Connection, author: str, kind: str, summary: str, changes: list) -> int:
         """Log an edit made in ``db``'s transaction; a new edit drops its author's redo stack."""
