@@ -16,7 +16,7 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.evaluate import measure
 from factorydet_core.evaluation.records import machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
-from factorydet_core.session.store import SessionDB, labelled_there, on_labelled_object, open_session
+from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import cached_proposals, train_session
 from factorydet_core.training.settings import LoopSettings
@@ -217,16 +217,15 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
             counts["hidden"] += 1
             continue
         verdict, class_name, true_box = _truth_answer(db, dataset, item, positive_iou)
-        current = {q["id"]: q for q in db.review_queue(item["run_id"])}
-        ids = [q["id"] for q in items if current[q["id"]]["verdict"] in (None, "skip")]
-        if not ids:
-            continue
+        # Pending when the queue was read, and only this reviewer answers: their verdicts are
+        # still the ones read (reading the queue again per place recomputed every overlap).
+        ids = [q["id"] for q in items]
         db.review(
             ids,
             verdict,
             author,
             class_name=class_name if verdict == "object" else None,
-            expected={i: current[i]["verdict"] for i in ids},
+            expected={q["id"]: q["verdict"] for q in items},
             place=placer(class_name) if verdict == "object" else None,
             one_object=len(ids) > 1,
         )
@@ -246,17 +245,18 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
 
 def _draw_object(db: SessionDB, author: str, frame_index: int, class_name: str, boxes: dict, show_in) -> None:
     """A box drawn in ``frame_index`` as the app's label once adds it: one object in every frame
-    of ``show_in`` (``boxes`` by frame), except where a label overlaps it already."""
-    frames = sorted(set(show_in) | {int(frame_index)})
+    of ``show_in`` (``boxes`` by frame), except where it is labelled already
+    (``world.not_labelled_yet``, the app's screen)."""
+    from factorydet_core.session.world import not_labelled_yet
 
-    def screen(current) -> list[int]:
-        return [
-            k
-            for k, f in enumerate(frames)
-            if f == frame_index or not labelled_there(boxes[f], [lab.box for lab in current[f]])
-        ]
-
-    db.add_labels([(f, boxes[f], class_name) for f in frames], author, "user", as_object=True, screen=screen)
+    items = [(f, boxes[f], class_name) for f in sorted(set(show_in) | {int(frame_index)})]
+    db.add_labels(
+        items,
+        author,
+        "user",
+        as_object=True,
+        screen=lambda current: not_labelled_yet(items, current, keep_frame=int(frame_index)),
+    )
 
 
 def queue_reach(
