@@ -16,6 +16,7 @@ label once on (edits reach every frame that shows the object). Prints one JSON o
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import statistics
 import sys
@@ -150,7 +151,7 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
     canvas.focus()
     page.keyboard.press("n")
     _wait(lambda: view.current_item_id is not None, 60, "the first queue item")
-    for key in ("b", "x", "b", "b", "x")[:NUM_VERDICTS]:
+    for key in itertools.islice(itertools.cycle("bxbbx"), NUM_VERDICTS):  # background and skip
         _wait(lambda: app.worker.idle, 600, "the frames ahead")
         item = view.current_item_id
 

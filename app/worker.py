@@ -210,8 +210,7 @@ class PipelineWorker:
         extrinsics = self._refined_extrinsics if use_refined else None
         detector = Detector(params, extrinsics, model=self.state.model)
         frame = dataset.frame(frame_index)
-        first = max(0, frame_index - params.history_frames)
-        history = [dataset.frame(i) for i in range(first, frame_index)]
+        history = detector.history(dataset, frame_index)
 
         def progress(stage: str, fraction: float) -> None:
             if ahead and not self._shown(key):

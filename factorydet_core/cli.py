@@ -411,9 +411,7 @@ def _cmd_propose(args: argparse.Namespace) -> int:
     detector = Detector(front_end_params(preset, parse_overrides(args.set)))
     if args.calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(args.frame))
-    history_from = max(0, args.frame - detector.params.history_frames)
-    history = [dataset.frame(i) for i in range(history_from, args.frame)]
-    result = detector.propose(dataset.frame(args.frame), history)
+    result = detector.propose(dataset.frame(args.frame), detector.history(dataset, args.frame))
     proposals = result.proposals
     record = {
         "data": dataset.name,
@@ -690,10 +688,10 @@ def _prelabel(db, args: argparse.Namespace) -> int:
     try:
         for n, index in enumerate(frames):
             update(n, len(frames))
-            frame = dataset.frame(index)
-            first = max(0, index - detector.params.history_frames)
-            history = [dataset.frame(i) for i in range(first, index)]
-            detections = detector.detect(frame, history, score_threshold=args.min_score).detections
+            history = detector.history(dataset, index)
+            detections = detector.detect(
+                dataset.frame(index), history, score_threshold=args.min_score
+            ).detections
             added = prelabel_frame(db, index, detections, args.author, args.min_score)
             report["frames"][str(index)] = len(added)
         update(len(frames), len(frames))
@@ -748,10 +746,11 @@ def _cmd_detect(args: argparse.Namespace) -> int:
     model_path = resolve_model(args.model, args.root)
     model = DetectionModel.load(model_path)
     detector = detector_for(model, dataset, calibrate=args.calibrate)
-    history_from = max(0, args.frame - detector.params.history_frames)
-    history = [dataset.frame(i) for i in range(history_from, args.frame)]
     result = detector.detect(
-        dataset.frame(args.frame), history, score_threshold=args.score_threshold, nms_iou=args.nms_iou
+        dataset.frame(args.frame),
+        detector.history(dataset, args.frame),
+        score_threshold=args.score_threshold,
+        nms_iou=args.nms_iou,
     )
     detections = result.detections
     record = {

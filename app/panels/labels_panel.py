@@ -10,6 +10,7 @@ import viser
 
 from factorydet_core.evaluation.diagnostics import describe_label
 from factorydet_core.session.labels_io import FORMATS as EXPORT_FORMATS
+from factorydet_core.session.store import COMPUTED_ORIGINS
 from factorydet_core.session.world import MOVING_CLASSES
 from factorydet_core.types import PRELABEL_SCORE
 
@@ -59,7 +60,7 @@ class LabelsPanel:
             frames = [lab.frame_index + 1 for lab in members]
             if len(frames) > 1:
                 text += f"\n\nThe same object is labelled in {len(frames)} frames ({_spans(frames)})."
-            computed = [lab.frame_index + 1 for lab in members if lab.origin == "interpolated"]
+            computed = [lab.frame_index + 1 for lab in members if lab.origin in COMPUTED_ORIGINS]
             if computed:
                 keyframes = sorted(set(frames) - set(computed))
                 text += (

@@ -145,6 +145,12 @@ class Detector:
         as its back half."""
         return cls(params_for(model, num_sensors), T_vehicle_sensor, model)
 
+    def history(self, dataset, frame_index: int) -> list[Frame]:
+        """The frames of ``dataset`` before ``frame_index`` the front half merges with it (up to
+        ``params.history_frames``, oldest first)."""
+        first = max(0, int(frame_index) - self.params.history_frames)
+        return [dataset.frame(i) for i in range(first, int(frame_index))]
+
     def calibrate(self, frames: Frame | Sequence[Frame], **icp_options) -> Detector:
         """Refine the rig's extrinsics by ICP between sensors (``merge.refine_extrinsics``)."""
         self.calibration_ = refine_extrinsics(frames, self.T_vehicle_sensor, **icp_options)

@@ -435,8 +435,7 @@ def bench_detect(
         frame = dataset.frame(index)
         for _ in range(repeats):
             for name, detector in runs.items():
-                earlier = range(max(0, index - detector.params.history_frames), index)
-                history = [dataset.frame(i) for i in earlier]
+                history = detector.history(dataset, index)
                 with _busy_process() if name == "busy" else contextlib.nullcontext():
                     result = detector.detect(frame, history)
                 for stage, ms in result.timings_ms.items():

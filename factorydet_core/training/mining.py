@@ -163,8 +163,7 @@ def collect_proposals(
     out = []
     for n, index in enumerate(frame_indices):
         frame = dataset.frame(index)
-        history = [dataset.frame(i) for i in range(max(0, index - detector.params.history_frames), index)]
-        result = detector.propose(frame, history)
+        result = detector.propose(frame, detector.history(dataset, index))
         groups = detector.group(result)
         annotated = _annotation_samples(frame, result, detector)
         out.append(
