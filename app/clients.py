@@ -1,10 +1,11 @@
-"""What one browser sees of its ``BrowserSession``: notifications, its camera, its panels, the
-highlighted boxes and points, the box gizmo and the dimmed scan while reviewing (viser)."""
+"""What one browser sees: its own scan, detection layers and panels drawn from its view of the
+state (``state.AppState``: its frame, display settings and thresholds), and of its
+``BrowserSession``: notifications, its camera, the highlighted boxes and points, the box gizmo
+and the dimmed scan while reviewing (viser)."""
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
 
 import numpy as np
 import viser
@@ -13,11 +14,12 @@ from factorydet_core.geometry import box_wireframe_segments
 from factorydet_core.session.editing import box_to_pose, camera_for_box, pose_to_box
 
 from .browser_session import BrowserSession
+from .layers import LayerView
+from .scene import SceneView
 from .state import AppState
 
 HIGHLIGHT_RGB = (255, 215, 0)
 REVIEW_RGB = (255, 0, 200)
-DIM_FACTOR = 0.25
 
 
 SUGGESTION_RGB = (0, 200, 220)
@@ -27,32 +29,109 @@ AUTHOR_KEY = "factorydet.author"
 
 
 class ClientView(BrowserSession):
-    """One browser's session drawn in its viser client.
+    """One browser: its view of the state drawn in its viser client, and its labelling session.
 
     Args:
         client: the viser client.
-        state: the shared app state.
-        scene_points: returns the shown scan's ``(points (N, 3), colours (N, 3))`` for the dimmed
-            copy this client sees while reviewing.
-        drawn_result: returns ``(ProposalResult | None, frame_index)`` currently drawn.
+        state: this browser's view (``SharedState.new_view``).
     """
 
-    def __init__(
-        self,
-        client: viser.ClientHandle,
-        state: AppState,
-        scene_points: Callable[[], tuple[np.ndarray, np.ndarray]],
-        drawn_result: Callable[[], tuple],
-    ) -> None:
-        super().__init__(state, drawn_result)
+    def __init__(self, client: viser.ClientHandle, state: AppState) -> None:
+        self.scene = SceneView(client)
+        self.layers = LayerView(client)
+        super().__init__(state, drawn_result=lambda: self.layers.drawn)
         self.client = client
-        self._scene_points = scene_points
-        self._dimmed: tuple | None = None  # (scan points, point size) this browser has a dimmed copy of
-        self.panels: list = []
+        self.panels: list = []  # the labelling panels, refreshed with the selection
+        self.view_panels: list = []  # frame, display, pipeline, detections, metrics, training
         self.gizmo: viser.TransformControlsHandle | None = None
         self.class_dropdowns: list = []  # every dropdown showing object_class
         self._refresh_lock = threading.Lock()  # one refresh at a time (redraw and callback threads)
+        self._draw_lock = threading.Lock()  # one redraw at a time; the last one wins
+        self._drawn: tuple | None = None
+        self._labels_key: tuple | None = None
+        self._layers_key: tuple | None = None
+        self._detections_key: tuple | None = None
+        self._refresh_key: tuple | None = None
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
+
+    def redraw(self) -> None:
+        """Bring this browser's scene and panels up to date with its view and the shared state."""
+        if self.closed:
+            return
+        state = self.state
+        with self._draw_lock:
+            with state.lock:
+                # Colours from the labels follow every edit: the session's revision is part of the key.
+                by_labels = state.color_mode in ("class", "annotated") and state.editable
+                key = (
+                    state.frame_index,
+                    state.color_mode,
+                    state.max_height,
+                    state.revision if by_labels else None,
+                )
+                labels_key = (state.frame_index, state.revision, state.show_boxes, state.show_box_names)
+                point_size = state.point_size
+                frame = state.frame
+            if key != self._drawn:
+                labels = state.frame_labels(key[0])[:2] if by_labels else None
+                self.scene.draw(
+                    frame, color_mode=key[1], point_size=point_size, max_height=key[2], labels=labels
+                )
+                self._drawn = key
+            else:
+                self.scene.set_point_size(point_size)
+            if labels_key != self._labels_key:
+                boxes, class_ids, prelabel_mask = state.drawn_labels(labels_key[0])
+                self.scene.draw_labels(
+                    boxes, class_ids, state.dataset.class_names, labels_key[2], names=labels_key[3],
+                    prelabel_mask=prelabel_mask,
+                )  # fmt: skip
+                self._labels_key = labels_key
+            with state.lock:
+                result = state.pipeline_result
+                result_frame = state.pipeline_result_key[0] if result is not None else None
+                layers = dict(state.layers)
+                max_height = state.max_height
+            if result is not None:
+                layers_key = (id(result), max_height)
+                if layers_key != self._layers_key:
+                    self.layers.draw(result, result_frame, layers, point_size, max_height)
+                    self._layers_key = layers_key
+                else:
+                    self.layers.set_visibility(layers)
+                    self.layers.set_point_size(point_size)
+            with state.lock:
+                detections = state.detections
+                detection_result = state.detection_result
+                detection_frame = state.detection_frame_index
+                detections_key = (
+                    id(detections),
+                    layers["detections"],
+                    state.show_suppressed,
+                    state.color_by_match,
+                    state.show_box_names,
+                )
+            if detections_key != self._detections_key:
+                labels = None
+                if detections is not None:  # what the metrics count as truth (no pre-labels)
+                    labels = state.references(detection_frame)[:2]
+                self.layers.draw_detections(detections, *detections_key[1:4], labels, names=detections_key[4])
+                self.layers.detection_source = (detection_result, detection_frame)
+                self._detections_key = detections_key
+            for panel in self.view_panels:
+                panel.refresh(state)
+            with state.lock:
+                # (the suspects and the world placement's progress show in the labelling panels)
+                refresh_key = (
+                    state.revision,
+                    state.frame_index,
+                    id(self.layers.drawn_result),
+                    id(state.suspects),
+                    state.world_status,
+                )
+            if refresh_key != self._refresh_key:
+                self._refresh_key = refresh_key
+                self.refresh()
 
     def restore_author(self, timeout: float = 10.0) -> None:
         """Sign edits with the name this browser used before (kept in its localStorage), so that
@@ -159,29 +238,7 @@ class ClientView(BrowserSession):
             )  # fmt: skip
         else:
             scene.remove_by_name("/client/selected_points")
-        dim = self.dim and item is not None
-        if dim:
-            scene_points, scene_colors = self._scene_points()
-            point_size = self.state.point_size
-            # Sent again only for another scan (a frame change, a colour mode) or point size: an
-            # 80k-point copy is a megabyte, which every refresh (anyone's edit) would otherwise send.
-            dimmed = self._dimmed
-            if dimmed is None or dimmed[0] is not scene_points or dimmed[1] != point_size:
-                # The same node name as the shared scan shadows it for this browser only.
-                scene.add_point_cloud(
-                    "/scan", points=scene_points, colors=(scene_colors * DIM_FACTOR).astype(np.uint8),
-                    point_size=point_size, point_shape="square", precision="float32",
-                )  # fmt: skip
-                self._dimmed = (scene_points, point_size)
-        elif self._dimmed is not None:
-            # Removing this browser's copy would remove the scan from its view altogether: send
-            # the undimmed colours under the same name instead.
-            scene_points, scene_colors = self._scene_points()
-            scene.add_point_cloud(
-                "/scan", points=scene_points, colors=scene_colors,
-                point_size=self.state.point_size, point_shape="square", precision="float32",
-            )  # fmt: skip
-            self._dimmed = None
+        self.scene.set_dimmed(self.dim and item is not None)
 
     def _draw_gizmo(self, label) -> None:
         if label is None or label.frame_index != self.state.frame_index:

@@ -44,8 +44,8 @@ def shown_proposal_ids(result: ProposalResult) -> np.ndarray:
 class LayerView:
     """Owns the scene nodes under ``/pipeline``."""
 
-    def __init__(self, server: viser.ViserServer) -> None:
-        self.server = server
+    def __init__(self, server: viser.ViserServer | viser.ClientHandle) -> None:
+        self.server = server  # a browser's client: each browser draws its own view
         self.nodes: dict[str, object] = {}
         self.drawn_result: ProposalResult | None = None
         self.drawn_frame_index = 0

@@ -10,6 +10,9 @@ from factorydet_core.geometry import box_corner_segments, box_wireframe_segments
 from factorydet_core.proposals.merge import merge_frame
 from factorydet_core.types import Frame
 
+DIM_FACTOR = 0.25
+"""How much of its colour a dimmed scan keeps."""
+
 
 def point_colors(frame: Frame, points: np.ndarray, mode: str, labels: tuple | None = None) -> np.ndarray:
     """(N, 3) uint8 colours of the frame's merged ``points`` (N, 3) in colour ``mode``.
@@ -42,12 +45,14 @@ def point_colors(frame: Frame, points: np.ndarray, mode: str, labels: tuple | No
 class SceneView:
     """Owns the scene nodes under ``/scan`` and ``/labels``."""
 
-    def __init__(self, server: viser.ViserServer) -> None:
-        self.server = server
+    def __init__(self, server: viser.ViserServer | viser.ClientHandle) -> None:
+        self.server = server  # a browser's client: each browser draws its own view
         self._cloud: viser.PointCloudHandle | None = None
         self._label_nodes: list = []
-        # The shown scan's (points, colours), set as one, for per-browser overlays.
-        self.shown: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+        # The shown scan's (points, colours) and point size, to send it again dimmed or not.
+        self._shown: tuple[np.ndarray, np.ndarray] | None = None
+        self._point_size = 0.04
+        self.dimmed = False
         server.scene.set_up_direction("+z")
         # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
         # wireframes and points.
@@ -68,17 +73,31 @@ class SceneView:
         merged = merge_frame(frame)
         rgb = point_colors(frame, merged.points, color_mode, labels)
         keep = merged.below(max_height)
-        merged, rgb = merged.select(keep), rgb[keep]
+        self._shown = (merged.points[keep], rgb[keep])
+        self._point_size = float(point_size)
+        self._send()
+
+    def _send(self) -> None:
+        points, rgb = self._shown
+        if self.dimmed:
+            rgb = (rgb * DIM_FACTOR).astype(np.uint8)
         self._cloud = self.server.scene.add_point_cloud(
             "/scan",
-            points=merged.points,
+            points=points,
             colors=rgb,
-            point_size=point_size,
+            point_size=self._point_size,
             point_shape="square",
             precision="float32",
         )
-        # After the shared scan is sent: a browser's dimmed copy made from it must come after it.
-        self.shown = (merged.points, rgb)
+
+    def set_dimmed(self, dimmed: bool) -> None:
+        """Dim the scan (while reviewing, the item's box stands out) or restore its colours; the
+        scan (a megabyte for 80k points) is sent again only when this changes."""
+        if bool(dimmed) == self.dimmed:
+            return
+        self.dimmed = bool(dimmed)
+        if self._shown is not None:
+            self._send()
 
     def draw_labels(
         self,
@@ -133,5 +152,6 @@ class SceneView:
             node.visible = visible
 
     def set_point_size(self, point_size: float) -> None:
-        if self._cloud is not None:
-            self._cloud.point_size = point_size
+        self._point_size = float(point_size)
+        if self._cloud is not None and self._cloud.point_size != self._point_size:
+            self._cloud.point_size = self._point_size

@@ -1,7 +1,10 @@
-"""State shared by every browser connected to the app, behind one lock.
+"""The app's state: what every browser shares (``SharedState``: the data set, the session, the
+model, the front half's parameters, training) and what each browser sees its own way
+(``AppState``: its frame, display settings, detection thresholds, shown result and metrics).
 
-viser runs callbacks on a thread pool, so every read-modify-write of this state happens under
-``lock``. No viser import here: the state is unit-testable without a server.
+One lock guards both: viser runs callbacks on a thread pool, so every read-modify-write happens
+under ``lock``. A change to a browser's view redraws that browser alone; a change to the shared
+state redraws every browser. No viser import here: the state is unit-testable without a server.
 """
 
 from __future__ import annotations
@@ -34,30 +37,247 @@ def _vote_slider_value(model) -> float:
     return 0.0 if model.vote_iou is None else float(model.vote_iou)
 
 
-class AppState:
-    """Which frame is shown and how; listeners run after every change (under no lock)."""
+class SharedState:
+    """What every browser shares, and the views (``AppState``, one per browser) of it.
+
+    Args:
+        dataset: the data set shown.
+        title: the status line's name; the data set's name by default.
+        model: a ``DetectionModel``, or ``None`` for the front half only.
+        model_name: how the model is named in the panels.
+        db: the session's ``SessionDB``; ``None`` when the app shows a data set without a session
+            (labels then come from the data set and cannot be edited).
+    """
 
     def __init__(
         self, dataset: Dataset, title: str | None = None, model=None, model_name: str = "", db=None
     ) -> None:
         self.dataset = dataset
         self.db = db
-        """The session's ``SessionDB``; ``None`` when the app shows a data set without a session
-        (labels then come from the data set and cannot be edited)."""
+        self.title = title or dataset.name
+        self.lock = threading.RLock()
+        self.changed = threading.Condition(self.lock)
         self.revision = 0  # bumped after every write to the session database
         self.model_revision = 0  # bumped when the shown model changes
+        self.model = model
+        self.model_name = model_name
         self.training_busy = False
         self.training_status = "idle"
         self.training_progress = 0.0
         self.training_comparison: dict | None = None  # the last run's before/after table
         self.offered_model: str | None = None  # a new run's model the Training panel offers
         self.suspects: list[dict] = []  # labels the shown model contradicts (loop.suspect_labels)
-        self.title = title or dataset.name
-        self.lock = threading.RLock()
+        # The front half's parameters are everyone's: one set of results is computed and cached.
+        self.params: FrontEndParams = params_for(model, dataset.num_sensors)
+        self.use_refined_extrinsics = dataset.num_sensors > 1
+        # Label once: the frames placed in one world frame (``world.session_world``), computed in the
+        # background when the app opens a session; ``None`` until then (edits stay in their frame).
+        self.world = None
+        self.world_status = "" if db is None else "placing the frames in one world frame"
+        self._views: list[AppState] = []
+        self._listeners: list[Callable[[], None]] = []
+
+    # -- views
+
+    def new_view(self, like: AppState | None = None) -> AppState:
+        """A new browser's view, with ``like``'s frame, display settings and thresholds (the
+        defaults without)."""
+        return AppState(self, like=like)
+
+    def remove_view(self, view: AppState) -> None:
+        """Forget a view (its browser left): the worker no longer computes its frames."""
+        with self.lock:
+            if view in self._views:
+                self._views.remove(view)
+
+    @property
+    def views(self) -> list[AppState]:
+        with self.lock:
+            return list(self._views)
+
+    def on_change(self, listener: Callable[[], None]) -> None:
+        """Call ``listener`` after every change to the shared state (every view's listeners run too)."""
+        self._listeners.append(listener)
+
+    def _notify(self) -> None:
+        for listener in self._listeners:
+            listener()
+        for view in self.views:
+            view._notify()
+
+    # -- the session: labels, reviews, training
+
+    @property
+    def editable(self) -> bool:
+        return self.db is not None
+
+    def frame_labels(self, frame_index: int):
+        """``(boxes (R, 7), class_ids (R,), label_ids (R,))`` of a frame: the session's labels, or
+        the data set's annotations without a session (ids -1)."""
+        index = int(frame_index)
+        if self.db is not None:
+            return self.db.frame_boxes(index)
+        labels = self.dataset.frame(index).labels
+        return np.array(labels.boxes), np.array(labels.class_ids), np.full(len(labels), -1)
+
+    def drawn_labels(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(boxes (R, 7), class_ids (R,), prelabel_mask (R,))`` of a frame's labels, read at once:
+        the mask flags the model's pre-labels nobody has confirmed yet (drawn apart)."""
+        if self.db is None:
+            boxes, class_ids, _ = self.frame_labels(frame_index)
+            return boxes, class_ids, np.zeros(len(boxes), bool)
+        labels = self.db.labels(int(frame_index))
+        boxes, class_ids, _ = label_arrays(labels, self.db.class_names)
+        return boxes, class_ids, np.array([not lab.reviewed for lab in labels], bool)
+
+    def references(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a frame's detections are measured against: ``(boxes (R, 7), class_ids (R,),
+        ignore_boxes (Q, 7))``, the labels a person made or confirmed, and the model's pre-labels
+        nobody has confirmed yet (not truth: a detection on one is not counted either way)."""
+        if self.db is None:
+            boxes, class_ids, _ = self.frame_labels(frame_index)
+            return boxes, class_ids, np.zeros((0, 7))
+        labels = self.db.labels(int(frame_index))  # one read for both (every edit redoes each frame's)
+        names = self.db.class_names
+        boxes, class_ids, _ = label_arrays([lab for lab in labels if lab.reviewed], names)
+        return boxes, class_ids, label_arrays([lab for lab in labels if not lab.reviewed], names)[0]
+
+    def session_changed(self) -> None:
+        """Something was written to the session database: every view refreshes, and each view's
+        metrics are recomputed against the corrected labels."""
+        with self.lock:
+            self.revision += 1
+            read: dict[int, tuple] = {}  # a frame several browsers viewed is read once
+            for view in self._views:
+                for index, item in view.frame_detections.items():
+                    if index not in read:
+                        read[index] = self.references(index)
+                    item["reference_boxes"], item["reference_class_ids"], item["ignore_boxes"] = read[index]
+                view._update_metrics()  # the detections are the same: only what they are measured against
+            self.changed.notify_all()
+        self._notify()
+
+    def set_world(self, world, status: str) -> None:
+        """The frames' world placement (``None`` while it computes or after it failed) and a line
+        saying where it stands."""
+        with self.lock:
+            self.world = world
+            self.world_status = status
+            self.changed.notify_all()
+        self._notify()
+
+    def set_model(self, model, name: str) -> None:
+        """Show another model's detections in every browser (the worker recomputes the shown
+        frames; each view's thresholds become the model's)."""
+        with self.lock:
+            self.model = model
+            self.model_name = name
+            self.model_revision += 1
+            if model is not None:
+                self.params = params_for(model, self.dataset.num_sensors)
+            for view in self._views:
+                view._take_model(model)
+            self.suspects = []  # another model's verdicts on the labels
+            self.changed.notify_all()
+        self._notify()
+
+    def choose_model(self, model, name: str, path) -> None:
+        """Show ``model`` (a checkpoint at ``path``) and remember the choice in the session
+        (``SessionDB.set_shown_model``), so that the app shows it again when reopened. The choice
+        is stored first: once a browser shows the model, a reopen shows it too."""
+        if self.db is not None:
+            self.db.set_shown_model(name, path)
+        with self.lock:
+            self.offered_model = None
+        self.set_model(model, name)
+
+    def offer_model(self, choice: str) -> None:
+        """Offer a new run's model (its Training panel name) without showing it."""
+        with self.lock:
+            self.offered_model = choice
+            self.changed.notify_all()
+        self._notify()
+
+    def set_suspects(self, suspects: list[dict]) -> None:
+        with self.lock:
+            self.suspects = list(suspects)
+            self.changed.notify_all()
+        self._notify()
+
+    def set_training(
+        self,
+        *,
+        busy: bool | None = None,
+        status: str | None = None,
+        progress: float | None = None,
+        comparison: dict | None = None,
+    ) -> None:
+        with self.lock:
+            if busy is not None:
+                self.training_busy = busy
+            if status is not None:
+                self.training_status = status
+            if progress is not None:
+                self.training_progress = float(progress)
+            if comparison is not None:
+                self.training_comparison = comparison
+            self.changed.notify_all()
+        self._notify()
+
+    def set_params(self, **changes) -> None:
+        """Change front-half parameters (``FrontEndParams`` or ``SegmentationParams`` field names)
+        for everyone; the worker recomputes the shown frames."""
+        with self.lock:
+            self.params = self.params.replace(**changes)
+            self.changed.notify_all()
+        self._notify()
+
+    def set_use_refined_extrinsics(self, use: bool) -> None:
+        with self.lock:
+            self.use_refined_extrinsics = bool(use)
+            self.changed.notify_all()
+        self._notify()
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        """Block until ``predicate()`` holds (checked under the lock) or ``timeout`` seconds pass."""
+        with self.lock:
+            return self.changed.wait_for(predicate, timeout)
+
+
+def _shared(name: str, doc: str = "") -> property:
+    """A read-only view attribute that is the shared state's."""
+    return property(lambda view: getattr(view.shared, name), doc=doc or f"The shared state's ``{name}``.")
+
+
+class AppState:
+    """One browser's view of the shared state: which frame it shows and how, its detection
+    thresholds, the shown frame's result and the metrics over the frames it viewed. Listeners run
+    after every change to this view or to the shared state (under no lock).
+
+    ``AppState(dataset, ...)`` makes a shared state with this as its first view (what a test or a
+    single-user tool wants); ``SharedState.new_view`` makes more.
+    """
+
+    def __init__(
+        self,
+        dataset: Dataset | SharedState,
+        title: str | None = None,
+        model=None,
+        model_name: str = "",
+        db=None,
+        like: AppState | None = None,
+    ) -> None:
+        if isinstance(dataset, SharedState):
+            self.shared = dataset
+        else:
+            self.shared = SharedState(dataset, title, model=model, model_name=model_name, db=db)
+        shared = self.shared
+        self._listeners: list[Callable[[], None]] = []
         self.frame_index = 0
-        first = dataset.frame(0)
+        self.num_frame_changes = 0
+        first = shared.dataset.frame(0)
         self.color_mode = (
-            "sensor" if dataset.num_sensors > 1 else ("rgb" if first.colors is not None else "height")
+            "sensor" if shared.dataset.num_sensors > 1 else ("rgb" if first.colors is not None else "height")
         )
         self.point_size = 0.04
         self.show_boxes = True
@@ -65,13 +285,10 @@ class AppState:
         # the selected box is named (each browser's own) and a click on a box describes it.
         self.show_box_names = False
         self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
-        self.num_frame_changes = 0
-        # Detection front half: which layers show, its parameters, and the worker's progress.
         # With a model the detections are what people came for; without, the proposals.
-        shown = "detections" if model is not None else "proposals"
+        shown = "detections" if shared.model is not None else "proposals"
         self.layers = {name: name == shown for name in LAYERS}
-        self.params: FrontEndParams = params_for(model, dataset.num_sensors)
-        self.use_refined_extrinsics = dataset.num_sensors > 1
+        # The worker's progress on this view's frame, and the frame's result once computed.
         self.pipeline_status = "waiting"
         self.pipeline_progress = 0.0
         self.pipeline_busy = False
@@ -80,28 +297,58 @@ class AppState:
         self.pipeline_failed_key: tuple | None = None
         self.num_results = 0
         self.selection_markdown = ""
-        # Detection back half: the model, the filters the sliders set, and per-frame results.
-        self.model = model
-        self.model_name = model_name
+        # Detection back half: the filters the sliders set, and per-frame results.
+        self.show_suppressed = False
+        self.color_by_match = False
+        self._take_model(shared.model)
+        if like is not None:
+            with shared.lock:
+                self.frame_index = like.frame_index
+                for name in (
+                    "color_mode", "point_size", "show_boxes", "show_box_names", "max_height",
+                    "score_threshold", "nms_iou", "vote_iou", "use_class_thresholds", "show_suppressed",
+                    "color_by_match",
+                ):  # fmt: skip
+                    setattr(self, name, getattr(like, name))
+                self.layers = dict(like.layers)
+        with shared.lock:
+            shared._views.append(self)
+
+    def _take_model(self, model) -> None:
+        """The model's thresholds, and no result of another model (under the lock)."""
         self.score_threshold = model.score_threshold if model is not None else 0.5
         self.nms_iou = model.nms_iou if model is not None else 0.25
         # Box voting after NMS: the model's IoU, 0 for off (the slider's bottom).
         self.vote_iou = _vote_slider_value(model)
         # The model's own threshold per class, until someone moves the score slider.
         self.use_class_thresholds = model is not None and model.class_thresholds() is not None
-        self.show_suppressed = False
-        self.color_by_match = False
         self.detection_result: DetectionResult | None = None
         self.detection_frame_index = 0
         self.detections: Detections | None = None
         self.frame_detections: dict[int, dict] = {}  # frame -> candidates and labels, for metrics
         self.metrics: dict | None = None
-        # Label once: the frames placed in one world frame (``world.session_world``), computed in the
-        # background when the app opens a session; ``None`` until then (edits stay in their frame).
-        self.world = None
-        self.world_status = "" if db is None else "placing the frames in one world frame"
-        self._listeners: list[Callable[[], None]] = []
-        self.changed = threading.Condition(self.lock)
+
+    # The shared state, read through the view (the panels read one object).
+    dataset = _shared("dataset")
+    db = _shared("db", "The session's ``SessionDB``, ``None`` without a session.")
+    title = _shared("title")
+    lock = _shared("lock")
+    changed = _shared("changed")
+    revision = _shared("revision")
+    model_revision = _shared("model_revision")
+    model = _shared("model")
+    model_name = _shared("model_name")
+    training_busy = _shared("training_busy")
+    training_status = _shared("training_status")
+    training_progress = _shared("training_progress")
+    training_comparison = _shared("training_comparison")
+    offered_model = _shared("offered_model")
+    suspects = _shared("suspects")
+    params = _shared("params")
+    use_refined_extrinsics = _shared("use_refined_extrinsics")
+    world = _shared("world")
+    world_status = _shared("world_status")
+    editable = _shared("editable")
 
     def on_change(self, listener: Callable[[], None]) -> None:
         self._listeners.append(listener)
@@ -109,6 +356,54 @@ class AppState:
     def _notify(self) -> None:
         for listener in self._listeners:
             listener()
+
+    def close(self) -> None:
+        """This view's browser left: the shared state forgets it."""
+        self.shared.remove_view(self)
+
+    # -- what the shared state does, asked from a view
+
+    def frame_labels(self, frame_index: int | None = None):
+        """``SharedState.frame_labels`` of ``frame_index``, this view's frame by default."""
+        return self.shared.frame_labels(self.frame_index if frame_index is None else frame_index)
+
+    def drawn_labels(self, frame_index: int):
+        return self.shared.drawn_labels(frame_index)
+
+    def references(self, frame_index: int):
+        return self.shared.references(frame_index)
+
+    def session_changed(self) -> None:
+        self.shared.session_changed()
+
+    def set_world(self, world, status: str) -> None:
+        self.shared.set_world(world, status)
+
+    def set_model(self, model, name: str) -> None:
+        self.shared.set_model(model, name)
+
+    def choose_model(self, model, name: str, path) -> None:
+        self.shared.choose_model(model, name, path)
+
+    def offer_model(self, choice: str) -> None:
+        self.shared.offer_model(choice)
+
+    def set_suspects(self, suspects: list[dict]) -> None:
+        self.shared.set_suspects(suspects)
+
+    def set_training(self, **changes) -> None:
+        self.shared.set_training(**changes)
+
+    def set_params(self, **changes) -> None:
+        self.shared.set_params(**changes)
+
+    def set_use_refined_extrinsics(self, use: bool) -> None:
+        self.shared.set_use_refined_extrinsics(use)
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        return self.shared.wait_for(predicate, timeout)
+
+    # -- this view
 
     @property
     def frame(self) -> Frame:
@@ -165,146 +460,11 @@ class AppState:
             self.changed.notify_all()
         self._notify()
 
-    def set_params(self, **changes) -> None:
-        """Change front-half parameters (``FrontEndParams`` or ``SegmentationParams`` field names);
-        the worker recomputes the current frame."""
-        with self.lock:
-            self.params = self.params.replace(**changes)
-            self.changed.notify_all()
-        self._notify()
-
-    def set_use_refined_extrinsics(self, use: bool) -> None:
-        with self.lock:
-            self.use_refined_extrinsics = bool(use)
-            self.changed.notify_all()
-        self._notify()
-
     def pipeline_key(self) -> tuple:
         """What the current result must have been computed from: frame, front-half parameters,
         extrinsics, and the model."""
         with self.lock:
             return (self.frame_index, self.params, self.use_refined_extrinsics, self.model_revision)
-
-    # -- the session: labels, reviews, training
-
-    @property
-    def editable(self) -> bool:
-        return self.db is not None
-
-    def frame_labels(self, frame_index: int | None = None):
-        """``(boxes (R, 7), class_ids (R,), label_ids (R,))`` of a frame (the shown one by default):
-        the session's labels, or the data set's annotations without a session (ids -1)."""
-        index = self.frame_index if frame_index is None else int(frame_index)
-        if self.db is not None:
-            return self.db.frame_boxes(index)
-        labels = self.dataset.frame(index).labels
-        return np.array(labels.boxes), np.array(labels.class_ids), np.full(len(labels), -1)
-
-    def drawn_labels(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(boxes (R, 7), class_ids (R,), prelabel_mask (R,))`` of a frame's labels, read at once:
-        the mask flags the model's pre-labels nobody has confirmed yet (drawn apart)."""
-        if self.db is None:
-            boxes, class_ids, _ = self.frame_labels(frame_index)
-            return boxes, class_ids, np.zeros(len(boxes), bool)
-        labels = self.db.labels(int(frame_index))
-        boxes, class_ids, _ = label_arrays(labels, self.db.class_names)
-        return boxes, class_ids, np.array([not lab.reviewed for lab in labels], bool)
-
-    def references(self, frame_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What a frame's detections are measured against: ``(boxes (R, 7), class_ids (R,),
-        ignore_boxes (Q, 7))``, the labels a person made or confirmed, and the model's pre-labels
-        nobody has confirmed yet (not truth: a detection on one is not counted either way)."""
-        if self.db is None:
-            boxes, class_ids, _ = self.frame_labels(frame_index)
-            return boxes, class_ids, np.zeros((0, 7))
-        labels = self.db.labels(int(frame_index))  # one read for both (every edit redoes each frame's)
-        names = self.db.class_names
-        boxes, class_ids, _ = label_arrays([lab for lab in labels if lab.reviewed], names)
-        return boxes, class_ids, label_arrays([lab for lab in labels if not lab.reviewed], names)[0]
-
-    def session_changed(self) -> None:
-        """Something was written to the session database: every view refreshes, and the metrics
-        are recomputed against the corrected labels."""
-        with self.lock:
-            self.revision += 1
-            for index, item in self.frame_detections.items():
-                item["reference_boxes"], item["reference_class_ids"], item["ignore_boxes"] = self.references(
-                    index
-                )
-            self._update_metrics()  # the detections are the same: only what they are measured against
-            self.changed.notify_all()
-        self._notify()
-
-    def set_world(self, world, status: str) -> None:
-        """The frames' world placement (``None`` while it computes or after it failed) and a line
-        saying where it stands."""
-        with self.lock:
-            self.world = world
-            self.world_status = status
-            self.changed.notify_all()
-        self._notify()
-
-    def set_model(self, model, name: str) -> None:
-        """Show another model's detections (the worker recomputes the shown frame)."""
-        with self.lock:
-            self.model = model
-            self.model_name = name
-            self.model_revision += 1
-            if model is not None:
-                self.score_threshold, self.nms_iou = model.score_threshold, model.nms_iou
-                self.vote_iou = _vote_slider_value(model)
-                self.use_class_thresholds = model.class_thresholds() is not None
-                self.params = params_for(model, self.dataset.num_sensors)
-            self.detection_result = None
-            self.detections = None
-            self.frame_detections = {}
-            self.metrics = None
-            self.suspects = []  # another model's verdicts on the labels
-            self.changed.notify_all()
-        self._notify()
-
-    def choose_model(self, model, name: str, path) -> None:
-        """Show ``model`` (a checkpoint at ``path``) and remember the choice in the session
-        (``SessionDB.set_shown_model``), so that the app shows it again when reopened. The choice
-        is stored first: once a browser shows the model, a reopen shows it too."""
-        if self.db is not None:
-            self.db.set_shown_model(name, path)
-        with self.lock:
-            self.offered_model = None
-        self.set_model(model, name)
-
-    def offer_model(self, choice: str) -> None:
-        """Offer a new run's model (its Training panel name) without showing it."""
-        with self.lock:
-            self.offered_model = choice
-            self.changed.notify_all()
-        self._notify()
-
-    def set_suspects(self, suspects: list[dict]) -> None:
-        with self.lock:
-            self.suspects = list(suspects)
-            self.changed.notify_all()
-        self._notify()
-
-    def set_training(
-        self,
-        *,
-        busy: bool | None = None,
-        status: str | None = None,
-        progress: float | None = None,
-        comparison: dict | None = None,
-    ) -> None:
-        with self.lock:
-            if busy is not None:
-                self.training_busy = busy
-            if status is not None:
-                self.training_status = status
-            if progress is not None:
-                self.training_progress = float(progress)
-            if comparison is not None:
-                self.training_comparison = comparison
-            self.changed.notify_all()
-        self._notify()
 
     def set_pipeline_progress(self, status: str, fraction: float, busy: bool = True) -> None:
         with self.lock:
@@ -481,8 +641,3 @@ class AppState:
             self.selection_markdown = markdown
             self.changed.notify_all()
         self._notify()
-
-    def wait_for(self, predicate: Callable[[], bool], timeout: float) -> bool:
-        """Block until ``predicate()`` holds (checked under the lock) or ``timeout`` seconds pass."""
-        with self.lock:
-            return self.changed.wait_for(predicate, timeout)

@@ -20,7 +20,7 @@ from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled
 from factorydet_core.workflows import retrain_session
 
-from .state import AppState
+from .state import SharedState
 
 _clock = time.perf_counter
 """The clock of the time-left estimate (a test sets its own)."""
@@ -77,12 +77,14 @@ class TrainingWorker:
     """Runs at most one training job at a time.
 
     Args:
-        state: the app state (its ``db`` must be set).
+        state: the shared state (its ``db`` must be set).
         settings: how to train.
         calibrate: refine the extrinsics by ICP first (multi-sensor data), as the viewer does.
     """
 
-    def __init__(self, state: AppState, settings: LoopSettings | None = None, calibrate: bool = True) -> None:
+    def __init__(
+        self, state: SharedState, settings: LoopSettings | None = None, calibrate: bool = True
+    ) -> None:
         self.state = state
         self.settings = settings or LoopSettings()
         self.calibrate = calibrate

@@ -23,7 +23,6 @@ from factorydet_core.session.editing import points_in_screen_rect, suggest_box, 
 from factorydet_core.training.settings import LoopSettings
 
 from .clients import ClientView
-from .layers import LayerView
 from .panels.detections_panel import build_detections_panel
 from .panels.display_panel import build_display_panel
 from .panels.frame_panel import build_frame_panel
@@ -33,14 +32,15 @@ from .panels.metrics_panel import build_metrics_panel
 from .panels.pipeline_panel import build_pipeline_panel
 from .panels.review_panel import build_review_panel
 from .panels.training_panel import build_training_panel
-from .scene import SceneView
-from .state import AppState
+from .state import SharedState
 from .trainer import TrainingWorker
 from .worker import PipelineWorker, place_frames
 
 
 class FactorydetApp:
-    """Builds the GUI on ``server`` and keeps the scene in step with the state.
+    """Serves one data set (and session): each browser that connects gets its own view of it
+    (frame, display settings, thresholds: ``clients.ClientView``), drawn in its own scene and
+    panels; the data set, session, model, front-half parameters and training are shared.
 
     Args:
         server: a running viser server (the caller owns it and stops it).
@@ -70,39 +70,25 @@ class FactorydetApp:
         # second) before any client connects: compiling holds the interpreter for seconds at a
         # time, during which the server could not send a new browser its controls.
         warm_up()
-        self.state = AppState(dataset, title, model=model, model_name=model_name, db=db)
+        self.shared = SharedState(dataset, title, model=model, model_name=model_name, db=db)
         if not calibrate:
-            self.state.use_refined_extrinsics = False
-        self.scene = SceneView(server)
-        self.layers = LayerView(server)
-        self._layers_key: tuple | None = None
-        self._draw_lock = threading.Lock()  # one redraw at a time; the last one wins
+            self.shared.use_refined_extrinsics = False
+        self.state = self.shared.new_view()
+        """The view no browser owns: each new browser starts like it (its frame, display settings
+        and thresholds), and the worker computes its frame before the first browser connects."""
         server.gui.configure_theme(control_width="medium", dark_mode=False)
-        server.gui.add_markdown("### factorydet", order=0)
-        self.frame_panel = build_frame_panel(server, self.state)
-        self.display_panel = build_display_panel(server, self.state)
-        self.pipeline_panel = build_pipeline_panel(server, self.state)
-        self.detections_panel = build_detections_panel(server, self.state)
-        self.metrics_panel = build_metrics_panel(server, self.state)
-        self.trainer = TrainingWorker(self.state, training, calibrate=calibrate)
-        self.training_panel = (
-            build_training_panel(server, self.state, self.trainer) if db is not None else None
-        )
-        self._detections_key: tuple | None = None
-        self._drawn: tuple | None = None
-        self._labels_key: tuple | None = None
+        self.trainer = TrainingWorker(self.shared, training, calibrate=calibrate)
         self.clients: dict[int, ClientView] = {}
         self._clients_lock = threading.Lock()
-        self._clients_key: tuple | None = None
-        self.worker = PipelineWorker(self.state, calibrate=calibrate)
+        self.worker = PipelineWorker(self.shared, calibrate=calibrate)
         if db is not None:
             threading.Thread(
                 target=place_frames,
-                args=(self.state, lambda: self.worker.refined_extrinsics),
+                args=(self.shared, lambda: self.worker.refined_extrinsics),
                 name="factorydet-world",
                 daemon=True,
             ).start()
-        self.state.on_change(self.redraw)
+        self.state.on_change(lambda: self.worker.maybe_request(self.state))
         server.scene.on_click()(self._on_click)
         server.scene.on_click(modifier="shift")(lambda event: self._on_click(event, add=True))
         server.scene.on_rect_select(modifier="shift")(self._on_rect_select)
@@ -111,110 +97,30 @@ class FactorydetApp:
         server.initial_camera.position = (-10.0, -10.0, 11.0)
         server.initial_camera.look_at = (0.0, 0.0, 0.0)
         server.initial_camera.up = (0.0, 0.0, 1.0)
-        self.redraw()
-
-    def redraw(self) -> None:
-        """Bring the scene and the panels up to date with the state."""
-        with self._draw_lock:
-            with self.state.lock:
-                # Colours from the labels follow every edit: the session's revision is part of the key.
-                by_labels = self.state.color_mode in ("class", "annotated") and self.state.editable
-                key = (
-                    self.state.frame_index,
-                    self.state.color_mode,
-                    self.state.max_height,
-                    self.state.revision if by_labels else None,
-                )
-                labels_key = (
-                    self.state.frame_index,
-                    self.state.revision,
-                    self.state.show_boxes,
-                    self.state.show_box_names,
-                )
-                point_size = self.state.point_size
-                frame = self.state.frame
-            if key != self._drawn:
-                labels = self.state.frame_labels(key[0])[:2] if by_labels else None
-                self.scene.draw(
-                    frame, color_mode=key[1], point_size=point_size, max_height=key[2], labels=labels
-                )
-                self._drawn = key
-            else:
-                self.scene.set_point_size(point_size)
-            if labels_key != self._labels_key:
-                boxes, class_ids, prelabel_mask = self.state.drawn_labels(labels_key[0])
-                self.scene.draw_labels(
-                    boxes, class_ids, self.state.dataset.class_names, labels_key[2], names=labels_key[3],
-                    prelabel_mask=prelabel_mask,
-                )  # fmt: skip
-                self._labels_key = labels_key
-            with self.state.lock:
-                result = self.state.pipeline_result
-                result_frame = self.state.pipeline_result_key[0] if result is not None else None
-                layers = dict(self.state.layers)
-                max_height = self.state.max_height
-            if result is not None:
-                layers_key = (id(result), max_height)
-                if layers_key != self._layers_key:
-                    self.layers.draw(result, result_frame, layers, point_size, max_height)
-                    self._layers_key = layers_key
-                else:
-                    self.layers.set_visibility(layers)
-                    self.layers.set_point_size(point_size)
-            with self.state.lock:
-                detections = self.state.detections
-                detection_result = self.state.detection_result
-                detection_frame = self.state.detection_frame_index
-                detections_key = (
-                    id(detections),
-                    layers["detections"],
-                    self.state.show_suppressed,
-                    self.state.color_by_match,
-                    self.state.show_box_names,
-                )
-            if detections_key != self._detections_key:
-                labels = None
-                if detections is not None:  # what the metrics count as truth (no pre-labels)
-                    labels = self.state.references(detection_frame)[:2]
-                self.layers.draw_detections(detections, *detections_key[1:4], labels, names=detections_key[4])
-                self.layers.detection_source = (detection_result, detection_frame)
-                self._detections_key = detections_key
-            self.frame_panel.refresh(self.state)
-            self.display_panel.refresh(self.state)
-            self.pipeline_panel.refresh(self.state)
-            self.detections_panel.refresh(self.state)
-            self.metrics_panel.refresh(self.state)
-            if self.training_panel is not None:
-                self.training_panel.refresh(self.state)
-            with self.state.lock:
-                # (the suspects and the world placement's progress show in each browser's panels)
-                clients_key = (
-                    self.state.revision,
-                    self.state.frame_index,
-                    id(self.layers.drawn_result),
-                    id(self.state.suspects),
-                    self.state.world_status,
-                )
-            if clients_key != self._clients_key:
-                self._clients_key = clients_key
-                for view in self._client_views():
-                    view.refresh()
-        self.worker.maybe_request()
+        self.worker.maybe_request(self.state)
 
     # -- browsers
 
-    def _client_views(self) -> list[ClientView]:
+    @property
+    def views(self) -> list[ClientView]:
+        """The connected browsers."""
         with self._clients_lock:
             return list(self.clients.values())
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
-        view = ClientView(
-            client,
-            self.state,
-            scene_points=lambda: self.scene.shown,
-            drawn_result=lambda: self.layers.drawn,
-        )
-        if self.state.editable:
+        """A new browser gets its own view (like ``state``), scene and panels."""
+        state = self.shared.new_view(like=self.state)
+        view = ClientView(client, state)
+        client.gui.add_markdown("### factorydet", order=0)
+        view.view_panels = [
+            build_frame_panel(client, state),
+            build_display_panel(client, state),
+            build_pipeline_panel(client, state),
+            build_detections_panel(client, state),
+            build_metrics_panel(client, state),
+        ]
+        if self.shared.editable:
+            view.view_panels.append(build_training_panel(client, state, self.trainer))
             labels_panel = build_labels_panel(view)
             review_panel = build_review_panel(view, self.trainer.find_suspects)
             view.panels = [labels_panel, review_panel]
@@ -222,8 +128,14 @@ class FactorydetApp:
             build_help_panel(view)
         with self._clients_lock:
             self.clients[client.client_id] = view
-        view.refresh()
-        if self.state.editable:
+
+        def redraw() -> None:
+            view.redraw()
+            self.worker.maybe_request(state)
+
+        state.on_change(redraw)
+        redraw()
+        if self.shared.editable:
             threading.Thread(target=view.restore_author, name="factorydet-author", daemon=True).start()
 
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
@@ -231,6 +143,7 @@ class FactorydetApp:
             view = self.clients.pop(client.client_id, None)
         if view is not None:
             view.closed = True
+            view.state.close()
 
     def client_view(self, client_id: int) -> ClientView | None:
         with self._clients_lock:
@@ -241,48 +154,50 @@ class FactorydetApp:
         selection), else the nearest detection box, else the nearest proposal box, else the nearest
         patch point (whose segment becomes the browser's selection; shift-click adds it)."""
         view = self.client_view(event.client_id)
+        if view is None:
+            return
+        state = view.state
         origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
-        with self.state.lock:
-            show_labels, frame_index = self.state.show_boxes, self.state.frame_index
-        if view is not None and self.state.editable and show_labels and not add:
-            boxes, _, label_ids = self.state.frame_labels(frame_index)
+        with state.lock:
+            show_labels, frame_index = state.show_boxes, state.frame_index
+        if state.editable and show_labels and not add:
+            boxes, _, label_ids = state.frame_labels(frame_index)
             distances = ray_box_distances(origin, direction, boxes) if len(boxes) else np.zeros(0)
             if np.isfinite(distances).any():
                 view.select_label(int(label_ids[int(np.argmin(distances))]))
                 return
-        with self._draw_lock:  # the drawn result and its box ids belong together
+        layers = view.layers
+        with view._draw_lock:  # the drawn result and its box ids belong together
             result, proposal_ids, frame_index = (
-                self.layers.drawn_result,
-                self.layers.proposal_ids,
-                self.layers.drawn_frame_index,
+                layers.drawn_result,
+                layers.proposal_ids,
+                layers.drawn_frame_index,
             )
-            detections, detection_ids = self.layers.shown_detections, self.layers.shown_detection_ids
-            detection_result, detection_frame = self.layers.detection_source
+            detections, detection_ids = layers.shown_detections, layers.shown_detection_ids
+            detection_result, detection_frame = layers.detection_source
         if result is None:
             return
-        origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
         if detections is not None and detection_result is not None and len(detection_ids):
             distances = ray_box_distances(origin, direction, detections.boxes[detection_ids])
             if np.isfinite(distances).any():
                 # The detections and the proposals they index come from the same result.
                 k = int(detection_ids[int(np.argmin(distances))])
-                frame = self.state.dataset.frame(detection_frame)
-                with self.state.lock:
-                    exponent = getattr(self.state.model, "probability_exponent", 1.0)
+                frame = state.dataset.frame(detection_frame)
+                with state.lock:
+                    exponent = getattr(state.model, "probability_exponent", 1.0)
                 info = describe_detection(detections, k, detection_result.proposal.proposals, frame, exponent)
-                self.state.set_selection(detection_markdown(info))
-                if view is not None and self.state.editable and not add:
+                state.set_selection(detection_markdown(info))
+                if state.editable and not add:
                     view.suggest(
                         detection_frame, suggestion_of(detections, k, detection_result.proposal.proposals)
                     )
                 return
-        with self.state.lock:
-            layers = dict(self.state.layers)
-            max_height = self.state.max_height
-        frame = self.state.dataset.frame(frame_index)
-        origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
+        with state.lock:
+            shown_layers = dict(state.layers)
+            max_height = state.max_height
+        frame = state.dataset.frame(frame_index)
         info = None
-        if layers["proposals"] and len(proposal_ids):
+        if shown_layers["proposals"] and len(proposal_ids):
             distances = ray_box_distances(origin, direction, result.proposals.boxes[proposal_ids])
             if np.isfinite(distances).any():
                 info = describe_proposal(result, frame, int(proposal_ids[int(np.argmin(distances))]))
@@ -295,25 +210,26 @@ class FactorydetApp:
                 point = int(shown[hit])
                 patch_id = int(result.segmentation.patch_ids[point])
                 info = describe_patch(result, frame, patch_id)
-                if view is not None:
-                    view.select_patches(segment_patch_ids(result, patch_id), add=add)
-                    same_cloud = detection_result is not None and detection_result.proposal is result
-                    if same_cloud and self.state.editable and not add:
-                        view.suggest(frame_index, suggest_box(detection_result, point))
-        if info is None and view is not None and not add:
+                view.select_patches(segment_patch_ids(result, patch_id), add=add)
+                same_cloud = detection_result is not None and detection_result.proposal is result
+                if same_cloud and state.editable and not add:
+                    view.suggest(frame_index, suggest_box(detection_result, point))
+        if info is None and not add:
             view.clear_selection()
-        self.state.set_selection(description_markdown(info) if info else "_Nothing under the cursor._")
+        state.set_selection(description_markdown(info) if info else "_Nothing under the cursor._")
 
     def _on_rect_select(self, event: viser.SceneRectSelectEvent) -> None:
         """Shift-drag: the patches of the points inside the rectangle become the selection."""
         view = self.client_view(event.client_id)
-        with self._draw_lock:
-            result = self.layers.drawn_result
-        if view is None or result is None:
+        if view is None:
+            return
+        with view._draw_lock:
+            result = view.layers.drawn_result
+        if result is None:
             return
         camera = event.client.camera
-        with self.state.lock:
-            max_height = self.state.max_height
+        with view.state.lock:
+            max_height = view.state.max_height
         shown = np.flatnonzero(result.cloud.below(max_height))
         inside = points_in_screen_rect(
             result.cloud.points[shown], camera.position, camera.wxyz, camera.fov, camera.aspect,

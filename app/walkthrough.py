@@ -197,7 +197,7 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
             with sync_playwright() as pw:
                 browser, page, view = open_app_page(pw, app, 1400, 1400)
                 _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
-                _wait(lambda: app.layers.detection_source[0] is not None, 600, "the first detections")
+                _wait(lambda: view.layers.detection_source[0] is not None, 600, "the first detections")
                 canvas = page.locator("canvas[data-engine]")
                 canvas.click(position={"x": 5, "y": 5})  # keys go to the page, not a panel
                 _wait(lambda: app.worker.idle, 600, "the frames ahead")
@@ -207,7 +207,7 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
                     return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
 
                 for k in range(repeats):
-                    frame_index = app.state.frame_index
+                    frame_index = view.state.frame_index
                     label = next(  # an object that stands still: its edits reach every frame showing it
                         lab
                         for lab in db.labels(frame_index)
@@ -262,14 +262,18 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
                     # The next frame, computed ahead while this one was shown.
                     target = frame_index + 1
                     if target >= dataset.num_frames:
-                        app.state.set_frame(0)
+                        view.state.set_frame(0)
                         continue
-                    _wait(lambda t=target: t in app.worker.cached_frames(), 600, "the next frame ahead")
+                    _wait(
+                        lambda t=target: t in app.worker.cached_frames(view.state),
+                        600,
+                        "the next frame ahead",
+                    )
                     note(
                         "frame change with its detections (PageDown)",
                         _timed(
                             lambda: page.keyboard.press("PageDown"),
-                            lambda t=target: app.layers.detection_source[1] == t,
+                            lambda t=target: view.layers.detection_source[1] == t,
                             shows(f"{target + 1} / {dataset.num_frames}"),
                         ),
                     )

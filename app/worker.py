@@ -1,12 +1,12 @@
-"""The background worker that runs the detector for the shown frame (the front half, and the
-classifier and NMS when the app has a model).
+"""The background worker that runs the detector for the frames the browsers show (the front half,
+and the classifier and NMS when the app has a model).
 
-Requests come from state changes (frame, parameters); only the latest matters, so a request that
-arrives while a frame computes replaces any waiting one, and a result that is stale when it
-finishes is kept for later but not shown. The GUI thread never computes.
+Requests come from view changes (a browser's frame, the shared parameters); a request that arrives
+while a frame computes is served next, and a result that no view asks for when it finishes is kept
+for later but not shown. The GUI thread never computes.
 
 Results are kept for the last few frames (``CACHED_RESULTS``), and while nothing is asked for the
-worker computes the shown frame's next and previous ones ahead (``PREFETCH_OFFSETS``, not while a
+worker computes each shown frame's next and previous ones ahead (``PREFETCH_OFFSETS``, not while a
 training runs): flipping through frames shows a cached frame at once, and an asked-for frame that
 is being computed ahead is taken over rather than started again. A computation ahead gives way to
 a request for another frame at its next stage.
@@ -25,7 +25,7 @@ from factorydet_core.detection.detector import Detector
 from factorydet_core.proposals.voxels import voxel_colors
 from factorydet_core.session.world import session_world
 
-from .state import AppState
+from .state import AppState, SharedState
 
 CACHED_RESULTS = 3
 """Results kept: the shown frame's and its next and previous frames' (computed ahead). A result
@@ -41,21 +41,24 @@ class _GaveWayError(Exception):
 
 
 class PipelineWorker:
-    """One daemon thread; ``request()`` asks for the state's current frame and parameters.
+    """One daemon thread computing the frame every view (browser) asks for: ``maybe_request(view)``
+    after a view's frame or the shared parameters change. Views asking for the same frame share
+    one computation; the view that asked last is served first.
 
     Args:
-        state: the app state (results and progress are written back into it).
+        shared: the app's shared state (results and progress are written into its views).
         calibrate: refine the extrinsics by ICP once, before the first frame, when the data set has
             several sensors.
     """
 
-    def __init__(self, state: AppState, calibrate: bool = True) -> None:
-        self.state = state
+    def __init__(self, shared: SharedState, calibrate: bool = True) -> None:
+        self.shared = shared
         self.calibrate = calibrate
         self._refined_extrinsics = None
         self._cache: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
         self._cache_lock = threading.Lock()
         self._ahead_key: tuple | None = None  # what is being computed ahead, if anything
+        self._asked: list[AppState] = []  # views in the order they last asked, latest first
         self._pending = False
         self._stopped = False
         self._wake = threading.Condition()
@@ -69,14 +72,14 @@ class PipelineWorker:
 
     @property
     def idle(self) -> bool:
-        """Nothing asked for and nothing computed ahead (the shown frame's neighbours are cached
-        or out of range)."""
+        """Nothing asked for and nothing computed ahead (every view's neighbouring frames are
+        cached or out of range)."""
         with self._wake:
             pending = self._pending
         with self._cache_lock:
             ahead = self._ahead_key is not None
-        with self.state.lock:
-            busy = self.state.pipeline_busy
+        with self.shared.lock:
+            busy = any(view.pipeline_busy for view in self.shared.views)
         return not (pending or ahead or busy)
 
     def request(self) -> None:
@@ -84,38 +87,54 @@ class PipelineWorker:
             self._pending = True
             self._wake.notify()
 
-    def maybe_request(self) -> None:
-        """Request a run when the state's frame or parameters differ from the last result's (and
-        from the last failed run's, which is not retried until something changes). A result in
-        the cache is shown at once, on the calling thread."""
-        key = self.state.pipeline_key()
-        with self.state.lock:
-            done = key in (self.state.pipeline_result_key, self.state.pipeline_failed_key)
-            busy = self.state.pipeline_busy
+    def maybe_request(self, view: AppState) -> None:
+        """Request a run when ``view``'s frame or the parameters differ from its last result's
+        (and from its last failed run's, which is not retried until something changes). A result
+        in the cache is shown at once, on the calling thread."""
+        key = view.pipeline_key()
+        with view.lock:
+            done = key in (view.pipeline_result_key, view.pipeline_failed_key)
+            busy = view.pipeline_busy
         if done:
             with self._cache_lock:
                 computing_ahead = self._ahead_key is not None
             if busy and computing_ahead:
                 # Back to the shown frame from one that was being computed ahead: nothing the user
                 # waits for is running.
-                self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
+                view.set_pipeline_progress("showing the current result", 1.0, busy=False)
             return
-        if self._publish_cached(key):
+        with self._wake:
+            if view in self._asked:
+                self._asked.remove(view)
+            self._asked.insert(0, view)
+        if self._publish_cached(view, key):
             self.request()  # the worker goes on computing ahead of the new frame
             return
         with self._cache_lock:
             taken_over = key == self._ahead_key
         if taken_over and not busy:  # (setting the progress notifies, which calls this again)
-            self.state.set_pipeline_progress(f"frame {key[0] + 1}: computing (started ahead)", 0.5)
+            view.set_pipeline_progress(f"frame {key[0] + 1}: computing (started ahead)", 0.5)
         self.request()
 
-    def cached_frames(self) -> list[int]:
-        """The frames whose results are cached for the state's current parameters and model."""
-        current = self.state.pipeline_key()[1:]
+    def cached_frames(self, view: AppState) -> list[int]:
+        """The frames whose results are cached for the current parameters and model."""
+        current = view.pipeline_key()[1:]
         with self._cache_lock:
             return sorted(key[0] for key in self._cache if key[1:] == current)
 
-    def _publish_cached(self, key: tuple) -> bool:
+    def _views(self) -> list[AppState]:
+        """The shared state's views, the latest to ask first."""
+        views = self.shared.views
+        with self._wake:
+            self._asked = [view for view in self._asked if view in views]
+            asked = list(self._asked)
+        return asked + [view for view in views if view not in asked]
+
+    def _wanting(self, key: tuple) -> list[AppState]:
+        """The views that ask for ``key`` now."""
+        return [view for view in self.shared.views if view.pipeline_key() == key]
+
+    def _publish_cached(self, view: AppState, key: tuple) -> bool:
         with self._cache_lock:
             entry = self._cache.get(key)
             if entry is not None:
@@ -123,21 +142,24 @@ class PipelineWorker:
         if entry is None:
             return False
         kind, result, status = entry
-        self._show(key, kind, result, f"{status} (from the cache)")
+        self._show(view, key, kind, result, f"{status} (from the cache)")
         return True
 
-    def _show(self, key: tuple, kind: str, result, status: str) -> None:
-        """Make ``result`` (a "detection" or a "proposal" result) the state's shown one."""
+    @staticmethod
+    def _show(view: AppState, key: tuple, kind: str, result, status: str) -> None:
+        """Make ``result`` (a "detection" or a "proposal" result) ``view``'s shown one."""
         if kind == "detection":
-            self.state.set_detection_result(key, result, status)
+            view.set_detection_result(key, result, status)
         else:
-            self.state.set_pipeline_result(key, result, status)
+            view.set_pipeline_result(key, result, status)
 
     def _remember(self, key: tuple, kind: str, result, status: str) -> None:
+        # Each view's frame and its neighbours stay cached.
+        capacity = CACHED_RESULTS * max(1, len(self.shared.views))
         with self._cache_lock:
             self._cache[key] = (kind, result, status)
             self._cache.move_to_end(key)
-            while len(self._cache) > CACHED_RESULTS:
+            while len(self._cache) > capacity:
                 self._cache.popitem(last=False)
 
     def stop(self) -> None:
@@ -152,76 +174,87 @@ class PipelineWorker:
                 if self._stopped:
                     return
                 self._pending = False
-            key = self.state.pipeline_key()
-            with self.state.lock:
-                done = key in (self.state.pipeline_result_key, self.state.pipeline_failed_key)
-            if not done and not self._publish_cached(key):
+            for view in self._views():
+                key = view.pipeline_key()
+                with view.lock:
+                    done = key in (view.pipeline_result_key, view.pipeline_failed_key)
+                if done or self._publish_cached(view, key):
+                    continue
                 try:
                     self._compute(key)
                 except Exception as exc:  # keep the app alive; show what went wrong
                     traceback.print_exc()
-                    self.state.set_pipeline_failed(key, f"failed: {exc}")
-            self._compute_ahead()
+                    for wanting in self._wanting(key):
+                        wanting.set_pipeline_failed(key, f"failed: {exc}")
+                with self._wake:
+                    if self._pending:  # someone asked meanwhile: serve the latest first
+                        break
+            else:
+                self._compute_ahead()
 
     def _compute_ahead(self) -> None:
-        """Compute the shown frame's neighbours into the cache until a request comes."""
-        key = self.state.pipeline_key()
-        with self.state.lock:
-            if self.state.training_busy or key != self.state.pipeline_result_key:
+        """Compute each view's neighbouring frames into the cache until a request comes."""
+        with self.shared.lock:
+            if self.shared.training_busy:
                 return
-        num_frames = self.state.dataset.num_frames
-        for offset in PREFETCH_OFFSETS:
-            index = key[0] + offset
-            ahead = (index, *key[1:])
-            with self._cache_lock:
-                cached = ahead in self._cache
-            if cached or not 0 <= index < num_frames:
-                continue
-            with self._wake:
-                if self._pending or self._stopped:
-                    return
-            with self._cache_lock:
-                self._ahead_key = ahead
-            try:
-                self._compute(ahead, ahead=True)
-            except _GaveWayError:
-                return
-            except Exception:  # the frame's own run, when asked for, reports what went wrong
-                traceback.print_exc()
-                return
-            finally:
+        num_frames = self.shared.dataset.num_frames
+        for view in self._views():
+            key = view.pipeline_key()
+            with view.lock:
+                if key != view.pipeline_result_key:
+                    continue
+            for offset in PREFETCH_OFFSETS:
+                index = key[0] + offset
+                ahead = (index, *key[1:])
                 with self._cache_lock:
-                    self._ahead_key = None
-
-    def _shown(self, key: tuple) -> bool:
-        """Whether ``key`` is what the state asks for now."""
-        return self.state.pipeline_key() == key
+                    cached = ahead in self._cache
+                if cached or not 0 <= index < num_frames:
+                    continue
+                with self._wake:
+                    if self._pending or self._stopped:
+                        return
+                with self._cache_lock:
+                    self._ahead_key = ahead
+                try:
+                    self._compute(ahead, ahead=True)
+                except _GaveWayError:
+                    return
+                except Exception:  # the frame's own run, when asked for, reports what went wrong
+                    traceback.print_exc()
+                    return
+                finally:
+                    with self._cache_lock:
+                        self._ahead_key = None
 
     def _compute(self, key: tuple, ahead: bool = False) -> None:
-        """Compute ``key``'s result into the cache and show it if it is still asked for. Ahead of
-        a request (``ahead``), progress stays quiet until the frame is asked for, and a request
-        for another frame stops the work at the next stage (``_GaveWayError``)."""
+        """Compute ``key``'s result into the cache and show it in the views that still ask for it.
+        Ahead of a request (``ahead``), progress stays quiet until a view asks for the frame, and
+        a request for another frame stops the work at the next stage (``_GaveWayError``)."""
         frame_index, params, use_refined, _ = key
-        dataset = self.state.dataset
+        dataset = self.shared.dataset
         if use_refined and self.calibrate and dataset.num_sensors > 1 and self._refined_extrinsics is None:
-            self.state.set_pipeline_progress("refining the sensor extrinsics (ICP, once)", 0.02)
+            for view in self._wanting(key):
+                view.set_pipeline_progress("refining the sensor extrinsics (ICP, once)", 0.02)
             detector = Detector(params).calibrate(dataset.frame(frame_index))
             self._refined_extrinsics = detector.T_vehicle_sensor
         extrinsics = self._refined_extrinsics if use_refined else None
-        detector = Detector(params, extrinsics, model=self.state.model)
+        detector = Detector(params, extrinsics, model=self.shared.model)
         frame = dataset.frame(frame_index)
         history = detector.history(dataset, frame_index)
 
         def progress(stage: str, fraction: float) -> None:
-            if ahead and not self._shown(key):
+            wanting = self._wanting(key)
+            if ahead and not wanting:
                 with self._wake:
                     if self._pending or self._stopped:
                         raise _GaveWayError
                 return
-            self.state.set_pipeline_progress(f"frame {frame_index + 1}: {stage} done", fraction)
+            for view in wanting:
+                view.set_pipeline_progress(f"frame {frame_index + 1}: {stage} done", fraction)
 
         if not ahead:
-            self.state.set_pipeline_progress(f"frame {frame_index + 1}: merging", 0.05)
+            for view in self._wanting(key):
+                view.set_pipeline_progress(f"frame {frame_index + 1}: merging", 0.05)
         if detector.model is not None:
             detection = detector.detect(frame, history, progress=progress)
             result = detection.proposal
@@ -247,18 +280,19 @@ class PipelineWorker:
             status += f"; classified and NMS in {detection.timings_ms['total'] / 1000:.1f} s in all"
         kind, kept = ("proposal", result) if detection is None else ("detection", detection)
         self._remember(key, kind, kept, status)
-        if not self._shown(key):
-            # The user moved on: a newer request is queued, unless they came back to the frame
-            # and parameters of the result already shown, which is then current again.
-            with self.state.lock:
-                back_to_shown = self.state.pipeline_result_key == self.state.pipeline_key()
-            if back_to_shown and not ahead:
-                self.state.set_pipeline_progress("showing the current result", 1.0, busy=False)
-            return
-        self._show(key, kind, kept, status)
+        for view in self.shared.views:
+            if view.pipeline_key() == key:
+                self._show(view, key, kind, kept, status)
+            elif not ahead:
+                # That view moved on (a newer request is queued), unless it came back to the
+                # frame and parameters of the result it shows, which is then current again.
+                with view.lock:
+                    back_to_shown = view.pipeline_busy and view.pipeline_result_key == view.pipeline_key()
+                if back_to_shown:
+                    view.set_pipeline_progress("showing the current result", 1.0, busy=False)
 
 
-def place_frames(state: AppState, extrinsics: Callable[[], object] | None = None) -> None:
+def place_frames(state: SharedState, extrinsics: Callable[[], object] | None = None) -> None:
     """Place the session's frames in one world frame (label once), reporting progress in
     ``state.world_status``; run once on its own thread when the app opens a session. A failure
     leaves labels per frame and says why.
@@ -269,8 +303,13 @@ def place_frames(state: AppState, extrinsics: Callable[[], object] | None = None
     """
     dataset = state.dataset
     # The first frame's detections are what a person waits for: ICP would share the two cores
-    # with them, so it starts once they are shown (or have failed), or after a minute anyway.
-    state.wait_for(lambda: state.pipeline_result is not None or state.pipeline_failed_key is not None, 60.0)
+    # with them, so it starts once a view shows them (or they failed), or after a minute anyway.
+    state.wait_for(
+        lambda: any(
+            view.pipeline_result is not None or view.pipeline_failed_key is not None for view in state.views
+        ),
+        60.0,
+    )
 
     last = [0.0]
 

@@ -69,7 +69,9 @@ class DetectionsPanel:
             )
 
 
-def build_detections_panel(server: viser.ViserServer, state: AppState) -> DetectionsPanel:
+def build_detections_panel(
+    server: viser.ViserServer | viser.ClientHandle, state: AppState
+) -> DetectionsPanel:
     with state.lock:
         has_model = state.model is not None
         score, nms, vote = state.score_threshold, state.nms_iou, state.vote_iou

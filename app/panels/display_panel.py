@@ -45,7 +45,7 @@ class DisplayPanel:
             self.max_height.value = height
 
 
-def build_display_panel(server: viser.ViserServer, state: AppState) -> DisplayPanel:
+def build_display_panel(server: viser.ViserServer | viser.ClientHandle, state: AppState) -> DisplayPanel:
     labels = [_MODE_LABELS[m] for m in COLOR_MODES]
     with server.gui.add_folder("Display", order=50):
         color_mode = server.gui.add_dropdown(

@@ -47,7 +47,7 @@ def status_markdown(
     )
 
 
-def build_frame_panel(server: viser.ViserServer, state: AppState) -> FramePanel:
+def build_frame_panel(server: viser.ViserServer | viser.ClientHandle, state: AppState) -> FramePanel:
     num_frames = state.dataset.num_frames
     with server.gui.add_folder("Frame", order=10):
         slider = server.gui.add_slider(

@@ -94,7 +94,7 @@ class MetricsPanel:
             self.plot.data = (recall, precision)
 
 
-def build_metrics_panel(server: viser.ViserServer, state: AppState) -> MetricsPanel:
+def build_metrics_panel(server: viser.ViserServer | viser.ClientHandle, state: AppState) -> MetricsPanel:
     with server.gui.add_folder("Metrics", order=80, expand_by_default=False):
         table = server.gui.add_markdown("")
         errors = server.gui.add_markdown("")

@@ -55,7 +55,7 @@ class PipelinePanel:
         self.selection.content = selection or "_Click a patch (patches or segments layer) or a proposal box._"
 
 
-def build_pipeline_panel(server: viser.ViserServer, state: AppState) -> PipelinePanel:
+def build_pipeline_panel(server: viser.ViserServer | viser.ClientHandle, state: AppState) -> PipelinePanel:
     with state.lock:
         params = state.params
         layers = dict(state.layers)

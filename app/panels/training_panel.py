@@ -24,7 +24,7 @@ FIRST_CONTROLS = ("method", "epochs")
 """Shown above the Train button; the other ``LOOP_CONTROLS`` sit in a "Settings" folder below."""
 
 
-def add_control(server: viser.ViserServer, control: Control, value: object):
+def add_control(server: viser.ViserServer | viser.ClientHandle, control: Control, value: object):
     """The GUI handle of one training setting, showing ``value`` (``Control.shown``)."""
     shown = control.shown(value)
     if control.kind is bool:
@@ -122,7 +122,9 @@ class TrainingPanel:
         self.show_model.disabled = not choices
 
 
-def build_training_panel(server: viser.ViserServer, state: AppState, worker: TrainingWorker) -> TrainingPanel:
+def build_training_panel(
+    server: viser.ViserServer | viser.ClientHandle, state: AppState, worker: TrainingWorker
+) -> TrainingPanel:
     with server.gui.add_folder("Training", order=40, expand_by_default=False):
         mode = server.gui.add_dropdown("Mode", list(MODES), initial_value="next round")
         by_field = {c.field: c for c in LOOP_CONTROLS}

@@ -33,6 +33,12 @@ def page(app, browser):
     context.close()  # before server.stop(), which otherwise waits for the socket
 
 
+def _view(app):
+    """The one connected browser's ``ClientView`` (its own view, scene and layers)."""
+    assert _wait(lambda: len(app.views) == 1, 30), "the browser never connected"
+    return app.views[0]
+
+
 def _colourful_fraction(png: bytes) -> float:
     """Share of pixels with clearly saturated colour: points coloured by sensor, not the grey grid.
 
@@ -50,6 +56,7 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
     canvas = page.wait_for_selector("canvas[data-engine]", timeout=30_000)
     assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
+    view = _view(app)
 
     # The controls reach a new browser in messages sent after its connection is registered
     # (a fraction of a second later).
@@ -61,7 +68,7 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     page.get_by_text("frame 1 / 3", exact=False).wait_for(timeout=20_000)
 
     page.get_by_role("button", name="Next frame").click()
-    assert app.state.wait_for(lambda: app.state.frame_index == 1, timeout=20), (
+    assert view.state.wait_for(lambda: view.state.frame_index == 1, timeout=20), (
         "the server never saw the click"
     )
     page.get_by_text("frame 2 / 3", exact=False).wait_for(timeout=20_000)
@@ -70,8 +77,8 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "the 3D canvas stayed blank"
 
     # The measure is not fooled by the page around the points: hide them and it drops.
-    app.scene.set_visible(False)
-    app.state.set_layer("proposals", False)  # the orange proposal boxes are colourful too
+    view.scene.set_visible(False)
+    view.state.set_layer("proposals", False)  # the orange proposal boxes are colourful too
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) < 0.001, 30), "hidden points still drawn"
 
 
@@ -79,6 +86,7 @@ def test_detection_layers_toggle_and_parameters_recompute(app, page):
     page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
     canvas = page.wait_for_selector("canvas[data-engine]", timeout=30_000)
     assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
+    view = _view(app)
     page.get_by_text("Proposal boxes", exact=True).first.wait_for(timeout=30_000)
     for label in (
         "Proposal boxes",
@@ -90,35 +98,35 @@ def test_detection_layers_toggle_and_parameters_recompute(app, page):
         assert page.get_by_text(label, exact=True).count() >= 1, label
 
     # The first frame's front half runs in the background; its status line reaches the browser.
-    assert app.state.wait_for(lambda: app.state.pipeline_result is not None, timeout=120)
+    assert view.state.wait_for(lambda: view.state.pipeline_result is not None, timeout=120)
     page.get_by_text("proposals,", exact=False).first.wait_for(timeout=30_000)
-    assert app.layers.nodes["proposals"].visible and not app.layers.nodes["patches"].visible
+    assert view.layers.nodes["proposals"].visible and not view.layers.nodes["patches"].visible
 
     # Toggle a layer from the browser: the state and the scene node follow.
     page.get_by_label("Patches (cut pursuit)").check()
-    assert app.state.wait_for(lambda: app.state.layers["patches"], timeout=20), (
+    assert view.state.wait_for(lambda: view.state.layers["patches"], timeout=20), (
         "toggle never reached the server"
     )
-    assert _wait(lambda: app.layers.nodes["patches"].visible, 20)
+    assert _wait(lambda: view.layers.nodes["patches"].visible, 20)
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "patches not drawn"
 
     # Change a parameter from the browser (keyboard on the merge-threshold slider): the layers
     # recompute for the current frame with the new value, off the GUI thread.
-    before = app.state.num_results
-    old_threshold = app.state.params.segmentation.merge_threshold
+    before = view.state.num_results
+    old_threshold = view.state.params.segmentation.merge_threshold
     thumb = page.locator('[role=slider][aria-valuemin="0"][aria-valuemax="1"]')
     thumb.focus()
     thumb.press("ArrowRight")
     expected = round(old_threshold + 0.05, 6)
-    assert app.state.wait_for(
-        lambda: abs(app.state.params.segmentation.merge_threshold - expected) < 1e-6, timeout=20
+    assert view.state.wait_for(
+        lambda: abs(view.state.params.segmentation.merge_threshold - expected) < 1e-6, timeout=20
     ), "the slider change never reached the server"
-    assert app.state.wait_for(lambda: app.state.num_results > before, timeout=120), "no recompute"
+    assert view.state.wait_for(lambda: view.state.num_results > before, timeout=120), "no recompute"
     assert (
-        app.state.pipeline_result_key[1].segmentation.merge_threshold
-        == app.state.params.segmentation.merge_threshold
+        view.state.pipeline_result_key[1].segmentation.merge_threshold
+        == view.state.params.segmentation.merge_threshold
     )
-    assert _wait(lambda: app.layers.drawn_result is app.state.pipeline_result, 30), "new result not drawn"
+    assert _wait(lambda: view.layers.drawn_result is view.state.pipeline_result, 30), "new result not drawn"
 
 
 @pytest.fixture
@@ -143,14 +151,15 @@ def test_detections_layer_and_score_slider(app_with_model, browser):
         page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
         page.wait_for_selector("canvas[data-engine]", timeout=30_000)
         assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
+        view = _view(app)
         page.get_by_text("Score threshold", exact=True).first.wait_for(timeout=30_000)
         for label in ("Detections (after NMS)", "Show suppressed", "Score threshold", "NMS IoU"):
             assert page.get_by_text(label, exact=True).count() >= 1, label
-        assert app.state.wait_for(lambda: app.state.detections is not None, timeout=120), "no detections"
+        assert view.state.wait_for(lambda: view.state.detections is not None, timeout=120), "no detections"
         page.get_by_text("detections** shown", exact=False).or_(
             page.get_by_text("detections shown", exact=False)
         ).first.wait_for(timeout=30_000)
-        before = int(app.state.detections.kept_mask.sum())
+        before = int(view.state.detections.kept_mask.sum())
         text_before = page.get_by_text("suppressed by NMS", exact=False).first.inner_text()
         assert f"{before} detections" in text_before
 
@@ -163,15 +172,53 @@ def test_detections_layer_and_score_slider(app_with_model, browser):
             thumb.focus()
             for _ in range(9):
                 thumb.press("ArrowLeft")
-            arrived = app.state.wait_for(lambda: app.state.score_threshold < 0.1, timeout=30)
+            arrived = view.state.wait_for(lambda: view.state.score_threshold < 0.1, timeout=30)
             if arrived:
                 break
-        assert arrived, f"slider never arrived (score threshold {app.state.score_threshold})"
-        after = int(app.state.detections.kept_mask.sum())
+        assert arrived, f"slider never arrived (score threshold {view.state.score_threshold})"
+        after = int(view.state.detections.kept_mask.sum())
         assert after != before
         page.get_by_text(f"{after} detections", exact=False).first.wait_for(timeout=20_000)
-        assert _wait(lambda: len(app.layers.shown_detection_ids) == after, 20), "scene not re-filtered"
+        assert _wait(lambda: len(view.layers.shown_detection_ids) == after, 20), "scene not re-filtered"
         # The metrics panel has the frame's per-class table.
-        assert app.state.metrics is not None and app.state.metrics["num_frames"] == 1
+        assert view.state.metrics is not None and view.state.metrics["num_frames"] == 1
     finally:
         context.close()
+
+
+def test_each_browser_has_its_own_frame_display_and_thresholds(app_with_model, browser):
+    """Two browsers on one app: a frame change, a display setting and a threshold in one leave the
+    other's as they were; the model and the front half's parameters are shared."""
+    app = app_with_model
+    contexts = [browser.new_context(viewport={"width": 1000, "height": 700}) for _ in range(2)]
+    try:
+        pages = [context.new_page() for context in contexts]
+        for k, page in enumerate(pages):
+            page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
+            page.wait_for_selector("canvas[data-engine]", timeout=30_000)
+            assert _wait(lambda k=k: len(app.views) == k + 1, 30), "a browser never connected"
+            page.get_by_role("button", name="Next frame").wait_for(timeout=30_000)
+        first, second = (app.client_view(c) for c in sorted(app.clients))
+        assert first.state is not second.state
+
+        pages[0].get_by_role("button", name="Next frame").click()
+        assert _wait(lambda: first.state.frame_index == 1, 20), "the click never reached the server"
+        pages[0].get_by_text("frame 2 / 3", exact=False).wait_for(timeout=20_000)
+        pages[1].get_by_text("frame 1 / 3", exact=False).wait_for(timeout=20_000)
+        assert second.state.frame_index == 0
+        # Each browser's scene shows its own frame's result.
+        assert _wait(
+            lambda: first.layers.drawn_frame_index == 1 and first.layers.drawn_result is not None, 120
+        )
+        assert _wait(
+            lambda: second.layers.drawn_frame_index == 0 and second.layers.drawn_result is not None, 120
+        )
+
+        first.state.set_display(point_size=0.1)
+        first.state.set_detection_filter(score_threshold=0.05)
+        assert second.state.point_size == 0.04 and second.state.score_threshold != 0.05
+        assert _wait(lambda: first.layers.nodes["merged"].point_size == 0.1, 20)
+        assert second.layers.nodes["merged"].point_size == 0.04
+    finally:
+        for context in contexts:
+            context.close()

@@ -125,12 +125,12 @@ def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  #
         # clicking before they finish made clicks arrive after the test had given up on them.
         assert _wait(
             lambda: (
-                not app.state.pipeline_busy
-                and app.layers.drawn_result is app.state.pipeline_result
-                and app.layers.drawn_result is not None
+                not view.state.pipeline_busy
+                and view.layers.drawn_result is view.state.pipeline_result
+                and view.layers.drawn_result is not None
             ),
             120,
-        ), f"the first frame was never drawn ({app.state.pipeline_status})"
+        ), f"the first frame was never drawn ({view.state.pipeline_status})"
         label = db.labels(0)[0]
         client = view.client
         position, look_at = camera_for_box(label.box, distance_factor=2.0, min_distance=3.0)
@@ -199,7 +199,7 @@ def test_pre_label_a_frame_and_confirm_with_the_keyboard(session_app, browser): 
     db = app.state.db
     context, page, view = _open(browser, app)
     try:
-        assert _wait(lambda: app.state.detections_at(0.05)[1] is not None, 120), "no detections came"
+        assert _wait(lambda: view.state.detections_at(0.05)[1] is not None, 120), "no detections came"
         view.panels[0].min_score.value = 0.05  # the tiny model scores low
         canvas = page.locator("canvas[data-engine]")
         canvas.click(position={"x": 5, "y": 5})  # focus the canvas (a click on nothing)
@@ -307,8 +307,11 @@ def test_a_reload_keeps_the_name_and_so_the_undo_history(session_app, browser): 
         page.reload()
         page.wait_for_selector("canvas[data-engine]", timeout=30_000)
         assert _wait(lambda: len(set(app.server.get_clients()) - before) == 1, 30)
-        reloaded = app.client_view((set(app.server.get_clients()) - before).pop())
-        assert _wait(lambda: reloaded is not None and reloaded.author == "ann", 30), "the name was lost"
+        new_id = (set(app.server.get_clients()) - before).pop()
+        # (the connection is registered before the app has built that browser's view)
+        assert _wait(lambda: getattr(app.client_view(new_id), "author", None) == "ann", 30), (
+            "the name was lost"
+        )
         page.get_by_role("button", name="Undo [Z]").click()
         assert _wait(lambda: not db.label(label.id).deleted, 20), "the reloaded page could not undo"
     finally:

@@ -181,3 +181,37 @@ def test_session_labels_drive_the_view_and_a_model_switch_resets_detections(
     assert state.pipeline_key() != key and state.model_name == "tiny"
     assert state.detections is None and state.frame_detections == {} and state.metrics is None
     assert state.score_threshold == model.score_threshold
+
+
+def test_each_view_has_its_own_frame_display_and_thresholds(small_dataset_dir, tiny_model_path, tmp_path):
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.store import SessionDB, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    first = AppState(dataset, model=model, model_name="tiny", db=db)
+    first.set_frame(2)
+    first.set_display(color_mode="height", point_size=0.1)
+    first.set_detection_filter(score_threshold=0.3, nms_iou=0.4)
+    second = first.shared.new_view()  # a new browser: the defaults
+    like = first.shared.new_view(like=first)  # one that starts like the first
+    assert (second.frame_index, second.point_size, second.nms_iou) == (0, 0.04, model.nms_iou)
+    assert (like.frame_index, like.color_mode, like.score_threshold, like.nms_iou) == (2, "height", 0.3, 0.4)
+    seen = {view: [] for view in (first, second, like)}
+    for view in seen:
+        view.on_change(lambda view=view: seen[view].append(view.frame_index))
+
+    second.set_frame(1)  # one browser's change redraws that browser alone
+    second.set_display(show_boxes=False)
+    assert seen == {first: [], second: [1, 1], like: []}
+    assert first.frame_index == 2 and first.show_boxes and not second.show_boxes
+
+    first.shared.set_params(merge_threshold=0.5)  # the front half's parameters are everyone's
+    db.delete_labels([db.labels(0)[0].id], "ann")
+    first.session_changed()  # as is the session
+    assert all(len(frames) >= 2 for frames in (seen[first], seen[like])) and len(seen[second]) == 4
+    assert first.params is second.params and first.revision == second.revision == 1
+    other = DetectionModel.load(tiny_model_path)
+    second.set_model(other, "other")  # and the model: every view takes its thresholds
+    assert all(view.model is other and view.nms_iou == other.nms_iou for view in seen)

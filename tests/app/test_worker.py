@@ -1,5 +1,6 @@
 """The background worker: latest request wins, failures are shown and not retried in a loop, the
-next and previous frames are computed ahead and a cached frame shows at once."""
+next and previous frames are computed ahead and a cached frame shows at once, and every view
+(browser) gets its own frame's result."""
 
 from __future__ import annotations
 
@@ -18,8 +19,8 @@ from .polling import wait
 
 
 def _wire(state: AppState, worker: PipelineWorker) -> None:
-    # What the viewer does: every state change may ask for a run.
-    state.on_change(worker.maybe_request)
+    # What the viewer does: every change to a view may ask for a run.
+    state.on_change(lambda: worker.maybe_request(state))
 
 
 def test_a_failing_run_is_reported_once_and_retried_only_after_a_change(small_dataset_dir, monkeypatch):
@@ -33,7 +34,7 @@ def test_a_failing_run_is_reported_once_and_retried_only_after_a_change(small_da
 
     monkeypatch.setattr(detector_module.Detector, "propose", failing_propose)
     state = AppState(open_dataset(small_dataset_dir))
-    worker = PipelineWorker(state, calibrate=False)
+    worker = PipelineWorker(state.shared, calibrate=False)
     _wire(state, worker)
     try:
         worker.request()
@@ -69,7 +70,7 @@ def _record_propose(monkeypatch, hold_frame_1: threading.Event | None = None) ->
 def _running_worker(dataset_dir, release: threading.Event | None = None):
     """A wired worker whose first frame is shown; stopped (and ``release`` set) on leaving."""
     state = AppState(open_dataset(dataset_dir))
-    worker = PipelineWorker(state, calibrate=False)
+    worker = PipelineWorker(state.shared, calibrate=False)
     _wire(state, worker)
     try:
         worker.request()
@@ -95,7 +96,7 @@ def test_coming_back_to_the_shown_frame_clears_the_busy_state(small_dataset_dir,
 
 def test_neighbours_are_computed_ahead_and_a_cached_frame_shows_at_once(small_dataset_dir, monkeypatch):
     with _running_worker(small_dataset_dir) as (state, worker):
-        assert wait(lambda: 1 in worker.cached_frames(), timeout=120), worker.cached_frames()
+        assert wait(lambda: 1 in worker.cached_frames(state), timeout=120), worker.cached_frames(state)
         computed, _ = _record_propose(monkeypatch)
         state.set_frame(1)
         # Shown on the calling thread, before this returns: nothing computed it again.
@@ -109,10 +110,10 @@ def test_neighbours_are_computed_ahead_and_a_cached_frame_shows_at_once(small_da
         # A result keeps its voxels' colours for the voxels layer, not their 3DmFV (10 kB a voxel).
         assert shown.voxel_features is None and shown.voxel_colors.shape == (shown.grid.num_voxels, 3)
         # The new frame's next one is computed ahead in turn.
-        assert wait(lambda: 2 in worker.cached_frames(), timeout=120), worker.cached_frames()
+        assert wait(lambda: 2 in worker.cached_frames(state), timeout=120), worker.cached_frames(state)
         # Other parameters: nothing of the cache applies.
         state.set_params(merge_threshold=0.5)
-        assert worker.cached_frames() == [] or state.pipeline_busy
+        assert worker.cached_frames(state) == [] or state.pipeline_busy
 
 
 def test_a_computation_ahead_gives_way_to_a_request_for_another_frame(small_dataset_dir, monkeypatch):
@@ -125,5 +126,28 @@ def test_a_computation_ahead_gives_way_to_a_request_for_another_frame(small_data
         release.set()
         assert state.wait_for(lambda: state.pipeline_result_key[0] == 2, timeout=120), state.pipeline_status
         # Frame 1's work stopped at its first stage: it is not cached, and frame 2 ran next.
-        assert 1 not in worker.cached_frames()
+        assert 1 not in worker.cached_frames(state)
         assert computed[:3] == ["frame_00000", "frame_00001", "frame_00002"]
+
+
+def test_each_view_gets_its_own_frame_and_views_of_one_frame_share_its_run(small_dataset_dir, monkeypatch):
+    computed, _ = _record_propose(monkeypatch)
+    state = AppState(open_dataset(small_dataset_dir))
+    other, same = state.shared.new_view(), state.shared.new_view()
+    worker = PipelineWorker(state.shared, calibrate=False)
+    for view in (state, other, same):
+        _wire(view, worker)
+    try:
+        other.set_frame(2)
+        worker.request()
+        assert state.wait_for(
+            lambda: all(view.pipeline_result is not None for view in (state, other, same)), timeout=120
+        ), [view.pipeline_status for view in (state, other, same)]
+        assert [view.pipeline_result_key[0] for view in (state, other, same)] == [0, 2, 0]
+        assert state.pipeline_result is same.pipeline_result  # frame 0 was computed once for both
+        assert computed.count("frame_00000") == 1 and computed.count("frame_00002") == 1
+        # A view that leaves is no longer served; the others keep their frames.
+        other.close()
+        assert other not in state.shared.views and state.frame_index == 0
+    finally:
+        worker.stop()
