@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import viser
 
@@ -53,6 +55,8 @@ class SceneView:
         self._shown: tuple[np.ndarray, np.ndarray] | None = None
         self._point_size = 0.04
         self.dimmed = False
+        # The scan is sent from the redraw and from the selection's refresh (dimming): one at a time.
+        self._scan_lock = threading.RLock()
         server.scene.set_up_direction("+z")
         # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
         # wireframes and points.
@@ -73,11 +77,13 @@ class SceneView:
         merged = merge_frame(frame)
         rgb = point_colors(frame, merged.points, color_mode, labels)
         keep = merged.below(max_height)
-        self._shown = (merged.points[keep], rgb[keep])
-        self._point_size = float(point_size)
-        self._send()
+        with self._scan_lock:
+            self._shown = (merged.points[keep], rgb[keep])
+            self._point_size = float(point_size)
+            self._send()
 
     def _send(self) -> None:
+        """(Under ``_scan_lock``.)"""
         points, rgb = self._shown
         if self.dimmed:
             rgb = (rgb * DIM_FACTOR).astype(np.uint8)
@@ -93,11 +99,12 @@ class SceneView:
     def set_dimmed(self, dimmed: bool) -> None:
         """Dim the scan (while reviewing, the item's box stands out) or restore its colours; the
         scan (a megabyte for 80k points) is sent again only when this changes."""
-        if bool(dimmed) == self.dimmed:
-            return
-        self.dimmed = bool(dimmed)
-        if self._shown is not None:
-            self._send()
+        with self._scan_lock:
+            if bool(dimmed) == self.dimmed:
+                return
+            self.dimmed = bool(dimmed)
+            if self._shown is not None:
+                self._send()
 
     def draw_labels(
         self,
@@ -152,6 +159,7 @@ class SceneView:
             node.visible = visible
 
     def set_point_size(self, point_size: float) -> None:
-        self._point_size = float(point_size)
-        if self._cloud is not None and self._cloud.point_size != self._point_size:
-            self._cloud.point_size = self._point_size
+        with self._scan_lock:
+            self._point_size = float(point_size)
+            if self._cloud is not None and self._cloud.point_size != self._point_size:
+                self._cloud.point_size = self._point_size

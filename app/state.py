@@ -74,26 +74,35 @@ class SharedState:
         # background when the app opens a session; ``None`` until then (edits stay in their frame).
         self.world = None
         self.world_status = "" if db is None else "placing the frames in one world frame"
-        self._views: list[AppState] = []
+        self._views: list[AppState] = []  # the browsers' views, which the worker serves
+        self._templates: list[AppState] = []  # views no browser shows (``AppState``, ``served``)
         self._listeners: list[Callable[[], None]] = []
 
     # -- views
 
-    def new_view(self, like: AppState | None = None) -> AppState:
+    def new_view(self, like: AppState | None = None, served: bool = True) -> AppState:
         """A new browser's view, with ``like``'s frame, display settings and thresholds (the
-        defaults without)."""
-        return AppState(self, like=like)
+        defaults without); ``served=False`` for a template (``AppState``)."""
+        return AppState(self, like=like, served=served)
 
     def remove_view(self, view: AppState) -> None:
         """Forget a view (its browser left): the worker no longer computes its frames."""
         with self.lock:
-            if view in self._views:
-                self._views.remove(view)
+            for views in (self._views, self._templates):
+                if view in views:
+                    views.remove(view)
 
     @property
     def views(self) -> list[AppState]:
+        """The browsers' views."""
         with self.lock:
             return list(self._views)
+
+    @property
+    def templates(self) -> list[AppState]:
+        """The views no browser shows (``AppState``'s ``served=False``)."""
+        with self.lock:
+            return list(self._templates)
 
     def on_change(self, listener: Callable[[], None]) -> None:
         """Call ``listener`` after every change to the shared state (every view's listeners run too)."""
@@ -175,7 +184,7 @@ class SharedState:
             self.model_revision += 1
             if model is not None:
                 self.params = params_for(model, self.dataset.num_sensors)
-            for view in self._views:
+            for view in self._views + self._templates:
                 view._take_model(model)
             self.suspects = []  # another model's verdicts on the labels
             self.changed.notify_all()
@@ -255,7 +264,9 @@ class AppState:
     after every change to this view or to the shared state (under no lock).
 
     ``AppState(dataset, ...)`` makes a shared state with this as its first view (what a test or a
-    single-user tool wants); ``SharedState.new_view`` makes more.
+    single-user tool wants); ``SharedState.new_view`` makes more. A view made with ``served=False``
+    is a template: the worker does not compute its frames (no browser shows them), it keeps up
+    with model changes, and new views can start ``like`` it.
     """
 
     def __init__(
@@ -266,12 +277,19 @@ class AppState:
         model_name: str = "",
         db=None,
         like: AppState | None = None,
+        served: bool = True,
     ) -> None:
         if isinstance(dataset, SharedState):
             self.shared = dataset
         else:
             self.shared = SharedState(dataset, title, model=model, model_name=model_name, db=db)
+        with self.shared.lock:  # a model change cannot slip in between reading and joining
+            self._init(like, served)
+
+    def _init(self, like: AppState | None, served: bool) -> None:
+        """(Under the lock.)"""
         shared = self.shared
+        self.served = served
         self._listeners: list[Callable[[], None]] = []
         self.frame_index = 0
         self.num_frame_changes = 0
@@ -302,17 +320,15 @@ class AppState:
         self.color_by_match = False
         self._take_model(shared.model)
         if like is not None:
-            with shared.lock:
-                self.frame_index = like.frame_index
-                for name in (
-                    "color_mode", "point_size", "show_boxes", "show_box_names", "max_height",
-                    "score_threshold", "nms_iou", "vote_iou", "use_class_thresholds", "show_suppressed",
-                    "color_by_match",
-                ):  # fmt: skip
-                    setattr(self, name, getattr(like, name))
-                self.layers = dict(like.layers)
-        with shared.lock:
-            shared._views.append(self)
+            self.frame_index = like.frame_index
+            for name in (
+                "color_mode", "point_size", "show_boxes", "show_box_names", "max_height",
+                "score_threshold", "nms_iou", "vote_iou", "use_class_thresholds", "show_suppressed",
+                "color_by_match",
+            ):  # fmt: skip
+                setattr(self, name, getattr(like, name))
+            self.layers = dict(like.layers)
+        (shared._views if served else shared._templates).append(self)
 
     def _take_model(self, model) -> None:
         """The model's thresholds, and no result of another model (under the lock)."""

@@ -73,9 +73,10 @@ class FactorydetApp:
         self.shared = SharedState(dataset, title, model=model, model_name=model_name, db=db)
         if not calibrate:
             self.shared.use_refined_extrinsics = False
-        self.state = self.shared.new_view()
-        """The view no browser owns: each new browser starts like it (its frame, display settings
-        and thresholds), and the worker computes its frame before the first browser connects."""
+        self.state = self.shared.new_view(served=False)
+        """The view no browser owns (a template): each new browser starts like it (its frame,
+        display settings and thresholds), and the worker computes its frame before the first
+        browser connects."""
         server.gui.configure_theme(control_width="medium", dark_mode=False)
         self.trainer = TrainingWorker(self.shared, training, calibrate=calibrate)
         self.clients: dict[int, ClientView] = {}
@@ -111,6 +112,20 @@ class FactorydetApp:
         """A new browser gets its own view (like ``state``), scene and panels."""
         state = self.shared.new_view(like=self.state)
         view = ClientView(client, state)
+        # Registered before it is built: a browser that leaves meanwhile (a reload) is found
+        # and closed by the disconnect callback, which viser may run on another thread.
+        with self._clients_lock:
+            self.clients[client.client_id] = view
+        try:
+            self._build(view)
+        except Exception:
+            self._forget(client.client_id)
+            raise
+        if client.client_id not in self.server.get_clients():  # it left while being built
+            self._forget(client.client_id)
+
+    def _build(self, view: ClientView) -> None:
+        client, state = view.client, view.state
         client.gui.add_markdown("### factorydet", order=0)
         view.view_panels = [
             build_frame_panel(client, state),
@@ -126,8 +141,6 @@ class FactorydetApp:
             view.panels = [labels_panel, review_panel]
             register_hotkeys(view, labels_panel, review_panel)
             build_help_panel(view)
-        with self._clients_lock:
-            self.clients[client.client_id] = view
 
         def redraw() -> None:
             view.redraw()
@@ -139,8 +152,12 @@ class FactorydetApp:
             threading.Thread(target=view.restore_author, name="factorydet-author", daemon=True).start()
 
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        self._forget(client.client_id)
+
+    def _forget(self, client_id: int) -> None:
+        """A browser left: nothing is drawn for it and the worker no longer computes its frames."""
         with self._clients_lock:
-            view = self.clients.pop(client.client_id, None)
+            view = self.clients.pop(client_id, None)
         if view is not None:
             view.closed = True
             view.state.close()

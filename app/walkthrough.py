@@ -172,14 +172,17 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
     return out
 
 
-def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = None) -> dict:
-    """Drive the app through the steps ``repeats`` times; returns the record."""
+def run(
+    data: str, repeats: int = 5, progress: Callable[[str], None] | None = None, retrain: bool = True
+) -> dict:
+    """Drive the app through the steps ``repeats`` times; returns the record. Without ``retrain``
+    the review verdicts and the retrains are left out (minutes instead of a quarter of an hour)."""
     from playwright.sync_api import sync_playwright
 
     dataset = open_dataset(data)
     steps: dict[str, dict[str, list[float]]] = {}
     render: dict = {}
-    retrain: dict = {}
+    retrained: dict = {}
 
     def note(step: str, times: tuple[float, float]) -> None:
         record = steps.setdefault(step, {"stored": [], "shown": []})
@@ -280,7 +283,8 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
                     if progress is not None:
                         progress(f"round {k + 1} of {repeats} done")
                 _prelabels(app, page, view, note, shows)
-                retrain.update(_retrain_and_review(app, page, view, note, shows, progress))
+                if retrain:
+                    retrained.update(_retrain_and_review(app, page, view, note, shows, progress))
                 browser.close()
         finally:
             app.close()
@@ -294,7 +298,7 @@ def run(data: str, repeats: int = 5, progress: Callable[[str], None] | None = No
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
         "browser_render": render,
-        "retrain": retrain,
+        "retrain": retrained,
         "target_next_round_s": TARGET_NEXT_ROUND_S,
         "steps": {
             step: {
@@ -314,8 +318,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", default=None, help="also write the JSON here")
     parser.add_argument("--readme", default=None, help="update the page's walkthrough block (and its record)")
+    parser.add_argument(
+        "--no-retrain",
+        action="store_true",
+        help="leave out the review verdicts and the retrains (edits only)",
+    )
     args = parser.parse_args(argv)
-    record = run(args.data, args.repeats, progress=lambda line: print(line, file=sys.stderr))
+    if args.no_retrain and args.readme:
+        parser.error("--readme records the whole walkthrough: drop --no-retrain")
+    record = run(
+        args.data,
+        args.repeats,
+        progress=lambda line: print(line, file=sys.stderr),
+        retrain=not args.no_retrain,
+    )
     record["command"] = "python -m app.walkthrough " + " ".join(argv if argv is not None else sys.argv[1:])
     text = json.dumps(record, indent=2)
     print(text)

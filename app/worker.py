@@ -28,12 +28,15 @@ from factorydet_core.session.world import session_world
 from .state import AppState, SharedState
 
 CACHED_RESULTS = 3
-"""Results kept: the shown frame's and its next and previous frames' (computed ahead). A result
+"""Results kept per browser: its frame's and its next and previous frames' (computed ahead). A result
 keeps its voxels' colours, not their 3DmFV, and the proposals' 3DmFV only for a model that reads
 them (a box head's detections carry none)."""
 
 PREFETCH_OFFSETS = (1, -1)
 """Frames computed ahead, relative to the shown one, in this order."""
+
+MAX_CACHED_RESULTS = 12
+"""Results kept at most, however many browsers are connected (``CACHED_RESULTS`` each)."""
 
 
 class _GaveWayError(Exception):
@@ -123,16 +126,46 @@ class PipelineWorker:
             return sorted(key[0] for key in self._cache if key[1:] == current)
 
     def _views(self) -> list[AppState]:
-        """The shared state's views, the latest to ask first."""
-        views = self.shared.views
+        """The shared state's views, the latest to ask first; before any browser connects, its
+        templates (the frame a new browser opens on is then computed ahead of it)."""
+        views = self.shared.views or self.shared.templates
         with self._wake:
             self._asked = [view for view in self._asked if view in views]
             asked = list(self._asked)
         return asked + [view for view in views if view not in asked]
 
     def _wanting(self, key: tuple) -> list[AppState]:
-        """The views that ask for ``key`` now."""
-        return [view for view in self.shared.views if view.pipeline_key() == key]
+        """The views that ask for ``key`` now and do not show it yet (the templates before any
+        browser connects)."""
+        out = []
+        for view in self.shared.views or self.shared.templates:
+            with view.lock:
+                if view.pipeline_key() == key and view.pipeline_result_key != key:
+                    out.append(view)
+        return out
+
+    def _shown_elsewhere(self, key: tuple) -> tuple | None:
+        """``(kind, result, status)`` of a view that shows ``key`` already (its cache entry may
+        have gone): another browser coming to that frame takes it, nothing is computed again."""
+        for view in self.shared.views:
+            with view.lock:
+                if view.pipeline_result_key != key or view.pipeline_result is None:
+                    continue
+                detection = view.detection_result
+                if detection is not None and detection.proposal is view.pipeline_result:
+                    return "detection", detection, view.pipeline_status
+                if self.shared.model is None:
+                    return "proposal", view.pipeline_result, view.pipeline_status
+        return None
+
+    def _release_others(self) -> None:
+        """Views that came back to the result they show while another frame computed are not
+        busy any more."""
+        for view in self.shared.views:
+            with view.lock:
+                back_to_shown = view.pipeline_busy and view.pipeline_result_key == view.pipeline_key()
+            if back_to_shown:
+                view.set_pipeline_progress("showing the current result", 1.0, busy=False)
 
     def _publish_cached(self, view: AppState, key: tuple) -> bool:
         with self._cache_lock:
@@ -140,9 +173,12 @@ class PipelineWorker:
             if entry is not None:
                 self._cache.move_to_end(key)
         if entry is None:
-            return False
+            entry = self._shown_elsewhere(key)
+            if entry is None:
+                return False
+            self._remember(key, *entry)
         kind, result, status = entry
-        self._show(view, key, kind, result, f"{status} (from the cache)")
+        self._show(view, key, kind, result, f"{status.removesuffix(' (from the cache)')} (from the cache)")
         return True
 
     @staticmethod
@@ -154,13 +190,22 @@ class PipelineWorker:
             view.set_pipeline_result(key, result, status)
 
     def _remember(self, key: tuple, kind: str, result, status: str) -> None:
-        # Each view's frame and its neighbours stay cached.
-        capacity = CACHED_RESULTS * max(1, len(self.shared.views))
+        """Cache a result; beyond ``MAX_CACHED_RESULTS``, the least recently used one that is not
+        a view's frame or its neighbour goes first (one browser flipping through frames does not
+        evict another's)."""
+        views = self.shared.views or self.shared.templates
+        wanted = {
+            (view.frame_index + offset, *view.pipeline_key()[1:])
+            for view in views
+            for offset in (0, *PREFETCH_OFFSETS)
+        }
+        capacity = min(MAX_CACHED_RESULTS, CACHED_RESULTS * max(1, len(views)))
         with self._cache_lock:
             self._cache[key] = (kind, result, status)
             self._cache.move_to_end(key)
             while len(self._cache) > capacity:
-                self._cache.popitem(last=False)
+                spare = next((k for k in self._cache if k not in wanted), next(iter(self._cache)))
+                del self._cache[spare]
 
     def stop(self) -> None:
         with self._wake:
@@ -186,6 +231,7 @@ class PipelineWorker:
                     traceback.print_exc()
                     for wanting in self._wanting(key):
                         wanting.set_pipeline_failed(key, f"failed: {exc}")
+                    self._release_others()
                 with self._wake:
                     if self._pending:  # someone asked meanwhile: serve the latest first
                         break
@@ -280,16 +326,12 @@ class PipelineWorker:
             status += f"; classified and NMS in {detection.timings_ms['total'] / 1000:.1f} s in all"
         kind, kept = ("proposal", result) if detection is None else ("detection", detection)
         self._remember(key, kind, kept, status)
-        for view in self.shared.views:
-            if view.pipeline_key() == key:
-                self._show(view, key, kind, kept, status)
-            elif not ahead:
-                # That view moved on (a newer request is queued), unless it came back to the
-                # frame and parameters of the result it shows, which is then current again.
-                with view.lock:
-                    back_to_shown = view.pipeline_busy and view.pipeline_result_key == view.pipeline_key()
-                if back_to_shown:
-                    view.set_pipeline_progress("showing the current result", 1.0, busy=False)
+        for view in self._wanting(key):
+            self._show(view, key, kind, kept, status)
+        if not ahead:
+            # A view that moved on has a newer request queued, unless it came back to the frame
+            # and parameters of the result it shows, which is then current again.
+            self._release_others()
 
 
 def place_frames(state: SharedState, extrinsics: Callable[[], object] | None = None) -> None:
@@ -306,7 +348,8 @@ def place_frames(state: SharedState, extrinsics: Callable[[], object] | None = N
     # with them, so it starts once a view shows them (or they failed), or after a minute anyway.
     state.wait_for(
         lambda: any(
-            view.pipeline_result is not None or view.pipeline_failed_key is not None for view in state.views
+            view.pipeline_result is not None or view.pipeline_failed_key is not None
+            for view in state.views + state.templates
         ),
         60.0,
     )

@@ -151,3 +151,40 @@ def test_each_view_gets_its_own_frame_and_views_of_one_frame_share_its_run(small
         assert other not in state.shared.views and state.frame_index == 0
     finally:
         worker.stop()
+
+
+def test_a_template_is_computed_only_before_any_browser_and_a_shown_frame_is_not_recomputed(
+    small_dataset_dir, monkeypatch
+):
+    computed, _ = _record_propose(monkeypatch)
+    template = AppState(open_dataset(small_dataset_dir), served=False)  # what the app opens with
+    shared = template.shared
+    worker = PipelineWorker(shared, calibrate=False)
+    _wire(template, worker)
+    try:
+        worker.request()
+        assert wait(lambda: {0, 1} <= set(worker.cached_frames(template)), timeout=120)
+        view = shared.new_view(like=template)  # a browser comes: frame 0 is there already
+        _wire(view, worker)
+        worker.maybe_request(view)
+        assert view.pipeline_result_key[0] == 0 and computed == ["frame_00000", "frame_00001"]
+        view.set_frame(2)
+        assert view.wait_for(lambda: view.pipeline_result_key[0] == 2, timeout=120)
+        view.set_selection("a patch")
+        # Another browser comes to the same frame after its cache entry went: it takes the shown
+        # result; nothing is computed again and the first browser's selection stays.
+        with worker._cache_lock:
+            worker._cache.clear()
+        other = shared.new_view(like=view)
+        _wire(other, worker)
+        worker.maybe_request(other)
+        assert other.pipeline_result is view.pipeline_result and computed.count("frame_00002") == 1
+        assert view.selection_markdown == "a patch"
+        # The template's frame is nobody's now: a change of parameters computes only the browsers'.
+        assert wait(lambda: worker.idle, timeout=120)
+        del computed[:]
+        shared.set_params(merge_threshold=0.5)
+        assert wait(lambda: worker.idle and view.pipeline_result_key[1] == shared.params, timeout=120)
+        assert computed[0] == "frame_00002" and "frame_00000" not in computed[:2]
+    finally:
+        worker.stop()
