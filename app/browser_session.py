@@ -13,6 +13,7 @@ is told (``EditConflictError``).
 from __future__ import annotations
 
 import collections
+import contextlib
 import secrets
 import sqlite3
 import threading
@@ -134,6 +135,11 @@ class BrowserSession:
         """Tell the person something (a refused edit is an error)."""
         self.messages.append((title, body, error))
 
+    def batched(self) -> contextlib.AbstractContextManager:
+        """A block whose updates this browser receives at once, after it ends (one render of
+        its scene instead of one per update: under software WebGL each costs half a second)."""
+        return contextlib.nullcontext()
+
     def look_at_box(self, box) -> None:
         """Put this browser's camera on ``box`` (7,)."""
 
@@ -162,6 +168,10 @@ class BrowserSession:
             reload_selection: after a conflict, take in the selected label as it is now (the
                 conflict was about it). Off for an undo, whose conflict may be about any label.
         """
+        with self.batched():
+            return self._guarded_now(action, what, reload_selection)
+
+    def _guarded_now(self, action: Callable[[], object], what: str, reload_selection: bool) -> object:
         try:
             result = action()
         except EditConflictError as exc:

@@ -5,7 +5,9 @@ and the dimmed scan while reviewing (viser)."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
+import time
 
 import numpy as np
 import viser
@@ -52,6 +54,10 @@ class ClientView(BrowserSession):
         self._layers_key: tuple | None = None
         self._detections_key: tuple | None = None
         self._refresh_key: tuple | None = None
+        self._batch_lock = threading.Lock()
+        self._open_batches = 0
+        self.sent_at = 0.0
+        self.key_received_at = 0.0  # when the server received this browser's last hotkey
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
 
     def redraw(self) -> None:
@@ -59,7 +65,7 @@ class ClientView(BrowserSession):
         if self.closed:
             return
         state = self.state
-        with self._draw_lock:
+        with self._draw_lock, self.batched():
             with state.lock:
                 # Colours from the labels follow every edit: the session's revision is part of the key.
                 by_labels = state.color_mode in ("class", "annotated") and state.editable
@@ -159,6 +165,26 @@ class ClientView(BrowserSession):
             self.client.send_file_download(name, content, save_immediately=True)
             self.notify("Export labels", f"{name}: {len(content):,} bytes, every frame's labels.")
 
+    @contextlib.contextmanager
+    def batched(self):
+        with self._batch_lock:
+            self._open_batches += 1
+        try:
+            with self.client.atomic():
+                yield
+        finally:
+            with self._batch_lock:
+                self._open_batches -= 1
+                if self._open_batches == 0:
+                    self.sent_at = time.perf_counter()
+
+    @property
+    def sending(self) -> bool:
+        """Whether a batch of updates for this browser is still being made (nothing of it is
+        sent until it ends, at ``sent_at``, a ``time.perf_counter`` reading)."""
+        with self._batch_lock:
+            return self._open_batches > 0
+
     def notify(self, title: str, body: str, error: bool = False) -> None:
         super().notify(title, body, error)
         if self.closed:
@@ -190,7 +216,7 @@ class ClientView(BrowserSession):
         """Bring this browser's panels and highlights up to date."""
         if self.closed:
             return
-        with self._refresh_lock:
+        with self._refresh_lock, self.batched():
             self.follow_object()
             self._draw_highlights()
             for panel in self.panels:

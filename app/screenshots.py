@@ -49,11 +49,14 @@ for (const el of document.querySelectorAll('[class*="Notification-root"], [role=
 screenshots' scene."""
 
 
-def open_app_page(pw, app: FactorydetApp, width: int, height: int) -> tuple:
+def open_app_page(pw, app: FactorydetApp, width: int, height: int, init_script: str | None = None) -> tuple:
     """Headless Chromium on ``app``'s page, once it is connected: ``(browser, page, the page's
-    ClientView)``."""
+    ClientView)``; ``init_script`` runs in the page before the app's own scripts."""
     browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-    page = browser.new_context(viewport={"width": width, "height": height}).new_page()
+    context = browser.new_context(viewport={"width": width, "height": height})
+    if init_script is not None:
+        context.add_init_script(init_script)
+    page = context.new_page()
     page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
     page.wait_for_selector("canvas[data-engine]", timeout=60_000)
     wait_until(lambda: app.clients, 60, "the browser")

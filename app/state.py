@@ -30,6 +30,26 @@ LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals
 """The detection layers the app can draw, in panel order."""
 
 
+def select_with(candidates: Detections, kind: str, args: tuple) -> Detections:
+    """A view's selection of a frame's candidates: ``kind`` "shown" with ``AppState.selection_args``
+    (suppressed ones included, as ``select_detections`` gives them), or "floor" with
+    ``AppState.floor_args`` (the kept ones only, for the metrics)."""
+    if kind == "shown":
+        score, nms_iou, per_class, vote_iou = args
+        return select_detections(
+            candidates,
+            score,
+            nms_iou,
+            class_score_thresholds=None if per_class is None else np.asarray(per_class),
+            vote_iou=vote_iou,
+        )
+    if kind == "floor":
+        floor, nms_iou, vote_iou = args
+        selected = select_detections(candidates, floor, nms_iou, vote_iou=vote_iou)
+        return selected.subset(selected.kept_mask)
+    raise ValueError(f"unknown selection {kind!r}")
+
+
 def _vote_slider_value(model) -> float:
     """The box voting IoU a model asks for, 0 when it switches voting off (``vote_iou: null``)."""
     if model is None:
@@ -339,6 +359,7 @@ class AppState:
         # The model's own threshold per class, until someone moves the score slider.
         self.use_class_thresholds = model is not None and model.class_thresholds() is not None
         self.detection_result: DetectionResult | None = None
+        self._selections: dict = {}  # the shown frame's selections made ahead, by ("shown"/"floor", *args)
         self.detection_frame_index = 0
         self.detections: Detections | None = None
         self.frame_detections: dict[int, dict] = {}  # frame -> candidates and labels, for metrics
@@ -506,20 +527,33 @@ class AppState:
         self.num_results += 1
         self.changed.notify_all()
 
-    def set_detection_result(self, key: tuple, result: DetectionResult, status: str) -> None:
+    def set_detection_result(
+        self, key: tuple, result: DetectionResult, status: str, selections: dict | None = None
+    ) -> None:
         """A new frame's detections: filter them by the sliders, add the frame to the metrics, and
-        make its front half the shown result, all at once."""
+        make its front half the shown result, all at once.
+
+        Args:
+            selections: ``{selection arguments: Detections}`` of ``result`` made ahead (the
+                worker's ``selections_ahead``); a view whose sliders ask for one of them runs no NMS.
+        """
+        selections = selections or {}
         with self.lock:
             # Read under the lock, so an edit's session_changed cannot slip in between.
             boxes, class_ids, ignore_boxes = self.references(key[0])
             self.detection_result = result
             self.detection_frame_index = key[0]
-            self.frame_detections[key[0]] = {
+            self._selections = selections
+            item = {
                 "candidates": result.candidates,
                 "reference_boxes": boxes,
                 "reference_class_ids": class_ids,
                 "ignore_boxes": ignore_boxes,
             }
+            floor_args = ("floor", *self.floor_args())
+            if floor_args in selections:
+                item["floor"], item["floor_key"] = selections[floor_args], floor_args[1:]
+            self.frame_detections[key[0]] = item
             self._refilter()
             self._set_result(key, result.proposal, status)
         self._notify()
@@ -550,21 +584,33 @@ class AppState:
         self._select_shown()
         self._update_metrics()
 
+    def selection_args(self) -> tuple:
+        """``(score_threshold, nms_iou, per-class thresholds (a tuple) or None, vote_iou or None)``:
+        how this view selects the shown detections (``select_with``)."""
+        with self.lock:
+            per_class = self.class_thresholds()
+            return (
+                self.score_threshold,
+                self.nms_iou,
+                None if per_class is None else tuple(float(t) for t in per_class),
+                self._vote_iou(),
+            )
+
+    def floor_args(self) -> tuple:
+        """``(score floor, nms_iou, vote_iou or None)``: how this view selects each viewed frame's
+        detections for the metrics (down to the AP floor)."""
+        with self.lock:
+            return (min(AP_SCORE_FLOOR, self.score_threshold), self.nms_iou, self._vote_iou())
+
     def _select_shown(self) -> None:
         """The shown frame's detections at the current thresholds (under the lock)."""
         result = self.detection_result
-        per_class = self.class_thresholds()
-        self.detections = (
-            None
-            if result is None
-            else select_detections(
-                result.candidates,
-                self.score_threshold,
-                self.nms_iou,
-                class_score_thresholds=per_class,
-                vote_iou=self._vote_iou(),
-            )
-        )
+        args = self.selection_args()
+        ahead = self._selections.get(("shown", *args))
+        if result is None:
+            self.detections = None
+        else:
+            self.detections = ahead if ahead is not None else select_with(result.candidates, "shown", args)
 
     def _update_metrics(self) -> None:
         """The metrics over the frames viewed (under the lock). Each frame's detections down to the
@@ -575,13 +621,13 @@ class AppState:
             self.metrics = None
             return
         scored = []
-        floor_key = (min(AP_SCORE_FLOOR, self.score_threshold), self.nms_iou, self._vote_iou())
+        floor_key = self.floor_args()
         for item in self.frame_detections.values():
             if item.get("floor_key") != floor_key:
-                floor = select_detections(
-                    item["candidates"], floor_key[0], floor_key[1], vote_iou=floor_key[2]
+                item["floor"], item["floor_key"] = (
+                    select_with(item["candidates"], "floor", floor_key),
+                    floor_key,
                 )
-                item["floor"], item["floor_key"] = floor.subset(floor.kept_mask), floor_key
             kept = item["floor"]
             scored.append(
                 {

@@ -54,16 +54,55 @@ def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
 
 
 def _timed(
-    action: Callable[[], None], stored: Callable[[], bool], shown: Callable[[], None]
-) -> tuple[float, float]:
-    """Milliseconds from ``action`` until the server has ``stored`` its effect (polled) and until
-    the page has ``shown`` it."""
+    view, action: Callable[[], None], stored: Callable[[], bool], shown: Callable[[], None]
+) -> tuple[float, float, float]:
+    """Milliseconds from ``action`` (a key press) until the server has ``stored`` its effect
+    (polled) and until the page has ``shown`` it, and the server's own share: from receiving the
+    key to having sent the browser ``view`` everything it changed (the end of its batch of
+    updates). The rest is the browser's: delivering the key, rendering, showing."""
     start = time.perf_counter()
     action()
     _wait(stored, 60, "the edit stored")
     stored_at = time.perf_counter()
+    _wait(lambda: not view.sending and view.key_received_at > start, 60, "the updates sent")
+    sent_at = max(view.sent_at, view.key_received_at)
     shown()
-    return 1000.0 * (stored_at - start), 1000.0 * (time.perf_counter() - start)
+    end = time.perf_counter()
+    server = sent_at - view.key_received_at
+    return 1000.0 * (stored_at - start), 1000.0 * server, 1000.0 * (end - start)
+
+
+DRAW_LOG = """
+window.__factorydetDraws = [];
+for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.prototype]) {
+  for (const name of ['drawArrays', 'drawElements', 'drawArraysInstanced', 'drawElementsInstanced']) {
+    const original = proto[name];
+    if (!original) continue;
+    proto[name] = function (...args) {
+      window.__factorydetDraws.push(performance.now());
+      return original.apply(this, args);
+    };
+  }
+}
+"""
+"""An init script that logs the time of every WebGL draw call (a render of the scene is a burst)."""
+
+
+def _scene_render_ms(page, view, seconds: float = 5.0) -> float | None:
+    """Median milliseconds between renders of the app's scene while the camera moves (a render
+    per move asked for): what one render costs this browser (software WebGL headless)."""
+    camera = view.client.camera
+    position = tuple(camera.position)
+    page.evaluate("window.__factorydetDraws = []")
+    start, k = time.perf_counter(), 0
+    while time.perf_counter() - start < seconds:
+        camera.position = (position[0] + 0.01 * (k % 2), position[1], position[2])
+        k += 1
+        time.sleep(0.05)
+    camera.position = position
+    draws = page.evaluate("window.__factorydetDraws")
+    renders = [t for k, t in enumerate(draws) if k == 0 or t - draws[k - 1] > 20.0]  # a burst's first call
+    return round(float(np.median(np.diff(renders))), 1) if len(renders) > 2 else None
 
 
 def _render_cost(page, view, repeats: int = 5) -> dict:
@@ -101,6 +140,7 @@ def _prelabels(app, page, view, note, shows) -> None:
     note(
         "pre-label the frame (M)",
         _timed(
+            view,
             lambda: page.keyboard.press("m"),
             lambda: len(db.unreviewed_labels()) > before,
             lambda: shows(f"{len(db.unreviewed_labels())} pre-label(s) wait")(),
@@ -111,6 +151,7 @@ def _prelabels(app, page, view, note, shows) -> None:
     note(
         "confirm a pre-label (Enter)",
         _timed(
+            view,
             lambda: page.keyboard.press("Enter"),
             lambda: db.label(waiting[0].id).reviewed,
             lambda: shows(
@@ -164,7 +205,7 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
 
         note(
             "review verdict (B / X)",
-            _timed(lambda key=key: page.keyboard.press(key), judged, next_item_shown),
+            _timed(view, lambda key=key: page.keyboard.press(key), judged, next_item_shown),
         )
     out["next_round_shown_s"] = round(_train_from_the_page(app, page, 3600), 1)
     if progress is not None:
@@ -185,11 +226,14 @@ def run(
     retrained: dict = {}
 
     def note(step: str, times: tuple[float, float]) -> None:
-        record = steps.setdefault(step, {"stored": [], "shown": []})
-        record["stored"].append(round(times[0], 1))
-        record["shown"].append(round(times[1], 1))
+        record = steps.setdefault(step, {"stored": [], "server": [], "shown": []})
+        for name, value in zip(("stored", "server", "shown"), times):
+            record[name].append(round(value, 1))
         if progress is not None:
-            progress(f"{step}: stored after {times[0]:.0f} ms, shown after {times[1]:.0f} ms")
+            progress(
+                f"{step}: stored after {times[0]:.0f} ms, the server's share {times[1]:.0f} ms,"
+                f" shown after {times[2]:.0f} ms"
+            )
 
     with tempfile.TemporaryDirectory() as root:
         db = SessionDB(open_session("walkthrough", root), dataset)
@@ -198,13 +242,14 @@ def run(
         app = FactorydetApp(server, dataset, model=model, model_name="shipped default", db=db)
         try:
             with sync_playwright() as pw:
-                browser, page, view = open_app_page(pw, app, 1400, 1400)
+                browser, page, view = open_app_page(pw, app, 1400, 1400, init_script=DRAW_LOG)
                 _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
                 _wait(lambda: view.layers.detection_source[0] is not None, 600, "the first detections")
                 canvas = page.locator("canvas[data-engine]")
                 canvas.click(position={"x": 5, "y": 5})  # keys go to the page, not a panel
                 _wait(lambda: app.worker.idle, 600, "the frames ahead")
                 render.update(_render_cost(page, view))
+                render["scene_render_ms"] = _scene_render_ms(page, view)
 
                 def shows(text: str) -> Callable[[], None]:
                     return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
@@ -236,6 +281,7 @@ def run(
                         note(
                             step,
                             _timed(
+                                view,
                                 lambda key=key: page.keyboard.press(key),
                                 lambda version=version, label_id=label.id: (
                                     db.label(label_id).version >= version
@@ -257,6 +303,7 @@ def run(
                     note(
                         "accept suggested box (G)",
                         _timed(
+                            view,
                             lambda: page.keyboard.press("g"),
                             lambda new_ids=new_ids: bool(new_ids()),
                             accepted,
@@ -275,6 +322,7 @@ def run(
                     note(
                         "frame change with its detections (PageDown)",
                         _timed(
+                            view,
                             lambda: page.keyboard.press("PageDown"),
                             lambda t=target: view.layers.detection_source[1] == t,
                             shows(f"{target + 1} / {dataset.num_frames}"),
@@ -303,6 +351,8 @@ def run(
         "steps": {
             step: {
                 "stored_median_ms": round(statistics.median(values["stored"]), 1),
+                "server_median_ms": round(statistics.median(values["server"]), 1),
+                "server_max_ms": round(max(values["server"]), 1),
                 "shown_median_ms": round(statistics.median(values["shown"]), 1),
                 "shown_max_ms": round(max(values["shown"]), 1),
                 "runs": values,

@@ -25,7 +25,7 @@ from factorydet_core.detection.detector import Detector
 from factorydet_core.proposals.voxels import voxel_colors
 from factorydet_core.session.world import session_world
 
-from .state import AppState, SharedState
+from .state import AppState, SharedState, select_with
 
 CACHED_RESULTS = 3
 """Results kept per browser: its frame's and its next and previous frames' (computed ahead). A result
@@ -145,7 +145,7 @@ class PipelineWorker:
         return out
 
     def _shown_elsewhere(self, key: tuple) -> tuple | None:
-        """``(kind, result, status)`` of a view that shows ``key`` already (its cache entry may
+        """``(kind, result, status, selections)`` of a view that shows ``key`` already (its cache entry may
         have gone): another browser coming to that frame takes it, nothing is computed again."""
         for view in self.shared.views:
             with view.lock:
@@ -153,10 +153,18 @@ class PipelineWorker:
                     continue
                 detection = view.detection_result
                 if detection is not None and detection.proposal is view.pipeline_result:
-                    return "detection", detection, view.pipeline_status
+                    return "detection", detection, view.pipeline_status, dict(view._selections)
                 if self.shared.model is None:
-                    return "proposal", view.pipeline_result, view.pipeline_status
+                    return "proposal", view.pipeline_result, view.pipeline_status, {}
         return None
+
+    def _selections_ahead(self, candidates) -> dict:
+        """``{(kind, *args): Detections}``: each view's (and template's) selection of a frame's
+        ``candidates``, shown and for the metrics (``state.select_with``)."""
+        views = self.shared.views + self.shared.templates
+        wanted = {("shown", *view.selection_args()) for view in views}
+        wanted |= {("floor", *view.floor_args()) for view in views}
+        return {args: select_with(candidates, args[0], args[1:]) for args in wanted}
 
     def _release_others(self) -> None:
         """Views that came back to the result they show while another frame computed are not
@@ -177,19 +185,20 @@ class PipelineWorker:
             if entry is None:
                 return False
             self._remember(key, *entry)
-        kind, result, status = entry
-        self._show(view, key, kind, result, f"{status.removesuffix(' (from the cache)')} (from the cache)")
+        kind, result, status, selections = entry
+        status = f"{status.removesuffix(' (from the cache)')} (from the cache)"
+        self._show(view, key, kind, result, status, selections)
         return True
 
     @staticmethod
-    def _show(view: AppState, key: tuple, kind: str, result, status: str) -> None:
+    def _show(view: AppState, key: tuple, kind: str, result, status: str, selections: dict) -> None:
         """Make ``result`` (a "detection" or a "proposal" result) ``view``'s shown one."""
         if kind == "detection":
-            view.set_detection_result(key, result, status)
+            view.set_detection_result(key, result, status, selections)
         else:
             view.set_pipeline_result(key, result, status)
 
-    def _remember(self, key: tuple, kind: str, result, status: str) -> None:
+    def _remember(self, key: tuple, kind: str, result, status: str, selections: dict) -> None:
         """Cache a result; beyond ``MAX_CACHED_RESULTS``, the least recently used one that is not
         a view's frame or its neighbour goes first (one browser flipping through frames does not
         evict another's)."""
@@ -201,16 +210,20 @@ class PipelineWorker:
         }
         capacity = min(MAX_CACHED_RESULTS, CACHED_RESULTS * max(1, len(views)))
         with self._cache_lock:
-            self._cache[key] = (kind, result, status)
+            self._cache[key] = (kind, result, status, selections)
             self._cache.move_to_end(key)
             while len(self._cache) > capacity:
                 spare = next((k for k in self._cache if k not in wanted), next(iter(self._cache)))
                 del self._cache[spare]
 
-    def stop(self) -> None:
+    def stop(self, timeout: float | None = None) -> None:
+        """Stop the thread after its current frame; with ``timeout``, wait for it that long (a
+        computation ahead stops at its next stage)."""
         with self._wake:
             self._stopped = True
             self._wake.notify()
+        if timeout is not None:
+            self._thread.join(timeout)
 
     def _run(self) -> None:
         while True:
@@ -233,7 +246,7 @@ class PipelineWorker:
                         wanting.set_pipeline_failed(key, f"failed: {exc}")
                     self._release_others()
                 with self._wake:
-                    if self._pending:  # someone asked meanwhile: serve the latest first
+                    if self._pending or self._stopped:  # someone asked meanwhile: the latest first
                         break
             else:
                 self._compute_ahead()
@@ -325,9 +338,12 @@ class PipelineWorker:
         if detection is not None:
             status += f"; classified and NMS in {detection.timings_ms['total'] / 1000:.1f} s in all"
         kind, kept = ("proposal", result) if detection is None else ("detection", detection)
-        self._remember(key, kind, kept, status)
+        # The views' selections of the detections, made here in the background: a frame change
+        # then runs no NMS on the GUI's thread.
+        selections = {} if detection is None else self._selections_ahead(detection.candidates)
+        self._remember(key, kind, kept, status, selections)
         for view in self._wanting(key):
-            self._show(view, key, kind, kept, status)
+            self._show(view, key, kind, kept, status, selections)
         if not ahead:
             # A view that moved on has a newer request queued, unless it came back to the frame
             # and parameters of the result it shows, which is then current again.

@@ -106,7 +106,7 @@ def box_wireframe_segments(boxes: np.ndarray) -> np.ndarray:
     return box_corners(boxes)[:, BOX_EDGES].reshape(-1, 2, 3)
 
 
-def box_dashed_segments(boxes: np.ndarray, num_dashes: int = 4) -> np.ndarray:
+def box_dashed_segments(boxes: np.ndarray, num_dashes: int = 2) -> np.ndarray:
     """Edges of (M, 7) boxes as dashes, (M * 12 * num_dashes, 2, 3): each edge cut in ``num_dashes``
     equal parts, the first half of each drawn (how the app tells a detection from a label)."""
     if num_dashes < 1:

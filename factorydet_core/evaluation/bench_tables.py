@@ -546,23 +546,46 @@ def walkthrough_markdown(result: dict) -> str:
             [
                 step,
                 fmt(figures["stored_median_ms"]),
+                fmt(figures.get("server_median_ms")),
                 fmt(figures["shown_median_ms"]),
                 fmt(figures["shown_max_ms"]),
                 fmt(target),
             ]
         )
     render = result.get("browser_render") or {}
-    header = ["step", "stored (server), median ms", "shown (page), median ms", "shown, max ms", "target ms"]
+    header = [
+        "step",
+        "stored (server), median ms",
+        "server's share, median ms",
+        "shown (page), median ms",
+        "shown, max ms",
+        "target ms",
+    ]
+    scene = render.get("scene_render_ms")
+    alone, with_scene = (
+        render.get("notification_alone_median_ms"),
+        render.get("with_a_scene_change_median_ms"),
+    )
+    scene_text = (
+        f" One render of the scene takes this browser {fmt(scene)} ms (the median time between renders"
+        " while the camera moves), and a change shows after the renders it causes."
+        if scene is not None
+        else ""
+    )
     return (
         table(header, rows)
         + f"\n\n{result['repeats']} rounds of key presses in headless Chromium on `{result['data']}` with"
         " the shipped model and label once on (an edit reaches every frame that shows the object), once"
         " the frames ahead are computed; 'stored' is when the database holds the edit (for a frame"
-        " change: its cached detections drawn into the scene), 'shown' when the page shows it. In this"
-        f" browser a notification alone takes {fmt(render.get('notification_alone_median_ms'))} ms to"
-        f" show and {fmt(render.get('with_a_scene_change_median_ms'))} ms with a scene change in the same"
-        " update: headless Chromium renders the scene's 80k points in software WebGL before it shows"
-        " anything else, which a browser with a GPU does in milliseconds." + _retrain_text(result) + "\n"
+        " change: its cached detections drawn into the scene) and 'shown' when the page shows it, both"
+        " from the key press; 'server's share' is the app's own latency, from the server receiving the"
+        " key to its having sent the browser everything the key changed (one batch of updates); the"
+        " rest is the browser's (delivering the key, rendering, showing)."
+        f" In this browser a notification alone takes {fmt(alone)}"
+        f" ms to show and {fmt(with_scene)} ms with a scene change in the"
+        " same update: headless Chromium renders the scene (80k points, the boxes) in software WebGL, on"
+        " the two cores the server uses too, before it shows anything else; a browser with a GPU does"
+        " that in milliseconds." + scene_text + _retrain_text(result) + "\n"
     )
 
 

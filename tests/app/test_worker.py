@@ -9,6 +9,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from app.state import AppState
 from app.worker import PipelineWorker
@@ -46,7 +47,7 @@ def test_a_failing_run_is_reported_once_and_retried_only_after_a_change(small_da
         time.sleep(0.5)
         assert len(calls) == 2
     finally:
-        worker.stop()
+        worker.stop(timeout=120)  # its frame's work must not reach the next test's records
 
 
 def _record_propose(monkeypatch, hold_frame_1: threading.Event | None = None) -> tuple[list, threading.Event]:
@@ -79,7 +80,7 @@ def _running_worker(dataset_dir, release: threading.Event | None = None):
     finally:
         if release is not None:
             release.set()
-        worker.stop()
+        worker.stop(timeout=120)  # its frame's work must not reach the next test's records
 
 
 def test_coming_back_to_the_shown_frame_clears_the_busy_state(small_dataset_dir, monkeypatch):
@@ -150,7 +151,7 @@ def test_each_view_gets_its_own_frame_and_views_of_one_frame_share_its_run(small
         other.close()
         assert other not in state.shared.views and state.frame_index == 0
     finally:
-        worker.stop()
+        worker.stop(timeout=120)  # its frame's work must not reach the next test's records
 
 
 def test_a_template_is_computed_only_before_any_browser_and_a_shown_frame_is_not_recomputed(
@@ -187,4 +188,43 @@ def test_a_template_is_computed_only_before_any_browser_and_a_shown_frame_is_not
         assert wait(lambda: worker.idle and view.pipeline_result_key[1] == shared.params, timeout=120)
         assert computed[0] == "frame_00002" and "frame_00000" not in computed[:2]
     finally:
-        worker.stop()
+        worker.stop(timeout=120)  # its frame's work must not reach the next test's records
+
+
+@pytest.mark.slow
+def test_a_cached_frame_shows_its_detections_selected_ahead(small_dataset_dir, tiny_model_path, monkeypatch):
+    from app import state as state_module
+    from factorydet_core.detection.model import DetectionModel
+
+    model = DetectionModel.load(tiny_model_path)
+    state = AppState(open_dataset(small_dataset_dir), model=model, model_name="tiny")
+    worker = PipelineWorker(state.shared, calibrate=False)
+    _wire(state, worker)
+    try:
+        worker.request()
+        assert wait(lambda: 1 in worker.cached_frames(state), timeout=300), worker.cached_frames(state)
+        here, original = [], state_module.select_detections
+
+        def counting(*args, **kwargs):
+            if threading.current_thread() is threading.main_thread():
+                here.append(1)
+            return original(*args, **kwargs)
+
+        monkeypatch.setattr(state_module, "select_detections", counting)
+        state.set_frame(1)
+        # Shown from the cache with its selections made in the background: no NMS on this thread.
+        assert state.detection_frame_index == 1 and here == []
+        expected = state_module.select_with(
+            state.detection_result.candidates, "shown", state.selection_args()
+        )
+        np.testing.assert_array_equal(state.detections.boxes, expected.boxes)
+        np.testing.assert_array_equal(state.detections.suppressed_by, expected.suppressed_by)
+        floor = state.frame_detections[1]["floor"]
+        expected_floor = state_module.select_with(
+            state.detection_result.candidates, "floor", state.floor_args()
+        )
+        np.testing.assert_array_equal(floor.boxes, expected_floor.boxes)
+        state.set_detection_filter(score_threshold=0.2)  # other sliders: selected now, here
+        assert here
+    finally:
+        worker.stop(timeout=120)
