@@ -115,6 +115,8 @@ class BrowserSession:
         self.current_item_id: int | None = None
         self.dim = True
         self.queue: list[dict] = []
+        self._queue_read: tuple | None = None  # ((revision, class, frame), the session's queue)
+        self._places: tuple | None = None  # ((revision, world, item ids), group_by_place's places)
         self.suspect_index = -1
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
         """The latest notifications given, ``(title, body, error)``, oldest first."""
@@ -618,14 +620,25 @@ class BrowserSession:
     # -- review queue
 
     def load_queue(self) -> list[dict]:
+        """The review queue as this browser's filters show it (``queue``). The session's queue and
+        its grouping by place are read again only after a write to the session (its revision) or
+        another filter: a verdict's refreshes read them once, not once each."""
         if self.state.db is None:
             return []
         with self.lock:
             filter_class, filter_frame, pending = self.filter_class, self.filter_frame, self.pending_only
             hide_labelled, current_id = self.hide_labelled, self.current_item_id
-        queue = self.state.db.review_queue(
-            predicted_class=filter_class, frame_index=filter_frame, pending_only=False
-        )
+        with self.state.lock:
+            revision = self.state.revision
+        read_key = (revision, filter_class, filter_frame)
+        cached = self._queue_read
+        if cached is not None and cached[0] == read_key:
+            queue = cached[1]
+        else:
+            queue = self.state.db.review_queue(
+                predicted_class=filter_class, frame_index=filter_frame, pending_only=False
+            )
+            self._queue_read = (read_key, queue)
         # The shown item stays, though a verdict just took it out of the filter (the panel still
         # shows it, with its verdict, until Next).
         if pending:
@@ -641,7 +654,11 @@ class BrowserSession:
         with self.state.lock:
             world = self.state.world
         if group and world is not None and queue:
-            queue = _by_place(queue, group_by_place(world, queue), current_id)
+            places_key = (revision, id(world), tuple(q["id"] for q in queue))
+            cached = self._places
+            if cached is None or cached[0] != places_key:
+                cached = self._places = (places_key, group_by_place(world, queue))
+            queue = _by_place(queue, cached[1], current_id)
         with self.lock:
             self.queue = queue
         return queue

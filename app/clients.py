@@ -13,7 +13,14 @@ import numpy as np
 import viser
 
 from factorydet_core.geometry import box_wireframe_segments
-from factorydet_core.session.editing import box_to_pose, camera_for_box, pose_to_box
+from factorydet_core.session.editing import (
+    BOX_FACES,
+    box_face_points,
+    box_to_pose,
+    camera_for_box,
+    pose_to_box,
+    resize_box,
+)
 
 from .browser_session import BrowserSession
 from .layers import LayerView
@@ -46,6 +53,8 @@ class ClientView(BrowserSession):
         self.panels: list = []  # the labelling panels, refreshed with the selection
         self.view_panels: list = []  # frame, display, pipeline, detections, metrics, training
         self.gizmo: viser.TransformControlsHandle | None = None
+        self.handles: dict[str, viser.IcosphereHandle] = {}  # the selected box's resize handles, by face
+        self._handles_for: tuple | None = None  # (label id, version) the handles were drawn for
         self.class_dropdowns: list = []  # every dropdown showing object_class
         self._refresh_lock = threading.Lock()  # one refresh at a time (redraw and callback threads)
         self._draw_lock = threading.Lock()  # one redraw at a time; the last one wins
@@ -266,7 +275,49 @@ class ClientView(BrowserSession):
             scene.remove_by_name("/client/selected_points")
         self.scene.set_dimmed(self.dim and item is not None)
 
+    def _draw_handles(self, label) -> None:
+        """A handle on each face of the selected box: dragging one moves that face alone
+        (``editing.resize_box``), previewed while dragging and one undoable edit on release."""
+        if label is None or label.frame_index != self.state.frame_index:
+            for handle in self.handles.values():
+                handle.remove()
+            self.handles, self._handles_for = {}, None
+            return
+        if self._handles_for == (label.id, label.version):
+            return
+        radius = float(np.clip(0.15 * min(label.box[3:6]), 0.03, 0.12))
+        for face, point in zip(BOX_FACES, box_face_points(label.box)):
+            handle = self.handles.get(face)
+            if handle is not None:
+                handle.position, handle.radius = tuple(point), radius
+                continue
+            handle = self.client.scene.add_icosphere(
+                f"/client/handles/{face}", radius=radius, color=HIGHLIGHT_RGB, subdivisions=1,
+                material="toon3", position=tuple(point), cast_shadow=False, receive_shadow=False,
+            )  # fmt: skip
+            handle.on_drag("left")(lambda event, face=face: self._drag_face(face, event))
+            self.handles[face] = handle
+        self._handles_for = (label.id, label.version)
+
+    def _drag_face(self, face: str, event) -> None:
+        label = self.selected_label()
+        if label is None:
+            return
+        box = resize_box(label.box, face, event.end_position)
+        if event.phase != "end":  # a preview in this browser: the box and its handles follow
+            segments = box_wireframe_segments(box[None]).astype(np.float32).reshape(-1, 2, 3)
+            self.client.scene.add_line_segments(
+                "/client/selected_box", points=segments, colors=np.array(HIGHLIGHT_RGB, np.uint8),
+                thickness=5.0, thickness_units="screen",
+            )  # fmt: skip
+            for other, point in zip(BOX_FACES, box_face_points(box)):
+                if other in self.handles:
+                    self.handles[other].position = tuple(point)
+            return
+        self.apply_box(tuple(float(v) for v in box))
+
     def _draw_gizmo(self, label) -> None:
+        self._draw_handles(label)
         if label is None or label.frame_index != self.state.frame_index:
             if self.gizmo is not None:
                 self.gizmo.remove()

@@ -43,6 +43,7 @@ HOTKEYS: tuple[tuple[str, str], ...] = (
     ("alt+I / alt+K", "make it 1 cm longer / shorter (about its centre)"),
     ("alt+L / alt+J", "make it 1 cm wider / narrower"),
     ("alt+Y / alt+H", "make it 1 cm taller / lower (its bottom stays)"),
+    ("drag a face's ball", "move that face alone (the opposite one stays)"),
 )
 
 NUDGES: dict[str, tuple[str, dict]] = {

@@ -151,6 +151,55 @@ def nudge_box(
     return box
 
 
+BOX_FACES: tuple[str, ...] = ("front", "back", "left", "right", "top", "bottom")
+"""A box's faces, as ``box_face_points`` gives them and ``resize_box`` takes them: front and back
+across its heading (its length, dx), left and right (its width, dy), top and bottom (dz)."""
+
+_FACE_AXES = {
+    "front": (0, 1.0),
+    "back": (0, -1.0),
+    "left": (1, 1.0),
+    "right": (1, -1.0),
+    "top": (2, 1.0),
+    "bottom": (2, -1.0),
+}
+
+
+def _box_axes(box: np.ndarray) -> np.ndarray:
+    """(3, 3) the box's heading, left and up unit vectors (rows)."""
+    c, s = np.cos(box[6]), np.sin(box[6])
+    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def box_face_points(box) -> np.ndarray:
+    """(6, 3) the centres of a (7,) box's faces, in ``BOX_FACES`` order (where its resize handles go)."""
+    box = np.array(box, np.float64).reshape(7)
+    axes = _box_axes(box)
+    return np.array(
+        [box[:3] + sign * box[3 + axis] / 2 * axes[axis] for axis, sign in (_FACE_AXES[f] for f in BOX_FACES)]
+    )
+
+
+def resize_box(box, face: str, point) -> np.ndarray:
+    """A box with one face moved to ``point`` (3,) along the face's normal, the opposite face
+    where it was (what dragging a resize handle does); heading unchanged, no side below
+    ``MIN_BOX_SIZE_M``.
+
+    Returns:
+        (7,) the new box.
+    """
+    if face not in _FACE_AXES:
+        raise InputError(f"unknown face {face!r}; choose from {BOX_FACES}")
+    box = np.array(box, np.float64).reshape(7)
+    axis, sign = _FACE_AXES[face]
+    normal = sign * _box_axes(box)[axis]
+    opposite = box[:3] - normal * box[3 + axis] / 2
+    size = max(float((np.asarray(point, np.float64).reshape(3) - opposite) @ normal), MIN_BOX_SIZE_M)
+    box[3 + axis] = size
+    box[:3] = opposite + normal * size / 2
+    return box
+
+
 def split_in_two(points: np.ndarray, iterations: int = 20) -> np.ndarray:
     """(N,) 0/1 labels cutting a point set in two (two-means in the ground plane, started from the
     ends of its longest horizontal axis): how a person splits two objects one segment merged."""

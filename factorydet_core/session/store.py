@@ -2283,10 +2283,11 @@ class SessionDB:
             with self._read() as db:
                 readable &= _imported_frames(db)
         out: list[float | None] = [None] * len(items)
+        labels = self.frame_labels(sorted(readable))  # every frame's in one read
         for index, positions in by_frame.items():
             if index not in readable:
                 continue
-            boxes = self.frame_boxes(index)[0]
+            boxes = label_arrays(labels[index], self.class_names)[0]
             iou = np.zeros(len(positions))
             if len(boxes):
                 item_boxes = np.array([items[i]["box"] for i in positions], np.float64).reshape(-1, 7)

@@ -510,6 +510,7 @@ def test_one_queue_entry_per_place_and_its_verdict_answers_every_item(state, tin
         for f in range(3)
     ]
     state.db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    state.session_changed()  # as the trainer does after storing a run
     person.group_places = False
     assert len(person.load_queue()) == 3  # the new run's queue, item by item
     person.group_places = True
@@ -538,3 +539,19 @@ def test_after_confirming_the_last_pre_label_the_selection_can_still_be_edited(s
     ann.nudge(forward=0.01)  # made against the confirmed version: no conflict
     assert not any(error for _, _, error in ann.messages)
     assert state.db.label(waiting.id).box[0] != waiting.box[0]
+
+
+def test_the_queue_is_read_again_only_after_a_write_or_another_filter(state, monkeypatch):
+    person = _person(state, "ann")
+    reads = []
+    original = state.db.review_queue
+    monkeypatch.setattr(state.db, "review_queue", lambda **kw: reads.append(kw) or original(**kw))
+    first = person.load_queue()
+    assert person.load_queue() == first and len(reads) == 1  # the refreshes of one change: one read
+    person.step(0)
+    person.verdict("background")  # a write: read once more, whatever the refreshes after it
+    person.load_queue()
+    assert len(reads) == 2 and first[0]["id"] not in [q["id"] for q in person.queue]  # judged: not pending
+    person.filter_class = "box"
+    person.load_queue()
+    assert len(reads) == 3 and reads[-1]["predicted_class"] == "box"

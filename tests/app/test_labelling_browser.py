@@ -48,6 +48,17 @@ def session_app(small_dataset_dir, tiny_model_path, tmp_path):
     server.stop()
 
 
+def _screen_of(client, point, canvas_box: dict) -> tuple[float, float]:
+    """Where a world ``point`` (3,) is on the canvas, in pixels from its top-left corner (the
+    browser's camera, OpenCV convention: x right, y down, z forward; vertical field of view)."""
+    camera = client.camera
+    rotation = viser.transforms.SO3(np.asarray(camera.wxyz)).as_matrix()
+    x, y, z = (np.asarray(point) - np.asarray(camera.position)) @ rotation
+    u = (x / z / np.tan(camera.fov / 2) / camera.aspect + 1) / 2
+    v = (y / z / np.tan(camera.fov / 2) + 1) / 2
+    return float(u * canvas_box["width"]), float(v * canvas_box["height"])
+
+
 def _open(browser, app, height: int = 1400):  # noqa: F811 - the fixture's value
     context = browser.new_context(viewport={"width": 1200, "height": height})
     page = context.new_page()
@@ -181,6 +192,30 @@ def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  #
             f"(selected: {view.selected_label_id}; rays: {rays}; camera: {position}, {look_at})"
         )
         page.get_by_text(f"Label #{label.id}", exact=False).wait_for(timeout=20_000)
+
+        # The selected box has a handle on each face: dragging the top one up makes it taller, its
+        # bottom where it was (one edit; label once carries it to the object's other frames).
+        assert _wait(lambda: "top" in view.handles, 20), "no resize handles"
+        bottom = label.box[2] - label.box[5] / 2
+        grown = False
+        for _ in range(3):  # a drag travels through the render loop too: retry one that never arrived
+            x, y = _screen_of(client, view.handles["top"].position, box)
+            page.mouse.move(box["x"] + x, box["y"] + y)
+            page.mouse.down()
+            page.mouse.move(box["x"] + x, box["y"] + y - 60, steps=10)
+            page.mouse.up()
+            grown = _wait(lambda: db.label(label.id).box[5] > label.box[5] + 0.01, 20)
+            if grown:
+                break
+        assert grown, f"the drag never resized the box ({db.label(label.id).box})"
+        resized = db.label(label.id)
+        assert resized.box[2] - resized.box[5] / 2 == pytest.approx(bottom, abs=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(resized.box)[[0, 1, 3, 4, 6]], np.asarray(label.box)[[0, 1, 3, 4, 6]]
+        )
+        page.get_by_role("button", name="Undo [Z]").click()
+        assert _wait(lambda: db.label(label.id).box[5] == pytest.approx(label.box[5]), 20), "undo missed"
+
         # Label once (on by default): Delete takes the object out of every frame, Undo brings it back.
         page.get_by_text("frames placed", exact=False).wait_for(timeout=60_000)
         members = [lab.id for lab in db.object_labels(label.id)]
@@ -188,8 +223,8 @@ def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  #
         assert _wait(lambda: all(db.label(i).deleted for i in members), 20), "delete was not stored"
         page.get_by_role("button", name="Undo [Z]").click()
         assert _wait(lambda: not any(db.label(i).deleted for i in members), 20), "undo was not applied"
-        assert [e.kind for e in db.edits(view.author)] == ["delete"]
-        assert db.edits(view.author)[0].state == "undone"
+        edits = db.edits(view.author)  # newest first: the delete, then the undone resize
+        assert [(e.kind, e.state) for e in edits][:1] == [("delete", "undone")] and len(edits) == 2
     finally:
         context.close()
 

@@ -8,13 +8,16 @@ from hypothesis import strategies as st
 
 from factorydet_core.geometry import wrap_angle
 from factorydet_core.session.editing import (
+    BOX_FACES,
     MIN_BOX_SIZE_M,
+    box_face_points,
     box_of_points,
     box_to_pose,
     camera_for_box,
     nudge_box,
     points_in_screen_rect,
     pose_to_box,
+    resize_box,
     split_in_two,
     suggest_box,
 )
@@ -192,3 +195,44 @@ def test_nudges_move_along_the_heading_and_resizes_keep_the_centre_and_the_botto
     expected = np.maximum(box[3:6] + [longer, wider, taller], MIN_BOX_SIZE_M)
     np.testing.assert_allclose(grown[3:6], expected)
     assert grown[6] == yaw
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    finite,
+    finite,
+    finite,
+    sizes,
+    sizes,
+    sizes,
+    yaws,
+    st.sampled_from(BOX_FACES),
+    st.floats(-3, 3),
+    st.floats(-3, 3),
+    st.floats(-3, 3),
+)
+def test_dragging_a_face_moves_it_alone(cx, cy, cz, dx, dy, dz, yaw, face, along, across, up):
+    """A resize handle dragged anywhere: the dragged face goes through the pointer's projection on
+    its normal, the opposite face and the heading stay, and the box never turns inside out."""
+    box = np.array([cx, cy, cz, dx, dy, dz, yaw])
+    faces = box_face_points(box)
+    k = BOX_FACES.index(face)
+    opposite = k + 1 if k % 2 == 0 else k - 1
+    normal = (faces[k] - faces[opposite]) / np.linalg.norm(faces[k] - faces[opposite])
+    point = faces[k] + np.array([along, across, up])
+    resized = resize_box(box, face, point)
+    again = box_face_points(resized)
+    np.testing.assert_allclose(again[opposite], faces[opposite], atol=1e-9)
+    assert resized[6] == yaw and (resized[3:6] >= MIN_BOX_SIZE_M - 1e-12).all()
+    reach = (point - faces[opposite]) @ normal
+    if reach >= MIN_BOX_SIZE_M:  # the face lands on the pointer's projection
+        np.testing.assert_allclose((again[k] - point) @ normal, 0.0, atol=1e-9)
+    else:  # dragged past the opposite face: the thinnest box there is
+        np.testing.assert_allclose(resized[3 + k // 2], MIN_BOX_SIZE_M)
+    others = [a for a in range(3) if a != k // 2]
+    np.testing.assert_allclose(resized[[3 + a for a in others]], box[[3 + a for a in others]])
+
+
+def test_resize_refuses_an_unknown_face():
+    with pytest.raises(InputError, match="unknown face"):
+        resize_box(np.zeros(7) + 1, "side", np.zeros(3))
