@@ -115,8 +115,8 @@ class BrowserSession:
         self.current_item_id: int | None = None
         self.dim = True
         self.queue: list[dict] = []
-        self._queue_read: tuple | None = None  # ((revision, class, frame), the session's queue)
-        self._places: tuple | None = None  # ((revision, world, item ids), group_by_place's places)
+        self._queue_read: tuple | None = None  # ((change stamp, class, frame), the session's queue)
+        self._places: tuple | None = None  # ((change stamp, world, item ids), group_by_place's places)
         self.suspect_index = -1
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
         """The latest notifications given, ``(title, body, error)``, oldest first."""
@@ -621,16 +621,16 @@ class BrowserSession:
 
     def load_queue(self) -> list[dict]:
         """The review queue as this browser's filters show it (``queue``). The session's queue and
-        its grouping by place are read again only after a write to the session (its revision) or
-        another filter: a verdict's refreshes read them once, not once each."""
+        its grouping by place are read again only after a write to the session (by anyone:
+        ``SessionDB.change_stamp``) or another filter: a verdict's refreshes read them once, not
+        once each."""
         if self.state.db is None:
             return []
         with self.lock:
             filter_class, filter_frame, pending = self.filter_class, self.filter_frame, self.pending_only
             hide_labelled, current_id = self.hide_labelled, self.current_item_id
-        with self.state.lock:
-            revision = self.state.revision
-        read_key = (revision, filter_class, filter_frame)
+        stamp = self.state.db.change_stamp()
+        read_key = (stamp, filter_class, filter_frame)
         cached = self._queue_read
         if cached is not None and cached[0] == read_key:
             queue = cached[1]
@@ -654,7 +654,7 @@ class BrowserSession:
         with self.state.lock:
             world = self.state.world
         if group and world is not None and queue:
-            places_key = (revision, id(world), tuple(q["id"] for q in queue))
+            places_key = (stamp, id(world), tuple(q["id"] for q in queue))
             cached = self._places
             if cached is None or cached[0] != places_key:
                 cached = self._places = (places_key, group_by_place(world, queue))

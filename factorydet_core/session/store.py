@@ -2204,6 +2204,22 @@ class SessionDB:
         hold = (_row("training_runs", row)["config"].get("settings") or {}).get("hold_confident")
         return None if hold is None else float(hold)
 
+    def change_stamp(self) -> tuple:
+        """A value that changes with every edit to the session's labels and verdicts and every
+        training run, by this process or another (a new edit, an undo or redo, a run; not the
+        import of a frame's annotations, which a first read makes): the newest edit, the edits
+        undone (a redo stack) and the newest run, which together say what the edit log holds.
+        Cheap to read: what a cache of views derived from the session is keyed on."""
+        with self._read() as db:
+            return tuple(
+                db.execute(
+                    "SELECT (SELECT MAX(id) FROM edits),"
+                    " (SELECT group_concat(id) FROM"
+                    " (SELECT id FROM edits WHERE state = 'undone' ORDER BY id)),"
+                    " (SELECT MAX(id) FROM training_runs)"
+                ).fetchone()
+            )
+
     def latest_run_id(self) -> int | None:
         with self._read() as db:
             return db.execute("SELECT MAX(id) FROM training_runs WHERE model_path != ''").fetchone()[0]

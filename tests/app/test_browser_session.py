@@ -510,7 +510,6 @@ def test_one_queue_entry_per_place_and_its_verdict_answers_every_item(state, tin
         for f in range(3)
     ]
     state.db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
-    state.session_changed()  # as the trainer does after storing a run
     person.group_places = False
     assert len(person.load_queue()) == 3  # the new run's queue, item by item
     person.group_places = True
@@ -555,3 +554,7 @@ def test_the_queue_is_read_again_only_after_a_write_or_another_filter(state, mon
     person.filter_class = "box"
     person.load_queue()
     assert len(reads) == 3 and reads[-1]["predicted_class"] == "box"
+    # A write by another process (the command line) is seen too.
+    state.db.add_label(0, [30.0, 30.0, 0.5, 1, 1, 1, 0], "box", "cli")
+    person.load_queue()
+    assert len(reads) == 4

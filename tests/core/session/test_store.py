@@ -894,3 +894,24 @@ def test_a_runs_hold_score_is_read_from_its_settings(db, tiny_model_path):
     assert db.hold_score(first) == 0.35 and db.hold_score(second) is None
     with pytest.raises(SessionError, match="no training run 99"):
         db.hold_score(99)
+
+
+def test_the_change_stamp_moves_with_every_edit_undo_and_redo_and_not_with_reads(db):
+    stamps = [db.change_stamp()]
+    db.labels(0)  # a first read imports the frame's annotations: not a change to anyone's view
+    db.review_queue()
+    assert db.change_stamp() == stamps[0]
+    db.add_label(0, [30.0, 30.0, 0.5, 1, 1, 1, 0], "box", "ann")
+    stamps.append(db.change_stamp())
+    db.undo("ann")
+    stamps.append(db.change_stamp())
+    db.undo("ann")  # nothing more to undo
+    assert db.change_stamp() == stamps[-1]
+    db.redo("ann")  # back to the state after the edit, and its stamp
+    assert db.change_stamp() == stamps[1] and len(set(stamps)) == 3
+    db.add_label(0, [40.0, 30.0, 0.5, 1, 1, 1, 0], "box", "bob")
+    db.undo("bob")
+    bob_undone = db.change_stamp()
+    db.redo("bob")
+    db.undo("ann")  # one edit undone again, another one
+    assert db.change_stamp() != bob_undone
