@@ -3,8 +3,8 @@ its undo author, its class, and every action a person takes (select, edit, label
 review, batch, suspects). ``clients.ClientView`` adds the drawing; this module never imports viser,
 so tests drive it in-process.
 
-The scene and the session are shared by every browser; a selection, a camera, a review cursor and
-an undo stack (by author name) are each browser's own. Every edit goes through the session
+The session is shared by every browser; a view (``state.AppState``: frame, display, thresholds),
+a selection, a camera, a review cursor and an undo stack (by author name) are each browser's own. Every edit goes through the session
 database, which commits it before the call returns, so an edit the panel acknowledges is stored;
 an edit made against a label or verdict someone else has changed since is refused and the person
 is told (``EditConflictError``).

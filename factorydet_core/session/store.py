@@ -2313,10 +2313,31 @@ class SessionDB:
         return out
 
     def review_progress(self, run_id: int | None = None) -> dict:
-        """Counts of a run's queue: ``total``, ``reviewed`` (a decided verdict) and per verdict."""
-        queue = self._queue_rows(run_id, None, None, False)  # counts only: no label overlap
-        counts = {v: sum(item["verdict"] == v for item in queue) for v in VERDICTS}
-        return {"total": len(queue), "reviewed": sum(counts[v] for v in DECIDED), **counts}
+        """Counts of a run's queue: ``total``, ``reviewed`` (a decided verdict) and per verdict.
+        Reads the verdicts alone (a damaged row elsewhere is ``review_queue``'s to report)."""
+        if run_id is None:
+            run_id = self.latest_run_id()
+        # Counted in SQL: every panel refresh asks, and a run's queue holds thousands of items.
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT r.verdict, COUNT(*), MIN(r.negative_id) FROM mined_negatives m"
+                " LEFT JOIN reviews r ON r.negative_id = m.id WHERE m.run_id = ? GROUP BY r.verdict",
+                (run_id,),
+            ).fetchall()
+        by_verdict = {
+            (
+                None
+                if verdict is None
+                else _row("reviews", {"verdict": verdict}, f"reviews row {row}")["verdict"]
+            ): int(n)
+            for verdict, n, row in rows
+        }  # (a verdict that is none of VERDICTS is damage, named as such)
+        counts = {v: by_verdict.get(v, 0) for v in VERDICTS}
+        return {
+            "total": sum(by_verdict.values()),
+            "reviewed": sum(counts[v] for v in DECIDED),
+            **counts,
+        }
 
     def review(
         self,
