@@ -4,8 +4,9 @@ review, batch, suspects). ``clients.ClientView`` adds the drawing; this module n
 so tests drive it in-process.
 
 The session is shared by every browser; a view (``state.AppState``: frame, display, thresholds),
-a selection, a camera, a review cursor and an undo stack (by author name) are each browser's own. Every edit goes through the session
-database, which commits it before the call returns, so an edit the panel acknowledges is stored;
+a selection, a camera, a review cursor and an undo stack (by author name) are each browser's own.
+Every edit goes through the session database, which commits it before the call returns, so an
+edit the panel acknowledges is stored;
 an edit made against a label or verdict someone else has changed since is refused and the person
 is told (``EditConflictError``).
 """
