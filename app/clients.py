@@ -260,10 +260,7 @@ class ClientView(BrowserSession):
         else:
             scene.remove_by_name("/client/selected_name")
         for box, rgb, name in boxes:
-            segments = box_wireframe_segments(box[None]).astype(np.float32).reshape(-1, 2, 3)
-            scene.add_line_segments(
-                name, points=segments, colors=np.array(rgb, np.uint8), thickness=5.0, thickness_units="screen"
-            )
+            self._draw_box(name, box, rgb)
         self._draw_gizmo(label)
         points = self.selected_points()
         if len(points):
@@ -274,6 +271,13 @@ class ClientView(BrowserSession):
         else:
             scene.remove_by_name("/client/selected_points")
         self.scene.set_dimmed(self.dim and item is not None)
+
+    def _draw_box(self, name: str, box: np.ndarray, rgb: tuple) -> None:
+        """One highlighted (7,) box: a thick wireframe in ``rgb``, this browser's only."""
+        segments = box_wireframe_segments(np.asarray(box)[None]).astype(np.float32).reshape(-1, 2, 3)
+        self.client.scene.add_line_segments(
+            name, points=segments, colors=np.array(rgb, np.uint8), thickness=5.0, thickness_units="screen"
+        )
 
     def _draw_handles(self, label) -> None:
         """A handle on each face of the selected box: dragging one moves that face alone
@@ -305,11 +309,7 @@ class ClientView(BrowserSession):
             return
         box = resize_box(label.box, face, event.end_position)
         if event.phase != "end":  # a preview in this browser: the box and its handles follow
-            segments = box_wireframe_segments(box[None]).astype(np.float32).reshape(-1, 2, 3)
-            self.client.scene.add_line_segments(
-                "/client/selected_box", points=segments, colors=np.array(HIGHLIGHT_RGB, np.uint8),
-                thickness=5.0, thickness_units="screen",
-            )  # fmt: skip
+            self._draw_box("/client/selected_box", box, HIGHLIGHT_RGB)
             for other, point in zip(BOX_FACES, box_face_points(box)):
                 if other in self.handles:
                     self.handles[other].position = tuple(point)

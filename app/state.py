@@ -309,7 +309,6 @@ class AppState:
     def _init(self, like: AppState | None, served: bool) -> None:
         """(Under the lock.)"""
         shared = self.shared
-        self.served = served
         self._listeners: list[Callable[[], None]] = []
         self.frame_index = 0
         self.num_frame_changes = 0

@@ -125,10 +125,14 @@ class PipelineWorker:
         with self._cache_lock:
             return sorted(key[0] for key in self._cache if key[1:] == current)
 
-    def _views(self) -> list[AppState]:
-        """The shared state's views, the latest to ask first; before any browser connects, its
+    def _served(self) -> list[AppState]:
+        """The views the worker computes for: the browsers', or before any browser connects the
         templates (the frame a new browser opens on is then computed ahead of it)."""
-        views = self.shared.views or self.shared.templates
+        return self.shared.views or self.shared.templates
+
+    def _views(self) -> list[AppState]:
+        """``_served``, the latest to ask first."""
+        views = self._served()
         with self._wake:
             self._asked = [view for view in self._asked if view in views]
             asked = list(self._asked)
@@ -138,7 +142,7 @@ class PipelineWorker:
         """The views that ask for ``key`` now and do not show it yet (the templates before any
         browser connects)."""
         out = []
-        for view in self.shared.views or self.shared.templates:
+        for view in self._served():
             with view.lock:
                 if view.pipeline_key() == key and view.pipeline_result_key != key:
                     out.append(view)
@@ -202,7 +206,7 @@ class PipelineWorker:
         """Cache a result; beyond ``MAX_CACHED_RESULTS``, the least recently used one that is not
         a view's frame or its neighbour goes first (one browser flipping through frames does not
         evict another's)."""
-        views = self.shared.views or self.shared.templates
+        views = self._served()
         wanted = {
             (view.frame_index + offset, *view.pipeline_key()[1:])
             for view in views
