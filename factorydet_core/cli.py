@@ -1153,8 +1153,9 @@ def build_parser(
         action="append",
         metavar="KEY=VALUE",
         help="detect: a second configuration with this setting changed, interleaved (a front-half "
-        "setting, the box quality screen: screen_trees, screen_keep, or skip_unread_features=0: "
-        "the proposals' 3DmFV computed for a model that reads none)",
+        "setting; the box quality screen: screen_trees, screen_keep; interleaved_walk=0: the "
+        "reference tree walk, one row at a time; skip_unread_features=0: the proposals' 3DmFV "
+        "computed for a model that reads none)",
     )
     p.add_argument(
         "--busy",

@@ -109,7 +109,14 @@ class DetectionModel:
         (``BoxQuality.screen_trees``, ``screen_keep``; 0 trees: every tree over every option)."""
         if self.box_quality is None:
             raise InputError("this model has no box quality regressor to screen options with")
-        return dataclasses.replace(self, box_quality=self.box_quality.with_screen(screen_trees, screen_keep))
+        return self.with_box_quality(screen_trees=screen_trees, screen_keep=screen_keep)
+
+    def with_box_quality(self, **changes) -> DetectionModel:
+        """This model with its box quality regressor's inference settings changed
+        (``BoxQuality.with_inference``: the screen, the walk)."""
+        if self.box_quality is None:
+            raise InputError("this model has no box quality regressor to change")
+        return dataclasses.replace(self, box_quality=self.box_quality.with_inference(**changes))
 
     def candidates(self, proposal_boxes: np.ndarray, groups: ProposalGroups) -> Detections:
         """Every point set as a candidate detection (no threshold, no NMS), in point-set order."""

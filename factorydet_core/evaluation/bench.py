@@ -404,17 +404,18 @@ def bench_detect(
     if compare_model is not None or compare_overrides:
         other = DetectionModel.load(compare_model) if compare_model is not None else model
         if back_overrides:
-            quality = other.box_quality
-            if quality is None:
-                raise InputError("screen_trees and screen_keep need a model with a box quality regressor")
-            other = other.with_screen(
-                int(back_overrides.get("screen_trees", quality.screen_trees)),
-                int(back_overrides.get("screen_keep", quality.screen_keep)),
+            if other.box_quality is None:
+                raise InputError(f"{', '.join(back_overrides)} need a model with a box quality regressor")
+            other = other.with_box_quality(
+                **{
+                    name: _flag(value) if name == "interleaved_walk" else int(value)
+                    for name, value in back_overrides.items()
+                }
             )
         detector = detector_for(other, dataset, calibrate=False)
         detector.params = detector.params.replace(**front_overrides)
         for name, value in detector_overrides.items():
-            setattr(detector, name, str(value).lower() not in ("0", "false", "no", "off"))
+            setattr(detector, name, _flag(value))
         # The same extrinsics as the reference, so that only the compared change differs.
         detector.T_vehicle_sensor = configs["reference"].T_vehicle_sensor
         detector.calibration_ = configs["reference"].calibration_
@@ -601,9 +602,15 @@ def _busy_process():
         spinner.wait()
 
 
-BACK_HALF_SETTINGS = ("screen_trees", "screen_keep")
+BACK_HALF_SETTINGS = ("screen_trees", "screen_keep", "interleaved_walk")
 """``bench_detect``'s compared settings that belong to the model's back half (the box quality
-regressor's screen), not to its front half."""
+regressor's inference settings, ``box_quality.INFERENCE_SETTINGS``), not to its front half."""
+
+
+def _flag(value: object) -> bool:
+    """A yes/no setting given on the command line ("0", "false", "no", "off": no)."""
+    return str(value).lower() not in ("0", "false", "no", "off")
+
 
 DETECTOR_SETTINGS = ("skip_unread_features",)
 """``bench_detect``'s compared settings of the ``Detector`` itself (0 computes the proposals' 3DmFV

@@ -86,6 +86,12 @@ def test_screen_keeps_the_full_walk_of_the_options_it_keeps(rng):
     best_full = np.array([full[owners == g].max() for g in np.unique(owners)])
     best_screened = np.array([screened[owners == g].max() for g in np.unique(owners)])
     assert np.mean(best_full == best_screened) > 0.8
+    # The reference walk (one row at a time) gives the same screen and sums.
+    reference = quality.with_inference(screen_trees=10, screen_keep=5, interleaved_walk=False)
+    np.testing.assert_array_equal(reference.predict_best(features, owners), screened)
+    np.testing.assert_array_equal(reference.predict(features), full)
+    with pytest.raises(InputError, match="not an inference setting"):
+        quality.with_inference(max_iter=3)
     with pytest.raises(InputError):
         quality.with_screen(10, 5).predict_best(features, owners[:-1])
     with pytest.raises(InputError):
@@ -413,14 +419,19 @@ def test_compiled_tree_walk_equals_the_numpy_walk_from_several_threads(rng):
     features = rng.normal(size=(800, 6))
     targets = np.clip(0.4 + 0.3 * np.sin(features[:, 0] * 2) + 0.1 * features[:, 2], 0, 1)
     quality = BoxQuality(max_iter=50).fit(features, targets)
-    test = rng.normal(size=(2000, 6)) * 1.3
+    # Not a multiple of the eight rows walked side by side: the last rows walk alone.
+    test = rng.normal(size=(2003, 6)) * 1.3
     expected = _evaluate_trees_numpy(quality.trees_, test)
-    np.testing.assert_allclose(_evaluate_trees(quality.trees_, test), expected, atol=1e-12)
+    # Both add the trees in order, row by row: the same sums bit for bit.
+    np.testing.assert_array_equal(_evaluate_trees(quality.trees_, test), expected)
+    partial = _evaluate_trees(quality.trees_, test, last_tree=20)
+    continued = _evaluate_trees(quality.trees_, test, first_tree=20, initial=partial)
+    np.testing.assert_array_equal(continued, expected)
     # The app predicts from its worker and its callbacks' threads at once.
     with ThreadPoolExecutor(4) as pool:
         results = list(pool.map(lambda _: _evaluate_trees(quality.trees_, test), range(8)))
     for result in results:
-        np.testing.assert_allclose(result, expected, atol=1e-12)
+        np.testing.assert_array_equal(result, expected)
 
 
 def test_visibility_features_are_the_options_seen_free_and_occupied_shares(frames, prior, fitted):

@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -75,6 +76,15 @@ def test_bench_detect_compares_the_box_quality_screen(small_dataset_dir, tmp_pat
     compare = record["compare"]
     assert compare["overrides"] == {"screen_trees": 5, "screen_keep": 4}
     assert compare["ratio_of_medians"]["classification"] > 0
+    # The reference tree walk (one row at a time) gives the same detections as the fast one.
+    frame = open_dataset(small_dataset_dir).frame(0)
+    fast = Detector("agv", model=model).detect(frame)
+    reference = Detector("agv", model=model.with_box_quality(interleaved_walk=False)).detect(frame)
+    assert len(fast.candidates) and len(fast.candidates) == len(reference.candidates)
+    np.testing.assert_array_equal(fast.candidates.boxes, reference.candidates.boxes)
+    np.testing.assert_array_equal(fast.candidates.scores, reference.candidates.scores)
+    record = bench_detect(small_dataset_dir, path, max_frames=1, compare_overrides={"interleaved_walk": 0})
+    assert record["compare"]["detections_per_frame_median"] == record["detections_per_frame_median"]
     # A screen needs a regressor to screen with.
     plain = dataclasses.replace(model, box_quality=None).save(tmp_path / "plain.pt")
     with pytest.raises(InputError, match="screen"):
