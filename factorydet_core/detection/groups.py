@@ -136,15 +136,36 @@ def sample_point_sets(
     return out
 
 
-def _eigen_features(points: np.ndarray) -> np.ndarray:
-    """(4,) linearity, planarity, scattering, verticality of a point set (Demantke et al.)."""
-    if len(points) < 3:
-        return np.zeros(4)
-    centred = points - points.mean(axis=0)
-    values, vectors = np.linalg.eigh(centred.T @ centred / len(points))
-    l3, l2, l1 = np.sqrt(np.maximum(values, 1e-12))  # ascending
-    normal = vectors[:, 0]
-    return np.array([(l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, 1.0 - abs(normal[2])])
+def eigen_features(points: np.ndarray, point_lists: Sequence[np.ndarray]) -> np.ndarray:
+    """(M, 4) linearity, planarity, scattering, verticality of M point sets (Demantke et al.), all
+    sets at once (one call per set cost a frame's 2,500 sets 60 ms); zeros for sets of under 3
+    points.
+
+    Args:
+        points: (N, 3) the cloud.
+        point_lists: M arrays of indices into ``points``.
+    """
+    out = np.zeros((len(point_lists), 4))
+    member_ids, owner, _ = flatten_sets(point_lists)
+    counts = np.bincount(owner, minlength=len(point_lists)).astype(np.float64)
+    enough = counts >= 3
+    if not enough.any():
+        return out
+    own = np.asarray(points, np.float64)[member_ids]
+    mean = np.column_stack([np.bincount(owner, own[:, d], len(point_lists)) for d in range(3)])
+    mean /= np.maximum(counts, 1)[:, None]
+    centred = own - mean[owner]
+    covariance = np.empty((len(point_lists), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            covariance[:, i, j] = covariance[:, j, i] = np.bincount(
+                owner, centred[:, i] * centred[:, j], len(point_lists)
+            )
+    values, vectors = np.linalg.eigh(covariance[enough] / counts[enough, None, None])
+    l3, l2, l1 = np.sqrt(np.maximum(values, 1e-12)).T  # ascending
+    normal_z = vectors[:, 2, 0]
+    out[enough] = np.column_stack([(l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, 1.0 - np.abs(normal_z)])
+    return out
 
 
 def group_proposals(
@@ -204,24 +225,25 @@ def describe_point_sets(
         floor_plane: (4,) floor plane for the heights above floor (z = 0 when None or NaN).
     """
     floor_z = floor_height(floor_plane)
-    descriptors = np.zeros((len(point_lists), len(DESCRIPTOR_NAMES)), np.float32)
-    for g, (box, members, voxels) in enumerate(zip(boxes, point_lists, num_voxels)):
-        own = points[members]
-        length, width, height = max(box[3], box[4]), min(box[3], box[4]), box[5]
-        volume = max(length * width * height, 1e-6)
-        descriptors[g] = (
-            length,
-            width,
-            height,
-            width / max(length, 1e-6),
-            height / max(length, 1e-6),
-            box[2] - height / 2 - floor_z,
-            box[2] + height / 2 - floor_z,
-            *_eigen_features(own.astype(np.float64)),
-            np.log(max(len(own), 1)),
-            np.log(max(len(own), 1) / volume),
-            np.log(max(int(voxels), 1)),
-        )
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    num_points = np.maximum(np.array([len(m) for m in point_lists], np.float64), 1)
+    length, width = np.maximum(boxes[:, 3], boxes[:, 4]), np.minimum(boxes[:, 3], boxes[:, 4])
+    height = boxes[:, 5]
+    volume = np.maximum(length * width * height, 1e-6)
+    columns = [
+        length,
+        width,
+        height,
+        width / np.maximum(length, 1e-6),
+        height / np.maximum(length, 1e-6),
+        boxes[:, 2] - height / 2 - floor_z,
+        boxes[:, 2] + height / 2 - floor_z,
+        *eigen_features(points, point_lists).T,
+        np.log(num_points),
+        np.log(num_points / volume),
+        np.log(np.maximum(np.asarray(num_voxels, np.float64), 1)),
+    ]
+    descriptors = np.column_stack(columns).astype(np.float32).reshape(len(point_lists), len(DESCRIPTOR_NAMES))
     return descriptors
 
 

@@ -163,6 +163,30 @@ def test_descriptors_of_a_flat_and_a_linear_set():
     assert d[0, names.index("length_m")] == pytest.approx(2.0)
 
 
+def _eigen_features_of_one_set(points: np.ndarray) -> np.ndarray:
+    """The shape features of one set as the textbook gives them: the reference for the batch."""
+    if len(points) < 3:
+        return np.zeros(4)
+    centred = points - points.mean(axis=0)
+    values, vectors = np.linalg.eigh(centred.T @ centred / len(points))
+    l3, l2, l1 = np.sqrt(np.maximum(values, 1e-12))
+    return np.array([(l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, 1.0 - abs(vectors[2, 0])])
+
+
+@given(st.integers(0, 2**31 - 1), st.lists(st.integers(0, 60), min_size=0, max_size=12))
+@settings(max_examples=40, deadline=None)
+def test_eigen_features_of_many_sets_at_once_equal_one_set_at_a_time(seed, sizes):
+    from factorydet_core.detection.groups import eigen_features
+
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(100, 3)) * rng.uniform(0.01, 3.0, size=3) + rng.uniform(-20, 20, size=3)
+    point_lists = [rng.choice(100, size, replace=False) for size in sizes]
+    batch = eigen_features(points, point_lists)
+    assert batch.shape == (len(sizes), 4)
+    for row, members in zip(batch, point_lists):
+        np.testing.assert_allclose(row, _eigen_features_of_one_set(points[members]), atol=1e-7)
+
+
 def _truck_boxes() -> tuple[np.ndarray, np.ndarray]:
     """Annotated pallet trucks (2.0 x 0.56 x 1.3) and forklifts (3.3 x 1.4 x 2.4), class 1, and
     one small object, class 0."""
