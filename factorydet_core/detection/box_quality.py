@@ -191,10 +191,9 @@ def class_option_features(
     log_fitted = np.log(np.maximum(_horizontal_sorted_sizes(fitted), 1e-3))[owner]
     modes = prior.class_modes(class_id)
     modes = modes[np.isfinite(modes).all(axis=1)] if len(modes) else modes
-    if len(modes):
-        to_mode = np.abs(log_dims[:, None, :] - np.log(modes)[None]).sum(axis=2).min(axis=1)
-    else:
-        to_mode = np.zeros(len(options))
+    to_mode = np.full(len(options), np.inf) if len(modes) else np.zeros(len(options))
+    for log_mode in np.log(modes):  # one mode at a time: no (K, modes, 3) array
+        np.minimum(to_mode, np.abs(log_dims - log_mode).sum(axis=1), out=to_mode)
     one_hot = np.zeros((len(options), num_classes))
     one_hot[:, class_id] = 1.0
     columns = [
@@ -211,7 +210,14 @@ def class_option_features(
         columns += [is_anchored, *_offsets_from_fitted(options, fitted[owner])]
     if free_space is not None:
         columns.append(box_visibility(free_space, options))
-    features = np.column_stack([*columns, np.asarray(descriptors, np.float64)[owner]])
+    columns.append(np.asarray(descriptors, np.float64)[owner])
+    # Filled column block by column block (np.column_stack made each column 2-D first).
+    widths = [1 if column.ndim == 1 else column.shape[1] for column in columns]
+    features = np.empty((len(options), sum(widths)))
+    at = 0
+    for column, width in zip(columns, widths):
+        features[:, at : at + width] = column.reshape(len(options), width)
+        at += width
     return options, features, owner, sources
 
 
