@@ -55,6 +55,7 @@ _SETTINGS: dict[str, Setting] = {
     "min_patch_points": Setting(int, 1, 1_000_000),
     "merge_threshold": Setting(float, 0.0, 1.0),
     "convexity": Setting(bool),
+    "split_structure": Setting(bool),
     "smooth_angle_deg": Setting(float, 0.0, 90.0),
     "step_m": Setting(float, 0.0, 10.0),
 }
@@ -125,6 +126,13 @@ class SegmentationParams:
     """A first, geometry-only cut pursuit marks surfaces whose (horizontal diagonal, height) exceeds
     this as structure (walls, rack beams and posts): cut off from everything else, never merged,
     never proposed. ``None`` skips that pass."""
+    split_structure: bool = False
+    """Also split structure into patches with the second, feature-and-position cut pursuit (the
+    structure takes no part in merging or proposals either way). False keeps each piece of
+    structure one patch per connected part of the first pass's surfaces and runs the second cut
+    pursuit on the other points alone: a third of an AGV frame's points are structure, and that
+    pass was a third of the segmentation's time (``bench detect --compare-set
+    split_structure=true`` runs the earlier way)."""
 
     def __post_init__(self) -> None:
         # Every value is checked whatever built it (a checkpoint's note, a run's record in the
@@ -388,11 +396,26 @@ def over_segment(
     if params.spatial_weight > 0:
         centred = (points - points.mean(axis=0)) * params.spatial_weight
         values = np.concatenate([values, centred.astype(np.float32)], axis=1)
-    labels = (
-        _cut_pursuit(values, source, target, length, params.regularization)
-        if len(source)
-        else np.arange(num_points)
-    )
+    if structure_mask.any() and not params.split_structure:
+        # Pass 2 on the other points alone; the structure keeps pass 1's surfaces as patches.
+        labels = first.copy()
+        others = np.flatnonzero(~structure_mask)
+        on_others = ~structure_mask[source]  # no edge joins structure to the rest any more
+        if len(others):
+            index = np.full(num_points, -1, np.int64)
+            index[others] = np.arange(len(others))
+            others_source, others_target = index[source[on_others]], index[target[on_others]]
+            labels[others] = num_points + (
+                _cut_pursuit(
+                    values[others], others_source, others_target, length[on_others], params.regularization
+                )
+                if on_others.any()
+                else np.arange(len(others))
+            )
+    elif len(source):
+        labels = _cut_pursuit(values, source, target, length, params.regularization)
+    else:
+        labels = np.arange(num_points)
     patch_ids = _split_disconnected(labels, source, target)
     patch_ids = _absorb_small(patch_ids, source, target, params.min_patch_points)
     return patch_ids, structure_mask, (source, target, length), values
@@ -422,7 +445,16 @@ def merge_patches(
         return np.zeros(0, np.int64), ()
     adjacency = _patch_adjacency(patch_ids, source, target, num_patches)
     adjacency.sort_indices()
-    lo, hi = group_bounds(points, patch_ids, num_patches)
+    return _merge(adjacency, *group_bounds(points, patch_ids, num_patches), params)
+
+
+def _merge(
+    adjacency: scipy.sparse.csr_matrix, lo: np.ndarray, hi: np.ndarray, params: SegmentationParams
+) -> tuple[np.ndarray, tuple[tuple[int, ...], ...]]:
+    """``merge_patches`` of P patches given their (P, P) adjacency (``_patch_adjacency``, indices
+    sorted) and (P, 3) bounds, which every merge pass of a frame shares (none is changed: the
+    kernel grows copies of the bounds as it merges)."""
+    num_patches = adjacency.shape[0]
     max_side, max_height = params.max_object_size_m
     root_of, history_members, history_ends = run_kernel(
         _compile_merge,
@@ -430,8 +462,8 @@ def merge_patches(
         adjacency.indptr.astype(np.int64),
         adjacency.indices.astype(np.int64),
         adjacency.data.astype(np.float64),
-        lo,
-        hi,
+        lo.copy(),
+        hi.copy(),
         # The horizontal test uses the axis-aligned bounding box of the union, which over-estimates
         # a yawed object's longest side (by up to sqrt(2) for a square at 45 degrees); 20 % slack
         # covers the usual yaws of elongated objects without admitting much larger unions.
@@ -589,8 +621,9 @@ def _coarser_partitions(
     ``params.patch_regularizations``; groups of 2+ patches that still fit an object."""
     num_patches = len(patch_is_structure)
     sizes = np.bincount(patch_ids, minlength=num_patches).astype(np.float64)
-    means = np.zeros((num_patches, values.shape[1]))
-    np.add.at(means, patch_ids, values)
+    means = np.column_stack(
+        [np.bincount(patch_ids, values[:, d].astype(np.float64), num_patches) for d in range(values.shape[1])]
+    )
     means /= np.maximum(sizes, 1)[:, None]
     adjacency = _patch_adjacency(patch_ids, source, target, num_patches).tocoo()
     upper = adjacency.row < adjacency.col
@@ -605,8 +638,10 @@ def _coarser_partitions(
     for regularization in params.patch_regularizations:
         labels = _cut_pursuit_weighted(means, patch_source, patch_target, regularization * contact)
         labels = _split_disconnected(labels, patch_source, patch_target)
-        for label in np.unique(labels):
-            members = np.flatnonzero((labels == label) & ~patch_is_structure)
+        objects = np.flatnonzero(~patch_is_structure)
+        by_label = objects[np.argsort(labels[objects], kind="stable")]  # ascending patch ids per label
+        ends = np.cumsum(np.bincount(labels[objects]))
+        for members in np.split(by_label, ends[:-1]):
             if len(members) < 2:
                 continue
             extent = hi[members].max(axis=0) - lo[members].min(axis=0)
@@ -634,11 +669,19 @@ def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams(
     keep = ~patch_is_structure[patch_ids[source]] & ~patch_is_structure[patch_ids[target]]
     if params.convexity and num_patches > 1:
         keep &= _mergeable_connections(points, patch_ids, source, target, params)
-    patch_segment_ids, history = merge_patches(points, patch_ids, source[keep], target[keep], params)
-    passes = [(scale, params.max_object_size_m[1]) for scale in params.proposal_scales_m]
-    for size in passes + list(params.proposal_sizes_m):
-        small = dataclasses.replace(params, max_object_size_m=size)
-        history = history + merge_patches(points, patch_ids, source[keep], target[keep], small)[1]
+    if num_patches:
+        # Every merge pass starts from the same patches: their adjacency and bounds once.
+        adjacency = _patch_adjacency(patch_ids, source[keep], target[keep], num_patches)
+        adjacency.sort_indices()
+        bounds = group_bounds(points, patch_ids, num_patches)
+        patch_segment_ids, history = _merge(adjacency, *bounds, params)
+        passes = [(scale, params.max_object_size_m[1]) for scale in params.proposal_scales_m]
+        for size in passes + list(params.proposal_sizes_m):
+            history = (
+                history + _merge(adjacency, *bounds, dataclasses.replace(params, max_object_size_m=size))[1]
+            )
+    else:
+        patch_segment_ids, history = np.zeros(0, np.int64), ()
     if params.patch_regularizations and num_patches > 1:
         history = history + _coarser_partitions(
             points, values, patch_ids, source[keep], target[keep], patch_is_structure, params

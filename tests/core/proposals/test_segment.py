@@ -247,3 +247,49 @@ def test_crate_sized_passes_propose_crates_of_a_flush_stack():
 def test_invalid_proposal_sizes_raise(sizes):
     with pytest.raises(InputError, match="proposal_sizes_m"):
         SegmentationParams(proposal_sizes_m=sizes)
+
+
+def test_every_merge_pass_starts_from_the_same_patches():
+    """The passes share the patches' adjacency and bounds; none may see another's merges."""
+    import dataclasses
+
+    from factorydet_core.proposals.segment import merge_patches, over_segment
+
+    points, _ = _flush_stacks()
+    params = SegmentationParams(patch_regularizations=())
+    patch_ids, structure_mask, (source, target, _), _ = over_segment(points, params)
+    assert not structure_mask.any()
+    expected = merge_patches(points, patch_ids, source, target, params)[1]
+    sizes = [(scale, params.max_object_size_m[1]) for scale in params.proposal_scales_m]
+    for size in sizes + list(params.proposal_sizes_m):
+        alone = dataclasses.replace(params, max_object_size_m=size)
+        expected += merge_patches(points, patch_ids, source, target, alone)[1]
+    assert segment(points, params).merge_history == expected
+
+
+def _wall_and_crate() -> np.ndarray:
+    """A wall 8 m long and 3 m high, and a crate standing 1 m in front of it."""
+    rng = np.random.default_rng(1)
+    x, z = np.meshgrid(np.arange(-4, 4, 0.05), np.arange(0.05, 3, 0.05))
+    wall = np.column_stack([x.ravel(), np.zeros(x.size), z.ravel()])
+    crate = box_surface(np.array([0.0, -1.4, 0.3]), (0.8, 0.6, 0.6), 0.3, 0.04)
+    points = np.concatenate([wall, crate]) + rng.normal(0, 0.003, (len(wall) + len(crate), 3))
+    return points.astype(np.float32)
+
+
+def test_structure_keeps_the_first_pass_surfaces_as_patches_unless_split():
+    points = _wall_and_crate()
+    whole = segment(points, SegmentationParams())
+    split = segment(points, SegmentationParams(split_structure=True))
+    on_wall = np.abs(points[:, 1]) < 0.05
+    structure = whole.patch_is_structure[whole.patch_ids]
+    # The same structure either way: most of the wall (its rim's local shape is not a plane's),
+    # nothing of the crate.
+    np.testing.assert_array_equal(structure, split.patch_is_structure[split.patch_ids])
+    assert structure[on_wall].mean() > 0.9 and not structure[~on_wall].any()
+    # The first pass's few wall surfaces, against the second pass's hundreds of patches.
+    assert whole.patch_is_structure.sum() <= 5 < 100 < split.patch_is_structure.sum()
+    # The crate is still proposed whole.
+    is_crate = points[:, 1] < -0.5
+    for segmentation in (whole, split):
+        assert _best_point_iou(segmentation, is_crate.astype(int))[1] > 0.95
