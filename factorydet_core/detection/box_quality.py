@@ -854,9 +854,21 @@ def choose_boxes(
     return boxes, proposal_ids, predicted
 
 
+def _first_best_in_sets(owners: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(S,) the row of each set's greatest value, the earlier row on ties, for (R,) ``owners``
+    listing the sets set after set (ascending, each once in a run) and (R,) ``values``; what
+    ``rank_within_sets(owners, -values) == 0`` selects, without sorting every row."""
+    if not len(owners):
+        return np.zeros(0, np.int64)
+    starts = np.flatnonzero(np.r_[True, owners[1:] != owners[:-1]])
+    best = np.maximum.reduceat(values, starts)
+    at_best = np.flatnonzero(values == np.repeat(best, np.diff(np.r_[starts, len(owners)])))
+    return at_best[np.r_[True, owners[at_best[1:]] != owners[at_best[:-1]]]]
+
+
 SETS_PER_CHUNK = 2048
-"""Point sets whose options ``choose_boxes`` builds and rates at once (some 400,000 options and
-120 MB of features at the default prior's 200 options per set)."""
+"""Point sets whose options ``choose_boxes`` builds and rates at once, class by class (at most
+some 400,000 options and 120 MB of features at the default prior's 200 options per set)."""
 
 
 def _choose_chunk(
@@ -868,9 +880,13 @@ def _choose_chunk(
     prior: BoxSizePrior,
     quality: BoxQuality,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``choose_boxes`` for the sets ``chosen`` (S,) of classes ``chosen_classes`` (S,)."""
+    """``choose_boxes`` for the sets ``chosen`` (S,) of classes ``chosen_classes`` (S,): class by
+    class (a set's options are all of its one class, so the screen and the choice need no other
+    class's options; the options of all classes at once made a copy of a hundred megabytes)."""
     num_classes = len(prior.sizes)
-    all_options, all_features, sources, owners = [], [], [], []
+    boxes = np.zeros((len(chosen), 7))
+    proposal_ids = np.zeros(len(chosen), np.int64)
+    predicted = np.zeros(len(chosen))
     for class_id in np.unique(chosen_classes).tolist():
         rows = np.flatnonzero(chosen_classes == class_id)
         options, features, owner, source = class_option_features(
@@ -884,19 +900,9 @@ def _choose_chunk(
             groups.anchor_mask,
             quality.free_space_of(groups),
         )
-        all_options.append(options)
-        all_features.append(features)
-        sources.append(source)
-        owners.append(rows[owner])
-    boxes = np.zeros((len(chosen), 7))
-    proposal_ids = np.zeros(len(chosen), np.int64)
-    predicted = np.zeros(len(chosen))
-    if not len(chosen):
-        return boxes, proposal_ids, predicted
-    options, owner, source = np.concatenate(all_options), np.concatenate(owners), np.concatenate(sources)
-    iou = quality.predict_best(np.concatenate(all_features), owner)
-    first = np.flatnonzero(rank_within_sets(owner, -iou) == 0)  # each set's best option
-    boxes[owner[first]] = options[first]
-    proposal_ids[owner[first]] = source[first]
-    predicted[owner[first]] = iou[first]
+        iou = quality.predict_best(features, owner)
+        first = _first_best_in_sets(owner, iou)
+        set_rows = rows[owner[first]]
+        boxes[set_rows], proposal_ids[set_rows] = options[first], source[first]
+        predicted[set_rows] = iou[first]
     return boxes, proposal_ids, predicted

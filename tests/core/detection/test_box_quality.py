@@ -6,6 +6,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from sklearn.ensemble import HistGradientBoostingRegressor
 
 from factorydet_core.detection.box_quality import (
@@ -496,3 +498,17 @@ def test_prior_boxes_of_all_sets_at_once_are_those_of_one_set_at_a_time(frames, 
         best = int(np.argmin(cost))
         np.testing.assert_array_equal(boxes[g], options[best])
         assert proposal_ids[g] == members[g][best % len(members[g])]
+
+
+@given(st.lists(st.tuples(st.integers(1, 6), st.integers(0, 3)), min_size=0, max_size=30))
+@settings(max_examples=60, deadline=None)
+def test_first_best_in_sets_is_what_the_ranking_puts_first(blocks):
+    from factorydet_core.detection.box_quality import _first_best_in_sets
+    from factorydet_core.detection.groups import rank_within_sets
+
+    # Sets listed set after set; few distinct values, so ties are common.
+    owners = np.repeat(np.arange(len(blocks)), [size for size, _ in blocks]).astype(np.int64)
+    rng = np.random.default_rng(len(owners))
+    values = rng.integers(-1, 3, size=len(owners)).astype(np.float64) / 2
+    expected = np.flatnonzero(rank_within_sets(owners, -values) == 0)
+    np.testing.assert_array_equal(_first_best_in_sets(owners, values), expected)
