@@ -358,6 +358,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     repeats=args.repeats,
                     compare_model=resolve_model(args.compare_model) if args.compare_model else None,
                     compare_overrides=parse_overrides(args.compare_set),
+                    compare_checkout=args.compare_checkout,
                     heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
                     heldout_frames=args.heldout_frames,
                     busy=args.busy,
@@ -1156,6 +1157,14 @@ def build_parser(
         "setting; the box quality screen: screen_trees, screen_keep; interleaved_walk=0: the "
         "reference tree walk, one row at a time; skip_unread_features=0: the proposals' 3DmFV "
         "computed for a model that reads none)",
+    )
+    p.add_argument(
+        "--compare-checkout",
+        default=None,
+        metavar="DIR",
+        help="detect: compare with another version of the project's code (a folder holding its "
+        "factorydet_core, e.g. 'git worktree add /tmp/before <commit>'), run in a child process "
+        "on the same frames, interleaved; the record gives the ratios",
     )
     p.add_argument(
         "--busy",

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import os
 import statistics
+import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -369,6 +370,7 @@ def bench_detect(
     repeats: int = 1,
     compare_model: str | os.PathLike | None = None,
     compare_overrides: dict[str, object] | None = None,
+    compare_checkout: str | os.PathLike | None = None,
     heldout_seeds: Sequence[int] = (),
     heldout_frames: int = 12,
     busy: bool = False,
@@ -386,6 +388,12 @@ def bench_detect(
     named in ``BACK_HALF_SETTINGS`` change the compared model's box quality screen instead, and
     those in ``DETECTOR_SETTINGS`` the compared ``Detector``'s own.
 
+    With ``compare_checkout`` (a folder holding another version of this project: a ``git worktree``
+    of an earlier commit, say), the compared configuration is that version's code detecting with
+    the same model on the same frames, in a child process that imports it, interleaved frame by
+    frame with this one (``CheckoutDetector``): the ratio of a change against the code before it,
+    measured side by side.
+
     With ``busy``, each reference run is repeated beside one other process that keeps a core busy
     (what the app's server or a browser does to a detection on a shared machine), and the record
     gives the slowdown per stage: with the thread pools sized by ``threads``, it should be about
@@ -395,6 +403,10 @@ def bench_detect(
     factories (``quality.measure_heldout``: F-score, mAP, precision and recall at IoU 0.6 against
     the truth), so that a faster path shows what it costs in quality in the same run.
     """
+    if compare_checkout is not None and (compare_model is not None or compare_overrides or heldout_seeds):
+        raise InputError(
+            "--compare-checkout compares code alone: not with --compare-model, --compare-set or --heldout"
+        )
     dataset = open_dataset(data)
     model = DetectionModel.load(model_path)
     configs = {"reference": detector_for(model, dataset)}
@@ -420,11 +432,13 @@ def bench_detect(
         detector.T_vehicle_sensor = configs["reference"].T_vehicle_sensor
         detector.calibration_ = configs["reference"].calibration_
         configs["compared"] = detector
+    if compare_checkout is not None:
+        configs["compared"] = CheckoutDetector(compare_checkout, data, model_path)
     test = (dataset.splits.get("test") or list(range(dataset.num_frames)))[:max_frames]
     # One untimed run of each configuration first: numba compiles (or loads) its kernels and torch
     # builds its pools on first use, which would otherwise be timed as the first frame's work.
     for detector in configs.values():
-        detector.detect(dataset.frame(test[0]), [])
+        _timed_detection(detector, dataset, test[0])
     runs = dict(configs)
     if busy:
         runs["busy"] = configs["reference"]  # the reference again, beside a busy process
@@ -433,15 +447,13 @@ def bench_detect(
     total_runs = len(test) * repeats * len(runs)
     done = 0
     for index in test:
-        frame = dataset.frame(index)
         for _ in range(repeats):
             for name, detector in runs.items():
-                history = detector.history(dataset, index)
                 with _busy_process() if name == "busy" else contextlib.nullcontext():
-                    result = detector.detect(frame, history)
-                for stage, ms in result.timings_ms.items():
+                    stage_ms, num_detections = _timed_detection(detector, dataset, index)
+                for stage, ms in stage_ms.items():
                     timings[name].setdefault(stage, []).append(ms)
-                counts[name].append(int(result.detections.kept_mask.sum()))
+                counts[name].append(num_detections)
                 done += 1
                 if progress is not None:
                     progress(done, total_runs)
@@ -497,7 +509,108 @@ def bench_detect(
             "overrides": compare_overrides or {},
             **against_reference("compared"),
         }
+        if compare_checkout is not None:
+            record["compare"]["checkout"] = configs["compared"].describe()
+            configs["compared"].close()
     return record
+
+
+def _timed_detection(detector, dataset, index: int) -> tuple[dict[str, float], int]:
+    """Detect frame ``index`` of ``dataset`` with ``detector`` (a ``Detector`` or a
+    ``CheckoutDetector``): its stage times (ms) and the number of detections kept."""
+    if isinstance(detector, CheckoutDetector):
+        return detector.detect_frame(index)
+    result = detector.detect(dataset.frame(index), detector.history(dataset, index))
+    return result.timings_ms, int(result.detections.kept_mask.sum())
+
+
+_CHECKOUT_SCRIPT = """
+import json, sys
+from factorydet_core.threads import configure_threads
+configure_threads()
+from factorydet_core.detection.model import DetectionModel
+from factorydet_core.evaluation.bench import detector_for
+from factorydet_core.io.dataset import open_dataset
+import factorydet_core
+dataset = open_dataset(sys.argv[1])
+detector = detector_for(DetectionModel.load(sys.argv[2]), dataset)
+print("RESULT " + json.dumps({"package": factorydet_core.__path__[0]}), flush=True)
+for line in sys.stdin:
+    index = int(line)
+    result = detector.detect(dataset.frame(index), detector.history(dataset, index))
+    kept = int(result.detections.kept_mask.sum())
+    print("RESULT " + json.dumps({"timings_ms": result.timings_ms, "kept": kept}), flush=True)
+"""
+"""What a ``CheckoutDetector``'s child runs: only calls that every version of the project since
+the stage budget has (open a data set, load a model, ``detector_for``, ``detect``)."""
+
+
+class CheckoutDetector:
+    """Another version of this project's code detecting in a child process: ``checkout`` (a
+    folder with a ``factorydet_core`` package) comes first on the child's import path, and the
+    child loads the model and the data once, then detects the frames it is sent, one at a time.
+
+    Args:
+        checkout: the other version's folder.
+        data: the data set.
+        model_path: the checkpoint both versions detect with.
+    """
+
+    def __init__(self, checkout: str | os.PathLike, data: str | os.PathLike, model_path: str | os.PathLike):
+        import subprocess
+        import sys
+
+        self.checkout = Path(checkout).resolve()
+        if not (self.checkout / "factorydet_core" / "__init__.py").is_file():
+            raise InputError(f"--compare-checkout: {self.checkout} holds no factorydet_core package")
+        path = os.pathsep.join([str(self.checkout), os.environ.get("PYTHONPATH", "")])
+        env = {**os.environ, "PYTHONPATH": path}
+        self._errors = tempfile.TemporaryFile("w+")  # the child's messages, for its last words
+        paths = [str(Path(data).resolve()), str(Path(model_path).resolve())]  # the child runs elsewhere
+        self._child = subprocess.Popen(
+            [sys.executable, "-c", _CHECKOUT_SCRIPT, *paths],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._errors,
+            text=True,
+            env=env,
+            cwd=self.checkout,
+        )
+        package = Path(self._read()["package"]).resolve()
+        if package.parent != self.checkout:
+            self.close()
+            raise InputError(f"--compare-checkout: the child imported {package}, not the checkout's package")
+
+    def _read(self) -> dict:
+        for line in self._child.stdout:
+            if line.startswith("RESULT "):
+                return json.loads(line[len("RESULT ") :])
+        code = self._child.wait()
+        self._errors.seek(0)
+        last = (self._errors.read().strip().splitlines() or ["no message"])[-1][:300]
+        raise InputError(f"--compare-checkout: the child of {self.checkout} ended (exit {code}): {last}")
+
+    def detect_frame(self, index: int) -> tuple[dict[str, float], int]:
+        """Stage times (ms) and detections kept of frame ``index``, detected by the other code."""
+        self._child.stdin.write(f"{int(index)}\n")
+        self._child.stdin.flush()
+        out = self._read()
+        return {stage: float(ms) for stage, ms in out["timings_ms"].items()}, int(out["kept"])
+
+    def describe(self) -> dict:
+        """The checkout's folder and, when it is a git work tree, its commit."""
+        import subprocess
+
+        commit = subprocess.run(
+            ["git", "-C", str(self.checkout), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+        )
+        return {"path": str(self.checkout), "commit": commit.stdout.strip() or None}
+
+    def close(self) -> None:
+        if self._child.poll() is None:
+            self._child.stdin.close()
+            self._child.wait(timeout=60)
+        self._errors.close()
 
 
 def _dense_scan(num_points: int, seed: int, scratch: Path) -> Path:

@@ -326,7 +326,14 @@ def detect_markdown(result: dict) -> str:
         rows.append(["compared, median", *(fmt(compare["stage_ms_median"].get(s)) for s in stages), ""])
         rows.append(["compared / reference", *(fmt(compare["ratio_of_medians"].get(s)) for s in stages), ""])
     stage_table = table(["", *stages, "target"], rows)
-    if compare:
+    if compare and compare.get("checkout"):
+        checkout = compare["checkout"]
+        which = f"commit `{checkout['commit']}`" if checkout.get("commit") else f"`{checkout['path']}`"
+        stage_table += (
+            f"\n\nCompared: the project's code at {which} with the same model, in a child process, "
+            "interleaved with the reference on the same frames."
+        )
+    elif compare:
         changed = ", ".join(f"{k}={v}" for k, v in compare["overrides"].items()) or "no setting changed"
         stage_table += (
             f"\n\nCompared: model `{Path(str(compare['model'])).name}`, {changed}; run interleaved "

@@ -49,6 +49,34 @@ def test_bench_detect_profiles_and_compares_side_by_side(small_dataset_dir, tiny
 
 
 @pytest.mark.slow
+def test_bench_detect_compares_another_checkout_of_the_code(small_dataset_dir, tiny_model_path, tmp_path):
+    import shutil
+    from pathlib import Path
+
+    import factorydet_core
+    from factorydet_core.evaluation.bench import bench_detect
+    from factorydet_core.evaluation.bench_tables import render_record
+
+    # A copy of this code as "another version" (its compiled kernels' cache copied along).
+    checkout = tmp_path / "before"
+    shutil.copytree(Path(factorydet_core.__path__[0]), checkout / "factorydet_core")
+    record = bench_detect(small_dataset_dir, tiny_model_path, max_frames=1, compare_checkout=checkout)
+    compare = record["compare"]
+    assert compare["checkout"]["path"] == str(checkout.resolve())
+    # The same code detects the same objects, and both are timed stage by stage.
+    assert compare["detections_per_frame_median"] == record["detections_per_frame_median"]
+    assert set(compare["stage_ms_median"]) == set(record["stage_ms_median"])
+    assert compare["ratio_of_medians"]["total"] > 0
+    assert "the project's code at" in render_record(record)
+    with pytest.raises(InputError, match="no factorydet_core"):
+        bench_detect(small_dataset_dir, tiny_model_path, max_frames=1, compare_checkout=tmp_path)
+    with pytest.raises(InputError, match="code alone"):
+        bench_detect(
+            small_dataset_dir, tiny_model_path, compare_checkout=checkout, compare_overrides={"prune_m": 0.1}
+        )
+
+
+@pytest.mark.slow
 def test_bench_detect_compares_the_box_quality_screen(small_dataset_dir, tmp_path):
     import dataclasses
 
