@@ -290,25 +290,23 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
 
     if not len(items):
         return []
-    in_world = np.stack(
-        [
-            transform_boxes(
-                world.T_world_vehicle[int(item["frame_index"])], np.asarray(item["box"], np.float64)[None]
-            )[0]
-            for item in items
-        ]
-    )
+    frames = np.array([int(item["frame_index"]) for item in items])
+    boxes = np.array([item["box"] for item in items], np.float64).reshape(-1, 7)
+    in_world = np.zeros_like(boxes)
+    for frame in np.unique(frames).tolist():  # each frame's boxes carried at once
+        rows = frames == frame
+        in_world[rows] = transform_boxes(world.T_world_vehicle[frame], boxes[rows])
     overlap = box_iou_3d(in_world, in_world) >= min_iou
     scores = np.array([float(item["score"]) for item in items])
     order = np.argsort(-scores, kind="stable")
     placed = np.zeros(len(items), bool)
     places = []
-    for seed in order:
+    for seed in order.tolist():
         if placed[seed]:
             continue
-        members = [int(k) for k in order if not placed[k] and overlap[seed, k]]  # the seed included
+        members = order[~placed[order] & overlap[seed, order]]  # by decreasing score, the seed included
         placed[members] = True
-        places.append(members)
+        places.append(members.tolist())
     chance = [1.0 - float(np.prod(1.0 - np.clip(scores[m], 0.0, 1.0))) for m in places]
     ranked = sorted(range(len(places)), key=lambda p: (-chance[p], places[p][0]))
     return [places[p] for p in ranked]

@@ -14,6 +14,7 @@ from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, Label, open_session
 from factorydet_core.session.world import (
     MOVING_CLASSES,
+    PLACE_IOU,
     WorldFrames,
     calibrated_extrinsics,
     group_by_place,
@@ -380,6 +381,33 @@ def test_queue_items_of_one_place_are_one_entry_most_likely_object_first():
     # 1 - 0.4 * 0.5 = 0.8 beats 0.7: found twice outranks found once.
     assert places == [[0, 2], [1]]
     assert group_by_place(world, []) == []
+
+
+@given(st.lists(st.tuples(st.integers(0, 1), st.integers(0, 5), st.integers(0, 3)), max_size=25))
+@settings(max_examples=40, deadline=None)
+def test_places_are_greedy_by_score_with_overlap_to_the_seed(entries):
+    """Against the rule written out one item at a time: most confident unplaced item first, taking
+    every unplaced item whose box overlaps its own."""
+    world = _two_frames()
+    # Boxes on a coarse grid so that places share items and scores tie.
+    items = [
+        {"frame_index": f, "box": (0.4 * x, 0.3 * x, 0.5, 0.8, 0.6, 1.0, 0.1 * x), "score": 0.2 * s}
+        for f, x, s in entries
+    ]
+    in_world = np.array(
+        [transform_boxes(world.T_world_vehicle[q["frame_index"]], np.array([q["box"]]))[0] for q in items]
+    ).reshape(-1, 7)
+    overlap = box_iou_3d(in_world, in_world) >= PLACE_IOU
+    order = sorted(range(len(items)), key=lambda k: -items[k]["score"])
+    placed, expected = set(), []
+    for seed in order:
+        if seed not in placed:
+            members = [k for k in order if k not in placed and overlap[seed, k]]
+            placed.update(members)
+            expected.append(members)
+    places = group_by_place(world, items)
+    assert sorted(map(sorted, places)) == sorted(map(sorted, expected))
+    assert all(place in expected for place in places)
 
 
 def test_a_verdict_on_a_place_labels_its_object_once_and_takes_it_back_as_one(db, tiny_model_path):
