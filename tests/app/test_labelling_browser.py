@@ -3,6 +3,8 @@ canvas, undo, retraining with a progress bar, and two browsers at once."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import viser
@@ -123,6 +125,44 @@ def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
         page.get_by_text("Item 1 of 4", exact=False).wait_for(timeout=20_000)  # 5 pending, 1 hidden
     finally:
         context.close()
+
+
+def test_twenty_verdicts_in_a_row_with_the_keyboard(small_dataset_dir, tiny_model_path, tmp_path, browser):  # noqa: F811
+    """A reviewer's sitting: N shows the first item, then B (background) and X (skip) twenty
+    times, each verdict stored and the next item shown before the next key."""
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("review", tmp_path), dataset)
+    items = [  # 24 items over the three frames, far apart (each its own place)
+        mined_item(i % 3, i, [2.0 * i, -3.0, 0.5, 0.8, 0.8, 0.8, 0.0], 0.95 - 0.01 * i) for i in range(24)
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    app = FactorydetApp(
+        server, dataset, calibrate=False, model=DetectionModel.load(tiny_model_path), model_name="tiny", db=db
+    )
+    context, page, view = _open(browser, app)
+    try:
+        page.get_by_text("0 of 24 reviewed", exact=False).wait_for(timeout=30_000)
+        page.locator("canvas[data-engine]").click(position={"x": 5, "y": 5})  # keys to the page
+        page.keyboard.press("n")
+        assert _wait(lambda: view.current_item_id is not None, 20), "N never showed the first item"
+        shown = []
+        for k, key in enumerate("bx" * 10):
+            item = view.current_item_id
+            shown.append(item)
+            page.keyboard.press(key)
+            background, skipped = (k + 2) // 2, (k + 1) // 2
+            page.get_by_text(f"background {background} ·", exact=False).wait_for(timeout=20_000)
+            page.get_by_text(re.compile(rf"skipped {skipped}$")).first.wait_for(timeout=20_000)
+            assert _wait(lambda item=item: view.current_item_id not in (None, item), 20), f"verdict {k + 1}"
+        verdicts = {q["id"]: q["verdict"] for q in db.review_queue()}
+        assert [verdicts[i] for i in shown] == ["background", "skip"] * 10
+        assert len(set(shown)) == 20  # every key judged a new item
+        assert db.review_progress()["background"] == db.review_progress()["skip"] == 10
+    finally:
+        context.close()
+        app.close()
+        server.stop()
 
 
 def test_click_a_box_to_select_it_then_delete_and_undo(session_app, browser):  # noqa: F811
