@@ -117,7 +117,8 @@ class BrowserSession:
         self.dim = True
         self.queue: list[dict] = []
         self._queue_read: tuple | None = None  # ((change stamp, class, frame), the session's queue)
-        self._places: tuple | None = None  # ((change stamp, world, item ids), group_by_place's places)
+        self._places: tuple | None = None  # ((world, item ids), group_by_place's places)
+        self._shown_queue: tuple | None = None  # (everything load_queue's result depends on, it)
         self.suspect_index = -1
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
         """The latest notifications given, ``(title, body, error)``, oldest first."""
@@ -621,17 +622,26 @@ class BrowserSession:
     # -- review queue
 
     def load_queue(self) -> list[dict]:
-        """The review queue as this browser's filters show it (``queue``). The session's queue and
-        its grouping by place are read again only after a write to the session (by anyone:
-        ``SessionDB.change_stamp``) or another filter: a verdict's refreshes read them once, not
-        once each."""
+        """The review queue as this browser's filters show it (``queue``). The session's queue is
+        read again only after a write to the session (by anyone: ``SessionDB.change_stamp``) or
+        another filter, and grouped by place again only when other items are shown (a verdict's
+        refreshes read and group once, not once each; a mined item never changes, so its place
+        depends on the items and the world alone)."""
         if self.state.db is None:
             return []
         with self.lock:
             filter_class, filter_frame, pending = self.filter_class, self.filter_frame, self.pending_only
-            hide_labelled, current_id = self.hide_labelled, self.current_item_id
+            hide_labelled, current_id, group = self.hide_labelled, self.current_item_id, self.group_places
+        with self.state.lock:
+            world = self.state.world
         stamp = self.state.db.change_stamp()
         read_key = (stamp, filter_class, filter_frame)
+        shown_key = (read_key, pending, hide_labelled, current_id, group, id(world))
+        shown = self._shown_queue
+        if shown is not None and shown[0] == shown_key:
+            with self.lock:
+                self.queue = shown[1]
+            return shown[1]
         cached = self._queue_read
         if cached is not None and cached[0] == read_key:
             queue = cached[1]
@@ -650,16 +660,13 @@ class BrowserSession:
                 for q in queue
                 if not on_labelled_object(q["label_iou"], HIDE_LABELLED_IOU) or q["id"] == current_id
             ]
-        with self.lock:
-            group = self.group_places
-        with self.state.lock:
-            world = self.state.world
         if group and world is not None and queue:
-            places_key = (stamp, id(world), tuple(q["id"] for q in queue))
+            places_key = (id(world), tuple(q["id"] for q in queue))
             cached = self._places
             if cached is None or cached[0] != places_key:
                 cached = self._places = (places_key, group_by_place(world, queue))
             queue = _by_place(queue, cached[1], current_id)
+        self._shown_queue = (shown_key, queue)
         with self.lock:
             self.queue = queue
         return queue

@@ -207,11 +207,50 @@ def box_iou_3d(boxes_a: np.ndarray, boxes_b: np.ndarray, max_block: int = 4_000_
         i, j = np.nonzero((centre_distance < radius_a[rows, None] + radius_b[None]) & (z_overlap > 0))
         if not len(i):
             continue
-        area = rectangle_intersection_areas(corners_a[lo + i], corners_b[j])
-        intersection = area * z_overlap[i, j]
-        union = volume_a[lo + i] + volume_b[j] - intersection
-        iou[lo + i, j] = np.where(union > 0, intersection / np.where(union > 0, union, 1.0), 0.0)
+        iou[lo + i, j] = _iou_of_pairs(
+            corners_a[lo + i], corners_b[j], z_overlap[i, j], volume_a[lo + i], volume_b[j]
+        )
     return np.clip(iou, 0.0, 1.0)
+
+
+def _iou_of_pairs(corners_a, corners_b, z_overlap, volume_a, volume_b) -> np.ndarray:
+    """(R,) IoU of R pairs of boxes given their (R, 4, 2) ground corners, (R,) height overlaps
+    and (R,) volumes (not clipped to [0, 1])."""
+    intersection = rectangle_intersection_areas(corners_a, corners_b) * z_overlap
+    union = volume_a + volume_b - intersection
+    return np.where(union > 0, intersection / np.where(union > 0, union, 1.0), 0.0)
+
+
+def overlapping_box_pairs(boxes: np.ndarray, min_iou: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``(i, j)``, i < j, of (M, 7) boxes whose 3D IoU is at least ``min_iou`` > 0,
+    as ``box_iou_3d(boxes, boxes) >= min_iou`` finds them, without the (M, M) matrix: only boxes
+    whose circumscribed circles meet are compared (a k-d tree on their centres)."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    check_array(boxes, (None, 7), name="boxes", finite=True)
+    if not min_iou > 0:
+        raise InputError(f"min_iou must be > 0, got {min_iou}")
+    empty = np.zeros(0, np.int64)
+    if len(boxes) < 2:
+        return empty, empty
+    from scipy.spatial import cKDTree
+
+    radius = np.hypot(boxes[:, 3], boxes[:, 4]) / 2
+    pairs = cKDTree(boxes[:, :2]).query_pairs(2 * float(radius.max()), output_type="ndarray")
+    if not len(pairs):
+        return empty, empty
+    i, j = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+    top, bottom = boxes[:, 2] + boxes[:, 5] / 2, boxes[:, 2] - boxes[:, 5] / 2
+    # The same screen and formula as box_iou_3d, pair by pair.
+    centre_distance = np.hypot(boxes[i, 0] - boxes[j, 0], boxes[i, 1] - boxes[j, 1])
+    z_overlap = np.minimum(top[i], top[j]) - np.maximum(bottom[i], bottom[j])
+    near = (centre_distance < radius[i] + radius[j]) & (z_overlap > 0)
+    i, j, z_overlap = i[near], j[near], z_overlap[near]
+    corners = rectangle_corners(boxes)
+    volume = boxes[:, 3] * boxes[:, 4] * boxes[:, 5]
+    iou = np.clip(_iou_of_pairs(corners[i], corners[j], z_overlap, volume[i], volume[j]), 0.0, 1.0)
+    keep = iou >= min_iou
+    order = np.lexsort((j[keep], i[keep]))
+    return i[keep][order], j[keep][order]
 
 
 def fit_box(

@@ -776,6 +776,9 @@ _COLUMNS: dict[str, dict[str, Callable]] = {
 what a table's rows may hold; ``_row`` applies it."""
 _ROW_ID = {"meta": "key", "frames": "frame_index", "reviews": "negative_id", "training_rounds": "run_id"}
 """The column naming a row in error messages (``id`` where not listed)."""
+_MINED_ONCE = frozenset(_COLUMNS["mined_negatives"]) - {"review_version"}
+"""The columns of a mined negative that never change once its run is stored."""
+
 _VERDICT_COLUMNS = {
     "id": "negative_id",
     "verdict": "verdict",
@@ -988,6 +991,10 @@ class SessionDB:
         self.path = session.db_path
         self.readonly = readonly
         self.timeout = float(BUSY_TIMEOUT if timeout is None else timeout)
+        # (run id, {mined negative id: its checked columns but review_version}): a run's mined
+        # negatives are written once, with the run, and then only their review version changes,
+        # so the queue of a run is checked once, not at every read after every verdict.
+        self._mined_checked: tuple[int | None, dict[int, dict]] = (None, {})
         if readonly:
             if not self.path.is_file():
                 raise SessionError(f"session {session.name!r} has no database ({self.path}) to read")
@@ -2276,13 +2283,26 @@ class SessionDB:
             query += " AND (r.verdict IS NULL OR r.verdict = 'skip')"
         with self._read() as db:
             rows = db.execute(query + " ORDER BY m.score DESC, m.id", args).fetchall()
+        checked_run, checked = self._mined_checked
+        if checked_run != run_id:
+            checked = {}
         out = []
         for r in rows:
-            item = _row("mined_negatives", r)
+            known = checked.get(r["id"])
+            if known is None:
+                item = _row("mined_negatives", r)
+                known = checked[item["id"]] = {k: v for k, v in item.items() if k in _MINED_ONCE}
+            # Lists copied: a caller may change the item it got, not the next caller's.
+            item = {**dict(r), **{k: list(v) if isinstance(v, list) else v for k, v in known.items()}}
+            if "review_version" in item:
+                item["review_version"] = _row(
+                    "mined_negatives", {"id": item["id"], "review_version": item["review_version"]}
+                )["review_version"]
             if item["reviewed"] is not None or item["verdict"] is not None:  # the joined verdict
                 _row("reviews", {column: item[alias] for alias, column in _VERDICT_COLUMNS.items()})
             item.setdefault("review_version", 0)  # a schema 1 database, read-only: not versioned yet
             out.append(item)
+        self._mined_checked = (run_id, checked)
         return out
 
     def label_overlap(self, items: list[dict]) -> list[float | None]:

@@ -286,7 +286,7 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
     Returns:
         Lists of positions in ``items``, each place's items by decreasing score.
     """
-    from factorydet_core.boxes import box_iou_3d
+    from factorydet_core.boxes import overlapping_box_pairs
 
     if not len(items):
         return []
@@ -296,15 +296,24 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
     for frame in np.unique(frames).tolist():  # each frame's boxes carried at once
         rows = frames == frame
         in_world[rows] = transform_boxes(world.T_world_vehicle[frame], boxes[rows])
-    overlap = box_iou_3d(in_world, in_world) >= min_iou
+    first, second = overlapping_box_pairs(in_world, min_iou)  # a queue of thousands: no (M, M) matrix
     scores = np.array([float(item["score"]) for item in items])
     order = np.argsort(-scores, kind="stable")
+    rank = np.empty(len(items), np.int64)
+    rank[order] = np.arange(len(items))
+    # Each item's overlapping items and itself, most confident first.
+    ends = np.concatenate([first, second, np.arange(len(items))])
+    starts = np.concatenate([second, first, np.arange(len(items))])
+    by_start = np.lexsort((rank[ends], starts))
+    ends = ends[by_start]
+    bounds = np.searchsorted(starts[by_start], np.arange(len(items) + 1))
     placed = np.zeros(len(items), bool)
     places = []
     for seed in order.tolist():
         if placed[seed]:
             continue
-        members = order[~placed[order] & overlap[seed, order]]  # by decreasing score, the seed included
+        candidates = ends[bounds[seed] : bounds[seed + 1]]
+        members = candidates[~placed[candidates]]  # by decreasing score, the seed included
         placed[members] = True
         places.append(members.tolist())
     chance = [1.0 - float(np.prod(1.0 - np.clip(scores[m], 0.0, 1.0))) for m in places]

@@ -408,3 +408,32 @@ def test_the_compiled_intersection_areas_equal_the_numpy_reference(pairs):
             assert area == pytest.approx(dx * dy / 4, rel=1e-9)
         elif kind == "flush":
             assert area == pytest.approx(0.0, abs=1e-9)
+
+
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(0, 8), st.integers(0, 8), st.integers(0, 2), st.integers(1, 4), st.integers(0, 7)
+        ),
+        max_size=30,
+    ),
+    st.sampled_from([0.01, 0.25, 0.6]),
+)
+@settings(max_examples=60, deadline=None)
+def test_overlapping_pairs_are_the_iou_matrix_above_the_threshold(entries, min_iou):
+    from factorydet_core.boxes import overlapping_box_pairs
+
+    # Boxes on a coarse grid of centres, sizes and headings: many overlap, some exactly.
+    boxes = np.array(
+        [[0.3 * x, 0.3 * y, 0.2 * z, 0.4 * s, 0.3 * s, 0.5, 0.4 * h] for x, y, z, s, h in entries]
+    ).reshape(-1, 7)
+    first, second = overlapping_box_pairs(boxes, min_iou)
+    expected = np.argwhere(np.triu(box_iou_3d(boxes, boxes) >= min_iou, k=1))
+    np.testing.assert_array_equal(np.column_stack([first, second]).reshape(-1, 2), expected)
+
+
+def test_overlapping_pairs_refuse_a_threshold_of_zero():
+    from factorydet_core.boxes import overlapping_box_pairs
+
+    with pytest.raises(InputError, match="min_iou"):
+        overlapping_box_pairs(np.zeros((2, 7)), 0.0)

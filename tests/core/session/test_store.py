@@ -458,6 +458,25 @@ def test_a_damaged_database_is_a_one_line_error_and_is_never_written(db, dataset
 # --- Every verdict is versioned (issue 29) --------------------------------------------------------
 
 
+def test_a_queue_read_again_is_the_same_and_sees_new_verdicts(db, tiny_model_path):
+    """A run's mined rows are checked once and kept; each read still takes the verdicts and review
+    versions of that moment, and an item a caller changed does not change the next read."""
+    db.save_training_run(_fake_run(tiny_model_path), "small", {"rounds": 1})
+    first = db.review_queue()
+    again = db.review_queue()
+    assert again == first and again[0] is not first[0]
+    first[0]["patch_set"].append(999)
+    assert 999 not in db.review_queue()[0]["patch_set"]
+    top = first[0]
+    db.review([top["id"]], "background", "ann")
+    after = {q["id"]: q for q in db.review_queue()}[top["id"]]
+    assert after["verdict"] == "background" and after["reviewer"] == "ann"
+    assert after["review_version"] == top["review_version"] + 1
+    # Another process's view of the same database reads the same queue.
+    other = SessionDB(db.session, db.dataset)
+    assert other.review_queue() == db.review_queue()
+
+
 def test_another_reviewers_verdict_is_a_conflict_unless_overridden(db, tiny_model_path):
     db.save_training_run(_fake_run(tiny_model_path), "small", {})
     first, second, third = db.review_queue()[:3]
