@@ -43,9 +43,11 @@ TARGET_EDIT_MS = 200.0
 """Issue target: an edit's round trip in the browser."""
 TARGET_FRAME_MS = 1000.0
 """Issue target: a cached frame change with its detections."""
+TARGET_VERDICT_MS = 500.0
+"""Issue target: the review queue's next item shown after a verdict."""
 TARGET_NEXT_ROUND_S = 180.0
 """Issue target: a next-round retrain from the app on the demo."""
-NUM_VERDICTS = 5
+NUM_VERDICTS = 20
 """Review verdicts given with the keyboard, each timed."""
 
 
@@ -345,6 +347,8 @@ def run(
         "label_once": True,
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
+        "target_verdict_ms": TARGET_VERDICT_MS,
+        "num_verdicts": NUM_VERDICTS if retrain else 0,
         "browser_render": render,
         "retrain": retrained,
         "target_next_round_s": TARGET_NEXT_ROUND_S,

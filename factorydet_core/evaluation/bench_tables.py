@@ -548,7 +548,12 @@ def walkthrough_markdown(result: dict) -> str:
     """A labeller's edits and frame changes, timed to the server and to the page, against the targets."""
     rows = []
     for step, figures in result["steps"].items():
-        target = result["target_frame_ms"] if step.startswith("frame change") else result["target_edit_ms"]
+        if step.startswith("frame change"):
+            target = result["target_frame_ms"]
+        elif step.startswith("review verdict") and "target_verdict_ms" in result:
+            target = result["target_verdict_ms"]  # the next queue item shown (records before it: none)
+        else:
+            target = result["target_edit_ms"]
         rows.append(
             [
                 step,
@@ -603,8 +608,10 @@ def _retrain_text(result: dict) -> str:
         return ""
     full = retrain.get("full_run_shown_s")
     first = f" Train ran a full run (the session's first) in {fmt(full)} s;" if full is not None else ""
+    verdicts = result.get("num_verdicts")
+    those = f"the {verdicts} review verdicts above, in a row" if verdicts else "the review verdicts above"
     return (
-        f" Then, from the page:{first} after the review verdicts above (keyboard), a next round took"
+        f" Then, from the page:{first} after {those} (keyboard), a next round took"
         f" {fmt(retrain['next_round_shown_s'])} s until its before/after"
         f" table showed (target {fmt(result.get('target_next_round_s'))} s)."
     )
