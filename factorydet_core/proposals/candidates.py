@@ -62,14 +62,36 @@ def snap_to_floor(
 
 
 def point_sets(patch_ids: np.ndarray, patch_sets: list[tuple[int, ...]] | tuple) -> list[np.ndarray]:
-    """Point indices of each set of patches (``patch_ids`` is the (N,) patch of every point)."""
+    """Point indices of each set of patches (``patch_ids`` is the (N,) patch of every point): a
+    set's points patch after patch in the set's order, each patch's in increasing index. All sets
+    are gathered at once (a frame has some 10,000 sets: one concatenation each cost more)."""
+    if not len(patch_sets):
+        return []
     num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
     order = np.argsort(patch_ids, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(np.bincount(patch_ids, minlength=num_patches))])
-    return [
-        np.concatenate([order[starts[p] : starts[p + 1]] for p in patch_set]) if len(patch_set) else order[:0]
-        for patch_set in patch_sets
-    ]
+    sizes = np.bincount(patch_ids, minlength=num_patches)
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    set_lengths = np.array([len(s) for s in patch_sets], np.int64)
+    patches = np.fromiter((p for s in patch_sets for p in s), np.int64, int(set_lengths.sum()))
+    # Each (set, patch) pair's run of points, laid end to end: position k of the run of pair j
+    # is order[starts[patch j] + k].
+    run_lengths = sizes[patches].astype(np.int64)
+    run_ends = np.cumsum(run_lengths)
+    total = int(run_ends[-1]) if len(run_ends) else 0
+    within = np.arange(total) - np.repeat(run_ends - run_lengths, run_lengths)
+    gathered = order[np.repeat(starts[patches], run_lengths) + within]
+    # Where each set's points end: the end of its last pair's run.
+    set_ends = np.concatenate([[0], run_ends])[np.cumsum(set_lengths)]
+    return np.split(gathered, set_ends[:-1])
+
+
+def _set_sums(values: np.ndarray, sets: list[tuple[int, ...]]) -> np.ndarray:
+    """(S,) int64 the sum of (P,) integer ``values`` over each of S sets of indices."""
+    lengths = np.array([len(s) for s in sets], np.int64)
+    flat = np.fromiter((i for s in sets for i in s), np.int64, int(lengths.sum()))
+    running = np.concatenate([[0], np.cumsum(np.asarray(values, np.int64)[flat])])
+    ends = np.cumsum(lengths)
+    return running[ends] - running[ends - lengths]
 
 
 def _fitted_and_view_boxes(
@@ -249,7 +271,7 @@ def build_proposals(
     )
     num_patches = segmentation.num_patches
     patch_sizes = np.bincount(segmentation.patch_ids, minlength=num_patches)
-    set_sizes = np.array([patch_sizes[list(s)].sum() for s in sets], np.int64)
+    set_sizes = _set_sums(patch_sizes, sets)
     keep = set_sizes >= min_points
     sets = [s for s, k in zip(sets, keep) if k]
     levels = np.array([lv for lv, k in zip(levels, keep) if k], np.int8)

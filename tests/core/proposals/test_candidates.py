@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from factorydet_core.boxes import fit_box
 from factorydet_core.proposals.candidates import (
@@ -197,3 +199,21 @@ def test_normalize_channels_gives_unit_channels():
     expected = np.ones((3, 20))
     expected[1, 4] = 0.0
     np.testing.assert_allclose(norms, expected, atol=1e-6)
+
+
+@given(
+    st.lists(st.integers(0, 6), min_size=0, max_size=40),
+    st.lists(st.lists(st.integers(0, 6), max_size=4, unique=True), max_size=12),
+)
+@settings(max_examples=80, deadline=None)
+def test_point_sets_gathers_each_set_patch_after_patch(patch_list, patch_sets):
+    from factorydet_core.proposals.candidates import point_sets
+
+    patch_ids = np.array(patch_list, np.int64)
+    num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
+    patch_sets = [tuple(p for p in s if p < num_patches) for s in patch_sets]
+    lists = point_sets(patch_ids, patch_sets)
+    assert len(lists) == len(patch_sets)
+    for members, patch_set in zip(lists, patch_sets):
+        expected = [i for p in patch_set for i in np.flatnonzero(patch_ids == p)]
+        np.testing.assert_array_equal(members, np.array(expected, np.int64).reshape(-1))
