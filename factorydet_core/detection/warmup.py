@@ -9,7 +9,7 @@ def warm_up() -> None:
     import numpy as np
 
     from factorydet_core.boxes import fit_boxes
-    from factorydet_core.detection.box_quality import _compile_row_walk, _compile_walk
+    from factorydet_core.detection.box_quality import _best_in_sets, _compile_row_walk, _compile_walk
     from factorydet_core.jit import run_kernel
     from factorydet_core.proposals.features import fisher_vectors
     from factorydet_core.proposals.segment import _absorb_small, merge_patches
@@ -23,6 +23,7 @@ def warm_up() -> None:
     patch_ids, source, target = np.arange(12) % 4, np.arange(11), np.arange(1, 12)
     merge_patches(points, patch_ids, source, target)
     _absorb_small(patch_ids, source, target, min_points=4)
+    _best_in_sets(np.array([0, 0, 1]), np.zeros(3), 1)
     for walk in (_compile_walk, _compile_row_walk):
         run_kernel(
             walk, points, np.zeros(1, np.int64), np.full(1, -1, np.int32), np.zeros(2, np.int32),

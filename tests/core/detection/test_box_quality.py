@@ -512,3 +512,22 @@ def test_first_best_in_sets_is_what_the_ranking_puts_first(blocks):
     values = rng.integers(-1, 3, size=len(owners)).astype(np.float64) / 2
     expected = np.flatnonzero(rank_within_sets(owners, -values) == 0)
     np.testing.assert_array_equal(_first_best_in_sets(owners, values), expected)
+
+
+@given(
+    st.lists(st.tuples(st.integers(1, 7), st.integers(0, 3)), min_size=0, max_size=25),
+    st.integers(1, 4),
+    st.booleans(),
+)
+@settings(max_examples=80, deadline=None)
+def test_best_in_sets_keeps_what_the_ranking_ranks_below_keep(blocks, keep, shuffled):
+    from factorydet_core.detection.box_quality import _best_in_sets
+    from factorydet_core.detection.groups import rank_within_sets
+
+    owners = np.repeat(np.arange(len(blocks)), [size for size, _ in blocks]).astype(np.int64)
+    rng = np.random.default_rng(len(owners) + keep)
+    if shuffled:  # sets not listed set after set: the general way
+        owners = rng.permutation(owners)
+    values = rng.integers(-2, 3, size=len(owners)).astype(np.float64) / 4  # ties are common
+    expected = np.flatnonzero(rank_within_sets(owners, -values) < keep)
+    np.testing.assert_array_equal(_best_in_sets(owners, values, keep), expected)

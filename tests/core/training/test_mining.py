@@ -137,7 +137,10 @@ def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
     frame = frames[0]
     detections = run.model.detect(frame.proposal_boxes, frame.groups, score_threshold=0.0)
     probability = detections.probabilities[np.arange(len(detections.scores)), detections.class_ids]
-    assert (detections.scores <= probability + 1e-6).all()  # probability times a predicted IoU
+    # The probability to the model's exponent (0.5 by default) times a predicted IoU in [0, 1].
+    exponent = run.model.probability_exponent
+    assert exponent == 0.5
+    assert (detections.scores <= probability**exponent + 1e-6).all()
 
 
 @pytest.mark.slow
