@@ -696,6 +696,15 @@ def _compile_walk():
         # Values equal to a threshold go left, as in scikit-learn.
         return children[2 * node + (features[row, feature] > threshold[node])]
 
+    @numba.njit(inline="always")
+    def advance(features, row, node, feature, split_feature, children, threshold):
+        """One level down for a row still inside the tree (``feature`` >= 0); a row at its leaf
+        stays."""
+        if feature < 0:
+            return node, feature
+        node = step(features, row, node, feature, children, threshold)
+        return node, split_feature[node]
+
     @numba.njit(parallel=True, cache=True, nogil=True)
     def walk(features, roots, split_feature, children, threshold, value, initial):
         num_rows = features.shape[0]
@@ -713,30 +722,14 @@ def _compile_walk():
                     while (
                         f0 >= 0 or f1 >= 0 or f2 >= 0 or f3 >= 0 or f4 >= 0 or f5 >= 0 or f6 >= 0 or f7 >= 0
                     ):
-                        if f0 >= 0:
-                            n0 = step(features, r, n0, f0, children, threshold)
-                            f0 = split_feature[n0]
-                        if f1 >= 0:
-                            n1 = step(features, r + 1, n1, f1, children, threshold)
-                            f1 = split_feature[n1]
-                        if f2 >= 0:
-                            n2 = step(features, r + 2, n2, f2, children, threshold)
-                            f2 = split_feature[n2]
-                        if f3 >= 0:
-                            n3 = step(features, r + 3, n3, f3, children, threshold)
-                            f3 = split_feature[n3]
-                        if f4 >= 0:
-                            n4 = step(features, r + 4, n4, f4, children, threshold)
-                            f4 = split_feature[n4]
-                        if f5 >= 0:
-                            n5 = step(features, r + 5, n5, f5, children, threshold)
-                            f5 = split_feature[n5]
-                        if f6 >= 0:
-                            n6 = step(features, r + 6, n6, f6, children, threshold)
-                            f6 = split_feature[n6]
-                        if f7 >= 0:
-                            n7 = step(features, r + 7, n7, f7, children, threshold)
-                            f7 = split_feature[n7]
+                        n0, f0 = advance(features, r, n0, f0, split_feature, children, threshold)
+                        n1, f1 = advance(features, r + 1, n1, f1, split_feature, children, threshold)
+                        n2, f2 = advance(features, r + 2, n2, f2, split_feature, children, threshold)
+                        n3, f3 = advance(features, r + 3, n3, f3, split_feature, children, threshold)
+                        n4, f4 = advance(features, r + 4, n4, f4, split_feature, children, threshold)
+                        n5, f5 = advance(features, r + 5, n5, f5, split_feature, children, threshold)
+                        n6, f6 = advance(features, r + 6, n6, f6, split_feature, children, threshold)
+                        n7, f7 = advance(features, r + 7, n7, f7, split_feature, children, threshold)
                     i = r - lo
                     acc[i] += value[n0]
                     acc[i + 1] += value[n1]
