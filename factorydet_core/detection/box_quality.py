@@ -693,8 +693,8 @@ def _compile_walk():
 
     @numba.njit(inline="always")
     def step(features, row, node, feature, children, threshold):
-        # Values equal to a threshold go left, as in scikit-learn.
-        return children[2 * node + (features[row, feature] > threshold[node])]
+        # Values equal to a threshold go left, as in scikit-learn (and NaN right, as before).
+        return children[2 * node + 1 - (features[row, feature] <= threshold[node])]
 
     @numba.njit(inline="always")
     def advance(features, row, node, feature, split_feature, children, threshold):
@@ -773,7 +773,7 @@ def _compile_row_walk():
                     feature = split_feature[node]
                     while feature >= 0:
                         # Values equal to a threshold go left, as in scikit-learn.
-                        node = children[2 * node + (features[r, feature] > threshold[node])]
+                        node = children[2 * node + 1 - (features[r, feature] <= threshold[node])]
                         feature = split_feature[node]
                     acc[r - lo] += value[node]
             total[lo:hi] = acc

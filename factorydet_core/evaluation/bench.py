@@ -435,28 +435,15 @@ def bench_detect(
     if compare_checkout is not None:
         configs["compared"] = CheckoutDetector(compare_checkout, data, model_path)
     test = (dataset.splits.get("test") or list(range(dataset.num_frames)))[:max_frames]
-    # One untimed run of each configuration first: numba compiles (or loads) its kernels and torch
-    # builds its pools on first use, which would otherwise be timed as the first frame's work.
-    for detector in configs.values():
-        _timed_detection(detector, dataset, test[0])
     runs = dict(configs)
     if busy:
         runs["busy"] = configs["reference"]  # the reference again, beside a busy process
-    timings = {name: {} for name in runs}
-    counts: dict[str, list[int]] = {name: [] for name in runs}
-    total_runs = len(test) * repeats * len(runs)
-    done = 0
-    for index in test:
-        for _ in range(repeats):
-            for name, detector in runs.items():
-                with _busy_process() if name == "busy" else contextlib.nullcontext():
-                    stage_ms, num_detections = _timed_detection(detector, dataset, index)
-                for stage, ms in stage_ms.items():
-                    timings[name].setdefault(stage, []).append(ms)
-                counts[name].append(num_detections)
-                done += 1
-                if progress is not None:
-                    progress(done, total_runs)
+    try:
+        timings, counts = _time_runs(runs, dataset, test, repeats, progress)
+    finally:
+        if compare_checkout is not None:
+            checkout = configs["compared"].describe()
+            configs["compared"].close()
 
     def summary(name: str) -> dict:
         return {
@@ -510,9 +497,35 @@ def bench_detect(
             **against_reference("compared"),
         }
         if compare_checkout is not None:
-            record["compare"]["checkout"] = configs["compared"].describe()
-            configs["compared"].close()
+            record["compare"]["checkout"] = checkout
     return record
+
+
+def _time_runs(runs: dict, dataset, test: list[int], repeats: int, progress) -> tuple[dict, dict]:
+    """Each of ``runs`` (name: detector) on each frame of ``test``, ``repeats`` times, interleaved
+    frame by frame: ``(timings, counts)``, per name each stage's milliseconds and the detections
+    kept, run after run. "busy" runs beside a process spinning a core."""
+    # One untimed run of each configuration first: numba compiles (or loads) its kernels and torch
+    # builds its pools on first use, which would otherwise be timed as the first frame's work.
+    for name, detector in runs.items():
+        if name != "busy":
+            _timed_detection(detector, dataset, test[0])
+    timings: dict[str, dict[str, list[float]]] = {name: {} for name in runs}
+    counts: dict[str, list[int]] = {name: [] for name in runs}
+    total_runs = len(test) * repeats * len(runs)
+    done = 0
+    for index in test:
+        for _ in range(repeats):
+            for name, detector in runs.items():
+                with _busy_process() if name == "busy" else contextlib.nullcontext():
+                    stage_ms, num_detections = _timed_detection(detector, dataset, index)
+                for stage, ms in stage_ms.items():
+                    timings[name].setdefault(stage, []).append(ms)
+                counts[name].append(num_detections)
+                done += 1
+                if progress is not None:
+                    progress(done, total_runs)
+    return timings, counts
 
 
 def _timed_detection(detector, dataset, index: int) -> tuple[dict[str, float], int]:
@@ -576,7 +589,11 @@ class CheckoutDetector:
             env=env,
             cwd=self.checkout,
         )
-        package = Path(self._read()["package"]).resolve()
+        try:
+            package = Path(self._read()["package"]).resolve()
+        except InputError:
+            self.close()
+            raise
         if package.parent != self.checkout:
             self.close()
             raise InputError(f"--compare-checkout: the child imported {package}, not the checkout's package")
@@ -607,9 +624,17 @@ class CheckoutDetector:
         return {"path": str(self.checkout), "commit": commit.stdout.strip() or None}
 
     def close(self) -> None:
+        """End the child (asked first, killed after a minute) and drop its messages."""
+        import subprocess
+
         if self._child.poll() is None:
-            self._child.stdin.close()
-            self._child.wait(timeout=60)
+            try:
+                self._child.stdin.close()
+                self._child.wait(timeout=60)
+            except (OSError, subprocess.TimeoutExpired):
+                self._child.kill()
+                self._child.wait()
+        self._child.stdout.close()
         self._errors.close()
 
 

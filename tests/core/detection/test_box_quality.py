@@ -423,12 +423,14 @@ def test_compiled_tree_walk_equals_the_numpy_walk_from_several_threads(rng):
     quality = BoxQuality(max_iter=50).fit(features, targets)
     # Not a multiple of the eight rows walked side by side: the last rows walk alone.
     test = rng.normal(size=(2003, 6)) * 1.3
+    test[7] = np.nan  # never a feature, but walked as the reference walks it (right at every split)
     expected = _evaluate_trees_numpy(quality.trees_, test)
     # Both add the trees in order, row by row: the same sums bit for bit.
     np.testing.assert_array_equal(_evaluate_trees(quality.trees_, test), expected)
     partial = _evaluate_trees(quality.trees_, test, last_tree=20)
     continued = _evaluate_trees(quality.trees_, test, first_tree=20, initial=partial)
     np.testing.assert_array_equal(continued, expected)
+    np.testing.assert_array_equal(_evaluate_trees(quality.trees_, test, interleaved=False), expected)
     # The app predicts from its worker and its callbacks' threads at once.
     with ThreadPoolExecutor(4) as pool:
         results = list(pool.map(lambda _: _evaluate_trees(quality.trees_, test), range(8)))
