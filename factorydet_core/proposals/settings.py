@@ -130,7 +130,8 @@ class FrontEndParams:
     @classmethod
     def from_dict(cls, values: Mapping[str, object]) -> FrontEndParams:
         """The settings ``to_dict`` wrote; missing names keep their defaults (a checkpoint from
-        before a setting existed ran without it).
+        before a setting existed ran without it), except those of ``SEGMENTATION_BEFORE``, which
+        such a checkpoint ran the earlier way.
 
         Raises:
             InputError: for an unknown name or a bad value.
@@ -148,6 +149,12 @@ class FrontEndParams:
         unknown = set(segmentation) - _SEGMENTATION_NAMES
         if unknown:
             raise InputError(f"front-end settings: unknown segmentation setting {_names(unknown)}")
+        if segmentation:
+            # A record from before a setting existed ran the way the code then did, not as today's
+            # default says.
+            given = set(segmentation) | set(values)
+            earlier = {k: v for k, v in SEGMENTATION_BEFORE.items() if k not in given}
+            segmentation = {**earlier, **segmentation}
         params = cls().with_changes(values)  # segmentation names at the top level too
         return dataclasses.replace(
             params, segmentation=dataclasses.replace(params.segmentation, **segmentation)
@@ -185,6 +192,10 @@ class FrontEndParams:
 
 
 _SEGMENTATION_NAMES = frozenset(f.name for f in dataclasses.fields(SegmentationParams))
+
+SEGMENTATION_BEFORE: dict[str, object] = {"split_structure": True}
+"""Segmentation settings whose default changed, with the value that records written before the
+setting existed ran with (``FrontEndParams.from_dict``)."""
 
 
 def _names(names: Iterable[object]) -> str:
@@ -266,5 +277,8 @@ def front_end_from_record(record: object) -> FrontEndParams | None:
         preset, overrides = record.get("preset"), record.get("overrides")
         if preset is None or preset == "":
             return None
-        return front_end_params(preset, {} if overrides is None else overrides)
+        overrides = {} if overrides is None else overrides
+        if isinstance(overrides, Mapping):  # (anything else is refused by front_end_params)
+            overrides = {**SEGMENTATION_BEFORE, **overrides}  # a record from before them
+        return front_end_params(preset, overrides)
     return FrontEndParams.from_dict(record)

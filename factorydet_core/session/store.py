@@ -2216,14 +2216,22 @@ class SessionDB:
         training run, by this process or another (a new edit, an undo or redo, a run; not the
         import of a frame's annotations, which a first read makes): the newest edit, the edits
         undone (a redo stack) and the newest run, which together say what the edit log holds.
-        Cheap to read: what a cache of views derived from the session is keyed on."""
+        Cheap to read: what a cache of views derived from the session is keyed on.
+
+        Two more parts keep it from coming back to an earlier value while the session moved on:
+        the newest finished run (a run's row is written before its model, and only a finished run
+        has a queue) and the sum of the verdicts' versions (an undo then a redo leaves the edit log
+        as it was, but every verdict it touched has a new version)."""
+        versions = "(SELECT SUM(review_version) FROM mined_negatives)" if self.schema_version > 1 else "NULL"
         with self._read() as db:
             return tuple(
                 db.execute(
                     "SELECT (SELECT MAX(id) FROM edits),"
                     " (SELECT group_concat(id) FROM"
                     " (SELECT id FROM edits WHERE state = 'undone' ORDER BY id)),"
-                    " (SELECT MAX(id) FROM training_runs)"
+                    " (SELECT MAX(id) FROM training_runs),"
+                    " (SELECT MAX(id) FROM training_runs WHERE model_path != ''),"
+                    f" {versions}"
                 ).fetchone()
             )
 

@@ -68,7 +68,9 @@ def test_one_rule_picks_the_preset():
 
 def test_old_records_name_a_preset_and_overrides():
     old = {"preset": "agv", "overrides": {"voxel_size_m": 0.3, "crop_z_m": [0.0, 3.0]}}
-    assert front_end_from_record(old) == PRESETS["agv"].replace(voxel_size_m=0.3, crop_z_m=(0.0, 3.0))
+    # ...and structure split by the second cut pursuit, as the code then did.
+    expected = PRESETS["agv"].replace(voxel_size_m=0.3, crop_z_m=(0.0, 3.0), split_structure=True)
+    assert front_end_from_record(old) == expected
     assert front_end_from_record({}) is None and front_end_from_record(None) is None
     assert front_end_from_record({"overrides": {}}) is None
     whole = PRESETS["indoor"].replace(history_frames=2)
@@ -275,3 +277,18 @@ def _assert_plain_and_in_range(params: FrontEndParams) -> None:
     assert params.prune_m == 0 or 0.001 <= params.prune_m <= 10
     assert params.crop_z_m is None or -MAX_EXTENT_M <= params.crop_z_m[0] < params.crop_z_m[1] <= MAX_EXTENT_M
     assert len(seg.proposal_sizes_m) <= 16 and len(seg.patch_regularizations) <= 16
+
+
+def test_records_from_before_split_structure_split_structure_the_earlier_way():
+    from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
+    from factorydet_core.proposals.settings import FrontEndParams, front_end_from_record
+
+    today = FrontEndParams().to_dict()
+    assert today["segmentation"]["split_structure"] is False
+    older = FrontEndParams().to_dict()
+    del older["segmentation"]["split_structure"]
+    assert FrontEndParams.from_dict(older).segmentation.split_structure is True
+    assert FrontEndParams.from_dict(today) == FrontEndParams()
+    assert front_end_from_record({"preset": "agv", "overrides": {}}).segmentation.split_structure is True
+    # The shipped model says how it detects (measured on the held-out factories both ways).
+    assert DetectionModel.load(DEFAULT_MODEL).front_end.segmentation.split_structure is False

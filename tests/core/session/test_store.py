@@ -921,6 +921,21 @@ def test_a_runs_hold_score_is_read_from_its_settings(db, tiny_model_path):
         db.hold_score(99)
 
 
+def test_the_change_stamp_never_returns_after_a_verdict_is_undone_and_redone(db, tiny_model_path):
+    """A queue cached on the stamp must see the verdicts' new versions: an undo then a redo leaves
+    the edit log as it was, not the versions."""
+    db.save_training_run(_fake_run(tiny_model_path), "small", {"rounds": 1})
+    top = db.review_queue()[0]
+    db.review([top["id"]], "background", "ann")
+    stamps = [db.change_stamp()]
+    db.undo("ann")
+    stamps.append(db.change_stamp())
+    db.redo("ann")
+    stamps.append(db.change_stamp())
+    assert len(set(stamps)) == 3
+    assert {q["id"]: q for q in db.review_queue()}[top["id"]]["review_version"] == top["review_version"] + 3
+
+
 def test_the_change_stamp_moves_with_every_edit_undo_and_redo_and_not_with_reads(db):
     stamps = [db.change_stamp()]
     db.labels(0)  # a first read imports the frame's annotations: not a change to anyone's view
