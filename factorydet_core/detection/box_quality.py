@@ -664,7 +664,7 @@ def _evaluate_trees(
     sum of one walk over all trees (``BoxQuality.predict_best`` relies on it).
     """
     split_feature = np.where(trees["is_leaf"], -1, trees["feature"]).astype(np.int32)
-    # children[2 * node + 1] is the right child: a walk steps to children[2 * node + (x > t)].
+    # children[2 * node + 1] is the right child (``_compile_step``).
     children = np.stack([trees["left"], trees["right"]], axis=1).astype(np.int32).reshape(-1)
     if initial is None:
         initial = np.full(len(features), float(trees["baseline"][0]))
@@ -680,6 +680,18 @@ def _evaluate_trees(
     )
 
 
+def _compile_step():
+    """One step down a tree, for both walks: values equal to a threshold go left, as in
+    scikit-learn (and NaN right)."""
+    import numba
+
+    @numba.njit(inline="always")
+    def step(features, row, node, feature, children, threshold):
+        return children[2 * node + 1 - (features[row, feature] <= threshold[node])]
+
+    return step
+
+
 def _compile_walk():
     """The walk ``_evaluate_trees`` runs. A tree's splits depend on the row, so one row's walk is a
     chain of dependent loads and unpredictable branches; eight rows walked side by side, each in
@@ -690,11 +702,7 @@ def _compile_walk():
     import numba
 
     block = 1024  # rows per block: a few hundred kB of features, while one tree stays in L1
-
-    @numba.njit(inline="always")
-    def step(features, row, node, feature, children, threshold):
-        # Values equal to a threshold go left, as in scikit-learn (and NaN right, as before).
-        return children[2 * node + 1 - (features[row, feature] <= threshold[node])]
+    step = _compile_step()
 
     @numba.njit(inline="always")
     def advance(features, row, node, feature, split_feature, children, threshold):
@@ -759,6 +767,7 @@ def _compile_row_walk():
     import numba
 
     block = 1024
+    step = _compile_step()
 
     @numba.njit(parallel=True, cache=True, nogil=True)
     def row_walk(features, roots, split_feature, children, threshold, value, initial):
@@ -772,8 +781,7 @@ def _compile_row_walk():
                     node = roots[t]
                     feature = split_feature[node]
                     while feature >= 0:
-                        # Values equal to a threshold go left, as in scikit-learn.
-                        node = children[2 * node + 1 - (features[r, feature] <= threshold[node])]
+                        node = step(features, r, node, feature, children, threshold)
                         feature = split_feature[node]
                     acc[r - lo] += value[node]
             total[lo:hi] = acc
@@ -872,6 +880,13 @@ def _compile_best_in_runs():
             if hi - lo <= keep:
                 mask[lo:hi] = True
                 continue
+            if keep == 1:  # the first greatest: no sort
+                best = lo
+                for j in range(lo + 1, hi):
+                    if values[j] > values[best]:
+                        best = j
+                mask[best] = True
+                continue
             # A stable sort of -values: equal values keep their order, the earlier row first.
             order = np.argsort(-values[lo:hi], kind="mergesort")
             for j in range(keep):
@@ -879,18 +894,6 @@ def _compile_best_in_runs():
         return mask
 
     return best_in_runs
-
-
-def _first_best_in_sets(owners: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(S,) the row of each set's greatest value, the earlier row on ties, for (R,) ``owners``
-    listing the sets set after set (ascending, each once in a run) and (R,) ``values``; what
-    ``rank_within_sets(owners, -values) == 0`` selects, without sorting every row."""
-    if not len(owners):
-        return np.zeros(0, np.int64)
-    starts = np.flatnonzero(np.r_[True, owners[1:] != owners[:-1]])
-    best = np.maximum.reduceat(values, starts)
-    at_best = np.flatnonzero(values == np.repeat(best, np.diff(np.r_[starts, len(owners)])))
-    return at_best[np.r_[True, owners[at_best[1:]] != owners[at_best[:-1]]]]
 
 
 SETS_PER_CHUNK = 2048
@@ -928,7 +931,7 @@ def _choose_chunk(
             quality.free_space_of(groups),
         )
         iou = quality.predict_best(features, owner)
-        first = _first_best_in_sets(owner, iou)
+        first = _best_in_sets(owner, iou, 1)  # each set's best option
         set_rows = rows[owner[first]]
         boxes[set_rows], proposal_ids[set_rows] = options[first], source[first]
         predicted[set_rows] = iou[first]

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from factorydet_core.detection.box_quality import BoxQuality
+from factorydet_core.detection.box_quality import INFERENCE_SETTINGS, BoxQuality
 from factorydet_core.detection.classifier import ProposalClassifier
 from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.groups import BoxSizePrior, best_option_iou
@@ -740,7 +740,7 @@ def _busy_process():
         spinner.wait()
 
 
-BACK_HALF_SETTINGS = ("screen_trees", "screen_keep", "interleaved_walk")
+BACK_HALF_SETTINGS = INFERENCE_SETTINGS
 """``bench_detect``'s compared settings that belong to the model's back half (the box quality
 regressor's inference settings, ``box_quality.INFERENCE_SETTINGS``), not to its front half."""
 

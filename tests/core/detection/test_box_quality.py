@@ -504,8 +504,8 @@ def test_prior_boxes_of_all_sets_at_once_are_those_of_one_set_at_a_time(frames, 
 
 @given(st.lists(st.tuples(st.integers(1, 6), st.integers(0, 3)), min_size=0, max_size=30))
 @settings(max_examples=60, deadline=None)
-def test_first_best_in_sets_is_what_the_ranking_puts_first(blocks):
-    from factorydet_core.detection.box_quality import _first_best_in_sets
+def test_each_sets_best_is_what_the_ranking_puts_first(blocks):
+    from factorydet_core.detection.box_quality import _best_in_sets
     from factorydet_core.detection.groups import rank_within_sets
 
     # Sets listed set after set; few distinct values, so ties are common.
@@ -513,7 +513,7 @@ def test_first_best_in_sets_is_what_the_ranking_puts_first(blocks):
     rng = np.random.default_rng(len(owners))
     values = rng.integers(-1, 3, size=len(owners)).astype(np.float64) / 2
     expected = np.flatnonzero(rank_within_sets(owners, -values) == 0)
-    np.testing.assert_array_equal(_first_best_in_sets(owners, values), expected)
+    np.testing.assert_array_equal(_best_in_sets(owners, values, 1), expected)
 
 
 @given(
