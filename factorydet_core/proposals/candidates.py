@@ -71,8 +71,7 @@ def point_sets(patch_ids: np.ndarray, patch_sets: list[tuple[int, ...]] | tuple)
     order = np.argsort(patch_ids, kind="stable")
     sizes = np.bincount(patch_ids, minlength=num_patches)
     starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    set_lengths = np.array([len(s) for s in patch_sets], np.int64)
-    patches = np.fromiter((p for s in patch_sets for p in s), np.int64, int(set_lengths.sum()))
+    set_lengths, patches = _flatten(patch_sets)
     # Each (set, patch) pair's run of points, laid end to end: position k of the run of pair j
     # is order[starts[patch j] + k].
     run_lengths = sizes[patches].astype(np.int64)
@@ -85,10 +84,16 @@ def point_sets(patch_ids: np.ndarray, patch_sets: list[tuple[int, ...]] | tuple)
     return np.split(gathered, set_ends[:-1])
 
 
+def _flatten(sets) -> tuple[np.ndarray, np.ndarray]:
+    """``(lengths, flat)``: (S,) the size of each of S sets of indices and all their indices, set
+    after set."""
+    lengths = np.array([len(s) for s in sets], np.int64)
+    return lengths, np.fromiter((i for s in sets for i in s), np.int64, int(lengths.sum()))
+
+
 def _set_sums(values: np.ndarray, sets: list[tuple[int, ...]]) -> np.ndarray:
     """(S,) int64 the sum of (P,) integer ``values`` over each of S sets of indices."""
-    lengths = np.array([len(s) for s in sets], np.int64)
-    flat = np.fromiter((i for s in sets for i in s), np.int64, int(lengths.sum()))
+    lengths, flat = _flatten(sets)
     running = np.concatenate([[0], np.cumsum(np.asarray(values, np.int64)[flat])])
     ends = np.cumsum(lengths)
     return running[ends] - running[ends - lengths]

@@ -443,9 +443,17 @@ def merge_patches(
     num_patches = int(patch_ids.max()) + 1 if len(patch_ids) else 0
     if num_patches == 0:
         return np.zeros(0, np.int64), ()
+    return _merge(*_merge_inputs(points, patch_ids, source, target, num_patches), params)
+
+
+def _merge_inputs(
+    points: np.ndarray, patch_ids: np.ndarray, source: np.ndarray, target: np.ndarray, num_patches: int
+) -> tuple[scipy.sparse.csr_matrix, np.ndarray, np.ndarray]:
+    """What ``_merge`` starts from: the patches' (P, P) adjacency, indices sorted, and their
+    (P, 3) lower and upper bounds."""
     adjacency = _patch_adjacency(patch_ids, source, target, num_patches)
     adjacency.sort_indices()
-    return _merge(adjacency, *group_bounds(points, patch_ids, num_patches), params)
+    return (adjacency, *group_bounds(points, patch_ids, num_patches))
 
 
 def _merge(
@@ -671,15 +679,11 @@ def segment(points: np.ndarray, params: SegmentationParams = SegmentationParams(
         keep &= _mergeable_connections(points, patch_ids, source, target, params)
     if num_patches:
         # Every merge pass starts from the same patches: their adjacency and bounds once.
-        adjacency = _patch_adjacency(patch_ids, source[keep], target[keep], num_patches)
-        adjacency.sort_indices()
-        bounds = group_bounds(points, patch_ids, num_patches)
-        patch_segment_ids, history = _merge(adjacency, *bounds, params)
+        inputs = _merge_inputs(points, patch_ids, source[keep], target[keep], num_patches)
+        patch_segment_ids, history = _merge(*inputs, params)
         passes = [(scale, params.max_object_size_m[1]) for scale in params.proposal_scales_m]
         for size in passes + list(params.proposal_sizes_m):
-            history = (
-                history + _merge(adjacency, *bounds, dataclasses.replace(params, max_object_size_m=size))[1]
-            )
+            history = history + _merge(*inputs, dataclasses.replace(params, max_object_size_m=size))[1]
     else:
         patch_segment_ids, history = np.zeros(0, np.int64), ()
     if params.patch_regularizations and num_patches > 1:
