@@ -561,7 +561,8 @@ the stage budget has (open a data set, load a model, ``detector_for``, ``detect`
 class CheckoutDetector:
     """Another version of this project's code detecting in a child process: ``checkout`` (a
     folder with a ``factorydet_core`` package) comes first on the child's import path, and the
-    child loads the model and the data once, then detects the frames it is sent, one at a time.
+    child loads the model (a shipped one: the checkout's own copy) and the data once, then detects
+    the frames it is sent, one at a time.
 
     Args:
         checkout: the other version's folder.
@@ -579,7 +580,7 @@ class CheckoutDetector:
         path = os.pathsep.join([str(self.checkout), os.environ.get("PYTHONPATH", "")])
         env = {**os.environ, "PYTHONPATH": path}
         self._errors = tempfile.TemporaryFile("w+")  # the child's messages, for its last words
-        paths = [str(Path(data).resolve()), str(Path(model_path).resolve())]  # the child runs elsewhere
+        paths = [str(Path(data).resolve()), str(self._model_for_checkout(model_path))]
         self._child = subprocess.Popen(
             [sys.executable, "-c", _CHECKOUT_SCRIPT, *paths],
             stdin=subprocess.PIPE,
@@ -597,6 +598,20 @@ class CheckoutDetector:
         if package.parent != self.checkout:
             self.close()
             raise InputError(f"--compare-checkout: the child imported {package}, not the checkout's package")
+
+    def _model_for_checkout(self, model_path: str | os.PathLike) -> Path:
+        """The checkpoint the child loads (an absolute path: it runs elsewhere). A model shipped in
+        this package is the checkout's own copy when it has one: the same weights, with the note
+        that version reads (a newer note may name settings it does not know)."""
+        import factorydet_core
+
+        path = Path(model_path).resolve()
+        package = Path(factorydet_core.__path__[0]).resolve()
+        if path.is_relative_to(package):
+            own = self.checkout / "factorydet_core" / path.relative_to(package)
+            if own.is_file():
+                return own
+        return path
 
     def _read(self) -> dict:
         for line in self._child.stdout:
