@@ -23,6 +23,7 @@ from factorydet_core.session.editing import points_in_screen_rect, suggest_box, 
 from factorydet_core.training.settings import LoopSettings
 
 from .clients import ClientView
+from .keyboard import route_dropdown_keys_to_hotkeys
 from .panels.detections_panel import build_detections_panel
 from .panels.display_panel import build_display_panel
 from .panels.frame_panel import build_frame_panel
@@ -140,6 +141,7 @@ class FactorydetApp:
             review_panel = build_review_panel(view, self.trainer.find_suspects)
             view.panels = [labels_panel, review_panel]
             register_hotkeys(view, labels_panel, review_panel)
+            route_dropdown_keys_to_hotkeys(client)
             build_help_panel(view)
 
         def redraw() -> None:

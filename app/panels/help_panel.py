@@ -77,7 +77,8 @@ def help_markdown(class_names: tuple[str, ...]) -> str:
         f"Classes: {classes}.  \nMouse: click a box to select it, click points to select their "
         "segment (with a model, its box for the object is suggested in cyan), shift-click to add a "
         "segment, shift-drag to select a rectangle. Drag the gizmo to move or turn the selected box. "
-        "Ctrl/Cmd+K lists every command."
+        "Ctrl/Cmd+K lists every command. Keys pressed on a drop-down once it is closed are "
+        "these hotkeys (an open drop-down searches its options as you type)."
     )
 
 

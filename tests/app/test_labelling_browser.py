@@ -127,6 +127,40 @@ def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
         context.close()
 
 
+def test_hotkeys_after_a_drop_down_reach_the_app_not_its_search_box(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context, page, view = _open(browser, app)
+    try:
+        page.get_by_text("0 of 6 reviewed", exact=False).wait_for(timeout=30_000)
+        page.get_by_role("button", name="Next [N]").click()
+        assert _wait(lambda: view.current_item_id is not None, 20), "Next never reached the server"
+        # Pick a class with the mouse: the drop-down keeps the focus afterwards.
+        dropdown = page.get_by_role("combobox", name="Object class")
+        dropdown.click()
+        page.get_by_role("option", name="cone", exact=True).click()
+        assert _wait(lambda: view.object_class == "cone", 10), "the picked class never reached the server"
+        assert page.evaluate("document.activeElement.getAttribute('aria-haspopup')") == "listbox"
+        # The next keys are hotkeys: '2' and 'x' are neither typed into the search box nor lost.
+        page.keyboard.press("2")
+        assert _wait(lambda: view.object_class == "bobbin", 10), "the class key went into the drop-down"
+        page.keyboard.press("x")
+        assert _wait(lambda: db.review_progress()["skip"] == 1, 20), "the verdict key went into the drop-down"
+        # The drop-down shows the chosen class (the next item's predicted one), no typed key.
+        assert _wait(lambda: dropdown.input_value() == view.object_class, 10), dropdown.input_value()
+        # An open drop-down still searches: typing filters its options.
+        dropdown.click()
+        page.keyboard.press("Control+A")
+        page.keyboard.type("tru")
+        page.get_by_role("option", name="truck", exact=True).wait_for(timeout=10_000)
+        assert page.get_by_role("option", name="cone", exact=True).count() == 0
+        chosen = view.object_class
+        page.wait_for_timeout(500)  # a hotkey, had one fired, would have reached the server by now
+        assert db.review_progress()["skip"] == 1 and view.object_class == chosen
+    finally:
+        context.close()
+
+
 def test_twenty_verdicts_in_a_row_with_the_keyboard(small_dataset_dir, tiny_model_path, tmp_path, browser):  # noqa: F811
     """A reviewer's sitting: N shows the first item, then B (background) and X (skip) twenty
     times, each verdict stored and the next item shown before the next key."""
