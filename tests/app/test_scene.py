@@ -16,4 +16,5 @@ def test_the_floor_grid_draws_every_line_once_on_the_floor():
     assert len(along_y) + len(along_x) == len(lines)
     for offsets in (along_y[:, 0, 0], along_x[:, 0, 1]):
         assert sorted(offsets.tolist()) == list(range(-30, 31))
-    assert sorted(sections[sections[:, 0, 0] == sections[:, 1, 0]][:, 0, 0].tolist()) == list(range(-30, 31, 5))
+    section_offsets = sections[sections[:, 0, 0] == sections[:, 1, 0]][:, 0, 0]
+    assert sorted(section_offsets.tolist()) == list(range(-30, 31, 5))
