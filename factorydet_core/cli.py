@@ -329,9 +329,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "method": args.method,
                             "class_weight": args.class_weight,
                             "round_epochs": args.round_epochs,
+                            "hold_places": args.hold_places,
                         }
                     ),
                     seeds=parse_ints(args.seeds, "--seeds"),
+                    variants=None if args.variants is None else [v.strip() for v in args.variants.split(",")],
                     max_label_iou=args.hide_labelled,
                     review_by=args.review_by,
                     max_train_frames=args.train_frames,
@@ -1262,6 +1264,17 @@ def build_parser(
         metavar="IOU",
         help="hitl: the reviewer's queue hides items whose box overlaps a label at this IoU or more, "
         "as the review panel's filter (default: the plain score order)",
+    )
+    p.add_argument(
+        "--hold-places",
+        action="store_true",
+        help="hitl: blind_safe also holds every point set on a held negative's box (hold_places)",
+    )
+    p.add_argument(
+        "--variants",
+        default=None,
+        help="hitl: run only these detectors, comma-separated (blind, blind_safe, reviewed_K, full; "
+        "blind always runs); default all",
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument(

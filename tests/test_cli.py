@@ -332,6 +332,26 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "200,200"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "0"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--hide-labelled", "0"]) == 2
+    assert main(["bench", "hitl", str(small_dataset_dir), "--variants", "blind,nobody"]) == 2
+
+
+@pytest.mark.slow
+def test_bench_hitl_runs_the_variants_asked_for_with_blind_always(small_dataset_dir, tmp_path, capsys):
+    out = tmp_path / "hitl.json"
+    args = ["bench", "hitl", str(small_dataset_dir), "--rounds", "1", "--epochs", "1",
+            "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
+            "--seeds", "0", "--train-frames", "1", "--no-calibrate", "--no-box-quality",
+            "--method", "paper", "--class-weight", "balanced", "--variants", "blind_safe",
+            "--hold-places", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert list(result["variants"]) == ["blind", "blind_safe"]
+    assert result["settings"]["hold_places"] is True
+    assert result["gap_full_minus_blind"] is None and result["recovered"] == {}
+    markdown = out.with_suffix(".md").read_text()
+    assert "and every point set on their boxes (their places) with them" in markdown
+    assert "Full labels were not run here" in markdown and "Recovered share" not in markdown
+    assert "the paper's 3DmFV-Net (width 0.0625)" in markdown
 
 
 @pytest.mark.slow

@@ -317,6 +317,7 @@ def bench_hitl(
     command: str = "",
     progress=None,
     review_by: str = "item",
+    variants: Sequence[str] | None = None,
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
     mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -331,7 +332,8 @@ def bench_hitl(
     (``SessionDB.review_queue``); hidden items cost no budget. ``review_by`` "place" reviews as the
     app does by default once the frames are placed: one verdict per place of the queue, objects
     labelled once in every frame that shows them (``simulated_review``'s ``world``); K then counts
-    places.
+    places. ``variants`` runs some of the detectors only (their names as above, ``blind_safe``
+    included; ``blind``, every other one's baseline, always runs); ``None``: all.
 
     Every variant runs ``rounds + 1`` fits: a first fit that mines, then ``rounds`` next rounds.
     Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
@@ -355,6 +357,12 @@ def bench_hitl(
         raise InputError(f"bench hitl: the queue filter's IoU must lie in (0, 1], got {max_label_iou}")
     if review_by not in ("item", "place"):
         raise InputError(f"bench hitl: review by 'item' or 'place', got {review_by!r}")
+    known = ["blind", "blind_safe", *(f"reviewed_{k}" for k in budgets), "full"]
+    if variants is not None:
+        unknown = sorted(set(variants) - set(known))
+        if unknown:
+            raise InputError(f"bench hitl: unknown variants {unknown}; choose from {', '.join(known)}")
+        variants = [name for name in known if name == "blind" or name in variants]
     settings = settings or LoopSettings()
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
@@ -363,7 +371,7 @@ def bench_hitl(
         raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
     plan = _HitlPlan(
         dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command,
-        review_by,
+        review_by, variants,
     )  # fmt: skip
     if workdir is not None:
         return _hitl_variants(plan, Path(workdir), progress)
@@ -415,6 +423,7 @@ class _HitlPlan:
     calibrate: bool
     command: str
     review_by: str = "item"
+    variants: list[str] | None = None
 
 
 def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
@@ -445,6 +454,8 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
         *((f"reviewed_{k}", int(k), None) for k in budgets),
         ("full", 0, None),
     ]
+    if plan.variants is not None:
+        variants = [v for v in variants if v[0] in plan.variants]
     steps, done = len(seeds) * len(variants) * (rounds + 1), 0
     per_seed: dict[str, list[dict]] = {name: [] for name, _, _ in variants}
     for seed in seeds:
@@ -530,15 +541,19 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
         results[name]["difference_vs_blind"] = paired_difference(
             [r["f1"] for r in per_seed[name]], [r["f1"] for r in per_seed["blind"]]
         )
-    gap, recovered = _recovered(f1, budgets)
-    gap_stats = results["full"]["difference_vs_blind"]
-    # A share of a gap no larger than its noise says nothing: stated only where the gap is more
-    # than twice its standard error over the seeds.
-    gap_significant = gap_stats["standard_error"] is not None and gap > 2 * gap_stats["standard_error"]
-    seed_recovered = [
-        _recovered({n: runs[i]["f1"] for n, runs in per_seed.items()}, budgets)[1] for i in range(len(seeds))
-    ]
-    recovered_per_seed = {str(k): [r[str(k)] for r in seed_recovered] for k in budgets}
+    reviewed = [k for k in budgets if f"reviewed_{k}" in results]
+    gap, recovered, recovered_per_seed, gap_significant = None, {}, {}, False
+    if "full" in results:
+        gap, recovered = _recovered(f1, reviewed)
+        gap_stats = results["full"]["difference_vs_blind"]
+        # A share of a gap no larger than its noise says nothing: stated only where the gap is more
+        # than twice its standard error over the seeds.
+        gap_significant = gap_stats["standard_error"] is not None and gap > 2 * gap_stats["standard_error"]
+        seed_recovered = [
+            _recovered({n: runs[i]["f1"] for n, runs in per_seed.items()}, reviewed)[1]
+            for i in range(len(seeds))
+        ]
+        recovered_per_seed = {str(k): [r[str(k)] for r in seed_recovered] for k in reviewed}
     return {
         "benchmark": "hitl",
         "command": command,
@@ -557,7 +572,7 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
         "f1": f1,
         "recovered": recovered,
         "recovered_per_seed": recovered_per_seed,
-        "gap_full_minus_blind": round(gap, 4),
+        "gap_full_minus_blind": None if gap is None else round(gap, 4),
         "gap_significant": bool(gap_significant),
         "hold_confident": hold,
         "variants": results,

@@ -2599,6 +2599,32 @@ class SessionDB:
             out.setdefault(row["frame_index"], {})[tuple(row["patch_set"])] = None  # distinct, in order
         return {frame: list(sets) for frame, sets in out.items()}
 
+    def held_places(self, at_least_score: float, max_label_iou: float = HIDE_LABELLED_IOU) -> dict:
+        """Boxes of the mined negatives held until reviewed (``LoopSettings.hold_places``), by
+        frame: those the model scored at least ``at_least_score`` when it mined them, with no
+        verdict other than skip, and off every current label (box IoU below ``max_label_iou``:
+        a held box on a labelled object is a part or a loose box of it, a negative like any other).
+
+        Returns:
+            Frame index -> (K, 7) boxes; frames without any are left out.
+        """
+        import numpy as np
+
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT id, frame_index, box FROM mined_negatives m WHERE score >= ? AND NOT EXISTS"
+                " (SELECT 1 FROM reviews r WHERE r.negative_id = m.id AND r.verdict != 'skip')"
+                " ORDER BY id",
+                (float(at_least_score),),
+            ).fetchall()
+            items = [_row("mined_negatives", r) for r in rows]
+        overlaps = self.label_overlap(items)
+        out: dict[int, list] = {}
+        for item, overlap in zip(items, overlaps):
+            if not on_labelled_object(overlap, max_label_iou):
+                out.setdefault(item["frame_index"], []).append(item["box"])
+        return {frame: np.asarray(boxes, np.float64).reshape(-1, 7) for frame, boxes in out.items()}
+
     def reviewed_patch_sets(self) -> dict[str, dict[int, list[tuple[int, ...]]]]:
         """Point sets of every reviewed negative by verdict and frame: what the next training run
         must treat as background ('background'), and must not mine again (all decided ones)."""

@@ -263,6 +263,9 @@ def train_session(
         background = _merge(db.mined_patch_sets(below_score=hold), reviewed["background"])
         if hold is not None:  # held negatives nobody has decided on: neither background nor mined
             excluded = _merge(excluded, db.mined_patch_sets(at_least_score=hold, undecided_only=True))
+            if settings.hold_places:
+                held = db.held_places(hold)
+                labelled = [frame.with_ignored(held.get(frame.frame_index)) for frame in labelled]
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
         if continued is not None and continued.box_quality is not None and box_quality is not None:

@@ -101,6 +101,14 @@ class FrameProposals:
             ignore_boxes=np.asarray([] if ignore_boxes is None else ignore_boxes, np.float64).reshape(-1, 7),
         )
 
+    def with_ignored(self, boxes: np.ndarray | None) -> FrameProposals:
+        """The same proposals with more places training leaves out: ``boxes`` (K, 7) added to
+        ``ignore_boxes`` (``None`` or none: this frame as it is)."""
+        if boxes is None or not len(boxes):
+            return self
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        return dataclasses.replace(self, ignore_boxes=np.concatenate([self.ignore_boxes, boxes]))
+
     def ignored_point_sets(self) -> np.ndarray:
         """Indices of the point sets on an ignored place: half or more of the set's sampled points
         in an ``ignore_boxes`` box (``box_head.BACKGROUND_SHARE``, what keeps a set out of the

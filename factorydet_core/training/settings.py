@@ -65,6 +65,12 @@ class LoopSettings:
     reviews them: on a partially annotated data set the model's most confident false positives are
     the likeliest real, unlabelled objects. They stay in the review queue; a verdict moves each to
     the background or to a label. ``None``: every mined negative is background, as the paper."""
+    hold_places: bool = False
+    """With ``hold_confident``, a held negative holds its place, not only its own point set: every
+    point set with half its points or more in a held box (one off every label) is left out of the
+    background too, as a pre-label's place is (``FrameProposals.ignored_point_sets``). An
+    unlabelled object has many candidate sets (merge levels, fragments); holding the mined one
+    alone leaves the others in the background the box head samples every epoch."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -221,6 +227,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("hold_confident", "Hold confident negatives", "mined negatives scoring at least this are neither "
             "background nor object until reviewed (0: off, every mined negative is background, as the "
             "paper)", float, 0.0, 1.0, 0.05, none_as=0),
+    Control("hold_places", "Hold their places", "with held negatives, every point set on a held box (one "
+            "off the labels) is left out of the background too, not only the mined set", bool),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

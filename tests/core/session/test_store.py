@@ -911,6 +911,32 @@ def test_mined_point_sets_by_score_and_by_whether_someone_decided(db, tiny_model
     assert db.mined_patch_sets(at_least_score=0.6, undecided_only=True) == {0: [(1,)]}
 
 
+def test_held_places_are_the_undecided_confident_boxes_off_the_labels(db, tiny_model_path):
+    label = db.labels(0)[0]
+    on_label = list(label.box)
+    on_label[3] *= 1.2  # a loose box of a labelled object: IoU 1 / 1.2 with it
+    off = [[40.0 + 2.0 * g, 40.0, 0.5, 1.0, 1.0, 1.0, 0.0] for g in range(3)]
+    items = [
+        mined_item(0, 0, off[0], 0.9),
+        mined_item(0, 1, off[1], 0.8),
+        mined_item(0, 2, off[2], 0.2),  # below the hold score
+        mined_item(0, 3, on_label, 0.95),
+        mined_item(1, 4, off[0], 0.7),
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
+    held = db.held_places(0.5)
+    assert set(held) == {0, 1}
+    np.testing.assert_allclose(held[0], [off[0], off[1]])
+    np.testing.assert_allclose(held[1], [off[0]])
+    ids = {q["score"]: q["id"] for q in db.review_queue()}
+    db.review([ids[0.9]], "background", "ann")  # decided: no longer held
+    db.review([ids[0.8]], "skip", "ann")  # a skip decides nothing
+    np.testing.assert_allclose(db.held_places(0.5)[0], [off[1]])
+    # A label drawn on a held box makes it a labelled object's: no longer held.
+    db.add_label(1, off[0], "box", "ann")
+    assert 1 not in db.held_places(0.5)
+
+
 def test_a_runs_hold_score_is_read_from_its_settings(db, tiny_model_path):
     first = db.save_training_run(
         queue_run(tiny_model_path, [[]]), "small", {"settings": {"hold_confident": 0.35}}

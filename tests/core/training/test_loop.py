@@ -362,3 +362,39 @@ def test_the_reviewer_by_place_answers_an_object_mined_in_two_frames_once_and_la
     labels = [lab for f in range(dataset.num_frames) for lab in db.labels(f) if lab.origin == "review"]
     assert {lab.frame_index for lab in labels} >= {0, 1} and len({lab.instance_id for lab in labels}) == 1
     assert len({lab.frame_index for lab in labels}) == len(labels)  # once in each frame
+
+
+def test_held_negatives_hold_their_places_when_asked(dataset, frames, tiny_model_path, tmp_path, monkeypatch):
+    """``hold_places``: the next round's frames leave out every point set on a held box (off the
+    labels), not only the mined set; without it, or below the hold score, they do not."""
+    db = SessionDB(open_session("held", tmp_path), dataset)
+    frame = frames[0]
+    labels = db.frame_boxes(0)[0]
+    off_labels = box_iou_3d(frame.proposal_boxes, labels).max(axis=1) == 0.0
+    proposal = int(np.flatnonzero(off_labels)[0])
+    box = frame.proposal_boxes[proposal]
+    group = int(frame.groups.group_ids[proposal])
+    items = [mined_item(0, group, box, 0.9), mined_item(0, group + 1, box + [0, 0, 0, 0, 0, 0, 0.1], 0.2)]
+    db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
+
+    seen = {}
+
+    class CapturedError(Exception):
+        pass
+
+    def capture(frames, *args, **kwargs):
+        seen["frames"] = frames
+        raise CapturedError
+
+    monkeypatch.setattr("factorydet_core.training.loop.train_with_mining", capture)
+    for hold_places in (False, True):
+        settings = LoopSettings(**{**SETTINGS.__dict__, "hold_confident": 0.5, "hold_places": hold_places})
+        with pytest.raises(CapturedError):
+            train_session(db, frames, settings, mode="next", data_ref="small")
+        held = seen["frames"][0]
+        if hold_places:
+            np.testing.assert_allclose(held.ignore_boxes, [box])  # the 0.2 one is below the hold
+            assert group in held.ignored_point_sets().tolist()
+        else:
+            assert len(held.ignore_boxes) == 0 and len(held.ignored_point_sets()) == 0
+        assert len(seen["frames"][1].ignore_boxes) == 0  # nothing held in frame 1
