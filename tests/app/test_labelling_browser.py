@@ -73,14 +73,24 @@ def _open(browser, app, height: int = 1400):  # noqa: F811 - the fixture's value
     return context, page, app.client_view(client_id)
 
 
-def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
-    app = session_app
-    db = app.state.db
+def _open_on_the_first_item(browser, app):  # noqa: F811 - the fixture's value
+    """``_open``, then Next [N] pressed on the page: the queue's first item shown."""
     context, page, view = _open(browser, app)
     try:
         page.get_by_text("0 of 6 reviewed", exact=False).wait_for(timeout=30_000)
         page.get_by_role("button", name="Next [N]").click()
         assert _wait(lambda: view.current_item_id is not None, 20), "Next never reached the server"
+    except BaseException:
+        context.close()
+        raise
+    return context, page, view
+
+
+def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
+    app = session_app
+    db = app.state.db
+    context, page, view = _open_on_the_first_item(browser, app)
+    try:
         first = view.current_item_id
         assert first == db.review_queue()[0]["id"]  # highest score first
         page.get_by_text("Item 1 of 6", exact=False).wait_for(timeout=20_000)
@@ -130,11 +140,8 @@ def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
 def test_hotkeys_after_a_drop_down_reach_the_app_not_its_search_box(session_app, browser):  # noqa: F811
     app = session_app
     db = app.state.db
-    context, page, view = _open(browser, app)
+    context, page, view = _open_on_the_first_item(browser, app)
     try:
-        page.get_by_text("0 of 6 reviewed", exact=False).wait_for(timeout=30_000)
-        page.get_by_role("button", name="Next [N]").click()
-        assert _wait(lambda: view.current_item_id is not None, 20), "Next never reached the server"
         # Pick a class with the mouse: the drop-down keeps the focus afterwards.
         dropdown = page.get_by_role("combobox", name="Object class")
         dropdown.click()
