@@ -66,3 +66,77 @@ def test_the_report_names_the_back_half_and_shows_the_held_out_table(tmp_path):
     lines = report.heldout_lines(quality)
     assert lines[1].startswith("## Held-out factories")
     assert "| " + " | ".join(quality["methods"]) + " |" in "\n".join(lines)
+
+
+def _hitl_result(f1_per_seed: dict[str, list[float]], recovered: dict | None = None) -> dict:
+    """A ``bench hitl`` record of these variants (two classes, the per-seed totals given)."""
+    from factorydet_core.evaluation.hitl import paired_difference
+
+    variants = {}
+    for name, values in f1_per_seed.items():
+        mean = sum(values) / len(values)
+        variants[name] = {
+            "f1": mean,
+            "map": mean,
+            "f1_per_seed": values,
+            "f1_std": 0.01,
+            "per_class_f1": {"box": mean, "cone": None},
+            "num_reviews": 0,
+            "reviews": {},
+            "unannotated_labelled": 0.0,
+            "difference_vs_blind": paired_difference(values, f1_per_seed["blind"]),
+        }
+    f1 = {name: v["f1"] for name, v in variants.items()}
+    gap = f1["full"] - f1["blind"] if "full" in f1 else None
+    error = variants["full"]["difference_vs_blind"]["standard_error"] if "full" in f1 else None
+    return {
+        "command": "factorydet bench hitl x",
+        "data": "x",
+        "train_frames": [0],
+        "test_frames": [1],
+        "mining_rounds": 2,
+        "iou_threshold": 0.6,
+        "seeds": [0, 1, 2],
+        "settings": {
+            "method": "head_options",
+            "epochs": 5,
+            "initial_negatives": 10,
+            "negatives_per_round": 5,
+            "hold_places": True,
+        },  # fmt: skip
+        "hold_confident": 0.35,
+        "queue_max_label_iou": 0.25,
+        "variants": variants,
+        "f1": f1,
+        "recovered": recovered or {},
+        "recovered_per_seed": {k: [v, v, v] for k, v in (recovered or {}).items()},
+        "gap_full_minus_blind": gap,
+        "gap_significant": gap is not None and gap > 2 * error,
+    }
+
+
+def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
+    from factorydet_core.evaluation.report import hitl_markdown
+
+    # Blind, blind_safe and full only: the gap with its interval and blind_safe's share of it.
+    result = _hitl_result(
+        {"blind": [0.30, 0.31, 0.29], "blind_safe": [0.31, 0.32, 0.30], "full": [0.34, 0.35, 0.33]}
+    )
+    text = hitl_markdown(result, heading=False)
+    assert "Recovered share of the gap between blind and full labels (0.040 [+0.040, +0.040])" in text
+    assert "by `blind_safe`, with no reviewer: 25% (target: at least 30%)" in text
+    assert "per seed: )" not in text and "reviewer's queue" not in text and "`reviewed_K`" not in text
+    assert "their places" in text and "the learned box head classifying" in text
+    # With a reviewed budget: its share and the queue filter are stated.
+    result = _hitl_result(
+        {"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.33, 0.34, 0.32], "full": [0.34, 0.35, 0.33]},
+        recovered={"200": 0.75},
+    )
+    text = hitl_markdown(result, heading=False)
+    assert "by the reviews: K = 200: 75% (per seed: K = 200: 75%, 75%, 75%)" in text
+    assert "reviewer's queue hides items" in text and "`blind_safe`" not in text
+    # A gap within its noise: no share at all.
+    result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.31, 0.30, 0.30]})
+    assert "no recovered share is stated" in hitl_markdown(result)
+    # Without full labels: no gap.
+    assert "Full labels were not run here" in hitl_markdown(_hitl_result({"blind": [0.3, 0.3, 0.3]}))
