@@ -21,16 +21,21 @@ ROUTE_KEYS_JS = r"""
   if (window.__factorydetRouteKeys) return;
   window.__factorydetRouteKeys = true;
   const named = new Set(["Delete", "Enter", "Escape", "PageUp", "PageDown"]);
+  // Mantine marks an open drop-down's input aria-expanded (and its root data-expanded).
   const isClosedDropdown = (el) =>
     el instanceof HTMLInputElement &&
     el.getAttribute("aria-haspopup") === "listbox" &&
-    el.getAttribute("aria-expanded") !== "true";
+    el.getAttribute("aria-expanded") !== "true" &&
+    el.closest("[data-expanded]") === null;
+  // By the physical key as well: on macOS, Option+I types a symbol, not "i".
+  const isHotkey = (event) =>
+    /^[a-z0-9]$/i.test(event.key) || /^(Key[A-Z]|Digit[0-9])$/.test(event.code) || named.has(event.key);
   window.addEventListener(
     "keydown",
     (event) => {
       const input = event.target;
       if (!isClosedDropdown(input) || event.ctrlKey || event.metaKey || event.isComposing) return;
-      if (!/^[a-z0-9]$/i.test(event.key) && !named.has(event.key)) return;
+      if (!isHotkey(event)) return;
       event.preventDefault();
       event.stopImmediatePropagation();
       input.blur();

@@ -50,7 +50,10 @@ GRID_HALF_WIDTH_M = 30.0
 
 def grid_segments(half_width: float, spacing: float, skip_every: int = 0) -> np.ndarray:
     """Lines of a square grid on the floor (z = 0), ``spacing`` apart, from -``half_width`` to
-    ``half_width``, leaving out every ``skip_every``-th line (drawn by a coarser grid); (N, 2, 3)."""
+    ``half_width`` (a multiple of ``spacing``), leaving out every ``skip_every``-th line (drawn by a
+    coarser grid); (N, 2, 3)."""
+    if not spacing > 0 or not half_width > 0:
+        raise ValueError(f"grid spacing and half width must be positive, got {spacing} and {half_width}")
     count = int(round(2 * half_width / spacing))
     ticks = -half_width + spacing * np.arange(count + 1)
     if skip_every:

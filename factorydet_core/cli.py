@@ -1266,11 +1266,6 @@ def build_parser(
         "as the review panel's filter (default: the plain score order)",
     )
     p.add_argument(
-        "--hold-places",
-        action="store_true",
-        help="hitl: blind_safe also holds every point set on a held negative's box (hold_places)",
-    )
-    p.add_argument(
         "--variants",
         default=None,
         help="hitl: run only these detectors, comma-separated (blind, blind_safe, reviewed_K, full; "
@@ -1295,7 +1290,7 @@ def build_parser(
         help="quality, detect, world-labels: frames per held-out factory",
     )
     # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
-    add_loop_flags(p, fields=("method", "class_weight", "round_epochs"))
+    add_loop_flags(p, fields=("method", "class_weight", "round_epochs", "hold_places"))
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

@@ -333,6 +333,10 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "0"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--hide-labelled", "0"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--variants", "blind,nobody"]) == 2
+    assert (
+        main(["bench", "hitl", str(small_dataset_dir), "--budgets", "50", "--variants", "reviewed_200"]) == 2
+    )
+    assert main(["bench", "hitl", str(small_dataset_dir), "--variants", "full", "--hold-places"]) == 2
 
 
 @pytest.mark.slow

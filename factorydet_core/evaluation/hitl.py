@@ -364,6 +364,8 @@ def bench_hitl(
             raise InputError(f"bench hitl: unknown variants {unknown}; choose from {', '.join(known)}")
         variants = [name for name in known if name == "blind" or name in variants]
     settings = settings or LoopSettings()
+    if settings.hold_places and variants is not None and "blind_safe" not in variants:
+        raise InputError("bench hitl: hold_places changes blind_safe alone, which --variants leaves out")
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
     test = spread_frames(dataset.splits.get("test") or [], max_test_frames)

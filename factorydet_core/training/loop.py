@@ -294,6 +294,7 @@ def train_session(
         excluded_sets=excluded,
         mine_after_last=True,
         hold_score=settings.hold_confident,
+        hold_places=settings.hold_places,
         should_stop=should_stop,
         round_epochs=settings.round_epochs,
         init_model=None if continued is None else continued.classifier,

@@ -35,6 +35,7 @@ from factorydet_core.metrics import IGNORE_IOU, detection_metrics
 from factorydet_core.metrics import tune_class_thresholds as tune_thresholds
 from factorydet_core.proposals.candidates import point_set_features
 from factorydet_core.proposals.visibility import FreeSpace
+from factorydet_core.session.store import HIDE_LABELLED_IOU
 from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_FLOOR, SCORE_THRESHOLD, Cancelled, InputError
 
 Progress = Callable[[str, int, int], None]
@@ -66,7 +67,9 @@ class FrameProposals:
     """(A,) their data set instance ids."""
     ignore_boxes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 7)))
     """(Q, 7) places that are neither object nor background for training (a session's pre-labels
-    no person has confirmed yet): the point sets on them are left out (``ignored_point_sets``)."""
+    no person has confirmed yet, held negatives' places with ``LoopSettings.hold_places``): the
+    point sets on them are left out (``ignored_point_sets``), and detections on them count neither
+    way when training tunes the thresholds."""
 
     def with_labels(
         self,
@@ -392,6 +395,7 @@ def train_with_mining(
     excluded_sets: Mapping[int, Iterable[Sequence[int]]] | None = None,
     mine_after_last: bool = False,
     hold_score: float | None = None,
+    hold_places: bool = False,
     should_stop: Callable[[], bool] | None = None,
     box_quality: BoxQuality | None = None,
     mining_threshold: float | None = None,
@@ -442,6 +446,10 @@ def train_with_mining(
         hold_score: mined negatives scoring at least this are held out of the background (left
             out of training, not mined again) instead of added to it (``LoopSettings.hold_confident``);
             they stay in the record, to be reviewed. ``None``: all go to the background (the paper).
+        hold_places: a held negative also holds its place: its box (when it overlaps no label at
+            ``HIDE_LABELLED_IOU``) joins its frame's ``ignore_boxes`` for the rounds after it, so
+            every point set on it is neither background nor mined, and detections on it count
+            neither way when thresholds are tuned (``LoopSettings.hold_places``).
         should_stop: asked between batches and frames; True raises ``types.Cancelled``.
         box_quality: an unfitted ``BoxQuality``, fitted once on the frames' labels (it does not
             depend on the classifier) and shared by every round's model, so that mining sees the
@@ -511,14 +519,11 @@ def train_with_mining(
         for index, sets in (excluded_sets or {}).items()
         if index in by_index
     }
-    # Sets on a place nobody has decided on yet (an unconfirmed pre-label) are neither object
-    # nor background: left out as the excluded ones are, mined neither. A set a confirmed label
-    # makes an object stays one.
+    # Sets on a place nobody has decided on yet (an unconfirmed pre-label, a held negative's
+    # place) are neither object nor background: left out as the excluded ones are, mined neither.
+    # A set a confirmed label makes an object stays one.
     for frame in frames:
-        ignored = frame.ignored_point_sets()
-        ignored = ignored[frame_labels[frame.frame_index][ignored] == background_id]
-        if len(ignored):
-            excluded.setdefault(frame.frame_index, set()).update(ignored.tolist())
+        _exclude_ignored(frame, frame_labels[frame.frame_index], background_id, excluded)
     # The first background set: point sets that overlap no annotated box, sampled evenly, and the
     # fragments. None for the head (it has no overlaps): it draws its background afresh every
     # epoch and keeps only hard negatives as a set.
@@ -670,19 +675,46 @@ def train_with_mining(
             record["mined"] = mined[:negatives_per_round]
             record["num_false_positives"] = len(mined)
             record["num_held"] = 0
+            held_boxes: dict[int, list] = {}
             for m in record["mined"]:
                 if hold_score is not None and m["score"] >= hold_score:
                     # Confident: perhaps a real object nobody labelled. Neither background nor
                     # mined again until a person decides (it stays in the review queue).
                     excluded.setdefault(m["frame_index"], set()).add(m["group"])
                     record["num_held"] += 1
+                    if hold_places and m["best_annotated_iou"] < HIDE_LABELLED_IOU:
+                        held_boxes.setdefault(m["frame_index"], []).append(m["box"])
                 else:
                     background.setdefault(m["frame_index"], set()).add(m["group"])
+            if held_boxes:
+                frames = [frame.with_ignored(held_boxes.get(frame.frame_index)) for frame in frames]
+                for frame in frames:
+                    if frame.frame_index in held_boxes:
+                        labels_of = frame_labels[frame.frame_index]
+                        _exclude_ignored(frame, labels_of, background_id, excluded, background)
         records.append(record)
         models.append(model)
         if progress is not None:
             progress("round", round_index + 1, rounds + 1)
     return TrainingRun(models[-1], records, models, [f.frame_index for f in frames])
+
+
+def _exclude_ignored(
+    frame: FrameProposals,
+    set_labels: np.ndarray,
+    background_id: int,
+    excluded: dict[int, set],
+    background: dict[int, set] | None = None,
+) -> None:
+    """Leave the frame's point sets on its ignored places (``ignored_point_sets``) out of
+    training: into ``excluded`` and out of ``background``, except those a label makes objects
+    (``set_labels`` (G,), each set's class)."""
+    ignored = frame.ignored_point_sets()
+    ignored = ignored[set_labels[ignored] == background_id].tolist()
+    if ignored:
+        excluded.setdefault(frame.frame_index, set()).update(ignored)
+        if background is not None and frame.frame_index in background:
+            background[frame.frame_index].difference_update(ignored)
 
 
 def proposals_to_arrays(frames: Sequence[FrameProposals]) -> dict[str, np.ndarray]:

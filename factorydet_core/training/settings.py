@@ -227,8 +227,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("hold_confident", "Hold confident negatives", "mined negatives scoring at least this are neither "
             "background nor object until reviewed (0: off, every mined negative is background, as the "
             "paper)", float, 0.0, 1.0, 0.05, none_as=0),
-    Control("hold_places", "Hold their places", "with held negatives, every point set on a held box (one "
-            "off the labels) is left out of the background too, not only the mined set", bool),
+    Control("hold_places", "Hold their places", "with held negatives (hold confident above 0; hitl: "
+            "blind_safe's), every point set on a held box off the labels is left out of the background too, "
+            "not only the mined set", bool),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

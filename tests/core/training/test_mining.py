@@ -472,6 +472,41 @@ def test_held_negatives_stay_out_of_the_background_and_are_not_mined_again(frame
         train_with_mining(frames, classifier, rounds=0, hold_score=0.0)
 
 
+def test_held_negatives_hold_their_places_in_the_rounds_after_them(frames, run):
+    """``hold_places``: every point set on a held box off the labels (not only the mined one) is
+    neither background nor mined in the later rounds."""
+    from factorydet_core.session.store import HIDE_LABELLED_IOU
+
+    hold = float(np.median([m["score"] for m in run.rounds[0]["mined"]]))
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    held_run = train_with_mining(
+        frames, classifier, rounds=1, negatives_per_round=40, initial_negatives=150, fragment_iou=0.0,
+        score_threshold=0.05, hold_score=hold, hold_places=True,
+    )  # fmt: skip
+    first, second = held_run.rounds
+    held_boxes: dict[int, list] = {}
+    for m in first["mined"]:
+        if m["score"] >= hold and m["best_annotated_iou"] < HIDE_LABELLED_IOU:
+            held_boxes.setdefault(m["frame_index"], []).append(m["box"])
+    assert held_boxes, "nothing held off the labels: the test shows nothing"
+    places = {
+        f.frame_index: set(f.with_ignored(held_boxes.get(f.frame_index)).ignored_point_sets()) for f in frames
+    }
+    held_sets = {(m["frame_index"], m["group"]) for m in first["mined"] if m["score"] >= hold}
+    # The places hold more than the held sets themselves (other candidate sets of the same objects).
+    assert sum(len(p) for p in places.values()) > len(held_sets)
+    assert not any(m["group"] in places[m["frame_index"]] for m in second["mined"])
+    # Fewer sets are background in the second round than holding the sets alone leaves there.
+    sets_only = train_with_mining(
+        frames, classifier, rounds=1, negatives_per_round=40, initial_negatives=150, fragment_iou=0.0,
+        score_threshold=0.05, hold_score=hold,
+    )  # fmt: skip
+    assert second["num_background"] <= sets_only.rounds[1]["num_background"]
+    assert any(m["group"] in places[m["frame_index"]] for m in sets_only.rounds[1]["mined"]) or (
+        second["num_background"] < sets_only.rounds[1]["num_background"]
+    )
+
+
 def test_an_unconfirmed_pre_label_on_a_labelled_object_takes_none_of_its_positives(frames):
     from factorydet_core.detection.box_head import BoxHead
 
