@@ -683,7 +683,8 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             f"training frames {result['train_frames']}, test frames {result['test_frames']}; "
             f"{result['mining_rounds']} mining rounds after the first fit for every detector; "
             f"{_hitl_method(settings)}, {settings['epochs']} epochs per fit, "
-            f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
+            + ("" if settings.get("class_thresholds", True) else "one score threshold for every class, ")
+            + f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
             "per round. F-score at IoU "
             f"{result['iou_threshold']} against the full truth, on test frames of the training frames'"
             " factory (in-factory figures). `blind`: mining on the partial labels (the paper)."
