@@ -37,6 +37,7 @@ from factorydet_core.session.world import (
     interpolate_boxes,
     not_labelled_yet,
     place_box,
+    place_chance,
     spread_session,
 )
 from factorydet_core.types import PRELABEL_SCORE, InputError
@@ -55,7 +56,8 @@ FAILED = object()
 def _by_place(queue: list[dict], places: list[list[int]], current_id: int | None) -> list[dict]:
     """One entry per place of ``queue`` (``world.group_by_place``'s order): its best item (the
     shown one, if it is of the place), with ``place_versions`` ({item id: review version} of all
-    its items, what its verdict answers) and ``place_frames``."""
+    its items, what its verdict answers), ``place_frames`` and ``place_chance``
+    (``world.place_chance``: what orders the places)."""
     out = []
     for members in places:
         items = [queue[k] for k in members]
@@ -65,6 +67,7 @@ def _by_place(queue: list[dict], places: list[list[int]], current_id: int | None
                 **shown,
                 "place_versions": {q["id"]: q["review_version"] for q in items},
                 "place_frames": sorted({q["frame_index"] for q in items}),
+                "place_chance": place_chance([q["score"] for q in items]),
             }
         )
     return out

@@ -324,6 +324,11 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     assert result["variants"]["full"]["unannotated_in_queue"] is None
     assert 0 <= reviewed["unannotated_labelled"] <= reviewed["unannotated_in_queue"] <= 1
     assert 0 <= reviewed["unannotated_in_top_k"] <= reviewed["unannotated_in_queue"]
+    # What the review panel estimates of the first K entries' reach, beside the truth's.
+    for key in ("reach_share_estimated", "reach_share_true"):
+        assert reviewed[key] is None or 0 <= reviewed[key] <= 1
+    assert reviewed["reach_share_estimated"] is not None
+    assert result["variants"]["blind"]["reach_share_estimated"] is None
     assert result["variants"]["blind"]["unannotated_in_top_k"] is None
     assert "| unannotated training objects in the reviewed rounds' queues |" in markdown
     assert "| unannotated training objects labelled |" in markdown

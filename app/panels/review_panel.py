@@ -10,6 +10,7 @@ import viser
 from factorydet_core.evaluation.diagnostics import num_points_in_box, patches_in_box, review_item_markdown
 from factorydet_core.io.dataset import annotation_min_points
 from factorydet_core.session.store import HIDE_LABELLED_IOU
+from factorydet_core.session.world import expected_reach
 
 from ..clients import ClientView
 from . import from_user
@@ -46,6 +47,8 @@ class ReviewPanel:
         )
         self.progress.value = 100.0 * counts["reviewed"] / total if total else 0.0
         queue = view.load_queue()
+        if total:
+            self.progress_text.content += "  \n" + reach_text(queue)
         item = view.current_item()
         if item is None:
             self.item.content = (
@@ -91,6 +94,23 @@ class ReviewPanel:
                 "class. Fix it in the Labels panel or go on."
             )
         self.suspects.content = text
+
+
+REACH_TOP = 50
+"""The review panel estimates how many objects its first this many pending entries hold."""
+
+
+def reach_text(queue: list[dict]) -> str:
+    """How many real objects the pending entries of the shown queue hold by the model's scores
+    (``world.expected_reach``), and how many of them the first ``REACH_TOP`` do."""
+    pending = [q for q in queue if q["verdict"] in (None, "skip")]
+    if not pending:
+        return "_Nothing pending in this filter._"
+    top, total = expected_reach([q.get("place_chance", q["score"]) for q in pending], REACH_TOP)
+    text = f"{len(pending)} pending; the model's scores expect about {total:.0f} of them to be objects"
+    if len(pending) > REACH_TOP and total > 0:
+        text += f", {top:.0f} ({top / total:.0%}) in the first {REACH_TOP}"
+    return text + "."
 
 
 def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:

@@ -302,6 +302,26 @@ def queue_reach(
     return reached
 
 
+def estimated_reach_share(db: SessionDB, top: int, world=None) -> float | None:
+    """The share of the objects a run's review queue holds by the model's scores that its first
+    ``top`` entries hold (``world.expected_reach``; entries are places with ``world``, as the
+    review panel shows them, else items); ``None`` for an empty queue."""
+    from factorydet_core.session.world import expected_reach, group_by_place, place_chance
+
+    queue = db.review_queue()
+    if world is not None:
+        chances = [place_chance([queue[k]["score"] for k in place]) for place in group_by_place(world, queue)]
+    else:
+        chances = [item["score"] for item in queue]
+    first, total = expected_reach(chances, top)
+    return first / total if total > 0 else None
+
+
+def _mean_of(values) -> float | None:
+    given = [v for v in values if v is not None]
+    return round(float(np.mean(given)), 4) if given else None
+
+
 def bench_hitl(
     data: str | os.PathLike,
     *,
@@ -469,15 +489,26 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
             fit_seconds = 0.0
             reached: set = set()  # unannotated objects some reviewable queue item overlaps
             reached_top: set = set()  # ... some of the first K entries the reviewer answers overlaps
+            # Per reviewed round, the share of the queue's reach its first K entries hold: as the
+            # model's scores estimate it (the review panel's line) and as the truth gives it.
+            reach_shares: list[tuple[float | None, float | None]] = []
             for r in range(rounds + 1):
                 _, run = train_session(
                     db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data)
                 )
                 fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
                 if name != "full" and r < rounds:
-                    reached |= queue_reach(db, dataset, train)
+                    round_reach = queue_reach(db, dataset, train)
+                    reached |= round_reach
                 if budget and r < rounds:
-                    reached_top |= queue_reach(db, dataset, train, top=budget, world=world)
+                    round_top = queue_reach(db, dataset, train, top=budget, world=world)
+                    reached_top |= round_top
+                    reach_shares.append(
+                        (
+                            estimated_reach_share(db, budget, world),
+                            len(round_top) / len(round_reach) if round_reach else None,
+                        )
+                    )
                 if budget and r < rounds:
                     answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou, world=world)
                     for key, value in answered.items():
@@ -502,14 +533,13 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                     "unannotated_total": unannotated,
                     "unannotated_in_queue": None if name == "full" else len(reached),
                     "unannotated_in_top_k": len(reached_top) if budget else None,
+                    "reach_share_estimated": _mean_of([e for e, _ in reach_shares]),
+                    "reach_share_true": _mean_of([t for _, t in reach_shares]),
                     "fit_seconds": round(fit_seconds, 1),
                 }
             )
 
-    def mean(values) -> float | None:
-        given = [v for v in values if v is not None]  # None: a class without references
-        return round(float(np.mean(given)), 4) if given else None
-
+    mean = _mean_of  # None values (a class without references) left out
     results = {}
     for name, runs in per_seed.items():
         results[name] = {
@@ -536,6 +566,10 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
             "unannotated_in_top_k": None
             if runs[0]["unannotated_in_top_k"] is None
             else mean([r["unannotated_in_top_k"] / max(r["unannotated_total"], 1) for r in runs]),
+            # Of what a reviewed round's whole queue reaches, the share its first K entries hold: as
+            # the review panel estimates it from the model's scores, and as the truth gives it.
+            "reach_share_estimated": mean([r["reach_share_estimated"] for r in runs]),
+            "reach_share_true": mean([r["reach_share_true"] for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
     f1 = {name: r["f1"] for name, r in results.items()}

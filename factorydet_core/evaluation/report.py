@@ -646,6 +646,23 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 "–" if variants[n].get(key) is None else f"{100 * variants[n][key]:.0f}%" for n in names
             )
             rows.append(f"| {what} | " + " | ".join(shares) + " |")
+    if any(variants[n].get("reach_share_estimated") is not None for n in names):
+        shares = (
+            "–"
+            if variants[n].get("reach_share_estimated") is None
+            else f"{100 * variants[n]['reach_share_estimated']:.0f}% / "
+            + (
+                "–"
+                if variants[n].get("reach_share_true") is None
+                else f"{100 * variants[n]['reach_share_true']:.0f}%"
+            )
+            for n in names
+        )
+        rows.append(
+            "| of a queue's reach, in its first K entries: the scores' estimate / truth | "
+            + " | ".join(shares)
+            + " |"
+        )
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "

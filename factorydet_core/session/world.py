@@ -268,6 +268,21 @@ PLACE_IOU = 0.25
 same rule label once uses to keep from labelling an object twice in a frame)."""
 
 
+def place_chance(scores) -> float:
+    """The chance that at least one of a place's items is a real object, each item's score taken
+    as its own, independent chance: ``1 - prod(1 - score)`` (scores clipped to [0, 1])."""
+    return 1.0 - float(np.prod(1.0 - np.clip(np.asarray(scores, np.float64), 0.0, 1.0)))
+
+
+def expected_reach(chances, top: int) -> tuple[float, float]:
+    """How many real objects a review queue holds by the model's scores: ``(expected in the first
+    ``top`` entries, expected in all)``, the sums of the entries' chances (``place_chance``, or
+    an item's score). A reviewer's reach as the app can estimate it without the truth; ``bench
+    hitl`` compares the share with the one the truth gives."""
+    values = np.clip(np.asarray(chances, np.float64).reshape(-1), 0.0, 1.0)
+    return float(values[: max(int(top), 0)].sum()), float(values.sum())
+
+
 def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = PLACE_IOU) -> list[list[int]]:
     """The review queue's items by place: items of one object mined in several frames (and
     duplicates in one frame) are one place, so that one verdict answers them all.
@@ -316,7 +331,7 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
         members = candidates[~placed[candidates]]  # by decreasing score, the seed included
         placed[members] = True
         places.append(members.tolist())
-    chance = [1.0 - float(np.prod(1.0 - np.clip(scores[m], 0.0, 1.0))) for m in places]
+    chance = [place_chance(scores[m]) for m in places]
     ranked = sorted(range(len(places)), key=lambda p: (-chance[p], places[p][0]))
     return [places[p] for p in ranked]
 

@@ -17,9 +17,11 @@ from factorydet_core.session.world import (
     PLACE_IOU,
     WorldFrames,
     calibrated_extrinsics,
+    expected_reach,
     group_by_place,
     interpolate_boxes,
     place_box,
+    place_chance,
     planar,
     register_frames,
     session_world,
@@ -484,3 +486,13 @@ def test_a_row_of_overlapping_boxes_is_not_chained_into_one_place():
     places = group_by_place(world, items)
     assert sorted(map(len, places)) == [1, 2, 2]  # each seed takes its own overlaps only
     assert all(abs(items[a]["box"][0] - items[b]["box"][0]) <= 0.5 for p in places for a in p for b in p)
+
+
+def test_a_places_chance_and_a_queues_expected_reach():
+    assert place_chance([0.5, 0.5]) == pytest.approx(0.75)  # at least one of two coin flips
+    assert place_chance([0.2]) == pytest.approx(0.2) and place_chance([]) == 0.0
+    assert place_chance([1.3, -0.2]) == 1.0  # scores clipped to [0, 1]
+    first, total = expected_reach([0.9, 0.5, 0.25, 0.1], top=2)
+    assert first == pytest.approx(1.4) and total == pytest.approx(1.75)
+    assert expected_reach([0.9, 0.5], top=10) == pytest.approx((1.4, 1.4))
+    assert expected_reach([], top=5) == (0.0, 0.0)
