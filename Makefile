@@ -11,7 +11,7 @@ PORT ?= 8080
 APT_GET := DEBIAN_FRONTEND=noninteractive apt-get
 IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 
-.PHONY: app test test-fast lint docs bench report screenshots demo corpus default-model paper-model sysdeps browserdeps clean
+.PHONY: app test test-fast lint docs bench report screenshots demo corpus corpus50 default-model paper-model sysdeps browserdeps clean
 
 app: $(STAMP) demo
 	$(BIN)/factorydet app --session demo --host $(HOST) --port $(PORT)
@@ -39,7 +39,7 @@ lint: $(STAMP)
 # Re-runs every benchmark: records under docs/bench/, tables into docs/benchmarks.md, docs/labelling.md and the README (an hour or more).
 BENCH_DATA ?= /tmp/bench_sim
 REAL := ../shared/data/real
-bench: $(STAMP) corpus
+bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench simulate --readme docs/benchmarks.md
 	rm -rf $(BENCH_DATA) && $(BIN)/factorydet simulate --out $(BENCH_DATA) --frames 24 --seed 0
 	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 8 --json --readme docs/benchmarks.md
@@ -67,6 +67,12 @@ bench: $(STAMP) corpus
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl.json --readme docs/labelling.md
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl-50.json --readme docs/labelling.md \
+	  --readme-block hitl-50
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants blind_safe,full --hold-places \
+	  --out docs/bench/hitl-safe.json --readme docs/labelling.md --readme-block hitl-safe
 
 # Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
 screenshots: $(STAMP) demo browserdeps
@@ -76,6 +82,12 @@ screenshots: $(STAMP) demo browserdeps
 CORPUS ?= /tmp/factorydet_corpus
 corpus: $(STAMP)
 	@[ -f $(CORPUS)/manifest.json ] || $(BIN)/factorydet simulate --out $(CORPUS) --frames 60 --seed 1
+
+# The same factory with half its objects unannotated (bench hitl's second block).
+CORPUS50 ?= /tmp/factorydet_corpus50
+corpus50: $(STAMP)
+	@[ -f $(CORPUS50)/manifest.json ] || $(BIN)/factorydet simulate --out $(CORPUS50) --frames 60 --seed 1 \
+	  --unlabelled-fraction 0.5
 
 # Retrains the shipped checkpoint: the learned box head classifying, the box quality regressor boxing
 # (about forty minutes on 2 cores; see docs/pipeline.md, "The default model"). paper-model writes the

@@ -577,6 +577,41 @@ def _recovered_text(result: dict, recovered: str) -> str:
     return f"Recovered share of the gap between blind and full labels ({gap}{interval}): {shares}."
 
 
+def _map_differences(result: dict) -> dict:
+    """Each ``bench hitl`` variant's per-seed (paired) mAP difference from blind mining's
+    (``hitl.paired_difference``), from the record's seeds; ``{}`` for a record without them."""
+    from factorydet_core.evaluation.hitl import paired_difference
+
+    per_seed = result.get("per_seed") or {}
+    if "blind" not in per_seed:
+        return {}
+    blind = [r["map"] for r in per_seed["blind"]]
+    return {name: paired_difference([r["map"] for r in runs], blind) for name, runs in per_seed.items()}
+
+
+def _map_recovered_text(result: dict, differences: dict) -> str:
+    """The blind-to-full gap in mAP (threshold-free: the F-score also moves with the operating
+    thresholds training tunes on its own frames) and the share of it each variant recovers, stated
+    only where the gap is larger than twice its standard error."""
+    full = differences["full"]
+    interval = " [{:+.3f}, {:+.3f}]".format(*full["ci95"]) if full.get("ci95") else ""
+    gap = full["mean"]
+    if full.get("standard_error") is None or not gap > 2 * full["standard_error"]:
+        return (
+            f"In mAP, the gap between blind and full labels ({gap:+.3f}{interval}) is not larger than twice"
+            f" its standard error ({_fmt(full.get('standard_error'))}): no share is stated."
+        )
+    shares = [
+        f"{name} {100 * differences[name]['mean'] / gap:.0f}%"
+        for name in differences
+        if name not in ("blind", "full")
+    ]
+    return (
+        f"In mAP, the gap between blind and full labels is {gap:+.3f}{interval}, more than twice its"
+        " standard error" + (f"; recovered: {', '.join(shares)}." if shares else ".")
+    )
+
+
 def _hitl_method(settings: dict) -> str:
     """What ``bench hitl`` trained, in a few words (records before ``method`` was kept: the paper's)."""
     method = settings.get("method", "paper")
@@ -628,6 +663,20 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " |"
         )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
+    map_differences = _map_differences(result)
+    if map_differences and all(d["ci95"] for d in map_differences.values()):
+        rows.append(
+            "| mAP minus blind's, per seed: mean [95% interval] | "
+            + " | ".join(
+                "–"
+                if n == "blind"
+                else "{:+.3f} [{:+.3f}, {:+.3f}]".format(
+                    map_differences[n]["mean"], *map_differences[n]["ci95"]
+                )
+                for n in names
+            )
+            + " |"
+        )
     rows.append(
         "| verdicts (skips too) | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |"
     )
@@ -733,5 +782,6 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             "",
             _recovered_text(result, recovered),
             "",
+            *([_map_recovered_text(result, map_differences), ""] if "full" in map_differences else []),
         ]
     )

@@ -112,6 +112,9 @@ def _hitl_result(f1_per_seed: dict[str, list[float]], recovered: dict | None = N
         "recovered_per_seed": {k: [v, v, v] for k, v in (recovered or {}).items()},
         "gap_full_minus_blind": gap,
         "gap_significant": gap is not None and gap > 2 * error,
+        "per_seed": {
+            name: [{"f1": f, "map": f + 0.05} for f in values] for name, values in f1_per_seed.items()
+        },
     }
 
 
@@ -127,6 +130,10 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "by `blind_safe`, with no reviewer: 25% (target: at least 30%)" in text
     assert "per seed: )" not in text and "reviewer's queue" not in text and "`reviewed_K`" not in text
     assert "their places" in text and "the learned box head classifying" in text
+    # The same in mAP (threshold-free), from the record's seeds.
+    assert "| mAP minus blind's, per seed: mean [95% interval] | – | +0.010 [+0.010, +0.010] |" in text
+    assert "In mAP, the gap between blind and full labels is +0.040 [+0.040, +0.040]" in text
+    assert "recovered: blind_safe 25%." in text
     # With a reviewed budget: its share and the queue filter are stated.
     result = _hitl_result(
         {"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.33, 0.34, 0.32], "full": [0.34, 0.35, 0.33]},
@@ -138,5 +145,7 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     # A gap within its noise: no share at all.
     result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.31, 0.30, 0.30]})
     assert "no recovered share is stated" in hitl_markdown(result)
+    assert "In mAP, the gap between blind and full labels (+0.003" in hitl_markdown(result)
+    assert "no share is stated" in hitl_markdown(result)
     # Without full labels: no gap.
     assert "Full labels were not run here" in hitl_markdown(_hitl_result({"blind": [0.3, 0.3, 0.3]}))
