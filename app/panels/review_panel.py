@@ -31,6 +31,7 @@ class ReviewPanel:
     object_class: viser.GuiDropdownHandle
     buttons: dict[str, viser.GuiButtonHandle]
     suspects: viser.GuiMarkdownHandle
+    reach: viser.GuiMarkdownHandle
 
     def refresh(self, view: ClientView) -> None:
         state = view.state
@@ -47,8 +48,7 @@ class ReviewPanel:
         )
         self.progress.value = 100.0 * counts["reviewed"] / total if total else 0.0
         queue = view.load_queue()
-        if total:
-            self.progress_text.content += "  \n" + reach_text(queue)
+        self.reach.content = reach_text(queue) if total else ""
         item = view.current_item()
         if item is None:
             self.item.content = (
@@ -120,6 +120,7 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
     with gui.add_folder("Review queue", order=20):
         progress_text = gui.add_markdown("")
         progress = gui.add_progress_bar(0.0, animated=False)
+        reach = gui.add_markdown("")
         filter_class = gui.add_dropdown("Predicted class", [ALL, *names], initial_value=ALL)
         frames = [ALL, *(str(i + 1) for i in range(state.dataset.num_frames))]
         filter_frame = gui.add_dropdown("Frame", frames, initial_value=ALL)
@@ -164,7 +165,7 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
         buttons["next_suspect"] = gui.add_button("Next suspect [U]")
     panel = ReviewPanel(
         progress_text, progress, filter_class, filter_frame, pending_only, hide_labelled, dim, item,
-        object_class, buttons, suspects,
+        object_class, buttons, suspects, reach,
     )  # fmt: skip
 
     def set_filter(_event=None) -> None:

@@ -94,6 +94,8 @@ def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
         first = view.current_item_id
         assert first == db.review_queue()[0]["id"]  # highest score first
         page.get_by_text("Item 1 of 6", exact=False).wait_for(timeout=20_000)
+        # The queue's reach as the model's scores estimate it, under the progress bar.
+        page.get_by_text("6 pending; the model's scores expect about", exact=False).wait_for(timeout=20_000)
         page.get_by_role("button", name="Background [B]").click()
         assert _wait(lambda: db.review_progress()["background"] == 1, 20), "the verdict was not stored"
         page.get_by_text("1 of 6 reviewed", exact=False).wait_for(timeout=20_000)
