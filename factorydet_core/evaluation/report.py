@@ -559,7 +559,7 @@ def _recovered_text(result: dict, recovered: str) -> str:
         return "Full labels were not run here: no gap, no recovered share."
     gap = _fmt(result["gap_full_minus_blind"])
     full = result["variants"]["full"].get("difference_vs_blind", {})
-    interval = " [{:+.3f}, {:+.3f}]".format(*full["ci95"]) if full.get("ci95") else ""
+    interval = _difference_text(full, with_mean=False)
     if not result.get("gap_significant", True):
         return (
             f"The gap between blind and full labels ({gap}{interval}) is not larger than twice its standard"
@@ -575,6 +575,22 @@ def _recovered_text(result: dict, recovered: str) -> str:
         parts.append(f"by `blind_safe`, with no reviewer: {100 * safe:.0f}% (target: at least 30%)")
     shares = "; ".join(parts) if parts else "no reviewed or held variant was run"
     return f"Recovered share of the gap between blind and full labels ({gap}{interval}): {shares}."
+
+
+def _difference_text(difference: dict, with_mean: bool = True) -> str:
+    """A paired difference (``hitl.paired_difference``) as "+0.017 [-0.001, +0.034]"; without
+    ``with_mean`` the interval alone, " [-0.001, +0.034]" ("" when it has none)."""
+    interval = " [{:+.3f}, {:+.3f}]".format(*difference["ci95"]) if difference.get("ci95") else ""
+    return f"{difference['mean']:+.3f}{interval}" if with_mean else interval
+
+
+def _difference_row(what: str, differences: dict, names: list[str]) -> list[str]:
+    """The table row of each variant's paired difference from blind mining (``[]`` when some
+    variant has no interval: fewer than two seeds)."""
+    if not differences or not all(differences.get(n, {}).get("ci95") for n in names):
+        return []
+    cells = ("–" if n == "blind" else _difference_text(differences[n]) for n in names)
+    return [f"| {what}, per seed: mean [95% interval] | " + " | ".join(cells) + " |"]
 
 
 def _map_differences(result: dict) -> dict:
@@ -594,12 +610,11 @@ def _map_recovered_text(result: dict, differences: dict) -> str:
     thresholds training tunes on its own frames) and the share of it each variant recovers, stated
     only where the gap is larger than twice its standard error."""
     full = differences["full"]
-    interval = " [{:+.3f}, {:+.3f}]".format(*full["ci95"]) if full.get("ci95") else ""
     gap = full["mean"]
     if full.get("standard_error") is None or not gap > 2 * full["standard_error"]:
         return (
-            f"In mAP, the gap between blind and full labels ({gap:+.3f}{interval}) is not larger than twice"
-            f" its standard error ({_fmt(full.get('standard_error'))}): no share is stated."
+            f"In mAP, the gap between blind and full labels ({_difference_text(full)}) is not larger than"
+            f" twice its standard error ({_fmt(full.get('standard_error'))}): no share is stated."
         )
     shares = [
         f"{name} {100 * differences[name]['mean'] / gap:.0f}%"
@@ -607,7 +622,7 @@ def _map_recovered_text(result: dict, differences: dict) -> str:
         if name not in ("blind", "full")
     ]
     return (
-        f"In mAP, the gap between blind and full labels is {gap:+.3f}{interval}, more than twice its"
+        f"In mAP, the gap between blind and full labels is {_difference_text(full)}, more than twice its"
         " standard error" + (f"; recovered: {', '.join(shares)}." if shares else ".")
     )
 
@@ -649,34 +664,11 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(", ".join(_fmt(f) for f in variants[n]["f1_per_seed"]) for n in names)
             + " |"
         )
-    if all(variants[n].get("difference_vs_blind", {}).get("ci95") for n in names):
-        rows.append(
-            "| F minus blind's, per seed: mean [95% interval] | "
-            + " | ".join(
-                "–"
-                if n == "blind"
-                else "{:+.3f} [{:+.3f}, {:+.3f}]".format(
-                    variants[n]["difference_vs_blind"]["mean"], *variants[n]["difference_vs_blind"]["ci95"]
-                )
-                for n in names
-            )
-            + " |"
-        )
+    f1_differences = {n: variants[n].get("difference_vs_blind", {}) for n in names}
+    rows += _difference_row("F minus blind's", f1_differences, names)
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
     map_differences = _map_differences(result)
-    if map_differences and all(d["ci95"] for d in map_differences.values()):
-        rows.append(
-            "| mAP minus blind's, per seed: mean [95% interval] | "
-            + " | ".join(
-                "–"
-                if n == "blind"
-                else "{:+.3f} [{:+.3f}, {:+.3f}]".format(
-                    map_differences[n]["mean"], *map_differences[n]["ci95"]
-                )
-                for n in names
-            )
-            + " |"
-        )
+    rows += _difference_row("mAP minus blind's", map_differences, names)
     rows.append(
         "| verdicts (skips too) | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |"
     )
