@@ -318,6 +318,8 @@ def estimated_reach_share(db: SessionDB, top: int, world=None) -> float | None:
 
 
 def _mean_of(values) -> float | None:
+    """The mean of ``values``, rounded, ``None`` left out (a class without references, a round
+    without a reach); ``None`` when nothing is left."""
     given = [v for v in values if v is not None]
     return round(float(np.mean(given)), 4) if given else None
 
@@ -539,20 +541,21 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                 }
             )
 
-    mean = _mean_of  # None values (a class without references) left out
     results = {}
     for name, runs in per_seed.items():
         results[name] = {
-            **{key: mean([r[key] for r in runs]) for key in ("f1", "precision", "recall", "map")},
+            **{key: _mean_of([r[key] for r in runs]) for key in ("f1", "precision", "recall", "map")},
             "f1_per_seed": [r["f1"] for r in runs],
             "f1_std": round(float(np.std([r["f1"] for r in runs], ddof=1)), 4) if len(runs) > 1 else None,
-            "per_class_f1": {c: mean([r["per_class_f1"][c] for r in runs]) for c in runs[0]["per_class_f1"]},
-            "num_reviews": mean([r["num_reviews"] for r in runs]),
-            "reviews": {k: mean([r["reviews"][k] for r in runs]) for k in runs[0]["reviews"]},
-            "truth_labels_added": mean([r["truth_labels_added"] for r in runs]),
+            "per_class_f1": {
+                c: _mean_of([r["per_class_f1"][c] for r in runs]) for c in runs[0]["per_class_f1"]
+            },
+            "num_reviews": _mean_of([r["num_reviews"] for r in runs]),
+            "reviews": {k: _mean_of([r["reviews"][k] for r in runs]) for k in runs[0]["reviews"]},
+            "truth_labels_added": _mean_of([r["truth_labels_added"] for r in runs]),
             # Of the objects the data set left unannotated on the training frames, the share the
             # session labels at the end (full: all; blind: none; reviewed: what the reviews gave back).
-            "unannotated_labelled": mean(
+            "unannotated_labelled": _mean_of(
                 [r["unannotated_labelled"] / max(r["unannotated_total"], 1) for r in runs]
             ),
             # Of those objects, the share some item of a reviewed round's queue overlaps (IoU 0.1):
@@ -560,16 +563,16 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
             # unannotated objects to reach).
             "unannotated_in_queue": None
             if name == "full"
-            else mean([r["unannotated_in_queue"] / max(r["unannotated_total"], 1) for r in runs]),
+            else _mean_of([r["unannotated_in_queue"] / max(r["unannotated_total"], 1) for r in runs]),
             # ... and the share the first K entries of the reviewed rounds' queues reach (the
             # reviewer's budget: items, or places with --review-by place).
             "unannotated_in_top_k": None
             if runs[0]["unannotated_in_top_k"] is None
-            else mean([r["unannotated_in_top_k"] / max(r["unannotated_total"], 1) for r in runs]),
+            else _mean_of([r["unannotated_in_top_k"] / max(r["unannotated_total"], 1) for r in runs]),
             # Of what a reviewed round's whole queue reaches, the share its first K entries hold: as
             # the review panel estimates it from the model's scores, and as the truth gives it.
-            "reach_share_estimated": mean([r["reach_share_estimated"] for r in runs]),
-            "reach_share_true": mean([r["reach_share_true"] for r in runs]),
+            "reach_share_estimated": _mean_of([r["reach_share_estimated"] for r in runs]),
+            "reach_share_true": _mean_of([r["reach_share_true"] for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
     f1 = {name: r["f1"] for name, r in results.items()}

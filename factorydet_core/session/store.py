@@ -2583,7 +2583,20 @@ class SessionDB:
             undecided_only: only those without a verdict other than skip.
         """
         out: dict[int, dict[tuple[int, ...], None]] = {}
-        query = "SELECT id, frame_index, patch_set, score FROM mined_negatives m WHERE 1"
+        for row in self._mined_rows("patch_set", below_score, at_least_score, undecided_only):
+            out.setdefault(row["frame_index"], {})[tuple(row["patch_set"])] = None  # distinct, in order
+        return {frame: list(sets) for frame, sets in out.items()}
+
+    def _mined_rows(
+        self,
+        column: str,
+        below_score: float | None = None,
+        at_least_score: float | None = None,
+        undecided_only: bool = False,
+    ) -> list[dict]:
+        """Every mined negative's id, frame index and ``column`` (checked, ``_row``), in the order
+        they were mined, filtered as ``mined_patch_sets`` says."""
+        query = f"SELECT id, frame_index, {column} FROM mined_negatives m WHERE 1"
         values: list = []
         if below_score is not None:
             query, values = query + " AND score < ?", [*values, float(below_score)]
@@ -2594,10 +2607,7 @@ class SessionDB:
                 " AND NOT EXISTS (SELECT 1 FROM reviews r WHERE r.negative_id = m.id AND r.verdict != 'skip')"
             )
         with self._read() as db:
-            rows = [_row("mined_negatives", r) for r in db.execute(query + " ORDER BY id", values)]
-        for row in rows:
-            out.setdefault(row["frame_index"], {})[tuple(row["patch_set"])] = None  # distinct, in order
-        return {frame: list(sets) for frame, sets in out.items()}
+            return [_row("mined_negatives", r) for r in db.execute(query + " ORDER BY id", values)]
 
     def held_places(self, at_least_score: float, max_label_iou: float = HIDE_LABELLED_IOU) -> dict:
         """Boxes of the mined negatives held until reviewed (``LoopSettings.hold_places``), by
@@ -2610,14 +2620,7 @@ class SessionDB:
         """
         import numpy as np
 
-        with self._read() as db:
-            rows = db.execute(
-                "SELECT id, frame_index, box FROM mined_negatives m WHERE score >= ? AND NOT EXISTS"
-                " (SELECT 1 FROM reviews r WHERE r.negative_id = m.id AND r.verdict != 'skip')"
-                " ORDER BY id",
-                (float(at_least_score),),
-            ).fetchall()
-            items = [_row("mined_negatives", r) for r in rows]
+        items = self._mined_rows("box", at_least_score=at_least_score, undecided_only=True)
         overlaps = self.label_overlap(items)
         out: dict[int, list] = {}
         for item, overlap in zip(items, overlaps):
