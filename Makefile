@@ -1,6 +1,6 @@
 # Two entry points, both safe on a fresh Debian/Ubuntu machine with Python 3.11:
 #   make app   - set up, build the demo session if it is missing, serve the app on http://127.0.0.1:8080
-#   make test  - set up, run the whole test suite (lint, docs build, unit and headless-browser tests)
+#   make test  - set up, run the whole test suite (lint, docs build, unit, Ray and headless-browser tests)
 SHELL := /bin/bash
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
@@ -11,7 +11,7 @@ PORT ?= 8080
 APT_GET := DEBIAN_FRONTEND=noninteractive apt-get
 IS_ROOT := $(shell [ "$$(id -u)" = 0 ] && echo yes)
 
-.PHONY: app test test-fast lint docs bench report screenshots demo corpus corpus50 default-model paper-model sysdeps browserdeps clean
+.PHONY: app test test-ray test-fast lint docs bench report screenshots demo corpus corpus50 default-model paper-model sysdeps browserdeps clean
 
 app: $(STAMP) demo
 	$(BIN)/factorydet app --session demo --host $(HOST) --port $(PORT)
@@ -21,7 +21,13 @@ demo: $(STAMP)
 
 test: $(STAMP) browserdeps lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $$(mktemp -d)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -m "not ray"
+	$(MAKE) --no-print-directory test-ray
+
+# The tests that start Ray (a local one, a two-node cluster), in a network namespace with only
+# loopback so that Ray's ports are never open to the network (needs root or user namespaces).
+test-ray: $(STAMP)
+	$(BIN)/python -m factorydet_core.scale.netns -- $(BIN)/python -m pytest -m ray
 
 # The quick loop while editing: lint, the import contract and every test not marked slow or browser.
 test-fast: $(STAMP) lint
@@ -136,7 +142,7 @@ $(STAMP): pyproject.toml | sysdeps
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -e '.[dev,scale]'
 	$(BIN)/python -m factorydet_core.detection.warmup  # compiles the numba kernels once (about half a minute)
 	touch $(STAMP)
 

@@ -738,12 +738,97 @@ def _detection_rows(detections, keep_suppressed: bool) -> list[dict]:
     return rows
 
 
+def add_execution_flags(parser: argparse.ArgumentParser) -> None:
+    """The batch commands' switch between this process and Ray workers (``scale.runner.Execution``)."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="run on N Ray workers, each loading the model once (a local Ray unless --ray names a "
+        "cluster); default: this process alone, no Ray needed",
+    )
+    parser.add_argument(
+        "--ray",
+        dest="ray_address",
+        default=None,
+        metavar="ADDRESS",
+        help="run on Ray: 'local' (start one here), 'auto' (the cluster this machine joined with "
+        "ray start) or HOST:PORT; workers default to the cluster's CPUs",
+    )
+    parser.add_argument(
+        "--worker-threads", type=int, default=1, help="threads of each Ray worker (default 1)"
+    )
+
+
+def execution_from_args(args: argparse.Namespace):
+    from factorydet_core.scale.runner import Execution
+
+    return Execution(workers=args.workers, ray_address=args.ray_address, threads=args.worker_threads)
+
+
+def frames_of(dataset, split: str, max_frames: int | None) -> list[int]:
+    """The frame indices of ``split`` ("all", or a split of the data set's manifest), the first
+    ``max_frames`` of them when given."""
+    if split == "all":
+        frames = list(range(dataset.num_frames))
+    elif split in dataset.splits:
+        frames = list(dataset.splits[split])
+    else:
+        raise InputError(f"{dataset.name} has no split {split!r} (it has: all, {', '.join(dataset.splits)})")
+    if max_frames is not None and max_frames < 1:
+        raise InputError(f"--frames must be at least 1, got {max_frames}")
+    return frames[:max_frames] if max_frames else frames
+
+
+def _cmd_detect_all(args: argparse.Namespace) -> int:
+    """``detect --out``: every frame of a split, one detection file per frame, resumable."""
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.evaluation.evaluate import detector_for
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.scale.jobs import DetectJob
+    from factorydet_core.scale.runner import run_frames
+    from factorydet_core.session.models import resolve_model
+
+    execution = execution_from_args(args)
+    dataset = open_dataset(args.data)
+    frames = frames_of(dataset, args.split, args.frames)
+    model_path = resolve_model(args.model, args.root)
+    # Calibrated once here: every worker merges with the same extrinsics.
+    detector = detector_for(DetectionModel.load(model_path), dataset, calibrate=args.calibrate)
+    job = DetectJob(
+        str(dataset.path),
+        str(model_path),
+        detector.T_vehicle_sensor,
+        score_threshold=args.score_threshold,
+        nms_iou=args.nms_iou,
+    )
+    update, close = progress_bar("detecting")
+    try:
+        run = run_frames(job, frames, args.out, execution, update)
+    finally:
+        close()
+    summary = run.summary()
+    print(
+        json.dumps(summary, indent=1)
+        if args.json
+        else (
+            f"{summary['num_computed']} frames detected, {summary['num_skipped']} already done, "
+            f"{summary['frames_per_second']} frames/s on {summary['workers']} workers: {run.out_dir}"
+        )
+    )
+    return 0
+
+
 def _cmd_detect(args: argparse.Namespace) -> int:
     from factorydet_core.detection.model import DetectionModel
     from factorydet_core.evaluation.evaluate import detector_for
     from factorydet_core.io.dataset import open_dataset
     from factorydet_core.session.models import resolve_model
 
+    if args.out is not None:
+        return _cmd_detect_all(args)
+    if args.workers is not None or args.ray_address is not None:
+        raise InputError("--workers and --ray run a batch: give --out DIR for its detection files")
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
@@ -1036,11 +1121,26 @@ def build_parser(
     p.add_argument("--redo", action="store_true")
     p.set_defaults(func=_cmd_undo)
 
-    p = sub.add_parser("detect", help="detections of one frame")
+    p = sub.add_parser(
+        "detect", help="detections of one frame, or (--out) of every frame of a split into files"
+    )
     p.add_argument("data")
     p.add_argument("--model", default="default", help="'default', a .pt checkpoint, or a session name")
     p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
-    p.add_argument("--frame", type=int, default=0)
+    p.add_argument("--frame", type=int, default=0, help="the frame to detect (without --out)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="detect every frame of --split into this folder, one .npz per frame; a re-run skips "
+        "the frames already there",
+    )
+    p.add_argument(
+        "--split", default="all", help="with --out: 'all' or a split of the data set (test, train)"
+    )
+    p.add_argument(
+        "--frames", type=int, default=None, help="with --out: only the first N frames of the split"
+    )
+    add_execution_flags(p)
     p.add_argument("--score-threshold", type=float, default=None, help="default: the model's")
     p.add_argument("--nms-iou", type=float, default=None, help="default: the model's")
     p.add_argument("--suppressed", action="store_true", help="also list what NMS suppressed")

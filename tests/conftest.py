@@ -17,6 +17,17 @@ configure_threads()
 SHARED_REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 
 
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    # Ray binds its ports on every interface unless the namespace has only loopback.
+    if item.get_closest_marker("ray") is not None:
+        from factorydet_core.scale.netns import loopback_only
+
+        if not loopback_only():
+            pytest.skip(
+                "starts Ray: runs in a loopback-only network namespace (make test-ray, part of make test)"
+            )
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)

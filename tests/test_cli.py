@@ -478,3 +478,22 @@ def test_labels_prelabel_adds_the_models_detections_as_pre_labels_once(
     assert json.loads(capsys.readouterr().out)["added"] == 0
     assert main([*argv[:-1], "2"]) == 2
     assert "--min-score must lie in [0, 1], got 2" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_detect_a_split_into_files_and_resume(small_dataset_dir, tmp_path, capsys):
+    out = tmp_path / "detections"
+    common = ["detect", str(small_dataset_dir), "--out", str(out), "--no-calibrate", "--json"]
+    assert main([*common, "--frames", "1"]) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["num_computed"] == 1 and first["workers"] == 1 and first["num_nodes"] == 0
+    assert main(common) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["num_skipped"] == 1 and again["num_computed"] == 2
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [f"frame_0000{i}.npz" for i in range(3)]
+    # Another operating point into the same folder would mix two jobs' files.
+    assert main([*common, "--score-threshold", "0.5"]) == 2
+    assert "another job" in capsys.readouterr().err
+    assert main(["detect", str(small_dataset_dir), "--workers", "2"]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert main([*common, "--split", "nope"]) == 2

@@ -1,0 +1,349 @@
+"""Run a frame job over many frames: in this process (the default, no Ray needed), or streamed
+through Ray workers that each set the job up once (a local Ray, or a cluster by address).
+
+Either way each frame's result is written to its own file in the output folder as soon as it is
+computed (atomically: a file is whole or absent), so a re-run skips the frames already done, a
+worker killed mid-frame costs only that frame's redo, and the driver holds no frame: it hands out
+frame indices and receives one small row per frame. A job writes the same bytes for a frame
+wherever it runs, so the two paths give the same outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import resource
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from factorydet_core.io.atomic import write_text_atomic
+from factorydet_core.io.jsonfile import read_json
+from factorydet_core.threads import configure_threads
+from factorydet_core.types import InputError
+
+JOB_FILE = "job.json"
+"""The output folder's description of the job that writes it: a re-run must be the same job."""
+SUMMARY_FILE = "summary.json"
+FRAMES_DIR = "frames"
+
+RAY_VERSION = "2.60.0"
+"""The Ray release the project pins (``pyproject.toml``'s ``scale`` extra); a cluster runs the same."""
+
+
+class FrameJob(Protocol):
+    """Work done frame by frame. It must pickle (Ray ships it to its workers) and be cheap until
+    ``setup``; ``run`` must write ``out_path`` atomically and compute the same bytes wherever it
+    runs."""
+
+    kind: str
+
+    def describe(self) -> dict:
+        """What the outputs depend on, JSON-able: a re-run into the same folder must match it."""
+
+    def setup(self) -> None:
+        """Load what every frame needs (a model, the data set); once per worker."""
+
+    def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
+        """Compute frame ``frame_index`` and write it to ``out_path``; returns a few numbers about it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Execution:
+    """Where batch work runs: the ``--workers`` / ``--ray`` switch of the batch commands.
+
+    Args:
+        workers: Ray workers (actors), each with its own copy of the job and ``threads`` threads.
+            ``None`` with no ``ray_address``: this process does the work itself (the default).
+        ray_address: ``None`` (a local Ray when ``workers`` is given), ``"local"`` (start one),
+            ``"auto"`` (the cluster this machine belongs to, ``ray start``) or ``"HOST:PORT"``.
+        threads: threads per Ray worker (``threads.configure_threads``).
+    """
+
+    workers: int | None = None
+    ray_address: str | None = None
+    threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.workers is not None and (isinstance(self.workers, bool) or not 1 <= self.workers <= 4096):
+            raise InputError(f"--workers must be in [1, 4096], got {self.workers!r}")
+        if not 1 <= self.threads <= 256:
+            raise InputError(f"threads per worker must be in [1, 256], got {self.threads!r}")
+        if self.ray_address is not None and not str(self.ray_address).strip():
+            raise InputError("--ray: give 'local', 'auto' or HOST:PORT")
+
+    @property
+    def uses_ray(self) -> bool:
+        return self.workers is not None or self.ray_address is not None
+
+    def describe(self) -> dict:
+        return {"ray": self.uses_ray, "workers": self.workers, "address": self.ray_address}
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchRun:
+    """What ``run_frames`` did."""
+
+    out_dir: Path
+    frames: tuple[int, ...]
+    """Every frame the run covers, done now or before."""
+    computed: tuple[int, ...]
+    """The frames computed by this run, in the order they finished."""
+    skipped: tuple[int, ...]
+    """The frames whose output was there already (a resumed run)."""
+    seconds: float
+    """Wall time of the frames' work (Ray's start-up excluded, reported apart)."""
+    startup_seconds: float
+    workers: int
+    frame_seconds: tuple[float, ...]
+    """Each computed frame's own time in its worker, in ``computed``'s order."""
+    driver_peak_rss_mb: float
+    worker_peak_rss_mb: float
+    """The largest peak resident memory any worker reported (this process's, in-process)."""
+    worker_pids: tuple[int, ...]
+    node_ids: tuple[str, ...] = ()
+    """The Ray nodes that computed frames (none in-process)."""
+
+    @property
+    def frames_per_second(self) -> float:
+        return len(self.computed) / self.seconds if self.seconds > 0 else float("nan")
+
+    def summary(self) -> dict:
+        return {
+            "out": str(self.out_dir),
+            "num_frames": len(self.frames),
+            "num_computed": len(self.computed),
+            "num_skipped": len(self.skipped),
+            "workers": self.workers,
+            "seconds": round(self.seconds, 2),
+            "startup_seconds": round(self.startup_seconds, 2),
+            "frames_per_second": round(self.frames_per_second, 3),
+            "median_frame_seconds": round(float(np.median(self.frame_seconds)), 3)
+            if self.frame_seconds
+            else None,
+            "driver_peak_rss_mb": round(self.driver_peak_rss_mb, 1),
+            "worker_peak_rss_mb": round(self.worker_peak_rss_mb, 1),
+            "num_nodes": len(self.node_ids),
+        }
+
+
+def frame_path(out_dir: str | os.PathLike, frame_index: int) -> Path:
+    """Where a job writes frame ``frame_index``'s result."""
+    return Path(out_dir) / FRAMES_DIR / f"frame_{int(frame_index):05d}.npz"
+
+
+def done_frames(out_dir: str | os.PathLike, frames: Sequence[int]) -> list[int]:
+    """The frames of ``frames`` whose result is in ``out_dir`` (whole: files are written atomically)."""
+    return [int(i) for i in frames if frame_path(out_dir, i).is_file()]
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (Linux reports kilobytes)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _prepare(job: FrameJob, out_dir: Path) -> None:
+    """Create the output folder, or check that the job that wrote it is this one."""
+    description = {"kind": job.kind, **job.describe()}
+    job_file = out_dir / JOB_FILE
+    if job_file.is_file():
+        before = read_json(job_file, what="batch job description")
+        if before != json.loads(json.dumps(description)):
+            changed = sorted(k for k in set(before) | set(description) if before.get(k) != description.get(k))
+            raise InputError(
+                f"{out_dir} holds the results of another job (it differs in: {', '.join(changed)}); "
+                "write to another folder, or delete this one to start again"
+            )
+    elif out_dir.exists() and any(out_dir.iterdir()):
+        raise InputError(f"{out_dir} exists and is not a batch output folder; give an empty or new folder")
+    (out_dir / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+    if not job_file.is_file():
+        write_text_atomic(job_file, json.dumps(description, indent=1, sort_keys=True) + "\n")
+
+
+def run_one(job: FrameJob, frame_index: int, out_dir: str | os.PathLike) -> dict[str, float]:
+    """One frame on whatever process runs it: the job's row plus its timing, process and memory."""
+    start = time.perf_counter()
+    row = dict(job.run(int(frame_index), frame_path(out_dir, frame_index)))
+    row.update(
+        frame_index=int(frame_index),
+        seconds=time.perf_counter() - start,
+        pid=os.getpid(),
+        peak_rss_mb=peak_rss_mb(),
+    )
+    return row
+
+
+def run_frames(
+    job: FrameJob,
+    frames: Sequence[int],
+    out_dir: str | os.PathLike,
+    execution: Execution = Execution(),
+    progress: Callable[[int, int], None] | None = None,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
+) -> BatchRun:
+    """Run ``job`` on every frame of ``frames`` not done yet in ``out_dir``.
+
+    Args:
+        job: the per-frame work (``jobs``).
+        frames: frame indices, each at most once.
+        out_dir: the output folder: new, empty, or one this same job wrote (it resumes).
+        execution: in this process (default) or on Ray workers.
+        progress: called as ``progress(frames_done, num_frames)`` (skipped frames count as done).
+        on_row: called with each computed frame's row as it arrives (its ``frame_index``,
+            ``seconds``, ``pid``, ``peak_rss_mb`` and the job's own numbers).
+
+    Raises:
+        InputError: a repeated frame, a folder of another job, Ray missing or unreachable.
+    """
+    frames = [int(i) for i in frames]
+    if len(set(frames)) != len(frames):
+        raise InputError("a frame is listed twice")
+    out_dir = Path(out_dir)
+    _prepare(job, out_dir)
+    skipped = done_frames(out_dir, frames)
+    todo = [i for i in frames if i not in set(skipped)]
+    report = progress or (lambda done, total: None)
+    report(len(skipped), len(frames))
+
+    computed: list[int] = []
+    frame_seconds: list[float] = []
+    pids: set[int] = set()
+    nodes: set[str] = set()
+    worker_peak = 0.0
+
+    def take(row: dict[str, Any]) -> None:
+        nonlocal worker_peak
+        computed.append(int(row["frame_index"]))
+        frame_seconds.append(float(row["seconds"]))
+        pids.add(int(row["pid"]))
+        if "node_id" in row:
+            nodes.add(str(row["node_id"]))
+        worker_peak = max(worker_peak, float(row["peak_rss_mb"]))
+        if on_row is not None:
+            on_row(row)
+        report(len(skipped) + len(computed), len(frames))
+
+    startup = time.perf_counter()
+    if not todo:
+        rows: Iterator[dict[str, Any]] = iter(())
+        workers = 0
+    elif execution.uses_ray:
+        rows, workers = _ray_rows(job, todo, out_dir, execution)
+    else:
+        job.setup()
+        rows = (run_one(job, i, out_dir) for i in todo)
+        workers = 1
+    startup_seconds = time.perf_counter() - startup
+    start = time.perf_counter()
+    for row in rows:
+        take(row)
+    seconds = time.perf_counter() - start
+    if not execution.uses_ray:
+        worker_peak = max(worker_peak, peak_rss_mb()) if todo else worker_peak
+    run = BatchRun(
+        out_dir=out_dir,
+        frames=tuple(frames),
+        computed=tuple(computed),
+        skipped=tuple(skipped),
+        seconds=seconds,
+        startup_seconds=startup_seconds,
+        workers=workers,
+        frame_seconds=tuple(frame_seconds),
+        driver_peak_rss_mb=peak_rss_mb(),
+        worker_peak_rss_mb=worker_peak,
+        worker_pids=tuple(sorted(pids)),
+        node_ids=tuple(sorted(nodes)),
+    )
+    missing = [i for i in frames if not frame_path(out_dir, i).is_file()]
+    if missing:  # never expected: Ray retries failed frames and raises when it gives up
+        raise RuntimeError(f"{len(missing)} frames have no result after the run (first: {missing[0]})")
+    write_text_atomic(
+        out_dir / SUMMARY_FILE,
+        json.dumps({**run.summary(), "execution": execution.describe()}, indent=1) + "\n",
+    )
+    return run
+
+
+class _RayWorker:
+    """A Ray Data actor: sets the job up once, then computes the frames of each batch it gets."""
+
+    def __init__(self, job: FrameJob, out_dir: str, threads: int) -> None:
+        configure_threads(threads)
+        self.job = job
+        self.out_dir = out_dir
+        job.setup()
+
+    def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        import ray
+
+        node_id = ray.get_runtime_context().get_node_id()
+        rows = [{**run_one(self.job, int(i), self.out_dir), "node_id": node_id} for i in batch["frame_index"]]
+        return {key: np.asarray([row[key] for row in rows]) for key in rows[0]}
+
+
+def connect_ray(execution: Execution) -> int:
+    """Start or join Ray as ``execution`` says (once per process); returns the workers to use:
+    ``execution.workers``, or the cluster's CPUs over the threads per worker."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError(
+            f"--workers/--ray need Ray: pip install 'ray[data]=={RAY_VERSION}' (make's set-up installs it)"
+        ) from None
+    # Ray's own usage report stays off unless a user turned it on.
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    if not ray.is_initialized():
+        address = execution.ray_address
+        options: dict[str, Any] = {
+            "include_dashboard": False,
+            "log_to_driver": False,
+            "logging_level": logging.WARNING,
+        }
+        if address in (None, "local"):
+            options["num_cpus"] = (execution.workers or 1) * execution.threads
+        else:
+            options["address"] = address
+        try:
+            ray.init(**options)
+        except ConnectionError as exc:
+            raise InputError(f"--ray {address}: no Ray cluster there ({exc})") from None
+    if execution.workers is not None:
+        return execution.workers
+    cpus = int(ray.cluster_resources().get("CPU", 1))
+    return max(1, cpus // execution.threads)
+
+
+def _ray_rows(
+    job: FrameJob, todo: list[int], out_dir: Path, execution: Execution
+) -> tuple[Iterator[dict[str, Any]], int]:
+    """Rows of ``todo``'s frames as Ray workers finish them (one frame per block, so that a
+    killed worker re-runs only the frames it held and work spreads evenly)."""
+    workers = connect_ray(execution)
+    import ray.data
+
+    logging.getLogger("ray.data").setLevel(logging.WARNING)
+    context = ray.data.DataContext.get_current()
+    context.enable_progress_bars = False
+    context.print_on_execution_start = False
+    dataset = ray.data.from_items([{"frame_index": i} for i in todo], override_num_blocks=len(todo))
+    dataset = dataset.map_batches(
+        _RayWorker,
+        fn_constructor_kwargs={"job": job, "out_dir": str(out_dir), "threads": execution.threads},
+        batch_size=1,
+        compute=ray.data.ActorPoolStrategy(size=min(workers, len(todo))),
+        num_cpus=execution.threads,
+    )
+
+    def rows() -> Iterator[dict[str, Any]]:
+        for row in dataset.iter_rows():
+            yield {
+                key: value.item() if isinstance(value, np.generic) else value for key, value in row.items()
+            }
+
+    return rows(), min(workers, len(todo))

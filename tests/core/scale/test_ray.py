@@ -1,0 +1,119 @@
+"""The batch runner on Ray: the same files as in this process, no frame lost or doubled when a
+worker is killed, work spread over a two-node cluster started with ``ray start``.
+
+Every test here starts Ray and so runs in a loopback-only network namespace (``make test-ray``,
+part of ``make test``); outside one it is skipped by the conftest's guard.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from factorydet_core.scale.runner import Execution, frame_path, run_frames
+
+from .conftest import NUM_FRAMES, same_outputs
+
+pytestmark = [pytest.mark.ray, pytest.mark.slow]
+
+RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled"}
+
+
+@pytest.fixture
+def local_ray():
+    """A local Ray of 2 CPUs for one test (a module-wide one would clash with the cluster test's)."""
+    import ray
+
+    os.environ.update(RAY_ENV)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def test_ray_workers_write_the_same_files_as_this_process(detect_job, tmp_path, local_ray):
+    frames = list(range(NUM_FRAMES))
+    here = run_frames(detect_job, frames, tmp_path / "here")
+    on_ray = run_frames(detect_job, frames, tmp_path / "ray", Execution(workers=2))
+    assert sorted(on_ray.computed) == frames and on_ray.workers == 2
+    assert len(on_ray.worker_pids) == 2 and os.getpid() not in on_ray.worker_pids
+    assert here.worker_pids == (os.getpid(),)
+    same_outputs(tmp_path / "here", tmp_path / "ray", frames)
+    summary = json.loads((tmp_path / "ray" / "summary.json").read_text())
+    assert summary["execution"] == {"ray": True, "workers": 2, "address": None}
+
+
+def test_a_killed_worker_loses_no_frame_and_doubles_none(detect_job, tmp_path, local_ray):
+    frames = list(range(NUM_FRAMES))
+    killed = []
+
+    def kill_first_worker(row):
+        # The first frame's worker already holds its next frame: kill it mid-frame.
+        if not killed:
+            killed.append(row["pid"])
+            os.kill(row["pid"], signal.SIGKILL)
+
+    run = run_frames(detect_job, frames, tmp_path / "ray", Execution(workers=2), on_row=kill_first_worker)
+    assert killed and killed[0] in run.worker_pids
+    assert len(run.worker_pids) >= 3, "the killed worker's frames were not redone by a new one"
+    assert sorted(run.computed) == frames, "a frame was lost or reported twice"
+    run_frames(detect_job, frames, tmp_path / "here")
+    same_outputs(tmp_path / "here", tmp_path / "ray", frames)
+    assert not list((tmp_path / "ray" / "frames").glob("*.tmp*")), "a half-written file was left"
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture
+def two_node_cluster():
+    """Two Ray nodes of one CPU each on this machine, started as a user would (``ray start``)."""
+    ray_cli = str(Path(sys.executable).with_name("ray"))
+    env = {**os.environ, **RAY_ENV}
+    # Ray's sockets live under the temp dir: pytest's tmp_path is too long for AF_UNIX.
+    temp_dir = tempfile.mkdtemp(prefix="ray", dir="/tmp")
+    port = _free_port()
+    address = f"127.0.0.1:{port}"
+    common = ["--num-cpus=1", "--object-store-memory=300000000", "--disable-usage-stats"]
+    try:
+        subprocess.run(
+            [ray_cli, "start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1",
+             f"--temp-dir={temp_dir}", "--include-dashboard=false", *common],
+            env=env, check=True, capture_output=True, timeout=120,
+        )  # fmt: skip
+        subprocess.run(
+            [ray_cli, "start", f"--address={address}", *common],
+            env=env, check=True, capture_output=True, timeout=120,
+        )  # fmt: skip
+        yield address, env
+    finally:
+        subprocess.run([ray_cli, "stop", "--force"], env=env, capture_output=True, timeout=120)
+        shutil.rmtree(temp_dir, ignore_errors=True)
+
+
+def test_the_command_line_runs_across_a_two_node_cluster(batch_dataset_dir, tmp_path, two_node_cluster):
+    address, env = two_node_cluster
+    out = tmp_path / "out"
+    command = [
+        sys.executable, "-m", "app.cli", "detect", str(batch_dataset_dir), "--out", str(out),
+        "--ray", address, "--json",
+    ]  # fmt: skip
+    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads(done.stdout)
+    assert summary["num_computed"] == NUM_FRAMES and summary["workers"] == 2
+    assert summary["num_nodes"] == 2, "the frames did not run on both nodes"
+    assert all(frame_path(out, i).is_file() for i in range(NUM_FRAMES))
