@@ -54,12 +54,19 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         raise InputError(str(exc)) from None
+    execution = execution_from_args(args)
     update, close = progress_bar("simulating")
     try:
-        out = simulate_dataset(args.out, config, update)
+        if execution.uses_ray:
+            from factorydet_core.scale.jobs import simulate_batch
+
+            run = simulate_batch(args.out, config, execution, update)
+            out, note = run.out_dir, f" ({len(run.skipped)} there already, {run.workers} workers)"
+        else:
+            out, note = simulate_dataset(args.out, config, update), ""
     finally:
         close()
-    print(f"wrote {config.num_frames} frames to {out}")
+    print(f"wrote {config.num_frames} frames to {out}{note}")
     return 0
 
 
@@ -744,8 +751,8 @@ def add_execution_flags(parser: argparse.ArgumentParser) -> None:
         "--workers",
         type=int,
         default=None,
-        help="run on N Ray workers, each loading the model once (a local Ray unless --ray names a "
-        "cluster); default: this process alone, no Ray needed",
+        help="run on N Ray workers, each setting its work up (a model, a simulator) once (a local "
+        "Ray unless --ray names a cluster); default: this process alone, no Ray needed",
     )
     parser.add_argument(
         "--ray",
@@ -876,6 +883,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from factorydet_core.session.models import resolve_model
 
     model_path = resolve_model(args.model, args.root)
+    execution = execution_from_args(args)
+    if args.out is not None or execution.uses_ray:
+        return _evaluate_batch(args, model_path, execution)
     update, close = progress_bar("proposals")
     try:
         result = evaluate(
@@ -891,6 +901,45 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         )
     finally:
         close()
+    if args.png:
+        headline = result["against"][result["reference"]]
+        plot_pr_curves(headline, args.png, f"{result['data']}: PR at IoU {args.iou} vs {result['reference']}")
+        result["png"] = args.png
+    print(json.dumps(strip_curves(result), indent=2))
+    return 0
+
+
+def _evaluate_batch(args: argparse.Namespace, model_path: Path, execution) -> int:
+    """``evaluate`` with its per-frame work in a folder (``--out``; a temporary one when only
+    ``--workers``/``--ray`` are given), on Ray workers when asked."""
+    import tempfile
+
+    from factorydet_core.evaluation.evaluate import strip_curves
+    from factorydet_core.evaluation.plots import plot_pr_curves
+    from factorydet_core.scale.jobs import evaluate_batch
+
+    if args.baseline:
+        raise InputError("--baseline trains in this process: leave out --out, --workers and --ray")
+    with tempfile.TemporaryDirectory(prefix="factorydet-evaluate-") as scratch:
+        out = args.out if args.out is not None else Path(scratch) / "frames"
+        update, close = progress_bar("evaluating")
+        try:
+            result = evaluate_batch(
+                args.data,
+                model_path,
+                out,
+                execution,
+                iou_threshold=args.iou,
+                max_frames=args.frames,
+                calibrate=args.calibrate,
+                progress=update,
+                command="factorydet " + " ".join(sys.argv[1:]),
+                score_thresholds=parse_floats(args.thresholds, "--thresholds") if args.thresholds else (),
+            )
+        finally:
+            close()
+    if args.out is None:
+        result["batch"]["out"] = None  # the temporary folder is gone
     if args.png:
         headline = result["against"][result["reference"]]
         plot_pr_curves(headline, args.png, f"{result['data']}: PR at IoU {args.iou} vs {result['reference']}")
@@ -983,6 +1032,7 @@ def build_parser(
     p.add_argument("--out", required=True, help="data set folder to write")
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
+    add_execution_flags(p)
     p.add_argument(
         "--unlabelled-fraction", type=float, default=0.3, help="share of eligible objects left unannotated"
     )
@@ -1164,6 +1214,13 @@ def build_parser(
     p.add_argument("--png", default=None, help="write the precision-recall curves here")
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false")
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="keep each frame's measurements in this folder (a re-run resumes); with --workers or "
+        "--ray and no --out, a temporary folder",
+    )
+    add_execution_flags(p)
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="write the results report (tables, PR curve, grid sweep)")

@@ -140,6 +140,13 @@ def measure(
     return measure_against(model, frames, references, ignored=ignored, **kwargs)
 
 
+def test_frames(dataset: Dataset, max_frames: int | None = None) -> list[int]:
+    """The frames ``evaluate`` measures on: the test split (every frame without one), the first
+    ``max_frames`` of them when given."""
+    test = dataset.splits.get("test") or list(range(dataset.num_frames))
+    return test[:max_frames] if max_frames else test
+
+
 def evaluate(
     data: str | os.PathLike,
     model_path: str | os.PathLike,
@@ -162,8 +169,7 @@ def evaluate(
     dataset = open_dataset(data)
     model = DetectionModel.load(model_path)
     simulated = (Path(data) / "truth").is_dir()
-    test = dataset.splits.get("test") or list(range(dataset.num_frames))
-    test = test[:max_frames] if max_frames else test
+    test = test_frames(dataset, max_frames)
     detector = detector_for(model, dataset, calibrate)
     frames = collect_proposals(dataset, test, detector, progress)
     # Classified and boxed once, measured against the annotations and the truth.
@@ -188,14 +194,57 @@ def evaluate(
             score_thresholds=score_thresholds,
             candidates=candidates,
         )
-    headline = against["truth" if simulated else "annotations"]
+    plain = None
+    if simulated:
+        # The same without the ignore rule: detections on objects below the policy count as false.
+        plain = measure(
+            model, dataset, frames, iou_threshold=iou_threshold, use_truth=True, ignored={},
+            candidates=candidates,
+        )  # fmt: skip
+    result = evaluation_result(
+        against,
+        plain,
+        command=command,
+        data=data,
+        model_path=model_path,
+        frames=test,
+        iou_threshold=iou_threshold,
+    )
+    if with_baseline:
+        train = dataset.splits.get("train") or []
+        train = train[:max_train_frames] if max_train_frames else train
+        train_frames = collect_proposals(dataset, train, detector, progress)
+        baseline = baseline_model(model, train_frames)
+        result["baseline"] = {
+            name: measure(baseline, dataset, frames, iou_threshold=iou_threshold, use_truth=name == "truth")
+            for name in against
+        }
+    result["seconds"] = round(time.perf_counter() - start, 1)
+    return result
+
+
+def evaluation_result(
+    against: dict[str, dict],
+    truth_without_ignore: dict | None,
+    *,
+    command: str,
+    data: str | os.PathLike,
+    model_path: str | os.PathLike,
+    frames: Sequence[int],
+    iou_threshold: float,
+) -> dict:
+    """``evaluate``'s record from the metrics against each reference (``"annotations"``, and
+    ``"truth"`` on simulated data, with and without the ignore rule); a batch evaluation on Ray
+    workers (``scale.jobs.evaluate_batch``) builds the same."""
+    reference = "truth" if "truth" in against else "annotations"
+    headline = against[reference]
     result = {
         "benchmark": "evaluate",
         "command": command,
         "data": Path(data).name,
         "model": str(model_path),
-        "frames": test,
-        "reference": "truth" if simulated else "annotations",
+        "frames": list(frames),
+        "reference": reference,
         "iou_threshold": iou_threshold,
         "per_class": {
             k: {m: v[m] for m in ("precision", "recall", "f1", "ap", "num_reference")}
@@ -209,23 +258,10 @@ def evaluate(
         "num_reference": headline["num_reference"],
         "against": against,
     }
-    if simulated:
-        # The same without the ignore rule: detections on objects below the policy count as false.
-        plain = measure(
-            model, dataset, frames, iou_threshold=iou_threshold, use_truth=True, ignored={},
-            candidates=candidates,
-        )  # fmt: skip
-        result["truth_without_ignore"] = {k: plain[k] for k in ("precision", "recall", "f1", "map")}
-    if with_baseline:
-        train = dataset.splits.get("train") or []
-        train = train[:max_train_frames] if max_train_frames else train
-        train_frames = collect_proposals(dataset, train, detector, progress)
-        baseline = baseline_model(model, train_frames)
-        result["baseline"] = {
-            name: measure(baseline, dataset, frames, iou_threshold=iou_threshold, use_truth=name == "truth")
-            for name in against
+    if truth_without_ignore is not None:
+        result["truth_without_ignore"] = {
+            k: truth_without_ignore[k] for k in ("precision", "recall", "f1", "map")
         }
-    result["seconds"] = round(time.perf_counter() - start, 1)
     return result
 
 

@@ -4,7 +4,7 @@ is ``evaluate.measure``'s job, not this module's."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -20,6 +20,94 @@ from factorydet_core.training.mining import (
     group_labels,
 )
 from factorydet_core.types import SCORE_FLOOR, Detections
+
+RECORD_KEYS = (
+    "boxes",
+    "class_ids",
+    "scores",
+    "reference_boxes",
+    "reference_class_ids",
+    "ignore_boxes",
+    "candidate_boxes",
+    "candidate_class_ids",
+    "candidate_scores",
+    "true_ids",
+    "predicted_ids",
+)
+"""The arrays of ``frame_record``: ``metrics.detection_metrics``' and ``metrics.error_breakdown``'s
+per-frame input, and the point sets' true and predicted class ids (Table 2)."""
+
+
+def frame_record(
+    model: DetectionModel,
+    frame: FrameProposals,
+    candidates: Detections,
+    reference_boxes: np.ndarray,
+    reference_class_ids: np.ndarray,
+    ignore_boxes: np.ndarray | None = None,
+    *,
+    iou_threshold: float = 0.6,
+    ap_score_floor: float = SCORE_FLOOR,
+) -> dict[str, np.ndarray]:
+    """One frame's share of ``measure_against``: its detections at the AP floor after NMS (K),
+    its references (R, 7) and ignore boxes (Q, 7), its candidates before the threshold and NMS
+    (M), and the class ids of its held-out point sets (N: those matching a reference, and those
+    overlapping none), true and predicted. A batch computes these on its workers; ``metrics_of``
+    pools them."""
+    background_id = len(model.class_names)
+    detections = select_detections(candidates, ap_score_floor, model.nms_iou, vote_iou=model.vote_iou)
+    kept = detections.subset(detections.kept_mask)
+    labels, overlaps_any = group_labels(
+        frame, reference_boxes, reference_class_ids, background_id, iou_threshold
+    )
+    chosen = (labels != background_id) | ~overlaps_any
+    return {
+        "boxes": kept.boxes,
+        "class_ids": kept.class_ids,
+        "scores": kept.scores,
+        "reference_boxes": np.asarray(reference_boxes, np.float64).reshape(-1, 7),
+        "reference_class_ids": np.asarray(reference_class_ids, np.int64),
+        "ignore_boxes": np.zeros((0, 7)) if ignore_boxes is None else np.asarray(ignore_boxes, np.float64),
+        # Before the threshold and NMS, for the kinds of misses (error_breakdown).
+        "candidate_boxes": candidates.boxes,
+        "candidate_class_ids": candidates.class_ids,
+        "candidate_scores": candidates.scores,
+        "true_ids": labels[chosen],
+        "predicted_ids": candidates.probabilities[chosen].argmax(axis=1),
+    }
+
+
+def metrics_of(
+    records: Iterable[dict[str, np.ndarray]],
+    model: DetectionModel,
+    *,
+    iou_threshold: float = 0.6,
+    score_thresholds: Sequence[float] = (),
+) -> dict:
+    """``measure_against``'s metrics from its frames' ``frame_record``s."""
+    scored = list(records)
+    class_names = model.class_names
+    metrics = detection_metrics(
+        scored, class_names, iou_threshold, model.score_threshold, model.class_thresholds()
+    )
+    if score_thresholds:
+        metrics["operating_points"] = []
+        for threshold in score_thresholds:
+            at = detection_metrics(scored, class_names, iou_threshold, float(threshold))
+            metrics["operating_points"].append(
+                {"score_threshold": float(threshold), **{k: at[k] for k in ("precision", "recall", "f1")}}
+            )
+    metrics["errors"] = error_breakdown(
+        scored, class_names, iou_threshold, model.score_threshold, model.class_thresholds()
+    )
+    true_ids = [r["true_ids"] for r in scored]
+    predicted_ids = [r["predicted_ids"] for r in scored]
+    metrics["recognition"] = recognition_accuracy(
+        np.concatenate(true_ids) if true_ids else np.zeros(0, np.int64),
+        np.concatenate(predicted_ids) if predicted_ids else np.zeros(0, np.int64),
+        (*class_names, "background"),
+    )
+    return metrics
 
 
 def measure_against(
@@ -46,57 +134,27 @@ def measure_against(
         candidates: frame index -> the model's candidates of that frame (``model.candidates``),
             when they were computed already.
     """
-    scored, true_ids, predicted_ids = [], [], []
-    class_names = model.class_names
-    background_id = len(class_names)
+    records = []
     for frame in frames:
         ref_boxes, ref_classes = references[frame.frame_index]
-        ignore = np.zeros((0, 7)) if ignored is None else ignored.get(frame.frame_index, np.zeros((0, 7)))
+        ignore = None if ignored is None else ignored.get(frame.frame_index)
         if candidates is not None and frame.frame_index in candidates:
             frame_candidates = candidates[frame.frame_index]
         else:
             frame_candidates = model.candidates(frame.proposal_boxes, frame.groups)
-        probabilities = frame_candidates.probabilities
-        detections = select_detections(
-            frame_candidates, ap_score_floor, model.nms_iou, vote_iou=model.vote_iou
+        records.append(
+            frame_record(
+                model,
+                frame,
+                frame_candidates,
+                ref_boxes,
+                ref_classes,
+                ignore,
+                iou_threshold=iou_threshold,
+                ap_score_floor=ap_score_floor,
+            )  # fmt: skip
         )
-        kept = detections.subset(detections.kept_mask)
-        scored.append(
-            {
-                "boxes": kept.boxes,
-                "class_ids": kept.class_ids,
-                "scores": kept.scores,
-                "reference_boxes": ref_boxes,
-                "reference_class_ids": ref_classes,
-                "ignore_boxes": ignore,
-                # Before the threshold and NMS, for the kinds of misses (error_breakdown).
-                "candidate_boxes": frame_candidates.boxes,
-                "candidate_class_ids": frame_candidates.class_ids,
-                "candidate_scores": frame_candidates.scores,
-            }
-        )
-        # Table 2: held-out point sets that match a reference, and those overlapping none.
-        labels, overlaps_any = group_labels(frame, ref_boxes, ref_classes, background_id, iou_threshold)
-        chosen = (labels != background_id) | ~overlaps_any
-        true_ids.append(labels[chosen])
-        predicted_ids.append(probabilities[chosen].argmax(axis=1))
-    metrics = detection_metrics(
-        scored, class_names, iou_threshold, model.score_threshold, model.class_thresholds()
-    )
-    if score_thresholds:
-        metrics["operating_points"] = []
-        for threshold in score_thresholds:
-            at = detection_metrics(scored, class_names, iou_threshold, float(threshold))
-            metrics["operating_points"].append(
-                {"score_threshold": float(threshold), **{k: at[k] for k in ("precision", "recall", "f1")}}
-            )
-    metrics["errors"] = error_breakdown(
-        scored, class_names, iou_threshold, model.score_threshold, model.class_thresholds()
-    )
-    metrics["recognition"] = recognition_accuracy(
-        np.concatenate(true_ids), np.concatenate(predicted_ids), (*class_names, "background")
-    )
-    return metrics
+    return metrics_of(records, model, iou_threshold=iou_threshold, score_thresholds=score_thresholds)
 
 
 def compare_models(

@@ -306,6 +306,51 @@ def _write_json(path: Path, obj: dict) -> None:
     write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
+def write_frame(out: Path, simulator: FactorySimulator, frame_index: int) -> Path:
+    """Render frame ``frame_index`` and write its truth, then the frame itself (a frame file
+    present means its truth is too: a batch that resumes skips it whole). Returns the frame file."""
+    frame = simulator.render(frame_index)
+    annotated_ids = frame.instance_ids[frame.annotated_mask]
+    save_npz(
+        out / "truth" / f"frame_{frame_index:05d}.npz",
+        {
+            "T_world_vehicle": frame.T_world_vehicle_true,
+            "point_instance_ids": frame.point_instance_ids,
+            "instance_ids": frame.instance_ids,
+            "instance_class_ids": frame.instance_class_ids,
+            "instance_boxes": frame.instance_boxes,
+            "instance_num_points": frame.instance_num_points,
+            "annotated_mask": frame.annotated_mask,
+        },
+    )
+    path = out / "frames" / f"frame_{frame_index:05d}.npz"
+    save_npz(
+        path,
+        {
+            "points": frame.points,
+            "sensor_ids": frame.sensor_ids,
+            "T_world_vehicle": frame.T_world_vehicle_odometry,
+            "time_s": np.float64(frame.time_s),
+            "point_instance_ids": np.where(
+                np.isin(frame.point_instance_ids, annotated_ids), frame.point_instance_ids, 0
+            ).astype(np.int32),
+            "label_boxes": frame.instance_boxes[frame.annotated_mask],
+            "label_class_ids": frame.instance_class_ids[frame.annotated_mask],
+            "label_instance_ids": annotated_ids,
+            "label_num_points": frame.instance_num_points[frame.annotated_mask],
+        },
+    )
+    return path
+
+
+def finish_dataset(out: Path, simulator: FactorySimulator) -> Path:
+    """Write the truth's object list and, last, the manifest: a folder with a manifest is a
+    complete data set."""
+    _write_json(out / "truth" / "truth.json", simulator.truth())
+    _write_json(out / "manifest.json", simulator.manifest())
+    return out
+
+
 def simulate_dataset(
     out_dir: str | os.PathLike,
     config: SimConfig,
@@ -325,40 +370,8 @@ def simulate_dataset(
     (out / "frames").mkdir(parents=True, exist_ok=True)
     (out / "truth").mkdir(parents=True, exist_ok=True)
     simulator = FactorySimulator(config)
-    _write_json(out / "truth" / "truth.json", simulator.truth())
     for i in range(config.num_frames):
-        frame = simulator.render(i)
-        annotated_ids = frame.instance_ids[frame.annotated_mask]
-        save_npz(
-            out / "frames" / f"frame_{i:05d}.npz",
-            {
-                "points": frame.points,
-                "sensor_ids": frame.sensor_ids,
-                "T_world_vehicle": frame.T_world_vehicle_odometry,
-                "time_s": np.float64(frame.time_s),
-                "point_instance_ids": np.where(
-                    np.isin(frame.point_instance_ids, annotated_ids), frame.point_instance_ids, 0
-                ).astype(np.int32),
-                "label_boxes": frame.instance_boxes[frame.annotated_mask],
-                "label_class_ids": frame.instance_class_ids[frame.annotated_mask],
-                "label_instance_ids": annotated_ids,
-                "label_num_points": frame.instance_num_points[frame.annotated_mask],
-            },
-        )
-        save_npz(
-            out / "truth" / f"frame_{i:05d}.npz",
-            {
-                "T_world_vehicle": frame.T_world_vehicle_true,
-                "point_instance_ids": frame.point_instance_ids,
-                "instance_ids": frame.instance_ids,
-                "instance_class_ids": frame.instance_class_ids,
-                "instance_boxes": frame.instance_boxes,
-                "instance_num_points": frame.instance_num_points,
-                "annotated_mask": frame.annotated_mask,
-            },
-        )
+        write_frame(out, simulator, i)
         if progress is not None:
             progress(i + 1, config.num_frames)
-    # The manifest goes last: a folder with a manifest is a complete data set.
-    _write_json(out / "manifest.json", simulator.manifest())
-    return out
+    return finish_dataset(out, simulator)

@@ -53,6 +53,31 @@ def test_ray_workers_write_the_same_files_as_this_process(detect_job, tmp_path, 
     assert summary["execution"] == {"ray": True, "workers": 2, "address": None}
 
 
+def test_simulation_and_evaluation_on_ray_give_what_this_process_gives(
+    batch_dataset_dir, tmp_path, local_ray
+):
+    from factorydet_core.evaluation.evaluate import evaluate
+    from factorydet_core.scale.jobs import evaluate_batch, simulate_batch
+    from factorydet_core.session.models import resolve_model
+    from factorydet_core.sim.simulate import SimConfig, simulate_dataset
+
+    from .test_jobs import comparable, digests
+
+    config = SimConfig(num_frames=4, seed=4, points_per_frame=6_000)
+    simulate_dataset(tmp_path / "plain", config)
+    run = simulate_batch(tmp_path / "ray", config, Execution(workers=2))
+    assert len(run.worker_pids) == 2
+    assert digests(tmp_path / "ray") == digests(tmp_path / "plain")
+
+    model = resolve_model("default")
+    plain = evaluate(batch_dataset_dir, model, calibrate=False)
+    on_ray = evaluate_batch(
+        batch_dataset_dir, model, tmp_path / "eval", Execution(workers=2), calibrate=False
+    )
+    assert on_ray["batch"]["workers"] == 2
+    assert comparable(on_ray) == comparable(plain)
+
+
 def test_a_killed_worker_loses_no_frame_and_doubles_none(detect_job, tmp_path, local_ray):
     frames = list(range(NUM_FRAMES))
     killed = []
