@@ -15,6 +15,8 @@ import time
 import traceback
 
 from factorydet_core.detection.detector import Detector, params_for
+from factorydet_core.scale.jobs import proposer
+from factorydet_core.scale.runner import Execution
 from factorydet_core.training.loop import cached_proposals, suspect_labels
 from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled
@@ -103,16 +105,28 @@ class TrainingWorker:
         """End the job: publish its final status, which frees the trainer."""
         self.state.set_training(busy=False, **training)
 
-    def start(self, mode: str, settings: LoopSettings | None = None) -> bool:
+    def execution(self) -> Execution:
+        """Where retraining proposes the frames the session's cache lacks: the session's setting
+        (``SessionDB.execution``; this process unless the Training panel chose Ray)."""
+        if self.state.db is None:
+            return Execution()
+        return Execution(**self.state.db.execution())
+
+    def start(
+        self, mode: str, settings: LoopSettings | None = None, execution: Execution | None = None
+    ) -> bool:
         """Start a job ('next' or 'full') with ``settings`` (default: the worker's own, e.g. as
-        the Training panel's controls set them); False when one is already running or there is
-        no session."""
+        the Training panel's controls set them) on ``execution`` (given: kept as the session's
+        setting; default: the session's); False when one is already running or there is no
+        session."""
         with self._lock:
             if self.busy or self.state.db is None:
                 return False
             if mode == "next" and self.state.db.latest_run_id() is None:
                 mode = "full"  # nothing to continue from yet
             settings = self.settings if settings is None else settings
+            if execution is not None and execution != self.execution():
+                self.state.db.set_execution(execution.workers, execution.ray_address)
             self._cancel.clear()
             self.state.set_training(busy=True, status=f"starting ({mode})", progress=0.0)
             self._thread = threading.Thread(
@@ -146,7 +160,8 @@ class TrainingWorker:
                     progress=0.9 * done / total,
                 )
 
-            frames = cached_proposals(state.db, state.dataset, detector, train, progress)
+            propose = proposer(self.execution())
+            frames = cached_proposals(state.db, state.dataset, detector, train, progress, propose)
             suspects = suspect_labels(state.db, state.model, frames)
             state.set_suspects(suspects)
             self._finish(status=f"{len(suspects)} suspect label(s) found", progress=1.0)
@@ -193,6 +208,13 @@ class TrainingWorker:
         done_fits = [0]
         fit_started = [0.0, -1, 0]  # this round's first reported epoch: when, which round, which epoch
         pace = Pace()
+        execution = self.execution()
+        on_ray = ""
+        if execution.uses_ray:
+            where = f"{execution.workers} " if execution.workers else ""
+            on_ray = f" on {where}Ray workers" + (
+                f" at {execution.ray_address}" if execution.ray_address else ""
+            )
 
         def progress(what: str, done: int, total: int) -> None:
             # "compare" comes after the run is stored: too late to cancel without losing it.
@@ -201,7 +223,7 @@ class TrainingWorker:
             if what == "calibrate":
                 state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
             elif what == "proposals":
-                status = f"proposals: frame {done} of {total}" + pace.text(what, done, total)
+                status = f"proposals: frame {done} of {total}{on_ray}" + pace.text(what, done, total)
                 state.set_training(status=status, progress=0.1 * done / total)
             elif what == "score":
                 # Each round scores every training frame (what mining and the thresholds read).
@@ -232,7 +254,7 @@ class TrainingWorker:
             db, dataset, settings, params_for(before, dataset.num_sensors), mode=mode,
             before={} if before is None else {f"before ({before_name})": before},
             after_label="after (run {run_id})", calibrate=self.calibrate, progress=progress,
-            should_stop=self._cancel.is_set,
+            should_stop=self._cancel.is_set, execution=execution,
         )  # fmt: skip
         self.last_run_id = done.run_id
         queue = len(db.review_queue(done.run_id))

@@ -273,6 +273,35 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             )
         finally:
             close()
+    elif args.name == "scale":
+        from factorydet_core.scale.bench import bench_scale
+        from factorydet_core.sim.simulate import SimConfig
+
+        if len(args.data) != 1:
+            raise InputError("bench scale takes one DATA folder")
+        simulate = None
+        if args.simulate_frames is not None:
+            try:
+                simulate = SimConfig(
+                    num_frames=args.simulate_frames, seed=args.seed, points_per_frame=args.points
+                )
+            except ValueError as exc:
+                raise InputError(str(exc)) from None
+        update, close = progress_bar("scale", unit="run")
+        try:
+            result = bench_scale(
+                args.data[0],
+                model=args.model,
+                frame_counts=parse_ints(args.frame_counts, "--frame-counts"),
+                workers=parse_ints(args.worker_counts, "--worker-counts"),
+                in_process=args.in_process,
+                evaluate_frames=args.evaluate_frames,
+                simulate=simulate,
+                command=command,
+                progress=update,
+            )
+        finally:
+            close()
     elif args.name == "memory":
         from factorydet_core.evaluation.bench import bench_memory
         from factorydet_core.session.models import resolve_model
@@ -572,7 +601,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         done = retrain_session(
             db, dataset, settings, front_end, mode=args.mode, before=before, compare=args.compare,
             calibrate=args.calibrate, max_train_frames=args.frames, max_test_frames=args.test_frames,
-            progress=progress, command=args.command_line,
+            progress=progress, command=args.command_line, execution=execution_from_args(args),
         )  # fmt: skip
     finally:
         close()
@@ -916,7 +945,7 @@ def _evaluate_batch(args: argparse.Namespace, model_path: Path, execution) -> in
 
     from factorydet_core.evaluation.evaluate import strip_curves
     from factorydet_core.evaluation.plots import plot_pr_curves
-    from factorydet_core.scale.jobs import evaluate_batch
+    from factorydet_core.scale.evaluate import evaluate_batch
 
     if args.baseline:
         raise InputError("--baseline trains in this process: leave out --out, --workers and --ray")
@@ -1090,6 +1119,8 @@ def build_parser(
     )
     p.add_argument("--test-frames", type=int, default=None, help="with --compare: the first N test frames")
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
+    # The frames the session's proposals cache lacks are proposed there; the fits run here.
+    add_execution_flags(p)
     p.set_defaults(func=_cmd_train)
 
     def session_args(p: argparse.ArgumentParser) -> None:
@@ -1256,6 +1287,7 @@ def build_parser(
             "memory",
             "mining",
             "world-labels",
+            "scale",
         ],
     )
     p.add_argument(
@@ -1457,6 +1489,26 @@ def build_parser(
     )
     p.add_argument(
         "--scratch", default="/tmp/factorydet_heldout", help="quality: held-out factories and caches"
+    )
+    p.add_argument(
+        "--frame-counts",
+        default="100",
+        help="scale: comma-separated frame counts of the detection runs (every worker count on the "
+        "first; the most workers on the others, for the driver's memory)",
+    )
+    p.add_argument("--worker-counts", default="1,2", help="scale: comma-separated Ray worker counts")
+    p.add_argument(
+        "--no-in-process", dest="in_process", action="store_false", help="scale: skip the run without Ray"
+    )
+    p.add_argument(
+        "--evaluate-frames", type=int, default=0, help="scale: also evaluate this many test frames (0: no)"
+    )
+    p.add_argument(
+        "--simulate-frames",
+        type=int,
+        default=None,
+        help="scale: first simulate the DATA folder with this many frames (--seed, --points) on Ray "
+        "workers; a partly simulated folder resumes",
     )
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.add_argument(

@@ -12,6 +12,8 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.measure import compare_models
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.proposals.settings import FrontEndParams
+from factorydet_core.scale.jobs import proposer
+from factorydet_core.scale.runner import Execution
 from factorydet_core.session.store import SessionDB
 from factorydet_core.training.loop import cached_proposals, session_references, train_session
 from factorydet_core.training.mining import FrameProposals, Progress, TrainingRun
@@ -50,6 +52,7 @@ def retrain_session(
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
     command: str = "",
+    execution: Execution | None = None,
 ) -> Retrained:
     """Retrain a session on its corrected labels and review verdicts: propose its training frames
     (through the session's cache), run ``training.loop.train_session`` (which stores the run and
@@ -69,6 +72,8 @@ def retrain_session(
             "box quality", "round" or "compare". "compare" comes after the run is stored: a
             progress that raises to cancel must not raise then.
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
+        execution: where the frames the cache lacks are proposed (``scale.runner.Execution``: Ray
+            workers); ``None``: this process. The fits run here either way.
 
     Raises:
         InputError: for a "next" round on a session without a run to continue, or a session that
@@ -84,7 +89,8 @@ def retrain_session(
     if calibrate and dataset.num_sensors > 1:
         report("calibrate", 0, 1)
         detector.calibrate(dataset.frame(train[0]))
-    frames = cached_proposals(db, dataset, detector, train, progress)
+    propose = proposer(execution)
+    frames = cached_proposals(db, dataset, detector, train, progress, propose)
     run_id, run = train_session(
         db, frames, settings, mode=mode, data_ref=str(dataset.path), front_end=front_end,
         progress=progress, should_stop=should_stop, command=command,
@@ -94,7 +100,7 @@ def retrain_session(
     table = None
     if compare and test:
         report("compare", 0, 1)
-        test_frames = cached_proposals(db, dataset, detector, test)
+        test_frames = cached_proposals(db, dataset, detector, test, propose=propose)
         models = {**(before or {}), after_label.format(run_id=run_id): run.model}
         table = compare_models(models, test_frames, session_references(db, test))
         db.set_run_metrics(run_id, {"test_frames": test, "compare": table})

@@ -10,6 +10,7 @@ import viser
 
 from factorydet_core.detection.model import DEFAULT_MODEL, PAPER_MODEL, DetectionModel
 from factorydet_core.evaluation.measure import comparison_markdown
+from factorydet_core.scale.runner import Execution
 from factorydet_core.training.settings import LOOP_CONTROLS, Control, LoopSettings, loop_settings_from
 from factorydet_core.types import InputError
 
@@ -45,6 +46,13 @@ def add_control(server: viser.ViserServer | viser.ClientHandle, control: Control
 def settings_of(controls: dict[str, object], base: LoopSettings) -> LoopSettings:
     """The settings the controls show (``InputError`` for a value outside a setting's bounds)."""
     return loop_settings_from({field: handle.value for field, handle in controls.items()}, base)
+
+
+def execution_of(workers: float, address: str) -> Execution:
+    """The Ray controls' ``Execution``: 0 workers and no address is this process."""
+    if workers != int(workers) or workers < 0:
+        raise InputError(f"Ray workers must be a whole number, got {workers}")
+    return Execution(workers=int(workers) or None, ray_address=address.strip() or None)
 
 
 def model_choices(state: AppState) -> dict[str, str]:
@@ -93,7 +101,13 @@ class TrainingPanel:
     runs: viser.GuiMarkdownHandle
     model: viser.GuiDropdownHandle
     show_model: viser.GuiButtonHandle
+    ray_workers: viser.GuiNumberHandle
+    ray_address: viser.GuiTextHandle
     _seen: tuple = ()
+
+    def execution(self) -> Execution:
+        """Where the Ray controls say to propose (``InputError`` for a bad value)."""
+        return execution_of(self.ray_workers.value, self.ray_address.value)
 
     def refresh(self, state: AppState) -> None:
         with state.lock:
@@ -146,19 +160,47 @@ def build_training_panel(
                     controls[control.field] = add_control(
                         server, control, getattr(worker.settings, control.field)
                     )
+            where = worker.execution()
+            ray_workers = server.gui.add_number(
+                "Ray workers",
+                initial_value=where.workers or 0,
+                min=0,
+                max=4096,
+                step=1,
+                hint="Propose the frames the session has not cached on this many Ray workers "
+                "(0: in the app's own process, or every CPU of the cluster below)",
+            )
+            ray_address = server.gui.add_text(
+                "Ray address",
+                initial_value=where.ray_address or "",
+                hint="Blank: a Ray started on this machine; 'auto' or HOST:PORT: a running cluster "
+                "(docs: Scale-out on Ray)",
+            )
     panel = TrainingPanel(
-        mode, controls, train, cancel, progress, status, comparison, runs, model, show_model
+        mode,
+        controls,
+        train,
+        cancel,
+        progress,
+        status,
+        comparison,
+        runs,
+        model,
+        show_model,
+        ray_workers,
+        ray_address,
     )
 
     @train.on_click
     def _(event: viser.GuiEvent) -> None:
         try:
             settings = settings_of(controls, worker.settings)
+            execution = panel.execution()
         except InputError as exc:
             if event.client is not None:
                 event.client.add_notification("Training", str(exc), color="red", auto_close_seconds=8)
             return
-        if not worker.start(MODES[mode.value], settings) and event.client is not None:
+        if not worker.start(MODES[mode.value], settings, execution) and event.client is not None:
             event.client.add_notification(
                 "Training", "A training job is already running.", auto_close_seconds=5
             )

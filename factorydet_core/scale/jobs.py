@@ -8,33 +8,41 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import os
-import time
-from collections.abc import Callable, Iterator, Sequence
+import tempfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.detection.model import DetectionModel
-from factorydet_core.evaluation.evaluate import (
-    detector_for,
-    evaluation_result,
-    ignored_boxes,
-    reference_boxes,
-    test_frames,
-)
-from factorydet_core.evaluation.measure import RECORD_KEYS, frame_record, metrics_of
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.io.npz import load_npz, save_npz
+from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.scale.runner import BatchRun, Execution, frame_path, run_frames
 from factorydet_core.sim.simulate import FactorySimulator, SimConfig, finish_dataset, write_frame
-from factorydet_core.training.mining import collect_proposals
+from factorydet_core.training.loop import Proposer
+from factorydet_core.training.mining import (
+    FrameProposals,
+    Progress,
+    collect_proposals,
+    proposals_from_arrays,
+    proposals_to_arrays,
+)
 from factorydet_core.types import InputError
 
 DETECTION_KEYS = ("boxes", "class_ids", "scores", "suppressed_by", "probabilities")
 """What a detect job writes per frame: ``types.Detections``' arrays (vehicle frame), NMS-suppressed
 ones included with the index of the detection that suppressed them (-1: kept)."""
+
+
+def _array_digest(array: np.ndarray | None) -> str | None:
+    """SHA-256 of an array's float64 bytes (extrinsics in a job's description); ``None`` for none."""
+    if array is None:
+        return None
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(array, np.float64)).tobytes()).hexdigest()
 
 
 def file_digest(path: str | os.PathLike) -> str:
@@ -67,6 +75,9 @@ class DetectJob:
     kind: str = "detect"
 
     def __post_init__(self) -> None:
+        # Absolute: a worker's working folder is not the driver's.
+        self.data = str(Path(self.data).resolve())
+        self.model_path = str(Path(self.model_path).resolve())
         self._detector: Detector | None = None
         self._dataset: Dataset | None = None
 
@@ -80,13 +91,10 @@ class DetectJob:
         self._dataset = None
 
     def describe(self) -> dict:
-        extrinsics = None if self.T_vehicle_sensor is None else np.asarray(self.T_vehicle_sensor, float)
         return {
-            "data": str(Path(self.data).resolve()),
+            "data": self.data,
             "model_sha256": file_digest(self.model_path),
-            "T_vehicle_sensor_sha256": None
-            if extrinsics is None
-            else hashlib.sha256(np.ascontiguousarray(extrinsics).tobytes()).hexdigest(),
+            "T_vehicle_sensor_sha256": _array_digest(self.T_vehicle_sensor),
             "score_threshold": self.score_threshold,
             "nms_iou": self.nms_iou,
         }
@@ -129,158 +137,6 @@ def read_detections(path: str | os.PathLike) -> dict[str, np.ndarray]:
     return arrays
 
 
-SHARED_RECORD_KEYS = (
-    "boxes",
-    "class_ids",
-    "scores",
-    "candidate_boxes",
-    "candidate_class_ids",
-    "candidate_scores",
-)
-"""The parts of ``measure.frame_record`` that do not depend on the references: written once per
-frame; the rest once per reference, as ``"<reference>.<key>"``."""
-
-
-@dataclasses.dataclass
-class EvaluateJob:
-    """Propose, classify and box a frame, and keep what ``evaluate`` pools over frames: its
-    detections and candidates, and against each reference (the annotations; on simulated data the
-    truth, with the ignore boxes of objects below the annotation policy) the reference boxes and
-    the point sets' true and predicted classes (``measure.frame_record``).
-
-    Args:
-        data, model_path, T_vehicle_sensor: as ``DetectJob``'s.
-        iou_threshold: the IoU a detection must reach (it labels the point sets for Table 2).
-    """
-
-    data: str
-    model_path: str
-    T_vehicle_sensor: np.ndarray | None = None
-    iou_threshold: float = 0.6
-    kind: str = "evaluate"
-
-    def __post_init__(self) -> None:
-        self._loaded: tuple[Dataset, DetectionModel, Detector] | None = None
-
-    def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "_loaded"}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._loaded = None
-
-    def describe(self) -> dict:
-        return {
-            **DetectJob(self.data, self.model_path, self.T_vehicle_sensor).describe(),
-            "score_threshold": None,
-            "nms_iou": None,
-            "iou_threshold": self.iou_threshold,
-        }
-
-    @property
-    def references(self) -> tuple[str, ...]:
-        simulated = (Path(self.data) / "truth").is_dir()
-        return ("annotations", "truth") if simulated else ("annotations",)
-
-    def setup(self) -> None:
-        dataset = open_dataset(self.data)
-        model = DetectionModel.load(self.model_path)
-        if tuple(model.class_names) != tuple(dataset.class_names):
-            raise InputError(
-                f"the model's classes {list(model.class_names)} differ from the data set's "
-                f"{list(dataset.class_names)}"
-            )
-        detector = Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
-        self._loaded = (dataset, model, detector)
-
-    def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
-        if self._loaded is None:
-            self.setup()
-        dataset, model, detector = self._loaded
-        (frame,) = collect_proposals(dataset, [frame_index], detector)
-        candidates = model.candidates(frame.proposal_boxes, frame.groups)
-        arrays: dict[str, np.ndarray] = {}
-        for reference in self.references:
-            use_truth = reference == "truth"
-            boxes, class_ids = reference_boxes(dataset, frame_index, use_truth)
-            ignore = ignored_boxes(dataset, frame_index) if use_truth else None
-            record = frame_record(
-                model, frame, candidates, boxes, class_ids, ignore, iou_threshold=self.iou_threshold
-            )
-            for key, value in record.items():
-                arrays[key if key in SHARED_RECORD_KEYS else f"{reference}.{key}"] = value
-        save_npz(out_path, arrays)
-        return {"num_candidates": len(candidates.scores), "num_detections": len(arrays["scores"])}
-
-
-def read_records(
-    out_dir: str | os.PathLike, frames: Sequence[int], reference: str, with_ignore: bool = True
-) -> Iterator[dict[str, np.ndarray]]:
-    """An evaluate job's ``measure.frame_record`` of each frame against ``reference``, read one
-    file at a time (``with_ignore`` False drops the ignore boxes: every detection counts)."""
-    own = [f"{reference}.{key}" for key in RECORD_KEYS if key not in SHARED_RECORD_KEYS]
-    for i in frames:
-        path = frame_path(out_dir, i)
-        _, arrays = load_npz(path, (*SHARED_RECORD_KEYS, *own))
-        if len(arrays) != len(SHARED_RECORD_KEYS) + len(own):
-            raise InputError(f"{path}: not an evaluation file against {reference!r}")
-        record = {key.removeprefix(f"{reference}."): value for key, value in arrays.items()}
-        if not with_ignore:
-            record["ignore_boxes"] = np.zeros((0, 7))
-        yield record
-
-
-def evaluate_batch(
-    data: str | os.PathLike,
-    model_path: str | os.PathLike,
-    out_dir: str | os.PathLike,
-    execution: Execution,
-    *,
-    iou_threshold: float = 0.6,
-    max_frames: int | None = None,
-    calibrate: bool = True,
-    progress: Callable[[int, int], None] | None = None,
-    command: str = "",
-    score_thresholds: Sequence[float] = (),
-) -> dict:
-    """``evaluate.evaluate``'s record with the per-frame work done by ``execution`` (this process
-    or Ray workers) into ``out_dir`` (one file per frame; a re-run resumes), and the metrics pooled
-    here from those files, one reference at a time."""
-    start = time.perf_counter()
-    dataset = open_dataset(data)
-    model = DetectionModel.load(model_path)
-    frames = test_frames(dataset, max_frames)
-    detector = detector_for(model, dataset, calibrate)
-    job = EvaluateJob(str(dataset.path), str(model_path), detector.T_vehicle_sensor, iou_threshold)
-    run = run_frames(job, frames, out_dir, execution, progress)
-    against = {
-        reference: metrics_of(
-            read_records(out_dir, frames, reference),
-            model,
-            iou_threshold=iou_threshold,
-            score_thresholds=score_thresholds,
-        )
-        for reference in job.references
-    }
-    plain = None
-    if "truth" in against:
-        plain = metrics_of(
-            read_records(out_dir, frames, "truth", with_ignore=False), model, iou_threshold=iou_threshold
-        )
-    result = evaluation_result(
-        against,
-        plain,
-        command=command,
-        data=data,
-        model_path=model_path,
-        frames=frames,
-        iou_threshold=iou_threshold,
-    )
-    result["batch"] = run.summary()
-    result["seconds"] = round(time.perf_counter() - start, 1)
-    return result
-
-
 @dataclasses.dataclass
 class SimulateJob:
     """Render simulated frames into a data set folder (``sim.simulate.write_frame``): a frame's
@@ -291,6 +147,7 @@ class SimulateJob:
     kind: str = "simulate"
 
     def __post_init__(self) -> None:
+        self.out = str(Path(self.out).resolve())
         self._simulator: FactorySimulator | None = None
 
     def __getstate__(self) -> dict:
@@ -328,3 +185,77 @@ def simulate_batch(
     run = run_frames(SimulateJob(str(out), config), range(config.num_frames), out, execution, progress)
     finish_dataset(out, FactorySimulator(config))
     return run
+
+
+@dataclasses.dataclass
+class ProposeJob:
+    """The front half of training frames (``training.mining.collect_proposals``: proposals, point
+    sets, the annotations' samples), one cache-format file per frame
+    (``training.mining.proposals_to_arrays``)."""
+
+    data: str
+    params: FrontEndParams
+    T_vehicle_sensor: np.ndarray | None = None
+    kind: str = "propose"
+
+    def __post_init__(self) -> None:
+        self.data = str(Path(self.data).resolve())
+        self._loaded: tuple[Dataset, Detector] | None = None
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_loaded"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._loaded = None
+
+    def describe(self) -> dict:
+        return {
+            "data": self.data,
+            "params": json.loads(json.dumps(dataclasses.asdict(self.params), default=str)),
+            "T_vehicle_sensor_sha256": _array_digest(self.T_vehicle_sensor),
+        }
+
+    def setup(self) -> None:
+        self._loaded = (open_dataset(self.data), Detector(self.params, self.T_vehicle_sensor))
+
+    def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
+        if self._loaded is None:
+            self.setup()
+        dataset, detector = self._loaded
+        (frame,) = collect_proposals(dataset, [frame_index], detector)
+        save_npz(out_path, proposals_to_arrays([frame]))
+        return {"num_proposals": len(frame.proposal_boxes)}
+
+
+def propose_batch(
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    detector: Detector,
+    execution: Execution,
+    progress: Progress | None = None,
+    scratch: str | os.PathLike | None = None,
+) -> list[FrameProposals]:
+    """``collect_proposals`` run by ``execution`` (Ray workers): the frames travel through files in
+    a temporary folder under ``scratch`` (default: ``$TMPDIR``), which every node of a cluster
+    must see; it is removed once they are read back."""
+    job = ProposeJob(str(dataset.path), detector.params, detector.T_vehicle_sensor)
+    frames = [int(i) for i in frame_indices]
+    report = None if progress is None else (lambda done, total: progress("proposals", done, total))
+    with tempfile.TemporaryDirectory(prefix="factorydet-proposals-", dir=scratch) as out:
+        run_frames(job, frames, out, execution, report)
+        return [proposals_from_arrays(load_npz(frame_path(out, i))[1])[0] for i in frames]
+
+
+def proposer(execution: Execution | None, scratch: str | os.PathLike | None = None) -> Proposer:
+    """What ``training.loop.cached_proposals`` proposes the frames its cache lacks with: on Ray
+    workers when ``execution`` says so (``propose_batch``), else ``collect_proposals`` here."""
+    if execution is None or not execution.uses_ray:
+        return collect_proposals
+
+    def propose(
+        dataset: Dataset, frame_indices: Sequence[int], detector: Detector, progress: Progress | None = None
+    ) -> list[FrameProposals]:
+        return propose_batch(dataset, frame_indices, detector, execution, progress, scratch)
+
+    return propose

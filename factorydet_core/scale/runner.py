@@ -97,7 +97,8 @@ class BatchRun:
     skipped: tuple[int, ...]
     """The frames whose output was there already (a resumed run)."""
     seconds: float
-    """Wall time of the frames' work (Ray's start-up excluded, reported apart)."""
+    """Wall time from handing out the first frame to receiving the last: the workers' set-up (a
+    model loaded) included, starting or joining Ray not (``startup_seconds``)."""
     startup_seconds: float
     workers: int
     frame_seconds: tuple[float, ...]

@@ -1197,6 +1197,33 @@ class SessionDB:
         path = Path(value["path"])
         return value["name"], path if path.is_absolute() else self.session.path / path
 
+    def set_execution(self, workers: int | None, ray_address: str | None) -> None:
+        """Record where the session's retraining proposes its frames (the app's Training panel):
+        ``workers`` Ray workers (``None``: this process) on the Ray at ``ray_address`` (``None``: a
+        local one). The app reads it back when it reopens the session."""
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+            raise SessionError(f"Ray workers must be a whole number of at least 1, got {short_repr(workers)}")
+        if ray_address is not None and (not isinstance(ray_address, str) or not ray_address.strip()):
+            raise SessionError(f"a Ray address must be text, got {short_repr(ray_address)}")
+        value = json.dumps({"workers": workers, "ray_address": ray_address})
+        with self._write() as db:
+            db.execute("INSERT OR REPLACE INTO meta VALUES ('execution', ?)", (value,))
+
+    def execution(self) -> dict:
+        """``{"workers": int | None, "ray_address": str | None}`` as ``set_execution`` stored it;
+        both ``None`` (this process) when it never was."""
+        raw = self.meta().get("execution")
+        if raw is None:
+            return {"workers": None, "ray_address": None}
+        value = _loads(raw, "meta 'execution'")
+        workers = value.get("workers") if isinstance(value, dict) else "?"
+        address = value.get("ray_address") if isinstance(value, dict) else "?"
+        if not (workers is None or (isinstance(workers, int) and workers >= 1)) or not (
+            address is None or isinstance(address, str)
+        ):
+            raise SessionError(f"the session database is damaged: meta 'execution' is {short_repr(raw, 60)}")
+        return {"workers": workers, "ray_address": address}
+
     @property
     def class_names(self) -> tuple[str, ...]:
         if self.dataset is not None:

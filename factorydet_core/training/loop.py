@@ -126,21 +126,27 @@ def proposals_cache_key(dataset: Dataset, detector: Detector) -> str:
     return f"proposals_{digest.hexdigest()[:16]}"
 
 
+Proposer = Callable[[Dataset, Sequence[int], Detector, Progress | None], list[FrameProposals]]
+"""What proposes frames for ``cached_proposals``: ``mining.collect_proposals`` in this process, or
+``scale.jobs.proposer`` on Ray workers."""
+
+
 def cached_proposals(
     db: SessionDB,
     dataset: Dataset,
     detector: Detector,
     frame_indices: Sequence[int],
     progress: Progress | None = None,
+    propose: Proposer = collect_proposals,
 ) -> list[FrameProposals]:
     """``collect_proposals`` through the session's ``cache/``: frames proposed before under the same
-    settings are read back, the others proposed and added."""
+    settings are read back, the others proposed (by ``propose``) and added."""
     key = proposals_cache_key(dataset, detector)
     arrays = read_cache(db.session, key)
     cached = {f.frame_index: f for f in proposals_from_arrays(arrays)} if arrays else {}
     missing = [int(i) for i in frame_indices if int(i) not in cached]
     if missing:
-        for frame in collect_proposals(dataset, missing, detector, progress):
+        for frame in propose(dataset, missing, detector, progress):
             cached[frame.frame_index] = frame
         write_cache(db.session, key, proposals_to_arrays([cached[i] for i in sorted(cached)]))
     return [cached[int(i)] for i in frame_indices]

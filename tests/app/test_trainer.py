@@ -222,3 +222,35 @@ def test_proposals_and_scoring_move_the_bar_and_say_the_time_left(small_dataset_
     fitted = [p for s, p in shown if s and "epoch 5 of 5" in s][0]
     progress = [p for _, p in scoring]
     assert fitted <= progress[0] < progress[1] < progress[2] < 0.1 + 0.75  # the bar moves while scoring
+
+
+def test_the_ray_setting_is_the_session_s_and_goes_to_the_retrain(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+):
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.scale.runner import Execution
+
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    state = AppState(dataset, db=db, model=DetectionModel.load(tiny_model_path), model_name="tiny")
+    calls = []
+
+    def retrain_session(db, data, settings, front_end, progress, **options):
+        calls.append(options["execution"])
+        progress("proposals", 1, 4)
+        calls.append(state.training_status)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
+    trainer = TrainingWorker(state, calibrate=False)
+    assert trainer.execution() == Execution()  # this process until someone chooses Ray
+    assert trainer.start("full", execution=Execution(workers=2))
+    trainer.join(10)
+    assert calls[0] == Execution(workers=2)
+    assert calls[1].startswith("proposals: frame 1 of 4 on 2 Ray workers")
+    # Kept with the session: a reopened app (a new worker) trains the same way.
+    again = TrainingWorker(AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset)))
+    assert again.execution() == Execution(workers=2)
+    assert trainer.start("full")
+    trainer.join(10)
+    assert calls[2] == Execution(workers=2)

@@ -6,7 +6,7 @@ import dataclasses
 import pytest
 import viser
 
-from app.panels.training_panel import build_training_panel, settings_of
+from app.panels.training_panel import build_training_panel, execution_of, settings_of
 from app.state import AppState
 from app.trainer import TrainingWorker
 from factorydet_core.io.dataset import open_dataset
@@ -44,3 +44,19 @@ def test_every_training_setting_has_a_control_showing_the_workers_value(server, 
     panel.controls["score_threshold"].value = 1.5  # a value typed past the control's bounds
     with pytest.raises(InputError, match="Score threshold"):
         settings_of(panel.controls, base)
+
+
+def test_the_ray_controls_show_and_give_the_session_s_setting(server, small_dataset_dir, tmp_path):
+    from factorydet_core.scale.runner import Execution
+
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    db.set_execution(3, "auto")
+    panel = build_training_panel(server, AppState(dataset, db=db), TrainingWorker(AppState(dataset, db=db)))
+    assert (panel.ray_workers.value, panel.ray_address.value) == (3, "auto")
+    assert panel.execution() == Execution(workers=3, ray_address="auto")
+    panel.ray_workers.value, panel.ray_address.value = 0, "  "
+    assert panel.execution() == Execution() and not panel.execution().uses_ray
+    for bad in (1.5, -1):  # the control rounds and clamps; a value from elsewhere is checked
+        with pytest.raises(InputError, match="whole number"):
+            execution_of(bad, "")

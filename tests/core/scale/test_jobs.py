@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from factorydet_core.evaluation.evaluate import evaluate, strip_curves
-from factorydet_core.scale.jobs import SimulateJob, evaluate_batch, simulate_batch
+from factorydet_core.scale.evaluate import evaluate_batch
+from factorydet_core.scale.jobs import SimulateJob, simulate_batch
 from factorydet_core.scale.runner import Execution, run_frames
 from factorydet_core.session.models import resolve_model
 from factorydet_core.sim.simulate import SimConfig, simulate_dataset
@@ -55,3 +56,33 @@ def test_a_batch_evaluation_matches_the_plain_one(batch_dataset_dir, tmp_path):
         batch_dataset_dir, model, tmp_path / "out", Execution(), calibrate=False, score_thresholds=(0.3,)
     )
     assert again["batch"]["num_computed"] == 0 and comparable(again) == comparable(plain)
+
+
+def proposal_arrays(frames) -> dict:
+    from factorydet_core.training.mining import proposals_to_arrays
+
+    return proposals_to_arrays(frames)
+
+
+def assert_same_proposals(first, second) -> None:
+    import numpy as np
+
+    a, b = proposal_arrays(first), proposal_arrays(second)
+    assert sorted(a) == sorted(b)
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_proposals_through_batch_files_are_the_plain_ones(batch_dataset_dir):
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.scale.jobs import propose_batch, proposer
+    from factorydet_core.training.mining import collect_proposals
+
+    assert proposer(Execution()) is collect_proposals and proposer(None) is collect_proposals
+    dataset, detector = open_dataset(batch_dataset_dir), Detector("agv")
+    steps = []
+    through_files = propose_batch(dataset, [3, 1], detector, Execution(), lambda *step: steps.append(step))
+    assert [f.frame_index for f in through_files] == [3, 1]
+    assert steps[-1] == ("proposals", 2, 2)
+    assert_same_proposals(through_files, collect_proposals(dataset, [3, 1], detector))

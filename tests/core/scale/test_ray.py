@@ -57,7 +57,8 @@ def test_simulation_and_evaluation_on_ray_give_what_this_process_gives(
     batch_dataset_dir, tmp_path, local_ray
 ):
     from factorydet_core.evaluation.evaluate import evaluate
-    from factorydet_core.scale.jobs import evaluate_batch, simulate_batch
+    from factorydet_core.scale.evaluate import evaluate_batch
+    from factorydet_core.scale.jobs import simulate_batch
     from factorydet_core.session.models import resolve_model
     from factorydet_core.sim.simulate import SimConfig, simulate_dataset
 
@@ -76,6 +77,19 @@ def test_simulation_and_evaluation_on_ray_give_what_this_process_gives(
     )
     assert on_ray["batch"]["workers"] == 2
     assert comparable(on_ray) == comparable(plain)
+
+
+def test_training_proposals_on_ray_are_the_plain_ones(batch_dataset_dir, local_ray):
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.scale.jobs import proposer
+    from factorydet_core.training.mining import collect_proposals
+
+    from .test_jobs import assert_same_proposals
+
+    dataset, detector = open_dataset(batch_dataset_dir), Detector("agv")
+    on_ray = proposer(Execution(workers=2))(dataset, [0, 2, 4], detector)
+    assert_same_proposals(on_ray, collect_proposals(dataset, [0, 2, 4], detector))
 
 
 def test_a_killed_worker_loses_no_frame_and_doubles_none(detect_job, tmp_path, local_ray):

@@ -981,3 +981,17 @@ def test_the_change_stamp_moves_with_every_edit_undo_and_redo_and_not_with_reads
     db.redo("bob")
     db.undo("ann")  # one edit undone again, another one
     assert db.change_stamp() != bob_undone
+
+
+def test_the_ray_setting_survives_reopening_and_bad_values_are_refused(db, dataset):
+    assert db.execution() == {"workers": None, "ray_address": None}
+    db.set_execution(3, "auto")
+    assert SessionDB(db.session, dataset).execution() == {"workers": 3, "ray_address": "auto"}
+    for workers, address in ((0, None), (True, None), (2.5, None), (None, " "), (None, 7)):
+        with pytest.raises(SessionError):
+            db.set_execution(workers, address)
+    assert db.execution() == {"workers": 3, "ray_address": "auto"}
+    with db._write() as connection:
+        connection.execute("UPDATE meta SET value = '{\"workers\": -1}' WHERE key = 'execution'")
+    with pytest.raises(SessionError, match="damaged"):
+        db.execution()

@@ -1,0 +1,258 @@
+"""``factorydet bench scale``: batch detection (and evaluation, and simulation) through the
+command line users run, in this process and on 1..N Ray workers, timed and measured for memory.
+
+Each run is a child process (``python -m factorydet_core.cli ...``), so that each peak memory is
+that run's own and every Ray start-up is paid where a user pays it. Frames per second count from
+the first frame handed out to the last received, the workers' own set-up (loading the model)
+included; starting Ray and the driver's one-off calibration are not (``startup_seconds`` and the
+child's ``wall_seconds`` hold them).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from factorydet_core.evaluation.bench_tables import fmt, register, table
+from factorydet_core.evaluation.records import machine_info
+from factorydet_core.io.dataset import open_dataset
+from factorydet_core.scale.runner import RAY_VERSION
+from factorydet_core.sim.simulate import SimConfig
+from factorydet_core.types import InputError
+
+SPEEDUP_TARGET = 1.7
+"""Issue 28: frames per second of 2 Ray workers over 1 on this 2-core machine."""
+MEMORY_GROWTH_TARGET = 0.10
+"""Issue 28: the driver's peak memory may grow at most this much from the fewest to the most frames."""
+
+
+def folder_mb(path: str | os.PathLike) -> float:
+    """Disk use of a folder's files (MB)."""
+    return round(sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file()) / 2**20, 1)
+
+
+def _run_cli(arguments: list[str], parse: bool = True) -> tuple[dict, float]:
+    """Run ``factorydet ARGUMENTS`` in a child process; its JSON output (``{}`` unless ``parse``)
+    and its wall time."""
+    start = time.perf_counter()
+    done = subprocess.run(
+        [sys.executable, "-m", "factorydet_core.cli", *arguments],
+        capture_output=True,
+        text=True,
+    )
+    seconds = time.perf_counter() - start
+    if done.returncode != 0:
+        raise RuntimeError(
+            f"factorydet {' '.join(arguments)} failed ({done.returncode}):\n{done.stderr[-3000:]}"
+        )
+    return (json.loads(done.stdout) if parse else {}), seconds
+
+
+def _execution_arguments(workers: int | None, worker_threads: int) -> list[str]:
+    if workers is None:
+        return []
+    return ["--workers", str(workers), "--worker-threads", str(worker_threads)]
+
+
+def _row(summary: dict, frames: int, workers: int | None, wall_seconds: float) -> dict:
+    return {
+        "frames": frames,
+        "execution": "in-process" if workers is None else "ray",
+        "workers": summary["workers"],
+        "frames_per_second": summary["frames_per_second"],
+        "seconds": summary["seconds"],
+        "startup_seconds": summary["startup_seconds"],
+        "wall_seconds": round(wall_seconds, 1),
+        "median_frame_seconds": summary["median_frame_seconds"],
+        "driver_peak_rss_mb": summary["driver_peak_rss_mb"],
+        "worker_peak_rss_mb": summary["worker_peak_rss_mb"],
+    }
+
+
+def bench_scale(
+    data: str | os.PathLike,
+    *,
+    model: str = "default",
+    frame_counts: Sequence[int] = (100,),
+    workers: Sequence[int] = (1, 2),
+    in_process: bool = True,
+    evaluate_frames: int = 0,
+    simulate: SimConfig | None = None,
+    worker_threads: int = 1,
+    command: str = "",
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Detection frames per second in this process and on each count of ``workers`` for the first
+    of ``frame_counts`` frames; the most workers on every further count (the driver's memory
+    against the frame count); optionally evaluation of the first ``evaluate_frames`` test frames,
+    and the simulation of ``data`` itself (``simulate``) on the most workers.
+
+    Args:
+        data: the data set folder (written first when ``simulate`` is given; an interrupted
+            simulation resumes).
+        model: what ``--model`` takes.
+        frame_counts: increasing frame counts of the detection runs (the first frames of the set).
+        workers: Ray worker counts, increasing.
+        in_process: also time the plain path (no Ray; the process's own thread pools).
+        worker_threads: threads of each Ray worker.
+    """
+    frame_counts, workers = sorted(set(frame_counts)), sorted(set(workers))
+    if not frame_counts or frame_counts[0] < 1 or not workers or workers[0] < 1:
+        raise InputError("bench scale needs frame counts and worker counts of at least 1")
+    most = workers[-1]
+    steps = (
+        (1 if simulate else 0)
+        + len(workers)
+        + int(in_process)
+        + len(frame_counts)
+        - 1
+        + int(evaluate_frames > 0)
+    )
+    done = 0
+    report = progress or (lambda d, n: None)
+    report(0, steps)
+    result: dict = {
+        "benchmark": "scale",
+        "command": command,
+        "machine": machine_info(),
+        "ray_version": RAY_VERSION,
+        "worker_threads": worker_threads,
+    }
+    if simulate is not None:
+        start = time.perf_counter()
+        _, wall = _run_cli(
+            ["simulate", "--out", str(data), "--frames", str(simulate.num_frames),
+             "--seed", str(simulate.seed), "--points", str(simulate.points_per_frame),
+             *_execution_arguments(most, worker_threads)],
+            parse=False,
+        )  # fmt: skip
+        summary = json.loads((Path(data) / "summary.json").read_text())
+        result["simulate"] = {
+            "frames": simulate.num_frames,
+            "seed": simulate.seed,
+            "points_per_frame": simulate.points_per_frame,
+            "workers": summary["workers"],
+            "frames_computed": summary["num_computed"],
+            "frames_per_second": summary["frames_per_second"],
+            "wall_seconds": round(time.perf_counter() - start, 1),
+        }
+        done += 1
+        report(done, steps)
+    dataset = open_dataset(data)
+    if frame_counts[-1] > dataset.num_frames:
+        raise InputError(f"{dataset.name} has {dataset.num_frames} frames, fewer than {frame_counts[-1]}")
+    result.update(
+        data=dataset.name,
+        data_frames=dataset.num_frames,
+        data_splits={k: len(v) for k, v in dataset.splits.items()},
+        data_points_frame_0=dataset.frame(0).num_points,
+        data_disk_mb=folder_mb(data),
+    )
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="factorydet-bench-scale-") as scratch:
+        runs = [(frame_counts[0], None)] if in_process else []
+        runs += [(frame_counts[0], w) for w in workers] + [(n, most) for n in frame_counts[1:]]
+        for n, w in runs:
+            out = Path(scratch) / f"detect-{n}-{w or 0}"
+            summary, wall = _run_cli(
+                ["detect", str(data), "--model", model, "--out", str(out), "--frames", str(n), "--json",
+                 *_execution_arguments(w, worker_threads)],
+            )  # fmt: skip
+            row = _row(summary, n, w, wall)
+            row["output_mb"] = folder_mb(out)
+            rows.append(row)
+            shutil.rmtree(out, ignore_errors=True)
+            done += 1
+            report(done, steps)
+        if evaluate_frames > 0:
+            out = Path(scratch) / "evaluate"
+            evaluation, wall = _run_cli(
+                ["evaluate", str(data), "--model", model, "--out", str(out), "--frames", str(evaluate_frames),
+                 *_execution_arguments(most, worker_threads)],
+            )  # fmt: skip
+            result["evaluate"] = {
+                **_row(evaluation["batch"], evaluation["batch"]["num_frames"], most, wall),
+                "output_mb": folder_mb(out),
+                "reference": evaluation["reference"],
+                "f1": evaluation["f1"],
+                "map": evaluation["map"],
+            }
+            done += 1
+            report(done, steps)
+    result["detect"] = rows
+    ray_first = {r["workers"]: r for r in rows if r["execution"] == "ray" and r["frames"] == frame_counts[0]}
+    if 1 in ray_first and most in ray_first and most > 1:
+        result["speedup"] = round(ray_first[most]["frames_per_second"] / ray_first[1]["frames_per_second"], 3)
+    by_count = [r for r in rows if r["execution"] == "ray" and r["workers"] == most]
+    if len(by_count) > 1:
+        result["driver_memory_growth"] = round(
+            by_count[-1]["driver_peak_rss_mb"] / by_count[0]["driver_peak_rss_mb"] - 1.0, 3
+        )
+    return result
+
+
+@register("scale")
+def scale_markdown(result: dict) -> str:
+    """The runs' table and the two targets' lines."""
+    rows = [
+        [
+            fmt(r["frames"]),
+            "this process"
+            if r["execution"] == "in-process"
+            else f"Ray, {r['workers']} worker{'s' if r['workers'] > 1 else ''}",
+            fmt(r["frames_per_second"], 2),
+            fmt(r["median_frame_seconds"], 2),
+            fmt(r["startup_seconds"], 1),
+            fmt(r["driver_peak_rss_mb"], 0),
+            fmt(r["worker_peak_rss_mb"], 0),
+        ]
+        for r in result["detect"]
+    ]
+    text = table(
+        ["frames", "detection on", "frames/s", "s per frame (median)", "start-up s", "driver peak MB",
+         "worker peak MB"],
+        rows,
+    )  # fmt: skip
+    lines = [
+        text,
+        "",
+        f"Data: {result['data']}, {fmt(result['data_frames'])} frames of "
+        f"{fmt(result['data_points_frame_0'])} points (frame 0), "
+        f"{fmt(result['data_disk_mb'], 0)} MB on disk. Ray {result['ray_version']}, "
+        f"{result['worker_threads']} thread per worker.",
+    ]
+    if "speedup" in result:
+        verdict = "meets" if result["speedup"] >= SPEEDUP_TARGET else "misses"
+        lines.append(
+            f"Speed-up from 1 to the most workers: {result['speedup']:.2f}x ({verdict} the "
+            f"{SPEEDUP_TARGET}x target)."
+        )
+    if "driver_memory_growth" in result:
+        growth = result["driver_memory_growth"]
+        verdict = "meets" if growth <= MEMORY_GROWTH_TARGET else "misses"
+        lines.append(
+            f"Driver peak memory from the fewest to the most frames: {growth:+.1%} ({verdict} the "
+            f"{MEMORY_GROWTH_TARGET:.0%} target)."
+        )
+    if "simulate" in result:
+        sim = result["simulate"]
+        lines.append(
+            f"Simulating it: {fmt(sim['frames_computed'])} frames at "
+            f"{fmt(sim['frames_per_second'], 1)} frames/s on {sim['workers']} workers."
+        )
+    if "evaluate" in result:
+        ev = result["evaluate"]
+        lines.append(
+            f"Evaluation of {fmt(ev['frames'])} test frames on {ev['workers']} workers: "
+            f"{fmt(ev['frames_per_second'], 2)} frames/s, driver peak {fmt(ev['driver_peak_rss_mb'], 0)} MB "
+            f"(F {fmt(ev['f1'], 3)}, mAP {fmt(ev['map'], 3)} against the {ev['reference']}; "
+            "one shipped model, not a headline figure)."
+        )
+    return "\n".join(lines)
