@@ -19,7 +19,7 @@ from factorydet_core.scale.jobs import proposer
 from factorydet_core.scale.runner import Execution
 from factorydet_core.training.loop import cached_proposals, suspect_labels
 from factorydet_core.training.settings import LoopSettings
-from factorydet_core.types import Cancelled
+from factorydet_core.types import Cancelled, InputError
 from factorydet_core.workflows import retrain_session
 
 from .state import SharedState
@@ -110,7 +110,11 @@ class TrainingWorker:
         (``SessionDB.execution``; this process unless the Training panel chose Ray)."""
         if self.state.db is None:
             return Execution()
-        return Execution(**self.state.db.execution())
+        try:
+            return Execution(**self.state.db.execution())
+        except InputError as exc:  # a damaged setting: say so, and work here rather than not at all
+            print(f"factorydet app: the session's Ray setting is unusable ({exc}); proposing in this process")
+            return Execution()
 
     def start(
         self, mode: str, settings: LoopSettings | None = None, execution: Execution | None = None

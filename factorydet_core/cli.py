@@ -8,6 +8,7 @@ import json
 import sys
 from collections.abc import Callable, Collection
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from factorydet_core.threads import configure_threads
 from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, loop_settings_from
@@ -21,6 +22,9 @@ from factorydet_core.types import (
     SCORE_THRESHOLD,
     InputError,
 )
+
+if TYPE_CHECKING:
+    from factorydet_core.scale.runner import Execution
 
 
 def progress_bar(desc: str, unit: str = "frame") -> tuple[Callable[[int, int], None], Callable[[], None]]:
@@ -774,14 +778,15 @@ def _detection_rows(detections, keep_suppressed: bool) -> list[dict]:
     return rows
 
 
-def add_execution_flags(parser: argparse.ArgumentParser) -> None:
-    """The batch commands' switch between this process and Ray workers (``scale.runner.Execution``)."""
+def add_execution_flags(parser: argparse.ArgumentParser, what: str = "its work") -> None:
+    """The batch commands' switch between this process and Ray workers (``scale.runner.Execution``);
+    ``what`` says what the workers do."""
     parser.add_argument(
         "--workers",
         type=int,
         default=None,
-        help="run on N Ray workers, each setting its work up (a model, a simulator) once (a local "
-        "Ray unless --ray names a cluster); default: this process alone, no Ray needed",
+        help=f"run {what} on N Ray workers (a local Ray unless --ray names a cluster); default: this "
+        "process alone, no Ray needed",
     )
     parser.add_argument(
         "--ray",
@@ -792,14 +797,31 @@ def add_execution_flags(parser: argparse.ArgumentParser) -> None:
         "ray start) or HOST:PORT; workers default to the cluster's CPUs",
     )
     parser.add_argument(
-        "--worker-threads", type=int, default=1, help="threads of each Ray worker (default 1)"
+        "--worker-threads", type=int, default=None, help="with Ray: threads of each worker (default 1)"
+    )
+    parser.add_argument(
+        "--scratch",
+        default=None,
+        help="with Ray: a folder every node sees, for the frames' files of work without an output "
+        "folder of its own (default: $TMPDIR, enough on one machine)",
     )
 
 
-def execution_from_args(args: argparse.Namespace):
+def execution_from_args(args: argparse.Namespace) -> Execution:
+    """The ``Execution`` of ``add_execution_flags``' flags; Ray's own flags without Ray are refused."""
     from factorydet_core.scale.runner import Execution
 
-    return Execution(workers=args.workers, ray_address=args.ray_address, threads=args.worker_threads)
+    execution = Execution(
+        workers=args.workers,
+        ray_address=args.ray_address,
+        threads=1 if args.worker_threads is None else args.worker_threads,
+        scratch=args.scratch,
+    )
+    if not execution.uses_ray and (args.worker_threads is not None or args.scratch is not None):
+        raise InputError(
+            "--worker-threads and --scratch apply to Ray workers: add --workers N or --ray ADDRESS"
+        )
+    return execution
 
 
 def frames_of(dataset, split: str, max_frames: int | None) -> list[int]:
@@ -863,8 +885,10 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 
     if args.out is not None:
         return _cmd_detect_all(args)
-    if args.workers is not None or args.ray_address is not None:
-        raise InputError("--workers and --ray run a batch: give --out DIR for its detection files")
+    if args.workers is not None or args.ray_address is not None or args.split != "all" or args.frames:
+        raise InputError(
+            "--workers, --ray, --split and --frames detect a batch: give --out DIR for its files"
+        )
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
@@ -909,66 +933,41 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from factorydet_core.evaluation.evaluate import evaluate, strip_curves
     from factorydet_core.evaluation.plots import plot_pr_curves
+    from factorydet_core.scale.evaluate import evaluate_batch
     from factorydet_core.session.models import resolve_model
 
     model_path = resolve_model(args.model, args.root)
     execution = execution_from_args(args)
-    if args.out is not None or execution.uses_ray:
-        return _evaluate_batch(args, model_path, execution)
-    update, close = progress_bar("proposals")
-    try:
-        result = evaluate(
-            args.data,
-            model_path,
-            iou_threshold=args.iou,
-            max_frames=args.frames,
-            with_baseline=args.baseline,
-            calibrate=args.calibrate,
-            progress=lambda _, d, n: update(d, n),
-            command="factorydet " + " ".join(sys.argv[1:]),
-            score_thresholds=parse_floats(args.thresholds, "--thresholds") if args.thresholds else (),
-        )
-    finally:
-        close()
-    if args.png:
-        headline = result["against"][result["reference"]]
-        plot_pr_curves(headline, args.png, f"{result['data']}: PR at IoU {args.iou} vs {result['reference']}")
-        result["png"] = args.png
-    print(json.dumps(strip_curves(result), indent=2))
-    return 0
-
-
-def _evaluate_batch(args: argparse.Namespace, model_path: Path, execution) -> int:
-    """``evaluate`` with its per-frame work in a folder (``--out``; a temporary one when only
-    ``--workers``/``--ray`` are given), on Ray workers when asked."""
-    import tempfile
-
-    from factorydet_core.evaluation.evaluate import strip_curves
-    from factorydet_core.evaluation.plots import plot_pr_curves
-    from factorydet_core.scale.evaluate import evaluate_batch
-
-    if args.baseline:
-        raise InputError("--baseline trains in this process: leave out --out, --workers and --ray")
-    with tempfile.TemporaryDirectory(prefix="factorydet-evaluate-") as scratch:
-        out = args.out if args.out is not None else Path(scratch) / "frames"
-        update, close = progress_bar("evaluating")
+    options = {
+        "iou_threshold": args.iou,
+        "max_frames": args.frames,
+        "calibrate": args.calibrate,
+        "command": args.command_line,
+        "score_thresholds": parse_floats(args.thresholds, "--thresholds") if args.thresholds else (),
+    }
+    if args.out is None and not execution.uses_ray:
+        update, close = progress_bar("proposals")
         try:
-            result = evaluate_batch(
-                args.data,
-                model_path,
-                out,
-                execution,
-                iou_threshold=args.iou,
-                max_frames=args.frames,
-                calibrate=args.calibrate,
-                progress=update,
-                command="factorydet " + " ".join(sys.argv[1:]),
-                score_thresholds=parse_floats(args.thresholds, "--thresholds") if args.thresholds else (),
-            )
+            result = evaluate(
+                args.data, model_path, with_baseline=args.baseline, progress=lambda _, d, n: update(d, n),
+                **options,
+            )  # fmt: skip
         finally:
             close()
-    if args.out is None:
-        result["batch"]["out"] = None  # the temporary folder is gone
+    else:
+        # Per-frame work in a folder (--out, or a temporary one under the scratch folder), on Ray
+        # workers when asked.
+        if args.baseline:
+            raise InputError("--baseline trains in this process: leave out --out, --workers and --ray")
+        with execution.scratch_folder("factorydet-evaluate-") as scratch:
+            update, close = progress_bar("evaluating")
+            try:
+                out = args.out if args.out is not None else Path(scratch) / "frames"
+                result = evaluate_batch(args.data, model_path, out, execution, progress=update, **options)
+            finally:
+                close()
+        if args.out is None:
+            result["batch"]["out"] = None  # the temporary folder is gone
     if args.png:
         headline = result["against"][result["reference"]]
         plot_pr_curves(headline, args.png, f"{result['data']}: PR at IoU {args.iou} vs {result['reference']}")
@@ -1058,10 +1057,15 @@ def build_parser(
         add_commands(sub)
 
     p = sub.add_parser("simulate", help="write a simulated factory data set")
-    p.add_argument("--out", required=True, help="data set folder to write")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="data set folder to write (with Ray workers a re-run finishes an interrupted one; in "
+        "this process it is written afresh)",
+    )
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
-    add_execution_flags(p)
+    add_execution_flags(p, "the ray casting of the frames")
     p.add_argument(
         "--unlabelled-fraction", type=float, default=0.3, help="share of eligible objects left unannotated"
     )
@@ -1120,7 +1124,7 @@ def build_parser(
     p.add_argument("--test-frames", type=int, default=None, help="with --compare: the first N test frames")
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     # The frames the session's proposals cache lacks are proposed there; the fits run here.
-    add_execution_flags(p)
+    add_execution_flags(p, "the proposals of the frames the session has not cached")
     p.set_defaults(func=_cmd_train)
 
     def session_args(p: argparse.ArgumentParser) -> None:
@@ -1221,7 +1225,7 @@ def build_parser(
     p.add_argument(
         "--frames", type=int, default=None, help="with --out: only the first N frames of the split"
     )
-    add_execution_flags(p)
+    add_execution_flags(p, "the detection of the frames")
     p.add_argument("--score-threshold", type=float, default=None, help="default: the model's")
     p.add_argument("--nms-iou", type=float, default=None, help="default: the model's")
     p.add_argument("--suppressed", action="store_true", help="also list what NMS suppressed")
@@ -1251,7 +1255,7 @@ def build_parser(
         help="keep each frame's measurements in this folder (a re-run resumes); with --workers or "
         "--ray and no --out, a temporary folder",
     )
-    add_execution_flags(p)
+    add_execution_flags(p, "the measurement of the frames")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("report", help="write the results report (tables, PR curve, grid sweep)")

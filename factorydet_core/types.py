@@ -55,6 +55,10 @@ model's. On the held-out factories it scored the paper pipeline's F-score with a
 recognition, and kept far more of the background as background (``docs/bench/quality.md``)."""
 
 
+MAX_RAY_WORKERS = 4096
+"""The most Ray workers a batch may ask for (``scale.runner.Execution``, a session's setting)."""
+
+
 class InputError(ValueError):
     """Bad input data: the message names the file or array and the problem, on one line."""
 

@@ -496,4 +496,7 @@ def test_detect_a_split_into_files_and_resume(small_dataset_dir, tmp_path, capsy
     assert "another job" in capsys.readouterr().err
     assert main(["detect", str(small_dataset_dir), "--workers", "2"]) == 2
     assert "--out" in capsys.readouterr().err
+    assert main(["detect", str(small_dataset_dir), "--split", "test"]) == 2  # a batch option, no batch
     assert main([*common, "--split", "nope"]) == 2
+    assert main([*common, "--worker-threads", "2"]) == 2  # a Ray option without Ray
+    assert "apply to Ray workers" in capsys.readouterr().err

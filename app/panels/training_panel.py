@@ -5,6 +5,7 @@ shown model back to an earlier one."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import viser
 
@@ -50,7 +51,7 @@ def settings_of(controls: dict[str, object], base: LoopSettings) -> LoopSettings
 
 def execution_of(workers: float, address: str) -> Execution:
     """The Ray controls' ``Execution``: 0 workers and no address is this process."""
-    if workers != int(workers) or workers < 0:
+    if not math.isfinite(workers) or workers != int(workers) or workers < 0:
         raise InputError(f"Ray workers must be a whole number, got {workers}")
     return Execution(workers=int(workers) or None, ray_address=address.strip() or None)
 

@@ -74,6 +74,13 @@ class DetectionModel:
     probability_exponent: float = 1.0
     vote_iou: float | None = BOX_VOTE_IOU
 
+    def check_classes(self, class_names: tuple[str, ...] | list[str]) -> None:
+        """Raise ``InputError`` unless ``class_names`` (a data set's) are this model's, in order."""
+        if tuple(self.class_names) != tuple(class_names):
+            raise InputError(
+                f"the model's classes {list(self.class_names)} differ from the data set's {list(class_names)}"
+            )
+
     @property
     def class_names(self) -> tuple[str, ...]:
         return tuple(self.classifier.labels_[:-1])

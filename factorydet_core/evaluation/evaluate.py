@@ -43,11 +43,8 @@ PAPER_TABLE3 = {
 def detector_for(model: DetectionModel | None, dataset: Dataset, calibrate: bool = True) -> Detector:
     """A detector with the front-half settings the model was trained with, calibrated on the data
     set's first frame when it has several sensors. The model's classes must be the data set's."""
-    if model is not None and tuple(model.class_names) != tuple(dataset.class_names):
-        raise InputError(
-            f"the model's classes {list(model.class_names)} differ from the data set's "
-            f"{list(dataset.class_names)}"
-        )
+    if model is not None:
+        model.check_classes(dataset.class_names)
     detector = Detector.for_model(model, dataset.num_sensors)
     if calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(0))

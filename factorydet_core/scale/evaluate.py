@@ -87,11 +87,7 @@ class EvaluateJob:
     def setup(self) -> None:
         dataset = open_dataset(self.data)
         model = DetectionModel.load(self.model_path)
-        if tuple(model.class_names) != tuple(dataset.class_names):
-            raise InputError(
-                f"the model's classes {list(model.class_names)} differ from the data set's "
-                f"{list(dataset.class_names)}"
-            )
+        model.check_classes(dataset.class_names)
         detector = Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
         self._loaded = (dataset, model, detector)
 

@@ -10,7 +10,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -39,10 +38,21 @@ ones included with the index of the detection that suppressed them (-1: kept).""
 
 
 def _array_digest(array: np.ndarray | None) -> str | None:
-    """SHA-256 of an array's float64 bytes (extrinsics in a job's description); ``None`` for none."""
+    """SHA-256 of an array rounded to 6 decimals (extrinsics in a job's description: an ICP that
+    differs in the last bits between runs is the same calibration); ``None`` for none."""
     if array is None:
         return None
-    return hashlib.sha256(np.ascontiguousarray(np.asarray(array, np.float64)).tobytes()).hexdigest()
+    rounded = np.round(np.asarray(array, np.float64), 6) + 0.0  # + 0.0: -0.0 and 0.0 alike
+    return hashlib.sha256(np.ascontiguousarray(rounded).tobytes()).hexdigest()
+
+
+def data_identity(path: str) -> dict:
+    """A data set in a job's description: its path and the SHA-256 of its manifest (of the file
+    itself for a single point-cloud file), so that a data set simulated anew at the same path is
+    another job's input, not frames to resume."""
+    source = Path(path)
+    manifest = source / "manifest.json" if source.is_dir() else source
+    return {"data": str(source), "data_sha256": file_digest(manifest) if manifest.is_file() else None}
 
 
 def file_digest(path: str | os.PathLike) -> str:
@@ -92,7 +102,7 @@ class DetectJob:
 
     def describe(self) -> dict:
         return {
-            "data": self.data,
+            **data_identity(self.data),
             "model_sha256": file_digest(self.model_path),
             "T_vehicle_sensor_sha256": _array_digest(self.T_vehicle_sensor),
             "score_threshold": self.score_threshold,
@@ -102,11 +112,7 @@ class DetectJob:
     def setup(self) -> None:
         self._dataset = open_dataset(self.data)
         model = DetectionModel.load(self.model_path)
-        if tuple(model.class_names) != tuple(self._dataset.class_names):
-            raise InputError(
-                f"the model's classes {list(model.class_names)} differ from the data set's "
-                f"{list(self._dataset.class_names)}"
-            )
+        model.check_classes(self._dataset.class_names)
         self._detector = Detector(params_for(model, self._dataset.num_sensors), self.T_vehicle_sensor, model)
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
@@ -211,7 +217,7 @@ class ProposeJob:
 
     def describe(self) -> dict:
         return {
-            "data": self.data,
+            **data_identity(self.data),
             "params": json.loads(json.dumps(dataclasses.asdict(self.params), default=str)),
             "T_vehicle_sensor_sha256": _array_digest(self.T_vehicle_sensor),
         }
@@ -234,20 +240,19 @@ def propose_batch(
     detector: Detector,
     execution: Execution,
     progress: Progress | None = None,
-    scratch: str | os.PathLike | None = None,
 ) -> list[FrameProposals]:
     """``collect_proposals`` run by ``execution`` (Ray workers): the frames travel through files in
-    a temporary folder under ``scratch`` (default: ``$TMPDIR``), which every node of a cluster
-    must see; it is removed once they are read back."""
+    a temporary folder under ``execution.scratch`` (default: ``$TMPDIR``), which every node of a
+    cluster must see; it is removed once they are read back."""
     job = ProposeJob(str(dataset.path), detector.params, detector.T_vehicle_sensor)
     frames = [int(i) for i in frame_indices]
     report = None if progress is None else (lambda done, total: progress("proposals", done, total))
-    with tempfile.TemporaryDirectory(prefix="factorydet-proposals-", dir=scratch) as out:
+    with execution.scratch_folder("factorydet-proposals-") as out:
         run_frames(job, frames, out, execution, report)
         return [proposals_from_arrays(load_npz(frame_path(out, i))[1])[0] for i in frames]
 
 
-def proposer(execution: Execution | None, scratch: str | os.PathLike | None = None) -> Proposer:
+def proposer(execution: Execution | None) -> Proposer:
     """What ``training.loop.cached_proposals`` proposes the frames its cache lacks with: on Ray
     workers when ``execution`` says so (``propose_batch``), else ``collect_proposals`` here."""
     if execution is None or not execution.uses_ray:
@@ -256,6 +261,6 @@ def proposer(execution: Execution | None, scratch: str | os.PathLike | None = No
     def propose(
         dataset: Dataset, frame_indices: Sequence[int], detector: Detector, progress: Progress | None = None
     ) -> list[FrameProposals]:
-        return propose_batch(dataset, frame_indices, detector, execution, progress, scratch)
+        return propose_batch(dataset, frame_indices, detector, execution, progress)
 
     return propose

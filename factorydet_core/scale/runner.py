@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import resource
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -24,8 +25,8 @@ import numpy as np
 
 from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.jsonfile import read_json
-from factorydet_core.threads import configure_threads
-from factorydet_core.types import InputError
+from factorydet_core.threads import available_cores, configure_threads
+from factorydet_core.types import MAX_RAY_WORKERS, InputError
 
 JOB_FILE = "job.json"
 """The output folder's description of the job that writes it: a re-run must be the same job."""
@@ -68,14 +69,25 @@ class Execution:
     workers: int | None = None
     ray_address: str | None = None
     threads: int = 1
+    scratch: str | None = None
+    """Where commands without an output folder of their own (``train``'s proposals, ``evaluate``
+    without ``--out``) keep their frames' files: a folder every node of a cluster sees. ``None``:
+    ``$TMPDIR``, which only a single machine's workers share."""
 
     def __post_init__(self) -> None:
-        if self.workers is not None and (isinstance(self.workers, bool) or not 1 <= self.workers <= 4096):
-            raise InputError(f"--workers must be in [1, 4096], got {self.workers!r}")
-        if not 1 <= self.threads <= 256:
-            raise InputError(f"threads per worker must be in [1, 256], got {self.threads!r}")
+        workers = self.workers
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)):
+            raise InputError(f"Ray workers must be a whole number, got {workers!r}")
+        if workers is not None and not 1 <= workers <= MAX_RAY_WORKERS:
+            raise InputError(f"Ray workers must be in [1, {MAX_RAY_WORKERS}], got {workers}")
+        if (
+            isinstance(self.threads, bool)
+            or not isinstance(self.threads, int)
+            or not 1 <= self.threads <= 256
+        ):
+            raise InputError(f"threads per Ray worker must be in [1, 256], got {self.threads!r}")
         if self.ray_address is not None and not str(self.ray_address).strip():
-            raise InputError("--ray: give 'local', 'auto' or HOST:PORT")
+            raise InputError("a Ray address is 'local', 'auto' or HOST:PORT, not blank")
 
     @property
     def uses_ray(self) -> bool:
@@ -83,6 +95,12 @@ class Execution:
 
     def describe(self) -> dict:
         return {"ray": self.uses_ray, "workers": self.workers, "address": self.ray_address}
+
+    def scratch_folder(self, prefix: str) -> tempfile.TemporaryDirectory:
+        """A temporary folder under ``scratch`` (``$TMPDIR`` by default), removed on exit."""
+        if self.scratch is not None and not Path(self.scratch).is_dir():
+            raise InputError(f"the scratch folder {self.scratch} does not exist")
+        return tempfile.TemporaryDirectory(prefix=prefix, dir=self.scratch)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,6 +172,8 @@ def _prepare(job: FrameJob, out_dir: Path) -> None:
     job_file = out_dir / JOB_FILE
     if job_file.is_file():
         before = read_json(job_file, what="batch job description")
+        if not isinstance(before, dict):
+            raise InputError(f"{job_file}: not a batch job description; delete the folder to start again")
         if before != json.loads(json.dumps(description)):
             changed = sorted(k for k in set(before) | set(description) if before.get(k) != description.get(k))
             raise InputError(
@@ -165,6 +185,14 @@ def _prepare(job: FrameJob, out_dir: Path) -> None:
     (out_dir / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
     if not job_file.is_file():
         write_text_atomic(job_file, json.dumps(description, indent=1, sort_keys=True) + "\n")
+    remove_temporaries(out_dir)
+
+
+def remove_temporaries(out_dir: Path) -> None:
+    """Delete the hidden half-written files (``io.atomic``) a killed writer left in the frames
+    folder; only while no worker writes there (before and after a run)."""
+    for path in (out_dir / FRAMES_DIR).glob(".frame_*.tmp*"):
+        path.unlink(missing_ok=True)
 
 
 def run_one(job: FrameJob, frame_index: int, out_dir: str | os.PathLike) -> dict[str, float]:
@@ -205,10 +233,12 @@ def run_frames(
     frames = [int(i) for i in frames]
     if len(set(frames)) != len(frames):
         raise InputError("a frame is listed twice")
-    out_dir = Path(out_dir)
+    # Absolute: a Ray worker's working folder is not the driver's.
+    out_dir = Path(out_dir).resolve()
     _prepare(job, out_dir)
     skipped = done_frames(out_dir, frames)
-    todo = [i for i in frames if i not in set(skipped)]
+    already = set(skipped)
+    todo = [i for i in frames if i not in already]
     report = progress or (lambda done, total: None)
     report(len(skipped), len(frames))
 
@@ -231,22 +261,29 @@ def run_frames(
         report(len(skipped) + len(computed), len(frames))
 
     startup = time.perf_counter()
-    if not todo:
-        rows: Iterator[dict[str, Any]] = iter(())
-        workers = 0
-    elif execution.uses_ray:
+    workers = 0
+    rows: Iterator[dict[str, Any]] = iter(())
+    if todo and execution.uses_ray:
         rows, workers = _ray_rows(job, todo, out_dir, execution)
-    else:
-        job.setup()
-        rows = (run_one(job, i, out_dir) for i in todo)
-        workers = 1
+    elif todo:
+        rows, workers = _local_rows(job, todo, out_dir), 1
     startup_seconds = time.perf_counter() - startup
     start = time.perf_counter()
-    for row in rows:
-        take(row)
+    try:
+        for row in rows:
+            take(row)
+    except Exception as exc:
+        raise _input_error_inside(exc) or exc from None
+    finally:
+        # A cancel (a progress callback that raises) stops the run: Ray Data's executor ends with
+        # its iterator, before a caller removes a temporary output folder.
+        close = getattr(rows, "close", None)
+        if close is not None:
+            close()
     seconds = time.perf_counter() - start
-    if not execution.uses_ray:
-        worker_peak = max(worker_peak, peak_rss_mb()) if todo else worker_peak
+    if todo and not execution.uses_ray:
+        worker_peak = max(worker_peak, peak_rss_mb())
+    remove_temporaries(out_dir)
     run = BatchRun(
         out_dir=out_dir,
         frames=tuple(frames),
@@ -271,6 +308,30 @@ def run_frames(
     return run
 
 
+def _local_rows(job: FrameJob, todo: list[int], out_dir: Path) -> Iterator[dict[str, Any]]:
+    """Rows of ``todo``'s frames computed here, the job set up when the first is asked for (as a
+    Ray worker sets up inside the timed run, so that both paths' frames per second compare)."""
+    job.setup()
+    for i in todo:
+        yield run_one(job, i, out_dir)
+
+
+def _input_error_inside(exc: BaseException) -> InputError | None:
+    """The ``InputError`` a worker raised, out of the Ray errors wrapping it (a data set missing on
+    a node, a model of other classes): the command line then says it in one line."""
+    seen: set[int] = set()
+    pending: list[BaseException | None] = [exc]
+    while pending:
+        error = pending.pop()
+        if error is None or id(error) in seen:
+            continue
+        seen.add(id(error))
+        if isinstance(error, InputError):
+            return InputError(str(error))
+        pending += [error.__cause__, error.__context__, getattr(error, "cause", None)]
+    return None
+
+
 class _RayWorker:
     """A Ray Data actor: sets the job up once, then computes the frames of each batch it gets."""
 
@@ -288,32 +349,50 @@ class _RayWorker:
         return {key: np.asarray([row[key] for row in rows]) for key in rows[0]}
 
 
+_started_with: dict[str, Any] | None = None
+"""How this process started or joined Ray (``connect_ray``); ``None`` when it did not, or when
+something else (a test, a notebook) did."""
+
+FORWARDED_ENVIRONMENT = ("FACTORYDET_MAX_POINTS", "FACTORYDET_MAX_READ_BYTES")
+"""The readers' caps (``io.limits``), passed to every Ray worker: a data set read here under raised
+caps must read the same on a cluster's other nodes."""
+
+
 def connect_ray(execution: Execution) -> int:
-    """Start or join Ray as ``execution`` says (once per process); returns the workers to use:
-    ``execution.workers``, or the cluster's CPUs over the threads per worker."""
+    """Start or join Ray as ``execution`` says; returns the workers to use: ``execution.workers``,
+    or the cluster's CPUs over the threads per worker. A Ray this process started for other
+    settings (another address, fewer CPUs) is stopped and started again."""
+    global _started_with
     try:
         import ray
     except ImportError:
         raise InputError(
-            f"--workers/--ray need Ray: pip install 'ray[data]=={RAY_VERSION}' (make's set-up installs it)"
+            f"Ray workers need Ray: pip install 'ray[data]=={RAY_VERSION}' (make's set-up installs it)"
         ) from None
     # Ray's own usage report stays off unless a user turned it on.
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    address = execution.ray_address
+    options: dict[str, Any] = {
+        "include_dashboard": False,
+        "log_to_driver": False,
+        "logging_level": logging.WARNING,
+        "runtime_env": {"env_vars": {k: os.environ[k] for k in FORWARDED_ENVIRONMENT if k in os.environ}},
+    }
+    if address in (None, "local"):
+        # "local" makes Ray start its own, whatever RAY_ADDRESS or an earlier `ray start` says.
+        cores = (execution.workers * execution.threads) if execution.workers else available_cores()
+        options.update(address="local", num_cpus=cores)
+    else:
+        options["address"] = address
+    if ray.is_initialized() and _started_with is not None and _started_with != options:
+        ray.shutdown()
+        _started_with = None
     if not ray.is_initialized():
-        address = execution.ray_address
-        options: dict[str, Any] = {
-            "include_dashboard": False,
-            "log_to_driver": False,
-            "logging_level": logging.WARNING,
-        }
-        if address in (None, "local"):
-            options["num_cpus"] = (execution.workers or 1) * execution.threads
-        else:
-            options["address"] = address
         try:
             ray.init(**options)
-        except ConnectionError as exc:
-            raise InputError(f"--ray {address}: no Ray cluster there ({exc})") from None
+        except (ConnectionError, ValueError) as exc:
+            raise InputError(f"Ray at {address or 'local'}: {exc}") from None
+        _started_with = options
     if execution.workers is not None:
         return execution.workers
     cpus = int(ray.cluster_resources().get("CPU", 1))
@@ -339,6 +418,10 @@ def _ray_rows(
         batch_size=1,
         compute=ray.data.ActorPoolStrategy(size=min(workers, len(todo))),
         num_cpus=execution.threads,
+        # Ray Data's defaults, stated: a dead worker is restarted and its frames retried, forever
+        # (a frame that kills every worker stops the run through Ray Data's own limits).
+        max_restarts=-1,
+        max_task_retries=-1,
     )
 
     def rows() -> Iterator[dict[str, Any]]:

@@ -43,7 +43,7 @@ from pathlib import Path
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.io.dataset import MANIFEST, Dataset, open_dataset
 from factorydet_core.settings_check import exception_line, short_repr
-from factorydet_core.types import InputError
+from factorydet_core.types import MAX_RAY_WORKERS, InputError
 
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
@@ -1201,8 +1201,12 @@ class SessionDB:
         """Record where the session's retraining proposes its frames (the app's Training panel):
         ``workers`` Ray workers (``None``: this process) on the Ray at ``ray_address`` (``None``: a
         local one). The app reads it back when it reopens the session."""
-        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-            raise SessionError(f"Ray workers must be a whole number of at least 1, got {short_repr(workers)}")
+        if workers is not None and (
+            isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_RAY_WORKERS
+        ):
+            raise SessionError(
+                f"Ray workers must be a whole number in [1, {MAX_RAY_WORKERS}], got {short_repr(workers)}"
+            )
         if ray_address is not None and (not isinstance(ray_address, str) or not ray_address.strip()):
             raise SessionError(f"a Ray address must be text, got {short_repr(ray_address)}")
         value = json.dumps({"workers": workers, "ray_address": ray_address})
@@ -1218,7 +1222,7 @@ class SessionDB:
         value = _loads(raw, "meta 'execution'")
         workers = value.get("workers") if isinstance(value, dict) else "?"
         address = value.get("ray_address") if isinstance(value, dict) else "?"
-        if not (workers is None or (isinstance(workers, int) and workers >= 1)) or not (
+        if not (workers is None or (isinstance(workers, int) and 1 <= workers <= MAX_RAY_WORKERS)) or not (
             address is None or isinstance(address, str)
         ):
             raise SessionError(f"the session database is damaged: meta 'execution' is {short_repr(raw, 60)}")

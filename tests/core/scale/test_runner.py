@@ -78,3 +78,41 @@ def test_threshold_changes_what_is_written(detect_job, tmp_path):
     tight = read_detections(frame_path(tmp_path / "strict", 0))
     assert len(tight["scores"]) < len(loose["scores"])
     assert np.all(tight["scores"] >= 0.99)
+
+
+class _Failing:
+    """A job whose frames fail as a worker's would on a node without the data set."""
+
+    kind = "failing"
+
+    def describe(self) -> dict:
+        return {}
+
+    def setup(self) -> None:
+        pass
+
+    def run(self, frame_index, out_path):
+        raise RuntimeError("worker crashed") from InputError(f"frame {frame_index}: no such file")
+
+
+def test_a_worker_s_input_error_comes_out_as_one_line(tmp_path):
+    with pytest.raises(InputError, match="frame 0: no such file"):
+        run_frames(_Failing(), [0], tmp_path / "out")
+
+
+def test_half_written_files_of_a_killed_writer_are_cleared_and_paths_made_absolute(
+    detect_job, tmp_path, monkeypatch
+):
+    run_frames(detect_job, [0], tmp_path / "out")
+    stale = tmp_path / "out" / "frames" / ".frame_00001.tmp123-4-abcd.npz"
+    stale.write_bytes(b"half")
+    monkeypatch.chdir(tmp_path)
+    run = run_frames(detect_job, [0, 1], "out")
+    assert run.out_dir == (tmp_path / "out").resolve() and run.computed == (1,)
+    assert not stale.exists()
+
+
+def test_a_missing_scratch_folder_is_refused(tmp_path):
+    with pytest.raises(InputError, match="scratch"):
+        with Execution(workers=1, scratch=str(tmp_path / "nowhere")).scratch_folder("x"):
+            pass

@@ -987,7 +987,7 @@ def test_the_ray_setting_survives_reopening_and_bad_values_are_refused(db, datas
     assert db.execution() == {"workers": None, "ray_address": None}
     db.set_execution(3, "auto")
     assert SessionDB(db.session, dataset).execution() == {"workers": 3, "ray_address": "auto"}
-    for workers, address in ((0, None), (True, None), (2.5, None), (None, " "), (None, 7)):
+    for workers, address in ((0, None), (True, None), (2.5, None), (5000, None), (None, " "), (None, 7)):
         with pytest.raises(SessionError):
             db.set_execution(workers, address)
     assert db.execution() == {"workers": 3, "ray_address": "auto"}
