@@ -33,6 +33,7 @@ import scipy.sparse.csgraph
 
 from factorydet_core.geometry import group_bounds
 from factorydet_core.jit import run_kernel
+from factorydet_core.proposals.cut_pursuit import cut_pursuit
 from factorydet_core.settings_check import Setting, short_repr
 from factorydet_core.types import InputError, Segmentation, check_array
 
@@ -316,18 +317,9 @@ def _cut_pursuit(
 def _cut_pursuit_weighted(
     values: np.ndarray, source: np.ndarray, target: np.ndarray, weights: np.ndarray
 ) -> np.ndarray:
-    """(N,) component of each node of the l0 cut pursuit with the given edge weights."""
-    import cut_pursuit_py
-
-    return cut_pursuit_py.perform_cut_pursuit(
-        1.0,  # ignored by the library; lambda is in the weights
-        values.shape[1],
-        np.ascontiguousarray(values, np.float32),
-        np.ascontiguousarray(weights, np.float32),
-        source.astype(np.uint32),
-        target.astype(np.uint32),
-        False,
-    ).astype(np.int64)
+    """(N,) component of each node of the l0 cut pursuit with the given edge weights (in a helper
+    process: ``cut_pursuit`` says why)."""
+    return cut_pursuit(values, weights, source, target)
 
 
 def _oversized(points: np.ndarray, labels: np.ndarray, size: tuple[float, float]) -> np.ndarray:
