@@ -25,7 +25,7 @@ from factorydet_core.evaluation.measure import RECORD_KEYS, frame_record, metric
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.io.npz import load_npz, save_npz
 from factorydet_core.scale.jobs import DetectJob
-from factorydet_core.scale.runner import Execution, frame_path, run_frames
+from factorydet_core.scale.runner import Execution, SetUpOnce, frame_path, run_frames
 from factorydet_core.training.mining import collect_proposals
 from factorydet_core.types import InputError
 
@@ -42,7 +42,7 @@ frame; the rest once per reference, as ``"<reference>.<key>"``."""
 
 
 @dataclasses.dataclass
-class EvaluateJob:
+class EvaluateJob(SetUpOnce):
     """Propose, classify and box a frame, and keep what ``evaluate`` pools over frames: its
     detections and candidates, and against each reference (the annotations; on simulated data the
     truth, with the ignore boxes of objects below the annotation policy) the reference boxes and
@@ -62,14 +62,6 @@ class EvaluateJob:
     def __post_init__(self) -> None:
         self.data = str(Path(self.data).resolve())
         self.model_path = str(Path(self.model_path).resolve())
-        self._loaded: tuple[Dataset, DetectionModel, Detector] | None = None
-
-    def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "_loaded"}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._loaded = None
 
     def describe(self) -> dict:
         return {
@@ -84,17 +76,14 @@ class EvaluateJob:
         simulated = (Path(self.data) / "truth").is_dir()
         return ("annotations", "truth") if simulated else ("annotations",)
 
-    def setup(self) -> None:
+    def load(self) -> tuple[Dataset, DetectionModel, Detector]:
         dataset = open_dataset(self.data)
         model = DetectionModel.load(self.model_path)
         model.check_classes(dataset.class_names)
-        detector = Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
-        self._loaded = (dataset, model, detector)
+        return dataset, model, Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
-        if self._loaded is None:
-            self.setup()
-        dataset, model, detector = self._loaded
+        dataset, model, detector = self.loaded()
         (frame,) = collect_proposals(dataset, [frame_index], detector)
         candidates = model.candidates(frame.proposal_boxes, frame.groups)
         arrays: dict[str, np.ndarray] = {}

@@ -20,7 +20,7 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.io.npz import load_npz, save_npz
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.scale.runner import BatchRun, Execution, frame_path, run_frames
+from factorydet_core.scale.runner import BatchRun, Execution, SetUpOnce, frame_path, run_frames
 from factorydet_core.sim.simulate import FactorySimulator, SimConfig, finish_dataset, write_frame
 from factorydet_core.training.loop import Proposer
 from factorydet_core.training.mining import (
@@ -65,7 +65,7 @@ def file_digest(path: str | os.PathLike) -> str:
 
 
 @dataclasses.dataclass
-class DetectJob:
+class DetectJob(SetUpOnce):
     """Detect every frame with one model: the front half, the box head, the score threshold, NMS.
 
     Args:
@@ -88,17 +88,6 @@ class DetectJob:
         # Absolute: a worker's working folder is not the driver's.
         self.data = str(Path(self.data).resolve())
         self.model_path = str(Path(self.model_path).resolve())
-        self._detector: Detector | None = None
-        self._dataset: Dataset | None = None
-
-    def __getstate__(self) -> dict:
-        # Workers get the settings, never a loaded model or data set.
-        return {k: v for k, v in self.__dict__.items() if k not in ("_detector", "_dataset")}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._detector = None
-        self._dataset = None
 
     def describe(self) -> dict:
         return {
@@ -109,16 +98,14 @@ class DetectJob:
             "nms_iou": self.nms_iou,
         }
 
-    def setup(self) -> None:
-        self._dataset = open_dataset(self.data)
+    def load(self) -> tuple[Dataset, Detector]:
+        dataset = open_dataset(self.data)
         model = DetectionModel.load(self.model_path)
-        model.check_classes(self._dataset.class_names)
-        self._detector = Detector(params_for(model, self._dataset.num_sensors), self.T_vehicle_sensor, model)
+        model.check_classes(dataset.class_names)
+        return dataset, Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
-        if self._detector is None or self._dataset is None:
-            self.setup()
-        detector, dataset = self._detector, self._dataset
+        dataset, detector = self.loaded()
         result = detector.detect(
             dataset.frame(frame_index),
             detector.history(dataset, frame_index),
@@ -144,7 +131,7 @@ def read_detections(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 @dataclasses.dataclass
-class SimulateJob:
+class SimulateJob(SetUpOnce):
     """Render simulated frames into a data set folder (``sim.simulate.write_frame``): a frame's
     bytes depend on the config and its index alone, so workers may render any frames in any order."""
 
@@ -154,26 +141,16 @@ class SimulateJob:
 
     def __post_init__(self) -> None:
         self.out = str(Path(self.out).resolve())
-        self._simulator: FactorySimulator | None = None
-
-    def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "_simulator"}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._simulator = None
 
     def describe(self) -> dict:
         return {"config": dataclasses.asdict(self.config)}
 
-    def setup(self) -> None:
-        self._simulator = FactorySimulator(self.config)
+    def load(self) -> FactorySimulator:
         (Path(self.out) / "truth").mkdir(parents=True, exist_ok=True)
+        return FactorySimulator(self.config)
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
-        if self._simulator is None:
-            self.setup()
-        written = write_frame(Path(self.out), self._simulator, frame_index)
+        written = write_frame(Path(self.out), self.loaded(), frame_index)
         if written != out_path:  # the runner's layout is the data set's: frames/frame_NNNNN.npz
             raise RuntimeError(f"frame written to {written}, expected {out_path}")
         return {"bytes": float(written.stat().st_size)}
@@ -194,7 +171,7 @@ def simulate_batch(
 
 
 @dataclasses.dataclass
-class ProposeJob:
+class ProposeJob(SetUpOnce):
     """The front half of training frames (``training.mining.collect_proposals``: proposals, point
     sets, the annotations' samples), one cache-format file per frame
     (``training.mining.proposals_to_arrays``)."""
@@ -206,14 +183,6 @@ class ProposeJob:
 
     def __post_init__(self) -> None:
         self.data = str(Path(self.data).resolve())
-        self._loaded: tuple[Dataset, Detector] | None = None
-
-    def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "_loaded"}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._loaded = None
 
     def describe(self) -> dict:
         return {
@@ -222,13 +191,11 @@ class ProposeJob:
             "T_vehicle_sensor_sha256": _array_digest(self.T_vehicle_sensor),
         }
 
-    def setup(self) -> None:
-        self._loaded = (open_dataset(self.data), Detector(self.params, self.T_vehicle_sensor))
+    def load(self) -> tuple[Dataset, Detector]:
+        return open_dataset(self.data), Detector(self.params, self.T_vehicle_sensor)
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
-        if self._loaded is None:
-            self.setup()
-        dataset, detector = self._loaded
+        dataset, detector = self.loaded()
         (frame,) = collect_proposals(dataset, [frame_index], detector)
         save_npz(out_path, proposals_to_arrays([frame]))
         return {"num_proposals": len(frame.proposal_boxes)}

@@ -54,6 +54,33 @@ class FrameJob(Protocol):
         """Compute frame ``frame_index`` and write it to ``out_path``; returns a few numbers about it."""
 
 
+class SetUpOnce:
+    """What every frame job shares: its settings travel to the workers by pickle, what it loads
+    (``load``: a model, a data set, a simulator) does not; ``loaded()`` loads on first use, in
+    whichever process runs the job."""
+
+    _loaded: Any = None
+
+    def load(self) -> Any:
+        """What every frame needs (a subclass says); called once per process."""
+        raise NotImplementedError
+
+    def setup(self) -> None:
+        self._loaded = self.load()
+
+    def loaded(self) -> Any:
+        if self._loaded is None:
+            self.setup()
+        return self._loaded
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_loaded"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._loaded = None
+
+
 @dataclasses.dataclass(frozen=True)
 class Execution:
     """Where batch work runs: the ``--workers`` / ``--ray`` switch of the batch commands.

@@ -56,9 +56,9 @@ def test_a_folder_of_another_job_or_of_other_files_is_refused(detect_job, batch_
 
 def test_a_job_travels_without_its_loaded_model(detect_job, tmp_path):
     run_frames(detect_job, [0], tmp_path / "out")  # sets the job up
-    assert detect_job._detector is not None
+    assert detect_job._loaded is not None
     copy = pickle.loads(pickle.dumps(detect_job))
-    assert copy._detector is None and copy.describe() == detect_job.describe()
+    assert copy._loaded is None and copy.describe() == detect_job.describe()
     assert len(pickle.dumps(detect_job)) < 10_000
 
 
