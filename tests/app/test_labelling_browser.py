@@ -330,8 +330,12 @@ def test_pre_label_a_frame_and_confirm_with_the_keyboard(session_app, browser): 
         page.keyboard.press("m")
         assert _wait(lambda: len(db.unreviewed_labels()) > 0, 30), "M did not pre-label the frame"
         waiting = db.unreviewed_labels()
+        message = page.get_by_text(f"{len(waiting)} pre-label(s) wait", exact=False)
+        # The panel's update first (it reached the page inside the closed folder): a click that
+        # came before it could be undone by it, as under load once.
+        message.wait_for(state="attached", timeout=20_000)
         page.get_by_text("Pre-labels", exact=True).click()  # the folder opens
-        page.get_by_text(f"{len(waiting)} pre-label(s) wait", exact=False).wait_for(timeout=20_000)
+        message.wait_for(timeout=20_000)
         assert _wait(lambda: view.selected_label_id == waiting[0].id, 20)
         canvas.focus()  # (a click would clear the selection: it selects what is under it)
         page.keyboard.press("Enter")
