@@ -153,8 +153,11 @@ def test_hotkeys_after_a_drop_down_reach_the_app_not_its_search_box(session_app,
         # The next keys are hotkeys: '2' and 'x' are neither typed into the search box nor lost.
         page.keyboard.press("2")
         assert _wait(lambda: view.object_class == "bobbin", 10), "the class key went into the drop-down"
+        item = view.current_item_id
         page.keyboard.press("x")
         assert _wait(lambda: db.review_progress()["skip"] == 1, 20), "the verdict key went into the drop-down"
+        # The verdict is stored, then the view moves on to the next item: wait for both.
+        assert _wait(lambda: view.current_item_id != item, 20), "the verdict did not move to the next item"
         # The drop-down shows the chosen class (the next item's predicted one), no typed key.
         assert _wait(lambda: dropdown.input_value() == view.object_class, 10), dropdown.input_value()
         # An open drop-down still searches: typing filters its options, and fires no hotkey (R would
