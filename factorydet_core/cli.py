@@ -138,6 +138,38 @@ def _choices(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:
     return values
 
 
+BENCH_ON_RAY = ("hitl", "quality", "mining")
+"""The benchmarks whose per-frame work ``--workers`` / ``--ray`` move to Ray workers; the others
+time or check this one process (``scale`` has worker counts of its own)."""
+
+
+def _bench_execution(args: argparse.Namespace) -> Execution:
+    """``bench``'s execution flags, checked against the benchmark (``BENCH_ON_RAY``)."""
+    from factorydet_core.scale.runner import Execution
+
+    execution = Execution(
+        workers=args.workers,
+        ray_address=args.ray_address,
+        threads=1 if args.worker_threads is None else args.worker_threads,
+        # Ray's files go under the scratch folder of quality's held-out factories: one every node sees.
+        scratch=args.scratch if args.name == "quality" else None,
+    )
+    if args.name == "scale":
+        if execution.uses_ray:
+            raise InputError(
+                "bench scale starts its own Ray workers (--worker-counts); --workers and --ray do not apply"
+            )
+        return execution
+    if execution.uses_ray and args.name not in BENCH_ON_RAY:
+        raise InputError(
+            f"bench {args.name} measures this process alone; --workers and --ray apply to bench "
+            f"{', '.join(BENCH_ON_RAY)}"
+        )
+    if not execution.uses_ray and args.worker_threads is not None:
+        raise InputError("--worker-threads applies to Ray workers: add --workers N or --ray ADDRESS")
+    return execution
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from factorydet_core.evaluation.bench import (
         bench_pipeline,
@@ -152,6 +184,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from factorydet_core.evaluation.bench import check_readme_block
 
         check_readme_block(args.readme, args.readme_block or args.name)  # before a long run, not after
+    execution = _bench_execution(args)
     if args.frames is None:
         args.frames = {"simulate": 10, "hitl": None, "import": 3}.get(args.name, 4)
     if args.name == "simulate":
@@ -199,6 +232,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             quality_markdown,
             write_outputs,
         )
+        from factorydet_core.scale.jobs import proposer
 
         if len(args.data) != 1:
             raise InputError("bench quality needs one DATA folder: the training factory")
@@ -231,9 +265,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 plan, command=command, progress=update, earlier=earlier,
                 # Only a resumable run replaces --out before it is complete.
                 on_partial=(lambda partial: write_outputs(partial, args.out)) if args.resume else None,
+                propose=proposer(execution),
             )  # fmt: skip
         finally:
             close()
+        result["proposals_on"] = execution.describe()
         if args.out:
             write_outputs(result, args.out)
         print(json.dumps(result, indent=2))
@@ -259,6 +295,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 before_after=args.before_after,
                 heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
                 heldout_frames=args.heldout_frames,
+                train_args=execution.arguments(),
                 command=command,
                 progress=update,
             )
@@ -301,6 +338,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 in_process=args.in_process,
                 evaluate_frames=args.evaluate_frames,
                 simulate=simulate,
+                worker_threads=execution.threads,
                 command=command,
                 progress=update,
             )
@@ -350,6 +388,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
             elif args.name == "hitl":
                 from factorydet_core.evaluation.hitl import bench_hitl
+                from factorydet_core.scale.jobs import proposer
 
                 result = bench_hitl(
                     args.data[0],
@@ -382,7 +421,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     calibrate=args.calibrate,
                     command=command,
                     progress=update,
+                    propose=proposer(execution),
                 )
+                result["proposals_on"] = execution.describe()
                 if args.out:
                     from factorydet_core.evaluation.report import hitl_markdown
                     from factorydet_core.io.atomic import write_text_atomic
@@ -778,9 +819,12 @@ def _detection_rows(detections, keep_suppressed: bool) -> list[dict]:
     return rows
 
 
-def add_execution_flags(parser: argparse.ArgumentParser, what: str = "its work") -> None:
+def add_execution_flags(
+    parser: argparse.ArgumentParser, what: str = "its work", scratch: bool = True
+) -> None:
     """The batch commands' switch between this process and Ray workers (``scale.runner.Execution``);
-    ``what`` says what the workers do."""
+    ``what`` says what the workers do; ``scratch``: also ``--scratch`` (a command with a scratch
+    folder of its own has not)."""
     parser.add_argument(
         "--workers",
         type=int,
@@ -799,12 +843,13 @@ def add_execution_flags(parser: argparse.ArgumentParser, what: str = "its work")
     parser.add_argument(
         "--worker-threads", type=int, default=None, help="with Ray: threads of each worker (default 1)"
     )
-    parser.add_argument(
-        "--scratch",
-        default=None,
-        help="with Ray: a folder every node sees, for the frames' files of work without an output "
-        "folder of its own (default: $TMPDIR, enough on one machine)",
-    )
+    if scratch:
+        parser.add_argument(
+            "--scratch",
+            default=None,
+            help="with Ray: a folder every node sees, for the frames' files of work without an output "
+            "folder of its own (default: $TMPDIR, enough on one machine)",
+        )
 
 
 def execution_from_args(args: argparse.Namespace) -> Execution:
@@ -1513,6 +1558,12 @@ def build_parser(
         default=None,
         help="scale: first simulate the DATA folder with this many frames (--seed, --points) on Ray "
         "workers; a partly simulated folder resumes",
+    )
+    add_execution_flags(
+        p,
+        "hitl, quality: the frames' proposals; mining: the training runs' proposals; scale: "
+        "--worker-threads only (its --worker-counts give the workers)",
+        scratch=False,
     )
     p.add_argument("--json", action="store_true", help="print JSON (the default; kept for scripts)")
     p.add_argument(

@@ -1,3 +1,4 @@
+import argparse
 import json
 import shutil
 
@@ -500,3 +501,59 @@ def test_detect_a_split_into_files_and_resume(small_dataset_dir, tmp_path, capsy
     assert main([*common, "--split", "nope"]) == 2
     assert main([*common, "--worker-threads", "2"]) == 2  # a Ray option without Ray
     assert "apply to Ray workers" in capsys.readouterr().err
+
+
+def test_bench_takes_the_execution_switch_where_frames_are_proposed(
+    small_dataset_dir, tmp_path, monkeypatch, capsys
+):
+    from factorydet_core.training.mining import collect_proposals
+
+    seen = {}
+
+    def fake_hitl(*args, **kwargs):
+        seen["hitl"] = kwargs["propose"]
+        return {"benchmark": "hitl"}
+
+    def fake_mining(*args, **kwargs):
+        seen["mining"] = kwargs["train_args"]
+        return {"benchmark": "mining"}
+
+    monkeypatch.setattr("factorydet_core.evaluation.hitl.bench_hitl", fake_hitl)
+    monkeypatch.setattr("factorydet_core.evaluation.bench.bench_mining", fake_mining)
+    assert main(["bench", "hitl", str(small_dataset_dir)]) == 0
+    assert seen["hitl"] is collect_proposals  # no Ray: proposed here
+    assert json.loads(capsys.readouterr().out)["proposals_on"] == {
+        "ray": False,
+        "workers": None,
+        "address": None,
+    }
+    assert main(["bench", "hitl", str(small_dataset_dir), "--workers", "3", "--worker-threads", "2"]) == 0
+    assert seen["hitl"] is not collect_proposals  # on Ray workers (scale.jobs.proposer)
+    assert json.loads(capsys.readouterr().out)["proposals_on"] == {"ray": True, "workers": 3, "address": None}
+    # The mining benchmark's child `train` commands get the same flags.
+    assert main(["bench", "mining", "--session", "s", "--ray", "auto"]) == 0
+    assert seen["mining"] == ["--worker-threads", "1", "--ray", "auto"]
+    capsys.readouterr()
+    # Benchmarks that time this one process refuse the switch; scale has worker counts of its own.
+    assert main(["bench", "detect", str(small_dataset_dir), "--workers", "2"]) == 2
+    assert "measures this process alone" in capsys.readouterr().err
+    assert main(["bench", "scale", str(tmp_path), "--workers", "2"]) == 2
+    assert "--worker-counts" in capsys.readouterr().err
+    assert main(["bench", "hitl", str(small_dataset_dir), "--worker-threads", "2"]) == 2
+    assert "applies to Ray workers" in capsys.readouterr().err
+
+
+def test_an_execution_gives_back_the_flags_it_was_read_from():
+    from factorydet_core.cli import add_execution_flags, execution_from_args
+    from factorydet_core.scale.runner import Execution
+
+    parser = argparse.ArgumentParser()
+    add_execution_flags(parser)
+    for execution in (
+        Execution(),
+        Execution(workers=2),
+        Execution(workers=4, threads=3, scratch="/shared/tmp"),
+        Execution(ray_address="auto"),
+        Execution(workers=8, ray_address="head:6379", threads=2),
+    ):
+        assert execution_from_args(parser.parse_args(execution.arguments())) == execution

@@ -18,7 +18,8 @@ from factorydet_core.evaluation.records import machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
-from factorydet_core.training.loop import cached_proposals, train_session
+from factorydet_core.training.loop import Proposer, cached_proposals, train_session
+from factorydet_core.training.mining import collect_proposals
 from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import (
     InputError,
@@ -340,6 +341,7 @@ def bench_hitl(
     progress=None,
     review_by: str = "item",
     variants: Sequence[str] | None = None,
+    propose: Proposer = collect_proposals,
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
     mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -361,7 +363,8 @@ def bench_hitl(
     Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
     and the box quality regressor) trains every variant afresh; F-scores are the seeds' means,
     and ``recovered[K]`` is (F(b) - F(a)) / (F(c) - F(a)) of the means. The training and test
-    frames are spread evenly over their splits (``spread_frames``).
+    frames are spread evenly over their splits (``spread_frames``). Their proposals are made once,
+    by ``propose`` (on Ray workers with ``scale.jobs.proposer``); the fits and the mining run here.
     """
     import tempfile
 
@@ -395,7 +398,7 @@ def bench_hitl(
         raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
     plan = _HitlPlan(
         dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command,
-        review_by, variants,
+        review_by, variants, propose,
     )  # fmt: skip
     if workdir is not None:
         return _hitl_variants(plan, Path(workdir), progress)
@@ -448,6 +451,7 @@ class _HitlPlan:
     command: str
     review_by: str = "item"
     variants: list[str] | None = None
+    propose: Proposer = collect_proposals
 
 
 def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
@@ -461,8 +465,8 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
         detector.calibrate(dataset.frame(train[0]))
     scratch = SessionDB(open_session("proposals", root), dataset)
     start = time.perf_counter()
-    train_frames = cached_proposals(scratch, dataset, detector, train)
-    test_frames = cached_proposals(scratch, dataset, detector, test)
+    train_frames = cached_proposals(scratch, dataset, detector, train, propose=plan.propose)
+    test_frames = cached_proposals(scratch, dataset, detector, test, propose=plan.propose)
     proposal_seconds = time.perf_counter() - start
     world = None
     if plan.review_by == "place":

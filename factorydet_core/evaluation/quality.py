@@ -44,7 +44,7 @@ from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.session.models import resolve_model
 from factorydet_core.sim.simulate import SimConfig, simulate_dataset
-from factorydet_core.training.loop import proposals_cache_key
+from factorydet_core.training.loop import Proposer, proposals_cache_key
 from factorydet_core.training.mining import (
     FrameProposals,
     collect_proposals,
@@ -131,17 +131,23 @@ def heldout_factory(seed: int, num_frames: int, scratch: Path) -> Path:
 
 
 def _cached_proposals(
-    dataset: Dataset, detector: Detector, frames: Sequence[int], scratch: Path, progress: Progress | None
+    dataset: Dataset,
+    detector: Detector,
+    frames: Sequence[int],
+    scratch: Path,
+    progress: Progress | None,
+    propose: Proposer = collect_proposals,
 ) -> list[FrameProposals]:
-    """``collect_proposals`` through an ``.npz`` cache in ``scratch``, keyed by the data, the front
-    half's settings and calibration, and the frames."""
+    """``collect_proposals`` (or ``propose``: on Ray workers, ``scale.jobs.proposer``) through an
+    ``.npz`` cache in ``scratch``, keyed by the data, the front half's settings and calibration, and
+    the frames."""
 
     key = proposals_cache_key(dataset, detector) + "_" + "-".join(str(i) for i in frames)
     path = Path(scratch) / "proposals" / f"{dataset.name}_{key[:80]}.npz"
     if path.is_file():
         with np.load(path, allow_pickle=False) as arrays:
             return proposals_from_arrays({k: arrays[k] for k in arrays.files})
-    out = collect_proposals(dataset, frames, detector, progress)
+    out = propose(dataset, frames, detector, progress)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         np.savez(tmp, **proposals_to_arrays(out))
@@ -161,9 +167,11 @@ class HeldoutSet:
     """Frame -> (factory, its own frame index)."""
 
 
-def heldout_set(plan: QualityPlan, params, progress: Progress | None) -> HeldoutSet:
+def heldout_set(
+    plan: QualityPlan, params, progress: Progress | None, propose: Proposer = collect_proposals
+) -> HeldoutSet:
     """The plan's held-out factories (simulated once into its scratch folder), proposed with the
-    front-half settings ``params`` (cached per settings), with their truth."""
+    front-half settings ``params`` (cached per settings; by ``propose``), with their truth."""
     frames, references, ignored, sources = [], {}, {}, []
     for seed in plan.heldout_seeds:
         folder = heldout_factory(seed, plan.heldout_frames, plan.scratch)
@@ -172,7 +180,7 @@ def heldout_set(plan: QualityPlan, params, progress: Progress | None) -> Heldout
         if plan.calibrate and dataset.num_sensors > 1:
             detector.calibrate(dataset.frame(0))
         every = list(range(dataset.num_frames))
-        for frame in _cached_proposals(dataset, detector, every, plan.scratch, progress):
+        for frame in _cached_proposals(dataset, detector, every, plan.scratch, progress, propose):
             k = len(frames)
             references[k] = reference_boxes(dataset, frame.frame_index, use_truth=True)
             ignored[k] = ignored_boxes(dataset, frame.frame_index)
@@ -293,8 +301,13 @@ def bench_quality(
     progress: Progress | None = None,
     earlier: dict | None = None,
     on_partial: Callable[[dict], None] | None = None,
+    propose: Proposer = collect_proposals,
 ) -> dict:
     """Run ``plan``: the JSON record of every method on the held-out factories.
+
+    The frames' proposals (held-out and training, each cached in the plan's scratch folder) are
+    made by ``propose``: here by default, on Ray workers with ``scale.jobs.proposer``; the same
+    proposals either way, so it is not part of the plan.
 
     Training seeds are run one after the other; after each one the result so far
     (``"complete": false``) goes to ``on_partial``, so a long run can be stopped and resumed:
@@ -309,7 +322,7 @@ def bench_quality(
     if tuple(paper.class_names) != tuple(train_dataset.class_names):
         raise InputError("the paper model's classes differ from the training data's")
     params = params_for(paper, train_dataset.num_sensors).replace(**dict(plan.overrides))
-    heldout = heldout_set(plan, params, progress)
+    heldout = heldout_set(plan, params, progress, propose)
     train_split = train_dataset.splits.get("train") or list(range(train_dataset.num_frames))
     train_indices = spread_frames(train_split, plan.train_frames)
     learned = [m for m in plan.methods if m != "paper"]
@@ -318,7 +331,7 @@ def bench_quality(
         detector = Detector(params)
         if plan.calibrate and train_dataset.num_sensors > 1:
             detector.calibrate(train_dataset.frame(train_indices[0]))
-        train = _cached_proposals(train_dataset, detector, train_indices, plan.scratch, progress)
+        train = _cached_proposals(train_dataset, detector, train_indices, plan.scratch, progress, propose)
     result: dict = {
         "benchmark": "quality",
         "command": command,

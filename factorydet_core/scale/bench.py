@@ -23,7 +23,7 @@ from pathlib import Path
 from factorydet_core.evaluation.bench_tables import fmt, register, table
 from factorydet_core.evaluation.records import machine_info
 from factorydet_core.io.dataset import open_dataset
-from factorydet_core.scale.runner import RAY_VERSION
+from factorydet_core.scale.runner import RAY_VERSION, Execution
 from factorydet_core.sim.simulate import SimConfig
 from factorydet_core.types import InputError
 
@@ -56,9 +56,7 @@ def _run_cli(arguments: list[str], parse: bool = True) -> tuple[dict, float]:
 
 
 def _execution_arguments(workers: int | None, worker_threads: int) -> list[str]:
-    if workers is None:
-        return []
-    return ["--workers", str(workers), "--worker-threads", str(worker_threads)]
+    return Execution(workers=workers, threads=worker_threads).arguments()
 
 
 def _row(summary: dict, frames: int, workers: int | None, wall_seconds: float) -> dict:

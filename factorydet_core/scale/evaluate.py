@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from factorydet_core.detection.detector import Detector, params_for
+from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.evaluate import (
     detector_for,
@@ -24,8 +24,8 @@ from factorydet_core.evaluation.evaluate import (
 from factorydet_core.evaluation.measure import RECORD_KEYS, frame_record, metrics_of
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.io.npz import load_npz, save_npz
-from factorydet_core.scale.jobs import DetectJob
-from factorydet_core.scale.runner import Execution, SetUpOnce, frame_path, run_frames
+from factorydet_core.scale.jobs import ModelJob
+from factorydet_core.scale.runner import Execution, frame_path, run_frames
 from factorydet_core.training.mining import collect_proposals
 from factorydet_core.types import InputError
 
@@ -42,34 +42,24 @@ frame; the rest once per reference, as ``"<reference>.<key>"``."""
 
 
 @dataclasses.dataclass
-class EvaluateJob(SetUpOnce):
+class EvaluateJob(ModelJob):
     """Propose, classify and box a frame, and keep what ``evaluate`` pools over frames: its
     detections and candidates, and against each reference (the annotations; on simulated data the
     truth, with the ignore boxes of objects below the annotation policy) the reference boxes and
     the point sets' true and predicted classes (``measure.frame_record``).
 
     Args:
-        data, model_path, T_vehicle_sensor: as ``DetectJob``'s.
+        data, model_path, T_vehicle_sensor: as ``ModelJob``'s.
         iou_threshold: the IoU a detection must reach (it labels the point sets for Table 2).
     """
 
-    data: str
-    model_path: str
-    T_vehicle_sensor: np.ndarray | None = None
     iou_threshold: float = 0.6
     kind: str = "evaluate"
 
-    def __post_init__(self) -> None:
-        self.data = str(Path(self.data).resolve())
-        self.model_path = str(Path(self.model_path).resolve())
-
     def describe(self) -> dict:
-        return {
-            **DetectJob(self.data, self.model_path, self.T_vehicle_sensor).describe(),
-            "score_threshold": None,
-            "nms_iou": None,
-            "iou_threshold": self.iou_threshold,
-        }
+        # The operating point is the model's own: as a DetectJob's with no thresholds of its own.
+        return {**self.model_identity(), "score_threshold": None, "nms_iou": None,
+                "iou_threshold": self.iou_threshold}  # fmt: skip
 
     @property
     def references(self) -> tuple[str, ...]:
@@ -77,10 +67,7 @@ class EvaluateJob(SetUpOnce):
         return ("annotations", "truth") if simulated else ("annotations",)
 
     def load(self) -> tuple[Dataset, DetectionModel, Detector]:
-        dataset = open_dataset(self.data)
-        model = DetectionModel.load(self.model_path)
-        model.check_classes(dataset.class_names)
-        return dataset, model, Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
+        return self.open_model()
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
         dataset, model, detector = self.loaded()

@@ -65,44 +65,61 @@ def file_digest(path: str | os.PathLike) -> str:
 
 
 @dataclasses.dataclass
-class DetectJob(SetUpOnce):
-    """Detect every frame with one model: the front half, the box head, the score threshold, NMS.
+class ModelJob(SetUpOnce):
+    """A frame job of one model on one data set (``DetectJob``, ``evaluate.EvaluateJob``).
 
     Args:
         data: the data set folder (every worker must see it at this path).
         model_path: the checkpoint (the same).
         T_vehicle_sensor: (S, 4, 4) extrinsics to merge with, calibrated once by the caller
             (``evaluate.detector_for``); ``None``: each frame's own.
-        score_threshold, nms_iou: the operating point; ``None``: the model's (with its per-class
-            thresholds).
     """
 
     data: str
     model_path: str
     T_vehicle_sensor: np.ndarray | None = None
-    score_threshold: float | None = None
-    nms_iou: float | None = None
-    kind: str = "detect"
 
     def __post_init__(self) -> None:
         # Absolute: a worker's working folder is not the driver's.
         self.data = str(Path(self.data).resolve())
         self.model_path = str(Path(self.model_path).resolve())
 
-    def describe(self) -> dict:
+    def model_identity(self) -> dict:
+        """The data, the model and the extrinsics, by content (part of ``describe``)."""
         return {
             **data_identity(self.data),
             "model_sha256": file_digest(self.model_path),
             "T_vehicle_sensor_sha256": _array_digest(self.T_vehicle_sensor),
-            "score_threshold": self.score_threshold,
-            "nms_iou": self.nms_iou,
         }
 
-    def load(self) -> tuple[Dataset, Detector]:
+    def open_model(self) -> tuple[Dataset, DetectionModel, Detector]:
+        """The data set, the model (its classes checked against the data's) and its detector."""
         dataset = open_dataset(self.data)
         model = DetectionModel.load(self.model_path)
         model.check_classes(dataset.class_names)
-        return dataset, Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
+        return dataset, model, Detector(params_for(model, dataset.num_sensors), self.T_vehicle_sensor, model)
+
+
+@dataclasses.dataclass
+class DetectJob(ModelJob):
+    """Detect every frame with one model: the front half, the box head, the score threshold, NMS.
+
+    Args:
+        data, model_path, T_vehicle_sensor: as ``ModelJob``'s.
+        score_threshold, nms_iou: the operating point; ``None``: the model's (with its per-class
+            thresholds).
+    """
+
+    score_threshold: float | None = None
+    nms_iou: float | None = None
+    kind: str = "detect"
+
+    def describe(self) -> dict:
+        return {**self.model_identity(), "score_threshold": self.score_threshold, "nms_iou": self.nms_iou}
+
+    def load(self) -> tuple[Dataset, Detector]:
+        dataset, _, detector = self.open_model()
+        return dataset, detector
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
         dataset, detector = self.loaded()

@@ -123,6 +123,20 @@ class Execution:
     def describe(self) -> dict:
         return {"ray": self.uses_ray, "workers": self.workers, "address": self.ray_address}
 
+    def arguments(self) -> list[str]:
+        """The batch commands' flags that give this execution (for a command run in a child
+        process); none for this process alone."""
+        if not self.uses_ray:
+            return []
+        flags = ["--worker-threads", str(self.threads)]
+        if self.workers is not None:
+            flags += ["--workers", str(self.workers)]
+        if self.ray_address is not None:
+            flags += ["--ray", str(self.ray_address)]
+        if self.scratch is not None:
+            flags += ["--scratch", str(self.scratch)]
+        return flags
+
     def scratch_folder(self, prefix: str) -> tempfile.TemporaryDirectory:
         """A temporary folder under ``scratch`` (``$TMPDIR`` by default), removed on exit."""
         if self.scratch is not None and not Path(self.scratch).is_dir():

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from factorydet_core.evaluation.quality import QualityPlan, bench_quality, quality_markdown, write_outputs
+from factorydet_core.training.mining import collect_proposals
 from factorydet_core.types import InputError
 
 
@@ -31,12 +32,21 @@ def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_data
         rounds=0,
         scratch=tmp_path,
     )
-    partials = []
-    result = bench_quality(plan, command="test", on_partial=partials.append)
+    partials, proposed = [], []
+
+    def propose(dataset, frames, detector, progress=None):  # what --workers swaps in, recorded
+        proposed.append((dataset.name, list(frames)))
+        return collect_proposals(dataset, frames, detector, progress)
+
+    result = bench_quality(plan, command="test", on_partial=partials.append, propose=propose)
+    # Every frame was proposed through the given proposer, each once (then read from the cache).
+    expected = [("factory_seed501_1frames", [0]), (result["train_data"], result["train_frames"])]
+    assert sorted(proposed) == sorted(expected)
     assert [p["training_seeds"] for p in partials] == [[0], [0, 1]] and result["complete"]
     assert not any(p["complete"] for p in partials)
     # Stopped after seed 0 and resumed: seed 0 is read back, only seed 1 is trained again.
-    resumed = bench_quality(plan, command="test", earlier=partials[0])
+    resumed = bench_quality(plan, command="test", earlier=partials[0], propose=propose)
+    assert len(proposed) == 2
     head_runs = resumed["methods"]["box_head"]["runs"]
     assert head_runs[0] == partials[0]["methods"]["box_head"]["runs"][0]
     assert head_runs[1]["finished"] >= head_runs[0]["finished"] and resumed["training_seeds"] == [0, 1]
