@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from factorydet_core.scale import runner
 from factorydet_core.scale.jobs import DetectJob, read_detections
 from factorydet_core.scale.runner import JOB_FILE, SUMMARY_FILE, Execution, frame_path, run_frames
 from factorydet_core.types import InputError
@@ -116,3 +119,19 @@ def test_a_missing_scratch_folder_is_refused(tmp_path):
     with pytest.raises(InputError, match="scratch"):
         with Execution(workers=1, scratch=str(tmp_path / "nowhere")).scratch_folder("x"):
             pass
+
+
+@pytest.mark.skipif(runner._malloc_trim is None, reason="the C library is not glibc: nothing to trim")
+def test_the_freed_heap_goes_back_to_the_system():
+    def rss_mb() -> float:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+    # 200 MB of 100 kB arrays (below glibc's mmap threshold: on the heap), all freed but the last,
+    # which pins the top of the heap so that free() alone cannot shrink it.
+    blocks = [np.ones(100_000 // 8) for _ in range(2000)]
+    last = blocks[-1]
+    del blocks
+    before = rss_mb()
+    runner.release_free_heap()
+    assert before - rss_mb() > 100
+    assert last.sum() == len(last)
