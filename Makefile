@@ -81,9 +81,11 @@ bench: $(STAMP) corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants blind_safe,full --hold-places \
 	  --out docs/bench/hitl-safe.json --readme docs/labelling.md --readme-block hitl-safe
 	# The paper's data set size (6,389 frames of 80k points, 2/3 training) simulated and detected on
-	# Ray workers (about three hours on 2 cores), inside a loopback-only network namespace.
+	# Ray workers (about three hours on 2 cores), inside a loopback-only network namespace; the
+	# record is kept after each run and a re-run does only the runs it lacks.
 	$(BIN)/python -m factorydet_core.scale.netns -- $(BIN)/factorydet bench scale $(SCALE_DATA) \
-	  --simulate-frames 6389 --seed 301 --frame-counts 100,6389 --evaluate-frames 2130 --readme docs/scaling.md
+	  --simulate-frames 6389 --seed 301 --frame-counts 100,6389 --evaluate-frames 2130 \
+	  --out $(SCALE_DATA).bench.json --resume --readme docs/scaling.md
 
 # Screenshots of the README's labelling walkthrough, taken by driving the app in headless Chromium.
 screenshots: $(STAMP) demo browserdeps

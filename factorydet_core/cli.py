@@ -170,6 +170,27 @@ def _bench_execution(args: argparse.Namespace) -> Execution:
     return execution
 
 
+def _earlier_record(args: argparse.Namespace) -> dict | None:
+    """With ``--resume``, the (partial) record at ``--out`` to go on from; ``None`` when there is none yet."""
+    if not args.resume:
+        return None
+    if not args.out:
+        raise InputError(f"bench {args.name} --resume continues the result at --out; give --out")
+    if not Path(args.out).is_file():
+        return None
+    try:
+        return json.loads(Path(args.out).read_text())
+    except ValueError as exc:
+        raise InputError(f"bench {args.name} --resume: {args.out} is not a result ({exc})") from None
+
+
+def _write_record(result: dict, path: str | Path) -> None:
+    from factorydet_core.io.atomic import write_text_atomic
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(Path(path), json.dumps(result, indent=2) + "\n")
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from factorydet_core.evaluation.bench import (
         bench_pipeline,
@@ -250,15 +271,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             scratch=Path(args.scratch),
             calibrate=args.calibrate,
         )
-        earlier = None
-        if args.resume:
-            if not args.out:
-                raise InputError("bench quality --resume continues the result at --out; give --out")
-            if Path(args.out).is_file():
-                try:
-                    earlier = json.loads(Path(args.out).read_text())
-                except ValueError as exc:
-                    raise InputError(f"bench quality --resume: {args.out} is not a result ({exc})") from None
+        earlier = _earlier_record(args)
         update, close = _training_progress()
         try:
             result = bench_quality(
@@ -328,6 +341,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
             except ValueError as exc:
                 raise InputError(str(exc)) from None
+        earlier = _earlier_record(args)
         update, close = progress_bar("scale", unit="run")
         try:
             result = bench_scale(
@@ -341,9 +355,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 worker_threads=execution.threads,
                 command=command,
                 progress=update,
+                earlier=earlier,
+                # Only a resumable run replaces --out before it is complete.
+                on_partial=(lambda partial: _write_record(partial, args.out)) if args.resume else None,
             )
         finally:
             close()
+        if args.out:
+            _write_record(result, args.out)
     elif args.name == "memory":
         from factorydet_core.evaluation.bench import bench_memory
         from factorydet_core.session.models import resolve_model
@@ -1456,7 +1475,8 @@ def build_parser(
         "--resume",
         action="store_true",
         help="quality: continue the (partial) result at --out, training only the seeds it lacks; "
-        "with it, --out is also written after every training seed",
+        "scale: running only the runs it lacks; with it, --out is also written after every "
+        "training seed (quality) or run (scale)",
     )
     p.add_argument(
         "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"
@@ -1514,7 +1534,8 @@ def build_parser(
     p.add_argument(
         "--out",
         default=None,
-        help="hitl, quality, fuzz: also write the JSON here, and its table beside it (.md); import: the JSON",
+        help="hitl, quality, fuzz: also write the JSON here, and its table beside it (.md); import, "
+        "scale: the JSON",
     )
     p.add_argument(
         "--heldout-seeds",

@@ -10,6 +10,7 @@ child's ``wall_seconds`` hold them).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -86,11 +87,18 @@ def bench_scale(
     worker_threads: int = 1,
     command: str = "",
     progress: Callable[[int, int], None] | None = None,
+    earlier: dict | None = None,
+    on_partial: Callable[[dict], None] | None = None,
 ) -> dict:
     """Detection frames per second in this process and on each count of ``workers`` for the first
     of ``frame_counts`` frames; the most workers on every further count (the driver's memory
     against the frame count); optionally evaluation of the first ``evaluate_frames`` test frames,
     and the simulation of ``data`` itself (``simulate``) on the most workers.
+
+    The runs go in that order (simulation, the first count's runs, evaluation, the longer runs),
+    each a child process of its own. After each one the record so far (``"complete": false``) goes
+    to ``on_partial``; ``earlier``, such a record of the same plan, gives the runs already done,
+    which are not run again (a paper-scale run takes hours: it can be done in parts).
 
     Args:
         data: the data set folder (written first when ``simulate`` is given; an interrupted
@@ -105,44 +113,64 @@ def bench_scale(
     if not frame_counts or frame_counts[0] < 1 or not workers or workers[0] < 1:
         raise InputError("bench scale needs frame counts and worker counts of at least 1")
     most = workers[-1]
-    steps = (
-        (1 if simulate else 0)
-        + len(workers)
-        + int(in_process)
-        + len(frame_counts)
-        - 1
-        + int(evaluate_frames > 0)
-    )
+    plan = {
+        "data": str(Path(data).resolve()),
+        "model": model,
+        "frame_counts": frame_counts,
+        "workers": workers,
+        "in_process": in_process,
+        "evaluate_frames": evaluate_frames,
+        "simulate": None if simulate is None else dataclasses.asdict(simulate),
+        "worker_threads": worker_threads,
+    }
+    done_before = _resumable(plan, earlier)
+    runs = [(frame_counts[0], None)] if in_process else []
+    runs += [(frame_counts[0], w) for w in workers]
+    later = [(n, most) for n in frame_counts[1:]]
+    steps = int(simulate is not None) + len(runs) + len(later) + int(evaluate_frames > 0)
     done = 0
     report = progress or (lambda d, n: None)
     report(0, steps)
     result: dict = {
         "benchmark": "scale",
         "command": command,
+        "plan": plan,
+        "complete": False,
         "machine": machine_info(),
         "ray_version": RAY_VERSION,
         "worker_threads": worker_threads,
+        "detect": [],
     }
-    if simulate is not None:
-        start = time.perf_counter()
-        _, wall = _run_cli(
-            ["simulate", "--out", str(data), "--frames", str(simulate.num_frames),
-             "--seed", str(simulate.seed), "--points", str(simulate.points_per_frame),
-             *_execution_arguments(most, worker_threads)],
-            parse=False,
-        )  # fmt: skip
-        summary = json.loads((Path(data) / "summary.json").read_text())
-        result["simulate"] = {
-            "frames": simulate.num_frames,
-            "seed": simulate.seed,
-            "points_per_frame": simulate.points_per_frame,
-            "workers": summary["workers"],
-            "frames_computed": summary["num_computed"],
-            "frames_per_second": summary["frames_per_second"],
-            "wall_seconds": round(time.perf_counter() - start, 1),
-        }
+
+    def step_done() -> None:
+        nonlocal done
         done += 1
         report(done, steps)
+        if on_partial is not None:
+            on_partial(_finished(result, frame_counts, most))
+
+    if simulate is not None:
+        if "simulate" in done_before:
+            result["simulate"] = done_before["simulate"]
+        else:
+            start = time.perf_counter()
+            _run_cli(
+                ["simulate", "--out", str(data), "--frames", str(simulate.num_frames),
+                 "--seed", str(simulate.seed), "--points", str(simulate.points_per_frame),
+                 *_execution_arguments(most, worker_threads)],
+                parse=False,
+            )  # fmt: skip
+            summary = json.loads((Path(data) / "summary.json").read_text())
+            result["simulate"] = {
+                "frames": simulate.num_frames,
+                "seed": simulate.seed,
+                "points_per_frame": simulate.points_per_frame,
+                "workers": summary["workers"],
+                "frames_computed": summary["num_computed"],
+                "frames_per_second": summary["frames_per_second"],
+                "wall_seconds": round(time.perf_counter() - start, 1),
+            }
+        step_done()
     dataset = open_dataset(data)
     if frame_counts[-1] > dataset.num_frames:
         raise InputError(f"{dataset.name} has {dataset.num_frames} frames, fewer than {frame_counts[-1]}")
@@ -153,47 +181,87 @@ def bench_scale(
         data_points_frame_0=dataset.frame(0).num_points,
         data_disk_mb=folder_mb(data),
     )
-    rows = []
     with tempfile.TemporaryDirectory(prefix="factorydet-bench-scale-") as scratch:
-        runs = [(frame_counts[0], None)] if in_process else []
-        runs += [(frame_counts[0], w) for w in workers] + [(n, most) for n in frame_counts[1:]]
+
+        def detect(n: int, w: int | None) -> None:
+            key = _run_key(n, w)
+            if key in done_before:
+                result["detect"].append(done_before[key])
+            else:
+                out = Path(scratch) / f"detect-{n}-{w or 0}"
+                summary, wall = _run_cli(
+                    ["detect", str(data), "--model", model, "--out", str(out), "--frames", str(n), "--json",
+                     *_execution_arguments(w, worker_threads)],
+                )  # fmt: skip
+                row = _row(summary, n, w, wall)
+                row["output_mb"] = folder_mb(out)
+                result["detect"].append(row)
+                shutil.rmtree(out, ignore_errors=True)
+            step_done()
+
         for n, w in runs:
-            out = Path(scratch) / f"detect-{n}-{w or 0}"
-            summary, wall = _run_cli(
-                ["detect", str(data), "--model", model, "--out", str(out), "--frames", str(n), "--json",
-                 *_execution_arguments(w, worker_threads)],
-            )  # fmt: skip
-            row = _row(summary, n, w, wall)
-            row["output_mb"] = folder_mb(out)
-            rows.append(row)
-            shutil.rmtree(out, ignore_errors=True)
-            done += 1
-            report(done, steps)
+            detect(n, w)
         if evaluate_frames > 0:
-            out = Path(scratch) / "evaluate"
-            evaluation, wall = _run_cli(
-                ["evaluate", str(data), "--model", model, "--out", str(out), "--frames", str(evaluate_frames),
-                 *_execution_arguments(most, worker_threads)],
-            )  # fmt: skip
-            result["evaluate"] = {
-                **_row(evaluation["batch"], evaluation["batch"]["num_frames"], most, wall),
-                "output_mb": folder_mb(out),
-                "reference": evaluation["reference"],
-                "f1": evaluation["f1"],
-                "map": evaluation["map"],
-            }
-            done += 1
-            report(done, steps)
-    result["detect"] = rows
+            if "evaluate" in done_before:
+                result["evaluate"] = done_before["evaluate"]
+            else:
+                out = Path(scratch) / "evaluate"
+                evaluation, wall = _run_cli(
+                    ["evaluate", str(data), "--model", model, "--out", str(out), "--frames",
+                     str(evaluate_frames), *_execution_arguments(most, worker_threads)],
+                )  # fmt: skip
+                result["evaluate"] = {
+                    **_row(evaluation["batch"], evaluation["batch"]["num_frames"], most, wall),
+                    "output_mb": folder_mb(out),
+                    "reference": evaluation["reference"],
+                    "f1": evaluation["f1"],
+                    "map": evaluation["map"],
+                }
+                shutil.rmtree(out, ignore_errors=True)
+            step_done()
+        for n, w in later:
+            detect(n, w)
+    result["complete"] = True
+    return _finished(result, frame_counts, most)
+
+
+def _run_key(frames: int, workers: int | None) -> str:
+    return f"detect {frames} frames on {'this process' if workers is None else f'{workers} workers'}"
+
+
+def _resumable(plan: dict, earlier: dict | None) -> dict:
+    """What ``earlier`` (a partial record) holds of ``plan``'s runs: "simulate", "evaluate" and
+    ``_run_key`` of each detection run -> its entry. A record of another plan is refused."""
+    if earlier is None:
+        return {}
+    if earlier.get("benchmark") != "scale" or not isinstance(earlier.get("plan"), dict):
+        raise InputError("bench scale --resume: the earlier record is not a bench scale record")
+    if earlier["plan"] != json.loads(json.dumps(plan)):
+        changed = sorted(k for k in set(plan) | set(earlier["plan"]) if earlier["plan"].get(k) != plan.get(k))
+        raise InputError(
+            "bench scale --resume: the earlier record is of another plan (it differs in: "
+            f"{', '.join(changed)})"
+        )
+    done = {k: earlier[k] for k in ("simulate", "evaluate") if k in earlier}
+    for row in earlier.get("detect", []):
+        done[_run_key(row["frames"], None if row["execution"] == "in-process" else row["workers"])] = row
+    return done
+
+
+def _finished(result: dict, frame_counts: Sequence[int], most: int) -> dict:
+    """``result`` with the detection runs in the plan's order and the figures derived from them
+    (the speed-up; the driver's memory growth, once the most frames have run)."""
+    out = {k: v for k, v in result.items() if k not in ("speedup", "driver_memory_growth")}
+    rows = out["detect"] = list(result["detect"])
     ray_first = {r["workers"]: r for r in rows if r["execution"] == "ray" and r["frames"] == frame_counts[0]}
     if 1 in ray_first and most in ray_first and most > 1:
-        result["speedup"] = round(ray_first[most]["frames_per_second"] / ray_first[1]["frames_per_second"], 3)
+        out["speedup"] = round(ray_first[most]["frames_per_second"] / ray_first[1]["frames_per_second"], 3)
     by_count = [r for r in rows if r["execution"] == "ray" and r["workers"] == most]
     if len(by_count) > 1:
-        result["driver_memory_growth"] = round(
+        out["driver_memory_growth"] = round(
             by_count[-1]["driver_peak_rss_mb"] / by_count[0]["driver_peak_rss_mb"] - 1.0, 3
         )
-    return result
+    return out
 
 
 @register("scale")
