@@ -243,7 +243,7 @@ def release_free_heap() -> None:
 
     A frame's large numpy temporaries are freed when it is done, but glibc keeps much of that
     memory mapped, in pieces the next frame's arrays do not fit: without this a worker's resident
-    memory grew by about 2 MB a frame of varying frames (``docs/scaling.md``).
+    memory creeps up frame after frame (``docs/scaling.md``, Memory).
     """
     if _malloc_trim is not None:
         _malloc_trim(0)
