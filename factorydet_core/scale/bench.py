@@ -24,7 +24,9 @@ from pathlib import Path
 from factorydet_core.evaluation.bench_tables import fmt, register, table
 from factorydet_core.evaluation.records import machine_info
 from factorydet_core.io.dataset import open_dataset
+from factorydet_core.scale.jobs import file_digest
 from factorydet_core.scale.runner import RAY_VERSION, Execution
+from factorydet_core.session.models import resolve_model
 from factorydet_core.sim.simulate import SimConfig
 from factorydet_core.types import InputError
 
@@ -116,6 +118,8 @@ def bench_scale(
     plan = {
         "data": str(Path(data).resolve()),
         "model": model,
+        # By content: a resumed run must not mix the rows of two versions of a named model.
+        "model_sha256": file_digest(resolve_model(model)),
         "frame_counts": frame_counts,
         "workers": workers,
         "in_process": in_process,

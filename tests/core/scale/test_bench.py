@@ -78,5 +78,8 @@ def test_a_stopped_run_resumes_with_the_runs_it_lacks(small_dataset_dir, monkeyp
     # A record of another plan is not mixed in.
     with pytest.raises(InputError, match="another plan .*frame_counts"):
         _run(small_dataset_dir, frame_counts=(1, 2), earlier=partials[-1])
+    other_model = {**partials[-1], "plan": {**partials[-1]["plan"], "model_sha256": "0" * 64}}
+    with pytest.raises(InputError, match="another plan .*model_sha256"):
+        _run(small_dataset_dir, earlier=other_model)
     with pytest.raises(InputError, match="not a bench scale record"):
         _run(small_dataset_dir, earlier={"benchmark": "quality"})
