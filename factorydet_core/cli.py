@@ -172,6 +172,8 @@ def _bench_execution(args: argparse.Namespace) -> Execution:
 
 def _earlier_record(args: argparse.Namespace) -> dict | None:
     """With ``--resume``, the (partial) record at ``--out`` to go on from; ``None`` when there is none yet."""
+    from factorydet_core.io.jsonfile import read_json
+
     if not args.resume:
         return None
     if not args.out:
@@ -179,16 +181,9 @@ def _earlier_record(args: argparse.Namespace) -> dict | None:
     if not Path(args.out).is_file():
         return None
     try:
-        return json.loads(Path(args.out).read_text())
-    except ValueError as exc:
-        raise InputError(f"bench {args.name} --resume: {args.out} is not a result ({exc})") from None
-
-
-def _write_record(result: dict, path: str | Path) -> None:
-    from factorydet_core.io.atomic import write_text_atomic
-
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(Path(path), json.dumps(result, indent=2) + "\n")
+        return read_json(args.out, what=f"bench {args.name} result")
+    except InputError as exc:
+        raise InputError(f"bench {args.name} --resume: --out is not a result: {exc}") from None
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -328,6 +323,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         finally:
             close()
     elif args.name == "scale":
+        from factorydet_core.io.jsonfile import write_json
         from factorydet_core.scale.bench import bench_scale
         from factorydet_core.sim.simulate import SimConfig
 
@@ -357,12 +353,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 progress=update,
                 earlier=earlier,
                 # Only a resumable run replaces --out before it is complete.
-                on_partial=(lambda partial: _write_record(partial, args.out)) if args.resume else None,
+                on_partial=(lambda partial: write_json(args.out, partial)) if args.resume else None,
             )
         finally:
             close()
         if args.out:
-            _write_record(result, args.out)
+            write_json(args.out, result)
     elif args.name == "memory":
         from factorydet_core.evaluation.bench import bench_memory
         from factorydet_core.session.models import resolve_model
@@ -446,9 +442,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 if args.out:
                     from factorydet_core.evaluation.report import hitl_markdown
                     from factorydet_core.io.atomic import write_text_atomic
+                    from factorydet_core.io.jsonfile import write_json
 
-                    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-                    write_text_atomic(Path(args.out), json.dumps(result, indent=2) + "\n")
+                    write_json(args.out, result)
                     write_text_atomic(Path(args.out).with_suffix(".md"), hitl_markdown(result))
             elif args.name == "detect":
                 from factorydet_core.evaluation.bench import bench_detect

@@ -8,13 +8,13 @@ table links to. Every number in a table is read from the record here, never type
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections.abc import Callable
 from pathlib import Path
 
 from factorydet_core.io.atomic import write_text_atomic
+from factorydet_core.io.jsonfile import write_json
 from factorydet_core.types import InputError
 
 Renderer = Callable[[dict], str]
@@ -83,8 +83,7 @@ def update_readme(
         markdown = render_record(result).strip() + "\n\n" + record_line(result, link)
     block = f"<!-- bench:{name} -->\n{markdown.strip()}\n<!-- /bench:{name} -->"
     if record is not None:
-        record.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(record, json.dumps(result, indent=2) + "\n")
+        write_json(record, result)
     write_text_atomic(path, pattern.sub(lambda _: block, text))
 
 

@@ -41,6 +41,7 @@ from factorydet_core.evaluation.evaluate import ignored_boxes, measure, referenc
 from factorydet_core.evaluation.records import machine_info, spread_frames
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
 from factorydet_core.io.dataset import Dataset, open_dataset
+from factorydet_core.io.jsonfile import write_json
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.session.models import resolve_model
 from factorydet_core.sim.simulate import SimConfig, simulate_dataset
@@ -529,7 +530,5 @@ def _per_class_cell(cell: Callable[[dict], str], name: str) -> Callable[[dict], 
 def write_outputs(result: dict, out: str | os.PathLike) -> None:
     """The JSON at ``out`` and its table beside it (``.md``), each written whole or not at all (a
     run stopped while writing leaves the previous file)."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out, json.dumps(result, indent=2) + "\n")
-    write_text_atomic(out.with_suffix(".md"), quality_markdown(result))
+    write_json(out, result)
+    write_text_atomic(Path(out).with_suffix(".md"), quality_markdown(result))

@@ -1,4 +1,5 @@
-"""Reading a JSON record (a data set's manifest, the simulator's truth) with one-line errors.
+"""Reading a JSON record (a data set's manifest, the simulator's truth) with one-line errors, and
+writing one whole or not at all.
 
 ``json.loads`` on a hostile file fails in several ways: a ``RecursionError`` (a traceback) for
 deeply nested brackets, ``UnicodeDecodeError`` for bytes that are not UTF-8, and gigabytes of
@@ -13,6 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.types import InputError
 
 MAX_JSON_BYTES = 64 * 2**20
@@ -45,3 +47,11 @@ def read_json(path: str | os.PathLike, *, what: str = "JSON file", max_bytes: in
         reason = " ".join(str(exc).split())[:200]
         raise InputError(f"{path}: malformed {what} ({type(exc).__name__}: {reason})") from None
     raise InputError(f"{path}: a {what} of {size} bytes, more than the {max_bytes} bytes allowed")
+
+
+def write_json(path: str | os.PathLike, value: Any) -> None:
+    """``value`` as indented JSON at ``path`` (its folder made if missing), written whole or not at
+    all: a run stopped while writing leaves the previous file (``io.atomic``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, json.dumps(value, indent=2) + "\n")

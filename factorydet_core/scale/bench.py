@@ -253,10 +253,10 @@ def _resumable(plan: dict, earlier: dict | None) -> dict:
 
 
 def _finished(result: dict, frame_counts: Sequence[int], most: int) -> dict:
-    """``result`` with the detection runs in the plan's order and the figures derived from them
-    (the speed-up; the driver's memory growth, once the most frames have run)."""
-    out = {k: v for k, v in result.items() if k not in ("speedup", "driver_memory_growth")}
-    rows = out["detect"] = list(result["detect"])
+    """A copy of ``result`` with the figures derived from its detection runs (the speed-up; the
+    driver's memory growth, once the most frames have run)."""
+    rows = list(result["detect"])
+    out = {**result, "detect": rows}
     ray_first = {r["workers"]: r for r in rows if r["execution"] == "ray" and r["frames"] == frame_counts[0]}
     if 1 in ray_first and most in ray_first and most > 1:
         out["speedup"] = round(ray_first[most]["frames_per_second"] / ray_first[1]["frames_per_second"], 3)
