@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import viser
 
+from app.clients import AUTHOR_KEY
 from app.viewer import FactorydetApp
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import open_dataset
@@ -430,6 +431,12 @@ def test_a_reload_keeps_the_name_and_so_the_undo_history(session_app, browser): 
         name_field.fill("ann")
         name_field.press("Enter")
         assert _wait(lambda: view.author == "ann", 20), f"the name never reached the server ({view.author})"
+        # The server then tells the browser to store it; a reload before the browser has done so
+        # would lose it (under load it once came first). Messages keep their order: once a read
+        # through the same connection answers "ann", the write is in.
+        assert _wait(lambda: view.client.local_storage.get_item(AUTHOR_KEY, timeout=5) == "ann", 20), (
+            "the browser never stored the name"
+        )
         label = db.labels(0)[0]
         view.select_label(label.id)
         view.delete_selected()
