@@ -506,10 +506,7 @@ def _cmd_propose(args: argparse.Namespace) -> int:
 
     if args.out is not None:
         return _cmd_propose_all(args)
-    if args.workers is not None or args.ray_address is not None or args.split != "all" or args.frames:
-        raise InputError(
-            "--workers, --ray, --split and --frames propose a batch: give --out DIR for its files"
-        )
+    _refuse_batch_flags(args, "propose")
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
@@ -928,6 +925,25 @@ def _cmd_detect_all(args: argparse.Namespace) -> int:
     return _run_batch(job, frames, args, execution, "detecting", "detected")
 
 
+def _refuse_batch_flags(args: argparse.Namespace, verb: str) -> None:
+    """A one-frame ``detect`` or ``propose`` (no ``--out``) given a batch's flags: say so rather
+    than ignore them."""
+    given = [
+        flag
+        for flag, value, default in (
+            ("--workers", args.workers, None),
+            ("--ray", args.ray_address, None),
+            ("--worker-threads", args.worker_threads, None),
+            ("--scratch", args.scratch, None),
+            ("--split", args.split, "all"),
+            ("--frames", args.frames, None),
+        )
+        if value != default
+    ]
+    if given:
+        raise InputError(f"{', '.join(given)} {verb} a batch: give --out DIR for its files")
+
+
 def _run_batch(job, frames: list[int], args: argparse.Namespace, execution, doing: str, done: str) -> int:
     """A batch command's run (``detect --out``, ``propose --out``): the frames through
     ``scale.runner.run_frames`` into ``args.out`` with a progress bar, then its summary."""
@@ -978,10 +994,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 
     if args.out is not None:
         return _cmd_detect_all(args)
-    if args.workers is not None or args.ray_address is not None or args.split != "all" or args.frames:
-        raise InputError(
-            "--workers, --ray, --split and --frames detect a batch: give --out DIR for its files"
-        )
+    _refuse_batch_flags(args, "detect")
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")

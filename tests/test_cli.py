@@ -532,6 +532,11 @@ def test_propose_a_split_into_files_and_resume(small_dataset_dir, tmp_path, caps
     assert "another job" in capsys.readouterr().err
     assert main(["propose", str(small_dataset_dir), "--workers", "2"]) == 2
     assert "--out" in capsys.readouterr().err
+    # Every batch flag is refused without --out, not ignored (zero frames too).
+    for flag in (["--worker-threads", "2"], ["--scratch", str(tmp_path)], ["--frames", "0"]):
+        for verb in ("propose", "detect"):
+            assert main([verb, str(small_dataset_dir), *flag]) == 2
+            assert f"{flag[0]} {verb} a batch" in capsys.readouterr().err
 
 
 def test_bench_takes_the_execution_switch_where_frames_are_proposed(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import itertools
 import json
@@ -24,9 +25,9 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.io.npz import load_npz, save_npz
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.scale.runner import BatchRun, Execution, FrameJob, SetUpOnce, frame_path, run_frames
+from factorydet_core.scale.runner import BatchRun, Execution, SetUpOnce, frame_path, run_frames
 from factorydet_core.sim.simulate import FactorySimulator, SimConfig, finish_dataset, write_frame
-from factorydet_core.training.loop import Proposer
+from factorydet_core.training.loop import Proposer, proposals_cache_key
 from factorydet_core.training.mining import (
     FrameProposals,
     Progress,
@@ -235,28 +236,51 @@ def propose_batch(
 ) -> list[FrameProposals]:
     """``collect_proposals`` run by ``execution`` (Ray workers): the frames travel through files in
     a folder under ``execution.scratch`` (default: ``$TMPDIR``), which every node of a cluster must
-    see. The folder is named after the job (data set, front half, extrinsics: ``ProposeJob``'s
-    description), so that an interrupted run (a training cancelled, a lost driver) is resumed by
-    the next one that proposes the same frames; it is removed once they are read back."""
+    see. The folder is named as the session's proposals cache names these proposals (data set
+    content, front half, extrinsics, cache format), so that an interrupted run (a training
+    cancelled, a driver killed) is resumed by the next that proposes them; it is removed once they
+    are read back. A run that finds the folder in use by another one proposes into a folder of its
+    own."""
     job = ProposeJob(str(dataset.path), detector.params, detector.T_vehicle_sensor)
     frames = [int(i) for i in frame_indices]
     report = None if progress is None else (lambda done, total: progress("proposals", done, total))
-    out = resumable_folder(execution, "factorydet-proposals-", job)
-    run_frames(job, frames, out, execution, report)
-    proposed = [proposals_from_arrays(load_npz(frame_path(out, i))[1])[0] for i in frames]
-    shutil.rmtree(out, ignore_errors=True)
+    with resumable_folder(execution, proposals_cache_key(dataset, detector)) as out:
+        run_frames(job, frames, out, execution, report)
+        proposed = [proposals_from_arrays(load_npz(frame_path(out, i))[1])[0] for i in frames]
+        shutil.rmtree(out, ignore_errors=True)
     return proposed
 
 
-def resumable_folder(execution: Execution, prefix: str, job: FrameJob) -> Path:
-    """The folder under ``execution.scratch`` (``$TMPDIR`` by default) where ``job``'s frames go:
-    the same for the same job (its description's SHA-256), so that a re-run finds what an
-    interrupted one computed."""
+@contextlib.contextmanager
+def resumable_folder(execution: Execution, name: str) -> Iterator[Path]:
+    """The folder ``name`` for a batch job's frames, in this user's own folder under
+    ``execution.scratch`` (``$TMPDIR`` by default): the same for the same job, so that a re-run
+    finds what an interrupted one computed. Held under an exclusive lock while in use; when another
+    process holds it, a temporary folder of this run's own is given instead (nothing resumed,
+    nothing shared).
+
+    Raises:
+        InputError: no scratch folder, or this user's folder in it belongs to someone else.
+    """
     root = Path(execution.scratch) if execution.scratch is not None else Path(tempfile.gettempdir())
     if not root.is_dir():
         raise InputError(f"the scratch folder {root} does not exist")
-    description = json.dumps({"kind": job.kind, **job.describe()}, sort_keys=True, default=str)
-    return root / f"{prefix}{hashlib.sha256(description.encode()).hexdigest()[:16]}"
+    # Per user, private: in a shared $TMPDIR nobody else can plant frames for this run to read.
+    mine = root / f"factorydet-{os.getuid()}"
+    mine.mkdir(mode=0o700, exist_ok=True)
+    if mine.is_symlink() or mine.stat().st_uid != os.getuid():
+        raise InputError(f"{mine} is not this user's folder; remove it or give --scratch")
+    with open(mine / f"{name}.lock", "a") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # another run proposes the same frames right now
+            with tempfile.TemporaryDirectory(prefix=f"{name}-", dir=mine) as own:
+                yield Path(own)
+            return
+        try:
+            yield mine / name
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def proposer(execution: Execution | None) -> Proposer:
@@ -309,8 +333,9 @@ class ScoreJob(SetUpOnce):
         return {"num_detections": len(kept.boxes)}
 
 
-def _ray_scorer(execution: Execution, folder: Path) -> Scorer:
-    """A ``Scorer`` that runs ``ScoreJob`` on ``execution``'s workers through files in ``folder``:
+def batch_scorer(execution: Execution, folder: Path) -> Scorer:
+    """A ``Scorer`` that runs ``ScoreJob`` as ``execution`` says (Ray workers; in this process for
+    tests) through files in ``folder``:
     the frames' proposals written once (the first round), each round's model saved, each round's
     detections read back and removed."""
     written: set[int] = set()
@@ -365,4 +390,4 @@ def scoring(execution: Execution | None) -> Iterator[Scorer]:
         yield score_frames
         return
     with execution.scratch_folder("factorydet-scores-") as folder:
-        yield _ray_scorer(execution, Path(folder))
+        yield batch_scorer(execution, Path(folder))

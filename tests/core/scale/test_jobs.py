@@ -78,6 +78,7 @@ def test_proposals_through_batch_files_are_the_plain_ones(batch_dataset_dir, tmp
     from factorydet_core.detection.detector import Detector
     from factorydet_core.io.dataset import open_dataset
     from factorydet_core.scale.jobs import ProposeJob, propose_batch, proposer, resumable_folder
+    from factorydet_core.training.loop import proposals_cache_key
     from factorydet_core.training.mining import collect_proposals
 
     assert proposer(Execution()) is collect_proposals and proposer(None) is collect_proposals
@@ -90,13 +91,18 @@ def test_proposals_through_batch_files_are_the_plain_ones(batch_dataset_dir, tmp
     # An interrupted run (here: frame 3 done, then stopped) is resumed by the next one.
     execution = Execution(scratch=str(tmp_path))
     job = ProposeJob(str(dataset.path), detector.params, detector.T_vehicle_sensor)
-    folder = resumable_folder(execution, "factorydet-proposals-", job)
-    run_frames(job, [3], folder, execution)
+    with resumable_folder(execution, proposals_cache_key(dataset, detector)) as folder:
+        run_frames(job, [3], folder, execution)
     steps.clear()
     resumed = propose_batch(dataset, [3, 1], detector, execution, lambda *step: steps.append(step))
     assert steps[0] == ("proposals", 1, 2)  # frame 3 was there
     assert_same_proposals(resumed, through_files)
     assert not folder.exists()  # removed once read back
+    assert (folder.parent.stat().st_mode & 0o777) == 0o700  # this user's alone
+    # A folder in use by another run is not shared: the second gets one of its own.
+    with resumable_folder(execution, "job") as first, resumable_folder(execution, "job") as second:
+        assert first.name == "job" and second != first and second.parent == first.parent
+    assert not second.exists()
 
 
 def assert_same_scores(first: list[dict], second: list[dict]) -> None:
@@ -117,7 +123,7 @@ def test_mining_rounds_scored_through_batch_files_train_the_plain_run(small_data
     each round's model, saved and loaded by the job, scores every frame as the one in memory."""
     from factorydet_core.detection.detector import Detector
     from factorydet_core.io.dataset import open_dataset
-    from factorydet_core.scale.jobs import _ray_scorer, scoring
+    from factorydet_core.scale.jobs import batch_scorer, scoring
     from factorydet_core.session.store import SessionDB, open_session
     from factorydet_core.training.loop import train_session
     from factorydet_core.training.mining import collect_proposals, score_frames
@@ -136,7 +142,7 @@ def test_mining_rounds_scored_through_batch_files_train_the_plain_run(small_data
         score = score_frames
         if name == "files":
             folder = tmp_path / "scores"
-            score = _ray_scorer(Execution(), folder)
+            score = batch_scorer(Execution(), folder)
         _, run = train_session(
             db, frames, settings, mode="full",
             progress=(lambda *step: steps.append(step)) if name == "files" else None, score=score,
@@ -144,6 +150,7 @@ def test_mining_rounds_scored_through_batch_files_train_the_plain_run(small_data
         runs.append(run)
     plain_run, files_run = runs
     assert len(files_run.rounds) == 2
+    assert any(r["mined"] for r in plain_run.rounds), "nothing mined: the comparison would be empty"
     for a, b in zip(plain_run.rounds, files_run.rounds):
         assert a["mined"] == b["mined"] and a["train_metrics"] == b["train_metrics"]
     assert plain_run.model.class_score_thresholds == files_run.model.class_score_thresholds
@@ -151,7 +158,7 @@ def test_mining_rounds_scored_through_batch_files_train_the_plain_run(small_data
     # Each round's files are removed once read; the frames' proposals were written once.
     assert sorted(p.name for p in folder.iterdir()) == ["proposals"]
     assert len(list((folder / "proposals" / "frames").glob("*.npz"))) == 2
-    assert_same_scores(
-        _ray_scorer(Execution(), tmp_path / "again")(plain_run.model, frames, 0.05),
-        score_frames(plain_run.model, frames, 0.05),
-    )
+    plain_scores = score_frames(plain_run.model, frames, 0.05)
+    assert all(len(item["detections"].boxes) for item in plain_scores)
+    again = batch_scorer(Execution(), tmp_path / "again")
+    assert_same_scores(again(plain_run.model, frames, 0.05), plain_scores)
