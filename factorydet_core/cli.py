@@ -504,6 +504,9 @@ def _cmd_propose(args: argparse.Namespace) -> int:
     from factorydet_core.io.dataset import open_dataset
     from factorydet_core.proposals.settings import front_end_params, preset_for
 
+    if args.out is not None:
+        return _cmd_propose_all(args)
+    _refuse_batch_flags(args, "propose")
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
@@ -904,7 +907,6 @@ def _cmd_detect_all(args: argparse.Namespace) -> int:
     from factorydet_core.evaluation.evaluate import detector_for
     from factorydet_core.io.dataset import open_dataset
     from factorydet_core.scale.jobs import DetectJob
-    from factorydet_core.scale.runner import run_frames
     from factorydet_core.session.models import resolve_model
 
     execution = execution_from_args(args)
@@ -920,7 +922,34 @@ def _cmd_detect_all(args: argparse.Namespace) -> int:
         score_threshold=args.score_threshold,
         nms_iou=args.nms_iou,
     )
-    update, close = progress_bar("detecting")
+    return _run_batch(job, frames, args, execution, "detecting", "detected")
+
+
+def _refuse_batch_flags(args: argparse.Namespace, verb: str) -> None:
+    """A one-frame ``detect`` or ``propose`` (no ``--out``) given a batch's flags: say so rather
+    than ignore them."""
+    given = [
+        flag
+        for flag, value, default in (
+            ("--workers", args.workers, None),
+            ("--ray", args.ray_address, None),
+            ("--worker-threads", args.worker_threads, None),
+            ("--scratch", args.scratch, None),
+            ("--split", args.split, "all"),
+            ("--frames", args.frames, None),
+        )
+        if value != default
+    ]
+    if given:
+        raise InputError(f"{', '.join(given)} {verb} a batch: give --out DIR for its files")
+
+
+def _run_batch(job, frames: list[int], args: argparse.Namespace, execution, doing: str, done: str) -> int:
+    """A batch command's run (``detect --out``, ``propose --out``): the frames through
+    ``scale.runner.run_frames`` into ``args.out`` with a progress bar, then its summary."""
+    from factorydet_core.scale.runner import run_frames
+
+    update, close = progress_bar(doing)
     try:
         run = run_frames(job, frames, args.out, execution, update)
     finally:
@@ -930,11 +959,31 @@ def _cmd_detect_all(args: argparse.Namespace) -> int:
         json.dumps(summary, indent=1)
         if args.json
         else (
-            f"{summary['num_computed']} frames detected, {summary['num_skipped']} already done, "
+            f"{summary['num_computed']} frames {done}, {summary['num_skipped']} already done, "
             f"{summary['frames_per_second']} frames/s on {summary['workers']} workers: {run.out_dir}"
         )
     )
     return 0
+
+
+def _cmd_propose_all(args: argparse.Namespace) -> int:
+    """``propose --out``: the front half of every frame of a split, one file per frame (the
+    training cache's format, ``training.mining.proposals_from_arrays``), resumable."""
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.settings import front_end_params, preset_for
+    from factorydet_core.scale.jobs import ProposeJob
+
+    execution = execution_from_args(args)
+    dataset = open_dataset(args.data)
+    frames = frames_of(dataset, args.split, args.frames)
+    preset = args.preset or preset_for(dataset.num_sensors)
+    detector = Detector(front_end_params(preset, parse_overrides(args.set)))
+    if args.calibrate and dataset.num_sensors > 1:
+        # Calibrated once here, on the first frame: every worker merges with the same extrinsics.
+        detector.calibrate(dataset.frame(frames[0] if frames else 0))
+    job = ProposeJob(str(dataset.path), detector.params, detector.T_vehicle_sensor)
+    return _run_batch(job, frames, args, execution, "proposing", "proposed")
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
@@ -945,10 +994,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 
     if args.out is not None:
         return _cmd_detect_all(args)
-    if args.workers is not None or args.ray_address is not None or args.split != "all" or args.frames:
-        raise InputError(
-            "--workers, --ray, --split and --frames detect a batch: give --out DIR for its files"
-        )
+    _refuse_batch_flags(args, "detect")
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
@@ -1144,7 +1190,11 @@ def build_parser(
     p.add_argument("path")
     p.set_defaults(func=_cmd_info)
 
-    p = sub.add_parser("propose", help="object proposals of one frame (the detector's front half)")
+    p = sub.add_parser(
+        "propose",
+        help="object proposals of one frame, or (--out) of every frame of a split into files "
+        "(the detector's front half)",
+    )
     p.add_argument("data", help="a data set folder or any point-cloud file the readers open")
     p.add_argument("--frame", type=int, default=0, help="frame index (0-based)")
     p.add_argument("--preset", default=None, help="agv or indoor (default: agv for multi-sensor data)")
@@ -1154,6 +1204,19 @@ def build_parser(
     )
     p.add_argument("--json", action="store_true", help="print every proposal as JSON")
     p.add_argument("--limit", type=int, default=20, help="rows of the text listing")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="propose every frame of --split into this folder, one .npz per frame (the training "
+        "cache's format); a re-run skips the frames already there",
+    )
+    p.add_argument(
+        "--split", default="all", help="with --out: 'all' or a split of the data set (test, train)"
+    )
+    p.add_argument(
+        "--frames", type=int, default=None, help="with --out: only the first N frames of the split"
+    )
+    add_execution_flags(p, "the proposals of the frames")
     p.set_defaults(func=_cmd_propose)
 
     p = sub.add_parser(
@@ -1184,7 +1247,9 @@ def build_parser(
     p.add_argument("--test-frames", type=int, default=None, help="with --compare: the first N test frames")
     p.add_argument("--export", default=None, help="also save the final model to this .pt path")
     # The frames the session's proposals cache lacks are proposed there; the fits run here.
-    add_execution_flags(p, "the proposals of the frames the session has not cached")
+    add_execution_flags(
+        p, "the proposals of the frames the session has not cached and each mining round's scoring"
+    )
     p.set_defaults(func=_cmd_train)
 
     def session_args(p: argparse.ArgumentParser) -> None:

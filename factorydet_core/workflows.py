@@ -12,7 +12,7 @@ from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.measure import compare_models
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.scale.jobs import proposer
+from factorydet_core.scale.jobs import proposer, scoring
 from factorydet_core.scale.runner import Execution
 from factorydet_core.session.store import SessionDB
 from factorydet_core.training.loop import cached_proposals, session_references, train_session
@@ -72,8 +72,10 @@ def retrain_session(
             "box quality", "round" or "compare". "compare" comes after the run is stored: a
             progress that raises to cancel must not raise then.
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
-        execution: where the frames the cache lacks are proposed (``scale.runner.Execution``: Ray
-            workers); ``None``: this process. The fits run here either way.
+        execution: where the per-frame work runs (``scale.runner.Execution``: Ray workers): the
+            front half of the frames the cache lacks, and each mining round's scoring of the
+            training frames (``scale.jobs.scoring``); ``None``: this process. The fits run here
+            either way.
 
     Raises:
         InputError: for a "next" round on a session without a run to continue, or a session that
@@ -91,10 +93,11 @@ def retrain_session(
         detector.calibrate(dataset.frame(train[0]))
     propose = proposer(execution)
     frames = cached_proposals(db, dataset, detector, train, progress, propose)
-    run_id, run = train_session(
-        db, frames, settings, mode=mode, data_ref=str(dataset.path), front_end=front_end,
-        progress=progress, should_stop=should_stop, command=command,
-    )  # fmt: skip
+    with scoring(execution) as score:
+        run_id, run = train_session(
+            db, frames, settings, mode=mode, data_ref=str(dataset.path), front_end=front_end,
+            progress=progress, should_stop=should_stop, command=command, score=score,
+        )  # fmt: skip
     test: Sequence[int] = dataset.splits.get("test") or []
     test = list(test[:max_test_frames] if max_test_frames else test)
     table = None

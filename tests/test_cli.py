@@ -2,6 +2,7 @@ import argparse
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from app.cli import main
@@ -501,6 +502,41 @@ def test_detect_a_split_into_files_and_resume(small_dataset_dir, tmp_path, capsy
     assert main([*common, "--split", "nope"]) == 2
     assert main([*common, "--worker-threads", "2"]) == 2  # a Ray option without Ray
     assert "apply to Ray workers" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_propose_a_split_into_files_and_resume(small_dataset_dir, tmp_path, capsys):
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.io.npz import load_npz
+    from factorydet_core.proposals.settings import front_end_params, preset_for
+    from factorydet_core.scale.runner import frame_path
+    from factorydet_core.training.mining import collect_proposals, proposals_from_arrays
+
+    out = tmp_path / "proposals"
+    common = ["propose", str(small_dataset_dir), "--out", str(out), "--no-calibrate", "--json"]
+    assert main([*common, "--split", "test", "--frames", "1"]) == 0
+    assert json.loads(capsys.readouterr().out)["num_computed"] == 1
+    assert main([*common, "--split", "test"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    test = open_dataset(small_dataset_dir).splits["test"]
+    assert again["num_skipped"] == 1 and again["num_computed"] == len(test) - 1
+    # Each file is the frame's front half as training proposes it (its cache's format).
+    (written,) = proposals_from_arrays(load_npz(frame_path(out, test[0]))[1])
+    dataset = open_dataset(small_dataset_dir)
+    detector = Detector(front_end_params(preset_for(dataset.num_sensors)))  # the command's default
+    (plain,) = collect_proposals(dataset, [test[0]], detector)
+    np.testing.assert_array_equal(written.proposal_boxes, plain.proposal_boxes)
+    assert written.patch_sets == plain.patch_sets
+    assert main([*common, "--set", "voxel_size_m=0.25"]) == 2  # other settings: another job's folder
+    assert "another job" in capsys.readouterr().err
+    assert main(["propose", str(small_dataset_dir), "--workers", "2"]) == 2
+    assert "--out" in capsys.readouterr().err
+    # Every batch flag is refused without --out, not ignored (zero frames too).
+    for flag in (["--worker-threads", "2"], ["--scratch", str(tmp_path)], ["--frames", "0"]):
+        for verb in ("propose", "detect"):
+            assert main([verb, str(small_dataset_dir), *flag]) == 2
+            assert f"{flag[0]} {verb} a batch" in capsys.readouterr().err
 
 
 def test_bench_takes_the_execution_switch_where_frames_are_proposed(

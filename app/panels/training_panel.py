@@ -168,8 +168,9 @@ def build_training_panel(
                 min=0,
                 max=4096,
                 step=1,
-                hint="Propose the frames the session has not cached on this many Ray workers "
-                "(0: in the app's own process, or every CPU of the cluster below)",
+                hint="Propose the frames the session has not cached, and score the training frames in "
+                "each mining round, on this many Ray workers (0: in the app's own process, or every "
+                "CPU of the cluster below)",
             )
             ray_address = server.gui.add_text(
                 "Ray address",

@@ -596,7 +596,8 @@ class BoxSizePrior:
 
     def to_json(self) -> dict:
         def rows(array):
-            return [[None if not np.isfinite(v) else round(float(v), 4) for v in row] for row in array]
+            # Whole floats (JSON keeps every bit): the saved model boxes as the one that ran.
+            return [[None if not np.isfinite(v) else float(v) for v in row] for row in array]
 
         out = {"median": rows(self.sizes)}
         if self.lower is not None and self.upper is not None:

@@ -6,11 +6,16 @@ writes one ``.npz`` per frame (``runner.frame_path``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import hashlib
+import itertools
 import json
 import os
-from collections.abc import Callable, Sequence
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -22,15 +27,19 @@ from factorydet_core.io.npz import load_npz, save_npz
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.scale.runner import BatchRun, Execution, SetUpOnce, frame_path, run_frames
 from factorydet_core.sim.simulate import FactorySimulator, SimConfig, finish_dataset, write_frame
-from factorydet_core.training.loop import Proposer
+from factorydet_core.training.loop import Proposer, proposals_cache_key
 from factorydet_core.training.mining import (
     FrameProposals,
     Progress,
+    Scorer,
     collect_proposals,
+    kept_detections,
     proposals_from_arrays,
     proposals_to_arrays,
+    score_frames,
+    scored_frame,
 )
-from factorydet_core.types import InputError
+from factorydet_core.types import Cancelled, Detections, InputError
 
 DETECTION_KEYS = ("boxes", "class_ids", "scores", "suppressed_by", "probabilities")
 """What a detect job writes per frame: ``types.Detections``' arrays (vehicle frame), NMS-suppressed
@@ -226,14 +235,52 @@ def propose_batch(
     progress: Progress | None = None,
 ) -> list[FrameProposals]:
     """``collect_proposals`` run by ``execution`` (Ray workers): the frames travel through files in
-    a temporary folder under ``execution.scratch`` (default: ``$TMPDIR``), which every node of a
-    cluster must see; it is removed once they are read back."""
+    a folder under ``execution.scratch`` (default: ``$TMPDIR``), which every node of a cluster must
+    see. The folder is named as the session's proposals cache names these proposals (data set
+    content, front half, extrinsics, cache format), so that an interrupted run (a training
+    cancelled, a driver killed) is resumed by the next that proposes them; it is removed once they
+    are read back. A run that finds the folder in use by another one proposes into a folder of its
+    own."""
     job = ProposeJob(str(dataset.path), detector.params, detector.T_vehicle_sensor)
     frames = [int(i) for i in frame_indices]
     report = None if progress is None else (lambda done, total: progress("proposals", done, total))
-    with execution.scratch_folder("factorydet-proposals-") as out:
+    with resumable_folder(execution, proposals_cache_key(dataset, detector)) as out:
         run_frames(job, frames, out, execution, report)
-        return [proposals_from_arrays(load_npz(frame_path(out, i))[1])[0] for i in frames]
+        proposed = [proposals_from_arrays(load_npz(frame_path(out, i))[1])[0] for i in frames]
+        shutil.rmtree(out, ignore_errors=True)
+    return proposed
+
+
+@contextlib.contextmanager
+def resumable_folder(execution: Execution, name: str) -> Iterator[Path]:
+    """The folder ``name`` for a batch job's frames, in this user's own folder under
+    ``execution.scratch`` (``$TMPDIR`` by default): the same for the same job, so that a re-run
+    finds what an interrupted one computed. Held under an exclusive lock while in use; when another
+    process holds it, a temporary folder of this run's own is given instead (nothing resumed,
+    nothing shared).
+
+    Raises:
+        InputError: no scratch folder, or this user's folder in it belongs to someone else.
+    """
+    root = Path(execution.scratch) if execution.scratch is not None else Path(tempfile.gettempdir())
+    if not root.is_dir():
+        raise InputError(f"the scratch folder {root} does not exist")
+    # Per user, private: in a shared $TMPDIR nobody else can plant frames for this run to read.
+    mine = root / f"factorydet-{os.getuid()}"
+    mine.mkdir(mode=0o700, exist_ok=True)
+    if mine.is_symlink() or mine.stat().st_uid != os.getuid():
+        raise InputError(f"{mine} is not this user's folder; remove it or give --scratch")
+    with open(mine / f"{name}.lock", "a") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # another run proposes the same frames right now
+            with tempfile.TemporaryDirectory(prefix=f"{name}-", dir=mine) as own:
+                yield Path(own)
+            return
+        try:
+            yield mine / name
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def proposer(execution: Execution | None) -> Proposer:
@@ -248,3 +295,99 @@ def proposer(execution: Execution | None) -> Proposer:
         return propose_batch(dataset, frame_indices, detector, execution, progress)
 
     return propose
+
+
+SCORE_KEYS = ("boxes", "class_ids", "scores", "probabilities", "proposal_ids", "suppressed_by")
+"""What a score job writes per frame: the kept detections' arrays (``types.Detections``)."""
+
+
+@dataclasses.dataclass
+class ScoreJob(SetUpOnce):
+    """A mining round's per-frame work (``training.mining.score_frames``): one model's detections
+    of a training frame down to the mining floor, from the frame's proposals in ``proposals_dir``
+    (``frame_path`` layout, ``training.mining.proposals_to_arrays``' format)."""
+
+    model_path: str
+    proposals_dir: str
+    score_threshold: float
+    kind: str = "score"
+
+    def __post_init__(self) -> None:
+        self.model_path = str(Path(self.model_path).resolve())
+        self.proposals_dir = str(Path(self.proposals_dir).resolve())
+
+    def describe(self) -> dict:
+        return {
+            "model_sha256": file_digest(self.model_path),
+            "proposals": self.proposals_dir,
+            "score_threshold": self.score_threshold,
+        }
+
+    def load(self) -> DetectionModel:
+        return DetectionModel.load(self.model_path)
+
+    def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
+        (frame,) = proposals_from_arrays(load_npz(frame_path(self.proposals_dir, frame_index))[1])
+        kept = kept_detections(self.loaded(), frame, self.score_threshold)
+        save_npz(out_path, {key: getattr(kept, key) for key in SCORE_KEYS})
+        return {"num_detections": len(kept.boxes)}
+
+
+def batch_scorer(execution: Execution, folder: Path) -> Scorer:
+    """A ``Scorer`` that runs ``ScoreJob`` as ``execution`` says (Ray workers; in this process for
+    tests) through files in ``folder``:
+    the frames' proposals written once (the first round), each round's model saved, each round's
+    detections read back and removed."""
+    written: set[int] = set()
+    rounds = itertools.count()
+
+    def score(
+        model: DetectionModel,
+        frames: list[FrameProposals],
+        score_threshold: float,
+        progress: Progress | None = None,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> list[dict]:
+        round_dir = folder / f"round_{next(rounds)}"
+        try:
+            model_path = model.save(round_dir / "model.pt")
+        except InputError:  # a classifier without checkpoints (a baseline): scored here
+            return score_frames(model, frames, score_threshold, progress, should_stop)
+        proposals_dir = folder / "proposals"
+        frame_path(proposals_dir, 0).parent.mkdir(parents=True, exist_ok=True)
+        for frame in frames:
+            if frame.frame_index not in written:
+                save_npz(frame_path(proposals_dir, frame.frame_index), proposals_to_arrays([frame]))
+                written.add(frame.frame_index)
+
+        def report(done: int, total: int) -> None:
+            if should_stop is not None and should_stop():
+                raise Cancelled("training cancelled")  # stops the Ray run (``run_frames``)
+            if progress is not None:
+                progress("score", done, total)
+
+        out = round_dir / "detections"
+        job = ScoreJob(str(model_path), str(proposals_dir), float(score_threshold))
+        run_frames(job, [f.frame_index for f in frames], out, execution, report)
+        scored = []
+        for frame in frames:
+            arrays = load_npz(frame_path(out, frame.frame_index), SCORE_KEYS)[1]
+            scored.append(scored_frame(frame, Detections(**arrays, class_names=model.class_names)))
+        shutil.rmtree(round_dir)
+        return scored
+
+    return score
+
+
+@contextlib.contextmanager
+def scoring(execution: Execution | None) -> Iterator[Scorer]:
+    """What scores a training run's mining rounds (``training.mining.train_with_mining``'s
+    ``score``): ``score_frames`` in this process, or, when ``execution`` says so, Ray workers that
+    load each round's model once and score the frames it hands them (the frames and the models
+    travel through a temporary folder under ``execution.scratch``, removed on exit). The fits run
+    in this process either way: they need every frame at once."""
+    if execution is None or not execution.uses_ray:
+        yield score_frames
+        return
+    with execution.scratch_folder("factorydet-scores-") as folder:
+        yield batch_scorer(execution, Path(folder))

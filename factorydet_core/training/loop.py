@@ -34,11 +34,13 @@ from factorydet_core.session.store import SessionDB, read_cache, write_cache
 from factorydet_core.training.mining import (
     FrameProposals,
     Progress,
+    Scorer,
     TrainingRun,
     collect_proposals,
     group_overlaps,
     proposals_from_arrays,
     proposals_to_arrays,
+    score_frames,
     train_with_mining,
 )
 from factorydet_core.training.settings import LoopSettings
@@ -230,6 +232,7 @@ def train_session(
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
     command: str = "",
+    score: Scorer = score_frames,
 ) -> tuple[int, TrainingRun]:
     """Train on the session's labels and verdicts, store the run, and mine its review queue.
 
@@ -244,6 +247,8 @@ def train_session(
         front_end: the front half's settings the frames were proposed with, saved whole in the
             models and the run's record.
         should_stop: cancels the run (``types.Cancelled``); nothing is stored then.
+        score: what scores each round's model on the frames (``training.mining.Scorer``): here,
+            or on Ray workers (``scale.jobs.scoring``).
 
     Returns:
         ``(run_id, run)``.
@@ -304,6 +309,7 @@ def train_session(
         should_stop=should_stop,
         round_epochs=settings.round_epochs,
         init_model=None if continued is None else continued.classifier,
+        score=score,
     )
     for model in run.models:
         model.front_end = front_end

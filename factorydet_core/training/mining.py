@@ -36,7 +36,14 @@ from factorydet_core.metrics import tune_class_thresholds as tune_thresholds
 from factorydet_core.proposals.candidates import point_set_features
 from factorydet_core.proposals.visibility import FreeSpace
 from factorydet_core.session.store import HIDE_LABELLED_IOU
-from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_FLOOR, SCORE_THRESHOLD, Cancelled, InputError
+from factorydet_core.types import (
+    PROBABILITY_EXPONENT,
+    SCORE_FLOOR,
+    SCORE_THRESHOLD,
+    Cancelled,
+    Detections,
+    InputError,
+)
 
 Progress = Callable[[str, int, int], None]
 """Called with (what, done, total)."""
@@ -342,21 +349,37 @@ def score_frames(
             raise Cancelled("training cancelled")
         if progress is not None:
             progress("score", n, len(frames))
-        detections = model.detect(frame.proposal_boxes, frame.groups, score_threshold=score_threshold)
-        kept = detections.subset(detections.kept_mask)
-        out.append(
-            {
-                "frame_index": frame.frame_index,
-                "detections": kept,
-                "boxes": kept.boxes,
-                "class_ids": kept.class_ids,
-                "scores": kept.scores,
-                "reference_boxes": frame.label_boxes,
-                "reference_class_ids": frame.label_class_ids,
-                "ignore_boxes": frame.ignore_boxes,
-            }
-        )
+        out.append(scored_frame(frame, kept_detections(model, frame, score_threshold)))
     return out
+
+
+def kept_detections(model: DetectionModel, frame: FrameProposals, score_threshold: float) -> Detections:
+    """One frame's part of ``score_frames``: ``model``'s detections down to ``score_threshold``
+    after NMS (the suppressed ones dropped)."""
+    detections = model.detect(frame.proposal_boxes, frame.groups, score_threshold=score_threshold)
+    return detections.subset(detections.kept_mask)
+
+
+def scored_frame(frame: FrameProposals, kept: Detections) -> dict:
+    """``score_frames``' item for one frame: its ``kept_detections`` with its references."""
+    return {
+        "frame_index": frame.frame_index,
+        "detections": kept,
+        "boxes": kept.boxes,
+        "class_ids": kept.class_ids,
+        "scores": kept.scores,
+        "reference_boxes": frame.label_boxes,
+        "reference_class_ids": frame.label_class_ids,
+        "ignore_boxes": frame.ignore_boxes,
+    }
+
+
+Scorer = Callable[
+    [DetectionModel, list[FrameProposals], float, Progress | None, Callable[[], bool] | None],
+    list[dict],
+]
+"""What scores a mining round's frames (``train_with_mining``'s ``score``): ``score_frames`` in
+this process, or ``scale.jobs.scoring`` on Ray workers; the same items either way."""
 
 
 def with_tuned_thresholds(
@@ -403,6 +426,7 @@ def train_with_mining(
     probability_exponent: float = PROBABILITY_EXPONENT,
     round_epochs: int = 0,
     init_model: ProposalClassifier | BoxHead | None = None,
+    score: Scorer = score_frames,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -417,6 +441,8 @@ def train_with_mining(
         init_model: a fitted classifier (``classifier``'s type, classes and network) that even the
             first round goes on from, for ``round_epochs`` epochs: a 'next' round continuing a
             session's model. Needs ``round_epochs`` > 0.
+        score: scores each round's model on the frames (``Scorer``): ``score_frames`` here, or
+            ``scale.jobs.scoring``'s on Ray workers.
         negatives_per_round: N, the highest scoring false positives added per round.
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
@@ -619,7 +645,7 @@ def train_with_mining(
             probability_exponent=probability_exponent,
         )
         start = time.perf_counter()
-        scored = score_frames(model, frames, min(SCORE_FLOOR, mining_threshold), progress, should_stop)
+        scored = score(model, frames, min(SCORE_FLOOR, mining_threshold), progress, should_stop)
         if tune_class_thresholds:
             model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
         metrics = detection_metrics(

@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -205,9 +207,11 @@ def test_prior_keeps_range_and_one_mode_per_kind():
     np.testing.assert_allclose(prior.lower[1], [boxes[:6, 3].min(), 0.56, 1.3])
     np.testing.assert_allclose(prior.upper[1], [boxes[6:10, 4].max(), 1.4, 2.4])
     assert len(prior.modes[2]) == 0 and np.isnan(prior.lower[2]).all()
-    again = BoxSizePrior.from_json(prior.to_json())
-    np.testing.assert_allclose(again.lower, prior.lower, atol=1e-4)
-    np.testing.assert_allclose(again.modes[1], prior.modes[1], atol=1e-4)
+    again = BoxSizePrior.from_json(json.loads(json.dumps(prior.to_json())))  # as a checkpoint's note
+    for got, want in ((again.sizes, prior.sizes), (again.lower, prior.lower), (again.upper, prior.upper)):
+        np.testing.assert_array_equal(got, want)  # exactly: the saved model boxes as the one that ran
+    for got, want in zip(again.modes, prior.modes):
+        np.testing.assert_array_equal(got, want)
     # A checkpoint's prior from before the range: medians only, chosen as before.
     old = BoxSizePrior.from_json(prior.to_json()["median"])
     assert old.lower is None and old.modes is None

@@ -92,6 +92,32 @@ def test_training_proposals_on_ray_are_the_plain_ones(batch_dataset_dir, local_r
     assert_same_proposals(on_ray, collect_proposals(dataset, [0, 2, 4], detector))
 
 
+def test_a_training_run_on_ray_mines_what_the_plain_one_mines(batch_dataset_dir, tmp_path, local_ray):
+    """``train --workers``: the front half and every mining round's scoring run on the workers
+    (each round's model loaded once per worker); the run mines and records what the plain one does."""
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.settings import PRESETS
+    from factorydet_core.session.store import SessionDB, open_session
+    from factorydet_core.training.settings import LoopSettings
+    from factorydet_core.workflows import retrain_session
+
+    dataset = open_dataset(batch_dataset_dir)
+    settings = LoopSettings(epochs=1, rounds=1, initial_negatives=100, negatives_per_round=20, seed=2)
+    runs, steps = {}, []
+    for name, execution in (("plain", None), ("ray", Execution(workers=2))):
+        db = SessionDB(open_session(name, tmp_path), dataset)
+        runs[name] = retrain_session(
+            db, dataset, settings, PRESETS["agv"], mode="full", calibrate=False, compare=False,
+            max_train_frames=3, execution=execution,
+            progress=(lambda *step: steps.append(step)) if execution else None,
+        ).run  # fmt: skip
+    assert ("score", 3, 3) in steps and ("proposals", 3, 3) in steps  # both ran as batch jobs
+    assert len(runs["ray"].rounds) == 2
+    assert any(r["mined"] for r in runs["plain"].rounds), "nothing mined: the comparison would be empty"
+    for plain, ray_round in zip(runs["plain"].rounds, runs["ray"].rounds):
+        assert ray_round["mined"] == plain["mined"] and ray_round["train_metrics"] == plain["train_metrics"]
+
+
 def test_a_killed_worker_loses_no_frame_and_doubles_none(detect_job, tmp_path, local_ray):
     frames = list(range(NUM_FRAMES))
     killed = []
