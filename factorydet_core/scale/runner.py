@@ -10,6 +10,7 @@ wherever it runs, so the two paths give the same outputs.
 
 from __future__ import annotations
 
+import collections
 import ctypes
 import dataclasses
 import json
@@ -341,8 +342,8 @@ def run_frames(
     except Exception as exc:
         raise _input_error_inside(exc) or exc from None
     finally:
-        # A cancel (a progress callback that raises) stops the run: Ray Data's executor ends with
-        # its iterator, before a caller removes a temporary output folder.
+        # A cancel (a progress callback that raises) stops the run: the Ray workers are stopped with
+        # the rows' iterator, before a caller removes a temporary output folder.
         close = getattr(rows, "close", None)
         if close is not None:
             close()
@@ -399,20 +400,28 @@ def _input_error_inside(exc: BaseException) -> InputError | None:
 
 
 class _RayWorker:
-    """A Ray Data actor: sets the job up once, then computes the frames of each batch it gets."""
+    """A Ray actor: sets the job up once, then computes the frames it is handed one by one."""
 
     def __init__(self, job: FrameJob, out_dir: str, threads: int) -> None:
         configure_threads(threads)
         self.job = job
         self.out_dir = out_dir
-        job.setup()
+        self.setup_error: InputError | None = None
+        try:
+            job.setup()
+        except InputError as exc:
+            # Raised by ``run``: a task's error carries the exception itself to the driver, an
+            # actor's failed creation only its text.
+            self.setup_error = exc
 
-    def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def run(self, frame_index: int) -> dict[str, Any]:
         import ray
 
+        if self.setup_error is not None:
+            raise self.setup_error
+
         node_id = ray.get_runtime_context().get_node_id()
-        rows = [{**run_one(self.job, int(i), self.out_dir), "node_id": node_id} for i in batch["frame_index"]]
-        return {key: np.asarray([row[key] for row in rows]) for key in rows[0]}
+        return {**run_one(self.job, frame_index, self.out_dir), "node_id": node_id}
 
 
 _started_with: dict[str, Any] | None = None
@@ -465,34 +474,55 @@ def connect_ray(execution: Execution) -> int:
     return max(1, cpus // execution.threads)
 
 
+IN_FLIGHT_PER_WORKER = 2
+"""Frames handed to a worker at once: the one it computes and the next, so that it never waits for
+the driver; a killed worker costs at most these."""
+
+
 def _ray_rows(
     job: FrameJob, todo: list[int], out_dir: Path, execution: Execution
 ) -> tuple[Iterator[dict[str, Any]], int]:
-    """Rows of ``todo``'s frames as Ray workers finish them (one frame per block, so that a
-    killed worker re-runs only the frames it held and work spreads evenly)."""
-    workers = connect_ray(execution)
-    import ray.data
+    """Rows of ``todo``'s frames as Ray workers finish them.
 
-    logging.getLogger("ray.data").setLevel(logging.WARNING)
-    context = ray.data.DataContext.get_current()
-    context.enable_progress_bars = False
-    context.print_on_execution_start = False
-    dataset = ray.data.from_items([{"frame_index": i} for i in todo], override_num_blocks=len(todo))
-    dataset = dataset.map_batches(
-        _RayWorker,
-        fn_constructor_kwargs={"job": job, "out_dir": str(out_dir), "threads": execution.threads},
-        batch_size=1,
-        compute=ray.data.ActorPoolStrategy(size=min(workers, len(todo))),
+    Plain Ray actors, each holding ``IN_FLIGHT_PER_WORKER`` frames at a time: the driver keeps only
+    the frames not handed out yet and the few in flight. (Ray Data's streaming executor keeps a few
+    kilobytes per finished block until the run ends: the driver's memory then grows with the number
+    of frames, by about 9 kB a frame on the paper-size run.) A worker that dies is restarted by Ray
+    (``max_restarts``) and the frames it held are computed again (``max_task_retries``: system
+    failures only; a frame that raises fails the run).
+    """
+    workers = min(connect_ray(execution), len(todo))
+    import ray
+
+    worker_class = ray.remote(
         num_cpus=execution.threads,
-        # A dead worker is restarted and its frames retried: Ray Data's defaults for an actor pool
-        # (max_restarts and max_task_retries -1 in 2.60, which the fault test checks); setting
-        # them here goes through ray_remote_args, deprecated in 2.60.
-    )
+        max_restarts=-1,
+        max_task_retries=-1,
+        scheduling_strategy="SPREAD",  # one per node first, on a cluster
+    )(_RayWorker)
 
     def rows() -> Iterator[dict[str, Any]]:
-        for row in dataset.iter_rows():
-            yield {
-                key: value.item() if isinstance(value, np.generic) else value for key, value in row.items()
-            }
+        actors = [worker_class.remote(job, str(out_dir), execution.threads) for _ in range(workers)]
+        waiting = collections.deque(todo)
+        in_flight: dict[Any, int] = {}  # result reference -> the actor computing it
 
-    return rows(), min(workers, len(todo))
+        def hand_out(actor: int) -> None:
+            if waiting:
+                in_flight[actors[actor].run.remote(waiting.popleft())] = actor
+
+        try:
+            for _ in range(IN_FLIGHT_PER_WORKER):
+                for actor in range(workers):
+                    hand_out(actor)
+            while in_flight:
+                (ready,), _ = ray.wait(list(in_flight), num_returns=1)
+                actor = in_flight.pop(ready)
+                row = ray.get(ready)
+                hand_out(actor)
+                yield row
+        finally:
+            # Done, failed or cancelled (a progress callback that raised): no worker goes on.
+            for actor in actors:
+                ray.kill(actor, no_restart=True)
+
+    return rows(), workers

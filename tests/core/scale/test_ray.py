@@ -7,6 +7,7 @@ part of ``make test``); outside one it is skipped by the conftest's guard.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -19,7 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from factorydet_core.scale.runner import Execution, frame_path, run_frames
+from factorydet_core.scale.runner import Execution, SetUpOnce, frame_path, run_frames
+from factorydet_core.types import InputError
 
 from .conftest import NUM_FRAMES, same_outputs
 
@@ -135,6 +137,33 @@ def test_a_killed_worker_loses_no_frame_and_doubles_none(detect_job, tmp_path, l
     run_frames(detect_job, frames, tmp_path / "here")
     same_outputs(tmp_path / "here", tmp_path / "ray", frames)
     assert not list((tmp_path / "ray" / "frames").glob("*.tmp*")), "a half-written file was left"
+
+
+@dataclasses.dataclass
+class FailingJob(SetUpOnce):
+    """A job whose workers cannot set up (a data set missing on their node), or whose frames fail."""
+
+    in_setup: bool
+    kind: str = "failing"
+
+    def describe(self) -> dict:
+        return {"in_setup": self.in_setup}
+
+    def load(self) -> int:
+        if self.in_setup:
+            raise InputError("no data set at /nowhere on this node")
+        return 1
+
+    def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
+        raise InputError(f"frame {frame_index}: unreadable")
+
+
+def test_a_worker_s_input_error_ends_the_run_with_its_message(tmp_path, local_ray):
+    """Neither restarted nor retried forever: a worker that cannot set up, or a frame that raises,
+    ends the run with the worker's own message (the command line prints it in one line)."""
+    for in_setup, message in ((True, "no data set at /nowhere"), (False, "unreadable")):
+        with pytest.raises(InputError, match=message):
+            run_frames(FailingJob(in_setup), range(4), tmp_path / str(in_setup), Execution(workers=2))
 
 
 def _free_port() -> int:
