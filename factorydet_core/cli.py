@@ -837,6 +837,24 @@ def _detection_rows(detections, keep_suppressed: bool) -> list[dict]:
     return rows
 
 
+def add_batch_flags(parser: argparse.ArgumentParser, verb: str, files: str, what: str) -> None:
+    """A one-frame command's batch mode (``detect``, ``propose``): ``--out`` with ``--split`` and
+    ``--frames``, and the execution switch (``add_execution_flags``, ``what`` the workers do)."""
+    parser.add_argument(
+        "--out",
+        default=None,
+        help=f"{verb} every frame of --split into this folder, one .npz per frame{files}; a re-run "
+        "skips the frames already there",
+    )
+    parser.add_argument(
+        "--split", default="all", help="with --out: 'all' or a split of the data set (test, train)"
+    )
+    parser.add_argument(
+        "--frames", type=int, default=None, help="with --out: only the first N frames of the split"
+    )
+    add_execution_flags(parser, what)
+
+
 def add_execution_flags(
     parser: argparse.ArgumentParser, what: str = "its work", scratch: bool = True
 ) -> None:
@@ -1204,19 +1222,7 @@ def build_parser(
     )
     p.add_argument("--json", action="store_true", help="print every proposal as JSON")
     p.add_argument("--limit", type=int, default=20, help="rows of the text listing")
-    p.add_argument(
-        "--out",
-        default=None,
-        help="propose every frame of --split into this folder, one .npz per frame (the training "
-        "cache's format); a re-run skips the frames already there",
-    )
-    p.add_argument(
-        "--split", default="all", help="with --out: 'all' or a split of the data set (test, train)"
-    )
-    p.add_argument(
-        "--frames", type=int, default=None, help="with --out: only the first N frames of the split"
-    )
-    add_execution_flags(p, "the proposals of the frames")
+    add_batch_flags(p, "propose", " (the training cache's format)", "the proposals of the frames")
     p.set_defaults(func=_cmd_propose)
 
     p = sub.add_parser(
@@ -1338,19 +1344,7 @@ def build_parser(
     p.add_argument("--model", default="default", help="'default', a .pt checkpoint, or a session name")
     p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
     p.add_argument("--frame", type=int, default=0, help="the frame to detect (without --out)")
-    p.add_argument(
-        "--out",
-        default=None,
-        help="detect every frame of --split into this folder, one .npz per frame; a re-run skips "
-        "the frames already there",
-    )
-    p.add_argument(
-        "--split", default="all", help="with --out: 'all' or a split of the data set (test, train)"
-    )
-    p.add_argument(
-        "--frames", type=int, default=None, help="with --out: only the first N frames of the split"
-    )
-    add_execution_flags(p, "the detection of the frames")
+    add_batch_flags(p, "detect", "", "the detection of the frames")
     p.add_argument("--score-threshold", type=float, default=None, help="default: the model's")
     p.add_argument("--nms-iou", type=float, default=None, help="default: the model's")
     p.add_argument("--suppressed", action="store_true", help="also list what NMS suppressed")
