@@ -499,10 +499,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_propose(args: argparse.Namespace) -> int:
+def _propose_detector(args: argparse.Namespace, dataset, calibration_frame: int):
+    """``propose``'s front half: ``--preset`` (the data's by default) with ``--set``'s overrides,
+    its extrinsics refined by ICP on ``calibration_frame`` unless ``--no-calibrate``; and the preset."""
     from factorydet_core.detection.detector import Detector
-    from factorydet_core.io.dataset import open_dataset
     from factorydet_core.proposals.settings import front_end_params, preset_for
+
+    preset = args.preset or preset_for(dataset.num_sensors)
+    detector = Detector(front_end_params(preset, parse_overrides(args.set)))
+    if args.calibrate and dataset.num_sensors > 1:
+        detector.calibrate(dataset.frame(calibration_frame))
+    return detector, preset
+
+
+def _cmd_propose(args: argparse.Namespace) -> int:
+    from factorydet_core.io.dataset import open_dataset
 
     if args.out is not None:
         return _cmd_propose_all(args)
@@ -510,10 +521,7 @@ def _cmd_propose(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.data)
     if not 0 <= args.frame < dataset.num_frames:
         raise InputError(f"{dataset.name}: frame {args.frame} out of range [0, {dataset.num_frames})")
-    preset = args.preset or preset_for(dataset.num_sensors)
-    detector = Detector(front_end_params(preset, parse_overrides(args.set)))
-    if args.calibrate and dataset.num_sensors > 1:
-        detector.calibrate(dataset.frame(args.frame))
+    detector, preset = _propose_detector(args, dataset, args.frame)
     result = detector.propose(dataset.frame(args.frame), detector.history(dataset, args.frame))
     proposals = result.proposals
     record = {
@@ -987,19 +995,14 @@ def _run_batch(job, frames: list[int], args: argparse.Namespace, execution, doin
 def _cmd_propose_all(args: argparse.Namespace) -> int:
     """``propose --out``: the front half of every frame of a split, one file per frame (the
     training cache's format, ``training.mining.proposals_from_arrays``), resumable."""
-    from factorydet_core.detection.detector import Detector
     from factorydet_core.io.dataset import open_dataset
-    from factorydet_core.proposals.settings import front_end_params, preset_for
     from factorydet_core.scale.jobs import ProposeJob
 
     execution = execution_from_args(args)
     dataset = open_dataset(args.data)
     frames = frames_of(dataset, args.split, args.frames)
-    preset = args.preset or preset_for(dataset.num_sensors)
-    detector = Detector(front_end_params(preset, parse_overrides(args.set)))
-    if args.calibrate and dataset.num_sensors > 1:
-        # Calibrated once here, on the first frame: every worker merges with the same extrinsics.
-        detector.calibrate(dataset.frame(frames[0] if frames else 0))
+    # Calibrated once here, on the first frame: every worker merges with the same extrinsics.
+    detector, _ = _propose_detector(args, dataset, frames[0] if frames else 0)
     job = ProposeJob(str(dataset.path), detector.params, detector.T_vehicle_sensor)
     return _run_batch(job, frames, args, execution, "proposing", "proposed")
 

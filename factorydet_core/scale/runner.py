@@ -487,7 +487,7 @@ def _ray_rows(
     Plain Ray actors, each holding ``IN_FLIGHT_PER_WORKER`` frames at a time: the driver keeps only
     the frames not handed out yet and the few in flight. (Ray Data's streaming executor keeps a few
     kilobytes per finished block until the run ends: the driver's memory then grows with the number
-    of frames, by about 9 kB a frame on the paper-size run.) A worker that dies is restarted by Ray
+    of frames; ``docs/scaling.md``.) A worker that dies is restarted by Ray
     (``max_restarts``) and the frames it held are computed again (``max_task_retries``: system
     failures only; a frame that raises fails the run).
     """
