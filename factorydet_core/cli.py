@@ -20,6 +20,7 @@ from factorydet_core.types import (
     PRELABEL_SCORE,
     PROBABILITY_EXPONENT,
     SCORE_THRESHOLD,
+    FrameLostError,
     InputError,
 )
 
@@ -1671,6 +1672,9 @@ def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"factorydet {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except FrameLostError as exc:
+        print(f"factorydet {args.command}: error: {exc}", file=sys.stderr)
+        return 3
     except MemoryError as exc:
         # The readers' caps (io.limits) are meant to prevent this; when they do not, one line
         # says what ran out and how to lower the footprint, instead of a traceback.

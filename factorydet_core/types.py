@@ -63,6 +63,11 @@ class InputError(ValueError):
     """Bad input data: the message names the file or array and the problem, on one line."""
 
 
+class FrameLostError(RuntimeError):
+    """A batch frame's worker died ``scale.runner.FRAME_ATTEMPTS`` times while computing it: out of
+    memory, or a crash in native code. The message names the frame and the output folder."""
+
+
 class Cancelled(Exception):  # noqa: N818 - a request, not an error
     """Raised by long work when its ``should_stop`` callback asked it to stop."""
 

@@ -28,7 +28,7 @@ import numpy as np
 from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.jsonfile import read_json
 from factorydet_core.threads import available_cores, configure_threads
-from factorydet_core.types import MAX_RAY_WORKERS, InputError
+from factorydet_core.types import MAX_RAY_WORKERS, FrameLostError, InputError
 
 JOB_FILE = "job.json"
 """The output folder's description of the job that writes it: a re-run must be the same job."""
@@ -296,6 +296,7 @@ def run_frames(
 
     Raises:
         InputError: a repeated frame, a folder of another job, Ray missing or unreachable.
+        FrameLostError: a frame that kept killing its Ray worker (``FRAME_ATTEMPTS``).
     """
     frames = [int(i) for i in frames]
     if len(set(frames)) != len(frames):
@@ -406,12 +407,12 @@ class _RayWorker:
         configure_threads(threads)
         self.job = job
         self.out_dir = out_dir
-        self.setup_error: InputError | None = None
+        self.setup_error: Exception | None = None
         try:
             job.setup()
-        except InputError as exc:
-            # Raised by ``run``: a task's error carries the exception itself to the driver, an
-            # actor's failed creation only its text.
+        except Exception as exc:
+            # Raised by ``run``: a task's error carries the exception itself to the driver (an
+            # actor's failed creation only its text), and ends the run instead of a restart.
             self.setup_error = exc
 
     def run(self, frame_index: int) -> dict[str, Any]:
@@ -442,7 +443,7 @@ def connect_ray(execution: Execution) -> int:
         import ray
     except ImportError:
         raise InputError(
-            f"Ray workers need Ray: pip install 'ray[data]=={RAY_VERSION}' (make's set-up installs it)"
+            f"Ray workers need Ray: pip install 'ray=={RAY_VERSION}' (make's set-up installs it)"
         ) from None
     # Ray's own usage report stays off unless a user turned it on.
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
@@ -478,6 +479,11 @@ IN_FLIGHT_PER_WORKER = 2
 """Frames handed to a worker at once: the one it computes and the next, so that it never waits for
 the driver; a killed worker costs at most these."""
 
+FRAME_ATTEMPTS = 4
+"""Workers a frame may take down before the run gives up on it. A worker that dies (killed, out of
+memory, a crash in native code) is restarted and its frames are handed out again; a frame that
+kills every worker it is given would otherwise go on for ever."""
+
 
 def _ray_rows(
     job: FrameJob, todo: list[int], out_dir: Path, execution: Execution
@@ -487,28 +493,52 @@ def _ray_rows(
     Plain Ray actors, each holding ``IN_FLIGHT_PER_WORKER`` frames at a time: the driver keeps only
     the frames not handed out yet and the few in flight. (Ray Data's streaming executor keeps a few
     kilobytes per finished block until the run ends: the driver's memory then grows with the number
-    of frames; ``docs/scaling.md``.) A worker that dies is restarted by Ray
-    (``max_restarts``) and the frames it held are computed again (``max_task_retries``: system
-    failures only; a frame that raises fails the run).
+    of frames; ``docs/scaling.md``.) A worker that dies is restarted by Ray (``max_restarts``) and
+    the driver hands its frames out again; the frame it was computing counts an attempt
+    (``FRAME_ATTEMPTS``). A frame that raises fails the run.
     """
     workers = min(connect_ray(execution), len(todo))
     import ray
+    from ray.exceptions import RayActorError
 
     worker_class = ray.remote(
         num_cpus=execution.threads,
         max_restarts=-1,
-        max_task_retries=-1,
+        # The driver hands a dead worker's frames out again itself: Ray's own retries would
+        # not say which frame the worker died on.
+        max_task_retries=0,
         scheduling_strategy="SPREAD",  # one per node first, on a cluster
     )(_RayWorker)
 
     def rows() -> Iterator[dict[str, Any]]:
         actors = [worker_class.remote(job, str(out_dir), execution.threads) for _ in range(workers)]
         waiting = collections.deque(todo)
-        in_flight: dict[Any, int] = {}  # result reference -> the actor computing it
+        in_flight: dict[Any, tuple[int, int]] = {}  # result reference -> (actor, frame)
+        # Per actor, its references in the order handed out: an actor computes them in that
+        # order, so the first is the one it was computing when it died.
+        queues: list[collections.deque] = [collections.deque() for _ in actors]
+        attempts: collections.Counter[int] = collections.Counter()
 
         def hand_out(actor: int) -> None:
             if waiting:
-                in_flight[actors[actor].run.remote(waiting.popleft())] = actor
+                frame = waiting.popleft()
+                reference = actors[actor].run.remote(frame)
+                in_flight[reference] = (actor, frame)
+                queues[actor].append(reference)
+
+        def worker_died(actor: int, error: Exception) -> None:
+            frames = [in_flight.pop(reference)[1] for reference in queues[actor]]
+            queues[actor].clear()
+            attempts[frames[0]] += 1
+            if attempts[frames[0]] >= FRAME_ATTEMPTS:
+                raise FrameLostError(
+                    f"frame {frames[0]}: its worker died {FRAME_ATTEMPTS} times while computing it "
+                    "(out of memory, or a crash in native code); the frames done so far are kept in "
+                    f"{out_dir} and a re-run resumes"
+                ) from error
+            waiting.extendleft(reversed(frames))  # first, in their order
+            for _ in range(IN_FLIGHT_PER_WORKER):
+                hand_out(actor)  # to the restarted worker: Ray holds them until it is up
 
         try:
             for _ in range(IN_FLIGHT_PER_WORKER):
@@ -516,8 +546,14 @@ def _ray_rows(
                     hand_out(actor)
             while in_flight:
                 (ready,), _ = ray.wait(list(in_flight), num_returns=1)
-                actor = in_flight.pop(ready)
-                row = ray.get(ready)
+                actor, _frame = in_flight[ready]
+                try:
+                    row = ray.get(ready)
+                except RayActorError as exc:
+                    worker_died(actor, exc)
+                    continue
+                del in_flight[ready]
+                queues[actor].remove(ready)
                 hand_out(actor)
                 yield row
         finally:

@@ -20,8 +20,15 @@ from pathlib import Path
 
 import pytest
 
-from factorydet_core.scale.runner import Execution, SetUpOnce, frame_path, run_frames
-from factorydet_core.types import InputError
+from factorydet_core.scale.runner import (
+    FRAME_ATTEMPTS,
+    Execution,
+    SetUpOnce,
+    done_frames,
+    frame_path,
+    run_frames,
+)
+from factorydet_core.types import FrameLostError, InputError
 
 from .conftest import NUM_FRAMES, same_outputs
 
@@ -164,6 +171,37 @@ def test_a_worker_s_input_error_ends_the_run_with_its_message(tmp_path, local_ra
     for in_setup, message in ((True, "no data set at /nowhere"), (False, "unreadable")):
         with pytest.raises(InputError, match=message):
             run_frames(FailingJob(in_setup), range(4), tmp_path / str(in_setup), Execution(workers=2))
+
+
+@dataclasses.dataclass
+class CrashingJob(SetUpOnce):
+    """A job whose frame ``crash_on`` kills the process computing it, every time (as running out of
+    memory would); the other frames write their index."""
+
+    crash_on: int
+    kind: str = "crashing"
+
+    def describe(self) -> dict:
+        return {"crash_on": self.crash_on}
+
+    def load(self) -> int:
+        return 1
+
+    def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
+        if frame_index == self.crash_on:
+            os.kill(os.getpid(), signal.SIGKILL)
+        out_path.write_text(str(frame_index))
+        return {}
+
+
+def test_a_frame_that_keeps_killing_its_worker_ends_the_run_naming_it(tmp_path, local_ray):
+    """Handed out again a few times, not for ever; the frames queued behind it on the same worker
+    are not blamed, and the other frames are done and kept for a re-run."""
+    crash_on = 1  # the first worker's first frame: its second frame waits behind it
+    with pytest.raises(FrameLostError, match=f"frame {crash_on}: its worker died {FRAME_ATTEMPTS} times"):
+        run_frames(CrashingJob(crash_on), range(8), tmp_path / "out", Execution(workers=2))
+    done = done_frames(tmp_path / "out", range(8))
+    assert crash_on not in done and done
 
 
 def _free_port() -> int:
