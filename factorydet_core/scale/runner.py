@@ -367,7 +367,7 @@ def run_frames(
         node_ids=tuple(sorted(nodes)),
     )
     missing = [i for i in frames if not frame_path(out_dir, i).is_file()]
-    if missing:  # never expected: Ray retries failed frames and raises when it gives up
+    if missing:  # never expected: Ray retries a dead worker's frames and raises when it gives up
         raise RuntimeError(f"{len(missing)} frames have no result after the run (first: {missing[0]})")
     write_text_atomic(
         out_dir / SUMMARY_FILE,
@@ -480,9 +480,9 @@ IN_FLIGHT_PER_WORKER = 2
 the driver; a killed worker costs at most these."""
 
 FRAME_ATTEMPTS = 4
-"""Workers a frame may take down before the run gives up on it. A worker that dies (killed, out of
-memory, a crash in native code) is restarted and its frames are handed out again; a frame that
-kills every worker it is given would otherwise go on for ever."""
+"""Times a frame is given to a worker (Ray's ``max_task_retries`` is one less). A worker that dies
+(killed, out of memory, a crash in native code) is restarted by Ray and computes the frames it
+held again; a frame that kills every worker it is given would otherwise go on for ever."""
 
 
 def _ray_rows(
@@ -494,8 +494,8 @@ def _ray_rows(
     the frames not handed out yet and the few in flight. (Ray Data's streaming executor keeps a few
     kilobytes per finished block until the run ends: the driver's memory then grows with the number
     of frames; ``docs/scaling.md``.) A worker that dies is restarted by Ray (``max_restarts``) and
-    the driver hands its frames out again; the frame it was computing counts an attempt
-    (``FRAME_ATTEMPTS``). A frame that raises fails the run.
+    its frames are computed again (``max_task_retries``: deaths only, ``FRAME_ATTEMPTS``); a frame
+    that raises fails the run.
     """
     workers = min(connect_ray(execution), len(todo))
     import ray
@@ -504,9 +504,8 @@ def _ray_rows(
     worker_class = ray.remote(
         num_cpus=execution.threads,
         max_restarts=-1,
-        # The driver hands a dead worker's frames out again itself: Ray's own retries would
-        # not say which frame the worker died on.
-        max_task_retries=0,
+        # Not 0: Ray then fails at once the frames handed to a worker while it restarts.
+        max_task_retries=FRAME_ATTEMPTS - 1,
         scheduling_strategy="SPREAD",  # one per node first, on a cluster
     )(_RayWorker)
 
@@ -514,10 +513,8 @@ def _ray_rows(
         actors = [worker_class.remote(job, str(out_dir), execution.threads) for _ in range(workers)]
         waiting = collections.deque(todo)
         in_flight: dict[Any, tuple[int, int]] = {}  # result reference -> (actor, frame)
-        # Per actor, its references in the order handed out: an actor computes them in that
-        # order, so the first is the one it was computing when it died.
+        # Per actor, its references in the order handed out, the order it computes them in.
         queues: list[collections.deque] = [collections.deque() for _ in actors]
-        attempts: collections.Counter[int] = collections.Counter()
 
         def hand_out(actor: int) -> None:
             if waiting:
@@ -526,19 +523,26 @@ def _ray_rows(
                 in_flight[reference] = (actor, frame)
                 queues[actor].append(reference)
 
-        def worker_died(actor: int, error: Exception) -> None:
-            frames = [in_flight.pop(reference)[1] for reference in queues[actor]]
-            queues[actor].clear()
-            attempts[frames[0]] += 1
-            if attempts[frames[0]] >= FRAME_ATTEMPTS:
-                raise FrameLostError(
-                    f"frame {frames[0]}: its worker died {FRAME_ATTEMPTS} times while computing it "
-                    "(out of memory, or a crash in native code); the frames done so far are kept in "
-                    f"{out_dir} and a re-run resumes"
-                ) from error
-            waiting.extendleft(reversed(frames))  # first, in their order
-            for _ in range(IN_FLIGHT_PER_WORKER):
-                hand_out(actor)  # to the restarted worker: Ray holds them until it is up
+        def lost(actor: int, error: RayActorError) -> Exception:
+            """The error that ends the run when Ray gave up on one of ``actor``'s frames."""
+            if error.actor_init_failed:  # e.g. the job does not unpickle on that node
+                return InputError(f"a Ray worker could not start: {' '.join(str(error).split())[:400]}")
+            # Every frame the worker held was retried with it; the one it died on is the first
+            # of them, in its order, that came back lost (those before it may have finished).
+            culprit = in_flight[queues[actor][0]][1]
+            for reference in queues[actor]:
+                try:
+                    ray.get(reference, timeout=10)
+                except RayActorError:
+                    culprit = in_flight[reference][1]
+                    break
+                except Exception:  # noqa: BLE001 - finished or still pending: not this one
+                    continue
+            return FrameLostError(
+                f"frame {culprit}: its Ray worker died {FRAME_ATTEMPTS} times while computing it (out of "
+                f"memory, or a crash in native code); the frames done so far are kept in {out_dir} "
+                "and a re-run resumes"
+            )
 
         try:
             for _ in range(IN_FLIGHT_PER_WORKER):
@@ -546,12 +550,11 @@ def _ray_rows(
                     hand_out(actor)
             while in_flight:
                 (ready,), _ = ray.wait(list(in_flight), num_returns=1)
-                actor, _frame = in_flight[ready]
+                actor = in_flight[ready][0]
                 try:
                     row = ray.get(ready)
                 except RayActorError as exc:
-                    worker_died(actor, exc)
-                    continue
+                    raise lost(actor, exc) from exc
                 del in_flight[ready]
                 queues[actor].remove(ready)
                 hand_out(actor)

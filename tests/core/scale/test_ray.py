@@ -176,9 +176,10 @@ def test_a_worker_s_input_error_ends_the_run_with_its_message(tmp_path, local_ra
 @dataclasses.dataclass
 class CrashingJob(SetUpOnce):
     """A job whose frame ``crash_on`` kills the process computing it, every time (as running out of
-    memory would); the other frames write their index."""
+    memory would), leaving a file in ``deaths`` each time; the other frames write their index."""
 
     crash_on: int
+    deaths: str
     kind: str = "crashing"
 
     def describe(self) -> dict:
@@ -189,19 +190,25 @@ class CrashingJob(SetUpOnce):
 
     def run(self, frame_index: int, out_path: Path) -> dict[str, float]:
         if frame_index == self.crash_on:
+            (Path(self.deaths) / str(os.getpid())).touch()
             os.kill(os.getpid(), signal.SIGKILL)
         out_path.write_text(str(frame_index))
         return {}
 
 
 def test_a_frame_that_keeps_killing_its_worker_ends_the_run_naming_it(tmp_path, local_ray):
-    """Handed out again a few times, not for ever; the frames queued behind it on the same worker
-    are not blamed, and the other frames are done and kept for a re-run."""
-    crash_on = 1  # the first worker's first frame: its second frame waits behind it
-    with pytest.raises(FrameLostError, match=f"frame {crash_on}: its worker died {FRAME_ATTEMPTS} times"):
-        run_frames(CrashingJob(crash_on), range(8), tmp_path / "out", Execution(workers=2))
+    """Given to a worker ``FRAME_ATTEMPTS`` times, not for ever; the frame handed to the same worker
+    after it, computed again with it every time, is not the one named; the other frames are done
+    and kept for a re-run."""
+    crash_on = 1  # the second worker's first frame: frame 3 is handed to that worker after it
+    deaths = tmp_path / "deaths"
+    deaths.mkdir()
+    named = f"^frame {crash_on}: its Ray worker died {FRAME_ATTEMPTS} times"
+    with pytest.raises(FrameLostError, match=named):
+        run_frames(CrashingJob(crash_on, str(deaths)), range(8), tmp_path / "out", Execution(workers=2))
+    assert len(list(deaths.iterdir())) == FRAME_ATTEMPTS
     done = done_frames(tmp_path / "out", range(8))
-    assert crash_on not in done and done
+    assert crash_on not in done and 0 in done
 
 
 def _free_port() -> int:
