@@ -379,7 +379,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     else:
         if not args.data:
             raise InputError(f"bench {args.name} needs a DATA folder or file")
-        update, close = progress_bar(args.name)
+        # What each benchmark's progress counts: a hitl step is one detector's fit of a round, a
+        # classifier step one configuration's training run.
+        unit = {"hitl": "fit", "classifier": "run"}.get(args.name, "frame")
+        update, close = progress_bar(args.name, unit=unit)
         try:
             if args.name == "classifier":
                 from factorydet_core.evaluation.bench import bench_classifier
