@@ -341,7 +341,7 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
         assert sum(total for _, total in per_class.values()) == run["unannotated_total"] > 0
     full_per_class = result["variants"]["full"]["unannotated_labelled_per_class"]
     assert all(v["share"] in (1.0, None) for v in full_per_class.values())
-    assert "Unannotated training objects labelled at the end, per class:" in markdown
+    assert "the share labelled at the end, per class:" in markdown
     assert "| class | unannotated | reviewed_5 |" in markdown
     assert "answers the top K places of each round's queue (one verdict per place" in markdown
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "1,1"]) == 2
@@ -409,7 +409,7 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     assert resumed["f1"] == first["f1"] and resumed == json.loads(out.read_text())
     # A record of another plan is refused before any work; so is --resume where nothing resumes.
     fits.clear()
-    assert main([*args[:4], "2", *args[5:]]) == 2
+    assert args[5] == "--epochs" and main([*args[:6], "2", *args[7:]]) == 2
     assert "another plan (settings)" in capsys.readouterr().err and not fits
     assert main(["bench", "detect", str(small_dataset_dir), "--resume", "--out", str(out)]) == 2
     assert "--resume applies to bench hitl, quality and scale" in capsys.readouterr().err

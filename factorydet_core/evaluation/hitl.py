@@ -494,12 +494,16 @@ class _HitlPlan:
             "test_frames": self.test,
             "budgets": self.budgets,
             "mining_rounds": self.rounds,
-            "settings": dataclasses.asdict(self.settings),
+            # The seed is each run's own; the thread count is the machine's, not the model's.
+            "settings": {
+                k: v for k, v in dataclasses.asdict(self.settings).items() if k not in ("seed", "num_threads")
+            },
             "seeds": self.seeds,
             "queue_max_label_iou": self.max_label_iou,
             "calibrate": self.calibrate,
             "review_by": self.review_by,
-            "variants": self.variants,
+            "variants": self.variants
+            or ["blind", "blind_safe", *(f"reviewed_{k}" for k in self.budgets), "full"],
         }
         return json.loads(json.dumps(values))
 

@@ -722,20 +722,22 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     class_coverage = []
     if reviewed_names:
         per_class = {n: variants[n]["unannotated_labelled_per_class"] for n in reviewed_names}
-        class_coverage = [
-            "Unannotated training objects labelled at the end, per class:",
-            "",
-            "| class | unannotated | " + " | ".join(reviewed_names) + " |",
-            "|---|---|" + "---|" * len(reviewed_names),
-            *(
-                f"| {c} | {per_class[reviewed_names[0]][c]['total']:g} | "
-                + " | ".join(share(per_class[n][c]["share"]) for n in reviewed_names)
-                + " |"
-                for c in per_class[reviewed_names[0]]
-                if per_class[reviewed_names[0]][c]["total"]
-            ),
-            "",
+        coverage_rows = [
+            f"| {c} | {per_class[reviewed_names[0]][c]['total']:g} | "
+            + " | ".join(share(per_class[n][c]["share"]) for n in reviewed_names)
+            + " |"
+            for c in per_class[reviewed_names[0]]
+            if per_class[reviewed_names[0]][c]["total"]
         ]
+        if coverage_rows:  # a data set with every object annotated has nothing to give back
+            class_coverage = [
+                "Of the training frames' unannotated objects, the share labelled at the end, per class:",
+                "",
+                "| class | unannotated | " + " | ".join(reviewed_names) + " |",
+                "|---|---|" + "---|" * len(reviewed_names),
+                *coverage_rows,
+                "",
+            ]
 
     recovered = ", ".join(f"K = {k}: {share(v)}" for k, v in result["recovered"].items())
     if recovered and len(seeds) > 1:
