@@ -197,6 +197,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     )
 
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
+    if args.resume and args.name not in ("hitl", "quality", "scale"):
+        raise InputError(f"--resume applies to bench hitl, quality and scale, not bench {args.name}")
     if args.readme and (args.readme_block or args.name in ("hitl", "quality")):
         from factorydet_core.evaluation.bench import check_readme_block
 
@@ -407,8 +409,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
             elif args.name == "hitl":
                 from factorydet_core.evaluation.hitl import bench_hitl
+                from factorydet_core.io.jsonfile import write_json
                 from factorydet_core.scale.jobs import proposer
 
+                earlier = _earlier_record(args)
                 result = bench_hitl(
                     args.data[0],
                     budgets=parse_ints(args.budgets, "--budgets"),
@@ -441,12 +445,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     command=command,
                     progress=update,
                     propose=proposer(execution),
+                    earlier=earlier,
+                    # Only a resumable run replaces --out before it is complete.
+                    on_partial=(lambda partial: write_json(args.out, partial)) if args.resume else None,
                 )
                 result["proposals_on"] = execution.describe()
                 if args.out:
                     from factorydet_core.evaluation.report import hitl_markdown
                     from factorydet_core.io.atomic import write_text_atomic
-                    from factorydet_core.io.jsonfile import write_json
 
                     write_json(args.out, result)
                     write_text_atomic(Path(args.out).with_suffix(".md"), hitl_markdown(result))
@@ -1536,9 +1542,9 @@ def build_parser(
     p.add_argument(
         "--resume",
         action="store_true",
-        help="quality: continue the (partial) result at --out, training only the seeds it lacks; "
-        "scale: running only the runs it lacks; with it, --out is also written after every "
-        "training seed (quality) or run (scale)",
+        help="hitl, quality: continue the (partial) result at --out, training only the seeds (hitl: "
+        "the seeds' detectors) it lacks; scale: running only the runs it lacks; with it, --out is "
+        "also written after every detector of a seed (hitl), training seed (quality) or run (scale)",
     )
     p.add_argument(
         "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"

@@ -334,6 +334,16 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     assert result["variants"]["blind"]["unannotated_in_top_k"] is None
     assert "| unannotated training objects in the reviewed rounds' queues |" in markdown
     assert "| unannotated training objects labelled |" in markdown
+    # ... and per class, for the reviewed detectors: the counts add up to the totals.
+    for run in result["per_seed"]["reviewed_5"]:
+        per_class = run["unannotated_labelled_per_class"]
+        assert sum(covered for covered, _ in per_class.values()) == run["unannotated_labelled"]
+        assert sum(total for _, total in per_class.values()) == run["unannotated_total"] > 0
+    full_per_class = result["variants"]["full"]["unannotated_labelled_per_class"]
+    assert all(v["share"] in (1.0, None) for v in full_per_class.values())
+    assert "the share labelled at the end, per class:" in markdown
+    assert "| class | unannotated | reviewed_5 |" in markdown
+    assert "answers the top K places of each round's queue (one verdict per place" in markdown
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "1,1"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--seeds", "-1"]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--budgets", "200,200"]) == 2
@@ -363,6 +373,46 @@ def test_bench_hitl_runs_the_variants_asked_for_with_blind_always(small_dataset_
     assert "and every point set on their boxes (their places) with them" in markdown
     assert "Full labels were not run here" in markdown and "Recovered share" not in markdown
     assert "the paper's 3DmFV-Net (width 0.0625)" in markdown
+
+
+@pytest.mark.slow
+def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
+    small_dataset_dir, tmp_path, capsys, monkeypatch
+):
+    import factorydet_core.evaluation.hitl as hitl
+
+    out = tmp_path / "hitl.json"
+    args = ["bench", "hitl", str(small_dataset_dir), "--rounds", "1", "--epochs", "1",
+            "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
+            "--seeds", "0", "--train-frames", "1", "--frames", "1", "--no-calibrate", "--no-box-quality",
+            "--method", "paper", "--class-weight", "balanced", "--variants", "blind_safe",
+            "--out", str(out), "--resume"]  # fmt: skip
+    fits = []
+    train_session = hitl.train_session
+    monkeypatch.setattr(
+        hitl, "train_session", lambda db, *a, **k: fits.append(db) or train_session(db, *a, **k)
+    )
+    assert main(args) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["complete"] and len(fits) == 4  # two detectors, a first fit and one round each
+    # Stopped after blind: the partial record --out held then.
+    partial = {key: first[key] for key in ("benchmark", "command", "plan", "machine")}
+    out.write_text(
+        json.dumps({**partial, "complete": False, "per_seed": {"blind": first["per_seed"]["blind"]}})
+    )
+    fits.clear()
+    assert main(args) == 0
+    resumed = json.loads(capsys.readouterr().out)
+    assert len(fits) == 2  # blind_safe alone trained again
+    assert resumed["per_seed"]["blind"] == first["per_seed"]["blind"]  # read back, fit time included
+    # Each detector trains in a session of its own from its seed: the same F as the whole run's.
+    assert resumed["f1"] == first["f1"] and resumed == json.loads(out.read_text())
+    # A record of another plan is refused before any work; so is --resume where nothing resumes.
+    fits.clear()
+    assert args[5] == "--epochs" and main([*args[:6], "2", *args[7:]]) == 2
+    assert "another plan (settings)" in capsys.readouterr().err and not fits
+    assert main(["bench", "detect", str(small_dataset_dir), "--resume", "--out", str(out)]) == 2
+    assert "--resume applies to bench hitl, quality and scale" in capsys.readouterr().err
 
 
 @pytest.mark.slow

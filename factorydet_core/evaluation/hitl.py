@@ -4,9 +4,10 @@ the review queue from the simulator's hidden truth, so only benchmarks and tests
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +158,38 @@ def add_truth_labels(
     return added
 
 
+def unannotated_coverage_by_class(
+    db: SessionDB,
+    dataset: Dataset,
+    frame_indices: Sequence[int],
+    min_points: int | None = None,
+    iou_threshold: float = 0.6,
+) -> dict[str, tuple[int, int]]:
+    """Per class, how many of the objects the data set left unannotated (``add_truth_labels``'
+    set) the session now labels with their class at ``iou_threshold``: what the reviews gave back.
+
+    Returns:
+        ``{class_name: (covered, total)}`` for every class of the data set.
+    """
+    counts = {name: [0, 0] for name in dataset.class_names}
+    for index in frame_indices:
+        boxes, class_ids = _unannotated_truth(dataset, index, min_points)
+        if not len(boxes):
+            continue
+        truth_names = np.asarray(dataset.class_names)[class_ids]
+        labels, label_class_ids, _ = db.frame_boxes(index)
+        covered_mask = np.zeros(len(boxes), bool)
+        if len(labels):
+            label_names = np.asarray(db.class_names)[label_class_ids]
+            same_class = truth_names[:, None] == label_names[None, :]
+            iou = np.where(same_class, box_iou_3d(boxes, labels), 0.0)
+            covered_mask = iou.max(axis=1) >= iou_threshold
+        for name, covered in zip(truth_names, covered_mask):
+            counts[str(name)][0] += int(covered)
+            counts[str(name)][1] += 1
+    return {name: (covered, total) for name, (covered, total) in counts.items()}
+
+
 def unannotated_coverage(
     db: SessionDB,
     dataset: Dataset,
@@ -164,25 +197,13 @@ def unannotated_coverage(
     min_points: int | None = None,
     iou_threshold: float = 0.6,
 ) -> tuple[int, int]:
-    """How many of the objects the data set left unannotated (``add_truth_labels``' set) the
-    session now labels with their class at ``iou_threshold``: what the reviews gave back.
+    """``unannotated_coverage_by_class`` over all classes.
 
     Returns:
         ``(covered, total)``.
     """
-    covered = total = 0
-    for index in frame_indices:
-        boxes, class_ids = _unannotated_truth(dataset, index, min_points)
-        total += len(boxes)
-        labels, label_class_ids, _ = db.frame_boxes(index)
-        if not len(boxes) or not len(labels):
-            continue
-        truth_names = np.asarray(dataset.class_names)[class_ids]
-        label_names = np.asarray(db.class_names)[label_class_ids]
-        same_class = truth_names[:, None] == label_names[None, :]
-        iou = np.where(same_class, box_iou_3d(boxes, labels), 0.0)
-        covered += int((iou.max(axis=1) >= iou_threshold).sum())
-    return covered, total
+    by_class = unannotated_coverage_by_class(db, dataset, frame_indices, min_points, iou_threshold)
+    return sum(c for c, _ in by_class.values()), sum(t for _, t in by_class.values())
 
 
 def _truth_answer(db: SessionDB, dataset: Dataset, item: dict, positive_iou: float):
@@ -342,6 +363,8 @@ def bench_hitl(
     review_by: str = "item",
     variants: Sequence[str] | None = None,
     propose: Proposer = collect_proposals,
+    earlier: dict | None = None,
+    on_partial: Callable[[dict], None] | None = None,
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
     mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -365,6 +388,15 @@ def bench_hitl(
     and ``recovered[K]`` is (F(b) - F(a)) / (F(c) - F(a)) of the means. The training and test
     frames are spread evenly over their splits (``spread_frames``). Their proposals are made once,
     by ``propose`` (on Ray workers with ``scale.jobs.proposer``); the fits and the mining run here.
+
+    After each detector of each seed, a partial record (``"complete": false``, the plan and the
+    runs so far) goes to ``on_partial``; given back as ``earlier`` to a run of the same plan (its
+    seeds aside), its runs are read back and only the missing ones train, so a long benchmark can
+    be stopped and resumed. A run depends only on its seed and its variant (each trains in its own
+    session), so a resumed run does the work an uninterrupted one would.
+
+    Raises:
+        InputError: on bad arguments, or an ``earlier`` record of another plan.
     """
     import tempfile
 
@@ -400,10 +432,11 @@ def bench_hitl(
         dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command,
         review_by, variants, propose,
     )  # fmt: skip
+    resumed = _resumable_runs(plan, earlier)  # a plan mismatch fails here, before any work
     if workdir is not None:
-        return _hitl_variants(plan, Path(workdir), progress)
+        return _hitl_variants(plan, Path(workdir), progress, resumed, on_partial)
     with tempfile.TemporaryDirectory(prefix="factorydet_hitl_") as scratch_dir:
-        return _hitl_variants(plan, Path(scratch_dir), progress)
+        return _hitl_variants(plan, Path(scratch_dir), progress, resumed, on_partial)
 
 
 def paired_difference(values: Sequence[float], baseline: Sequence[float]) -> dict:
@@ -453,13 +486,64 @@ class _HitlPlan:
     variants: list[str] | None = None
     propose: Proposer = collect_proposals
 
+    def record(self) -> dict:
+        """The plan as JSON: a result is resumed only by a run of the same plan (its seeds aside)."""
+        values = {
+            "data": Path(self.data).name,
+            "train_frames": self.train,
+            "test_frames": self.test,
+            "budgets": self.budgets,
+            "mining_rounds": self.rounds,
+            # The seed is each run's own; the thread count is the machine's, not the model's.
+            "settings": {
+                k: v for k, v in dataclasses.asdict(self.settings).items() if k not in ("seed", "num_threads")
+            },
+            "seeds": self.seeds,
+            "queue_max_label_iou": self.max_label_iou,
+            "calibrate": self.calibrate,
+            "review_by": self.review_by,
+            "variants": self.variants
+            or ["blind", "blind_safe", *(f"reviewed_{k}" for k in self.budgets), "full"],
+        }
+        return json.loads(json.dumps(values))
 
-def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
-    """``bench_hitl``'s work inside its sessions folder ``root``."""
+
+def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, str], dict]:
+    """The finished runs of an earlier (partial) result of the same plan, as ``{(seed, variant): run}``.
+
+    Raises:
+        InputError: when ``earlier`` is a record of another plan (it would mix two benchmarks).
+    """
+    if not earlier:
+        return {}
+    if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
+        raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
+    mine, theirs = plan.record(), dict(earlier["plan"])
+    mine.pop("seeds"), theirs.pop("seeds", None)
+    if mine != theirs:
+        changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+        raise InputError(f"bench hitl --resume: the earlier result ran another plan ({', '.join(changed)})")
+    return {
+        (int(run["seed"]), name): run
+        for name, runs in (earlier.get("per_seed") or {}).items()
+        for run in runs
+        if int(run["seed"]) in plan.seeds
+    }
+
+
+def _hitl_variants(
+    plan: _HitlPlan,
+    root: Path,
+    progress,
+    resumed: dict[tuple[int, str], dict] | None = None,
+    on_partial: Callable[[dict], None] | None = None,
+) -> dict:
+    """``bench_hitl``'s work inside its sessions folder ``root``; ``resumed`` runs are read back."""
 
     dataset, data, train, test, budgets = plan.dataset, plan.data, plan.train, plan.test, plan.budgets
     rounds, settings, seeds, max_label_iou = plan.rounds, plan.settings, plan.seeds, plan.max_label_iou
     calibrate, command = plan.calibrate, plan.command
+    resumed = resumed or {}
     detector = Detector(params_for(None, dataset.num_sensors))
     if calibrate and dataset.num_sensors > 1:
         detector.calibrate(dataset.frame(train[0]))
@@ -488,6 +572,12 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
     per_seed: dict[str, list[dict]] = {name: [] for name, _, _ in variants}
     for seed in seeds:
         for name, budget, variant_hold in variants:
+            if (seed, name) in resumed:
+                per_seed[name].append(resumed[(seed, name)])
+                done += rounds + 1
+                if progress is not None:
+                    progress(done, steps)
+                continue
             seed_settings = dataclasses.replace(settings, seed=seed, hold_confident=variant_hold)
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
@@ -523,7 +613,9 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                 if progress is not None:
                     progress(done, steps)
             metrics = measure(run.model, dataset, test_frames, use_truth=True)
-            covered, unannotated = unannotated_coverage(db, dataset, train)
+            covered_by_class = unannotated_coverage_by_class(db, dataset, train)
+            covered = sum(c for c, _ in covered_by_class.values())
+            unannotated = sum(t for _, t in covered_by_class.values())
             per_seed[name].append(
                 {
                     "seed": seed,
@@ -537,6 +629,7 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                     "truth_labels_added": added,
                     "unannotated_labelled": covered,
                     "unannotated_total": unannotated,
+                    "unannotated_labelled_per_class": {c: list(v) for c, v in covered_by_class.items()},
                     "unannotated_in_queue": None if name == "full" else len(reached),
                     "unannotated_in_top_k": len(reached_top) if budget else None,
                     "reach_share_estimated": _mean_of([e for e, _ in reach_shares]),
@@ -544,6 +637,17 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
                     "fit_seconds": round(fit_seconds, 1),
                 }
             )
+            if on_partial is not None:
+                on_partial(
+                    {
+                        "benchmark": "hitl",
+                        "complete": False,
+                        "command": command,
+                        "plan": plan.record(),
+                        "per_seed": {n: runs for n, runs in per_seed.items() if runs},
+                        "machine": machine_info(),
+                    }
+                )
 
     results = {}
     for name, runs in per_seed.items():
@@ -562,6 +666,23 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
             "unannotated_labelled": _mean_of(
                 [r["unannotated_labelled"] / max(r["unannotated_total"], 1) for r in runs]
             ),
+            # ... per class: (mean over the seeds of) the share labelled, and how many there are.
+            "unannotated_labelled_per_class": {
+                c: {
+                    "share": _mean_of(
+                        [
+                            r["unannotated_labelled_per_class"][c][0]
+                            / r["unannotated_labelled_per_class"][c][1]
+                            if r["unannotated_labelled_per_class"][c][1]
+                            else None
+                            for r in runs
+                        ]
+                    ),
+                    "total": _mean_of([r["unannotated_labelled_per_class"][c][1] for r in runs]),
+                }
+                for c in runs[0].get("unannotated_labelled_per_class", {})
+                if all("unannotated_labelled_per_class" in r for r in runs)
+            },
             # Of those objects, the share some item of a reviewed round's queue overlaps (IoU 0.1):
             # all that reviews of any budget could give back (None for full labels: no queue of
             # unannotated objects to reach).
@@ -599,7 +720,9 @@ def _hitl_variants(plan: _HitlPlan, root: Path, progress) -> dict:
         recovered_per_seed = {str(k): [r[str(k)] for r in seed_recovered] for k in reviewed}
     return {
         "benchmark": "hitl",
+        "complete": True,
         "command": command,
+        "plan": plan.record(),
         "data": Path(data).name,
         "train_frames": train,
         "test_frames": test,

@@ -714,6 +714,31 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     def share(v: float | None) -> str:
         return "–" if v is None else f"{100 * v:.0f}%"
 
+    # Which classes the reviews gave back: per class, the share of the unannotated training
+    # objects each reviewed detector's session labels at the end.
+    reviewed_names = [
+        n for n in names if n.startswith("reviewed_") and variants[n].get("unannotated_labelled_per_class")
+    ]
+    class_coverage = []
+    if reviewed_names:
+        per_class = {n: variants[n]["unannotated_labelled_per_class"] for n in reviewed_names}
+        coverage_rows = [
+            f"| {c} | {per_class[reviewed_names[0]][c]['total']:g} | "
+            + " | ".join(share(per_class[n][c]["share"]) for n in reviewed_names)
+            + " |"
+            for c in per_class[reviewed_names[0]]
+            if per_class[reviewed_names[0]][c]["total"]
+        ]
+        if coverage_rows:  # a data set with every object annotated has nothing to give back
+            class_coverage = [
+                "Of the training frames' unannotated objects, the share labelled at the end, per class:",
+                "",
+                "| class | unannotated | " + " | ".join(reviewed_names) + " |",
+                "|---|---|" + "---|" * len(reviewed_names),
+                *coverage_rows,
+                "",
+            ]
+
     recovered = ", ".join(f"K = {k}: {share(v)}" for k, v in result["recovered"].items())
     if recovered and len(seeds) > 1:
         recovered += (
@@ -747,8 +772,15 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             f"{result['iou_threshold']} against the full truth, on test frames of the training frames'"
             " factory (in-factory figures). `blind`: mining on the partial labels (the paper)."
             + (
-                " `reviewed_K`: a simulated reviewer answers the top K items of each round's queue from the"
-                " truth through the review panel's own call, labelling to the data set's annotation policy."
+                " `reviewed_K`: a simulated reviewer answers the top K "
+                + (
+                    "places of each round's queue (one verdict per place, as the review panel shows them"
+                    " by default; an object labelled once in every frame that shows it)"
+                    if result.get("review_by") == "place"
+                    else "items of each round's queue"
+                )
+                + " from the truth through the review panel's own call, labelling to the data set's"
+                " annotation policy."
                 if reviewed
                 else ""
             )
@@ -775,5 +807,6 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             _recovered_text(result, recovered),
             "",
             *([_map_recovered_text(result, map_differences), ""] if "full" in map_differences else []),
+            *class_coverage,
         ]
     )
