@@ -1595,8 +1595,8 @@ def build_parser(
     p.add_argument(
         "--variants",
         default=None,
-        help="hitl: run only these detectors, comma-separated (blind, blind_safe, reviewed_K, full; "
-        "blind always runs); default all",
+        help="hitl: run only these detectors, comma-separated (blind, blind_safe, reviewed_K, full, and "
+        "full_late: full labels added after the first fit; blind always runs); default all but full_late",
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument(

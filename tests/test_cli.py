@@ -362,16 +362,21 @@ def test_bench_hitl_runs_the_variants_asked_for_with_blind_always(small_dataset_
     args = ["bench", "hitl", str(small_dataset_dir), "--rounds", "1", "--epochs", "1",
             "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
             "--seeds", "0", "--train-frames", "1", "--no-calibrate", "--no-box-quality",
-            "--method", "paper", "--class-weight", "balanced", "--variants", "blind_safe",
+            "--method", "paper", "--class-weight", "balanced", "--variants", "full_late,blind_safe",
             "--hold-places", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
-    assert list(result["variants"]) == ["blind", "blind_safe"]
+    assert list(result["variants"]) == ["blind", "blind_safe", "full_late"]
+    # full_late: every missing label added after the first fit, none before it.
+    late = result["variants"]["full_late"]
+    assert late["truth_labels_added"] > 0 and late["unannotated_labelled"] == 1.0
+    assert result["plan"]["variants"] == ["blind", "blind_safe", "full_late"]
     assert result["settings"]["hold_places"] is True
     assert result["gap_full_minus_blind"] is None and result["recovered"] == {}
     markdown = out.with_suffix(".md").read_text()
     assert "and every point set on their boxes (their places) with them" in markdown
     assert "Full labels were not run here" in markdown and "Recovered share" not in markdown
+    assert "`full_late`: the same labels added after the first fit" in markdown
     assert "the paper's 3DmFV-Net (width 0.0625)" in markdown
 
 

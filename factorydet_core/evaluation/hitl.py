@@ -373,7 +373,9 @@ def bench_hitl(
     (b) ``reviewed_K``: the same, with a simulated reviewer answering the top K items of each
         round's queue from the truth, through ``SessionDB.review`` (the review panel's call);
     (c) ``full``: mining on full labels (every object of the annotation policy labelled,
-        ``hitl.add_truth_labels``), the upper bound.
+        ``hitl.add_truth_labels``), the upper bound;
+    (d) ``full_late``, asked for by name: the same labels added after the first fit, when a
+        reviewer's arrive (a reviewer with unlimited time): what labels lose by arriving late.
 
     ``max_label_iou`` gives the reviewer the queue filter that hides items on labelled objects
     (``SessionDB.review_queue``); hidden items cost no budget. ``review_by`` "place" reviews as the
@@ -414,7 +416,7 @@ def bench_hitl(
         raise InputError(f"bench hitl: the queue filter's IoU must lie in (0, 1], got {max_label_iou}")
     if review_by not in ("item", "place"):
         raise InputError(f"bench hitl: review by 'item' or 'place', got {review_by!r}")
-    known = ["blind", "blind_safe", *(f"reviewed_{k}" for k in budgets), "full"]
+    known = ["blind", "blind_safe", *(f"reviewed_{k}" for k in budgets), "full_late", "full"]
     if variants is not None:
         unknown = sorted(set(variants) - set(known))
         if unknown:
@@ -503,7 +505,7 @@ class _HitlPlan:
             "calibrate": self.calibrate,
             "review_by": self.review_by,
             "variants": self.variants
-            or ["blind", "blind_safe", *(f"reviewed_{k}" for k in self.budgets), "full"],
+            or [name for name, _, _ in _variant_specs(self.budgets, None, default=True)],
         }
         return json.loads(json.dumps(values))
 
@@ -529,6 +531,20 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         for run in runs
         if int(run["seed"]) in plan.seeds
     }
+
+
+def _variant_specs(
+    budgets: Sequence[int], hold: float | None, default: bool
+) -> list[tuple[str, int, float | None]]:
+    """The detectors ``bench hitl`` can train, in table order: ``(name, review budget, hold score)``;
+    ``default``: those it trains when none are named (``full_late``, a diagnostic, is asked for)."""
+    return [
+        ("blind", 0, None),
+        ("blind_safe", 0, hold),
+        *((f"reviewed_{k}", int(k), None) for k in budgets),
+        *([] if default else [("full_late", 0, None)]),
+        ("full", 0, None),
+    ]
 
 
 def _hitl_variants(
@@ -560,12 +576,7 @@ def _hitl_variants(
     # blind_safe: blind mining that holds the negatives the model scores at its operating score or
     # more out of the background until reviewed (nobody reviews them here).
     hold = settings.hold_confident if settings.hold_confident is not None else settings.score_threshold
-    variants = [
-        ("blind", 0, None),
-        ("blind_safe", 0, hold),
-        *((f"reviewed_{k}", int(k), None) for k in budgets),
-        ("full", 0, None),
-    ]
+    variants = _variant_specs(budgets, hold, default=plan.variants is None)
     if plan.variants is not None:
         variants = [v for v in variants if v[0] in plan.variants]
     steps, done = len(seeds) * len(variants) * (rounds + 1), 0
@@ -593,6 +604,10 @@ def _hitl_variants(
                     db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data)
                 )
                 fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
+                if name == "full_late" and r == 0:
+                    # Every missing label arrives after the first fit, when a reviewer's would:
+                    # what late labels are worth against labels from the start (full).
+                    added = add_truth_labels(db, dataset, train)
                 if name != "full" and r < rounds:
                     round_reach = queue_reach(db, dataset, train)
                     reached |= round_reach

@@ -784,6 +784,11 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 if reviewed
                 else ""
             )
+            + (
+                " `full_late`: the same labels added after the first fit, when a reviewer's arrive."
+                if "full_late" in variants
+                else ""
+            )
             + (" `full`: every object of the annotation policy labelled." if "full" in variants else "")
             + (
                 " `blind_safe`: blind mining that holds the negatives scoring"
