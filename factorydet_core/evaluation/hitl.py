@@ -15,7 +15,7 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.evaluate import measure
-from factorydet_core.evaluation.records import machine_info, spread_frames
+from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
@@ -202,7 +202,13 @@ def unannotated_coverage(
     Returns:
         ``(covered, total)``.
     """
-    by_class = unannotated_coverage_by_class(db, dataset, frame_indices, min_points, iou_threshold)
+    return _coverage_totals(
+        unannotated_coverage_by_class(db, dataset, frame_indices, min_points, iou_threshold)
+    )
+
+
+def _coverage_totals(by_class: dict[str, tuple[int, int]]) -> tuple[int, int]:
+    """``(covered, total)`` over the classes of ``unannotated_coverage_by_class``' answer."""
     return sum(c for c, _ in by_class.values()), sum(t for _, t in by_class.values())
 
 
@@ -520,11 +526,7 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         return {}
     if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
         raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
-    mine, theirs = plan.record(), dict(earlier["plan"])
-    mine.pop("seeds"), theirs.pop("seeds", None)
-    if mine != theirs:
-        changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
-        raise InputError(f"bench hitl --resume: the earlier result ran another plan ({', '.join(changed)})")
+    check_same_plan("hitl", plan.record(), earlier["plan"])
     return {
         (int(run["seed"]), name): run
         for name, runs in (earlier.get("per_seed") or {}).items()
@@ -629,8 +631,7 @@ def _hitl_variants(
                     progress(done, steps)
             metrics = measure(run.model, dataset, test_frames, use_truth=True)
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
-            covered = sum(c for c, _ in covered_by_class.values())
-            unannotated = sum(t for _, t in covered_by_class.values())
+            covered, unannotated = _coverage_totals(covered_by_class)
             per_seed[name].append(
                 {
                     "seed": seed,

@@ -38,7 +38,7 @@ from factorydet_core.detection.box_quality import BoxQuality
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.evaluate import ignored_boxes, measure, reference_boxes
-from factorydet_core.evaluation.records import machine_info, spread_frames
+from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.io.jsonfile import write_json
@@ -278,13 +278,7 @@ def resumable_runs(plan: QualityPlan, earlier: dict | None) -> dict[int, dict[st
     """
     if not earlier:
         return {}
-    mine, theirs = plan.record(), dict(earlier.get("plan") or {})
-    mine.pop("seeds"), theirs.pop("seeds", None)
-    if mine != theirs:
-        changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
-        raise InputError(
-            f"bench quality --resume: the earlier result ran another plan ({', '.join(changed)})"
-        )
+    check_same_plan("quality", plan.record(), earlier.get("plan"))
     learned = [m for m in plan.methods if m != "paper"]
     done: dict[int, dict[str, dict]] = {}
     for seed in plan.seeds:

@@ -53,3 +53,19 @@ def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:
         raise InputError(f"frame count must be >= 1, got {count}")
     picks = np.unique(np.round(np.linspace(0, len(frames) - 1, count)).astype(int))
     return [frames[i] for i in picks]
+
+
+def check_same_plan(benchmark: str, mine: dict, theirs: dict | None) -> None:
+    """Refuse to resume a benchmark from the record of another plan: ``mine`` and ``theirs`` (the
+    plans as JSON) must agree in everything but their ``seeds``, which a resumed run may extend.
+
+    Raises:
+        InputError: naming the fields that differ (resuming would mix two benchmarks).
+    """
+    mine, theirs = dict(mine), dict(theirs or {})
+    mine.pop("seeds", None), theirs.pop("seeds", None)
+    if mine != theirs:
+        changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+        raise InputError(
+            f"bench {benchmark} --resume: the earlier result ran another plan ({', '.join(changed)})"
+        )
