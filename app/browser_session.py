@@ -664,10 +664,11 @@ class BrowserSession:
                 if not on_labelled_object(q["label_iou"], HIDE_LABELLED_IOU) or q["id"] == current_id
             ]
         if group and world is not None and queue:
-            places_key = (id(world), tuple(q["id"] for q in queue))
+            order = self.state.db.queue_order()
+            places_key = (id(world), tuple(q["id"] for q in queue), order)
             cached = self._places
             if cached is None or cached[0] != places_key:
-                cached = self._places = (places_key, group_by_place(world, queue))
+                cached = self._places = (places_key, group_by_place(world, queue, order=order))
             queue = _by_place(queue, cached[1], current_id)
         self._shown_queue = (shown_key, queue)
         with self.lock:

@@ -432,6 +432,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "class_weight": args.class_weight,
                             "round_epochs": args.round_epochs,
                             "hold_places": args.hold_places,
+                            "queue_order": args.queue_order,
                             "class_thresholds": args.class_thresholds,
                         }
                     ),
@@ -1618,7 +1619,9 @@ def build_parser(
         help="quality, detect, world-labels: frames per held-out factory",
     )
     # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
-    add_loop_flags(p, fields=("method", "class_weight", "round_epochs", "hold_places", "class_thresholds"))
+    add_loop_flags(
+        p, fields=("method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order")
+    )
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

@@ -54,6 +54,9 @@ DEFAULT_METHOD = "head_options"
 model's. On the held-out factories it scored the paper pipeline's F-score with a higher mAP and
 recognition, and kept far more of the background as background (``docs/bench/quality.md``)."""
 
+QUEUE_ORDERS: tuple[str, ...] = ("score", "class")
+"""How mined negatives are cut and queued for review (``session.queue.queue_order``): by score, as
+the paper adds the top N false positives; or by class, each predicted class taking turns."""
 
 MAX_RAY_WORKERS = 4096
 """The most Ray workers a batch may ask for (``scale.runner.Execution``, a session's setting)."""

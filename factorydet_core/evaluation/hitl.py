@@ -234,7 +234,7 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
 
     answered = 0
     done: set[int] = set()  # items answered with an earlier place (the queue is read once)
-    for members in group_by_place(world, queue):
+    for members in group_by_place(world, queue, order=db.queue_order()):
         if answered == budget:
             break
         items = [queue[k] for k in members if queue[k]["id"] not in done]
@@ -312,7 +312,7 @@ def queue_reach(
     if world is not None:
         from factorydet_core.session.world import group_by_place
 
-        places = group_by_place(world, queue)[:top]
+        places = group_by_place(world, queue, order=db.queue_order(run_id))[:top]
         queue = [queue[k] for place in places for k in place]
     elif top is not None:
         queue = queue[:top]
@@ -338,7 +338,8 @@ def estimated_reach_share(db: SessionDB, top: int, world=None) -> float | None:
 
     queue = db.review_queue()
     if world is not None:
-        chances = [place_chance([queue[k]["score"] for k in place]) for place in group_by_place(world, queue)]
+        places = group_by_place(world, queue, order=db.queue_order())
+        chances = [place_chance([queue[k]["score"] for k in place]) for place in places]
     else:
         chances = [item["score"] for item in queue]
     first, total = expected_reach(chances, top)

@@ -42,8 +42,9 @@ from pathlib import Path
 
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.io.dataset import MANIFEST, Dataset, open_dataset
+from factorydet_core.session.queue import queue_order as order_queue
 from factorydet_core.settings_check import exception_line, short_repr
-from factorydet_core.types import MAX_RAY_WORKERS, InputError
+from factorydet_core.types import MAX_RAY_WORKERS, QUEUE_ORDERS, InputError
 
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
@@ -2235,12 +2236,29 @@ class SessionDB:
     def hold_score(self, run_id: int) -> float | None:
         """The score at or above which run ``run_id`` held its mined negatives out of the
         background until reviewed (``LoopSettings.hold_confident``; ``None``: it held none)."""
+        hold = self._run_settings(run_id).get("hold_confident")
+        return None if hold is None else float(hold)
+
+    def queue_order(self, run_id: int | None = None) -> str:
+        """How run ``run_id`` (the latest by default) cut and orders its mined negatives
+        (``LoopSettings.queue_order``; "score" for runs from before it was a setting, and when
+        there is no run)."""
+        if run_id is None:
+            run_id = self.latest_run_id()
+            if run_id is None:
+                return "score"
+        order = self._run_settings(run_id).get("queue_order") or "score"
+        if order not in QUEUE_ORDERS:
+            raise SessionError(f"training run {run_id}: unknown queue order {short_repr(order, 40)}")
+        return str(order)
+
+    def _run_settings(self, run_id: int) -> dict:
+        """Run ``run_id``'s ``LoopSettings`` as stored in its config (``{}`` for a run without)."""
         with self._read() as db:
             row = db.execute("SELECT id, config FROM training_runs WHERE id = ?", (int(run_id),)).fetchone()
         if row is None:
             raise SessionError(f"no training run {run_id}")
-        hold = (_row("training_runs", row)["config"].get("settings") or {}).get("hold_confident")
-        return None if hold is None else float(hold)
+        return _row("training_runs", row)["config"].get("settings") or {}
 
     def change_stamp(self) -> tuple:
         """A value that changes with every edit to the session's labels and verdicts and every
@@ -2281,7 +2299,8 @@ class SessionDB:
         pending_only: bool = False,
         max_label_iou: float | None = None,
     ) -> list[dict]:
-        """Negatives mined by a run (the latest by default), highest score first, each with its
+        """Negatives mined by a run (the latest by default) in its queue order (``queue_order``:
+        highest score first, or the predicted classes taking turns), each with its
         verdict (``None`` if unreviewed), the verdict's class, label and reviewer, and
         ``label_iou``: its box's highest IoU with the frame's current labels (``label_overlap``).
 
@@ -2294,13 +2313,33 @@ class SessionDB:
         """
         if max_label_iou is not None and not 0.0 < max_label_iou <= 1.0:
             raise InputError(f"max_label_iou must lie in (0, 1], got {max_label_iou}")
+        if run_id is None:
+            run_id = self.latest_run_id()
         out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
+        if out and self.queue_order(run_id) != "score":
+            out = self._in_queue_order(run_id, out)
         label_iou = self.label_overlap(out)
         for item, iou in zip(out, label_iou):
             item["label_iou"] = iou
         if max_label_iou is not None:
             out = [item for item in out if not on_labelled_object(item["label_iou"], max_label_iou)]
         return out
+
+    def _in_queue_order(self, run_id: int, items: list[dict]) -> list[dict]:
+        """``items`` of run ``run_id``'s queue in the run's queue order (``session.queue``), placed
+        by their position in the whole queue: a filter or a verdict given leaves the order of
+        the rest as it was."""
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT id, predicted_class, score FROM mined_negatives WHERE run_id = ?"
+                " ORDER BY score DESC, id",
+                (int(run_id),),
+            ).fetchall()
+        order = order_queue(
+            [r["score"] for r in rows], [r["predicted_class"] for r in rows], self.queue_order(run_id)
+        )
+        position = {int(rows[k]["id"]): p for p, k in enumerate(order.tolist())}
+        return sorted(items, key=lambda item: position[int(item["id"])])
 
     def _queue_rows(
         self, run_id: int | None, predicted_class: str | None, frame_index: int | None, pending_only: bool

@@ -21,6 +21,7 @@ import numpy as np
 
 from factorydet_core.geometry import invert_transform, points_in_box, rotation_z, transform_boxes, wrap_angle
 from factorydet_core.proposals.merge import merge_frame, o3d_cloud, refine_extrinsics
+from factorydet_core.session.queue import queue_order
 from factorydet_core.types import Frame, InputError, check_array
 
 MOVING_CLASSES: frozenset[str] = frozenset({"person", "truck"})
@@ -283,7 +284,9 @@ def expected_reach(chances, top: int) -> tuple[float, float]:
     return float(values[: max(int(top), 0)].sum()), float(values.sum())
 
 
-def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = PLACE_IOU) -> list[list[int]]:
+def group_by_place(
+    world: WorldFrames, items: Sequence[dict], min_iou: float = PLACE_IOU, order: str = "score"
+) -> list[list[int]]:
     """The review queue's items by place: items of one object mined in several frames (and
     duplicates in one frame) are one place, so that one verdict answers them all.
 
@@ -293,10 +296,13 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
     shelf of boxes a chain would join neighbour to neighbour into one place. Places come most
     likely an object first: by the chance that at least one of their items is one,
     ``1 - prod(1 - score)`` (a place the model finds again in frame after frame is likelier real
-    than one confident detection).
+    than one confident detection). With ``order`` "class" the places' classes (their first
+    item's predicted class) take turns, each class's places by that chance
+    (``session.queue.queue_order``, the run's ``LoopSettings.queue_order``).
 
     Args:
-        items: dicts with ``frame_index``, ``box`` (7,) in that frame and ``score``.
+        items: dicts with ``frame_index``, ``box`` (7,) in that frame and ``score`` (and
+            ``predicted_class`` with ``order`` "class").
 
     Returns:
         Lists of positions in ``items``, each place's items by decreasing score.
@@ -313,9 +319,9 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
         in_world[rows] = transform_boxes(world.T_world_vehicle[frame], boxes[rows])
     first, second = overlapping_box_pairs(in_world, min_iou)  # a queue of thousands: no (M, M) matrix
     scores = np.array([float(item["score"]) for item in items])
-    order = np.argsort(-scores, kind="stable")
+    by_score = np.argsort(-scores, kind="stable")
     rank = np.empty(len(items), np.int64)
-    rank[order] = np.arange(len(items))
+    rank[by_score] = np.arange(len(items))
     # Each item's overlapping items and itself, most confident first.
     ends = np.concatenate([first, second, np.arange(len(items))])
     starts = np.concatenate([second, first, np.arange(len(items))])
@@ -324,7 +330,7 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
     bounds = np.searchsorted(starts[by_start], np.arange(len(items) + 1))
     placed = np.zeros(len(items), bool)
     places = []
-    for seed in order.tolist():
+    for seed in by_score.tolist():
         if placed[seed]:
             continue
         candidates = ends[bounds[seed] : bounds[seed + 1]]
@@ -333,6 +339,9 @@ def group_by_place(world: WorldFrames, items: Sequence[dict], min_iou: float = P
         places.append(members.tolist())
     chance = [place_chance(scores[m]) for m in places]
     ranked = sorted(range(len(places)), key=lambda p: (-chance[p], places[p][0]))
+    if order != "score":
+        classes = [str(items[places[p][0]]["predicted_class"]) for p in ranked]
+        ranked = [ranked[k] for k in queue_order([chance[p] for p in ranked], classes, order).tolist()]
     return [places[p] for p in ranked]
 
 

@@ -308,6 +308,7 @@ def train_session(
         hold_places=settings.hold_places,
         should_stop=should_stop,
         round_epochs=settings.round_epochs,
+        queue_order=settings.queue_order,
         init_model=None if continued is None else continued.classifier,
         score=score,
     )

@@ -35,6 +35,7 @@ from factorydet_core.metrics import IGNORE_IOU, detection_metrics
 from factorydet_core.metrics import tune_class_thresholds as tune_thresholds
 from factorydet_core.proposals.candidates import point_set_features
 from factorydet_core.proposals.visibility import FreeSpace
+from factorydet_core.session.queue import queue_order as queue_order_of
 from factorydet_core.session.store import HIDE_LABELLED_IOU
 from factorydet_core.types import (
     PROBABILITY_EXPONENT,
@@ -427,6 +428,7 @@ def train_with_mining(
     round_epochs: int = 0,
     init_model: ProposalClassifier | BoxHead | None = None,
     score: Scorer = score_frames,
+    queue_order: str = "score",
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -443,7 +445,10 @@ def train_with_mining(
             session's model. Needs ``round_epochs`` > 0.
         score: scores each round's model on the frames (``Scorer``): ``score_frames`` here, or
             ``scale.jobs.scoring``'s on Ray workers.
-        negatives_per_round: N, the highest scoring false positives added per round.
+        negatives_per_round: N, the first false positives in ``queue_order`` added per round.
+        queue_order: "score": the N highest scoring, as the paper; "class": the predicted classes
+            take turns, each one's by score (``session.queue.queue_order``), so a class the model
+            has barely learned gets its share of the cut and of the review queue.
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
             a true positive when mining.
@@ -505,6 +510,7 @@ def train_with_mining(
         mining_threshold = score_threshold
     if not 0.0 <= mining_threshold <= 1.0:
         raise InputError(f"mining_threshold must lie in [0, 1], got {mining_threshold}")
+    queue_order_of([], [], queue_order)  # a bad order fails before any work
     if rounds < 0 or negatives_per_round < 0 or initial_negatives < 0:
         raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")
     if not 0.0 <= fragment_iou < positive_iou:
@@ -697,8 +703,10 @@ def train_with_mining(
                             "best_annotated_iou": round(float(best[k]), 4),
                         }
                     )
-            mined.sort(key=lambda m: -m["score"])
-            record["mined"] = mined[:negatives_per_round]
+            cut = queue_order_of(
+                [m["score"] for m in mined], [m["predicted_class"] for m in mined], queue_order
+            )
+            record["mined"] = [mined[k] for k in cut[:negatives_per_round]]
             record["num_false_positives"] = len(mined)
             record["num_held"] = 0
             held_boxes: dict[int, list] = {}

@@ -12,6 +12,7 @@ from factorydet_core.types import (
     METHODS,
     MINING_THRESHOLD,
     PROBABILITY_EXPONENT,
+    QUEUE_ORDERS,
     SCORE_THRESHOLD,
     InputError,
 )
@@ -71,6 +72,12 @@ class LoopSettings:
     background too, as a pre-label's place is (``FrameProposals.ignored_point_sets``). An
     unlabelled object has many candidate sets (merge levels, fragments); holding the mined one
     alone leaves the others in the background the box head samples every epoch."""
+    queue_order: str = "score"
+    """Which mined negatives a round adds to the background (the first ``negatives_per_round``)
+    and the review queue's order (``session.queue.queue_order``): "score", the paper's top N by
+    score; "class", the predicted classes taking turns, each one's by score, so that the false
+    positives of a class the model has barely learned (the likeliest place of its unlabelled
+    objects) reach the cut and the reviewer."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -101,6 +108,9 @@ class LoopSettings:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.queue_order not in QUEUE_ORDERS:
+            orders = ", ".join(QUEUE_ORDERS)
+            raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
         if self.method == "head_options" and not self.box_quality:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
 
@@ -230,6 +240,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("hold_places", "Hold their places", "with held negatives (hold confident above 0; hitl: "
             "blind_safe's), every point set on a held box off the labels is left out of the background too, "
             "not only the mined set", bool),
+    Control("queue_order", "Queue order", "which mined negatives go to the background and the review "
+            "queue's order: by score (the paper's top N), or the predicted classes taking turns",
+            str, choices=tuple((o, o) for o in QUEUE_ORDERS)),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

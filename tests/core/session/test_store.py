@@ -995,3 +995,24 @@ def test_the_ray_setting_survives_reopening_and_bad_values_are_refused(db, datas
         connection.execute("UPDATE meta SET value = '{\"workers\": -1}' WHERE key = 'execution'")
     with pytest.raises(SessionError, match="damaged"):
         db.execution()
+
+
+def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filters(db, tiny_model_path):
+    box = [40.0, 40.0, 0.5, 1.0, 1.0, 1.0, 0.0]
+    mined = [(0.9, "box"), (0.8, "box"), (0.7, "box"), (0.3, "cone"), (0.2, "cone")]
+    items = [mined_item(0, g, [box[0] + 2.0 * g, *box[1:]], s, name) for g, (s, name) in enumerate(mined)]
+    db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": {"queue_order": "class"}})
+    assert db.queue_order() == "class"
+    queue = db.review_queue()
+    assert [(q["predicted_class"], q["score"]) for q in queue] == [
+        ("box", 0.9), ("cone", 0.3), ("box", 0.8), ("cone", 0.2), ("box", 0.7)
+    ]  # fmt: skip
+    db.review([queue[0]["id"]], "background", "ann")
+    # A verdict or a filter leaves the rest where the whole queue put them.
+    assert [q["score"] for q in db.review_queue(pending_only=True)] == [0.3, 0.8, 0.2, 0.7]
+    assert [q["score"] for q in db.review_queue(predicted_class="box")] == [0.9, 0.8, 0.7]
+    # A run of the paper's order, and one from before the setting, queue by score.
+    for config in ({"settings": {"queue_order": "score"}}, {}):
+        run = db.save_training_run(queue_run(tiny_model_path, [items]), "small", config)
+        assert db.queue_order(run) == "score"
+        assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.8, 0.7, 0.3, 0.2]

@@ -496,3 +496,21 @@ def test_a_places_chance_and_a_queues_expected_reach():
     assert first == pytest.approx(1.4) and total == pytest.approx(1.75)
     assert expected_reach([0.9, 0.5], top=10) == pytest.approx((1.4, 1.4))
     assert expected_reach([], top=5) == (0.0, 0.0)
+
+
+def test_places_of_a_class_order_take_class_turns_by_their_chance():
+    world = _two_frames()
+    mined = [(0.9, "box"), (0.8, "box"), (0.4, "cone"), (0.3, "cone")]
+    items = [
+        {"frame_index": 0, "box": (20.0 + 3 * k, 0, 0.5, 1, 1, 1, 0), "score": s, "predicted_class": c}
+        for k, (s, c) in enumerate(mined)
+    ]
+    # A cone mined in both frames: one place whose chance (1 - 0.8 * 0.8 = 0.36) beats 0.3's.
+    cube_first = (5.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0)
+    items += [
+        {"frame_index": 0, "box": cube_first, "score": 0.2, "predicted_class": "cone"},
+        {"frame_index": 1, "box": tuple(place_box(world, 0, cube_first).boxes[1]), "score": 0.2,
+         "predicted_class": "cone"},
+    ]  # fmt: skip
+    assert group_by_place(world, items) == [[0], [1], [2], [4, 5], [3]]
+    assert group_by_place(world, items, order="class") == [[0], [2], [1], [4, 5], [3]]

@@ -12,6 +12,7 @@ from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.metrics import tune_class_thresholds
+from factorydet_core.session.queue import queue_order
 from factorydet_core.session.store import mined_negatives, open_session, save_training_run, training_runs
 from factorydet_core.training import mining as training
 from factorydet_core.training.mining import (
@@ -518,3 +519,43 @@ def test_an_unconfirmed_pre_label_on_a_labelled_object_takes_none_of_its_positiv
     assert sum(len(f.ignored_point_sets()) for f in on_labels) > 0
     both = train_with_mining(on_labels, classifier, rounds=0, initial_negatives=50, fragment_iou=0.0)
     assert both.rounds[0]["num_positives"] == plain.rounds[0]["num_positives"] > 0
+
+
+@pytest.mark.slow
+def test_a_class_order_cut_takes_the_classes_in_turns_from_every_false_positive(frames):
+    def mixed_classes(model, frames, threshold, progress=None, should_stop=None):
+        # A 2-epoch model calls nearly everything one class: spread its detections over the
+        # classes, so that the order has turns to take.
+        scored = score_frames(model, frames, threshold, progress, should_stop)
+        for item in scored:
+            detections = item["detections"]
+            class_ids = np.arange(len(detections)) % 3
+            item["detections"] = dataclasses.replace(detections, class_ids=class_ids)
+            item["class_ids"] = class_ids
+        return scored
+
+    def first_round(**options):
+        return train_with_mining(
+            frames,
+            ProposalClassifier(width=0.0625, epochs=2, num_threads=1),
+            rounds=0,
+            initial_negatives=150,
+            fragment_iou=0.0,
+            score_threshold=0.05,
+            mine_after_last=True,
+            tune_class_thresholds=False,
+            score=mixed_classes,
+            **options,
+        ).rounds[0]
+
+    every = first_round(negatives_per_round=100_000)["mined"]
+    assert len({m["predicted_class"] for m in every}) == 3
+    cut = first_round(negatives_per_round=12, queue_order="class")
+    assert cut["num_false_positives"] == len(every)
+    expected = queue_order([m["score"] for m in every], [m["predicted_class"] for m in every], "class")[:12]
+    assert [(m["frame_index"], m["group"]) for m in cut["mined"]] == [
+        (every[k]["frame_index"], every[k]["group"]) for k in expected
+    ]
+    assert sorted(expected.tolist()) != list(range(12))  # not the 12 highest scores: a test of the cut
+    with pytest.raises(InputError, match="queue order"):
+        first_round(negatives_per_round=12, queue_order="size")

@@ -1,0 +1,49 @@
+"""The order of mined negatives: which of them a mining round adds to the background (the first
+``negatives_per_round``) and in which order the review queue shows them (``LoopSettings.queue_order``).
+
+By score, as the paper: the model's most confident false positives first. On a partially
+annotated data set that order spends a reviewer's budget on the classes the first fit already
+knows: a class it has barely learned (cones and pallets after 5 epochs) scores low everywhere, so
+none of its false positives, among them its unlabelled objects, make the cut (``bench hitl`` at
+50% unannotated: no cone among the first queue's 500 items). By class, the predicted classes take
+turns: each class's most confident item, then each class's second, and so on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from factorydet_core.types import QUEUE_ORDERS, InputError
+
+
+def queue_order(scores, classes: Sequence[str], order: str = "score") -> np.ndarray:
+    """Positions of the items in queue order.
+
+    Args:
+        scores: (M,) each item's score.
+        classes: M predicted class names.
+        order: "score": by decreasing score. "class": by each item's rank within its predicted
+            class (by decreasing score), then by decreasing score: the classes take turns, the
+            most confident first within each turn.
+
+    Returns:
+        (M,) int64 permutation of ``range(M)``; ties keep the items' given order.
+    """
+    if order not in QUEUE_ORDERS:
+        raise InputError(f"queue order must be one of {', '.join(QUEUE_ORDERS)}, got {order!r}")
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if len(classes) != len(scores):
+        raise InputError(f"queue order: {len(scores)} scores but {len(classes)} classes")
+    by_score = np.argsort(-scores, kind="stable")
+    if order == "score" or not len(scores):
+        return by_score.astype(np.int64)
+    _, class_ids = np.unique(np.asarray(classes, dtype=object).astype(str), return_inverse=True)
+    rank = np.empty(len(scores), np.int64)
+    for class_id in np.unique(class_ids):
+        members = by_score[class_ids[by_score] == class_id]  # this class's items, by score
+        rank[members] = np.arange(len(members))
+    position = np.empty(len(scores), np.int64)
+    position[by_score] = np.arange(len(scores))
+    return np.lexsort((position, rank)).astype(np.int64)
