@@ -1277,7 +1277,7 @@ def build_parser(
         p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
         p.add_argument("--data", default=None, help="data set folder (default: the session's)")
 
-    p = sub.add_parser("queue", help="list the review queue: negatives mined by a run, highest score first")
+    p = sub.add_parser("queue", help="list the review queue: negatives mined by a run, in its queue order")
     session_args(p)
     p.add_argument("--run", type=int, default=None, help="training run (default: the latest)")
     p.add_argument("--class", dest="class_name", default=None, help="only this predicted class")

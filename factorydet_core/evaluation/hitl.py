@@ -747,7 +747,7 @@ def _hitl_variants(
         "iou_threshold": 0.6,
         "mining_rounds": rounds,
         "seeds": seeds,
-        # The reviewer's queue: highest score first, without the items that overlap a label at
+        # The reviewer's queue: in the run's queue order, without the items that overlap a label at
         # this IoU or more when set (the review panel's "hide items on labelled objects").
         "queue_max_label_iou": max_label_iou,
         "review_by": plan.review_by,

@@ -552,9 +552,9 @@ def write_report(
 
 
 def _recovered_text(result: dict, recovered: str) -> str:
-    """The gap between blind mining and full labels, and the share of it each reviewed budget and
-    ``blind_safe`` recover, stated only where the gap is larger than twice its standard error over
-    the seeds (a share of noise is no result)."""
+    """The gap between blind mining and full labels, and the share of it each reviewed budget,
+    ``blind_safe`` and ``full_late`` recover, stated only where the gap is larger than twice its
+    standard error over the seeds (a share of noise is no result)."""
     if result["gap_full_minus_blind"] is None:
         return "Full labels were not run here: no gap, no recovered share."
     gap = _fmt(result["gap_full_minus_blind"])
