@@ -996,10 +996,8 @@ class SessionDB:
         # negatives are written once, with the run, and then only their review version changes,
         # so the queue of a run is checked once, not at every read after every verdict.
         self._mined_checked: tuple[int | None, dict[int, dict]] = (None, {})
-        self._queue_positions: tuple[tuple | None, dict[int, int]] = (
-            None,
-            {},
-        )  # ((run, order), {id: position})
+        # ((run, order), {item id: position}): a class order's positions in a run's whole queue.
+        self._queue_positions: tuple[tuple | None, dict[int, int]] = (None, {})
         if readonly:
             if not self.path.is_file():
                 raise SessionError(f"session {session.name!r} has no database ({self.path}) to read")
