@@ -433,6 +433,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "round_epochs": args.round_epochs,
                             "hold_places": args.hold_places,
                             "queue_order": args.queue_order,
+                            "refit_box_quality": args.refit_box_quality,
                             "class_thresholds": args.class_thresholds,
                         }
                     ),
@@ -1620,8 +1621,12 @@ def build_parser(
     )
     # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
     add_loop_flags(
-        p, fields=("method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order")
-    )
+        p,
+        fields=(
+            "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
+            "refit_box_quality",
+        ),
+    )  # fmt: skip
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",
