@@ -87,6 +87,10 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants full_late,full \
 	  --out docs/bench/hitl-50-late.json --readme docs/labelling.md --readme-block hitl-50-late
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-50-class.json --readme docs/labelling.md \
+	  --readme-block hitl-50-class --resume
 	# The paper's data set size (6,389 frames of 80k points, 2/3 training) simulated and detected on
 	# Ray workers (about three hours on 2 cores), inside a loopback-only network namespace; the
 	# record is kept after each run and a re-run does only the runs it lacks.

@@ -120,7 +120,7 @@ class BrowserSession:
         self.dim = True
         self.queue: list[dict] = []
         self._queue_read: tuple | None = None  # ((change stamp, class, frame), the session's queue)
-        self._places: tuple | None = None  # ((world, item ids), group_by_place's places)
+        self._places: tuple | None = None  # ((world, item ids read, order), group_by_place's places)
         self._shown_queue: tuple | None = None  # (everything load_queue's result depends on, it)
         self.suspect_index = -1
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
@@ -653,6 +653,7 @@ class BrowserSession:
                 predicted_class=filter_class, frame_index=filter_frame, pending_only=False
             )
             self._queue_read = (read_key, queue)
+        read = queue
         # The shown item stays, though a verdict just took it out of the filter (the panel still
         # shows it, with its verdict, until Next).
         if pending:
@@ -664,12 +665,17 @@ class BrowserSession:
                 if not on_labelled_object(q["label_iou"], HIDE_LABELLED_IOU) or q["id"] == current_id
             ]
         if group and world is not None and queue:
-            order = self.state.db.queue_order()
-            places_key = (id(world), tuple(q["id"] for q in queue), order)
+            # The places of the whole queue read, grouped once and then filtered: a run's items
+            # do not change, and grouped after the filters, a class order's turns would be worked
+            # out again on what is left and move places ahead of the shown one.
+            order = self.state.db.queue_order(read[0]["run_id"])
+            places_key = (id(world), tuple(q["id"] for q in read), order)
             cached = self._places
             if cached is None or cached[0] != places_key:
-                cached = self._places = (places_key, group_by_place(world, queue, order=order))
-            queue = _by_place(queue, cached[1], current_id)
+                cached = self._places = (places_key, group_by_place(world, read, order=order))
+            kept = {q["id"] for q in queue}
+            places = [[k for k in place if read[k]["id"] in kept] for place in cached[1]]
+            queue = _by_place(read, [place for place in places if place], current_id)
         self._shown_queue = (shown_key, queue)
         with self.lock:
             self.queue = queue

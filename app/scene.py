@@ -70,7 +70,10 @@ class SceneView:
     def __init__(self, server: viser.ViserServer | viser.ClientHandle) -> None:
         self.server = server  # a browser's client: each browser draws its own view
         self._cloud: viser.PointCloudHandle | None = None
-        self._label_nodes: list = []
+        # What the browser shows of the labels, to send only what an edit changes: per wireframe
+        # node (handle, segments, colours), per class name (handle, text, position).
+        self._line_nodes: dict[str, tuple] = {}
+        self._name_nodes: list[tuple] = []
         # The shown scan's (points, colours) and point size, to send it again dimmed or not.
         self._shown: tuple[np.ndarray, np.ndarray] | None = None
         self._point_size = 0.04
@@ -141,47 +144,77 @@ class SceneView:
         names: bool = True,
         prelabel_mask: np.ndarray | None = None,
     ) -> None:
-        """Replace the label boxes: wireframes in the class colour, the model's pre-labels nobody
+        """Show the label boxes: wireframes in the class colour, the model's pre-labels nobody
         has confirmed (``prelabel_mask``, (R,)) as corner brackets, with the class name on top when
-        ``names`` (detections are dashed: ``layers``)."""
+        ``names`` (detections are dashed: ``layers``).
+
+        Only what changed is sent: an edit moves one box, and re-creating every name (a text the
+        browser lays out anew) and both wireframe nodes made each edit's update as large as the
+        frame's whole set of labels."""
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         with self.server.atomic():
-            for node in self._label_nodes:
-                node.remove()
-            self._label_nodes = []
             if not visible or not len(boxes):
+                self._show_lines({})
+                self._show_names([])
                 return
             class_rgb = colors.class_colors(class_names)[class_ids]
             pre = np.zeros(len(boxes), bool) if prelabel_mask is None else np.asarray(prelabel_mask, bool)
+            lines = {}
             for name, mask, draw, thickness in (
                 ("/labels/boxes", ~pre, box_wireframe_segments, 2.0),
                 ("/labels/pre_labels", pre, box_corner_segments, 4.0),
             ):
                 if not mask.any():
                     continue
-                segments = draw(boxes[mask])
+                segments = draw(boxes[mask]).astype(np.float32)
                 per_box = len(segments) // int(mask.sum())
-                self._label_nodes.append(
-                    self.server.scene.add_line_segments(
-                        name,
-                        points=segments.astype(np.float32),
-                        colors=np.repeat(class_rgb[mask], per_box, axis=0)[:, None].repeat(2, axis=1),
-                        thickness=thickness,
-                        thickness_units="screen",
-                    )
-                )
+                rgb = np.repeat(class_rgb[mask], per_box, axis=0)[:, None].repeat(2, axis=1).astype(np.uint8)
+                lines[name] = (segments, rgb, thickness)
+            self._show_lines(lines)
             if not names:
+                self._show_names([])
                 return
             tops = boxes[:, :3] + np.c_[np.zeros((len(boxes), 2)), boxes[:, 5] / 2 + 0.1]
-            for i, (top, class_id) in enumerate(zip(tops, class_ids)):
-                self._label_nodes.append(
-                    self.server.scene.add_label(
-                        f"/labels/name_{i}", text=class_names[class_id], position=tuple(top.tolist())
-                    )
-                )
+            self._show_names(
+                [(class_names[c], tuple(float(v) for v in top)) for top, c in zip(tops, class_ids)]
+            )
+
+    def _show_lines(self, lines: dict[str, tuple[np.ndarray, np.ndarray, float]]) -> None:
+        """The wireframe nodes ``lines`` (name: segments (S, 2, 3), colours (S, 2, 3), thickness):
+        a node whose arrays are unchanged is kept, a changed one sent again, a missing one removed."""
+        for name in list(self._line_nodes):
+            if name not in lines:
+                self._line_nodes.pop(name)[0].remove()
+        for name, (segments, rgb, thickness) in lines.items():
+            shown = self._line_nodes.get(name)
+            if shown is not None and np.array_equal(shown[1], segments) and np.array_equal(shown[2], rgb):
+                continue
+            handle = self.server.scene.add_line_segments(
+                name, points=segments, colors=rgb, thickness=thickness, thickness_units="screen"
+            )
+            self._line_nodes[name] = (handle, segments, rgb)
+
+    def _show_names(self, names: list[tuple[str, tuple[float, float, float]]]) -> None:
+        """The class names ``names`` ((text, position) per box, in box order): the i-th name node
+        is kept when unchanged, else given the new text or position; extra nodes are removed."""
+        while len(self._name_nodes) > len(names):
+            self._name_nodes.pop()[0].remove()
+        for i, (text, position) in enumerate(names):
+            if i == len(self._name_nodes):
+                handle = self.server.scene.add_label(f"/labels/name_{i}", text=text, position=position)
+                self._name_nodes.append((handle, text, position))
+                continue
+            handle, shown_text, shown_position = self._name_nodes[i]
+            if text != shown_text:
+                handle.text = text
+            if position != shown_position:
+                handle.position = position
+            self._name_nodes[i] = (handle, text, position)
 
     def set_visible(self, visible: bool) -> None:
         """Show or hide the scan and its boxes."""
-        for node in ([self._cloud] if self._cloud is not None else []) + self._label_nodes:
+        nodes = [node for node, *_ in (*self._line_nodes.values(), *self._name_nodes)]
+        for node in ([self._cloud] if self._cloud is not None else []) + nodes:
             node.visible = visible
 
     def set_point_size(self, point_size: float) -> None:

@@ -433,6 +433,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "round_epochs": args.round_epochs,
                             "hold_places": args.hold_places,
                             "queue_order": args.queue_order,
+                            "refit_box_quality": args.refit_box_quality,
                             "class_thresholds": args.class_thresholds,
                         }
                     ),
@@ -1277,7 +1278,7 @@ def build_parser(
         p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
         p.add_argument("--data", default=None, help="data set folder (default: the session's)")
 
-    p = sub.add_parser("queue", help="list the review queue: negatives mined by a run, highest score first")
+    p = sub.add_parser("queue", help="list the review queue: negatives mined by a run, in its queue order")
     session_args(p)
     p.add_argument("--run", type=int, default=None, help="training run (default: the latest)")
     p.add_argument("--class", dest="class_name", default=None, help="only this predicted class")
@@ -1620,8 +1621,12 @@ def build_parser(
     )
     # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
     add_loop_flags(
-        p, fields=("method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order")
-    )
+        p,
+        fields=(
+            "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
+            "refit_box_quality",
+        ),
+    )  # fmt: skip
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

@@ -402,6 +402,9 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     assert first["complete"] and len(fits) == 4  # two detectors, a first fit and one round each
     # Stopped after blind: the partial record --out held then.
     partial = {key: first[key] for key in ("benchmark", "command", "plan", "machine")}
+    # Written before queue_order was a setting: it ran with the default, and resumes.
+    partial["plan"] = {**partial["plan"], "settings": dict(partial["plan"]["settings"])}
+    assert partial["plan"]["settings"].pop("queue_order") == "score"
     out.write_text(
         json.dumps({**partial, "complete": False, "per_seed": {"blind": first["per_seed"]["blind"]}})
     )
@@ -415,6 +418,8 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     # A record of another plan is refused before any work; so is --resume where nothing resumes.
     fits.clear()
     assert args[5] == "--epochs" and main([*args[:6], "2", *args[7:]]) == 2
+    assert "another plan (settings)" in capsys.readouterr().err and not fits
+    assert main([*args, "--queue-order", "class"]) == 2  # not the default the record ran with
     assert "another plan (settings)" in capsys.readouterr().err and not fits
     assert main(["bench", "detect", str(small_dataset_dir), "--resume", "--out", str(out)]) == 2
     assert "--resume applies to bench hitl, quality and scale" in capsys.readouterr().err

@@ -527,7 +527,16 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         return {}
     if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
         raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
-    check_same_plan("hitl", plan.record(), earlier["plan"])
+    theirs = dict(earlier["plan"])
+    if isinstance(theirs.get("settings"), dict):
+        # A setting added since that record was written has a default that does what was done
+        # before it existed: a record without it ran with the default.
+        defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings())))
+        theirs["settings"] = {
+            **{k: v for k, v in defaults.items() if k in plan.record()["settings"]},
+            **theirs["settings"],
+        }
+    check_same_plan("hitl", plan.record(), theirs)
     return {
         (int(run["seed"]), name): run
         for name, runs in (earlier.get("per_seed") or {}).items()
@@ -747,7 +756,7 @@ def _hitl_variants(
         "iou_threshold": 0.6,
         "mining_rounds": rounds,
         "seeds": seeds,
-        # The reviewer's queue: highest score first, without the items that overlap a label at
+        # The reviewer's queue: in the run's queue order, without the items that overlap a label at
         # this IoU or more when set (the review panel's "hide items on labelled objects").
         "queue_max_label_iou": max_label_iou,
         "review_by": plan.review_by,

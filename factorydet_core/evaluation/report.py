@@ -552,9 +552,9 @@ def write_report(
 
 
 def _recovered_text(result: dict, recovered: str) -> str:
-    """The gap between blind mining and full labels, and the share of it each reviewed budget and
-    ``blind_safe`` recover, stated only where the gap is larger than twice its standard error over
-    the seeds (a share of noise is no result)."""
+    """The gap between blind mining and full labels, and the share of it each reviewed budget,
+    ``blind_safe`` and ``full_late`` recover, stated only where the gap is larger than twice its
+    standard error over the seeds (a share of noise is no result)."""
     if result["gap_full_minus_blind"] is None:
         return "Full labels were not run here: no gap, no recovered share."
     gap = _fmt(result["gap_full_minus_blind"])
@@ -573,7 +573,10 @@ def _recovered_text(result: dict, recovered: str) -> str:
     if "blind_safe" in f1 and result["gap_full_minus_blind"] > 0:
         safe = (f1["blind_safe"] - f1["blind"]) / result["gap_full_minus_blind"]
         parts.append(f"by `blind_safe`, with no reviewer: {100 * safe:.0f}% (target: at least 30%)")
-    shares = "; ".join(parts) if parts else "no reviewed or held variant was run"
+    if "full_late" in f1 and result["gap_full_minus_blind"] > 0:
+        late = (f1["full_late"] - f1["blind"]) / result["gap_full_minus_blind"]
+        parts.append(f"by `full_late`, every missing label given after the first fit: {100 * late:.0f}%")
+    shares = "; ".join(parts) if parts else "no reviewed, held or late variant was run"
     return f"Recovered share of the gap between blind and full labels ({gap}{interval}): {shares}."
 
 
@@ -768,7 +771,13 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             f"{_hitl_method(settings)}, {settings['epochs']} epochs per fit, "
             + ("" if settings.get("class_thresholds", True) else "one score threshold for every class, ")
             + f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
-            "per round. F-score at IoU "
+            + "per round"
+            + (
+                ", the predicted classes taking turns in the cut and in the queue (`queue_order` class)"
+                if settings.get("queue_order") == "class"
+                else ""
+            )
+            + ". F-score at IoU "
             f"{result['iou_threshold']} against the full truth, on test frames of the training frames'"
             " factory (in-factory figures). `blind`: mining on the partial labels (the paper)."
             + (

@@ -7,6 +7,11 @@ knows: a class it has barely learned (cones and pallets after 5 epochs) scores l
 none of its false positives, among them its unlabelled objects, make the cut (``bench hitl`` at
 50% unannotated: no cone among the first queue's 500 items). By class, the predicted classes take
 turns: each class's most confident item, then each class's second, and so on.
+
+The turns are those of the whole queue a run mined: an order worked out again on what is left
+after some verdicts would move each class's remaining items up a turn, ahead of the one a
+reviewer is looking at (``store.SessionDB.review_queue`` keeps every item at its place in the
+whole queue; the app groups places on the whole queue before it filters them).
 """
 
 from __future__ import annotations
@@ -18,6 +23,21 @@ import numpy as np
 from factorydet_core.types import QUEUE_ORDERS, InputError
 
 
+def class_ranks(scores, classes: Sequence[str]) -> np.ndarray:
+    """(M,) int64: each item's rank within its predicted class, by decreasing score (0: the
+    class's most confident; ties keep the items' given order): its turn in the class order."""
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if len(classes) != len(scores):
+        raise InputError(f"queue order: {len(scores)} scores but {len(classes)} classes")
+    by_score = np.argsort(-scores, kind="stable")
+    _, class_ids = np.unique(np.asarray(classes, dtype=object).astype(str), return_inverse=True)
+    rank = np.empty(len(scores), np.int64)
+    for class_id in np.unique(class_ids):
+        members = by_score[class_ids[by_score] == class_id]  # this class's items, by score
+        rank[members] = np.arange(len(members))
+    return rank
+
+
 def queue_order(scores, classes: Sequence[str], order: str = "score") -> np.ndarray:
     """Positions of the items in queue order.
 
@@ -25,8 +45,8 @@ def queue_order(scores, classes: Sequence[str], order: str = "score") -> np.ndar
         scores: (M,) each item's score.
         classes: M predicted class names.
         order: "score": by decreasing score. "class": by each item's rank within its predicted
-            class (by decreasing score), then by decreasing score: the classes take turns, the
-            most confident first within each turn.
+            class (``class_ranks``), then by decreasing score: the classes take turns, the most
+            confident first within each turn.
 
     Returns:
         (M,) int64 permutation of ``range(M)``; ties keep the items' given order.
@@ -34,16 +54,10 @@ def queue_order(scores, classes: Sequence[str], order: str = "score") -> np.ndar
     if order not in QUEUE_ORDERS:
         raise InputError(f"queue order must be one of {', '.join(QUEUE_ORDERS)}, got {order!r}")
     scores = np.asarray(scores, np.float64).reshape(-1)
-    if len(classes) != len(scores):
-        raise InputError(f"queue order: {len(scores)} scores but {len(classes)} classes")
+    rank = class_ranks(scores, classes)
     by_score = np.argsort(-scores, kind="stable")
     if order == "score" or not len(scores):
         return by_score.astype(np.int64)
-    _, class_ids = np.unique(np.asarray(classes, dtype=object).astype(str), return_inverse=True)
-    rank = np.empty(len(scores), np.int64)
-    for class_id in np.unique(class_ids):
-        members = by_score[class_ids[by_score] == class_id]  # this class's items, by score
-        rank[members] = np.arange(len(members))
     position = np.empty(len(scores), np.int64)
     position[by_score] = np.arange(len(scores))
     return np.lexsort((position, rank)).astype(np.int64)

@@ -996,6 +996,8 @@ class SessionDB:
         # negatives are written once, with the run, and then only their review version changes,
         # so the queue of a run is checked once, not at every read after every verdict.
         self._mined_checked: tuple[int | None, dict[int, dict]] = (None, {})
+        # ((run, order), {item id: position}): a class order's positions in a run's whole queue.
+        self._queue_positions: tuple[tuple | None, dict[int, int]] = (None, {})
         if readonly:
             if not self.path.is_file():
                 raise SessionError(f"session {session.name!r} has no database ({self.path}) to read")
@@ -2258,7 +2260,12 @@ class SessionDB:
             row = db.execute("SELECT id, config FROM training_runs WHERE id = ?", (int(run_id),)).fetchone()
         if row is None:
             raise SessionError(f"no training run {run_id}")
-        return _row("training_runs", row)["config"].get("settings") or {}
+        settings = _row("training_runs", row)["config"].get("settings") or {}
+        if not isinstance(settings, dict):
+            raise SessionError(
+                f"training run {run_id}: its settings are {short_repr(settings, 40)}, not a mapping"
+            )
+        return settings
 
     def change_stamp(self) -> tuple:
         """A value that changes with every edit to the session's labels and verdicts and every
@@ -2316,8 +2323,10 @@ class SessionDB:
         if run_id is None:
             run_id = self.latest_run_id()
         out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
-        if out and self.queue_order(run_id) != "score":
-            out = self._in_queue_order(run_id, out)
+        if out:
+            order = self.queue_order(run_id)
+            if order != "score":
+                out = self._in_queue_order(run_id, order, out)
         label_iou = self.label_overlap(out)
         for item, iou in zip(out, label_iou):
             item["label_iou"] = iou
@@ -2325,20 +2334,20 @@ class SessionDB:
             out = [item for item in out if not on_labelled_object(item["label_iou"], max_label_iou)]
         return out
 
-    def _in_queue_order(self, run_id: int, items: list[dict]) -> list[dict]:
-        """``items`` of run ``run_id``'s queue in the run's queue order (``session.queue``), placed
-        by their position in the whole queue: a filter or a verdict given leaves the order of
-        the rest as it was."""
-        with self._read() as db:
-            rows = db.execute(
-                "SELECT id, predicted_class, score FROM mined_negatives WHERE run_id = ?"
-                " ORDER BY score DESC, id",
-                (int(run_id),),
-            ).fetchall()
-        order = order_queue(
-            [r["score"] for r in rows], [r["predicted_class"] for r in rows], self.queue_order(run_id)
-        )
-        position = {int(rows[k]["id"]): p for p, k in enumerate(order.tolist())}
+    def _in_queue_order(self, run_id: int, order: str, items: list[dict]) -> list[dict]:
+        """``items`` of run ``run_id``'s queue in ``order`` (``session.queue``), each at its
+        position in the whole queue: a filter or a verdict given leaves the rest where they were."""
+        cached_run, position = self._queue_positions
+        if cached_run != (run_id, order):  # a run's mined negatives never change once it is stored
+            with self._read() as db:
+                rows = db.execute(
+                    "SELECT id, predicted_class, score FROM mined_negatives WHERE run_id = ?"
+                    " ORDER BY score DESC, id",
+                    (int(run_id),),
+                ).fetchall()
+            ranked = order_queue([r["score"] for r in rows], [r["predicted_class"] for r in rows], order)
+            position = {int(rows[k]["id"]): p for p, k in enumerate(ranked.tolist())}
+            self._queue_positions = ((run_id, order), position)
         return sorted(items, key=lambda item: position[int(item["id"])])
 
     def _queue_rows(
@@ -2757,7 +2766,7 @@ def latest_model(session: Session) -> Path | None:
 def mined_negatives(
     session: Session, run_id: int | None = None, frame_index: int | None = None
 ) -> list[dict]:
-    """The review queue of a run (the last by default), highest score first."""
+    """The review queue of a run (the last by default), in its queue order (``SessionDB.review_queue``)."""
     if not session.db_path.is_file():
         return []
     return SessionDB(session, readonly=True).review_queue(run_id, frame_index=frame_index)

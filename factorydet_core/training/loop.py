@@ -242,7 +242,8 @@ def train_session(
         mode: 'full' retrains from scratch with ``settings.rounds`` blind mining rounds; 'next'
             runs one more round on top of everything mined and reviewed so far, going on from the
             session's chosen (else latest) model (``continued_model``: its network trained on for
-            ``settings.round_epochs`` epochs, its box quality regressor kept) when it can, else
+            ``settings.round_epochs`` epochs, its box quality regressor kept unless
+            ``settings.refit_box_quality``) when it can, else
             afresh (the run's config says why).
         front_end: the front half's settings the frames were proposed with, saved whole in the
             models and the run's record.
@@ -279,7 +280,8 @@ def train_session(
                 labelled = [frame.with_ignored(held.get(frame.frame_index)) for frame in labelled]
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
-        if continued is not None and continued.box_quality is not None and box_quality is not None:
+        keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None
+        if keep_quality and not settings.refit_box_quality:
             box_quality = continued.box_quality
     else:
         background = reviewed["background"]

@@ -28,7 +28,8 @@ class LoopSettings:
     """Epochs of a fit that goes on from a model instead of training afresh: each mining round
     after a full retrain's first fit goes on from the previous round's network, and a 'next'
     round goes on from the session's chosen (else latest) model (``loop.continued_model``) and
-    keeps its box quality regressor (a full retrain refits it on the current labels). 0: every
+    keeps its box quality regressor unless ``refit_box_quality`` (a full retrain refits it on the
+    current labels). 0: every
     fit trains afresh for ``epochs`` and a 'next' round refits the regressor (the paper's
     procedure, several times slower; the default and paper checkpoints were trained so).
     ``factorydet bench mining`` measures both."""
@@ -78,6 +79,13 @@ class LoopSettings:
     score; "class", the predicted classes taking turns, each one's by score, so that the false
     positives of a class the model has barely learned (the likeliest place of its unlabelled
     objects) reach the cut and the reviewer."""
+    refit_box_quality: bool = False
+    """A 'next' round that goes on from a model (``round_epochs`` > 0) fits the box quality
+    regressor again on the session's current labels, instead of keeping the model's. The regressor
+    learns each option's IoU with the labels, so one fitted while half the objects were unlabelled
+    has learned that their boxes fit nothing (IoU 0) and scores them down whatever the classifier
+    says; labels a reviewer adds later only reach it through a refit. Costs one regressor fit per
+    round (``bench mining``'s ``box_quality_seconds``)."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -243,6 +251,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("queue_order", "Queue order", "which mined negatives go to the background and the review "
             "queue's order: by score (the paper's top N), or the predicted classes taking turns",
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),
+    Control("refit_box_quality", "Refit box quality", "a next round that goes on from a model refits the "
+            "box quality regressor on the current labels (off: keeps the model's)", bool),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

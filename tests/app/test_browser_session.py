@@ -558,3 +558,32 @@ def test_the_queue_is_read_again_only_after_a_write_or_another_filter(state, mon
     state.db.add_label(0, [30.0, 30.0, 0.5, 1, 1, 1, 0], "box", "cli")
     person.load_queue()
     assert len(reads) == 4
+
+
+def test_a_class_order_queue_by_place_visits_every_place_once_in_its_turn(state, tiny_model_path):
+    _placed_world(state, seen_in=(0, 1, 2))
+    # Three classes, three places each, every place mined once in frame 0, far apart.
+    scores = {"box": (0.9, 0.8, 0.7), "cone": (0.5, 0.4, 0.3), "pallet": (0.2, 0.15, 0.1)}
+    items = [
+        mined_item(0, 60 + 3 * c + k, [40.0 + 3.0 * (3 * c + k), 5.0, 0.5, 0.6, 0.6, 0.6, 0.0], s, name)
+        for c, (name, values) in enumerate(scores.items())
+        for k, s in enumerate(values)
+    ]
+    state.db.save_training_run(
+        queue_run(tiny_model_path, [items]), "small", {"settings": {"queue_order": "class"}}
+    )
+    person = _person(state, "ann")
+    expected = [(q["predicted_class"], q["score"]) for q in person.load_queue()]
+    assert expected == [
+        ("box", 0.9), ("cone", 0.5), ("pallet", 0.2), ("box", 0.8), ("cone", 0.4), ("pallet", 0.15),
+        ("box", 0.7), ("cone", 0.3), ("pallet", 0.1),
+    ]  # fmt: skip
+    # Each verdict moves on to the next place of the whole queue's order: none is passed over,
+    # although the classes' turns, worked out again on what is left, would differ.
+    visited = []
+    person.step(0)
+    while person.current_item() is not None:
+        shown = person.current_item()
+        visited.append((shown["predicted_class"], shown["score"]))
+        person.verdict("background")
+    assert visited == expected

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from app.scene import grid_segments
 
@@ -18,3 +19,51 @@ def test_the_floor_grid_draws_every_line_once_on_the_floor():
         assert sorted(offsets.tolist()) == list(range(-30, 31))
     section_offsets = sections[sections[:, 0, 0] == sections[:, 1, 0]][:, 0, 0]
     assert sorted(section_offsets.tolist()) == list(range(-30, 31, 5))
+
+
+def test_an_edit_sends_only_the_labels_it_changed():
+    import viser
+
+    from app.scene import SceneView
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        view = SceneView(server)
+        sent = {"add_label": 0, "add_line_segments": 0}
+        for method in sent:
+            original = getattr(server.scene, method)
+
+            def counting(*args, _original=original, _method=method, **kwargs):
+                sent[_method] += 1
+                return _original(*args, **kwargs)
+
+            setattr(server.scene, method, counting)
+        names = ("box", "cone")
+        boxes = np.array([[float(k), 0.0, 0.5, 1.0, 1.0, 1.0, 0.0] for k in range(0, 30, 3)])
+        class_ids = np.array([0, 1] * 5)
+        view.draw_labels(boxes, class_ids, names, visible=True)
+        assert sent == {"add_label": 10, "add_line_segments": 1}
+        first_names = [node for node, *_ in view._name_nodes]
+        # The same labels again: nothing is sent.
+        view.draw_labels(boxes.copy(), class_ids, names, visible=True)
+        assert sent == {"add_label": 10, "add_line_segments": 1}
+        # One box moved and another relabelled: one wireframe node again, two names changed in place.
+        moved, relabelled = boxes.copy(), class_ids.copy()
+        moved[4, 0] += 0.01
+        relabelled[7] = 0
+        view.draw_labels(moved, relabelled, names, visible=True)
+        assert sent == {"add_label": 10, "add_line_segments": 2}
+        assert [node for node, *_ in view._name_nodes] == first_names
+        assert first_names[7].text == "box" and first_names[4].position[0] == pytest.approx(12.01)
+        assert first_names[3].text == "cone" and first_names[3].position[0] == pytest.approx(9.0)
+        # A deleted label takes its name node with it; a pre-label gets the bracket node.
+        pre = np.zeros(9, bool)
+        pre[0] = True
+        view.draw_labels(moved[:9], relabelled[:9], names, visible=True, prelabel_mask=pre)
+        assert len(view._name_nodes) == 9 and set(view._line_nodes) == {"/labels/boxes", "/labels/pre_labels"}
+        assert sent == {"add_label": 10, "add_line_segments": 4}
+        # Hidden: every label node is removed.
+        view.draw_labels(moved, relabelled, names, visible=False)
+        assert view._name_nodes == [] and view._line_nodes == {}
+    finally:
+        server.stop()

@@ -142,6 +142,15 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     text = hitl_markdown(result, heading=False)
     assert "by the reviews: K = 200: 75% (per seed: K = 200: 75%, 75%, 75%)" in text
     assert "reviewer's queue hides items" in text and "`blind_safe`" not in text
+    assert "classes taking turns" not in text
+    # Late labels: their share too; a class-order cut is said.
+    result = _hitl_result(
+        {"blind": [0.30, 0.31, 0.29], "full_late": [0.32, 0.33, 0.31], "full": [0.34, 0.35, 0.33]}
+    )
+    result["settings"]["queue_order"] = "class"
+    text = hitl_markdown(result, heading=False)
+    assert "by `full_late`, every missing label given after the first fit: 50%" in text
+    assert "5 mined per round, the predicted classes taking turns in the cut and in the queue" in text
     # A gap within its noise: no share at all.
     result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.31, 0.30, 0.30]})
     assert "no recovered share is stated" in hitl_markdown(result)

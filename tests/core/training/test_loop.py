@@ -404,3 +404,34 @@ def test_held_negatives_hold_their_places_when_asked(dataset, frames, tiny_model
         else:
             assert len(held.ignore_boxes) == 0 and len(held.ignored_point_sets()) == 0
         assert len(seen["frames"][1].ignore_boxes) == 0  # nothing held in frame 1
+
+
+def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refit_it(db, frames, monkeypatch):
+    import dataclasses
+    import types
+
+    from factorydet_core.training import loop
+
+    kept = object()  # the continued model's fitted regressor
+    monkeypatch.setattr(
+        loop,
+        "continued_model",
+        lambda *a, **k: (1, types.SimpleNamespace(box_quality=kept, classifier=None), ""),
+    )
+    given = []
+
+    class StopError(Exception):
+        pass
+
+    def capture(*args, box_quality=None, **kwargs):
+        given.append(box_quality)
+        raise StopError
+
+    monkeypatch.setattr(loop, "train_with_mining", capture)
+    with_quality = LoopSettings(epochs=2, round_epochs=1, method="head_options")
+    for settings in (with_quality, dataclasses.replace(with_quality, refit_box_quality=True)):
+        with pytest.raises(StopError):
+            train_session(db, frames, settings, mode="next")
+    assert given[0] is kept
+    # Refitted: a new, unfitted regressor of the run's own settings.
+    assert isinstance(given[1], loop.BoxQuality) and not hasattr(given[1], "trees_")
