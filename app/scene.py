@@ -148,9 +148,10 @@ class SceneView:
         has confirmed (``prelabel_mask``, (R,)) as corner brackets, with the class name on top when
         ``names`` (detections are dashed: ``layers``).
 
-        Only what changed is sent: an edit moves one box, and re-creating every name (a text the
-        browser lays out anew) and both wireframe nodes made each edit's update as large as the
-        frame's whole set of labels."""
+        Only what changed is sent: an edit moves one box, and re-creating every name and both
+        wireframe nodes made each edit's update as large as the frame's whole set of labels. (In
+        headless Chromium the walkthrough showed no difference: the scene's render is what an
+        edit waits for there, ``docs/labelling.md``.)"""
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         with self.server.atomic():
             if not visible or not len(boxes):
