@@ -91,6 +91,8 @@ bench: $(STAMP) corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-50-class.json --readme docs/labelling.md \
 	  --readme-block hitl-50-class --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-class.json docs/bench/hitl-50-place.json \
+	  --readme docs/labelling.md --readme-block hitl-50-class-vs-place
 	# The paper's data set size (6,389 frames of 80k points, 2/3 training) simulated and detected on
 	# Ray workers (about three hours on 2 cores), inside a loopback-only network namespace; the
 	# record is kept after each run and a re-run does only the runs it lacks.

@@ -216,6 +216,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             from factorydet_core.io.atomic import write_text_atomic
 
             write_text_atomic(Path(args.out), json.dumps(result, indent=2) + "\n")
+    elif args.name == "hitl-compare":
+        from factorydet_core.evaluation.hitl import compare_hitl_records
+        from factorydet_core.io.jsonfile import read_json
+
+        if len(args.data) != 2:
+            raise InputError("bench hitl-compare needs two bench hitl records: RECORD BASELINE")
+        records = [read_json(path, what="bench hitl record") for path in args.data]
+        result = {
+            **compare_hitl_records(*records, names=tuple(Path(path).name for path in args.data)),
+            "command": command,
+        }
     elif args.name == "fuzz":
         from factorydet_core.evaluation.fuzz import (
             TARGETS,
@@ -1419,6 +1430,7 @@ def build_parser(
             "detect",
             "classifier",
             "hitl",
+            "hitl-compare",
             "quality",
             "fuzz",
             "import",
@@ -1431,7 +1443,8 @@ def build_parser(
     p.add_argument(
         "data",
         nargs="*",
-        help="pipeline: a simulated data set folder, or point-cloud files (recall pooled); sweep: a folder",
+        help="pipeline: a simulated data set folder, or point-cloud files (recall pooled); sweep: a folder; "
+        "hitl-compare: two bench hitl records, RECORD BASELINE (seed by seed, RECORD minus BASELINE)",
     )
     p.add_argument(
         "--frames",

@@ -614,3 +614,28 @@ def _retrain_text(result: dict) -> str:
         f" {fmt(retrain['next_round_shown_s'])} s until its before/after"
         f" table showed (target {fmt(result.get('target_next_round_s'))} s)."
     )
+
+
+@register("hitl-compare")
+def hitl_compare_table(result: dict) -> str:
+    """``bench hitl-compare``: per detector, the paired differences of one record from another."""
+
+    def cell(difference: dict) -> str:
+        interval = " [{:+.3f}, {:+.3f}]".format(*difference["ci95"]) if difference.get("ci95") else ""
+        return f"{difference['mean']:+.3f}{interval}"
+
+    differs = "; ".join(
+        f"{key}: {mine} against {theirs}" for key, (mine, theirs) in result["differs"].items()
+    )
+    seeds = ", ".join(map(str, result["seeds"]))
+    lines = [
+        f"`{result['record']}` minus `{result['baseline']}`, seed by seed (seeds {seeds}): mean [95%"
+        f" interval]. What differs: {differs or 'nothing'}.",
+        "",
+        "| detector | F-score | mAP | F gain over its own blind mining |",
+        "|---|---|---|---|",
+    ]
+    for name, row in result["variants"].items():
+        gain = "–" if name == "blind" else cell(row["gain_over_blind"])
+        lines.append(f"| {name} | {cell(row['f1'])} | {cell(row['map'])} | {gain} |")
+    return "\n".join(lines)

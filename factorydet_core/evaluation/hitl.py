@@ -772,3 +772,76 @@ def _hitl_variants(
         "proposal_seconds": round(proposal_seconds, 1),
         "machine": machine_info(),
     }
+
+
+def compare_hitl_records(
+    record: dict, baseline: dict, names: tuple[str, str] = ("record", "baseline")
+) -> dict:
+    """Seed by seed, each detector of one ``bench hitl`` record against the same detector of
+    another (one setting changed, say): the paired difference of their F-scores, of their mAPs,
+    and of their gains over their own blind mining, over the seeds both ran.
+
+    Args:
+        record, baseline: complete ``bench hitl`` records of the same data and frames.
+        names: what to call them (their file names, say).
+
+    Returns:
+        ``{"benchmark": "hitl-compare", "record", "baseline", "differs", "seeds", "variants"}``:
+        ``differs`` the plan fields that differ (``{field: [record's, baseline's]}``, settings by
+        name), ``variants`` per detector both ran ``{"f1", "map", "gain_over_blind"}``, each a
+        ``paired_difference`` (record minus baseline).
+
+    Raises:
+        InputError: for a record that is not a complete ``bench hitl`` record, or two records of
+            other data, frames or no common seed.
+    """
+    for name, rec in zip(names, (record, baseline)):
+        if rec.get("benchmark") != "hitl" or not rec.get("complete", True) or "per_seed" not in rec:
+            raise InputError(f"{name}: not a complete bench hitl record")
+    for key in ("data", "train_frames", "test_frames", "iou_threshold"):
+        if record.get(key) != baseline.get(key):
+            raise InputError(
+                f"{names[0]} and {names[1]} ran on other {key.replace('_', ' ')}: nothing to pair"
+            )
+    seeds = [s for s in record["seeds"] if s in baseline["seeds"]]
+    if not seeds:
+        raise InputError(f"{names[0]} and {names[1]} share no seed: nothing to pair")
+
+    def by_seed(rec: dict, variant: str) -> dict[int, dict]:
+        return {int(run["seed"]): run for run in rec["per_seed"][variant]}
+
+    variants = {}
+    for variant in [v for v in record["per_seed"] if v in baseline["per_seed"]]:
+        ours, theirs = by_seed(record, variant), by_seed(baseline, variant)
+        our_blind, their_blind = by_seed(record, "blind"), by_seed(baseline, "blind")
+        variants[variant] = {
+            "f1": paired_difference([ours[s]["f1"] for s in seeds], [theirs[s]["f1"] for s in seeds]),
+            "map": paired_difference([ours[s]["map"] for s in seeds], [theirs[s]["map"] for s in seeds]),
+            "gain_over_blind": paired_difference(
+                [ours[s]["f1"] - our_blind[s]["f1"] for s in seeds],
+                [theirs[s]["f1"] - their_blind[s]["f1"] for s in seeds],
+            ),
+        }
+    mine, other = record.get("plan") or {}, baseline.get("plan") or {}
+    differs = {
+        key: [mine.get(key), other.get(key)]
+        for key in sorted(set(mine) | set(other))
+        if key not in ("settings", "seeds", "variants") and mine.get(key) != other.get(key)
+    }
+    my_settings, other_settings = mine.get("settings") or {}, other.get("settings") or {}
+    defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings())))
+    for key in sorted(set(my_settings) | set(other_settings)):
+        # A record from before a setting existed ran with its default (``_resumable_runs``).
+        values = [s.get(key, defaults.get(key)) for s in (my_settings, other_settings)]
+        if values[0] != values[1]:
+            differs[key] = values
+    return {
+        "benchmark": "hitl-compare",
+        "record": names[0],
+        "baseline": names[1],
+        "record_command": record.get("command"),
+        "baseline_command": baseline.get("command"),
+        "differs": differs,
+        "seeds": seeds,
+        "variants": variants,
+    }

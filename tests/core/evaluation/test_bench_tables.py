@@ -21,6 +21,7 @@ BLOCKS = (
     ("performance.md", "memory"),
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
+    ("labelling.md", "hitl-50-class-vs-place"),
 )
 
 
@@ -218,3 +219,54 @@ def test_mining_table_gives_each_configurations_time_parts_and_heldout_figures()
         if "heldout" in record:
             assert fmt(config["heldout"]["f1"], 3) in row
     assert f"target {fmt(record['target_seconds'])} s" in text
+
+
+def _hitl_record(f1: dict[str, list[float]], settings: dict, seeds=(0, 1, 2)) -> dict:
+    """A complete bench hitl record with these per-seed F-scores (mAP = F + 0.1)."""
+    return {
+        "benchmark": "hitl",
+        "complete": True,
+        "command": "factorydet bench hitl x",
+        "data": "x",
+        "train_frames": [0],
+        "test_frames": [1],
+        "iou_threshold": 0.6,
+        "seeds": list(seeds),
+        "plan": {"data": "x", "review_by": "place", "settings": settings, "seeds": list(seeds)},
+        "per_seed": {
+            name: [{"seed": s, "f1": f, "map": f + 0.1} for s, f in zip(seeds, values)]
+            for name, values in f1.items()
+        },
+    }
+
+
+def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
+    from factorydet_core.evaluation.hitl import compare_hitl_records
+
+    record = _hitl_record(
+        {"blind": [0.20, 0.22, 0.21], "reviewed_200": [0.26, 0.27, 0.25], "full": [0.3, 0.3, 0.3]},
+        {"queue_order": "class", "epochs": 5},
+    )
+    # Written before queue_order existed: it ran with the default (score), and one seed more.
+    baseline = _hitl_record(
+        {"blind": [0.20, 0.22, 0.21, 0.2], "reviewed_200": [0.24, 0.25, 0.24, 0.2], "reviewed_50": [0.2] * 4},
+        {"epochs": 5},
+        seeds=(0, 1, 2, 3),
+    )
+    result = compare_hitl_records(record, baseline, names=("a.json", "b.json"))
+    assert result["differs"] == {"queue_order": ["class", "score"]} and result["seeds"] == [0, 1, 2]
+    assert list(result["variants"]) == ["blind", "reviewed_200"]  # full and reviewed_50: one record each
+    reviewed = result["variants"]["reviewed_200"]
+    assert reviewed["f1"]["mean"] == pytest.approx(0.0167, abs=1e-4)
+    assert reviewed["map"]["mean"] == reviewed["f1"]["mean"]
+    assert reviewed["gain_over_blind"]["mean"] == reviewed["f1"]["mean"]  # the same blind mining
+    table = render_record(result)
+    assert "`a.json` minus `b.json`, seed by seed (seeds 0, 1, 2)" in table
+    assert "What differs: queue_order: class against score." in table
+    assert _rows(table, "blind")[0][3] == "–" and _rows(table, "reviewed_200")[0][1].startswith("+0.017 [")
+    with pytest.raises(InputError, match="b.json: not a complete bench hitl record"):
+        compare_hitl_records(record, {**baseline, "complete": False}, names=("a.json", "b.json"))
+    with pytest.raises(InputError, match="ran on other test frames"):
+        compare_hitl_records(record, {**baseline, "test_frames": [2]}, names=("a.json", "b.json"))
+    with pytest.raises(InputError, match="share no seed"):
+        compare_hitl_records(record, _hitl_record({"blind": [0.2]}, {}, seeds=(9,)), names=("a", "b"))
