@@ -19,8 +19,9 @@ app: $(STAMP) demo
 demo: $(STAMP)
 	$(BIN)/factorydet demo --session demo
 
+# The docs build is not --quiet: that hides the warnings --strict turns into failures.
 test: $(STAMP) browserdeps lint
-	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $$(mktemp -d)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir $$(mktemp -d)
 	$(BIN)/python -m pytest -m "not ray"
 	$(MAKE) --no-print-directory test-ray
 
