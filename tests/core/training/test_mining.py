@@ -251,19 +251,17 @@ def test_mined_sets_are_never_positives(run, frames):
         assert labels[m["group"]] == 7
 
 
+def _first_round(frames, **options):
+    """A 2-epoch fit from the paper's start (random sets that overlap nothing), mined after."""
+    start = {"rounds": 0, "negatives_per_round": 40, "initial_negatives": 150, "fragment_iou": 0.0}
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    return train_with_mining(frames, classifier, mine_after_last=True, **{**start, **options})
+
+
 @pytest.mark.slow
 def test_mining_threshold_decides_what_is_mined_not_the_operating_threshold(frames, run):
     def first_round(**thresholds):
-        return train_with_mining(
-            frames,
-            ProposalClassifier(width=0.0625, epochs=2, num_threads=1),
-            rounds=0,
-            negatives_per_round=40,
-            initial_negatives=150,
-            fragment_iou=0.0,
-            mine_after_last=True,
-            **thresholds,
-        )
+        return _first_round(frames, **thresholds)
 
     # Mining at 0.05 under a 0.5 operating threshold mines what the 0.05 run mined.
     low = first_round(score_threshold=0.5, mining_threshold=0.05)
@@ -535,18 +533,8 @@ def test_a_class_order_cut_takes_the_classes_in_turns_from_every_false_positive(
         return scored
 
     def first_round(**options):
-        return train_with_mining(
-            frames,
-            ProposalClassifier(width=0.0625, epochs=2, num_threads=1),
-            rounds=0,
-            initial_negatives=150,
-            fragment_iou=0.0,
-            score_threshold=0.05,
-            mine_after_last=True,
-            tune_class_thresholds=False,
-            score=mixed_classes,
-            **options,
-        ).rounds[0]
+        options = {"score_threshold": 0.05, "tune_class_thresholds": False, "score": mixed_classes, **options}
+        return _first_round(frames, **options).rounds[0]
 
     every = first_round(negatives_per_round=100_000)["mined"]
     assert len({m["predicted_class"] for m in every}) == 3
