@@ -620,10 +620,6 @@ def _retrain_text(result: dict) -> str:
 def hitl_compare_table(result: dict) -> str:
     """``bench hitl-compare``: per detector, the paired differences of one record from another."""
 
-    def cell(difference: dict) -> str:
-        interval = " [{:+.3f}, {:+.3f}]".format(*difference["ci95"]) if difference.get("ci95") else ""
-        return f"{difference['mean']:+.3f}{interval}"
-
     differs = "; ".join(
         f"{key}: {mine} against {theirs}" for key, (mine, theirs) in result["differs"].items()
     )
@@ -636,6 +632,13 @@ def hitl_compare_table(result: dict) -> str:
         "|---|---|---|---|",
     ]
     for name, row in result["variants"].items():
-        gain = "–" if name == "blind" else cell(row["gain_over_blind"])
-        lines.append(f"| {name} | {cell(row['f1'])} | {cell(row['map'])} | {gain} |")
+        gain = "–" if name == "blind" else difference_text(row["gain_over_blind"])
+        lines.append(f"| {name} | {difference_text(row['f1'])} | {difference_text(row['map'])} | {gain} |")
     return "\n".join(lines)
+
+
+def difference_text(difference: dict, with_mean: bool = True) -> str:
+    """A paired difference (``hitl.paired_difference``) as "+0.017 [-0.001, +0.034]"; without
+    ``with_mean`` the interval alone, " [-0.001, +0.034]" ("" when it has none)."""
+    interval = " [{:+.3f}, {:+.3f}]".format(*difference["ci95"]) if difference.get("ci95") else ""
+    return f"{difference['mean']:+.3f}{interval}" if with_mean else interval

@@ -529,13 +529,7 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
     theirs = dict(earlier["plan"])
     if isinstance(theirs.get("settings"), dict):
-        # A setting added since that record was written has a default that does what was done
-        # before it existed: a record without it ran with the default.
-        defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings())))
-        theirs["settings"] = {
-            **{k: v for k, v in defaults.items() if k in plan.record()["settings"]},
-            **theirs["settings"],
-        }
+        theirs["settings"] = _settings_as_run(theirs["settings"])
     check_same_plan("hitl", plan.record(), theirs)
     return {
         (int(run["seed"]), name): run
@@ -543,6 +537,14 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         for run in runs
         if int(run["seed"]) in plan.seeds
     }
+
+
+def _settings_as_run(settings: dict) -> dict:
+    """A record's plan ``settings`` with every ``LoopSettings`` field it lacks at its default (the
+    seed and thread count aside, as ``_HitlPlan.record``): a setting added since the record was
+    written has a default that does what was done before it existed."""
+    defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings())))
+    return {**{k: v for k, v in defaults.items() if k not in ("seed", "num_threads")}, **settings}
 
 
 def _variant_specs(
@@ -811,9 +813,9 @@ def compare_hitl_records(
         return {int(run["seed"]): run for run in rec["per_seed"][variant]}
 
     variants = {}
+    our_blind, their_blind = by_seed(record, "blind"), by_seed(baseline, "blind")
     for variant in [v for v in record["per_seed"] if v in baseline["per_seed"]]:
         ours, theirs = by_seed(record, variant), by_seed(baseline, variant)
-        our_blind, their_blind = by_seed(record, "blind"), by_seed(baseline, "blind")
         variants[variant] = {
             "f1": paired_difference([ours[s]["f1"] for s in seeds], [theirs[s]["f1"] for s in seeds]),
             "map": paired_difference([ours[s]["map"] for s in seeds], [theirs[s]["map"] for s in seeds]),
@@ -828,11 +830,9 @@ def compare_hitl_records(
         for key in sorted(set(mine) | set(other))
         if key not in ("settings", "seeds", "variants") and mine.get(key) != other.get(key)
     }
-    my_settings, other_settings = mine.get("settings") or {}, other.get("settings") or {}
-    defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings())))
+    my_settings, other_settings = (_settings_as_run(p.get("settings") or {}) for p in (mine, other))
     for key in sorted(set(my_settings) | set(other_settings)):
-        # A record from before a setting existed ran with its default (``_resumable_runs``).
-        values = [s.get(key, defaults.get(key)) for s in (my_settings, other_settings)]
+        values = [my_settings.get(key), other_settings.get(key)]
         if values[0] != values[1]:
             differs[key] = values
     return {

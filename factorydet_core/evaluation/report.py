@@ -16,6 +16,7 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.detection.groups import best_option_iou
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.detection.scoring import select_detections
+from factorydet_core.evaluation.bench_tables import difference_text
 from factorydet_core.evaluation.evaluate import (
     PAPER_TABLE2,
     PAPER_TABLE3,
@@ -559,7 +560,7 @@ def _recovered_text(result: dict, recovered: str) -> str:
         return "Full labels were not run here: no gap, no recovered share."
     gap = _fmt(result["gap_full_minus_blind"])
     full = result["variants"]["full"].get("difference_vs_blind", {})
-    interval = _difference_text(full, with_mean=False)
+    interval = difference_text(full, with_mean=False)
     if not result.get("gap_significant", True):
         return (
             f"The gap between blind and full labels ({gap}{interval}) is not larger than twice its standard"
@@ -580,19 +581,12 @@ def _recovered_text(result: dict, recovered: str) -> str:
     return f"Recovered share of the gap between blind and full labels ({gap}{interval}): {shares}."
 
 
-def _difference_text(difference: dict, with_mean: bool = True) -> str:
-    """A paired difference (``hitl.paired_difference``) as "+0.017 [-0.001, +0.034]"; without
-    ``with_mean`` the interval alone, " [-0.001, +0.034]" ("" when it has none)."""
-    interval = " [{:+.3f}, {:+.3f}]".format(*difference["ci95"]) if difference.get("ci95") else ""
-    return f"{difference['mean']:+.3f}{interval}" if with_mean else interval
-
-
 def _difference_row(what: str, differences: dict, names: list[str]) -> list[str]:
     """The table row of each variant's paired difference from blind mining (``[]`` when some
     variant has no interval: fewer than two seeds)."""
     if not differences or not all(differences.get(n, {}).get("ci95") for n in names):
         return []
-    cells = ("–" if n == "blind" else _difference_text(differences[n]) for n in names)
+    cells = ("–" if n == "blind" else difference_text(differences[n]) for n in names)
     return [f"| {what}, per seed: mean [95% interval] | " + " | ".join(cells) + " |"]
 
 
@@ -616,7 +610,7 @@ def _map_recovered_text(result: dict, differences: dict) -> str:
     gap = full["mean"]
     if full.get("standard_error") is None or not gap > 2 * full["standard_error"]:
         return (
-            f"In mAP, the gap between blind and full labels ({_difference_text(full)}) is not larger than"
+            f"In mAP, the gap between blind and full labels ({difference_text(full)}) is not larger than"
             f" twice its standard error ({_fmt(full.get('standard_error'))}): no share is stated."
         )
     shares = [
@@ -625,7 +619,7 @@ def _map_recovered_text(result: dict, differences: dict) -> str:
         if name not in ("blind", "full")
     ]
     return (
-        f"In mAP, the gap between blind and full labels is {_difference_text(full)}, more than twice its"
+        f"In mAP, the gap between blind and full labels is {difference_text(full)}, more than twice its"
         " standard error" + (f"; recovered: {', '.join(shares)}." if shares else ".")
     )
 

@@ -54,10 +54,12 @@ def queue_order(scores, classes: Sequence[str], order: str = "score") -> np.ndar
     if order not in QUEUE_ORDERS:
         raise InputError(f"queue order must be one of {', '.join(QUEUE_ORDERS)}, got {order!r}")
     scores = np.asarray(scores, np.float64).reshape(-1)
-    rank = class_ranks(scores, classes)
+    if len(classes) != len(scores):
+        raise InputError(f"queue order: {len(scores)} scores but {len(classes)} classes")
     by_score = np.argsort(-scores, kind="stable")
     if order == "score" or not len(scores):
         return by_score.astype(np.int64)
+    rank = class_ranks(scores, classes)
     position = np.empty(len(scores), np.int64)
     position[by_score] = np.arange(len(scores))
     return np.lexsort((position, rank)).astype(np.int64)
