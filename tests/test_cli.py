@@ -415,6 +415,14 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     assert resumed["per_seed"]["blind"] == first["per_seed"]["blind"]  # read back, fit time included
     # Each detector trains in a session of its own from its seed: the same F as the whole run's.
     assert resumed["f1"] == first["f1"] and resumed == json.loads(out.read_text())
+    # A record of another plan gives the runs its differences do not touch: holding places
+    # changes blind_safe alone, so blind is read back and blind_safe trained again.
+    fits.clear()
+    assert main([*args, "--hold-places"]) == 0
+    held = json.loads(capsys.readouterr().out)
+    assert len(fits) == 2 and held["per_seed"]["blind"] == first["per_seed"]["blind"]
+    assert held["plan"]["settings"]["hold_places"] is True
+    out.write_text(json.dumps(resumed))
     # A record of another plan is refused before any work; so is --resume where nothing resumes.
     fits.clear()
     assert args[5] == "--epochs" and main([*args[:6], "2", *args[7:]]) == 2

@@ -21,6 +21,7 @@ scikit-learn's.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -385,7 +386,25 @@ class BoxQuality:
         ).fit(features, targets)
         self.trees_ = _export_trees(regressor)
         self.num_features_ = features.shape[1]
+        self.training_digest_ = self.training_digest(features, targets)
         return self
+
+    def training_digest(self, features: np.ndarray, targets: np.ndarray) -> str:
+        """A SHA-256 (hex) of what a fit on (R, F) ``features`` and (R,) ``targets`` depends on:
+        the rows, their targets and the fit's settings. ``fit`` keeps it as ``training_digest_``
+        and it is saved with the trees: a regressor whose digest equals the one of new rows is the
+        one a fit on them would give, and need not be fitted again."""
+        digest = hashlib.sha256()
+        settings = (
+            self.background_rate, self.min_overlap, self.max_iter, self.max_leaf_nodes,
+            self.learning_rate, self.seed, self.anchored, self.visibility,
+        )  # fmt: skip
+        digest.update(repr(settings).encode())
+        for array in (features, targets):
+            array = np.ascontiguousarray(array, np.float64)
+            digest.update(repr(array.shape).encode())
+            digest.update(array.tobytes())
+        return digest.hexdigest()
 
     def predict(self, features: np.ndarray) -> np.ndarray:
         """(R,) predicted IoUs in [0, 1] of (R, F) option features."""
@@ -442,6 +461,7 @@ class BoxQuality:
             raise InputError(f"not an inference setting of the box quality regressor: {sorted(unknown)}")
         changed = dataclasses.replace(self, **changes)
         changed.trees_, changed.num_features_ = self.trees_, self.num_features_
+        changed.training_digest_ = getattr(self, "training_digest_", None)
         return changed
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -453,6 +473,11 @@ class BoxQuality:
             "visibility": np.array(self.visibility),
             "screen_trees": np.array(self.screen_trees),
             "screen_keep": np.array(self.screen_keep),
+            **(
+                {"training_digest": np.frombuffer(bytes.fromhex(self.training_digest_), np.uint8)}
+                if getattr(self, "training_digest_", None)
+                else {}
+            ),
         }
 
     @classmethod
@@ -483,6 +508,7 @@ class BoxQuality:
             raise InputError(f"{where}: {exc}") from None
         model.trees_ = trees
         model.num_features_ = int(num_features)
+        model.training_digest_ = _digest(arrays, where)
         return model
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -498,7 +524,9 @@ class BoxQuality:
         ``MAX_TREE_NODES`` is read and the trees are checked (``from_arrays``); ``InputError``
         naming the file otherwise."""
         path = Path(path)
-        return cls.from_arrays(_read_arrays(path, (*_TREE_KEYS, *_SCALAR_KEYS)), where=str(path))
+        return cls.from_arrays(
+            _read_arrays(path, (*_TREE_KEYS, *_SCALAR_KEYS, "training_digest")), where=str(path)
+        )
 
 
 MAX_TREE_NODES = 2**22
@@ -536,6 +564,16 @@ def _count(arrays: Mapping[str, np.ndarray], name: str) -> int | None:
     if not 0 <= int(value) <= MAX_TREE_NODES:
         raise InputError(f"{name} must lie in [0, {MAX_TREE_NODES}], got {int(value)}")
     return int(value)
+
+
+def _digest(arrays: Mapping[str, np.ndarray], where: str) -> str | None:
+    """The saved ``training_digest_`` (hex); ``None`` when missing (files from before it)."""
+    if "training_digest" not in arrays:
+        return None
+    value = np.asarray(arrays["training_digest"])
+    if value.shape != (32,) or value.dtype != np.uint8:
+        raise InputError(f"{where}: training_digest must be 32 bytes, got {value.dtype} {value.shape}")
+    return value.tobytes().hex()
 
 
 def _check_trees(trees: dict[str, np.ndarray], num_features: int) -> dict[str, np.ndarray]:

@@ -518,10 +518,11 @@ class _HitlPlan:
 
 
 def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, str], dict]:
-    """The finished runs of an earlier (partial) result of the same plan, as ``{(seed, variant): run}``.
+    """The finished runs of an earlier (partial) result, as ``{(seed, variant): run}``: those of
+    the plan's detectors whose run plan (``_run_plan``) the earlier record shares.
 
     Raises:
-        InputError: when ``earlier`` is a record of another plan (it would mix two benchmarks).
+        InputError: when ``earlier`` shares no detector's run plan (it would mix two benchmarks).
     """
     if not earlier:
         return {}
@@ -530,13 +531,34 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
     theirs = dict(earlier["plan"])
     if isinstance(theirs.get("settings"), dict):
         theirs["settings"] = _settings_as_run(theirs["settings"])
-    check_same_plan("hitl", plan.record(), theirs)
+    mine = plan.record()
+    same = {name for name in mine["variants"] if _run_plan(mine, name) == _run_plan(theirs, name)}
+    if not same:
+        check_same_plan("hitl", mine, theirs)
     return {
         (int(run["seed"]), name): run
         for name, runs in (earlier.get("per_seed") or {}).items()
         for run in runs
-        if int(run["seed"]) in plan.seeds
+        if int(run["seed"]) in plan.seeds and name in same
     }
+
+
+def _run_plan(plan: dict, variant: str) -> dict:
+    """What of a plan record (``_HitlPlan.record``) shapes the runs of ``variant``: the plan less
+    its seeds, its list of detectors and its budgets (a reviewed detector's budget is in its name),
+    less the reviewer's settings for a detector nobody reviews, and less the holding of confident
+    negatives (``hold_confident``, ``hold_places``) for all but ``blind_safe``, the one detector
+    that holds them. Runs of a detector whose run plans agree are the same runs, whatever else the
+    two records measured: a record grows by a detector without training the others again."""
+    out = {k: v for k, v in plan.items() if k not in ("seeds", "variants", "budgets")}
+    if not variant.startswith("reviewed_"):
+        out.pop("review_by", None)
+        out.pop("queue_max_label_iou", None)
+    if variant != "blind_safe" and isinstance(out.get("settings"), dict):
+        out["settings"] = {
+            k: v for k, v in out["settings"].items() if k not in ("hold_confident", "hold_places")
+        }
+    return out
 
 
 def _settings_as_run(settings: dict) -> dict:

@@ -2736,6 +2736,7 @@ def rounds_record(run) -> list[dict]:
             "fit_seconds": r["fit_seconds"],
             "score_seconds": r.get("score_seconds"),
             "box_quality_seconds": r.get("box_quality_seconds"),
+            "box_quality": r.get("box_quality"),
             "epochs": r.get("epochs"),
             "continued": r.get("continued"),
             "num_mined": len(r["mined"]),

@@ -243,7 +243,8 @@ def train_session(
             runs one more round on top of everything mined and reviewed so far, going on from the
             session's chosen (else latest) model (``continued_model``: its network trained on for
             ``settings.round_epochs`` epochs, its box quality regressor kept unless
-            ``settings.refit_box_quality``) when it can, else
+            ``settings.refit_box_quality``, and then too when the labels it was fitted on did
+            not change) when it can, else
             afresh (the run's config says why).
         front_end: the front half's settings the frames were proposed with, saved whole in the
             models and the run's record.
@@ -270,6 +271,7 @@ def train_session(
         else None
     )
     continued_run, continued, why = None, None, ""
+    reuse_quality = None
     if mode == "next":
         hold = settings.hold_confident
         background = _merge(db.mined_patch_sets(below_score=hold), reviewed["background"])
@@ -283,6 +285,8 @@ def train_session(
         keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None
         if keep_quality and not settings.refit_box_quality:
             box_quality = continued.box_quality
+        elif keep_quality:  # a refit that would give the model's regressor back is skipped
+            reuse_quality = continued.box_quality
     else:
         background = reviewed["background"]
         rounds = settings.rounds
@@ -302,6 +306,7 @@ def train_session(
         nms_iou=settings.nms_iou,
         seed=settings.seed,
         box_quality=box_quality,
+        reuse_box_quality=reuse_quality,
         progress=progress,
         background_sets=background,
         excluded_sets=excluded,

@@ -258,7 +258,8 @@ class TrainingRun:
     rounds: list[dict]
     """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``epochs``,
     ``continued`` (the fit went on from a model), ``box_quality_seconds`` (the regressor's fit, in
-    round 0), ``score_seconds``, ``train_metrics`` (detection on the training frames against the
+    round 0), ``box_quality`` (round 0: "fitted", "kept" from a model, "same rows, kept" when a
+    refit would have given the model's back, or ``None`` without one), ``score_seconds``, ``train_metrics`` (detection on the training frames against the
     annotations) and ``mined`` (the negatives added after that round: frame, proposal, box, patch
     set, score, class)."""
     models: list[DetectionModel]
@@ -422,6 +423,7 @@ def train_with_mining(
     hold_places: bool = False,
     should_stop: Callable[[], bool] | None = None,
     box_quality: BoxQuality | None = None,
+    reuse_box_quality: BoxQuality | None = None,
     mining_threshold: float | None = None,
     tune_class_thresholds: bool = True,
     probability_exponent: float = PROBABILITY_EXPONENT,
@@ -487,6 +489,10 @@ def train_with_mining(
             scores the model will give, or a fitted one (a model's that the run continues), used as
             it is; ``None`` keeps the size prior's box and the class probability as score. Needs
             ``use_box_prior``.
+        reuse_box_quality: a fitted regressor (the continued model's) that stands in for fitting
+            an unfitted ``box_quality`` when it was fitted on the very rows and settings this fit
+            would use (``BoxQuality.training_digest``): the fit would give it back, so a round
+            whose labels did not change since that model skips the regressor's fit.
         mining_threshold: detections scoring at least this are mined (``None``: the operating
             ``score_threshold``, as the paper). With box quality a score is a probability (to
             ``probability_exponent``) times a predicted IoU, so few clear the operating threshold
@@ -589,14 +595,19 @@ def train_with_mining(
 
     quality = None
     quality_seconds = 0.0
+    quality_source = None
     if box_quality is not None and box_prior is not None and hasattr(box_quality, "trees_"):
-        quality = box_quality
+        quality, quality_source = box_quality, "kept"
     elif box_quality is not None and box_prior is not None:
         if progress is not None:
             progress("box quality", 0, 1)
         start = time.perf_counter()
         rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
-        quality = dataclasses.replace(box_quality).fit(rows, targets)
+        reused = reuse_box_quality is not None and getattr(
+            reuse_box_quality, "training_digest_", None
+        ) == box_quality.training_digest(rows, targets)
+        quality = reuse_box_quality if reused else dataclasses.replace(box_quality).fit(rows, targets)
+        quality_source = "same rows, kept" if reused else "fitted"
         quality_seconds = time.perf_counter() - start
         del rows, targets
         if progress is not None:
@@ -667,6 +678,7 @@ def train_with_mining(
             "continued": start_from is not None,
             # The regressor is fitted once, before the first round (0 when kept from a model).
             "box_quality_seconds": round(quality_seconds, 2) if round_index == 0 else 0.0,
+            "box_quality": quality_source if round_index == 0 else None,
             "score_seconds": round(time.perf_counter() - start, 2),
             "train_metrics": metrics,
             "mined": [],

@@ -85,7 +85,8 @@ class LoopSettings:
     learns each option's IoU with the labels, so one fitted while half the objects were unlabelled
     has learned that their boxes fit nothing (IoU 0) and scores them down whatever the classifier
     says; labels a reviewer adds later only reach it through a refit. Costs one regressor fit per
-    round (``bench mining``'s ``box_quality_seconds``)."""
+    round (``bench mining``'s ``box_quality_seconds``), skipped when the regressor's training rows
+    are those the model's was fitted on (no label or object verdict changed since)."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None

@@ -136,6 +136,30 @@ def test_arrays_round_trip_and_bad_input(rng):
         BoxQuality().fit(features, np.full(200, np.nan))
 
 
+def test_the_training_digest_names_the_rows_and_settings_and_travels_with_the_trees(rng, tmp_path):
+    features, targets = rng.normal(size=(200, 3)), rng.uniform(size=200)
+    quality = BoxQuality(max_iter=10).fit(features, targets)
+    digest = quality.training_digest_
+    assert digest == BoxQuality(max_iter=10).training_digest(features, targets)
+    changed_row = features.copy()
+    changed_row[7, 1] += 1e-9
+    others = {
+        BoxQuality(max_iter=10).training_digest(changed_row, targets),
+        BoxQuality(max_iter=10).training_digest(features[:-1], targets[:-1]),
+        BoxQuality(max_iter=11).training_digest(features, targets),
+        BoxQuality(max_iter=10, seed=1).training_digest(features, targets),
+    }
+    assert digest not in others and len(others) == 4
+    loaded = BoxQuality.load(quality.save(tmp_path / "q.npz"))
+    assert loaded.training_digest_ == digest
+    assert loaded.with_screen(0, 1).training_digest_ == digest
+    # Files from before the digest load with none (a refit is never skipped for them).
+    arrays = {k: v for k, v in quality.to_arrays().items() if k != "training_digest"}
+    assert BoxQuality.from_arrays(arrays).training_digest_ is None
+    with pytest.raises(InputError, match="training_digest"):
+        BoxQuality.from_arrays({**arrays, "training_digest": np.zeros(31, np.uint8)})
+
+
 @pytest.mark.parametrize("anchored", [False, True])
 def test_option_features_describe_every_option(frames, prior, anchored):
     frame = frames[0]

@@ -423,8 +423,8 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
     class StopError(Exception):
         pass
 
-    def capture(*args, box_quality=None, **kwargs):
-        given.append(box_quality)
+    def capture(*args, box_quality=None, reuse_box_quality=None, **kwargs):
+        given.append((box_quality, reuse_box_quality))
         raise StopError
 
     monkeypatch.setattr(loop, "train_with_mining", capture)
@@ -432,6 +432,8 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
     for settings in (with_quality, dataclasses.replace(with_quality, refit_box_quality=True)):
         with pytest.raises(StopError):
             train_session(db, frames, settings, mode="next")
-    assert given[0] is kept
-    # Refitted: a new, unfitted regressor of the run's own settings.
-    assert isinstance(given[1], loop.BoxQuality) and not hasattr(given[1], "trees_")
+    assert given[0] == (kept, None)
+    # Refitted: a new, unfitted regressor of the run's own settings, the model's kept only if the
+    # refit would give it back (train_with_mining compares their training rows).
+    refit, reuse = given[1]
+    assert isinstance(refit, loop.BoxQuality) and not hasattr(refit, "trees_") and reuse is kept

@@ -145,6 +145,30 @@ def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
 
 
 @pytest.mark.slow
+def test_a_refit_on_the_rows_a_regressor_was_fitted_on_keeps_that_regressor(frames):
+    def first_fit(reuse=None, frames=frames):
+        return train_with_mining(
+            frames,
+            ProposalClassifier(width=0.0625, epochs=1, num_threads=1),
+            rounds=0,
+            initial_negatives=50,
+            box_quality=BoxQuality(max_iter=5),
+            reuse_box_quality=reuse,
+        )
+
+    run = first_fit()
+    fitted = run.model.box_quality
+    assert run.rounds[0]["box_quality"] == "fitted"
+    same = first_fit(reuse=fitted)
+    assert same.model.box_quality is fitted and same.rounds[0]["box_quality"] == "same rows, kept"
+    # One label less: other rows, so the regressor is fitted again.
+    fewer = [dataclasses.replace(frames[0], label_boxes=frames[0].label_boxes[1:],
+                                 label_class_ids=frames[0].label_class_ids[1:]), *frames[1:]]  # fmt: skip
+    refit = first_fit(reuse=fitted, frames=fewer)
+    assert refit.model.box_quality is not fitted and refit.rounds[0]["box_quality"] == "fitted"
+    assert refit.model.box_quality.training_digest_ != fitted.training_digest_
+
+
 def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
     seen = []
 
