@@ -539,6 +539,30 @@ def world_labels_markdown(result: dict) -> str:
         f" ({fmt(spread['objects'])} objects); {fmt(100 * spread['share_with_points'], 1)}% box an"
         f" object with points there, at a median IoU of {fmt(spread['iou'].get('median'), 3)} with"
         f" truth ({fmt(100 * spread['iou'].get('share_at_least_0.6', 0), 1)}% at 0.6 or more).\n"
+        + _min_points_sweep(result)
+    )
+
+
+def _min_points_sweep(result: dict) -> str:
+    """The app's poses again, by the least thinned points that would show an object (records from
+    before the sweep: nothing)."""
+    sweeps = [m["shown_by_min_points"] for m in result["methods"].values() if "shown_by_min_points" in m]
+    sweep = sweeps[0] if sweeps else None
+    if not sweep:
+        return ""
+    bins = list(next(iter(sweep.values()))["shown_by_points"])
+    header = ["least points that show", *[f"shown, {b} points" for b in bins], "shown, no points"]
+    rows = [
+        [
+            f"{m}{' (the app)' if int(m) == result['min_points'] else ''}",
+            *[fmt(shares["shown_by_points"][b], 3) for b in bins],
+            fmt(shares["shown_without_points"], 3),
+        ]
+        for m, shares in sweep.items()
+    ]
+    return (
+        "\nThe app's poses, by the least thinned points (5 cm) in the carried box that show the"
+        " object in a frame, its bottom 5 cm (the floor) left out:\n\n" + table(header, rows) + "\n"
     )
 
 

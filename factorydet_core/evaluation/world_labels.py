@@ -50,6 +50,21 @@ from factorydet_core.sim.truth import read_frame_truth, read_truth
 POINT_BINS: tuple[tuple[int, int | None], ...] = ((1, 4), (5, 19), (20, 49), (50, None))
 """Truth points of an object in a frame, binned: how often a frame with that many shows it."""
 
+SWEEP_MIN_POINTS: tuple[int, ...] = (1, 2, 3)
+"""The least thinned points that would show an object, swept for the app's poses: what each would
+show where the object has points, and where it has none."""
+
+
+def _shown_shares(counts: Sequence[tuple[int, int]], min_points: int) -> tuple[dict, float]:
+    """From ``(truth points, thinned points in the carried box)`` per object and frame: the share
+    shown by ``min_points`` in each of ``POINT_BINS`` and where truth has no points."""
+    by_bin = {}
+    for low, high in POINT_BINS:
+        shown = [n >= min_points for t, n in counts if t >= low and (high is None or t <= high)]
+        by_bin[_bin_name(low, high)] = round(float(np.mean(shown)), 4) if shown else None
+    without = [n >= min_points for t, n in counts if t == 0]
+    return by_bin, round(float(np.mean(without)), 4) if without else 0.0
+
 
 def _bin_name(low: int, high: int | None) -> str:
     return f"{low}+" if high is None else f"{low}-{high}"
@@ -125,6 +140,7 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
     ious: list[float] = []
     shown = {_bin_name(*b): [0, 0] for b in POINT_BINS}
     shown_without = [0, 0]
+    counts: list[tuple[int, int]] = []  # (truth points, thinned points in the carried box)
     place_ms = []
     for per_frame in objects.values():
         source = max(per_frame, key=lambda f: (per_frame[f][1], -f))
@@ -134,6 +150,7 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
         for f in range(world.num_frames):
             if f == source:
                 continue
+            counts.append((per_frame[f][1] if f in per_frame else 0, int(placement.num_points[f])))
             if f not in per_frame:
                 shown_without[0] += 1
                 shown_without[1] += int(placement.visible_mask[f])
@@ -155,6 +172,7 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
         "iou": ious,
         "shown": shown,
         "shown_without_points": shown_without,
+        "point_counts": counts,
     }
     return record, world
 
@@ -232,7 +250,7 @@ def bench_world_labels(
                 {
                     key: value
                     for key, value in r.items()
-                    if key not in ("iou", "shown", "shown_without_points")
+                    if key not in ("iou", "shown", "shown_without_points", "point_counts")
                 }
                 for r in results
             ],
@@ -243,6 +261,12 @@ def bench_world_labels(
             },
             "shown_without_points": round(without[1] / max(1, without[0]), 4),
         }
+        if method == APP_METHOD:
+            counts = [tuple(c) for r in results for c in r["point_counts"]]
+            out[method]["shown_by_min_points"] = {
+                str(m): dict(zip(("shown_by_points", "shown_without_points"), _shown_shares(counts, m)))
+                for m in SWEEP_MIN_POINTS
+            }
     return {
         "benchmark": "world-labels",
         "command": command,

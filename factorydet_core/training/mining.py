@@ -259,9 +259,9 @@ class TrainingRun:
     """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``epochs``,
     ``continued`` (the fit went on from a model), ``box_quality_seconds`` (the regressor's fit, in
     round 0), ``box_quality`` (round 0: "fitted", "kept" from a model, "same rows, kept" when a
-    refit would have given the model's back, or ``None`` without one), ``score_seconds``, ``train_metrics`` (detection on the training frames against the
-    annotations) and ``mined`` (the negatives added after that round: frame, proposal, box, patch
-    set, score, class)."""
+    refit would have given the model's back, or ``None`` without one), ``score_seconds``,
+    ``train_metrics`` (detection on the training frames against the annotations) and ``mined``
+    (the negatives added after that round: frame, proposal, box, patch set, score, class)."""
     models: list[DetectionModel]
     """The model after each round."""
     train_frames: list[int]

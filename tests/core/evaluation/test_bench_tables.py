@@ -270,3 +270,19 @@ def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
         compare_hitl_records(record, {**baseline, "test_frames": [2]}, names=("a.json", "b.json"))
     with pytest.raises(InputError, match="share no seed"):
         compare_hitl_records(record, _hitl_record({"blind": [0.2]}, {}, seeds=(9,)), names=("a", "b"))
+
+
+def test_world_labels_table_sweeps_the_least_points_that_show_an_object():
+    record = copy.deepcopy(_record("world-labels"))
+    app = next(m for name, m in record["methods"].items() if "(the app)" in name)
+    bins = list(app["shown_by_points"])
+    app["shown_by_min_points"] = {
+        str(m): {"shown_by_points": dict.fromkeys(bins, 0.5 / m), "shown_without_points": 0.01 * m}
+        for m in (1, 2, 3)
+    }
+    text = render_record(record)
+    assert _rows(text, "1") == [["1", *[fmt(0.5, 3)] * len(bins), fmt(0.01, 3)]]
+    assert _rows(text, f"{record['min_points']} (the app)")
+    # Records from before the sweep render without it.
+    del app["shown_by_min_points"]
+    assert "least points that show" not in render_record(record)
