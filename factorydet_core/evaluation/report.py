@@ -790,6 +790,12 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 if settings.get("queue_order") == "class"
                 else ""
             )
+            + (
+                ", every next round fitting the box quality regressor again on the labels it has"
+                " (`refit_box_quality`)"
+                if settings.get("refit_box_quality")
+                else ""
+            )
             + ". F-score at IoU "
             f"{result['iou_threshold']} against the full truth, on test frames of the training frames'"
             " factory (in-factory figures). `blind`: mining on the partial labels (the paper)."

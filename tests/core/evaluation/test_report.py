@@ -184,6 +184,9 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     text = hitl_markdown(result, heading=False)
     assert "by `full_late`, every missing label given after the first fit: 50%" in text
     assert "5 mined per round, the predicted classes taking turns in the cut and in the queue" in text
+    assert "refit_box_quality" not in text
+    result["settings"]["refit_box_quality"] = True
+    assert "every next round fitting the box quality regressor again" in hitl_markdown(result)
     # A gap within its noise: no share at all.
     result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.31, 0.30, 0.30]})
     assert "no recovered share is stated" in hitl_markdown(result)
