@@ -584,18 +584,24 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
 def _run_plan(plan: dict, variant: str) -> dict:
     """What of a plan record (``_HitlPlan.record``) shapes the runs of ``variant``: the plan less
     its seeds, its list of detectors and its budgets (a reviewed detector's budget is in its name),
-    less the reviewer's settings for a detector nobody reviews, and less the holding of confident
+    less the reviewer's settings for a detector nobody reviews, less the holding of confident
     negatives (``hold_confident``, ``hold_places``) for all but ``blind_safe``, the one detector
-    that holds them. Runs of a detector whose run plans agree are the same runs, whatever else the
+    that holds them, and less the box quality refit for blind mining and full labels, whose
+    labels never change after the first fit. Runs of a detector whose run plans agree are the same runs, whatever else the
     two records measured: a record grows by a detector without training the others again."""
     out = {k: v for k, v in plan.items() if k not in ("seeds", "variants", "budgets")}
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
-    if variant != "blind_safe" and isinstance(out.get("settings"), dict):
-        out["settings"] = {
-            k: v for k, v in out["settings"].items() if k not in ("hold_confident", "hold_places")
-        }
+    untouched = set()
+    if variant != "blind_safe":
+        untouched |= {"hold_confident", "hold_places"}
+    if variant in ("blind", "full"):
+        # Their labels never change after the first fit, so a refit of the box quality regressor
+        # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).
+        untouched |= {"refit_box_quality", "refit_trees"}
+    if untouched and isinstance(out.get("settings"), dict):
+        out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}
     return out
 
 
