@@ -587,8 +587,9 @@ def _run_plan(plan: dict, variant: str) -> dict:
     less the reviewer's settings for a detector nobody reviews, less the holding of confident
     negatives (``hold_confident``, ``hold_places``) for all but ``blind_safe``, the one detector
     that holds them, and less the box quality refit for blind mining and full labels, whose
-    labels never change after the first fit. Runs of a detector whose run plans agree are the same runs, whatever else the
-    two records measured: a record grows by a detector without training the others again."""
+    labels never change after the first fit. Runs of a detector whose run plans agree are the
+    same runs, whatever else the two records measured: a record grows by a detector without
+    training the others again."""
     out = {k: v for k, v in plan.items() if k not in ("seeds", "variants", "budgets")}
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)

@@ -122,7 +122,8 @@ class LoopSettings:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        if isinstance(self.refit_trees, bool) or not isinstance(self.refit_trees, int) or self.refit_trees < 0:
+        trees = self.refit_trees
+        if isinstance(trees, bool) or not isinstance(trees, int) or trees < 0:
             raise InputError(f"refit_trees must be an integer >= 0, got {self.refit_trees!r}")
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
