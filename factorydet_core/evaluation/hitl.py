@@ -21,7 +21,7 @@ from factorydet_core.session.store import SessionDB, on_labelled_object, open_se
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import Proposer, cached_proposals, train_session
 from factorydet_core.training.mining import collect_proposals
-from factorydet_core.training.settings import LoopSettings
+from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
 from factorydet_core.types import (
     InputError,
 )
@@ -607,10 +607,10 @@ def _run_plan(plan: dict, variant: str) -> dict:
 
 
 def _settings_as_run(settings: dict) -> dict:
-    """A record's plan ``settings`` with every ``LoopSettings`` field it lacks at its default (the
-    seed and thread count aside, as ``_HitlPlan.record``): a setting added since the record was
-    written has a default that does what was done before it existed."""
-    defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings())))
+    """A record's plan ``settings`` with every ``LoopSettings`` field it lacks at what was done
+    before the field existed (``settings.BEFORE_THEY_EXISTED``, else its default; the seed and
+    thread count aside, as ``_HitlPlan.record``)."""
+    defaults = json.loads(json.dumps({**dataclasses.asdict(LoopSettings()), **BEFORE_THEY_EXISTED}))
     return {**{k: v for k, v in defaults.items() if k not in ("seed", "num_threads")}, **settings}
 
 

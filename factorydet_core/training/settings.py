@@ -132,6 +132,16 @@ class LoopSettings:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
 
 
+BEFORE_THEY_EXISTED: dict[str, object] = {
+    "queue_order": "score",
+    "refit_box_quality": False,
+    "refit_trees": 0,
+}
+"""What a record written before each of these ``LoopSettings`` fields existed ran with: the
+behaviour the field was added to keep by default. A record that lacks a field is read with these,
+not with today's default, so a default changed since does not rewrite what an old record ran."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Control:
     """How people set one field of ``LoopSettings``: ``factorydet train``'s flag and the app's
