@@ -445,6 +445,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "hold_places": args.hold_places,
                             "queue_order": args.queue_order,
                             "refit_box_quality": args.refit_box_quality,
+                            "refit_trees": args.refit_trees,
                             "class_thresholds": args.class_thresholds,
                         }
                     ),
@@ -1637,7 +1638,7 @@ def build_parser(
         p,
         fields=(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
-            "refit_box_quality",
+            "refit_box_quality", "refit_trees",
         ),
     )  # fmt: skip
     p.add_argument(

@@ -423,6 +423,12 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     assert len(fits) == 2 and held["per_seed"]["blind"] == first["per_seed"]["blind"]
     assert held["plan"]["settings"]["hold_places"] is True
     out.write_text(json.dumps(resumed))
+    # A whole record resumed is only rendered again: nothing trained, nothing proposed.
+    fits.clear()
+    monkeypatch.setattr(hitl, "cached_proposals", lambda *a, **k: pytest.fail("proposed"))
+    assert main(args) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert not fits and again["f1"] == resumed["f1"] and again["proposal_seconds"] is None
     # A record of another plan is refused before any work; so is --resume where nothing resumes.
     fits.clear()
     assert args[5] == "--epochs" and main([*args[:6], "2", *args[7:]]) == 2

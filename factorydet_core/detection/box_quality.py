@@ -389,6 +389,48 @@ class BoxQuality:
         self.training_digest_ = self.training_digest(features, targets)
         return self
 
+    def continued(self, features: np.ndarray, targets: np.ndarray, num_trees: int) -> BoxQuality:
+        """A copy of this fitted regressor boosted on: ``num_trees`` more trees (its leaves and
+        learning rate) fitted to what it gets wrong on (R, F) ``features`` and their (R,) IoUs,
+        added after its own. Boosting goes on from its raw sums (not clipped), so the copy predicts
+        what one longer boosting run would, with the last trees fitted to these rows: a new
+        label's options are corrected at a fraction of a fit from scratch."""
+        from sklearn.ensemble import HistGradientBoostingRegressor
+
+        if isinstance(num_trees, bool) or not isinstance(num_trees, (int, np.integer)) or num_trees < 1:
+            raise InputError(f"box quality: num_trees must be an integer >= 1, got {num_trees!r}")
+        features = np.asarray(features, np.float64)
+        targets = np.asarray(targets, np.float64)
+        if features.ndim != 2 or features.shape[1] != self.num_features_ or targets.shape != (len(features),):
+            raise InputError(
+                f"box quality: expected (R, {self.num_features_}) features and (R,) targets, got"
+                f" {features.shape} and {targets.shape}"
+            )
+        if not (np.isfinite(features).all() and np.isfinite(targets).all()):
+            raise InputError("box quality: features and targets must be finite")
+        residuals = targets - _evaluate_trees(self.trees_, features, interleaved=self.interleaved_walk)
+        regressor = HistGradientBoostingRegressor(
+            max_iter=int(num_trees),
+            max_leaf_nodes=self.max_leaf_nodes,
+            learning_rate=self.learning_rate,
+            early_stopping=False,
+            random_state=self.seed,
+        ).fit(features, residuals)
+        more = _export_trees(regressor)
+        offset = len(self.trees_["is_leaf"])
+        for key in ("left", "right", "roots"):  # node indices: the new trees' nodes come after
+            more[key] = more[key] + offset
+        trees = {
+            key: np.concatenate([self.trees_[key], more[key]])
+            for key in ("feature", "threshold", "left", "right", "is_leaf", "value", "roots")
+        }
+        trees["baseline"] = self.trees_["baseline"] + more["baseline"]
+        out = dataclasses.replace(self)
+        out.trees_ = _check_trees(trees, self.num_features_)
+        out.num_features_ = self.num_features_
+        out.training_digest_ = None
+        return out
+
     def training_digest(self, features: np.ndarray, targets: np.ndarray) -> str:
         """A SHA-256 (hex) of what a fit on (R, F) ``features`` and (R,) ``targets`` depends on:
         the rows, their targets and the fit's settings. ``fit`` keeps it as ``training_digest_``

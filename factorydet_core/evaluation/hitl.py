@@ -21,7 +21,7 @@ from factorydet_core.session.store import SessionDB, on_labelled_object, open_se
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import Proposer, cached_proposals, train_session
 from factorydet_core.training.mining import collect_proposals
-from factorydet_core.training.settings import LoopSettings
+from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
 from factorydet_core.types import (
     InputError,
 )
@@ -467,6 +467,44 @@ def paired_difference(values: Sequence[float], baseline: Sequence[float]) -> dic
     }
 
 
+def recovered_share(values: Sequence[float], baseline: Sequence[float], full: Sequence[float]) -> dict:
+    """The share of the gap ``full - baseline`` that ``values`` recover, seed by seed paired: the
+    ratio of the mean differences ``mean(values - baseline) / mean(full - baseline)`` and its 95%
+    confidence interval by Fieller's theorem (the shares ``r`` for which the per-seed differences
+    ``(values - baseline) - r (full - baseline)`` do not differ from 0 by Student's t).
+
+    Returns:
+        ``{"share", "ci95", "num_seeds"}``; ``share`` ``None`` when the mean gap is not positive,
+        ``ci95`` ``None`` with fewer than two seeds or when the interval is unbounded (the gap's
+        own interval reaches 0: the seeds cannot bound the share).
+    """
+    from scipy import stats
+
+    x = np.asarray(values, np.float64) - np.asarray(baseline, np.float64)
+    y = np.asarray(full, np.float64) - np.asarray(baseline, np.float64)
+    n = len(x)
+    if n == 0 or not y.mean() > 0:
+        return {"share": None, "ci95": None, "num_seeds": n}
+    share = float(x.mean() / y.mean())
+    if n < 2:
+        return {"share": round(share, 4), "ci95": None, "num_seeds": n}
+    t2 = float(stats.t.ppf(0.975, n - 1)) ** 2
+    covariance = np.cov(x, y) / n  # of the two means
+    a = y.mean() ** 2 - t2 * covariance[1, 1]
+    b = x.mean() * y.mean() - t2 * covariance[0, 1]
+    c = x.mean() ** 2 - t2 * covariance[0, 0]
+    if a <= 0:
+        return {"share": round(share, 4), "ci95": None, "num_seeds": n}
+    # With a > 0 the quadratic is <= 0 at the share itself (minus t^2 times a variance), so it has
+    # real roots: a negative discriminant is rounding.
+    root = float(np.sqrt(max(b * b - a * c, 0.0)))
+    return {
+        "share": round(share, 4),
+        "ci95": [round((b - root) / a, 4), round((b + root) / a, 4)],
+        "num_seeds": n,
+    }
+
+
 def _recovered(f1: dict[str, float], budgets: Sequence[int]) -> tuple[float, dict[str, float | None]]:
     """The gap F(full) - F(blind) and the share of it each ``reviewed_K`` recovers (``None``
     when there is no gap)."""
@@ -546,26 +584,33 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
 def _run_plan(plan: dict, variant: str) -> dict:
     """What of a plan record (``_HitlPlan.record``) shapes the runs of ``variant``: the plan less
     its seeds, its list of detectors and its budgets (a reviewed detector's budget is in its name),
-    less the reviewer's settings for a detector nobody reviews, and less the holding of confident
+    less the reviewer's settings for a detector nobody reviews, less the holding of confident
     negatives (``hold_confident``, ``hold_places``) for all but ``blind_safe``, the one detector
-    that holds them. Runs of a detector whose run plans agree are the same runs, whatever else the
-    two records measured: a record grows by a detector without training the others again."""
+    that holds them, and less the box quality refit for blind mining and full labels, whose
+    labels never change after the first fit. Runs of a detector whose run plans agree are the
+    same runs, whatever else the two records measured: a record grows by a detector without
+    training the others again."""
     out = {k: v for k, v in plan.items() if k not in ("seeds", "variants", "budgets")}
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
-    if variant != "blind_safe" and isinstance(out.get("settings"), dict):
-        out["settings"] = {
-            k: v for k, v in out["settings"].items() if k not in ("hold_confident", "hold_places")
-        }
+    untouched = set()
+    if variant != "blind_safe":
+        untouched |= {"hold_confident", "hold_places"}
+    if variant in ("blind", "full"):
+        # Their labels never change after the first fit, so a refit of the box quality regressor
+        # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).
+        untouched |= {"refit_box_quality", "refit_trees"}
+    if untouched and isinstance(out.get("settings"), dict):
+        out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}
     return out
 
 
 def _settings_as_run(settings: dict) -> dict:
-    """A record's plan ``settings`` with every ``LoopSettings`` field it lacks at its default (the
-    seed and thread count aside, as ``_HitlPlan.record``): a setting added since the record was
-    written has a default that does what was done before it existed."""
-    defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings())))
+    """A record's plan ``settings`` with every ``LoopSettings`` field it lacks at what was done
+    before the field existed (``settings.BEFORE_THEY_EXISTED``, else its default; the seed and
+    thread count aside, as ``_HitlPlan.record``)."""
+    defaults = json.loads(json.dumps({**dataclasses.asdict(LoopSettings()), **BEFORE_THEY_EXISTED}))
     return {**{k: v for k, v in defaults.items() if k not in ("seed", "num_threads")}, **settings}
 
 
@@ -596,25 +641,27 @@ def _hitl_variants(
     rounds, settings, seeds, max_label_iou = plan.rounds, plan.settings, plan.seeds, plan.max_label_iou
     calibrate, command = plan.calibrate, plan.command
     resumed = resumed or {}
-    detector = Detector(params_for(None, dataset.num_sensors))
-    if calibrate and dataset.num_sensors > 1:
-        detector.calibrate(dataset.frame(train[0]))
-    scratch = SessionDB(open_session("proposals", root), dataset)
-    start = time.perf_counter()
-    train_frames = cached_proposals(scratch, dataset, detector, train, propose=plan.propose)
-    test_frames = cached_proposals(scratch, dataset, detector, test, propose=plan.propose)
-    proposal_seconds = time.perf_counter() - start
-    world = None
-    if plan.review_by == "place":
-        from factorydet_core.session.world import session_world
-
-        world, _ = session_world(scratch.session, dataset, detector.T_vehicle_sensor)
     # blind_safe: blind mining that holds the negatives the model scores at its operating score or
     # more out of the background until reviewed (nobody reviews them here).
     hold = settings.hold_confident if settings.hold_confident is not None else settings.score_threshold
     variants = _variant_specs(budgets, hold, default=plan.variants is None)
     if plan.variants is not None:
         variants = [v for v in variants if v[0] in plan.variants]
+    train_frames = test_frames = world = proposal_seconds = None
+    if any((seed, name) not in resumed for seed in seeds for name, _, _ in variants):
+        # (a record resumed whole is only rendered again: nothing to propose or place)
+        detector = Detector(params_for(None, dataset.num_sensors))
+        if calibrate and dataset.num_sensors > 1:
+            detector.calibrate(dataset.frame(train[0]))
+        scratch = SessionDB(open_session("proposals", root), dataset)
+        start = time.perf_counter()
+        train_frames = cached_proposals(scratch, dataset, detector, train, propose=plan.propose)
+        test_frames = cached_proposals(scratch, dataset, detector, test, propose=plan.propose)
+        proposal_seconds = round(time.perf_counter() - start, 1)
+        if plan.review_by == "place":
+            from factorydet_core.session.world import session_world
+
+            world, _ = session_world(scratch.session, dataset, detector.T_vehicle_sensor)
     steps, done = len(seeds) * len(variants) * (rounds + 1), 0
     per_seed: dict[str, list[dict]] = {name: [] for name, _, _ in variants}
     for seed in seeds:
@@ -768,6 +815,12 @@ def _hitl_variants(
             for i in range(len(seeds))
         ]
         recovered_per_seed = {str(k): [r[str(k)] for r in seed_recovered] for k in reviewed}
+        full_f1 = [r["f1"] for r in per_seed["full"]]
+        for name in results:
+            if name not in ("blind", "full"):
+                results[name]["recovered_share"] = recovered_share(
+                    [r["f1"] for r in per_seed[name]], [r["f1"] for r in per_seed["blind"]], full_f1
+                )
     return {
         "benchmark": "hitl",
         "complete": True,
@@ -793,7 +846,7 @@ def _hitl_variants(
         "hold_confident": hold,
         "variants": results,
         "per_seed": per_seed,
-        "proposal_seconds": round(proposal_seconds, 1),
+        "proposal_seconds": proposal_seconds,  # None: every run was read back
         "machine": machine_info(),
     }
 

@@ -573,12 +573,28 @@ def _recovered_text(result: dict, recovered: str) -> str:
     f1 = result["f1"]
     if "blind_safe" in f1 and result["gap_full_minus_blind"] > 0:
         safe = (f1["blind_safe"] - f1["blind"]) / result["gap_full_minus_blind"]
-        parts.append(f"by `blind_safe`, with no reviewer: {100 * safe:.0f}% (target: at least 30%)")
+        parts.append(
+            f"by `blind_safe`, with no reviewer: {100 * safe:.0f}%{_share_interval(result, 'blind_safe')}"
+            " (target: at least 30%)"
+        )
     if "full_late" in f1 and result["gap_full_minus_blind"] > 0:
         late = (f1["full_late"] - f1["blind"]) / result["gap_full_minus_blind"]
         parts.append(f"by `full_late`, every missing label given after the first fit: {100 * late:.0f}%")
     shares = "; ".join(parts) if parts else "no reviewed, held or late variant was run"
     return f"Recovered share of the gap between blind and full labels ({gap}{interval}): {shares}."
+
+
+def _share_interval(result: dict, name: str) -> str:
+    """`` [lo%, hi%]``: the 95% interval of the share of the blind-to-full gap ``name`` recovers
+    (``hitl.recovered_share``, from the record's seeds), `` [interval unbounded]`` when the seeds
+    cannot bound it, ``""`` for a record without seeds or with one."""
+    from factorydet_core.evaluation.hitl import recovered_share
+
+    per_seed = result.get("per_seed") or {}
+    if not all(n in per_seed for n in ("blind", "full", name)) or len(per_seed["blind"]) < 2:
+        return ""
+    ci = recovered_share(*([r["f1"] for r in per_seed[n]] for n in (name, "blind", "full")))["ci95"]
+    return " [interval unbounded]" if ci is None else f" [{100 * ci[0]:.0f}%, {100 * ci[1]:.0f}%]"
 
 
 def _difference_row(what: str, differences: dict, names: list[str]) -> list[str]:
@@ -736,7 +752,10 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 "",
             ]
 
-    recovered = ", ".join(f"K = {k}: {share(v)}" for k, v in result["recovered"].items())
+    recovered = ", ".join(
+        f"K = {k}: {share(v)}{_share_interval(result, f'reviewed_{k}')}"
+        for k, v in result["recovered"].items()
+    )
     if recovered and len(seeds) > 1:
         recovered += (
             " (per seed: "
@@ -769,6 +788,12 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + (
                 ", the predicted classes taking turns in the cut and in the queue (`queue_order` class)"
                 if settings.get("queue_order") == "class"
+                else ""
+            )
+            + (
+                ", every next round fitting the box quality regressor again on the labels it has"
+                " (`refit_box_quality`)"
+                if settings.get("refit_box_quality")
                 else ""
             )
             + ". F-score at IoU "

@@ -140,7 +140,7 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
     ious: list[float] = []
     shown = {_bin_name(*b): [0, 0] for b in POINT_BINS}
     shown_without = [0, 0]
-    counts: list[tuple[int, int]] = []  # (truth points, thinned points in the carried box)
+    point_counts: list[tuple[int, int]] = []  # (truth points, thinned points in the carried box)
     place_ms = []
     for per_frame in objects.values():
         source = max(per_frame, key=lambda f: (per_frame[f][1], -f))
@@ -150,7 +150,7 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
         for f in range(world.num_frames):
             if f == source:
                 continue
-            counts.append((per_frame[f][1] if f in per_frame else 0, int(placement.num_points[f])))
+            point_counts.append((per_frame[f][1] if f in per_frame else 0, int(placement.num_points[f])))
             if f not in per_frame:
                 shown_without[0] += 1
                 shown_without[1] += int(placement.visible_mask[f])
@@ -172,7 +172,7 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
         "iou": ious,
         "shown": shown,
         "shown_without_points": shown_without,
-        "point_counts": counts,
+        "point_counts": point_counts,
     }
     return record, world
 

@@ -307,6 +307,7 @@ def train_session(
         seed=settings.seed,
         box_quality=box_quality,
         reuse_box_quality=reuse_quality,
+        quality_round_trees=settings.refit_trees,
         progress=progress,
         background_sets=background,
         excluded_sets=excluded,

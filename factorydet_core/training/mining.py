@@ -259,7 +259,8 @@ class TrainingRun:
     """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``epochs``,
     ``continued`` (the fit went on from a model), ``box_quality_seconds`` (the regressor's fit, in
     round 0), ``box_quality`` (round 0: "fitted", "kept" from a model, "same rows, kept" when a
-    refit would have given the model's back, or ``None`` without one), ``score_seconds``,
+    refit would have given the model's back, "continued, N trees", or ``None`` without one),
+    ``score_seconds``,
     ``train_metrics`` (detection on the training frames against the annotations) and ``mined``
     (the negatives added after that round: frame, proposal, box, patch set, score, class)."""
     models: list[DetectionModel]
@@ -424,6 +425,7 @@ def train_with_mining(
     should_stop: Callable[[], bool] | None = None,
     box_quality: BoxQuality | None = None,
     reuse_box_quality: BoxQuality | None = None,
+    quality_round_trees: int = 0,
     mining_threshold: float | None = None,
     tune_class_thresholds: bool = True,
     probability_exponent: float = PROBABILITY_EXPONENT,
@@ -493,6 +495,9 @@ def train_with_mining(
             an unfitted ``box_quality`` when it was fitted on the very rows and settings this fit
             would use (``BoxQuality.training_digest``): the fit would give it back, so a round
             whose labels did not change since that model skips the regressor's fit.
+        quality_round_trees: with ``reuse_box_quality`` and rows it was not fitted on, more than 0
+            boosts it on with this many trees fitted to these rows (``BoxQuality.continued``)
+            instead of fitting ``box_quality`` afresh.
         mining_threshold: detections scoring at least this are mined (``None``: the operating
             ``score_threshold``, as the paper). With box quality a score is a probability (to
             ``probability_exponent``) times a predicted IoU, so few clear the operating threshold
@@ -603,11 +608,15 @@ def train_with_mining(
             progress("box quality", 0, 1)
         start = time.perf_counter()
         rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
-        reused = reuse_box_quality is not None and getattr(
-            reuse_box_quality, "training_digest_", None
-        ) == box_quality.training_digest(rows, targets)
-        quality = reuse_box_quality if reused else dataclasses.replace(box_quality).fit(rows, targets)
-        quality_source = "same rows, kept" if reused else "fitted"
+        digest = box_quality.training_digest(rows, targets)
+        if reuse_box_quality is not None and getattr(reuse_box_quality, "training_digest_", None) == digest:
+            quality, quality_source = reuse_box_quality, "same rows, kept"
+        elif reuse_box_quality is not None and quality_round_trees:
+            quality = reuse_box_quality.continued(rows, targets, quality_round_trees)
+            quality.training_digest_ = digest  # fitted last to these rows: a round on them keeps it
+            quality_source = f"continued, {quality_round_trees} trees"
+        else:
+            quality, quality_source = dataclasses.replace(box_quality).fit(rows, targets), "fitted"
         quality_seconds = time.perf_counter() - start
         del rows, targets
         if progress is not None:

@@ -87,6 +87,11 @@ class LoopSettings:
     says; labels a reviewer adds later only reach it through a refit. Costs one regressor fit per
     round (``bench mining``'s ``box_quality_seconds``), skipped when the regressor's training rows
     are those the model's was fitted on (no label or object verdict changed since)."""
+    refit_trees: int = 0
+    """With ``refit_box_quality``: 0 fits the regressor afresh (all its trees) on the current
+    labels; N > 0 boosts the model's regressor on with N trees fitted to what it gets wrong on them
+    (``BoxQuality.continued``), a fraction of the fit's time, the regressor N trees larger each
+    round."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -117,11 +122,24 @@ class LoopSettings:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        trees = self.refit_trees
+        if isinstance(trees, bool) or not isinstance(trees, int) or trees < 0:
+            raise InputError(f"refit_trees must be an integer >= 0, got {self.refit_trees!r}")
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
         if self.method == "head_options" and not self.box_quality:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
+
+
+BEFORE_THEY_EXISTED: dict[str, object] = {
+    "queue_order": "score",
+    "refit_box_quality": False,
+    "refit_trees": 0,
+}
+"""What a record written before each of these ``LoopSettings`` fields existed ran with: the
+behaviour the field was added to keep by default. A record that lacks a field is read with these,
+not with today's default, so a default changed since does not rewrite what an old record ran."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,6 +272,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),
     Control("refit_box_quality", "Refit box quality", "a next round that goes on from a model refits the "
             "box quality regressor on the current labels (off: keeps the model's)", bool),
+    Control("refit_trees", "Refit trees", "with refit box quality, boost the model's regressor on with "
+            "this many trees fitted to the current labels (0: fit it afresh)", int, 0, 2000, 10),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

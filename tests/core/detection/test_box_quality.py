@@ -160,6 +160,34 @@ def test_the_training_digest_names_the_rows_and_settings_and_travels_with_the_tr
         BoxQuality.from_arrays({**arrays, "training_digest": np.zeros(31, np.uint8)})
 
 
+def test_a_continued_regressor_boosts_on_from_its_raw_sums(rng, tmp_path):
+    from sklearn.ensemble import HistGradientBoostingRegressor
+
+    from factorydet_core.detection.box_quality import _evaluate_trees
+
+    features = rng.normal(size=(2000, 4))
+    targets = np.clip(0.5 + 0.2 * features[:, 0] + 0.05 * rng.normal(size=2000), 0, 1)
+    quality = BoxQuality(max_iter=20).fit(features, targets)
+    changed = np.clip(targets + 0.3 * (features[:, 1] > 1), 0, 1)  # new labels: some options fit now
+    more = quality.continued(features, changed, 10)
+    assert len(more.trees_["roots"]) == 30 and len(quality.trees_["roots"]) == 20  # the original kept
+    # As one boosting run that went on with 10 trees fitted to its errors on the new targets.
+    errors = changed - _evaluate_trees(quality.trees_, features)
+    extra = HistGradientBoostingRegressor(max_iter=10, max_leaf_nodes=63, early_stopping=False,
+                                          random_state=0).fit(features, errors)  # fmt: skip
+    expected = np.clip(_evaluate_trees(quality.trees_, features) + extra.predict(features), 0, 1)
+    np.testing.assert_allclose(more.predict(features), expected, atol=1e-12)
+    error = np.abs(more.predict(features) - changed).mean()
+    assert error < np.abs(quality.predict(features) - changed).mean()
+    assert more.training_digest_ is None  # not what a fit on these rows gives
+    again = BoxQuality.load(more.save(tmp_path / "more.npz"))
+    np.testing.assert_array_equal(again.predict(features), more.predict(features))
+    with pytest.raises(InputError):
+        quality.continued(features, changed, 0)
+    with pytest.raises(InputError):
+        quality.continued(features[:, :3], changed, 5)
+
+
 @pytest.mark.parametrize("anchored", [False, True])
 def test_option_features_describe_every_option(frames, prior, anchored):
     frame = frames[0]

@@ -22,6 +22,7 @@ BLOCKS = (
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
     ("labelling.md", "hitl-50-class-vs-place"),
+    ("labelling.md", "hitl-50-refit-vs-class"),
 )
 
 

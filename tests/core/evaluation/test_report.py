@@ -4,6 +4,9 @@ import json
 import types
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.report import operating_text
 
@@ -118,6 +121,35 @@ def _hitl_result(f1_per_seed: dict[str, list[float]], recovered: dict | None = N
     }
 
 
+def test_the_recovered_shares_interval_holds_the_shares_the_seeds_do_not_reject():
+    from scipy import stats
+
+    from factorydet_core.evaluation.hitl import recovered_share
+
+    blind = np.array([0.211, 0.244, 0.214, 0.238, 0.205])
+    reviewed = blind + [0.071, 0.056, 0.048, 0.051, 0.065]
+    full = blind + [0.073, 0.062, 0.083, 0.041, 0.099]
+    result = recovered_share(reviewed, blind, full)
+    assert result["share"] == round(0.291 / 0.358, 4) and result["num_seeds"] == 5
+    low, high = result["ci95"]
+    assert low < result["share"] < high
+    critical = stats.t.ppf(0.975, 4)
+
+    def t_of(share):  # Student's t of the per-seed differences (reviewed - blind) - share (full - blind)
+        d = (reviewed - blind) - share * (full - blind)
+        return abs(d.mean()) / (d.std(ddof=1) / np.sqrt(len(d)))
+
+    # At its ends the seeds reject the share at exactly 5%; inside they do not, outside they do.
+    assert t_of(low) == pytest.approx(critical, rel=1e-3) and t_of(high) == pytest.approx(critical, rel=1e-3)
+    assert t_of(result["share"]) < 0.01  # the share itself (rounded to 4 places)
+    assert t_of(low - 0.05) > critical and t_of(high + 0.05) > critical
+    # No gap, one seed, or a gap the seeds cannot tell from 0: no share or no interval.
+    assert recovered_share(reviewed, blind, blind)["share"] is None
+    assert recovered_share(reviewed[:1], blind[:1], full[:1])["ci95"] is None
+    noisy = blind + [0.05, -0.04, 0.06, -0.05, 0.03]
+    assert recovered_share(reviewed, blind, noisy)["ci95"] is None
+
+
 def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     from factorydet_core.evaluation.report import hitl_markdown
 
@@ -127,7 +159,8 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     )
     text = hitl_markdown(result, heading=False)
     assert "Recovered share of the gap between blind and full labels (0.040 [+0.040, +0.040])" in text
-    assert "by `blind_safe`, with no reviewer: 25% (target: at least 30%)" in text
+    # Every seed's differences alike: the share's interval is the share itself.
+    assert "by `blind_safe`, with no reviewer: 25% [25%, 25%] (target: at least 30%)" in text
     assert "per seed: )" not in text and "reviewer's queue" not in text and "`reviewed_K`" not in text
     assert "their places" in text and "the learned box head classifying" in text
     # The same in mAP (threshold-free), from the record's seeds.
@@ -140,7 +173,7 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
         recovered={"200": 0.75},
     )
     text = hitl_markdown(result, heading=False)
-    assert "by the reviews: K = 200: 75% (per seed: K = 200: 75%, 75%, 75%)" in text
+    assert "by the reviews: K = 200: 75% [75%, 75%] (per seed: K = 200: 75%, 75%, 75%)" in text
     assert "reviewer's queue hides items" in text and "`blind_safe`" not in text
     assert "classes taking turns" not in text
     # Late labels: their share too; a class-order cut is said.
@@ -151,6 +184,9 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     text = hitl_markdown(result, heading=False)
     assert "by `full_late`, every missing label given after the first fit: 50%" in text
     assert "5 mined per round, the predicted classes taking turns in the cut and in the queue" in text
+    assert "refit_box_quality" not in text
+    result["settings"]["refit_box_quality"] = True
+    assert "every next round fitting the box quality regressor again" in hitl_markdown(result)
     # A gap within its noise: no share at all.
     result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.31, 0.30, 0.30]})
     assert "no recovered share is stated" in hitl_markdown(result)

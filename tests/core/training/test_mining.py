@@ -146,7 +146,7 @@ def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
 
 @pytest.mark.slow
 def test_a_refit_on_the_rows_a_regressor_was_fitted_on_keeps_that_regressor(frames):
-    def first_fit(reuse=None, frames=frames):
+    def first_fit(reuse=None, frames=frames, trees=0):
         return train_with_mining(
             frames,
             ProposalClassifier(width=0.0625, epochs=1, num_threads=1),
@@ -154,6 +154,7 @@ def test_a_refit_on_the_rows_a_regressor_was_fitted_on_keeps_that_regressor(fram
             initial_negatives=50,
             box_quality=BoxQuality(max_iter=5),
             reuse_box_quality=reuse,
+            quality_round_trees=trees,
         )
 
     run = first_fit()
@@ -167,6 +168,11 @@ def test_a_refit_on_the_rows_a_regressor_was_fitted_on_keeps_that_regressor(fram
     refit = first_fit(reuse=fitted, frames=fewer)
     assert refit.model.box_quality is not fitted and refit.rounds[0]["box_quality"] == "fitted"
     assert refit.model.box_quality.training_digest_ != fitted.training_digest_
+    # Boosted on instead: the model's trees and 3 more, fitted last to these rows (kept on them).
+    boosted = first_fit(reuse=fitted, frames=fewer, trees=3)
+    assert boosted.rounds[0]["box_quality"] == "continued, 3 trees"
+    assert len(boosted.model.box_quality.trees_["roots"]) == len(fitted.trees_["roots"]) + 3
+    assert boosted.model.box_quality.training_digest_ == refit.model.box_quality.training_digest_
 
 
 def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):

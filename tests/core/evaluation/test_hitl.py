@@ -1,0 +1,33 @@
+import dataclasses
+
+from factorydet_core.evaluation.hitl import _run_plan, _settings_as_run
+from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
+
+
+def test_a_record_without_a_setting_ran_as_before_the_setting_existed():
+    left_out = {*BEFORE_THEY_EXISTED, "seed", "num_threads"}  # a record keeps neither of the last two
+    settings = {k: v for k, v in dataclasses.asdict(LoopSettings()).items() if k not in left_out}
+    filled = _settings_as_run(settings)
+    assert {k: filled[k] for k in BEFORE_THEY_EXISTED} == BEFORE_THEY_EXISTED
+    assert "seed" not in filled and "num_threads" not in filled
+    # A setting the record has is kept as it ran.
+    assert _settings_as_run({**settings, "queue_order": "class"})["queue_order"] == "class"
+
+
+def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
+    settings = dataclasses.asdict(LoopSettings())
+    plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [50], "review_by": "place",
+            "queue_max_label_iou": 0.25, "settings": settings}  # fmt: skip
+    held = {**settings, "hold_places": True, "refit_box_quality": True}
+    other = {**plan, "seeds": [1, 2], "variants": ["blind", "blind_safe"], "budgets": [200],
+             "review_by": "item", "settings": held}  # fmt: skip
+    assert _run_plan(plan, "blind") == _run_plan(other, "blind")
+    assert _run_plan(plan, "full") == _run_plan(other, "full")
+    assert _run_plan(plan, "blind_safe") != _run_plan(other, "blind_safe")  # holds places
+    assert _run_plan(plan, "reviewed_200") != _run_plan(other, "reviewed_200")  # reviews by item
+    # Reviews alike but the regressor refitted: the reviewed runs differ, blind's do not.
+    refit = {**plan, "settings": {**settings, "refit_box_quality": True}}
+    assert _run_plan(plan, "reviewed_200") != _run_plan(refit, "reviewed_200")
+    assert _run_plan(plan, "full_late") != _run_plan(refit, "full_late")  # its labels change
+    assert _run_plan(plan, "blind") == _run_plan(refit, "blind")
+    assert _run_plan(plan, "blind") != _run_plan({**plan, "data": "e"}, "blind")
