@@ -28,8 +28,7 @@ class LoopSettings:
     """Epochs of a fit that goes on from a model instead of training afresh: each mining round
     after a full retrain's first fit goes on from the previous round's network, and a 'next'
     round goes on from the session's chosen (else latest) model (``loop.continued_model``) and
-    keeps its box quality regressor unless ``refit_box_quality`` (a full retrain refits it on the
-    current labels). 0: every
+    refits its box quality regressor on the current labels (``refit_box_quality``). 0: every
     fit trains afresh for ``epochs`` and a 'next' round refits the regressor (the paper's
     procedure, several times slower; the default and paper checkpoints were trained so).
     ``factorydet bench mining`` measures both."""
@@ -79,19 +78,21 @@ class LoopSettings:
     score; "class", the predicted classes taking turns, each one's by score, so that the false
     positives of a class the model has barely learned (the likeliest place of its unlabelled
     objects) reach the cut and the reviewer."""
-    refit_box_quality: bool = False
+    refit_box_quality: bool = True
     """A 'next' round that goes on from a model (``round_epochs`` > 0) fits the box quality
-    regressor again on the session's current labels, instead of keeping the model's. The regressor
+    regressor again on the session's current labels (False: keeps the model's). The regressor
     learns each option's IoU with the labels, so one fitted while half the objects were unlabelled
     has learned that their boxes fit nothing (IoU 0) and scores them down whatever the classifier
-    says; labels a reviewer adds later only reach it through a refit. Costs one regressor fit per
-    round (``bench mining``'s ``box_quality_seconds``), skipped when the regressor's training rows
-    are those the model's was fitted on (no label or object verdict changed since)."""
+    says; labels a reviewer adds later only reach it through a refit (``bench hitl``: 200 reviewed
+    places a round recover about half the blind-to-full gap without it, most of it with it;
+    docs/labelling.md). Costs one regressor fit per round that changed labels or object verdicts
+    (``bench mining``'s ``box_quality_seconds``): a round on the rows the model's regressor was
+    fitted on keeps it, since the fit would give it back."""
     refit_trees: int = 0
     """With ``refit_box_quality``: 0 fits the regressor afresh (all its trees) on the current
     labels; N > 0 boosts the model's regressor on with N trees fitted to what it gets wrong on them
     (``BoxQuality.continued``), a fraction of the fit's time, the regressor N trees larger each
-    round."""
+    round. 100 kept about half of what the refit gains (``bench hitl``, docs/labelling.md)."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -271,7 +272,7 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "queue's order: by score (the paper's top N), or the predicted classes taking turns",
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),
     Control("refit_box_quality", "Refit box quality", "a next round that goes on from a model refits the "
-            "box quality regressor on the current labels (off: keeps the model's)", bool),
+            "box quality regressor on the current labels, when they changed (off: keeps the model's)", bool),
     Control("refit_trees", "Refit trees", "with refit box quality, boost the model's regressor on with "
             "this many trees fitted to the current labels (0: fit it afresh)", int, 0, 2000, 10),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),

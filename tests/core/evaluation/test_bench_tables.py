@@ -23,6 +23,7 @@ BLOCKS = (
     ("labelling.md", "walkthrough"),
     ("labelling.md", "hitl-50-class-vs-place"),
     ("labelling.md", "hitl-50-refit-vs-class"),
+    ("labelling.md", "hitl-50-refit100-vs-refit"),
 )
 
 
@@ -282,8 +283,9 @@ def test_world_labels_table_sweeps_the_least_points_that_show_an_object():
         for m in (1, 2, 3)
     }
     text = render_record(record)
-    assert _rows(text, "1") == [["1", *[fmt(0.5, 3)] * len(bins), fmt(0.01, 3)]]
-    assert _rows(text, f"{record['min_points']} (the app)")
+    names = {m: f"{m} (the app)" if m == record["min_points"] else str(m) for m in (1, 2, 3)}
+    assert _rows(text, names[3]) == [[names[3], *[fmt(0.5 / 3, 3)] * len(bins), fmt(0.03, 3)]]
+    assert record["min_points"] in names and _rows(text, names[record["min_points"]])
     # Records from before the sweep render without it.
     del app["shown_by_min_points"]
     assert "least points that show" not in render_record(record)

@@ -428,7 +428,8 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
         raise StopError
 
     monkeypatch.setattr(loop, "train_with_mining", capture)
-    with_quality = LoopSettings(epochs=2, round_epochs=1, method="head_options")
+    with_quality = LoopSettings(epochs=2, round_epochs=1, method="head_options", refit_box_quality=False)
+    assert LoopSettings().refit_box_quality  # refitted by default
     for settings in (with_quality, dataclasses.replace(with_quality, refit_box_quality=True)):
         with pytest.raises(StopError):
             train_session(db, frames, settings, mode="next")
