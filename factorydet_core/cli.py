@@ -318,6 +318,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
                 heldout_frames=args.heldout_frames,
                 train_args=execution.arguments(),
+                verdicts=args.verdicts,
                 command=command,
                 progress=update,
             )
@@ -1539,6 +1540,13 @@ def build_parser(
         action="store_true",
         help="mining: each run also measures the models before and after on the test frames, as the app's "
         "retrain does",
+    )
+    p.add_argument(
+        "--verdicts",
+        type=int,
+        default=0,
+        help="mining: answer the first N review queue items 'object' before the timed round, as a "
+        "reviewer would (the labels change, so the box quality regressor is fitted again)",
     )
     p.add_argument("--widths", default="0.0625,1.0", help="classifier: network widths to compare")
     p.add_argument("--features", default="aggregated,direct", help="classifier: proposal features")

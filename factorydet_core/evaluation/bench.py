@@ -807,6 +807,7 @@ def bench_mining(
     heldout_frames: int = 12,
     scratch: str | os.PathLike = "/tmp/factorydet_mining",
     train_args: Sequence[str] = (),
+    verdicts: int = 0,
     command: str = "",
     progress=None,
 ) -> dict:
@@ -829,6 +830,10 @@ def bench_mining(
             then continues: what the app's Train does on a session without a run (the demo's).
         before_after: each command also measures the models before and after on the test frames
             (``--compare``), as the app's retrain does.
+        verdicts: before the timed round, answer the first this many items of each copy's review
+            queue 'object' with their predicted class, as a reviewer's round would: the labels
+            change, so the round fits the box quality regressor again (``LoopSettings.refit_box_quality``).
+            0: the labels the session has, which a refit meets as they were and keeps.
     """
 
     from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
@@ -879,6 +884,15 @@ def bench_mining(
                 "rounds": len(first["rounds"]),
                 "run": first["id"],
             }
+        if verdicts:
+            from factorydet_core.session.store import open_session_data
+
+            db, _ = open_session_data(copy.name, copy.root)
+            items = db.review_queue()[:verdicts]
+            for item in items:  # one edit each, as the review panel's keys make them
+                db.review([item["id"]], "object", "bench", class_name=item["predicted_class"])
+            if len(items) < verdicts:
+                raise InputError(f"bench mining: the review queue holds {len(items)} items, not {verdicts}")
         child = train(copy, "next", epochs)
         run = training_runs(copy)[-1]
         if epochs and run["config"].get("continued_run") is None:
@@ -892,6 +906,7 @@ def bench_mining(
         }
         config = {
             "round_epochs": epochs,
+            "box_quality": record.get("box_quality"),
             "continued": bool(record.get("continued")),
             "epochs": record.get("epochs"),
             "continued_run": run["config"].get("continued_run"),
@@ -925,6 +940,7 @@ def bench_mining(
         "session": session_name,
         "train_args": list(train_args),
         "before_after": before_after,
+        "verdicts": int(verdicts),
         "continues_run": runs[-1]["id"] if runs else None,
         "configs": configs,
         "target_seconds": MINING_TARGET_SECONDS,

@@ -445,6 +445,8 @@ def mining_markdown(result: dict) -> str:
             if config["continued"]
             else f"afresh, {config['epochs']} epochs"
         )
+        if config.get("box_quality"):  # records from before it: the regressor's fate unsaid
+            name += f" (box quality {config['box_quality']})"
         row = [
             name,
             fmt(config["seconds"]),
@@ -480,6 +482,12 @@ def mining_markdown(result: dict) -> str:
         f" {fmt(result['target_seconds'])} s per round. 'other' is reading the cached proposals,"
         f" mining and storing the run{measured}."
     )
+    if result.get("verdicts"):
+        text += (
+            f" Before the round, the first {fmt(result['verdicts'])} items of each copy's review queue"
+            " were answered Object with their predicted class, as a reviewer's round would: the labels"
+            " changed."
+        )
     if heldout:
         seeds = ", ".join(str(s) for s in result["heldout"]["seeds"])
         text += (

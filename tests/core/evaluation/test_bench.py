@@ -180,7 +180,12 @@ def test_bench_mining_times_a_round_afresh_and_continued_on_session_copies(small
         "fresh", root=tmp_path / "sessions", round_epochs=(1,), full_run=True, scratch=tmp_path / "scratch",
         train_args=["--epochs", "1", "--method", "paper", "--no-box-quality", "--frames", "2",
                     "--no-calibrate", "--initial-negatives", "100", "--rounds", "1"],
+        verdicts=2,
     )  # fmt: skip
     (config,) = record["configs"]
     assert config["full_run"]["rounds"] == 2 and config["continued_run"] == config["full_run"]["run"]
+    # Two of the full run's queue items answered Object on the copy before its next round.
+    copied = SessionDB(open_session("fresh", tmp_path / "scratch" / "round_epochs_1"), dataset)
+    assert record["verdicts"] == 2 and copied.review_progress(config["full_run"]["run"])["object"] == 2
+    assert not SessionDB(open_session("fresh", tmp_path / "sessions"), dataset).training_runs()
     assert config["full_run"]["seconds"] > 0 and "full run s" in render_record(record)

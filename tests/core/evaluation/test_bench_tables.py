@@ -221,6 +221,16 @@ def test_mining_table_gives_each_configurations_time_parts_and_heldout_figures()
         if "heldout" in record:
             assert fmt(config["heldout"]["f1"], 3) in row
     assert f"target {fmt(record['target_seconds'])} s" in text
+    # A round after verdicts says so, and what became of the box quality regressor.
+    record = copy.deepcopy(record)
+    record["verdicts"] = 20
+    for config in record["configs"]:
+        config["box_quality"] = "fitted"
+    text = render_record(record)
+    assert "the first 20 items of each copy's review queue were answered Object" in text
+    config = record["configs"][0]
+    kind = "continued" if config["continued"] else "afresh"
+    assert _rows(text, f"{kind}, {config['epochs']} epochs (box quality fitted)")
 
 
 def _hitl_record(f1: dict[str, list[float]], settings: dict, seeds=(0, 1, 2)) -> dict:
