@@ -66,6 +66,8 @@ bench: $(STAMP) corpus corpus50
 	# What the app's Train does on the demo session: a full retrain, then a next round.
 	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 \
 	  --readme docs/performance.md --readme-block mining-demo
+	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 --verdicts 20 \
+	  --readme docs/performance.md --readme-block mining-demo-reviewed
 	$(BIN)/factorydet bench quality $(CORPUS) --model paper --seeds 0,1,2 --heldout-seeds 101,102,103 \
 	  --heldout-frames 12 --epochs 20 --rounds 1 --out docs/bench/quality.json --readme README.md
 	$(BIN)/factorydet bench fuzz --cases 1000 --seed 0 --out docs/bench/fuzz.json

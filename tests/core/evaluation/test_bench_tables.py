@@ -19,6 +19,7 @@ BLOCKS = (
     ("benchmarks.md", "classifier"),
     ("performance.md", "detect"),
     ("performance.md", "memory"),
+    ("performance.md", "mining-demo-reviewed"),
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
     ("labelling.md", "hitl-50-class-vs-place"),
