@@ -369,25 +369,25 @@ class BoxQuality:
 
     def fit(self, features: np.ndarray, targets: np.ndarray) -> BoxQuality:
         """Fit the regressor on (R, F) option features and their (R,) IoUs; returns self."""
+        features, targets = _checked_rows(features, targets)
+        self.trees_ = self._boost(features, targets, self.max_iter)
+        self.num_features_ = features.shape[1]
+        self.training_digest_ = self.training_digest(features, targets)
+        return self
+
+    def _boost(self, features: np.ndarray, targets: np.ndarray, num_trees: int) -> dict[str, np.ndarray]:
+        """``num_trees`` boosted trees of this regressor's leaves, learning rate and seed fitted to
+        ``targets``, as ``_export_trees``' arrays."""
         from sklearn.ensemble import HistGradientBoostingRegressor
 
-        features = np.asarray(features, np.float64)
-        targets = np.asarray(targets, np.float64)
-        if features.ndim != 2 or targets.shape != (len(features),) or len(features) < 2:
-            raise InputError("box quality: features must be (R, F) and targets (R,), R >= 2")
-        if not (np.isfinite(features).all() and np.isfinite(targets).all()):
-            raise InputError("box quality: features and targets must be finite")
         regressor = HistGradientBoostingRegressor(
-            max_iter=self.max_iter,
+            max_iter=int(num_trees),
             max_leaf_nodes=self.max_leaf_nodes,
             learning_rate=self.learning_rate,
             early_stopping=False,
             random_state=self.seed,
         ).fit(features, targets)
-        self.trees_ = _export_trees(regressor)
-        self.num_features_ = features.shape[1]
-        self.training_digest_ = self.training_digest(features, targets)
-        return self
+        return _export_trees(regressor)
 
     def continued(self, features: np.ndarray, targets: np.ndarray, num_trees: int) -> BoxQuality:
         """A copy of this fitted regressor boosted on: ``num_trees`` more trees (its leaves and
@@ -395,28 +395,11 @@ class BoxQuality:
         added after its own. Boosting goes on from its raw sums (not clipped), so the copy predicts
         what one longer boosting run would, with the last trees fitted to these rows: a new
         label's options are corrected at a fraction of a fit from scratch."""
-        from sklearn.ensemble import HistGradientBoostingRegressor
-
         if isinstance(num_trees, bool) or not isinstance(num_trees, (int, np.integer)) or num_trees < 1:
             raise InputError(f"box quality: num_trees must be an integer >= 1, got {num_trees!r}")
-        features = np.asarray(features, np.float64)
-        targets = np.asarray(targets, np.float64)
-        if features.ndim != 2 or features.shape[1] != self.num_features_ or targets.shape != (len(features),):
-            raise InputError(
-                f"box quality: expected (R, {self.num_features_}) features and (R,) targets, got"
-                f" {features.shape} and {targets.shape}"
-            )
-        if not (np.isfinite(features).all() and np.isfinite(targets).all()):
-            raise InputError("box quality: features and targets must be finite")
+        features, targets = _checked_rows(features, targets, self.num_features_)
         residuals = targets - _evaluate_trees(self.trees_, features, interleaved=self.interleaved_walk)
-        regressor = HistGradientBoostingRegressor(
-            max_iter=int(num_trees),
-            max_leaf_nodes=self.max_leaf_nodes,
-            learning_rate=self.learning_rate,
-            early_stopping=False,
-            random_state=self.seed,
-        ).fit(features, residuals)
-        more = _export_trees(regressor)
+        more = self._boost(features, residuals, num_trees)
         offset = len(self.trees_["is_leaf"])
         for key in ("left", "right", "roots"):  # node indices: the new trees' nodes come after
             more[key] = more[key] + offset
@@ -606,6 +589,25 @@ def _count(arrays: Mapping[str, np.ndarray], name: str) -> int | None:
     if not 0 <= int(value) <= MAX_TREE_NODES:
         raise InputError(f"{name} must lie in [0, {MAX_TREE_NODES}], got {int(value)}")
     return int(value)
+
+
+def _checked_rows(
+    features: np.ndarray, targets: np.ndarray, num_features: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, F) features and (R,) targets as float64, R >= 2, finite, F ``num_features`` when
+    given; ``InputError`` otherwise."""
+    features = np.asarray(features, np.float64)
+    targets = np.asarray(targets, np.float64)
+    if features.ndim != 2 or targets.shape != (len(features),) or len(features) < 2:
+        raise InputError(
+            f"box quality: features must be (R, F) and targets (R,), R >= 2, got {features.shape}"
+            f" and {targets.shape}"
+        )
+    if num_features is not None and features.shape[1] != num_features:
+        raise InputError(f"box quality: expected (R, {num_features}) features, got {features.shape}")
+    if not (np.isfinite(features).all() and np.isfinite(targets).all()):
+        raise InputError("box quality: features and targets must be finite")
+    return features, targets
 
 
 def _digest(arrays: Mapping[str, np.ndarray], where: str) -> str | None:
