@@ -608,8 +608,9 @@ def train_with_mining(
             progress("box quality", 0, 1)
         start = time.perf_counter()
         rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
-        digest = box_quality.training_digest(rows, targets)
-        if reuse_box_quality is not None and getattr(reuse_box_quality, "training_digest_", None) == digest:
+        # (fit keeps its own digest: only a regressor to reuse needs one here)
+        digest = None if reuse_box_quality is None else box_quality.training_digest(rows, targets)
+        if digest is not None and getattr(reuse_box_quality, "training_digest_", None) == digest:
             quality, quality_source = reuse_box_quality, "same rows, kept"
         elif reuse_box_quality is not None and quality_round_trees:
             quality = reuse_box_quality.continued(rows, targets, quality_round_trees)
