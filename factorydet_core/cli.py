@@ -463,6 +463,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     earlier=earlier,
                     # Only a resumable run replaces --out before it is complete.
                     on_partial=(lambda partial: write_json(args.out, partial)) if args.resume else None,
+                    heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
+                    heldout_frames=args.heldout_frames,
+                    heldout_scratch=args.scratch,
                 )
                 result["proposals_on"] = execution.describe()
                 if args.out:
@@ -1521,7 +1524,7 @@ def build_parser(
         "--heldout",
         action="store_true",
         help="detect, mining: also measure both configurations on the held-out factories "
-        "(--heldout-seeds, --heldout-frames)",
+        "(--heldout-seeds, --heldout-frames); hitl: measure on them instead of the test frames",
     )
     p.add_argument(
         "--session",
@@ -1632,14 +1635,14 @@ def build_parser(
     p.add_argument(
         "--heldout-seeds",
         default="101,102,103",
-        help="quality, detect --heldout, world-labels: simulator seeds of the held-out factories (never "
+        help="quality, detect/hitl --heldout, world-labels: simulator seeds of the held-out factories (never "
         "the training factory's)",
     )
     p.add_argument(
         "--heldout-frames",
         type=int,
         default=12,
-        help="quality, detect, world-labels: frames per held-out factory",
+        help="quality, detect, hitl, world-labels: frames per held-out factory",
     )
     # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
     add_loop_flags(
@@ -1656,7 +1659,9 @@ def build_parser(
         "(the --model)",
     )
     p.add_argument(
-        "--scratch", default="/tmp/factorydet_heldout", help="quality: held-out factories and caches"
+        "--scratch",
+        default="/tmp/factorydet_heldout",
+        help="quality, hitl --heldout: held-out factories and caches",
     )
     p.add_argument(
         "--frame-counts",

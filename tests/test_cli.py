@@ -667,3 +667,61 @@ def test_an_execution_gives_back_the_flags_it_was_read_from():
         Execution(workers=8, ray_address="head:6379", threads=2),
     ):
         assert execution_from_args(parser.parse_args(execution.arguments())) == execution
+
+
+@pytest.mark.slow
+def test_bench_hitl_heldout_measures_the_same_models_on_held_out_factories(
+    small_dataset_dir, tmp_path, capsys, monkeypatch
+):
+    import factorydet_core.evaluation.hitl as hitl
+
+    args = ["bench", "hitl", str(small_dataset_dir), "--rounds", "1", "--epochs", "1",
+            "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
+            "--seeds", "0", "--train-frames", "1", "--frames", "1", "--no-calibrate", "--no-box-quality",
+            "--method", "paper", "--class-weight", "balanced", "--variants", "full"]  # fmt: skip
+    assert main([*args, "--out", str(tmp_path / "in.json")]) == 0
+    in_factory = json.loads(capsys.readouterr().out)
+    out = tmp_path / "heldout.json"
+    heldout_measures, measure = [], hitl.measure
+
+    def spy(model, dataset, frames, **kwargs):
+        metrics = measure(model, dataset, frames, **kwargs)
+        if dataset is None:  # the held-out frames: references given, no data set
+            assert [f.frame_index for f in frames] == [0] and list(kwargs["references"]) == [0]
+            heldout_measures.append(metrics)
+        return metrics
+
+    monkeypatch.setattr(hitl, "measure", spy)
+    heldout_args = [*args, "--heldout", "--heldout-seeds", "501", "--heldout-frames", "1",
+                    "--scratch", str(tmp_path / "heldout"), "--out", str(out), "--resume"]  # fmt: skip
+    assert main(heldout_args) == 0
+    heldout = json.loads(capsys.readouterr().out)
+    assert (
+        heldout["heldout_factories"] == [{"seed": 501, "frames": 1}]
+        and in_factory["heldout_factories"] is None
+    )
+    assert heldout["plan"]["heldout"] == {"seeds": [501], "frames": 1}
+    assert (tmp_path / "heldout" / "factory_seed501_1frames" / "manifest.json").is_file()
+    for name in ("blind", "full"):
+        # The same models (each run trains from its seed alone), measured elsewhere: the figures on
+        # the training factory's test frames are the in-factory run's, the headline ones are not.
+        run, reference = heldout["per_seed"][name][0], in_factory["per_seed"][name][0]
+        assert run["in_factory"] == {k: reference[k] for k in ("f1", "precision", "recall", "map")}
+        assert heldout["variants"][name]["in_factory"]["f1"] == reference["f1"]
+        assert 0.0 <= run["f1"] <= 1.0 and run["unannotated_total"] == reference["unannotated_total"]
+    # ... and the headline figures are those measured on the held-out factory's frame.
+    assert [run["f1"] for run in heldout_measures] == [
+        heldout["per_seed"][n][0]["f1"] for n in ("blind", "full")
+    ]
+    markdown = out.with_suffix(".md").read_text()
+    assert "on 1 frames of held-out factories (simulator seeds 501, 1 frames each)" in markdown
+    assert "| total F on the training factory's test frames (in-factory) |" in markdown
+    assert "in-factory figures)" not in markdown
+    # Another place of measurement is another plan: neither record resumes the other.
+    (tmp_path / "copy.json").write_text((tmp_path / "in.json").read_text())
+    assert main([*heldout_args[:-3], "--out", str(tmp_path / "copy.json"), "--resume"]) == 2
+    assert "another plan (heldout)" in capsys.readouterr().err
+    assert main([*args, "--out", str(out), "--resume"]) == 2
+    # A held-out factory of the training factory's own seed is refused.
+    assert main([*args, "--heldout", "--heldout-seeds", "7"]) == 2
+    assert "training factory's own seed" in capsys.readouterr().err

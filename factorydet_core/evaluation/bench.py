@@ -776,11 +776,13 @@ def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], 
 
     plan = QualityPlan(
         train_data=Path(data), heldout_seeds=tuple(seeds), heldout_frames=num_frames, seeds=(0,)
-    )
+    )  # checks the seeds against the training factory's
     out = {"seeds": list(seeds), "frames_per_factory": num_frames}
     for name, detector in configs.items():
         # Proposed as the configuration's own detections are (``Detector.detect_params``).
-        measured = measure_heldout(detector.model, heldout_set(plan, detector.detect_params, None))
+        measured = measure_heldout(
+            detector.model, heldout_set(plan.heldout_seeds, num_frames, plan.scratch, detector.detect_params)
+        )
         head = measured["iou_0.6"]
         out[name] = {key: head[key] for key in ("f1", "map", "precision", "recall")}
         out[name]["back_half_ms_per_frame"] = measured["back_half_ms_per_frame"]
@@ -928,7 +930,7 @@ def bench_mining(
                     heldout_frames=heldout_frames, seeds=(0,),
                 )  # fmt: skip
                 params = Detector(model.front_end or "agv", model=model).detect_params
-                heldout = heldout_set(plan, params, None)
+                heldout = heldout_set(plan.heldout_seeds, heldout_frames, plan.scratch, params)
             measured = measure_heldout(model, heldout)["iou_0.6"]
             config["heldout"] = {key: measured[key] for key in ("f1", "map", "precision", "recall")}
         configs.append(config)

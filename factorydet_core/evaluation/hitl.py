@@ -372,6 +372,9 @@ def bench_hitl(
     propose: Proposer = collect_proposals,
     earlier: dict | None = None,
     on_partial: Callable[[dict], None] | None = None,
+    heldout_seeds: Sequence[int] = (),
+    heldout_frames: int = 12,
+    heldout_scratch: str | os.PathLike = "/tmp/factorydet_heldout",
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
     mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -390,6 +393,11 @@ def bench_hitl(
     labelled once in every frame that shows them (``simulated_review``'s ``world``); K then counts
     places. ``variants`` runs some of the detectors only (their names as above, ``blind_safe``
     included; ``blind``, every other one's baseline, always runs); ``None``: all.
+
+    With ``heldout_seeds``, the figures (F-scores, mAP, recovered shares) are measured on held-out
+    factories instead: ``heldout_frames`` frames of each simulator seed (``quality.heldout_set``,
+    simulated once into ``heldout_scratch``), which no training or choice saw; each run keeps
+    its figures on the training factory's test frames too (``in_factory``).
 
     Every variant runs ``rounds + 1`` fits: a first fit that mines, then ``rounds`` next rounds.
     Each seed (``LoopSettings.seed``: the first background sample, the network's initialisation
@@ -432,6 +440,17 @@ def bench_hitl(
     settings = settings or LoopSettings()
     if settings.hold_places and variants is not None and "blind_safe" not in variants:
         raise InputError("bench hitl: hold_places changes blind_safe alone, which --variants leaves out")
+    heldout_seeds = tuple(int(s) for s in heldout_seeds)
+    if heldout_seeds:
+        if len(set(heldout_seeds)) != len(heldout_seeds) or min(heldout_seeds) < 0:
+            raise InputError(f"bench hitl needs distinct held-out seeds >= 0, got {list(heldout_seeds)}")
+        own = dataset.manifest.get("seed")
+        if own is not None and int(own) in heldout_seeds:
+            raise InputError(f"held-out seed {own} is the training factory's own seed")
+        if heldout_frames < 1:
+            raise InputError(
+                f"bench hitl needs at least one frame per held-out factory, got {heldout_frames}"
+            )
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
     test = spread_frames(dataset.splits.get("test") or [], max_test_frames)
@@ -439,7 +458,7 @@ def bench_hitl(
         raise InputError(f"{dataset.name}: bench hitl needs train and test frames")
     plan = _HitlPlan(
         dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command,
-        review_by, variants, propose,
+        review_by, variants, propose, heldout_seeds, int(heldout_frames), Path(heldout_scratch),
     )  # fmt: skip
     resumed = _resumable_runs(plan, earlier)  # a plan mismatch fails here, before any work
     if workdir is not None:
@@ -532,6 +551,9 @@ class _HitlPlan:
     review_by: str = "item"
     variants: list[str] | None = None
     propose: Proposer = collect_proposals
+    heldout_seeds: tuple[int, ...] = ()
+    heldout_frames: int = 12
+    heldout_scratch: Path = Path("/tmp/factorydet_heldout")
 
     def record(self) -> dict:
         """The plan as JSON: a result is resumed only by a run of the same plan (its seeds aside)."""
@@ -551,6 +573,10 @@ class _HitlPlan:
             "review_by": self.review_by,
             "variants": self.variants
             or [name for name, _, _ in _variant_specs(self.budgets, None, default=True)],
+            # Where the figures are measured (None: on the test frames alone).
+            "heldout": {"seeds": list(self.heldout_seeds), "frames": self.heldout_frames}
+            if self.heldout_seeds
+            else None,
         }
         return json.loads(json.dumps(values))
 
@@ -566,7 +592,7 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         return {}
     if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
         raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
-    theirs = dict(earlier["plan"])
+    theirs = {"heldout": None, **earlier["plan"]}  # (records from before held-out factories)
     if isinstance(theirs.get("settings"), dict):
         theirs["settings"] = _settings_as_run(theirs["settings"])
     mine = plan.record()
@@ -647,7 +673,7 @@ def _hitl_variants(
     variants = _variant_specs(budgets, hold, default=plan.variants is None)
     if plan.variants is not None:
         variants = [v for v in variants if v[0] in plan.variants]
-    train_frames = test_frames = world = proposal_seconds = None
+    train_frames = test_frames = world = proposal_seconds = heldout = None
     if any((seed, name) not in resumed for seed in seeds for name, _, _ in variants):
         # (a record resumed whole is only rendered again: nothing to propose or place)
         detector = Detector(params_for(None, dataset.num_sensors))
@@ -657,6 +683,15 @@ def _hitl_variants(
         start = time.perf_counter()
         train_frames = cached_proposals(scratch, dataset, detector, train, propose=plan.propose)
         test_frames = cached_proposals(scratch, dataset, detector, test, propose=plan.propose)
+        if plan.heldout_seeds:
+            from factorydet_core.evaluation.quality import heldout_set
+
+            # The same front half as the training factory's proposals; each held-out factory's
+            # sensors calibrated on its own first frame, as the app would.
+            heldout = heldout_set(
+                plan.heldout_seeds, plan.heldout_frames, plan.heldout_scratch, detector.params,
+                propose=plan.propose, calibrate=calibrate,
+            )  # fmt: skip
         proposal_seconds = round(time.perf_counter() - start, 1)
         if plan.review_by == "place":
             from factorydet_core.session.world import session_world
@@ -711,6 +746,12 @@ def _hitl_variants(
                 if progress is not None:
                     progress(done, steps)
             metrics = measure(run.model, dataset, test_frames, use_truth=True)
+            in_factory = None
+            if heldout is not None:
+                in_factory = {k: metrics[k] for k in ("f1", "precision", "recall", "map")}
+                metrics = measure(
+                    run.model, None, heldout.frames, references=heldout.references, ignored=heldout.ignored
+                )
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
             covered, unannotated = _coverage_totals(covered_by_class)
             per_seed[name].append(
@@ -732,6 +773,8 @@ def _hitl_variants(
                     "reach_share_estimated": _mean_of([e for e, _ in reach_shares]),
                     "reach_share_true": _mean_of([t for _, t in reach_shares]),
                     "fit_seconds": round(fit_seconds, 1),
+                    # With held-out factories, the figures on the training factory's test frames.
+                    **({"in_factory": in_factory} if in_factory is not None else {}),
                 }
             )
             if on_partial is not None:
@@ -797,6 +840,11 @@ def _hitl_variants(
             "reach_share_true": _mean_of([r["reach_share_true"] for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
+        if all("in_factory" in r for r in runs):
+            results[name]["in_factory"] = {
+                **{key: _mean_of([r["in_factory"][key] for r in runs]) for key in ("f1", "map")},
+                "f1_per_seed": [r["in_factory"]["f1"] for r in runs],
+            }
     f1 = {name: r["f1"] for name, r in results.items()}
     for name in results:
         results[name]["difference_vs_blind"] = paired_difference(
@@ -829,6 +877,9 @@ def _hitl_variants(
         "data": Path(data).name,
         "train_frames": train,
         "test_frames": test,
+        # The figures' frames: held-out factories (headline figures), or else the test frames
+        # (in-factory figures).
+        "heldout_factories": [{"seed": s, "frames": plan.heldout_frames} for s in plan.heldout_seeds] or None,
         "reference": "truth",
         "iou_threshold": 0.6,
         "mining_rounds": rounds,
@@ -875,7 +926,7 @@ def compare_hitl_records(
     for name, rec in zip(names, (record, baseline)):
         if rec.get("benchmark") != "hitl" or not rec.get("complete", True) or "per_seed" not in rec:
             raise InputError(f"{name}: not a complete bench hitl record")
-    for key in ("data", "train_frames", "test_frames", "iou_threshold"):
+    for key in ("data", "train_frames", "test_frames", "heldout_factories", "iou_threshold"):
         if record.get(key) != baseline.get(key):
             raise InputError(
                 f"{names[0]} and {names[1]} ran on other {key.replace('_', ' ')}: nothing to pair"

@@ -169,19 +169,27 @@ class HeldoutSet:
 
 
 def heldout_set(
-    plan: QualityPlan, params, progress: Progress | None, propose: Proposer = collect_proposals
+    seeds: Sequence[int],
+    num_frames: int,
+    scratch: Path,
+    params,
+    progress: Progress | None = None,
+    propose: Proposer = collect_proposals,
+    calibrate: bool = True,
 ) -> HeldoutSet:
-    """The plan's held-out factories (simulated once into its scratch folder), proposed with the
-    front-half settings ``params`` (cached per settings; by ``propose``), with their truth."""
+    """The held-out factories of simulator ``seeds`` (``num_frames`` each, simulated once into
+    ``scratch``), proposed with the front-half settings ``params`` (cached per settings; by
+    ``propose``; each factory's sensors calibrated on its first frame with ``calibrate``), with
+    their truth."""
     frames, references, ignored, sources = [], {}, {}, []
-    for seed in plan.heldout_seeds:
-        folder = heldout_factory(seed, plan.heldout_frames, plan.scratch)
+    for seed in seeds:
+        folder = heldout_factory(int(seed), num_frames, scratch)
         dataset = open_dataset(folder)
         detector = Detector(params)
-        if plan.calibrate and dataset.num_sensors > 1:
+        if calibrate and dataset.num_sensors > 1:
             detector.calibrate(dataset.frame(0))
         every = list(range(dataset.num_frames))
-        for frame in _cached_proposals(dataset, detector, every, plan.scratch, progress, propose):
+        for frame in _cached_proposals(dataset, detector, every, scratch, progress, propose):
             k = len(frames)
             references[k] = reference_boxes(dataset, frame.frame_index, use_truth=True)
             ignored[k] = ignored_boxes(dataset, frame.frame_index)
@@ -317,7 +325,9 @@ def bench_quality(
     if tuple(paper.class_names) != tuple(train_dataset.class_names):
         raise InputError("the paper model's classes differ from the training data's")
     params = params_for(paper, train_dataset.num_sensors).replace(**dict(plan.overrides))
-    heldout = heldout_set(plan, params, progress, propose)
+    heldout = heldout_set(
+        plan.heldout_seeds, plan.heldout_frames, plan.scratch, params, progress, propose, plan.calibrate
+    )
     train_split = train_dataset.splits.get("train") or list(range(train_dataset.num_frames))
     train_indices = spread_frames(train_split, plan.train_frames)
     learned = [m for m in plan.methods if m != "paper"]

@@ -651,6 +651,19 @@ def _hitl_method(settings: dict) -> str:
     }.get(method, method)
 
 
+def _hitl_where(result: dict) -> str:
+    """Which frames ``bench hitl``'s figures are measured on, as a sentence."""
+    factories = result.get("heldout_factories")
+    if not factories:
+        return "on test frames of the training frames' factory (in-factory figures)."
+    seeds = ", ".join(str(f["seed"]) for f in factories)
+    frames = sum(int(f["frames"]) for f in factories)
+    return (
+        f"on {frames} frames of held-out factories (simulator seeds {seeds}, {factories[0]['frames']}"
+        " frames each) that no training or choice saw (headline figures)."
+    )
+
+
 def hitl_markdown(result: dict, heading: bool = True) -> str:
     """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
     reviews, and full labels (means over the seeds, with each seed's total), the recovered
@@ -680,6 +693,13 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     f1_differences = {n: variants[n].get("difference_vs_blind", {}) for n in names}
     rows += _difference_row("F minus blind's", f1_differences, names)
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
+    if all("in_factory" in variants[n] for n in names):
+        # The same models on the training factory's own test frames, for comparison.
+        rows.append(
+            "| total F on the training factory's test frames (in-factory) | "
+            + " | ".join(_fmt(variants[n]["in_factory"]["f1"]) for n in names)
+            + " |"
+        )
     map_differences = _map_differences(result)
     rows += _difference_row("mAP minus blind's", map_differences, names)
     rows.append(
@@ -797,8 +817,9 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 else ""
             )
             + ". F-score at IoU "
-            f"{result['iou_threshold']} against the full truth, on test frames of the training frames'"
-            " factory (in-factory figures). `blind`: mining on the partial labels (the paper)."
+            f"{result['iou_threshold']} against the full truth, "
+            + _hitl_where(result)
+            + " `blind`: mining on the partial labels (the paper)."
             + (
                 " `reviewed_K`: a simulated reviewer answers the top K "
                 + (
