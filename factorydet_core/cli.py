@@ -444,6 +444,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "class_weight": args.class_weight,
                             "round_epochs": args.round_epochs,
                             "hold_places": args.hold_places,
+                            "recalibrate_background": args.recalibrate_background,
                             "queue_order": args.queue_order,
                             "refit_box_quality": args.refit_box_quality,
                             "refit_trees": args.refit_trees,
@@ -1649,7 +1650,7 @@ def build_parser(
         p,
         fields=(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
-            "refit_box_quality", "refit_trees",
+            "refit_box_quality", "refit_trees", "recalibrate_background",
         ),
     )  # fmt: skip
     p.add_argument(

@@ -354,6 +354,12 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
         main(["bench", "hitl", str(small_dataset_dir), "--budgets", "50", "--variants", "reviewed_200"]) == 2
     )
     assert main(["bench", "hitl", str(small_dataset_dir), "--variants", "full", "--hold-places"]) == 2
+    assert (
+        main(
+            ["bench", "hitl", str(small_dataset_dir), "--variants", "full", "--recalibrate-background", "0.5"]
+        )
+        == 2
+    )
 
 
 @pytest.mark.slow

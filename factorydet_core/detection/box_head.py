@@ -88,6 +88,7 @@ SETTINGS: dict[str, Setting] = {
     "seed": Setting(int, 0, MAX_SEED),
     "num_threads": Setting(int, 1, 1024, optional=True),
     "max_fit_seconds": Setting(float, 0.0, optional=True, low_open=True),
+    "recalibrate_background": Setting(float, 0.0, 1.0, optional=True, low_open=True),
 }
 """What each setting of ``BoxHead`` may be (checked when it is made, and so in a checkpoint's note
 before its network is built); ``channels`` and ``class_names`` are checked apart."""
@@ -494,6 +495,14 @@ class BoxHead(ClassOutputs):
             separate centre, size and heading losses (0: off). 3 measured ahead of 0, 1 and 10 in
             the share of held-out objects some candidate boxes at IoU 0.6 (one training seed, three
             held-out factories, 8 epochs; the issue's notes give the figures).
+        recalibrate_background: background recalibration: a background set drawn at random (not
+            a hard negative) to which the network, as it trains, gives an object probability of
+            at least this is left out of the batch's classification and IoU losses (``None``:
+            off). On a partially annotated data set those are the likeliest unlabelled objects,
+            which the plain loss teaches to be background. Only in a fit that goes on from a
+            fitted head (mining rounds, next rounds): a network in its first epochs gives most
+            sets a high object probability, and leaving them out would teach it no background at
+            all. ``history_`` counts the sets left out per epoch.
     """
 
     channels: tuple[int, ...] = (32, 64, 128)
@@ -512,6 +521,7 @@ class BoxHead(ClassOutputs):
     seed: int = 0
     num_threads: int | None = None
     max_fit_seconds: float | None = None
+    recalibrate_background: float | None = None
 
     input_kind = "points"
     ARCHITECTURE: ClassVar[tuple[str, ...]] = ("channels", "hidden", "heading_bins")
@@ -616,7 +626,9 @@ class BoxHead(ClassOutputs):
                 drawn = rng.choice(background, drawn_per_epoch, replace=False)
                 order = rng.permutation(np.concatenate([positives, hard_background, drawn]))
                 sums = {"loss": 0.0, "class": 0.0, "box": 0.0, "iou": 0.0, "correct": 0.0}
-                seen = 0
+                seen, recalibrated = 0, 0
+                # (a network trained from scratch: its probabilities say little until it has learned)
+                recalibrate = self.recalibrate_background if init_model is not None else None
                 for lo in range(0, len(order), self.batch_size):
                     if should_stop is not None and should_stop():
                         raise Cancelled("training cancelled")
@@ -629,7 +641,11 @@ class BoxHead(ClassOutputs):
                     batch = np.sort(order[lo : lo + self.batch_size])
                     if len(batch) < 2 or step >= total_steps:
                         continue
-                    losses = self._step(network, samples, batch, templates, symmetry, loss_fn, rng)
+                    losses = self._step(
+                        network, samples, batch, templates, symmetry, loss_fn, rng,
+                        recalibrate=recalibrate, drawn=~hard[batch],
+                    )  # fmt: skip
+                    recalibrated += int(losses.pop("recalibrated"))
                     optimizer.zero_grad()
                     losses["loss"].backward()
                     optimizer.step()
@@ -640,6 +656,8 @@ class BoxHead(ClassOutputs):
                         sums[key] += float(losses[key].detach()) * len(batch)
                 record = {"epoch": epoch + 1, **{k: round(v / max(seen, 1), 4) for k, v in sums.items()}}
                 record["train_accuracy"] = record.pop("correct")
+                if self.recalibrate_background is not None:
+                    record["recalibrated"] = recalibrated
                 history.append(record)
                 if progress is not None:
                     progress(epoch + 1, self.epochs)
@@ -666,8 +684,13 @@ class BoxHead(ClassOutputs):
         symmetry: np.ndarray,
         loss_fn: nn.Module,
         rng: np.random.Generator,
+        recalibrate: float | None = None,
+        drawn: np.ndarray | None = None,
     ) -> dict[str, torch.Tensor]:
-        """The losses of one batch: classification, box (centre, size, heading) and IoU."""
+        """The losses of one batch: classification, box (centre, size, heading) and IoU; with
+        ``recalibrate``, the background sets of ``drawn`` (B,) (drawn at random, not hard
+        negatives) the network gives an object probability of at least that are left out of the
+        classification and IoU losses (``recalibrated``: how many)."""
         num_classes = len(self.class_names)
         points = samples.points[batch]
         anchors = np.asarray(samples.anchor_boxes[batch], np.float64)
@@ -681,8 +704,20 @@ class BoxHead(ClassOutputs):
         )
         out = network(torch.from_numpy(canonical), torch.from_numpy(globals_))
         y = torch.from_numpy(labels)
-        class_loss = loss_fn(out["logits"], y)
         is_object = labels < num_classes
+        keep = np.ones(len(batch), bool)
+        if recalibrate is not None:
+            with torch.no_grad():
+                object_probability = 1.0 - torch.softmax(out["logits"], dim=1)[:, num_classes].numpy()
+            keep = ~(~is_object & drawn & (object_probability >= recalibrate))
+        if keep.all():
+            class_loss = loss_fn(out["logits"], y)
+        else:
+            # The weighted mean of the kept sets' losses, as CrossEntropyLoss's own mean weighs them.
+            kept = torch.from_numpy(keep.astype(np.float32))
+            per_set = nn.functional.cross_entropy(out["logits"], y, weight=loss_fn.weight, reduction="none")
+            set_weights = (torch.ones(len(batch)) if loss_fn.weight is None else loss_fn.weight[y]) * kept
+            class_loss = (per_set * kept).sum() / set_weights.sum().clamp_min(1e-12)
         rows = np.flatnonzero(is_object)
         iou_target = np.zeros((len(batch), num_classes), np.float32)
         box_loss = torch.zeros(())
@@ -726,6 +761,7 @@ class BoxHead(ClassOutputs):
         weight = np.zeros((len(batch), num_classes), np.float32)
         weight[rows, labels[rows]] = 1.0
         weight[~is_object] = 1.0 / num_classes
+        weight[~keep] = 0.0
         iou_loss = (
             nn.functional.binary_cross_entropy_with_logits(
                 out["iou_logits"], torch.from_numpy(iou_target), reduction="none"
@@ -734,7 +770,14 @@ class BoxHead(ClassOutputs):
         ).sum() / float(len(batch))
         loss = class_loss + box_loss + iou_loss
         correct = (out["logits"].argmax(1) == y).float().mean()
-        return {"loss": loss, "class": class_loss, "box": box_loss, "iou": iou_loss, "correct": correct}
+        return {
+            "loss": loss,
+            "class": class_loss,
+            "box": box_loss,
+            "iou": iou_loss,
+            "correct": correct,
+            "recalibrated": int((~keep).sum()),
+        }
 
     def _decode(
         self,

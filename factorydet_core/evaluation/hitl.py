@@ -438,8 +438,9 @@ def bench_hitl(
             raise InputError(f"bench hitl: unknown variants {unknown}; choose from {', '.join(known)}")
         variants = [name for name in known if name == "blind" or name in variants]
     settings = settings or LoopSettings()
-    if settings.hold_places and variants is not None and "blind_safe" not in variants:
-        raise InputError("bench hitl: hold_places changes blind_safe alone, which --variants leaves out")
+    for safety in ("hold_places", "recalibrate_background"):
+        if getattr(settings, safety) and variants is not None and "blind_safe" not in variants:
+            raise InputError(f"bench hitl: {safety} changes blind_safe alone, which --variants leaves out")
     heldout_seeds = tuple(int(s) for s in heldout_seeds)
     if heldout_seeds:
         if len(set(heldout_seeds)) != len(heldout_seeds) or min(heldout_seeds) < 0:
@@ -611,18 +612,18 @@ def _run_plan(plan: dict, variant: str) -> dict:
     """What of a plan record (``_HitlPlan.record``) shapes the runs of ``variant``: the plan less
     its seeds, its list of detectors and its budgets (a reviewed detector's budget is in its name),
     less the reviewer's settings for a detector nobody reviews, less the holding of confident
-    negatives (``hold_confident``, ``hold_places``) for all but ``blind_safe``, the one detector
-    that holds them, and less the box quality refit for blind mining and full labels, whose
-    labels never change after the first fit. Runs of a detector whose run plans agree are the
-    same runs, whatever else the two records measured: a record grows by a detector without
-    training the others again."""
+    negatives (``hold_confident``, ``hold_places``) and background recalibration for all but
+    ``blind_safe``, the one detector that holds and recalibrates, and less the box quality refit
+    for blind mining and full labels, whose labels never change after the first fit. Runs of a
+    detector whose run plans agree are the same runs, whatever else the two records measured: a
+    record grows by a detector without training the others again."""
     out = {k: v for k, v in plan.items() if k not in ("seeds", "variants", "budgets")}
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
     untouched = set()
     if variant != "blind_safe":
-        untouched |= {"hold_confident", "hold_places"}
+        untouched |= {"hold_confident", "hold_places", "recalibrate_background"}
     if variant in ("blind", "full"):
         # Their labels never change after the first fit, so a refit of the box quality regressor
         # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).
@@ -707,7 +708,13 @@ def _hitl_variants(
                 if progress is not None:
                     progress(done, steps)
                 continue
-            seed_settings = dataclasses.replace(settings, seed=seed, hold_confident=variant_hold)
+            # Holding and recalibrating are blind_safe's alone (variant_hold None: the others).
+            seed_settings = dataclasses.replace(
+                settings,
+                seed=seed,
+                hold_confident=variant_hold,
+                recalibrate_background=settings.recalibrate_background if name == "blind_safe" else None,
+            )
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
             reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)

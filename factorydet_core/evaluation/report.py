@@ -848,6 +848,13 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                     if settings.get("hold_places")
                     else ""
                 )
+                + (
+                    ", and leaves out of the fits' losses the background sets drawn at random that the"
+                    f" network, as it trains, finds {settings['recalibrate_background']:g} or more likely"
+                    " an object (background recalibration)"
+                    if settings.get("recalibrate_background")
+                    else ""
+                )
                 + "; nobody reviews them here."
                 if "blind_safe" in variants
                 else ""

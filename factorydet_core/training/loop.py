@@ -61,6 +61,7 @@ def new_classifier(settings: LoopSettings, class_names: Sequence[str]) -> Propos
             class_weight=settings.class_weight,
             seed=settings.seed,
             num_threads=settings.num_threads,
+            recalibrate_background=settings.recalibrate_background,
         )
     return ProposalClassifier(
         class_names=tuple(class_names),

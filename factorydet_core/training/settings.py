@@ -72,6 +72,13 @@ class LoopSettings:
     background too, as a pre-label's place is (``FrameProposals.ignored_point_sets``). An
     unlabelled object has many candidate sets (merge levels, fragments); holding the mined one
     alone leaves the others in the background the box head samples every epoch."""
+    recalibrate_background: float | None = None
+    """Background recalibration (the learned box head's methods): in a fit that goes on from a
+    model (mining rounds, next rounds), a background set drawn at random (not a mined or reviewed
+    negative) to which the network, as it trains, gives an object probability of at least this
+    is left out of that step's classification and IoU losses (``BoxHead.recalibrate_background``).
+    On a partially annotated data set those are the likeliest unlabelled objects, which the plain
+    loss teaches to be background. ``None``: off, every drawn set is background (the paper)."""
     queue_order: str = "score"
     """Which mined negatives a round adds to the background (the first ``negatives_per_round``)
     and the review queue's order (``session.queue.queue_order``): "score", the paper's top N by
@@ -129,6 +136,8 @@ class LoopSettings:
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
+        if self.recalibrate_background is not None and self.method == "paper":
+            raise InputError("recalibrate_background applies to the learned box head's methods, not paper")
         if self.method == "head_options" and not self.box_quality:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
 
@@ -268,6 +277,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("hold_places", "Hold their places", "with held negatives (hold confident above 0; hitl: "
             "blind_safe's), every point set on a held box off the labels is left out of the background too, "
             "not only the mined set", bool),
+    Control("recalibrate_background", "Recalibrate background", "(box head) drawn background sets the "
+            "network gives this object probability or more are left out of the loss, as likely unlabelled "
+            "objects (0: off; hitl: blind_safe's)", float, 0.0, 1.0, 0.05, none_as=0),
     Control("queue_order", "Queue order", "which mined negatives go to the background and the review "
             "queue's order: by score (the paper's top N), or the predicted classes taking turns",
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),

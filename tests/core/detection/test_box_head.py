@@ -330,3 +330,50 @@ def test_a_fit_of_a_few_steps_runs_its_learning_rate_schedule(rng, epochs):
     head = BoxHead(channels=(8,), hidden=8, epochs=epochs, batch_size=12, class_names=("cube", "bar"),
                    num_threads=1)  # fmt: skip
     assert len(head.fit(samples, templates).history_) == epochs
+
+
+def test_background_recalibration_leaves_confident_drawn_background_out_of_the_loss(rng):
+    import torch
+    from torch import nn
+
+    samples, templates = _toy_samples(rng, 6)
+    head = BoxHead(channels=(8,), hidden=8, epochs=1, batch_size=64, class_names=("cube", "bar"),
+                   num_threads=1, augment=False).fit(samples, templates)  # fmt: skip
+    head.network_.eval()  # no dropout: the same sets give the same losses
+    loss_fn = nn.CrossEntropyLoss(weight=torch.tensor([1.0, 2.0, 0.5]))
+    every = np.arange(len(samples.labels))
+    background = samples.labels == 2
+
+    def step(batch, recalibrate=None, drawn=None):
+        with torch.no_grad():
+            return head._step(head.network_, samples, batch, head.templates_, head.symmetry_, loss_fn,
+                              np.random.default_rng(0), recalibrate=recalibrate, drawn=drawn)  # fmt: skip
+
+    plain = step(every)
+    assert plain["recalibrated"] == 0
+    # Every drawn background set left out (any object probability is >= 0): the losses are those
+    # of the objects alone, weighted as the loss weighs them.
+    left_out = step(every, recalibrate=0.0, drawn=np.ones(len(every), bool))
+    objects = step(np.flatnonzero(~background))
+    assert left_out["recalibrated"] == background.sum()
+    torch.testing.assert_close(left_out["class"], objects["class"])
+    torch.testing.assert_close(left_out["iou"] * len(every), objects["iou"] * (~background).sum())
+    # Hard negatives (not drawn) are never left out, whatever the network thinks of them.
+    hard = step(every, recalibrate=0.0, drawn=np.zeros(len(every), bool))
+    assert hard["recalibrated"] == 0
+    torch.testing.assert_close(hard["class"], plain["class"])
+
+
+def test_background_recalibration_acts_only_in_a_fit_that_goes_on_from_a_head(rng):
+    samples, templates = _toy_samples(rng, 10)
+    kwargs = {"channels": (8,), "hidden": 8, "epochs": 2, "batch_size": 16, "class_names": ("cube", "bar"),
+              "num_threads": 1, "seed": 0}  # fmt: skip
+    # From scratch, a network's probabilities mean little yet: nothing is left out.
+    first = BoxHead(**kwargs, recalibrate_background=0.01).fit(samples, templates)
+    assert [epoch["recalibrated"] for epoch in first.history_] == [0, 0]
+    # Going on from it, drawn background sets it finds at least 1% likely objects are left out.
+    going_on = BoxHead(**kwargs, recalibrate_background=0.01).fit(samples, templates, init_model=first)
+    assert sum(epoch["recalibrated"] for epoch in going_on.history_) > 0
+    assert "recalibrated" not in BoxHead(**kwargs).fit(samples, templates).history_[0]
+    with pytest.raises(InputError, match="recalibrate_background"):
+        BoxHead(recalibrate_background=1.5)

@@ -18,12 +18,13 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     settings = dataclasses.asdict(LoopSettings())
     plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [50], "review_by": "place",
             "queue_max_label_iou": 0.25, "settings": settings}  # fmt: skip
-    held = {**settings, "hold_places": True, "refit_box_quality": not settings["refit_box_quality"]}
+    held = {**settings, "hold_places": True, "recalibrate_background": 0.5,
+            "refit_box_quality": not settings["refit_box_quality"]}  # fmt: skip
     other = {**plan, "seeds": [1, 2], "variants": ["blind", "blind_safe"], "budgets": [200],
              "review_by": "item", "settings": held}  # fmt: skip
     assert _run_plan(plan, "blind") == _run_plan(other, "blind")
     assert _run_plan(plan, "full") == _run_plan(other, "full")
-    assert _run_plan(plan, "blind_safe") != _run_plan(other, "blind_safe")  # holds places
+    assert _run_plan(plan, "blind_safe") != _run_plan(other, "blind_safe")  # holds places, recalibrates
     assert _run_plan(plan, "reviewed_200") != _run_plan(other, "reviewed_200")  # reviews by item
     # Reviews alike but the regressor refitted: the reviewed runs differ, blind's do not.
     refit = {**plan, "settings": {**settings, "refit_box_quality": not settings["refit_box_quality"]}}

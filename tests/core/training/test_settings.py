@@ -40,7 +40,8 @@ def test_a_number_is_taken_inside_its_bounds_and_refused_outside(control, value)
 @pytest.mark.parametrize(
     ("field", "raw", "expected"),
     [("class_weight", "none", None), ("visibility", "auto", None), ("visibility", "on", True),
-     ("fragments_per_frame", 0, None), ("fragments_per_frame", 12, 12), ("geometry", False, False)],
+     ("fragments_per_frame", 0, None), ("fragments_per_frame", 12, 12), ("geometry", False, False),
+     ("recalibrate_background", 0, None), ("recalibrate_background", 0.5, 0.5)],
 )  # fmt: skip
 def test_choices_and_none_stand_ins(field, raw, expected):
     assert CONTROLS[field].parse(raw) == expected
@@ -61,4 +62,11 @@ def test_bad_values_are_one_line_errors(values, match):
 def test_the_settings_still_check_themselves():
     with pytest.raises(InputError, match="box_quality must be on"):
         loop_settings_from({"method": "head_options", "box_quality": False})
+    with pytest.raises(InputError, match="recalibrate_background applies to the learned box head"):
+        loop_settings_from({"method": "paper", "recalibrate_background": 0.5})
+    # ... and the head the loop trains gets it.
+    from factorydet_core.training.loop import new_classifier
+
+    head = new_classifier(loop_settings_from({"recalibrate_background": 0.5}), ("cube", "bar"))
+    assert head.recalibrate_background == 0.5
     assert dataclasses.replace(LoopSettings(), epochs=3) == loop_settings_from({"epochs": 3})
