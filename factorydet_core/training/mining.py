@@ -685,6 +685,11 @@ def train_with_mining(
             "num_background": int((labels == background_id).sum()),
             "fit_seconds": round(fitted.fit_seconds_, 2),
             "epochs": trainer.epochs,
+            # Background recalibration: drawn background sets left out of the fit's losses, summed
+            # over its epochs (None: off).
+            "recalibrated": sum(e["recalibrated"] for e in fitted.history_)
+            if getattr(trainer, "recalibrate_background", None) is not None
+            else None,
             "continued": start_from is not None,
             # The regressor is fitted once, before the first round (0 when kept from a model).
             "box_quality_seconds": round(quality_seconds, 2) if round_index == 0 else 0.0,

@@ -389,6 +389,11 @@ def test_rounds_after_the_first_go_on_from_the_previous_round(frames, monkeypatc
     (epochs_0, start_0, fitted_0), (epochs_1, start_1, fitted_1) = calls
     assert (epochs_0, start_0, epochs_1) == (2, None, 1) and start_1 is fitted_0
     assert run.models[0].classifier is fitted_0 and run.model.classifier is fitted_1
+    assert first["recalibrated"] is None  # background recalibration off
+    # With it on, the round that goes on from the first fit counts the sets it left out.
+    recalibrating = dataclasses.replace(head, recalibrate_background=1e-6)
+    rounds = train_with_mining(frames, recalibrating, rounds=1, score_threshold=0.05, round_epochs=1).rounds
+    assert rounds[0]["recalibrated"] == 0 and rounds[1]["recalibrated"] > 0
     # A run that goes on from a model (a 'next' round) continues it in its first round, and a
     # fitted regressor is used as it is.
     calls.clear()
