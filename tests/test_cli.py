@@ -411,6 +411,9 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     # Written before queue_order was a setting: it ran with the default, and resumes.
     partial["plan"] = {**partial["plan"], "settings": dict(partial["plan"]["settings"])}
     assert partial["plan"]["settings"].pop("queue_order") == "score"
+    # ... and before held-out factories and background recalibration: it ran without either.
+    assert partial["plan"].pop("heldout") is None
+    assert partial["plan"]["settings"].pop("recalibrate_background") is None
     out.write_text(
         json.dumps({**partial, "complete": False, "per_seed": {"blind": first["per_seed"]["blind"]}})
     )

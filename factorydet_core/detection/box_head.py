@@ -502,7 +502,10 @@ class BoxHead(ClassOutputs):
             which the plain loss teaches to be background. Only in a fit that goes on from a
             fitted head (mining rounds, next rounds): a network in its first epochs gives most
             sets a high object probability, and leaving them out would teach it no background at
-            all. ``history_`` counts the sets left out per epoch.
+            all. The probability is the training step's own (dropout and augmentation on), so a
+            set near the threshold is left out in some steps and not others; the IoU loss keeps
+            its per-set scale (its sum over the kept sets over the batch's size).
+            ``history_`` counts the sets left out per epoch.
     """
 
     channels: tuple[int, ...] = (32, 64, 128)
@@ -690,7 +693,7 @@ class BoxHead(ClassOutputs):
         """The losses of one batch: classification, box (centre, size, heading) and IoU; with
         ``recalibrate``, the background sets of ``drawn`` (B,) (drawn at random, not hard
         negatives) the network gives an object probability of at least that are left out of the
-        classification and IoU losses (``recalibrated``: how many)."""
+        classification and IoU losses (``recalibrated``: how many; ``drawn`` None: all are)."""
         num_classes = len(self.class_names)
         points = samples.points[batch]
         anchors = np.asarray(samples.anchor_boxes[batch], np.float64)
@@ -707,6 +710,7 @@ class BoxHead(ClassOutputs):
         is_object = labels < num_classes
         keep = np.ones(len(batch), bool)
         if recalibrate is not None:
+            drawn = np.ones(len(batch), bool) if drawn is None else np.asarray(drawn, bool)
             with torch.no_grad():
                 object_probability = 1.0 - torch.softmax(out["logits"], dim=1)[:, num_classes].numpy()
             keep = ~(~is_object & drawn & (object_probability >= recalibrate))

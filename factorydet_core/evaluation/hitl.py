@@ -693,6 +693,11 @@ def _hitl_variants(
                 plan.heldout_seeds, plan.heldout_frames, plan.heldout_scratch, detector.params,
                 propose=plan.propose, calibrate=calibrate,
             )  # fmt: skip
+            if tuple(heldout.class_names) != tuple(dataset.class_names):
+                raise InputError(
+                    f"the held-out factories' classes {list(heldout.class_names)} are not "
+                    f"{dataset.name}'s {list(dataset.class_names)}"
+                )
         proposal_seconds = round(time.perf_counter() - start, 1)
         if plan.review_by == "place":
             from factorydet_core.session.world import session_world
@@ -904,7 +909,8 @@ def _hitl_variants(
         "hold_confident": hold,
         "variants": results,
         "per_seed": per_seed,
-        "proposal_seconds": proposal_seconds,  # None: every run was read back
+        # None: every run was read back (with held-out factories: their simulation and proposals too)
+        "proposal_seconds": proposal_seconds,
         "machine": machine_info(),
     }
 

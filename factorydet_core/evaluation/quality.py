@@ -166,6 +166,8 @@ class HeldoutSet:
     """Frame -> truth boxes of objects below the policy (``evaluate.ignored_boxes``)."""
     sources: list[tuple[str, int]]
     """Frame -> (factory, its own frame index)."""
+    class_names: tuple[str, ...] = ()
+    """The factories' classes, the order of ``references``' class ids."""
 
 
 def heldout_set(
@@ -181,10 +183,13 @@ def heldout_set(
     ``scratch``), proposed with the front-half settings ``params`` (cached per settings; by
     ``propose``; each factory's sensors calibrated on its first frame with ``calibrate``), with
     their truth."""
-    frames, references, ignored, sources = [], {}, {}, []
+    frames, references, ignored, sources, class_names = [], {}, {}, [], None
     for seed in seeds:
         folder = heldout_factory(int(seed), num_frames, scratch)
         dataset = open_dataset(folder)
+        if class_names is not None and tuple(dataset.class_names) != class_names:
+            raise InputError(f"{folder.name}: its classes are not the other held-out factories'")
+        class_names = tuple(dataset.class_names)
         detector = Detector(params)
         if calibrate and dataset.num_sensors > 1:
             detector.calibrate(dataset.frame(0))
@@ -195,7 +200,7 @@ def heldout_set(
             ignored[k] = ignored_boxes(dataset, frame.frame_index)
             sources.append((folder.name, frame.frame_index))
             frames.append(dataclasses.replace(frame, frame_index=k))
-    return HeldoutSet(frames, references, ignored, sources)
+    return HeldoutSet(frames, references, ignored, sources, class_names or ())
 
 
 def candidate_bound(

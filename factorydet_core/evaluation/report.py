@@ -658,17 +658,19 @@ def _hitl_where(result: dict) -> str:
         return "on test frames of the training frames' factory (in-factory figures)."
     seeds = ", ".join(str(f["seed"]) for f in factories)
     frames = sum(int(f["frames"]) for f in factories)
+    each = int(factories[0]["frames"])
     return (
-        f"on {frames} frames of held-out factories (simulator seeds {seeds}, {factories[0]['frames']}"
-        " frames each) that no training or choice saw (headline figures)."
+        f"on {frames} frame{'s' if frames != 1 else ''} of held-out factories (simulator seeds {seeds},"
+        f" {each} frame{'s' if each != 1 else ''} each) that no training or choice saw (headline figures)."
     )
 
 
 def hitl_markdown(result: dict, heading: bool = True) -> str:
     """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
     reviews, and full labels (means over the seeds, with each seed's total), the recovered
-    fraction of the gap and the reviews it took; ``heading=False`` leaves out the section title
-    (the README's block sits under a section of its own)."""
+    fraction of the gap and the reviews it took (measured on held-out factories, the record's
+    ``heldout_factories``, with each detector's in-factory F beside); ``heading=False`` leaves out
+    the section title (the README's block sits under a section of its own)."""
     variants = result["variants"]
     names = list(variants)
     seeds = result.get("seeds", [result["settings"].get("seed", 0)])
@@ -693,6 +695,8 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     f1_differences = {n: variants[n].get("difference_vs_blind", {}) for n in names}
     rows += _difference_row("F minus blind's", f1_differences, names)
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
+    map_differences = _map_differences(result)
+    rows += _difference_row("mAP minus blind's", map_differences, names)
     if all("in_factory" in variants[n] for n in names):
         # The same models on the training factory's own test frames, for comparison.
         rows.append(
@@ -700,8 +704,6 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(_fmt(variants[n]["in_factory"]["f1"]) for n in names)
             + " |"
         )
-    map_differences = _map_differences(result)
-    rows += _difference_row("mAP minus blind's", map_differences, names)
     rows.append(
         "| verdicts (skips too) | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |"
     )
@@ -849,7 +851,8 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                     else ""
                 )
                 + (
-                    ", and leaves out of the fits' losses the background sets drawn at random that the"
+                    ", and leaves out of the losses of the fits that go on from the previous model the"
+                    " background sets drawn at random that the"
                     f" network, as it trains, finds {settings['recalibrate_background']:g} or more likely"
                     " an object (background recalibration)"
                     if settings.get("recalibrate_background")

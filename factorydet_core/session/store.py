@@ -2739,6 +2739,7 @@ def rounds_record(run) -> list[dict]:
             "box_quality": r.get("box_quality"),
             "epochs": r.get("epochs"),
             "continued": r.get("continued"),
+            "recalibrated": r.get("recalibrated"),
             "num_mined": len(r["mined"]),
             "train_f1": r["train_metrics"]["f1"],
         }

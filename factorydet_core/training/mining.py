@@ -686,7 +686,7 @@ def train_with_mining(
             "fit_seconds": round(fitted.fit_seconds_, 2),
             "epochs": trainer.epochs,
             # Background recalibration: drawn background sets left out of the fit's losses, summed
-            # over its epochs (None: off).
+            # over its epochs (None: off; 0 in a fit from scratch, where it does not act).
             "recalibrated": sum(e["recalibrated"] for e in fitted.history_)
             if getattr(trainer, "recalibrate_background", None) is not None
             else None,

@@ -136,7 +136,10 @@ class LoopSettings:
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
-        if self.recalibrate_background is not None and self.method == "paper":
+        recalibrate = self.recalibrate_background
+        if recalibrate is not None and (isinstance(recalibrate, bool) or not 0.0 < recalibrate <= 1.0):
+            raise InputError(f"recalibrate_background must lie in (0, 1] or be None, got {recalibrate!r}")
+        if recalibrate is not None and self.method == "paper":
             raise InputError("recalibrate_background applies to the learned box head's methods, not paper")
         if self.method == "head_options" and not self.box_quality:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")

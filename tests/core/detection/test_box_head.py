@@ -362,6 +362,20 @@ def test_background_recalibration_leaves_confident_drawn_background_out_of_the_l
     hard = step(every, recalibrate=0.0, drawn=np.zeros(len(every), bool))
     assert hard["recalibrated"] == 0
     torch.testing.assert_close(hard["class"], plain["class"])
+    # A threshold between the network's object probabilities leaves out the sets at or above it.
+    object_probability = (
+        1.0 - head.predict(samples.points, samples.anchor_boxes, samples.descriptors).probabilities[:, 2]
+    )
+    ranked = np.sort(object_probability[background])
+    threshold = float(ranked[len(ranked) // 2 - 1] + ranked[len(ranked) // 2]) / 2
+    some = step(every, recalibrate=threshold, drawn=None)  # None: every set was drawn
+    assert 0 < some["recalibrated"] == (object_probability[background] >= threshold).sum() < background.sum()
+    # Without class weights, the kept sets' plain mean.
+    loss_fn = nn.CrossEntropyLoss()
+    torch.testing.assert_close(
+        step(every, recalibrate=0.0, drawn=np.ones(len(every), bool))["class"],
+        step(np.flatnonzero(~background))["class"],
+    )
 
 
 def test_background_recalibration_acts_only_in_a_fit_that_goes_on_from_a_head(rng):

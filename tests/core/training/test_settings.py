@@ -64,6 +64,9 @@ def test_the_settings_still_check_themselves():
         loop_settings_from({"method": "head_options", "box_quality": False})
     with pytest.raises(InputError, match="recalibrate_background applies to the learned box head"):
         loop_settings_from({"method": "paper", "recalibrate_background": 0.5})
+    for bad in (0.0, 1.5, True):  # a Python caller is checked as the controls check a flag
+        with pytest.raises(InputError, match="recalibrate_background must lie in"):
+            LoopSettings(recalibrate_background=bad)
     # ... and the head the loop trains gets it.
     from factorydet_core.training.loop import new_classifier
 
