@@ -723,7 +723,7 @@ def test_bench_hitl_heldout_measures_the_same_models_on_held_out_factories(
         heldout["per_seed"][n][0]["f1"] for n in ("blind", "full")
     ]
     markdown = out.with_suffix(".md").read_text()
-    assert "on 1 frames of held-out factories (simulator seeds 501, 1 frames each)" in markdown
+    assert "on 1 frame of held-out factories (simulator seeds 501, 1 frame each)" in markdown
     assert "| total F on the training factory's test frames (in-factory) |" in markdown
     assert "in-factory figures)" not in markdown
     # Another place of measurement is another plan: neither record resumes the other.
