@@ -25,6 +25,7 @@ BLOCKS = (
     ("labelling.md", "hitl-50-class-vs-place"),
     ("labelling.md", "hitl-50-refit-vs-class"),
     ("labelling.md", "hitl-50-refit100-vs-refit"),
+    ("labelling.md", "hitl-50-safe-recal-vs-hold"),
 )
 
 
