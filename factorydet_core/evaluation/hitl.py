@@ -15,6 +15,7 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.evaluate import measure
+from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, check_not_training_factory, heldout_set
 from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
@@ -374,7 +375,7 @@ def bench_hitl(
     on_partial: Callable[[dict], None] | None = None,
     heldout_seeds: Sequence[int] = (),
     heldout_frames: int = 12,
-    heldout_scratch: str | os.PathLike = "/tmp/factorydet_heldout",
+    heldout_scratch: str | os.PathLike = HELDOUT_SCRATCH,
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
     mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -445,9 +446,7 @@ def bench_hitl(
     if heldout_seeds:
         if len(set(heldout_seeds)) != len(heldout_seeds) or min(heldout_seeds) < 0:
             raise InputError(f"bench hitl needs distinct held-out seeds >= 0, got {list(heldout_seeds)}")
-        own = dataset.manifest.get("seed")
-        if own is not None and int(own) in heldout_seeds:
-            raise InputError(f"held-out seed {own} is the training factory's own seed")
+        check_not_training_factory(heldout_seeds, dataset)
         if heldout_frames < 1:
             raise InputError(
                 f"bench hitl needs at least one frame per held-out factory, got {heldout_frames}"
@@ -554,7 +553,7 @@ class _HitlPlan:
     propose: Proposer = collect_proposals
     heldout_seeds: tuple[int, ...] = ()
     heldout_frames: int = 12
-    heldout_scratch: Path = Path("/tmp/factorydet_heldout")
+    heldout_scratch: Path = HELDOUT_SCRATCH
 
     def record(self) -> dict:
         """The plan as JSON: a result is resumed only by a run of the same plan (its seeds aside)."""
@@ -685,8 +684,6 @@ def _hitl_variants(
         train_frames = cached_proposals(scratch, dataset, detector, train, propose=plan.propose)
         test_frames = cached_proposals(scratch, dataset, detector, test, propose=plan.propose)
         if plan.heldout_seeds:
-            from factorydet_core.evaluation.quality import heldout_set
-
             # The same front half as the training factory's proposals; each held-out factory's
             # sensors calibrated on its own first frame, as the app would.
             heldout = heldout_set(

@@ -71,6 +71,17 @@ IOU_THRESHOLDS: tuple[float, ...] = (0.6, 0.5, 0.25)
 """The IoUs the benchmark measures at; the first is the paper's and the headline."""
 
 
+HELDOUT_SCRATCH = Path("/tmp/factorydet_heldout")
+"""Where benchmarks simulate the held-out factories and cache their proposals, by default."""
+
+
+def check_not_training_factory(heldout_seeds: Sequence[int], train_dataset: Dataset) -> None:
+    """``InputError`` when a held-out seed is the training factory's own simulator seed."""
+    train_seed = train_dataset.manifest.get("seed")
+    if train_seed is not None and int(train_seed) in heldout_seeds:
+        raise InputError(f"held-out seed {train_seed} is the training factory's own seed")
+
+
 @dataclasses.dataclass(frozen=True)
 class QualityPlan:
     """What ``bench_quality`` runs, checked when made."""
@@ -96,7 +107,7 @@ class QualityPlan:
     """Front-half settings changed for every method (``FrontEndParams.replace``), e.g.
     ``(("history_frames", 2),)`` to measure multi-frame accumulation; the paper checkpoint then
     classifies the proposals of that front half."""
-    scratch: Path = Path("/tmp/factorydet_heldout")
+    scratch: Path = HELDOUT_SCRATCH
     """Where the held-out factories and the proposal caches are written."""
     calibrate: bool = True
 
@@ -117,9 +128,7 @@ class QualityPlan:
         unknown = set(self.methods) - set(METHODS)
         if unknown or not self.methods:
             raise InputError(f"methods must be among {', '.join(METHODS)}; got {', '.join(self.methods)}")
-        train_seed = open_dataset(self.train_data).manifest.get("seed")
-        if train_seed is not None and int(train_seed) in self.heldout_seeds:
-            raise InputError(f"held-out seed {train_seed} is the training factory's own seed")
+        check_not_training_factory(self.heldout_seeds, open_dataset(self.train_data))
 
 
 def heldout_factory(seed: int, num_frames: int, scratch: Path) -> Path:

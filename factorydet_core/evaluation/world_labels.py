@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from factorydet_core.boxes import box_iou_3d
-from factorydet_core.evaluation.quality import heldout_factory
+from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, heldout_factory
 from factorydet_core.evaluation.records import machine_info
 from factorydet_core.geometry import transform_boxes
 from factorydet_core.io.dataset import open_dataset
@@ -207,7 +207,7 @@ def _spread(dataset, frames, truths, world) -> dict:
 def bench_world_labels(
     seeds: Sequence[int] = (101, 102, 103),
     num_frames: int = 12,
-    scratch: str | Path = "/tmp/factorydet_heldout",
+    scratch: str | Path = HELDOUT_SCRATCH,
     command: str = "",
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
