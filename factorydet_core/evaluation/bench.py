@@ -772,16 +772,19 @@ even for a model that reads none: the path before it was skipped)."""
 
 def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], num_frames: int) -> dict:
     """Each configuration's headline figures on the held-out factories, and their differences."""
-    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
+    from factorydet_core.evaluation.quality import (
+        HELDOUT_SCRATCH,
+        check_heldout,
+        heldout_set,
+        measure_heldout,
+    )
 
-    plan = QualityPlan(
-        train_data=Path(data), heldout_seeds=tuple(seeds), heldout_frames=num_frames, seeds=(0,)
-    )  # checks the seeds against the training factory's
+    seeds = check_heldout(seeds, num_frames, open_dataset(data))
     out = {"seeds": list(seeds), "frames_per_factory": num_frames}
     for name, detector in configs.items():
         # Proposed as the configuration's own detections are (``Detector.detect_params``).
         measured = measure_heldout(
-            detector.model, heldout_set(plan.heldout_seeds, num_frames, plan.scratch, detector.detect_params)
+            detector.model, heldout_set(seeds, num_frames, HELDOUT_SCRATCH, detector.detect_params)
         )
         head = measured["iou_0.6"]
         out[name] = {key: head[key] for key in ("f1", "map", "precision", "recall")}
@@ -838,7 +841,12 @@ def bench_mining(
             0: the labels the session has, which a refit meets as they were and keeps.
     """
 
-    from factorydet_core.evaluation.quality import QualityPlan, heldout_set, measure_heldout
+    from factorydet_core.evaluation.quality import (
+        HELDOUT_SCRATCH,
+        check_heldout,
+        heldout_set,
+        measure_heldout,
+    )
     from factorydet_core.session.store import copy_session, open_session, training_runs
 
     values = [int(k) for k in round_epochs]
@@ -925,12 +933,9 @@ def bench_mining(
             config["full_run"] = full
         if heldout_seeds:
             if heldout is None:
-                plan = QualityPlan(
-                    train_data=Path(run["data"]), heldout_seeds=tuple(int(s) for s in heldout_seeds),
-                    heldout_frames=heldout_frames, seeds=(0,),
-                )  # fmt: skip
+                seeds = check_heldout(heldout_seeds, heldout_frames, open_dataset(run["data"]))
                 params = Detector(model.front_end or "agv", model=model).detect_params
-                heldout = heldout_set(plan.heldout_seeds, heldout_frames, plan.scratch, params)
+                heldout = heldout_set(seeds, heldout_frames, HELDOUT_SCRATCH, params)
             measured = measure_heldout(model, heldout)["iou_0.6"]
             config["heldout"] = {key: measured[key] for key in ("f1", "map", "precision", "recall")}
         configs.append(config)

@@ -15,7 +15,7 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.evaluate import measure
-from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, check_not_training_factory, heldout_set
+from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, check_heldout, heldout_set
 from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
@@ -444,13 +444,7 @@ def bench_hitl(
             raise InputError(f"bench hitl: {safety} changes blind_safe alone, which --variants leaves out")
     heldout_seeds = tuple(int(s) for s in heldout_seeds)
     if heldout_seeds:
-        if len(set(heldout_seeds)) != len(heldout_seeds) or min(heldout_seeds) < 0:
-            raise InputError(f"bench hitl needs distinct held-out seeds >= 0, got {list(heldout_seeds)}")
-        check_not_training_factory(heldout_seeds, dataset)
-        if heldout_frames < 1:
-            raise InputError(
-                f"bench hitl needs at least one frame per held-out factory, got {heldout_frames}"
-            )
+        check_heldout(heldout_seeds, heldout_frames, dataset)
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
     test = spread_frames(dataset.splits.get("test") or [], max_test_frames)

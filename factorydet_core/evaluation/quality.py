@@ -82,6 +82,19 @@ def check_not_training_factory(heldout_seeds: Sequence[int], train_dataset: Data
         raise InputError(f"held-out seed {train_seed} is the training factory's own seed")
 
 
+def check_heldout(heldout_seeds: Sequence[int], num_frames: int, train_dataset: Dataset) -> tuple[int, ...]:
+    """The held-out simulator seeds as a tuple, after checking them and the frames per factory:
+    ``InputError`` unless there are one or more distinct seeds >= 0, none the training factory's
+    own (``check_not_training_factory``), and ``num_frames`` >= 1."""
+    seeds = tuple(int(s) for s in heldout_seeds)
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise InputError(f"held-out factories need one or more distinct seeds >= 0, got {list(seeds)}")
+    if num_frames < 1:
+        raise InputError(f"held-out factories need at least one frame each, got {num_frames}")
+    check_not_training_factory(seeds, train_dataset)
+    return seeds
+
+
 @dataclasses.dataclass(frozen=True)
 class QualityPlan:
     """What ``bench_quality`` runs, checked when made."""
@@ -128,7 +141,7 @@ class QualityPlan:
         unknown = set(self.methods) - set(METHODS)
         if unknown or not self.methods:
             raise InputError(f"methods must be among {', '.join(METHODS)}; got {', '.join(self.methods)}")
-        check_not_training_factory(self.heldout_seeds, open_dataset(self.train_data))
+        check_heldout(self.heldout_seeds, self.heldout_frames, open_dataset(self.train_data))
 
 
 def heldout_factory(seed: int, num_frames: int, scratch: Path) -> Path:

@@ -6,7 +6,14 @@ import json
 import numpy as np
 import pytest
 
-from factorydet_core.evaluation.quality import QualityPlan, bench_quality, quality_markdown, write_outputs
+from factorydet_core.evaluation.quality import (
+    QualityPlan,
+    bench_quality,
+    check_heldout,
+    quality_markdown,
+    write_outputs,
+)
+from factorydet_core.io.dataset import open_dataset
 from factorydet_core.training.mining import collect_proposals
 from factorydet_core.types import InputError
 
@@ -18,6 +25,22 @@ def test_the_plan_refuses_the_training_factory_as_held_out(small_dataset_dir, tm
         QualityPlan(train_data=small_dataset_dir, methods=("magic",), scratch=tmp_path)
     with pytest.raises(InputError):
         QualityPlan(train_data=small_dataset_dir, seeds=(), scratch=tmp_path)
+    with pytest.raises(InputError, match="distinct"):
+        QualityPlan(train_data=small_dataset_dir, heldout_seeds=(101, 101), scratch=tmp_path)
+
+
+def test_check_heldout_gives_the_seeds_or_says_what_is_wrong(small_dataset_dir):
+    dataset = open_dataset(small_dataset_dir)  # simulated with seed 7
+    assert check_heldout([101, "102"], 3, dataset) == (101, 102)
+    for seeds, frames, message in [
+        ((), 3, "one or more distinct seeds"),
+        ((101, 101), 3, "distinct"),
+        ((-1,), 3, ">= 0"),
+        ((101,), 0, "at least one frame"),
+        ((101, 7), 3, "training factory's own seed"),
+    ]:
+        with pytest.raises(InputError, match=message):
+            check_heldout(seeds, frames, dataset)
 
 
 @pytest.mark.slow
