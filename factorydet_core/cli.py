@@ -445,6 +445,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "round_epochs": args.round_epochs,
                             "hold_places": args.hold_places,
                             "recalibrate_background": args.recalibrate_background,
+                            "recalibrate_by_class": args.recalibrate_by_class,
                             "queue_order": args.queue_order,
                             "refit_box_quality": args.refit_box_quality,
                             "refit_trees": args.refit_trees,
@@ -1650,7 +1651,7 @@ def build_parser(
         p,
         fields=(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
-            "refit_box_quality", "refit_trees", "recalibrate_background",
+            "refit_box_quality", "refit_trees", "recalibrate_background", "recalibrate_by_class",
         ),
     )  # fmt: skip
     p.add_argument(

@@ -360,6 +360,9 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
         )
         == 2
     )
+    by_class = ["--recalibrate-background", "0.5", "--recalibrate-by-class"]
+    assert main(["bench", "hitl", str(small_dataset_dir), "--variants", "full", *by_class]) == 2
+    assert main(["bench", "hitl", str(small_dataset_dir), "--recalibrate-by-class"]) == 2  # refines nothing
 
 
 @pytest.mark.slow

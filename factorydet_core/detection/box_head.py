@@ -89,6 +89,7 @@ SETTINGS: dict[str, Setting] = {
     "num_threads": Setting(int, 1, 1024, optional=True),
     "max_fit_seconds": Setting(float, 0.0, optional=True, low_open=True),
     "recalibrate_background": Setting(float, 0.0, 1.0, optional=True, low_open=True),
+    "recalibrate_by_class": Setting(bool),
 }
 """What each setting of ``BoxHead`` may be (checked when it is made, and so in a checkpoint's note
 before its network is built); ``channels`` and ``class_names`` are checked apart."""
@@ -506,6 +507,14 @@ class BoxHead(ClassOutputs):
             set near the threshold is left out in some steps and not others; the IoU loss keeps
             its per-set scale (its sum over the kept sets over the batch's size).
             ``history_`` counts the sets left out per epoch.
+        recalibrate_by_class: with ``recalibrate_background``, a drawn set is left out only when
+            its likeliest object class's probability also reaches the median that class's labelled
+            sets get (their own class's probability, in the fit's previous epoch; in its first, in
+            its steps so far; a class none of whose sets has been seen yet leaves nothing out). The
+            network's probabilities differ in scale between classes, so one threshold leaves out
+            background that looks like a high-scoring class far more often than an unlabelled
+            object of it would be; this asks a set to look like a typical labelled object of its
+            class. Never leaves out more than ``recalibrate_background`` alone.
     """
 
     channels: tuple[int, ...] = (32, 64, 128)
@@ -525,6 +534,7 @@ class BoxHead(ClassOutputs):
     num_threads: int | None = None
     max_fit_seconds: float | None = None
     recalibrate_background: float | None = None
+    recalibrate_by_class: bool = False
 
     input_kind = "points"
     ARCHITECTURE: ClassVar[tuple[str, ...]] = ("channels", "hidden", "heading_bins")
@@ -624,6 +634,8 @@ class BoxHead(ClassOutputs):
             )
             history, step = [], 0
             out_of_time = False
+            this_own: list[list[float]] = [[] for _ in range(num_classes)]
+            previous_own: list[list[float]] | None = None
             for epoch in range(self.epochs):
                 network.train()
                 drawn = rng.choice(background, drawn_per_epoch, replace=False)
@@ -632,6 +644,12 @@ class BoxHead(ClassOutputs):
                 seen, recalibrated = 0, 0
                 # (a network trained from scratch: its probabilities say little until it has learned)
                 recalibrate = self.recalibrate_background if init_model is not None else None
+                by_class = recalibrate is not None and self.recalibrate_by_class
+                if by_class:
+                    # Each class's bar: the median own-class probability of its labelled sets in
+                    # the previous epoch, else in this one's steps so far (``_class_bars``).
+                    previous_own = this_own if epoch else None
+                    this_own = [[] for _ in range(num_classes)]
                 for lo in range(0, len(order), self.batch_size):
                     if should_stop is not None and should_stop():
                         raise Cancelled("training cancelled")
@@ -644,11 +662,17 @@ class BoxHead(ClassOutputs):
                     batch = np.sort(order[lo : lo + self.batch_size])
                     if len(batch) < 2 or step >= total_steps:
                         continue
+                    bars = _class_bars(previous_own or this_own) if by_class else None
                     losses = self._step(
                         network, samples, batch, templates, symmetry, loss_fn, rng,
-                        recalibrate=recalibrate, drawn=~hard[batch],
+                        recalibrate=recalibrate, drawn=~hard[batch], class_bars=bars,
                     )  # fmt: skip
                     recalibrated += int(losses.pop("recalibrated"))
+                    own_probability = losses.pop("own_probability")
+                    if by_class:
+                        rows, own = own_probability
+                        for c, p in zip(samples.labels[batch][rows], own):
+                            this_own[int(c)].append(float(p))
                     optimizer.zero_grad()
                     losses["loss"].backward()
                     optimizer.step()
@@ -689,11 +713,15 @@ class BoxHead(ClassOutputs):
         rng: np.random.Generator,
         recalibrate: float | None = None,
         drawn: np.ndarray | None = None,
+        class_bars: np.ndarray | None = None,
     ) -> dict[str, torch.Tensor]:
         """The losses of one batch: classification, box (centre, size, heading) and IoU; with
         ``recalibrate``, the background sets of ``drawn`` (B,) (drawn at random, not hard
         negatives) the network gives an object probability of at least that are left out of the
-        classification and IoU losses (``recalibrated``: how many; ``drawn`` None: all are)."""
+        classification and IoU losses (``recalibrated``: how many; ``drawn`` None: all are), and
+        with ``class_bars`` (C,) only those whose likeliest object class's probability reaches its
+        bar too (``recalibrate_by_class``). ``own_probability``: the batch's P object sets (their
+        rows, (P,)) and each one's probability of its own class (P,)."""
         num_classes = len(self.class_names)
         points = samples.points[batch]
         anchors = np.asarray(samples.anchor_boxes[batch], np.float64)
@@ -709,11 +737,18 @@ class BoxHead(ClassOutputs):
         y = torch.from_numpy(labels)
         is_object = labels < num_classes
         keep = np.ones(len(batch), bool)
+        with torch.no_grad():
+            probabilities = torch.softmax(out["logits"], dim=1).numpy()
+        object_rows = np.flatnonzero(is_object)
+        own_probability = (object_rows, probabilities[object_rows, labels[object_rows]])
         if recalibrate is not None:
             drawn = np.ones(len(batch), bool) if drawn is None else np.asarray(drawn, bool)
-            with torch.no_grad():
-                object_probability = 1.0 - torch.softmax(out["logits"], dim=1)[:, num_classes].numpy()
-            keep = ~(~is_object & drawn & (object_probability >= recalibrate))
+            object_probability = 1.0 - probabilities[:, num_classes]
+            leave_out = ~is_object & drawn & (object_probability >= recalibrate)
+            if class_bars is not None:
+                likeliest = probabilities[:, :num_classes].argmax(axis=1)
+                leave_out &= probabilities[np.arange(len(batch)), likeliest] >= class_bars[likeliest]
+            keep = ~leave_out
         if keep.all():
             class_loss = loss_fn(out["logits"], y)
         else:
@@ -781,6 +816,7 @@ class BoxHead(ClassOutputs):
             "iou": iou_loss,
             "correct": correct,
             "recalibrated": int((~keep).sum()),
+            "own_probability": own_probability,
         }
 
     def _decode(
@@ -1063,3 +1099,9 @@ def head_candidates(groups: ProposalGroups, head: BoxHead, probability_exponent:
         suppressed_by=np.full(len(class_ids), -1, np.int64),
         class_names=head.class_names,
     )
+
+
+def _class_bars(own_probabilities: list[list[float]]) -> np.ndarray:
+    """(C,) each class's median of ``own_probabilities`` (per class, its labelled sets' probability
+    of their own class); above every probability (nothing reaches it) for a class with none."""
+    return np.array([float(np.median(p)) if p else np.inf for p in own_probabilities])

@@ -439,7 +439,7 @@ def bench_hitl(
             raise InputError(f"bench hitl: unknown variants {unknown}; choose from {', '.join(known)}")
         variants = [name for name in known if name == "blind" or name in variants]
     settings = settings or LoopSettings()
-    for safety in ("hold_places", "recalibrate_background"):
+    for safety in ("hold_places", "recalibrate_background", "recalibrate_by_class"):
         if getattr(settings, safety) and variants is not None and "blind_safe" not in variants:
             raise InputError(f"bench hitl: {safety} changes blind_safe alone, which --variants leaves out")
     heldout_seeds = tuple(int(s) for s in heldout_seeds)
@@ -616,7 +616,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
         out.pop("queue_max_label_iou", None)
     untouched = set()
     if variant != "blind_safe":
-        untouched |= {"hold_confident", "hold_places", "recalibrate_background"}
+        untouched |= {"hold_confident", "hold_places", "recalibrate_background", "recalibrate_by_class"}
     if variant in ("blind", "full"):
         # Their labels never change after the first fit, so a refit of the box quality regressor
         # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).
@@ -710,6 +710,7 @@ def _hitl_variants(
                 seed=seed,
                 hold_confident=variant_hold,
                 recalibrate_background=settings.recalibrate_background if name == "blind_safe" else None,
+                recalibrate_by_class=settings.recalibrate_by_class and name == "blind_safe",
             )
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0

@@ -854,7 +854,13 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                     ", and leaves out of the losses of the fits that go on from the previous model the"
                     " background sets drawn at random that the"
                     f" network, as it trains, finds {settings['recalibrate_background']:g} or more likely"
-                    " an object (background recalibration)"
+                    " an object"
+                    + (
+                        " and its likeliest class at least as likely as the median labelled set of that class"
+                        if settings.get("recalibrate_by_class")
+                        else ""
+                    )
+                    + " (background recalibration)"
                     if settings.get("recalibrate_background")
                     else ""
                 )

@@ -62,6 +62,7 @@ def new_classifier(settings: LoopSettings, class_names: Sequence[str]) -> Propos
             seed=settings.seed,
             num_threads=settings.num_threads,
             recalibrate_background=settings.recalibrate_background,
+            recalibrate_by_class=settings.recalibrate_by_class,
         )
     return ProposalClassifier(
         class_names=tuple(class_names),

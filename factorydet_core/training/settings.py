@@ -79,6 +79,11 @@ class LoopSettings:
     is left out of that step's classification and IoU losses (``BoxHead.recalibrate_background``).
     On a partially annotated data set those are the likeliest unlabelled objects, which the plain
     loss teaches to be background. ``None``: off, every drawn set is background (the paper)."""
+    recalibrate_by_class: bool = False
+    """With ``recalibrate_background``, a drawn set is left out only when its likeliest class's
+    probability also reaches the median its class's labelled sets get (``BoxHead.recalibrate_by_class``):
+    the network's probabilities differ in scale between classes, and one threshold leaves out
+    background that looks like a high-scoring class by the hundred."""
     queue_order: str = "score"
     """Which mined negatives a round adds to the background (the first ``negatives_per_round``)
     and the review queue's order (``session.queue.queue_order``): "score", the paper's top N by
@@ -141,6 +146,8 @@ class LoopSettings:
             raise InputError(f"recalibrate_background must lie in (0, 1] or be None, got {recalibrate!r}")
         if recalibrate is not None and self.method == "paper":
             raise InputError("recalibrate_background applies to the learned box head's methods, not paper")
+        if self.recalibrate_by_class and recalibrate is None:
+            raise InputError("recalibrate_by_class refines recalibrate_background, which is off")
         if self.method == "head_options" and not self.box_quality:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
 
@@ -283,6 +290,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("recalibrate_background", "Recalibrate background", "(box head) drawn background sets the "
             "network gives this object probability or more are left out of the loss, as likely unlabelled "
             "objects (0: off; hitl: blind_safe's)", float, 0.0, 1.0, 0.05, none_as=0),
+    Control("recalibrate_by_class", "Recalibrate by class", "with recalibrate background, only sets whose "
+            "likeliest class's probability also reaches the median of that class's labelled sets", bool),
     Control("queue_order", "Queue order", "which mined negatives go to the background and the review "
             "queue's order: by score (the paper's top N), or the predicted classes taking turns",
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),

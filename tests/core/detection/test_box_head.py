@@ -344,10 +344,11 @@ def test_background_recalibration_leaves_confident_drawn_background_out_of_the_l
     every = np.arange(len(samples.labels))
     background = samples.labels == 2
 
-    def step(batch, recalibrate=None, drawn=None):
+    def step(batch, recalibrate=None, drawn=None, class_bars=None):
         with torch.no_grad():
             return head._step(head.network_, samples, batch, head.templates_, head.symmetry_, loss_fn,
-                              np.random.default_rng(0), recalibrate=recalibrate, drawn=drawn)  # fmt: skip
+                              np.random.default_rng(0), recalibrate=recalibrate, drawn=drawn,
+                              class_bars=class_bars)  # fmt: skip
 
     plain = step(every)
     assert plain["recalibrated"] == 0
@@ -370,6 +371,20 @@ def test_background_recalibration_leaves_confident_drawn_background_out_of_the_l
     threshold = float(ranked[len(ranked) // 2 - 1] + ranked[len(ranked) // 2]) / 2
     some = step(every, recalibrate=threshold, drawn=None)  # None: every set was drawn
     assert 0 < some["recalibrated"] == (object_probability[background] >= threshold).sum() < background.sum()
+    # Class bars: a set is left out only when its likeliest class's probability reaches that
+    # class's bar too; bars of 0 change nothing, bars above 1 leave nothing out.
+    probabilities = head.predict(samples.points, samples.anchor_boxes, samples.descriptors).probabilities
+    assert step(every, recalibrate=threshold, class_bars=np.zeros(2))["recalibrated"] == some["recalibrated"]
+    assert step(every, recalibrate=0.0, class_bars=np.full(2, np.inf))["recalibrated"] == 0
+    likeliest = probabilities[:, :2].argmax(axis=1)
+    bars = np.array([np.inf, float(np.median(probabilities[background & (likeliest == 1), 1]))])
+    expected = background & (likeliest == 1) & (probabilities[:, 1] >= bars[1])
+    by_class = step(every, recalibrate=0.0, class_bars=bars)
+    assert 0 < by_class["recalibrated"] == expected.sum() < (background & (likeliest == 1)).sum()
+    # The object sets' own-class probabilities, for the next bars.
+    rows, own = plain["own_probability"]
+    np.testing.assert_array_equal(rows, np.flatnonzero(~background))
+    np.testing.assert_allclose(own, probabilities[rows, samples.labels[rows]], rtol=1e-5, atol=1e-6)
     # Without class weights, the kept sets' plain mean.
     loss_fn = nn.CrossEntropyLoss()
     torch.testing.assert_close(
@@ -391,3 +406,17 @@ def test_background_recalibration_acts_only_in_a_fit_that_goes_on_from_a_head(rn
     assert "recalibrated" not in BoxHead(**kwargs).fit(samples, templates).history_[0]
     with pytest.raises(InputError, match="recalibrate_background"):
         BoxHead(recalibrate_background=1.5)
+
+
+def test_recalibrating_by_class_never_leaves_out_more_than_the_threshold_alone(rng):
+    samples, templates = _toy_samples(rng, 10)
+    kwargs = {"channels": (8,), "hidden": 8, "epochs": 2, "batch_size": 16, "class_names": ("cube", "bar"),
+              "num_threads": 1, "seed": 0, "recalibrate_background": 0.01}  # fmt: skip
+    first = BoxHead(**{**kwargs, "recalibrate_background": None}).fit(samples, templates)
+    alone = BoxHead(**kwargs).fit(samples, templates, init_model=first)
+    by_class = BoxHead(**kwargs, recalibrate_by_class=True).fit(samples, templates, init_model=first)
+    # The same draws and the same first step; from there the networks part.
+    left_out = [sum(e["recalibrated"] for e in head.history_) for head in (by_class, alone)]
+    assert 0 < left_out[0] < left_out[1]
+    # Saved and read back with the head's other settings.
+    assert by_class.get_params()["recalibrate_by_class"] is True

@@ -32,3 +32,7 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert _run_plan(plan, "full_late") != _run_plan(refit, "full_late")  # its labels change
     assert _run_plan(plan, "blind") == _run_plan(refit, "blind")
     assert _run_plan(plan, "blind") != _run_plan({**plan, "data": "e"}, "blind")
+    # Recalibrating by class is blind_safe's alone too.
+    by_class = {**plan, "settings": {**held, "recalibrate_by_class": True}}
+    assert _run_plan({**plan, "settings": held}, "blind_safe") != _run_plan(by_class, "blind_safe")
+    assert _run_plan({**plan, "settings": held}, "reviewed_200") == _run_plan(by_class, "reviewed_200")

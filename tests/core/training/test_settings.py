@@ -71,5 +71,11 @@ def test_the_settings_still_check_themselves():
     from factorydet_core.training.loop import new_classifier
 
     head = new_classifier(loop_settings_from({"recalibrate_background": 0.5}), ("cube", "bar"))
-    assert head.recalibrate_background == 0.5
+    assert head.recalibrate_background == 0.5 and not head.recalibrate_by_class
+    head = new_classifier(
+        loop_settings_from({"recalibrate_background": 0.5, "recalibrate_by_class": True}), ("cube", "bar")
+    )
+    assert head.recalibrate_by_class
+    with pytest.raises(InputError, match="recalibrate_by_class refines recalibrate_background"):
+        loop_settings_from({"recalibrate_by_class": True})
     assert dataclasses.replace(LoopSettings(), epochs=3) == loop_settings_from({"epochs": 3})
