@@ -634,6 +634,9 @@ class BoxHead(ClassOutputs):
             )
             history, step = [], 0
             out_of_time = False
+            # (a network trained from scratch: its probabilities say little until it has learned)
+            recalibrate = self.recalibrate_background if init_model is not None else None
+            by_class = recalibrate is not None and self.recalibrate_by_class
             this_own: list[list[float]] = [[] for _ in range(num_classes)]
             previous_own: list[list[float]] | None = None
             for epoch in range(self.epochs):
@@ -642,9 +645,6 @@ class BoxHead(ClassOutputs):
                 order = rng.permutation(np.concatenate([positives, hard_background, drawn]))
                 sums = {"loss": 0.0, "class": 0.0, "box": 0.0, "iou": 0.0, "correct": 0.0}
                 seen, recalibrated = 0, 0
-                # (a network trained from scratch: its probabilities say little until it has learned)
-                recalibrate = self.recalibrate_background if init_model is not None else None
-                by_class = recalibrate is not None and self.recalibrate_by_class
                 if by_class:
                     # Each class's bar: the median own-class probability of its labelled sets in
                     # the previous epoch, else in this one's steps so far (``_class_bars``).

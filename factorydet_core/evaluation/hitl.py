@@ -27,6 +27,10 @@ from factorydet_core.types import (
     InputError,
 )
 
+BLIND_SAFE_SETTINGS: tuple[str, ...] = ("hold_places", "recalibrate_background", "recalibrate_by_class")
+"""``LoopSettings`` fields that shape ``blind_safe``'s runs alone (with its hold score): the other
+detectors run without them, so their run plans leave them out (``_run_plan``)."""
+
 
 def truth_verdict(
     dataset: Dataset,
@@ -439,12 +443,12 @@ def bench_hitl(
             raise InputError(f"bench hitl: unknown variants {unknown}; choose from {', '.join(known)}")
         variants = [name for name in known if name == "blind" or name in variants]
     settings = settings or LoopSettings()
-    for safety in ("hold_places", "recalibrate_background", "recalibrate_by_class"):
+    for safety in BLIND_SAFE_SETTINGS:
         if getattr(settings, safety) and variants is not None and "blind_safe" not in variants:
             raise InputError(f"bench hitl: {safety} changes blind_safe alone, which --variants leaves out")
     heldout_seeds = tuple(int(s) for s in heldout_seeds)
     if heldout_seeds:
-        check_heldout(heldout_seeds, heldout_frames, dataset)
+        heldout_seeds = check_heldout(heldout_seeds, heldout_frames, dataset)
     settings = dataclasses.replace(settings, rounds=0)
     train = spread_frames(dataset.splits.get("train") or [], max_train_frames)
     test = spread_frames(dataset.splits.get("test") or [], max_test_frames)
@@ -616,7 +620,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
         out.pop("queue_max_label_iou", None)
     untouched = set()
     if variant != "blind_safe":
-        untouched |= {"hold_confident", "hold_places", "recalibrate_background", "recalibrate_by_class"}
+        untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
     if variant in ("blind", "full"):
         # Their labels never change after the first fit, so a refit of the box quality regressor
         # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).

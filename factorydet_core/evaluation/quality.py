@@ -132,15 +132,16 @@ class QualityPlan:
         return json.loads(json.dumps(values))
 
     def __post_init__(self) -> None:
-        if not self.heldout_seeds or not self.seeds:
-            raise InputError("bench quality needs at least one held-out seed and one training seed")
+        if not self.seeds:
+            raise InputError("bench quality needs at least one training seed")
 
         FrontEndParams().replace(**dict(self.overrides))  # unknown names and bad values fail here
-        if self.heldout_frames < 1 or self.epochs < 1 or self.rounds < 0:
-            raise InputError("heldout_frames and epochs must be >= 1, rounds >= 0")
+        if self.epochs < 1 or self.rounds < 0:
+            raise InputError("epochs must be >= 1, rounds >= 0")
         unknown = set(self.methods) - set(METHODS)
         if unknown or not self.methods:
             raise InputError(f"methods must be among {', '.join(METHODS)}; got {', '.join(self.methods)}")
+        # The held-out seeds and frames (one or more distinct seeds, not the training factory's).
         check_heldout(self.heldout_seeds, self.heldout_frames, open_dataset(self.train_data))
 
 
