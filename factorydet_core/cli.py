@@ -1624,8 +1624,9 @@ def build_parser(
     p.add_argument(
         "--variants",
         default=None,
-        help="hitl: run only these detectors, comma-separated (blind, blind_safe, reviewed_K, full, and "
-        "full_late: full labels added after the first fit; blind always runs); default all but full_late",
+        help="hitl: run only these detectors, comma-separated (blind, blind_safe, reviewed_K, full; "
+        "reviewed_safe_K: reviewed_K holding what the reviewer leaves, as blind_safe; full_late: full "
+        "labels added after the first fit; blind always runs); default blind, blind_safe, reviewed_K, full",
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument(

@@ -390,6 +390,46 @@ def test_bench_hitl_runs_the_variants_asked_for_with_blind_always(small_dataset_
 
 
 @pytest.mark.slow
+def test_bench_hitl_reviewed_safe_reviews_and_holds_what_its_reviewer_leaves(
+    small_dataset_dir, tmp_path, capsys, monkeypatch
+):
+    import factorydet_core.evaluation.hitl as hitl
+
+    out = tmp_path / "hitl.json"
+    args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "3", "--rounds", "1", "--epochs", "1",
+            "--negatives", "15", "--initial-negatives", "60", "--score-threshold", "0.05",
+            "--seeds", "0", "--train-frames", "1", "--frames", "1", "--no-calibrate", "--no-box-quality",
+            "--method", "paper", "--class-weight", "balanced", "--variants", "reviewed_safe_3,full",
+            "--hold-places", "--out", str(out)]  # fmt: skip
+    fitted, held = {}, {}  # each detector's settings, and the negatives its mining held
+    train_session = hitl.train_session
+
+    def recording(db, frames, settings, **kwargs):
+        fitted[db.session.name] = settings
+        run_id, run = train_session(db, frames, settings, **kwargs)
+        held[db.session.name] = held.get(db.session.name, 0) + sum(r["num_held"] for r in run.rounds)
+        return run_id, run
+
+    monkeypatch.setattr(hitl, "train_session", recording)
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert list(result["variants"]) == ["blind", "reviewed_safe_3", "full"]
+    safe = fitted["reviewed_safe_3_seed0"]
+    assert safe.hold_confident == result["hold_confident"] == 0.05 and safe.hold_places
+    assert held["reviewed_safe_3_seed0"] > 0 and held["blind_seed0"] == held["full_seed0"] == 0
+    assert fitted["blind_seed0"].hold_confident is None and not fitted["blind_seed0"].hold_places
+    reviewed = result["variants"]["reviewed_safe_3"]
+    assert 0 < reviewed["num_reviews"] <= 3 and reviewed["unannotated_in_top_k"] is not None
+    markdown = out.with_suffix(".md").read_text()
+    assert "`reviewed_safe_K`: the reviewer of `reviewed_K` on top of `blind_safe`" in markdown
+    assert "and every point set on their boxes (their places) with them" in markdown
+    # The holding settings shape the holding detectors alone: without one among the variants, refused.
+    no_holding = [a if a != "reviewed_safe_3,full" else "reviewed_3,full" for a in args]
+    assert main(no_holding) == 2
+    assert "blind_safe and reviewed_safe_K alone" in capsys.readouterr().err
+
+
+@pytest.mark.slow
 def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     small_dataset_dir, tmp_path, capsys, monkeypatch
 ):

@@ -28,8 +28,17 @@ from factorydet_core.types import (
 )
 
 BLIND_SAFE_SETTINGS: tuple[str, ...] = ("hold_places", "recalibrate_background", "recalibrate_by_class")
-"""``LoopSettings`` fields that shape ``blind_safe``'s runs alone (with its hold score): the other
-detectors run without them, so their run plans leave them out (``_run_plan``)."""
+"""``LoopSettings`` fields that shape the runs of the detectors that hold (``holds``: ``blind_safe``
+and ``reviewed_safe_K``) alone, with their hold score: the other detectors run without them, so
+their run plans leave them out (``_run_plan``)."""
+
+
+def holds(variant: str) -> bool:
+    """Whether ``bench hitl``'s detector ``variant`` holds its confident mined negatives out of the
+    background until reviewed (and recalibrates with ``BLIND_SAFE_SETTINGS``): ``blind_safe``, which
+    nobody reviews, and ``reviewed_safe_K``, whose reviewer answers K entries a round and leaves the
+    rest held."""
+    return variant == "blind_safe" or variant.startswith("reviewed_safe_")
 
 
 def truth_verdict(
@@ -381,23 +390,28 @@ def bench_hitl(
     heldout_frames: int = 12,
     heldout_scratch: str | os.PathLike = HELDOUT_SCRATCH,
 ) -> dict:
-    """Does reviewing mined negatives make the detector better? Three detectors, the same budget of
-    mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
+    """Does reviewing mined negatives make the detector better? Several detectors, the same budget
+    of mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
 
     (a) ``blind``: mining on the partial labels, as the paper;
-    (b) ``reviewed_K``: the same, with a simulated reviewer answering the top K items of each
+    (b) ``blind_safe``: the same, holding the mined negatives the model scores at its operating
+        score or more (``LoopSettings.hold_confident``) out of the background, with the settings
+        of ``BLIND_SAFE_SETTINGS``; nobody reviews them;
+    (c) ``reviewed_K``: blind mining with a simulated reviewer answering the top K items of each
         round's queue from the truth, through ``SessionDB.review`` (the review panel's call);
-    (c) ``full``: mining on full labels (every object of the annotation policy labelled,
+    (d) ``full``: mining on full labels (every object of the annotation policy labelled,
         ``hitl.add_truth_labels``), the upper bound;
-    (d) ``full_late``, asked for by name: the same labels added after the first fit, when a
+    (e) ``reviewed_safe_K``, asked for by name: the reviewer of (c) on top of (b): what the
+        reviewer leaves unanswered stays held instead of going to the background;
+    (f) ``full_late``, asked for by name: the labels of (d) added after the first fit, when a
         reviewer's arrive (a reviewer with unlimited time): what labels lose by arriving late.
 
     ``max_label_iou`` gives the reviewer the queue filter that hides items on labelled objects
     (``SessionDB.review_queue``); hidden items cost no budget. ``review_by`` "place" reviews as the
     app does by default once the frames are placed: one verdict per place of the queue, objects
     labelled once in every frame that shows them (``simulated_review``'s ``world``); K then counts
-    places. ``variants`` runs some of the detectors only (their names as above, ``blind_safe``
-    included; ``blind``, every other one's baseline, always runs); ``None``: all.
+    places. ``variants`` runs some of the detectors only (their names as above; ``blind``, every
+    other one's baseline, always runs); ``None``: (a) to (d).
 
     With ``heldout_seeds``, the figures (F-scores, mAP, recovered shares) are measured on held-out
     factories instead: ``heldout_frames`` frames of each simulator seed (``quality.heldout_set``,
@@ -436,7 +450,7 @@ def bench_hitl(
         raise InputError(f"bench hitl: the queue filter's IoU must lie in (0, 1], got {max_label_iou}")
     if review_by not in ("item", "place"):
         raise InputError(f"bench hitl: review by 'item' or 'place', got {review_by!r}")
-    known = ["blind", "blind_safe", *(f"reviewed_{k}" for k in budgets), "full_late", "full"]
+    known = [name for name, _, _ in _variant_specs(budgets, None, default=False)]
     if variants is not None:
         unknown = sorted(set(variants) - set(known))
         if unknown:
@@ -444,8 +458,11 @@ def bench_hitl(
         variants = [name for name in known if name == "blind" or name in variants]
     settings = settings or LoopSettings()
     for safety in BLIND_SAFE_SETTINGS:
-        if getattr(settings, safety) and variants is not None and "blind_safe" not in variants:
-            raise InputError(f"bench hitl: {safety} changes blind_safe alone, which --variants leaves out")
+        if getattr(settings, safety) and variants is not None and not any(map(holds, variants)):
+            raise InputError(
+                f"bench hitl: {safety} changes blind_safe and reviewed_safe_K alone, "
+                "which --variants leaves out"
+            )
     heldout_seeds = tuple(int(s) for s in heldout_seeds)
     if heldout_seeds:
         heldout_seeds = check_heldout(heldout_seeds, heldout_frames, dataset)
@@ -610,7 +627,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
     its seeds, its list of detectors and its budgets (a reviewed detector's budget is in its name),
     less the reviewer's settings for a detector nobody reviews, less the holding of confident
     negatives (``hold_confident``, ``hold_places``) and background recalibration for all but
-    ``blind_safe``, the one detector that holds and recalibrates, and less the box quality refit
+    the detectors that hold and recalibrate (``holds``), and less the box quality refit
     for blind mining and full labels, whose labels never change after the first fit. Runs of a
     detector whose run plans agree are the same runs, whatever else the two records measured: a
     record grows by a detector without training the others again."""
@@ -619,7 +636,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
     untouched = set()
-    if variant != "blind_safe":
+    if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
     if variant in ("blind", "full"):
         # Their labels never change after the first fit, so a refit of the box quality regressor
@@ -642,11 +659,13 @@ def _variant_specs(
     budgets: Sequence[int], hold: float | None, default: bool
 ) -> list[tuple[str, int, float | None]]:
     """The detectors ``bench hitl`` can train, in table order: ``(name, review budget, hold score)``;
-    ``default``: those it trains when none are named (``full_late``, a diagnostic, is asked for)."""
+    ``default``: those it trains when none are named (``reviewed_safe_K`` and ``full_late`` are
+    asked for by name)."""
     return [
         ("blind", 0, None),
         ("blind_safe", 0, hold),
         *((f"reviewed_{k}", int(k), None) for k in budgets),
+        *([] if default else [(f"reviewed_safe_{k}", int(k), hold) for k in budgets]),
         *([] if default else [("full_late", 0, None)]),
         ("full", 0, None),
     ]
@@ -665,8 +684,8 @@ def _hitl_variants(
     rounds, settings, seeds, max_label_iou = plan.rounds, plan.settings, plan.seeds, plan.max_label_iou
     calibrate, command = plan.calibrate, plan.command
     resumed = resumed or {}
-    # blind_safe: blind mining that holds the negatives the model scores at its operating score or
-    # more out of the background until reviewed (nobody reviews them here).
+    # The holding detectors hold the negatives the model scores at its operating score or more
+    # out of the background until reviewed.
     hold = settings.hold_confident if settings.hold_confident is not None else settings.score_threshold
     variants = _variant_specs(budgets, hold, default=plan.variants is None)
     if plan.variants is not None:
@@ -708,13 +727,14 @@ def _hitl_variants(
                 if progress is not None:
                     progress(done, steps)
                 continue
-            # Holding and recalibrating are blind_safe's alone (variant_hold None: the others).
+            # Holding and recalibrating are the holding detectors' alone (variant_hold None: the others).
             seed_settings = dataclasses.replace(
                 settings,
                 seed=seed,
                 hold_confident=variant_hold,
-                recalibrate_background=settings.recalibrate_background if name == "blind_safe" else None,
-                recalibrate_by_class=settings.recalibrate_by_class and name == "blind_safe",
+                hold_places=settings.hold_places and holds(name),
+                recalibrate_background=settings.recalibrate_background if holds(name) else None,
+                recalibrate_by_class=settings.recalibrate_by_class and holds(name),
             )
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0

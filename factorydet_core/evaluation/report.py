@@ -577,6 +577,14 @@ def _recovered_text(result: dict, recovered: str) -> str:
             f"by `blind_safe`, with no reviewer: {100 * safe:.0f}%{_share_interval(result, 'blind_safe')}"
             " (target: at least 30%)"
         )
+    for name in f1:
+        if name.startswith("reviewed_safe_") and result["gap_full_minus_blind"] > 0:
+            share = (f1[name] - f1["blind"]) / result["gap_full_minus_blind"]
+            parts.append(
+                f"by `{name}`, the reviews with the rest held: {100 * share:.0f}%"
+                + _share_interval(result, name)
+                + " (target: at least 80% at K = 200)"
+            )
     if "full_late" in f1 and result["gap_full_minus_blind"] > 0:
         late = (f1["full_late"] - f1["blind"]) / result["gap_full_minus_blind"]
         parts.append(f"by `full_late`, every missing label given after the first fit: {100 * late:.0f}%")
@@ -649,6 +657,35 @@ def _hitl_method(settings: dict) -> str:
         "box_head": "the learned box head",
         "head_options": "the learned box head classifying, the box quality regressor boxing",
     }.get(method, method)
+
+
+def _holding_text(result: dict) -> str:
+    """What the holding detectors of ``bench hitl`` (``blind_safe``, ``reviewed_safe_K``) do with
+    their confident mined negatives, as the rest of a sentence."""
+    settings = result["settings"]
+    return (
+        f"holds the negatives scoring {result['hold_confident']:g} or more out of the background"
+        " (neither object nor background) until reviewed"
+        + (
+            ", and every point set on their boxes (their places) with them"
+            if settings.get("hold_places")
+            else ""
+        )
+        + (
+            ", and leaves out of the losses of the fits that go on from the previous model the"
+            " background sets drawn at random that the"
+            f" network, as it trains, finds {settings['recalibrate_background']:g} or more likely"
+            " an object"
+            + (
+                " and its likeliest class at least as likely as the median labelled set of that class"
+                if settings.get("recalibrate_by_class")
+                else ""
+            )
+            + " (background recalibration)"
+            if settings.get("recalibrate_background")
+            else ""
+        )
+    )
 
 
 def _hitl_where(result: dict) -> str:
@@ -842,30 +879,15 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             )
             + (" `full`: every object of the annotation policy labelled." if "full" in variants else "")
             + (
-                " `blind_safe`: blind mining that holds the negatives scoring"
-                f" {result['hold_confident']:g} or more out of the background (neither object nor"
-                " background) until reviewed"
-                + (
-                    ", and every point set on their boxes (their places) with them"
-                    if settings.get("hold_places")
-                    else ""
-                )
-                + (
-                    ", and leaves out of the losses of the fits that go on from the previous model the"
-                    " background sets drawn at random that the"
-                    f" network, as it trains, finds {settings['recalibrate_background']:g} or more likely"
-                    " an object"
-                    + (
-                        " and its likeliest class at least as likely as the median labelled set of that class"
-                        if settings.get("recalibrate_by_class")
-                        else ""
-                    )
-                    + " (background recalibration)"
-                    if settings.get("recalibrate_background")
-                    else ""
-                )
-                + "; nobody reviews them here."
+                f" `blind_safe`: blind mining that {_holding_text(result)}; nobody reviews them here."
                 if "blind_safe" in variants
+                else ""
+            )
+            + (
+                " `reviewed_safe_K`: the reviewer of `reviewed_K` on top of `blind_safe`: mining that"
+                f" {_holding_text(result)}; the reviewer's verdicts move the entries they answer to the"
+                " background or to labels, the rest stay held."
+                if any(n.startswith("reviewed_safe_") for n in names)
                 else ""
             )
             + queue_note

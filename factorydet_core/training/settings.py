@@ -285,11 +285,12 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "background nor object until reviewed (0: off, every mined negative is background, as the "
             "paper)", float, 0.0, 1.0, 0.05, none_as=0),
     Control("hold_places", "Hold their places", "with held negatives (hold confident above 0; hitl: "
-            "blind_safe's), every point set on a held box off the labels is left out of the background too, "
-            "not only the mined set", bool),
+            "blind_safe's and reviewed_safe_K's), every point set on a held box off the labels is left "
+            "out of the background too, not only the mined set", bool),
     Control("recalibrate_background", "Recalibrate background", "(box head) drawn background sets the "
             "network gives this object probability or more are left out of the loss, as likely unlabelled "
-            "objects (0: off; hitl: blind_safe's)", float, 0.0, 1.0, 0.05, none_as=0),
+            "objects (0: off; hitl: blind_safe's and reviewed_safe_K's)", float, 0.0, 1.0, 0.05,
+            none_as=0),
     Control("recalibrate_by_class", "Recalibrate by class", "with recalibrate background, only sets whose "
             "likeliest class's probability also reaches the median of that class's labelled sets", bool),
     Control("queue_order", "Queue order", "which mined negatives go to the background and the review "

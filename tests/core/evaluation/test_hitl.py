@@ -1,6 +1,6 @@
 import dataclasses
 
-from factorydet_core.evaluation.hitl import _run_plan, _settings_as_run
+from factorydet_core.evaluation.hitl import _run_plan, _settings_as_run, _variant_specs, holds
 from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
 
 
@@ -36,3 +36,19 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     by_class = {**plan, "settings": {**held, "recalibrate_by_class": True}}
     assert _run_plan({**plan, "settings": held}, "blind_safe") != _run_plan(by_class, "blind_safe")
     assert _run_plan({**plan, "settings": held}, "reviewed_200") == _run_plan(by_class, "reviewed_200")
+    # A reviewer who also holds what they leave: shaped by the reviews and by the holding both.
+    holding = {**plan, "settings": held}
+    assert _run_plan(plan, "reviewed_safe_200") != _run_plan(holding, "reviewed_safe_200")
+    assert _run_plan(holding, "reviewed_safe_200") != _run_plan(
+        {**holding, "review_by": "item"}, "reviewed_safe_200"
+    )
+    assert _run_plan(holding, "reviewed_safe_200") != _run_plan(by_class, "reviewed_safe_200")
+
+
+def test_the_holding_detectors_are_asked_for_by_name_and_hold_at_the_plans_score():
+    default = [name for name, _, _ in _variant_specs([50, 200], 0.3, default=True)]
+    assert default == ["blind", "blind_safe", "reviewed_50", "reviewed_200", "full"]
+    every = {name: (budget, hold) for name, budget, hold in _variant_specs([50, 200], 0.3, default=False)}
+    assert every["reviewed_safe_200"] == (200, 0.3) and every["blind_safe"] == (0, 0.3)
+    assert every["reviewed_200"] == (200, None) and every["full_late"] == (0, None)
+    assert [name for name in every if holds(name)] == ["blind_safe", "reviewed_safe_50", "reviewed_safe_200"]
