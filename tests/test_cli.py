@@ -423,6 +423,10 @@ def test_bench_hitl_reviewed_safe_reviews_and_holds_what_its_reviewer_leaves(
     markdown = out.with_suffix(".md").read_text()
     assert "`reviewed_safe_K`: the reviewer of `reviewed_K` on top of `blind_safe`" in markdown
     assert "and every point set on their boxes (their places) with them" in markdown
+    # Per class, whether F moves by false positives or by misses.
+    blind = result["variants"]["blind"]
+    assert set(blind["per_class_precision"]) == set(blind["per_class_recall"]) == set(blind["per_class_f1"])
+    assert "Per class, precision / recall" in markdown
     # The holding settings shape the holding detectors alone: without one among the variants, refused.
     no_holding = [a if a != "reviewed_safe_3,full" else "reviewed_3,full" for a in args]
     assert main(no_holding) == 2

@@ -790,6 +790,9 @@ def _hitl_variants(
                     "recall": metrics["recall"],
                     "map": metrics["map"],
                     "per_class_f1": {k: v["f1"] for k, v in metrics["per_class"].items()},
+                    # Whether a class's F moves by its false positives or by its misses.
+                    "per_class_precision": {k: v["precision"] for k, v in metrics["per_class"].items()},
+                    "per_class_recall": {k: v["recall"] for k, v in metrics["per_class"].items()},
                     "num_reviews": sum(v for k, v in reviews.items() if k not in ("boxes_drawn", "hidden")),
                     "reviews": reviews,
                     "truth_labels_added": added,
@@ -825,6 +828,12 @@ def _hitl_variants(
             "f1_std": round(float(np.std([r["f1"] for r in runs], ddof=1)), 4) if len(runs) > 1 else None,
             "per_class_f1": {
                 c: _mean_of([r["per_class_f1"][c] for r in runs]) for c in runs[0]["per_class_f1"]
+            },
+            # (runs read back from records before they were kept have neither)
+            **{
+                key: {c: _mean_of([r[key][c] for r in runs]) for c in runs[0][key]}
+                for key in ("per_class_precision", "per_class_recall")
+                if all(key in r for r in runs)
             },
             "num_reviews": _mean_of([r["num_reviews"] for r in runs]),
             "reviews": {k: _mean_of([r["reviews"][k] for r in runs]) for k in runs[0]["reviews"]},

@@ -811,6 +811,29 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 "",
             ]
 
+    # Whether a class's F moves by false positives or by misses (records before these were kept
+    # have no such table).
+    precision_recall = []
+    if all("per_class_precision" in variants[n] and "per_class_recall" in variants[n] for n in names):
+        precision_recall = [
+            "Per class, precision / recall at the operating scores (means over the seeds):",
+            "",
+            "| class | " + " | ".join(names) + " |",
+            "|---|" + "---|" * len(names),
+            *(
+                f"| {c} | "
+                + " | ".join(
+                    _fmt(variants[n]["per_class_precision"][c])
+                    + " / "
+                    + _fmt(variants[n]["per_class_recall"][c])
+                    for n in names
+                )
+                + " |"
+                for c in classes
+            ),
+            "",
+        ]
+
     recovered = ", ".join(
         f"K = {k}: {share(v)}{_share_interval(result, f'reviewed_{k}')}"
         for k, v in result["recovered"].items()
@@ -900,5 +923,6 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             "",
             *([_map_recovered_text(result, map_differences), ""] if "full" in map_differences else []),
             *class_coverage,
+            *precision_recall,
         ]
     )
