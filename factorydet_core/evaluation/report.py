@@ -554,8 +554,8 @@ def write_report(
 
 def _recovered_text(result: dict, recovered: str) -> str:
     """The gap between blind mining and full labels, and the share of it each reviewed budget,
-    ``blind_safe`` and ``full_late`` recover, stated only where the gap is larger than twice its
-    standard error over the seeds (a share of noise is no result)."""
+    ``blind_safe``, ``reviewed_safe_K`` and ``full_late`` recover, stated only where the gap is
+    larger than twice its standard error over the seeds (a share of noise is no result)."""
     if result["gap_full_minus_blind"] is None:
         return "Full labels were not run here: no gap, no recovered share."
     gap = _fmt(result["gap_full_minus_blind"])
@@ -583,7 +583,7 @@ def _recovered_text(result: dict, recovered: str) -> str:
             parts.append(
                 f"by `{name}`, the reviews with the rest held: {100 * share:.0f}%"
                 + _share_interval(result, name)
-                + " (target: at least 80% at K = 200)"
+                + (" (target: at least 80% at K = 200)" if name == "reviewed_safe_200" else "")
             )
     if "full_late" in f1 and result["gap_full_minus_blind"] > 0:
         late = (f1["full_late"] - f1["blind"]) / result["gap_full_minus_blind"]
@@ -908,8 +908,8 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             )
             + (
                 " `reviewed_safe_K`: the reviewer of `reviewed_K` on top of `blind_safe`: mining that"
-                f" {_holding_text(result)}; the reviewer's verdicts move the entries they answer to the"
-                " background or to labels, the rest stay held."
+                f" {_holding_text(result)}; a verdict moves a held entry to the background or to a"
+                " label, and the held entries the reviewer does not answer (or skips) stay held."
                 if any(n.startswith("reviewed_safe_") for n in names)
                 else ""
             )

@@ -37,7 +37,7 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert _run_plan({**plan, "settings": held}, "blind_safe") != _run_plan(by_class, "blind_safe")
     assert _run_plan({**plan, "settings": held}, "reviewed_200") == _run_plan(by_class, "reviewed_200")
     # A reviewer who also holds what they leave: shaped by the reviews and by the holding both.
-    holding = {**plan, "settings": held}
+    holding = {**plan, "settings": {**settings, "hold_places": True, "recalibrate_background": 0.5}}
     assert _run_plan(plan, "reviewed_safe_200") != _run_plan(holding, "reviewed_safe_200")
     assert _run_plan(holding, "reviewed_safe_200") != _run_plan(
         {**holding, "review_by": "item"}, "reviewed_safe_200"

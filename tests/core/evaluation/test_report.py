@@ -176,6 +176,26 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "by the reviews: K = 200: 75% [75%, 75%] (per seed: K = 200: 75%, 75%, 75%)" in text
     assert "reviewer's queue hides items" in text and "`blind_safe`" not in text
     assert "classes taking turns" not in text
+    # A reviewer holding what it leaves: its share beside the plain reviewer's, what it does said;
+    # per-class precision and recall in a table of their own.
+    result = _hitl_result(
+        {"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.33, 0.34, 0.32],
+         "reviewed_safe_200": [0.34, 0.35, 0.33], "reviewed_safe_50": [0.32, 0.33, 0.31],
+         "full": [0.34, 0.35, 0.33]},
+        recovered={"200": 0.75},
+    )  # fmt: skip
+    for variant in result["variants"].values():
+        variant["per_class_precision"] = {"box": 0.5, "cone": None}
+        variant["per_class_recall"] = {"box": 0.25, "cone": None}
+    text = hitl_markdown(result, heading=False)
+    assert (
+        "by `reviewed_safe_200`, the reviews with the rest held: 100% [100%, 100%] (target: at least 80%"
+        in text
+    )
+    assert "by `reviewed_safe_50`, the reviews with the rest held: 50% [50%, 50%]." in text
+    assert "`reviewed_safe_K`: the reviewer of `reviewed_K` on top of `blind_safe`" in text
+    assert "and the held entries the reviewer does not answer (or skips) stay held" in text
+    assert "| box | " + " | ".join(["0.500 / 0.250"] * 5) + " |" in text
     # Late labels: their share too; a class-order cut is said.
     result = _hitl_result(
         {"blind": [0.30, 0.31, 0.29], "full_late": [0.32, 0.33, 0.31], "full": [0.34, 0.35, 0.33]}
