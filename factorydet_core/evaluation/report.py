@@ -570,24 +570,26 @@ def _recovered_text(result: dict, recovered: str) -> str:
     parts = []
     if recovered:
         parts.append(f"by the reviews: {recovered} (target: at least 80% at K = 200)")
-    f1 = result["f1"]
-    if "blind_safe" in f1 and result["gap_full_minus_blind"] > 0:
-        safe = (f1["blind_safe"] - f1["blind"]) / result["gap_full_minus_blind"]
-        parts.append(
-            f"by `blind_safe`, with no reviewer: {100 * safe:.0f}%{_share_interval(result, 'blind_safe')}"
-            " (target: at least 30%)"
-        )
-    for name in f1:
-        if name.startswith("reviewed_safe_") and result["gap_full_minus_blind"] > 0:
-            share = (f1[name] - f1["blind"]) / result["gap_full_minus_blind"]
+    f1, gap_f1 = result["f1"], result["gap_full_minus_blind"]
+
+    def share(name: str) -> str:  # the percentage of the gap ``name`` recovers
+        return f"{100 * (f1[name] - f1['blind']) / gap_f1:.0f}%"
+
+    # (a gap of 0 or less, significant: full labels worse than blind mining, no share of it)
+    named = [n for n in f1 if n in ("blind_safe", "full_late") or n.startswith("reviewed_safe_")]
+    for name in named if gap_f1 > 0 else []:
+        if name == "blind_safe":
             parts.append(
-                f"by `{name}`, the reviews with the rest held: {100 * share:.0f}%"
-                + _share_interval(result, name)
+                f"by `blind_safe`, with no reviewer: {share(name)}{_share_interval(result, name)}"
+                " (target: at least 30%)"
+            )
+        elif name == "full_late":
+            parts.append(f"by `full_late`, every missing label given after the first fit: {share(name)}")
+        else:
+            parts.append(
+                f"by `{name}`, the reviews with the rest held: {share(name)}{_share_interval(result, name)}"
                 + (" (target: at least 80% at K = 200)" if name == "reviewed_safe_200" else "")
             )
-    if "full_late" in f1 and result["gap_full_minus_blind"] > 0:
-        late = (f1["full_late"] - f1["blind"]) / result["gap_full_minus_blind"]
-        parts.append(f"by `full_late`, every missing label given after the first fit: {100 * late:.0f}%")
     shares = "; ".join(parts) if parts else "no reviewed, held or late variant was run"
     return f"Recovered share of the gap between blind and full labels ({gap}{interval}): {shares}."
 
