@@ -161,6 +161,8 @@ bench: $(STAMP) corpus corpus50
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --out docs/bench/hitl-reviewed-safe-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-reviewed-safe-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
+	  --readme docs/labelling.md --readme-block hitl-reviewed-safe-vs-reviewed-heldout
 	# Blind mining and full labels on the same held-out factories, 50% unannotated.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \

@@ -220,11 +220,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from factorydet_core.evaluation.hitl import compare_hitl_records
         from factorydet_core.io.jsonfile import read_json
 
-        if len(args.data) != 2:
-            raise InputError("bench hitl-compare needs two bench hitl records: RECORD BASELINE")
-        records = [read_json(path, what="bench hitl record") for path in args.data]
+        pair = None if args.variants is None else tuple(v.strip() for v in args.variants.split(","))
+        if pair is not None and len(pair) != 2:
+            raise InputError("bench hitl-compare --variants takes two detectors: A,B (A minus B)")
+        if not (len(args.data) == 2 or (len(args.data) == 1 and pair is not None)):
+            raise InputError(
+                "bench hitl-compare needs two bench hitl records, RECORD BASELINE, or one record and "
+                "--variants A,B"
+            )
+        paths = list(args.data) if len(args.data) == 2 else [args.data[0]] * 2  # its own baseline
+        records = [read_json(path, what="bench hitl record") for path in paths]
         result = {
-            **compare_hitl_records(*records, names=tuple(Path(path).name for path in args.data)),
+            **compare_hitl_records(*records, names=tuple(Path(path).name for path in paths), pair=pair),
             "command": command,
         }
     elif args.name == "fuzz":
@@ -1451,7 +1458,8 @@ def build_parser(
         "data",
         nargs="*",
         help="pipeline: a simulated data set folder, or point-cloud files (recall pooled); sweep: a folder; "
-        "hitl-compare: two bench hitl records, RECORD BASELINE (seed by seed, RECORD minus BASELINE)",
+        "hitl-compare: two bench hitl records, RECORD BASELINE (seed by seed, RECORD minus BASELINE), or one "
+        "record with --variants A,B",
     )
     p.add_argument(
         "--frames",
@@ -1626,7 +1634,9 @@ def build_parser(
         default=None,
         help="hitl: run only these detectors, comma-separated (blind, blind_safe, reviewed_K, full; "
         "reviewed_safe_K: reviewed_K holding what the reviewer leaves, as blind_safe; full_late: full "
-        "labels added after the first fit; blind always runs); default blind, blind_safe, reviewed_K, full",
+        "labels added after the first fit; blind always runs); default blind, blind_safe, reviewed_K, full; "
+        "hitl-compare: A,B compares detector A with detector B (of one record, or RECORD's A with "
+        "BASELINE's B)",
     )
     p.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="hitl: skip ICP")
     p.add_argument(

@@ -56,6 +56,37 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     assert "invalid session name" in capsys.readouterr().err
 
 
+def test_bench_hitl_compare_pairs_two_detectors_of_one_record(tmp_path, capsys):
+    seeds = [0, 1, 2]
+    record = {
+        "benchmark": "hitl",
+        "complete": True,
+        "data": "x",
+        "train_frames": [0],
+        "test_frames": [1],
+        "iou_threshold": 0.6,
+        "seeds": seeds,
+        "plan": {"data": "x"},
+        "per_seed": {
+            name: [{"seed": s, "f1": f + 0.01 * s, "map": f} for s in seeds]
+            for name, f in (("blind", 0.2), ("full", 0.25))
+        },
+    }
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(record))
+    assert main(["bench", "hitl-compare", str(path), "--variants", "full,blind"]) == 0
+    row = json.loads(capsys.readouterr().out)["variants"]["full minus blind"]
+    assert row["f1"]["mean"] == pytest.approx(0.05) and row["f1"]["ci95"] == [0.05, 0.05]
+    assert main(["bench", "hitl-compare", str(path)]) == 2
+    assert (
+        "two bench hitl records, RECORD BASELINE, or one record and --variants A,B" in capsys.readouterr().err
+    )
+    assert main(["bench", "hitl-compare", str(path), "--variants", "full"]) == 2
+    assert "takes two detectors" in capsys.readouterr().err
+    assert main(["bench", "hitl-compare", str(path), "--variants", "full,reviewed_200"]) == 2
+    assert "r.json did not run 'reviewed_200'" in capsys.readouterr().err
+
+
 def test_propose_json_on_a_simulated_frame(small_dataset_dir, capsys):
     assert main(["propose", str(small_dataset_dir), "--frame", "1", "--json", "--no-calibrate"]) == 0
     record = json.loads(capsys.readouterr().out)

@@ -657,16 +657,26 @@ def hitl_compare_table(result: dict) -> str:
         f"{key}: {mine} against {theirs}" for key, (mine, theirs) in result["differs"].items()
     )
     seeds = ", ".join(map(str, result["seeds"]))
+    same = result["record"] == result["baseline"]
+    what = f"`{result['record']}`" if same else f"`{result['record']}` minus `{result['baseline']}`"
+    rows = result["variants"]
+    in_factory = any("in_factory_f1" in row for row in rows.values())
+    heldout = " on the held-out factories" if result.get("heldout") else ""
     lines = [
-        f"`{result['record']}` minus `{result['baseline']}`, seed by seed (seeds {seeds}): mean [95%"
-        f" interval]. What differs: {differs or 'nothing'}.",
+        f"{what}, seed by seed (seeds {seeds}): mean [95% interval]{heldout}."
+        + ("" if same else f" What differs: {differs or 'nothing'}."),
         "",
-        "| detector | F-score | mAP | F gain over its own blind mining |",
-        "|---|---|---|---|",
+        "| detector | F-score | mAP | F gain over its own blind mining |"
+        + (" F-score in-factory |" if in_factory else ""),
+        "|---|---|---|---|" + ("---|" if in_factory else ""),
     ]
-    for name, row in result["variants"].items():
+    for name, row in rows.items():
+        # A detector against itself over the same blind mining: its gain is its F difference.
         gain = "–" if name == "blind" else difference_text(row["gain_over_blind"])
-        lines.append(f"| {name} | {difference_text(row['f1'])} | {difference_text(row['map'])} | {gain} |")
+        cells = [name, difference_text(row["f1"]), difference_text(row["map"]), gain]
+        if in_factory:
+            cells.append(difference_text(row["in_factory_f1"]) if "in_factory_f1" in row else "–")
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -941,25 +941,36 @@ def _hitl_variants(
 
 
 def compare_hitl_records(
-    record: dict, baseline: dict, names: tuple[str, str] = ("record", "baseline")
+    record: dict,
+    baseline: dict,
+    names: tuple[str, str] = ("record", "baseline"),
+    *,
+    pair: tuple[str, str] | None = None,
 ) -> dict:
     """Seed by seed, each detector of one ``bench hitl`` record against the same detector of
-    another (one setting changed, say): the paired difference of their F-scores, of their mAPs,
-    and of their gains over their own blind mining, over the seeds both ran.
+    another (one setting changed, say), or one detector against another (``pair``; of one record
+    when ``baseline`` is ``record``): the paired difference of their F-scores, of their mAPs, of
+    their gains over their own blind mining, and of their in-factory F-scores where both runs
+    measured them, over the seeds both ran.
 
     Args:
-        record, baseline: complete ``bench hitl`` records of the same data and frames.
+        record, baseline: complete ``bench hitl`` records of the same data and frames (the same
+            record twice to compare two of its detectors).
         names: what to call them (their file names, say).
+        pair: ``(detector of record, detector of baseline)``: compare these two alone; by default
+            every detector both ran, each against itself.
 
     Returns:
         ``{"benchmark": "hitl-compare", "record", "baseline", "differs", "seeds", "variants"}``:
         ``differs`` the plan fields that differ (``{field: [record's, baseline's]}``, settings by
-        name), ``variants`` per detector both ran ``{"f1", "map", "gain_over_blind"}``, each a
-        ``paired_difference`` (record minus baseline).
+        name), ``variants`` one row per compared pair (named by the detector, or "A minus B" for a
+        ``pair`` of two), each ``{"variant", "baseline_variant", "f1", "map", "gain_over_blind"}``
+        and ``"in_factory_f1"`` where both measured it, each a ``paired_difference`` (record minus
+        baseline).
 
     Raises:
-        InputError: for a record that is not a complete ``bench hitl`` record, or two records of
-            other data, frames or no common seed.
+        InputError: for a record that is not a complete ``bench hitl`` record, two records of
+            other data, frames or no common seed, or a ``pair`` detector a record did not run.
     """
     for name, rec in zip(names, (record, baseline)):
         if rec.get("benchmark") != "hitl" or not rec.get("complete", True) or "per_seed" not in rec:
@@ -976,11 +987,20 @@ def compare_hitl_records(
     def by_seed(rec: dict, variant: str) -> dict[int, dict]:
         return {int(run["seed"]): run for run in rec["per_seed"][variant]}
 
+    if pair is None:
+        pairs = [(v, v) for v in record["per_seed"] if v in baseline["per_seed"]]
+    else:
+        for name, rec, variant in zip(names, (record, baseline), pair):
+            if variant not in rec["per_seed"]:
+                raise InputError(f"{name} did not run {variant!r}; it ran {', '.join(rec['per_seed'])}")
+        pairs = [tuple(pair)]
     variants = {}
     our_blind, their_blind = by_seed(record, "blind"), by_seed(baseline, "blind")
-    for variant in [v for v in record["per_seed"] if v in baseline["per_seed"]]:
-        ours, theirs = by_seed(record, variant), by_seed(baseline, variant)
-        variants[variant] = {
+    for variant, baseline_variant in pairs:
+        ours, theirs = by_seed(record, variant), by_seed(baseline, baseline_variant)
+        row = {
+            "variant": variant,
+            "baseline_variant": baseline_variant,
             "f1": paired_difference([ours[s]["f1"] for s in seeds], [theirs[s]["f1"] for s in seeds]),
             "map": paired_difference([ours[s]["map"] for s in seeds], [theirs[s]["map"] for s in seeds]),
             "gain_over_blind": paired_difference(
@@ -988,6 +1008,12 @@ def compare_hitl_records(
                 [theirs[s]["f1"] - their_blind[s]["f1"] for s in seeds],
             ),
         }
+        if all("in_factory" in runs[s] for runs in (ours, theirs) for s in seeds):
+            row["in_factory_f1"] = paired_difference(
+                [ours[s]["in_factory"]["f1"] for s in seeds], [theirs[s]["in_factory"]["f1"] for s in seeds]
+            )
+        row_name = variant if variant == baseline_variant else f"{variant} minus {baseline_variant}"
+        variants[row_name] = row
     mine, other = record.get("plan") or {}, baseline.get("plan") or {}
     differs = {
         key: [mine.get(key), other.get(key)]
@@ -1007,5 +1033,6 @@ def compare_hitl_records(
         "baseline_command": baseline.get("command"),
         "differs": differs,
         "seeds": seeds,
+        "heldout": bool(record.get("heldout_factories")),
         "variants": variants,
     }

@@ -286,6 +286,47 @@ def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
         compare_hitl_records(record, _hitl_record({"blind": [0.2]}, {}, seeds=(9,)), names=("a", "b"))
 
 
+def test_two_detectors_of_one_hitl_record_are_compared_seed_by_seed_with_their_in_factory_scores():
+    from factorydet_core.evaluation.hitl import compare_hitl_records
+
+    record = _hitl_record(
+        {
+            "blind": [0.20, 0.22, 0.21],
+            "reviewed_200": [0.24, 0.25, 0.24],
+            "reviewed_safe_200": [0.26, 0.25, 0.27],
+        },
+        {"epochs": 5},
+    )
+    for runs, in_factory in zip(
+        record["per_seed"].values(), ([0.3] * 3, [0.31, 0.30, 0.32], [0.31, 0.32, 0.32])
+    ):
+        for run, value in zip(runs, in_factory):
+            run["in_factory"] = {"f1": value}
+    record["heldout_factories"] = [{"seed": 101, "frames": 12}]
+    result = compare_hitl_records(
+        record, record, names=("a.json", "a.json"), pair=("reviewed_safe_200", "reviewed_200")
+    )
+    assert result["differs"] == {} and result["heldout"]
+    (name,) = result["variants"]
+    assert name == "reviewed_safe_200 minus reviewed_200"
+    row = result["variants"][name]
+    assert (row["variant"], row["baseline_variant"]) == ("reviewed_safe_200", "reviewed_200")
+    assert row["f1"]["mean"] == pytest.approx(0.0167, abs=1e-4)
+    assert row["gain_over_blind"]["mean"] == row["f1"]["mean"]  # one record: the same blind mining
+    assert row["in_factory_f1"]["mean"] == pytest.approx(0.0067, abs=1e-4)
+    table = render_record(result)
+    assert "`a.json`, seed by seed (seeds 0, 1, 2): mean [95% interval] on the held-out factories." in table
+    assert "What differs" not in table and "F-score in-factory" in table
+    (cells,) = _rows(table, name)
+    assert cells[1].startswith("+0.017 [") and cells[4].startswith("+0.007 [")
+    with pytest.raises(InputError, match="a.json did not run 'reviewed_50'; it ran blind, reviewed_200"):
+        compare_hitl_records(record, record, names=("a.json", "a.json"), pair=("reviewed_50", "blind"))
+    # Runs without in-factory scores (older records) leave the column out.
+    plain = _hitl_record({"blind": [0.2, 0.2, 0.2], "full": [0.3, 0.31, 0.3]}, {})
+    table = render_record(compare_hitl_records(plain, plain, names=("b", "b"), pair=("full", "blind")))
+    assert "in-factory" not in table and _rows(table, "full minus blind")
+
+
 def test_world_labels_table_sweeps_the_least_points_that_show_an_object():
     record = copy.deepcopy(_record("world-labels"))
     app = next(m for name, m in record["methods"].items() if "(the app)" in name)
