@@ -32,14 +32,17 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, heldout_factory
 from factorydet_core.evaluation.records import machine_info
-from factorydet_core.geometry import transform_boxes
+from factorydet_core.geometry import points_in_box, transform_boxes
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.proposals.merge import mean_transform
 from factorydet_core.session.store import Label
 from factorydet_core.session.world import (
+    FLOOR_MARGIN_M,
     MIN_POINTS,
     MOVING_CLASSES,
+    SURFACE_MARGIN_M,
     calibrated_extrinsics,
+    counting_box,
     place_box,
     planar,
     register_frames,
@@ -53,6 +56,31 @@ POINT_BINS: tuple[tuple[int, int | None], ...] = ((1, 4), (5, 19), (20, 49), (50
 SWEEP_MIN_POINTS: tuple[int, ...] = (1, 2, 3)
 """The least thinned points that would show an object, swept for the app's poses: what each would
 show where the object has points, and where it has none."""
+
+SWEEP_MARGINS: tuple[tuple[float, float], ...] = (
+    (0.0, 0.05),
+    (0.0, 0.02),
+    (0.01, 0.02),
+    (0.02, 0.02),
+    (0.03, 0.02),
+    (0.04, 0.02),
+    (0.02, 0.03),
+    (0.02, 0.05),
+)
+"""``(surface margin, floor margin)`` in metres of the box whose points count (``world.counting_box``),
+swept for the app's poses; the first is the rule before the surface margin."""
+
+SPURIOUS_WEIGHT = 2
+"""How the margins are chosen (``margin_score``): a frame shown without a point of the object
+(a box on empty space, which a labeller must notice and take out) counts as much as this many
+frames shown where it has points."""
+
+
+def margin_score(shown_with_points: int, shown_without_points: int) -> int:
+    """What ``world.SURFACE_MARGIN_M`` and ``world.FLOOR_MARGIN_M`` were chosen by, on validation
+    factories: frames shown where the object has points less ``SPURIOUS_WEIGHT`` times those
+    shown where it has none."""
+    return int(shown_with_points) - SPURIOUS_WEIGHT * int(shown_without_points)
 
 
 def _shown_shares(counts: Sequence[tuple[int, int]], min_points: int) -> tuple[dict, float]:
@@ -121,8 +149,12 @@ METHODS: dict[str, tuple[bool, bool]] = {
 ``APP_METHOD`` is the app's way (``world.session_world``)."""
 
 
-def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_icp: bool) -> dict:
-    """One factory's figures for one way of placing the frames (merged with ``extrinsics``)."""
+def _factory(
+    dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_icp: bool, sweep_margins: bool = False
+) -> dict:
+    """One factory's figures for one way of placing the frames (merged with ``extrinsics``); with
+    ``sweep_margins``, also ``(truth points, thinned points counted)`` per object and frame for
+    each of ``SWEEP_MARGINS``."""
     offset = _drawn_from_true(extrinsics, folder)
     names = dataset.class_names
     start = time.perf_counter()
@@ -141,6 +173,7 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
     shown = {_bin_name(*b): [0, 0] for b in POINT_BINS}
     shown_without = [0, 0]
     point_counts: list[tuple[int, int]] = []  # (truth points, thinned points in the carried box)
+    margin_counts: dict[str, list[tuple[int, int]]] = {_margin_name(*m): [] for m in SWEEP_MARGINS}
     place_ms = []
     for per_frame in objects.values():
         source = max(per_frame, key=lambda f: (per_frame[f][1], -f))
@@ -150,7 +183,12 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
         for f in range(world.num_frames):
             if f == source:
                 continue
-            point_counts.append((per_frame[f][1] if f in per_frame else 0, int(placement.num_points[f])))
+            truth_points = per_frame[f][1] if f in per_frame else 0
+            point_counts.append((truth_points, int(placement.num_points[f])))
+            if sweep_margins:
+                for surface, floor in SWEEP_MARGINS:
+                    counted = points_in_box(world.clouds[f], counting_box(placement.boxes[f], surface, floor))
+                    margin_counts[_margin_name(surface, floor)].append((truth_points, int(counted.sum())))
             if f not in per_frame:
                 shown_without[0] += 1
                 shown_without[1] += int(placement.visible_mask[f])
@@ -174,7 +212,31 @@ def _factory(dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_
         "shown_without_points": shown_without,
         "point_counts": point_counts,
     }
+    if sweep_margins:
+        record["margin_counts"] = margin_counts
     return record, world
+
+
+def _margin_name(surface_m: float, floor_m: float) -> str:
+    return f"{round(100 * surface_m)} cm, {round(100 * floor_m)} cm"
+
+
+def _margin_sweep(counts: dict[str, list[tuple[int, int]]]) -> dict:
+    """Per ``SWEEP_MARGINS`` entry: the shares shown by ``POINT_BINS`` (``MIN_POINTS``), the
+    frames shown with and without the object's points, and their ``margin_score``."""
+    out = {}
+    for name, pairs in counts.items():
+        by_bin, without = _shown_shares(pairs, MIN_POINTS)
+        with_points = sum(1 for t, n in pairs if t > 0 and n >= MIN_POINTS)
+        without_points = sum(1 for t, n in pairs if t == 0 and n >= MIN_POINTS)
+        out[name] = {
+            "shown_by_points": by_bin,
+            "shown_without_points": without,
+            "frames_shown_with_points": with_points,
+            "frames_shown_without_points": without_points,
+            "score": margin_score(with_points, without_points),
+        }
+    return out
 
 
 def _spread(dataset, frames, truths, world) -> dict:
@@ -227,7 +289,9 @@ def bench_world_labels(
         calibrate_seconds = time.perf_counter() - start
         for method, (use_icp, use_calibrated) in METHODS.items():
             extrinsics = calibrated if use_calibrated else np.asarray(dataset.T_vehicle_sensor)
-            result, world = _factory(dataset, frames, truths, folder, extrinsics, use_icp)
+            result, world = _factory(
+                dataset, frames, truths, folder, extrinsics, use_icp, sweep_margins=method == APP_METHOD
+            )
             result["calibrate_seconds"] = round(calibrate_seconds, 2) if use_calibrated else 0.0
             methods.setdefault(method, []).append(result)
             if method == APP_METHOD:
@@ -250,7 +314,7 @@ def bench_world_labels(
                 {
                     key: value
                     for key, value in r.items()
-                    if key not in ("iou", "shown", "shown_without_points", "point_counts")
+                    if key not in ("iou", "shown", "shown_without_points", "point_counts", "margin_counts")
                 }
                 for r in results
             ],
@@ -267,6 +331,12 @@ def bench_world_labels(
                 str(m): dict(zip(("shown_by_points", "shown_without_points"), _shown_shares(counts, m)))
                 for m in SWEEP_MIN_POINTS
             }
+            out[method]["shown_by_margins"] = _margin_sweep(
+                {
+                    name: [c for r in results for c in r["margin_counts"][name]]
+                    for name in results[0]["margin_counts"]
+                }
+            )
     return {
         "benchmark": "world-labels",
         "command": command,
@@ -274,6 +344,9 @@ def bench_world_labels(
         "seeds": [int(s) for s in seeds],
         "frames_per_factory": int(num_frames),
         "min_points": MIN_POINTS,
+        "surface_margin_m": SURFACE_MARGIN_M,
+        "floor_margin_m": FLOOR_MARGIN_M,
+        "spurious_weight": SPURIOUS_WEIGHT,
         "methods": out,
         "spread": {
             "annotations": sum(s["annotations"] for s in spread),

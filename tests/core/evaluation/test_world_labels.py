@@ -11,3 +11,18 @@ def test_shown_shares_count_frames_by_truth_points_at_each_least_count():
     assert by_bin["1-4"] == round(1 / 3, 4) and without == 0.0
     by_bin, _ = _shown_shares(counts, 4)
     assert by_bin["1-4"] == 0.0 and by_bin["5-19"] == 0.0 and by_bin["50+"] == 1.0
+
+
+def test_margin_sweep_scores_frames_shown_with_points_against_twice_those_without():
+    from factorydet_core.evaluation.world_labels import SPURIOUS_WEIGHT, _margin_sweep, margin_score
+
+    counts = {
+        "0 cm, 5 cm": [(2, 0), (3, 0), (30, 9), (0, 0), (0, 0)],
+        "2 cm, 2 cm": [(2, 1), (3, 2), (30, 12), (0, 1), (0, 0)],
+    }
+    sweep = _margin_sweep(counts)
+    assert sweep["0 cm, 5 cm"]["frames_shown_with_points"] == 1 and sweep["0 cm, 5 cm"]["score"] == 1
+    grown = sweep["2 cm, 2 cm"]
+    assert (grown["frames_shown_with_points"], grown["frames_shown_without_points"]) == (3, 1)
+    assert grown["score"] == 3 - SPURIOUS_WEIGHT == margin_score(3, 1)
+    assert grown["shown_by_points"]["1-4"] == 1.0 and grown["shown_without_points"] == 0.5
