@@ -74,6 +74,8 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench import --boxes 10000 --out docs/bench/label_import.json
 	$(BIN)/factorydet bench import --boxes 10000 --large-box --out docs/bench/label_import_large_box.json
 	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --readme docs/labelling.md
+	$(BIN)/factorydet bench world-labels --heldout-seeds 201,202,203 --heldout-frames 12 --readme docs/labelling.md \
+	  --readme-block world-labels-validation
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl.json --readme docs/labelling.md \

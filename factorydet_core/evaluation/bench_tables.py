@@ -538,7 +538,7 @@ def world_labels_markdown(result: dict) -> str:
     seeds = ", ".join(str(s) for s in result["seeds"])
     return (
         table(header, rows)
-        + f"\n\nEvery static object of {len(result['seeds'])} held-out factories (seeds {seeds},"
+        + f"\n\nEvery static object of {len(result['seeds'])} simulated factories (seeds {seeds},"
         f" {result['frames_per_factory']} frames each): its truth box where it has the most points,"
         " carried into every other frame and compared with the truth box there; 'shown' is the share"
         f" of frames the app labels it in (at least {result['min_points']}"
