@@ -632,10 +632,11 @@ def _run_plan(plan: dict, variant: str) -> dict:
     detector whose run plans agree are the same runs, whatever else the two records measured: a
     record grows by a detector without training the others again."""
     out = {k: v for k, v in plan.items() if k not in ("seeds", "variants", "budgets")}
+    untouched = set()
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
-    untouched = set()
+        untouched.add("review_order")
     if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
     if variant in ("blind", "full"):

@@ -650,6 +650,22 @@ def _map_recovered_text(result: dict, differences: dict) -> str:
     )
 
 
+def _order_text(queue_order: str | None, review_order: str | None) -> str:
+    """How a hitl record's runs cut the mined negatives and ordered the review queue."""
+    cut_turns = queue_order == "class"
+    review_turns = (review_order or queue_order) == "class"
+    if cut_turns and review_turns:
+        return ", the predicted classes taking turns in the cut and in the queue (`queue_order` class)"
+    if cut_turns:
+        return (
+            ", the predicted classes taking turns in the cut (`queue_order` class) and the review queue"
+            " most likely an object first (`review_order` score)"
+        )
+    if review_turns:
+        return ", the predicted classes taking turns in the review queue (`review_order` class)"
+    return ""
+
+
 def _hitl_method(settings: dict) -> str:
     """What ``bench hitl`` trained, in a few words (records before ``method`` was kept: the paper's)."""
     method = settings.get("method", "paper")
@@ -869,11 +885,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + ("" if settings.get("class_thresholds", True) else "one score threshold for every class, ")
             + f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
             + "per round"
-            + (
-                ", the predicted classes taking turns in the cut and in the queue (`queue_order` class)"
-                if settings.get("queue_order") == "class"
-                else ""
-            )
+            + _order_text(settings.get("queue_order"), settings.get("review_order"))
             + (
                 ", every next round fitting the box quality regressor again on the labels it has"
                 " (`refit_box_quality`)"

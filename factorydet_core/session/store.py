@@ -2242,14 +2242,16 @@ class SessionDB:
         return None if hold is None else float(hold)
 
     def queue_order(self, run_id: int | None = None) -> str:
-        """How run ``run_id`` (the latest by default) cut and orders its mined negatives
-        (``LoopSettings.queue_order``; "score" for runs from before it was a setting, and when
+        """How run ``run_id`` (the latest by default) orders its review queue
+        (``LoopSettings.review_order``, else the order that cut its mined negatives,
+        ``LoopSettings.queue_order``; "score" for runs from before either was a setting, and when
         there is no run)."""
         if run_id is None:
             run_id = self.latest_run_id()
             if run_id is None:
                 return "score"
-        order = self._run_settings(run_id).get("queue_order") or "score"
+        settings = self._run_settings(run_id)
+        order = settings.get("review_order") or settings.get("queue_order") or "score"
         if order not in QUEUE_ORDERS:
             raise SessionError(f"training run {run_id}: unknown queue order {short_repr(order, 40)}")
         return str(order)

@@ -90,6 +90,13 @@ class LoopSettings:
     score; "class", the predicted classes taking turns, each one's by score, so that the false
     positives of a class the model has barely learned (the likeliest place of its unlabelled
     objects) reach the cut and the reviewer."""
+    review_order: str | None = None
+    """The review queue's order alone (``queue_order`` still cuts the mined negatives): "score",
+    most likely an object first (with the queue grouped by place, each place's chance that one of
+    its items is an object); "class", the predicted classes taking turns. ``None``: as
+    ``queue_order``. Class turns reach a class the model has barely learned, but they give every
+    predicted class the same share of the reviewer's first entries, among them the classes whose
+    queue is mostly background (trucks and people at 50% unannotated)."""
     refit_box_quality: bool = True
     """A 'next' round that goes on from a model (``round_epochs`` > 0) fits the box quality
     regressor again on the session's current labels (False: keeps the model's). The regressor
@@ -141,6 +148,9 @@ class LoopSettings:
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
+        if self.review_order is not None and self.review_order not in QUEUE_ORDERS:
+            orders = ", ".join(QUEUE_ORDERS)
+            raise InputError(f"review_order must be one of {orders} or None, got {self.review_order!r}")
         recalibrate = self.recalibrate_background
         if recalibrate is not None and (isinstance(recalibrate, bool) or not 0.0 < recalibrate <= 1.0):
             raise InputError(f"recalibrate_background must lie in (0, 1] or be None, got {recalibrate!r}")
@@ -296,6 +306,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("queue_order", "Queue order", "which mined negatives go to the background and the review "
             "queue's order: by score (the paper's top N), or the predicted classes taking turns",
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),
+    Control("review_order", "Review order", "the review queue's order alone: most likely an object first "
+            "(score) or the predicted classes taking turns (class); auto: as the queue order", str,
+            choices=(("auto", None), *((o, o) for o in QUEUE_ORDERS))),
     Control("refit_box_quality", "Refit box quality", "a next round that goes on from a model refits the "
             "box quality regressor on the current labels, when they changed (off: keeps the model's)", bool),
     Control("refit_trees", "Refit trees", "with refit box quality, boost the model's regressor on with "

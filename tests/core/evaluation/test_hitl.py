@@ -43,6 +43,18 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
         {**holding, "review_by": "item"}, "reviewed_safe_200"
     )
     assert _run_plan(holding, "reviewed_safe_200") != _run_plan(by_class, "reviewed_safe_200")
+    # The review queue's own order shapes the reviewed detectors alone.
+    by_chance = {**plan, "settings": {**settings, "queue_order": "class", "review_order": "score"}}
+    turns = {**plan, "settings": {**settings, "queue_order": "class"}}
+    for variant in ("blind", "blind_safe", "full", "full_late"):
+        assert _run_plan(by_chance, variant) == _run_plan(turns, variant)
+    for variant in ("reviewed_200", "reviewed_safe_200"):
+        assert _run_plan(by_chance, variant) != _run_plan(turns, variant)
+    # A record from before the setting reviewed in its queue order (review_order None).
+    old = {k: v for k, v in turns["settings"].items() if k != "review_order"}
+    assert _run_plan({**turns, "settings": _settings_as_run(old)}, "reviewed_200") == _run_plan(
+        turns, "reviewed_200"
+    )
 
 
 def test_the_holding_detectors_are_asked_for_by_name_and_hold_at_the_plans_score():

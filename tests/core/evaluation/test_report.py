@@ -214,3 +214,15 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "no share is stated" in hitl_markdown(result)
     # Without full labels: no gap.
     assert "Full labels were not run here" in hitl_markdown(_hitl_result({"blind": [0.3, 0.3, 0.3]}))
+
+
+def test_a_hitl_record_says_how_it_cut_and_how_it_ordered_the_review_queue():
+    from factorydet_core.evaluation.report import _order_text
+
+    assert _order_text("score", None) == "" and _order_text("score", "score") == ""
+    assert "in the cut and in the queue" in _order_text("class", None)
+    assert "in the cut and in the queue" in _order_text("class", "class")
+    split = _order_text("class", "score")
+    assert "taking turns in the cut" in split
+    assert "most likely an object first (`review_order` score)" in split
+    assert "in the review queue (`review_order` class)" in _order_text("score", "class")

@@ -1016,6 +1016,14 @@ def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filt
         run = db.save_training_run(queue_run(tiny_model_path, [items]), "small", config)
         assert db.queue_order(run) == "score"
         assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.8, 0.7, 0.3, 0.2]
+    # Cut by class turns, reviewed most likely first: the review queue follows review_order.
+    run = db.save_training_run(
+        queue_run(tiny_model_path, [items]),
+        "small",
+        {"settings": {"queue_order": "class", "review_order": "score"}},
+    )
+    assert db.queue_order(run) == "score"
+    assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.8, 0.7, 0.3, 0.2]
     broken = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": [1, 2]})
     with pytest.raises(SessionError, match="its settings are .*not a mapping"):
         db.review_queue(broken)

@@ -41,7 +41,8 @@ def test_a_number_is_taken_inside_its_bounds_and_refused_outside(control, value)
     ("field", "raw", "expected"),
     [("class_weight", "none", None), ("visibility", "auto", None), ("visibility", "on", True),
      ("fragments_per_frame", 0, None), ("fragments_per_frame", 12, 12), ("geometry", False, False),
-     ("recalibrate_background", 0, None), ("recalibrate_background", 0.5, 0.5)],
+     ("recalibrate_background", 0, None), ("recalibrate_background", 0.5, 0.5),
+     ("review_order", "auto", None), ("review_order", "score", "score")],
 )  # fmt: skip
 def test_choices_and_none_stand_ins(field, raw, expected):
     assert CONTROLS[field].parse(raw) == expected
@@ -64,6 +65,8 @@ def test_the_settings_still_check_themselves():
         loop_settings_from({"method": "head_options", "box_quality": False})
     with pytest.raises(InputError, match="recalibrate_background applies to the learned box head"):
         loop_settings_from({"method": "paper", "recalibrate_background": 0.5})
+    with pytest.raises(InputError, match="review_order must be one of score, class or None"):
+        LoopSettings(review_order="random")
     for bad in (0.0, 1.5, True):  # a Python caller is checked as the controls check a flag
         with pytest.raises(InputError, match="recalibrate_background must lie in"):
             LoopSettings(recalibrate_background=bad)
