@@ -177,6 +177,33 @@ bench: $(STAMP) corpus corpus50
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --out docs/bench/hitl-50-reviewed-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-reviewed-heldout --resume
+	# ... the same reviewer holding what it leaves (the rest from the reviewed record).
+	test -f docs/bench/hitl-50-reviewed-safe-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-reviewed-safe-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
+	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
+	  --out docs/bench/hitl-50-reviewed-safe-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-50-reviewed-safe-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
+	  --readme docs/labelling.md --readme-block hitl-50-reviewed-safe-vs-reviewed-heldout
+	# The reviewer's queue most likely an object first, the cut still by class turns (30% and 50%).
+	test -f docs/bench/hitl-review-score-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-score-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
+	  --out docs/bench/hitl-review-score-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-review-score-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-score-heldout.json docs/bench/hitl-reviewed-heldout.json \
+	  --readme docs/labelling.md --readme-block hitl-review-score-vs-turns-heldout
+	test -f docs/bench/hitl-50-review-score-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-score-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
+	  --out docs/bench/hitl-50-review-score-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-50-review-score-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-score-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
+	  --readme docs/labelling.md --readme-block hitl-50-review-score-vs-turns-heldout
 	# The paper's data set size (6,389 frames of 80k points, 2/3 training) simulated and detected on
 	# Ray workers (about three hours on 2 cores), inside a loopback-only network namespace; the
 	# record is kept after each run and a re-run does only the runs it lacks.
