@@ -221,15 +221,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from factorydet_core.io.jsonfile import read_json
 
         pair = None if args.variants is None else tuple(v.strip() for v in args.variants.split(","))
-        if pair is not None and len(pair) != 2:
+        if pair is not None and (len(pair) != 2 or not all(pair)):
             raise InputError("bench hitl-compare --variants takes two detectors: A,B (A minus B)")
         if not (len(args.data) == 2 or (len(args.data) == 1 and pair is not None)):
             raise InputError(
                 "bench hitl-compare needs two bench hitl records, RECORD BASELINE, or one record and "
                 "--variants A,B"
             )
-        paths = list(args.data) if len(args.data) == 2 else [args.data[0]] * 2  # its own baseline
-        records = [read_json(path, what="bench hitl record") for path in paths]
+        paths = list(args.data) if len(args.data) == 2 else [args.data[0]] * 2
+        records = [read_json(path, what="bench hitl record") for path in args.data]
+        records *= 3 - len(records)  # one record: the same object is its own baseline
         result = {
             **compare_hitl_records(*records, names=tuple(Path(path).name for path in paths), pair=pair),
             "command": command,

@@ -55,7 +55,8 @@ model's. On the held-out factories it scored the paper pipeline's F-score with a
 recognition, and kept far more of the background as background (``docs/bench/quality.md``)."""
 
 QUEUE_ORDERS: tuple[str, ...] = ("score", "class")
-"""How mined negatives are cut and queued for review (``session.queue.queue_order``): by score, as
+"""How mined negatives are cut (``LoopSettings.queue_order``) and queued for review
+(``LoopSettings.review_order``, by default the same; ``session.queue.queue_order``): by score, as
 the paper adds the top N false positives; or by class, each predicted class taking turns."""
 
 MAX_RAY_WORKERS = 4096

@@ -81,8 +81,9 @@ def test_bench_hitl_compare_pairs_two_detectors_of_one_record(tmp_path, capsys):
     assert (
         "two bench hitl records, RECORD BASELINE, or one record and --variants A,B" in capsys.readouterr().err
     )
-    assert main(["bench", "hitl-compare", str(path), "--variants", "full"]) == 2
-    assert "takes two detectors" in capsys.readouterr().err
+    for bad in ("full", "full,"):
+        assert main(["bench", "hitl-compare", str(path), "--variants", bad]) == 2
+        assert "takes two detectors" in capsys.readouterr().err
     assert main(["bench", "hitl-compare", str(path), "--variants", "full,reviewed_200"]) == 2
     assert "r.json did not run 'reviewed_200'" in capsys.readouterr().err
 

@@ -577,11 +577,11 @@ def _min_points_sweep(result: dict) -> str:
         f" object in a frame,{grown} its bottom {round(100 * floor)} cm (the floor) left out:\n\n"
         + table(header, rows)
         + "\n"
-        + _margin_sweep(result)
+        + _margin_sweep_table(result)
     )
 
 
-def _margin_sweep(result: dict) -> str:
+def _margin_sweep_table(result: dict) -> str:
     """The app's poses again, by the margins of the box whose points count (records from before
     the sweep: nothing)."""
     sweep = next((m["shown_by_margins"] for m in result["methods"].values() if "shown_by_margins" in m), None)
@@ -698,7 +698,7 @@ def hitl_compare_table(result: dict) -> str:
         f"{key}: {mine} against {theirs}" for key, (mine, theirs) in result["differs"].items()
     )
     seeds = ", ".join(map(str, result["seeds"]))
-    same = result["record"] == result["baseline"]
+    same = result.get("one_record", False)
     what = f"`{result['record']}`" if same else f"`{result['record']}` minus `{result['baseline']}`"
     rows = result["variants"]
     in_factory = any("in_factory_f1" in row for row in rows.values())

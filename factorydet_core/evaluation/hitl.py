@@ -643,8 +643,13 @@ def _run_plan(plan: dict, variant: str) -> dict:
         # Their labels never change after the first fit, so a refit of the box quality regressor
         # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).
         untouched |= {"refit_box_quality", "refit_trees"}
-    if untouched and isinstance(out.get("settings"), dict):
+    if isinstance(out.get("settings"), dict):
         out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}
+        if "review_order" not in untouched:
+            # None reviews in the queue order: the same runs as naming that order.
+            out["settings"]["review_order"] = out["settings"].get("review_order") or out["settings"].get(
+                "queue_order"
+            )
     return out
 
 
@@ -956,14 +961,16 @@ def compare_hitl_records(
 
     Args:
         record, baseline: complete ``bench hitl`` records of the same data and frames (the same
-            record twice to compare two of its detectors).
+            record object twice to compare two of its detectors).
         names: what to call them (their file names, say).
         pair: ``(detector of record, detector of baseline)``: compare these two alone; by default
             every detector both ran, each against itself.
 
     Returns:
-        ``{"benchmark": "hitl-compare", "record", "baseline", "differs", "seeds", "variants"}``:
-        ``differs`` the plan fields that differ (``{field: [record's, baseline's]}``, settings by
+        ``{"benchmark": "hitl-compare", "record", "baseline", "differs", "seeds", "one_record",
+        "heldout", "variants"}``: ``one_record`` whether ``baseline`` is ``record`` (two of its
+        detectors compared), ``heldout`` whether F-scores are on held-out factories, ``differs``
+        the plan fields that differ (``{field: [record's, baseline's]}``, settings by
         name), ``variants`` one row per compared pair (named by the detector, or "A minus B" for a
         ``pair`` of two), each ``{"variant", "baseline_variant", "f1", "map", "gain_over_blind"}``
         and ``"in_factory_f1"`` where both measured it, each a ``paired_difference`` (record minus
@@ -971,7 +978,8 @@ def compare_hitl_records(
 
     Raises:
         InputError: for a record that is not a complete ``bench hitl`` record, two records of
-            other data, frames or no common seed, or a ``pair`` detector a record did not run.
+            other data, frames or no common seed, a ``pair`` detector a record did not run, or a
+            detector against itself in one record.
     """
     for name, rec in zip(names, (record, baseline)):
         if rec.get("benchmark") != "hitl" or not rec.get("complete", True) or "per_seed" not in rec:
@@ -985,8 +993,14 @@ def compare_hitl_records(
     if not seeds:
         raise InputError(f"{names[0]} and {names[1]} share no seed: nothing to pair")
 
-    def by_seed(rec: dict, variant: str) -> dict[int, dict]:
-        return {int(run["seed"]): run for run in rec["per_seed"][variant]}
+    one_record = record is baseline
+
+    def by_seed(name: str, rec: dict, variant: str) -> dict[int, dict]:
+        runs = {int(run["seed"]): run for run in rec["per_seed"][variant]}
+        missing = [s for s in seeds if s not in runs]
+        if missing:
+            raise InputError(f"{name}: {variant} has no run of seed {missing[0]}: not a complete record")
+        return runs
 
     if pair is None:
         pairs = [(v, v) for v in record["per_seed"] if v in baseline["per_seed"]]
@@ -994,11 +1008,16 @@ def compare_hitl_records(
         for name, rec, variant in zip(names, (record, baseline), pair):
             if variant not in rec["per_seed"]:
                 raise InputError(f"{name} did not run {variant!r}; it ran {', '.join(rec['per_seed'])}")
+        if one_record and pair[0] == pair[1]:
+            raise InputError(f"{pair[0]} against itself in one record: nothing to compare")
         pairs = [tuple(pair)]
+    for name, rec in zip(names, (record, baseline)):
+        if "blind" not in rec["per_seed"]:
+            raise InputError(f"{name}: no blind mining runs, which every bench hitl record has")
     variants = {}
-    our_blind, their_blind = by_seed(record, "blind"), by_seed(baseline, "blind")
+    our_blind, their_blind = by_seed(names[0], record, "blind"), by_seed(names[1], baseline, "blind")
     for variant, baseline_variant in pairs:
-        ours, theirs = by_seed(record, variant), by_seed(baseline, baseline_variant)
+        ours, theirs = by_seed(names[0], record, variant), by_seed(names[1], baseline, baseline_variant)
         row = {
             "variant": variant,
             "baseline_variant": baseline_variant,
@@ -1022,6 +1041,8 @@ def compare_hitl_records(
         if key not in ("settings", "seeds", "variants") and mine.get(key) != other.get(key)
     }
     my_settings, other_settings = (_settings_as_run(p.get("settings") or {}) for p in (mine, other))
+    for settings in (my_settings, other_settings):  # the order the reviewer saw (None: the queue's)
+        settings["review_order"] = settings.get("review_order") or settings.get("queue_order")
     for key in sorted(set(my_settings) | set(other_settings)):
         values = [my_settings.get(key), other_settings.get(key)]
         if values[0] != values[1]:
@@ -1034,6 +1055,7 @@ def compare_hitl_records(
         "baseline_command": baseline.get("command"),
         "differs": differs,
         "seeds": seeds,
+        "one_record": one_record,
         "heldout": bool(record.get("heldout_factories")),
         "variants": variants,
     }

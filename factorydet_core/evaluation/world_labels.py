@@ -41,6 +41,7 @@ from factorydet_core.session.world import (
     MIN_POINTS,
     MOVING_CLASSES,
     SURFACE_MARGIN_M,
+    WorldFrames,
     calibrated_extrinsics,
     counting_box,
     place_box,
@@ -151,7 +152,7 @@ METHODS: dict[str, tuple[bool, bool]] = {
 
 def _factory(
     dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_icp: bool, sweep_margins: bool = False
-) -> dict:
+) -> tuple[dict, WorldFrames]:
     """One factory's figures for one way of placing the frames (merged with ``extrinsics``); with
     ``sweep_margins``, also ``(truth points, thinned points counted)`` per object and frame for
     each of ``SWEEP_MARGINS``."""

@@ -86,7 +86,8 @@ class LoopSettings:
     background that looks like a high-scoring class by the hundred."""
     queue_order: str = "score"
     """Which mined negatives a round adds to the background (the first ``negatives_per_round``)
-    and the review queue's order (``session.queue.queue_order``): "score", the paper's top N by
+    and, unless ``review_order`` says otherwise, the review queue's order
+    (``session.queue.queue_order``): "score", the paper's top N by
     score; "class", the predicted classes taking turns, each one's by score, so that the false
     positives of a class the model has barely learned (the likeliest place of its unlabelled
     objects) reach the cut and the reviewer."""
@@ -94,9 +95,11 @@ class LoopSettings:
     """The review queue's order alone (``queue_order`` still cuts the mined negatives): "score",
     most likely an object first (with the queue grouped by place, each place's chance that one of
     its items is an object); "class", the predicted classes taking turns. ``None``: as
-    ``queue_order``. Class turns reach a class the model has barely learned, but they give every
-    predicted class the same share of the reviewer's first entries, among them the classes whose
-    queue is mostly background (trucks and people at 50% unannotated)."""
+    ``queue_order``. A run keeps the order it was trained with (``SessionDB.queue_order``): a
+    change applies from the next run. Class turns reach a class the model has barely learned, but
+    give every predicted class the same share of the reviewer's first entries, among them classes
+    whose queue is mostly background; by score, a reviewer labels more objects but fewer of the
+    rare classes (``bench hitl``, docs/labelling.md: level in F at 50% unannotated)."""
     refit_box_quality: bool = True
     """A 'next' round that goes on from a model (``round_epochs`` > 0) fits the box quality
     regressor again on the session's current labels (False: keeps the model's). The regressor
@@ -303,11 +306,13 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             none_as=0),
     Control("recalibrate_by_class", "Recalibrate by class", "with recalibrate background, only sets whose "
             "likeliest class's probability also reaches the median of that class's labelled sets", bool),
-    Control("queue_order", "Queue order", "which mined negatives go to the background and the review "
-            "queue's order: by score (the paper's top N), or the predicted classes taking turns",
+    Control("queue_order", "Queue order", "which mined negatives go to the background and (with review "
+            "order auto) the review queue's order: by score (the paper's top N), or the predicted classes "
+            "taking turns",
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),
-    Control("review_order", "Review order", "the review queue's order alone: most likely an object first "
-            "(score) or the predicted classes taking turns (class); auto: as the queue order", str,
+    Control("review_order", "Review order", "the review queue's order alone, from the next run on: most "
+            "likely an object first (score) or the predicted classes taking turns (class); auto: as the "
+            "queue order", str,
             choices=(("auto", None), *((o, o) for o in QUEUE_ORDERS))),
     Control("refit_box_quality", "Refit box quality", "a next round that goes on from a model refits the "
             "box quality regressor on the current labels, when they changed (off: keeps the model's)", bool),

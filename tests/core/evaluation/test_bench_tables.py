@@ -268,7 +268,9 @@ def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
         seeds=(0, 1, 2, 3),
     )
     result = compare_hitl_records(record, baseline, names=("a.json", "b.json"))
-    assert result["differs"] == {"queue_order": ["class", "score"]} and result["seeds"] == [0, 1, 2]
+    # The review followed the queue order in both (review_order None): it differs with it.
+    assert result["differs"] == {"queue_order": ["class", "score"], "review_order": ["class", "score"]}
+    assert result["seeds"] == [0, 1, 2] and not result["one_record"]
     assert list(result["variants"]) == ["blind", "reviewed_200"]  # full and reviewed_50: one record each
     reviewed = result["variants"]["reviewed_200"]
     assert reviewed["f1"]["mean"] == pytest.approx(0.0167, abs=1e-4)
@@ -276,7 +278,7 @@ def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
     assert reviewed["gain_over_blind"]["mean"] == reviewed["f1"]["mean"]  # the same blind mining
     table = render_record(result)
     assert "`a.json` minus `b.json`, seed by seed (seeds 0, 1, 2)" in table
-    assert "What differs: queue_order: class against score." in table
+    assert "What differs: queue_order: class against score; review_order: class against score." in table
     assert _rows(table, "blind")[0][3] == "–" and _rows(table, "reviewed_200")[0][1].startswith("+0.017 [")
     with pytest.raises(InputError, match="b.json: not a complete bench hitl record"):
         compare_hitl_records(record, {**baseline, "complete": False}, names=("a.json", "b.json"))
@@ -284,6 +286,16 @@ def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
         compare_hitl_records(record, {**baseline, "test_frames": [2]}, names=("a.json", "b.json"))
     with pytest.raises(InputError, match="share no seed"):
         compare_hitl_records(record, _hitl_record({"blind": [0.2]}, {}, seeds=(9,)), names=("a", "b"))
+    # A broken record is an error, not a traceback: no blind mining, or a detector short a seed.
+    without_blind = {**baseline, "per_seed": {k: v for k, v in baseline["per_seed"].items() if k != "blind"}}
+    with pytest.raises(InputError, match="b.json: no blind mining runs"):
+        compare_hitl_records(record, without_blind, names=("a.json", "b.json"))
+    short = {
+        **baseline,
+        "per_seed": {**baseline["per_seed"], "reviewed_200": baseline["per_seed"]["reviewed_200"][1:]},
+    }
+    with pytest.raises(InputError, match="b.json: reviewed_200 has no run of seed 0"):
+        compare_hitl_records(record, short, names=("a.json", "b.json"))
 
 
 def test_two_detectors_of_one_hitl_record_are_compared_seed_by_seed_with_their_in_factory_scores():
@@ -319,6 +331,13 @@ def test_two_detectors_of_one_hitl_record_are_compared_seed_by_seed_with_their_i
     assert "What differs" not in table and "F-score in-factory" in table
     (cells,) = _rows(table, name)
     assert cells[1].startswith("+0.017 [") and cells[4].startswith("+0.007 [")
+    with pytest.raises(InputError, match="against itself in one record"):
+        compare_hitl_records(record, record, names=("a.json", "a.json"), pair=("blind", "blind"))
+    # Two copies of one record are two records: what differs is said (nothing here).
+    twin = compare_hitl_records(
+        record, copy.deepcopy(record), names=("a.json", "a.json"), pair=("reviewed_safe_200", "reviewed_200")
+    )
+    assert not twin["one_record"] and "What differs: nothing." in render_record(twin)
     with pytest.raises(InputError, match="a.json did not run 'reviewed_50'; it ran blind, reviewed_200"):
         compare_hitl_records(record, record, names=("a.json", "a.json"), pair=("reviewed_50", "blind"))
     # Runs without in-factory scores (older records) leave the column out.

@@ -50,6 +50,9 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
         assert _run_plan(by_chance, variant) == _run_plan(turns, variant)
     for variant in ("reviewed_200", "reviewed_safe_200"):
         assert _run_plan(by_chance, variant) != _run_plan(turns, variant)
+    # None reviews in the queue order: the same runs as naming it.
+    named = {**plan, "settings": {**settings, "queue_order": "class", "review_order": "class"}}
+    assert _run_plan(named, "reviewed_200") == _run_plan(turns, "reviewed_200")
     # A record from before the setting reviewed in its queue order (review_order None).
     old = {k: v for k, v in turns["settings"].items() if k != "review_order"}
     assert _run_plan({**turns, "settings": _settings_as_run(old)}, "reviewed_200") == _run_plan(

@@ -81,13 +81,15 @@ def test_the_floor_under_a_box_does_not_make_it_visible():
 
 def test_a_point_just_outside_the_box_counts_for_it_and_the_floor_under_it_does_not():
     world = _two_frames(object_in_second=False)
-    box = np.array([5.0, 1.0, 0.3, 0.6, 0.6, 0.6, 0.0])  # frame 1: centre (1, -2), yaw -pi/2, bottom at z = 0
+    # 1.0 m long, 0.6 m wide; in frame 1: centre (1, -2), yaw -pi/2 (its length along y there).
+    box = np.array([5.0, 1.0, 0.3, 1.0, 0.6, 0.6, 0.0])
     carried = place_box(world, 0, box).boxes[1]
-    # In frame 1's vehicle frame: a point 1 cm off a side face (range noise), one 5 cm off it,
-    # one 1 cm above the top, one 1 cm above the floor inside the footprint.
+    # In frame 1's vehicle frame: a point 1 cm off a long side (range noise), one 5 cm off it,
+    # one 1 cm off an end, one 1 cm above the top, one 1 cm above the floor inside the footprint.
     local = {
         "noise off a side": [1.0 + 0.31, -2.0, 0.3],
         "far off a side": [1.0 + 0.35, -2.0, 0.3],
+        "noise off an end": [1.0, -2.0 - 0.51, 0.3],
         "noise above the top": [1.0, -2.0, 0.61],
         "floor": [1.0, -2.0, 0.01],
     }
@@ -97,7 +99,8 @@ def test_a_point_just_outside_the_box_counts_for_it_and_the_floor_under_it_does_
             world.T_world_vehicle, world.fitness, (world.clouds[0], np.array([point], np.float32))
         )
         counts[name] = int(count_points(probe, np.stack([box, carried]))[1])
-    assert counts == {"noise off a side": 1, "far off a side": 0, "noise above the top": 1, "floor": 0}
+    assert counts == {"noise off a side": 1, "far off a side": 0, "noise off an end": 1,
+                      "noise above the top": 1, "floor": 0}  # fmt: skip
     # Without margins (the rule before): the noisy points are lost, the floor still left out.
     probe = WorldFrames(
         world.T_world_vehicle, world.fitness, (world.clouds[0], np.array(list(local.values()), np.float32))
@@ -106,13 +109,15 @@ def test_a_point_just_outside_the_box_counts_for_it_and_the_floor_under_it_does_
 
 
 @settings(max_examples=50, deadline=None)
-@given(st.floats(0.05, 3.0), st.floats(0.05, 3.0), st.floats(0.05, 3.0), st.floats(-np.pi, np.pi))
+@given(st.floats(0.05, 3.0), st.floats(0.05, 3.0), st.floats(0.01, 3.0), st.floats(-np.pi, np.pi))
 def test_the_counting_box_holds_the_box_but_its_floor_strip(dx, dy, dz, yaw):
     box = np.array([1.0, -2.0, dz / 2, dx, dy, dz, yaw])
     grown = counting_box(box)
-    assert grown[6] == yaw and np.allclose(grown[3:5], box[3:5] + 2 * SURFACE_MARGIN_M)
+    np.testing.assert_allclose(grown[[0, 1, 6]], box[[0, 1, 6]])  # same place and heading
+    assert np.allclose(grown[3:5], box[3:5] + 2 * SURFACE_MARGIN_M)
     top, bottom = grown[2] + grown[5] / 2, grown[2] - grown[5] / 2
     assert top == pytest.approx(dz + SURFACE_MARGIN_M)
+    # A box too low for the strip keeps its bottom (a 3 cm pallet board would count no point).
     assert bottom == pytest.approx(FLOOR_MARGIN_M if dz > 2 * FLOOR_MARGIN_M else 0.0)
 
 
