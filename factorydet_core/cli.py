@@ -228,11 +228,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 "bench hitl-compare needs two bench hitl records, RECORD BASELINE, or one record and "
                 "--variants A,B"
             )
-        paths = list(args.data) if len(args.data) == 2 else [args.data[0]] * 2
         records = [read_json(path, what="bench hitl record") for path in args.data]
-        records *= 3 - len(records)  # one record: the same object is its own baseline
+        names = [Path(path).name for path in args.data]
+        if len(records) == 1:  # one record: the same object is its own baseline
+            records, names = records * 2, names * 2
         result = {
-            **compare_hitl_records(*records, names=tuple(Path(path).name for path in paths), pair=pair),
+            **compare_hitl_records(*records, names=tuple(names), pair=pair),
             "command": command,
         }
     elif args.name == "fuzz":

@@ -18,6 +18,7 @@ from factorydet_core.evaluation.evaluate import measure
 from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, check_heldout, heldout_set
 from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
+from factorydet_core.session.queue import review_order_of
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import Proposer, cached_proposals, train_session
@@ -647,9 +648,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
         out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}
         if "review_order" not in untouched:
             # None reviews in the queue order: the same runs as naming that order.
-            out["settings"]["review_order"] = out["settings"].get("review_order") or out["settings"].get(
-                "queue_order"
-            )
+            out["settings"]["review_order"] = review_order_of(out["settings"])
     return out
 
 
@@ -1042,7 +1041,7 @@ def compare_hitl_records(
     }
     my_settings, other_settings = (_settings_as_run(p.get("settings") or {}) for p in (mine, other))
     for settings in (my_settings, other_settings):  # the order the reviewer saw (None: the queue's)
-        settings["review_order"] = settings.get("review_order") or settings.get("queue_order")
+        settings["review_order"] = review_order_of(settings)
     for key in sorted(set(my_settings) | set(other_settings)):
         values = [my_settings.get(key), other_settings.get(key)]
         if values[0] != values[1]:

@@ -32,7 +32,7 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, heldout_factory
 from factorydet_core.evaluation.records import machine_info
-from factorydet_core.geometry import points_in_box, transform_boxes
+from factorydet_core.geometry import transform_boxes
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.proposals.merge import mean_transform
 from factorydet_core.session.store import Label
@@ -43,7 +43,7 @@ from factorydet_core.session.world import (
     SURFACE_MARGIN_M,
     WorldFrames,
     calibrated_extrinsics,
-    counting_box,
+    count_points,
     place_box,
     planar,
     register_frames,
@@ -181,15 +181,19 @@ def _factory(
         start = time.perf_counter()
         placement = place_box(world, source, per_frame[source][0])
         place_ms.append(1000 * (time.perf_counter() - start))
+        swept = {
+            _margin_name(surface, floor): count_points(
+                world, placement.boxes, surface_margin_m=surface, floor_margin_m=floor
+            )
+            for surface, floor in (SWEEP_MARGINS if sweep_margins else ())
+        }
         for f in range(world.num_frames):
             if f == source:
                 continue
             truth_points = per_frame[f][1] if f in per_frame else 0
             point_counts.append((truth_points, int(placement.num_points[f])))
-            if sweep_margins:
-                for surface, floor in SWEEP_MARGINS:
-                    counted = points_in_box(world.clouds[f], counting_box(placement.boxes[f], surface, floor))
-                    margin_counts[_margin_name(surface, floor)].append((truth_points, int(counted.sum())))
+            for name, counts in swept.items():
+                margin_counts[name].append((truth_points, int(counts[f])))
             if f not in per_frame:
                 shown_without[0] += 1
                 shown_without[1] += int(placement.visible_mask[f])

@@ -17,11 +17,19 @@ whole queue; the app groups places on the whole queue before it filters them).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from factorydet_core.types import QUEUE_ORDERS, InputError
+
+
+def review_order_of(settings: Mapping[str, object]) -> str | None:
+    """The order a run's review queue follows, from its ``LoopSettings`` as stored (a mapping):
+    ``review_order``, else the ``queue_order`` that cut its mined negatives (``None`` when the
+    settings have neither: runs from before both were settings)."""
+    order = settings.get("review_order") or settings.get("queue_order")
+    return None if order is None else str(order)
 
 
 def class_ranks(scores, classes: Sequence[str]) -> np.ndarray:

@@ -43,6 +43,7 @@ from pathlib import Path
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.io.dataset import MANIFEST, Dataset, open_dataset
 from factorydet_core.session.queue import queue_order as order_queue
+from factorydet_core.session.queue import review_order_of
 from factorydet_core.settings_check import exception_line, short_repr
 from factorydet_core.types import MAX_RAY_WORKERS, QUEUE_ORDERS, InputError
 
@@ -2250,8 +2251,7 @@ class SessionDB:
             run_id = self.latest_run_id()
             if run_id is None:
                 return "score"
-        settings = self._run_settings(run_id)
-        order = settings.get("review_order") or settings.get("queue_order") or "score"
+        order = review_order_of(self._run_settings(run_id)) or "score"
         if order not in QUEUE_ORDERS:
             raise SessionError(f"training run {run_id}: unknown queue order {short_repr(order, 40)}")
         return str(order)
