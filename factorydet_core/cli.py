@@ -457,6 +457,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "recalibrate_by_class": args.recalibrate_by_class,
                             "queue_order": args.queue_order,
                             "review_order": args.review_order,
+                            "review_extra": args.review_extra,
                             "refit_box_quality": args.refit_box_quality,
                             "refit_trees": args.refit_trees,
                             "class_thresholds": args.class_thresholds,
@@ -1665,8 +1666,8 @@ def build_parser(
         p,
         fields=(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
-            "review_order", "refit_box_quality", "refit_trees", "recalibrate_background",
-            "recalibrate_by_class",
+            "review_order", "review_extra", "refit_box_quality", "refit_trees",
+            "recalibrate_background", "recalibrate_by_class",
         ),
     )  # fmt: skip
     p.add_argument(

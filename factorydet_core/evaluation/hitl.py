@@ -637,7 +637,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
-        untouched.add("review_order")
+        untouched |= {"review_order", "review_extra"}  # the queue, which nobody reviews
     if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
     if variant in ("blind", "full"):

@@ -327,7 +327,7 @@ def copy_session(session: Session, root: str | os.PathLike) -> Session:
 
 # --- The session database -------------------------------------------------------------------------
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """The schema this code reads and writes (``PRAGMA user_version``). An older database is migrated
 when it is opened for writing (a read-only open reads it as it is); a newer one is refused
 untouched."""
@@ -451,13 +451,21 @@ CREATE INDEX labels_by_frame ON labels (frame_index);
 CREATE INDEX labels_by_instance ON labels (instance_id)
 """
 
+# Version 4: a run's queue may hold false positives beyond its mined negatives, for review alone
+# (``LoopSettings.review_extra``): they never went to the background, and a later run must not put
+# them there unless a verdict says so. Every row stored before was a mined negative.
+_SCHEMA_V4 = """
+ALTER TABLE mined_negatives ADD COLUMN in_background INTEGER NOT NULL DEFAULT 1
+    CHECK (in_background IN (0, 1))
+"""
+
 _TABLES = frozenset(
     {"meta", "frames", "labels", "edits", "label_snapshots", "training_runs", "training_rounds"}
     | {"mined_negatives", "reviews"}
 )
 """The tables of every schema version: a database lacking one is refused."""
 
-_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1, 2: _SCHEMA_V2, 3: _SCHEMA_V3}
+_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1, 2: _SCHEMA_V2, 3: _SCHEMA_V3, 4: _SCHEMA_V4}
 """Script that takes a database from version ``v - 1`` to ``v``."""
 
 VERDICTS = ("background", "object", "wrong_box", "skip")
@@ -764,6 +772,7 @@ _COLUMNS: dict[str, dict[str, Callable]] = {
         "probabilities": _optional(_json_of(list, _real)),
         "best_annotated_iou": _real,
         "review_version": _integer,
+        "in_background": _flag,
     },
     "reviews": {
         "negative_id": _integer,
@@ -2181,10 +2190,13 @@ class SessionDB:
                         str(path.relative_to(self.session.path)),
                     ),
                 )
+                # The mined negatives (background from now on), then the false positives queued
+                # for review alone (``LoopSettings.review_extra``).
+                queued = [(m, 1) for m in record["mined"]] + [(m, 0) for m in record.get("queued", [])]
                 db.executemany(
                     "INSERT INTO mined_negatives (run_id, round, frame_index, proposal, box, patch_set,"
-                    " score, predicted_class, probabilities, best_annotated_iou)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    " score, predicted_class, probabilities, best_annotated_iou, in_background)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     [
                         (
                             run_id,
@@ -2199,8 +2211,9 @@ class SessionDB:
                             if m.get("probabilities") is not None
                             else None,
                             m["best_annotated_iou"],
+                            in_background,
                         )
-                        for m in record["mined"]
+                        for m, in_background in queued
                     ],
                 )
             db.execute(
@@ -2390,6 +2403,7 @@ class SessionDB:
             if item["reviewed"] is not None or item["verdict"] is not None:  # the joined verdict
                 _row("reviews", {column: item[alias] for alias, column in _VERDICT_COLUMNS.items()})
             item.setdefault("review_version", 0)  # a schema 1 database, read-only: not versioned yet
+            item.setdefault("in_background", 1)  # before schema 4, every item was a mined negative
             out.append(item)
         self._mined_checked = (run_id, checked)
         return out
@@ -2656,7 +2670,9 @@ class SessionDB:
         at_least_score: float | None = None,
         undecided_only: bool = False,
     ) -> dict[int, list[tuple[int, ...]]]:
-        """Point sets of every negative mined in the session (all runs), by frame.
+        """Point sets of every negative mined in the session (all runs), by frame: the background
+        a next round starts from. Not the false positives queued for review alone
+        (``LoopSettings.review_extra``): a verdict decides those (``reviewed_patch_sets``).
 
         Args:
             below_score, at_least_score: only those the model scored below / at least this when
@@ -2678,6 +2694,8 @@ class SessionDB:
         """Every mined negative's id, frame index and ``column`` (checked, ``_row``), in the order
         they were mined, filtered as ``mined_patch_sets`` says."""
         query = f"SELECT id, frame_index, {column} FROM mined_negatives m WHERE 1"
+        if self.schema_version > 3:  # (before, every row was a mined negative)
+            query += " AND in_background = 1"
         values: list = []
         if below_score is not None:
             query, values = query + " AND score < ?", [*values, float(below_score)]
@@ -2743,6 +2761,7 @@ def rounds_record(run) -> list[dict]:
             "continued": r.get("continued"),
             "recalibrated": r.get("recalibrated"),
             "num_mined": len(r["mined"]),
+            "num_queued": len(r.get("queued", [])),
             "train_f1": r["train_metrics"]["f1"],
         }
         for r in run.rounds

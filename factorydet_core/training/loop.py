@@ -319,6 +319,7 @@ def train_session(
         should_stop=should_stop,
         round_epochs=settings.round_epochs,
         queue_order=settings.queue_order,
+        review_extra=settings.review_extra,
         init_model=None if continued is None else continued.classifier,
         score=score,
     )

@@ -433,6 +433,7 @@ def train_with_mining(
     init_model: ProposalClassifier | BoxHead | None = None,
     score: Scorer = score_frames,
     queue_order: str = "score",
+    review_extra: int | None = 0,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -453,6 +454,10 @@ def train_with_mining(
         queue_order: "score": the N highest scoring, as the paper; "class": the predicted classes
             take turns, each one's by score (``session.queue.queue_order``), so a class the model
             has barely learned gets its share of the cut and of the review queue.
+        review_extra: the next this many false positives after the first N (in ``queue_order``;
+            ``None``: all) of the last mining (``mine_after_last``, else the last round's) go
+            to its record's ``queued``: the review queue's alone, neither background nor held
+            (``LoopSettings.review_extra``).
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
             a true positive when mining.
@@ -522,6 +527,8 @@ def train_with_mining(
     if not 0.0 <= mining_threshold <= 1.0:
         raise InputError(f"mining_threshold must lie in [0, 1], got {mining_threshold}")
     queue_order_of([], [], queue_order)  # a bad order fails before any work
+    if review_extra is not None and (isinstance(review_extra, bool) or review_extra < 0):
+        raise InputError(f"review_extra must be an integer >= 0 or None, got {review_extra!r}")
     if rounds < 0 or negatives_per_round < 0 or initial_negatives < 0:
         raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")
     if not 0.0 <= fragment_iou < positive_iou:
@@ -734,6 +741,11 @@ def train_with_mining(
                 [m["score"] for m in mined], [m["predicted_class"] for m in mined], queue_order
             )
             record["mined"] = [mined[k] for k in cut[:negatives_per_round]]
+            last_mining = round_index == (rounds if mine_after_last else rounds - 1)
+            extra = cut[negatives_per_round:]
+            extra = extra if review_extra is None else extra[:review_extra]
+            # For the reviewer alone: the model that mined them is the one the queue reviews.
+            record["queued"] = [mined[k] for k in extra] if last_mining else []
             record["num_false_positives"] = len(mined)
             record["num_held"] = 0
             held_boxes: dict[int, list] = {}

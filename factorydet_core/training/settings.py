@@ -100,6 +100,14 @@ class LoopSettings:
     give every predicted class the same share of the reviewer's first entries, among them classes
     whose queue is mostly background; by score, a reviewer labels more objects but fewer of the
     rare classes (``bench hitl``, docs/labelling.md: level in F at 50% unannotated)."""
+    review_extra: int | None = 0
+    """False positives beyond the first ``negatives_per_round`` (in ``queue_order``) that a run's
+    last mining adds to its review queue alone: training leaves them out (neither background nor
+    mined) until a verdict moves them; ``None``: all of them. The paper's cut of N bounds what
+    the background takes, but also what a reviewer is shown: on a partially annotated data set
+    most unlabelled objects the model finds score below the cut's last entry (``bench hitl`` at
+    50% unannotated: about half of them), so a reviewer who answers the queue by place never
+    meets them. 0: the queue is the mined negatives, as the paper."""
     refit_box_quality: bool = True
     """A 'next' round that goes on from a model (``round_epochs`` > 0) fits the box quality
     regressor again on the session's current labels (False: keeps the model's). The regressor
@@ -154,6 +162,9 @@ class LoopSettings:
         if self.review_order is not None and self.review_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"review_order must be one of {orders} or None, got {self.review_order!r}")
+        extra = self.review_extra
+        if extra is not None and (isinstance(extra, bool) or not isinstance(extra, int) or extra < 0):
+            raise InputError(f"review_extra must be an integer >= 0 or None, got {extra!r}")
         recalibrate = self.recalibrate_background
         if recalibrate is not None and (isinstance(recalibrate, bool) or not 0.0 < recalibrate <= 1.0):
             raise InputError(f"recalibrate_background must lie in (0, 1] or be None, got {recalibrate!r}")
@@ -314,6 +325,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "likely an object first (score) or the predicted classes taking turns (class); auto: as the "
             "queue order", str,
             choices=(("auto", None), *((o, o) for o in QUEUE_ORDERS))),
+    Control("review_extra", "Review extra", "false positives beyond the mined negatives that the last "
+            "mining queues for review alone, left out of training until reviewed (0: none, the paper; "
+            "-1: all)", int, -1, 10_000_000, 100, none_as=-1),
     Control("refit_box_quality", "Refit box quality", "a next round that goes on from a model refits the "
             "box quality regressor on the current labels, when they changed (off: keeps the model's)", bool),
     Control("refit_trees", "Refit trees", "with refit box quality, boost the model's regressor on with "
