@@ -666,6 +666,19 @@ def _order_text(queue_order: str | None, review_order: str | None) -> str:
     return ""
 
 
+def _extra_text(review_extra: int | None) -> str:
+    """What a hitl record's review queue held beyond the mined negatives (``review_extra``)."""
+    if review_extra == 0:
+        return ""
+    what = "every other false positive"
+    if review_extra is not None:
+        what = f"the next {review_extra} false positives"
+    return (
+        f", the reviewed detectors' queue also holding {what} of the last mining for review alone"
+        " (`review_extra`: no background until a verdict)"
+    )
+
+
 def _hitl_method(settings: dict) -> str:
     """What ``bench hitl`` trained, in a few words (records before ``method`` was kept: the paper's)."""
     method = settings.get("method", "paper")
@@ -886,6 +899,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
             + "per round"
             + _order_text(settings.get("queue_order"), settings.get("review_order"))
+            + _extra_text(settings.get("review_extra", 0) if reviewed else 0)
             + (
                 ", every next round fitting the box quality regressor again on the labels it has"
                 " (`refit_box_quality`)"

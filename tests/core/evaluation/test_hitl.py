@@ -58,6 +58,14 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert _run_plan({**turns, "settings": _settings_as_run(old)}, "reviewed_200") == _run_plan(
         turns, "reviewed_200"
     )
+    # So do the false positives queued for review alone; a record from before them queued none.
+    longer = {**plan, "settings": {**settings, "review_extra": None}}
+    for variant in ("blind", "blind_safe", "full", "full_late"):
+        assert _run_plan(longer, variant) == _run_plan(plan, variant)
+    for variant in ("reviewed_200", "reviewed_safe_200"):
+        assert _run_plan(longer, variant) != _run_plan(plan, variant)
+    before = {k: v for k, v in settings.items() if k != "review_extra"}
+    assert _settings_as_run(before)["review_extra"] == 0
 
 
 def test_the_holding_detectors_are_asked_for_by_name_and_hold_at_the_plans_score():

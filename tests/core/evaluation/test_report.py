@@ -226,3 +226,12 @@ def test_a_hitl_record_says_how_it_cut_and_how_it_ordered_the_review_queue():
     assert "taking turns in the cut" in split
     assert "most likely an object first (`review_order` score)" in split
     assert "in the review queue (`review_order` class)" in _order_text("score", "class")
+
+
+def test_a_hitl_record_says_what_its_reviewers_queue_held_beyond_the_mined_negatives():
+    from factorydet_core.evaluation.report import _extra_text
+
+    assert _extra_text(0) == ""
+    assert "every other false positive" in _extra_text(None)
+    assert "the next 300 false positives" in _extra_text(300)
+    assert "review alone" in _extra_text(None)

@@ -1027,3 +1027,44 @@ def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filt
     broken = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": [1, 2]})
     with pytest.raises(SessionError, match="its settings are .*not a mapping"):
         db.review_queue(broken)
+
+
+def test_items_queued_for_review_alone_are_no_background_until_a_verdict(db, tiny_model_path):
+    mined = [mined_item(0, g, [2.0 * g, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0], 0.9 - 0.1 * g) for g in range(2)]
+    queued = [mined_item(0, g, [2.0 * g, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0], 0.5 - 0.1 * g) for g in (2, 3, 4)]
+    run = queue_run(tiny_model_path, [mined])
+    run.rounds[0]["queued"] = queued
+    db.save_training_run(run, "small", {})
+    queue = db.review_queue()
+    assert [q["in_background"] for q in queue] == [1, 1, 0, 0, 0]  # all of them in the queue
+    assert db.mined_patch_sets() == {0: [(0,), (1,)]}
+    assert db.held_places(0.0) == {0: pytest.approx(np.array([m["box"] for m in mined]))}
+    db.review([queue[2]["id"]], "background", "ann")
+    db.review([queue[3]["id"]], "object", "ann", class_name="box")
+    reviewed = db.reviewed_patch_sets()
+    assert reviewed["background"] == {0: [(2,)]} and reviewed["object"] == {0: [(3,)]}
+    assert db.mined_patch_sets() == {0: [(0,), (1,)]}  # still: the verdicts decide the others
+
+
+def test_a_schema_3_database_gains_in_background_with_its_rows_mined(tmp_path, dataset, tiny_model_path):
+    from factorydet_core.session.store import _SCHEMA_V1, _SCHEMA_V2, _SCHEMA_V3
+
+    session = open_session("v3", tmp_path)
+    session.path.mkdir()
+    connection = sqlite3.connect(session.db_path, isolation_level=None)
+    connection.executescript(";".join((_SCHEMA_V1, _SCHEMA_V2, _SCHEMA_V3)) + ";PRAGMA user_version = 3;")
+    connection.execute("INSERT INTO meta VALUES ('created', 'then')")
+    connection.execute(
+        "INSERT INTO training_runs VALUES (1, 'then', 'mining', 'small', '{}', '[0]', NULL, 'm.pt', NULL)"
+    )
+    connection.execute(
+        "INSERT INTO mined_negatives (run_id, round, frame_index, proposal, box, patch_set, score,"
+        " predicted_class, best_annotated_iou) VALUES (1, 0, 0, 7, '[0,0,0.5,1,1,1,0]', '[7]', 0.5, 'box', 0)"
+    )
+    connection.close()
+    reader = SessionDB(session, dataset, readonly=True)  # read as it is: no column to filter on
+    assert reader.schema_version == 3 and reader.mined_patch_sets() == {0: [(7,)]}
+    assert [q["in_background"] for q in reader.review_queue()] == [1]
+    db = SessionDB(session, dataset)
+    assert db.schema_version == SCHEMA_VERSION and db.mined_patch_sets() == {0: [(7,)]}
+    assert [q["in_background"] for q in db.review_queue()] == [1]

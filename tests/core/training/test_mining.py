@@ -582,3 +582,26 @@ def test_a_class_order_cut_takes_the_classes_in_turns_from_every_false_positive(
     assert sorted(expected.tolist()) != list(range(12))  # not the 12 highest scores: a test of the cut
     with pytest.raises(InputError, match="queue order"):
         first_round(negatives_per_round=12, queue_order="size")
+
+
+@pytest.mark.slow
+def test_review_extra_queues_the_false_positives_after_the_cut_for_review_alone(frames):
+    def keys(items):
+        return [(m["frame_index"], m["group"]) for m in items]
+
+    def first_round(**options):  # (a 2-epoch model mines little at the operating threshold)
+        return _first_round(frames, score_threshold=0.05, tune_class_thresholds=False, **options)
+
+    every = first_round(negatives_per_round=100_000).rounds[0]
+    assert every["queued"] == [] and len(every["mined"]) > 12
+    capped = first_round(negatives_per_round=8, review_extra=3).rounds[0]
+    assert keys(capped["mined"]) == keys(every["mined"][:8])
+    assert keys(capped["queued"]) == keys(every["mined"][8:11])  # the cut's order goes on
+    rest = first_round(negatives_per_round=8, review_extra=None).rounds[0]
+    assert keys(rest["queued"]) == keys(every["mined"][8:])
+    assert first_round(negatives_per_round=8).rounds[0]["queued"] == []  # the paper's queue
+    # Only the last mining queues extras: the rounds before it mine for the background alone.
+    two = first_round(rounds=1, negatives_per_round=8, review_extra=None)
+    assert two.rounds[0]["queued"] == [] and len(two.rounds[1]["queued"]) > 0
+    with pytest.raises(InputError, match="review_extra"):
+        first_round(review_extra=-1)

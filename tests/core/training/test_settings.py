@@ -42,7 +42,8 @@ def test_a_number_is_taken_inside_its_bounds_and_refused_outside(control, value)
     [("class_weight", "none", None), ("visibility", "auto", None), ("visibility", "on", True),
      ("fragments_per_frame", 0, None), ("fragments_per_frame", 12, 12), ("geometry", False, False),
      ("recalibrate_background", 0, None), ("recalibrate_background", 0.5, 0.5),
-     ("review_order", "auto", None), ("review_order", "score", "score")],
+     ("review_order", "auto", None), ("review_order", "score", "score"),
+     ("review_extra", -1, None), ("review_extra", 0, 0), ("review_extra", 300, 300)],
 )  # fmt: skip
 def test_choices_and_none_stand_ins(field, raw, expected):
     assert CONTROLS[field].parse(raw) == expected
@@ -67,6 +68,9 @@ def test_the_settings_still_check_themselves():
         loop_settings_from({"method": "paper", "recalibrate_background": 0.5})
     with pytest.raises(InputError, match="review_order must be one of score, class or None"):
         LoopSettings(review_order="random")
+    for bad in (-1, 2.5, True):
+        with pytest.raises(InputError, match="review_extra must be an integer"):
+            LoopSettings(review_extra=bad)
     for bad in (0.0, 1.5, True):  # a Python caller is checked as the controls check a flag
         with pytest.raises(InputError, match="recalibrate_background must lie in"):
             LoopSettings(recalibrate_background=bad)
