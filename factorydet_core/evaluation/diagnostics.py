@@ -259,7 +259,8 @@ def review_item_markdown(
     hold: float | None = None,
 ) -> str:
     """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``), with
-    whether its run held it out of the background (``hold``: the run's ``hold_confident``), with
+    whether its run held it out of the background (``hold``: the run's ``hold_confident``) or
+    queued it for review alone (``in_background`` 0: ``LoopSettings.review_extra``), with
     the number of points in its box when known and the data set's annotation policy (objects of
     at least ``min_points`` points are labelled)."""
     lines = [
@@ -290,6 +291,11 @@ def review_item_markdown(
     if item.get("verdict"):
         verdict = item["verdict"] + (f" ({item['verdict_class']})" if item.get("verdict_class") else "")
         lines.append(f"Verdict: **{verdict}** by {item['reviewer']}")
+    elif not item.get("in_background", 1):
+        lines.append(
+            "**For review alone**: after the run's mined negatives in its queue (review extra), so"
+            " training leaves it out until a verdict says what it is"
+        )
     elif hold is not None and item["score"] >= hold:
         lines.append(
             f"**Held**: scored {hold:g} or more, so training keeps it out of the background (a likely"

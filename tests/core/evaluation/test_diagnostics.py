@@ -35,3 +35,12 @@ def test_a_held_item_says_training_keeps_it_out_of_the_background_until_a_verdic
     assert "Held" not in review_item_markdown(ITEM, [], 1, 5)
     decided = {**ITEM, "verdict": "background", "verdict_class": None, "reviewer": "ann"}
     assert "Held" not in review_item_markdown(decided, [], 1, 5, hold=0.35)
+
+
+def test_an_item_queued_for_review_alone_says_training_leaves_it_out_until_a_verdict():
+    alone = {**ITEM, "in_background": 0}
+    assert "**For review alone**" in review_item_markdown(alone, [], 1, 5)
+    assert "For review alone" not in review_item_markdown({**ITEM, "in_background": 1}, [], 1, 5)
+    assert "For review alone" not in review_item_markdown(ITEM, [], 1, 5)  # a queue before schema 4
+    decided = {**alone, "verdict": "background", "verdict_class": None, "reviewer": "ann"}
+    assert "For review alone" not in review_item_markdown(decided, [], 1, 5)
