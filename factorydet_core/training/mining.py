@@ -527,7 +527,9 @@ def train_with_mining(
     if not 0.0 <= mining_threshold <= 1.0:
         raise InputError(f"mining_threshold must lie in [0, 1], got {mining_threshold}")
     queue_order_of([], [], queue_order)  # a bad order fails before any work
-    if review_extra is not None and (isinstance(review_extra, bool) or review_extra < 0):
+    if review_extra is not None and (
+        isinstance(review_extra, bool) or not isinstance(review_extra, (int, np.integer)) or review_extra < 0
+    ):
         raise InputError(f"review_extra must be an integer >= 0 or None, got {review_extra!r}")
     if rounds < 0 or negatives_per_round < 0 or initial_negatives < 0:
         raise InputError("rounds, negatives_per_round and initial_negatives must be >= 0")

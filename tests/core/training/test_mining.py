@@ -603,5 +603,6 @@ def test_review_extra_queues_the_false_positives_after_the_cut_for_review_alone(
     # Only the last mining queues extras: the rounds before it mine for the background alone.
     two = first_round(rounds=1, negatives_per_round=8, review_extra=None)
     assert two.rounds[0]["queued"] == [] and len(two.rounds[1]["queued"]) > 0
-    with pytest.raises(InputError, match="review_extra"):
-        first_round(review_extra=-1)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(InputError, match="review_extra"):
+            first_round(review_extra=bad)
