@@ -261,11 +261,13 @@ class TrainingWorker:
             should_stop=self._cancel.is_set, execution=execution,
         )  # fmt: skip
         self.last_run_id = done.run_id
-        queue = len(db.review_queue(done.run_id))
+        queue = db.review_queue(done.run_id)
+        alone = sum(not item["in_background"] for item in queue)
         state.offer_model(run_choice(done.run_id, mode))
         state.session_changed()
         self._finish(
-            status=f"run {done.run_id} ({mode}) done: {queue} mined negatives to review; the table "
+            status=f"run {done.run_id} ({mode}) done: {len(queue)} items to review ({len(queue) - alone} "
+            f"mined negatives{f', {alone} for review alone' if alone else ''}); the table "
             "compares it with the shown model, and **Show this model** uses it",
             progress=1.0,
             comparison=done.comparison,

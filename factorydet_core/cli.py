@@ -729,7 +729,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
                 for k in ("round", "num_positives", "num_background", "fit_seconds", "num_false_positives")
                 if k in r
             }
-            | {"train_f1": r["train_metrics"]["f1"], "num_mined": len(r["mined"])}
+            | {
+                "train_f1": r["train_metrics"]["f1"],
+                "num_mined": len(r["mined"]),
+                "num_queued": len(r.get("queued", [])),  # for review alone (review_extra)
+            }
             for r in run.rounds
         ],
         "review_queue": len(db.review_queue(run_id)),
@@ -763,8 +767,9 @@ def _cmd_queue(args: argparse.Namespace) -> int:
         verdict = item["verdict"] or "-"
         if item["verdict_class"]:
             verdict += f" ({item['verdict_class']})"
+        alone = "" if item["in_background"] else "  (for review alone)"
         print(f"{item['id']:6d}  frame {item['frame_index']:3d}  {item['predicted_class']:8s} "
-              f"{item['score']:.3f}  {verdict}")  # fmt: skip
+              f"{item['score']:.3f}  {verdict}{alone}")  # fmt: skip
     return 0
 
 
@@ -1307,7 +1312,11 @@ def build_parser(
         p.add_argument("--root", default=None, help="sessions folder (default: ./sessions)")
         p.add_argument("--data", default=None, help="data set folder (default: the session's)")
 
-    p = sub.add_parser("queue", help="list the review queue: negatives mined by a run, in its queue order")
+    p = sub.add_parser(
+        "queue",
+        help="list the review queue: negatives mined by a run (and the false positives it "
+        "queued for review alone), in its review order",
+    )
     session_args(p)
     p.add_argument("--run", type=int, default=None, help="training run (default: the latest)")
     p.add_argument("--class", dest="class_name", default=None, help="only this predicted class")

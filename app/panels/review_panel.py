@@ -1,5 +1,6 @@
-"""The review queue (one panel per browser): the negatives the last training run mined, highest
-score first, one verdict each: background, object of a class, wrong box, skip."""
+"""The review queue (one panel per browser): the negatives the last training run mined (and the
+false positives it queued for review alone), in its review order, one verdict each: background,
+object of a class, wrong box, skip."""
 
 from __future__ import annotations
 

@@ -660,6 +660,22 @@ def _settings_as_run(settings: dict) -> dict:
     return {**{k: v for k, v in defaults.items() if k not in ("seed", "num_threads")}, **settings}
 
 
+def _seed_settings(settings: LoopSettings, variant: str, seed: int, hold: float | None) -> LoopSettings:
+    """The ``LoopSettings`` detector ``variant`` trains with for ``seed``: holding (at ``hold``)
+    and recalibrating are the holding detectors' alone (``holds``), and the false positives
+    queued for review alone (``review_extra``) the reviewed detectors' (a queue nobody reviews
+    would only grow), as ``_run_plan`` says of their runs."""
+    return dataclasses.replace(
+        settings,
+        seed=seed,
+        hold_confident=hold,
+        hold_places=settings.hold_places and holds(variant),
+        recalibrate_background=settings.recalibrate_background if holds(variant) else None,
+        recalibrate_by_class=settings.recalibrate_by_class and holds(variant),
+        review_extra=settings.review_extra if variant.startswith("reviewed_") else 0,
+    )
+
+
 def _variant_specs(
     budgets: Sequence[int], hold: float | None, default: bool
 ) -> list[tuple[str, int, float | None]]:
@@ -732,15 +748,7 @@ def _hitl_variants(
                 if progress is not None:
                     progress(done, steps)
                 continue
-            # Holding and recalibrating are the holding detectors' alone (variant_hold None: the others).
-            seed_settings = dataclasses.replace(
-                settings,
-                seed=seed,
-                hold_confident=variant_hold,
-                hold_places=settings.hold_places and holds(name),
-                recalibrate_background=settings.recalibrate_background if holds(name) else None,
-                recalibrate_by_class=settings.recalibrate_by_class and holds(name),
-            )
+            seed_settings = _seed_settings(settings, name, seed, variant_hold)
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
             reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)

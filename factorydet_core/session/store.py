@@ -2321,8 +2321,9 @@ class SessionDB:
         pending_only: bool = False,
         max_label_iou: float | None = None,
     ) -> list[dict]:
-        """Negatives mined by a run (the latest by default) in its review order (``queue_order``:
-        highest score first, or the predicted classes taking turns), each with its
+        """Negatives mined by a run (the latest by default), and the false positives it queued for
+        review alone (``in_background`` 0: ``LoopSettings.review_extra``), in its review order
+        (``queue_order``: highest score first, or the predicted classes taking turns), each with its
         verdict (``None`` if unreviewed), the verdict's class, label and reviewer, and
         ``label_iou``: its box's highest IoU with the frame's current labels (``label_overlap``).
 

@@ -455,8 +455,9 @@ def train_with_mining(
             take turns, each one's by score (``session.queue.queue_order``), so a class the model
             has barely learned gets its share of the cut and of the review queue.
         review_extra: the next this many false positives after the first N (in ``queue_order``;
-            ``None``: all) of the last mining (``mine_after_last``, else the last round's) go
-            to its record's ``queued``: the review queue's alone, neither background nor held
+            ``None``: all) of the run's last mining (after the last round with
+            ``mine_after_last``, else the round before it) go to that round's record's
+            ``queued``: the review queue's alone, neither background nor held
             (``LoopSettings.review_extra``).
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
@@ -746,7 +747,8 @@ def train_with_mining(
             last_mining = round_index == (rounds if mine_after_last else rounds - 1)
             extra = cut[negatives_per_round:]
             extra = extra if review_extra is None else extra[:review_extra]
-            # For the reviewer alone: the model that mined them is the one the queue reviews.
+            # For the reviewer alone, and only the last mining's: an earlier round's would be the
+            # false positives of a model the run has since trained on.
             record["queued"] = [mined[k] for k in extra] if last_mining else []
             record["num_false_positives"] = len(mined)
             record["num_held"] = 0

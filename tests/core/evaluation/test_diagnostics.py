@@ -44,3 +44,6 @@ def test_an_item_queued_for_review_alone_says_training_leaves_it_out_until_a_ver
     assert "For review alone" not in review_item_markdown(ITEM, [], 1, 5)  # a queue before schema 4
     decided = {**alone, "verdict": "background", "verdict_class": None, "reviewer": "ann"}
     assert "For review alone" not in review_item_markdown(decided, [], 1, 5)
+    # Above the run's hold score it is still one for review alone, not a held mined negative.
+    held = review_item_markdown({**alone, "score": 0.9}, [], 1, 5, hold=0.35)
+    assert "For review alone" in held and "Held" not in held

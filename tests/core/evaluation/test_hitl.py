@@ -1,6 +1,6 @@
 import dataclasses
 
-from factorydet_core.evaluation.hitl import _run_plan, _settings_as_run, _variant_specs, holds
+from factorydet_core.evaluation.hitl import _run_plan, _seed_settings, _settings_as_run, _variant_specs, holds
 from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
 
 
@@ -66,6 +66,18 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
         assert _run_plan(longer, variant) != _run_plan(plan, variant)
     before = {k: v for k, v in settings.items() if k != "review_extra"}
     assert _settings_as_run(before)["review_extra"] == 0
+
+
+def test_each_detector_trains_with_what_its_run_plan_says_shapes_it():
+    settings = LoopSettings(hold_places=True, recalibrate_background=0.5, review_extra=None)
+    for name in ("blind", "full", "full_late", "blind_safe"):
+        assert _seed_settings(settings, name, 3, None).review_extra == 0  # nobody reviews their queue
+    for name in ("reviewed_200", "reviewed_safe_200"):
+        assert _seed_settings(settings, name, 3, None).review_extra is None
+    blind, safe = _seed_settings(settings, "blind", 3, None), _seed_settings(settings, "blind_safe", 3, 0.35)
+    assert blind.seed == safe.seed == 3 and safe.hold_confident == 0.35
+    assert (blind.hold_places, blind.recalibrate_background) == (False, None)
+    assert (safe.hold_places, safe.recalibrate_background) == (True, 0.5)
 
 
 def test_the_holding_detectors_are_asked_for_by_name_and_hold_at_the_plans_score():

@@ -438,3 +438,26 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
     # refit would give it back (train_with_mining compares their training rows).
     refit, reuse = given[1]
     assert isinstance(refit, loop.BoxQuality) and not hasattr(refit, "trees_") and reuse is kept
+
+
+@pytest.mark.slow
+def test_false_positives_queued_for_review_alone_stay_out_of_the_next_rounds_background(
+    dataset, frames, tmp_path
+):
+    import dataclasses
+
+    db = SessionDB(open_session("extra", tmp_path), dataset)
+    settings = dataclasses.replace(SETTINGS, negatives_per_round=10, review_extra=None)
+    run_id, run = train_session(db, frames, settings, mode="full", data_ref="small")
+    queue = db.review_queue(run_id)
+    extras = {(i["frame_index"], tuple(i["patch_set"])) for i in queue if not i["in_background"]}
+    mined = {(i["frame_index"], tuple(i["patch_set"])) for i in queue if i["in_background"]}
+    # The last mining's false positives after its 10, the earlier round's none.
+    assert run.rounds[0]["queued"] == [] and len(extras) == len(run.rounds[-1]["queued"]) > 0
+    assert db.training_runs()[-1]["rounds"][-1]["num_false_positives"] >= 10 + len(extras)
+    background = {(index, tuple(p)) for index, sets in db.mined_patch_sets().items() for p in sets}
+    assert background == mined and not extras & background
+    _, next_run = train_session(db, frames, settings, mode="next", data_ref="small")
+    again = {(i["frame_index"], tuple(i["patch_set"])) for i in db.review_queue()}
+    # Mined again (they were no background), unlike the mined ones.
+    assert again & extras and not again & mined
