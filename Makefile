@@ -204,6 +204,30 @@ bench: $(STAMP) corpus corpus50
 	  --readme-block hitl-50-review-score-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-score-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/labelling.md --readme-block hitl-50-review-score-vs-turns-heldout
+	# The reviewer's queue also holding every false positive after the mined ones, for review alone (50% and 30%).
+	test -f docs/bench/hitl-50-review-extra-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-extra-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
+	  --out docs/bench/hitl-50-review-extra-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-50-review-extra-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-extra-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
+	  --readme docs/labelling.md --readme-block hitl-50-review-extra-vs-reviewed-heldout
+	test -f docs/bench/hitl-review-extra-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-extra-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
+	  --out docs/bench/hitl-review-extra-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-review-extra-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-extra-heldout.json docs/bench/hitl-reviewed-heldout.json \
+	  --readme docs/labelling.md --readme-block hitl-review-extra-vs-reviewed-heldout
+	# blind_safe recalibrating by class at 50% unannotated.
+	test -f docs/bench/hitl-50-safe-byclass-heldout.json || cp docs/bench/hitl-50-heldout.json docs/bench/hitl-50-safe-byclass-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
+	  --recalibrate-background 0.5 --recalibrate-by-class --out docs/bench/hitl-50-safe-byclass-heldout.json \
+	  --readme docs/labelling.md --readme-block hitl-50-safe-byclass-heldout --resume
 	# The paper's data set size (6,389 frames of 80k points, 2/3 training) simulated and detected on
 	# Ray workers (about three hours on 2 cores), inside a loopback-only network namespace; the
 	# record is kept after each run and a re-run does only the runs it lacks.
