@@ -519,6 +519,7 @@ _MINED_VALUES = {
     "score": ("x", -1e308, 1e308, "1e999"),
     "predicted_class": ("zzz", "", 42),
     "review_version": (-1, "x", 2**62),
+    "in_background": (2, -1, "x"),
     "run_id": (10**6, -1, "x"),
 }
 """Hostile values of the mined-negative columns (JSON columns also get ``_mutate_json``)."""
