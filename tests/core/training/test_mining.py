@@ -603,6 +603,14 @@ def test_review_extra_queues_the_false_positives_after_the_cut_for_review_alone(
     # Only the last mining queues extras: the rounds before it mine for the background alone.
     two = first_round(rounds=1, negatives_per_round=8, review_extra=None)
     assert two.rounds[0]["queued"] == [] and len(two.rounds[1]["queued"]) > 0
+    # Without mining after the last round, the round before it is the last to mine.
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    options = {"initial_negatives": 150, "fragment_iou": 0.0, "score_threshold": 0.05}
+    before_last = train_with_mining(
+        frames, classifier, rounds=1, negatives_per_round=8, review_extra=None,
+        tune_class_thresholds=False, **options,
+    )  # fmt: skip
+    assert len(before_last.rounds[0]["queued"]) > 0 and "queued" not in before_last.rounds[1]
     for bad in (-1, 2.5, True):
         with pytest.raises(InputError, match="review_extra"):
             first_round(review_extra=bad)
