@@ -2192,7 +2192,7 @@ class SessionDB:
                 )
                 # The mined negatives (background from now on), then the false positives queued
                 # for review alone (``LoopSettings.review_extra``).
-                queued = [(m, 1) for m in record["mined"]] + [(m, 0) for m in record.get("queued", [])]
+                rows = [(m, 1) for m in record["mined"]] + [(m, 0) for m in record.get("queued", [])]
                 db.executemany(
                     "INSERT INTO mined_negatives (run_id, round, frame_index, proposal, box, patch_set,"
                     " score, predicted_class, probabilities, best_annotated_iou, in_background)"
@@ -2213,7 +2213,7 @@ class SessionDB:
                             m["best_annotated_iou"],
                             in_background,
                         )
-                        for m, in_background in queued
+                        for m, in_background in rows
                     ],
                 )
             db.execute(
