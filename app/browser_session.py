@@ -30,6 +30,7 @@ from factorydet_core.session.editing import (
     split_in_two,
 )
 from factorydet_core.session.labels_io import export_bytes
+from factorydet_core.session.review_rank import LearnedOrder
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import (
     MOVING_CLASSES,
@@ -121,6 +122,7 @@ class BrowserSession:
         self.queue: list[dict] = []
         self._queue_read: tuple | None = None  # ((change stamp, class, frame), the session's queue)
         self._places: tuple | None = None  # ((world, item ids read, order), group_by_place's places)
+        self._learned: LearnedOrder | None = None  # the learned review order's fits (review_rank)
         self._shown_queue: tuple | None = None  # (everything load_queue's result depends on, it)
         self.suspect_index = -1
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
@@ -668,13 +670,27 @@ class BrowserSession:
             # The places of the whole queue read, grouped once and then filtered: a run's items
             # do not change, and grouped after the filters, a class order's turns would be worked
             # out again on what is left and move places ahead of the shown one.
-            order = self.state.db.queue_order(read[0]["run_id"])
+            run_id = read[0]["run_id"]
+            order = self.state.db.queue_order(run_id)
+            learned = order == "learned"
+            if learned:  # the cut's order until there are verdicts to learn from (session.review_rank)
+                order = self.state.db.cut_order(run_id)
             places_key = (id(world), tuple(q["id"] for q in read), order)
             cached = self._places
             if cached is None or cached[0] != places_key:
                 cached = self._places = (places_key, group_by_place(world, read, order=order))
+            ordered = cached[1]
+            if learned:
+                # Answered places first, then the pending ones likeliest to give a label: the
+                # one just answered keeps its place before the next, refitted every few verdicts.
+                ranker = self._learned
+                if ranker is None or ranker.world is not world or ranker.db is not self.state.db:
+                    ranker = self._learned = LearnedOrder(
+                        self.state.db, world, self.state.dataset.class_names
+                    )
+                ordered = ranker.order(run_id, read, ordered)
             kept = {q["id"] for q in queue}
-            places = [[k for k in place if read[k]["id"] in kept] for place in cached[1]]
+            places = [[k for k in place if read[k]["id"] in kept] for place in ordered]
             queue = _by_place(read, [place for place in places if place], current_id)
         self._shown_queue = (shown_key, queue)
         with self.lock:
@@ -742,7 +758,9 @@ class BrowserSession:
             return
         ids = [q["id"] for q in queue]
         k = ids.index(item["id"]) if item["id"] in ids else -1
-        later = [q for q in queue[k + 1 :] if q["verdict"] in (None, "skip")]
+        # Then round to the start: a learned order puts the places skipped last, the one just
+        # skipped among them.
+        later = [q for q in queue[k + 1 :] + queue[: max(k, 0)] if q["verdict"] in (None, "skip")]
         self.go_to(later[0] if later else None)
 
     def batch_verdict(self, verdict: str, class_name: str | None = None) -> int:

@@ -58,6 +58,9 @@ QUEUE_ORDERS: tuple[str, ...] = ("score", "class")
 """How mined negatives are cut (``LoopSettings.queue_order``) and queued for review
 (``LoopSettings.review_order``, by default the same; ``session.queue.queue_order``): by score, as
 the paper adds the top N false positives; or by class, each predicted class taking turns."""
+REVIEW_ORDERS: tuple[str, ...] = (*QUEUE_ORDERS, "learned")
+"""How the review queue is ordered (``LoopSettings.review_order``): as a cut's order, or learned
+from the session's own verdicts (``session.review_rank``; with the queue grouped by place)."""
 
 MAX_RAY_WORKERS = 4096
 """The most Ray workers a batch may ask for (``scale.runner.Execution``, a session's setting)."""

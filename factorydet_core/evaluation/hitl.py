@@ -239,7 +239,10 @@ def _truth_answer(db: SessionDB, dataset: Dataset, item: dict, positive_iou: flo
 
 
 def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts) -> dict:
-    """``simulated_review`` by place, as the app's review panel shows the queue by default."""
+    """``simulated_review`` by place, as the app's review panel shows the queue by default. With
+    the review order "learned" (``session.review_rank``), the places still pending are ordered
+    again after every ``review_rank.REFIT_EVERY`` verdicts, as the panel orders them."""
+    from factorydet_core.session.review_rank import LearnedOrder, fit_stage
     from factorydet_core.session.world import MOVING_CLASSES, group_by_place, place_box
 
     def placer(class_name):
@@ -247,11 +250,23 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
             return None
         return lambda frame_index, box: place_box(world, frame_index, box).for_store()
 
+    run_id = db.latest_run_id()
+    learned = None
+    if db.queue_order(run_id) == "learned":
+        learned = LearnedOrder(db, world, db.class_names)
+        base = group_by_place(world, queue, order=db.cut_order(run_id))
+        places = learned.order(run_id, queue, base)
+    else:
+        places = group_by_place(world, queue, order=db.queue_order(run_id))
     answered = 0
     done: set[int] = set()  # items answered with an earlier place (the queue is read once)
-    for members in group_by_place(world, queue, order=db.queue_order()):
-        if answered == budget:
+    passed: set[int] = set()  # places looked at: answered, or passed over by the filter
+    stage = fit_stage(0)
+    while answered < budget:
+        members = next((m for m in places if m[0] not in passed), None)
+        if members is None:
             break
+        passed.add(members[0])
         items = [queue[k] for k in members if queue[k]["id"] not in done]
         if not items:
             continue
@@ -283,6 +298,13 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
             else:  # label once: the drawn box reaches every frame that shows the object
                 _draw_object(db, author, frame_index, class_name, *place(frame_index, tuple(true_box)))
             counts["boxes_drawn"] += 1
+        if learned is not None:
+            # The panel reads the verdicts given; here the queue read once stands for it.
+            for k in members:
+                queue[k] = {**queue[k], "verdict": verdict}
+            if fit_stage(answered) != stage:
+                stage = fit_stage(answered)
+                places = learned.order(run_id, queue, base)
     return counts
 
 
@@ -325,9 +347,9 @@ def queue_reach(
     """
     queue = db.review_queue(run_id)
     if world is not None:
-        from factorydet_core.session.world import group_by_place
+        from factorydet_core.session.review_rank import review_places
 
-        places = group_by_place(world, queue, order=db.queue_order(run_id))[:top]
+        places = review_places(db, world, queue, run_id)[:top]
         queue = [queue[k] for place in places for k in place]
     elif top is not None:
         queue = queue[:top]
@@ -349,11 +371,12 @@ def estimated_reach_share(db: SessionDB, top: int, world=None) -> float | None:
     """The share of the objects a run's review queue holds by the model's scores that its first
     ``top`` entries hold (``world.expected_reach``; entries are places with ``world``, as the
     review panel shows them, else items); ``None`` for an empty queue."""
-    from factorydet_core.session.world import expected_reach, group_by_place, place_chance
+    from factorydet_core.session.review_rank import review_places
+    from factorydet_core.session.world import expected_reach, place_chance
 
     queue = db.review_queue()
     if world is not None:
-        places = group_by_place(world, queue, order=db.queue_order())
+        places = review_places(db, world, queue)
         chances = [place_chance([queue[k]["score"] for k in place]) for place in places]
     else:
         chances = [item["score"] for item in queue]

@@ -654,6 +654,16 @@ def _order_text(queue_order: str | None, review_order: str | None) -> str:
     """How a hitl record's runs cut the mined negatives and ordered the review queue."""
     cut_turns = queue_order == "class"
     review_turns = (review_order or queue_order) == "class"
+    if review_order == "learned":
+        learned = (
+            " the review queue's places ordered by what the session's verdicts so far say will give a"
+            " label (`review_order` learned)"
+        )
+        return (
+            f", the predicted classes taking turns in the cut (`queue_order` class) and{learned}"
+            if cut_turns
+            else f",{learned}"
+        )
     if cut_turns and review_turns:
         return ", the predicted classes taking turns in the cut and in the queue (`queue_order` class)"
     if cut_turns:

@@ -45,7 +45,7 @@ from factorydet_core.io.dataset import MANIFEST, Dataset, open_dataset
 from factorydet_core.session.queue import queue_order as order_queue
 from factorydet_core.session.queue import review_order_of
 from factorydet_core.settings_check import exception_line, short_repr
-from factorydet_core.types import MAX_RAY_WORKERS, QUEUE_ORDERS, InputError
+from factorydet_core.types import MAX_RAY_WORKERS, QUEUE_ORDERS, REVIEW_ORDERS, InputError
 
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
@@ -2265,6 +2265,20 @@ class SessionDB:
             if run_id is None:
                 return "score"
         order = review_order_of(self._run_settings(run_id)) or "score"
+        if order not in REVIEW_ORDERS:
+            raise SessionError(f"training run {run_id}: unknown queue order {short_repr(order, 40)}")
+        return str(order)
+
+    def cut_order(self, run_id: int | None = None) -> str:
+        """The order run ``run_id`` (the latest by default) cut its mined negatives in
+        (``LoopSettings.queue_order``; "score" for runs from before it was a setting): its review
+        queue's order by item when the review order is "learned" (which orders places,
+        ``session.review_rank``), and the places' order until it has enough verdicts."""
+        if run_id is None:
+            run_id = self.latest_run_id()
+            if run_id is None:
+                return "score"
+        order = self._run_settings(run_id).get("queue_order") or "score"
         if order not in QUEUE_ORDERS:
             raise SessionError(f"training run {run_id}: unknown queue order {short_repr(order, 40)}")
         return str(order)
@@ -2341,6 +2355,8 @@ class SessionDB:
         out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
         if out:
             order = self.queue_order(run_id)
+            if order == "learned":  # it orders places (session.review_rank): items in the cut's order
+                order = self.cut_order(run_id)
             if order != "score":
                 out = self._in_queue_order(run_id, order, out)
         label_iou = self.label_overlap(out)

@@ -13,6 +13,7 @@ from factorydet_core.types import (
     MINING_THRESHOLD,
     PROBABILITY_EXPONENT,
     QUEUE_ORDERS,
+    REVIEW_ORDERS,
     SCORE_THRESHOLD,
     InputError,
 )
@@ -99,7 +100,10 @@ class LoopSettings:
     change applies from the next run. Class turns reach a class the model has barely learned, but
     give every predicted class the same share of the reviewer's first entries, among them classes
     whose queue is mostly background; by score, a reviewer labels more objects but fewer of the
-    rare classes (``bench hitl``, docs/labelling.md: level in F at 50% unannotated)."""
+    rare classes (``bench hitl``, docs/labelling.md: level in F at 50% unannotated). "learned":
+    the places likeliest to give a label ('object' or 'wrong box') first, by a logistic regression
+    on the session's own verdicts refitted as they come (``session.review_rank``); ``queue_order``
+    until there are enough of them, and for a queue shown by item."""
     review_extra: int | None = 0
     """False positives beyond the first ``negatives_per_round`` (in ``queue_order``) that a run's
     last mining adds to its review queue alone: training leaves them out (neither background nor
@@ -159,8 +163,8 @@ class LoopSettings:
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
-        if self.review_order is not None and self.review_order not in QUEUE_ORDERS:
-            orders = ", ".join(QUEUE_ORDERS)
+        if self.review_order is not None and self.review_order not in REVIEW_ORDERS:
+            orders = ", ".join(REVIEW_ORDERS)
             raise InputError(f"review_order must be one of {orders} or None, got {self.review_order!r}")
         extra = self.review_extra
         if extra is not None and (isinstance(extra, bool) or not isinstance(extra, int) or extra < 0):
@@ -322,9 +326,10 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "taking turns",
             str, choices=tuple((o, o) for o in QUEUE_ORDERS)),
     Control("review_order", "Review order", "the review queue's order alone, from the next run on: most "
-            "likely an object first (score) or the predicted classes taking turns (class); auto: as the "
-            "queue order", str,
-            choices=(("auto", None), *((o, o) for o in QUEUE_ORDERS))),
+            "likely an object first (score), the predicted classes taking turns (class), or learned from "
+            "the session's verdicts, the places likeliest to give a label first (learned; by place); auto: "
+            "as the queue order", str,
+            choices=(("auto", None), *((o, o) for o in REVIEW_ORDERS))),
     Control("review_extra", "Review extra", "false positives beyond the mined negatives that the last "
             "mining queues for review alone, left out of training until reviewed (0: none, the paper; "
             "-1: all)", int, -1, 10_000_000, 100, none_as=-1),

@@ -587,3 +587,39 @@ def test_a_class_order_queue_by_place_visits_every_place_once_in_its_turn(state,
         visited.append((shown["predicted_class"], shown["score"]))
         person.verdict("background")
     assert visited == expected
+
+
+def test_a_learned_order_queue_shows_the_next_likeliest_place_and_a_skipped_one_again_last(
+    state, tiny_model_path
+):
+    cubes = [(10.0 + 3.0 * k, 1.0, 0.5) for k in range(6)]
+    clouds = (
+        np.concatenate([_cube(c) for c in cubes]),
+        _cube((60.0, 1.0, 0.5)),
+        np.zeros((0, 3), np.float32),
+    )
+    state.set_world(WorldFrames(np.stack([np.eye(4)] * 3), np.ones(3), clouds), "3 frames placed")
+    # An answered run: its places on the cubes gave labels, those on no points did not.
+    on = [mined_item(0, 70 + k, [*c, 0.6, 0.6, 0.6, 0.0], 0.3) for k, c in enumerate(cubes)]
+    off = [mined_item(0, 80 + k, [10.0 + 3.0 * k, 20.0, 0.5, 0.6, 0.6, 0.6, 0.0], 0.3) for k in range(20)]
+    answered = state.db.save_training_run(queue_run(tiny_model_path, [on + off]), "small", {})
+    queue = state.db.review_queue(answered)
+    state.db.review([q["id"] for q in queue if q["box"][1] < 10.0], "wrong_box", "ann")
+    state.db.review([q["id"] for q in queue if q["box"][1] > 10.0], "background", "ann")
+    # A learned run: its places on no points score higher; the cube's points put its place first.
+    items = [mined_item(1, 200, [60.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0], 0.2)] + [
+        mined_item(1, 201 + k, [30.0 + 3.0 * k, 9.0, 0.5, 0.6, 0.6, 0.6, 0.0], 0.9 - 0.1 * k)
+        for k in range(3)
+    ]
+    settings = {"queue_order": "score", "review_order": "learned"}
+    state.db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": settings})
+    person = _person(state, "ann")
+    assert [q["score"] for q in person.load_queue()] == [0.2, 0.9, 0.8, 0.7]
+    visited = []
+    person.step(0)
+    verdicts = iter(["skip", "background", "background", "background", "background", "background"])
+    while person.current_item() is not None and len(visited) < 6:
+        visited.append(person.current_item()["score"])
+        person.verdict(next(verdicts))
+    # Every place once, the skipped one again after the rest, then none pending.
+    assert visited == [0.2, 0.9, 0.8, 0.7, 0.2]

@@ -226,6 +226,9 @@ def test_a_hitl_record_says_how_it_cut_and_how_it_ordered_the_review_queue():
     assert "taking turns in the cut" in split
     assert "most likely an object first (`review_order` score)" in split
     assert "in the review queue (`review_order` class)" in _order_text("score", "class")
+    learned = _order_text("class", "learned")
+    assert "taking turns in the cut" in learned and "(`review_order` learned)" in learned
+    assert _order_text("score", "learned").startswith(", the review queue's places ordered by")
 
 
 def test_a_hitl_record_says_what_its_reviewers_queue_held_beyond_the_mined_negatives():

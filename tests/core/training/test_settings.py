@@ -43,6 +43,7 @@ def test_a_number_is_taken_inside_its_bounds_and_refused_outside(control, value)
      ("fragments_per_frame", 0, None), ("fragments_per_frame", 12, 12), ("geometry", False, False),
      ("recalibrate_background", 0, None), ("recalibrate_background", 0.5, 0.5),
      ("review_order", "auto", None), ("review_order", "score", "score"),
+     ("review_order", "learned", "learned"),
      ("review_extra", -1, None), ("review_extra", 0, 0), ("review_extra", 300, 300)],
 )  # fmt: skip
 def test_choices_and_none_stand_ins(field, raw, expected):
@@ -66,7 +67,7 @@ def test_the_settings_still_check_themselves():
         loop_settings_from({"method": "head_options", "box_quality": False})
     with pytest.raises(InputError, match="recalibrate_background applies to the learned box head"):
         loop_settings_from({"method": "paper", "recalibrate_background": 0.5})
-    with pytest.raises(InputError, match="review_order must be one of score, class or None"):
+    with pytest.raises(InputError, match="review_order must be one of score, class, learned or None"):
         LoopSettings(review_order="random")
     for bad in (-1, 2.5, True):
         with pytest.raises(InputError, match="review_extra must be an integer"):

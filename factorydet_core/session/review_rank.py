@@ -1,0 +1,299 @@
+"""A review order learned from the session's own verdicts (``LoopSettings.review_order`` "learned").
+
+The queue's places come by the chance that one of their items is an object
+(``world.group_by_place``), the predicted classes taking turns: the model's scores say which
+false positives it is least sure are background, not which of them a reviewer will find to be an
+unlabelled object. Among a queue's places at 50% unannotated, a place's points decide much of it
+(a place of a few points is one the reviewer skips: nothing to see), its frames some more, and how
+well its scores rank varies by predicted class. Every verdict a reviewer gives says which of these
+places were worth their time: a logistic regression on each answered place's features, its
+target whether the verdict gave a label ('object' or 'wrong box'), ranks the places still
+pending. It is refitted as verdicts come (every ``REFIT_EVERY`` answered places), on the answers
+of this run and of every earlier run of the session.
+
+Until the answers hold ``MIN_ANSWERS`` places with at least ``MIN_EACH`` of each outcome, the
+places keep the order the run's queue cut its negatives in (``LoopSettings.queue_order``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from factorydet_core.geometry import points_in_box
+from factorydet_core.types import InputError, check_array
+
+MIN_ANSWERS = 20
+"""The fewest answered places a learned order is fitted on."""
+MIN_EACH = 3
+"""... with at least this many places of each outcome (useful and not)."""
+REFIT_EVERY = 10
+"""The learned order is refitted once every this many answered places (in between it stays as it
+was, so that the places after the shown one do not move with each verdict)."""
+USEFUL_VERDICTS = ("object", "wrong_box")
+"""The verdicts that give a label: what the learned order ranks places by the chance of."""
+NUM_PLACE_FEATURES = 5
+"""Features of a place before its predicted class's one-hot (``place_features``)."""
+
+
+def place_features(
+    items: Sequence[dict],
+    places: Sequence[Sequence[int]],
+    clouds: Sequence[np.ndarray],
+    class_names: Sequence[str],
+) -> np.ndarray:
+    """What the learned order knows of each place, before anyone looks at it.
+
+    Args:
+        items: queue items (``SessionDB.review_queue``): dicts with ``frame_index``, ``box`` (7,)
+            in that frame, ``score`` and ``predicted_class``.
+        places: lists of positions in ``items``, each place's best item first
+            (``world.group_by_place``).
+        clouds: each frame's points (K_f, 3) in its vehicle frame (``world.WorldFrames.clouds``).
+        class_names: the data set's object classes, the one-hot's columns (a predicted class not
+            among them sets none).
+
+    Returns:
+        (P, NUM_PLACE_FEATURES + C) float64: the place's chance that one of its items is an
+        object (``world.place_chance``), its best score, log(1 + the points in its best item's
+        box), its frames, its items, and its best item's predicted class one-hot.
+    """
+    out = np.zeros((len(places), NUM_PLACE_FEATURES + len(class_names)), np.float64)
+    column = {str(name): NUM_PLACE_FEATURES + k for k, name in enumerate(class_names)}
+    for p, members in enumerate(places):
+        if not len(members):
+            raise InputError(f"place_features: place {p} has no items")
+        place = [items[k] for k in members]
+        scores = np.clip(np.array([float(q["score"]) for q in place]), 0.0, 1.0)
+        best = place[0]
+        frame = int(best["frame_index"])
+        if not 0 <= frame < len(clouds):
+            raise InputError(
+                f"place_features: item {best.get('id')} is of frame {frame}, not among {len(clouds)}"
+            )
+        box = np.asarray(best["box"], np.float64)
+        out[p, 0] = 1.0 - float(np.prod(1.0 - scores))
+        out[p, 1] = float(scores.max())
+        out[p, 2] = np.log1p(int(points_in_box(clouds[frame], box).sum()))
+        out[p, 3] = len({int(q["frame_index"]) for q in place})
+        out[p, 4] = len(place)
+        k = column.get(str(best.get("predicted_class")))
+        if k is not None:
+            out[p, k] = 1.0
+    return out
+
+
+def place_answers(
+    items: Sequence[dict], places: Sequence[Sequence[int]]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which places a reviewer answered and which answers gave a label.
+
+    A place is answered when any of its items has a verdict ('skip' included: the reviewer looked
+    and found nothing to say, an answer the ranker learns from), useful when any has a verdict of
+    ``USEFUL_VERDICTS``, skipped when every verdict it has is 'skip'.
+
+    Returns:
+        ``(answered_mask, useful_mask, skipped_mask)``, (P,) bool each.
+    """
+    answered = np.zeros(len(places), bool)
+    useful = np.zeros(len(places), bool)
+    skipped = np.zeros(len(places), bool)
+    for p, members in enumerate(places):
+        verdicts = [v for v in (items[k].get("verdict") for k in members) if v is not None]
+        answered[p] = bool(verdicts)
+        useful[p] = any(v in USEFUL_VERDICTS for v in verdicts)
+        skipped[p] = bool(verdicts) and all(v == "skip" for v in verdicts)
+    return answered, useful, skipped
+
+
+def fit_stage(num_answered: int) -> int:
+    """How many answered places the learned order is fitted on when ``num_answered`` are: the last
+    multiple of ``REFIT_EVERY`` (the order changes once every ``REFIT_EVERY`` verdicts)."""
+    return (max(int(num_answered), 0) // REFIT_EVERY) * REFIT_EVERY
+
+
+class ReviewRanker:
+    """A logistic regression from a place's features (``place_features``) to whether a reviewer's
+    verdict on it gives a label, scikit-learn style.
+
+    Args:
+        regularization: the inverse L2 strength ``C`` (a few hundred answers: keep it moderate).
+        min_answers, min_each: the fewest answered places, and places of each outcome, it fits on;
+            with fewer, ``fit`` leaves it unfitted (``fitted_`` False) and ``rank`` keeps the
+            fallback order.
+    """
+
+    def __init__(
+        self, regularization: float = 1.0, min_answers: int = MIN_ANSWERS, min_each: int = MIN_EACH
+    ) -> None:
+        self.regularization = regularization
+        self.min_answers = min_answers
+        self.min_each = min_each
+
+    def fit(self, features: np.ndarray, useful_mask: np.ndarray) -> ReviewRanker:
+        """Fit on answered places: ``features`` (A, F), ``useful_mask`` (A,) bool."""
+        from sklearn.linear_model import LogisticRegression
+        from sklearn.pipeline import make_pipeline
+        from sklearn.preprocessing import StandardScaler
+
+        check_array(features, (None, None), name="features", finite=True)
+        useful_mask = np.asarray(useful_mask, bool).reshape(-1)
+        if len(useful_mask) != len(features):
+            raise InputError(f"ReviewRanker.fit: {len(features)} places but {len(useful_mask)} outcomes")
+        if not self.regularization > 0:
+            raise InputError(f"ReviewRanker: regularization must be > 0, got {self.regularization!r}")
+        self.num_features_ = features.shape[1]
+        num_useful = int(useful_mask.sum())
+        self.fitted_ = (
+            len(useful_mask) >= self.min_answers
+            and min(num_useful, len(useful_mask) - num_useful) >= self.min_each
+        )
+        self.model_ = None
+        if self.fitted_:
+            self.model_ = make_pipeline(
+                StandardScaler(), LogisticRegression(C=float(self.regularization), max_iter=5000)
+            ).fit(features, useful_mask)
+        return self
+
+    def predict_useful(self, features: np.ndarray) -> np.ndarray:
+        """(P,) float64: each place's probability that a verdict on it gives a label."""
+        if not getattr(self, "fitted_", False):
+            raise InputError("ReviewRanker: not fitted on enough answers yet (fitted_ is False)")
+        check_array(features, (None, self.num_features_), name="features", finite=True)
+        return self.model_.predict_proba(features)[:, 1].astype(np.float64)
+
+    def rank(
+        self, features: np.ndarray, answered_mask: np.ndarray, skipped_mask: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The places in review order: the answered ones first, in their given order (the one a
+        reviewer has worked through), then the pending ones likeliest useful first (ties, and an
+        unfitted ranker, keep the given order), then the skipped ones (to look at again last).
+
+        Args:
+            features: (P, F) every place's features, in the fallback order.
+            answered_mask: (P,) bool, the skipped places included.
+            skipped_mask: (P,) bool, answered places whose answers are all 'skip' (``None``: none).
+
+        Returns:
+            (P,) int64 permutation of ``range(P)``.
+        """
+        answered_mask = np.asarray(answered_mask, bool).reshape(-1)
+        if len(answered_mask) != len(features):
+            raise InputError(f"ReviewRanker.rank: {len(features)} places but {len(answered_mask)} answers")
+        skipped_mask = (
+            np.zeros_like(answered_mask) if skipped_mask is None else np.asarray(skipped_mask, bool)
+        )
+        if skipped_mask.shape != answered_mask.shape:
+            raise InputError(f"ReviewRanker.rank: {len(answered_mask)} places but {len(skipped_mask)} skips")
+        pending = np.flatnonzero(~answered_mask)
+        if getattr(self, "fitted_", False) and len(pending):
+            chance = self.predict_useful(np.asarray(features)[pending])
+            pending = pending[np.argsort(-chance, kind="stable")]
+        first = np.flatnonzero(answered_mask & ~skipped_mask)
+        return np.concatenate([first, pending, np.flatnonzero(answered_mask & skipped_mask)]).astype(np.int64)
+
+
+class LearnedOrder:
+    """The learned review order of one session's queues, on one set of frames placed in a world
+    frame: each run's place features worked out once (a run's items never change), the ranker
+    refitted when the answered places reach a new multiple of ``REFIT_EVERY``. What the app's
+    review panel and ``bench hitl``'s simulated reviewer both order places with.
+
+    Args:
+        db: the session (``SessionDB``; read only).
+        world: its frames in one world frame (``world.session_world``).
+        class_names: the data set's object classes.
+    """
+
+    def __init__(self, db, world, class_names: Sequence[str]) -> None:
+        self.db = db
+        self.world = world
+        self.class_names = tuple(str(name) for name in class_names)
+        self._rows: dict = {}  # a place's item ids -> its features
+        self._groups: dict = {}  # (run id, items) -> the run's whole queue by place
+        self._fit: tuple | None = None  # ((run id, stage), ReviewRanker)
+
+    def _features(self, items: Sequence[dict], places: Sequence[Sequence[int]]) -> np.ndarray:
+        """``place_features`` of ``places``, each place's worked out once (by its items' ids: an
+        item's frame, box and score never change)."""
+        keys = [tuple(int(items[k]["id"]) for k in members) for members in places]
+        missing = [p for p, key in enumerate(keys) if key not in self._rows]
+        if missing:
+            rows = place_features(items, [places[p] for p in missing], self.world.clouds, self.class_names)
+            self._rows.update({keys[p]: row for p, row in zip(missing, rows)})
+        width = NUM_PLACE_FEATURES + len(self.class_names)
+        return np.array([self._rows[key] for key in keys], np.float64).reshape(-1, width)
+
+    def _places(self, run_id: int, items: Sequence[dict]) -> list[list[int]]:
+        """A whole run's queue by place, grouped once per run (its items never change)."""
+        from factorydet_core.session.world import group_by_place
+
+        key = (int(run_id), len(items))
+        cached = self._groups.get(key)
+        if cached is None:
+            cached = self._groups[key] = group_by_place(self.world, items)
+        return cached
+
+    def ranker(self, run_id: int, num_answered: int) -> ReviewRanker:
+        """The ranker fitted on the session's answered places, refitted when run ``run_id``'s
+        answered places (``num_answered``) reach a new ``fit_stage``: every run up to ``run_id``
+        with a queue, each grouped by place (``world.group_by_place``)."""
+        key = (int(run_id), fit_stage(num_answered))
+        if self._fit is not None and self._fit[0] == key:
+            return self._fit[1]
+        features, useful = [], []
+        for run in self.db.training_runs():
+            if run["id"] > run_id:
+                continue
+            items = self.db.review_queue(run["id"])
+            if not items or all(q.get("verdict") is None for q in items):
+                continue
+            places = self._places(run["id"], items)
+            run_features = self._features(items, places)
+            answered, run_useful, _ = place_answers(items, places)
+            features.append(run_features[answered])
+            useful.append(run_useful[answered])
+        width = NUM_PLACE_FEATURES + len(self.class_names)
+        ranker = ReviewRanker().fit(
+            np.concatenate(features) if features else np.zeros((0, width)),
+            np.concatenate(useful) if useful else np.zeros(0, bool),
+        )
+        self._fit = (key, ranker)
+        return ranker
+
+    def order(self, run_id: int, items: Sequence[dict], places: Sequence[Sequence[int]]) -> list[list[int]]:
+        """``places`` of run ``run_id``'s queue ``items`` (positions in ``items``, in the fallback
+        order: ``world.group_by_place`` with the run's ``queue_order``) in the learned order: the
+        answered ones first as given, then the pending ones likeliest to give a label first
+        (``ReviewRanker.rank``; as given while the ranker has too few answers), the skipped ones
+        last."""
+        places = [list(members) for members in places]
+        features = self._features(items, places)
+        answered, _, skipped = place_answers(items, places)
+        ranker = self.ranker(run_id, int(answered.sum()))
+        return [places[k] for k in ranker.rank(features, answered, skipped).tolist()]
+
+
+def review_places(
+    db, world, items: Sequence[dict], run_id: int | None = None, learned: LearnedOrder | None = None
+):
+    """Run ``run_id``'s queue ``items`` (the latest run's by default) by place
+    (``world.group_by_place``) in its review order (``SessionDB.queue_order``): "learned" orders
+    the places the cut's order gives (``SessionDB.cut_order``) by ``learned`` (a ``LearnedOrder``
+    of the session, made here when ``None``: keep one to refit only as verdicts come).
+
+    Returns:
+        Lists of positions in ``items``, each place's items by decreasing score.
+    """
+    from factorydet_core.session.world import group_by_place
+
+    if run_id is None:
+        run_id = db.latest_run_id()
+    order = db.queue_order(run_id)
+    if order != "learned":
+        return group_by_place(world, items, order=order)
+    places = group_by_place(world, items, order=db.cut_order(run_id))
+    if learned is None:
+        learned = LearnedOrder(db, world, db.class_names)
+    return learned.order(run_id, items, places)
