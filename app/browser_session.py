@@ -692,6 +692,10 @@ class BrowserSession:
             kept = {q["id"] for q in queue}
             places = [[k for k in place if read[k]["id"] in kept] for place in ordered]
             queue = _by_place(read, [place for place in places if place], current_id)
+            if learned and self._learned.last_useful:
+                for entry in queue:
+                    entry["place_useful"] = self._learned.last_useful.get(entry["id"])
+                    entry["learned_from"] = self._learned.last_num_answers
         self._shown_queue = (shown_key, queue)
         with self.lock:
             self.queue = queue

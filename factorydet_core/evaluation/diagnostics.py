@@ -286,6 +286,11 @@ def review_item_markdown(
         if names is not None:
             top = sorted(zip(names, probabilities), key=lambda t: -t[1])[:3]
             lines.append("probabilities: " + ", ".join(f"{n} {p:.2f}" for n, p in top))
+    if item.get("place_useful") is not None:
+        lines.append(
+            f"Learned order: a **{100 * item['place_useful']:.0f}%** chance that a verdict here gives a label"
+            f" (fitted on {item.get('learned_from', 0)} answered places)"
+        )
     near = _neighbours(item["box"], frame_labels)
     lines.append(f"Nearby labels: {', '.join(near[:5]) if near else 'none within 3 m'}")
     if item.get("verdict"):

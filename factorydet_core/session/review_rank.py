@@ -212,7 +212,12 @@ class LearnedOrder:
         self.class_names = tuple(str(name) for name in class_names)
         self._rows: dict = {}  # a place's item ids -> its features
         self._groups: dict = {}  # (run id, items) -> the run's whole queue by place
-        self._fit: tuple | None = None  # ((run id, stage), ReviewRanker)
+        self._fit: tuple | None = None  # ((run id, stage), ReviewRanker, answered places fitted on)
+        self.last_useful: dict[int, float] = {}
+        """By item id, the last ``order``'s chance that a verdict on the item's place gives a
+        label (empty while the ranker has too few answers): what the review panel shows."""
+        self.last_num_answers = 0
+        """How many answered places the last ``order``'s ranker was fitted on."""
 
     def _features(self, items: Sequence[dict], places: Sequence[Sequence[int]]) -> np.ndarray:
         """``place_features`` of ``places``, each place's worked out once (by its items' ids: an
@@ -241,6 +246,7 @@ class LearnedOrder:
         with a queue, each grouped by place (``world.group_by_place``)."""
         key = (int(run_id), fit_stage(num_answered))
         if self._fit is not None and self._fit[0] == key:
+            self.last_num_answers = self._fit[2]
             return self._fit[1]
         features, useful = [], []
         for run in self.db.training_runs():
@@ -259,7 +265,8 @@ class LearnedOrder:
             np.concatenate(features) if features else np.zeros((0, width)),
             np.concatenate(useful) if useful else np.zeros(0, bool),
         )
-        self._fit = (key, ranker)
+        self.last_num_answers = sum(len(u) for u in useful)
+        self._fit = (key, ranker, self.last_num_answers)
         return ranker
 
     def order(self, run_id: int, items: Sequence[dict], places: Sequence[Sequence[int]]) -> list[list[int]]:
@@ -272,6 +279,12 @@ class LearnedOrder:
         features = self._features(items, places)
         answered, _, skipped = place_answers(items, places)
         ranker = self.ranker(run_id, int(answered.sum()))
+        self.last_useful = {}
+        if ranker.fitted_ and len(places):
+            chance = ranker.predict_useful(features)
+            self.last_useful = {
+                int(items[k]["id"]): float(c) for members, c in zip(places, chance) for k in members
+            }
         return [places[k] for k in ranker.rank(features, answered, skipped).tolist()]
 
 

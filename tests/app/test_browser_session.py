@@ -614,7 +614,11 @@ def test_a_learned_order_queue_shows_the_next_likeliest_place_and_a_skipped_one_
     settings = {"queue_order": "score", "review_order": "learned"}
     state.db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": settings})
     person = _person(state, "ann")
-    assert [q["score"] for q in person.load_queue()] == [0.2, 0.9, 0.8, 0.7]
+    queue = person.load_queue()
+    assert [q["score"] for q in queue] == [0.2, 0.9, 0.8, 0.7]
+    # What the panel says of each place: its learned chance, the first the highest.
+    chances = [q["place_useful"] for q in queue]
+    assert chances[0] > max(chances[1:]) and all(q["learned_from"] == 26 for q in queue)
     visited = []
     person.step(0)
     verdicts = iter(["skip", "background", "background", "background", "background", "background"])

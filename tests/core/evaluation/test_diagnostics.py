@@ -47,3 +47,12 @@ def test_an_item_queued_for_review_alone_says_training_leaves_it_out_until_a_ver
     # Above the run's hold score it is still one for review alone, not a held mined negative.
     held = review_item_markdown({**alone, "score": 0.9}, [], 1, 5, hold=0.35)
     assert "For review alone" in held and "Held" not in held
+
+
+def test_a_place_in_a_learned_order_says_its_chance_of_a_label_and_what_it_was_learned_from():
+    text = review_item_markdown({**ITEM, "place_useful": 0.624, "learned_from": 40}, [], 1, 5)
+    assert (
+        "Learned order: a **62%** chance that a verdict here gives a label (fitted on 40 answered places)"
+        in text
+    )
+    assert "Learned order" not in review_item_markdown(ITEM, [], 1, 5)
