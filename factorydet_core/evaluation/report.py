@@ -785,6 +785,15 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     rows.append(
         "| verdicts (skips too) | " + " | ".join(f"{variants[n]['num_reviews']:g}" for n in names) + " |"
     )
+    if any(variants[n]["num_reviews"] for n in names):
+        useful = [
+            sum(variants[n].get("reviews", {}).get(v) or 0 for v in ("object", "wrong_box")) for n in names
+        ]
+        rows.append(
+            "| of them, objects and wrong boxes (a label each) | "
+            + " | ".join(f"{u:g}" for u in useful)
+            + " |"
+        )
     if any(variants[n].get("reviews", {}).get("hidden") for n in names):
         rows.append(
             "| queue items passed over by the filter | "

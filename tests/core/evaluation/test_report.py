@@ -172,8 +172,13 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
         {"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.33, 0.34, 0.32], "full": [0.34, 0.35, 0.33]},
         recovered={"200": 0.75},
     )
+    result["variants"]["reviewed_200"].update(
+        num_reviews=400, reviews={"background": 250.4, "object": 40.2, "wrong_box": 60.0, "skip": 49.4}
+    )
     text = hitl_markdown(result, heading=False)
     assert "by the reviews: K = 200: 75% [75%, 75%] (per seed: K = 200: 75%, 75%, 75%)" in text
+    # The verdicts that gave a label, what a review order can change.
+    assert "| of them, objects and wrong boxes (a label each) | 0 | 100.2 | 0 |" in text
     assert "reviewer's queue hides items" in text and "`blind_safe`" not in text
     assert "classes taking turns" not in text
     # A reviewer holding what it leaves: its share beside the plain reviewer's, what it does said;
