@@ -688,14 +688,15 @@ class BrowserSession:
                     ranker = self._learned = LearnedOrder(
                         self.state.db, world, self.state.dataset.class_names
                     )
-                ordered = ranker.order(run_id, read, ordered)
+                ranked = ranker.ranked(run_id, read, ordered)
+                ordered = ranked.places
             kept = {q["id"] for q in queue}
             places = [[k for k in place if read[k]["id"] in kept] for place in ordered]
             queue = _by_place(read, [place for place in places if place], current_id)
-            if learned and self._learned.last_useful:
+            if learned and ranked.useful:
                 for entry in queue:
-                    entry["place_useful"] = self._learned.last_useful.get(entry["id"])
-                    entry["learned_from"] = self._learned.last_num_answers
+                    entry["place_useful"] = ranked.useful.get(entry["id"])
+                    entry["learned_from"] = ranked.num_answers
         self._shown_queue = (shown_key, queue)
         with self.lock:
             self.queue = queue
@@ -762,9 +763,10 @@ class BrowserSession:
             return
         ids = [q["id"] for q in queue]
         k = ids.index(item["id"]) if item["id"] in ids else -1
-        # Then round to the start: a learned order puts the places skipped last, the one just
-        # skipped among them.
-        later = [q for q in queue[k + 1 :] + queue[: max(k, 0)] if q["verdict"] in (None, "skip")]
+        # Unreviewed ones first, after this one and then from the start (a learned order puts
+        # the places skipped last, the one just skipped among them); then those skipped.
+        rest = queue[k + 1 :] + queue[: max(k, 0)]
+        later = [q for q in rest if q["verdict"] is None] or [q for q in rest if q["verdict"] == "skip"]
         self.go_to(later[0] if later else None)
 
     def batch_verdict(self, verdict: str, class_name: str | None = None) -> int:

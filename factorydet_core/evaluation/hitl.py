@@ -241,8 +241,9 @@ def _truth_answer(db: SessionDB, dataset: Dataset, item: dict, positive_iou: flo
 def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts) -> dict:
     """``simulated_review`` by place, as the app's review panel shows the queue by default. With
     the review order "learned" (``session.review_rank``), the places still pending are ordered
-    again after every ``review_rank.REFIT_EVERY`` verdicts, as the panel orders them."""
-    from factorydet_core.session.review_rank import LearnedOrder, fit_stage
+    again after each verdict, refitted every ``review_rank.REFIT_EVERY`` items answered, as the
+    panel orders them."""
+    from factorydet_core.session.review_rank import LearnedOrder
     from factorydet_core.session.world import MOVING_CLASSES, group_by_place, place_box
 
     def placer(class_name):
@@ -261,7 +262,6 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
     answered = 0
     done: set[int] = set()  # items answered with an earlier place (the queue is read once)
     passed: set[int] = set()  # places looked at: answered, or passed over by the filter
-    stage = fit_stage(0)
     while answered < budget:
         members = next((m for m in places if m[0] not in passed), None)
         if members is None:
@@ -299,12 +299,11 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
                 _draw_object(db, author, frame_index, class_name, *place(frame_index, tuple(true_box)))
             counts["boxes_drawn"] += 1
         if learned is not None:
-            # The panel reads the verdicts given; here the queue read once stands for it.
+            # The panel reads the verdicts given; here the queue read once stands for it. Ordered
+            # again after each verdict, as the panel's queue (refitted every few).
             for k in members:
                 queue[k] = {**queue[k], "verdict": verdict}
-            if fit_stage(answered) != stage:
-                stage = fit_stage(answered)
-                places = learned.order(run_id, queue, base)
+            places = learned.order(run_id, queue, base)
     return counts
 
 
@@ -794,6 +793,11 @@ def _hitl_variants(
                     round_reach = queue_reach(db, dataset, train)
                     reached |= round_reach
                 if budget and r < rounds:
+                    answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou, world=world)
+                    for key, value in answered.items():
+                        reviews[key] += value
+                    # After the review: a learned order puts the places answered first (the
+                    # others' orders do not change with verdicts).
                     round_top = queue_reach(db, dataset, train, top=budget, world=world)
                     reached_top |= round_top
                     reach_shares.append(
@@ -802,10 +806,6 @@ def _hitl_variants(
                             len(round_top) / len(round_reach) if round_reach else None,
                         )
                     )
-                if budget and r < rounds:
-                    answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou, world=world)
-                    for key, value in answered.items():
-                        reviews[key] += value
                 done += 1
                 if progress is not None:
                     progress(done, steps)

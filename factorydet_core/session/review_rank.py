@@ -8,7 +8,7 @@ unlabelled object. Among a queue's places at 50% unannotated, a place's points d
 well its scores rank varies by predicted class. Every verdict a reviewer gives says which of these
 places were worth their time: a logistic regression on each answered place's features, its
 target whether the verdict gave a label ('object' or 'wrong box'), ranks the places still
-pending. It is refitted as verdicts come (every ``REFIT_EVERY`` answered places), on the answers
+pending. It is refitted as verdicts come (every ``REFIT_EVERY`` answered items), on the answers
 of this run and of every earlier run of the session.
 
 Until the answers hold ``MIN_ANSWERS`` places with at least ``MIN_EACH`` of each outcome, the
@@ -17,11 +17,14 @@ places keep the order the run's queue cut its negatives in (``LoopSettings.queue
 
 from __future__ import annotations
 
+import dataclasses
+import threading
 from collections.abc import Sequence
 
 import numpy as np
 
 from factorydet_core.geometry import points_in_box
+from factorydet_core.session.store import VERDICTS
 from factorydet_core.types import InputError, check_array
 
 MIN_ANSWERS = 20
@@ -29,8 +32,8 @@ MIN_ANSWERS = 20
 MIN_EACH = 3
 """... with at least this many places of each outcome (useful and not)."""
 REFIT_EVERY = 10
-"""The learned order is refitted once every this many answered places (in between it stays as it
-was, so that the places after the shown one do not move with each verdict)."""
+"""The learned order is refitted once every this many answered items of the run (in between it
+stays as it was, so that the places after the shown one do not move with each verdict)."""
 USEFUL_VERDICTS = ("object", "wrong_box")
 """The verdicts that give a label: what the learned order ranks places by the chance of."""
 NUM_PLACE_FEATURES = 5
@@ -197,11 +200,26 @@ class ReviewRanker:
         return np.concatenate([first, pending, np.flatnonzero(answered_mask & skipped_mask)]).astype(np.int64)
 
 
+@dataclasses.dataclass(frozen=True)
+class RankedPlaces:
+    """Places in the learned order, with what the panel says of them."""
+
+    places: list
+    """Lists of positions in the items, in review order."""
+    useful: dict
+    """By item id, the chance that a verdict on the item's place gives a label (empty while the
+    ranker has too few answers)."""
+    num_answers: int
+    """How many answered places the ranker was fitted on."""
+
+
 class LearnedOrder:
     """The learned review order of one session's queues, on one set of frames placed in a world
-    frame: each run's place features worked out once (a run's items never change), the ranker
-    refitted when the answered places reach a new multiple of ``REFIT_EVERY``. What the app's
-    review panel and ``bench hitl``'s simulated reviewer both order places with.
+    frame: each place's features worked out once (a run's items never change), the ranker
+    refitted when the run's answered items reach a new multiple of ``REFIT_EVERY``
+    (``SessionDB.review_progress``: whatever part of the queue a caller shows). What the app's
+    review panel and ``bench hitl``'s simulated reviewer both order places with; safe to share
+    between threads (one fit at a time).
 
     Args:
         db: the session (``SessionDB``; read only).
@@ -213,14 +231,10 @@ class LearnedOrder:
         self.db = db
         self.world = world
         self.class_names = tuple(str(name) for name in class_names)
+        self._lock = threading.Lock()
         self._rows: dict = {}  # a place's item ids -> its features
         self._groups: dict = {}  # (run id, items) -> the run's whole queue by place
         self._fit: tuple | None = None  # ((run id, stage), ReviewRanker, answered places fitted on)
-        self.last_useful: dict[int, float] = {}
-        """By item id, the last ``order``'s chance that a verdict on the item's place gives a
-        label (empty while the ranker has too few answers): what the review panel shows."""
-        self.last_num_answers = 0
-        """How many answered places the last ``order``'s ranker was fitted on."""
 
     def _features(self, items: Sequence[dict], places: Sequence[Sequence[int]]) -> np.ndarray:
         """``place_features`` of ``places``, each place's worked out once (by its items' ids: an
@@ -243,14 +257,14 @@ class LearnedOrder:
             cached = self._groups[key] = group_by_place(self.world, items)
         return cached
 
-    def ranker(self, run_id: int, num_answered: int) -> ReviewRanker:
-        """The ranker fitted on the session's answered places, refitted when run ``run_id``'s
-        answered places (``num_answered``) reach a new ``fit_stage``: every run up to ``run_id``
-        with a queue, each grouped by place (``world.group_by_place``)."""
-        key = (int(run_id), fit_stage(num_answered))
+    def _ranker(self, run_id: int) -> tuple[ReviewRanker, int]:
+        """The ranker fitted on the answered places of every run up to ``run_id`` (each run's
+        whole queue grouped by place), and how many they are; refitted when run ``run_id``'s
+        answered items reach a new ``fit_stage``."""
+        progress = self.db.review_progress(run_id)
+        key = (int(run_id), fit_stage(sum(progress.get(v, 0) for v in VERDICTS)))
         if self._fit is not None and self._fit[0] == key:
-            self.last_num_answers = self._fit[2]
-            return self._fit[1]
+            return self._fit[1], self._fit[2]
         features, useful = [], []
         for run in self.db.training_runs():
             if run["id"] > run_id:
@@ -268,27 +282,30 @@ class LearnedOrder:
             np.concatenate(features) if features else np.zeros((0, width)),
             np.concatenate(useful) if useful else np.zeros(0, bool),
         )
-        self.last_num_answers = sum(len(u) for u in useful)
-        self._fit = (key, ranker, self.last_num_answers)
-        return ranker
+        self._fit = (key, ranker, sum(len(u) for u in useful))
+        return ranker, self._fit[2]
 
-    def order(self, run_id: int, items: Sequence[dict], places: Sequence[Sequence[int]]) -> list[list[int]]:
+    def ranked(self, run_id: int, items: Sequence[dict], places: Sequence[Sequence[int]]) -> RankedPlaces:
         """``places`` of run ``run_id``'s queue ``items`` (positions in ``items``, in the fallback
-        order: ``world.group_by_place`` with the run's ``queue_order``) in the learned order: the
-        answered ones first as given, then the pending ones likeliest to give a label first
-        (``ReviewRanker.rank``; as given while the ranker has too few answers), the skipped ones
-        last."""
+        order: ``world.group_by_place`` with the run's ``queue_order``; the items' verdicts as
+        the caller last read them) in the learned order: the answered ones first as given, then
+        the pending ones likeliest to give a label first (``ReviewRanker.rank``; as given while
+        the ranker has too few answers), the skipped ones last."""
         places = [list(members) for members in places]
-        features = self._features(items, places)
+        with self._lock:
+            features = self._features(items, places)
+            ranker, num_answers = self._ranker(run_id)
         answered, _, skipped = place_answers(items, places)
-        ranker = self.ranker(run_id, int(answered.sum()))
-        self.last_useful = {}
+        useful = {}
         if ranker.fitted_ and len(places):
             chance = ranker.predict_useful(features)
-            self.last_useful = {
-                int(items[k]["id"]): float(c) for members, c in zip(places, chance) for k in members
-            }
-        return [places[k] for k in ranker.rank(features, answered, skipped).tolist()]
+            useful = {int(items[k]["id"]): float(c) for members, c in zip(places, chance) for k in members}
+        order = ranker.rank(features, answered, skipped).tolist()
+        return RankedPlaces([places[k] for k in order], useful, num_answers)
+
+    def order(self, run_id: int, items: Sequence[dict], places: Sequence[Sequence[int]]) -> list[list[int]]:
+        """``ranked``'s places alone."""
+        return self.ranked(run_id, items, places).places
 
 
 def review_places(

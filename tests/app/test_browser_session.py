@@ -621,9 +621,9 @@ def test_a_learned_order_queue_shows_the_next_likeliest_place_and_a_skipped_one_
     assert chances[0] > max(chances[1:]) and all(q["learned_from"] == 26 for q in queue)
     visited = []
     person.step(0)
-    verdicts = iter(["skip", "background", "background", "background", "background", "background"])
-    while person.current_item() is not None and len(visited) < 6:
+    verdicts = iter(["skip", "skip", "background", "background", "background", "background", "background"])
+    while person.current_item() is not None and len(visited) < 7:
         visited.append(person.current_item()["score"])
         person.verdict(next(verdicts))
-    # Every place once, the skipped one again after the rest, then none pending.
-    assert visited == [0.2, 0.9, 0.8, 0.7, 0.2]
+    # Every place once, the unreviewed ones before any skipped one, then the skipped ones again.
+    assert visited == [0.2, 0.9, 0.8, 0.7, 0.9, 0.2]
