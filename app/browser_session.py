@@ -30,7 +30,7 @@ from factorydet_core.session.editing import (
     split_in_two,
 )
 from factorydet_core.session.labels_io import export_bytes
-from factorydet_core.session.review_rank import LearnedOrder
+from factorydet_core.session.review_rank import LearnedOrder, place_order
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import (
     MOVING_CLASSES,
@@ -671,10 +671,8 @@ class BrowserSession:
             # do not change, and grouped after the filters, a class order's turns would be worked
             # out again on what is left and move places ahead of the shown one.
             run_id = read[0]["run_id"]
-            order = self.state.db.queue_order(run_id)
-            learned = order == "learned"
-            if learned:  # the cut's order until there are verdicts to learn from (session.review_rank)
-                order = self.state.db.cut_order(run_id)
+            # A learned order: the cut's order until there are verdicts to learn from.
+            order, learned = place_order(self.state.db, run_id)
             places_key = (id(world), tuple(q["id"] for q in read), order)
             cached = self._places
             if cached is None or cached[0] != places_key:

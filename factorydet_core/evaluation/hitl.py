@@ -243,7 +243,7 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
     the review order "learned" (``session.review_rank``), the places still pending are ordered
     again after each verdict, refitted every ``review_rank.REFIT_EVERY`` items answered, as the
     panel orders them."""
-    from factorydet_core.session.review_rank import LearnedOrder
+    from factorydet_core.session.review_rank import LearnedOrder, place_order
     from factorydet_core.session.world import MOVING_CLASSES, group_by_place, place_box
 
     def placer(class_name):
@@ -252,13 +252,11 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
         return lambda frame_index, box: place_box(world, frame_index, box).for_store()
 
     run_id = db.latest_run_id()
-    learned = None
-    if db.queue_order(run_id) == "learned":
-        learned = LearnedOrder(db, world, db.class_names)
-        base = group_by_place(world, queue, order=db.cut_order(run_id))
+    order, relearn = place_order(db, run_id)
+    places = base = group_by_place(world, queue, order=order)
+    learned = LearnedOrder(db, world, db.class_names) if relearn else None
+    if learned is not None:
         places = learned.order(run_id, queue, base)
-    else:
-        places = group_by_place(world, queue, order=db.queue_order(run_id))
     answered = 0
     done: set[int] = set()  # items answered with an earlier place (the queue is read once)
     passed: set[int] = set()  # places looked at: answered, or passed over by the filter

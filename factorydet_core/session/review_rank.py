@@ -25,6 +25,7 @@ import numpy as np
 
 from factorydet_core.geometry import points_in_box
 from factorydet_core.session.store import VERDICTS
+from factorydet_core.session.world import group_by_place, place_chance
 from factorydet_core.types import InputError, check_array
 
 MIN_ANSWERS = 20
@@ -68,7 +69,7 @@ def place_features(
         if not len(members):
             raise InputError(f"place_features: place {p} has no items")
         place = [items[k] for k in members]
-        scores = np.clip(np.array([float(q["score"]) for q in place]), 0.0, 1.0)
+        scores = [float(q["score"]) for q in place]
         best = place[0]
         frame = int(best["frame_index"])
         if not 0 <= frame < len(clouds):
@@ -76,8 +77,8 @@ def place_features(
                 f"place_features: item {best.get('id')} is of frame {frame}, not among {len(clouds)}"
             )
         box = np.asarray(best["box"], np.float64)
-        out[p, 0] = 1.0 - float(np.prod(1.0 - scores))
-        out[p, 1] = float(scores.max())
+        out[p, 0] = place_chance(scores)
+        out[p, 1] = min(max(max(scores), 0.0), 1.0)
         out[p, 2] = np.log1p(int(points_in_box(clouds[frame], box).sum()))
         out[p, 3] = len({int(q["frame_index"]) for q in place})
         out[p, 4] = len(place)
@@ -111,8 +112,8 @@ def place_answers(
 
 
 def fit_stage(num_answered: int) -> int:
-    """How many answered places the learned order is fitted on when ``num_answered`` are: the last
-    multiple of ``REFIT_EVERY`` (the order changes once every ``REFIT_EVERY`` verdicts)."""
+    """The stage of the learned order's fit when a run has ``num_answered`` answered items: the
+    last multiple of ``REFIT_EVERY`` (it is refitted when the stage changes)."""
     return (max(int(num_answered), 0) // REFIT_EVERY) * REFIT_EVERY
 
 
@@ -249,8 +250,6 @@ class LearnedOrder:
 
     def _places(self, run_id: int, items: Sequence[dict]) -> list[list[int]]:
         """A whole run's queue by place, grouped once per run (its items never change)."""
-        from factorydet_core.session.world import group_by_place
-
         key = (int(run_id), len(items))
         cached = self._groups.get(key)
         if cached is None:
@@ -308,25 +307,31 @@ class LearnedOrder:
         return self.ranked(run_id, items, places).places
 
 
+def place_order(db, run_id: int) -> tuple[str, bool]:
+    """How run ``run_id``'s places are grouped and ordered (``world.group_by_place``'s ``order``),
+    and whether a ``LearnedOrder`` then orders them again: a learned review order groups in the
+    order the run cut its negatives in (``SessionDB.cut_order``), any other in itself."""
+    order = db.queue_order(run_id)
+    return (db.cut_order(run_id), True) if order == "learned" else (order, False)
+
+
 def review_places(
     db, world, items: Sequence[dict], run_id: int | None = None, learned: LearnedOrder | None = None
 ):
     """Run ``run_id``'s queue ``items`` (the latest run's by default) by place
-    (``world.group_by_place``) in its review order (``SessionDB.queue_order``): "learned" orders
-    the places the cut's order gives (``SessionDB.cut_order``) by ``learned`` (a ``LearnedOrder``
-    of the session, made here when ``None``: keep one to refit only as verdicts come).
+    (``world.group_by_place``) in its review order (``SessionDB.queue_order``; ``place_order``),
+    a learned one by ``learned`` (a ``LearnedOrder`` of the session, made here when ``None``:
+    keep one to refit only as verdicts come).
 
     Returns:
         Lists of positions in ``items``, each place's items by decreasing score.
     """
-    from factorydet_core.session.world import group_by_place
-
     if run_id is None:
         run_id = db.latest_run_id()
-    order = db.queue_order(run_id)
-    if order != "learned":
-        return group_by_place(world, items, order=order)
-    places = group_by_place(world, items, order=db.cut_order(run_id))
+    order, relearn = place_order(db, run_id)
+    places = group_by_place(world, items, order=order)
+    if not relearn:
+        return places
     if learned is None:
         learned = LearnedOrder(db, world, db.class_names)
     return learned.order(run_id, items, places)
