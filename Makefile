@@ -79,28 +79,28 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl.json --readme docs/labelling.md \
-	  --no-refit-box-quality
+	  --review-order score --no-refit-box-quality
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl-50.json --readme docs/labelling.md \
-	  --readme-block hitl-50 --no-refit-box-quality
+	  --readme-block hitl-50 --review-order score --no-refit-box-quality
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants blind_safe,full --hold-places \
 	  --out docs/bench/hitl-safe.json --readme docs/labelling.md --readme-block hitl-safe --no-refit-box-quality
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --review-order score \
 	  --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-50-place.json --readme docs/labelling.md \
 	  --readme-block hitl-50-place --no-refit-box-quality --resume
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants full_late,full \
 	  --out docs/bench/hitl-50-late.json --readme docs/labelling.md --readme-block hitl-50-late --no-refit-box-quality --resume
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-50-class.json --readme docs/labelling.md \
 	  --readme-block hitl-50-class --no-refit-box-quality --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-class.json docs/bench/hitl-50-place.json \
 	  --readme docs/labelling.md --readme-block hitl-50-class-vs-place
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --variants reviewed_200,full --out docs/bench/hitl-50-refit.json --readme docs/labelling.md \
 	  --readme-block hitl-50-refit --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-refit.json docs/bench/hitl-50-class.json \
@@ -115,7 +115,7 @@ bench: $(STAMP) corpus corpus50
 	# The refit boosting the model's regressor on with 100 trees instead (blind and full from the refit record).
 	test -f docs/bench/hitl-50-refit100.json || cp docs/bench/hitl-50-refit.json docs/bench/hitl-50-refit100.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --refit-trees 100 --variants reviewed_200,full --out docs/bench/hitl-50-refit100.json \
 	  --readme docs/labelling.md --readme-block hitl-50-refit100 --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-refit100.json docs/bench/hitl-50-refit.json \
@@ -151,14 +151,14 @@ bench: $(STAMP) corpus corpus50
 	# A reviewer answering 200 places per round, on the same held-out factories.
 	test -f docs/bench/hitl-reviewed-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-reviewed-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --out docs/bench/hitl-reviewed-heldout.json --readme docs/labelling.md --readme-block hitl-reviewed-heldout \
 	  --resume
 	# The same reviewer holding what it leaves, as blind_safe (the rest from the reviewed record).
 	test -f docs/bench/hitl-reviewed-safe-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-reviewed-safe-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --out docs/bench/hitl-reviewed-safe-heldout.json --readme docs/labelling.md \
@@ -173,14 +173,14 @@ bench: $(STAMP) corpus corpus50
 	# ... and a reviewer answering 200 places a round there.
 	test -f docs/bench/hitl-50-reviewed-heldout.json || cp docs/bench/hitl-50-heldout.json docs/bench/hitl-50-reviewed-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --out docs/bench/hitl-50-reviewed-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-reviewed-heldout --resume
 	# ... the same reviewer holding what it leaves (the rest from the reviewed record).
 	test -f docs/bench/hitl-50-reviewed-safe-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-reviewed-safe-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --out docs/bench/hitl-50-reviewed-safe-heldout.json --readme docs/labelling.md \
@@ -207,7 +207,7 @@ bench: $(STAMP) corpus corpus50
 	# The reviewer's queue also holding every false positive after the mined ones, for review alone (50% and 30%).
 	test -f docs/bench/hitl-50-review-extra-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-extra-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --out docs/bench/hitl-50-review-extra-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-review-extra-heldout --resume
@@ -215,7 +215,7 @@ bench: $(STAMP) corpus corpus50
 	  --readme docs/labelling.md --readme-block hitl-50-review-extra-vs-reviewed-heldout
 	test -f docs/bench/hitl-review-extra-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-extra-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --out docs/bench/hitl-review-extra-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-extra-heldout --resume

@@ -56,7 +56,7 @@ recognition, and kept far more of the background as background (``docs/bench/qua
 
 QUEUE_ORDERS: tuple[str, ...] = ("score", "class")
 """How mined negatives are cut (``LoopSettings.queue_order``) and queued for review
-(``LoopSettings.review_order``, by default the same; ``session.queue.queue_order``): by score, as
+(``LoopSettings.review_order`` "auto"; ``session.queue.queue_order``): by score, as
 the paper adds the top N false positives; or by class, each predicted class taking turns."""
 REVIEW_ORDERS: tuple[str, ...] = (*QUEUE_ORDERS, "learned")
 """How the review queue is ordered (``LoopSettings.review_order``): as a cut's order, or learned

@@ -1,6 +1,6 @@
 """The order of mined negatives: which of them a mining round adds to the background (the first
 ``negatives_per_round``, ``LoopSettings.queue_order``) and in which order the review queue shows
-them (``LoopSettings.review_order``, by default the same).
+them (``LoopSettings.review_order``: "auto" the same, "learned" by default).
 
 By score, as the paper: the model's most confident false positives first. On a partially
 annotated data set that order spends a reviewer's budget on the classes the first fit already

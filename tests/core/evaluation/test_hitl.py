@@ -45,7 +45,7 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert _run_plan(holding, "reviewed_safe_200") != _run_plan(by_class, "reviewed_safe_200")
     # The review queue's own order shapes the reviewed detectors alone.
     by_chance = {**plan, "settings": {**settings, "queue_order": "class", "review_order": "score"}}
-    turns = {**plan, "settings": {**settings, "queue_order": "class"}}
+    turns = {**plan, "settings": {**settings, "queue_order": "class", "review_order": None}}
     for variant in ("blind", "blind_safe", "full", "full_late"):
         assert _run_plan(by_chance, variant) == _run_plan(turns, variant)
     for variant in ("reviewed_200", "reviewed_safe_200"):
@@ -58,6 +58,11 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert _run_plan({**turns, "settings": _settings_as_run(old)}, "reviewed_200") == _run_plan(
         turns, "reviewed_200"
     )
+    # Today's default learns the order from the verdicts: other runs than the queue order's.
+    learned = {**plan, "settings": {**settings, "queue_order": "class"}}
+    assert settings["review_order"] == "learned"
+    assert _run_plan(learned, "reviewed_200") != _run_plan(turns, "reviewed_200")
+    assert _run_plan(learned, "blind") == _run_plan(turns, "blind")
     # So do the false positives queued for review alone; a record from before them queued none.
     longer = {**plan, "settings": {**settings, "review_extra": None}}
     for variant in ("blind", "blind_safe", "full", "full_late"):

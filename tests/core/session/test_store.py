@@ -3,6 +3,8 @@ bad files."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import signal
 import sqlite3
 import subprocess
@@ -23,6 +25,7 @@ from factorydet_core.session.store import (
     open_session,
 )
 from factorydet_core.training.mining import TrainingRun
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import InputError
 from tests.fakes import mined_item, queue_run, unwritable
 
@@ -1024,6 +1027,12 @@ def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filt
     )
     assert db.queue_order(run) == "score"
     assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.8, 0.7, 0.3, 0.2]
+    # A run with today's default settings reviews in the learned order, its items (and its places
+    # until the ranker has answers to fit on) in the order its cut took.
+    defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings(queue_order="class"))))
+    run = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": defaults})
+    assert (db.queue_order(run), db.cut_order(run)) == ("learned", "class")
+    assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.3, 0.8, 0.2, 0.7]
     broken = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": [1, 2]})
     with pytest.raises(SessionError, match="its settings are .*not a mapping"):
         db.review_queue(broken)
