@@ -691,7 +691,7 @@ class BrowserSession:
             kept = {q["id"] for q in queue}
             places = [[k for k in place if read[k]["id"] in kept] for place in ordered]
             queue = _by_place(read, [place for place in places if place], current_id)
-            if learned and ranked.useful:
+            if learned:  # what the item's text says of the order (still learning, or a chance)
                 for entry in queue:
                     entry["place_useful"] = ranked.useful.get(entry["id"])
                     entry["learned_from"] = ranked.num_answers

@@ -7,6 +7,7 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d, fit_box
 from factorydet_core.detection.detector import ProposalResult
 from factorydet_core.geometry import points_in_box
+from factorydet_core.session.review_rank import MIN_ANSWERS, MIN_EACH, REFIT_EVERY
 from factorydet_core.types import BOX_KINDS, CLASS_NAMES, LEVELS, Detections, Frame, InputError, Proposals
 
 
@@ -290,6 +291,12 @@ def review_item_markdown(
         lines.append(
             f"Learned order: a **{100 * item['place_useful']:.0f}%** chance that a verdict here gives a label"
             f" (fitted on {item.get('learned_from', 0)} answered places)"
+        )
+    elif item.get("learned_from") is not None:
+        lines.append(
+            f"Learned order: the queue order until {MIN_ANSWERS} places are answered, at least {MIN_EACH}"
+            f" giving a label and {MIN_EACH} not ({item['learned_from']} at its last look, every"
+            f" {REFIT_EVERY} verdicts)"
         )
     near = _neighbours(item["box"], frame_labels)
     lines.append(f"Nearby labels: {', '.join(near[:5]) if near else 'none within 3 m'}")

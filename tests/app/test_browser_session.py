@@ -589,6 +589,30 @@ def test_a_class_order_queue_by_place_visits_every_place_once_in_its_turn(state,
     assert visited == expected
 
 
+def test_a_learned_order_queue_with_nothing_to_learn_from_yet_keeps_the_cuts_order_and_says_so(
+    state, tiny_model_path
+):
+    _placed_world(state, seen_in=(0, 1, 2))
+    scores = {"box": (0.9, 0.8), "cone": (0.5, 0.4)}
+    items = [
+        mined_item(0, 60 + 2 * c + k, [40.0 + 3.0 * (2 * c + k), 5.0, 0.5, 0.6, 0.6, 0.6, 0.0], s, name)
+        for c, (name, values) in enumerate(scores.items())
+        for k, s in enumerate(values)
+    ]
+    settings = {"queue_order": "class", "review_order": "learned"}  # today's default review order
+    state.db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": settings})
+    person = _person(state, "ann")
+    queue = person.load_queue()
+    assert [(q["predicted_class"], q["score"]) for q in queue] == [
+        ("box", 0.9), ("cone", 0.5), ("box", 0.8), ("cone", 0.4)
+    ]  # fmt: skip
+    assert all(q["place_useful"] is None and q["learned_from"] == 0 for q in queue)
+    # A skipped place goes last even before the order has anything to learn from.
+    person.step(0)
+    person.verdict("skip")
+    assert [q["score"] for q in person.load_queue()] == [0.5, 0.8, 0.4, 0.9]
+
+
 def test_a_learned_order_queue_shows_the_next_likeliest_place_and_a_skipped_one_again_last(
     state, tiny_model_path
 ):
