@@ -311,7 +311,7 @@ def place_order(db, run_id: int) -> tuple[str, bool]:
     """How run ``run_id``'s places are grouped and ordered (``world.group_by_place``'s ``order``),
     and whether a ``LearnedOrder`` then orders them again: a learned review order groups in the
     order the run cut its negatives in (``SessionDB.cut_order``), any other in itself."""
-    order = db.queue_order(run_id)
+    order = db.review_order(run_id)
     return (db.cut_order(run_id), True) if order == "learned" else (order, False)
 
 
@@ -319,7 +319,7 @@ def review_places(
     db, world, items: Sequence[dict], run_id: int | None = None, learned: LearnedOrder | None = None
 ):
     """Run ``run_id``'s queue ``items`` (the latest run's by default) by place
-    (``world.group_by_place``) in its review order (``SessionDB.queue_order``; ``place_order``),
+    (``world.group_by_place``) in its review order (``SessionDB.review_order``; ``place_order``),
     a learned one by ``learned`` (a ``LearnedOrder`` of the session, made here when ``None``:
     keep one to refit only as verdicts come).
 

@@ -2255,7 +2255,7 @@ class SessionDB:
         hold = self._run_settings(run_id).get("hold_confident")
         return None if hold is None else float(hold)
 
-    def queue_order(self, run_id: int | None = None) -> str:
+    def review_order(self, run_id: int | None = None) -> str:
         """How run ``run_id`` (the latest by default) orders its review queue
         (``LoopSettings.review_order``, else the order that cut its mined negatives,
         ``LoopSettings.queue_order``; "score" for runs from before either was a setting, and when
@@ -2266,7 +2266,7 @@ class SessionDB:
                 return "score"
         order = review_order_of(self._run_settings(run_id)) or "score"
         if order not in REVIEW_ORDERS:
-            raise SessionError(f"training run {run_id}: unknown queue order {short_repr(order, 40)}")
+            raise SessionError(f"training run {run_id}: unknown review order {short_repr(order, 40)}")
         return str(order)
 
     def cut_order(self, run_id: int | None = None) -> str:
@@ -2354,7 +2354,7 @@ class SessionDB:
             run_id = self.latest_run_id()
         out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
         if out:
-            order = self.queue_order(run_id)
+            order = self.review_order(run_id)
             if order == "learned":  # it orders places (session.review_rank): items in the cut's order
                 order = self.cut_order(run_id)
             if order != "score":

@@ -331,7 +331,7 @@ def group_by_place(
     ``1 - prod(1 - score)`` (a place the model finds again in frame after frame is likelier real
     than one confident detection). With ``order`` "class" the places' classes (their first
     item's predicted class) take turns, each class's places by that chance
-    (``session.queue.queue_order``; the run's review order, ``SessionDB.queue_order``).
+    (``session.queue.queue_order``; the run's review order, ``SessionDB.review_order``).
 
     Args:
         items: dicts with ``frame_index``, ``box`` (7,) in that frame and ``score`` (and

@@ -104,7 +104,7 @@ class LoopSettings:
     items is an object); "class", the predicted classes taking turns: class turns reach a class
     the model has barely learned, but give every predicted class the same share of the reviewer's
     first entries, among them classes whose queue is mostly background. ``None`` ("auto"): as
-    ``queue_order``. A run keeps the order it was trained with (``SessionDB.queue_order``): a
+    ``queue_order``. A run keeps the order it was trained with (``SessionDB.review_order``): a
     change applies from the next run."""
     review_extra: int | None = 0
     """False positives beyond the first ``negatives_per_round`` (in ``queue_order``) that a run's

@@ -127,7 +127,7 @@ def test_a_learned_order_puts_the_places_earlier_verdicts_found_useful_first(db,
         "small",
         {"settings": {"queue_order": "score", "review_order": "learned"}},
     )
-    assert db.queue_order(run) == "learned" and db.cut_order(run) == "score"
+    assert db.review_order(run) == "learned" and db.cut_order(run) == "score"
     queue = db.review_queue(run)
     assert [q["score"] for q in queue[:2]] == [0.9, 0.9]  # by item: the cut's order
     places = review_places(db, world, queue, run)

@@ -1005,7 +1005,7 @@ def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filt
     mined = [(0.9, "box"), (0.8, "box"), (0.7, "box"), (0.3, "cone"), (0.2, "cone")]
     items = [mined_item(0, g, [box[0] + 2.0 * g, *box[1:]], s, name) for g, (s, name) in enumerate(mined)]
     db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": {"queue_order": "class"}})
-    assert db.queue_order() == "class"
+    assert db.review_order() == "class"
     queue = db.review_queue()
     assert [(q["predicted_class"], q["score"]) for q in queue] == [
         ("box", 0.9), ("cone", 0.3), ("box", 0.8), ("cone", 0.2), ("box", 0.7)
@@ -1017,7 +1017,7 @@ def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filt
     # A run of the paper's order, and one from before the setting, queue by score.
     for config in ({"settings": {"queue_order": "score"}}, {}):
         run = db.save_training_run(queue_run(tiny_model_path, [items]), "small", config)
-        assert db.queue_order(run) == "score"
+        assert db.review_order(run) == "score"
         assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.8, 0.7, 0.3, 0.2]
     # Cut by class turns, reviewed most likely first: the review queue follows review_order.
     run = db.save_training_run(
@@ -1025,13 +1025,13 @@ def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filt
         "small",
         {"settings": {"queue_order": "class", "review_order": "score"}},
     )
-    assert db.queue_order(run) == "score"
+    assert db.review_order(run) == "score"
     assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.8, 0.7, 0.3, 0.2]
     # A run with today's default settings reviews in the learned order, its items (and its places
     # until the ranker has answers to fit on) in the order its cut took.
     defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings(queue_order="class"))))
     run = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": defaults})
-    assert (db.queue_order(run), db.cut_order(run)) == ("learned", "class")
+    assert (db.review_order(run), db.cut_order(run)) == ("learned", "class")
     assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.3, 0.8, 0.2, 0.7]
     broken = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": [1, 2]})
     with pytest.raises(SessionError, match="its settings are .*not a mapping"):
