@@ -667,9 +667,21 @@ def _run_plan(plan: dict, variant: str) -> dict:
     if isinstance(out.get("settings"), dict):
         out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}
         if "review_order" not in untouched:
-            # None reviews in the queue order: the same runs as naming that order.
-            out["settings"]["review_order"] = review_order_of(out["settings"])
+            # None reviews in the queue order, and a learned one by item too: the same runs as
+            # naming that order.
+            out["settings"]["review_order"] = reviewer_order(out["settings"], plan.get("review_by"))
     return out
+
+
+def reviewer_order(settings: dict, review_by: str | None) -> str | None:
+    """The order a record's simulated reviewer saw its queue in, from its plan's ``settings`` (a
+    mapping, as stored) and ``review_by``: ``review_order_of`` (None: the queue order), except
+    that a learned order by item is the queue order (``SessionDB.review_queue``: it orders
+    places)."""
+    order = review_order_of(settings)
+    if order == "learned" and review_by != "place":
+        return review_order_of({"queue_order": settings.get("queue_order")})
+    return order
 
 
 def _settings_as_run(settings: dict) -> dict:
@@ -1069,8 +1081,8 @@ def compare_hitl_records(
         if key not in ("settings", "seeds", "variants") and mine.get(key) != other.get(key)
     }
     my_settings, other_settings = (_settings_as_run(p.get("settings") or {}) for p in (mine, other))
-    for settings in (my_settings, other_settings):  # the order the reviewer saw (None: the queue's)
-        settings["review_order"] = review_order_of(settings)
+    for settings, plan in ((my_settings, mine), (other_settings, other)):  # the order the reviewer saw
+        settings["review_order"] = reviewer_order(settings, plan.get("review_by"))
     for key in sorted(set(my_settings) | set(other_settings)):
         values = [my_settings.get(key), other_settings.get(key)]
         if values[0] != values[1]:

@@ -26,6 +26,7 @@ from factorydet_core.evaluation.evaluate import (
     measure,
     reference_boxes,
 )
+from factorydet_core.evaluation.hitl import reviewer_order
 from factorydet_core.evaluation.plots import plot_error_breakdown, plot_pr_curves, plot_sweep
 from factorydet_core.evaluation.quality import quality_markdown, target_lines
 from factorydet_core.evaluation.records import machine_info
@@ -917,7 +918,12 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + ("" if settings.get("class_thresholds", True) else "one score threshold for every class, ")
             + f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
             + "per round"
-            + _order_text(settings.get("queue_order"), settings.get("review_order"))
+            + _order_text(
+                settings.get("queue_order"),
+                # Nobody reviews: the queue's order is not part of the runs (records before the
+                # review order was a setting said the cut's order alone then).
+                reviewer_order(settings, result.get("review_by")) if reviewed else None,
+            )
             + _extra_text(settings.get("review_extra", 0) if reviewed else 0)
             + (
                 ", every next round fitting the box quality regressor again on the labels it has"

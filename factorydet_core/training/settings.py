@@ -98,14 +98,14 @@ class LoopSettings:
     logistic regression on the session's own verdicts refitted as they come
     (``session.review_rank``); the places answered first and the skipped ones last, the rest in
     ``queue_order`` until there are enough verdicts to fit on, and a queue shown by item in
-    ``queue_order``. On held-out factories it gave more labels for the same verdicts than either
-    fixed order, at 30% and 50% unannotated (``bench hitl``, docs/labelling.md). "score", most
-    likely an object first (with the queue grouped by place, each place's chance that one of its
-    items is an object); "class", the predicted classes taking turns: class turns reach a class
-    the model has barely learned, but give every predicted class the same share of the reviewer's
-    first entries, among them classes whose queue is mostly background. ``None`` ("auto"): as
-    ``queue_order``. A run keeps the order it was trained with (``SessionDB.review_order``): a
-    change applies from the next run."""
+    ``queue_order``. On held-out factories, with the cut by class turns, it gave more labels for
+    the same verdicts than either fixed order, at 30% and 50% unannotated (``bench hitl``,
+    docs/labelling.md). "score", most likely an object first (with the queue grouped by place,
+    each place's chance that one of its items is an object); "class", the predicted classes
+    taking turns: class turns reach a class the model has barely learned, but give every
+    predicted class the same share of the reviewer's first entries, among them classes whose
+    queue is mostly background. ``None`` ("auto"): as ``queue_order``. A run keeps the order it
+    was trained with (``SessionDB.review_order``): a change applies from the next run."""
     review_extra: int | None = 0
     """False positives beyond the first ``negatives_per_round`` (in ``queue_order``) that a run's
     last mining adds to its review queue alone: training leaves them out (neither background nor

@@ -361,3 +361,32 @@ def test_world_labels_table_sweeps_the_least_points_that_show_an_object():
     # Records from before the sweep render without it.
     del app["shown_by_min_points"]
     assert "least points that show" not in render_record(record)
+
+
+def test_every_resumed_hitl_command_of_the_makefile_reviews_in_the_order_its_record_ran():
+    # A `make bench` line whose reviewer's order (its flag, else today's default) is not the one
+    # its record ran with would train the reviewed detectors again instead of resuming them.
+    import shlex
+
+    from factorydet_core.cli import build_parser
+    from factorydet_core.evaluation.hitl import _settings_as_run, reviewer_order
+    from factorydet_core.training.settings import loop_settings_from
+
+    makefile = (DOCS.parent / "Makefile").read_text().replace("\\\n", " ")
+    commands = [line.split(" bench hitl ", 1)[1] for line in makefile.splitlines() if " bench hitl " in line]
+    checked = 0
+    for command in commands:
+        words = shlex.split(command.replace("$(", "").replace(")", ""))  # $(CORPUS): a data set name
+        args = build_parser().parse_args(["bench", "hitl", *words])
+        variants = None if args.variants is None else args.variants.split(",")
+        if not args.resume or (variants is not None and not any(v.startswith("reviewed_") for v in variants)):
+            continue  # trained afresh, or nobody reviews
+        record = json.loads(Path(DOCS.parent / args.out).read_text())
+        settings = loop_settings_from({"queue_order": args.queue_order, "review_order": args.review_order})
+        ours = reviewer_order(
+            {"queue_order": settings.queue_order, "review_order": settings.review_order}, args.review_by
+        )
+        plan = record["plan"]
+        assert ours == reviewer_order(_settings_as_run(plan["settings"]), plan["review_by"]), args.out
+        checked += 1
+    assert checked >= 15  # the reviewed held-out records and the place-by-place ones

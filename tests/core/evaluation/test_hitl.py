@@ -63,6 +63,10 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert settings["review_order"] == "learned"
     assert _run_plan(learned, "reviewed_200") != _run_plan(turns, "reviewed_200")
     assert _run_plan(learned, "blind") == _run_plan(turns, "blind")
+    # ... by place: by item a learned order is the cut's (the queue orders places), the same runs.
+    assert _run_plan({**learned, "review_by": "item"}, "reviewed_200") == _run_plan(
+        {**turns, "review_by": "item"}, "reviewed_200"
+    )
     # So do the false positives queued for review alone; a record from before them queued none.
     longer = {**plan, "settings": {**settings, "review_extra": None}}
     for variant in ("blind", "blind_safe", "full", "full_late"):

@@ -222,7 +222,7 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
 
 
 def test_a_hitl_record_says_how_it_cut_and_how_it_ordered_the_review_queue():
-    from factorydet_core.evaluation.report import _order_text
+    from factorydet_core.evaluation.report import _order_text, hitl_markdown
 
     assert _order_text("score", None) == "" and _order_text("score", "score") == ""
     assert "in the cut and in the queue" in _order_text("class", None)
@@ -234,6 +234,16 @@ def test_a_hitl_record_says_how_it_cut_and_how_it_ordered_the_review_queue():
     learned = _order_text("class", "learned")
     assert "taking turns in the cut" in learned and "(`review_order` learned)" in learned
     assert _order_text("score", "learned").startswith(", the review queue's places ordered by")
+    # A record says what its reviewer saw: nothing of a review order when nobody reviews, and a
+    # learned order by item is the cut's (the queue orders places).
+    unreviewed = _hitl_result({"blind": [0.2, 0.2, 0.2], "full": [0.3, 0.3, 0.3]})
+    unreviewed["settings"] = {**unreviewed["settings"], "queue_order": "score", "review_order": "learned"}
+    assert "review_order" not in hitl_markdown(unreviewed)
+    by_item = _hitl_result({"blind": [0.2, 0.2, 0.2], "reviewed_200": [0.25] * 3, "full": [0.3] * 3})
+    by_item["settings"] = {**by_item["settings"], "queue_order": "class", "review_order": "learned"}
+    assert "(`review_order` learned)" in hitl_markdown({**by_item, "review_by": "place"})
+    text = hitl_markdown({**by_item, "review_by": "item"})
+    assert "review_order" not in text and "taking turns in the cut and in the queue" in text
 
 
 def test_a_hitl_record_says_what_its_reviewers_queue_held_beyond_the_mined_negatives():
