@@ -8,6 +8,7 @@ import pytest
 
 from app.browser_session import FAILED, BrowserSession
 from app.state import AppState
+from factorydet_core.evaluation.diagnostics import review_item_markdown
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.session.world import WorldFrames
@@ -607,6 +608,7 @@ def test_a_learned_order_queue_with_nothing_to_learn_from_yet_keeps_the_cuts_ord
         ("box", 0.9), ("cone", 0.5), ("box", 0.8), ("cone", 0.4)
     ]  # fmt: skip
     assert all(q["place_useful"] is None and q["learned_from"] == 0 for q in queue)
+    assert "Learned order: the queue order until 20 places" in review_item_markdown(queue[0], [], 1, 4)
     # A skipped place goes last even before the order has anything to learn from.
     person.step(0)
     person.verdict("skip")
