@@ -295,8 +295,7 @@ def review_item_markdown(
     elif item.get("learned_from") is not None:
         lines.append(
             f"Learned order: the queue order until {MIN_ANSWERS} places are answered, at least {MIN_EACH}"
-            f" giving a label and {MIN_EACH} not ({item['learned_from']} at its last look, every"
-            f" {REFIT_EVERY} verdicts)"
+            f" giving a label and {MIN_EACH} not (it looks again every {REFIT_EVERY} verdicts)"
         )
     near = _neighbours(item["box"], frame_labels)
     lines.append(f"Nearby labels: {', '.join(near[:5]) if near else 'none within 3 m'}")

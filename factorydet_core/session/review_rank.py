@@ -265,13 +265,17 @@ class LearnedOrder:
         if self._fit is not None and self._fit[0] == key:
             return self._fit[1], self._fit[2]
         features, useful = [], []
-        for run in self.db.training_runs():
-            if run["id"] > run_id:
+        runs = [run["id"] for run in self.db.training_runs() if run["id"] <= run_id]
+        answered_items = {
+            run: sum(self.db.review_progress(run).get(v, 0) for v in VERDICTS) for run in runs
+        }  # counted in SQL: a run's whole queue is only read when there are answers to fit on
+        if sum(answered_items.values()) < ReviewRanker().min_answers:
+            runs = []  # fewer answered items than places to fit on: nothing to read
+        for run in runs:
+            if not answered_items[run]:
                 continue
-            items = self.db.review_queue(run["id"])
-            if not items or all(q.get("verdict") is None for q in items):
-                continue
-            places = self._places(run["id"], items)
+            items = self.db.review_queue(run)
+            places = self._places(run, items)
             run_features = self._features(items, places)
             answered, run_useful, _ = place_answers(items, places)
             features.append(run_features[answered])

@@ -59,4 +59,4 @@ def test_a_place_in_a_learned_order_says_its_chance_of_a_label_and_what_it_was_l
     # Too few answers yet: it says it follows the queue order, and until when.
     learning = review_item_markdown({**ITEM, "place_useful": None, "learned_from": 12}, [], 1, 5)
     assert "Learned order: the queue order until 20 places are answered" in learning
-    assert "(12 at its last look, every 10 verdicts)" in learning and "chance" not in learning
+    assert "(it looks again every 10 verdicts)" in learning and "chance" not in learning

@@ -154,6 +154,26 @@ def test_without_enough_verdicts_the_learned_order_is_the_cuts(db, world, tiny_m
     run = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": settings})
     queue = db.review_queue(run)
     assert review_places(db, world, queue, run) == group_by_place(world, queue, order="class")
+    # Fewer answered items than the places a fit needs: no run's queue is read to refit.
+    reads = []
+
+    class Counting:
+        def __getattr__(self, name):
+            return getattr(db, name)
+
+        def review_queue(self, *args, **kwargs):
+            reads.append(args)
+            return db.review_queue(*args, **kwargs)
+
+    db.review([q["id"] for q in queue[: MIN_ANSWERS - 1]], "background", "ann")
+    learned = LearnedOrder(Counting(), world, db.class_names)
+    queue = db.review_queue(run)
+    learned.ranked(run, queue, group_by_place(world, queue, order="class"))
+    assert reads == []
+    db.review([queue[MIN_ANSWERS - 1]["id"]], "background", "ann")  # a new refit stage, enough items
+    queue = db.review_queue(run)
+    learned.ranked(run, queue, group_by_place(world, queue, order="class"))
+    assert reads == [(run,)]
 
 
 def test_bench_hitls_reviewer_answers_the_places_in_the_learned_order(db, dataset, world, tiny_model_path):
