@@ -256,20 +256,24 @@ class LearnedOrder:
             cached = self._groups[key] = group_by_place(self.world, items)
         return cached
 
+    def _answered_items(self, run_id: int) -> int:
+        """Run ``run_id``'s items with a verdict, skips included (``SessionDB.review_progress``)."""
+        progress = self.db.review_progress(run_id)
+        return sum(progress.get(v, 0) for v in VERDICTS)
+
     def _ranker(self, run_id: int) -> tuple[ReviewRanker, int]:
         """The ranker fitted on the answered places of every run up to ``run_id`` (each run's
         whole queue grouped by place), and how many they are; refitted when run ``run_id``'s
         answered items reach a new ``fit_stage``."""
-        progress = self.db.review_progress(run_id)
-        key = (int(run_id), fit_stage(sum(progress.get(v, 0) for v in VERDICTS)))
+        key = (int(run_id), fit_stage(self._answered_items(run_id)))
         if self._fit is not None and self._fit[0] == key:
             return self._fit[1], self._fit[2]
+        ranker = ReviewRanker()
         features, useful = [], []
         runs = [run["id"] for run in self.db.training_runs() if run["id"] <= run_id]
-        answered_items = {
-            run: sum(self.db.review_progress(run).get(v, 0) for v in VERDICTS) for run in runs
-        }  # counted in SQL: a run's whole queue is only read when there are answers to fit on
-        if sum(answered_items.values()) < ReviewRanker().min_answers:
+        # Counted in SQL: a run's whole queue is only read when there are answers to fit on.
+        answered_items = {run: self._answered_items(run) for run in runs}
+        if sum(answered_items.values()) < ranker.min_answers:
             runs = []  # fewer answered items than places to fit on: nothing to read
         for run in runs:
             if not answered_items[run]:
@@ -281,7 +285,7 @@ class LearnedOrder:
             features.append(run_features[answered])
             useful.append(run_useful[answered])
         width = NUM_PLACE_FEATURES + len(self.class_names)
-        ranker = ReviewRanker().fit(
+        ranker.fit(
             np.concatenate(features) if features else np.zeros((0, width)),
             np.concatenate(useful) if useful else np.zeros(0, bool),
         )
