@@ -18,7 +18,7 @@ from factorydet_core.evaluation.evaluate import measure
 from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, check_heldout, heldout_set
 from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
-from factorydet_core.session.queue import review_order_of
+from factorydet_core.session.queue import review_order_of, unlearned_order
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import Proposer, cached_proposals, train_session
@@ -676,12 +676,13 @@ def _run_plan(plan: dict, variant: str) -> dict:
 def reviewer_order(settings: dict, review_by: str | None) -> str | None:
     """The order a record's simulated reviewer saw its queue in, from its plan's ``settings`` (a
     mapping, as stored) and ``review_by``: ``review_order_of`` (None: the queue order), except
-    that a learned order by item is the queue order (``SessionDB.review_queue``: it orders
+    that a learned order by item is the cut's (``session.queue.unlearned_order``: it orders
     places)."""
     order = review_order_of(settings)
-    if order == "learned" and review_by != "place":
-        return review_order_of({"queue_order": settings.get("queue_order")})
-    return order
+    if review_by == "place":
+        return order
+    cut = settings.get("queue_order")
+    return unlearned_order(order, None if cut is None else str(cut))
 
 
 def _settings_as_run(settings: dict) -> dict:

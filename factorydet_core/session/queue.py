@@ -32,6 +32,17 @@ def review_order_of(settings: Mapping[str, object]) -> str | None:
     return None if order is None else str(order)
 
 
+def unlearned_order(review_order: str | None, cut_order: str | None) -> str | None:
+    """The order a run's review queue lists its items in: its ``review_order``, except that a
+    learned one (``session.review_rank``) orders places alone, over the queue in the order that cut
+    the run's mined negatives (``cut_order``, ``LoopSettings.queue_order``). So by item, and for
+    its places until it has verdicts enough to fit, a learned order is the cut's.
+
+    The one statement of that rule: the store's queue, the app's places and ``bench hitl``'s
+    record of what its reviewer saw all read it from here."""
+    return cut_order if review_order == "learned" else review_order
+
+
 def class_ranks(scores, classes: Sequence[str]) -> np.ndarray:
     """(M,) int64: each item's rank within its predicted class, by decreasing score (0: the
     class's most confident; ties keep the items' given order): its turn in the class order."""

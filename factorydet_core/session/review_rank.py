@@ -24,6 +24,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from factorydet_core.geometry import points_in_box
+from factorydet_core.session.queue import unlearned_order
 from factorydet_core.session.store import VERDICTS
 from factorydet_core.session.world import group_by_place, place_chance
 from factorydet_core.types import InputError, check_array
@@ -320,7 +321,7 @@ def place_order(db, run_id: int) -> tuple[str, bool]:
     and whether a ``LearnedOrder`` then orders them again: a learned review order groups in the
     order the run cut its negatives in (``SessionDB.cut_order``), any other in itself."""
     order = db.review_order(run_id)
-    return (db.cut_order(run_id), True) if order == "learned" else (order, False)
+    return unlearned_order(order, db.cut_order(run_id)), order == "learned"
 
 
 def review_places(

@@ -43,7 +43,7 @@ from pathlib import Path
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.io.dataset import MANIFEST, Dataset, open_dataset
 from factorydet_core.session.queue import queue_order as order_queue
-from factorydet_core.session.queue import review_order_of
+from factorydet_core.session.queue import review_order_of, unlearned_order
 from factorydet_core.settings_check import exception_line, short_repr
 from factorydet_core.types import MAX_RAY_WORKERS, QUEUE_ORDERS, REVIEW_ORDERS, InputError
 
@@ -2354,9 +2354,7 @@ class SessionDB:
             run_id = self.latest_run_id()
         out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
         if out:
-            order = self.review_order(run_id)
-            if order == "learned":  # it orders places (session.review_rank): items in the cut's order
-                order = self.cut_order(run_id)
+            order = unlearned_order(self.review_order(run_id), self.cut_order(run_id))
             if order != "score":
                 out = self._in_queue_order(run_id, order, out)
         label_iou = self.label_overlap(out)

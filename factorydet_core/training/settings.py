@@ -332,7 +332,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "learned from the session's verdicts, the places likeliest to give a label first (learned; by "
             "place), most likely an object first (score), the predicted classes taking turns (class), or "
             "as the queue order (auto)", str,
-            choices=(("auto", None), *((o, o) for o in REVIEW_ORDERS))),
+            # The default first, as the drop-down lists them; "auto" last, as the help names it.
+            choices=(*((o, o) for o in sorted(REVIEW_ORDERS, key=lambda o: o != "learned")), ("auto", None))),
     Control("review_extra", "Review extra", "false positives beyond the mined negatives that the last "
             "mining queues for review alone, left out of training until reviewed (0: none, the paper; "
             "-1: all)", int, -1, 10_000_000, 100, none_as=-1),

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from factorydet_core.session.queue import queue_order
+from factorydet_core.session.queue import queue_order, unlearned_order
 from factorydet_core.types import InputError
 
 
@@ -20,6 +20,15 @@ def test_by_class_the_classes_take_turns_most_confident_first_within_a_turn():
     order = queue_order(scores, classes, "class")
     # Turn 1: box 0.95, pallet 0.3, cone 0.2; turn 2: box 0.9, cone 0.1; then the boxes left.
     assert order.tolist() == [0, 6, 4, 1, 5, 2, 3]
+
+
+@pytest.mark.parametrize(
+    ("review_order", "cut_order", "expected"),
+    [("learned", "class", "class"), ("learned", "score", "score"), ("learned", None, None),
+     ("score", "class", "score"), ("class", "score", "class"), (None, "class", None)],
+)  # fmt: skip
+def test_a_learned_order_lists_items_in_the_cuts_order_another_in_its_own(review_order, cut_order, expected):
+    assert unlearned_order(review_order, cut_order) == expected
 
 
 def test_a_bad_order_or_mismatched_lengths_are_refused():

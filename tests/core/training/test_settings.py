@@ -51,6 +51,12 @@ def test_choices_and_none_stand_ins(field, raw, expected):
     assert CONTROLS[field].shown(expected) == raw
 
 
+def test_the_review_order_drop_down_lists_the_default_first():
+    texts = [text for text, _ in CONTROLS["review_order"].choices]
+    assert texts[0] == CONTROLS["review_order"].shown(LoopSettings().review_order) == "learned"
+    assert sorted(texts) == ["auto", "class", "learned", "score"]
+
+
 @pytest.mark.parametrize(
     ("values", "match"),
     [({"epochs": 2.5}, "whole number"), ({"class_weight": "heavy"}, "choose one of"),
