@@ -266,6 +266,17 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-safe-heldout.json \
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/labelling.md \
 	  --readme-block hitl-review-learned-safe-vs-learned-heldout
+	# The learned order's reviewer over a longer queue: every false positive of the last mining
+	# after the mined ones, for review alone (30% and 50%; blind and full from the learned records).
+	test -f docs/bench/hitl-review-learned-extra-heldout.json || cp docs/bench/hitl-review-learned-heldout.json docs/bench/hitl-review-learned-extra-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
+	  --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-review-learned-extra-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-extra-heldout.json \
+	  docs/bench/hitl-review-learned-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-review-learned-extra-vs-learned-heldout
 	# The paper's data set size (6,389 frames of 80k points, 2/3 training) simulated and detected on
 	# Ray workers (about three hours on 2 cores), inside a loopback-only network namespace; the
 	# record is kept after each run and a re-run does only the runs it lacks.
