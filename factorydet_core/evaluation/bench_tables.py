@@ -690,12 +690,22 @@ def _retrain_text(result: dict) -> str:
     )
 
 
+def _as_given(field: str, value: object) -> object:
+    """A record's ``LoopSettings`` ``field`` value as its flag and the app's control give it
+    (``review_extra`` -1 for all, not ``None``); a plan field (not a setting) as it is."""
+    from factorydet_core.training.settings import LOOP_CONTROLS
+
+    control = next((c for c in LOOP_CONTROLS if c.field == field), None)
+    return value if control is None else control.shown(value)
+
+
 @register("hitl-compare")
 def hitl_compare_table(result: dict) -> str:
     """``bench hitl-compare``: per detector, the paired differences of one record from another."""
 
     differs = "; ".join(
-        f"{key}: {mine} against {theirs}" for key, (mine, theirs) in result["differs"].items()
+        f"{key}: {_as_given(key, mine)} against {_as_given(key, theirs)}"
+        for key, (mine, theirs) in result["differs"].items()
     )
     seeds = ", ".join(map(str, result["seeds"]))
     same = result.get("one_record", False)

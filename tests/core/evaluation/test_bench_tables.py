@@ -279,6 +279,17 @@ def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
     table = render_record(result)
     assert "`a.json` minus `b.json`, seed by seed (seeds 0, 1, 2)" in table
     assert "What differs: queue_order: class against score; review_order: class against score." in table
+    # A setting is said as its flag gives it: review_extra "all" is -1 (stored as None).
+    longer = _hitl_record(
+        {"blind": [0.20, 0.22, 0.21], "reviewed_200": [0.26, 0.27, 0.25]},
+        {"queue_order": "class", "epochs": 5, "review_extra": None},
+    )
+    shorter = _hitl_record(
+        {"blind": [0.20, 0.22, 0.21], "reviewed_200": [0.26, 0.27, 0.25]},
+        {"queue_order": "class", "epochs": 5, "review_extra": 0},
+    )
+    differs = compare_hitl_records(longer, shorter, names=("a.json", "b.json"))
+    assert "What differs: review_extra: -1 against 0." in render_record(differs)
     assert _rows(table, "blind")[0][3] == "–" and _rows(table, "reviewed_200")[0][1].startswith("+0.017 [")
     with pytest.raises(InputError, match="b.json: not a complete bench hitl record"):
         compare_hitl_records(record, {**baseline, "complete": False}, names=("a.json", "b.json"))
