@@ -277,6 +277,15 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-extra-heldout.json \
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-learned-extra-vs-learned-heldout
+	test -f docs/bench/hitl-50-review-learned-extra-heldout.json || cp docs/bench/hitl-50-review-learned-heldout.json docs/bench/hitl-50-review-learned-extra-heldout.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
+	  --variants reviewed_200,full --out docs/bench/hitl-50-review-learned-extra-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-50-review-learned-extra-heldout --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-extra-heldout.json \
+	  docs/bench/hitl-50-review-learned-heldout.json --readme docs/labelling.md \
+	  --readme-block hitl-50-review-learned-extra-vs-learned-heldout
 	# Every round trained afresh (the paper's procedure; --round-epochs 0), blind, the learned
 	# order's reviewer and full labels alike (30%), against the learned record's rounds that go on.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
