@@ -696,7 +696,12 @@ def _as_given(field: str, value: object) -> object:
     from factorydet_core.training.settings import LOOP_CONTROLS
 
     control = next((c for c in LOOP_CONTROLS if c.field == field), None)
-    return value if control is None else control.shown(value)
+    if control is None:
+        return value
+    try:
+        return control.shown(value)
+    except InputError:  # a choice a record was written with that the controls no longer offer
+        return value
 
 
 @register("hitl-compare")

@@ -290,6 +290,9 @@ def test_two_hitl_records_are_compared_seed_by_seed_on_what_they_share():
     )
     differs = compare_hitl_records(longer, shorter, names=("a.json", "b.json"))
     assert "What differs: review_extra: -1 against 0." in render_record(differs)
+    # A choice the controls no longer offer is said as stored, not refused.
+    gone = render_record({**differs, "differs": {"queue_order": ["gone", "class"]}})
+    assert "What differs: queue_order: gone against class." in gone
     assert _rows(table, "blind")[0][3] == "–" and _rows(table, "reviewed_200")[0][1].startswith("+0.017 [")
     with pytest.raises(InputError, match="b.json: not a complete bench hitl record"):
         compare_hitl_records(record, {**baseline, "complete": False}, names=("a.json", "b.json"))
