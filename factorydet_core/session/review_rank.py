@@ -320,8 +320,8 @@ def place_order(db, run_id: int) -> tuple[str, bool]:
     """How run ``run_id``'s places are grouped and ordered (``world.group_by_place``'s ``order``),
     and whether a ``LearnedOrder`` then orders them again: a learned review order groups in the
     order the run cut its negatives in (``SessionDB.cut_order``), any other in itself."""
-    order = db.review_order(run_id)
-    return unlearned_order(order, db.cut_order(run_id)), order == "learned"
+    order, cut = db.orders(run_id)
+    return unlearned_order(order, cut), order == "learned"
 
 
 def review_places(

@@ -2260,28 +2260,30 @@ class SessionDB:
         (``LoopSettings.review_order``, else the order that cut its mined negatives,
         ``LoopSettings.queue_order``; "score" for runs from before either was a setting, and when
         there is no run)."""
-        if run_id is None:
-            run_id = self.latest_run_id()
-            if run_id is None:
-                return "score"
-        order = review_order_of(self._run_settings(run_id)) or "score"
-        if order not in REVIEW_ORDERS:
-            raise SessionError(f"training run {run_id}: unknown review order {short_repr(order, 40)}")
-        return str(order)
+        return self.orders(run_id)[0]
 
     def cut_order(self, run_id: int | None = None) -> str:
         """The order run ``run_id`` (the latest by default) cut its mined negatives in
         (``LoopSettings.queue_order``; "score" for runs from before it was a setting): its review
         queue's order by item when the review order is "learned" (which orders places,
         ``session.review_rank``), and the places' order until it has enough verdicts."""
+        return self.orders(run_id)[1]
+
+    def orders(self, run_id: int | None = None) -> tuple[str, str]:
+        """``(review_order, cut_order)`` of run ``run_id`` (the latest by default), from one read
+        of its settings: what a queue read needs both of (``session.queue.unlearned_order``)."""
         if run_id is None:
             run_id = self.latest_run_id()
             if run_id is None:
-                return "score"
-        order = self._run_settings(run_id).get("queue_order") or "score"
-        if order not in QUEUE_ORDERS:
-            raise SessionError(f"training run {run_id}: unknown queue order {short_repr(order, 40)}")
-        return str(order)
+                return "score", "score"
+        settings = self._run_settings(run_id)
+        review = review_order_of(settings) or "score"
+        if review not in REVIEW_ORDERS:
+            raise SessionError(f"training run {run_id}: unknown review order {short_repr(review, 40)}")
+        cut = settings.get("queue_order") or "score"
+        if cut not in QUEUE_ORDERS:
+            raise SessionError(f"training run {run_id}: unknown queue order {short_repr(cut, 40)}")
+        return str(review), str(cut)
 
     def _run_settings(self, run_id: int) -> dict:
         """Run ``run_id``'s ``LoopSettings`` as stored in its config (``{}`` for a run without)."""
@@ -2354,7 +2356,7 @@ class SessionDB:
             run_id = self.latest_run_id()
         out = self._queue_rows(run_id, predicted_class, frame_index, pending_only)
         if out:
-            order = unlearned_order(self.review_order(run_id), self.cut_order(run_id))
+            order = unlearned_order(*self.orders(run_id))
             if order != "score":
                 out = self._in_queue_order(run_id, order, out)
         label_iou = self.label_overlap(out)

@@ -1031,7 +1031,7 @@ def test_a_class_order_runs_queue_takes_turns_and_keeps_its_positions_under_filt
     # until the ranker has answers to fit on) in the order its cut took.
     defaults = json.loads(json.dumps(dataclasses.asdict(LoopSettings(queue_order="class"))))
     run = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": defaults})
-    assert (db.review_order(run), db.cut_order(run)) == ("learned", "class")
+    assert (db.review_order(run), db.cut_order(run)) == db.orders(run) == ("learned", "class")
     assert [q["score"] for q in db.review_queue(run)] == [0.9, 0.3, 0.8, 0.2, 0.7]
     broken = db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": [1, 2]})
     with pytest.raises(SessionError, match="its settings are .*not a mapping"):
