@@ -12,7 +12,13 @@ import viser
 from factorydet_core.detection.model import DEFAULT_MODEL, PAPER_MODEL, DetectionModel
 from factorydet_core.evaluation.measure import comparison_markdown
 from factorydet_core.scale.runner import Execution
-from factorydet_core.training.settings import LOOP_CONTROLS, Control, LoopSettings, loop_settings_from
+from factorydet_core.training.settings import (
+    CONTROL_BY_FIELD,
+    LOOP_CONTROLS,
+    Control,
+    LoopSettings,
+    loop_settings_from,
+)
 from factorydet_core.types import InputError
 
 from ..state import AppState
@@ -142,8 +148,9 @@ def build_training_panel(
 ) -> TrainingPanel:
     with server.gui.add_folder("Training", order=40, expand_by_default=False):
         mode = server.gui.add_dropdown("Mode", list(MODES), initial_value="next round")
-        by_field = {c.field: c for c in LOOP_CONTROLS}
-        controls = {f: add_control(server, by_field[f], getattr(worker.settings, f)) for f in FIRST_CONTROLS}
+        controls = {
+            f: add_control(server, CONTROL_BY_FIELD[f], getattr(worker.settings, f)) for f in FIRST_CONTROLS
+        }
         train = server.gui.add_button(
             "Train", color="green", hint="On the corrected labels and the review verdicts, in the background"
         )

@@ -693,9 +693,9 @@ def _retrain_text(result: dict) -> str:
 def _as_given(field: str, value: object) -> object:
     """A record's ``LoopSettings`` ``field`` value as its flag and the app's control give it
     (``review_extra`` -1 for all, not ``None``); a plan field (not a setting) as it is."""
-    from factorydet_core.training.settings import LOOP_CONTROLS
+    from factorydet_core.training.settings import CONTROL_BY_FIELD
 
-    control = next((c for c in LOOP_CONTROLS if c.field == field), None)
+    control = CONTROL_BY_FIELD.get(field)
     if control is None:
         return value
     try:

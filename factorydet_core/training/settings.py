@@ -5,6 +5,8 @@ purpose (no torch): the command line builds its flags from it."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
+from types import MappingProxyType
 
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.types import (
@@ -351,13 +353,15 @@ LOOP_CONTROLS: tuple[Control, ...] = (
 )  # fmt: skip
 """Every ``LoopSettings`` field people set (``num_threads`` is the machine's, not the model's)."""
 
+CONTROL_BY_FIELD: Mapping[str, Control] = MappingProxyType({c.field: c for c in LOOP_CONTROLS})
+"""``LOOP_CONTROLS`` by the ``LoopSettings`` field each sets."""
+
 
 def loop_settings_from(values: dict[str, object], base: LoopSettings | None = None) -> LoopSettings:
     """``base`` (default ``LoopSettings()``) with the fields of ``values`` (raw flag or control
     values by field name) parsed by their ``LOOP_CONTROLS``; ``InputError`` for a bad one."""
-    controls = {c.field: c for c in LOOP_CONTROLS}
-    unknown = sorted(set(values) - set(controls))
+    unknown = sorted(set(values) - set(CONTROL_BY_FIELD))
     if unknown:
         raise InputError(f"unknown training settings {unknown}")
-    parsed = {name: controls[name].parse(raw) for name, raw in values.items()}
+    parsed = {name: CONTROL_BY_FIELD[name].parse(raw) for name, raw in values.items()}
     return dataclasses.replace(base or LoopSettings(), **parsed)
