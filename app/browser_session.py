@@ -34,6 +34,8 @@ from factorydet_core.session.review_rank import LearnedOrder, place_order
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import (
     MOVING_CLASSES,
+    BestView,
+    best_view,
     group_by_place,
     interpolate_boxes,
     not_labelled_yet,
@@ -124,6 +126,7 @@ class BrowserSession:
         self._places: tuple | None = None  # ((world, item ids read, order), group_by_place's places)
         self._learned: LearnedOrder | None = None  # the learned review order's fits (review_rank)
         self._shown_queue: tuple | None = None  # (everything load_queue's result depends on, it)
+        self._best_view: tuple | None = None  # ((item id, world), best_view's answer for it)
         self.suspect_index = -1
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
         """The latest notifications given, ``(title, body, error)``, oldest first."""
@@ -716,6 +719,45 @@ class BrowserSession:
         self.set_object_class(item.get("predicted_class"))
         self.state.set_frame(item["frame_index"])
         self.look_at_box(item["box"])
+        self.refresh()
+
+    def best_view(self, item: dict | None) -> BestView | None:
+        """Where the frames see a queue item's object best (``world.best_view``); ``None`` before
+        the frames are placed or when the item's own frame sees it best. Cached per item."""
+        if item is None:
+            return None
+        with self.state.lock:
+            world = self.state.world
+        if world is None:
+            return None
+        key = (item["id"], id(world))
+        cached = self._best_view
+        if cached is None or cached[0] != key:
+            cached = self._best_view = (key, best_view(world, item["frame_index"], item["box"]))
+        return cached[1]
+
+    def look_where_seen_best(self) -> None:
+        """Show the review item's object in the frame that sees it best (``best_view``), the
+        camera on its box there; the item stays the one a verdict answers."""
+        item = self.current_item()
+        if item is None:
+            self.notify("Review", "No queue item shown: press Next [N] first.")
+            return
+        view = self.best_view(item)
+        if view is None:
+            self.notify(
+                "Review", "No other frame sees this item's place better (or the frames are not placed yet)."
+            )
+            return
+        self.state.set_frame(view.frame_index)
+        self.look_at_box(view.box)
+        self.notify(
+            "Seen best",
+            f"Frame {view.frame_index + 1}: {view.num_points} points in the item's box there, "
+            f"{view.num_points_here} in frame "
+            f"{item['frame_index'] + 1}. A verdict still answers the item (Object labels it in every "
+            "frame that shows it; Wrong box, then draw its box here).",
+        )
         self.refresh()
 
     def step(self, delta: int) -> None:

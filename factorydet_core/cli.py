@@ -479,6 +479,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
                     heldout_frames=args.heldout_frames,
                     heldout_scratch=args.scratch,
+                    best_view=args.review_best_view,
                 )
                 result["proposals_on"] = execution.describe()
                 if args.out:
@@ -1604,6 +1605,11 @@ def build_parser(
         "--review-by", default="item", choices=["item", "place"],
         help="hitl: the reviewer answers queue items one by one, or places as the app shows them by "
         "default (one verdict per object mined in several frames, objects labelled once)",
+    )  # fmt: skip
+    p.add_argument(
+        "--review-best-view", action="store_true",
+        help="hitl, with --review-by place: a place with too few points for the annotation policy is "
+        "judged where the frames see it best, as the review panel's 'Look where it is seen best' [I]",
     )  # fmt: skip
     p.add_argument("--rounds", type=int, default=2, help="hitl, quality: mining rounds after the first fit")
     p.add_argument("--negatives", type=int, default=500, help="hitl: mined negatives per round")

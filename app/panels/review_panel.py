@@ -71,6 +71,7 @@ class ReviewPanel:
                 num_points=num_points_in_box(result, item["box"]) if shown else None,
                 min_points=annotation_min_points(state.dataset, default=None),
                 hold=state.db.hold_score(item["run_id"]),
+                best_view=view.best_view(item),
             )
             place = item.get("place_versions") or {}
             if len(place) > 1:
@@ -154,6 +155,11 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
                 hint="A real object with no label yet, but the segment is wrong",
             ),
             "skip": gui.add_button("Skip [X]"),
+            "seen_best": gui.add_button(
+                "Look where it is seen best [I]",
+                hint="The frame whose points in the item's box are the most: an object mined where it "
+                "shows a few points can be plain to see there; a verdict still answers the item",
+            ),
             "previous": gui.add_button("Previous [P]"),
             "next": gui.add_button("Next [N]"),
             "batch": gui.add_button(
@@ -194,6 +200,7 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
     buttons["object"].on_click(lambda _: view.verdict("object", object_class.value))
     buttons["wrong_box"].on_click(lambda _: wrong_box(view))
     buttons["skip"].on_click(lambda _: view.verdict("skip"))
+    buttons["seen_best"].on_click(lambda _: view.look_where_seen_best())
     buttons["previous"].on_click(lambda _: view.step(-1))
     buttons["next"].on_click(lambda _: view.step(1))
     buttons["batch"].on_click(lambda _: view.batch_verdict("background"))

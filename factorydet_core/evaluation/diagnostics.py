@@ -258,12 +258,14 @@ def review_item_markdown(
     num_points: int | None = None,
     min_points: int | None = None,
     hold: float | None = None,
+    best_view=None,
 ) -> str:
     """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``), with
     whether its run held it out of the background (``hold``: the run's ``hold_confident``) or
     queued it for review alone (``in_background`` 0: ``LoopSettings.review_extra``), with
     the number of points in its box when known and the data set's annotation policy (objects of
-    at least ``min_points`` points are labelled)."""
+    at least ``min_points`` points are labelled), and where the frames see its object best
+    (``best_view``: a ``world.BestView``, or ``None`` when its own frame does)."""
     lines = [
         f"**Item {rank} of {total}** (#{item['id']}, frame {item['frame_index'] + 1}, "
         f"mined in run {item['run_id']} round {item['round']})",
@@ -276,6 +278,12 @@ def review_item_markdown(
         lines.append(
             f"{num_points} points in its box"
             + (f" (the data set labels objects of at least {min_points} points)" if min_points else "")
+        )
+    if best_view is not None:
+        lines.append(
+            f"Seen best in frame {best_view.frame_index + 1}: {best_view.num_points} points in its box"
+            f" there against {best_view.num_points_here} here (5 cm thinned): **Look where it is seen"
+            " best [I]** before calling it too sparse to label"
         )
     lines += [
         f"patches {', '.join(map(str, item['patch_set'][:12]))}"

@@ -42,6 +42,12 @@ def holds(variant: str) -> bool:
     return variant == "blind_safe" or variant.startswith("reviewed_safe_")
 
 
+VERDICTS: tuple[str, ...] = ("background", "object", "wrong_box", "skip")
+REVIEW_COUNTS: tuple[str, ...] = (*VERDICTS, "boxes_drawn", "hidden", "best_view")
+"""What ``simulated_review`` counts: its verdicts, the boxes it drew, the items the panel's filter
+hid, and the places it answered from where the object is seen best (``best_view``)."""
+
+
 def truth_verdict(
     dataset: Dataset,
     item: dict,
@@ -90,6 +96,7 @@ def simulated_review(
     positive_iou: float = 0.6,
     max_label_iou: float | None = None,
     world=None,
+    best_view: bool = False,
 ) -> dict:
     """Answer the top ``budget`` pending items of the latest run's queue from the truth
     (``truth_verdict``), one ``SessionDB.review`` call per item, as the review panel's buttons make
@@ -109,15 +116,23 @@ def simulated_review(
             object first), the verdict on its best item answering all its items, an object (or
             a box drawn for a wrong one) labelled in every frame that shows it (label once).
             ``budget`` then counts places.
+        best_view: with ``world``, a place whose item shows too few points for the policy
+            ('skip') is looked at where the frames see it best (``Placement.best_frame``, the
+            review panel's *Look where it is seen best*): an object of the policy there, and not
+            labelled yet, is labelled as the panel would (Object with the item's box, or Wrong box
+            and the object's box drawn there), in every frame that shows it.
 
     Returns:
-        Counts per verdict, the number of boxes drawn and of items ``hidden`` by the filter.
+        Counts (``REVIEW_COUNTS``) per verdict, of boxes drawn, of items ``hidden`` by the filter
+        and of places answered from their best view (``best_view``).
     """
-    counts = {"background": 0, "object": 0, "wrong_box": 0, "skip": 0, "boxes_drawn": 0, "hidden": 0}
+    counts = dict.fromkeys(REVIEW_COUNTS, 0)
     answered = 0
     queue = db.review_queue(pending_only=True)
     if world is not None:
-        return _review_places(db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts)
+        return _review_places(
+            db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts, best_view
+        )
     for item in queue:
         if answered == budget:
             break
@@ -238,13 +253,16 @@ def _truth_answer(db: SessionDB, dataset: Dataset, item: dict, positive_iou: flo
     return verdict, class_name, true_box
 
 
-def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts) -> dict:
+def _review_places(
+    db, dataset, budget, author, positive_iou, max_label_iou, world, queue, counts, best_view=False
+) -> dict:
     """``simulated_review`` by place, as the app's review panel shows the queue by default. With
     the review order "learned" (``session.review_rank``), the places still pending are ordered
     again after each verdict, refitted every ``review_rank.REFIT_EVERY`` items answered, as the
     panel orders them."""
     from factorydet_core.session.review_rank import LearnedOrder, place_order
     from factorydet_core.session.world import MOVING_CLASSES, group_by_place, place_box
+    from factorydet_core.session.world import best_view as world_best_view
 
     def placer(class_name):
         if class_name is None or class_name in MOVING_CLASSES:
@@ -273,6 +291,16 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
             counts["hidden"] += 1
             continue
         verdict, class_name, true_box = _truth_answer(db, dataset, item, positive_iou)
+        drawn_in = item["frame_index"]
+        if best_view and verdict == "skip":
+            # Too few points here: the panel offers the frame that sees the place best.
+            view = world_best_view(world, item["frame_index"], item["box"])
+            if view is not None:
+                there = {"frame_index": view.frame_index, "box": view.box}
+                answer = _truth_answer(db, dataset, there, positive_iou)
+                if answer[0] in ("object", "wrong_box"):  # an object of the policy there, unlabelled
+                    (verdict, class_name, true_box), drawn_in = answer, view.frame_index
+                    counts["best_view"] += 1
         # Pending when the queue was read, and only this reviewer answers: their verdicts are
         # still the ones read (reading the queue again per place recomputed every overlap).
         ids = [q["id"] for q in items]
@@ -290,11 +318,10 @@ def _review_places(db, dataset, budget, author, positive_iou, max_label_iou, wor
         answered += 1
         if verdict == "wrong_box":
             place = placer(class_name)
-            frame_index = item["frame_index"]
             if place is None:
-                db.add_label(frame_index, true_box, class_name, author)
+                db.add_label(drawn_in, true_box, class_name, author)
             else:  # label once: the drawn box reaches every frame that shows the object
-                _draw_object(db, author, frame_index, class_name, *place(frame_index, tuple(true_box)))
+                _draw_object(db, author, drawn_in, class_name, *place(drawn_in, tuple(true_box)))
             counts["boxes_drawn"] += 1
         if learned is not None:
             # The panel reads the verdicts given; here the queue read once stands for it. Ordered
@@ -410,6 +437,7 @@ def bench_hitl(
     heldout_seeds: Sequence[int] = (),
     heldout_frames: int = 12,
     heldout_scratch: str | os.PathLike = HELDOUT_SCRATCH,
+    best_view: bool = False,
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Several detectors, the same budget
     of mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -431,8 +459,10 @@ def bench_hitl(
     (``SessionDB.review_queue``); hidden items cost no budget. ``review_by`` "place" reviews as the
     app does by default once the frames are placed: one verdict per place of the queue, objects
     labelled once in every frame that shows them (``simulated_review``'s ``world``); K then counts
-    places. ``variants`` runs some of the detectors only (their names as above; ``blind``, every
-    other one's baseline, always runs); ``None``: (a) to (d).
+    places; with ``best_view`` as well, a place that shows too few points for the policy is judged
+    where the frames see it best (``simulated_review``'s ``best_view``, the review panel's *Look
+    where it is seen best*). ``variants`` runs some of the detectors only (their names as above;
+    ``blind``, every other one's baseline, always runs); ``None``: (a) to (d).
 
     With ``heldout_seeds``, the figures (F-scores, mAP, recovered shares) are measured on held-out
     factories instead: ``heldout_frames`` frames of each simulator seed (``quality.heldout_set``,
@@ -471,6 +501,8 @@ def bench_hitl(
         raise InputError(f"bench hitl: the queue filter's IoU must lie in (0, 1], got {max_label_iou}")
     if review_by not in ("item", "place"):
         raise InputError(f"bench hitl: review by 'item' or 'place', got {review_by!r}")
+    if best_view and review_by != "place":
+        raise InputError("bench hitl: the best view is a place's (--review-by place)")
     known = [name for name, _, _ in _variant_specs(budgets, None, default=False)]
     if variants is not None:
         unknown = sorted(set(variants) - set(known))
@@ -495,6 +527,7 @@ def bench_hitl(
     plan = _HitlPlan(
         dataset, data, train, test, budgets, rounds, settings, seeds, max_label_iou, calibrate, command,
         review_by, variants, propose, heldout_seeds, int(heldout_frames), Path(heldout_scratch),
+        bool(best_view),
     )  # fmt: skip
     resumed = _resumable_runs(plan, earlier)  # a plan mismatch fails here, before any work
     if workdir is not None:
@@ -590,6 +623,7 @@ class _HitlPlan:
     heldout_seeds: tuple[int, ...] = ()
     heldout_frames: int = 12
     heldout_scratch: Path = HELDOUT_SCRATCH
+    best_view: bool = False
 
     def record(self) -> dict:
         """The plan as JSON: a result is resumed only by a run of the same plan (its seeds aside)."""
@@ -607,6 +641,7 @@ class _HitlPlan:
             "queue_max_label_iou": self.max_label_iou,
             "calibrate": self.calibrate,
             "review_by": self.review_by,
+            "review_best_view": self.best_view,
             "variants": self.variants
             or [name for name, _, _ in _variant_specs(self.budgets, None, default=True)],
             # Where the figures are measured (None: on the test frames alone).
@@ -628,7 +663,8 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         return {}
     if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
         raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
-    theirs = {"heldout": None, **earlier["plan"]}  # (records from before held-out factories)
+    # (records from before held-out factories, and from before the reviewer's best view)
+    theirs = {"heldout": None, "review_best_view": False, **earlier["plan"]}
     if isinstance(theirs.get("settings"), dict):
         theirs["settings"] = _settings_as_run(theirs["settings"])
     mine = plan.record()
@@ -657,6 +693,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
+        out.pop("review_best_view", None)
         untouched |= {"review_order", "review_extra"}  # the queue, which nobody reviews
     if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
@@ -784,7 +821,7 @@ def _hitl_variants(
             seed_settings = _seed_settings(settings, name, seed, variant_hold)
             db = SessionDB(open_session(f"{name}_seed{seed}", root), dataset)
             added = add_truth_labels(db, dataset, train) if name == "full" else 0
-            reviews = dict.fromkeys(("background", "object", "wrong_box", "skip", "boxes_drawn", "hidden"), 0)
+            reviews = dict.fromkeys(REVIEW_COUNTS, 0)
             fit_seconds = 0.0
             reached: set = set()  # unannotated objects some reviewable queue item overlaps
             reached_top: set = set()  # ... some of the first K entries the reviewer answers overlaps
@@ -804,7 +841,10 @@ def _hitl_variants(
                     round_reach = queue_reach(db, dataset, train)
                     reached |= round_reach
                 if budget and r < rounds:
-                    answered = simulated_review(db, dataset, budget, max_label_iou=max_label_iou, world=world)
+                    answered = simulated_review(
+                        db, dataset, budget, max_label_iou=max_label_iou, world=world,
+                        best_view=plan.best_view,
+                    )  # fmt: skip
                     for key, value in answered.items():
                         reviews[key] += value
                     # After the review: a learned order puts the places answered first (the
@@ -840,7 +880,7 @@ def _hitl_variants(
                     # Whether a class's F moves by its false positives or by its misses.
                     "per_class_precision": {k: v["precision"] for k, v in metrics["per_class"].items()},
                     "per_class_recall": {k: v["recall"] for k, v in metrics["per_class"].items()},
-                    "num_reviews": sum(v for k, v in reviews.items() if k not in ("boxes_drawn", "hidden")),
+                    "num_reviews": sum(reviews[k] for k in VERDICTS),
                     "reviews": reviews,
                     "truth_labels_added": added,
                     "unannotated_labelled": covered,
@@ -972,6 +1012,7 @@ def _hitl_variants(
         # this IoU or more when set (the review panel's "hide items on labelled objects").
         "queue_max_label_iou": max_label_iou,
         "review_by": plan.review_by,
+        "review_best_view": plan.best_view,
         "settings": {k: v for k, v in dataclasses.asdict(settings).items() if k != "seed"},
         "f1": f1,
         "recovered": recovered,
@@ -1075,7 +1116,8 @@ def compare_hitl_records(
             )
         row_name = variant if variant == baseline_variant else f"{variant} minus {baseline_variant}"
         variants[row_name] = row
-    mine, other = record.get("plan") or {}, baseline.get("plan") or {}
+    # (a record from before the reviewer's best view reviewed without it)
+    mine, other = ({"review_best_view": False, **(rec.get("plan") or {})} for rec in (record, baseline))
     differs = {
         key: [mine.get(key), other.get(key)]
         for key in sorted(set(mine) | set(other))

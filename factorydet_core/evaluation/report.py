@@ -939,7 +939,14 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 " `reviewed_K`: a simulated reviewer answers the top K "
                 + (
                     "places of each round's queue (one verdict per place, as the review panel shows them"
-                    " by default; an object labelled once in every frame that shows it)"
+                    " by default; an object labelled once in every frame that shows it"
+                    + (
+                        "; a place that shows too few points for the policy judged where the frames"
+                        " see it best, as the panel's *Look where it is seen best*"
+                        if result.get("review_best_view")
+                        else ""
+                    )
+                    + ")"
                     if result.get("review_by") == "place"
                     else "items of each round's queue"
                 )

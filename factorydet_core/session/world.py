@@ -98,6 +98,17 @@ class Placement:
         boxes = {f: tuple(box) for f, box in enumerate(self.boxes.tolist())}
         return boxes, np.flatnonzero(self.visible_mask).tolist()
 
+    def best_frame(self, frame_index: int) -> int:
+        """The frame that sees the object best, by its points in the box (``num_points``);
+        ``frame_index`` (the frame the box was drawn in) when none has more. An object mined where
+        it is a few points can be plain to see a few frames on: the review panel offers that view
+        (``bench hitl --review-best-view``'s reviewer judges it there)."""
+        here = int(frame_index)
+        if not 0 <= here < len(self.num_points):
+            raise InputError(f"frame {frame_index} is not one of the {len(self.num_points)} frames placed")
+        best = int(np.argmax(self.num_points))
+        return here if self.num_points[here] >= self.num_points[best] else best
+
     def boxes_by_frame(self, frames=None) -> dict[int, tuple[float, ...]]:
         """``{frame index: box}`` for the visible frames and any of ``frames`` besides."""
         wanted = set(np.flatnonzero(self.visible_mask).tolist()) | {int(f) for f in frames or ()}
@@ -260,6 +271,36 @@ def place_box(world: WorldFrames, frame_index: int, box, *, min_points: int = MI
     visible = num_points >= min_points
     visible[int(frame_index)] = True
     return Placement(boxes=boxes, num_points=num_points, visible_mask=visible)
+
+
+@dataclasses.dataclass(frozen=True)
+class BestView:
+    """Another frame that sees a box's object better than the frame it was drawn (or mined) in."""
+
+    frame_index: int
+    num_points: int
+    """The thinned points in the box there (``Placement.num_points``)."""
+    num_points_here: int
+    """... and in the frame it was drawn in."""
+    box: np.ndarray
+    """(7,) the box carried into that frame."""
+
+
+def best_view(world: WorldFrames, frame_index: int, box) -> BestView | None:
+    """Where the frames see the object of ``box`` (7,), drawn in ``frame_index``, best
+    (``Placement.best_frame``); ``None`` when that is ``frame_index`` itself. What the review
+    panel's *Look where it is seen best* shows, and where ``bench hitl``'s reviewer judges a place
+    too sparse for the policy in its own frame (``--review-best-view``)."""
+    placement = place_box(world, frame_index, box)
+    best = placement.best_frame(frame_index)
+    if best == int(frame_index):
+        return None
+    return BestView(
+        frame_index=best,
+        num_points=int(placement.num_points[best]),
+        num_points_here=int(placement.num_points[int(frame_index)]),
+        box=placement.boxes[best].copy(),
+    )
 
 
 def interpolate_boxes(world: WorldFrames, keyframes: dict) -> dict[int, tuple[float, ...]]:

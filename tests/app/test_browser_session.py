@@ -653,3 +653,32 @@ def test_a_learned_order_queue_shows_the_next_likeliest_place_and_a_skipped_one_
         person.verdict(next(verdicts))
     # Every place once, the unreviewed ones before any skipped one, then the skipped ones again.
     assert visited == [0.2, 0.9, 0.8, 0.7, 0.9, 0.2]
+
+
+def test_a_sparse_item_is_looked_at_where_the_frames_see_it_best(state, tiny_model_path):
+    person = _person(state, "ann")
+    # One object at world (10, 1, 0.5), mined in frame 0 where it shows 5 points; frame 2 shows 60.
+    item = mined_item(0, 70, [10.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0], 0.99)
+    state.db.save_training_run(queue_run(tiny_model_path, [[item]]), "small", {})
+    person.step(0)
+    shown = person.current_item()
+    assert person.best_view(shown) is None  # not placed yet
+    person.look_where_seen_best()
+    assert "not placed yet" in person.messages[-1][1] and state.frame_index == 0
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, 0, 3] = [0.0, 2.0, 4.0]
+    clouds = (_cube((10.0, 1.0, 0.5), num=5), np.zeros((0, 3), np.float32), _cube((6.0, 1.0, 0.5)))
+    state.set_world(WorldFrames(poses, np.ones(3), clouds), "3 frames placed")
+    view = person.best_view(shown)
+    assert (view.frame_index, view.num_points, view.num_points_here) == (2, 60, 5)
+    assert "Seen best in frame 3: 60 points in its box there against 5 here" in review_item_markdown(
+        shown, [], 1, 1, best_view=view
+    )
+    person.look_where_seen_best()
+    assert state.frame_index == 2 and person.current_item()["id"] == shown["id"]  # still the item judged
+    assert person.messages[-1][0] == "Seen best"
+    person.verdict("object", "box")
+    boxes = {
+        lab.frame_index: lab.box for f in range(3) for lab in state.db.labels(f) if lab.origin == "review"
+    }
+    assert set(boxes) == {0, 2} and boxes[2][0] == pytest.approx(6.0)  # labelled once, where it shows

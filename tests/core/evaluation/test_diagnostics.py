@@ -60,3 +60,15 @@ def test_a_place_in_a_learned_order_says_its_chance_of_a_label_and_what_it_was_l
     learning = review_item_markdown({**ITEM, "place_useful": None, "learned_from": 12}, [], 1, 5)
     assert "Learned order: the queue order until 20 places are answered" in learning
     assert "(it looks again every 10 verdicts)" in learning and "chance" not in learning
+
+
+def test_an_item_seen_better_elsewhere_says_where_and_how_to_look():
+    import numpy as np
+
+    from factorydet_core.session.world import BestView
+
+    view = BestView(frame_index=5, num_points=120, num_points_here=9, box=np.zeros(7))
+    text = review_item_markdown(ITEM, [], 1, 5, best_view=view)
+    assert "Seen best in frame 6: 120 points in its box there against 9 here" in text
+    assert "Look where it is seen best [I]" in text
+    assert "Seen best" not in review_item_markdown(ITEM, [], 1, 5)

@@ -96,3 +96,40 @@ def test_the_holding_detectors_are_asked_for_by_name_and_hold_at_the_plans_score
     assert every["reviewed_safe_200"] == (200, 0.3) and every["blind_safe"] == (0, 0.3)
     assert every["reviewed_200"] == (200, None) and every["full_late"] == (0, None)
     assert [name for name in every if holds(name)] == ["blind_safe", "reviewed_safe_50", "reviewed_safe_200"]
+
+
+def test_the_reviewers_best_view_shapes_the_reviewed_runs_alone_and_old_records_reviewed_without_it():
+    from factorydet_core.evaluation.hitl import REVIEW_COUNTS, VERDICTS, compare_hitl_records
+
+    settings = dataclasses.asdict(LoopSettings())
+    plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [200], "review_by": "place",
+            "queue_max_label_iou": 0.25, "settings": settings, "review_best_view": False}  # fmt: skip
+    best = {**plan, "review_best_view": True}
+    for variant in ("blind", "blind_safe", "full", "full_late"):
+        assert _run_plan(best, variant) == _run_plan(plan, variant)
+    for variant in ("reviewed_200", "reviewed_safe_200"):
+        assert _run_plan(best, variant) != _run_plan(plan, variant)
+    # A record from before the field: resumed as reviewed without the best view (``_resumable_runs``).
+    old = {k: v for k, v in plan.items() if k != "review_best_view"}
+    assert _run_plan({"review_best_view": False, **old}, "reviewed_200") == _run_plan(plan, "reviewed_200")
+    # The best view is a count beside the verdicts, not a verdict of its own.
+    assert set(VERDICTS) < set(REVIEW_COUNTS) and "best_view" not in VERDICTS
+    runs = {
+        "blind": [{"seed": 0, "f1": 0.2, "map": 0.3}],
+        "reviewed_200": [{"seed": 0, "f1": 0.25, "map": 0.3}],
+    }
+    record = {"benchmark": "hitl", "data": "d", "train_frames": [0], "test_frames": [1], "seeds": [0],
+              "per_seed": runs, "plan": best}  # fmt: skip
+    older = {**record, "plan": old}
+    assert compare_hitl_records(record, older)["differs"] == {"review_best_view": [True, False]}
+    assert compare_hitl_records({**record, "plan": plan}, older)["differs"] == {}
+
+
+def test_the_best_view_is_refused_without_places(small_dataset_dir):
+    import pytest
+
+    from factorydet_core.evaluation.hitl import bench_hitl
+    from factorydet_core.types import InputError
+
+    with pytest.raises(InputError, match="--review-by place"):
+        bench_hitl(small_dataset_dir, best_view=True, review_by="item")

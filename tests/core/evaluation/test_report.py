@@ -244,6 +244,10 @@ def test_a_hitl_record_says_how_it_cut_and_how_it_ordered_the_review_queue():
     assert "(`review_order` learned)" in hitl_markdown({**by_item, "review_by": "place"})
     text = hitl_markdown({**by_item, "review_by": "item"})
     assert "review_order" not in text and "taking turns in the cut and in the queue" in text
+    # A reviewer by place who looks where the frames see a sparse place best says so.
+    assert "see it best" not in hitl_markdown({**by_item, "review_by": "place"})
+    best = hitl_markdown({**by_item, "review_by": "place", "review_best_view": True})
+    assert "judged where the frames see it best" in best
 
 
 def test_a_hitl_record_says_what_its_reviewers_queue_held_beyond_the_mined_negatives():

@@ -18,6 +18,7 @@ from factorydet_core.session.world import (
     PLACE_IOU,
     SURFACE_MARGIN_M,
     WorldFrames,
+    best_view,
     calibrated_extrinsics,
     count_points,
     counting_box,
@@ -69,6 +70,28 @@ def test_a_box_is_carried_by_the_poses_and_shown_only_where_its_object_has_point
     hidden = place_box(_two_frames(object_in_second=False), 0, box)
     assert hidden.visible_mask.tolist() == [True, False] and hidden.num_points[1] == 0
     assert list(hidden.boxes_by_frame()) == [0] and list(hidden.boxes_by_frame([1])) == [0, 1]
+
+
+def test_the_best_view_is_the_frame_with_the_most_points_and_none_where_the_box_was_drawn():
+    poses = np.stack([_pose(0.0, 0.0, 0.0), _pose(3.0, 0.0, np.pi / 2), _pose(1.0, 0.0, 0.0)])
+    world_centre = np.array([5.0, 1.0, 0.5, 1.0])
+    counts = (6, 40, 40)  # a few points in frame 0; frames 1 and 2 tie
+    clouds = tuple(
+        _cube_points((np.linalg.inv(pose) @ world_centre)[:3], num=n, seed=k)
+        for k, (pose, n) in enumerate(zip(poses, counts))
+    )
+    world = WorldFrames(T_world_vehicle=poses, fitness=np.ones(3), clouds=clouds)
+    box = np.array([5.0, 1.0, 0.5, 0.6, 0.6, 0.6, 0.0])
+    view = best_view(world, 0, box)
+    assert view is not None and view.frame_index == 1  # the first of a tie
+    assert (view.num_points, view.num_points_here) == (40, 6)
+    np.testing.assert_allclose(view.box, place_box(world, 0, box).boxes[1])
+    # Drawn in a frame that sees it as well as any: nowhere better.
+    box_in_2 = place_box(world, 0, box).boxes[2]
+    assert best_view(world, 2, box_in_2) is None and place_box(world, 2, box_in_2).best_frame(2) == 2
+    assert place_box(world, 0, box).best_frame(0) == 1
+    with pytest.raises(InputError, match="frame 5"):
+        place_box(world, 0, box).best_frame(5)
 
 
 def test_the_floor_under_a_box_does_not_make_it_visible():

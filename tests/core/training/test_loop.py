@@ -461,3 +461,48 @@ def test_false_positives_queued_for_review_alone_stay_out_of_the_next_rounds_bac
     again = {(i["frame_index"], tuple(i["patch_set"])) for i in db.review_queue()}
     # Mined again (they were no background), unlike the mined ones.
     assert again & extras and not again & mined
+
+
+@pytest.mark.slow
+def test_the_reviewer_with_the_best_view_labels_an_object_too_sparse_where_it_was_mined(
+    dataset, tmp_path, tiny_model_path
+):
+    from factorydet_core.session.world import register_frames
+
+    world = register_frames([dataset.frame(i) for i in range(dataset.num_frames)], use_icp=False)
+    truths = [read_frame_truth(dataset.path, f) for f in range(dataset.num_frames)]
+    first = truths[0]
+    # An object the data set left unannotated, too sparse for the policy in frame 0, dense elsewhere
+    # (an annotated one is labelled there already: nothing to add).
+    sparse = (first.instance_num_points < 50) & (first.instance_class_ids >= 0)
+    dense_later = {
+        int(i): bool(a)
+        for t in truths[1:]
+        for i, n, a in zip(t.instance_ids, t.instance_num_points, t.annotated_mask)
+        if n >= 50
+    }
+    ids = [int(i) for i in first.instance_ids[sparse] if dense_later.get(int(i)) is False]
+    box = first.instance_boxes[list(first.instance_ids).index(ids[0])]
+    assert truth_verdict(dataset, mined_item(0, 1, box, 0.9))[0] == "skip"
+    answers = {}
+    for best_view in (False, True):
+        db = SessionDB(open_session(f"best-{best_view}", tmp_path), dataset)
+        db.save_training_run(queue_run(tiny_model_path, [[mined_item(0, 1, box, 0.9)]]), "small", {})
+        counts = simulated_review(db, dataset, budget=1, world=world, best_view=best_view)
+        labelled = {
+            lab.frame_index
+            for f in range(dataset.num_frames)
+            for lab in db.labels(f)
+            if lab.origin != "dataset"
+        }
+        answers[best_view] = (counts, labelled)
+    counts, labelled = answers[False]
+    assert counts["skip"] == 1 and counts["best_view"] == 0 and not labelled
+    counts, labelled = answers[True]
+    assert counts["best_view"] == 1 and counts["object"] + counts["wrong_box"] == 1 and counts["skip"] == 0
+    dense_frames = {
+        f
+        for f, t in enumerate(truths)
+        if any(int(i) == ids[0] and n >= 50 for i, n in zip(t.instance_ids, t.instance_num_points))
+    }
+    assert dense_frames <= labelled  # labelled once, in the frames where the policy labels it
