@@ -216,7 +216,15 @@ def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
     counts = simulated_review(db, dataset, budget=5)
     # The shifted box is a misplaced box of a labelled object: a negative. The exact one repeats
     # the label: nothing to add. The third touches only an object too sparse for the policy.
-    assert counts == {"background": 1, "object": 0, "wrong_box": 0, "skip": 2, "boxes_drawn": 0, "hidden": 0}
+    assert counts == {
+        "background": 1,
+        "object": 0,
+        "wrong_box": 0,
+        "skip": 2,
+        "boxes_drawn": 0,
+        "hidden": 0,
+        "best_view": 0,
+    }
     assert [item["verdict"] for item in db.review_queue()] == ["background", "skip", "skip"]
     assert len(db.labels(0)) == num_labels
 
@@ -247,7 +255,15 @@ def test_the_reviewer_with_the_labelled_filter_spends_its_budget_off_labelled_ob
     assert db.review_queue()[0]["label_iou"] == pytest.approx(1 / 3, abs=1e-3)
 
     counts = simulated_review(db, dataset, budget=2, max_label_iou=0.25)
-    assert counts == {"background": 0, "object": 1, "wrong_box": 0, "skip": 1, "boxes_drawn": 0, "hidden": 3}
+    assert counts == {
+        "background": 0,
+        "object": 1,
+        "wrong_box": 0,
+        "skip": 1,
+        "boxes_drawn": 0,
+        "hidden": 3,
+        "best_view": 0,
+    }
     assert [item["verdict"] for item in db.review_queue()] == [None, None, "object", None, "skip"]
     # The label the verdict made hides its duplicate from the filtered queue too.
     assert [item["proposal"] for item in db.review_queue(max_label_iou=0.25)] == [4]
