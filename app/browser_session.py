@@ -126,7 +126,7 @@ class BrowserSession:
         self._places: tuple | None = None  # ((world, item ids read, order), group_by_place's places)
         self._learned: LearnedOrder | None = None  # the learned review order's fits (review_rank)
         self._shown_queue: tuple | None = None  # (everything load_queue's result depends on, it)
-        self._best_view: tuple | None = None  # ((item id, world), best_view's answer for it)
+        self._best_view: tuple | None = None  # (item id, the placement, best_view's answer)
         self.suspect_index = -1
         self.messages: collections.deque[tuple[str, str, bool]] = collections.deque(maxlen=100)
         """The latest notifications given, ``(title, body, error)``, oldest first."""
@@ -723,18 +723,19 @@ class BrowserSession:
 
     def best_view(self, item: dict | None) -> BestView | None:
         """Where the frames see a queue item's object best (``world.best_view``); ``None`` before
-        the frames are placed or when the item's own frame sees it best. Cached per item."""
-        if item is None:
+        the frames are placed, for an item predicted a person or truck (the frames' poses carry a
+        box to where a moving object no longer is), or when the item's own frame sees it best.
+        Cached per item and placement."""
+        if item is None or item.get("predicted_class") in MOVING_CLASSES:
             return None
         with self.state.lock:
             world = self.state.world
         if world is None:
             return None
-        key = (item["id"], id(world))
         cached = self._best_view
-        if cached is None or cached[0] != key:
-            cached = self._best_view = (key, best_view(world, item["frame_index"], item["box"]))
-        return cached[1]
+        if cached is None or cached[0] != item["id"] or cached[1] is not world:
+            cached = self._best_view = (item["id"], world, best_view(world, item["frame_index"], item["box"]))
+        return cached[2]
 
     def look_where_seen_best(self) -> None:
         """Show the review item's object in the frame that sees it best (``best_view``), the
@@ -746,7 +747,9 @@ class BrowserSession:
         view = self.best_view(item)
         if view is None:
             self.notify(
-                "Review", "No other frame sees this item's place better (or the frames are not placed yet)."
+                "Review",
+                "No other frame sees this item's place better (or the frames are not placed yet, or it "
+                "is predicted a person or truck, which move between frames).",
             )
             return
         self.state.set_frame(view.frame_index)

@@ -224,8 +224,14 @@ def wrong_box(view: ClientView) -> None:
     result, drawn_frame = view.drawn_result()
     if result is not None and drawn_frame == item["frame_index"]:
         view.select_patches(patches_in_box(result, item["box"]))
-    view.notify(
-        "Wrong box",
-        "Its points are selected: shift-click or shift-drag to add the rest of the object, then "
-        "Label segment [L]; Next [N] goes on.",
-    )
+        view.notify(
+            "Wrong box",
+            "Its points are selected: shift-click or shift-drag to add the rest of the object, then "
+            "Label segment [L]; Next [N] goes on.",
+        )
+    else:  # looking at another frame (where it is seen best, say): nothing of the item's is drawn
+        view.notify(
+            "Wrong box",
+            "Click the object's points in this frame (shift-click or shift-drag for more), then "
+            "Label segment [L]; Next [N] goes on.",
+        )

@@ -8,6 +8,7 @@ from factorydet_core.boxes import box_iou_3d, fit_box
 from factorydet_core.detection.detector import ProposalResult
 from factorydet_core.geometry import points_in_box
 from factorydet_core.session.review_rank import MIN_ANSWERS, MIN_EACH, REFIT_EVERY
+from factorydet_core.session.world import COUNT_VOXEL_M, BestView
 from factorydet_core.types import BOX_KINDS, CLASS_NAMES, LEVELS, Detections, Frame, InputError, Proposals
 
 
@@ -258,7 +259,7 @@ def review_item_markdown(
     num_points: int | None = None,
     min_points: int | None = None,
     hold: float | None = None,
-    best_view=None,
+    best_view: BestView | None = None,
 ) -> str:
     """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``), with
     whether its run held it out of the background (``hold``: the run's ``hold_confident``) or
@@ -282,8 +283,8 @@ def review_item_markdown(
     if best_view is not None:
         lines.append(
             f"Seen best in frame {best_view.frame_index + 1}: {best_view.num_points} points in its box"
-            f" there against {best_view.num_points_here} here (5 cm thinned): **Look where it is seen"
-            " best [I]** before calling it too sparse to label"
+            f" there against {best_view.num_points_here} here ({100 * COUNT_VOXEL_M:g} cm thinned):"
+            " **Look where it is seen best [I]** before calling it too sparse to label"
         )
     lines += [
         f"patches {', '.join(map(str, item['patch_set'][:12]))}"

@@ -117,10 +117,11 @@ def simulated_review(
             a box drawn for a wrong one) labelled in every frame that shows it (label once).
             ``budget`` then counts places.
         best_view: with ``world``, a place whose item shows too few points for the policy
-            ('skip') is looked at where the frames see it best (``Placement.best_frame``, the
-            review panel's *Look where it is seen best*): an object of the policy there, and not
-            labelled yet, is labelled as the panel would (Object with the item's box, or Wrong box
-            and the object's box drawn there), in every frame that shows it.
+            ('skip') is looked at where the frames see it best (``world.best_view``, the review
+            panel's *Look where it is seen best*): an object of the policy there, not labelled
+            yet and of a class that stands still, is labelled as the panel would (Object with the
+            item's box, or Wrong box and the object's box drawn there), in every frame that
+            shows it.
 
     Returns:
         Counts (``REVIEW_COUNTS``) per verdict, of boxes drawn, of items ``hidden`` by the filter
@@ -292,13 +293,16 @@ def _review_places(
             continue
         verdict, class_name, true_box = _truth_answer(db, dataset, item, positive_iou)
         drawn_in = item["frame_index"]
-        if best_view and verdict == "skip":
-            # Too few points here: the panel offers the frame that sees the place best.
+        if best_view and verdict == "skip" and truth_verdict(dataset, item, positive_iou)[0] == "skip":
+            # Too few points here for the policy (not a repeat of a label here): the panel offers
+            # the frame that sees the place best.
             view = world_best_view(world, item["frame_index"], item["box"])
             if view is not None:
                 there = {"frame_index": view.frame_index, "box": view.box}
                 answer = _truth_answer(db, dataset, there, positive_iou)
-                if answer[0] in ("object", "wrong_box"):  # an object of the policy there, unlabelled
+                # An object of the policy there, not labelled yet, that stands still: a moving one's
+                # box carried by the frames' poses lands where it no longer is.
+                if answer[0] in ("object", "wrong_box") and answer[1] not in MOVING_CLASSES:
                     (verdict, class_name, true_box), drawn_in = answer, view.frame_index
                     counts["best_view"] += 1
         # Pending when the queue was read, and only this reviewer answers: their verdicts are
@@ -923,7 +927,12 @@ def _hitl_variants(
                 if all(key in r for r in runs)
             },
             "num_reviews": _mean_of([r["num_reviews"] for r in runs]),
-            "reviews": {k: _mean_of([r["reviews"][k] for r in runs]) for k in runs[0]["reviews"]},
+            # (runs read back from records before the best view have no count of it)
+            "reviews": {
+                k: _mean_of([r["reviews"].get(k, 0) for r in runs])
+                for k in REVIEW_COUNTS
+                if any(k in r["reviews"] for r in runs)
+            },
             "truth_labels_added": _mean_of([r["truth_labels_added"] for r in runs]),
             # Of the objects the data set left unannotated on the training frames, the share the
             # session labels at the end (full: all; blind: none; reviewed: what the reviews gave back).

@@ -671,6 +671,8 @@ def test_a_sparse_item_is_looked_at_where_the_frames_see_it_best(state, tiny_mod
     state.set_world(WorldFrames(poses, np.ones(3), clouds), "3 frames placed")
     view = person.best_view(shown)
     assert (view.frame_index, view.num_points, view.num_points_here) == (2, 60, 5)
+    # A person or truck moves: the frames' poses carry its box to where it no longer is.
+    assert person.best_view({**shown, "id": -1, "predicted_class": "person"}) is None
     assert "Seen best in frame 3: 60 points in its box there against 5 here" in review_item_markdown(
         shown, [], 1, 1, best_view=view
     )
