@@ -243,10 +243,11 @@ def _coverage_totals(by_class: dict[str, tuple[int, int]]) -> tuple[int, int]:
     return sum(c for c, _ in by_class.values()), sum(t for _, t in by_class.values())
 
 
-def _truth_answer(db: SessionDB, dataset: Dataset, item: dict, positive_iou: float):
+def _truth_answer(db: SessionDB, dataset: Dataset, item: dict, positive_iou: float, truth=None):
     """``truth_verdict`` as the reviewer answers it, knowing the session's labels: an object that
-    is labelled already makes the item a negative ('skip' on its box, 'background' off it)."""
-    verdict, class_name, true_box = truth_verdict(dataset, item, positive_iou)
+    is labelled already makes the item a negative ('skip' on its box, 'background' off it).
+    ``truth``: the item's ``truth_verdict`` when read already."""
+    verdict, class_name, true_box = truth or truth_verdict(dataset, item, positive_iou)
     if true_box is not None:
         boxes, _, _ = db.frame_boxes(item["frame_index"])
         if len(boxes) and box_iou_3d(true_box[None], boxes).max() >= positive_iou:
@@ -291,9 +292,10 @@ def _review_places(
         if max_label_iou is not None and on_labelled_object(db.label_overlap([item])[0], max_label_iou):
             counts["hidden"] += 1
             continue
-        verdict, class_name, true_box = _truth_answer(db, dataset, item, positive_iou)
+        truth = truth_verdict(dataset, item, positive_iou)
+        verdict, class_name, true_box = _truth_answer(db, dataset, item, positive_iou, truth)
         drawn_in = item["frame_index"]
-        if best_view and verdict == "skip" and truth_verdict(dataset, item, positive_iou)[0] == "skip":
+        if best_view and truth[0] == "skip":
             # Too few points here for the policy (not a repeat of a label here): the panel offers
             # the frame that sees the place best.
             view = world_best_view(world, item["frame_index"], item["box"])
