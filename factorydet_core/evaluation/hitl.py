@@ -658,6 +658,11 @@ class _HitlPlan:
         return json.loads(json.dumps(values))
 
 
+PLAN_BEFORE_THEY_EXISTED: dict[str, object] = {"heldout": None, "review_best_view": False}
+"""What a plan record (``_HitlPlan.record``) from before a field existed did: measured on the test
+frames (no held-out factories), reviewed without the best view."""
+
+
 def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, str], dict]:
     """The finished runs of an earlier (partial) result, as ``{(seed, variant): run}``: those of
     the plan's detectors whose run plan (``_run_plan``) the earlier record shares.
@@ -669,8 +674,7 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
         return {}
     if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
         raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
-    # (records from before held-out factories, and from before the reviewer's best view)
-    theirs = {"heldout": None, "review_best_view": False, **earlier["plan"]}
+    theirs = {**PLAN_BEFORE_THEY_EXISTED, **earlier["plan"]}
     if isinstance(theirs.get("settings"), dict):
         theirs["settings"] = _settings_as_run(theirs["settings"])
     mine = plan.record()
@@ -1127,8 +1131,7 @@ def compare_hitl_records(
             )
         row_name = variant if variant == baseline_variant else f"{variant} minus {baseline_variant}"
         variants[row_name] = row
-    # (a record from before the reviewer's best view reviewed without it)
-    mine, other = ({"review_best_view": False, **(rec.get("plan") or {})} for rec in (record, baseline))
+    mine, other = ({**PLAN_BEFORE_THEY_EXISTED, **(rec.get("plan") or {})} for rec in (record, baseline))
     differs = {
         key: [mine.get(key), other.get(key)]
         for key in sorted(set(mine) | set(other))
