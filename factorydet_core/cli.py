@@ -199,6 +199,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
     if args.resume and args.name not in ("hitl", "quality", "scale"):
         raise InputError(f"--resume applies to bench hitl, quality and scale, not bench {args.name}")
+    if args.resume_other_library and not (args.resume and args.name == "hitl"):
+        raise InputError("--resume-other-library goes with bench hitl --resume")
     if args.readme and (args.readme_block or args.name in ("hitl", "quality")):
         from factorydet_core.evaluation.bench import check_readme_block
 
@@ -480,6 +482,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     heldout_frames=args.heldout_frames,
                     heldout_scratch=args.scratch,
                     best_view=args.review_best_view,
+                    resume_other_library=args.resume_other_library,
                 )
                 result["proposals_on"] = execution.describe()
                 if args.out:
@@ -1596,6 +1599,12 @@ def build_parser(
         help="hitl, quality: continue the (partial) result at --out, training only the seeds (hitl: "
         "the seeds' detectors) it lacks; scale: running only the runs it lacks; with it, --out is "
         "also written after every detector of a seed (hitl), training seed (quality) or run (scale)",
+    )
+    p.add_argument(
+        "--resume-other-library",
+        action="store_true",
+        help="hitl, with --resume: read back the runs of another version of the library too (by "
+        "default they train again when there is training to do; the record then says it mixes versions)",
     )
     p.add_argument(
         "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"

@@ -395,6 +395,9 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     by_class = ["--recalibrate-background", "0.5", "--recalibrate-by-class"]
     assert main(["bench", "hitl", str(small_dataset_dir), "--variants", "full", *by_class]) == 2
     assert main(["bench", "hitl", str(small_dataset_dir), "--recalibrate-by-class"]) == 2  # refines nothing
+    # Reading back runs of other code is a resume's choice, and bench hitl's alone.
+    assert main(["bench", "hitl", str(small_dataset_dir), "--resume-other-library"]) == 2
+    assert "--resume-other-library goes with bench hitl --resume" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -485,6 +488,12 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     assert main(args) == 0
     first = json.loads(capsys.readouterr().out)
     assert first["complete"] and len(fits) == 4  # two detectors, a first fit and one round each
+    # Each run keeps the code it ran; the record counts its runs per version of the library.
+    from factorydet_core.evaluation.records import library_version
+
+    assert {run["library"] for runs in first["per_seed"].values() for run in runs} == {library_version()}
+    assert first["library_versions"] == {library_version(): 2}
+    assert "Every run ran one version of the library." in out.with_suffix(".md").read_text()
     # Stopped after blind: the partial record --out held then.
     partial = {key: first[key] for key in ("benchmark", "command", "plan", "machine")}
     # Written before queue_order was a setting: it ran with the default, and resumes.

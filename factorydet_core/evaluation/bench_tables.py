@@ -733,7 +733,23 @@ def hitl_compare_table(result: dict) -> str:
         if in_factory:
             cells.append(difference_text(row["in_factory_f1"]) if "in_factory_f1" in row else "–")
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return "\n".join(lines) + _library_pairs_text(rows)
+
+
+def _library_pairs_text(rows: dict) -> str:
+    """Whether a compare's paired runs ran one version of the library ("" when the records did
+    not keep it)."""
+    counts = [row["library"] for row in rows.values() if "library" in row]
+    same, other = (sum(c[key] for c in counts) for key in ("same", "other"))
+    pairs = same + other + sum(c["unknown"] for c in counts)
+    if other:
+        return (
+            f"\n\n**{other} of the {pairs} pairs of runs ran two versions of the library**: their "
+            "differences include what changed in the code."
+        )
+    if same and same == pairs:
+        return "\n\nEvery pair of runs ran one version of the library."
+    return ""
 
 
 def difference_text(difference: dict, with_mean: bool = True) -> str:

@@ -7,6 +7,7 @@ import dataclasses
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -16,7 +17,13 @@ from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.evaluate import measure
 from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, check_heldout, heldout_set
-from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
+from factorydet_core.evaluation.records import (
+    check_same_plan,
+    library_version,
+    library_versions,
+    machine_info,
+    spread_frames,
+)
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
 from factorydet_core.session.queue import review_order_of, unlearned_order
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
@@ -444,6 +451,7 @@ def bench_hitl(
     heldout_frames: int = 12,
     heldout_scratch: str | os.PathLike = HELDOUT_SCRATCH,
     best_view: bool = False,
+    resume_other_library: bool = False,
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Several detectors, the same budget
     of mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -485,8 +493,12 @@ def bench_hitl(
     After each detector of each seed, a partial record (``"complete": false``, the plan and the
     runs so far) goes to ``on_partial``; given back as ``earlier`` to a run of the same plan (its
     seeds aside), its runs are read back and only the missing ones train, so a long benchmark can
-    be stopped and resumed. A run depends only on its seed and its variant (each trains in its own
-    session), so a resumed run does the work an uninterrupted one would.
+    be stopped and resumed. A run depends only on its seed, its variant (each trains in its own
+    session) and the code, so a resumed run does the work an uninterrupted one would: each run
+    keeps the version of the library it ran (``records.library_version``), and a resume that has
+    detectors to train reads back only the runs of the running version (the others train again,
+    with a warning) unless ``resume_other_library``; a resume with nothing to train renders the
+    record as it is. The record counts its runs per library version (``library_versions``).
 
     Raises:
         InputError: on bad arguments, or an ``earlier`` record of another plan.
@@ -535,7 +547,8 @@ def bench_hitl(
         review_by, variants, propose, heldout_seeds, int(heldout_frames), Path(heldout_scratch),
         bool(best_view),
     )  # fmt: skip
-    resumed = _resumable_runs(plan, earlier)  # a plan mismatch fails here, before any work
+    # a plan mismatch fails here, before any work
+    resumed = _resumable_runs(plan, earlier, other_library=resume_other_library)
     if workdir is not None:
         return _hitl_variants(plan, Path(workdir), progress, resumed, on_partial)
     with tempfile.TemporaryDirectory(prefix="factorydet_hitl_") as scratch_dir:
@@ -663,9 +676,15 @@ PLAN_BEFORE_THEY_EXISTED: dict[str, object] = {"heldout": None, "review_best_vie
 frames (no held-out factories), reviewed without the best view."""
 
 
-def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, str], dict]:
+def _resumable_runs(
+    plan: _HitlPlan, earlier: dict | None, other_library: bool = False
+) -> dict[tuple[int, str], dict]:
     """The finished runs of an earlier (partial) result, as ``{(seed, variant): run}``: those of
-    the plan's detectors whose run plan (``_run_plan``) the earlier record shares.
+    the plan's detectors whose run plan (``_run_plan``) the earlier record shares. When some of
+    the plan's runs are missing (there is training to do), only the runs of this version of the
+    library (``records.library_version``) are read back, unless ``other_library``: a record whose
+    runs ran other code would set two versions side by side in every paired difference. The
+    runs left out train again, with a warning that says so.
 
     Raises:
         InputError: when ``earlier`` shares no detector's run plan (it would mix two benchmarks).
@@ -681,12 +700,26 @@ def _resumable_runs(plan: _HitlPlan, earlier: dict | None) -> dict[tuple[int, st
     same = {name for name in mine["variants"] if _run_plan(mine, name) == _run_plan(theirs, name)}
     if not same:
         check_same_plan("hitl", mine, theirs)
-    return {
+    runs = {
         (int(run["seed"]), name): run
         for name, runs in (earlier.get("per_seed") or {}).items()
         for run in runs
         if int(run["seed"]) in plan.seeds and name in same
     }
+    wanted = {(seed, name) for seed in plan.seeds for name in mine["variants"]}
+    if other_library or wanted <= set(runs):
+        return runs  # (nothing to train: the record is rendered as it is)
+    version = library_version()
+    other = {key for key, run in runs.items() if run.get("library") != version}
+    if other:
+        versions = ", ".join(f"{v} ({n})" for v, n in library_versions([runs[k] for k in other]).items())
+        warnings.warn(
+            f"bench hitl --resume: {len(other)} of the earlier record's runs ran another version of the "
+            f"library than this one ({version}): {versions}; they train again "
+            "(--resume-other-library reads them back, and the record then mixes versions)",
+            stacklevel=3,
+        )
+    return {key: run for key, run in runs.items() if key not in other}
 
 
 def _run_plan(plan: dict, variant: str) -> dict:
@@ -901,6 +934,7 @@ def _hitl_variants(
                     "reach_share_estimated": _mean_of([e for e, _ in reach_shares]),
                     "reach_share_true": _mean_of([t for _, t in reach_shares]),
                     "fit_seconds": round(fit_seconds, 1),
+                    "library": library_version(),  # the code this run ran
                     # With held-out factories, the figures on the training factory's test frames.
                     **({"in_factory": in_factory} if in_factory is not None else {}),
                 }
@@ -1039,6 +1073,8 @@ def _hitl_variants(
         "per_seed": per_seed,
         # None: every run was read back (with held-out factories: their simulation and proposals too)
         "proposal_seconds": proposal_seconds,
+        # The versions of the library the runs ran (more than one: a mixed record).
+        "library_versions": library_versions([run for runs in per_seed.values() for run in runs]),
         "machine": machine_info(),
     }
 
@@ -1124,6 +1160,14 @@ def compare_hitl_records(
                 [ours[s]["f1"] - our_blind[s]["f1"] for s in seeds],
                 [theirs[s]["f1"] - their_blind[s]["f1"] for s in seeds],
             ),
+        }
+        # Whether each seed's two runs ran one version of the library (unknown for runs of records
+        # from before the runs kept it).
+        versions = [(ours[s].get("library"), theirs[s].get("library")) for s in seeds]
+        row["library"] = {
+            "same": sum(1 for a, b in versions if a and b and a == b),
+            "other": sum(1 for a, b in versions if a and b and a != b),
+            "unknown": sum(1 for a, b in versions if not (a and b)),
         }
         if all("in_factory" in runs[s] for runs in (ours, theirs) for s in seeds):
             row["in_factory_f1"] = paired_difference(

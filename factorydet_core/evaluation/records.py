@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import os
 import platform
 from collections.abc import Sequence
@@ -11,7 +13,7 @@ import numpy as np
 
 from factorydet_core.types import InputError
 
-__all__ = ["machine_info", "spread_frames"]
+__all__ = ["library_version", "library_versions", "machine_info", "spread_frames"]
 
 
 def machine_info() -> dict:
@@ -40,6 +42,33 @@ def machine_info() -> dict:
         "open3d": open3d.__version__,
         "os": platform.platform(),
     }
+
+
+@functools.cache
+def library_version() -> str:
+    """Which code a run ran: the first 12 hex digits of a SHA-256 over the path and the bytes of
+    every module of ``factorydet_core``, in path order. Two runs with one digest ran the same
+    library; the packages under it (numpy, torch, ...) are the record's ``machine_info``.
+
+    Any change to a module changes it, even one that cannot change a result (a docstring): it
+    tells runs apart that may differ, and says nothing of runs that happen to agree."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py"), key=lambda p: p.relative_to(root).as_posix()):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()[:12]
+
+
+def library_versions(runs: Sequence[dict]) -> dict[str, int]:
+    """How many of ``runs`` (run records with a ``"library"`` field, ``library_version``) ran
+    each version of the library, most first; runs of records from before the field existed
+    count as ``"unknown"``."""
+    counts: dict[str, int] = {}
+    for run in runs:
+        key = run.get("library") or "unknown"
+        counts[key] = counts.get(key, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
 def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:

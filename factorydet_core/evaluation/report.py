@@ -744,6 +744,22 @@ def _hitl_where(result: dict) -> str:
     )
 
 
+def _library_note(versions: dict[str, int]) -> str:
+    """What a hitl record's ``library_versions`` say of its runs' code ("" for a record whose
+    runs did not keep it)."""
+    known = {v: n for v, n in versions.items() if v != "unknown"}
+    if not known:
+        return ""
+    if len(versions) == 1:
+        return " Every run ran one version of the library."
+    runs = sum(versions.values())
+    return (
+        f" **The {runs} runs ran {len(versions)} versions of the library**"
+        + (f" ({versions['unknown']} of a version not kept)" if "unknown" in versions else "")
+        + ": paired differences between them include what changed in the code."
+    )
+
+
 def hitl_markdown(result: dict, heading: bool = True) -> str:
     """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
     reviews, and full labels (means over the seeds, with each seed's total), the recovered
@@ -908,6 +924,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
         else ""
     )
     mean_note = f" Means over seeds {', '.join(map(str, seeds))}." if len(seeds) > 1 else ""
+    mean_note += _library_note(result.get("library_versions") or {})
     return "\n".join(
         [
             *(["## Human in the loop: does reviewing the mined negatives help?", ""] if heading else []),

@@ -133,3 +133,70 @@ def test_the_best_view_is_refused_without_places(small_dataset_dir):
 
     with pytest.raises(InputError, match="--review-by place"):
         bench_hitl(small_dataset_dir, best_view=True, review_by="item")
+
+
+def test_a_resume_with_training_to_do_reads_back_only_the_runs_of_this_library():
+    import warnings
+
+    import pytest
+
+    from factorydet_core.evaluation.hitl import _HitlPlan, _resumable_runs
+    from factorydet_core.evaluation.records import library_version, library_versions
+
+    version = library_version()
+    assert len(version) == 12 and int(version, 16) >= 0 and library_version() == version
+    plan = _HitlPlan(None, "d", [0], [1], [200], 2, LoopSettings(), [0, 1, 2], None, True, "",
+                     variants=["blind", "full"])  # fmt: skip
+
+    def run(seed, library):
+        return {"seed": seed, "f1": 0.2, **({"library": library} if library else {})}
+
+    other = "0123456789ab"
+    per_seed = {
+        "blind": [run(0, version), run(1, other), run(2, None)],
+        "full": [run(0, version), run(1, other)],  # seed 2's full labels still to train
+    }
+    earlier = {"benchmark": "hitl", "plan": plan.record(), "per_seed": per_seed}
+    counted = library_versions([*per_seed["blind"], *per_seed["full"]])
+    assert counted == {version: 2, other: 2, "unknown": 1} and list(counted.values()) == [2, 2, 1]
+    # Training to do: the runs of other code (or of code the record did not keep) train again,
+    # and the user is told why.
+    with pytest.warns(UserWarning, match="3 of the earlier record's runs ran another version"):
+        kept = _resumable_runs(plan, earlier)
+    assert set(kept) == {(0, "blind"), (0, "full")}
+    # ... unless asked to read them back.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert set(_resumable_runs(plan, earlier, other_library=True)) == {
+            (0, "blind"), (1, "blind"), (2, "blind"), (0, "full"), (1, "full")
+        }  # fmt: skip
+        # A record with nothing to train is rendered as it is, whatever code its runs ran.
+        one_seed = dataclasses.replace(plan, seeds=[1])
+        assert set(_resumable_runs(one_seed, earlier)) == {(1, "blind"), (1, "full")}
+
+
+def test_records_and_compares_say_when_their_runs_ran_other_code():
+    from factorydet_core.evaluation.bench_tables import hitl_compare_table
+    from factorydet_core.evaluation.hitl import compare_hitl_records
+    from factorydet_core.evaluation.report import _library_note
+
+    assert _library_note({}) == _library_note({"unknown": 4}) == ""  # records before the field
+    assert _library_note({"aaaaaaaaaaaa": 6}) == " Every run ran one version of the library."
+    mixed = _library_note({"aaaaaaaaaaaa": 4, "unknown": 2})
+    assert "The 6 runs ran 2 versions of the library" in mixed and "2 of a version not kept" in mixed
+
+    def record(libraries):
+        runs = [{"seed": s, "f1": 0.2, "map": 0.3, "library": lib} for s, lib in enumerate(libraries)]
+        return {"benchmark": "hitl", "data": "d", "train_frames": [0], "test_frames": [1],
+                "seeds": [0, 1], "per_seed": {"blind": runs}, "plan": {}}  # fmt: skip
+
+    ours = record(["aaaaaaaaaaaa", "aaaaaaaaaaaa"])
+    same = compare_hitl_records(ours, record(["aaaaaaaaaaaa", "aaaaaaaaaaaa"]))
+    assert same["variants"]["blind"]["library"] == {"same": 2, "other": 0, "unknown": 0}
+    assert hitl_compare_table(same).endswith("Every pair of runs ran one version of the library.")
+    other = compare_hitl_records(ours, record(["aaaaaaaaaaaa", "bbbbbbbbbbbb"]))
+    assert other["variants"]["blind"]["library"] == {"same": 1, "other": 1, "unknown": 0}
+    assert "1 of the 2 pairs of runs ran two versions of the library" in hitl_compare_table(other)
+    unknown = compare_hitl_records(ours, record([None, None]))
+    assert unknown["variants"]["blind"]["library"]["unknown"] == 2
+    assert "version of the library" not in hitl_compare_table(unknown)
