@@ -199,8 +199,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
     if args.resume and args.name not in ("hitl", "quality", "scale"):
         raise InputError(f"--resume applies to bench hitl, quality and scale, not bench {args.name}")
-    if args.resume_other_library and not (args.resume and args.name == "hitl"):
-        raise InputError("--resume-other-library goes with bench hitl --resume")
+    if args.resume_other_library and not (args.resume and args.name in ("hitl", "quality")):
+        raise InputError("--resume-other-library goes with bench hitl or quality --resume")
     if args.readme and (args.readme_block or args.name in ("hitl", "quality")):
         from factorydet_core.evaluation.bench import check_readme_block
 
@@ -298,7 +298,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 plan, command=command, progress=update, earlier=earlier,
                 # Only a resumable run replaces --out before it is complete.
                 on_partial=(lambda partial: write_outputs(partial, args.out)) if args.resume else None,
-                propose=proposer(execution),
+                propose=proposer(execution), resume_other_library=args.resume_other_library,
             )  # fmt: skip
         finally:
             close()
@@ -1603,7 +1603,7 @@ def build_parser(
     p.add_argument(
         "--resume-other-library",
         action="store_true",
-        help="hitl, with --resume: read back the runs of another version of the library too (by "
+        help="hitl, quality, with --resume: read back the runs of another version of the library too (by "
         "default they train again when there is training to do; the record then says it mixes versions)",
     )
     p.add_argument(

@@ -397,7 +397,7 @@ def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     assert main(["bench", "hitl", str(small_dataset_dir), "--recalibrate-by-class"]) == 2  # refines nothing
     # Reading back runs of other code is a resume's choice, and bench hitl's alone.
     assert main(["bench", "hitl", str(small_dataset_dir), "--resume-other-library"]) == 2
-    assert "--resume-other-library goes with bench hitl --resume" in capsys.readouterr().err
+    assert "--resume-other-library goes with bench hitl or quality --resume" in capsys.readouterr().err
 
 
 @pytest.mark.slow

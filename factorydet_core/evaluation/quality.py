@@ -27,6 +27,7 @@ import datetime
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -38,7 +39,13 @@ from factorydet_core.detection.box_quality import BoxQuality
 from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.evaluate import ignored_boxes, measure, reference_boxes
-from factorydet_core.evaluation.records import check_same_plan, machine_info, spread_frames
+from factorydet_core.evaluation.records import (
+    check_same_plan,
+    library_version,
+    library_versions,
+    machine_info,
+    spread_frames,
+)
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
 from factorydet_core.io.dataset import Dataset, open_dataset
 from factorydet_core.io.jsonfile import write_json
@@ -305,9 +312,15 @@ def summarize(runs: list[dict], class_names: Sequence[str]) -> dict:
     }
 
 
-def resumable_runs(plan: QualityPlan, earlier: dict | None) -> dict[int, dict[str, dict]]:
+def resumable_runs(
+    plan: QualityPlan, earlier: dict | None, other_library: bool = False
+) -> dict[int, dict[str, dict]]:
     """The finished training seeds of an earlier (partial) result of the same plan, as
-    ``{seed: {method: run}}``; nothing when the plans differ in anything but their seeds.
+    ``{seed: {method: run}}``; nothing when the plans differ in anything but their seeds. When
+    some of the plan's seeds are missing (there is training to do), only the seeds whose runs ran
+    this version of the library (``records.library_version``) are read back, unless
+    ``other_library``; the others train again, with a warning that says so (the spread over
+    seeds would otherwise hold what changed in the code).
 
     Raises:
         InputError: when ``earlier`` is a record of another plan (it would mix two benchmarks).
@@ -323,7 +336,18 @@ def resumable_runs(plan: QualityPlan, earlier: dict | None) -> dict[int, dict[st
         }
         if learned and all(found.values()):
             done[seed] = found
-    return done
+    if other_library or set(plan.seeds) <= set(done):
+        return done  # (nothing to train: the record is rendered as it is)
+    version = library_version()
+    other = sorted(s for s, found in done.items() if any(r.get("library") != version for r in found.values()))
+    if other:
+        warnings.warn(
+            f"bench quality --resume: the runs of training seeds {other} ran another version of the "
+            f"library than this one ({version}); they train again (--resume-other-library reads them "
+            "back, and the record then mixes versions)",
+            stacklevel=3,
+        )
+    return {s: found for s, found in done.items() if s not in other}
 
 
 def bench_quality(
@@ -333,6 +357,7 @@ def bench_quality(
     earlier: dict | None = None,
     on_partial: Callable[[dict], None] | None = None,
     propose: Proposer = collect_proposals,
+    resume_other_library: bool = False,
 ) -> dict:
     """Run ``plan``: the JSON record of every method on the held-out factories.
 
@@ -343,11 +368,14 @@ def bench_quality(
     Training seeds are run one after the other; after each one the result so far
     (``"complete": false``) goes to ``on_partial``, so a long run can be stopped and resumed:
     ``earlier`` (a partial result of the same plan, ``resumable_runs``) gives the seeds already
-    done, which are not trained again.
+    done, which are not trained again (those of another version of the library only with
+    ``resume_other_library``, ``resumable_runs``). Each run keeps the version it ran (``library``),
+    and the record counts its runs per version (``library_versions``).
     """
 
     start = time.perf_counter()
-    resumed = resumable_runs(plan, earlier)  # a plan mismatch fails here, before any work
+    # a plan mismatch fails here, before any work
+    resumed = resumable_runs(plan, earlier, other_library=resume_other_library)
     paper = DetectionModel.load(resolve_model(plan.paper_model))
     train_dataset = open_dataset(plan.train_data)
     if tuple(paper.class_names) != tuple(train_dataset.class_names):
@@ -390,6 +418,7 @@ def bench_quality(
 
     def summarized(complete: bool) -> dict:
         out = dict(result, complete=complete, methods={})
+        out["library_versions"] = library_versions([r for m in learned for r in runs[m]])
         if learned:  # the seeds measured so far
             out["training_seeds"] = [r["seed"] for r in runs[learned[0]]]
         for method in plan.methods:
@@ -434,6 +463,7 @@ def bench_quality(
                     "train_seconds": round(fit_seconds, 1),
                     "class_score_thresholds": model.class_score_thresholds,
                     "finished": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+                    "library": library_version(),  # the code this run ran
                     **measure_heldout(model, heldout),
                 }
             )
@@ -550,9 +580,23 @@ def quality_markdown(result: dict) -> str:
         "",
         f"Trained on {result['train_data']} (seed {result['train_seed']}, {len(result['train_frames'])} "
         f"annotated training frames); measured on {result['num_heldout_frames']} frames of held-out "
-        f"factories (seeds {seeds}) against the truth.{spread}{front}",
+        f"factories (seeds {seeds}) against the truth.{spread}{front}"
+        + _library_note(result.get("library_versions") or {}),
     ]
     return "\n".join(lines) + "\n"
+
+
+def _library_note(versions: dict[str, int]) -> str:
+    """What a record's ``library_versions`` say of its training runs' code ("" for a record whose
+    runs did not keep it, or one version)."""
+    if len(versions) < 2:
+        return ""
+    unknown = versions.get("unknown", 0)
+    return (
+        f" **Its training runs ran {len(versions)} versions of the library**"
+        + (f" ({unknown} of a version not kept)" if unknown else "")
+        + ": the spread over seeds includes what changed in the code."
+    )
 
 
 def _per_class_cell(cell: Callable[[dict], str], name: str) -> Callable[[dict], str]:

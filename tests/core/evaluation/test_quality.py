@@ -13,6 +13,7 @@ from factorydet_core.evaluation.quality import (
     quality_markdown,
     write_outputs,
 )
+from factorydet_core.evaluation.records import library_version
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.training.mining import collect_proposals
 from factorydet_core.types import InputError
@@ -66,6 +67,7 @@ def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_data
     expected = [("factory_seed501_1frames", [0]), (result["train_data"], result["train_frames"])]
     assert sorted(proposed) == sorted(expected)
     assert [p["training_seeds"] for p in partials] == [[0], [0, 1]] and result["complete"]
+    assert result["library_versions"] == {library_version(): 4}  # two learned methods, two seeds
     assert not any(p["complete"] for p in partials)
     # Stopped after seed 0 and resumed: seed 0 is read back, only seed 1 is trained again.
     resumed = bench_quality(plan, command="test", earlier=partials[0], propose=propose)
@@ -129,3 +131,23 @@ def test_target_lines_say_what_is_met_and_by_how_much_the_rest_is_short():
     assert lines[2] == "- Every class at F 0.4 or more: short for pallet (0.100), cone (n/a)."
     assert lines[3].endswith(": met.") and lines[4].endswith("short by 0.070.")
     assert lines[5].endswith("400 ms against 150 ms: over by 250 ms.")
+
+
+def test_a_resume_with_seeds_to_train_reads_back_only_the_seeds_this_library_ran(small_dataset_dir):
+    import warnings
+
+    from factorydet_core.evaluation.quality import _library_note, resumable_runs
+    from factorydet_core.evaluation.records import library_version
+
+    plan = QualityPlan(train_data=small_dataset_dir, seeds=(0, 1, 2), methods=("box_head", "paper"))
+    runs = [{"seed": 0, "library": library_version()}, {"seed": 1, "library": "0123456789ab"}]
+    earlier = {"plan": plan.record(), "methods": {"box_head": {"runs": runs}, "paper": {"runs": []}}}
+    # Seed 2 is to train: seed 1, which ran other code, trains again too, with a warning.
+    with pytest.warns(UserWarning, match=r"training seeds \[1\] ran another version"):
+        assert set(resumable_runs(plan, earlier)) == {0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert set(resumable_runs(plan, earlier, other_library=True)) == {0, 1}
+        # Nothing to train: rendered as it is.
+        assert set(resumable_runs(dataclasses.replace(plan, seeds=(0, 1)), earlier)) == {0, 1}
+    assert _library_note({"a": 2}) == "" and "2 versions of the library" in _library_note({"a": 1, "b": 1})
