@@ -578,6 +578,45 @@ def _min_points_sweep(result: dict) -> str:
         + table(header, rows)
         + "\n"
         + _margin_sweep_table(result)
+        + _misses_table(result)
+    )
+
+
+def _misses_table(result: dict) -> str:
+    """Why the app's poses leave out frames that have points of the object, by the points truth
+    says it has there (records from before the count: nothing)."""
+    app = next((m for m in result["methods"].values() if "misses_by_cause" in m), None)
+    if app is None:
+        return ""
+    header = [
+        "truth points",
+        "frames",
+        "left out",
+        "thinning kept none",
+        "the poses",
+        "floor band only",
+        "beyond the surface margin",
+    ]
+    rows = []
+    for name, causes in app["misses_by_cause"].items():
+        frames = app["frames_by_points"][name]
+        missed = sum(causes.values())
+        rows.append(
+            [
+                name,
+                fmt(frames),
+                fmt(missed),
+                *(fmt(causes[c]) for c in ("thinning", "pose", "floor", "margin")),
+            ]
+        )
+    floor = round(100 * result["floor_margin_m"])
+    surface = round(100 * result["surface_margin_m"])
+    return (
+        "\nThe frames the app's poses leave out although the object has points there, by why: its"
+        " points lie in the carried box but thinning kept none of them; they lie in the true box"
+        f" (grown as above) but not in the carried one (the poses); every one lies in the box's bottom"
+        f" {floor} cm, where the floor's points are; or they lie more than {surface} cm outside the"
+        " true box (the LiDAR's range noise):\n\n" + table(header, rows) + "\n"
     )
 
 

@@ -32,9 +32,9 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, heldout_factory
 from factorydet_core.evaluation.records import machine_info
-from factorydet_core.geometry import transform_boxes
+from factorydet_core.geometry import points_in_box, transform_boxes
 from factorydet_core.io.dataset import open_dataset
-from factorydet_core.proposals.merge import mean_transform
+from factorydet_core.proposals.merge import mean_transform, merge_frame
 from factorydet_core.session.store import Label
 from factorydet_core.session.world import (
     FLOOR_MARGIN_M,
@@ -44,6 +44,7 @@ from factorydet_core.session.world import (
     WorldFrames,
     calibrated_extrinsics,
     count_points,
+    counting_box,
     place_box,
     planar,
     register_frames,
@@ -71,6 +72,13 @@ SWEEP_MARGINS: tuple[tuple[float, float], ...] = (
 """``(surface margin, floor margin)`` in metres of the box whose points count (``world.counting_box``),
 swept for the app's poses; the first is the rule before the surface margin."""
 
+MISS_CAUSES: tuple[str, ...] = ("thinning", "pose", "floor", "margin")
+"""Why the app's poses leave out a frame where the object has points (``_miss_cause``): its points
+lie in the carried counting box but thinning kept none of them ("thinning"); they lie in the
+counting box of its true box there but not in the carried one ("pose"); every one of them lies in
+the box's bottom floor margin, where the floor's points are ("floor"); or they lie outside the true
+box grown by the surface margin, the LiDAR's range noise ("margin")."""
+
 SPURIOUS_WEIGHT = 2
 """How the margins are chosen (``margin_score``): a frame shown without a point of the object
 (a box on empty space, which a labeller must notice and take out) counts as much as this many
@@ -93,6 +101,20 @@ def _shown_shares(counts: Sequence[tuple[int, int]], min_points: int) -> tuple[d
         by_bin[_bin_name(low, high)] = round(float(np.mean(shown)), 4) if shown else None
     without = [n >= min_points for t, n in counts if t == 0]
     return by_bin, round(float(np.mean(without)), 4) if without else 0.0
+
+
+def _miss_cause(object_points: np.ndarray, carried_box, true_box) -> str:
+    """One of ``MISS_CAUSES`` for a frame that does not show an object it has ``object_points``
+    (K, 3) of: ``carried_box`` (7,) is where the poses carried its box, ``true_box`` (7,) its truth
+    box there (both in the frame the points are drawn in)."""
+    if points_in_box(object_points, counting_box(carried_box)).any():
+        return "thinning"
+    if points_in_box(object_points, counting_box(true_box)).any():
+        return "pose"
+    bottom = float(true_box[2]) - float(true_box[5]) / 2
+    if len(object_points) and bool((object_points[:, 2] < bottom + FLOOR_MARGIN_M).all()):
+        return "floor"
+    return "margin"
 
 
 def _bin_name(low: int, high: int | None) -> str:
@@ -154,8 +176,9 @@ def _factory(
     dataset, frames, truths, folder: Path, extrinsics: np.ndarray, use_icp: bool, sweep_margins: bool = False
 ) -> tuple[dict, WorldFrames]:
     """One factory's figures for one way of placing the frames (merged with ``extrinsics``); with
-    ``sweep_margins``, also ``(truth points, thinned points counted)`` per object and frame for
-    each of ``SWEEP_MARGINS``."""
+    ``sweep_margins`` (the app's way), also ``(truth points, thinned points counted)`` per object
+    and frame for each of ``SWEEP_MARGINS``, and per ``POINT_BINS`` bin the frames left out by
+    ``MISS_CAUSES`` (``misses``)."""
     offset = _drawn_from_true(extrinsics, folder)
     names = dataset.class_names
     start = time.perf_counter()
@@ -176,7 +199,9 @@ def _factory(
     point_counts: list[tuple[int, int]] = []  # (truth points, thinned points in the carried box)
     margin_counts: dict[str, list[tuple[int, int]]] = {_margin_name(*m): [] for m in SWEEP_MARGINS}
     place_ms = []
-    for per_frame in objects.values():
+    misses = {_bin_name(*b): dict.fromkeys(MISS_CAUSES, 0) for b in POINT_BINS}
+    merged: dict[int, np.ndarray] = {}  # each frame's points, unthinned, as drawn
+    for instance_id, per_frame in objects.items():
         source = max(per_frame, key=lambda f: (per_frame[f][1], -f))
         start = time.perf_counter()
         placement = place_box(world, source, per_frame[source][0])
@@ -205,6 +230,11 @@ def _factory(
                     counts = shown[_bin_name(low, high)]
                     counts[0] += 1
                     counts[1] += int(placement.visible_mask[f])
+                    if sweep_margins and not placement.visible_mask[f]:
+                        if f not in merged:
+                            merged[f] = merge_frame(frames[f], extrinsics).points
+                        mine = merged[f][truths[f].point_instance_ids == instance_id]
+                        misses[_bin_name(low, high)][_miss_cause(mine, placement.boxes[f], box)] += 1
     # The true poses of the frame the points are drawn in (the offset conjugates them).
     true_poses = np.stack([t.T_world_vehicle @ np.linalg.inv(offset) for t in truths])
     record = {
@@ -219,6 +249,7 @@ def _factory(
     }
     if sweep_margins:
         record["margin_counts"] = margin_counts
+        record["misses"] = misses
     return record, world
 
 
@@ -319,7 +350,8 @@ def bench_world_labels(
                 {
                     key: value
                     for key, value in r.items()
-                    if key not in ("iou", "shown", "shown_without_points", "point_counts", "margin_counts")
+                    if key
+                    not in ("iou", "shown", "shown_without_points", "point_counts", "margin_counts", "misses")
                 }
                 for r in results
             ],
@@ -336,6 +368,11 @@ def bench_world_labels(
                 str(m): dict(zip(("shown_by_points", "shown_without_points"), _shown_shares(counts, m)))
                 for m in SWEEP_MIN_POINTS
             }
+            if all("misses" in r for r in results):
+                out[method]["misses_by_cause"] = {
+                    name: {cause: sum(r["misses"][name][cause] for r in results) for cause in MISS_CAUSES}
+                    for name in results[0]["misses"]
+                }
             out[method]["shown_by_margins"] = _margin_sweep(
                 {
                     name: [c for r in results for c in r["margin_counts"][name]]

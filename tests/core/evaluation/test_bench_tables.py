@@ -372,6 +372,18 @@ def test_world_labels_table_sweeps_the_least_points_that_show_an_object():
     names = {m: f"{m} (the app)" if m == record["min_points"] else str(m) for m in (1, 2, 3)}
     assert _rows(text, names[3]) == [[names[3], *[fmt(0.5 / 3, 3)] * len(bins), fmt(0.03, 3)]]
     assert record["min_points"] in names and _rows(text, names[record["min_points"]])
+    # Why frames with points of the object are left out, where the record counted it.
+    app["misses_by_cause"] = {
+        b: {"thinning": 0, "pose": 1, "floor": 2 * k, "margin": 3} for k, b in enumerate(bins)
+    }
+    text = render_record(record)
+    first = bins[0]
+    assert _rows(text, first) == [
+        [first, fmt(app["frames_by_points"][first]), fmt(4), fmt(0), fmt(1), fmt(0), fmt(3)]
+    ]
+    assert "floor band only" in text
+    del app["misses_by_cause"]
+    assert "floor band only" not in render_record(record)
     # Records from before the sweep render without it.
     del app["shown_by_min_points"]
     assert "least points that show" not in render_record(record)

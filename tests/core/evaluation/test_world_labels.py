@@ -26,3 +26,20 @@ def test_margin_sweep_scores_frames_shown_with_points_against_twice_those_withou
     assert (grown["frames_shown_with_points"], grown["frames_shown_without_points"]) == (3, 1)
     assert grown["score"] == 3 - SPURIOUS_WEIGHT == margin_score(3, 1)
     assert grown["shown_by_points"]["1-4"] == 1.0 and grown["shown_without_points"] == 0.5
+
+
+def test_a_frame_left_out_is_put_down_to_thinning_the_poses_the_floor_or_the_margin():
+    import numpy as np
+
+    from factorydet_core.evaluation.world_labels import _miss_cause
+    from factorydet_core.session.world import FLOOR_MARGIN_M, SURFACE_MARGIN_M
+
+    true_box = np.array([5.0, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0])  # stands on the floor, z 0 to 1
+    side = np.array([[5.5 + SURFACE_MARGIN_M / 2, 0.0, 0.5]])  # on its +x face, within the margin
+    assert _miss_cause(side, true_box, true_box) == "thinning"  # the points were in the carried box
+    carried = true_box + np.array([0.3, 0, 0, 0, 0, 0, 0])  # the poses put it 30 cm off
+    assert _miss_cause(np.array([[4.55, 0.0, 0.5]]), carried, true_box) == "pose"
+    floor = np.array([[5.0, 0.0, FLOOR_MARGIN_M / 2], [5.2, 0.1, FLOOR_MARGIN_M / 3]])
+    assert _miss_cause(floor, carried, true_box) == "floor"
+    beyond = np.array([[5.5 + 2 * SURFACE_MARGIN_M, 0.0, 0.5], [5.0, 0.0, FLOOR_MARGIN_M / 2]])
+    assert _miss_cause(beyond, true_box + np.array([0, 2.0, 0, 0, 0, 0, 0]), true_box) == "margin"
