@@ -68,9 +68,12 @@ SWEEP_MARGINS: tuple[tuple[float, float], ...] = (
     (0.04, 0.02),
     (0.02, 0.03),
     (0.02, 0.05),
+    (0.02, 0.01),
+    (0.02, 0.0),
 )
 """``(surface margin, floor margin)`` in metres of the box whose points count (``world.counting_box``),
-swept for the app's poses; the first is the rule before the surface margin."""
+swept for the app's poses; the first is the rule before the surface margin, the last two count
+the points of the floor band more or less."""
 
 MISS_CAUSES: tuple[str, ...] = ("thinning", "pose", "floor", "margin")
 """Why the app's poses leave out a frame where the object has points (``_miss_cause``): its points
