@@ -7,7 +7,6 @@ import dataclasses
 import json
 import os
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from factorydet_core.evaluation.records import (
     library_version,
     library_versions,
     machine_info,
+    runs_of_this_library,
     spread_frames,
 )
 from factorydet_core.io.dataset import Dataset, annotation_min_points, open_dataset
@@ -709,17 +709,8 @@ def _resumable_runs(
     wanted = {(seed, name) for seed in plan.seeds for name in mine["variants"]}
     if other_library or wanted <= set(runs):
         return runs  # (nothing to train: the record is rendered as it is)
-    version = library_version()
-    other = {key for key, run in runs.items() if run.get("library") != version}
-    if other:
-        versions = ", ".join(f"{v} ({n})" for v, n in library_versions([runs[k] for k in other]).items())
-        warnings.warn(
-            f"bench hitl --resume: {len(other)} of the earlier record's runs ran another version of the "
-            f"library than this one ({version}): {versions}; they train again "
-            "(--resume-other-library reads them back, and the record then mixes versions)",
-            stacklevel=3,
-        )
-    return {key: run for key, run in runs.items() if key not in other}
+    kept = runs_of_this_library({key: [run] for key, run in runs.items()}, "hitl", "runs")
+    return {key: runs[key] for key in kept}
 
 
 def _run_plan(plan: dict, variant: str) -> dict:

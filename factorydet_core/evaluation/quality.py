@@ -27,7 +27,6 @@ import datetime
 import json
 import os
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -44,6 +43,7 @@ from factorydet_core.evaluation.records import (
     library_version,
     library_versions,
     machine_info,
+    runs_of_this_library,
     spread_frames,
 )
 from factorydet_core.io.atomic import atomic_path, write_text_atomic
@@ -338,16 +338,10 @@ def resumable_runs(
             done[seed] = found
     if other_library or set(plan.seeds) <= set(done):
         return done  # (nothing to train: the record is rendered as it is)
-    version = library_version()
-    other = sorted(s for s, found in done.items() if any(r.get("library") != version for r in found.values()))
-    if other:
-        warnings.warn(
-            f"bench quality --resume: the runs of training seeds {other} ran another version of the "
-            f"library than this one ({version}); they train again (--resume-other-library reads them "
-            "back, and the record then mixes versions)",
-            stacklevel=3,
-        )
-    return {s: found for s, found in done.items() if s not in other}
+    kept = runs_of_this_library(
+        {s: list(found.values()) for s, found in done.items()}, "quality", "training seeds"
+    )
+    return {s: done[s] for s in kept}
 
 
 def bench_quality(

@@ -6,14 +6,15 @@ import functools
 import hashlib
 import os
 import platform
-from collections.abc import Sequence
+import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from factorydet_core.types import InputError
 
-__all__ = ["library_version", "library_versions", "machine_info", "spread_frames"]
+__all__ = ["library_version", "library_versions", "machine_info", "runs_of_this_library", "spread_frames"]
 
 
 def machine_info() -> dict:
@@ -69,6 +70,24 @@ def library_versions(runs: Sequence[dict]) -> dict[str, int]:
         key = run.get("library") or "unknown"
         counts[key] = counts.get(key, 0) + 1
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def runs_of_this_library(found: Mapping, benchmark: str, what: str) -> dict:
+    """The entries of ``found`` (``{key: [run records]}``, what a resume would read back) all of
+    whose runs ran this version of the library (``library_version``); the others are left out, to
+    be trained again, with a warning naming how many ``what`` (plural: "runs", "training seeds")
+    and which versions they ran."""
+    version = library_version()
+    other = [key for key, runs in found.items() if any(run.get("library") != version for run in runs)]
+    if other:
+        ran = library_versions([run for key in other for run in found[key] if run.get("library") != version])
+        warnings.warn(
+            f"bench {benchmark} --resume: {len(other)} of the earlier record's {what} ran another version "
+            f"of the library than this one ({version}): {', '.join(f'{v} ({n})' for v, n in ran.items())}; "
+            "they train again (--resume-other-library reads them back, and the record then mixes versions)",
+            stacklevel=3,
+        )
+    return {key: runs for key, runs in found.items() if key not in other}
 
 
 def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:
