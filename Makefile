@@ -303,12 +303,12 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-best-view-unseen.json \
 	  docs/bench/hitl-review-learned-extra-unseen.json --readme docs/labelling.md \
 	  --readme-block hitl-review-best-view-vs-learned-extra-unseen
-	# The same reviewer, blind mining and full labels on all six held-out factories (101-106), every
-	# detector trained by one version of the library: the loop's headline.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	# The same reviewer (50 and 200 places a round), blind mining and full labels on all six held-out
+	# factories (101-106), every detector trained by one version of the library: the loop's headline.
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-six.json \
+	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-review-learned-extra-six.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-extra-six --resume
 	# Every round trained afresh (the paper's procedure; --round-epochs 0), blind, the learned
 	# order's reviewer and full labels alike (30%), against the learned record's rounds that go on.
