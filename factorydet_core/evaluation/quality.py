@@ -43,6 +43,7 @@ from factorydet_core.evaluation.records import (
     library_version,
     library_versions,
     machine_info,
+    mixed_library_note,
     runs_of_this_library,
     spread_frames,
 )
@@ -575,22 +576,13 @@ def quality_markdown(result: dict) -> str:
         f"Trained on {result['train_data']} (seed {result['train_seed']}, {len(result['train_frames'])} "
         f"annotated training frames); measured on {result['num_heldout_frames']} frames of held-out "
         f"factories (seeds {seeds}) against the truth.{spread}{front}"
-        + _library_note(result.get("library_versions") or {}),
+        + mixed_library_note(
+            result.get("library_versions") or {},
+            "Its training runs",
+            "the spread over seeds includes what changed in the code",
+        ),
     ]
     return "\n".join(lines) + "\n"
-
-
-def _library_note(versions: dict[str, int]) -> str:
-    """What a record's ``library_versions`` say of its training runs' code ("" for a record whose
-    runs did not keep it, or one version)."""
-    if len(versions) < 2:
-        return ""
-    unknown = versions.get("unknown", 0)
-    return (
-        f" **Its training runs ran {len(versions)} versions of the library**"
-        + (f" ({unknown} of a version not kept)" if unknown else "")
-        + ": the spread over seeds includes what changed in the code."
-    )
 
 
 def _per_class_cell(cell: Callable[[dict], str], name: str) -> Callable[[dict], str]:

@@ -14,7 +14,14 @@ import numpy as np
 
 from factorydet_core.types import InputError
 
-__all__ = ["library_version", "library_versions", "machine_info", "runs_of_this_library", "spread_frames"]
+__all__ = [
+    "library_version",
+    "library_versions",
+    "machine_info",
+    "mixed_library_note",
+    "runs_of_this_library",
+    "spread_frames",
+]
 
 
 def machine_info() -> dict:
@@ -70,6 +77,20 @@ def library_versions(runs: Sequence[dict]) -> dict[str, int]:
         key = run.get("library") or "unknown"
         counts[key] = counts.get(key, 0) + 1
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def mixed_library_note(versions: Mapping[str, int], runs: str, effect: str) -> str:
+    """A record's sentence for runs of more than one version of the library (``library_versions``:
+    ``versions``), "" otherwise: " **{runs} ran N versions of the library** (K of a version not
+    kept): {effect}." (``runs``: which runs, "The 6 runs"; ``effect``: what it does to the figures)."""
+    if len(versions) < 2:
+        return ""
+    unknown = versions.get("unknown", 0)
+    return (
+        f" **{runs} ran {len(versions)} versions of the library**"
+        + (f" ({unknown} of a version not kept)" if unknown else "")
+        + f": {effect}."
+    )
 
 
 def runs_of_this_library(found: Mapping, benchmark: str, what: str) -> dict:

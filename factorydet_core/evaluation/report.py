@@ -29,7 +29,7 @@ from factorydet_core.evaluation.evaluate import (
 from factorydet_core.evaluation.hitl import reviewer_order
 from factorydet_core.evaluation.plots import plot_error_breakdown, plot_pr_curves, plot_sweep
 from factorydet_core.evaluation.quality import quality_markdown, target_lines
-from factorydet_core.evaluation.records import machine_info
+from factorydet_core.evaluation.records import machine_info, mixed_library_note
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.metrics import FALSE_POSITIVE_KINDS, MISS_KINDS, OVERLAP_IOU
 from factorydet_core.training.mining import collect_proposals, group_overlaps, train_with_mining
@@ -752,11 +752,10 @@ def _library_note(versions: dict[str, int]) -> str:
         return ""
     if len(versions) == 1:
         return " Every run ran one version of the library."
-    runs = sum(versions.values())
-    return (
-        f" **The {runs} runs ran {len(versions)} versions of the library**"
-        + (f" ({versions['unknown']} of a version not kept)" if "unknown" in versions else "")
-        + ": paired differences between them include what changed in the code."
+    return mixed_library_note(
+        versions,
+        f"The {sum(versions.values())} runs",
+        "paired differences between them include what changed in the code",
     )
 
 

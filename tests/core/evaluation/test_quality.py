@@ -136,8 +136,8 @@ def test_target_lines_say_what_is_met_and_by_how_much_the_rest_is_short():
 def test_a_resume_with_seeds_to_train_reads_back_only_the_seeds_this_library_ran(small_dataset_dir):
     import warnings
 
-    from factorydet_core.evaluation.quality import _library_note, resumable_runs
-    from factorydet_core.evaluation.records import library_version
+    from factorydet_core.evaluation.quality import resumable_runs
+    from factorydet_core.evaluation.records import library_version, mixed_library_note
 
     plan = QualityPlan(train_data=small_dataset_dir, seeds=(0, 1, 2), methods=("box_head", "paper"))
     runs = [{"seed": 0, "library": library_version()}, {"seed": 1, "library": "0123456789ab"}]
@@ -150,4 +150,8 @@ def test_a_resume_with_seeds_to_train_reads_back_only_the_seeds_this_library_ran
         assert set(resumable_runs(plan, earlier, other_library=True)) == {0, 1}
         # Nothing to train: rendered as it is.
         assert set(resumable_runs(dataclasses.replace(plan, seeds=(0, 1)), earlier)) == {0, 1}
+
+    def _library_note(versions):  # as quality_markdown says it
+        return mixed_library_note(versions, "Its training runs", "the spread over seeds includes it")
+
     assert _library_note({"a": 2}) == "" and "2 versions of the library" in _library_note({"a": 1, "b": 1})
