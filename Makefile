@@ -318,6 +318,13 @@ bench: $(STAMP) corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-ten-seeds.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-extra-ten-seeds --resume
+	# One operating threshold for every class (--no-class-thresholds), blind mining and full labels on
+	# the six held-out factories, three seeds: do the per-class thresholds cost people their precision?
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --no-class-thresholds --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants full --out docs/bench/hitl-no-class-thresholds-six.json \
+	  --readme docs/labelling.md --readme-block hitl-no-class-thresholds-six --resume
 	# Every round trained afresh (the paper's procedure; --round-epochs 0), blind, the learned
 	# order's reviewer and full labels alike (30%), against the learned record's rounds that go on.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
