@@ -200,6 +200,34 @@ def comparison_markdown(table: dict) -> str:
         if any(table[n]["per_class"][c]["num_reference"] for n in names)
     ]
     rows.append("| **total** | " + " | ".join(cell(table[n]) for n in names) + " |")
+    lost = [
+        f"\n\n**{names[-1]} finds none of the {table[names[-1]]['per_class'][c]['num_reference']} labelled "
+        f"instances of {c}; {names[0]} finds {table[names[0]]['per_class'][c]['recall']:.0%} of them.** "
+        "A model that has lost a class sends its unlabelled objects to the background when it mines, "
+        "and the review queue, whose classes take turns by the predicted class, does not show them: "
+        "keep the shown model, or label more of the class and train again."
+        for c in lost_classes(table)
+    ]
     return (
-        head + "\n".join(rows) + "\n\nF-score (precision / recall) at IoU 0.6 against the session's labels."
+        head
+        + "\n".join(rows)
+        + "\n\nF-score (precision / recall) at IoU 0.6 against the session's labels."
+        + "".join(lost)
     )
+
+
+def lost_classes(table: dict) -> list[str]:
+    """The classes the last model of a ``compare_models`` table (the new one) finds no instance of
+    while its first (the shown one) finds some, on the same labelled frames. A fit can lose a
+    whole class to a neighbour (cones taken for barrels), and mining then makes the loss last: the
+    class's unlabelled objects come as false positives of the other class and go to the
+    background (``docs/labelling.md``, *Ten training seeds*)."""
+    names = list(table)
+    if len(names) < 2:
+        return []
+    first, last = table[names[0]]["per_class"], table[names[-1]]["per_class"]
+    return [
+        c
+        for c, m in last.items()
+        if m["num_reference"] and not m["recall"] and c in first and (first[c]["recall"] or 0) > 0
+    ]

@@ -15,7 +15,7 @@ from factorydet_core.evaluation.hitl import (
     truth_verdict,
     unannotated_coverage,
 )
-from factorydet_core.evaluation.measure import compare_models, comparison_markdown
+from factorydet_core.evaluation.measure import compare_models, comparison_markdown, lost_classes
 from factorydet_core.io.dataset import annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
@@ -522,3 +522,36 @@ def test_the_reviewer_with_the_best_view_labels_an_object_too_sparse_where_it_wa
         if any(int(i) == ids[0] and n >= 50 for i, n in zip(t.instance_ids, t.instance_num_points))
     }
     assert dense_frames <= labelled  # labelled once, in the frames where the policy labels it
+
+
+def _compared(recalls: dict[str, float], num_reference: int = 5) -> dict:
+    per_class = {
+        c: {
+            "precision": 0.5,
+            "recall": r,
+            "f1": 2 * 0.5 * r / (0.5 + r) if r else 0.0,
+            "num_reference": num_reference,
+        }
+        for c, r in recalls.items()
+    }
+    return {"per_class": per_class, "precision": 0.5, "recall": 0.5, "f1": 0.5}
+
+
+def test_the_before_after_table_says_when_the_new_model_has_lost_a_class():
+    table = {
+        "before (run 1)": _compared({"cone": 0.6, "barrel": 0.5, "pallet": 0.0}),
+        "after (run 2)": _compared({"cone": 0.0, "barrel": 0.4, "pallet": 0.0}),
+    }
+    # Cones: found before, none after. Pallets were never found: nothing lost.
+    assert lost_classes(table) == ["cone"]
+    text = comparison_markdown(table)
+    assert (
+        "**after (run 2) finds none of the 5 labelled instances of cone; before (run 1) finds 60% of them.**"
+        in text
+    )
+    assert "instances of pallet" not in text and "instances of barrel" not in text
+    # A class without labels on the test frames is never lost; nor is anything with one model.
+    table["after (run 2)"]["per_class"]["cone"]["num_reference"] = 0
+    assert lost_classes(table) == []
+    assert lost_classes({"run 1": _compared({"cone": 0.0})}) == []
+    assert "finds none" not in comparison_markdown({"run 1": _compared({"cone": 0.0})})
