@@ -138,6 +138,9 @@ def parse_kitti_line(line: str, where: str = "") -> tuple[str, np.ndarray]:
         h, w, length, x_cam, y_cam, z_cam, rotation_y = (float(v) for v in parts[8:15])
     except ValueError:
         raise InputError(f"{where}: non-numeric KITTI fields in {line!r}") from None
+    if not np.isfinite([h, w, length, x_cam, y_cam, z_cam, rotation_y]).all():
+        # float() reads "nan" and "inf"; caught here, before the angle arithmetic warns on them
+        raise InputError(f"{where}: non-finite KITTI fields in {line!r}")
     yaw = float(wrap_angle(-rotation_y - np.pi / 2))
     return parts[0], np.array([z_cam, -x_cam, -y_cam + h / 2, length, w, h, yaw])
 

@@ -1,5 +1,7 @@
 """Label export and import round trips (JSON, KITTI, npz scenes) and conflict reports."""
 
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -62,6 +64,16 @@ def test_kitti_axes_follow_kitti():
     assert (h, w, length) == (1.5, 2.0, 4.0)
     assert (x, y, z) == (-2.0, 0.0, 10.0)  # x right, y down (bottom face at 0), z forward
     assert ry == pytest.approx(-np.pi / 2)
+
+
+@pytest.mark.parametrize("field, value", [(14, "nan"), (14, "inf"), (8, "-inf"), (11, "NaN")])
+def test_non_finite_kitti_fields_are_one_line_errors_without_a_warning(field, value):
+    fields = kitti_line([10.0, 2.0, 0.75, 4.0, 2.0, 1.5, 0.0], "truck").split()
+    fields[field] = value
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the angle arithmetic on nan warned before the check
+        with pytest.raises(InputError, match="non-finite KITTI fields"):
+            parse_kitti_line(" ".join(fields), "000001.txt")
 
 
 @pytest.mark.parametrize("fmt", ["json", "kitti", "npz"])
