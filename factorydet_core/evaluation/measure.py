@@ -200,9 +200,10 @@ def comparison_markdown(table: dict) -> str:
         if any(table[n]["per_class"][c]["num_reference"] for n in names)
     ]
     rows.append("| **total** | " + " | ".join(cell(table[n]) for n in names) + " |")
+    first, last = table[names[0]]["per_class"], table[names[-1]]["per_class"]
     lost = [
-        f"\n\n**{names[-1]} finds none of the {table[names[-1]]['per_class'][c]['num_reference']} labelled "
-        f"instances of {c}; {names[0]} finds {table[names[0]]['per_class'][c]['recall']:.0%} of them.** "
+        f"\n\n**{names[-1]} finds none of the {last[c]['num_reference']} labelled instances of {c}; "
+        f"{names[0]} finds {first[c]['recall']:.0%} of them.** "
         "A model that has lost a class sends its unlabelled objects to the background when it mines, "
         "and the review queue, whose classes take turns by the predicted class, does not show them: "
         "keep the shown model, or label more of the class and train again."
