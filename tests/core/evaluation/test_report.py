@@ -212,6 +212,12 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "refit_box_quality" not in text
     result["settings"]["refit_box_quality"] = True
     assert "every next round fitting the box quality regressor again" in hitl_markdown(result)
+    # The epochs of the first fit and of the rounds that go on from it, when they differ.
+    assert ", 5 epochs per fit," in hitl_markdown(result)
+    result["settings"].update(epochs=20, round_epochs=5)
+    assert ", 20 epochs for the first fit and 5 for each round after it" in hitl_markdown(result)
+    result["settings"].update(round_epochs=0)  # every round afresh: the first fit's epochs each
+    assert ", 20 epochs per fit," in hitl_markdown(result)
     # A gap within its noise: no share at all.
     result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.31, 0.30, 0.30]})
     assert "no recovered share is stated" in hitl_markdown(result)
