@@ -15,6 +15,7 @@ import time
 import traceback
 
 from factorydet_core.detection.detector import Detector, params_for
+from factorydet_core.evaluation.measure import unlearned_text
 from factorydet_core.scale.jobs import proposer
 from factorydet_core.scale.runner import Execution
 from factorydet_core.training.loop import cached_proposals, suspect_labels
@@ -263,12 +264,15 @@ class TrainingWorker:
         self.last_run_id = done.run_id
         queue = db.review_queue(done.run_id)
         alone = sum(not item["in_background"] for item in queue)
+        # A class the fit did not learn, said with the run (mining with it loses the class).
+        unlearned = unlearned_text(done.run.rounds[-1]["train_metrics"])
         state.offer_model(run_choice(done.run_id, mode))
         state.session_changed()
         self._finish(
             status=f"run {done.run_id} ({mode}) done: {len(queue)} items to review ({len(queue) - alone} "
             f"mined negatives{f', {alone} for review alone' if alone else ''}); the table "
-            "compares it with the shown model, and **Show this model** uses it",
+            "compares it with the shown model, and **Show this model** uses it"
+            + (f". {unlearned}" if unlearned else ""),
             progress=1.0,
             comparison=done.comparison,
         )

@@ -687,6 +687,7 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from factorydet_core.detection.model import DetectionModel, copy_checkpoint
+    from factorydet_core.evaluation.measure import unlearned_classes
     from factorydet_core.proposals.settings import front_end_from_record, front_end_params
     from factorydet_core.workflows import retrain_session
 
@@ -742,6 +743,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         ],
         "review_queue": len(db.review_queue(run_id)),
         "model": str(db.session.models_dir / f"run_{run_id:03d}" / "final.pt"),
+        # Classes labelled on the training frames that the model finds none of there.
+        "unlearned_classes": unlearned_classes(run.rounds[-1]["train_metrics"]),
     }
     if done.comparison is not None:
         summary["compare"] = {

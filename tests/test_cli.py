@@ -195,6 +195,7 @@ def test_the_labelling_loop_from_the_command_line(small_dataset_dir, tmp_path, c
     assert main(train) == 0
     first = json.loads(capsys.readouterr().out)
     assert first["mode"] == "full" and first["review_queue"] > 0
+    assert isinstance(first["unlearned_classes"], dict)
 
     assert main(["queue", *common, "--json", "--limit", "0"]) == 0
     queue = json.loads(capsys.readouterr().out)

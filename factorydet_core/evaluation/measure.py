@@ -232,3 +232,33 @@ def lost_classes(table: dict) -> list[str]:
         for c, m in last.items()
         if m["num_reference"] and not m["recall"] and c in first and (first[c]["recall"] or 0) > 0
     ]
+
+
+def unlearned_classes(train_metrics: dict) -> dict[str, int]:
+    """The classes a model finds none of on its own training frames, at any score it reports
+    (their AP there is 0, down to the mining's score floor), though the frames label some:
+    class -> its number of labels there. ``train_metrics`` is a training round's record
+    (``train_with_mining``'s ``train_metrics``).
+
+    Such a fit has not learned the class: too few epochs for a class with few examples (``bench
+    hitl`` at 5 epochs: the first fit learned neither bobbins, cones nor pallets on its training
+    frames, ``docs/labelling.md``), and mining then sends the class's unlabelled objects to the
+    background as false positives of another class."""
+    return {
+        c: int(m["num_reference"])
+        for c, m in train_metrics.get("per_class", {}).items()
+        if m.get("num_reference") and not m.get("ap")
+    }
+
+
+def unlearned_text(train_metrics: dict) -> str:
+    """A sentence naming ``unlearned_classes`` and what to do ("" when there are none)."""
+    missing = unlearned_classes(train_metrics)
+    if not missing:
+        return ""
+    named = " or ".join(f"{c} ({n})" for c, n in missing.items())
+    return (
+        f"**On its own training frames the model finds none of the labelled instances of {named}**: "
+        "it has not learned them. Train with more epochs, or label more of them; mining with this "
+        "model sends their unlabelled objects to the background."
+    )

@@ -109,13 +109,21 @@ def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
         progress("round", 1, 1)
         trainer.cancel()  # pressed while the stored run is being measured
         progress("compare", 0, 1)  # must not raise: the run is in the database already
-        run = types.SimpleNamespace(model=model)
+        # A fit that found none of the 3 cones its training frames label.
+        metrics = {
+            "per_class": {"cone": {"num_reference": 3, "ap": 0.0}, "box": {"num_reference": 9, "ap": 0.4}}
+        }
+        run = types.SimpleNamespace(model=model, rounds=[{"train_metrics": metrics}])
         return types.SimpleNamespace(run_id=7, run=run, train_frames=[], comparison={"after (run 7)": {}})
 
     monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
     assert trainer.start("full")
     trainer.join(10)
     assert state.training_status.startswith("run 7 (full) done")
+    # The class the fit did not learn is said with it.
+    assert (
+        "finds none of the labelled instances of cone (3)**: it has not learned them" in state.training_status
+    )
     # The new model is offered, not shown: people decide from the table.
     assert state.model_name == "tiny" and state.offered_model == "run 7 (full) final"
     assert state.training_comparison == {"after (run 7)": {}}

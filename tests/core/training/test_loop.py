@@ -15,7 +15,13 @@ from factorydet_core.evaluation.hitl import (
     truth_verdict,
     unannotated_coverage,
 )
-from factorydet_core.evaluation.measure import compare_models, comparison_markdown, lost_classes
+from factorydet_core.evaluation.measure import (
+    compare_models,
+    comparison_markdown,
+    lost_classes,
+    unlearned_classes,
+    unlearned_text,
+)
 from factorydet_core.io.dataset import annotation_min_points, open_dataset
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.sim.truth import read_frame_truth
@@ -555,3 +561,27 @@ def test_the_before_after_table_says_when_the_new_model_has_lost_a_class():
     assert lost_classes(table) == []
     assert lost_classes({"run 1": _compared({"cone": 0.0})}) == []
     assert "finds none" not in comparison_markdown({"run 1": _compared({"cone": 0.0})})
+
+
+def test_a_class_the_fit_finds_none_of_on_its_training_frames_is_named():
+    from factorydet_core.metrics import detection_metrics
+
+    barrel, cone = [0.0, 0.0, 0.5, 0.6, 0.6, 1.0, 0.0], [5.0, 0.0, 0.3, 0.34, 0.34, 0.57, 0.0]
+    scored = [
+        {
+            # The cone comes as a barrel, as a fit that has not learned cones gives it.
+            "boxes": np.array([barrel, cone]),
+            "class_ids": np.array([0, 0]),
+            "scores": np.array([0.9, 0.8]),
+            "reference_boxes": np.array([barrel, cone]),
+            "reference_class_ids": np.array([0, 1]),
+        }
+    ]
+    metrics = detection_metrics(scored, ("barrel", "cone", "pallet"), 0.6, 0.35)
+    # The barrel is found, pallets have no labels here: only cones are named.
+    assert unlearned_classes(metrics) == {"cone": 1}
+    assert "finds none of the labelled instances of cone (1)" in unlearned_text(metrics)
+    scored[0]["class_ids"] = np.array([0, 1])  # found, even below the operating score: learned
+    scored[0]["scores"] = np.array([0.9, 0.1])
+    metrics = detection_metrics(scored, ("barrel", "cone", "pallet"), 0.6, 0.35)
+    assert unlearned_classes(metrics) == {} and unlearned_text(metrics) == ""
