@@ -241,9 +241,9 @@ def unlearned_classes(train_metrics: dict) -> dict[str, int]:
     (``train_with_mining``'s ``train_metrics``).
 
     Such a fit has not learned the class: too few epochs for a class with few examples (``bench
-    hitl`` at 5 epochs: the first fit learned neither bobbins, cones nor pallets on its training
-    frames, ``docs/labelling.md``), and mining then sends the class's unlabelled objects to the
-    background as false positives of another class."""
+    hitl``'s 5-epoch first fit of seed 7 found neither cones nor pallets on its training frames,
+    ``docs/labelling.md``), and mining then sends the class's unlabelled objects to the background
+    as false positives of another class."""
     return {
         c: int(m["num_reference"])
         for c, m in train_metrics.get("per_class", {}).items()
