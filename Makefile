@@ -339,6 +339,15 @@ bench: $(STAMP) corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-50-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-six --resume
+	# blind_safe at 50% with the first fit at 20 epochs, holding places and recalibrating the background
+	# (blind and full read back from the record above), seeds 0-3.
+	test -f docs/bench/hitl-50-e20-safe-recal-six.json || cp docs/bench/hitl-50-e20-six.json docs/bench/hitl-50-e20-safe-recal-six.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
+	  --out docs/bench/hitl-50-e20-safe-recal-six.json \
+	  --readme docs/labelling.md --readme-block hitl-50-e20-safe-recal-six --resume
 	# Every round trained afresh (the paper's procedure; --round-epochs 0), blind, the learned
 	# order's reviewer and full labels alike (30%), against the learned record's rounds that go on.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
