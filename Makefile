@@ -348,6 +348,15 @@ bench: $(STAMP) corpus corpus50
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --out docs/bench/hitl-50-e20-safe-recal-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-safe-recal-six --resume
+	# The app's defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
+	# order over the mined queue alone (--review-extra 0); against the class-turns record above.
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order score \
+	  --review-order learned --review-extra 0 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-50-e20-score-six.json \
+	  --readme docs/labelling.md --readme-block hitl-50-e20-score-six --resume
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-score-six.json docs/bench/hitl-50-e20-six.json \
+	  --readme docs/labelling.md --readme-block hitl-50-e20-score-vs-class-six
 	# Every round trained afresh (the paper's procedure; --round-epochs 0), blind, the learned
 	# order's reviewer and full labels alike (30%), against the learned record's rounds that go on.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
