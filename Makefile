@@ -348,7 +348,7 @@ bench: $(STAMP) corpus corpus50
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --out docs/bench/hitl-50-e20-safe-recal-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-safe-recal-six --resume
-	# The app's defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
+	# The app's training defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
 	# order over the mined queue alone (--review-extra 0); against the class-turns record above.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order score \
