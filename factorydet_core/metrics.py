@@ -306,10 +306,12 @@ def recognition_accuracy(true_ids: np.ndarray, predicted_ids: np.ndarray, labels
     }
 
 
-FALSE_POSITIVE_KINDS: tuple[str, ...] = ("duplicate", "localization", "confusion", "background")
+FALSE_POSITIVE_KINDS: tuple[str, ...] = ("duplicate", "localization", "confusion", "part", "background")
 """Why a detection is false (``error_breakdown``), checked in this order: a reference of its class
 fits it at the matching IoU but was already matched; one of its class overlaps it, but less; only a
-reference of another class overlaps it; nothing does."""
+reference of another class overlaps it; none overlaps it, but it lies mostly inside one (a part of
+a larger object, such as a person-sized upright of a pallet truck); nothing does. Records written
+before ``part`` existed count those under ``background``: read the kinds a record has."""
 
 MISS_KINDS: tuple[str, ...] = ("no_candidate", "below_threshold", "suppressed")
 """Why a reference is missed (``error_breakdown``): no candidate of its class fits it at the
@@ -320,6 +322,19 @@ reference, or box voting moved its box below the IoU."""
 
 OVERLAP_IOU = 0.1
 """Least IoU at which ``error_breakdown`` counts a false positive as overlapping a reference."""
+
+PART_FRACTION = 0.5
+"""Least share of a false positive's volume inside one reference box at which ``error_breakdown``
+counts it as a ``part`` of that object (when no reference overlaps it at ``OVERLAP_IOU``)."""
+
+
+def _share_inside(boxes: np.ndarray, ref_boxes: np.ndarray, iou: np.ndarray) -> np.ndarray:
+    """(N, R) share of each of (N, 7) boxes' volume that lies inside each of (R, 7) reference
+    boxes, from their (N, R) IoU: the intersection is IoU (V_a + V_b) / (1 + IoU)."""
+    volume = np.prod(boxes[:, 3:6], axis=1)
+    ref_volume = np.prod(ref_boxes[:, 3:6], axis=1)
+    intersection = iou * (volume[:, None] + ref_volume[None, :]) / (1.0 + iou)
+    return np.divide(intersection, volume[:, None], out=np.zeros_like(iou), where=volume[:, None] > 0)
 
 
 def error_breakdown(
@@ -376,8 +391,16 @@ def error_breakdown(
         same = classes[:, None] == ref_classes[None, :]
         same_iou = np.where(same, iou, 0.0).max(axis=1, initial=0.0)
         other_iou = np.where(same, 0.0, iou).max(axis=1, initial=0.0)
+        inside = _share_inside(boxes, ref_boxes, iou).max(axis=1, initial=0.0)
         kind = np.select(
-            [same_iou >= iou_threshold, same_iou >= OVERLAP_IOU, other_iou >= OVERLAP_IOU], [0, 1, 2], 3
+            [
+                same_iou >= iou_threshold,
+                same_iou >= OVERLAP_IOU,
+                other_iou >= OVERLAP_IOU,
+                inside >= PART_FRACTION,
+            ],
+            [0, 1, 2, 3],
+            4,
         )
         np.add.at(fp, (classes[~tp], kind[~tp]), 1)
         found = np.zeros(len(ref_boxes), bool)

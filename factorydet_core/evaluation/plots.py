@@ -84,8 +84,10 @@ def plot_error_breakdown(errors: dict, png: str | os.PathLike, title: str = "") 
     found = np.array([errors["per_class"][n]["tp"] for n in names], float)
     fig, ax = plt.subplots(figsize=(8.0, 4.8))
     width = 0.38
+    # Records written before the ``part`` kind existed count those false positives as background.
+    fp_kinds = [k for k in FALSE_POSITIVE_KINDS if k in errors["false_positives"]]
     for side, (group, kinds, shades) in enumerate(
-        (("false_positives", FALSE_POSITIVE_KINDS, plt.cm.Reds), ("misses", MISS_KINDS, plt.cm.Blues))
+        (("false_positives", fp_kinds, plt.cm.Reds), ("misses", MISS_KINDS, plt.cm.Blues))
     ):
         x = positions + (side - 0.5) * width
         ax.bar(x, found, width, color="#4c9a2a", label="true positives" if side == 0 else None)

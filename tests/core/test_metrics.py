@@ -97,7 +97,7 @@ def test_error_breakdown_gives_every_error_its_kind():
     }
     errors = error_breakdown([frame], ("a", "b"), iou_threshold=0.6, score_threshold=0.5)
     assert errors["per_class"]["a"]["false_positives"] == {
-        "duplicate": 1, "localization": 1, "confusion": 1, "background": 0
+        "duplicate": 1, "localization": 1, "confusion": 1, "part": 0, "background": 0
     }  # fmt: skip
     assert errors["per_class"]["b"]["false_positives"]["background"] == 1
     assert errors["per_class"]["a"]["misses"] == {"no_candidate": 1, "below_threshold": 1, "suppressed": 1}
@@ -126,6 +126,34 @@ def test_error_breakdown_gives_every_error_its_kind():
     assert error_breakdown([bare], ("a", "b"), 0.6, 0.5)["misses"] == {
         "no_candidate": 4, "below_threshold": 0, "suppressed": 0
     }  # fmt: skip
+
+
+def test_a_false_positive_inside_a_larger_object_is_a_part_not_background():
+    # A 10 x 4 x 3 m truck; a 0.5 x 0.5 x 1.7 m "person" standing inside it (IoU 0.004, all of its
+    # volume inside); one that pokes 60% of its width out of the truck's side (40% inside); one
+    # far from everything.
+    truck = np.array([0.0, 0.0, 1.5, 10.0, 4.0, 3.0, 0.3])
+    inside = np.array([2.0, 0.5, 0.85, 0.5, 0.5, 1.7, 0.0])
+    side = truck[:2] + np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]]) @ [0, 2.05]
+    poking = np.array([side[0], side[1], 0.85, 0.5, 0.5, 1.7, 0.3])
+    frame = {
+        "boxes": np.stack([inside, poking, inside + [30, 0, 0, 0, 0, 0, 0]]),
+        "class_ids": np.array([1, 1, 1]),
+        "scores": np.array([0.9, 0.8, 0.7]),
+        "reference_boxes": truck[None],
+        "reference_class_ids": np.array([0]),
+    }
+    errors = error_breakdown([frame], ("truck", "person"), iou_threshold=0.6, score_threshold=0.5)
+    assert errors["per_class"]["person"]["false_positives"] == {
+        "duplicate": 0, "localization": 0, "confusion": 0, "part": 1, "background": 2
+    }  # fmt: skip
+    # Once a reference of another class overlaps it at IoU 0.1, it is a confusion, not a part.
+    small_truck = np.array([2.0, 0.5, 0.85, 0.8, 0.8, 1.7, 0.0])
+    confused = error_breakdown(
+        [{**frame, "reference_boxes": small_truck[None]}], ("truck", "person"), 0.6, 0.5
+    )
+    assert confused["per_class"]["person"]["false_positives"]["confusion"] == 1
+    assert confused["per_class"]["person"]["false_positives"]["part"] == 0
 
 
 def _two_scale_frames() -> list[dict]:

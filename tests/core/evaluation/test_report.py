@@ -263,3 +263,34 @@ def test_a_hitl_record_says_what_its_reviewers_queue_held_beyond_the_mined_negat
     assert "every other false positive" in _extra_text(None)
     assert "the next 300 false positives" in _extra_text(300)
     assert "review alone" in _extra_text(None)
+
+
+def test_the_errors_section_reads_the_kinds_its_record_has(tmp_path):
+    from factorydet_core.evaluation.plots import plot_error_breakdown
+    from factorydet_core.evaluation.report import _error_lines
+    from factorydet_core.metrics import error_breakdown
+
+    # A person inside a truck: a part, now; a record written before the kind existed has none.
+    frame = {
+        "boxes": np.array([[2.0, 0.5, 0.85, 0.5, 0.5, 1.7, 0.0]]),
+        "class_ids": np.array([1]),
+        "scores": np.array([0.9]),
+        "reference_boxes": np.array([[0.0, 0.0, 1.5, 10.0, 4.0, 3.0, 0.0]]),
+        "reference_class_ids": np.array([0]),
+    }
+    errors = error_breakdown([frame], ("truck", "person"), 0.6, 0.5)
+    text = "\n".join(_error_lines(errors, "full truth", tmp_path / "errors.png"))
+    assert "| false positive: part | 0 | 1 | 1 |" in text and "*part* when none overlaps it" in text
+    old = json.loads(json.dumps(errors))
+    for counts in [old["false_positives"], *(row["false_positives"] for row in old["per_class"].values())]:
+        counts["background"] += counts.pop("part")
+    del old["f1_without"]["part"]
+    old_text = "\n".join(_error_lines(old, "full truth", tmp_path / "errors.png"))
+    assert (
+        "*part*" not in old_text
+        and "positive: part" not in old_text
+        and "| false positive: background | 0 | 1 | 1 |" in old_text
+    )
+    for record, png in ((errors, "new.png"), (old, "old.png")):
+        plot_error_breakdown(record, tmp_path / png)
+        assert (tmp_path / png).stat().st_size > 0
