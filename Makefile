@@ -77,6 +77,8 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench world-labels --heldout-seeds 201,202,203 --heldout-frames 12 --readme docs/labelling.md \
 	  --readme-block world-labels-validation
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
+	$(BIN)/factorydet bench world-labels --heldout-seeds 104 --heldout-frames 60 --readme docs/labelling.md \
+	  --readme-block world-labels-long
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl.json --readme docs/labelling.md \
 	  --review-order score --no-refit-box-quality
@@ -333,9 +335,9 @@ bench: $(STAMP) corpus corpus50
 	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-extra-e20-six --resume
 	# Half the objects unannotated and the first fit at 20 epochs: blind mining, the reviewer's 200 places
-	# a round and full labels, seeds 0-3.
+	# a round and full labels, seeds 0-5.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-50-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-six --resume

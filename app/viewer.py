@@ -86,7 +86,7 @@ class FactorydetApp:
         if db is not None:
             threading.Thread(
                 target=place_frames,
-                args=(self.shared, lambda: self.worker.refined_extrinsics),
+                args=(self.shared,),
                 name="factorydet-world",
                 daemon=True,
             ).start()

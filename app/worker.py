@@ -19,7 +19,6 @@ import dataclasses
 import threading
 import time
 import traceback
-from collections.abc import Callable
 
 from factorydet_core.detection.detector import Detector
 from factorydet_core.proposals.voxels import voxel_colors
@@ -67,11 +66,6 @@ class PipelineWorker:
         self._wake = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="factorydet-pipeline", daemon=True)
         self._thread.start()
-
-    @property
-    def refined_extrinsics(self):
-        """(S, 4, 4) the extrinsics refined for the drawn frames, ``None`` until the first frame."""
-        return self._refined_extrinsics
 
     @property
     def idle(self) -> bool:
@@ -354,14 +348,12 @@ class PipelineWorker:
             self._release_others()
 
 
-def place_frames(state: SharedState, extrinsics: Callable[[], object] | None = None) -> None:
+def place_frames(state: SharedState) -> None:
     """Place the session's frames in one world frame (label once), reporting progress in
     ``state.world_status``; run once on its own thread when the app opens a session. A failure
-    leaves labels per frame and says why.
-
-    Args:
-        extrinsics: returns the extrinsics the viewer draws the frames with (``None`` until it
-            has refined them): boxes are carried in the frame the person sees the points in.
+    leaves labels per frame and says why. The frames are registered with the library's settled
+    calibration (``world.registration_extrinsics``), or with the nominal extrinsics when the app
+    runs without calibrating: the poses are the vehicle's, whatever the viewer draws with.
     """
     dataset = state.dataset
     # The first frame's detections are what a person waits for: ICP would share the two cores
@@ -384,11 +376,8 @@ def place_frames(state: SharedState, extrinsics: Callable[[], object] | None = N
             state.set_world(None, f"placing the frames in one world frame: {done}/{total}")
 
     try:
-        if not state.use_refined_extrinsics:  # the viewer draws the nominal extrinsics
-            drawn_with = dataset.T_vehicle_sensor
-        else:  # its refined ones (else session_world refines them the same way)
-            drawn_with = extrinsics() if extrinsics is not None else None
-        world, from_cache = session_world(state.db.session, dataset, drawn_with, progress)
+        nominal = None if state.use_refined_extrinsics else dataset.T_vehicle_sensor
+        world, from_cache = session_world(state.db.session, dataset, nominal, progress)
     except Exception as exc:  # noqa: BLE001 - a thread of its own: say why, keep labels per frame
         state.set_world(
             None, f"labels stay per frame: placing the frames failed ({type(exc).__name__}: {exc})"

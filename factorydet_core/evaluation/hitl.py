@@ -841,7 +841,7 @@ def _hitl_variants(
         if plan.review_by == "place":
             from factorydet_core.session.world import session_world
 
-            world, _ = session_world(scratch.session, dataset, detector.T_vehicle_sensor)
+            world, _ = session_world(scratch.session, dataset)
     steps, done = len(seeds) * len(variants) * (rounds + 1), 0
     per_seed: dict[str, list[dict]] = {name: [] for name, _, _ in variants}
     for seed in seeds:

@@ -29,11 +29,12 @@ from factorydet_core.session.world import (
     place_chance,
     planar,
     register_frames,
+    registration_extrinsics,
     session_world,
     spread_objects,
     spread_session,
 )
-from factorydet_core.sim.truth import read_frame_truth
+from factorydet_core.sim.truth import read_frame_truth, read_truth
 from factorydet_core.types import InputError
 
 
@@ -243,6 +244,27 @@ def test_icp_poses_carry_the_data_sets_boxes_onto_its_own_boxes(small_dataset_di
         assert placement.visible_mask[-1]  # annotated there: it has points there
         ious.append(box_iou_3d(placement.boxes[-1][None], last.boxes[later])[0, 0])
     assert len(ious) >= 3 and min(ious) > 0.6 and np.median(ious) > 0.8
+    # The vehicle drives on the floor: ICP's steps never move it up or down.
+    odometry_height = [frame.T_world_vehicle[2, 3] for frame in frames]
+    np.testing.assert_array_equal(world.T_world_vehicle[:, 2, 3], odometry_height)
+
+
+@pytest.mark.slow
+def test_the_frames_are_registered_with_extrinsics_nearer_the_rigs_true_ones(small_dataset_dir):
+    """The settled calibration tilts each sensor less from its true extrinsic than the detector's
+    three passes (a bent merged cloud makes chained ICP drift)."""
+    dataset = open_dataset(small_dataset_dir)
+    true = np.asarray(read_truth(small_dataset_dir)["T_vehicle_sensor_true"], np.float64)
+
+    def mean_angle_deg(extrinsics):
+        relative = np.einsum("sji,sjk->sik", extrinsics[:, :3, :3], true[:, :3, :3])
+        cosine = np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1)
+        return float(np.degrees(np.arccos(cosine)).mean())
+
+    nominal = mean_angle_deg(np.asarray(dataset.T_vehicle_sensor, np.float64))
+    detector = mean_angle_deg(calibrated_extrinsics(dataset))
+    settled = mean_angle_deg(registration_extrinsics(dataset))
+    assert settled < detector < nominal
 
 
 # -- the session's objects
