@@ -177,7 +177,7 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
                  "--json", "--png", str(tmp_path / "pr.png")]) == 0  # fmt: skip
     result = json.loads(capsys.readouterr().out)
     assert {"per_class", "f1", "map", "against", "errors"} <= set(result)
-    kinds = {"duplicate", "localization", "confusion", "background"}
+    kinds = {"duplicate", "localization", "confusion", "part", "background"}
     assert set(result["errors"]["false_positives"]) == kinds
     assert result["reference"] == "truth" and set(result["against"]) == {"annotations", "truth"}
     for row in result["per_class"].values():

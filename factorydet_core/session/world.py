@@ -473,8 +473,10 @@ def spread_objects(labels_by_frame: dict, world: WorldFrames, *, min_points: int
 
 
 def registration_extrinsics(dataset) -> np.ndarray:
-    """(S, 4, 4) the rig's extrinsics the frames are registered with: ``calibrated_extrinsics``
-    refined until they settle (``REGISTRATION_CALIBRATION_ROUNDS`` passes on the first frame)."""
+    """(S, 4, 4) the rig's extrinsics the frames are registered with: refined by ICP between its
+    sensors on the first frame as ``calibrated_extrinsics`` refines them, but until they settle
+    (``REGISTRATION_CALIBRATION_ROUNDS`` passes instead of three; the nominal ones for a single
+    sensor)."""
     nominal = np.asarray(dataset.T_vehicle_sensor, np.float64)
     if len(nominal) < 2:
         return nominal
@@ -484,11 +486,8 @@ def registration_extrinsics(dataset) -> np.ndarray:
 
 def calibrated_extrinsics(dataset) -> np.ndarray:
     """(S, 4, 4) the rig's extrinsics refined by ICP between its sensors on the first frame, as the
-    app's viewer refines them for the cloud it draws (the nominal ones for a single sensor).
-
-    Registering frames merged with the nominal extrinsics leaves each sensor's calibration error
-    in the clouds: on the held-out factories the chained ICP then drifted 9 cm over twelve frames,
-    against 1 cm with these (``bench world-labels``)."""
+    app's viewer and the detector refine them for the clouds they merge (three passes; the nominal
+    ones for a single sensor). The frames are registered with ``registration_extrinsics``."""
     nominal = np.asarray(dataset.T_vehicle_sensor, np.float64)
     if len(nominal) < 2:
         return nominal
