@@ -228,3 +228,31 @@ def test_a_cached_frame_shows_its_detections_selected_ahead(small_dataset_dir, t
         assert here
     finally:
         worker.stop(timeout=120)
+
+
+@pytest.mark.parametrize("refined", [True, False])
+def test_label_once_registers_with_the_librarys_calibration_unless_the_app_draws_the_nominal_one(
+    small_dataset_dir, tmp_path, monkeypatch, refined
+):
+    from app import worker as worker_module
+    from app.worker import place_frames
+    from factorydet_core.session.store import SessionDB, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
+    state.shared.use_refined_extrinsics = refined
+    state.pipeline_failed_key = ("shown",)  # the first frame is settled: placing starts at once
+    asked = []
+
+    def fake_session_world(session, data, T_vehicle_sensor=None, progress=None):
+        asked.append(T_vehicle_sensor)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(worker_module, "session_world", fake_session_world)
+    place_frames(state.shared)
+    # None: session_world registers with world.registration_extrinsics (cached with the poses).
+    if refined:
+        assert asked == [None]
+    else:
+        np.testing.assert_array_equal(asked[0], dataset.T_vehicle_sensor)
+    assert state.shared.world is None and "placing the frames failed" in state.shared.world_status
