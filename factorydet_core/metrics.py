@@ -323,6 +323,14 @@ reference, or box voting moved its box below the IoU."""
 OVERLAP_IOU = 0.1
 """Least IoU at which ``error_breakdown`` counts a false positive as overlapping a reference."""
 
+
+def recorded_false_positive_kinds(errors: dict) -> list[str]:
+    """The kinds of false positive an ``error_breakdown`` result counts, in
+    ``FALSE_POSITIVE_KINDS`` order: records written before ``part`` existed count those false
+    positives as background and have no ``part``."""
+    return [k for k in FALSE_POSITIVE_KINDS if k in errors["false_positives"]]
+
+
 PART_FRACTION = 0.5
 """Least share of a false positive's volume inside one reference box at which ``error_breakdown``
 counts it as a ``part`` of that object (when no reference overlaps it at ``OVERLAP_IOU``)."""

@@ -7,10 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from factorydet_core.metrics import (
-    FALSE_POSITIVE_KINDS,
-    MISS_KINDS,
-)
+from factorydet_core.metrics import MISS_KINDS, recorded_false_positive_kinds
 
 
 def save_figure(fig, png: str | os.PathLike) -> None:
@@ -84,8 +81,7 @@ def plot_error_breakdown(errors: dict, png: str | os.PathLike, title: str = "") 
     found = np.array([errors["per_class"][n]["tp"] for n in names], float)
     fig, ax = plt.subplots(figsize=(8.0, 4.8))
     width = 0.38
-    # Records written before the ``part`` kind existed count those false positives as background.
-    fp_kinds = [k for k in FALSE_POSITIVE_KINDS if k in errors["false_positives"]]
+    fp_kinds = recorded_false_positive_kinds(errors)
     for side, (group, kinds, shades) in enumerate(
         (("false_positives", fp_kinds, plt.cm.Reds), ("misses", MISS_KINDS, plt.cm.Blues))
     ):

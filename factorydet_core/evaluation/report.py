@@ -31,7 +31,7 @@ from factorydet_core.evaluation.plots import plot_error_breakdown, plot_pr_curve
 from factorydet_core.evaluation.quality import quality_markdown, target_lines
 from factorydet_core.evaluation.records import machine_info, mixed_library_note
 from factorydet_core.io.dataset import open_dataset
-from factorydet_core.metrics import FALSE_POSITIVE_KINDS, MISS_KINDS, OVERLAP_IOU, PART_FRACTION
+from factorydet_core.metrics import MISS_KINDS, OVERLAP_IOU, PART_FRACTION, recorded_false_positive_kinds
 from factorydet_core.training.mining import collect_proposals, group_overlaps, train_with_mining
 from factorydet_core.types import InputError
 
@@ -181,8 +181,7 @@ FEATURE_TEXT = {
 def _error_lines(errors: dict, reference: str, png: Path, method_label: str = "3DmFV-Net") -> list[str]:
     """The report's section on the kinds of errors (``metrics.error_breakdown``)."""
     names = list(errors["per_class"])
-    # Records written before the ``part`` kind existed count those false positives as background.
-    fp_kinds = [k for k in FALSE_POSITIVE_KINDS if k in errors["false_positives"]]
+    fp_kinds = recorded_false_positive_kinds(errors)
     rows = [("true positives", lambda r: r["tp"], errors["tp"])]
     rows += [
         (f"false positive: {k}", lambda r, k=k: r["false_positives"][k], errors["false_positives"][k])

@@ -473,25 +473,21 @@ def spread_objects(labels_by_frame: dict, world: WorldFrames, *, min_points: int
 
 
 def registration_extrinsics(dataset) -> np.ndarray:
-    """(S, 4, 4) the rig's extrinsics the frames are registered with: refined by ICP between its
-    sensors on the first frame as ``calibrated_extrinsics`` refines them, but until they settle
-    (``REGISTRATION_CALIBRATION_ROUNDS`` passes instead of three; the nominal ones for a single
-    sensor)."""
-    nominal = np.asarray(dataset.T_vehicle_sensor, np.float64)
-    if len(nominal) < 2:
-        return nominal
-    refined = refine_extrinsics(dataset.frame(0), nominal, rounds=REGISTRATION_CALIBRATION_ROUNDS)
-    return refined.T_vehicle_sensor
+    """(S, 4, 4) the rig's extrinsics the frames are registered with: refined as
+    ``calibrated_extrinsics`` refines them, but until they settle
+    (``REGISTRATION_CALIBRATION_ROUNDS`` passes instead of three)."""
+    return calibrated_extrinsics(dataset, rounds=REGISTRATION_CALIBRATION_ROUNDS)
 
 
-def calibrated_extrinsics(dataset) -> np.ndarray:
+def calibrated_extrinsics(dataset, **refine_options) -> np.ndarray:
     """(S, 4, 4) the rig's extrinsics refined by ICP between its sensors on the first frame, as the
-    app's viewer and the detector refine them for the clouds they merge (three passes; the nominal
-    ones for a single sensor). The frames are registered with ``registration_extrinsics``."""
+    app's viewer and the detector refine them for the clouds they merge (``merge.refine_extrinsics``
+    with its defaults, three passes, unless ``refine_options`` say otherwise; the nominal ones for a
+    single sensor). The frames are registered with ``registration_extrinsics``."""
     nominal = np.asarray(dataset.T_vehicle_sensor, np.float64)
     if len(nominal) < 2:
         return nominal
-    return refine_extrinsics(dataset.frame(0), nominal).T_vehicle_sensor
+    return refine_extrinsics(dataset.frame(0), nominal, **refine_options).T_vehicle_sensor
 
 
 def session_world(

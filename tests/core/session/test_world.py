@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from factorydet_core.boxes import box_iou_3d
-from factorydet_core.geometry import make_transform, rotation_z, transform_boxes
+from factorydet_core.geometry import make_transform, rotation_angle_deg, rotation_z, transform_boxes
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import NEW_OBJECT_ID, EditConflictError, Label, open_session
 from factorydet_core.session.world import (
@@ -257,9 +257,7 @@ def test_the_frames_are_registered_with_extrinsics_nearer_the_rigs_true_ones(sma
     true = np.asarray(read_truth(small_dataset_dir)["T_vehicle_sensor_true"], np.float64)
 
     def mean_angle_deg(extrinsics):
-        relative = np.einsum("sji,sjk->sik", extrinsics[:, :3, :3], true[:, :3, :3])
-        cosine = np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1)
-        return float(np.degrees(np.arccos(cosine)).mean())
+        return np.mean([rotation_angle_deg(e[:3, :3], t[:3, :3]) for e, t in zip(extrinsics, true)])
 
     nominal = mean_angle_deg(np.asarray(dataset.T_vehicle_sensor, np.float64))
     detector = mean_angle_deg(calibrated_extrinsics(dataset))
