@@ -462,6 +462,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                             "review_extra": args.review_extra,
                             "refit_box_quality": args.refit_box_quality,
                             "refit_trees": args.refit_trees,
+                            "model_box_targets": args.model_box_targets,
                             "class_thresholds": args.class_thresholds,
                         }
                     ),
@@ -1693,7 +1694,7 @@ def build_parser(
         p,
         fields=(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
-            "review_order", "review_extra", "refit_box_quality", "refit_trees",
+            "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
             "recalibrate_background", "recalibrate_by_class",
         ),
     )  # fmt: skip

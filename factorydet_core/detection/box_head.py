@@ -381,7 +381,8 @@ class HeadSamples:
     labels: np.ndarray
     """(M,) int64 class ids, ``num_classes`` for background."""
     target_boxes: np.ndarray
-    """(M, 7) the object's box for objects; NaN rows for background."""
+    """(M, 7) the object's box for objects; NaN rows for background, and for an object whose
+    label teaches its class alone (its box is the model's own, accepted as it was)."""
 
     def __post_init__(self) -> None:
         num = len(self.labels)
@@ -599,8 +600,9 @@ class BoxHead(ClassOutputs):
         background = np.flatnonzero(~hard & (labels == num_classes))
         if not len(positives):
             raise InputError("the box head needs at least one object among its training sets")
-        if not np.isfinite(samples.target_boxes[positives]).all():
-            raise InputError("head samples: every object needs a finite target box")
+        target_rows = np.isfinite(samples.target_boxes[positives])
+        if not (target_rows.all(axis=1) | ~target_rows.any(axis=1)).all():
+            raise InputError("head samples: an object's target box is finite, or all NaN (no box to learn)")
         templates = np.asarray(templates, np.float64).reshape(num_classes, 3)
         templates = np.where(np.isfinite(templates) & (templates > 0), templates, 1.0)
         symmetry = symmetry_orders(templates, self.square_ratio)
@@ -757,7 +759,9 @@ class BoxHead(ClassOutputs):
             per_set = nn.functional.cross_entropy(out["logits"], y, weight=loss_fn.weight, reduction="none")
             set_weights = (torch.ones(len(batch)) if loss_fn.weight is None else loss_fn.weight[y]) * kept
             class_loss = (per_set * kept).sum() / set_weights.sum().clamp_min(1e-12)
-        rows = np.flatnonzero(is_object)
+        # An object set whose label box is not to be learnt from (NaN target: a box a person
+        # accepted from the model as it was) teaches its class alone: no box or IoU loss.
+        rows = np.flatnonzero(is_object & np.isfinite(targets).all(axis=1))
         iou_target = np.zeros((len(batch), num_classes), np.float32)
         box_loss = torch.zeros(())
         if len(rows):

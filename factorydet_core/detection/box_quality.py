@@ -309,6 +309,7 @@ class BoxQuality:
         prior: BoxSizePrior,
         num_classes: int,
         excluded: dict[int, set[int]] | None = None,
+        box_targets: dict[int, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(R, F) features and (R,) target IoUs of every option of the training point sets.
 
@@ -318,6 +319,10 @@ class BoxQuality:
             num_classes: C.
             excluded: per frame index, point sets (group ids) to leave out (real objects whose
                 segment is wrong, from a review).
+            box_targets: per frame index, (L,) which of its labels' boxes IoUs are learnt
+                against (``None``, or a frame left out: all). A set whose best overlapping label
+                is not one is left out: that box is the model's own, and an IoU against it would
+                teach the regressor to agree with the model.
         """
         rng = np.random.default_rng(self.seed)
         rows, targets = [], []
@@ -325,6 +330,8 @@ class BoxQuality:
             if not len(frame.label_boxes):
                 continue
             skip = (excluded or {}).get(frame.frame_index, set())
+            learn = (box_targets or {}).get(frame.frame_index)
+            learn = np.ones(len(frame.label_boxes), bool) if learn is None else np.asarray(learn, bool)
             iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
             for g, members in enumerate(frame.groups.members()):
                 best = iou[members].max(axis=0)
@@ -332,7 +339,7 @@ class BoxQuality:
                 overlapping = best[label] >= self.min_overlap
                 take_background = rng.random() < self.background_rate
                 random_class = int(rng.integers(num_classes))
-                if g in skip or not (overlapping or take_background):
+                if g in skip or not (overlapping or take_background) or (overlapping and not learn[label]):
                     continue
                 class_id = int(frame.label_class_ids[label]) if overlapping else random_class
                 options, features = option_features(

@@ -478,6 +478,11 @@ an object, a file imported, the model's detection (a pre-label: unreviewed until
 or edits it), or a moving object's box computed between two of its keyframes (``world``)."""
 PRELABEL_ORIGIN = "model"
 COMPUTED_ORIGINS = ("interpolated",)
+MODEL_BOX_ORIGINS = ("review", PRELABEL_ORIGIN)
+"""Origins of labels whose box is the model's own, as a person accepted it: a reviewer's Object
+verdict keeps the mined box, a confirmed pre-label the detection's. A person who moves such a box
+makes it theirs (origin 'user'); training can let these teach their class alone
+(``LoopSettings.model_box_targets``)."""
 """Origins of boxes the session computes from others: an edit of one makes it a person's."""
 SAME_OBJECT_IOU = 0.25
 """Label once never adds a label where another label overlaps the object's box this much: that
@@ -528,10 +533,11 @@ class EditConflictError(SessionError):
 def _by_a_person(content: dict, before: dict | None = None) -> dict:
     """What a person's edit makes of a label's ``content`` (``before`` it: the stored one): a
     pre-label reviewed; a computed (interpolated) box whose box the person moved their own (a
-    keyframe), one whose class alone changed still computed."""
+    keyframe), one whose class alone changed still computed; and a box the model gave
+    (``MODEL_BOX_ORIGINS``) that the person moved their own too."""
     moved = before is None or content.get("box") != before.get("box")
-    computed = content.get("origin") in COMPUTED_ORIGINS
-    return {**content, "origin": "user" if computed and moved else content.get("origin"), "reviewed": 1}
+    taken = content.get("origin") in (*COMPUTED_ORIGINS, *MODEL_BOX_ORIGINS)
+    return {**content, "origin": "user" if taken and moved else content.get("origin"), "reviewed": 1}
 
 
 def _verdict_text(verdict: str, class_name: str | None) -> str:

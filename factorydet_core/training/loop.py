@@ -30,7 +30,7 @@ from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.session.store import SessionDB, read_cache, write_cache
+from factorydet_core.session.store import MODEL_BOX_ORIGINS, SessionDB, read_cache, write_cache
 from factorydet_core.training.mining import (
     FrameProposals,
     Progress,
@@ -174,7 +174,9 @@ def with_session_labels(
     """The frames with the session's labels in place of the data set's annotations: the current
     ones, or those of a stored ``snapshot`` (``SessionDB.snapshot``), so that a run trains on
     exactly the labels it records. The model's pre-labels nobody has confirmed yet are neither
-    objects nor background: their places are left out of training (``FrameProposals.ignore_boxes``)."""
+    objects nor background: their places are left out of training (``FrameProposals.ignore_boxes``).
+    Labels whose box is the model's own (origins ``MODEL_BOX_ORIGINS``) are marked so
+    (``FrameProposals.label_model_box_mask``)."""
     names = db.class_names
     if snapshot is None:
         by_frame = {
@@ -199,6 +201,7 @@ def with_session_labels(
         given = by_frame[frame.frame_index]
         labels = [lab for lab in given if lab.get("reviewed", True)]
         unreviewed = [lab["box"] for lab in given if not lab.get("reviewed", True)]
+        model_box_mask = np.array([lab["origin"] in MODEL_BOX_ORIGINS for lab in labels], bool)
         instance_classes = {
             int(lab["instance_id"]): names.index(lab["class_name"])
             for lab in labels
@@ -210,6 +213,7 @@ def with_session_labels(
                 np.array([names.index(lab["class_name"]) for lab in labels], np.int64),
                 instance_classes,
                 np.array(unreviewed, np.float64).reshape(-1, 7),
+                model_box_mask,
             )
         )
     return out
@@ -320,6 +324,7 @@ def train_session(
         round_epochs=settings.round_epochs,
         queue_order=settings.queue_order,
         review_extra=settings.review_extra,
+        model_box_targets=settings.model_box_targets,
         init_model=None if continued is None else continued.classifier,
         score=score,
     )

@@ -78,6 +78,10 @@ class FrameProposals:
     no person has confirmed yet, held negatives' places with ``LoopSettings.hold_places``): the
     point sets on them are left out (``ignored_point_sets``), and detections on them count neither
     way when training tunes the thresholds."""
+    label_model_box_mask: np.ndarray | None = None
+    """(R,) which label boxes are the model's own, as a person accepted them (a reviewer's Object
+    verdict on a mined box, a pre-label confirmed unmoved: ``store.MODEL_BOX_ORIGINS``); ``None``:
+    none. With ``train_with_mining(model_box_targets=False)`` they teach their class alone."""
 
     def with_labels(
         self,
@@ -85,6 +89,7 @@ class FrameProposals:
         class_ids: np.ndarray,
         instance_classes: dict[int, int] | None = None,
         ignore_boxes: np.ndarray | None = None,
+        model_box_mask: np.ndarray | None = None,
     ) -> FrameProposals:
         """The same proposals with other labels (a session's corrected ones).
 
@@ -95,6 +100,7 @@ class FrameProposals:
                 data set's instances; only their own-point samples are kept, with that class.
                 ``None`` keeps them all as they are.
             ignore_boxes: (Q, 7) places training leaves out (``None``: none).
+            model_box_mask: (R,) which boxes are the model's own (``label_model_box_mask``).
         """
         keep = np.ones(len(self.annotation_instance_ids), bool)
         classes = np.array(self.annotation_class_ids)
@@ -110,6 +116,7 @@ class FrameProposals:
             annotation_class_ids=classes[keep].astype(np.int64),
             annotation_instance_ids=self.annotation_instance_ids[keep],
             ignore_boxes=np.asarray([] if ignore_boxes is None else ignore_boxes, np.float64).reshape(-1, 7),
+            label_model_box_mask=_model_box_mask(model_box_mask, len(np.asarray(boxes).reshape(-1, 7))),
         )
 
     def with_ignored(self, boxes: np.ndarray | None) -> FrameProposals:
@@ -298,6 +305,35 @@ def _training_set(
     return np.concatenate(features), np.concatenate(descriptors), np.concatenate(labels)
 
 
+def _model_box_mask(mask: np.ndarray | None, num_labels: int) -> np.ndarray | None:
+    if mask is None:
+        return None
+    mask = np.asarray(mask, bool).reshape(-1)
+    if len(mask) != num_labels:
+        raise InputError(f"model_box_mask: expected {num_labels} entries (one per label), got {len(mask)}")
+    return mask
+
+
+def box_target_mask(frame: FrameProposals, model_box_targets: bool = True) -> np.ndarray:
+    """(R,) which of the frame's label boxes training learns boxes from: all of them, or with
+    ``model_box_targets`` False those that are not the model's own (``label_model_box_mask``)."""
+    learn = np.ones(len(frame.label_boxes), bool)
+    if not model_box_targets and frame.label_model_box_mask is not None:
+        learn &= ~frame.label_model_box_mask
+    return learn
+
+
+def _prior_boxes(frames: Sequence[FrameProposals], model_box_targets: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The label boxes and classes the size prior is measured on: all, or with
+    ``model_box_targets`` False those that are box targets (``box_target_mask``), except for a
+    class whose every box is the model's own (the prior needs each seen class's size)."""
+    boxes = np.concatenate([f.label_boxes for f in frames]).reshape(-1, 7)
+    class_ids = np.concatenate([f.label_class_ids for f in frames]).astype(np.int64)
+    learn = np.concatenate([box_target_mask(f, model_box_targets) for f in frames]).astype(bool)
+    keep = learn | ~np.isin(class_ids, class_ids[learn])
+    return boxes[keep], class_ids[keep]
+
+
 def head_labels(frame: FrameProposals, background_id: int) -> tuple[np.ndarray, np.ndarray]:
     """Each point set's label for the box head by where its points lie
     (``box_head.label_point_sets``): ``(labels, owners)``, -1 for sets left out of training."""
@@ -312,9 +348,11 @@ def _head_training_set(
     frame_owners: dict[int, np.ndarray],
     background: dict[int, set[int]],
     excluded: dict[int, set[int]],
+    model_box_targets: bool = True,
 ) -> tuple[HeadSamples, np.ndarray]:
     """The box head's samples (every labelled point set of every frame, sets in ``excluded`` left
-    out) and (M,) which of them are hard negatives (the sets in ``background``)."""
+    out) and (M,) which of them are hard negatives (the sets in ``background``). A set whose label
+    is not a box target (``box_target_mask``) gets a NaN target: it teaches its class alone."""
     parts, hard = [], []
     for frame in frames:
         labels = frame_labels[frame.frame_index].copy()
@@ -322,7 +360,10 @@ def _head_training_set(
         labels[sorted(excluded.get(frame.frame_index, ()))] = -1
         keep = np.flatnonzero(labels >= 0)
         targets = np.full((frame.groups.num_groups, 7), np.nan)
-        targets[owners >= 0] = frame.label_boxes[owners[owners >= 0]]
+        learn = box_target_mask(frame, model_box_targets)
+        owned = np.flatnonzero(owners >= 0)
+        owned = owned[learn[owners[owned]]]
+        targets[owned] = frame.label_boxes[owners[owned]]
         groups = frame.groups
         parts.append(
             HeadSamples(
@@ -434,6 +475,7 @@ def train_with_mining(
     score: Scorer = score_frames,
     queue_order: str = "score",
     review_extra: int | None = 0,
+    model_box_targets: bool = True,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -459,6 +501,10 @@ def train_with_mining(
             ``mine_after_last``, else the round before it) go to that round's record's
             ``queued``: the review queue's alone, neither background nor held
             (``LoopSettings.review_extra``).
+        model_box_targets: learn boxes from every label (True), or let the labels whose box is
+            the model's own (``FrameProposals.label_model_box_mask``) teach their class alone: the
+            box head's box and IoU losses, the box quality regressor and the size prior leave
+            them out (``LoopSettings.model_box_targets``).
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
             a true positive when mining.
@@ -549,11 +595,7 @@ def train_with_mining(
     is_head = isinstance(classifier, BoxHead)
     box_prior = None
     if use_box_prior or is_head:
-        box_prior = BoxSizePrior.from_boxes(
-            np.concatenate([f.label_boxes for f in frames]),
-            np.concatenate([f.label_class_ids for f in frames]),
-            num_classes,
-        )
+        box_prior = BoxSizePrior.from_boxes(*_prior_boxes(frames, model_box_targets), num_classes)
     # Each point set's label and best overlap, fixed for the whole run: the annotations do not change.
     # The head's sets are labelled by their points, not by their boxes, and it needs no overlaps.
     frame_labels, frame_best_iou, frame_owners = {}, {}, {}
@@ -617,7 +659,13 @@ def train_with_mining(
         if progress is not None:
             progress("box quality", 0, 1)
         start = time.perf_counter()
-        rows, targets = box_quality.training_rows(frames, box_prior, num_classes, excluded)
+        rows, targets = box_quality.training_rows(
+            frames,
+            box_prior,
+            num_classes,
+            excluded,
+            box_targets={f.frame_index: box_target_mask(f, model_box_targets) for f in frames},
+        )
         # (fit keeps its own digest: only a regressor to reuse needs one here)
         digest = None if reuse_box_quality is None else box_quality.training_digest(rows, targets)
         if digest is not None and getattr(reuse_box_quality, "training_digest_", None) == digest:
@@ -644,7 +692,9 @@ def train_with_mining(
             else dataclasses.replace(classifier, epochs=round_epochs)
         )
         if is_head:
-            samples, hard = _head_training_set(frames, frame_labels, frame_owners, background, excluded)
+            samples, hard = _head_training_set(
+                frames, frame_labels, frame_owners, background, excluded, model_box_targets
+            )
             labels = samples.labels
             if not (labels != background_id).any():
                 raise InputError("no point set lies in an annotated box: nothing to learn from")

@@ -131,6 +131,13 @@ class LoopSettings:
     labels; N > 0 boosts the model's regressor on with N trees fitted to what it gets wrong on them
     (``BoxQuality.continued``), a fraction of the fit's time, the regressor N trees larger each
     round. 100 kept about half of what the refit gains (``bench hitl``, docs/labelling.md)."""
+    model_box_targets: bool = True
+    """Learn boxes from every label (True), or let a label whose box is the model's own teach its
+    class alone (False): a reviewer's Object verdict keeps the mined box, and a confirmed pre-label
+    the detection's (``store.MODEL_BOX_ORIGINS``; a box a person moved is theirs). Such a box fits
+    its object only as well as the model did (IoU 0.6 or more, by the verdict's rule), so the box
+    head's box and IoU losses, the box quality regressor and the size prior leave it out, while
+    its point sets still count as the object's."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -189,6 +196,7 @@ BEFORE_THEY_EXISTED: dict[str, object] = {
     "review_order": None,
     "refit_box_quality": False,
     "refit_trees": 0,
+    "model_box_targets": True,
 }
 """What a record written before each of these ``LoopSettings`` fields existed ran with: the
 behaviour the field was added to keep by default. A record that lacks a field is read with these,
@@ -343,6 +351,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "box quality regressor on the current labels, when they changed (off: keeps the model's)", bool),
     Control("refit_trees", "Refit trees", "with refit box quality, boost the model's regressor on with "
             "this many trees fitted to the current labels (0: fit it afresh)", int, 0, 2000, 10),
+    Control("model_box_targets", "Learn model boxes", "labels whose box is the model's own (an Object "
+            "verdict's mined box, a confirmed pre-label) are box targets too (off: they teach their "
+            "class alone)", bool),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "
