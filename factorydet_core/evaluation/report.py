@@ -968,6 +968,12 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 if settings.get("refit_box_quality")
                 else ""
             )
+            + (
+                ", an Object verdict's label (the mined box) teaching its class alone, no box"
+                " (`model_box_targets` off)"
+                if reviewed and settings.get("model_box_targets", True) is False
+                else ""
+            )
             + ". F-score at IoU "
             f"{result['iou_threshold']} against the full truth, "
             + _hitl_where(result)

@@ -420,3 +420,49 @@ def test_recalibrating_by_class_never_leaves_out_more_than_the_threshold_alone(r
     assert 0 < left_out[0] < left_out[1]
     # Saved and read back with the head's other settings.
     assert by_class.get_params()["recalibrate_by_class"] is True
+
+
+def test_an_object_without_a_target_box_teaches_its_class_alone(rng):
+    """An object set with a NaN target (its label's box is the model's own) counts in the class
+    loss as before, and in neither the box nor the IoU loss: those are the other objects'."""
+    import dataclasses
+
+    import torch
+    from torch import nn
+
+    samples, templates = _toy_samples(rng, 6)
+    head = BoxHead(channels=(8,), hidden=8, epochs=1, batch_size=64, class_names=("cube", "bar"),
+                   num_threads=1, augment=False).fit(samples, templates)  # fmt: skip
+    head.network_.eval()
+    loss_fn = nn.CrossEntropyLoss()
+    objects = np.flatnonzero(samples.labels < 2)
+    no_box = objects[::2]
+    targets = samples.target_boxes.copy()
+    targets[no_box] = np.nan
+    class_only = dataclasses.replace(samples, target_boxes=targets)
+
+    def step(s, batch):
+        with torch.no_grad():
+            return head._step(head.network_, s, batch, head.templates_, head.symmetry_, loss_fn,
+                              np.random.default_rng(0))  # fmt: skip
+
+    every = np.arange(len(samples.labels))
+    with_boxes, without = step(samples, every), step(class_only, every)
+    torch.testing.assert_close(without["class"], with_boxes["class"])
+    kept = np.setdiff1d(objects, no_box)
+    torch.testing.assert_close(without["box"], step(samples, kept)["box"])
+    assert not torch.isclose(without["box"], with_boxes["box"])
+    # The IoU loss: the kept objects' and the background's terms, summed over the whole batch.
+    background = np.flatnonzero(samples.labels == 2)
+    expected_iou = (
+        step(samples, kept)["iou"] * len(kept) + step(samples, background)["iou"] * len(background)
+    ) / len(every)
+    torch.testing.assert_close(without["iou"], expected_iou)
+    # A fit on them runs; a target row partly NaN is refused.
+    BoxHead(channels=(8,), hidden=8, epochs=1, batch_size=64, class_names=("cube", "bar"),
+            num_threads=1).fit(class_only, templates)  # fmt: skip
+    targets[objects[1], 3] = np.nan
+    with pytest.raises(InputError, match="all NaN"):
+        BoxHead(channels=(8,), hidden=8, epochs=1, class_names=("cube", "bar"), num_threads=1).fit(
+            dataclasses.replace(samples, target_boxes=targets), templates
+        )

@@ -585,3 +585,30 @@ def test_best_in_sets_keeps_what_the_ranking_ranks_below_keep(blocks, keep, shuf
     values = rng.integers(-2, 3, size=len(owners)).astype(np.float64) / 4  # ties are common
     expected = np.flatnonzero(rank_within_sets(owners, -values) < keep)
     np.testing.assert_array_equal(_best_in_sets(owners, values, keep), expected)
+
+
+def test_sets_on_a_label_that_is_no_box_target_are_left_out(frames, prior):
+    """A label whose box is the model's own (``box_targets`` False) gives the regressor no rows:
+    the sets it overlaps most are left out, the others' rows are the same as without the mask."""
+    from factorydet_core.boxes import box_iou_3d
+
+    frame = frames[0]
+    quality = BoxQuality(background_rate=0.0)
+    learn = np.ones(len(frame.label_boxes), bool)
+    learn[0] = False
+    all_rows, all_targets = quality.training_rows([frame], prior, NUM_CLASSES)
+    rows, targets = quality.training_rows([frame], prior, NUM_CLASSES, box_targets={frame.frame_index: learn})
+    iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
+    best = [iou[m].max(axis=0) for m in frame.groups.members()]
+    on_first = sum(b.argmax() == 0 and b.max() >= quality.min_overlap for b in best)
+    assert on_first > 0
+    assert 0 < len(rows) < len(all_rows)
+    # What is kept is what the other labels' sets gave, row for row.
+    kept = {(r.tobytes(), float(t)) for r, t in zip(rows, targets)}
+    assert kept <= {(r.tobytes(), float(t)) for r, t in zip(all_rows, all_targets)}
+    # All labels learnt from: the rows of no mask at all.
+    same, same_targets = quality.training_rows(
+        [frame], prior, NUM_CLASSES, box_targets={frame.frame_index: np.ones_like(learn)}
+    )
+    np.testing.assert_array_equal(same, all_rows)
+    np.testing.assert_array_equal(same_targets, all_targets)

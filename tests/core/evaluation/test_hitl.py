@@ -36,6 +36,12 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     by_class = {**plan, "settings": {**held, "recalibrate_by_class": True}}
     assert _run_plan({**plan, "settings": held}, "blind_safe") != _run_plan(by_class, "blind_safe")
     assert _run_plan({**plan, "settings": held}, "reviewed_200") == _run_plan(by_class, "reviewed_200")
+    # Whether the model's boxes are learnt from: only a reviewer's verdicts give labels with them.
+    class_alone = {**plan, "settings": {**settings, "model_box_targets": False}}
+    for variant in ("blind", "blind_safe", "full", "full_late"):
+        assert _run_plan(plan, variant) == _run_plan(class_alone, variant)
+    for variant in ("reviewed_200", "reviewed_safe_200"):
+        assert _run_plan(plan, variant) != _run_plan(class_alone, variant)
     # A reviewer who also holds what they leave: shaped by the reviews and by the holding both.
     holding = {**plan, "settings": {**settings, "hold_places": True, "recalibrate_background": 0.5}}
     assert _run_plan(plan, "reviewed_safe_200") != _run_plan(holding, "reviewed_safe_200")

@@ -212,6 +212,13 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "refit_box_quality" not in text
     result["settings"]["refit_box_quality"] = True
     assert "every next round fitting the box quality regressor again" in hitl_markdown(result)
+    # Object verdicts teaching their class alone: said where a reviewer ran, not otherwise.
+    result["settings"]["model_box_targets"] = False
+    assert "`model_box_targets` off" not in hitl_markdown(result)  # blind and full labels alone
+    reviewed = _hitl_result({"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.32] * 3, "full": [0.34] * 3})
+    assert "`model_box_targets` off" not in hitl_markdown(reviewed)
+    reviewed["settings"]["model_box_targets"] = False
+    assert "an Object verdict's label (the mined box) teaching its class alone" in hitl_markdown(reviewed)
     # The epochs of the first fit and of the rounds that go on from it, when they differ.
     assert ", 5 epochs per fit," in hitl_markdown(result)
     result["settings"].update(epochs=20, round_epochs=5)

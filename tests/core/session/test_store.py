@@ -1077,3 +1077,34 @@ def test_a_schema_3_database_gains_in_background_with_its_rows_mined(tmp_path, d
     db = SessionDB(session, dataset)
     assert db.schema_version == SCHEMA_VERSION and db.mined_patch_sets() == {0: [(7,)]}
     assert [q["in_background"] for q in db.review_queue()] == [1]
+
+
+def test_a_box_the_model_gave_becomes_a_persons_when_they_move_it(db, tiny_model_path):
+    """An Object verdict's label keeps the mined box (origin 'review': the model's box); a class
+    change leaves it so, a moved box makes it the person's (origin 'user'), and undo gives the
+    origin back. Training reads the origins as which boxes are the model's."""
+    from factorydet_core.session.store import MODEL_BOX_ORIGINS
+    from factorydet_core.training.loop import with_session_labels
+
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    item = db.review_queue()[0]
+    db.review([item["id"]], "object", "ann", class_name="box")
+    label_id = db.review_queue()[0]["label_id"]
+    assert db.label(label_id).origin == "review" and "review" in MODEL_BOX_ORIGINS
+    db.update_label(label_id, "ann", class_name="barrel")
+    assert db.label(label_id).origin == "review"
+
+    class Frame:  # what with_session_labels reads of a frame's proposals
+        frame_index = item["frame_index"]
+
+        def with_labels(self, boxes, class_ids, instance_classes, ignore, model_box_mask):
+            return boxes, model_box_mask
+
+    boxes, mask = with_session_labels(db, [Frame()])[0]
+    assert mask.sum() == 1 and boxes[mask][0] == pytest.approx(db.label(label_id).box)
+    moved = np.asarray(db.label(label_id).box) + np.array([0.05, 0, 0, 0, 0, 0, 0])
+    db.update_label(label_id, "ann", box=moved)
+    assert db.label(label_id).origin == "user"
+    assert not with_session_labels(db, [Frame()])[0][1].any()
+    db.undo("ann")
+    assert db.label(label_id).origin == "review"

@@ -614,3 +614,71 @@ def test_review_extra_queues_the_false_positives_after_the_cut_for_review_alone(
     for bad in (-1, 2.5, True):
         with pytest.raises(InputError, match="review_extra"):
             first_round(review_extra=bad)
+
+
+def test_labels_with_the_models_boxes_can_teach_their_class_alone(frames, monkeypatch):
+    """With ``model_box_targets`` off, a label marked as the model's box keeps its point sets as
+    the object's, but gives the head no target box, the regressor no rows and the size prior no
+    size (unless its class has no other box); on, the run is the one without the mark."""
+    from factorydet_core.detection.box_head import BoxHead
+    from factorydet_core.training import mining
+
+    marked = []
+    for frame in frames:
+        mask = np.zeros(len(frame.label_boxes), bool)
+        mask[::2] = True
+        marked.append(frame.with_labels(frame.label_boxes, frame.label_class_ids, model_box_mask=mask))
+    seen = {}
+    fit_rows = mining.BoxQuality.training_rows
+
+    def rows(self, frames_, prior, num_classes, excluded=None, box_targets=None):
+        seen["box_targets"] = box_targets
+        seen["prior"] = prior
+        return fit_rows(self, frames_, prior, num_classes, excluded, box_targets)
+
+    def head_fit(self, samples, templates, *args, **kwargs):
+        seen["samples"] = samples
+        raise InputError("stop here")
+
+    monkeypatch.setattr(mining.BoxQuality, "training_rows", rows)
+    monkeypatch.setattr(BoxHead, "fit", head_fit)
+    head = BoxHead(channels=(8,), hidden=8, epochs=1, num_threads=1)
+    quality = BoxQuality(max_iter=5, max_leaf_nodes=4, visibility=False)
+    for learn in (True, False):
+        with pytest.raises(InputError, match="stop here"):
+            train_with_mining(marked, head, rounds=0, box_quality=quality, model_box_targets=learn)
+        samples, targets = seen["samples"], seen["box_targets"]
+        objects = samples.labels < len(head.class_names)
+        has_target = np.isfinite(samples.target_boxes).all(axis=1)
+        if learn:
+            assert has_target[objects].all()
+            assert all(t.all() for t in targets.values())
+        else:
+            assert 0 < has_target[objects].sum() < objects.sum()
+            assert all((t == ~f.label_model_box_mask).all() for t, f in zip(targets.values(), marked))
+            # The prior's sizes are those of the unmarked boxes where a class has some.
+            boxes = np.concatenate([f.label_boxes[~f.label_model_box_mask] for f in marked])
+            classes = np.concatenate([f.label_class_ids[~f.label_model_box_mask] for f in marked])
+            for c in np.unique(classes):
+                assert mining.BoxSizePrior.from_boxes(
+                    boxes[classes == c], classes[classes == c], len(head.class_names)
+                ).sizes[c] == pytest.approx(seen["prior"].sizes[c], nan_ok=True)
+
+
+def test_the_box_targets_are_every_label_or_those_that_are_not_the_models(frames):
+    import types
+
+    from factorydet_core.training.mining import box_target_mask
+
+    frame = types.SimpleNamespace(
+        label_boxes=np.zeros((3, 7)), label_model_box_mask=np.array([0, 1, 0], bool)
+    )
+    assert box_target_mask(frame).all()
+    assert box_target_mask(frame, model_box_targets=False).tolist() == [True, False, True]
+    unmarked = types.SimpleNamespace(label_boxes=np.zeros((2, 7)), label_model_box_mask=None)
+    assert box_target_mask(unmarked, model_box_targets=False).all()
+    frame = frames[0]
+    with pytest.raises(InputError, match="one per label"):
+        frame.with_labels(
+            frame.label_boxes, frame.label_class_ids, model_box_mask=np.zeros(len(frame.label_boxes) + 1)
+        )
