@@ -1942,7 +1942,8 @@ class SessionDB:
                     raise EditConflictError(
                         f"label {label_id} is confirmed already (by {row['modified_by']})"
                     )
-                changes.append(self._change(db, "labels", label_id, _by_a_person(content), author))
+                # (confirmed as it is: the box stays the model's)
+                changes.append(self._change(db, "labels", label_id, _by_a_person(content, content), author))
             if not changes:
                 raise SessionError("no pre-labels to confirm")
             return self._edit(db, author, "confirm", f"confirm {len(changes)} pre-label(s)", changes)

@@ -74,7 +74,7 @@ def test_confirming_or_editing_a_pre_label_makes_it_truth_and_undo_takes_it_back
     with pytest.raises(EditConflictError, match="confirmed already"):
         db.confirm_labels([a.id], "ann")
     db.update_label(b.id, "ann", box=(33.1, 30.0, 0.5, 0.6, 0.6, 1.0, 0.0))
-    assert db.label(b.id).reviewed
+    assert db.label(b.id).reviewed and db.label(b.id).origin == "user"  # a moved box is the person's
     db.update_label(c.id, "bob", class_name="box")
     assert [lab.id for lab in db.unreviewed_labels()] == []
     db.undo("bob")
