@@ -80,30 +80,30 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench world-labels --heldout-seeds 104,105,106 --heldout-frames 60 --readme docs/labelling.md \
 	  --readme-block world-labels-long
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl.json --readme docs/labelling.md \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl.json --readme docs/labelling.md \
 	  --review-order score --no-refit-box-quality
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --out docs/bench/hitl-50.json --readme docs/labelling.md \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl-50.json --readme docs/labelling.md \
 	  --readme-block hitl-50 --review-order score --no-refit-box-quality
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants blind_safe,full --hold-places \
 	  --out docs/bench/hitl-safe.json --readme docs/labelling.md --readme-block hitl-safe --no-refit-box-quality
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --review-order score \
-	  --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-50-place.json --readme docs/labelling.md \
+	  --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-50-place.json --readme docs/labelling.md \
 	  --readme-block hitl-50-place --no-refit-box-quality --resume
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants full_late,full \
 	  --out docs/bench/hitl-50-late.json --readme docs/labelling.md --readme-block hitl-50-late --no-refit-box-quality --resume
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
-	  --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-50-class.json --readme docs/labelling.md \
+	  --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-50-class.json --readme docs/labelling.md \
 	  --readme-block hitl-50-class --no-refit-box-quality --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-class.json docs/bench/hitl-50-place.json \
 	  --readme docs/labelling.md --readme-block hitl-50-class-vs-place
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
-	  --variants reviewed_200,full --out docs/bench/hitl-50-refit.json --readme docs/labelling.md \
+	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-refit.json --readme docs/labelling.md \
 	  --readme-block hitl-50-refit --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-refit.json docs/bench/hitl-50-class.json \
 	  --readme docs/labelling.md --readme-block hitl-50-refit-vs-class
@@ -118,7 +118,7 @@ bench: $(STAMP) corpus corpus50
 	test -f docs/bench/hitl-50-refit100.json || cp docs/bench/hitl-50-refit.json docs/bench/hitl-50-refit100.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
-	  --refit-trees 100 --variants reviewed_200,full --out docs/bench/hitl-50-refit100.json \
+	  --refit-trees 100 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-refit100.json \
 	  --readme docs/labelling.md --readme-block hitl-50-refit100 --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-refit100.json docs/bench/hitl-50-refit.json \
 	  --readme docs/labelling.md --readme-block hitl-50-refit100-vs-refit
@@ -155,7 +155,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-reviewed-heldout.json --readme docs/labelling.md --readme-block hitl-reviewed-heldout \
+	  --model-box-targets --out docs/bench/hitl-reviewed-heldout.json --readme docs/labelling.md --readme-block hitl-reviewed-heldout \
 	  --resume
 	# The same reviewer holding what it leaves, as blind_safe (the rest from the reviewed record).
 	test -f docs/bench/hitl-reviewed-safe-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-reviewed-safe-heldout.json
@@ -163,7 +163,7 @@ bench: $(STAMP) corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
-	  --out docs/bench/hitl-reviewed-safe-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-reviewed-safe-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-reviewed-safe-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
 	  --readme docs/labelling.md --readme-block hitl-reviewed-safe-vs-reviewed-heldout
@@ -177,7 +177,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-50-reviewed-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-50-reviewed-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-reviewed-heldout --resume
 	# ... the same reviewer holding what it leaves (the rest from the reviewed record).
 	test -f docs/bench/hitl-50-reviewed-safe-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-reviewed-safe-heldout.json
@@ -185,7 +185,7 @@ bench: $(STAMP) corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
-	  --out docs/bench/hitl-50-reviewed-safe-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-50-reviewed-safe-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-reviewed-safe-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
 	  --readme docs/labelling.md --readme-block hitl-50-reviewed-safe-vs-reviewed-heldout
@@ -194,7 +194,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-review-score-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-review-score-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-score-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-score-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/labelling.md --readme-block hitl-review-score-vs-turns-heldout
@@ -202,7 +202,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-50-review-score-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-50-review-score-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-review-score-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-score-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/labelling.md --readme-block hitl-50-review-score-vs-turns-heldout
@@ -211,7 +211,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-50-review-extra-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-50-review-extra-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-review-extra-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-extra-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/labelling.md --readme-block hitl-50-review-extra-vs-reviewed-heldout
@@ -219,7 +219,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-review-extra-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-review-extra-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-extra-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-extra-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/labelling.md --readme-block hitl-review-extra-vs-reviewed-heldout
@@ -235,7 +235,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-50-review-learned-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-50-review-learned-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-review-learned-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/labelling.md --readme-block hitl-50-review-learned-vs-reviewed-heldout
@@ -243,7 +243,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
-	  --out docs/bench/hitl-review-learned-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-review-learned-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-learned-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-vs-reviewed-heldout
@@ -253,7 +253,7 @@ bench: $(STAMP) corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
-	  --out docs/bench/hitl-50-review-learned-safe-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-50-review-learned-safe-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-review-learned-safe-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-safe-heldout.json \
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/labelling.md \
@@ -263,7 +263,7 @@ bench: $(STAMP) corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
-	  --out docs/bench/hitl-review-learned-safe-heldout.json --readme docs/labelling.md \
+	  --model-box-targets --out docs/bench/hitl-review-learned-safe-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-learned-safe-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-safe-heldout.json \
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/labelling.md \
@@ -274,7 +274,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
-	  --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-heldout.json --readme docs/labelling.md \
+	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-learned-extra-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-extra-heldout.json \
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/labelling.md \
@@ -283,7 +283,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
-	  --variants reviewed_200,full --out docs/bench/hitl-50-review-learned-extra-heldout.json --readme docs/labelling.md \
+	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-review-learned-extra-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-50-review-learned-extra-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-extra-heldout.json \
 	  docs/bench/hitl-50-review-learned-heldout.json --readme docs/labelling.md \
@@ -294,13 +294,13 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 104,105,106 --heldout-frames 12 \
-	  --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-unseen.json --readme docs/labelling.md \
+	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-unseen.json --readme docs/labelling.md \
 	  --readme-block hitl-review-learned-extra-unseen --resume
 	test -f docs/bench/hitl-review-best-view-unseen.json || cp docs/bench/hitl-review-learned-extra-unseen.json docs/bench/hitl-review-best-view-unseen.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --review-best-view --heldout --heldout-seeds 104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-review-best-view-unseen.json \
+	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-best-view-unseen.json \
 	  --readme docs/labelling.md --readme-block hitl-review-best-view-unseen --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-best-view-unseen.json \
 	  docs/bench/hitl-review-learned-extra-unseen.json --readme docs/labelling.md \
@@ -310,7 +310,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full --out docs/bench/hitl-review-learned-extra-six.json \
+	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-six.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-extra-six --resume
 	# Five more training seeds (5-9) of blind mining, the reviewer's 200 places a round and full labels on
 	# the six held-out factories, seeds 0-4 read back from the record above: ten seeds in all.
@@ -318,7 +318,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5,6,7,8,9 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-ten-seeds.json \
+	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-ten-seeds.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-extra-ten-seeds --resume
 	# One operating threshold for every class (--no-class-thresholds), blind mining and full labels on
 	# the six held-out factories, three seeds: do the per-class thresholds cost people their precision?
@@ -332,14 +332,14 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-review-learned-extra-e20-six.json \
+	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-extra-e20-six --resume
 	# Half the objects unannotated and the first fit at 20 epochs: blind mining, the reviewer's 200 places
 	# a round and full labels, seeds 0-5.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-50-e20-six.json \
+	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-six --resume
 	# The reviewer at 50% once label once registers the frames with the settled calibration at the
 	# odometry's height (blind and full, which do not carry labels between frames, read back from the
@@ -348,10 +348,22 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-50-e20-world-six.json \
+	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-world-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-world-six --resume --resume-other-library
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-world-six.json docs/bench/hitl-50-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-world-vs-drift-six
+	# The reviewer at 50% with its Object verdicts' labels (the mined boxes) teaching their class alone
+	# (the default since; the lines above keep --model-box-targets, as they ran; blind and full, which
+	# have no verdicts, read back), seeds 0-5; then against the reviewer above, seed by seed.
+	test -f docs/bench/hitl-50-e20-class-alone-six.json || cp docs/bench/hitl-50-e20-world-six.json docs/bench/hitl-50-e20-class-alone-six.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants reviewed_200,full \
+	  --out docs/bench/hitl-50-e20-class-alone-six.json \
+	  --readme docs/labelling.md --readme-block hitl-50-e20-class-alone-six --resume --resume-other-library
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-class-alone-six.json docs/bench/hitl-50-e20-world-six.json \
+	  --readme docs/labelling.md --readme-block hitl-50-e20-class-alone-vs-world-six
 	# blind_safe at 50% with the first fit at 20 epochs, holding places and recalibrating the background
 	# (blind and full read back from the record above), seeds 0-3.
 	test -f docs/bench/hitl-50-e20-safe-recal-six.json || cp docs/bench/hitl-50-e20-six.json docs/bench/hitl-50-e20-safe-recal-six.json
@@ -366,7 +378,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order score \
 	  --review-order learned --review-extra 0 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-50-e20-score-six.json \
+	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-score-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-score-six --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-score-six.json docs/bench/hitl-50-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-score-vs-class-six
@@ -375,7 +387,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --round-epochs 0 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
-	  --variants reviewed_200,full --out docs/bench/hitl-review-afresh-heldout.json --readme docs/labelling.md \
+	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-afresh-heldout.json --readme docs/labelling.md \
 	  --readme-block hitl-review-afresh-heldout --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-afresh-heldout.json \
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/labelling.md \

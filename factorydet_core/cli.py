@@ -171,6 +171,35 @@ def _bench_execution(args: argparse.Namespace) -> Execution:
     return execution
 
 
+def hitl_settings(args: argparse.Namespace) -> LoopSettings:
+    """The ``LoopSettings`` ``bench hitl`` trains with, from its parsed flags (``make bench``'s
+    lines resume their records only when these are the settings the records ran)."""
+    return loop_settings_from(
+        {
+            "epochs": args.epochs,
+            "negatives_per_round": args.negatives,
+            "initial_negatives": args.initial_negatives,
+            "score_threshold": (SCORE_THRESHOLD if args.score_threshold is None else args.score_threshold),
+            "probability_exponent": args.probability_exponent,
+            "mining_threshold": args.mining_threshold,
+            "box_quality": args.box_quality,
+            "method": args.method,
+            "class_weight": args.class_weight,
+            "round_epochs": args.round_epochs,
+            "hold_places": args.hold_places,
+            "recalibrate_background": args.recalibrate_background,
+            "recalibrate_by_class": args.recalibrate_by_class,
+            "queue_order": args.queue_order,
+            "review_order": args.review_order,
+            "review_extra": args.review_extra,
+            "refit_box_quality": args.refit_box_quality,
+            "refit_trees": args.refit_trees,
+            "model_box_targets": args.model_box_targets,
+            "class_thresholds": args.class_thresholds,
+        }
+    )
+
+
 def _earlier_record(args: argparse.Namespace) -> dict | None:
     """With ``--resume``, the (partial) record at ``--out`` to go on from; ``None`` when there is none yet."""
     from factorydet_core.io.jsonfile import read_json
@@ -440,32 +469,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     args.data[0],
                     budgets=parse_ints(args.budgets, "--budgets"),
                     rounds=args.rounds,
-                    settings=loop_settings_from(
-                        {
-                            "epochs": args.epochs,
-                            "negatives_per_round": args.negatives,
-                            "initial_negatives": args.initial_negatives,
-                            "score_threshold": (
-                                SCORE_THRESHOLD if args.score_threshold is None else args.score_threshold
-                            ),
-                            "probability_exponent": args.probability_exponent,
-                            "mining_threshold": args.mining_threshold,
-                            "box_quality": args.box_quality,
-                            "method": args.method,
-                            "class_weight": args.class_weight,
-                            "round_epochs": args.round_epochs,
-                            "hold_places": args.hold_places,
-                            "recalibrate_background": args.recalibrate_background,
-                            "recalibrate_by_class": args.recalibrate_by_class,
-                            "queue_order": args.queue_order,
-                            "review_order": args.review_order,
-                            "review_extra": args.review_extra,
-                            "refit_box_quality": args.refit_box_quality,
-                            "refit_trees": args.refit_trees,
-                            "model_box_targets": args.model_box_targets,
-                            "class_thresholds": args.class_thresholds,
-                        }
-                    ),
+                    settings=hitl_settings(args),
                     seeds=parse_ints(args.seeds, "--seeds"),
                     variants=None if args.variants is None else [v.strip() for v in args.variants.split(",")],
                     max_label_iou=args.hide_labelled,

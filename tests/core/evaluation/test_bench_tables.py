@@ -416,3 +416,40 @@ def test_every_resumed_hitl_command_of_the_makefile_reviews_in_the_order_its_rec
         assert ours == reviewer_order(_settings_as_run(plan["settings"]), plan["review_by"]), args.out
         checked += 1
     assert checked >= 15  # the reviewed held-out records and the place-by-place ones
+
+
+def test_every_resumed_hitl_command_of_the_makefile_trains_its_reviewer_as_its_record_ran():
+    # The reviewer's runs of a `make bench` line resume from its record only when the line's flags
+    # (else today's defaults) give the settings those runs had: a default changed since, without a
+    # flag that keeps the record's value, would train them again.
+    import dataclasses
+    import shlex
+
+    from factorydet_core.cli import build_parser, hitl_settings
+    from factorydet_core.evaluation.hitl import _run_plan, _settings_as_run
+
+    makefile = (DOCS.parent / "Makefile").read_text().replace("\\\n", " ")
+    commands = [line.split(" bench hitl ", 1)[1] for line in makefile.splitlines() if " bench hitl " in line]
+    checked = 0
+    for command in commands:
+        words = shlex.split(command.replace("$(", "").replace(")", ""))
+        args = build_parser().parse_args(["bench", "hitl", *words])
+        if not args.resume:
+            continue
+        plan = json.loads(Path(DOCS.parent / args.out).read_text())["plan"]
+        # (bench_hitl keeps the mining rounds in the plan, its settings' rounds at 0)
+        ours = json.loads(json.dumps(dataclasses.asdict(dataclasses.replace(hitl_settings(args), rounds=0))))
+        ours = {k: v for k, v in ours.items() if k not in ("seed", "num_threads")}
+        reviewed = [v for v in plan["variants"] if v.startswith("reviewed_")]
+        for variant in reviewed:
+            theirs = {**plan, "settings": _settings_as_run(plan["settings"])}
+            differs = {
+                k: (v, theirs["settings"].get(k)) for k, v in ours.items() if theirs["settings"].get(k) != v
+            }
+            assert _run_plan({**plan, "settings": ours}, variant) == _run_plan(theirs, variant), (
+                args.out,
+                variant,
+                differs,
+            )
+            checked += 1
+    assert checked >= 15

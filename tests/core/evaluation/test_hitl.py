@@ -37,7 +37,7 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert _run_plan({**plan, "settings": held}, "blind_safe") != _run_plan(by_class, "blind_safe")
     assert _run_plan({**plan, "settings": held}, "reviewed_200") == _run_plan(by_class, "reviewed_200")
     # Whether the model's boxes are learnt from: only a reviewer's verdicts give labels with them.
-    class_alone = {**plan, "settings": {**settings, "model_box_targets": False}}
+    class_alone = {**plan, "settings": {**settings, "model_box_targets": not settings["model_box_targets"]}}
     for variant in ("blind", "blind_safe", "full", "full_late"):
         assert _run_plan(plan, variant) == _run_plan(class_alone, variant)
     for variant in ("reviewed_200", "reviewed_safe_200"):
