@@ -334,6 +334,18 @@ bench: $(STAMP) corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-e20-six.json \
 	  --readme docs/labelling.md --readme-block hitl-review-learned-extra-e20-six --resume
+	# The reviewer at 30% with label once's settled poses and its Object labels teaching their class
+	# alone (today's defaults; blind and full read back from the record above), seeds 0-5; then against
+	# the reviewer above (the drifting poses, the mined boxes learnt), seed by seed.
+	test -f docs/bench/hitl-e20-class-alone-six.json || cp docs/bench/hitl-review-learned-extra-e20-six.json docs/bench/hitl-e20-class-alone-six.json
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-e20-class-alone-six.json \
+	  --readme docs/labelling.md --readme-block hitl-e20-class-alone-six --resume --resume-other-library
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-class-alone-six.json \
+	  docs/bench/hitl-review-learned-extra-e20-six.json --readme docs/labelling.md \
+	  --readme-block hitl-e20-class-alone-vs-drift-six
 	# Half the objects unannotated and the first fit at 20 epochs: blind mining, the reviewer's 200 places
 	# a round and full labels, seeds 0-5.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
