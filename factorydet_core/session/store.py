@@ -327,7 +327,7 @@ def copy_session(session: Session, root: str | os.PathLike) -> Session:
 
 # --- The session database -------------------------------------------------------------------------
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """The schema this code reads and writes (``PRAGMA user_version``). An older database is migrated
 when it is opened for writing (a read-only open reads it as it is); a newer one is refused
 untouched."""
@@ -465,7 +465,22 @@ _TABLES = frozenset(
 )
 """The tables of every schema version: a database lacking one is refused."""
 
-_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1, 2: _SCHEMA_V2, 3: _SCHEMA_V3, 4: _SCHEMA_V4}
+# Version 5: a label whose box is the model's own (``MODEL_BOX_ORIGINS``) becomes the person's
+# (origin 'user') when they move its box; before, it kept its origin. Labels of those origins whose
+# box an edit in force changed are the person's: read from the edit log.
+_SCHEMA_V5 = """
+UPDATE labels SET origin = 'user'
+    WHERE origin IN ('review', 'model') AND reviewed = 1 AND id IN (
+        SELECT json_extract(change.value, '$.key')
+        FROM edits, json_each(edits.changes) AS change
+        WHERE edits.state = 'done'
+            AND json_extract(change.value, '$.table') = 'labels'
+            AND json_extract(change.value, '$.before') IS NOT NULL
+            AND json_extract(change.value, '$.after') IS NOT NULL
+            AND json_extract(change.value, '$.before.box') != json_extract(change.value, '$.after.box'))
+"""
+
+_MIGRATIONS: dict[int, str] = {1: _SCHEMA_V1, 2: _SCHEMA_V2, 3: _SCHEMA_V3, 4: _SCHEMA_V4, 5: _SCHEMA_V5}
 """Script that takes a database from version ``v - 1`` to ``v``."""
 
 VERDICTS = ("background", "object", "wrong_box", "skip")
@@ -478,12 +493,12 @@ an object, a file imported, the model's detection (a pre-label: unreviewed until
 or edits it), or a moving object's box computed between two of its keyframes (``world``)."""
 PRELABEL_ORIGIN = "model"
 COMPUTED_ORIGINS = ("interpolated",)
+"""Origins of boxes the session computes from others: an edit of one makes it a person's."""
 MODEL_BOX_ORIGINS = ("review", PRELABEL_ORIGIN)
 """Origins of labels whose box is the model's own, as a person accepted it: a reviewer's Object
 verdict keeps the mined box, a confirmed pre-label the detection's. A person who moves such a box
 makes it theirs (origin 'user'); training can let these teach their class alone
 (``LoopSettings.model_box_targets``)."""
-"""Origins of boxes the session computes from others: an edit of one makes it a person's."""
 SAME_OBJECT_IOU = 0.25
 """Label once never adds a label where another label overlaps the object's box this much: that
 object is labelled there already (the data set's label of it, say, under its own id)."""
@@ -2673,13 +2688,16 @@ class SessionDB:
         return self._insert_labels(db, items, origin, author, instance_id)[1] if items else []
 
     def _delete_review_siblings(self, db, label_id: int, author: str) -> list[dict]:
-        """The other live 'review' labels of a verdict's label's object, deleted (the verdict is
-        no longer 'object'); the changes."""
+        """The other live labels of a verdict's label's object, deleted (the verdict is no longer
+        'object', so the object it made is none); the changes. Those a person moved since are
+        theirs (origin 'user') but still the verdict's object, as the verdict's own label is; a
+        data set's or an imported label never joins a verdict's object."""
         row = db.execute("SELECT instance_id FROM labels WHERE id = ?", (label_id,)).fetchone()
         if row is None or row["instance_id"] is None:
             return []
         siblings = db.execute(
-            "SELECT id FROM labels WHERE instance_id = ? AND id != ? AND deleted = 0 AND origin = 'review'",
+            "SELECT id FROM labels WHERE instance_id = ? AND id != ? AND deleted = 0"
+            " AND origin NOT IN ('dataset', 'import')",
             (row["instance_id"], label_id),
         ).fetchall()
         changes = []

@@ -323,14 +323,29 @@ def box_target_mask(frame: FrameProposals, model_box_targets: bool = True) -> np
     return learn
 
 
-def _prior_boxes(frames: Sequence[FrameProposals], model_box_targets: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The label boxes and classes the size prior is measured on: all, or with
-    ``model_box_targets`` False those that are box targets (``box_target_mask``), except for a
-    class whose every box is the model's own (the prior needs each seen class's size)."""
+def box_targets(frames: Sequence[FrameProposals], model_box_targets: bool = True) -> dict[int, np.ndarray]:
+    """Per frame index, (R,) which label boxes training learns boxes from (``box_target_mask``),
+    except that a class none of whose labels is a box target learns from all of its boxes: the
+    head, the regressor and the size prior need some box of each class they are to box (a session
+    whose every label of a class is a confirmed pre-label, say)."""
+    masks = {f.frame_index: box_target_mask(f, model_box_targets) for f in frames}
+    if model_box_targets or not frames:
+        return masks
+    class_ids = np.concatenate([f.label_class_ids for f in frames]).astype(np.int64)
+    learn = np.concatenate([masks[f.frame_index] for f in frames]).astype(bool)
+    boxed = np.unique(class_ids[learn])
+    for frame in frames:
+        masks[frame.frame_index] |= ~np.isin(frame.label_class_ids, boxed)
+    return masks
+
+
+def _prior_boxes(
+    frames: Sequence[FrameProposals], targets: dict[int, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The label boxes and classes the size prior is measured on: the box targets (``box_targets``)."""
     boxes = np.concatenate([f.label_boxes for f in frames]).reshape(-1, 7)
     class_ids = np.concatenate([f.label_class_ids for f in frames]).astype(np.int64)
-    learn = np.concatenate([box_target_mask(f, model_box_targets) for f in frames]).astype(bool)
-    keep = learn | ~np.isin(class_ids, class_ids[learn])
+    keep = np.concatenate([targets[f.frame_index] for f in frames]).astype(bool)
     return boxes[keep], class_ids[keep]
 
 
@@ -348,11 +363,12 @@ def _head_training_set(
     frame_owners: dict[int, np.ndarray],
     background: dict[int, set[int]],
     excluded: dict[int, set[int]],
-    model_box_targets: bool = True,
+    targets_of: dict[int, np.ndarray] | None = None,
 ) -> tuple[HeadSamples, np.ndarray]:
     """The box head's samples (every labelled point set of every frame, sets in ``excluded`` left
     out) and (M,) which of them are hard negatives (the sets in ``background``). A set whose label
-    is not a box target (``box_target_mask``) gets a NaN target: it teaches its class alone."""
+    is not a box target (``targets_of``, per frame index (R,), from ``box_targets``; ``None``: all
+    are) gets a NaN target: it teaches its class alone."""
     parts, hard = [], []
     for frame in frames:
         labels = frame_labels[frame.frame_index].copy()
@@ -360,7 +376,7 @@ def _head_training_set(
         labels[sorted(excluded.get(frame.frame_index, ()))] = -1
         keep = np.flatnonzero(labels >= 0)
         targets = np.full((frame.groups.num_groups, 7), np.nan)
-        learn = box_target_mask(frame, model_box_targets)
+        learn = np.ones(len(frame.label_boxes), bool) if targets_of is None else targets_of[frame.frame_index]
         owned = np.flatnonzero(owners >= 0)
         owned = owned[learn[owners[owned]]]
         targets[owned] = frame.label_boxes[owners[owned]]
@@ -504,7 +520,8 @@ def train_with_mining(
         model_box_targets: learn boxes from every label (True), or let the labels whose box is
             the model's own (``FrameProposals.label_model_box_mask``) teach their class alone: the
             box head's box and IoU losses, the box quality regressor and the size prior leave
-            them out (``LoopSettings.model_box_targets``).
+            them out, unless their class has no other box (``box_targets``;
+            ``LoopSettings.model_box_targets``).
         initial_negatives: size of the random first background set (the paper starts from ~2,000).
         positive_iou: IoU with an annotated box that makes a point set a positive, and a detection
             a true positive when mining.
@@ -593,9 +610,10 @@ def train_with_mining(
     background_id = classifier.background_id
     num_classes = len(classifier.class_names)
     is_head = isinstance(classifier, BoxHead)
+    targets_of = box_targets(frames, model_box_targets)
     box_prior = None
     if use_box_prior or is_head:
-        box_prior = BoxSizePrior.from_boxes(*_prior_boxes(frames, model_box_targets), num_classes)
+        box_prior = BoxSizePrior.from_boxes(*_prior_boxes(frames, targets_of), num_classes)
     # Each point set's label and best overlap, fixed for the whole run: the annotations do not change.
     # The head's sets are labelled by their points, not by their boxes, and it needs no overlaps.
     frame_labels, frame_best_iou, frame_owners = {}, {}, {}
@@ -664,7 +682,7 @@ def train_with_mining(
             box_prior,
             num_classes,
             excluded,
-            box_targets={f.frame_index: box_target_mask(f, model_box_targets) for f in frames},
+            box_targets=targets_of,
         )
         # (fit keeps its own digest: only a regressor to reuse needs one here)
         digest = None if reuse_box_quality is None else box_quality.training_digest(rows, targets)
@@ -693,7 +711,7 @@ def train_with_mining(
         )
         if is_head:
             samples, hard = _head_training_set(
-                frames, frame_labels, frame_owners, background, excluded, model_box_targets
+                frames, frame_labels, frame_owners, background, excluded, targets_of
             )
             labels = samples.labels
             if not (labels != background_id).any():

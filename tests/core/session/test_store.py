@@ -1108,3 +1108,53 @@ def test_a_box_the_model_gave_becomes_a_persons_when_they_move_it(db, tiny_model
     assert not with_session_labels(db, [Frame()])[0][1].any()
     db.undo("ann")
     assert db.label(label_id).origin == "review"
+
+
+def test_a_schema_4_database_gives_people_the_model_boxes_they_moved(db, tiny_model_path):
+    """Before version 5 a moved Object label kept origin 'review': the migration reads the edit log
+    and makes the labels whose box an edit in force moved the person's; an unmoved one, or one
+    whose move was undone, stays the model's."""
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    first, second, third = db.review_queue()[:3]
+    for item in (first, second, third):
+        db.review([item["id"]], "object", "ann", class_name="box")
+    moved, kept, undone = (db.review_queue()[k]["label_id"] for k in range(3))
+    for label_id in (moved, undone):
+        box = np.asarray(db.label(label_id).box) + np.array([0.1, 0, 0, 0, 0, 0, 0])
+        db.update_label(label_id, "ann", box=box)
+    db.undo("ann")  # the last move
+    assert [db.label(i).origin for i in (moved, kept, undone)] == ["user", "review", "review"]
+    # As version 4 left it: the moved label still says 'review'.
+    connection = sqlite3.connect(db.session.db_path, isolation_level=None)
+    connection.execute("UPDATE labels SET origin = 'review' WHERE id = ?", (moved,))
+    connection.execute("PRAGMA user_version = 4")
+    connection.close()
+    assert SessionDB(db.session, db.dataset, readonly=True).label(moved).origin == "review"
+    again = _reopen(db)
+    assert again.schema_version == SCHEMA_VERSION == 5
+    assert [again.label(i).origin for i in (moved, kept, undone)] == ["user", "review", "review"]
+
+
+def test_a_changed_verdict_deletes_the_object_it_made_though_a_person_moved_it(db, tiny_model_path, dataset):
+    """An Object verdict with label once makes an object in every frame that shows it; moving the
+    object makes its boxes the person's, and a verdict changed to background still deletes every
+    one of them (undo brings them back)."""
+    db.save_training_run(_fake_run(tiny_model_path), "small", {})
+    item = db.review_queue()[0]
+    other = 1 - item["frame_index"]
+
+    def place(frame_index, box):
+        return {frame_index: box, other: box}, [frame_index, other]
+
+    db.review([item["id"]], "object", "ann", class_name="box", place=place)
+    label_id = db.review_queue()[0]["label_id"]
+    instance = db.label(label_id).instance_id
+    members = [lab for f in (0, 1) for lab in db.labels(f) if lab.instance_id == instance]
+    assert len(members) == 2 and {lab.origin for lab in members} == {"review"}
+    sibling = next(lab for lab in members if lab.id != label_id)
+    db.update_label(sibling.id, "ann", box=np.asarray(sibling.box) + np.array([0.1, 0, 0, 0, 0, 0, 0]))
+    assert db.label(sibling.id).origin == "user"
+    db.review([item["id"]], "background", "ann")
+    assert db.label(label_id).deleted and db.label(sibling.id).deleted
+    db.undo("ann")
+    assert not db.label(label_id).deleted and not db.label(sibling.id).deleted

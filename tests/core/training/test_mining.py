@@ -655,7 +655,12 @@ def test_labels_with_the_models_boxes_can_teach_their_class_alone(frames, monkey
             assert all(t.all() for t in targets.values())
         else:
             assert 0 < has_target[objects].sum() < objects.sum()
-            assert all((t == ~f.label_model_box_mask).all() for t, f in zip(targets.values(), marked))
+            classes_all = np.concatenate([f.label_class_ids for f in marked])
+            unmarked_all = np.concatenate([~f.label_model_box_mask for f in marked])
+            boxed = np.unique(classes_all[unmarked_all])
+            for f in marked:  # the marked boxes are no targets, but for a class with no other box
+                expected = ~f.label_model_box_mask | ~np.isin(f.label_class_ids, boxed)
+                np.testing.assert_array_equal(targets[f.frame_index], expected)
             # The prior's sizes are those of the unmarked boxes where a class has some.
             boxes = np.concatenate([f.label_boxes[~f.label_model_box_mask] for f in marked])
             classes = np.concatenate([f.label_class_ids[~f.label_model_box_mask] for f in marked])
@@ -663,6 +668,17 @@ def test_labels_with_the_models_boxes_can_teach_their_class_alone(frames, monkey
                 assert mining.BoxSizePrior.from_boxes(
                     boxes[classes == c], classes[classes == c], len(head.class_names)
                 ).sizes[c] == pytest.approx(seen["prior"].sizes[c], nan_ok=True)
+
+
+def test_a_class_whose_every_box_is_the_models_learns_from_them(frames):
+    from factorydet_core.training.mining import box_targets
+
+    all_marked = [
+        f.with_labels(f.label_boxes, f.label_class_ids, model_box_mask=np.ones(len(f.label_boxes), bool))
+        for f in frames
+    ]
+    assert all(t.all() for t in box_targets(all_marked, model_box_targets=False).values())
+    assert all(t.all() for t in box_targets(all_marked, model_box_targets=True).values())
 
 
 def test_the_box_targets_are_every_label_or_those_that_are_not_the_models(frames):
