@@ -319,12 +319,11 @@ class BoxQuality:
             num_classes: C.
             excluded: per frame index, point sets (group ids) to leave out (real objects whose
                 segment is wrong, from a review).
-            box_targets: per frame index, (L,) which of its labels' boxes IoUs are learnt
-                against (``None``, or a frame left out: all). A set whose best overlapping label
-                is not one is left out, and an object set's options are not measured against one:
-                that box is the model's own, and an IoU against it would teach the regressor to
-                agree with the model. (A background set's options are measured against every
-                label: they are to fit nothing.)
+            box_targets: per frame index, (L,) which of its labels' boxes are box targets
+                (``None``, or a frame left out: all). A set whose best overlapping label is not
+                one is left out: that box is the model's own, and IoUs against it would teach the
+                regressor to agree with the model. (A kept set's options are still measured
+                against every label of its class, as ``bench hitl`` measured it.)
         """
         rng = np.random.default_rng(self.seed)
         rows, targets = [], []
@@ -358,7 +357,7 @@ class BoxQuality:
                 # neighbour's box in a stack of crates is no worse than the first one's); a
                 # background set's, when they fit anything.
                 same_class = frame.label_class_ids == class_id
-                reference = frame.label_boxes[same_class & learn] if overlapping else frame.label_boxes
+                reference = frame.label_boxes[same_class] if overlapping else frame.label_boxes
                 rows.append(features)
                 targets.append(box_iou_3d(options, reference).max(axis=1))
         if not rows:
