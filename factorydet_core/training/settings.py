@@ -135,11 +135,11 @@ class LoopSettings:
     """Learn boxes from every label (True), or let a label whose box is the model's own teach its
     class alone (False): a reviewer's Object verdict keeps the mined box, and a confirmed pre-label
     the detection's (``store.MODEL_BOX_ORIGINS``; a box a person moved is theirs). Such a box fits
-    its object only as well as the model did, and learnt from, it teaches the boxes to agree with
+    its object only as well as the model did, and learning from it teaches the boxes to agree with
     the model; so the box head's box and IoU losses, the box quality regressor and the size prior
     leave it out (unless its class has no other box: ``mining.box_targets``), while its point sets
-    still count as the object's. On held-out factories at 50% unannotated the reviewer's detector gained F by it, seed
-    by seed (``bench hitl``, docs/labelling.md)."""
+    still count as the object's. On held-out factories at 50% unannotated the reviewer's detector
+    gained F by it, seed by seed (``bench hitl``, docs/labelling.md)."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
