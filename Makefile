@@ -366,12 +366,13 @@ bench: $(STAMP) corpus corpus50
 	  --readme docs/labelling.md --readme-block hitl-50-e20-world-vs-drift-six
 	# The reviewer at 50% with its Object verdicts' labels (the mined boxes) teaching their class alone
 	# (the default since; the lines above keep --model-box-targets, as they ran; blind and full, which
-	# have no verdicts, read back), seeds 0-5; then against the reviewer above, seed by seed.
+	# have no verdicts, read back), 50 and 200 places a round, seeds 0-5; then against the reviewer
+	# above, seed by seed.
 	test -f docs/bench/hitl-50-e20-class-alone-six.json || cp docs/bench/hitl-50-e20-world-six.json docs/bench/hitl-50-e20-class-alone-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants reviewed_200,full \
+	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full \
 	  --out docs/bench/hitl-50-e20-class-alone-six.json \
 	  --readme docs/labelling.md --readme-block hitl-50-e20-class-alone-six --resume --resume-other-library
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-class-alone-six.json docs/bench/hitl-50-e20-world-six.json \
