@@ -363,12 +363,12 @@ def _head_training_set(
     frame_owners: dict[int, np.ndarray],
     background: dict[int, set[int]],
     excluded: dict[int, set[int]],
-    targets_of: dict[int, np.ndarray] | None = None,
+    targets_of: dict[int, np.ndarray],
 ) -> tuple[HeadSamples, np.ndarray]:
     """The box head's samples (every labelled point set of every frame, sets in ``excluded`` left
     out) and (M,) which of them are hard negatives (the sets in ``background``). A set whose label
-    is not a box target (``targets_of``, per frame index (R,), from ``box_targets``; ``None``: all
-    are) gets a NaN target: it teaches its class alone."""
+    is not a box target (``targets_of``, per frame index (R,), from ``box_targets``) gets a NaN
+    target: it teaches its class alone."""
     parts, hard = [], []
     for frame in frames:
         labels = frame_labels[frame.frame_index].copy()
@@ -376,9 +376,8 @@ def _head_training_set(
         labels[sorted(excluded.get(frame.frame_index, ()))] = -1
         keep = np.flatnonzero(labels >= 0)
         targets = np.full((frame.groups.num_groups, 7), np.nan)
-        learn = np.ones(len(frame.label_boxes), bool) if targets_of is None else targets_of[frame.frame_index]
         owned = np.flatnonzero(owners >= 0)
-        owned = owned[learn[owners[owned]]]
+        owned = owned[targets_of[frame.frame_index][owners[owned]]]
         targets[owned] = frame.label_boxes[owners[owned]]
         groups = frame.groups
         parts.append(
