@@ -186,7 +186,9 @@ def hitl_settings(args: argparse.Namespace) -> LoopSettings:
             "method": args.method,
             "class_weight": args.class_weight,
             "round_epochs": args.round_epochs,
+            "hold_confident": args.hold_confident,
             "hold_places": args.hold_places,
+            "pseudo_label_confident": args.pseudo_label_confident,
             "recalibrate_background": args.recalibrate_background,
             "recalibrate_by_class": args.recalibrate_by_class,
             "queue_order": args.queue_order,
@@ -1699,7 +1701,7 @@ def build_parser(
         fields=(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
             "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
-            "recalibrate_background", "recalibrate_by_class",
+            "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
         ),
     )  # fmt: skip
     p.add_argument(

@@ -35,7 +35,12 @@ from factorydet_core.types import (
     InputError,
 )
 
-BLIND_SAFE_SETTINGS: tuple[str, ...] = ("hold_places", "recalibrate_background", "recalibrate_by_class")
+BLIND_SAFE_SETTINGS: tuple[str, ...] = (
+    "hold_places",
+    "recalibrate_background",
+    "recalibrate_by_class",
+    "pseudo_label_confident",
+)
 """``LoopSettings`` fields that shape the runs of the detectors that hold (``holds``: ``blind_safe``
 and ``reviewed_safe_K``) alone, with their hold score: the other detectors run without them, so
 their run plans leave them out (``_run_plan``)."""
@@ -778,6 +783,7 @@ def _seed_settings(settings: LoopSettings, variant: str, seed: int, hold: float 
         hold_places=settings.hold_places and holds(variant),
         recalibrate_background=settings.recalibrate_background if holds(variant) else None,
         recalibrate_by_class=settings.recalibrate_by_class and holds(variant),
+        pseudo_label_confident=settings.pseudo_label_confident if holds(variant) else None,
         review_extra=settings.review_extra if variant.startswith("reviewed_") else 0,
     )
 

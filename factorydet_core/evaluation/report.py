@@ -726,9 +726,24 @@ def _holding_text(result: dict) -> str:
     """What the holding detectors of ``bench hitl`` (``blind_safe``, ``reviewed_safe_K``) do with
     their confident mined negatives, as the rest of a sentence."""
     settings = result["settings"]
+    pseudo = settings.get("pseudo_label_confident")
     return (
-        f"holds the negatives scoring {result['hold_confident']:g} or more out of the background"
-        " (neither object nor background) until reviewed"
+        (
+            f"takes the negatives scoring {pseudo:g} or more, off every label, for labels of their"
+            " predicted class until reviewed (pseudo-labels, teaching their class"
+            + ("" if settings.get("model_box_targets") else " alone")
+            + "), "
+            if pseudo is not None
+            else ""
+        )
+        + (
+            f"holds the negatives scoring {result['hold_confident']:g} or more"
+            if pseudo is None
+            else f"holds the negatives scoring {result['hold_confident']:g} or more and below {pseudo:g}"
+            if pseudo > result["hold_confident"]
+            else f"holds those on a label that score {result['hold_confident']:g} or more"
+        )
+        + " out of the background (neither object nor background) until reviewed"
         + (
             ", and every point set on their boxes (their places) with them"
             if settings.get("hold_places")

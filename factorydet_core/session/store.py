@@ -2750,24 +2750,69 @@ class SessionDB:
         with self._read() as db:
             return [_row("mined_negatives", r) for r in db.execute(query + " ORDER BY id", values)]
 
-    def held_places(self, at_least_score: float, max_label_iou: float = HIDE_LABELLED_IOU) -> dict:
+    def held_places(
+        self,
+        at_least_score: float,
+        max_label_iou: float = HIDE_LABELLED_IOU,
+        below_score: float | None = None,
+    ) -> dict:
         """Boxes of the mined negatives held until reviewed (``LoopSettings.hold_places``), by
-        frame: those the model scored at least ``at_least_score`` when it mined them, with no
-        verdict other than skip, and off every current label (box IoU below ``max_label_iou``:
-        a held box on a labelled object is a part or a loose box of it, a negative like any other).
+        frame: those the model scored at least ``at_least_score`` (and below ``below_score``,
+        where the pseudo-labels start: ``pseudo_labels``) when it mined them, with no verdict
+        other than skip, and off every current label (box IoU below ``max_label_iou``: a held
+        box on a labelled object is a part or a loose box of it, a negative like any other).
 
         Returns:
             Frame index -> (K, 7) boxes; frames without any are left out.
         """
         import numpy as np
 
-        items = self._mined_rows("box", at_least_score=at_least_score, undecided_only=True)
-        overlaps = self.label_overlap(items)
         out: dict[int, list] = {}
-        for item, overlap in zip(items, overlaps):
-            if not on_labelled_object(overlap, max_label_iou):
-                out.setdefault(item["frame_index"], []).append(item["box"])
+        for item in self._mined_off_labels("box", at_least_score, max_label_iou, below_score):
+            out.setdefault(item["frame_index"], []).append(item["box"])
         return {frame: np.asarray(boxes, np.float64).reshape(-1, 7) for frame, boxes in out.items()}
+
+    def pseudo_labels(self, at_least_score: float, max_label_iou: float = HIDE_LABELLED_IOU) -> dict:
+        """The mined negatives that teach their predicted class until reviewed
+        (``LoopSettings.pseudo_label_confident``), by frame: those the model scored at least
+        ``at_least_score`` when it mined them, with no verdict other than skip, and off every
+        current label (box IoU below ``max_label_iou``, as ``held_places``).
+
+        Returns:
+            Frame index -> ``(patch_sets, boxes, class_ids)``: K point sets (each a tuple of patch
+            ids), (K, 7) boxes and (K,) predicted class ids; frames without any are left out.
+        """
+        import numpy as np
+
+        items = self._mined_off_labels("box, patch_set, predicted_class", at_least_score, max_label_iou)
+        names = list(self.class_names)
+        out: dict[int, list[dict]] = {}
+        for item in items:
+            if item["predicted_class"] in names:  # (a class the session no longer has teaches nothing)
+                out.setdefault(item["frame_index"], []).append(item)
+        return {
+            frame: (
+                [tuple(item["patch_set"]) for item in rows],
+                np.asarray([item["box"] for item in rows], np.float64).reshape(-1, 7),
+                np.asarray([names.index(item["predicted_class"]) for item in rows], np.int64),
+            )
+            for frame, rows in out.items()
+        }
+
+    def _mined_off_labels(
+        self,
+        columns: str,
+        at_least_score: float,
+        max_label_iou: float,
+        below_score: float | None = None,
+    ) -> list[dict]:
+        """The undecided mined negatives scored at least ``at_least_score`` (and below
+        ``below_score``) whose box is off every current label (``on_labelled_object``)."""
+        items = self._mined_rows(columns, below_score, at_least_score, undecided_only=True)
+        overlaps = self.label_overlap(items)
+        return [
+            item for item, overlap in zip(items, overlaps) if not on_labelled_object(overlap, max_label_iou)
+        ]
 
     def reviewed_patch_sets(self) -> dict[str, dict[int, list[tuple[int, ...]]]]:
         """Point sets of every reviewed negative by verdict and frame: what the next training run

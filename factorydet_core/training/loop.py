@@ -227,6 +227,18 @@ def _merge(*maps: dict[int, list]) -> dict[int, list]:
     return out
 
 
+def _without(sets_by_frame: dict[int, list], removed: dict[int, list]) -> dict[int, list]:
+    """``sets_by_frame`` (frame index -> point sets, each a sequence of patch ids) less the sets
+    of ``removed``."""
+    out: dict[int, list] = {}
+    for index, sets in sets_by_frame.items():
+        gone = {tuple(s) for s in removed.get(index, ())}
+        kept = [s for s in sets if tuple(s) not in gone]
+        if kept:
+            out[index] = kept
+    return out
+
+
 def train_session(
     db: SessionDB,
     frames: Sequence[FrameProposals],
@@ -284,8 +296,20 @@ def train_session(
         if hold is not None:  # held negatives nobody has decided on: neither background nor mined
             excluded = _merge(excluded, db.mined_patch_sets(at_least_score=hold, undecided_only=True))
             if settings.hold_places:
-                held = db.held_places(hold)
+                held = db.held_places(hold, below_score=settings.pseudo_label_confident)
                 labelled = [frame.with_ignored(held.get(frame.frame_index)) for frame in labelled]
+        if settings.pseudo_label_confident is not None:
+            # Confident negatives nobody has decided on teach their predicted class: labels, so
+            # neither background nor left out.
+            pseudo = db.pseudo_labels(settings.pseudo_label_confident)
+            background = _without(background, {i: sets for i, (sets, _, _) in pseudo.items()})
+            excluded = _without(excluded, {i: sets for i, (sets, _, _) in pseudo.items()})
+            labelled = [
+                frame.with_pseudo_labels(*pseudo[frame.frame_index][1:], pseudo[frame.frame_index][0])
+                if frame.frame_index in pseudo
+                else frame
+                for frame in labelled
+            ]
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
         keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None
@@ -320,6 +344,7 @@ def train_session(
         mine_after_last=True,
         hold_score=settings.hold_confident,
         hold_places=settings.hold_places,
+        pseudo_label_score=settings.pseudo_label_confident,
         should_stop=should_stop,
         round_epochs=settings.round_epochs,
         queue_order=settings.queue_order,

@@ -82,6 +82,11 @@ class FrameProposals:
     """(R,) which label boxes are the model's own, as a person accepted them (a reviewer's Object
     verdict on a mined box, a pre-label confirmed unmoved: ``store.MODEL_BOX_ORIGINS``); ``None``:
     none. With ``train_with_mining(model_box_targets=False)`` they teach their class alone."""
+    label_own_sets: tuple[tuple[int, ...], ...] | None = None
+    """(R,) for each label, the patch set (patch ids) of the point set it was made from, which is
+    its object whatever share of the set's points its box holds, or ``()`` for none; ``None``:
+    none. A pseudo-label's (``with_pseudo_labels``): the model boxed that set, and its box need
+    not hold the whole set."""
 
     def with_labels(
         self,
@@ -117,6 +122,7 @@ class FrameProposals:
             annotation_instance_ids=self.annotation_instance_ids[keep],
             ignore_boxes=np.asarray([] if ignore_boxes is None else ignore_boxes, np.float64).reshape(-1, 7),
             label_model_box_mask=_model_box_mask(model_box_mask, len(np.asarray(boxes).reshape(-1, 7))),
+            label_own_sets=None,
         )
 
     def with_ignored(self, boxes: np.ndarray | None) -> FrameProposals:
@@ -126,6 +132,48 @@ class FrameProposals:
             return self
         boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
         return dataclasses.replace(self, ignore_boxes=np.concatenate([self.ignore_boxes, boxes]))
+
+    def with_pseudo_labels(
+        self,
+        boxes: np.ndarray | None,
+        class_ids: np.ndarray | None,
+        patch_sets: Sequence[Sequence[int]] | None = None,
+    ) -> FrameProposals:
+        """The same proposals with ``boxes`` (K, 7) of ``class_ids`` (K,) added as labels whose
+        box is the model's own (``label_model_box_mask``): confident mined negatives that teach
+        their predicted class until a person reviews them (``LoopSettings.pseudo_label_confident``).
+        ``patch_sets``: the K mined point sets' patch ids, each its label's object whatever share
+        of it the box holds (``label_own_sets``). ``None`` or no boxes: this frame as it is."""
+        if boxes is None or not len(boxes):
+            return self
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+        class_ids = np.asarray(class_ids, np.int64).reshape(-1)
+        sets = [()] * len(boxes) if patch_sets is None else [tuple(int(p) for p in s) for s in patch_sets]
+        if len(class_ids) != len(boxes) or len(sets) != len(boxes):
+            raise InputError(
+                f"with_pseudo_labels: {len(boxes)} boxes, {len(class_ids)} classes and {len(sets)} point sets"
+            )
+        mask = self.label_model_box_mask
+        mask = np.zeros(len(self.label_boxes), bool) if mask is None else mask
+        own = self.label_own_sets if self.label_own_sets is not None else ((),) * len(self.label_boxes)
+        return dataclasses.replace(
+            self,
+            label_boxes=np.concatenate([self.label_boxes.reshape(-1, 7), boxes]),
+            label_class_ids=np.concatenate([np.asarray(self.label_class_ids, np.int64), class_ids]),
+            label_model_box_mask=np.concatenate([mask, np.ones(len(boxes), bool)]),
+            label_own_sets=(*own, *sets),
+        )
+
+    def own_set_labels(self) -> list[tuple[int, int]]:
+        """``(point set, label)`` index pairs of the labels made from a point set
+        (``label_own_sets``); sets this front half does not have are dropped."""
+        if self.label_own_sets is None:
+            return []
+        pairs = []
+        for label, patch_set in enumerate(self.label_own_sets):
+            if patch_set:
+                pairs.extend((int(g), label) for g in self.point_set_ids([patch_set]))
+        return pairs
 
     def ignored_point_sets(self) -> np.ndarray:
         """Indices of the point sets on an ignored place: half or more of the set's sampled points
@@ -354,7 +402,12 @@ def head_labels(frame: FrameProposals, background_id: int) -> tuple[np.ndarray, 
     (``box_head.label_point_sets``): ``(labels, owners)``, -1 for sets left out of training."""
     if frame.groups.points is None:
         raise InputError("the box head needs each point set's points: collect the proposals again")
-    return label_point_sets(frame.groups.points, frame.label_boxes, frame.label_class_ids, background_id)
+    labels, owners = label_point_sets(
+        frame.groups.points, frame.label_boxes, frame.label_class_ids, background_id
+    )
+    for group, label in frame.own_set_labels():  # the set a pseudo-label was made from is its object
+        labels[group], owners[group] = frame.label_class_ids[label], label
+    return labels, owners
 
 
 def _head_training_set(
@@ -478,6 +531,7 @@ def train_with_mining(
     mine_after_last: bool = False,
     hold_score: float | None = None,
     hold_places: bool = False,
+    pseudo_label_score: float | None = None,
     should_stop: Callable[[], bool] | None = None,
     box_quality: BoxQuality | None = None,
     reuse_box_quality: BoxQuality | None = None,
@@ -553,6 +607,12 @@ def train_with_mining(
             ``HIDE_LABELLED_IOU``) joins its frame's ``ignore_boxes`` for the rounds after it, so
             every point set on it is neither background nor mined, and detections on it count
             neither way when thresholds are tuned (``LoopSettings.hold_places``).
+        pseudo_label_score: mined negatives scoring at least this, off every label (box IoU below
+            ``HIDE_LABELLED_IOU``), become labels of their predicted class whose box is the
+            model's own (``FrameProposals.with_pseudo_labels``) for the rounds after, instead of
+            background or held: self-training on the model's likeliest unlabelled objects
+            (``LoopSettings.pseudo_label_confident``; ``None``: none). Without
+            ``model_box_targets`` they teach their class alone.
         should_stop: asked between batches and frames; True raises ``types.Cancelled``.
         box_quality: an unfitted ``BoxQuality``, fitted once on the frames' labels (it does not
             depend on the classifier) and shared by every round's model, so that mining sees the
@@ -604,6 +664,8 @@ def train_with_mining(
         raise InputError(f"round_epochs must be an integer >= 0, got {round_epochs!r}")
     if hold_score is not None and not 0.0 < hold_score <= 1.0:
         raise InputError(f"hold_score must lie in (0, 1] or be None, got {hold_score}")
+    if pseudo_label_score is not None and not 0.0 < pseudo_label_score <= 1.0:
+        raise InputError(f"pseudo_label_score must lie in (0, 1] or be None, got {pseudo_label_score}")
     if init_model is not None and not round_epochs:
         raise InputError("init_model is trained on for round_epochs epochs: set round_epochs > 0")
     background_id = classifier.background_id
@@ -617,14 +679,9 @@ def train_with_mining(
     # The head's sets are labelled by their points, not by their boxes, and it needs no overlaps.
     frame_labels, frame_best_iou, frame_owners = {}, {}, {}
     for frame in frames:
-        if is_head:
-            frame_labels[frame.frame_index], frame_owners[frame.frame_index] = head_labels(
-                frame, background_id
-            )
-        else:
-            frame_labels[frame.frame_index], frame_best_iou[frame.frame_index] = _labels_and_best_iou(
-                frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
-            )
+        _set_frame_labels(
+            frame, background_id, positive_iou, is_head, frame_labels, frame_owners, frame_best_iou
+        )
     by_index = {f.frame_index: f for f in frames}
     excluded = {
         index: set(by_index[index].point_set_ids(sets).tolist())
@@ -819,9 +876,20 @@ def train_with_mining(
             record["queued"] = [mined[k] for k in extra] if last_mining else []
             record["num_false_positives"] = len(mined)
             record["num_held"] = 0
+            record["num_pseudo_labelled"] = 0
             held_boxes: dict[int, list] = {}
+            pseudo: dict[int, list[dict]] = {}
             for m in record["mined"]:
-                if hold_score is not None and m["score"] >= hold_score:
+                if (
+                    pseudo_label_score is not None
+                    and m["score"] >= pseudo_label_score
+                    and m["best_annotated_iou"] < HIDE_LABELLED_IOU
+                ):
+                    # Very confident and off every label: most likely a real object nobody
+                    # labelled. It teaches its predicted class until a person decides.
+                    pseudo.setdefault(m["frame_index"], []).append(m)
+                    record["num_pseudo_labelled"] += 1
+                elif hold_score is not None and m["score"] >= hold_score:
                     # Confident: perhaps a real object nobody labelled. Neither background nor
                     # mined again until a person decides (it stays in the review queue).
                     excluded.setdefault(m["frame_index"], set()).add(m["group"])
@@ -830,6 +898,28 @@ def train_with_mining(
                         held_boxes.setdefault(m["frame_index"], []).append(m["box"])
                 else:
                     background.setdefault(m["frame_index"], set()).add(m["group"])
+            if pseudo:
+                frames = [
+                    _with_pseudo(frame, pseudo.get(frame.frame_index), fitted.class_names) for frame in frames
+                ]
+                for frame in frames:
+                    if frame.frame_index in pseudo:
+                        _set_frame_labels(
+                            frame,
+                            background_id,
+                            positive_iou,
+                            is_head,
+                            frame_labels,
+                            frame_owners,
+                            frame_best_iou,
+                        )
+                        # A set inside a pseudo-label is its object now, not background.
+                        labels_of = frame_labels[frame.frame_index]
+                        if frame.frame_index in background:
+                            background[frame.frame_index] = {
+                                g for g in background[frame.frame_index] if labels_of[g] == background_id
+                            }
+                targets_of = box_targets(frames, model_box_targets)
             if held_boxes:
                 frames = [frame.with_ignored(held_boxes.get(frame.frame_index)) for frame in frames]
                 for frame in frames:
@@ -841,6 +931,47 @@ def train_with_mining(
         if progress is not None:
             progress("round", round_index + 1, rounds + 1)
     return TrainingRun(models[-1], records, models, [f.frame_index for f in frames])
+
+
+def _set_frame_labels(
+    frame: FrameProposals,
+    background_id: int,
+    positive_iou: float,
+    is_head: bool,
+    frame_labels: dict[int, np.ndarray],
+    frame_owners: dict[int, np.ndarray],
+    frame_best_iou: dict[int, np.ndarray],
+) -> None:
+    """Each point set's label from the frame's labels, into ``frame_labels`` by frame index: the
+    box head's by where the points lie (``head_labels``), with each set's owning label into
+    ``frame_owners``; the paper classifier's by box overlap (``_labels_and_best_iou``), with each
+    set's best overlap into ``frame_best_iou``."""
+    index = frame.frame_index
+    if is_head:
+        frame_labels[index], frame_owners[index] = head_labels(frame, background_id)
+    else:
+        labels, best_iou = _labels_and_best_iou(
+            frame, frame.label_boxes, frame.label_class_ids, background_id, positive_iou
+        )
+        for group, label in frame.own_set_labels():  # (the set a pseudo-label was made from is its object)
+            labels[group] = frame.label_class_ids[label]
+            best_iou[group] = 1.0
+        frame_labels[index], frame_best_iou[index] = labels, best_iou
+
+
+def _with_pseudo(
+    frame: FrameProposals, mined: list[dict] | None, class_names: Sequence[str]
+) -> FrameProposals:
+    """``frame`` with the mined negatives ``mined`` (``train_with_mining``'s records) as pseudo-labels
+    of their predicted classes (``FrameProposals.with_pseudo_labels``)."""
+    if not mined:
+        return frame
+    names = list(class_names)
+    return frame.with_pseudo_labels(
+        np.asarray([m["box"] for m in mined], np.float64),
+        np.asarray([names.index(m["predicted_class"]) for m in mined]),
+        [m["patch_set"] for m in mined],
+    )
 
 
 def _exclude_ignored(

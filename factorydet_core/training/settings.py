@@ -75,6 +75,15 @@ class LoopSettings:
     background too, as a pre-label's place is (``FrameProposals.ignored_point_sets``). An
     unlabelled object has many candidate sets (merge levels, fragments); holding the mined one
     alone leaves the others in the background the box head samples every epoch."""
+    pseudo_label_confident: float | None = None
+    """Mined negatives scoring at least this, off every label, teach their predicted class until
+    someone reviews them, as labels whose box is the model's own (self-training; without
+    ``model_box_targets`` they teach their class alone). A blind run's false positives scoring
+    0.6 or more were nearly all real objects of the predicted class (at 50% unannotated,
+    docs/labelling.md): holding them leaves those objects out, a pseudo-label teaches them.
+    They stay in the review queue, and a verdict replaces the pseudo-label. Checked before
+    ``hold_confident``: set above it, the negatives between the two are held. ``None``: none
+    (the paper)."""
     recalibrate_background: float | None = None
     """Background recalibration (the learned box head's methods): in a fit that goes on from a
     model (mining rounds, next rounds), a background set drawn at random (not a mined or reviewed
@@ -330,6 +339,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("hold_places", "Hold their places", "with held negatives (hold confident above 0; hitl: "
             "blind_safe's and reviewed_safe_K's), every point set on a held box off the labels is left "
             "out of the background too, not only the mined set", bool),
+    Control("pseudo_label_confident", "Pseudo-label confident negatives", "mined negatives scoring at least "
+            "this, off every label, teach their predicted class until reviewed, as labels with the model's "
+            "box (0: off; hitl: blind_safe's and reviewed_safe_K's)", float, 0.0, 1.0, 0.05, none_as=0),
     Control("recalibrate_background", "Recalibrate background", "(box head) drawn background sets the "
             "network gives this object probability or more are left out of the loss, as likely unlabelled "
             "objects (0: off; hitl: blind_safe's and reviewed_safe_K's)", float, 0.0, 1.0, 0.05,

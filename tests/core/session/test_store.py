@@ -940,6 +940,33 @@ def test_held_places_are_the_undecided_confident_boxes_off_the_labels(db, tiny_m
     assert 1 not in db.held_places(0.5)
 
 
+def test_pseudo_labels_are_the_undecided_confident_negatives_off_the_labels(db, tiny_model_path):
+    label = db.labels(0)[0]
+    on_label = list(label.box)
+    on_label[3] *= 1.2  # a loose box of a labelled object
+    off = [[40.0 + 2.0 * g, 40.0, 0.5, 1.0, 1.0, 1.0, 0.0] for g in range(3)]
+    items = [
+        mined_item(0, 0, off[0], 0.9, predicted_class="cone"),
+        mined_item(0, 1, off[1], 0.7, predicted_class="barrel"),
+        mined_item(0, 2, off[2], 0.5),  # below the pseudo-label score: held, when holding
+        mined_item(0, 3, on_label, 0.95),
+        mined_item(1, 4, off[0], 0.8, predicted_class="no such class"),
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
+    pseudo = db.pseudo_labels(0.6)
+    assert set(pseudo) == {0}  # frame 1's class is not the session's: it teaches nothing
+    sets, boxes, class_ids = pseudo[0]
+    assert sets == [(0,), (1,)]
+    np.testing.assert_allclose(boxes, [off[0], off[1]])
+    assert [db.class_names[c] for c in class_ids] == ["cone", "barrel"]
+    # The held places below the pseudo-labels: those between the two scores.
+    np.testing.assert_allclose(db.held_places(0.4, below_score=0.6)[0], [off[2]])
+    ids = {q["score"]: q["id"] for q in db.review_queue()}
+    db.review([ids[0.9]], "background", "ann")  # a verdict replaces the pseudo-label
+    db.review([ids[0.7]], "skip", "ann")  # a skip decides nothing
+    assert db.pseudo_labels(0.6)[0][0] == [(1,)]
+
+
 def test_a_runs_hold_score_is_read_from_its_settings(db, tiny_model_path):
     first = db.save_training_run(
         queue_run(tiny_model_path, [[]]), "small", {"settings": {"hold_confident": 0.35}}

@@ -428,6 +428,55 @@ def test_held_negatives_hold_their_places_when_asked(dataset, frames, tiny_model
         assert len(seen["frames"][1].ignore_boxes) == 0  # nothing held in frame 1
 
 
+def test_confident_negatives_teach_their_class_in_a_next_round_when_asked(
+    dataset, frames, tiny_model_path, tmp_path, monkeypatch
+):
+    """``pseudo_label_confident``: a next round's frames carry the undecided mined negatives
+    scoring that much, off the labels, as labels of their predicted class with the model's box,
+    neither background nor left out; those below it are held (or background) as before."""
+    db = SessionDB(open_session("pseudo", tmp_path), dataset)
+    frame = frames[0]
+    labels = db.frame_boxes(0)[0]
+    off = np.flatnonzero(box_iou_3d(frame.proposal_boxes, labels).max(axis=1) == 0.0)
+    sure, unsure = int(off[0]), int(off[-1])
+    items = [
+        mined_item(0, int(frame.groups.group_ids[k]), frame.proposal_boxes[k], score, predicted_class="cone")
+        for k, score in ((sure, 0.9), (unsure, 0.5))
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
+    seen = {}
+
+    class CapturedError(Exception):
+        pass
+
+    def capture(frames, *args, **kwargs):
+        seen.update(frames=frames, **kwargs)
+        raise CapturedError
+
+    monkeypatch.setattr("factorydet_core.training.loop.train_with_mining", capture)
+    for pseudo in (None, 0.6):
+        settings = LoopSettings(
+            **{**SETTINGS.__dict__, "hold_confident": 0.4, "pseudo_label_confident": pseudo}
+        )
+        with pytest.raises(CapturedError):
+            train_session(db, frames, settings, mode="next", data_ref="small")
+        trained = seen["frames"][0]
+        excluded = set(seen["excluded_sets"].get(0, []))
+        background = set(seen["background_sets"].get(0, []))
+        assert seen["pseudo_label_score"] == pseudo
+        assert (items[1]["group"],) in excluded  # held either way
+        if pseudo is None:
+            assert len(trained.label_boxes) == len(labels) and (items[0]["group"],) in excluded
+        else:
+            assert len(trained.label_boxes) == len(labels) + 1
+            np.testing.assert_allclose(trained.label_boxes[-1], items[0]["box"])
+            assert db.class_names[int(trained.label_class_ids[-1])] == "cone"
+            assert trained.label_model_box_mask.tolist() == [False] * len(labels) + [True]
+            assert trained.label_own_sets[-1] == tuple(items[0]["patch_set"])  # its set is the object
+            assert (items[0]["group"],) not in excluded | background
+        assert len(seen["frames"][1].label_boxes) == len(db.frame_boxes(1)[0])
+
+
 def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refit_it(db, frames, monkeypatch):
     import dataclasses
     import types

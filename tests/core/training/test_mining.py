@@ -616,6 +616,46 @@ def test_review_extra_queues_the_false_positives_after_the_cut_for_review_alone(
             first_round(review_extra=bad)
 
 
+def test_confident_negatives_off_the_labels_become_pseudo_labels_of_their_class(frames):
+    """``pseudo_label_score``: a mined negative scoring that much, off every label, is a label of
+    its predicted class (with the model's box) in the rounds after: an object, not background,
+    and never mined again; the rest go on as before."""
+    from factorydet_core.detection.box_head import BoxHead
+    from factorydet_core.session.store import HIDE_LABELLED_IOU
+
+    head = BoxHead(channels=(16, 32), hidden=32, epochs=2, batch_size=64, num_threads=1)
+    probe = train_with_mining(
+        frames, head, rounds=0, negatives_per_round=30, score_threshold=0.05, mine_after_last=True
+    )
+    scores = [m["score"] for m in probe.rounds[0]["mined"] if m["best_annotated_iou"] < HIDE_LABELLED_IOU]
+    pseudo = float(np.median(scores))
+    run = train_with_mining(
+        frames, head, rounds=1, negatives_per_round=30, score_threshold=0.05, pseudo_label_score=pseudo
+    )
+    first, second = run.rounds
+    chosen = [
+        m for m in first["mined"] if m["score"] >= pseudo and m["best_annotated_iou"] < HIDE_LABELLED_IOU
+    ]
+    assert first["num_pseudo_labelled"] == len(chosen) > 0
+    assert second["num_positives"] > first["num_positives"]
+    assert second["num_background"] < first["num_background"] + len(first["mined"]) - len(chosen) + 1
+    names = list(head.class_names)
+    by_index = {f.frame_index: f for f in frames}
+    for m in chosen:  # each is its predicted class's object in a frame that carries it
+        frame = by_index[m["frame_index"]].with_pseudo_labels(
+            np.array([m["box"]]), np.array([names.index(m["predicted_class"])]), [m["patch_set"]]
+        )
+        assert training.head_labels(frame, head.background_id)[0][m["group"]] == names.index(
+            m["predicted_class"]
+        )
+        assert frame.label_model_box_mask[-1] and not frame.label_model_box_mask[:-1].any()
+        assert frame.own_set_labels() == [(m["group"], len(frame.label_boxes) - 1)]
+    later = {(m["frame_index"], m["group"]) for m in second["mined"]}
+    assert not later & {(m["frame_index"], m["group"]) for m in chosen}
+    with pytest.raises(InputError, match="pseudo_label_score"):
+        train_with_mining(frames, head, rounds=0, pseudo_label_score=1.5)
+
+
 def test_labels_with_the_models_boxes_can_teach_their_class_alone(frames, monkeypatch):
     """With ``model_box_targets`` off, a label marked as the model's box keeps its point sets as
     the object's, but gives the head no target box, the regressor no rows and the size prior no
