@@ -233,6 +233,25 @@ def unannotated_coverage_by_class(
     return {name: (covered, total) for name, (covered, total) in counts.items()}
 
 
+PSEUDO_LABEL_KINDS: tuple[str, ...] = ("object", "loose_box", "other_class", "skip", "background")
+"""How the truth judges a pseudo-label (``pseudo_label_truth``): an object of the predicted class
+at the positive IoU; that class's object under a looser box; another class's object; an object
+too sparse for the annotation policy; no object."""
+
+
+def pseudo_label_truth(db: SessionDB, dataset: Dataset, at_least_score: float) -> dict[str, int]:
+    """The session's pseudo-labels (``SessionDB.pseudo_labels``) as the simulator's truth judges
+    them (``truth_verdict``): how many of each ``PSEUDO_LABEL_KINDS``."""
+    counts = dict.fromkeys(PSEUDO_LABEL_KINDS, 0)
+    for index, (_, boxes, class_ids) in db.pseudo_labels(at_least_score).items():
+        for box, class_id in zip(boxes, class_ids):
+            verdict, name, _ = truth_verdict(dataset, {"frame_index": index, "box": box.tolist()})
+            if verdict in ("object", "wrong_box") and name != db.class_names[int(class_id)]:
+                verdict = "other_class"
+            counts[{"wrong_box": "loose_box"}.get(verdict, verdict)] += 1
+    return counts
+
+
 def unannotated_coverage(
     db: SessionDB,
     dataset: Dataset,
@@ -911,6 +930,7 @@ def _hitl_variants(
                 )
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
             covered, unannotated = _coverage_totals(covered_by_class)
+            pseudo = seed_settings.pseudo_label_confident
             per_seed[name].append(
                 {
                     "seed": seed,
@@ -932,6 +952,8 @@ def _hitl_variants(
                     "unannotated_in_top_k": len(reached_top) if budget else None,
                     "reach_share_estimated": _mean_of([e for e, _ in reach_shares]),
                     "reach_share_true": _mean_of([t for _, t in reach_shares]),
+                    # The pseudo-labels the session ends with, as the truth judges them.
+                    "pseudo_labels": None if pseudo is None else pseudo_label_truth(db, dataset, pseudo),
                     "fit_seconds": round(fit_seconds, 1),
                     "library": library_version(),  # the code this run ran
                     # With held-out factories, the figures on the training factory's test frames.
@@ -1012,6 +1034,10 @@ def _hitl_variants(
             "reach_share_true": _mean_of([r["reach_share_true"] for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
+        if all(r.get("pseudo_labels") is not None for r in runs):
+            results[name]["pseudo_labels"] = {
+                kind: _mean_of([r["pseudo_labels"][kind] for r in runs]) for kind in PSEUDO_LABEL_KINDS
+            }
         if all("in_factory" in r for r in runs):
             results[name]["in_factory"] = {
                 **{key: _mean_of([r["in_factory"][key] for r in runs]) for key in ("f1", "map")},

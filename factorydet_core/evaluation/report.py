@@ -1040,7 +1040,42 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             _recovered_text(result, recovered),
             "",
             *([_map_recovered_text(result, map_differences), ""] if "full" in map_differences else []),
+            *_pseudo_label_text(variants, names),
             *class_coverage,
             *precision_recall,
         ]
     )
+
+
+def _pseudo_label_text(variants: dict, names: list[str]) -> list[str]:
+    """What the detectors that pseudo-label ended with, as the truth judges the labels
+    (``hitl.pseudo_label_truth``): a paragraph and a blank line, or nothing."""
+    parts = []
+    for name in names:
+        counts = variants[name].get("pseudo_labels")
+        if not counts:
+            continue
+        total = sum(counts.values())
+        if not total:
+            parts.append(f"`{name}` none")
+            continue
+        parts.append(
+            f"`{name}` {total:.1f}: "
+            + ", ".join(
+                f"{100 * counts[kind] / total:.0f}% {text}"
+                for kind, text in (
+                    ("object", "objects of the predicted class (IoU 0.6)"),
+                    ("loose_box", "that class's objects under a looser box"),
+                    ("other_class", "another class's objects"),
+                    ("skip", "objects too sparse for the annotation policy"),
+                    ("background", "no object"),
+                )
+            )
+        )
+    if not parts:
+        return []
+    return [
+        "Pseudo-labels the training sessions end with (means over the seeds), as the simulator's"
+        " truth judges them: " + "; ".join(parts) + ".",
+        "",
+    ]

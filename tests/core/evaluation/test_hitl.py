@@ -93,6 +93,18 @@ def test_each_detector_trains_with_what_its_run_plan_says_shapes_it():
     assert blind.seed == safe.seed == 3 and safe.hold_confident == 0.35
     assert (blind.hold_places, blind.recalibrate_background) == (False, None)
     assert (safe.hold_places, safe.recalibrate_background) == (True, 0.5)
+    # Pseudo-labels are the holding detectors' alone, and shape their runs alone.
+    pseudo = dataclasses.replace(settings, pseudo_label_confident=0.6)
+    assert _seed_settings(pseudo, "blind", 3, None).pseudo_label_confident is None
+    assert _seed_settings(pseudo, "reviewed_200", 3, None).pseudo_label_confident is None
+    assert _seed_settings(pseudo, "blind_safe", 3, 0.35).pseudo_label_confident == 0.6
+    plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [200], "review_by": "place",
+            "settings": dataclasses.asdict(settings)}  # fmt: skip
+    with_pseudo = {**plan, "settings": dataclasses.asdict(pseudo)}
+    for variant in ("blind", "full", "reviewed_200"):
+        assert _run_plan(plan, variant) == _run_plan(with_pseudo, variant)
+    for variant in ("blind_safe", "reviewed_safe_200"):
+        assert _run_plan(plan, variant) != _run_plan(with_pseudo, variant)
 
 
 def test_the_holding_detectors_are_asked_for_by_name_and_hold_at_the_plans_score():

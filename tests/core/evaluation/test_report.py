@@ -167,6 +167,25 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "| mAP minus blind's, per seed: mean [95% interval] | – | +0.010 [+0.010, +0.010] |" in text
     assert "In mAP, the gap between blind and full labels is +0.040 [+0.040, +0.040]" in text
     assert "recovered: blind_safe 25%." in text
+    assert "pseudo-label" not in text.lower()
+    # Pseudo-labels: what they do said, and how the truth judges those the sessions end with.
+    result["settings"]["pseudo_label_confident"] = 0.6
+    result["variants"]["blind_safe"]["pseudo_labels"] = {
+        "object": 6.0, "loose_box": 2.0, "other_class": 1.0, "skip": 0.0, "background": 1.0,
+    }  # fmt: skip
+    text = hitl_markdown(result, heading=False)
+    assert (
+        "blind mining that takes the negatives scoring 0.6 or more, off every label, for labels of their"
+        " predicted class until reviewed (pseudo-labels, teaching their class alone), holds the negatives"
+        " scoring 0.35 or more and below 0.6 out of the background" in text
+    )
+    assert (
+        "truth judges them: `blind_safe` 10.0: 60% objects of the predicted class (IoU 0.6), 20% that"
+        " class's objects under a looser box, 10% another class's objects, 0% objects too sparse for"
+        " the annotation policy, 10% no object." in text
+    )
+    result["hold_confident"] = 0.6
+    assert "holds those on a label that score 0.6 or more" in hitl_markdown(result, heading=False)
     # With a reviewed budget: its share and the queue filter are stated.
     result = _hitl_result(
         {"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.33, 0.34, 0.32], "full": [0.34, 0.35, 0.33]},
