@@ -743,7 +743,8 @@ def _run_plan(plan: dict, variant: str) -> dict:
     less the reviewer's settings for a detector nobody reviews, less the holding of confident
     negatives (``hold_confident``, ``hold_places``) and background recalibration for all but
     the detectors that hold and recalibrate (``holds``), less whether the model's boxes are
-    learnt from for a detector with no verdicts (none of its labels has one), and less the box
+    learnt from for a detector with no verdicts and no pseudo-labels (none of its labels has
+    one), and less the box
     quality refit for blind mining and full labels, whose labels never change after the first fit. Runs of a
     detector whose run plans agree are the same runs, whatever else the two records measured: a
     record grows by a detector without training the others again."""
@@ -754,7 +755,9 @@ def _run_plan(plan: dict, variant: str) -> dict:
         out.pop("queue_max_label_iou", None)
         out.pop("review_best_view", None)
         untouched |= {"review_order", "review_extra"}  # the queue, which nobody reviews
-        untouched.add("model_box_targets")  # no verdict, so no label with the model's box
+        settings = out.get("settings") if isinstance(out.get("settings"), dict) else {}
+        if not (holds(variant) and settings.get("pseudo_label_confident") is not None):
+            untouched.add("model_box_targets")  # no verdict nor pseudo-label: no label with the model's box
     if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
     if variant in ("blind", "full"):

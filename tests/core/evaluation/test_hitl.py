@@ -105,6 +105,11 @@ def test_each_detector_trains_with_what_its_run_plan_says_shapes_it():
         assert _run_plan(plan, variant) == _run_plan(with_pseudo, variant)
     for variant in ("blind_safe", "reviewed_safe_200"):
         assert _run_plan(plan, variant) != _run_plan(with_pseudo, variant)
+    # Pseudo-labels are labels with the model's box: whether those teach boxes shapes blind_safe.
+    boxes = {**with_pseudo, "settings": {**with_pseudo["settings"], "model_box_targets": True}}
+    assert _run_plan(boxes, "blind_safe") != _run_plan(with_pseudo, "blind_safe")
+    no_pseudo_boxes = {**plan, "settings": {**plan["settings"], "model_box_targets": True}}
+    assert _run_plan(no_pseudo_boxes, "blind_safe") == _run_plan(plan, "blind_safe")
 
 
 def test_the_holding_detectors_are_asked_for_by_name_and_hold_at_the_plans_score():
