@@ -72,6 +72,7 @@ class ReviewPanel:
                 min_points=annotation_min_points(state.dataset, default=None),
                 hold=state.db.hold_score(item["run_id"]),
                 best_view=view.best_view(item),
+                pseudo=state.db.pseudo_label_score(item["run_id"]),
             )
             place = item.get("place_versions") or {}
             if len(place) > 1:

@@ -8,6 +8,7 @@ from factorydet_core.boxes import box_iou_3d, fit_box
 from factorydet_core.detection.detector import ProposalResult
 from factorydet_core.geometry import points_in_box
 from factorydet_core.session.review_rank import MIN_ANSWERS, MIN_EACH, REFIT_EVERY
+from factorydet_core.session.store import HIDE_LABELLED_IOU, on_labelled_object
 from factorydet_core.session.world import COUNT_VOXEL_M, BestView
 from factorydet_core.types import BOX_KINDS, CLASS_NAMES, LEVELS, Detections, Frame, InputError, Proposals
 
@@ -260,13 +261,16 @@ def review_item_markdown(
     min_points: int | None = None,
     hold: float | None = None,
     best_view: BestView | None = None,
+    pseudo: float | None = None,
 ) -> str:
     """Markdown about one review-queue item (a mined negative, ``SessionDB.review_queue``), with
     whether its run held it out of the background (``hold``: the run's ``hold_confident``) or
     queued it for review alone (``in_background`` 0: ``LoopSettings.review_extra``), with
     the number of points in its box when known and the data set's annotation policy (objects of
-    at least ``min_points`` points are labelled), and where the frames see its object best
-    (``best_view``: a ``world.BestView``, or ``None`` when its own frame does)."""
+    at least ``min_points`` points are labelled), where the frames see its object best
+    (``best_view``: a ``world.BestView``, or ``None`` when its own frame does), and whether its
+    run took it for a label of its predicted class (``pseudo``: the run's
+    ``pseudo_label_confident``; not on a labelled object)."""
     lines = [
         f"**Item {rank} of {total}** (#{item['id']}, frame {item['frame_index'] + 1}, "
         f"mined in run {item['run_id']} round {item['round']})",
@@ -315,6 +319,15 @@ def review_item_markdown(
         lines.append(
             "**For review alone**: after the run's mined negatives in its queue (review extra), so"
             " training leaves it out until a verdict says what it is"
+        )
+    elif (
+        pseudo is not None
+        and item["score"] >= pseudo
+        and not on_labelled_object(item.get("label_iou"), HIDE_LABELLED_IOU)
+    ):
+        lines.append(
+            f"**Pseudo-label**: scored {pseudo:g} or more off every label, so training takes it for a"
+            f" *{item['predicted_class']}* until a verdict says what it is"
         )
     elif hold is not None and item["score"] >= hold:
         lines.append(

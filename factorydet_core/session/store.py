@@ -2277,6 +2277,13 @@ class SessionDB:
         hold = self._run_settings(run_id).get("hold_confident")
         return None if hold is None else float(hold)
 
+    def pseudo_label_score(self, run_id: int) -> float | None:
+        """The score at or above which run ``run_id`` took its mined negatives off the labels for
+        labels of their predicted class until reviewed (``LoopSettings.pseudo_label_confident``;
+        ``None``: none)."""
+        score = self._run_settings(run_id).get("pseudo_label_confident")
+        return None if score is None else float(score)
+
     def review_order(self, run_id: int | None = None) -> str:
         """How run ``run_id`` (the latest by default) orders its review queue
         (``LoopSettings.review_order``, else the order that cut its mined negatives,

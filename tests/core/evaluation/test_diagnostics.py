@@ -37,6 +37,18 @@ def test_a_held_item_says_training_keeps_it_out_of_the_background_until_a_verdic
     assert "Held" not in review_item_markdown(decided, [], 1, 5, hold=0.35)
 
 
+def test_a_pseudo_labelled_item_says_training_takes_it_for_its_predicted_class_until_a_verdict():
+    text = review_item_markdown(ITEM, [], 1, 5, hold=0.35, pseudo=0.4)
+    assert "**Pseudo-label**: scored 0.4 or more off every label, so training takes it for a *box*" in text
+    assert "Held" not in text
+    # Below the pseudo-label score it is held; on a labelled object it is held, not a label.
+    assert "**Held**" in review_item_markdown(ITEM, [], 1, 5, hold=0.35, pseudo=0.5)
+    on_label = review_item_markdown({**ITEM, "label_iou": 0.5}, [], 1, 5, hold=0.35, pseudo=0.4)
+    assert "Pseudo-label" not in on_label and "**Held**" in on_label
+    decided = {**ITEM, "verdict": "object", "verdict_class": "box", "reviewer": "ann"}
+    assert "Pseudo-label" not in review_item_markdown(decided, [], 1, 5, pseudo=0.4)
+
+
 def test_an_item_queued_for_review_alone_says_training_leaves_it_out_until_a_verdict():
     alone = {**ITEM, "in_background": 0}
     assert "**For review alone**" in review_item_markdown(alone, [], 1, 5)

@@ -965,6 +965,11 @@ def test_pseudo_labels_are_the_undecided_confident_negatives_off_the_labels(db, 
     db.review([ids[0.9]], "background", "ann")  # a verdict replaces the pseudo-label
     db.review([ids[0.7]], "skip", "ann")  # a skip decides nothing
     assert db.pseudo_labels(0.6)[0][0] == [(1,)]
+    # The review panel reads a run's pseudo-label score from its settings.
+    run = db.save_training_run(
+        queue_run(tiny_model_path, [[]]), "small", {"settings": {"pseudo_label_confident": 0.6}}
+    )
+    assert db.pseudo_label_score(run) == 0.6 and db.pseudo_label_score(run - 1) is None
 
 
 def test_a_runs_hold_score_is_read_from_its_settings(db, tiny_model_path):
