@@ -730,8 +730,8 @@ def _holding_text(result: dict) -> str:
     return (
         (
             f"takes the negatives scoring {pseudo:g} or more, off every label, for labels of their"
-            " predicted class until reviewed (pseudo-labels, teaching their class"
-            + ("" if settings.get("model_box_targets") else " alone")
+            " predicted class until reviewed (pseudo-labels"
+            + ("" if settings.get("model_box_targets") else ", teaching their class, not their box")
             + "), "
             if pseudo is not None
             else ""
@@ -739,14 +739,15 @@ def _holding_text(result: dict) -> str:
         + (
             f"holds the negatives scoring {result['hold_confident']:g} or more"
             if pseudo is None
-            else f"holds the negatives scoring {result['hold_confident']:g} or more and below {pseudo:g}"
+            else f"holds the other negatives scoring {result['hold_confident']:g} or more"
             if pseudo > result["hold_confident"]
             else f"holds those on a label that score {result['hold_confident']:g} or more"
         )
         + " out of the background (neither object nor background) until reviewed"
         + (
             ", and every point set on their boxes (their places) with them"
-            if settings.get("hold_places")
+            # (held places are off the labels: with pseudo-labels from the hold score on, none)
+            if settings.get("hold_places") and (pseudo is None or pseudo > result["hold_confident"])
             else ""
         )
         + (

@@ -2751,8 +2751,11 @@ class SessionDB:
         if at_least_score is not None:
             query, values = query + " AND score >= ?", [*values, float(at_least_score)]
         if undecided_only:
+            # Decided when this row, or a row of the same point set mined by another run, has a
+            # verdict: a set mined twice is one thing to decide.
             query += (
-                " AND NOT EXISTS (SELECT 1 FROM reviews r WHERE r.negative_id = m.id AND r.verdict != 'skip')"
+                " AND NOT EXISTS (SELECT 1 FROM reviews r JOIN mined_negatives o ON o.id = r.negative_id"
+                " WHERE o.frame_index = m.frame_index AND o.patch_set = m.patch_set AND r.verdict != 'skip')"
             )
         with self._read() as db:
             return [_row("mined_negatives", r) for r in db.execute(query + " ORDER BY id", values)]
@@ -2782,21 +2785,38 @@ class SessionDB:
     def pseudo_labels(self, at_least_score: float, max_label_iou: float = HIDE_LABELLED_IOU) -> dict:
         """The mined negatives that teach their predicted class until reviewed
         (``LoopSettings.pseudo_label_confident``), by frame: those the model scored at least
-        ``at_least_score`` when it mined them, with no verdict other than skip, and off every
-        current label (box IoU below ``max_label_iou``, as ``held_places``).
+        ``at_least_score`` when it mined them, with no verdict other than skip (on any row of
+        their point set), and off every current label (box IoU below ``max_label_iou``, as
+        ``held_places``); one per point set, and none that overlaps a more confident one at
+        ``max_label_iou`` or more (another set of the same object).
 
         Returns:
-            Frame index -> ``(patch_sets, boxes, class_ids)``: K point sets (each a tuple of patch
-            ids), (K, 7) boxes and (K,) predicted class ids; frames without any are left out.
+            Frame index -> ``(patch_sets, boxes, class_ids)``, most confident first: K point
+            sets (each a tuple of patch ids), (K, 7) boxes and (K,) predicted class ids; frames
+            without any are left out.
         """
         import numpy as np
 
-        items = self._mined_off_labels("box, patch_set, predicted_class", at_least_score, max_label_iou)
+        items = self._mined_off_labels(
+            "box, patch_set, predicted_class, score", at_least_score, max_label_iou
+        )
         names = list(self.class_names)
         out: dict[int, list[dict]] = {}
-        for item in items:
-            if item["predicted_class"] in names:  # (a class the session no longer has teaches nothing)
-                out.setdefault(item["frame_index"], []).append(item)
+        # Most confident first; a set mined again by a later run, or another set on the same
+        # object (IoU ``max_label_iou`` or more with a pseudo-label kept), is one label, not two.
+        for item in sorted(items, key=lambda m: -float(m["score"])):
+            if item["predicted_class"] not in names:  # (a class the session no longer has teaches nothing)
+                continue
+            kept = out.setdefault(item["frame_index"], [])
+            if any(tuple(k["patch_set"]) == tuple(item["patch_set"]) for k in kept):
+                continue
+            if kept and on_labelled_object(
+                float(box_iou_3d(np.asarray([item["box"]]), np.asarray([k["box"] for k in kept])).max()),
+                max_label_iou,
+            ):
+                continue
+            kept.append(item)
+        out = {frame: rows for frame, rows in out.items() if rows}
         return {
             frame: (
                 [tuple(item["patch_set"]) for item in rows],

@@ -81,7 +81,8 @@ class LoopSettings:
     ``model_box_targets`` they teach their class alone). A blind run's false positives scoring
     0.6 or more were nearly all real objects of the predicted class (at 50% unannotated,
     docs/labelling.md): holding them leaves those objects out, a pseudo-label teaches them.
-    They stay in the review queue, and a verdict replaces the pseudo-label. Checked before
+    They stay in the review queue, and a verdict replaces the pseudo-label. They count as labels
+    where the class thresholds are tuned on the training frames. Checked before
     ``hold_confident``: set above it, the negatives between the two are held. ``None``: none
     (the paper)."""
     recalibrate_background: float | None = None

@@ -176,16 +176,18 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     text = hitl_markdown(result, heading=False)
     assert (
         "blind mining that takes the negatives scoring 0.6 or more, off every label, for labels of their"
-        " predicted class until reviewed (pseudo-labels, teaching their class alone), holds the negatives"
-        " scoring 0.35 or more and below 0.6 out of the background" in text
+        " predicted class until reviewed (pseudo-labels, teaching their class, not their box), holds the"
+        " other negatives scoring 0.35 or more out of the background" in text
     )
+    assert "their places" in text
     assert (
         "truth judges them: `blind_safe` 10.0: 60% objects of the predicted class (IoU 0.6), 20% that"
         " class's objects under a looser box, 10% another class's objects, 0% objects too sparse for"
         " the annotation policy, 10% no object." in text
     )
     result["hold_confident"] = 0.6
-    assert "holds those on a label that score 0.6 or more" in hitl_markdown(result, heading=False)
+    text = hitl_markdown(result, heading=False)
+    assert "holds those on a label that score 0.6 or more" in text and "their places" not in text
     # With a reviewed budget: its share and the queue filter are stated.
     result = _hitl_result(
         {"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.33, 0.34, 0.32], "full": [0.34, 0.35, 0.33]},

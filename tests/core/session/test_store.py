@@ -965,6 +965,20 @@ def test_pseudo_labels_are_the_undecided_confident_negatives_off_the_labels(db, 
     db.review([ids[0.9]], "background", "ann")  # a verdict replaces the pseudo-label
     db.review([ids[0.7]], "skip", "ann")  # a skip decides nothing
     assert db.pseudo_labels(0.6)[0][0] == [(1,)]
+    # A set mined again by a later run is one pseudo-label, and a verdict on either row decides
+    # both; another set on the same object (IoU 0.25 or more with a kept one) is none.
+    again = [
+        mined_item(0, 1, off[1], 0.65, predicted_class="barrel"),
+        mined_item(0, 5, np.add(off[1], [0.1, 0, 0, 0, 0, 0, 0]).tolist(), 0.62, predicted_class="cone"),
+        mined_item(0, 6, [60.0, 40.0, 0.5, 1.0, 1.0, 1.0, 0.0], 0.9, predicted_class="cone"),
+    ]
+    again[1]["patch_set"] = [5]
+    db.save_training_run(queue_run(tiny_model_path, [again], train_frames=(0, 1)), "small", {})
+    assert db.pseudo_labels(0.6)[0][0] == [(6,), (1,)]  # most confident first
+    newer = next(q["id"] for q in db.review_queue() if q["score"] == 0.65)
+    db.review([newer], "background", "ann")
+    assert db.pseudo_labels(0.6)[0][0] == [(6,), (5,)]  # (1,) decided; (5,) now stands alone
+    assert (1,) not in db.mined_patch_sets(at_least_score=0.6, undecided_only=True)[0]
     # The review panel reads a run's pseudo-label score from its settings.
     run = db.save_training_run(
         queue_run(tiny_model_path, [[]]), "small", {"settings": {"pseudo_label_confident": 0.6}}
