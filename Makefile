@@ -346,6 +346,13 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-class-alone-six.json \
 	  docs/bench/hitl-review-learned-extra-e20-six.json --readme docs/labelling.md \
 	  --readme-block hitl-e20-class-alone-vs-drift-six
+	# Twice the training frames (16) at 30%, blind mining and full labels: does the gap open with more
+	# data? (Runs of one library version, read back whatever the code is now.)
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 16 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants blind,full --out docs/bench/hitl-e20-16frames-five.json \
+	  --readme docs/labelling.md --readme-block hitl-e20-16frames-five --resume --resume-other-library
 	# Half the objects unannotated and the first fit at 20 epochs: blind mining, the reviewer's 200 places
 	# a round and full labels, seeds 0-5.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
