@@ -78,9 +78,10 @@ class LoopSettings:
     pseudo_label_confident: float | None = None
     """Mined negatives scoring at least this, off every label, teach their predicted class until
     someone reviews them, as labels whose box is the model's own (self-training; without
-    ``model_box_targets`` they teach their class alone). A blind run's false positives scoring
-    0.6 or more were nearly all real objects of the predicted class (at 50% unannotated,
-    docs/labelling.md): holding them leaves those objects out, a pseudo-label teaches them.
+    ``model_box_targets`` they teach their class alone). Most negatives scoring 0.6 or more are
+    real objects of their predicted class (``bench hitl`` at 50% unannotated, docs/labelling.md):
+    holding them leaves those objects out, a pseudo-label teaches them; too few to make blind
+    mining safe there, which is why it is off by default.
     They stay in the review queue, and a verdict replaces the pseudo-label. They count as labels
     where the class thresholds are tuned on the training frames. Checked before
     ``hold_confident``: set above it, the negatives between the two are held. ``None``: none
