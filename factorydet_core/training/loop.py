@@ -302,14 +302,14 @@ def train_session(
             # Confident negatives nobody has decided on teach their predicted class: labels, so
             # neither background nor left out.
             pseudo = db.pseudo_labels(settings.pseudo_label_confident)
-            background = _without(background, {i: sets for i, (sets, _, _) in pseudo.items()})
-            excluded = _without(excluded, {i: sets for i, (sets, _, _) in pseudo.items()})
-            labelled = [
-                frame.with_pseudo_labels(*pseudo[frame.frame_index][1:], pseudo[frame.frame_index][0])
-                if frame.frame_index in pseudo
-                else frame
-                for frame in labelled
-            ]
+            pseudo_sets = {index: sets for index, (sets, _, _) in pseudo.items()}
+            background = _without(background, pseudo_sets)
+            excluded = _without(excluded, pseudo_sets)
+            with_pseudo = []
+            for frame in labelled:  # (a frame without any: None boxes, kept as it is)
+                sets, boxes, class_ids = pseudo.get(frame.frame_index, (None, None, None))
+                with_pseudo.append(frame.with_pseudo_labels(boxes, class_ids, sets))
+            labelled = with_pseudo
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
         keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None

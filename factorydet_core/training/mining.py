@@ -167,13 +167,21 @@ class FrameProposals:
     def own_set_labels(self) -> list[tuple[int, int]]:
         """``(point set, label)`` index pairs of the labels made from a point set
         (``label_own_sets``); sets this front half does not have are dropped."""
-        if self.label_own_sets is None:
+        if self.label_own_sets is None or not any(self.label_own_sets):
             return []
-        pairs = []
-        for label, patch_set in enumerate(self.label_own_sets):
-            if patch_set:
-                pairs.extend((int(g), label) for g in self.point_set_ids([patch_set]))
-        return pairs
+        lookup = self._point_set_lookup()
+        return [
+            (lookup[patch_set], label)
+            for label, patch_set in enumerate(self.label_own_sets)
+            if patch_set and patch_set in lookup
+        ]
+
+    def _point_set_lookup(self) -> dict[tuple[int, ...], int]:
+        """Patch set (its patch ids) -> the point set (group) made of it."""
+        lookup: dict[tuple[int, ...], int] = {}
+        for proposal, group in enumerate(self.groups.group_ids):
+            lookup.setdefault(tuple(self.patch_sets[proposal]), int(group))
+        return lookup
 
     def ignored_point_sets(self) -> np.ndarray:
         """Indices of the point sets on an ignored place: half or more of the set's sampled points
@@ -191,9 +199,7 @@ class FrameProposals:
     def point_set_ids(self, patch_sets) -> np.ndarray:
         """Indices of the point sets (groups) made of the given patch sets; unknown ones are
         dropped (a front half with other settings cut the frame differently)."""
-        lookup = {}
-        for proposal, group in enumerate(self.groups.group_ids):
-            lookup.setdefault(tuple(self.patch_sets[proposal]), int(group))
+        lookup = self._point_set_lookup()
         return np.array(sorted({lookup[tuple(p)] for p in patch_sets if tuple(p) in lookup}), np.int64)
 
 
