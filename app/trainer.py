@@ -205,7 +205,8 @@ class TrainingWorker:
     def _train(self, mode: str, settings: LoopSettings) -> None:
         state, db, dataset = self.state, self.state.db, self.state.dataset
         with state.lock:
-            before, before_name = state.model, state.model_name
+            # (the world the view placed for label once, if it is done: carried pseudo-labels use it)
+            before, before_name, world = state.model, state.model_name, state.world
         rounds = settings.rounds + 1 if mode == "full" else 1
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75
@@ -227,6 +228,10 @@ class TrainingWorker:
                 raise Cancelled("training cancelled")
             if what == "calibrate":
                 state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
+            elif what == "world":
+                state.set_training(
+                    status=f"placing the frames in one world frame: {done}/{total}", progress=0.1
+                )
             elif what == "proposals":
                 status = f"proposals: frame {done} of {total}{on_ray}" + pace.text(what, done, total)
                 state.set_training(status=status, progress=0.1 * done / total)
@@ -259,7 +264,7 @@ class TrainingWorker:
             db, dataset, settings, params_for(before, dataset.num_sensors), mode=mode,
             before={} if before is None else {f"before ({before_name})": before},
             after_label="after (run {run_id})", calibrate=self.calibrate, progress=progress,
-            should_stop=self._cancel.is_set, execution=execution,
+            should_stop=self._cancel.is_set, execution=execution, world=world,
         )  # fmt: skip
         self.last_run_id = done.run_id
         queue = db.review_queue(done.run_id)

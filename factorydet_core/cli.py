@@ -189,6 +189,7 @@ def hitl_settings(args: argparse.Namespace) -> LoopSettings:
             "hold_confident": args.hold_confident,
             "hold_places": args.hold_places,
             "pseudo_label_confident": args.pseudo_label_confident,
+            "carry_pseudo_labels": args.carry_pseudo_labels,
             "recalibrate_background": args.recalibrate_background,
             "recalibrate_by_class": args.recalibrate_by_class,
             "queue_order": args.queue_order,
@@ -1702,6 +1703,7 @@ def build_parser(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
             "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
             "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
+            "carry_pseudo_labels",
         ),
     )  # fmt: skip
     p.add_argument(

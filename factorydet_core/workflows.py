@@ -15,6 +15,7 @@ from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.scale.jobs import proposer, scoring
 from factorydet_core.scale.runner import Execution
 from factorydet_core.session.store import SessionDB
+from factorydet_core.session.world import WorldFrames, session_world
 from factorydet_core.training.loop import cached_proposals, session_references, train_session
 from factorydet_core.training.mining import FrameProposals, Progress, TrainingRun
 from factorydet_core.training.settings import LoopSettings
@@ -53,6 +54,7 @@ def retrain_session(
     should_stop: Callable[[], bool] | None = None,
     command: str = "",
     execution: Execution | None = None,
+    world: WorldFrames | None = None,
 ) -> Retrained:
     """Retrain a session on its corrected labels and review verdicts: propose its training frames
     (through the session's cache), run ``training.loop.train_session`` (which stores the run and
@@ -68,7 +70,7 @@ def retrain_session(
         compare: measure on the test split (skipped when the data set has none).
         calibrate: refine the extrinsics by ICP on the first training frame (multi-sensor data).
         max_train_frames, max_test_frames: use only the first frames of each split.
-        progress: called with (what, done, total); ``what`` is "calibrate", "proposals", "fit",
+        progress: called with (what, done, total); ``what`` is "calibrate", "proposals", "world", "fit",
             "box quality", "round" or "compare". "compare" comes after the run is stored: a
             progress that raises to cancel must not raise then.
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
@@ -76,6 +78,9 @@ def retrain_session(
             front half of the frames the cache lacks, and each mining round's scoring of the
             training frames (``scale.jobs.scoring``); ``None``: this process. The fits run here
             either way.
+        world: the session's frames placed in one world frame (``session.world.session_world``),
+            for ``LoopSettings.carry_pseudo_labels``; placed here when a next round carries
+            pseudo-labels and none is given (progress "world").
 
     Raises:
         InputError: for a "next" round on a session without a run to continue, or a session that
@@ -93,10 +98,19 @@ def retrain_session(
         detector.calibrate(dataset.frame(train[0]))
     propose = proposer(execution)
     frames = cached_proposals(db, dataset, detector, train, progress, propose)
+    if (
+        world is None
+        and mode == "next"
+        and settings.carry_pseudo_labels
+        and settings.pseudo_label_confident is not None
+    ):
+        world, _ = session_world(
+            db.session, dataset, progress=lambda done, total: report("world", done, total)
+        )
     with scoring(execution) as score:
         run_id, run = train_session(
             db, frames, settings, mode=mode, data_ref=str(dataset.path), front_end=front_end,
-            progress=progress, should_stop=should_stop, command=command, score=score,
+            progress=progress, should_stop=should_stop, command=command, score=score, world=world,
         )  # fmt: skip
     test: Sequence[int] = dataset.splits.get("test") or []
     test = list(test[:max_test_frames] if max_test_frames else test)

@@ -28,7 +28,7 @@ from factorydet_core.io.dataset import Dataset, annotation_min_points, open_data
 from factorydet_core.session.queue import review_order_of, unlearned_order
 from factorydet_core.session.store import SessionDB, on_labelled_object, open_session
 from factorydet_core.sim.truth import read_frame_truth
-from factorydet_core.training.loop import Proposer, cached_proposals, train_session
+from factorydet_core.training.loop import Proposer, cached_proposals, session_pseudo_labels, train_session
 from factorydet_core.training.mining import collect_proposals
 from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
 from factorydet_core.types import (
@@ -40,6 +40,7 @@ BLIND_SAFE_SETTINGS: tuple[str, ...] = (
     "recalibrate_background",
     "recalibrate_by_class",
     "pseudo_label_confident",
+    "carry_pseudo_labels",
 )
 """``LoopSettings`` fields that shape the runs of the detectors that hold (``holds``: ``blind_safe``
 and ``reviewed_safe_K``) alone, with their hold score: the other detectors run without them, so
@@ -239,16 +240,28 @@ at the positive IoU; that class's object under a looser box; another class's obj
 too sparse for the annotation policy; no object."""
 
 
-def pseudo_label_truth(db: SessionDB, dataset: Dataset, at_least_score: float) -> dict[str, int]:
-    """The session's pseudo-labels (``SessionDB.pseudo_labels``) as the simulator's truth judges
-    them (``truth_verdict``): how many of each ``PSEUDO_LABEL_KINDS``."""
-    counts = dict.fromkeys(PSEUDO_LABEL_KINDS, 0)
-    for index, (_, boxes, class_ids) in db.pseudo_labels(at_least_score).items():
-        for box, class_id in zip(boxes, class_ids):
-            verdict, name, _ = truth_verdict(dataset, {"frame_index": index, "box": box.tolist()})
+def pseudo_label_truth(db: SessionDB, dataset: Dataset, pseudo_labels: dict) -> dict[str, dict[str, int]]:
+    """Pseudo-labels as the simulator's truth judges them (``truth_verdict``).
+
+    Args:
+        pseudo_labels: frame index -> ``(patch_sets, boxes, class_ids)``, as
+            ``training.loop.session_pseudo_labels`` gives the pseudo-labels a session trains with
+            (a carried one has no point set: ``()``).
+
+    Returns:
+        ``{"all": counts, "carried": counts}``: how many of each ``PSEUDO_LABEL_KINDS``, of all
+        of them and of those carried from another frame.
+    """
+    counts = {"all": dict.fromkeys(PSEUDO_LABEL_KINDS, 0), "carried": dict.fromkeys(PSEUDO_LABEL_KINDS, 0)}
+    for index, (sets, boxes, class_ids) in pseudo_labels.items():
+        for patch_set, box, class_id in zip(sets, boxes, class_ids):
+            verdict, name, _ = truth_verdict(dataset, {"frame_index": index, "box": np.asarray(box).tolist()})
             if verdict in ("object", "wrong_box") and name != db.class_names[int(class_id)]:
                 verdict = "other_class"
-            counts[{"wrong_box": "loose_box"}.get(verdict, verdict)] += 1
+            kind = {"wrong_box": "loose_box"}.get(verdict, verdict)
+            counts["all"][kind] += 1
+            if not patch_set:
+                counts["carried"][kind] += 1
     return counts
 
 
@@ -806,6 +819,7 @@ def _seed_settings(settings: LoopSettings, variant: str, seed: int, hold: float 
         recalibrate_background=settings.recalibrate_background if holds(variant) else None,
         recalibrate_by_class=settings.recalibrate_by_class and holds(variant),
         pseudo_label_confident=settings.pseudo_label_confident if holds(variant) else None,
+        carry_pseudo_labels=settings.carry_pseudo_labels and holds(variant),
         review_extra=settings.review_extra if variant.startswith("reviewed_") else 0,
     )
 
@@ -868,7 +882,7 @@ def _hitl_variants(
                     f"{dataset.name}'s {list(dataset.class_names)}"
                 )
         proposal_seconds = round(time.perf_counter() - start, 1)
-        if plan.review_by == "place":
+        if plan.review_by == "place" or settings.carry_pseudo_labels:
             from factorydet_core.session.world import session_world
 
             world, _ = session_world(scratch.session, dataset)
@@ -894,8 +908,9 @@ def _hitl_variants(
             reach_shares: list[tuple[float | None, float | None]] = []
             for r in range(rounds + 1):
                 _, run = train_session(
-                    db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data)
-                )
+                    db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data),
+                    world=world if seed_settings.carry_pseudo_labels else None,
+                )  # fmt: skip
                 fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
                 if name == "full_late" and r == 0:
                     # Every missing label arrives after the first fit, when a reviewer's would:
@@ -933,7 +948,11 @@ def _hitl_variants(
                 )
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
             covered, unannotated = _coverage_totals(covered_by_class)
-            pseudo = seed_settings.pseudo_label_confident
+            pseudo = None
+            if seed_settings.pseudo_label_confident is not None:
+                pseudo = pseudo_label_truth(
+                    db, dataset, session_pseudo_labels(db, seed_settings, train, world)
+                )
             per_seed[name].append(
                 {
                     "seed": seed,
@@ -956,7 +975,8 @@ def _hitl_variants(
                     "reach_share_estimated": _mean_of([e for e, _ in reach_shares]),
                     "reach_share_true": _mean_of([t for _, t in reach_shares]),
                     # The pseudo-labels the session ends with, as the truth judges them.
-                    "pseudo_labels": None if pseudo is None else pseudo_label_truth(db, dataset, pseudo),
+                    "pseudo_labels": None if pseudo is None else pseudo["all"],
+                    "pseudo_labels_carried": None if pseudo is None else pseudo["carried"],
                     "fit_seconds": round(fit_seconds, 1),
                     "library": library_version(),  # the code this run ran
                     # With held-out factories, the figures on the training factory's test frames.
@@ -1037,10 +1057,12 @@ def _hitl_variants(
             "reach_share_true": _mean_of([r["reach_share_true"] for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
         }
-        if all(r.get("pseudo_labels") is not None for r in runs):
-            results[name]["pseudo_labels"] = {
-                kind: _mean_of([r["pseudo_labels"][kind] for r in runs]) for kind in PSEUDO_LABEL_KINDS
-            }
+        # (runs from before carried pseudo-labels have no count of them)
+        for key in ("pseudo_labels", "pseudo_labels_carried"):
+            if all(r.get(key) is not None for r in runs):
+                results[name][key] = {
+                    kind: _mean_of([r[key][kind] for r in runs]) for kind in PSEUDO_LABEL_KINDS
+                }
         if all("in_factory" in r for r in runs):
             results[name]["in_factory"] = {
                 **{key: _mean_of([r["in_factory"][key] for r in runs]) for key in ("f1", "map")},

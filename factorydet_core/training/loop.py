@@ -23,6 +23,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.box_head import BoxHead
 from factorydet_core.detection.box_quality import BoxQuality
 from factorydet_core.detection.classifier import ProposalClassifier, check_init_model
@@ -30,7 +31,15 @@ from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.io.dataset import Dataset
 from factorydet_core.proposals.settings import FrontEndParams
-from factorydet_core.session.store import MODEL_BOX_ORIGINS, SessionDB, read_cache, write_cache
+from factorydet_core.session.store import (
+    HIDE_LABELLED_IOU,
+    MODEL_BOX_ORIGINS,
+    SessionDB,
+    on_labelled_object,
+    read_cache,
+    write_cache,
+)
+from factorydet_core.session.world import MOVING_CLASSES, WorldFrames, place_box
 from factorydet_core.training.mining import (
     FrameProposals,
     Progress,
@@ -239,6 +248,70 @@ def _without(sets_by_frame: dict[int, list], removed: dict[int, list]) -> dict[i
     return out
 
 
+def session_pseudo_labels(
+    db: SessionDB,
+    settings: LoopSettings,
+    frame_indices: Sequence[int],
+    world: WorldFrames | None = None,
+) -> dict[int, tuple[list[tuple[int, ...]], np.ndarray, np.ndarray]]:
+    """The pseudo-labels a next round trains with (``LoopSettings.pseudo_label_confident``), by
+    frame: the session's own (``SessionDB.pseudo_labels``), and with
+    ``settings.carry_pseudo_labels`` each of an object that stands still carried into every frame
+    of ``frame_indices`` that shows it (``world.place_box``), unless a label, a pseudo-label of
+    that frame or one carried before (the frames' own first, then by frame and score) is on that
+    object there (box IoU ``store.HIDE_LABELLED_IOU`` or more).
+
+    Args:
+        frame_indices: the training frames (only these receive carried pseudo-labels).
+        world: the frames placed in one world frame; needed when the settings carry.
+
+    Returns:
+        Frame index -> ``(patch_sets, boxes, class_ids)`` as ``SessionDB.pseudo_labels``: a carried
+        pseudo-label has no point set of its own (``()``) and comes after the frame's own ones.
+        Empty without ``pseudo_label_confident``.
+    """
+    if settings.pseudo_label_confident is None:
+        return {}
+    own = db.pseudo_labels(settings.pseudo_label_confident)
+    if not settings.carry_pseudo_labels:
+        return own
+    if world is None:
+        raise InputError("carrying pseudo-labels to other frames needs the frames placed in one world frame")
+    wanted = {int(f) for f in frame_indices}
+    names = db.class_names
+    # Per frame, the boxes a carried pseudo-label must stay off: its labels and its own pseudo-labels.
+    taken = {f: np.asarray(db.frame_boxes(f)[0], np.float64).reshape(-1, 7) for f in sorted(wanted)}
+    for f, (_, boxes, _) in own.items():
+        if f in taken:
+            taken[f] = np.concatenate([taken[f], boxes])
+    carried: dict[int, list[tuple[np.ndarray, int]]] = {}
+    for source in sorted(own):
+        _, boxes, class_ids = own[source]
+        for box, class_id in zip(boxes, class_ids):
+            if names[int(class_id)] in MOVING_CLASSES:
+                continue
+            placement = place_box(world, source, box)
+            for f in np.flatnonzero(placement.visible_mask).tolist():
+                if f == source or f not in wanted:
+                    continue
+                there = placement.boxes[f]
+                if len(taken[f]) and on_labelled_object(
+                    float(box_iou_3d(there[None], taken[f]).max()), HIDE_LABELLED_IOU
+                ):
+                    continue
+                taken[f] = np.concatenate([taken[f], there[None]])
+                carried.setdefault(f, []).append((there, int(class_id)))
+    out = dict(own)
+    for f, items in carried.items():
+        sets, boxes, class_ids = out.get(f, ([], np.zeros((0, 7)), np.zeros(0, np.int64)))
+        out[f] = (
+            [*sets, *[()] * len(items)],
+            np.concatenate([boxes, np.asarray([b for b, _ in items], np.float64)]),
+            np.concatenate([class_ids, np.asarray([c for _, c in items], np.int64)]),
+        )
+    return out
+
+
 def train_session(
     db: SessionDB,
     frames: Sequence[FrameProposals],
@@ -251,6 +324,7 @@ def train_session(
     should_stop: Callable[[], bool] | None = None,
     command: str = "",
     score: Scorer = score_frames,
+    world: WorldFrames | None = None,
 ) -> tuple[int, TrainingRun]:
     """Train on the session's labels and verdicts, store the run, and mine its review queue.
 
@@ -269,6 +343,8 @@ def train_session(
         should_stop: cancels the run (``types.Cancelled``); nothing is stored then.
         score: what scores each round's model on the frames (``training.mining.Scorer``): here,
             or on Ray workers (``scale.jobs.scoring``).
+        world: the frames placed in one world frame (``session.world.session_world``), which
+            ``LoopSettings.carry_pseudo_labels`` carries the pseudo-labels of a next round with.
 
     Returns:
         ``(run_id, run)``.
@@ -301,7 +377,7 @@ def train_session(
         if settings.pseudo_label_confident is not None:
             # Confident negatives nobody has decided on teach their predicted class: labels, so
             # neither background nor left out.
-            pseudo = db.pseudo_labels(settings.pseudo_label_confident)
+            pseudo = session_pseudo_labels(db, settings, frame_indices, world)
             pseudo_sets = {index: sets for index, (sets, _, _) in pseudo.items()}
             background = _without(background, pseudo_sets)
             excluded = _without(excluded, pseudo_sets)

@@ -86,6 +86,13 @@ class LoopSettings:
     where the class thresholds are tuned on the training frames. Checked before
     ``hold_confident``: set above it, the negatives between the two are held. ``None``: none
     (the paper)."""
+    carry_pseudo_labels: bool = False
+    """With ``pseudo_label_confident``, each pseudo-label of an object that stands still (not
+    ``session.world.MOVING_CLASSES``) also labels its object in every other training frame that
+    shows it (``session.world.place_box``: the frames placed in one world frame), as a reviewer's
+    Object verdict does, except where a label or another pseudo-label is on that object there
+    already. A pseudo-label mined in one frame teaches its object once; carried, it teaches it
+    wherever the training frames see it."""
     recalibrate_background: float | None = None
     """Background recalibration (the learned box head's methods): in a fit that goes on from a
     model (mining rounds, next rounds), a background set drawn at random (not a mined or reviewed
@@ -344,6 +351,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("pseudo_label_confident", "Pseudo-label confident negatives", "mined negatives scoring at least "
             "this, off every label, teach their predicted class until reviewed, as labels with the model's "
             "box (0: off; hitl: blind_safe's and reviewed_safe_K's)", float, 0.0, 1.0, 0.05, none_as=0),
+    Control("carry_pseudo_labels", "Carry pseudo-labels", "with pseudo-labels, each one of an object that "
+            "stands still labels it in every training frame that shows it too (label once)", bool),
     Control("recalibrate_background", "Recalibrate background", "(box head) drawn background sets the "
             "network gives this object probability or more are left out of the loss, as likely unlabelled "
             "objects (0: off; hitl: blind_safe's and reviewed_safe_K's)", float, 0.0, 1.0, 0.05,

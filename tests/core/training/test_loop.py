@@ -30,6 +30,7 @@ from factorydet_core.training.loop import (
     cached_proposals,
     new_classifier,
     proposals_cache_key,
+    session_pseudo_labels,
     session_references,
     suspect_labels,
     train_session,
@@ -221,7 +222,9 @@ def test_pseudo_labels_are_judged_by_the_truth(dataset, tmp_path, tiny_model_pat
         if on_it:
             db.delete_labels(on_it, "ann")
         db.save_training_run(queue_run(tiny_model_path, [items]), "small", {})
-        return {k: v for k, v in pseudo_label_truth(db, dataset, 0.5).items() if v}
+        counts = pseudo_label_truth(db, dataset, db.pseudo_labels(0.5))
+        assert not any(counts["carried"].values())  # each in the frame it was mined in
+        return {k: v for k, v in counts["all"].items() if v}
 
     labels = np.asarray([lab.box for lab in SessionDB(open_session("labels", tmp_path), dataset).labels(0)])
     labels = labels[box_iou_3d(labels, box[None])[:, 0] == 0]
@@ -242,6 +245,60 @@ def test_pseudo_labels_are_judged_by_the_truth(dataset, tmp_path, tiny_model_pat
     assert judged("c", [mined_item(0, 2, shifted, 0.8, predicted_class=name)]) == {"loose_box": 1}
     # A looser box of an object already pseudo-labelled is no second label.
     assert judged("d", [*first[:1], mined_item(0, 2, shifted, 0.8, predicted_class=name)]) == {"object": 1}
+    # One carried from another frame (no point set of its own) is counted apart as well.
+    db = SessionDB(open_session("e", tmp_path), dataset)
+    carried = {0: ([()], box[None], np.array([dataset.class_names.index(name)]))}
+    assert pseudo_label_truth(db, dataset, carried)["carried"]["object"] == 1
+
+
+def test_pseudo_labels_of_standing_objects_are_carried_to_the_training_frames_that_show_them(
+    dataset, tmp_path, tiny_model_path
+):
+    """``carry_pseudo_labels``: a pseudo-label of a static class labels its object in every
+    training frame whose points show it, unless a label or a pseudo-label is on it there; a
+    person's stays in its frame."""
+    from factorydet_core.session.world import WorldFrames
+
+    def cube(centre):
+        grid = np.stack(np.meshgrid(*[np.linspace(-0.3, 0.3, 4)] * 3), -1).reshape(-1, 3)
+        return (grid + centre).astype(np.float32)
+
+    standing = np.array([500.0, 500.0, 0.5, 1, 1, 1, 0])
+    walking = np.array([520.0, 500.0, 0.9, 0.7, 0.7, 1.8, 0])
+    both = np.concatenate([cube(standing[:3]), cube(walking[:3])])
+    # Frames 0 and 1 see both objects; frame 2 sees the standing one, frame 2 is no training frame.
+    world = WorldFrames(np.stack([np.eye(4)] * 3), np.ones(3), (both, both, cube(standing[:3])))
+    db = SessionDB(open_session("carry", tmp_path), dataset)
+    items = [
+        mined_item(0, 0, standing, 0.9, predicted_class="box"),
+        mined_item(0, 1, walking, 0.8, predicted_class="person"),
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
+    settings = LoopSettings(pseudo_label_confident=0.6, carry_pseudo_labels=True)
+    labels = session_pseudo_labels(db, settings, [0, 1], world)
+    assert sorted(labels) == [0, 1]
+    sets, boxes, class_ids = labels[1]
+    assert sets == [()]  # carried: no point set of its own there
+    np.testing.assert_allclose(boxes, standing[None])
+    assert [db.class_names[int(c)] for c in class_ids] == ["box"]
+    assert len(labels[0][0]) == 2  # the frame's own two, as mined
+    # Off: each stays in its frame; without the world placed, carrying is refused.
+    assert sorted(session_pseudo_labels(db, LoopSettings(pseudo_label_confident=0.6), [0, 1])) == [0]
+    with pytest.raises(InputError, match="world frame"):
+        session_pseudo_labels(db, settings, [0, 1])
+    assert session_pseudo_labels(db, LoopSettings(carry_pseudo_labels=True), [0, 1], world) == {}
+    # Frame 1's own pseudo-label of the object, or its label there, keeps the carried one out.
+    db.save_training_run(
+        queue_run(tiny_model_path, [[mined_item(1, 7, standing + [0.05, 0, 0, 0, 0, 0, 0], 0.7)]]),
+        "small",
+        {},
+    )
+    own = session_pseudo_labels(db, settings, [0, 1], world)[1]
+    assert own[0] == [(7,)] and len(own[1]) == 1
+    db.add_label(1, walking + [0, 0, 0, 0, 0, 0, 0.1], "box", "ann")  # (a label elsewhere changes nothing)
+    db.add_label(1, standing, "cone", "ann")
+    sets, boxes, _ = session_pseudo_labels(db, settings, [0, 1], world).get(1, ([], np.zeros((0, 7)), None))
+    assert sets == [] and not len(boxes)
 
 
 def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
