@@ -732,6 +732,11 @@ def _holding_text(result: dict) -> str:
             f"takes the negatives scoring {pseudo:g} or more, off every label, for labels of their"
             " predicted class until reviewed (pseudo-labels"
             + ("" if settings.get("model_box_targets") else ", teaching their class, not their box")
+            + (
+                "; each of an object that stands still labels it in every training frame that shows it"
+                if settings.get("carry_pseudo_labels")
+                else ""
+            )
             + "), "
             if pseudo is not None
             else ""
@@ -1051,6 +1056,17 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
 def _pseudo_label_text(variants: dict, names: list[str]) -> list[str]:
     """What the detectors that pseudo-label ended with, as the truth judges the labels
     (``hitl.pseudo_label_truth``): a paragraph and a blank line, or nothing."""
+    kinds = (
+        ("object", "objects of the predicted class (IoU 0.6)"),
+        ("loose_box", "that class's objects under a looser box"),
+        ("other_class", "another class's objects"),
+        ("skip", "objects too sparse for the annotation policy"),
+        ("background", "no object"),
+    )
+
+    def shares(counts: dict, total: float) -> str:
+        return ", ".join(f"{100 * counts[kind] / total:.0f}% {text}" for kind, text in kinds)
+
     parts = []
     for name in names:
         counts = variants[name].get("pseudo_labels")
@@ -1060,19 +1076,15 @@ def _pseudo_label_text(variants: dict, names: list[str]) -> list[str]:
         if not total:
             parts.append(f"`{name}` none")
             continue
-        parts.append(
-            f"`{name}` {total:.1f}: "
-            + ", ".join(
-                f"{100 * counts[kind] / total:.0f}% {text}"
-                for kind, text in (
-                    ("object", "objects of the predicted class (IoU 0.6)"),
-                    ("loose_box", "that class's objects under a looser box"),
-                    ("other_class", "another class's objects"),
-                    ("skip", "objects too sparse for the annotation policy"),
-                    ("background", "no object"),
-                )
+        part = f"`{name}` {total:.1f}: " + shares(counts, total)
+        carried = variants[name].get("pseudo_labels_carried")
+        num_carried = sum(carried.values()) if carried else 0
+        if num_carried:
+            part += (
+                f" ({num_carried:.1f} of them carried from the frame they were mined in to another"
+                f" that shows their object: {shares(carried, num_carried)})"
             )
-        )
+        parts.append(part)
     if not parts:
         return []
     return [

@@ -185,6 +185,18 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
         " class's objects under a looser box, 10% another class's objects, 0% objects too sparse for"
         " the annotation policy, 10% no object." in text
     )
+    assert "carried" not in text
+    # Carried to the other frames that show their objects: said, and those carried judged apart.
+    result["settings"]["carry_pseudo_labels"] = True
+    result["variants"]["blind_safe"]["pseudo_labels_carried"] = {
+        "object": 3.0, "loose_box": 0.0, "other_class": 0.0, "skip": 0.0, "background": 1.0,
+    }  # fmt: skip
+    text = hitl_markdown(result, heading=False)
+    assert "not their box; each of an object that stands still labels it in every training frame" in text
+    assert (
+        "10% no object (4.0 of them carried from the frame they were mined in to another that shows"
+        " their object: 75% objects of the predicted class (IoU 0.6)" in text
+    )
     result["hold_confident"] = 0.6
     text = hitl_markdown(result, heading=False)
     assert "holds those on a label that score 0.6 or more" in text and "their places" not in text
