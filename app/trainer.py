@@ -207,6 +207,18 @@ class TrainingWorker:
         with state.lock:
             # (the world the view placed for label once, if it is done: carried pseudo-labels use it)
             before, before_name, world = state.model, state.model_name, state.world
+            world_status = state.world_status
+        if mode == "next" and settings.pseudo_label_confident is not None and settings.carry_pseudo_labels:
+            if world is None:
+                # (placing them here too would run ICP twice on the same cores, with the view's
+                # extrinsics or not)
+                self._finish(
+                    status="carrying pseudo-labels needs the frames placed in one world frame, which "
+                    f"is not done ({world_status or 'not started'}): train again when it is, or turn "
+                    "*Carry pseudo-labels* off",
+                    progress=0.0,
+                )
+                return
         rounds = settings.rounds + 1 if mode == "full" else 1
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75

@@ -771,6 +771,10 @@ def _run_plan(plan: dict, variant: str) -> dict:
         settings = out.get("settings") if isinstance(out.get("settings"), dict) else {}
         if not (holds(variant) and settings.get("pseudo_label_confident") is not None):
             untouched.add("model_box_targets")  # no verdict nor pseudo-label: no label with the model's box
+    if (out.get("settings") if isinstance(out.get("settings"), dict) else {}).get(
+        "pseudo_label_confident"
+    ) is None:
+        untouched.add("carry_pseudo_labels")  # no pseudo-label to carry
     if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
     if variant in ("blind", "full"):
@@ -882,7 +886,9 @@ def _hitl_variants(
                     f"{dataset.name}'s {list(dataset.class_names)}"
                 )
         proposal_seconds = round(time.perf_counter() - start, 1)
-        if plan.review_by == "place" or settings.carry_pseudo_labels:
+        if plan.review_by == "place" or (
+            settings.carry_pseudo_labels and settings.pseudo_label_confident is not None
+        ):
             from factorydet_core.session.world import session_world
 
             world, _ = session_world(scratch.session, dataset)

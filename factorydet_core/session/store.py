@@ -2841,6 +2841,31 @@ class SessionDB:
             item for item, overlap in zip(items, overlaps) if not on_labelled_object(overlap, max_label_iou)
         ]
 
+    def rejected_boxes(self, frame_indices) -> dict:
+        """Per frame, the boxes where a person said there is no object to label: mined negatives
+        answered Background, and labels deleted (what a carried pseudo-label stays off,
+        ``training.loop.session_pseudo_labels``).
+
+        Returns:
+            Frame index -> (K, 7) boxes, for each of ``frame_indices`` (none: (0, 7)).
+        """
+        import numpy as np
+
+        frames = sorted({self._check_frame(i) for i in frame_indices})
+        out: dict[int, list] = {f: [] for f in frames}
+        with self._read() as db:
+            rows = db.execute(
+                "SELECT m.frame_index, m.box FROM reviews r JOIN mined_negatives m ON m.id = r.negative_id"
+                " WHERE r.verdict = 'background' AND m.frame_index IN (SELECT value FROM json_each(?))",
+                (json.dumps(frames),),
+            ).fetchall()
+        for row in rows:
+            item = _row("mined_negatives", row)
+            out[item["frame_index"]].append(item["box"])
+        for f, labels in self._stored_labels(frames, include_deleted=True).items():
+            out[f].extend(label.box for label in labels if label.deleted)
+        return {f: np.asarray(boxes, np.float64).reshape(-1, 7) for f, boxes in out.items()}
+
     def reviewed_patch_sets(self) -> dict[str, dict[int, list[tuple[int, ...]]]]:
         """Point sets of every reviewed negative by verdict and frame: what the next training run
         must treat as background ('background'), and must not mine again (all decided ones)."""

@@ -257,9 +257,11 @@ def session_pseudo_labels(
     """The pseudo-labels a next round trains with (``LoopSettings.pseudo_label_confident``), by
     frame: the session's own (``SessionDB.pseudo_labels``), and with
     ``settings.carry_pseudo_labels`` each of an object that stands still carried into every frame
-    of ``frame_indices`` that shows it (``world.place_box``), unless a label, a pseudo-label of
-    that frame or one carried before (the frames' own first, then by frame and score) is on that
-    object there (box IoU ``store.HIDE_LABELLED_IOU`` or more).
+    of ``frame_indices`` that shows it (``world.place_box``), unless that frame has on that object
+    (box IoU ``store.HIDE_LABELLED_IOU`` or more) a label, a pseudo-label of its own or one carried
+    already, or a box a person rejected there (``SessionDB.rejected_boxes``: a Background verdict,
+    a deleted label). A frame takes the carried ones from the nearest frames first (the poses
+    drift with the distance driven).
 
     Args:
         frame_indices: the training frames (only these receive carried pseudo-labels).
@@ -269,47 +271,84 @@ def session_pseudo_labels(
         Frame index -> ``(patch_sets, boxes, class_ids)`` as ``SessionDB.pseudo_labels``: a carried
         pseudo-label has no point set of its own (``()``) and comes after the frame's own ones.
         Empty without ``pseudo_label_confident``.
+
+    Raises:
+        InputError: the settings carry and ``world`` is missing or places another number of frames.
     """
     if settings.pseudo_label_confident is None:
         return {}
+    if settings.carry_pseudo_labels:
+        check_carry_world(db, world)
     own = db.pseudo_labels(settings.pseudo_label_confident)
     if not settings.carry_pseudo_labels:
         return own
-    if world is None:
-        raise InputError("carrying pseudo-labels to other frames needs the frames placed in one world frame")
-    wanted = {int(f) for f in frame_indices}
+    wanted = sorted({int(f) for f in frame_indices})
     names = db.class_names
-    # Per frame, the boxes a carried pseudo-label must stay off: its labels and its own pseudo-labels.
-    taken = {f: np.asarray(db.frame_boxes(f)[0], np.float64).reshape(-1, 7) for f in sorted(wanted)}
-    for f, (_, boxes, _) in own.items():
-        if f in taken:
-            taken[f] = np.concatenate([taken[f], boxes])
-    carried: dict[int, list[tuple[np.ndarray, int]]] = {}
+    rejected = db.rejected_boxes(wanted)
+    # Per frame, the boxes a carried pseudo-label must stay off.
+    taken = {
+        f: np.concatenate(
+            [
+                np.asarray(db.frame_boxes(f)[0], np.float64).reshape(-1, 7),
+                rejected[f],
+                own[f][1] if f in own else np.zeros((0, 7)),
+            ]
+        )
+        for f in wanted
+    }
+    # Every pseudo-label placed once: (source frame, its boxes in every frame, visible frames, class).
+    placed = []
     for source in sorted(own):
         _, boxes, class_ids = own[source]
         for box, class_id in zip(boxes, class_ids):
-            if names[int(class_id)] in MOVING_CLASSES:
-                continue
-            placement = place_box(world, source, box)
-            for f in np.flatnonzero(placement.visible_mask).tolist():
-                if f == source or f not in wanted:
-                    continue
-                there = placement.boxes[f]
-                if len(taken[f]) and on_labelled_object(
-                    float(box_iou_3d(there[None], taken[f]).max()), HIDE_LABELLED_IOU
-                ):
-                    continue
-                taken[f] = np.concatenate([taken[f], there[None]])
-                carried.setdefault(f, []).append((there, int(class_id)))
+            if names[int(class_id)] not in MOVING_CLASSES:
+                placement = place_box(world, source, box)
+                placed.append((source, placement.boxes, placement.visible_mask, int(class_id)))
     out = dict(own)
-    for f, items in carried.items():
-        sets, boxes, class_ids = out.get(f, ([], np.zeros((0, 7)), np.zeros(0, np.int64)))
-        out[f] = (
-            [*sets, *[()] * len(items)],
-            np.concatenate([boxes, np.asarray([b for b, _ in items], np.float64)]),
-            np.concatenate([class_ids, np.asarray([c for _, c in items], np.int64)]),
-        )
+    for f in wanted:
+        carried = []
+        for source, boxes, visible_mask, class_id in sorted(placed, key=lambda p: abs(p[0] - f)):
+            if source == f or not visible_mask[f]:
+                continue
+            there = boxes[f]
+            if len(taken[f]) and on_labelled_object(
+                float(box_iou_3d(there[None], taken[f]).max()), HIDE_LABELLED_IOU
+            ):
+                continue
+            taken[f] = np.concatenate([taken[f], there[None]])
+            carried.append((there, class_id))
+        if carried:
+            sets, boxes, class_ids = out.get(f, ([], np.zeros((0, 7)), np.zeros(0, np.int64)))
+            out[f] = (
+                [*sets, *[()] * len(carried)],
+                np.concatenate([boxes, np.asarray([b for b, _ in carried], np.float64)]),
+                np.concatenate([class_ids, np.asarray([c for _, c in carried], np.int64)]),
+            )
     return out
+
+
+def check_carry_world(db: SessionDB, world: WorldFrames | None) -> None:
+    """Refuse (``InputError``) to carry pseudo-labels without ``world``, or with one that places
+    another number of frames than the session's data set."""
+    if world is None:
+        raise InputError("carrying pseudo-labels to other frames needs the frames placed in one world frame")
+    if world.num_frames != db.dataset.num_frames:
+        raise InputError(
+            f"the world places {world.num_frames} frames; the session's data set has {db.dataset.num_frames}"
+        )
+
+
+def _sets_on(frame: FrameProposals, patch_sets, boxes: np.ndarray) -> list[tuple[int, ...]]:
+    """Those of ``patch_sets`` (the frame's point sets, each its patch ids) whose proposal box
+    overlaps one of ``boxes`` (K, 7) at ``store.HIDE_LABELLED_IOU`` or more: on that object."""
+    box_of = {}
+    for proposal, patch_set in enumerate(frame.patch_sets):
+        box_of.setdefault(tuple(patch_set), proposal)
+    sets = [tuple(p) for p in patch_sets if tuple(p) in box_of]
+    if not sets or not len(boxes):
+        return []
+    iou = box_iou_3d(frame.proposal_boxes[[box_of[p] for p in sets]], np.asarray(boxes).reshape(-1, 7))
+    return [p for p, best in zip(sets, iou.max(axis=1)) if on_labelled_object(float(best), HIDE_LABELLED_IOU)]
 
 
 def train_session(
@@ -354,6 +393,8 @@ def train_session(
     if not frames:
         raise InputError("no training frames")
     frame_indices = [f.frame_index for f in frames]
+    if mode == "next" and settings.pseudo_label_confident is not None and settings.carry_pseudo_labels:
+        check_carry_world(db, world)  # (before anything is written)
     snapshot_id = db.snapshot_labels(frame_indices)
     labelled = with_session_labels(db, frames, db.snapshot(snapshot_id))
     reviewed = db.reviewed_patch_sets()
@@ -385,6 +426,12 @@ def train_session(
             for frame in labelled:  # (a frame without any: None boxes, kept as it is)
                 sets, boxes, class_ids = pseudo.get(frame.frame_index, (None, None, None))
                 with_pseudo.append(frame.with_pseudo_labels(boxes, class_ids, sets))
+                if sets is not None and frame.frame_index in excluded and not all(sets):
+                    # A carried one's object may be held here under another point set: the
+                    # label decides it now (its own sets are the frame's pseudo-labels', above).
+                    carried = boxes[[k for k, patch_set in enumerate(sets) if not patch_set]]
+                    on_it = _sets_on(frame, excluded[frame.frame_index], carried)
+                    excluded = _without(excluded, {frame.frame_index: on_it})
             labelled = with_pseudo
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)

@@ -352,7 +352,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "this, off every label, teach their predicted class until reviewed, as labels with the model's "
             "box (0: off; hitl: blind_safe's and reviewed_safe_K's)", float, 0.0, 1.0, 0.05, none_as=0),
     Control("carry_pseudo_labels", "Carry pseudo-labels", "with pseudo-labels, each one of an object that "
-            "stands still labels it in every training frame that shows it too (label once)", bool),
+            "stands still labels it in every training frame that shows it too (label once; hitl: "
+            "blind_safe's and reviewed_safe_K's)", bool),
     Control("recalibrate_background", "Recalibrate background", "(box head) drawn background sets the "
             "network gives this object probability or more are left out of the loss, as likely unlabelled "
             "objects (0: off; hitl: blind_safe's and reviewed_safe_K's)", float, 0.0, 1.0, 0.05,
