@@ -11,6 +11,7 @@ from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.training.settings import LoopSettings
 from tests.app.polling import wait as _wait
+from tests.fakes import queue_run
 
 
 def test_a_job_can_start_as_soon_as_the_last_one_says_done(small_dataset_dir, tmp_path):
@@ -89,6 +90,46 @@ def test_the_app_retrains_through_the_same_function_as_the_command_line(
     assert data is dataset and settings.epochs == 2 and options["mode"] == "full"
     assert front_end == model.front_end  # the shown model's front half, whole
     assert list(options["before"]) == ["before (tiny)"] and options["calibrate"] is False
+
+
+def test_carrying_pseudo_labels_waits_for_the_views_world_and_then_uses_it(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+):
+    import numpy as np
+
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.world import WorldFrames
+
+    dataset = open_dataset(small_dataset_dir)
+    state = AppState(
+        dataset,
+        db=SessionDB(open_session("s", tmp_path), dataset),
+        model=DetectionModel.load(tiny_model_path),
+        model_name="tiny",
+    )
+    state.db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {})  # (a round to go on from)
+    calls = []
+
+    def retrain_session(db, data, settings, front_end, **options):
+        calls.append(options)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
+    trainer = TrainingWorker(state, calibrate=False)
+    carry = dataclasses.replace(LoopSettings(), pseudo_label_confident=0.6, carry_pseudo_labels=True)
+    state.set_world(None, "placing the frames in one world frame: 1/3")
+    assert trainer.start("next", carry)
+    trainer.join(10)
+    # Not placed yet: refused with why, nothing trained (placing them here too would run ICP twice).
+    assert not calls and not state.training_busy
+    assert "needs the frames placed in one world frame" in state.training_status
+    assert "1/3" in state.training_status and "Carry pseudo-labels" in state.training_status
+    clouds = tuple(np.zeros((1, 3), np.float32) for _ in range(dataset.num_frames))
+    world = WorldFrames(np.stack([np.eye(4)] * dataset.num_frames), np.ones(dataset.num_frames), clouds)
+    state.set_world(world, "placed")
+    assert trainer.start("next", carry)
+    trainer.join(10)
+    assert calls[0]["mode"] == "next" and calls[0]["world"] is world  # the view's own, not a second one
 
 
 def test_a_cancel_after_the_run_is_stored_does_not_lose_it(

@@ -35,3 +35,43 @@ def test_retrain_stores_the_run_its_settings_and_the_before_after_table(
     stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
     assert stored.front_end == front_end  # carried whole into the checkpoint
     assert {"proposals", "fit", "compare"} <= set(seen)
+
+
+def test_a_next_round_that_carries_pseudo_labels_places_the_world_unless_given_one(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+):
+    from factorydet_core import workflows
+    from tests.fakes import queue_run
+
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {})
+    placed, worlds = [], []
+    monkeypatch.setattr(workflows, "cached_proposals", lambda *a, **k: [])
+    monkeypatch.setattr(
+        workflows,
+        "session_world",
+        lambda session, data, progress: placed.append(progress) or ("placed", False),
+    )
+
+    def train_session(db, frames, settings, **options):
+        worlds.append(options["world"])
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(workflows, "train_session", train_session)
+    carry = LoopSettings(pseudo_label_confident=0.6, carry_pseudo_labels=True)
+    seen = []
+    for settings, mode, world in (
+        (carry, "next", None),
+        (carry, "next", "given"),
+        (carry, "full", None),  # a first fit has no pseudo-labels
+        (LoopSettings(carry_pseudo_labels=True), "next", None),  # nothing to carry
+    ):
+        with pytest.raises(RuntimeError, match="stop here"):
+            retrain_session(
+                db, dataset, settings, PRESETS["agv"], mode=mode, calibrate=False, world=world,
+                progress=lambda what, k, n: seen.append(what),
+            )  # fmt: skip
+    assert worlds == ["placed", "given", None, None] and len(placed) == 1
+    placed[0](1, 3)
+    assert seen[-1] == "world"  # its progress is reported as the run's

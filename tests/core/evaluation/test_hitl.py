@@ -108,6 +108,19 @@ def test_each_detector_trains_with_what_its_run_plan_says_shapes_it():
     # Pseudo-labels are labels with the model's box: whether those teach boxes shapes blind_safe.
     boxes = {**with_pseudo, "settings": {**with_pseudo["settings"], "model_box_targets": True}}
     assert _run_plan(boxes, "blind_safe") != _run_plan(with_pseudo, "blind_safe")
+    # Carrying them is the holding detectors' too, and shapes nothing without pseudo-labels.
+    carry = dataclasses.replace(pseudo, carry_pseudo_labels=True)
+    assert not _seed_settings(carry, "blind", 3, None).carry_pseudo_labels
+    assert not _seed_settings(carry, "reviewed_200", 3, None).carry_pseudo_labels
+    assert _seed_settings(carry, "reviewed_safe_200", 3, 0.35).carry_pseudo_labels
+    with_carry = {**plan, "settings": dataclasses.asdict(carry)}
+    assert _run_plan(with_carry, "blind_safe") != _run_plan(with_pseudo, "blind_safe")
+    assert _run_plan(with_carry, "blind") == _run_plan(with_pseudo, "blind")
+    carry_alone = {
+        **plan,
+        "settings": dataclasses.asdict(dataclasses.replace(settings, carry_pseudo_labels=True)),
+    }
+    assert _run_plan(carry_alone, "blind_safe") == _run_plan(plan, "blind_safe")
     no_pseudo_boxes = {**plan, "settings": {**plan["settings"], "model_box_targets": True}}
     assert _run_plan(no_pseudo_boxes, "blind_safe") == _run_plan(plan, "blind_safe")
 

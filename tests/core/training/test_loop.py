@@ -295,10 +295,58 @@ def test_pseudo_labels_of_standing_objects_are_carried_to_the_training_frames_th
     )
     own = session_pseudo_labels(db, settings, [0, 1], world)[1]
     assert own[0] == [(7,)] and len(own[1]) == 1
+    # A world of other data is refused.
+    with pytest.raises(InputError, match="places 2 frames"):
+        session_pseudo_labels(
+            db, settings, [0, 1], WorldFrames(np.stack([np.eye(4)] * 2), np.ones(2), (both, both))
+        )
     db.add_label(1, walking + [0, 0, 0, 0, 0, 0, 0.1], "box", "ann")  # (a label elsewhere changes nothing)
     db.add_label(1, standing, "cone", "ann")
     sets, boxes, _ = session_pseudo_labels(db, settings, [0, 1], world).get(1, ([], np.zeros((0, 7)), None))
     assert sets == [] and not len(boxes)
+
+
+def test_carried_pseudo_labels_stay_off_what_a_person_rejected_and_come_from_the_nearest_frame(
+    dataset, tmp_path, tiny_model_path
+):
+    from factorydet_core.session.world import WorldFrames
+
+    def cube(centre):
+        grid = np.stack(np.meshgrid(*[np.linspace(-0.3, 0.3, 4)] * 3), -1).reshape(-1, 3)
+        return (grid + centre).astype(np.float32)
+
+    standing = np.array([500.0, 500.0, 0.5, 1, 1, 1, 0])
+    # Frame 2 sits 0.2 m further along x than frames 0 and 1 think (as drift would have it): the
+    # object's box carried from frame 2 lands 0.2 m off in frames 0 and 1.
+    poses = np.stack([np.eye(4)] * 3)
+    poses[2, 0, 3] = 0.2
+    cloud = cube(standing[:3])
+    world = WorldFrames(poses, np.ones(3), (cloud, cloud, cube(standing[:3] - [0.2, 0, 0])))
+    db = SessionDB(open_session("rejected", tmp_path), dataset)
+    items = [
+        mined_item(0, 0, standing, 0.9),
+        mined_item(2, 1, standing - [0.2, 0, 0, 0, 0, 0, 0], 0.95, predicted_class="cone"),
+    ]
+    db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1, 2)), "small", {})
+    settings = LoopSettings(pseudo_label_confident=0.6, carry_pseudo_labels=True)
+    _, boxes, class_ids = session_pseudo_labels(db, settings, [0, 1, 2], world)[1]
+    # Frame 1 takes frame 0's box (the nearer frame), not frame 2's.
+    assert len(boxes) == 1 and db.class_names[int(class_ids[0])] == "box"
+    np.testing.assert_allclose(boxes[0], standing)
+    # A Background verdict on the object in frame 1 keeps carried pseudo-labels off it there.
+    mined_id = db.save_training_run(
+        queue_run(tiny_model_path, [[mined_item(1, 3, standing, 0.2)]], train_frames=(1,)), "small", {}
+    )
+    queued = [item for item in db.review_queue(mined_id) if item["frame_index"] == 1]
+    db.review([queued[0]["id"]], "background", "ann")
+    assert 1 not in session_pseudo_labels(db, settings, [0, 1, 2], world)
+    assert len(db.rejected_boxes([1])[1]) == 1 and not len(db.rejected_boxes([0])[0])
+    db.review([queued[0]["id"]], "skip", "ann")
+    assert 1 in session_pseudo_labels(db, settings, [0, 1, 2], world)
+    # So does a label someone deleted there.
+    added = db.add_label(1, standing, "box", "ann")
+    db.delete_labels([added.id], "ann")
+    assert 1 not in session_pseudo_labels(db, settings, [0, 1, 2], world)
 
 
 def test_the_simulated_reviewer_answers_items_on_labelled_objects_as_negatives(
@@ -571,6 +619,74 @@ def test_confident_negatives_teach_their_class_in_a_next_round_when_asked(
             assert trained.label_own_sets[-1] == tuple(items[0]["patch_set"])  # its set is the object
             assert (items[0]["group"],) not in excluded | background
         assert len(seen["frames"][1].label_boxes) == len(db.frame_boxes(1)[0])
+
+
+def test_a_next_round_carries_pseudo_labels_and_the_label_decides_a_held_set_of_the_object(
+    dataset, frames, tiny_model_path, tmp_path, monkeypatch
+):
+    """``carry_pseudo_labels``: the frames a next round trains on get the carried labels, a held
+    point set of the object in a frame it is carried to is no longer left out, and without the
+    world placed the round is refused before anything is written."""
+    import dataclasses
+
+    from factorydet_core.session.world import WorldFrames
+
+    db = SessionDB(open_session("carry-round", tmp_path), dataset)
+    target = frames[1]
+    off = np.flatnonzero(box_iou_3d(target.proposal_boxes, db.frame_boxes(1)[0]).max(axis=1) == 0.0)
+    k = int(off[0])
+    box = target.proposal_boxes[k]
+    on_0 = box_iou_3d(box[None], db.frame_boxes(0)[0]).max(initial=0.0)
+    assert on_0 < 0.25  # (the same place in frame 0, with the world's identity poses, is off its labels too)
+
+    def item(frame_index, patch_set, score):
+        return {
+            **mined_item(frame_index, 0, box, score, predicted_class="cone"),
+            "patch_set": list(patch_set),
+        }
+
+    held_set = tuple(int(p) for p in target.patch_sets[k])
+    items = [item(0, (9999,), 0.9), item(1, held_set, 0.5)]
+    db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
+    grid = np.stack(np.meshgrid(*[np.linspace(-0.2, 0.2, 3)] * 3), -1).reshape(-1, 3)
+    cloud = (grid + box[:3]).astype(np.float32)
+    world = WorldFrames(np.stack([np.eye(4)] * 3), np.ones(3), (cloud, cloud, cloud))
+    seen = {}
+
+    class CapturedError(Exception):
+        pass
+
+    def capture(frames, *args, **kwargs):
+        seen.update(frames=frames, **kwargs)
+        raise CapturedError
+
+    monkeypatch.setattr("factorydet_core.training.loop.train_with_mining", capture)
+    settings = LoopSettings(
+        **{
+            **SETTINGS.__dict__,
+            "hold_confident": 0.4,
+            "pseudo_label_confident": 0.6,
+            "carry_pseudo_labels": True,
+        }
+    )
+    snapshots = []
+    snapshot = db.snapshot_labels
+    monkeypatch.setattr(db, "snapshot_labels", lambda indices: snapshots.append(indices) or snapshot(indices))
+    with pytest.raises(InputError, match="world frame"):
+        train_session(db, frames, settings, mode="next")
+    assert not snapshots  # refused before anything was written
+    with pytest.raises(CapturedError):
+        train_session(db, frames, settings, mode="next", world=world)
+    trained = seen["frames"][1]
+    assert len(trained.label_boxes) == len(db.frame_boxes(1)[0]) + 1
+    np.testing.assert_allclose(trained.label_boxes[-1], box)
+    assert trained.label_own_sets[-1] == ()
+    assert held_set not in set(seen["excluded_sets"].get(1, []))
+    # Not carried: the set stays held.
+    with pytest.raises(CapturedError):
+        train_session(db, frames, dataclasses.replace(settings, carry_pseudo_labels=False), mode="next")
+    assert held_set in set(seen["excluded_sets"].get(1, []))
+    assert len(seen["frames"][1].label_boxes) == len(db.frame_boxes(1)[0])
 
 
 def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refit_it(db, frames, monkeypatch):
