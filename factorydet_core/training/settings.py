@@ -90,9 +90,11 @@ class LoopSettings:
     """With ``pseudo_label_confident``, each pseudo-label of an object that stands still (not
     ``session.world.MOVING_CLASSES``) also labels its object in every other training frame that
     shows it (``session.world.place_box``: the frames placed in one world frame), as a reviewer's
-    Object verdict does, except where a label or another pseudo-label is on that object there
-    already. A pseudo-label mined in one frame teaches its object once; carried, it teaches it
-    wherever the training frames see it."""
+    Object verdict does, except where a label, another pseudo-label or a box a person rejected
+    (``SessionDB.rejected_boxes``) is on that object there. Off by default: on held-out
+    factories (``bench hitl`` at 50% unannotated, docs/labelling.md) it changed nothing
+    measurable, as most carried labels land on views too sparse for the annotation policy (a
+    frame shows an object from one point) or on no object."""
     recalibrate_background: float | None = None
     """Background recalibration (the learned box head's methods): in a fit that goes on from a
     model (mining rounds, next rounds), a background set drawn at random (not a mined or reviewed
