@@ -251,6 +251,12 @@ def test_pseudo_labels_are_judged_by_the_truth(dataset, tmp_path, tiny_model_pat
     assert pseudo_label_truth(db, dataset, carried)["carried"]["object"] == 1
 
 
+def _cube(centre, half_m: float = 0.3) -> np.ndarray:
+    """(64, 3) float32: a 4 x 4 x 4 grid of points filling a cube around ``centre`` (3,)."""
+    grid = np.stack(np.meshgrid(*[np.linspace(-half_m, half_m, 4)] * 3), -1).reshape(-1, 3)
+    return (grid + centre).astype(np.float32)
+
+
 def test_pseudo_labels_of_standing_objects_are_carried_to_the_training_frames_that_show_them(
     dataset, tmp_path, tiny_model_path
 ):
@@ -259,15 +265,11 @@ def test_pseudo_labels_of_standing_objects_are_carried_to_the_training_frames_th
     person's stays in its frame."""
     from factorydet_core.session.world import WorldFrames
 
-    def cube(centre):
-        grid = np.stack(np.meshgrid(*[np.linspace(-0.3, 0.3, 4)] * 3), -1).reshape(-1, 3)
-        return (grid + centre).astype(np.float32)
-
     standing = np.array([500.0, 500.0, 0.5, 1, 1, 1, 0])
     walking = np.array([520.0, 500.0, 0.9, 0.7, 0.7, 1.8, 0])
-    both = np.concatenate([cube(standing[:3]), cube(walking[:3])])
+    both = np.concatenate([_cube(standing[:3]), _cube(walking[:3])])
     # Frames 0 and 1 see both objects; frame 2 sees the standing one, frame 2 is no training frame.
-    world = WorldFrames(np.stack([np.eye(4)] * 3), np.ones(3), (both, both, cube(standing[:3])))
+    world = WorldFrames(np.stack([np.eye(4)] * 3), np.ones(3), (both, both, _cube(standing[:3])))
     db = SessionDB(open_session("carry", tmp_path), dataset)
     items = [
         mined_item(0, 0, standing, 0.9, predicted_class="box"),
@@ -311,17 +313,13 @@ def test_carried_pseudo_labels_stay_off_what_a_person_rejected_and_come_from_the
 ):
     from factorydet_core.session.world import WorldFrames
 
-    def cube(centre):
-        grid = np.stack(np.meshgrid(*[np.linspace(-0.3, 0.3, 4)] * 3), -1).reshape(-1, 3)
-        return (grid + centre).astype(np.float32)
-
     standing = np.array([500.0, 500.0, 0.5, 1, 1, 1, 0])
     # Frame 2 sits 0.2 m further along x than frames 0 and 1 think (as drift would have it): the
     # object's box carried from frame 2 lands 0.2 m off in frames 0 and 1.
     poses = np.stack([np.eye(4)] * 3)
     poses[2, 0, 3] = 0.2
-    cloud = cube(standing[:3])
-    world = WorldFrames(poses, np.ones(3), (cloud, cloud, cube(standing[:3] - [0.2, 0, 0])))
+    cloud = _cube(standing[:3])
+    world = WorldFrames(poses, np.ones(3), (cloud, cloud, _cube(standing[:3] - [0.2, 0, 0])))
     db = SessionDB(open_session("rejected", tmp_path), dataset)
     items = [
         mined_item(0, 0, standing, 0.9),
@@ -530,6 +528,23 @@ def test_the_reviewer_by_place_answers_an_object_mined_in_two_frames_once_and_la
     assert len({lab.frame_index for lab in labels}) == len(labels)  # once in each frame
 
 
+class _CapturedError(Exception):
+    """Raised by ``_capture_training``'s stand-in for ``train_with_mining``."""
+
+
+def _capture_training(monkeypatch) -> dict:
+    """What ``train_session`` hands ``train_with_mining`` (its frames and keyword arguments), in
+    the dict returned; the stand-in then raises ``_CapturedError``."""
+    seen: dict = {}
+
+    def capture(frames, *args, **kwargs):
+        seen.update(frames=frames, **kwargs)
+        raise _CapturedError
+
+    monkeypatch.setattr("factorydet_core.training.loop.train_with_mining", capture)
+    return seen
+
+
 def test_held_negatives_hold_their_places_when_asked(dataset, frames, tiny_model_path, tmp_path, monkeypatch):
     """``hold_places``: the next round's frames leave out every point set on a held box (off the
     labels), not only the mined set; without it, or below the hold score, they do not."""
@@ -548,19 +563,10 @@ def test_held_negatives_hold_their_places_when_asked(dataset, frames, tiny_model
     items = [mined_item(0, group, box, 0.9), mined_item(0, group + 1, box + [0, 0, 0, 0, 0, 0, 0.1], 0.2)]
     db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
 
-    seen = {}
-
-    class CapturedError(Exception):
-        pass
-
-    def capture(frames, *args, **kwargs):
-        seen["frames"] = frames
-        raise CapturedError
-
-    monkeypatch.setattr("factorydet_core.training.loop.train_with_mining", capture)
+    seen = _capture_training(monkeypatch)
     for hold_places in (False, True):
         settings = LoopSettings(**{**SETTINGS.__dict__, "hold_confident": 0.5, "hold_places": hold_places})
-        with pytest.raises(CapturedError):
+        with pytest.raises(_CapturedError):
             train_session(db, frames, settings, mode="next", data_ref="small")
         held = seen["frames"][0]
         if hold_places:
@@ -588,21 +594,12 @@ def test_confident_negatives_teach_their_class_in_a_next_round_when_asked(
         for k, score in ((sure, 0.9), (unsure, 0.5))
     ]
     db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
-    seen = {}
-
-    class CapturedError(Exception):
-        pass
-
-    def capture(frames, *args, **kwargs):
-        seen.update(frames=frames, **kwargs)
-        raise CapturedError
-
-    monkeypatch.setattr("factorydet_core.training.loop.train_with_mining", capture)
+    seen = _capture_training(monkeypatch)
     for pseudo in (None, 0.6):
         settings = LoopSettings(
             **{**SETTINGS.__dict__, "hold_confident": 0.4, "pseudo_label_confident": pseudo}
         )
-        with pytest.raises(CapturedError):
+        with pytest.raises(_CapturedError):
             train_session(db, frames, settings, mode="next", data_ref="small")
         trained = seen["frames"][0]
         excluded = set(seen["excluded_sets"].get(0, []))
@@ -648,19 +645,9 @@ def test_a_next_round_carries_pseudo_labels_and_the_label_decides_a_held_set_of_
     held_set = tuple(int(p) for p in target.patch_sets[k])
     items = [item(0, (9999,), 0.9), item(1, held_set, 0.5)]
     db.save_training_run(queue_run(tiny_model_path, [items], train_frames=(0, 1)), "small", {})
-    grid = np.stack(np.meshgrid(*[np.linspace(-0.2, 0.2, 3)] * 3), -1).reshape(-1, 3)
-    cloud = (grid + box[:3]).astype(np.float32)
+    cloud = _cube(box[:3], half_m=0.2)
     world = WorldFrames(np.stack([np.eye(4)] * 3), np.ones(3), (cloud, cloud, cloud))
-    seen = {}
-
-    class CapturedError(Exception):
-        pass
-
-    def capture(frames, *args, **kwargs):
-        seen.update(frames=frames, **kwargs)
-        raise CapturedError
-
-    monkeypatch.setattr("factorydet_core.training.loop.train_with_mining", capture)
+    seen = _capture_training(monkeypatch)
     settings = LoopSettings(
         **{
             **SETTINGS.__dict__,
@@ -675,7 +662,7 @@ def test_a_next_round_carries_pseudo_labels_and_the_label_decides_a_held_set_of_
     with pytest.raises(InputError, match="world frame"):
         train_session(db, frames, settings, mode="next")
     assert not snapshots  # refused before anything was written
-    with pytest.raises(CapturedError):
+    with pytest.raises(_CapturedError):
         train_session(db, frames, settings, mode="next", world=world)
     trained = seen["frames"][1]
     assert len(trained.label_boxes) == len(db.frame_boxes(1)[0]) + 1
@@ -683,7 +670,7 @@ def test_a_next_round_carries_pseudo_labels_and_the_label_decides_a_held_set_of_
     assert trained.label_own_sets[-1] == ()
     assert held_set not in set(seen["excluded_sets"].get(1, []))
     # Not carried: the set stays held.
-    with pytest.raises(CapturedError):
+    with pytest.raises(_CapturedError):
         train_session(db, frames, dataclasses.replace(settings, carry_pseudo_labels=False), mode="next")
     assert held_set in set(seen["excluded_sets"].get(1, []))
     assert len(seen["frames"][1].label_boxes) == len(db.frame_boxes(1)[0])
