@@ -208,7 +208,7 @@ class TrainingWorker:
             # (the world the view placed for label once, if it is done: carried pseudo-labels use it)
             before, before_name, world = state.model, state.model_name, state.world
             world_status = state.world_status
-        if mode == "next" and settings.pseudo_label_confident is not None and settings.carry_pseudo_labels:
+        if mode == "next" and settings.carries_pseudo_labels:
             if world is None:
                 # (placing them here too would run ICP twice on the same cores, with the view's
                 # extrinsics or not)

@@ -98,12 +98,7 @@ def retrain_session(
         detector.calibrate(dataset.frame(train[0]))
     propose = proposer(execution)
     frames = cached_proposals(db, dataset, detector, train, progress, propose)
-    if (
-        world is None
-        and mode == "next"
-        and settings.carry_pseudo_labels
-        and settings.pseudo_label_confident is not None
-    ):
+    if world is None and mode == "next" and settings.carries_pseudo_labels:
         world, _ = session_world(
             db.session, dataset, progress=lambda done, total: report("world", done, total)
         )

@@ -763,17 +763,15 @@ def _run_plan(plan: dict, variant: str) -> dict:
     record grows by a detector without training the others again."""
     out = {k: v for k, v in plan.items() if k not in ("seeds", "variants", "budgets")}
     untouched = set()
+    settings = out.get("settings") if isinstance(out.get("settings"), dict) else {}
     if not variant.startswith("reviewed_"):
         out.pop("review_by", None)
         out.pop("queue_max_label_iou", None)
         out.pop("review_best_view", None)
         untouched |= {"review_order", "review_extra"}  # the queue, which nobody reviews
-        settings = out.get("settings") if isinstance(out.get("settings"), dict) else {}
         if not (holds(variant) and settings.get("pseudo_label_confident") is not None):
             untouched.add("model_box_targets")  # no verdict nor pseudo-label: no label with the model's box
-    if (out.get("settings") if isinstance(out.get("settings"), dict) else {}).get(
-        "pseudo_label_confident"
-    ) is None:
+    if settings.get("pseudo_label_confident") is None:
         untouched.add("carry_pseudo_labels")  # no pseudo-label to carry
     if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
@@ -886,9 +884,7 @@ def _hitl_variants(
                     f"{dataset.name}'s {list(dataset.class_names)}"
                 )
         proposal_seconds = round(time.perf_counter() - start, 1)
-        if plan.review_by == "place" or (
-            settings.carry_pseudo_labels and settings.pseudo_label_confident is not None
-        ):
+        if plan.review_by == "place" or settings.carries_pseudo_labels:
             from factorydet_core.session.world import session_world
 
             world, _ = session_world(scratch.session, dataset)
@@ -915,7 +911,7 @@ def _hitl_variants(
             for r in range(rounds + 1):
                 _, run = train_session(
                     db, train_frames, seed_settings, mode="full" if r == 0 else "next", data_ref=str(data),
-                    world=world if seed_settings.carry_pseudo_labels else None,
+                    world=world,
                 )  # fmt: skip
                 fit_seconds += sum(x["fit_seconds"] for x in run.rounds)
                 if name == "full_late" and r == 0:

@@ -35,6 +35,7 @@ from factorydet_core.session.store import (
     HIDE_LABELLED_IOU,
     MODEL_BOX_ORIGINS,
     SessionDB,
+    label_arrays,
     on_labelled_object,
     read_cache,
     write_cache,
@@ -277,19 +278,20 @@ def session_pseudo_labels(
     """
     if settings.pseudo_label_confident is None:
         return {}
-    if settings.carry_pseudo_labels:
+    if settings.carries_pseudo_labels:
         check_carry_world(db, world)
     own = db.pseudo_labels(settings.pseudo_label_confident)
-    if not settings.carry_pseudo_labels:
+    if not settings.carries_pseudo_labels:
         return own
     wanted = sorted({int(f) for f in frame_indices})
     names = db.class_names
     rejected = db.rejected_boxes(wanted)
+    labels = db.frame_labels(wanted)  # (every frame's in one read)
     # Per frame, the boxes a carried pseudo-label must stay off.
     taken = {
         f: np.concatenate(
             [
-                np.asarray(db.frame_boxes(f)[0], np.float64).reshape(-1, 7),
+                np.asarray(label_arrays(labels[f], names)[0], np.float64).reshape(-1, 7),
                 rejected[f],
                 own[f][1] if f in own else np.zeros((0, 7)),
             ]
@@ -393,7 +395,7 @@ def train_session(
     if not frames:
         raise InputError("no training frames")
     frame_indices = [f.frame_index for f in frames]
-    if mode == "next" and settings.pseudo_label_confident is not None and settings.carry_pseudo_labels:
+    if mode == "next" and settings.carries_pseudo_labels:
         check_carry_world(db, world)  # (before anything is written)
     snapshot_id = db.snapshot_labels(frame_indices)
     labelled = with_session_labels(db, frames, db.snapshot(snapshot_id))

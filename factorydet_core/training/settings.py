@@ -180,6 +180,13 @@ class LoopSettings:
             return self.visibility
         return dataset is None or dataset.num_sensors > 1
 
+    @property
+    def carries_pseudo_labels(self) -> bool:
+        """Whether a next round carries pseudo-labels to other frames: ``carry_pseudo_labels``
+        with pseudo-labels on (``pseudo_label_confident``); it then needs the frames placed in
+        one world frame."""
+        return self.carry_pseudo_labels and self.pseudo_label_confident is not None
+
     method: str = DEFAULT_METHOD
     """"paper": the 3DmFV-Net classifier and the size prior's box options (with ``box_quality``);
     "box_head": the learned box head (``box_head.BoxHead``), which classifies and boxes each point
