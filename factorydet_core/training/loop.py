@@ -456,6 +456,7 @@ def train_session(
         fragments_per_frame=settings.fragments_per_frame,
         score_threshold=settings.score_threshold,
         tune_class_thresholds=settings.class_thresholds,
+        threshold_folds=settings.threshold_folds,
         probability_exponent=settings.probability_exponent,
         mining_threshold=settings.mining_threshold,
         nms_iou=settings.nms_iou,

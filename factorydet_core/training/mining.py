@@ -516,6 +516,47 @@ def with_tuned_thresholds(
     )
 
 
+def check_threshold_folds(folds: int) -> int:
+    """``folds`` if it is 0 (off) or an integer of at least 2; ``InputError`` otherwise."""
+    if isinstance(folds, bool) or not isinstance(folds, (int, np.integer)) or folds < 0 or folds == 1:
+        raise InputError(f"threshold_folds must be 0 (off) or an integer >= 2, got {folds!r}")
+    return int(folds)
+
+
+def _out_of_fold_scored(
+    frames: list[FrameProposals],
+    num_folds: int,
+    classifier: ProposalClassifier | BoxHead,
+    fit: Callable,
+    model_of: Callable,
+    score: Scorer,
+    progress: Progress | None,
+    should_stop: Callable[[], bool] | None,
+) -> list[dict]:
+    """``score``'s items for every frame, each frame scored by a model fitted afresh (``classifier``'s
+    settings, ``fit``) on the frames of the other folds: ``num_folds`` contiguous runs of frame
+    indices, so that a fold is a stretch of the drive whose objects its model mostly never saw.
+    A fold whose other folds hold no object is left out (nothing would score it). Items keep the
+    order of ``frames``."""
+    order = sorted(range(len(frames)), key=lambda k: frames[k].frame_index)
+    folds = [[int(j) for j in block] for block in np.array_split(np.asarray(order), num_folds) if len(block)]
+    out: dict[int, dict] = {}
+    for k, fold in enumerate(folds):
+        in_fold = set(fold)
+        rest = [frames[j] for j in order if j not in in_fold]
+
+        def fold_progress(epoch, epochs, k=k):
+            progress("threshold folds", k * epochs + epoch, len(folds) * epochs)
+
+        fit_progress = None if progress is None else fold_progress
+        fitted, _ = fit(dataclasses.replace(classifier), rest, None, fit_progress)
+        if fitted is None:
+            continue
+        scored = score(model_of(fitted), [frames[j] for j in fold], SCORE_FLOOR, None, should_stop)
+        out.update(zip(fold, scored))
+    return [out[k] for k in range(len(frames)) if k in out]
+
+
 def train_with_mining(
     frames: list[FrameProposals],
     classifier: ProposalClassifier,
@@ -551,6 +592,7 @@ def train_with_mining(
     queue_order: str = "score",
     review_extra: int | None = 0,
     model_box_targets: bool = True,
+    threshold_folds: int = 0,
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -643,6 +685,17 @@ def train_with_mining(
             classifier's probabilities differ in scale between classes, and one threshold drops
             a whole class (``docs/default_model_validation.json``). ``False``: ``score_threshold``
             for all.
+        threshold_folds: with ``tune_class_thresholds`` and 2 or more, the last round's model is
+            tuned instead on scores no model fitted: the frames are cut into this many folds
+            (contiguous runs of frame indices: stretches of the drive), each fold's frames are
+            scored by a model of ``classifier``'s settings fitted afresh on the other folds'
+            point sets as they stand after the last round (``_out_of_fold_scored``), and each
+            class's threshold is the best on all of them together, with no ceiling. Scores on
+            fitted frames run high, so thresholds tuned there are too high and
+            ``score_threshold`` caps them; the cap holds every class at the operating score
+            whatever the labels taught. Costs about one more fit of ``classifier``'s epochs.
+            The round's record gets ``threshold_folds``: the folds, their seconds, the thresholds
+            and those the fitted frames would have given. 0: tuned on the fitted frames.
         probability_exponent: with ``box_quality``, the model's score is the class probability
             to this power times the predicted IoU (``DetectionModel.probability_exponent``); it
             ranks the mined negatives too. 1 is the plain product; the command line and the app
@@ -674,6 +727,9 @@ def train_with_mining(
         raise InputError(f"pseudo_label_score must lie in (0, 1] or be None, got {pseudo_label_score}")
     if init_model is not None and not round_epochs:
         raise InputError("init_model is trained on for round_epochs epochs: set round_epochs > 0")
+    check_threshold_folds(threshold_folds)
+    if threshold_folds > len(frames):
+        raise InputError(f"threshold_folds: {threshold_folds} folds of {len(frames)} training frames")
     background_id = classifier.background_id
     num_classes = len(classifier.class_names)
     is_head = isinstance(classifier, BoxHead)
@@ -761,6 +817,49 @@ def train_with_mining(
         if progress is not None:
             progress("box quality", 1, 1)
 
+    def fit(trainer, fit_frames, start_from, fit_progress):
+        """``trainer`` fitted on ``fit_frames``' sets as they stand; ``(fitted, labels)``, or
+        ``(None, labels)`` when no set is an object."""
+        if is_head:
+            samples, hard = _head_training_set(
+                fit_frames, frame_labels, frame_owners, background, excluded, targets_of
+            )
+            if not (samples.labels != background_id).any():
+                return None, samples.labels
+            fitted = trainer.fit(
+                samples,
+                box_prior.sizes,
+                hard,
+                progress=fit_progress,
+                should_stop=should_stop,
+                init_model=start_from,
+            )
+            return fitted, samples.labels
+        features, descriptors, labels = _training_set(
+            fit_frames, frame_labels, background, background_id, annotation_positives
+        )
+        if not (labels != background_id).any():
+            return None, labels
+        fitted = trainer.fit(
+            features,
+            labels,
+            descriptors,
+            progress=fit_progress,
+            should_stop=should_stop,
+            init_model=start_from,
+        )
+        return fitted, labels
+
+    def model_of(fitted) -> DetectionModel:
+        return DetectionModel(
+            fitted,
+            box_prior,
+            score_threshold,
+            nms_iou,
+            box_quality=quality,
+            probability_exponent=probability_exponent,
+        )
+
     records, models = [], []
     previous = init_model
     for round_index in range(rounds + 1):
@@ -771,49 +870,34 @@ def train_with_mining(
             if start_from is None
             else dataclasses.replace(classifier, epochs=round_epochs)
         )
-        if is_head:
-            samples, hard = _head_training_set(
-                frames, frame_labels, frame_owners, background, excluded, targets_of
-            )
-            labels = samples.labels
-            if not (labels != background_id).any():
-                raise InputError("no point set lies in an annotated box: nothing to learn from")
-            fitted = trainer.fit(
-                samples,
-                box_prior.sizes,
-                hard,
-                progress=fit_progress,
-                should_stop=should_stop,
-                init_model=start_from,
-            )
-        else:
-            features, descriptors, labels = _training_set(
-                frames, frame_labels, background, background_id, annotation_positives
-            )
-            if not (labels != background_id).any():
-                raise InputError(
-                    f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
-                )
-            fitted = trainer.fit(
-                features,
-                labels,
-                descriptors,
-                progress=fit_progress,
-                should_stop=should_stop,
-                init_model=start_from,
+        fitted, labels = fit(trainer, frames, start_from, fit_progress)
+        if fitted is None:
+            raise InputError(
+                "no point set lies in an annotated box: nothing to learn from"
+                if is_head
+                else f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
             )
         previous = fitted
-        model = DetectionModel(
-            fitted,
-            box_prior,
-            score_threshold,
-            nms_iou,
-            box_quality=quality,
-            probability_exponent=probability_exponent,
-        )
+        model = model_of(fitted)
         start = time.perf_counter()
         scored = score(model, frames, min(SCORE_FLOOR, mining_threshold), progress, should_stop)
-        if tune_class_thresholds:
+        folds_record = None
+        if tune_class_thresholds and threshold_folds and round_index == rounds:
+            # The last model's thresholds, tuned where no model fitted: each fold's frames scored
+            # by a model fitted afresh on the other folds' (the sets as they stand now).
+            fold_start = time.perf_counter()
+            out_of_fold = _out_of_fold_scored(
+                frames, threshold_folds, classifier, fit, model_of, score, progress, should_stop
+            )
+            fitted_frames = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
+            model = with_tuned_thresholds(model, out_of_fold, positive_iou)
+            folds_record = {
+                "folds": threshold_folds,
+                "seconds": round(time.perf_counter() - fold_start, 2),
+                "thresholds": dict(model.class_score_thresholds or {}),
+                "fitted_frame_thresholds": dict(fitted_frames.class_score_thresholds or {}),
+            }
+        elif tune_class_thresholds:
             model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
         metrics = detection_metrics(
             scored, fitted.class_names, positive_iou, score_threshold, model.class_thresholds()
@@ -838,6 +922,8 @@ def train_with_mining(
             "train_metrics": metrics,
             "mined": [],
         }
+        if folds_record is not None:
+            record["threshold_folds"] = folds_record
         if round_index < rounds or mine_after_last:
             mined = []
             for frame, item in zip(frames, scored):

@@ -56,6 +56,12 @@ class LoopSettings:
     """Give the model a threshold per class, tuned on the training frames' labels
     (``train_with_mining``'s ``tune_class_thresholds``); ``score_threshold`` is then the fallback
     of classes without a labelled match."""
+    threshold_folds: int = 0
+    """With ``class_thresholds``, 2 or more tunes the thresholds on scores of frames no model
+    fitted: the training frames cut into this many stretches of the drive, each scored by a model
+    fitted afresh on the others (``train_with_mining``'s ``threshold_folds``; about one more fit),
+    with no ceiling. 0 tunes them on the frames the model fitted, where scores run high, so none
+    may exceed ``score_threshold``."""
     mining_threshold: float | None = MINING_THRESHOLD
     """Least score of a mined (and queued) false positive; ``None``: the operating threshold. The
     paper collects every false positive and adds the top N by score; with box quality a score is a
@@ -206,6 +212,9 @@ class LoopSettings:
         if self.review_order is not None and self.review_order not in REVIEW_ORDERS:
             orders = ", ".join(REVIEW_ORDERS)
             raise InputError(f"review_order must be one of {orders} or None, got {self.review_order!r}")
+        folds = self.threshold_folds
+        if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0 or folds == 1:
+            raise InputError(f"threshold_folds must be 0 (off) or an integer >= 2, got {folds!r}")
         extra = self.review_extra
         if extra is not None and (isinstance(extra, bool) or not isinstance(extra, int) or extra < 0):
             raise InputError(f"review_extra must be an integer >= 0 or None, got {extra!r}")
@@ -351,6 +360,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "least this; the top N by score go to the background", float, 0.0, 1.0, 0.01),
     Control("class_thresholds", "Per-class thresholds", "each class's own operating threshold, tuned on the "
             "training frames' labels (off: the score threshold for every class)", bool),
+    Control("threshold_folds", "Threshold folds", "with per-class thresholds, tune them on stretches of "
+            "the drive each scored by a model fitted without it, with no ceiling (about one more fit; 0: on "
+            "the fitted frames, never above the score threshold)", int, 0, 20, 1),
     Control("hold_confident", "Hold confident negatives", "mined negatives scoring at least this are neither "
             "background nor object until reviewed (0: off, every mined negative is background, as the "
             "paper)", float, 0.0, 1.0, 0.05, none_as=0),

@@ -738,3 +738,63 @@ def test_the_box_targets_are_every_label_or_those_that_are_not_the_models(frames
         frame.with_labels(
             frame.label_boxes, frame.label_class_ids, model_box_mask=np.zeros(len(frame.label_boxes) + 1)
         )
+
+
+def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkeypatch):
+    events, tunings = [], []
+    real_training_set, real_tuning = training._training_set, training.tune_thresholds
+
+    def spy_training_set(fit_frames, *args, **kwargs):
+        events.append(("fit", sorted(f.frame_index for f in fit_frames)))
+        return real_training_set(fit_frames, *args, **kwargs)
+
+    def spy_score(model, score_frames_, *args):
+        events.append(("score", sorted(f.frame_index for f in score_frames_)))
+        return score_frames(model, score_frames_, *args)
+
+    def spy_tuning(scored, class_names, iou_threshold, max_threshold):
+        tunings.append((len(scored), max_threshold))
+        real_tuning(scored, class_names, iou_threshold, max_threshold=max_threshold)  # (it runs)
+        out = np.full(len(class_names), np.nan)
+        out[1] = 0.25 if max_threshold < 1 else 0.7  # bobbins: capped on fitted frames, not beyond
+        return out
+
+    monkeypatch.setattr(training, "_training_set", spy_training_set)
+    monkeypatch.setattr(training, "tune_thresholds", spy_tuning)
+    classifier = ProposalClassifier(width=0.0625, epochs=1, num_threads=1)
+    run = train_with_mining(
+        frames, classifier, rounds=1, initial_negatives=100, score_threshold=0.3, threshold_folds=2,
+        score=spy_score,
+    )  # fmt: skip
+    both = sorted(f.frame_index for f in frames)
+    first, second = both
+    # Each round fits and scores every frame; then each fold's frame is scored by a model fitted
+    # on the other alone.
+    assert events == [
+        ("fit", both), ("score", both), ("fit", both), ("score", both),
+        ("fit", [second]), ("score", [first]), ("fit", [first]), ("score", [second]),
+    ]  # fmt: skip
+    # Round 0 on its fitted frames under the ceiling; the last on its fitted frames under the
+    # ceiling (for the record), then on the out-of-fold scores without one.
+    assert tunings == [(2, 0.3), (2, 0.3), (2, 1.0)]
+    assert run.model.class_score_thresholds == {"bobbin": 0.7}
+    assert run.models[0].class_score_thresholds == {"bobbin": 0.25}
+    folds = run.rounds[-1]["threshold_folds"]
+    assert folds["folds"] == 2 and folds["seconds"] > 0
+    assert folds["thresholds"] == {"bobbin": 0.7} and folds["fitted_frame_thresholds"] == {"bobbin": 0.25}
+    assert "threshold_folds" not in run.rounds[0]
+    # The record's metrics are the model's as it is returned.
+    assert run.rounds[-1]["train_metrics"]["class_score_thresholds"]["bobbin"] == 0.7
+    assert run.rounds[-1]["train_metrics"]["class_score_thresholds"]["box"] == 0.3
+
+
+def test_threshold_folds_are_zero_or_at_least_two_and_no_more_than_the_frames(frames):
+    from factorydet_core.training.settings import LoopSettings
+
+    for bad in (1, -1, True, 1.5):
+        with pytest.raises(InputError, match="threshold_folds"):
+            train_with_mining(frames, ProposalClassifier(epochs=1), threshold_folds=bad)
+        with pytest.raises(InputError, match="threshold_folds"):
+            LoopSettings(threshold_folds=bad)
+    with pytest.raises(InputError, match="3 folds of 2 training frames"):
+        train_with_mining(frames, ProposalClassifier(epochs=1), threshold_folds=3)
