@@ -32,11 +32,20 @@ _clock = time.perf_counter
 def epochs_left(
     mode: str, settings: LoopSettings, round_index: int, epochs_done: int, epochs_total: int
 ) -> int:
-    """Epochs still to fit in a run: the rest of the current round's, and every later round's
-    (a full retrain's rounds after the first fit ``round_epochs`` each, or ``epochs`` afresh)."""
+    """Epochs still to fit in a run: the rest of the current round's, every later round's (a full
+    retrain's rounds after the first fit ``round_epochs`` each, or ``epochs`` afresh), and the
+    fold models' of ``threshold_folds`` after the last round, counted as epochs on every frame
+    (K models of ``epochs`` on (K - 1) / K of the frames each)."""
     rounds = settings.rounds + 1 if mode == "full" else 1
     later = max(0, rounds - round_index - 1) * (settings.round_epochs or settings.epochs)
-    return max(0, epochs_total - epochs_done) + later
+    return max(0, epochs_total - epochs_done) + later + fold_epochs(settings)
+
+
+def fold_epochs(settings: LoopSettings) -> int:
+    """The fold models' fitting after a run's last round (``LoopSettings.threshold_folds``), in
+    epochs on every training frame; 0 without them."""
+    folds = settings.threshold_folds if settings.class_thresholds else 0
+    return (folds - 1) * settings.epochs if folds else 0
 
 
 def time_left_text(seconds: float) -> str:
@@ -220,6 +229,8 @@ class TrainingWorker:
                 )
                 return
         rounds = settings.rounds + 1 if mode == "full" else 1
+        # The fold models that tune the thresholds take about one round's share (a first fit's).
+        units = rounds + (1 if fold_epochs(settings) else 0)
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75
         score_share = 0.2  # of each round's share: its scoring (the fit has the rest)
@@ -249,12 +260,12 @@ class TrainingWorker:
                 state.set_training(status=status, progress=0.1 * done / total)
             elif what == "score":
                 # Each round scores every training frame (what mining and the thresholds read).
-                fraction = (done_fits[0] + (1 - score_share) + score_share * done / total) / rounds
+                fraction = (done_fits[0] + (1 - score_share) + score_share * done / total) / units
                 status = f"round {done_fits[0] + 1} of {rounds}: scoring frame {done + 1} of {total}"
                 status += pace.text((what, done_fits[0]), done, total)
                 state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "fit":
-                fraction = (done_fits[0] + (1 - score_share) * done / total) / rounds
+                fraction = (done_fits[0] + (1 - score_share) * done / total) / units
                 status = f"round {done_fits[0] + 1} of {rounds}: epoch {done} of {total}"
                 if fit_started[1] != done_fits[0]:
                     fit_started[:] = [_clock(), done_fits[0], done]
@@ -265,6 +276,11 @@ class TrainingWorker:
                     left = per_epoch * epochs_left(mode, settings, done_fits[0], done, total)
                     status += f" · {time_left_text(left)} of fitting left"
                 state.set_training(status=status, progress=0.1 + fit_share * fraction)
+            elif what == "threshold folds":
+                # After the last round's scoring, before its mining: the fold models' epochs.
+                status = f"tuning the thresholds on frames no model fitted: epoch {done} of {total}"
+                status += pace.text(what, done, total)
+                state.set_training(status=status, progress=0.1 + fit_share * (rounds + done / total) / units)
             elif what == "box quality" and done == 0:
                 state.set_training(status="fitting the box quality regressor", progress=0.1)
             elif what == "round":

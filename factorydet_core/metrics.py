@@ -258,11 +258,13 @@ def tune_class_thresholds(
     ``max_threshold``; NaN for a class without references or without a true positive at any of them
     (it keeps the global one).
 
-    Training passes its global threshold as ``max_threshold``: a class's threshold may go below it,
-    never above. Scores on the frames a classifier was trained on run higher than on new ones, so
-    thresholds tuned there are too high: raised ones (barrels to 0.65, people to 0.55) cost the
-    demo's test frames most of their barrels (total F 0.209 at one threshold, 0.187 per class),
-    while the lowered truck threshold held on the corpus's test frames.
+    Training on the frames its model fitted passes its global threshold as ``max_threshold``: a
+    class's threshold may go below it, never above (``train_with_mining``'s ``threshold_folds``
+    tunes on out-of-fold scores instead, with no ceiling). Scores on the frames a classifier was
+    trained on run higher than on new ones, so thresholds tuned there are too high: raised ones
+    (barrels to 0.65, people to 0.55) cost the demo's test frames most of their barrels (total F
+    0.209 at one threshold, 0.187 per class), while the lowered truck threshold held on the
+    corpus's test frames.
 
     One threshold for all classes serves them badly: the classifier's probabilities are on
     different scales per class (a well-boxed truck scores 0.3, a barrel 0.7), so any one threshold

@@ -974,6 +974,13 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             f"{result['mining_rounds']} mining rounds after the first fit for every detector; "
             f"{_hitl_method(settings)}, {_epochs_text(settings)}, "
             + ("" if settings.get("class_thresholds", True) else "one score threshold for every class, ")
+            + (
+                f"each class's threshold tuned on the training frames in {settings['threshold_folds']}"
+                " stretches of the drive, each scored by a model fitted on the others, with no ceiling"
+                " (`threshold_folds`), "
+                if settings.get("class_thresholds", True) and settings.get("threshold_folds")
+                else ""
+            )
             + f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "
             + "per round"
             + _order_text(

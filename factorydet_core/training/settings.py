@@ -54,8 +54,8 @@ class LoopSettings:
     """With box quality, the class probability's power in the score (``types.PROBABILITY_EXPONENT``)."""
     class_thresholds: bool = True
     """Give the model a threshold per class, tuned on the training frames' labels
-    (``train_with_mining``'s ``tune_class_thresholds``); ``score_threshold`` is then the fallback
-    of classes without a labelled match."""
+    (``train_with_mining``'s ``tune_class_thresholds``; where, ``threshold_folds`` says);
+    ``score_threshold`` is then the fallback of classes without a labelled match."""
     threshold_folds: int = 0
     """With ``class_thresholds``, 2 or more tunes the thresholds on scores of frames no model
     fitted: the training frames cut into this many stretches of the drive, each scored by a model

@@ -215,11 +215,19 @@ def test_the_time_left_counts_the_epochs_of_this_round_and_of_the_rounds_after_i
     assert epochs_left("full", full, 2, 5, 5) == 0
     assert epochs_left("full", dataclasses.replace(full, round_epochs=0), 1, 10, 20) == 10 + 20
     assert epochs_left("next", full, 0, 2, 5) == 3
+    # Two fold models of 20 epochs on half the frames each: 20 epochs on every frame.
+    assert epochs_left("next", dataclasses.replace(full, threshold_folds=2), 0, 2, 5) == 3 + 20
+    assert (
+        epochs_left("next", dataclasses.replace(full, threshold_folds=3, class_thresholds=False), 0, 2, 5)
+        == 3
+    )
     assert time_left_text(12) == "about 10 s" and time_left_text(1) == "about 5 s"
     assert time_left_text(200) == "about 3 min"
 
 
-def _reports_of(small_dataset_dir, tmp_path, monkeypatch, seconds_per_reading: int, reports) -> list:
+def _reports_of(
+    small_dataset_dir, tmp_path, monkeypatch, seconds_per_reading: int, reports, **settings
+) -> list:
     """``(status, progress)`` pairs a full run shows while the given ``reports`` (``(what, done,
     total)`` progress calls) come in, the clock moving ``seconds_per_reading`` at each reading."""
     dataset = open_dataset(small_dataset_dir)
@@ -243,7 +251,7 @@ def _reports_of(small_dataset_dir, tmp_path, monkeypatch, seconds_per_reading: i
 
     monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
     # (A session without a run trains in full: no mining round here.)
-    assert trainer.start("full", dataclasses.replace(LoopSettings(), rounds=0))
+    assert trainer.start("full", dataclasses.replace(LoopSettings(), rounds=0, **settings))
     trainer.join(10)
     return shown
 
@@ -271,6 +279,18 @@ def test_proposals_and_scoring_move_the_bar_and_say_the_time_left(small_dataset_
     fitted = [p for s, p in shown if s and "epoch 5 of 5" in s][0]
     progress = [p for _, p in scoring]
     assert fitted <= progress[0] < progress[1] < progress[2] < 0.1 + 0.75  # the bar moves while scoring
+
+
+def test_the_fold_models_move_the_bar_after_the_last_round(small_dataset_dir, tmp_path, monkeypatch):
+    reports = [("fit", 5, 5)] + [("score", frame, 10) for frame in range(10)]
+    reports += [("threshold folds", epoch, 40) for epoch in (1, 2, 40)]
+    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 4, reports, threshold_folds=2)
+    folds = [(s, p) for s, p in shown if s and "no model fitted" in s]
+    assert folds[0][0] == "tuning the thresholds on frames no model fitted: epoch 1 of 40"
+    assert folds[1][0].startswith("tuning the thresholds on frames no model fitted: epoch 2 of 40 · about")
+    scored = [p for s, p in shown if s and "scoring" in s][-1]
+    # The round and the fold models share the fits' part of the bar: the round half, the folds half.
+    assert scored < 0.1 + 0.75 / 2 + 1e-9 < folds[0][1] < folds[1][1] < folds[2][1] == 0.1 + 0.75
 
 
 def test_the_ray_setting_is_the_session_s_and_goes_to_the_retrain(

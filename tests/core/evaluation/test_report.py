@@ -245,6 +245,13 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "refit_box_quality" not in text
     result["settings"]["refit_box_quality"] = True
     assert "every next round fitting the box quality regressor again" in hitl_markdown(result)
+    # Thresholds tuned out of fold: said when on (records before the setting existed ran without).
+    assert "threshold_folds" not in hitl_markdown(result)
+    result["settings"]["threshold_folds"] = 2
+    assert "threshold tuned on the training frames in 2 stretches of the drive" in hitl_markdown(result)
+    result["settings"]["class_thresholds"] = False  # one threshold: nothing is tuned
+    assert "threshold_folds" not in hitl_markdown(result)
+    result["settings"].update(class_thresholds=True, threshold_folds=0)
     # Object verdicts teaching their class alone: said where a reviewer ran, not otherwise.
     result["settings"]["model_box_targets"] = False
     assert "`model_box_targets` off" not in hitl_markdown(result)  # blind and full labels alone
