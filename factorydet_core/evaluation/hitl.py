@@ -592,6 +592,11 @@ def bench_hitl(
         return _hitl_variants(plan, Path(scratch_dir), progress, resumed, on_partial)
 
 
+def _candidates_of(model, frames: Sequence) -> dict:
+    """Frame index -> ``model``'s candidates (``DetectionModel.candidates``; before any threshold)."""
+    return {f.frame_index: model.candidates(f.proposal_boxes, f.groups) for f in frames}
+
+
 def paired_difference(values: Sequence[float], baseline: Sequence[float]) -> dict:
     """The per-seed (paired) difference ``values - baseline``: its mean, standard error and 95%
     confidence interval (Student's t over the seeds; ``None`` with fewer than two seeds)."""
@@ -941,13 +946,45 @@ def _hitl_variants(
                 done += 1
                 if progress is not None:
                     progress(done, steps)
-            metrics = measure(run.model, dataset, test_frames, use_truth=True)
+            # Candidates once per frame set: with thresholds tuned out of fold, the same network is
+            # measured with the thresholds its fitted frames would have given too.
+            folds = run.rounds[-1].get("threshold_folds")
+            models = [run.model]
+            if folds is not None:
+                models.append(
+                    dataclasses.replace(
+                        run.model, class_score_thresholds=dict(folds["fitted_frame_thresholds"]) or None
+                    )
+                )
+            test_candidates = _candidates_of(run.model, test_frames)
+            measured = [
+                measure(model, dataset, test_frames, use_truth=True, candidates=test_candidates)
+                for model in models
+            ]
             in_factory = None
             if heldout is not None:
-                in_factory = {k: metrics[k] for k in ("f1", "precision", "recall", "map")}
-                metrics = measure(
-                    run.model, None, heldout.frames, references=heldout.references, ignored=heldout.ignored
-                )
+                in_factory = {k: measured[0][k] for k in ("f1", "precision", "recall", "map")}
+                heldout_candidates = _candidates_of(run.model, heldout.frames)
+                measured = [
+                    measure(
+                        model,
+                        None,
+                        heldout.frames,
+                        references=heldout.references,
+                        ignored=heldout.ignored,
+                        candidates=heldout_candidates,
+                    )
+                    for model in models
+                ]
+            metrics = measured[0]
+            fitted_frame = None
+            if folds is not None:
+                fitted_frame = {
+                    **{k: measured[1][k] for k in ("f1", "precision", "recall", "map")},
+                    "per_class_f1": {k: v["f1"] for k, v in measured[1]["per_class"].items()},
+                    "thresholds": dict(folds["fitted_frame_thresholds"]),
+                    "out_of_fold_thresholds": dict(folds["thresholds"]),
+                }
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
             covered, unannotated = _coverage_totals(covered_by_class)
             pseudo = None
@@ -983,6 +1020,8 @@ def _hitl_variants(
                     "library": library_version(),  # the code this run ran
                     # With held-out factories, the figures on the training factory's test frames.
                     **({"in_factory": in_factory} if in_factory is not None else {}),
+                    # With thresholds tuned out of fold: the same model at its fitted frames'.
+                    **({"fitted_frame_thresholds": fitted_frame} if fitted_frame is not None else {}),
                 }
             )
             if on_partial is not None:
@@ -1065,6 +1104,15 @@ def _hitl_variants(
                 results[name][key] = {
                     kind: _mean_of([r[key][kind] for r in runs]) for kind in PSEUDO_LABEL_KINDS
                 }
+        if all("fitted_frame_thresholds" in r for r in runs):
+            # Out-of-fold thresholds against the fitted frames' on the very same networks.
+            results[name]["fitted_frame_thresholds"] = {
+                "f1": _mean_of([r["fitted_frame_thresholds"]["f1"] for r in runs]),
+                "f1_per_seed": [r["fitted_frame_thresholds"]["f1"] for r in runs],
+                "out_of_fold_minus_fitted": paired_difference(
+                    [r["f1"] for r in runs], [r["fitted_frame_thresholds"]["f1"] for r in runs]
+                ),
+            }
         if all("in_factory" in r for r in runs):
             results[name]["in_factory"] = {
                 **{key: _mean_of([r["in_factory"][key] for r in runs]) for key in ("f1", "map")},
@@ -1075,6 +1123,11 @@ def _hitl_variants(
         results[name]["difference_vs_blind"] = paired_difference(
             [r["f1"] for r in per_seed[name]], [r["f1"] for r in per_seed["blind"]]
         )
+        if "fitted_frame_thresholds" in results[name] and "fitted_frame_thresholds" in results["blind"]:
+            results[name]["fitted_frame_thresholds"]["difference_vs_blind"] = paired_difference(
+                results[name]["fitted_frame_thresholds"]["f1_per_seed"],
+                results["blind"]["fitted_frame_thresholds"]["f1_per_seed"],
+            )
     reviewed = [k for k in budgets if f"reviewed_{k}" in results]
     gap, recovered, recovered_per_seed, gap_significant = None, {}, {}, False
     if "full" in results:

@@ -830,6 +830,24 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
         )
     f1_differences = {n: variants[n].get("difference_vs_blind", {}) for n in names}
     rows += _difference_row("F minus blind's", f1_differences, names)
+    if all("fitted_frame_thresholds" in variants[n] for n in names):
+        # Thresholds tuned out of fold: the same networks at the thresholds their fitted frames
+        # give (never above the operating score), and what the folds changed, seed by seed.
+        fitted = {n: variants[n]["fitted_frame_thresholds"] for n in names}
+        rows.append(
+            "| total F, the same models at thresholds tuned on their fitted frames | "
+            + " | ".join(_fmt(fitted[n]["f1"]) for n in names)
+            + " |"
+        )
+        rows += _difference_row(
+            "the same, F minus blind's", {n: fitted[n].get("difference_vs_blind", {}) for n in names}, names
+        )
+        if all(fitted[n]["out_of_fold_minus_fitted"].get("ci95") for n in names):
+            rows.append(
+                "| F of out-of-fold thresholds minus the fitted frames', per seed: mean [95% interval] | "
+                + " | ".join(difference_text(fitted[n]["out_of_fold_minus_fitted"]) for n in names)
+                + " |"
+            )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
     map_differences = _map_differences(result)
     rows += _difference_row("mAP minus blind's", map_differences, names)
