@@ -280,6 +280,33 @@ def test_report_writes_tables_plots_and_numbers(small_dataset_dir, tiny_model_pa
 
 
 @pytest.mark.slow
+def test_bench_hitl_with_threshold_folds_measures_each_model_at_both_thresholds(small_dataset_dir, tmp_path):
+    out = tmp_path / "hitl.json"
+    args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
+            "--negatives", "15", "--initial-negatives", "60", "--seeds", "0", "--train-frames", "2",
+            "--frames", "1", "--no-calibrate", "--no-box-quality", "--method", "paper", "--variants", "full",
+            "--threshold-folds", "2", "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    result = json.loads(out.read_text())
+    assert result["plan"]["settings"]["threshold_folds"] == 2
+    for name in ("blind", "full"):
+        variant = result["variants"][name]["fitted_frame_thresholds"]
+        runs = result["per_seed"][name]
+        for run in runs:
+            fitted = run["fitted_frame_thresholds"]
+            # Thresholds on the fitted frames never exceed the operating score; out of fold they may.
+            assert all(t <= 0.35 for t in fitted["thresholds"].values())
+            assert set(fitted) >= {"f1", "map", "per_class_f1", "thresholds", "out_of_fold_thresholds"}
+            assert fitted["map"] == run["map"]  # the same network: only the thresholds differ
+        assert variant["f1_per_seed"] == [r["fitted_frame_thresholds"]["f1"] for r in runs]
+        difference = variant["out_of_fold_minus_fitted"]  # (one seed: no interval)
+        gained = runs[0]["f1"] - runs[0]["fitted_frame_thresholds"]["f1"]
+        assert difference["mean"] == pytest.approx(gained, abs=1e-4)
+    assert "difference_vs_blind" in result["variants"]["full"]["fitted_frame_thresholds"]
+    assert "the same models at thresholds tuned on their fitted frames" in out.with_suffix(".md").read_text()
+
+
+@pytest.mark.slow
 def test_bench_hitl_prints_each_variants_f_score_and_the_paired_differences(
     small_dataset_dir, tmp_path, capsys, monkeypatch
 ):

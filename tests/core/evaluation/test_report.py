@@ -252,6 +252,24 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     result["settings"]["class_thresholds"] = False  # one threshold: nothing is tuned
     assert "threshold_folds" not in hitl_markdown(result)
     result["settings"].update(class_thresholds=True, threshold_folds=0)
+    # The same models at their fitted frames' thresholds, when the record measured them.
+    assert "fitted frames" not in hitl_markdown(result)
+    from factorydet_core.evaluation.hitl import paired_difference
+
+    blind_fitted = [0.30, 0.30, 0.30]
+    for variant in result["variants"].values():
+        fitted = [f - 0.01 for f in variant["f1_per_seed"]]
+        variant["fitted_frame_thresholds"] = {
+            "f1": sum(fitted) / 3,
+            "f1_per_seed": fitted,
+            "out_of_fold_minus_fitted": paired_difference(variant["f1_per_seed"], fitted),
+            "difference_vs_blind": paired_difference(fitted, blind_fitted),
+        }
+    text = hitl_markdown(result)
+    assert "| total F, the same models at thresholds tuned on their fitted frames | 0.290 |" in text
+    assert "| the same, F minus blind's, per seed: mean [95% interval] | – |" in text
+    row = "| F of out-of-fold thresholds minus the fitted frames', per seed: mean [95% interval] |"
+    assert row + " +0.010" in text
     # Object verdicts teaching their class alone: said where a reviewer ran, not otherwise.
     result["settings"]["model_box_targets"] = False
     assert "`model_box_targets` off" not in hitl_markdown(result)  # blind and full labels alone
