@@ -40,7 +40,9 @@ def select_with(candidates: Detections, kind: str, args: tuple) -> Detections:
             candidates,
             score,
             nms_iou,
-            class_score_thresholds=None if per_class is None else np.asarray(per_class),
+            class_score_thresholds=None
+            if per_class is None
+            else np.array([np.nan if t is None else t for t in per_class], np.float64),
             vote_iou=vote_iou,
         )
     if kind == "floor":
@@ -584,14 +586,16 @@ class AppState:
         self._update_metrics()
 
     def selection_args(self) -> tuple:
-        """``(score_threshold, nms_iou, per-class thresholds (a tuple) or None, vote_iou or None)``:
-        how this view selects the shown detections (``select_with``)."""
+        """``(score_threshold, nms_iou, per-class thresholds (a tuple, None for a class that keeps
+        the global one) or None, vote_iou or None)``: how this view selects the shown detections
+        (``select_with``). A key of the selections made ahead: no NaN in it (NaN equals nothing,
+        not even itself, so a key holding one never finds its selection)."""
         with self.lock:
             per_class = self.class_thresholds()
             return (
                 self.score_threshold,
                 self.nms_iou,
-                None if per_class is None else tuple(float(t) for t in per_class),
+                None if per_class is None else tuple(None if np.isnan(t) else float(t) for t in per_class),
                 self._vote_iou(),
             )
 

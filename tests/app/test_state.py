@@ -126,7 +126,8 @@ def test_per_class_thresholds_until_the_slider_moves(small_dataset_dir, tiny_mod
     from factorydet_core.detection.model import DetectionModel
 
     dataset = open_dataset(small_dataset_dir)
-    base = DetectionModel.load(tiny_model_path)
+    # (the tiny model may have tuned a threshold or two: this test sets its own)
+    base = dataclasses.replace(DetectionModel.load(tiny_model_path), class_score_thresholds=None)
     assert not AppState(dataset, model=base, model_name="tiny").use_class_thresholds
     result = Detector("agv", model=base).detect(dataset.frame(0))
     scores, classes = result.candidates.scores, result.candidates.class_ids
@@ -215,3 +216,24 @@ def test_each_view_has_its_own_frame_display_and_thresholds(small_dataset_dir, t
     other = DetectionModel.load(tiny_model_path)
     second.set_model(other, "other")  # and the model: every view takes its thresholds
     assert all(view.model is other and view.nms_iou == other.nms_iou for view in seen)
+
+
+def test_the_selection_key_of_partial_class_thresholds_finds_itself(small_dataset_dir, tiny_model_path):
+    import dataclasses
+
+    from app.state import select_with
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
+
+    dataset = open_dataset(small_dataset_dir)
+    model = dataclasses.replace(DetectionModel.load(tiny_model_path), class_score_thresholds={"truck": 0.9})
+    state = AppState(dataset, model=model, model_name="partial")
+    key = ("shown", *state.selection_args())
+    # Every class but trucks keeps the global threshold; the key holds no NaN, so it finds itself.
+    assert key == ("shown", *state.selection_args()) and {key: 1}.get(("shown", *state.selection_args()))
+    per_class = key[3]
+    assert per_class[model.class_names.index("truck")] == 0.9 and per_class.count(None) == len(per_class) - 1
+    candidates = Detector("agv", model=model).detect(dataset.frame(0)).candidates
+    shown = select_with(candidates, "shown", key[1:])
+    trucks = shown.class_ids == model.class_names.index("truck")
+    assert (shown.scores[trucks] >= 0.9).all() and (shown.scores >= state.score_threshold).all()
