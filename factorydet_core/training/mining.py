@@ -882,23 +882,23 @@ def train_with_mining(
         start = time.perf_counter()
         scored = score(model, frames, min(SCORE_FLOOR, mining_threshold), progress, should_stop)
         folds_record = None
+        if tune_class_thresholds:
+            model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
         if tune_class_thresholds and threshold_folds and round_index == rounds:
-            # The last model's thresholds, tuned where no model fitted: each fold's frames scored
-            # by a model fitted afresh on the other folds' (the sets as they stand now).
+            # The last model's thresholds, tuned where no model fitted instead: each fold's frames
+            # scored by a model fitted afresh on the other folds' (the sets as they stand now).
             fold_start = time.perf_counter()
             out_of_fold = _out_of_fold_scored(
                 frames, threshold_folds, classifier, fit, model_of, score, progress, should_stop
             )
-            fitted_frames = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
+            fitted_frame_thresholds = dict(model.class_score_thresholds or {})
             model = with_tuned_thresholds(model, out_of_fold, positive_iou)
             folds_record = {
                 "folds": threshold_folds,
                 "seconds": round(time.perf_counter() - fold_start, 2),
                 "thresholds": dict(model.class_score_thresholds or {}),
-                "fitted_frame_thresholds": dict(fitted_frames.class_score_thresholds or {}),
+                "fitted_frame_thresholds": fitted_frame_thresholds,
             }
-        elif tune_class_thresholds:
-            model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
         metrics = detection_metrics(
             scored, fitted.class_names, positive_iou, score_threshold, model.class_thresholds()
         )
