@@ -200,6 +200,7 @@ def hitl_settings(args: argparse.Namespace) -> LoopSettings:
             "model_box_targets": args.model_box_targets,
             "class_thresholds": args.class_thresholds,
             "threshold_folds": args.threshold_folds,
+            "threshold_objective": args.threshold_objective,
         }
     )
 
@@ -1704,7 +1705,7 @@ def build_parser(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
             "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
             "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
-            "carry_pseudo_labels", "threshold_folds",
+            "carry_pseudo_labels", "threshold_folds", "threshold_objective",
         ),
     )  # fmt: skip
     p.add_argument(

@@ -9,7 +9,7 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.scoring import operating_thresholds
 from factorydet_core.proposals.candidates import point_sets
-from factorydet_core.types import InputError, MergedCloud, Proposals, Segmentation
+from factorydet_core.types import THRESHOLD_OBJECTIVES, InputError, MergedCloud, Proposals, Segmentation
 
 
 def proposal_point_lists(segmentation: Segmentation, proposals: Proposals) -> list[np.ndarray]:
@@ -252,11 +252,21 @@ def tune_class_thresholds(
     iou_threshold: float = 0.6,
     grid: tuple[float, ...] = CLASS_THRESHOLD_GRID,
     max_threshold: float = 1.0,
+    objective: str = "class",
+    untuned_threshold: float | None = None,
 ) -> np.ndarray:
     """(C,) each class's score threshold of highest F-score on ``frames`` (``detection_metrics``'s
     input, scored down to at least the grid's lowest threshold) among those of ``grid`` up to
     ``max_threshold``; NaN for a class without references or without a true positive at any of them
     (it keeps the global one).
+
+    ``objective`` (``types.THRESHOLD_OBJECTIVES``) says whose F-score: ``"class"``, each class's
+    own; ``"total"``, that of all classes' detections pooled (``detection_metrics``'s total), by
+    coordinate ascent from the per-class choice: one class's threshold at a time moves to the grid
+    value of highest pooled F given the others', until none moves. A detection lowers the pooled F
+    unless the matches among the detections a lower threshold adds are more than half that F, so a
+    class of few, poorly scored objects is held higher than its own F would put it. The classes
+    left NaN count their detections at ``untuned_threshold`` (required with ``"total"``).
 
     Training on the frames its model fitted passes its global threshold as ``max_threshold``: a
     class's threshold may go below it, never above (``train_with_mining``'s ``threshold_folds``
@@ -269,6 +279,10 @@ def tune_class_thresholds(
     One threshold for all classes serves them badly: the classifier's probabilities are on
     different scales per class (a well-boxed truck scores 0.3, a barrel 0.7), so any one threshold
     drops the trucks or floods the barrels (``docs/default_model_validation.json``)."""
+    if objective not in THRESHOLD_OBJECTIVES:
+        raise InputError(f"objective must be one of {', '.join(THRESHOLD_OBJECTIVES)}, got {objective!r}")
+    if objective == "total" and untuned_threshold is None:
+        raise InputError('objective "total" needs untuned_threshold (the classes left NaN count there)')
     scores, tps, classes, num_reference = _pooled_matches(frames, len(class_names), iou_threshold)
     best_f = np.zeros(len(class_names))
     chosen = np.full(len(class_names), np.nan)
@@ -282,7 +296,51 @@ def tune_class_thresholds(
             f1 = 2 * tp / (num_detections + num_reference[c])  # 2PR / (P + R)
             if f1 > best_f[c] + 1e-12:  # strictly better: ties keep the lower threshold
                 best_f[c], chosen[c] = f1, float(threshold)
-    return chosen
+    if objective == "class":
+        return chosen
+    pooled = (scores, tps, classes, num_reference)
+    return _pooled_f_thresholds(*pooled, chosen, grid, max_threshold, untuned_threshold)
+
+
+def _pooled_f_thresholds(
+    scores: np.ndarray,
+    tps: np.ndarray,
+    classes: np.ndarray,
+    num_reference: np.ndarray,
+    chosen: np.ndarray,
+    grid: tuple[float, ...],
+    max_threshold: float,
+    untuned_threshold: float,
+) -> np.ndarray:
+    """``tune_class_thresholds``'s ``"total"`` objective: ``chosen`` (C,), the per-class choice
+    (NaN: untuned), moved class by class to the pooled F's best grid value."""
+    thresholds = np.array([t for t in grid if t <= max_threshold + 1e-12])
+    num_classes = len(chosen)
+    # (C, G) matches and detections of each class at each grid threshold.
+    above = scores[None, :] >= thresholds[:, None]  # (G, K)
+    tp_curve = np.stack([(above & ((classes == c) & tps)[None, :]).sum(1) for c in range(num_classes)])
+    det_curve = np.stack([(above & (classes == c)[None, :]).sum(1) for c in range(num_classes)])
+    tunable = np.isfinite(chosen)
+    fixed_tp = fixed_det = 0
+    for c in np.flatnonzero(~tunable):
+        at = scores >= untuned_threshold
+        fixed_tp += int((at & tps & (classes == c)).sum())
+        fixed_det += int((at & (classes == c)).sum())
+    index = np.array([int(np.argmin(np.abs(thresholds - t))) if np.isfinite(t) else -1 for t in chosen])
+    total_reference = int(num_reference.sum())
+    for _ in range(4 * len(thresholds)):  # each move raises the pooled F: it ends; the bound is a guard
+        moved = False
+        for c in np.flatnonzero(tunable):
+            others = np.flatnonzero(tunable & (np.arange(num_classes) != c))
+            tp_rest = fixed_tp + int(tp_curve[others, index[others]].sum())
+            det_rest = fixed_det + int(det_curve[others, index[others]].sum())
+            pooled = 2 * (tp_rest + tp_curve[c]) / np.maximum(det_rest + det_curve[c] + total_reference, 1)
+            best = int(np.argmax(pooled))
+            if pooled[best] > pooled[index[c]] + 1e-12:  # strictly better: ties stay
+                index[c], moved = best, True
+        if not moved:
+            break
+    return np.where(tunable, thresholds[np.maximum(index, 0)], np.nan)
 
 
 def recognition_accuracy(true_ids: np.ndarray, predicted_ids: np.ndarray, labels: tuple[str, ...]) -> dict:

@@ -62,6 +62,13 @@ REVIEW_ORDERS: tuple[str, ...] = (*QUEUE_ORDERS, "learned")
 """How the review queue is ordered (``LoopSettings.review_order``): as a cut's order, or learned
 from the session's own verdicts (``session.review_rank``; with the queue grouped by place)."""
 
+THRESHOLD_OBJECTIVES: tuple[str, ...] = ("class", "total")
+"""What per-class thresholds are tuned for (``LoopSettings.threshold_objective``;
+``metrics.tune_class_thresholds``): each class's own F-score, or the F-score of all classes'
+detections pooled, the figure the benchmarks report. A class of few, poorly scored objects reaches
+its own best F low down its scores, where its false positives cost the pooled F more than its
+matches give."""
+
 MAX_RAY_WORKERS = 4096
 """The most Ray workers a batch may ask for (``scale.runner.Execution``, a session's setting)."""
 

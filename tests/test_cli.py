@@ -304,6 +304,16 @@ def test_bench_hitl_with_threshold_folds_measures_each_model_at_both_thresholds(
         assert difference["mean"] == pytest.approx(gained, abs=1e-4)
     assert "difference_vs_blind" in result["variants"]["full"]["fitted_frame_thresholds"]
     assert "the same models at thresholds tuned on their fitted frames" in out.with_suffix(".md").read_text()
+    # ... and at the other objective's out-of-fold thresholds, on the same network.
+    for name in ("blind", "full"):
+        for run in result["per_seed"][name]:
+            other = run["other_objective_thresholds"]
+            assert other["objective"] == "total" and other["map"] == run["map"]
+        variant = result["variants"][name]["other_objective_thresholds"]
+        assert variant["f1_per_seed"] == [
+            r["other_objective_thresholds"]["f1"] for r in result["per_seed"][name]
+        ]
+    assert "out-of-fold thresholds of objective total" in out.with_suffix(".md").read_text()
 
 
 @pytest.mark.slow

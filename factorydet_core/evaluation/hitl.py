@@ -950,12 +950,24 @@ def _hitl_variants(
             # measured with the thresholds its fitted frames would have given too.
             folds = run.rounds[-1].get("threshold_folds")
             models = [run.model]
+            other_objective = None
             if folds is not None:
                 models.append(
                     dataclasses.replace(
                         run.model, class_score_thresholds=dict(folds["fitted_frame_thresholds"]) or None
                     )
                 )
+                # And at the out-of-fold thresholds of the other objective (records of runs from
+                # before objectives have none).
+                others = [o for o in folds.get("by_objective", {}) if o != folds.get("objective")]
+                if others:
+                    other_objective = others[0]
+                    models.append(
+                        dataclasses.replace(
+                            run.model,
+                            class_score_thresholds=dict(folds["by_objective"][other_objective]) or None,
+                        )
+                    )
             test_candidates = _candidates_of(run.model, test_frames)
             measured = [
                 measure(model, dataset, test_frames, use_truth=True, candidates=test_candidates)
@@ -984,6 +996,14 @@ def _hitl_variants(
                     "per_class_f1": {k: v["f1"] for k, v in measured[1]["per_class"].items()},
                     "thresholds": dict(folds["fitted_frame_thresholds"]),
                     "out_of_fold_thresholds": dict(folds["thresholds"]),
+                }
+            other_objective_thresholds = None
+            if other_objective is not None:
+                other_objective_thresholds = {
+                    "objective": other_objective,
+                    **{k: measured[2][k] for k in ("f1", "precision", "recall", "map")},
+                    "per_class_f1": {k: v["f1"] for k, v in measured[2]["per_class"].items()},
+                    "thresholds": dict(folds["by_objective"][other_objective]),
                 }
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
             covered, unannotated = _coverage_totals(covered_by_class)
@@ -1022,6 +1042,12 @@ def _hitl_variants(
                     **({"in_factory": in_factory} if in_factory is not None else {}),
                     # With thresholds tuned out of fold: the same model at its fitted frames'.
                     **({"fitted_frame_thresholds": fitted_frame} if fitted_frame is not None else {}),
+                    # And at the other objective's out-of-fold thresholds.
+                    **(
+                        {"other_objective_thresholds": other_objective_thresholds}
+                        if other_objective_thresholds is not None
+                        else {}
+                    ),
                 }
             )
             if on_partial is not None:
@@ -1113,6 +1139,17 @@ def _hitl_variants(
                     [r["f1"] for r in runs], [r["fitted_frame_thresholds"]["f1"] for r in runs]
                 ),
             }
+        if all("other_objective_thresholds" in r for r in runs):
+            # The other objective's out-of-fold thresholds, on the very same networks.
+            results[name]["other_objective_thresholds"] = {
+                "objective": runs[0]["other_objective_thresholds"]["objective"],
+                "f1": _mean_of([r["other_objective_thresholds"]["f1"] for r in runs]),
+                "f1_per_seed": [r["other_objective_thresholds"]["f1"] for r in runs],
+                "map": _mean_of([r["other_objective_thresholds"]["map"] for r in runs]),
+                "minus_chosen": paired_difference(
+                    [r["other_objective_thresholds"]["f1"] for r in runs], [r["f1"] for r in runs]
+                ),
+            }
         if all("in_factory" in r for r in runs):
             results[name]["in_factory"] = {
                 **{key: _mean_of([r["in_factory"][key] for r in runs]) for key in ("f1", "map")},
@@ -1123,6 +1160,11 @@ def _hitl_variants(
         results[name]["difference_vs_blind"] = paired_difference(
             [r["f1"] for r in per_seed[name]], [r["f1"] for r in per_seed["blind"]]
         )
+        if "other_objective_thresholds" in results[name] and "other_objective_thresholds" in results["blind"]:
+            results[name]["other_objective_thresholds"]["difference_vs_blind"] = paired_difference(
+                results[name]["other_objective_thresholds"]["f1_per_seed"],
+                results["blind"]["other_objective_thresholds"]["f1_per_seed"],
+            )
         if "fitted_frame_thresholds" in results[name] and "fitted_frame_thresholds" in results["blind"]:
             results[name]["fitted_frame_thresholds"]["difference_vs_blind"] = paired_difference(
                 results[name]["fitted_frame_thresholds"]["f1_per_seed"],

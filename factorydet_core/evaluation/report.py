@@ -848,6 +848,27 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 + " | ".join(difference_text(fitted[n]["out_of_fold_minus_fitted"]) for n in names)
                 + " |"
             )
+    if all("other_objective_thresholds" in variants[n] for n in names):
+        # The same networks at the other objective's out-of-fold thresholds.
+        other = {n: variants[n]["other_objective_thresholds"] for n in names}
+        objective = other[names[0]]["objective"]
+        rows.append(
+            f"| total F, the same models at out-of-fold thresholds of objective {objective} | "
+            + " | ".join(_fmt(other[n]["f1"]) for n in names)
+            + " |"
+        )
+        rows += _difference_row(
+            f"the same ({objective}), F minus blind's",
+            {n: other[n].get("difference_vs_blind", {}) for n in names},
+            names,
+        )
+        if all(other[n]["minus_chosen"].get("ci95") for n in names):
+            rows.append(
+                f"| F of objective {objective}'s out-of-fold thresholds minus the model's, per seed: "
+                "mean [95% interval] | "
+                + " | ".join(difference_text(other[n]["minus_chosen"]) for n in names)
+                + " |"
+            )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
     map_differences = _map_differences(result)
     rows += _difference_row("mAP minus blind's", map_differences, names)
@@ -997,6 +1018,12 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 " stretches of the drive, each scored by a model fitted on the others, with no ceiling"
                 " (`threshold_folds`), "
                 if settings.get("class_thresholds", True) and settings.get("threshold_folds")
+                else ""
+            )
+            + (
+                "each class's threshold the best for the F-score of all classes' detections pooled"
+                " (`threshold_objective` total), "
+                if settings.get("class_thresholds", True) and settings.get("threshold_objective") == "total"
                 else ""
             )
             + f"{settings['initial_negatives']} first negatives, {settings['negatives_per_round']} mined "

@@ -457,6 +457,7 @@ def train_session(
         score_threshold=settings.score_threshold,
         tune_class_thresholds=settings.class_thresholds,
         threshold_folds=settings.threshold_folds,
+        threshold_objective=settings.threshold_objective,
         probability_exponent=settings.probability_exponent,
         mining_threshold=settings.mining_threshold,
         nms_iou=settings.nms_iou,

@@ -41,6 +41,7 @@ from factorydet_core.types import (
     PROBABILITY_EXPONENT,
     SCORE_FLOOR,
     SCORE_THRESHOLD,
+    THRESHOLD_OBJECTIVES,
     Cancelled,
     Detections,
     InputError,
@@ -501,13 +502,25 @@ this process, or ``scale.jobs.scoring`` on Ray workers; the same items either wa
 
 
 def with_tuned_thresholds(
-    model: DetectionModel, scored: list[dict], positive_iou: float = 0.6, max_threshold: float = 1.0
+    model: DetectionModel,
+    scored: list[dict],
+    positive_iou: float = 0.6,
+    max_threshold: float = 1.0,
+    objective: str = "class",
 ) -> DetectionModel:
-    """``model`` with each class's score threshold tuned to its highest F-score on ``scored``
+    """``model`` with each class's score threshold tuned to the highest F-score on ``scored``
     (``score_frames``'s output for ``model``, down to ``types.SCORE_FLOOR``;
-    ``metrics.tune_class_thresholds``, none above ``max_threshold``); a class without a true
-    positive keeps the global threshold."""
-    tuned = tune_thresholds(scored, model.class_names, positive_iou, max_threshold=max_threshold)
+    ``metrics.tune_class_thresholds``, none above ``max_threshold``): the class's own, or with
+    ``objective`` "total" that of all classes pooled; a class without a true positive keeps the
+    global threshold."""
+    tuned = tune_thresholds(
+        scored,
+        model.class_names,
+        positive_iou,
+        max_threshold=max_threshold,
+        objective=objective,
+        untuned_threshold=model.score_threshold,
+    )
     return dataclasses.replace(
         model,
         class_score_thresholds={
@@ -593,6 +606,7 @@ def train_with_mining(
     review_extra: int | None = 0,
     model_box_targets: bool = True,
     threshold_folds: int = 0,
+    threshold_objective: str = "class",
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -695,7 +709,12 @@ def train_with_mining(
             ``score_threshold`` caps them; the cap holds every class at the operating score
             whatever the labels taught. Costs about one more fit of ``classifier``'s epochs.
             The round's record gets ``threshold_folds``: the folds, their seconds, the thresholds
-            and those the fitted frames would have given. 0: tuned on the fitted frames.
+            and those the fitted frames would have given, and the out-of-fold thresholds of
+            each objective (``by_objective``). 0: tuned on the fitted frames.
+        threshold_objective: whose F-score a tuned threshold is best for
+            (``types.THRESHOLD_OBJECTIVES``): each class's own ("class"), or that of all
+            classes' detections pooled ("total", the figure benchmarks report; a class of few,
+            poorly scored objects is then held above where its own F would flood).
         probability_exponent: with ``box_quality``, the model's score is the class probability
             to this power times the predicted IoU (``DetectionModel.probability_exponent``); it
             ranks the mined negatives too. 1 is the plain product; the command line and the app
@@ -728,6 +747,9 @@ def train_with_mining(
     if init_model is not None and not round_epochs:
         raise InputError("init_model is trained on for round_epochs epochs: set round_epochs > 0")
     check_threshold_folds(threshold_folds)
+    if threshold_objective not in THRESHOLD_OBJECTIVES:
+        objectives = ", ".join(THRESHOLD_OBJECTIVES)
+        raise InputError(f"threshold_objective must be one of {objectives}, got {threshold_objective!r}")
     if threshold_folds > len(frames):
         raise InputError(f"threshold_folds: {threshold_folds} folds of {len(frames)} training frames")
     background_id = classifier.background_id
@@ -883,7 +905,9 @@ def train_with_mining(
         scored = score(model, frames, min(SCORE_FLOOR, mining_threshold), progress, should_stop)
         folds_record = None
         if tune_class_thresholds:
-            model = with_tuned_thresholds(model, scored, positive_iou, max_threshold=score_threshold)
+            model = with_tuned_thresholds(
+                model, scored, positive_iou, max_threshold=score_threshold, objective=threshold_objective
+            )
         if tune_class_thresholds and threshold_folds and round_index == rounds:
             # The last model's thresholds, tuned where no model fitted instead: each fold's frames
             # scored by a model fitted afresh on the other folds' (the sets as they stand now).
@@ -892,12 +916,25 @@ def train_with_mining(
                 frames, threshold_folds, classifier, fit, model_of, score, progress, should_stop
             )
             fitted_frame_thresholds = dict(model.class_score_thresholds or {})
-            model = with_tuned_thresholds(model, out_of_fold, positive_iou)
+            # Both objectives' thresholds from the same scores: a benchmark measures the same
+            # network at each (the model keeps ``threshold_objective``'s).
+            by_objective = {
+                objective: dict(
+                    with_tuned_thresholds(
+                        model, out_of_fold, positive_iou, objective=objective
+                    ).class_score_thresholds
+                    or {}
+                )
+                for objective in THRESHOLD_OBJECTIVES
+            }
+            model = dataclasses.replace(model, class_score_thresholds=by_objective[threshold_objective])
             folds_record = {
                 "folds": threshold_folds,
                 "seconds": round(time.perf_counter() - fold_start, 2),
                 "thresholds": dict(model.class_score_thresholds or {}),
                 "fitted_frame_thresholds": fitted_frame_thresholds,
+                "objective": threshold_objective,
+                "by_objective": by_objective,
             }
         metrics = detection_metrics(
             scored, fitted.class_names, positive_iou, score_threshold, model.class_thresholds()

@@ -17,6 +17,7 @@ from factorydet_core.types import (
     QUEUE_ORDERS,
     REVIEW_ORDERS,
     SCORE_THRESHOLD,
+    THRESHOLD_OBJECTIVES,
     InputError,
 )
 
@@ -62,6 +63,12 @@ class LoopSettings:
     fitted afresh on the others (``train_with_mining``'s ``threshold_folds``; about one more fit),
     with no ceiling. 0 tunes them on the frames the model fitted, where scores run high, so none
     may exceed ``score_threshold``."""
+    threshold_objective: str = "class"
+    """With ``class_thresholds``, whose F-score each class's threshold is best for
+    (``types.THRESHOLD_OBJECTIVES``): the class's own ("class"), or that of all classes'
+    detections pooled ("total", the figure the benchmarks report), which holds a class of few,
+    poorly scored objects above where its own F would flood the detections
+    (``train_with_mining``'s ``threshold_objective``)."""
     mining_threshold: float | None = MINING_THRESHOLD
     """Least score of a mined (and queued) false positive; ``None``: the operating threshold. The
     paper collects every false positive and adds the top N by score; with box quality a score is a
@@ -215,6 +222,11 @@ class LoopSettings:
         folds = self.threshold_folds
         if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0 or folds == 1:
             raise InputError(f"threshold_folds must be 0 (off) or an integer >= 2, got {folds!r}")
+        if self.threshold_objective not in THRESHOLD_OBJECTIVES:
+            objectives = ", ".join(THRESHOLD_OBJECTIVES)
+            raise InputError(
+                f"threshold_objective must be one of {objectives}, got {self.threshold_objective!r}"
+            )
         extra = self.review_extra
         if extra is not None and (isinstance(extra, bool) or not isinstance(extra, int) or extra < 0):
             raise InputError(f"review_extra must be an integer >= 0 or None, got {extra!r}")
@@ -363,6 +375,10 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("threshold_folds", "Threshold folds", "with per-class thresholds, tune them on stretches of "
             "the drive each scored by a model fitted without it, with no ceiling (about one more fit; 0: on "
             "the fitted frames, never above the score threshold)", int, 0, 20, 1),
+    Control("threshold_objective", "Threshold objective", "with per-class thresholds, whose F-score each "
+            "threshold is best for: the class's own (class), or all classes' detections pooled (total: a "
+            "class of few, poorly scored objects is held up rather than flood the detections)",
+            str, choices=tuple((o, o) for o in THRESHOLD_OBJECTIVES)),
     Control("hold_confident", "Hold confident negatives", "mined negatives scoring at least this are neither "
             "background nor object until reviewed (0: off, every mined negative is background, as the "
             "paper)", float, 0.0, 1.0, 0.05, none_as=0),

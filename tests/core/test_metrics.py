@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from factorydet_core.metrics import (
     average_precision,
@@ -199,6 +201,80 @@ def test_tuned_thresholds_give_each_class_its_best_operating_point():
         detection_metrics(frames, names, 0.6, 0.3, np.array([0.5, 0.5]))
     with pytest.raises(InputError, match=r"\[0, 1\]"):
         detection_metrics(frames, names, 0.6, 0.3, np.array([0.5, 1.5, np.nan]))
+
+
+def _weak_class_frames() -> list[dict]:
+    """Ten frames: each has a class-0 object detected right at 0.8, and a class-1 object whose
+    detection misses it at 0.2; frame 0's class-1 object is also found at 0.15."""
+    frames = []
+    for k in range(10):
+        x = 20.0 * k
+        boxes = [shifted(x), shifted(x + 9)] + ([shifted(x + 6)] if k == 0 else [])
+        frames.append(
+            {
+                "boxes": np.stack(boxes),
+                "class_ids": np.array([0, 1] + ([1] if k == 0 else [])),
+                "scores": np.array([0.8, 0.2] + ([0.15] if k == 0 else [])),
+                "reference_boxes": np.stack([shifted(x), shifted(x + 6)]),
+                "reference_class_ids": np.array([0, 1]),
+            }
+        )
+    return frames
+
+
+def test_pooled_objective_holds_a_weak_class_up_where_its_own_f_floods():
+    frames, names, grid = _weak_class_frames(), ("barrel", "pallet", "cone"), (0.1, 0.2, 0.3, 0.6, 0.9)
+    own = tune_class_thresholds(frames, names, 0.6, grid=grid)
+    pooled = tune_class_thresholds(frames, names, 0.6, grid=grid, objective="total", untuned_threshold=0.3)
+    # Pallets' own F is best at 0.1 (1 match among 11 detections); pooled, the 10 misses
+    # cost more than the match gives, so 0.3 (none of them) is best. Barrels stay; cones untuned.
+    assert own[1] == 0.1 and pooled[1] == 0.3
+    assert own[0] == pooled[0] == 0.1 and np.isnan(own[2]) and np.isnan(pooled[2])
+    at_own = detection_metrics(frames, names, 0.6, 0.3, own)
+    at_pooled = detection_metrics(frames, names, 0.6, 0.3, pooled)
+    assert at_pooled["f1"] == pytest.approx(2 * 10 / (10 + 20), abs=1e-4)
+    assert at_own["f1"] == pytest.approx(2 * 11 / (21 + 20), abs=1e-4) and at_own["f1"] < at_pooled["f1"]
+    assert at_own["per_class"]["pallet"]["f1"] > at_pooled["per_class"]["pallet"]["f1"] == 0.0
+    with pytest.raises(InputError, match="untuned_threshold"):
+        tune_class_thresholds(frames, names, 0.6, objective="total")
+    with pytest.raises(InputError, match="class, total"):
+        tune_class_thresholds(frames, names, 0.6, objective="micro")
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 2), st.booleans(), st.floats(0.05, 0.95), st.integers(0, 2)),
+        min_size=1,
+        max_size=30,
+    ),
+    st.sampled_from([0.1, 0.35, 0.5]),
+)
+def test_pooled_objective_never_lowers_the_pooled_f(detections, untuned):
+    """Whatever the detections, the pooled objective's thresholds give a pooled F at least that of
+    each class's own best: it starts from them and moves only upwards in pooled F."""
+    frames = []
+    for k, (class_id, is_true, score, num_extra_references) in enumerate(detections):
+        x = 20.0 * k
+        references = [shifted(x)] if is_true else []
+        references += [shifted(x + 6 + 3 * j) for j in range(num_extra_references)]
+        frames.append(
+            {
+                "boxes": shifted(x)[None],
+                "class_ids": np.array([class_id]),
+                "scores": np.array([score]),
+                "reference_boxes": np.stack(references) if references else np.zeros((0, 7)),
+                "reference_class_ids": np.full(len(references), class_id),
+            }
+        )
+    assume(any(len(frame["reference_class_ids"]) for frame in frames))
+    names = ("barrel", "pallet", "cone")
+    own = tune_class_thresholds(frames, names, 0.6)
+    pooled = tune_class_thresholds(frames, names, 0.6, objective="total", untuned_threshold=untuned)
+    assert np.array_equal(np.isnan(own), np.isnan(pooled))
+    f_own = detection_metrics(frames, names, 0.6, untuned, own)["f1"]
+    f_pooled = detection_metrics(frames, names, 0.6, untuned, pooled)["f1"]
+    assert f_pooled >= f_own - 1e-4  # the metrics are rounded to 4 decimals
 
 
 def test_recognition_accuracy_table():

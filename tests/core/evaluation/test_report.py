@@ -270,6 +270,23 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     assert "| the same, F minus blind's, per seed: mean [95% interval] | – |" in text
     row = "| F of out-of-fold thresholds minus the fitted frames', per seed: mean [95% interval] |"
     assert row + " +0.010" in text
+    # And at the other objective's out-of-fold thresholds, when the record measured them.
+    assert "objective total" not in text and "pooled" not in text
+    for variant in result["variants"].values():
+        other = [f + 0.02 for f in variant["f1_per_seed"]]
+        variant["other_objective_thresholds"] = {
+            "objective": "total",
+            "f1": sum(other) / 3,
+            "f1_per_seed": other,
+            "minus_chosen": paired_difference(other, variant["f1_per_seed"]),
+        }
+    text = hitl_markdown(result)
+    assert "| total F, the same models at out-of-fold thresholds of objective total | 0.320 |" in text
+    row = "| F of objective total's out-of-fold thresholds minus the model's, per seed: mean [95% interval] |"
+    assert row + " +0.020" in text
+    result["settings"]["threshold_objective"] = "total"
+    assert "best for the F-score of all classes' detections pooled" in hitl_markdown(result)
+    result["settings"]["threshold_objective"] = "class"
     # Object verdicts teaching their class alone: said where a reviewer ran, not otherwise.
     result["settings"]["model_box_targets"] = False
     assert "`model_box_targets` off" not in hitl_markdown(result)  # blind and full labels alone

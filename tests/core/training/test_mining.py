@@ -178,7 +178,8 @@ def test_a_refit_on_the_rows_a_regressor_was_fitted_on_keeps_that_regressor(fram
 def test_each_round_takes_its_tuned_thresholds(frames, monkeypatch):
     seen = []
 
-    def fake_tuning(scored, class_names, iou_threshold, max_threshold):
+    def fake_tuning(scored, class_names, iou_threshold, max_threshold, objective, untuned_threshold):
+        assert objective == "class" and untuned_threshold == 0.5  # the default; the model's global
         seen.append((len(scored), iou_threshold, max_threshold))
         out = np.full(len(class_names), np.nan)
         out[[1, 6]] = [0.45, 0.15]  # bobbins and trucks
@@ -752,11 +753,15 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         events.append(("score", sorted(f.frame_index for f in score_frames_)))
         return score_frames(model, score_frames_, *args)
 
-    def spy_tuning(scored, class_names, iou_threshold, max_threshold):
-        tunings.append((len(scored), max_threshold))
-        real_tuning(scored, class_names, iou_threshold, max_threshold=max_threshold)  # (it runs)
+    def spy_tuning(scored, class_names, iou_threshold, max_threshold, objective, untuned_threshold):
+        tunings.append((len(scored), max_threshold, objective))
+        real_tuning(
+            scored, class_names, iou_threshold, max_threshold=max_threshold, objective=objective,
+            untuned_threshold=untuned_threshold,
+        )  # (it runs)  # fmt: skip
         out = np.full(len(class_names), np.nan)
-        out[1] = 0.25 if max_threshold < 1 else 0.7  # bobbins: capped on fitted frames, not beyond
+        # Bobbins: capped on fitted frames, not beyond; the objectives differ out of fold.
+        out[1] = 0.25 if max_threshold < 1 else {"class": 0.7, "total": 0.6}[objective]
         return out
 
     monkeypatch.setattr(training, "_training_set", spy_training_set)
@@ -775,17 +780,30 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         ("fit", [second]), ("score", [first]), ("fit", [first]), ("score", [second]),
     ]  # fmt: skip
     # Round 0 on its fitted frames under the ceiling; the last on its fitted frames under the
-    # ceiling (for the record), then on the out-of-fold scores without one.
-    assert tunings == [(2, 0.3), (2, 0.3), (2, 1.0)]
+    # ceiling (for the record), then on the out-of-fold scores without one, for each objective.
+    assert tunings == [(2, 0.3, "class"), (2, 0.3, "class"), (2, 1.0, "class"), (2, 1.0, "total")]
     assert run.model.class_score_thresholds == {"bobbin": 0.7}
     assert run.models[0].class_score_thresholds == {"bobbin": 0.25}
     folds = run.rounds[-1]["threshold_folds"]
     assert folds["folds"] == 2 and folds["seconds"] > 0
     assert folds["thresholds"] == {"bobbin": 0.7} and folds["fitted_frame_thresholds"] == {"bobbin": 0.25}
+    assert folds["objective"] == "class"
+    assert folds["by_objective"] == {"class": {"bobbin": 0.7}, "total": {"bobbin": 0.6}}
     assert "threshold_folds" not in run.rounds[0]
     # The record's metrics are the model's as it is returned.
     assert run.rounds[-1]["train_metrics"]["class_score_thresholds"]["bobbin"] == 0.7
     assert run.rounds[-1]["train_metrics"]["class_score_thresholds"]["box"] == 0.3
+    # Tuned for the pooled F, every tuning says so and the model keeps that objective's.
+    tunings.clear()
+    pooled = train_with_mining(
+        frames, classifier, rounds=0, initial_negatives=100, score_threshold=0.3, threshold_folds=2,
+        threshold_objective="total",
+    )  # fmt: skip
+    assert tunings == [(2, 0.3, "total"), (2, 1.0, "class"), (2, 1.0, "total")]
+    assert pooled.model.class_score_thresholds == {"bobbin": 0.6}
+    assert pooled.rounds[-1]["threshold_folds"]["objective"] == "total"
+    with pytest.raises(InputError, match="threshold_objective must be one of class, total"):
+        train_with_mining(frames, classifier, threshold_objective="micro")
 
 
 def test_threshold_folds_are_zero_or_at_least_two_and_no_more_than_the_frames(frames):

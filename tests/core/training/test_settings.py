@@ -75,6 +75,8 @@ def test_the_settings_still_check_themselves():
         loop_settings_from({"method": "paper", "recalibrate_background": 0.5})
     with pytest.raises(InputError, match="review_order must be one of score, class, learned or None"):
         LoopSettings(review_order="random")
+    with pytest.raises(InputError, match="threshold_objective must be one of class, total"):
+        LoopSettings(threshold_objective="micro")
     for bad in (-1, 2.5, True):
         with pytest.raises(InputError, match="review_extra must be an integer"):
             LoopSettings(review_extra=bad)
