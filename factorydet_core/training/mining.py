@@ -37,6 +37,7 @@ from factorydet_core.proposals.candidates import point_set_features
 from factorydet_core.proposals.visibility import FreeSpace
 from factorydet_core.session.queue import queue_order as queue_order_of
 from factorydet_core.session.store import HIDE_LABELLED_IOU
+from factorydet_core.training.settings import check_threshold_folds, check_threshold_objective
 from factorydet_core.types import (
     PROBABILITY_EXPONENT,
     SCORE_FLOOR,
@@ -529,13 +530,6 @@ def with_tuned_thresholds(
     )
 
 
-def check_threshold_folds(folds: int) -> int:
-    """``folds`` if it is 0 (off) or an integer of at least 2; ``InputError`` otherwise."""
-    if isinstance(folds, bool) or not isinstance(folds, (int, np.integer)) or folds < 0 or folds == 1:
-        raise InputError(f"threshold_folds must be 0 (off) or an integer >= 2, got {folds!r}")
-    return int(folds)
-
-
 def _out_of_fold_scored(
     frames: list[FrameProposals],
     num_folds: int,
@@ -747,9 +741,7 @@ def train_with_mining(
     if init_model is not None and not round_epochs:
         raise InputError("init_model is trained on for round_epochs epochs: set round_epochs > 0")
     check_threshold_folds(threshold_folds)
-    if threshold_objective not in THRESHOLD_OBJECTIVES:
-        objectives = ", ".join(THRESHOLD_OBJECTIVES)
-        raise InputError(f"threshold_objective must be one of {objectives}, got {threshold_objective!r}")
+    check_threshold_objective(threshold_objective)
     if threshold_folds > len(frames):
         raise InputError(f"threshold_folds: {threshold_folds} folds of {len(frames)} training frames")
     background_id = classifier.background_id

@@ -5,6 +5,7 @@ purpose (no torch): the command line builds its flags from it."""
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from collections.abc import Mapping
 from types import MappingProxyType
 
@@ -219,14 +220,8 @@ class LoopSettings:
         if self.review_order is not None and self.review_order not in REVIEW_ORDERS:
             orders = ", ".join(REVIEW_ORDERS)
             raise InputError(f"review_order must be one of {orders} or None, got {self.review_order!r}")
-        folds = self.threshold_folds
-        if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0 or folds == 1:
-            raise InputError(f"threshold_folds must be 0 (off) or an integer >= 2, got {folds!r}")
-        if self.threshold_objective not in THRESHOLD_OBJECTIVES:
-            objectives = ", ".join(THRESHOLD_OBJECTIVES)
-            raise InputError(
-                f"threshold_objective must be one of {objectives}, got {self.threshold_objective!r}"
-            )
+        check_threshold_folds(self.threshold_folds)
+        check_threshold_objective(self.threshold_objective)
         extra = self.review_extra
         if extra is not None and (isinstance(extra, bool) or not isinstance(extra, int) or extra < 0):
             raise InputError(f"review_extra must be an integer >= 0 or None, got {extra!r}")
@@ -241,7 +236,24 @@ class LoopSettings:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
 
 
+def check_threshold_folds(folds: object) -> int:
+    """``folds`` if it is 0 (off) or an integer of at least 2; ``InputError`` otherwise (the
+    settings' check and ``train_with_mining``'s)."""
+    if isinstance(folds, bool) or not isinstance(folds, numbers.Integral) or folds < 0 or folds == 1:
+        raise InputError(f"threshold_folds must be 0 (off) or an integer >= 2, got {folds!r}")
+    return int(folds)
+
+
+def check_threshold_objective(objective: object) -> str:
+    """``objective`` if it is one of ``types.THRESHOLD_OBJECTIVES``; ``InputError`` otherwise."""
+    if objective not in THRESHOLD_OBJECTIVES:
+        objectives = ", ".join(THRESHOLD_OBJECTIVES)
+        raise InputError(f"threshold_objective must be one of {objectives}, got {objective!r}")
+    return str(objective)
+
+
 BEFORE_THEY_EXISTED: dict[str, object] = {
+    "threshold_objective": "class",
     "queue_order": "score",
     "review_order": None,
     "refit_box_quality": False,
