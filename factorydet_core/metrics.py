@@ -263,10 +263,12 @@ def tune_class_thresholds(
     ``objective`` (``types.THRESHOLD_OBJECTIVES``) says whose F-score: ``"class"``, each class's
     own; ``"total"``, that of all classes' detections pooled (``detection_metrics``'s total), by
     coordinate ascent from the per-class choice: one class's threshold at a time moves to the grid
-    value of highest pooled F given the others', until none moves. A detection lowers the pooled F
-    unless the matches among the detections a lower threshold adds are more than half that F, so a
-    class of few, poorly scored objects is held higher than its own F would put it. The classes
-    left NaN count their detections at ``untuned_threshold`` (required with ``"total"``).
+    value of highest pooled F given the others', until none moves. Lowering a threshold raises the
+    pooled F exactly when the share of matches among the detections it adds is above half that F.
+    So a class of few, poorly scored objects is held above its own best (up to switching it off:
+    above all its scores, where it has no true positive), and a class whose own F is well above the
+    pooled one goes below its own best. The classes left NaN stay NaN and count their detections at
+    ``untuned_threshold`` (required with ``"total"``).
 
     Training on the frames its model fitted passes its global threshold as ``max_threshold``: a
     class's threshold may go below it, never above (``train_with_mining``'s ``threshold_folds``
@@ -315,12 +317,14 @@ def _pooled_f_thresholds(
     """``tune_class_thresholds``'s ``"total"`` objective: ``chosen`` (C,), the per-class choice
     (NaN: untuned), moved class by class to the pooled F's best grid value."""
     thresholds = np.array([t for t in grid if t <= max_threshold + 1e-12])
+    tunable = np.isfinite(chosen)
+    if not len(thresholds) or not tunable.any():  # nothing to move
+        return chosen
     num_classes = len(chosen)
     # (C, G) matches and detections of each class at each grid threshold.
     above = scores[None, :] >= thresholds[:, None]  # (G, K)
     tp_curve = np.stack([(above & ((classes == c) & tps)[None, :]).sum(1) for c in range(num_classes)])
     det_curve = np.stack([(above & (classes == c)[None, :]).sum(1) for c in range(num_classes)])
-    tunable = np.isfinite(chosen)
     fixed_tp = fixed_det = 0
     for c in np.flatnonzero(~tunable):
         at = scores >= untuned_threshold
@@ -328,7 +332,8 @@ def _pooled_f_thresholds(
         fixed_det += int((at & (classes == c)).sum())
     index = np.array([int(np.argmin(np.abs(thresholds - t))) if np.isfinite(t) else -1 for t in chosen])
     total_reference = int(num_reference.sum())
-    for _ in range(4 * len(thresholds)):  # each move raises the pooled F: it ends; the bound is a guard
+    moved = True
+    while moved:  # each move raises the pooled F strictly, among finitely many choices: it ends
         moved = False
         for c in np.flatnonzero(tunable):
             others = np.flatnonzero(tunable & (np.arange(num_classes) != c))
@@ -338,8 +343,6 @@ def _pooled_f_thresholds(
             best = int(np.argmax(pooled))
             if pooled[best] > pooled[index[c]] + 1e-12:  # strictly better: ties stay
                 index[c], moved = best, True
-        if not moved:
-            break
     return np.where(tunable, thresholds[np.maximum(index, 0)], np.nan)
 
 

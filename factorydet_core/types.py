@@ -67,7 +67,7 @@ THRESHOLD_OBJECTIVES: tuple[str, ...] = ("class", "total")
 ``metrics.tune_class_thresholds``): each class's own F-score, or the F-score of all classes'
 detections pooled, the figure the benchmarks report. A class of few, poorly scored objects reaches
 its own best F low down its scores, where its false positives cost the pooled F more than its
-matches give."""
+matches give; a class far better than the rest goes the other way, below its own best."""
 
 MAX_RAY_WORKERS = 4096
 """The most Ray workers a batch may ask for (``scale.runner.Execution``, a session's setting)."""

@@ -308,7 +308,9 @@ def test_bench_hitl_with_threshold_folds_measures_each_model_at_both_thresholds(
     for name in ("blind", "full"):
         for run in result["per_seed"][name]:
             other = run["other_objective_thresholds"]
+            # The same network (mAP reads no threshold), at thresholds of its own.
             assert other["objective"] == "total" and other["map"] == run["map"]
+            assert set(other["thresholds"]) <= set(run["per_class_f1"])
         variant = result["variants"][name]["other_objective_thresholds"]
         assert variant["f1_per_seed"] == [
             r["other_objective_thresholds"]["f1"] for r in result["per_seed"][name]

@@ -949,36 +949,30 @@ def _hitl_variants(
             # Candidates once per frame set: with thresholds tuned out of fold, the same network is
             # measured with the thresholds its fitted frames would have given too.
             folds = run.rounds[-1].get("threshold_folds")
-            models = [run.model]
+            # The same network at each set of thresholds, by name: the model's own; with folds the
+            # ones its fitted frames would have given, and the other objective's out of fold.
+            thresholds_of: dict[str, dict | None] = {"model": run.model.class_score_thresholds}
             other_objective = None
             if folds is not None:
-                models.append(
-                    dataclasses.replace(
-                        run.model, class_score_thresholds=dict(folds["fitted_frame_thresholds"]) or None
-                    )
-                )
-                # And at the out-of-fold thresholds of the other objective (records of runs from
-                # before objectives have none).
-                others = [o for o in folds.get("by_objective", {}) if o != folds.get("objective")]
-                if others:
-                    other_objective = others[0]
-                    models.append(
-                        dataclasses.replace(
-                            run.model,
-                            class_score_thresholds=dict(folds["by_objective"][other_objective]) or None,
-                        )
-                    )
+                thresholds_of["fitted_frames"] = dict(folds["fitted_frame_thresholds"])
+                others = [o for o in folds["by_objective"] if o != folds["objective"]]
+                other_objective = others[0]
+                thresholds_of["other_objective"] = dict(folds["by_objective"][other_objective])
+            models = {
+                key: dataclasses.replace(run.model, class_score_thresholds=t or None)
+                for key, t in thresholds_of.items()
+            }
             test_candidates = _candidates_of(run.model, test_frames)
-            measured = [
-                measure(model, dataset, test_frames, use_truth=True, candidates=test_candidates)
-                for model in models
-            ]
+            measured = {
+                key: measure(model, dataset, test_frames, use_truth=True, candidates=test_candidates)
+                for key, model in models.items()
+            }
             in_factory = None
             if heldout is not None:
-                in_factory = {k: measured[0][k] for k in ("f1", "precision", "recall", "map")}
+                in_factory = {k: measured["model"][k] for k in ("f1", "precision", "recall", "map")}
                 heldout_candidates = _candidates_of(run.model, heldout.frames)
-                measured = [
-                    measure(
+                measured = {
+                    key: measure(
                         model,
                         None,
                         heldout.frames,
@@ -986,24 +980,22 @@ def _hitl_variants(
                         ignored=heldout.ignored,
                         candidates=heldout_candidates,
                     )
-                    for model in models
-                ]
-            metrics = measured[0]
-            fitted_frame = None
+                    for key, model in models.items()
+                }
+            metrics = measured["model"]
+            fitted_frame = other_objective_thresholds = None
             if folds is not None:
                 fitted_frame = {
-                    **{k: measured[1][k] for k in ("f1", "precision", "recall", "map")},
-                    "per_class_f1": {k: v["f1"] for k, v in measured[1]["per_class"].items()},
-                    "thresholds": dict(folds["fitted_frame_thresholds"]),
+                    **{k: measured["fitted_frames"][k] for k in ("f1", "precision", "recall", "map")},
+                    "per_class_f1": {k: v["f1"] for k, v in measured["fitted_frames"]["per_class"].items()},
+                    "thresholds": thresholds_of["fitted_frames"],
                     "out_of_fold_thresholds": dict(folds["thresholds"]),
                 }
-            other_objective_thresholds = None
-            if other_objective is not None:
                 other_objective_thresholds = {
                     "objective": other_objective,
-                    **{k: measured[2][k] for k in ("f1", "precision", "recall", "map")},
-                    "per_class_f1": {k: v["f1"] for k, v in measured[2]["per_class"].items()},
-                    "thresholds": dict(folds["by_objective"][other_objective]),
+                    **{k: measured["other_objective"][k] for k in ("f1", "precision", "recall", "map")},
+                    "per_class_f1": {k: v["f1"] for k, v in measured["other_objective"]["per_class"].items()},
+                    "thresholds": thresholds_of["other_objective"],
                 }
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
             covered, unannotated = _coverage_totals(covered_by_class)

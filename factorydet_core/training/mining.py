@@ -708,7 +708,7 @@ def train_with_mining(
         threshold_objective: whose F-score a tuned threshold is best for
             (``types.THRESHOLD_OBJECTIVES``): each class's own ("class"), or that of all
             classes' detections pooled ("total", the figure benchmarks report; a class of few,
-            poorly scored objects is then held above where its own F would flood).
+            poorly scored objects is then held above where its own F would flood, up to off).
         probability_exponent: with ``box_quality``, the model's score is the class probability
             to this power times the predicted IoU (``DetectionModel.probability_exponent``); it
             ranks the mined negatives too. 1 is the plain product; the command line and the app
@@ -919,7 +919,7 @@ def train_with_mining(
                 )
                 for objective in THRESHOLD_OBJECTIVES
             }
-            model = dataclasses.replace(model, class_score_thresholds=by_objective[threshold_objective])
+            model = dataclasses.replace(model, class_score_thresholds=dict(by_objective[threshold_objective]))
             folds_record = {
                 "folds": threshold_folds,
                 "seconds": round(time.perf_counter() - fold_start, 2),

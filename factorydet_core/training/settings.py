@@ -68,7 +68,8 @@ class LoopSettings:
     """With ``class_thresholds``, whose F-score each class's threshold is best for
     (``types.THRESHOLD_OBJECTIVES``): the class's own ("class"), or that of all classes'
     detections pooled ("total", the figure the benchmarks report), which holds a class of few,
-    poorly scored objects above where its own F would flood the detections
+    poorly scored objects above where its own F would flood the detections, up to switching it
+    off, and lets a class far better than the rest go below its own best
     (``train_with_mining``'s ``threshold_objective``)."""
     mining_threshold: float | None = MINING_THRESHOLD
     """Least score of a mined (and queued) false positive; ``None``: the operating threshold. The
@@ -389,7 +390,7 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "the fitted frames, never above the score threshold)", int, 0, 20, 1),
     Control("threshold_objective", "Threshold objective", "with per-class thresholds, whose F-score each "
             "threshold is best for: the class's own (class), or all classes' detections pooled (total: a "
-            "class of few, poorly scored objects is held up rather than flood the detections)",
+            "class of few, poorly scored objects is held up, even off, rather than flood the detections)",
             str, choices=tuple((o, o) for o in THRESHOLD_OBJECTIVES)),
     Control("hold_confident", "Hold confident negatives", "mined negatives scoring at least this are neither "
             "background nor object until reviewed (0: off, every mined negative is background, as the "

@@ -4,6 +4,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from factorydet_core.metrics import (
+    CLASS_THRESHOLD_GRID,
     average_precision,
     detection_metrics,
     error_breakdown,
@@ -275,6 +276,29 @@ def test_pooled_objective_never_lowers_the_pooled_f(detections, untuned):
     f_own = detection_metrics(frames, names, 0.6, untuned, own)["f1"]
     f_pooled = detection_metrics(frames, names, 0.6, untuned, pooled)["f1"]
     assert f_pooled >= f_own - 1e-4  # the metrics are rounded to 4 decimals
+    # And no single class's move along the grid raises the pooled F that detection_metrics gives.
+    for c in np.flatnonzero(np.isfinite(pooled)):
+        for threshold in CLASS_THRESHOLD_GRID:
+            moved = pooled.copy()
+            moved[c] = threshold
+            assert detection_metrics(frames, names, 0.6, untuned, moved)["f1"] <= f_pooled + 1e-4
+
+
+def test_pooled_objective_keeps_the_ceiling_and_an_empty_grid():
+    frames, names = _weak_class_frames(), ("barrel", "pallet", "cone")
+    grid = (0.1, 0.2, 0.3, 0.6, 0.9)
+    capped = tune_class_thresholds(
+        frames, names, 0.6, grid=grid, max_threshold=0.2, objective="total", untuned_threshold=0.2
+    )
+    # Under a ceiling of 0.2 pallets cannot climb above their misses at 0.2 (as they do without
+    # it, to 0.3); 0.2 keeps the misses and drops the match, so they stay at 0.1.
+    assert capped[0] == 0.1 and capped[1] == 0.1
+    # No grid value under the ceiling: nothing is tuned, as with each class's own objective.
+    for objective in ("class", "total"):
+        none = tune_class_thresholds(
+            frames, names, 0.6, grid=grid, max_threshold=0.05, objective=objective, untuned_threshold=0.05
+        )
+        assert np.isnan(none).all()
 
 
 def test_recognition_accuracy_table():

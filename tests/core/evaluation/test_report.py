@@ -280,10 +280,15 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
             "f1_per_seed": other,
             "minus_chosen": paired_difference(other, variant["f1_per_seed"]),
         }
+    blind_other = result["variants"]["blind"]["other_objective_thresholds"]["f1_per_seed"]
+    for variant in result["variants"].values():
+        other = variant["other_objective_thresholds"]
+        other["difference_vs_blind"] = paired_difference(other["f1_per_seed"], blind_other)
     text = hitl_markdown(result)
     assert "| total F, the same models at out-of-fold thresholds of objective total | 0.320 |" in text
     row = "| F of objective total's out-of-fold thresholds minus the model's, per seed: mean [95% interval] |"
     assert row + " +0.020" in text
+    assert "| the same (total), F minus blind's, per seed: mean [95% interval] | – |" in text
     result["settings"]["threshold_objective"] = "total"
     assert "best for the F-score of all classes' detections pooled" in hitl_markdown(result)
     result["settings"]["threshold_objective"] = "class"
