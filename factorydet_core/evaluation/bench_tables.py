@@ -756,14 +756,16 @@ def hitl_compare_table(result: dict) -> str:
     what = f"`{result['record']}`" if same else f"`{result['record']}` minus `{result['baseline']}`"
     rows = result["variants"]
     in_factory = any("in_factory_f1" in row for row in rows.values())
+    fitted_frames = any("fitted_frame_f1" in row for row in rows.values())
     heldout = " on the held-out factories" if result.get("heldout") else ""
     lines = [
         f"{what}, seed by seed (seeds {seeds}): mean [95% interval]{heldout}."
         + ("" if same else f" What differs: {differs or 'nothing'}."),
         "",
         "| detector | F-score | mAP | F gain over its own blind mining |"
-        + (" F-score in-factory |" if in_factory else ""),
-        "|---|---|---|---|" + ("---|" if in_factory else ""),
+        + (" F-score in-factory |" if in_factory else "")
+        + (" F-score at the fitted frames' thresholds |" if fitted_frames else ""),
+        "|---|---|---|---|" + ("---|" if in_factory else "") + ("---|" if fitted_frames else ""),
     ]
     for name, row in rows.items():
         # A detector against itself over the same blind mining: its gain is its F difference.
@@ -771,6 +773,8 @@ def hitl_compare_table(result: dict) -> str:
         cells = [name, difference_text(row["f1"]), difference_text(row["map"]), gain]
         if in_factory:
             cells.append(difference_text(row["in_factory_f1"]) if "in_factory_f1" in row else "–")
+        if fitted_frames:
+            cells.append(difference_text(row["fitted_frame_f1"]) if "fitted_frame_f1" in row else "–")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + _library_pairs_text(rows)
 

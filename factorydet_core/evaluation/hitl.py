@@ -1245,7 +1245,8 @@ def compare_hitl_records(
         the plan fields that differ (``{field: [record's, baseline's]}``, settings by
         name), ``variants`` one row per compared pair (named by the detector, or "A minus B" for a
         ``pair`` of two), each ``{"variant", "baseline_variant", "f1", "map", "gain_over_blind"}``
-        and ``"in_factory_f1"`` where both measured it, each a ``paired_difference`` (record minus
+        and ``"in_factory_f1"`` and ``"fitted_frame_f1"`` (at the fitted frames' thresholds, with
+        threshold folds) where both measured it, each a ``paired_difference`` (record minus
         baseline).
 
     Raises:
@@ -1311,6 +1312,12 @@ def compare_hitl_records(
         if all("in_factory" in runs[s] for runs in (ours, theirs) for s in seeds):
             row["in_factory_f1"] = paired_difference(
                 [ours[s]["in_factory"]["f1"] for s in seeds], [theirs[s]["in_factory"]["f1"] for s in seeds]
+            )
+        if all("fitted_frame_thresholds" in runs[s] for runs in (ours, theirs) for s in seeds):
+            # Both tuned out of fold: the same networks at their fitted frames' thresholds too.
+            row["fitted_frame_f1"] = paired_difference(
+                [ours[s]["fitted_frame_thresholds"]["f1"] for s in seeds],
+                [theirs[s]["fitted_frame_thresholds"]["f1"] for s in seeds],
             )
         row_name = variant if variant == baseline_variant else f"{variant} minus {baseline_variant}"
         variants[row_name] = row

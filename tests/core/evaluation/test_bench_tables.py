@@ -358,6 +358,18 @@ def test_two_detectors_of_one_hitl_record_are_compared_seed_by_seed_with_their_i
     plain = _hitl_record({"blind": [0.2, 0.2, 0.2], "full": [0.3, 0.31, 0.3]}, {})
     table = render_record(compare_hitl_records(plain, plain, names=("b", "b"), pair=("full", "blind")))
     assert "in-factory" not in table and _rows(table, "full minus blind")
+    assert "fitted frames" not in table
+    # Runs with thresholds tuned out of fold: the same networks at their fitted frames' thresholds.
+    for runs, fitted in zip(plain["per_seed"].values(), ([0.19, 0.2, 0.2], [0.25, 0.26, 0.24])):
+        for run, value in zip(runs, fitted):
+            run["fitted_frame_thresholds"] = {"f1": value}
+    result = compare_hitl_records(plain, plain, names=("b", "b"), pair=("full", "blind"))
+    assert result["variants"]["full minus blind"]["fitted_frame_f1"]["mean"] == pytest.approx(
+        0.0533, abs=1e-4
+    )
+    table = render_record(result)
+    (cells,) = _rows(table, "full minus blind")
+    assert "F-score at the fitted frames' thresholds" in table and cells[4].startswith("+0.053 [")
 
 
 def test_world_labels_table_sweeps_the_least_points_that_show_an_object():
