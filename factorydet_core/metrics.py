@@ -9,7 +9,7 @@ import numpy as np
 from factorydet_core.boxes import box_iou_3d
 from factorydet_core.detection.scoring import operating_thresholds
 from factorydet_core.proposals.candidates import point_sets
-from factorydet_core.types import THRESHOLD_OBJECTIVES, InputError, MergedCloud, Proposals, Segmentation
+from factorydet_core.types import InputError, MergedCloud, Proposals, Segmentation, check_threshold_objective
 
 
 def proposal_point_lists(segmentation: Segmentation, proposals: Proposals) -> list[np.ndarray]:
@@ -281,69 +281,64 @@ def tune_class_thresholds(
     One threshold for all classes serves them badly: the classifier's probabilities are on
     different scales per class (a well-boxed truck scores 0.3, a barrel 0.7), so any one threshold
     drops the trucks or floods the barrels (``docs/default_model_validation.json``)."""
-    if objective not in THRESHOLD_OBJECTIVES:
-        raise InputError(f"objective must be one of {', '.join(THRESHOLD_OBJECTIVES)}, got {objective!r}")
+    check_threshold_objective(objective)
     if objective == "total" and untuned_threshold is None:
         raise InputError('objective "total" needs untuned_threshold (the classes left NaN count there)')
     scores, tps, classes, num_reference = _pooled_matches(frames, len(class_names), iou_threshold)
+    thresholds = np.array([t for t in grid if t <= max_threshold + 1e-12], np.float64)
+    # (C, G) matches and detections of each class at or above each threshold: both objectives
+    # read these counts.
+    of_class = classes[None, :] == np.arange(len(class_names))[:, None]  # (C, K)
+    above = (scores[:, None] >= thresholds[None, :]).astype(np.int64)  # (K, G)
+    tp_curve = (of_class & tps[None, :]).astype(np.int64) @ above
+    det_curve = of_class.astype(np.int64) @ above
     best_f = np.zeros(len(class_names))
-    chosen = np.full(len(class_names), np.nan)
-    for threshold in (t for t in grid if t <= max_threshold + 1e-12):
-        above = scores >= threshold
+    chosen = np.full(len(class_names), -1)  # index into thresholds; -1: untuned
+    for g in range(len(thresholds)):
         for c in range(len(class_names)):
-            tp = int(tps[above & (classes == c)].sum())
-            num_detections = int((above & (classes == c)).sum())
+            tp, num_detections = int(tp_curve[c, g]), int(det_curve[c, g])
             if not tp or not num_reference[c]:
                 continue
             f1 = 2 * tp / (num_detections + num_reference[c])  # 2PR / (P + R)
             if f1 > best_f[c] + 1e-12:  # strictly better: ties keep the lower threshold
-                best_f[c], chosen[c] = f1, float(threshold)
-    if objective == "class":
-        return chosen
-    pooled = (scores, tps, classes, num_reference)
-    return _pooled_f_thresholds(*pooled, chosen, grid, max_threshold, untuned_threshold)
+                best_f[c], chosen[c] = f1, g
+    if objective == "total":
+        untuned = np.isin(classes, np.flatnonzero(chosen < 0)) & (scores >= untuned_threshold)
+        fixed = (int((untuned & tps).sum()), int(untuned.sum()))
+        chosen = _pooled_f_choice(tp_curve, det_curve, int(num_reference.sum()), chosen, fixed)
+    tuned = np.full(len(class_names), np.nan)
+    tuned[chosen >= 0] = thresholds[chosen[chosen >= 0]]
+    return tuned
 
 
-def _pooled_f_thresholds(
-    scores: np.ndarray,
-    tps: np.ndarray,
-    classes: np.ndarray,
-    num_reference: np.ndarray,
+def _pooled_f_choice(
+    tp_curve: np.ndarray,
+    det_curve: np.ndarray,
+    num_references: int,
     chosen: np.ndarray,
-    grid: tuple[float, ...],
-    max_threshold: float,
-    untuned_threshold: float,
+    fixed: tuple[int, int],
 ) -> np.ndarray:
-    """``tune_class_thresholds``'s ``"total"`` objective: ``chosen`` (C,), the per-class choice
-    (NaN: untuned), moved class by class to the pooled F's best grid value."""
-    thresholds = np.array([t for t in grid if t <= max_threshold + 1e-12])
-    tunable = np.isfinite(chosen)
-    if not len(thresholds) or not tunable.any():  # nothing to move
-        return chosen
-    num_classes = len(chosen)
-    # (C, G) matches and detections of each class at each grid threshold.
-    above = scores[None, :] >= thresholds[:, None]  # (G, K)
-    tp_curve = np.stack([(above & ((classes == c) & tps)[None, :]).sum(1) for c in range(num_classes)])
-    det_curve = np.stack([(above & (classes == c)[None, :]).sum(1) for c in range(num_classes)])
-    fixed_tp = fixed_det = 0
-    for c in np.flatnonzero(~tunable):
-        at = scores >= untuned_threshold
-        fixed_tp += int((at & tps & (classes == c)).sum())
-        fixed_det += int((at & (classes == c)).sum())
-    index = np.array([int(np.argmin(np.abs(thresholds - t))) if np.isfinite(t) else -1 for t in chosen])
-    total_reference = int(num_reference.sum())
+    """``tune_class_thresholds``'s ``"total"`` objective: ``chosen`` (C,), each class's own best
+    grid index (-1: untuned, left so), moved class by class to the pooled F's best grid index.
+
+    Args:
+        tp_curve, det_curve: (C, G) each class's matches and detections at each grid threshold.
+        num_references: the references of all classes.
+        fixed: the matches and detections of the untuned classes (at the global threshold)."""
+    index = chosen.copy()
+    tunable = np.flatnonzero(index >= 0)
     moved = True
     while moved:  # each move raises the pooled F strictly, among finitely many choices: it ends
         moved = False
-        for c in np.flatnonzero(tunable):
-            others = np.flatnonzero(tunable & (np.arange(num_classes) != c))
-            tp_rest = fixed_tp + int(tp_curve[others, index[others]].sum())
-            det_rest = fixed_det + int(det_curve[others, index[others]].sum())
-            pooled = 2 * (tp_rest + tp_curve[c]) / np.maximum(det_rest + det_curve[c] + total_reference, 1)
+        for c in tunable:
+            others = tunable[tunable != c]
+            tp_rest = fixed[0] + int(tp_curve[others, index[others]].sum())
+            det_rest = fixed[1] + int(det_curve[others, index[others]].sum())
+            pooled = 2 * (tp_rest + tp_curve[c]) / np.maximum(det_rest + det_curve[c] + num_references, 1)
             best = int(np.argmax(pooled))
             if pooled[best] > pooled[index[c]] + 1e-12:  # strictly better: ties stay
                 index[c], moved = best, True
-    return np.where(tunable, thresholds[np.maximum(index, 0)], np.nan)
+    return index
 
 
 def recognition_accuracy(true_ids: np.ndarray, predicted_ids: np.ndarray, labels: tuple[str, ...]) -> dict:

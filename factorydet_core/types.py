@@ -86,6 +86,15 @@ class Cancelled(Exception):  # noqa: N818 - a request, not an error
     """Raised by long work when its ``should_stop`` callback asked it to stop."""
 
 
+def check_threshold_objective(objective: object) -> str:
+    """``objective`` if it is one of ``THRESHOLD_OBJECTIVES``; ``InputError`` otherwise (the
+    settings', ``train_with_mining``'s and ``metrics.tune_class_thresholds``'s check)."""
+    if objective not in THRESHOLD_OBJECTIVES:
+        objectives = ", ".join(THRESHOLD_OBJECTIVES)
+        raise InputError(f"threshold_objective must be one of {objectives}, got {objective!r}")
+    return str(objective)
+
+
 def _frozen(array: np.ndarray) -> np.ndarray:
     """Return ``array`` as a read-only C-contiguous array that nobody else can write to.
 

@@ -801,6 +801,29 @@ def _library_note(versions: dict[str, int]) -> str:
     )
 
 
+def _same_network_rows(
+    measured: dict[str, dict], names: list[str], at: str, short: str, paired: tuple[str, str]
+) -> list[str]:
+    """``hitl_markdown``'s rows of the same networks at other thresholds (``measured``: per
+    detector, a variant's ``fitted_frame_thresholds`` or ``other_objective_thresholds``): their
+    total F ("... at ``at``"), its difference from blind's ("``short``, F minus blind's") and,
+    where every detector has an interval, the paired difference ``paired`` (key, row text)."""
+    rows = [
+        f"| total F, the same models at {at} | " + " | ".join(_fmt(measured[n]["f1"]) for n in names) + " |"
+    ]
+    rows += _difference_row(
+        f"{short}, F minus blind's", {n: measured[n].get("difference_vs_blind", {}) for n in names}, names
+    )
+    key, text = paired
+    if all(measured[n][key].get("ci95") for n in names):
+        rows.append(
+            f"| {text}, per seed: mean [95% interval] | "
+            + " | ".join(difference_text(measured[n][key]) for n in names)
+            + " |"
+        )
+    return rows
+
+
 def hitl_markdown(result: dict, heading: bool = True) -> str:
     """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
     reviews, and full labels (means over the seeds, with each seed's total), the recovered
@@ -833,42 +856,23 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     if all("fitted_frame_thresholds" in variants[n] for n in names):
         # Thresholds tuned out of fold: the same networks at the thresholds their fitted frames
         # give (never above the operating score), and what the folds changed, seed by seed.
-        fitted = {n: variants[n]["fitted_frame_thresholds"] for n in names}
-        rows.append(
-            "| total F, the same models at thresholds tuned on their fitted frames | "
-            + " | ".join(_fmt(fitted[n]["f1"]) for n in names)
-            + " |"
+        rows += _same_network_rows(
+            {n: variants[n]["fitted_frame_thresholds"] for n in names},
+            names,
+            "thresholds tuned on their fitted frames",
+            "the same",
+            ("out_of_fold_minus_fitted", "F of out-of-fold thresholds minus the fitted frames'"),
         )
-        rows += _difference_row(
-            "the same, F minus blind's", {n: fitted[n].get("difference_vs_blind", {}) for n in names}, names
-        )
-        if all(fitted[n]["out_of_fold_minus_fitted"].get("ci95") for n in names):
-            rows.append(
-                "| F of out-of-fold thresholds minus the fitted frames', per seed: mean [95% interval] | "
-                + " | ".join(difference_text(fitted[n]["out_of_fold_minus_fitted"]) for n in names)
-                + " |"
-            )
     if all("other_objective_thresholds" in variants[n] for n in names):
         # The same networks at the other objective's out-of-fold thresholds.
-        other = {n: variants[n]["other_objective_thresholds"] for n in names}
-        objective = other[names[0]]["objective"]
-        rows.append(
-            f"| total F, the same models at out-of-fold thresholds of objective {objective} | "
-            + " | ".join(_fmt(other[n]["f1"]) for n in names)
-            + " |"
-        )
-        rows += _difference_row(
-            f"the same ({objective}), F minus blind's",
-            {n: other[n].get("difference_vs_blind", {}) for n in names},
+        objective = variants[names[0]]["other_objective_thresholds"]["objective"]
+        rows += _same_network_rows(
+            {n: variants[n]["other_objective_thresholds"] for n in names},
             names,
+            f"out-of-fold thresholds of objective {objective}",
+            f"the same ({objective})",
+            ("minus_chosen", f"F of objective {objective}'s out-of-fold thresholds minus the model's"),
         )
-        if all(other[n]["minus_chosen"].get("ci95") for n in names):
-            rows.append(
-                f"| F of objective {objective}'s out-of-fold thresholds minus the model's, per seed: "
-                "mean [95% interval] | "
-                + " | ".join(difference_text(other[n]["minus_chosen"]) for n in names)
-                + " |"
-            )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
     map_differences = _map_differences(result)
     rows += _difference_row("mAP minus blind's", map_differences, names)

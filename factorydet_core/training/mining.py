@@ -37,7 +37,7 @@ from factorydet_core.proposals.candidates import point_set_features
 from factorydet_core.proposals.visibility import FreeSpace
 from factorydet_core.session.queue import queue_order as queue_order_of
 from factorydet_core.session.store import HIDE_LABELLED_IOU
-from factorydet_core.training.settings import check_threshold_folds, check_threshold_objective
+from factorydet_core.training.settings import check_threshold_folds
 from factorydet_core.types import (
     PROBABILITY_EXPONENT,
     SCORE_FLOOR,
@@ -46,6 +46,7 @@ from factorydet_core.types import (
     Cancelled,
     Detections,
     InputError,
+    check_threshold_objective,
 )
 
 Progress = Callable[[str, int, int], None]

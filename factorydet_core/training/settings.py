@@ -20,6 +20,7 @@ from factorydet_core.types import (
     SCORE_THRESHOLD,
     THRESHOLD_OBJECTIVES,
     InputError,
+    check_threshold_objective,
 )
 
 
@@ -243,14 +244,6 @@ def check_threshold_folds(folds: object) -> int:
     if isinstance(folds, bool) or not isinstance(folds, numbers.Integral) or folds < 0 or folds == 1:
         raise InputError(f"threshold_folds must be 0 (off) or an integer >= 2, got {folds!r}")
     return int(folds)
-
-
-def check_threshold_objective(objective: object) -> str:
-    """``objective`` if it is one of ``types.THRESHOLD_OBJECTIVES``; ``InputError`` otherwise."""
-    if objective not in THRESHOLD_OBJECTIVES:
-        objectives = ", ".join(THRESHOLD_OBJECTIVES)
-        raise InputError(f"threshold_objective must be one of {objectives}, got {objective!r}")
-    return str(objective)
 
 
 BEFORE_THEY_EXISTED: dict[str, object] = {
