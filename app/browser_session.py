@@ -152,6 +152,12 @@ class BrowserSession:
         its scene instead of one per update: under software WebGL each costs half a second)."""
         return contextlib.nullcontext()
 
+    def coalesced(self) -> contextlib.AbstractContextManager:
+        """A block (``batched``) in which this browser's scene and panels are brought up to date
+        once, at its end, however many changes inside ask for it (a verdict writes, moves to
+        another frame and shows the next item: three redraws of the same panels otherwise)."""
+        return contextlib.nullcontext()
+
     def look_at_box(self, box) -> None:
         """Put this browser's camera on ``box`` (7,)."""
 
@@ -764,6 +770,10 @@ class BrowserSession:
         self.refresh()
 
     def step(self, delta: int) -> None:
+        with self.coalesced():
+            self._step(delta)
+
+    def _step(self, delta: int) -> None:
         queue = self.load_queue()
         if not queue:
             self.go_to(None)
@@ -776,6 +786,10 @@ class BrowserSession:
 
     def verdict(self, verdict: str, class_name: str | None = None, advance: bool = True) -> None:
         """The verdict on the shown item, then (with ``advance``) the next pending one."""
+        with self.coalesced():
+            self._verdict(verdict, class_name, advance)
+
+    def _verdict(self, verdict: str, class_name: str | None, advance: bool) -> None:
         item = self.current_item()
         if item is None:
             # Nothing is shown yet: show the first item, and let the person look before judging.
@@ -814,6 +828,10 @@ class BrowserSession:
 
     def batch_verdict(self, verdict: str, class_name: str | None = None) -> int:
         """One verdict on every pending item of the current filter, as one undoable edit."""
+        with self.coalesced():
+            return self._batch_verdict(verdict, class_name)
+
+    def _batch_verdict(self, verdict: str, class_name: str | None) -> int:
         with self.lock:
             pending_only = self.pending_only
             self.pending_only = True

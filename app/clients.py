@@ -68,10 +68,43 @@ class ClientView(BrowserSession):
         self.sent_at = 0.0
         self.key_received_at = 0.0  # when the server received this browser's last hotkey
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
+        # ``coalesced``: the thread whose redraws and refreshes wait for the block's end, and
+        # which of them it asked for meanwhile.
+        self._coalesce_lock = threading.Lock()
+        self._coalescing: int | None = None
+        self._wanted: set[str] = set()
+        self._num_refreshes = 0
+
+    @contextlib.contextmanager
+    def coalesced(self):
+        if self._coalescing == threading.get_ident():  # (nested: the outer block redraws)
+            yield
+            return
+        with self._coalesce_lock:
+            self._coalescing, self._wanted = threading.get_ident(), set()
+        with self.batched():
+            try:
+                yield
+            finally:
+                with self._coalesce_lock:
+                    self._coalescing, wanted = None, self._wanted
+                refreshes = self._num_refreshes
+                if "redraw" in wanted:
+                    self.redraw()
+                if "refresh" in wanted and self._num_refreshes == refreshes:  # (the redraw's did not)
+                    self.refresh()
+
+    def _deferred(self, what: str) -> bool:
+        """Whether this thread is in a ``coalesced`` block: ``what`` is then done at its end."""
+        with self._coalesce_lock:
+            if self._coalescing != threading.get_ident():
+                return False
+            self._wanted.add(what)
+            return True
 
     def redraw(self) -> None:
         """Bring this browser's scene and panels up to date with its view and the shared state."""
-        if self.closed:
+        if self.closed or self._deferred("redraw"):
             return
         state = self.state
         with self._draw_lock, self.batched():
@@ -223,9 +256,10 @@ class ClientView(BrowserSession):
 
     def refresh(self) -> None:
         """Bring this browser's panels and highlights up to date."""
-        if self.closed:
+        if self.closed or self._deferred("refresh"):
             return
         with self._refresh_lock, self.batched():
+            self._num_refreshes += 1
             self.follow_object()
             self._draw_highlights()
             for panel in self.panels:

@@ -59,6 +59,18 @@ def _vote_slider_value(model) -> float:
     return 0.0 if model.vote_iou is None else float(model.vote_iou)
 
 
+REFERENCE_KEYS = ("reference_boxes", "reference_class_ids", "ignore_boxes")
+"""A viewed frame's metrics entry's keys of what it is measured against (``SharedState.references``)."""
+
+
+def _same_references(item: dict, references: tuple[np.ndarray, np.ndarray, np.ndarray]) -> bool:
+    """Whether a viewed frame's metrics entry (``AppState.frame_detections``) is measured against
+    ``references`` (``SharedState.references``) already."""
+    return all(
+        key in item and np.array_equal(item[key], value) for key, value in zip(REFERENCE_KEYS, references)
+    )
+
+
 class SharedState:
     """What every browser shares, and the views (``AppState``, one per browser) of it.
 
@@ -180,11 +192,15 @@ class SharedState:
             self.revision += 1
             read: dict[int, tuple] = {}  # a frame several browsers viewed is read once
             for view in self._views:
+                moved = False
                 for index, item in view.frame_detections.items():
                     if index not in read:
                         read[index] = self.references(index)
-                    item["reference_boxes"], item["reference_class_ids"], item["ignore_boxes"] = read[index]
-                view._update_metrics()  # the detections are the same: only what they are measured against
+                    if not _same_references(item, read[index]):
+                        item.update(zip(REFERENCE_KEYS, read[index]))
+                        moved = True
+                if moved:  # (a verdict of background or skip, say, moves no label: nothing to measure again)
+                    view._update_metrics()  # the detections are the same: only what they are measured against
             self.changed.notify_all()
         self._notify()
 
@@ -554,8 +570,20 @@ class AppState:
             floor_args = ("floor", *self.floor_args())
             if floor_args in selections:
                 item["floor"], item["floor_key"] = selections[floor_args], floor_args[1:]
-            self.frame_detections[key[0]] = item
-            self._refilter()
+            known = self.frame_detections.get(key[0])
+            # A frame viewed again (the review queue goes back and forth between frames) with the
+            # same detections and references leaves the metrics as they are: only the shown
+            # detections change.
+            again = (
+                known is not None
+                and known["candidates"] is result.candidates
+                and _same_references(known, (boxes, class_ids, ignore_boxes))
+            )
+            if again:
+                self._select_shown()
+            else:
+                self.frame_detections[key[0]] = item
+                self._refilter()
             self._set_result(key, result.proposal, status)
         self._notify()
 

@@ -84,9 +84,10 @@ def help_markdown(class_names: tuple[str, ...]) -> str:
 
 
 def _batched(view: ClientView, action) -> None:
-    """Run a key's action so that everything it changes reaches the browser in one update."""
+    """Run a key's action so that everything it changes reaches the browser in one update, its
+    panels brought up to date once (``coalesced``)."""
     view.key_received_at = time.perf_counter()
-    with view.batched():
+    with view.coalesced():
         action()
 
 

@@ -591,6 +591,14 @@ class Label:
     """The model's score of a pre-label."""
 
 
+CHECKED_LABELS_KEPT = 200_000
+"""How many checked label rows a ``SessionDB`` keeps (``SessionDB._label``): a few hundred bytes each."""
+
+
+OVERLAPS_KEPT = 256
+"""How many frames' item-to-label overlaps a ``SessionDB`` keeps (``SessionDB.label_overlap``)."""
+
+
 class LabelBatch(list):
     """Labels added together, with the id of the edit that added them."""
 
@@ -1029,6 +1037,12 @@ class SessionDB:
         self._mined_checked: tuple[int | None, dict[int, dict]] = (None, {})
         # ((run, order), {item id: position}): a class order's positions in a run's whole queue.
         self._queue_positions: tuple[tuple | None, dict[int, int]] = (None, {})
+        # {(row's values, the session's classes): Label}: checking a stored label is pure Python
+        # per row, and the app reads every shown frame's labels again after each edit; a row
+        # read again unchanged (every column the same) is the same label, checked once.
+        self._checked_labels: dict[tuple, Label] = {}
+        # {(items' boxes, labels' boxes) as bytes: each item's highest IoU} (``label_overlap``).
+        self._overlaps: dict[tuple[bytes, bytes], list[float]] = {}
         if readonly:
             if not self.path.is_file():
                 raise SessionError(f"session {session.name!r} has no database ({self.path}) to read")
@@ -1282,13 +1296,23 @@ class SessionDB:
 
     def _label(self, row: sqlite3.Row | dict, names: tuple[str, ...]) -> Label:
         """A stored label, checked (``_label``), whose class must be one of ``names``, the
-        session's: one of another class can only be damage."""
+        session's: one of another class can only be damage. A row read before with every column
+        the same is the label checked then (a damaged row is never kept: it is refused each time)."""
+        key = (tuple(row), tuple(row.keys()), tuple(names)) if isinstance(row, sqlite3.Row) else None
+        if key is not None:
+            known = self._checked_labels.get(key)
+            if known is not None:
+                return known
         label = _label(row)
         if label.class_name not in names:
             raise SessionError(
                 f"the session database is damaged: labels row {label.id}, class_name:"
                 f" {short_repr(label.class_name)} is not one of the session's classes {list(names)}"
             )
+        if key is not None:
+            if len(self._checked_labels) >= CHECKED_LABELS_KEPT:
+                self._checked_labels.clear()  # (rows of older versions pile up with the edits)
+            self._checked_labels[key] = label
         return label
 
     def _check_frame(self, frame_index: int, where: str = "frame index") -> int:
@@ -2476,7 +2500,15 @@ class SessionDB:
             iou = np.zeros(len(positions))
             if len(boxes):
                 item_boxes = np.array([items[i]["box"] for i in positions], np.float64).reshape(-1, 7)
-                iou = box_iou_3d(item_boxes, boxes).max(axis=1)
+                # The queue is read again after every verdict, and its items and (mostly) the
+                # labels are the ones of the last read: rotated-box IoU is what that read cost.
+                key = (item_boxes.tobytes(), np.ascontiguousarray(boxes, np.float64).tobytes())
+                iou = self._overlaps.get(key)
+                if iou is None:
+                    iou = box_iou_3d(item_boxes, boxes).max(axis=1).tolist()
+                    if len(self._overlaps) >= OVERLAPS_KEPT:
+                        self._overlaps.clear()
+                    self._overlaps[key] = iou
             for i, value in zip(positions, iou):
                 out[i] = round(float(value), 4)
         return out

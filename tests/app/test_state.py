@@ -237,3 +237,42 @@ def test_the_selection_key_of_partial_class_thresholds_finds_itself(small_datase
     shown = select_with(candidates, "shown", key[1:])
     trucks = shown.class_ids == model.class_names.index("truck")
     assert (shown.scores[trucks] >= 0.9).all() and (shown.scores >= state.score_threshold).all()
+
+
+def test_the_metrics_are_measured_again_only_when_what_they_measure_changed(
+    small_dataset_dir, tiny_model_path, tmp_path
+):
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.store import SessionDB, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    state = AppState(dataset, model=model, model_name="tiny", db=db)
+    results = [Detector("agv", model=model).detect(dataset.frame(i)) for i in (0, 1)]
+    state.set_detection_result((0, state.params, False), results[0], "done")
+    state.set_detection_filter(score_threshold=0.05)
+    first = state.metrics
+    # A write that moves no label (a verdict of background, say): the same metrics, not measured again.
+    state.session_changed()
+    assert state.metrics is first
+    # Another frame: measured again, over both frames; back to the first frame with the same
+    # detections (the worker's cache): the frame is shown, the metrics stay.
+    state.set_detection_result((1, state.params, False), results[1], "done")
+    both = state.metrics
+    assert both is not first and both["num_frames"] == 2
+    state.set_detection_result((0, state.params, False), results[0], "done (from the cache)")
+    assert state.metrics is both and state.detection_frame_index == 0
+    assert state.detections is not None and len(state.detections.boxes) == len(state.detections.scores)
+    # A label deleted: measured again against the labels left (one reference fewer).
+    label = db.labels(0)[0]
+    db.delete_labels([label.id], "ann")
+    state.session_changed()
+    assert state.metrics is not both
+    assert state.metrics["num_reference"] == both["num_reference"] - 1
+    # The frame's detections computed again (another result): measured again too.
+    again = Detector("agv", model=model).detect(dataset.frame(0))
+    before = state.metrics
+    state.set_detection_result((0, state.params, False), again, "done")
+    assert state.metrics is not before and state.metrics["num_frames"] == 2

@@ -691,6 +691,31 @@ def test_a_label_of_a_class_the_session_does_not_have_is_refused_where_it_is_rea
         db.add_label(1, BOX, "spaceship", "ann")
 
 
+def test_a_label_read_before_is_checked_again_once_its_row_changed(db):
+    # Labels are checked once per row content (the app reads every shown frame's after each
+    # edit): a row changed behind the session's back, its version untouched, is checked again.
+    label = db.labels(0)[0]
+    assert db.labels(0)[0] is label  # the same row: the label checked before
+    _damage(db.path, [f"UPDATE labels SET box = '[1,2]' WHERE id = {label.id}"])
+    with pytest.raises(SessionError, match=f"labels row {label.id}, box:"):
+        db.labels(0)
+    _damage(db.path, [f"UPDATE labels SET box = '{json.dumps([9.0, 9.0, 0.5, 1.0, 1.0, 1.0, 0.0])}'"
+                      f" WHERE id = {label.id}"])  # fmt: skip
+    assert db.label(label.id).box == (9.0, 9.0, 0.5, 1.0, 1.0, 1.0, 0.0)
+
+
+def test_the_queues_overlap_with_the_labels_follows_every_label_edit(db, tiny_model_path):
+    item = _queue_db(db, tiny_model_path)[0]
+    frame = item["frame_index"]
+    on_it = db.add_label(frame, item["box"], "box", "ann")
+    assert {q["id"]: q["label_iou"] for q in db.review_queue()}[item["id"]] == pytest.approx(1.0)
+    moved = [v + 50.0 if k < 2 else v for k, v in enumerate(item["box"])]
+    db.update_label(on_it.id, "ann", box=moved, expected_version=on_it.version)
+    assert {q["id"]: q["label_iou"] for q in db.review_queue()}[item["id"]] < 1.0
+    db.undo("ann")
+    assert {q["id"]: q["label_iou"] for q in db.review_queue()}[item["id"]] == pytest.approx(1.0)
+
+
 # --- The data set's own annotations are the user's data (issue 29 review) ----------------------
 
 
