@@ -68,38 +68,45 @@ class ClientView(BrowserSession):
         self.sent_at = 0.0
         self.key_received_at = 0.0  # when the server received this browser's last hotkey
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
-        # ``coalesced``: the thread whose redraws and refreshes wait for the block's end, and
-        # which of them it asked for meanwhile.
+        # ``coalesced``: per thread in a block, what it asked for meanwhile (viser runs each key
+        # and button on its own pool thread: two keys pressed together are two blocks at once).
         self._coalesce_lock = threading.Lock()
-        self._coalescing: int | None = None
-        self._wanted: set[str] = set()
+        self._wanted: dict[int, set[str]] = {}
         self._num_refreshes = 0
 
     @contextlib.contextmanager
     def coalesced(self):
-        if self._coalescing == threading.get_ident():  # (nested: the outer block redraws)
+        me = threading.get_ident()
+        with self._coalesce_lock:
+            nested = me in self._wanted  # (the outer block redraws)
+            if not nested:
+                self._wanted[me] = set()
+        if nested:
             yield
             return
-        with self._coalesce_lock:
-            self._coalescing, self._wanted = threading.get_ident(), set()
-        with self.batched():
-            try:
-                yield
-            finally:
-                with self._coalesce_lock:
-                    self._coalescing, wanted = None, self._wanted
-                refreshes = self._num_refreshes
-                if "redraw" in wanted:
-                    self.redraw()
-                if "refresh" in wanted and self._num_refreshes == refreshes:  # (the redraw's did not)
-                    self.refresh()
+        try:
+            with self.batched():
+                try:
+                    yield
+                finally:
+                    with self._coalesce_lock:
+                        wanted = self._wanted.pop(me)
+                    refreshes = self._num_refreshes
+                    if "redraw" in wanted:
+                        self.redraw()
+                    if "refresh" in wanted and self._num_refreshes == refreshes:  # (none since)
+                        self.refresh()
+        finally:
+            with self._coalesce_lock:
+                self._wanted.pop(me, None)  # (batched() itself failed: the thread is not left marked)
 
     def _deferred(self, what: str) -> bool:
         """Whether this thread is in a ``coalesced`` block: ``what`` is then done at its end."""
         with self._coalesce_lock:
-            if self._coalescing != threading.get_ident():
+            wanted = self._wanted.get(threading.get_ident())
+            if wanted is None:
                 return False
-            self._wanted.add(what)
+            wanted.add(what)
             return True
 
     def redraw(self) -> None:

@@ -591,8 +591,9 @@ class Label:
     """The model's score of a pre-label."""
 
 
-CHECKED_LABELS_KEPT = 200_000
-"""How many checked label rows a ``SessionDB`` keeps (``SessionDB._label``): a few hundred bytes each."""
+CHECKED_LABELS_KEPT = 20_000
+"""How many checked label rows a ``SessionDB`` keeps (``SessionDB._label``): about a kilobyte each
+(the labels of a few hundred frames; an export of more passes through and clears them)."""
 
 
 OVERLAPS_KEPT = 256

@@ -22,7 +22,7 @@ def _bare_view() -> ClientView:
     view._draw_highlights = lambda: None
     for name in ("_coalesce_lock", "_refresh_lock", "_batch_lock"):
         setattr(view, name, threading.Lock())
-    view._coalescing, view._wanted, view._num_refreshes, view._open_batches = None, set(), 0, 0
+    view._wanted, view._num_refreshes, view._open_batches = {}, 0, 0
     view.sent_at = 0.0
     view.redraws = 0
 
@@ -81,4 +81,30 @@ def test_a_failing_block_still_brings_the_browser_up_to_date():
     with pytest.raises(RuntimeError), view.coalesced():
         view.refresh()
         raise RuntimeError("an edit failed")
-    assert view._num_refreshes == 1 and view._coalescing is None
+    assert view._num_refreshes == 1 and view._wanted == {}
+
+
+def test_two_blocks_at_once_each_bring_the_browser_up_to_date():
+    # viser runs each key on its own pool thread: a second key's block starting while the first's
+    # runs must not take away what the first asked for.
+    view = _bare_view()
+    first_asked, second_done = threading.Event(), threading.Event()
+
+    def first() -> None:
+        with view.coalesced():
+            ClientView.redraw(view)  # (a frame change)
+            first_asked.set()
+            second_done.wait(5)
+
+    def second() -> None:
+        first_asked.wait(5)
+        with view.coalesced():
+            view.refresh()  # (a camera key)
+        second_done.set()
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(5)
+    assert view.redraws == 1 and view._num_refreshes == 1 and view._wanted == {}

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from app.state import AppState
+from app.state import AppState, select_with
 from factorydet_core.io.dataset import open_dataset
 
 
@@ -264,13 +264,21 @@ def test_the_metrics_are_measured_again_only_when_what_they_measure_changed(
     assert both is not first and both["num_frames"] == 2
     state.set_detection_result((0, state.params, False), results[0], "done (from the cache)")
     assert state.metrics is both and state.detection_frame_index == 0
-    assert state.detections is not None and len(state.detections.boxes) == len(state.detections.scores)
+    shown = select_with(results[0].candidates, "shown", state.selection_args())
+    np.testing.assert_array_equal(state.detections.boxes, shown.boxes)
     # A label deleted: measured again against the labels left (one reference fewer).
     label = db.labels(0)[0]
     db.delete_labels([label.id], "ann")
     state.session_changed()
     assert state.metrics is not both
     assert state.metrics["num_reference"] == both["num_reference"] - 1
+    # Labels changed by another process (no session_changed here): the frame viewed again is
+    # measured against them.
+    db.delete_labels([db.labels(1)[0].id], "cli")
+    before = state.metrics
+    state.set_detection_result((1, state.params, False), results[1], "done (from the cache)")
+    assert state.metrics is not before
+    assert state.metrics["num_reference"] == before["num_reference"] - 1
     # The frame's detections computed again (another result): measured again too.
     again = Detector("agv", model=model).detect(dataset.frame(0))
     before = state.metrics
