@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import secrets
 import sqlite3
 import threading
@@ -54,6 +55,18 @@ NUDGE_DEG = 1.0
 
 FAILED = object()
 """What ``BrowserSession._guarded`` returns when the edit was refused (the person has been told)."""
+
+
+def _coalesced(method):
+    """A ``BrowserSession`` action run in one ``coalesced`` block: the browser brought up to date
+    once, when it ends."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with self.coalesced():
+            return method(self, *args, **kwargs)
+
+    return run
 
 
 def _by_place(queue: list[dict], places: list[list[int]], current_id: int | None) -> list[dict]:
@@ -769,11 +782,8 @@ class BrowserSession:
         )
         self.refresh()
 
+    @_coalesced
     def step(self, delta: int) -> None:
-        with self.coalesced():
-            self._step(delta)
-
-    def _step(self, delta: int) -> None:
         queue = self.load_queue()
         if not queue:
             self.go_to(None)
@@ -784,12 +794,9 @@ class BrowserSession:
         k = ids.index(current) + delta if current in ids else 0
         self.go_to(queue[max(0, min(k, len(queue) - 1))])
 
+    @_coalesced
     def verdict(self, verdict: str, class_name: str | None = None, advance: bool = True) -> None:
         """The verdict on the shown item, then (with ``advance``) the next pending one."""
-        with self.coalesced():
-            self._verdict(verdict, class_name, advance)
-
-    def _verdict(self, verdict: str, class_name: str | None, advance: bool) -> None:
         item = self.current_item()
         if item is None:
             # Nothing is shown yet: show the first item, and let the person look before judging.
@@ -826,12 +833,9 @@ class BrowserSession:
         later = [q for q in rest if q["verdict"] is None] or [q for q in rest if q["verdict"] == "skip"]
         self.go_to(later[0] if later else None)
 
+    @_coalesced
     def batch_verdict(self, verdict: str, class_name: str | None = None) -> int:
         """One verdict on every pending item of the current filter, as one undoable edit."""
-        with self.coalesced():
-            return self._batch_verdict(verdict, class_name)
-
-    def _batch_verdict(self, verdict: str, class_name: str | None) -> int:
         with self.lock:
             pending_only = self.pending_only
             self.pending_only = True

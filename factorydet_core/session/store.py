@@ -600,6 +600,14 @@ OVERLAPS_KEPT = 256
 """How many frames' item-to-label overlaps a ``SessionDB`` keeps (``SessionDB.label_overlap``)."""
 
 
+def _keep(cache: dict, key, value, limit: int) -> None:
+    """``cache[key] = value``, the cache emptied first when it holds ``limit`` entries (entries of
+    rows and labels that changed since pile up; a full one is refilled by the next reads)."""
+    if len(cache) >= limit:
+        cache.clear()
+    cache[key] = value
+
+
 class LabelBatch(list):
     """Labels added together, with the id of the edit that added them."""
 
@@ -1311,9 +1319,7 @@ class SessionDB:
                 f" {short_repr(label.class_name)} is not one of the session's classes {list(names)}"
             )
         if key is not None:
-            if len(self._checked_labels) >= CHECKED_LABELS_KEPT:
-                self._checked_labels.clear()  # (rows of older versions pile up with the edits)
-            self._checked_labels[key] = label
+            _keep(self._checked_labels, key, label, CHECKED_LABELS_KEPT)
         return label
 
     def _check_frame(self, frame_index: int, where: str = "frame index") -> int:
@@ -2507,9 +2513,7 @@ class SessionDB:
                 iou = self._overlaps.get(key)
                 if iou is None:
                     iou = box_iou_3d(item_boxes, boxes).max(axis=1).tolist()
-                    if len(self._overlaps) >= OVERLAPS_KEPT:
-                        self._overlaps.clear()
-                    self._overlaps[key] = iou
+                    _keep(self._overlaps, key, iou, OVERLAPS_KEPT)
             for i, value in zip(positions, iou):
                 out[i] = round(float(value), 4)
         return out
