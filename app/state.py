@@ -63,6 +63,50 @@ REFERENCE_KEYS = ("reference_boxes", "reference_class_ids", "ignore_boxes")
 """A viewed frame's metrics entry's keys of what it is measured against (``SharedState.references``)."""
 
 
+class MetricsRunner:
+    """Measures views' metrics again on one background thread, so that a label edit or a review
+    verdict returns before the metrics over every frame viewed (which grow with the frames) are
+    measured; a view then shows its last metrics, said to be out of date, until the new ones come.
+    The thread ends when idle and starts again on the next request."""
+
+    IDLE_SECONDS = 30.0
+
+    def __init__(self) -> None:
+        self._wake = threading.Condition()
+        self._pending: dict[int, AppState] = {}  # by id: a view asked for twice is measured once
+        self._running = False
+        self.thread: threading.Thread | None = None  # the last one started
+
+    def request(self, view: AppState) -> None:
+        with self._wake:
+            self._pending[id(view)] = view
+            if not self._running:
+                self._running = True
+                self.thread = threading.Thread(target=self._run, name="factorydet-metrics", daemon=True)
+                self.thread.start()
+            self._wake.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                if not self._pending:
+                    self._wake.wait(self.IDLE_SECONDS)
+                if not self._pending:
+                    self._running = False
+                    return
+                view = self._pending.pop(next(iter(self._pending)))
+            view._measure_pending()
+
+
+def _measure(inputs: tuple) -> dict:
+    """The metrics panel's figures from ``AppState._update_metrics``'s inputs."""
+    _, scored, class_names, score_threshold, per_class = inputs
+    metrics = detection_metrics(scored, class_names, 0.6, score_threshold, per_class)
+    metrics["num_frames"] = len(scored)
+    metrics["errors"] = error_breakdown(scored, class_names, 0.6, score_threshold, per_class)
+    return metrics
+
+
 def _same_references(item: dict, references: tuple[np.ndarray, np.ndarray, np.ndarray]) -> bool:
     """Whether a viewed frame's metrics entry (``AppState.frame_detections``) is measured against
     ``references`` (``SharedState.references``) already."""
@@ -111,6 +155,7 @@ class SharedState:
         self._views: list[AppState] = []  # the browsers' views, which the worker serves
         self._templates: list[AppState] = []  # views no browser shows (``AppState``, ``served``)
         self._listeners: list[Callable[[], None]] = []
+        self.metrics_runner = MetricsRunner()
 
     # -- views
 
@@ -177,25 +222,41 @@ class SharedState:
         """What a frame's detections are measured against: ``(boxes (R, 7), class_ids (R,),
         ignore_boxes (Q, 7))``, the labels a person made or confirmed, and the model's pre-labels
         nobody has confirmed yet (not truth: a detection on one is not counted either way)."""
+        return self.frame_references([frame_index])[int(frame_index)]
+
+    def frame_references(self, frame_indices) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """``references`` of several frames, by frame, from one read of the session (every edit
+        measures each viewed frame's metrics against its labels again)."""
+        frames = sorted({int(i) for i in frame_indices})
+        if not frames:
+            return {}
         if self.db is None:
-            boxes, class_ids, _ = self.frame_labels(frame_index)
-            return boxes, class_ids, np.zeros((0, 7))
-        labels = self.db.labels(int(frame_index))  # one read for both (every edit redoes each frame's)
+            out = {}
+            for index in frames:
+                boxes, class_ids, _ = self.frame_labels(index)
+                out[index] = (boxes, class_ids, np.zeros((0, 7)))
+            return out
         names = self.db.class_names
-        boxes, class_ids, _ = label_arrays([lab for lab in labels if lab.reviewed], names)
-        return boxes, class_ids, label_arrays([lab for lab in labels if not lab.reviewed], names)[0]
+        out = {}
+        for index, labels in self.db.frame_labels(frames).items():
+            boxes, class_ids, _ = label_arrays([lab for lab in labels if lab.reviewed], names)
+            out[index] = (
+                boxes,
+                class_ids,
+                label_arrays([lab for lab in labels if not lab.reviewed], names)[0],
+            )
+        return out
 
     def session_changed(self) -> None:
         """Something was written to the session database: every view refreshes, and each view's
         metrics are recomputed against the corrected labels."""
         with self.lock:
             self.revision += 1
-            read: dict[int, tuple] = {}  # a frame several browsers viewed is read once
+            # Every viewed frame's labels in one read (a frame several browsers viewed once).
+            read = self.frame_references({index for view in self._views for index in view.frame_detections})
             for view in self._views:
                 moved = False
                 for index, item in view.frame_detections.items():
-                    if index not in read:
-                        read[index] = self.references(index)
                     if not _same_references(item, read[index]):
                         item.update(zip(REFERENCE_KEYS, read[index]))
                         moved = True
@@ -380,7 +441,8 @@ class AppState:
         self.detection_frame_index = 0
         self.detections: Detections | None = None
         self.frame_detections: dict[int, dict] = {}  # frame -> candidates and labels, for metrics
-        self.metrics: dict | None = None
+        self._metrics: dict | None = None  # the last measured (``metrics``)
+        self._metrics_inputs: tuple | None = None  # what is to be measured next; None: up to date
 
     # The shared state, read through the view (the panels read one object).
     dataset = _shared("dataset")
@@ -644,12 +706,13 @@ class AppState:
             self.detections = ahead if ahead is not None else select_with(result.candidates, "shown", args)
 
     def _update_metrics(self) -> None:
-        """The metrics over the frames viewed (under the lock). Each frame's detections down to the
-        AP floor are kept with the thresholds they were selected at: a label edit changes only
-        the references, so it recomputes no NMS (that took seconds per edit)."""
+        """Measure the metrics over the frames viewed again (under the lock), on the background
+        thread (``MetricsRunner``): ``metrics`` and ``shown_metrics`` read them. Each frame's
+        detections down to the AP floor are kept with the thresholds they were selected at: a label
+        edit changes only the references, so it recomputes no NMS (that took seconds per edit)."""
         per_class = self.class_thresholds()
         if self.model is None or not self.frame_detections:
-            self.metrics = None
+            self._metrics, self._metrics_inputs = None, None
             return
         scored = []
         floor_key = self.floor_args()
@@ -673,11 +736,40 @@ class AppState:
                     "candidate_scores": item["candidates"].scores,
                 }
             )
-        self.metrics = detection_metrics(scored, self.model.class_names, 0.6, self.score_threshold, per_class)
-        self.metrics["num_frames"] = len(scored)
-        self.metrics["errors"] = error_breakdown(
-            scored, self.model.class_names, 0.6, self.score_threshold, per_class
-        )
+        # A new tuple per request: the background thread stores its result only if it is still
+        # the one asked for (``_measure_pending``).
+        self._metrics_inputs = (object(), scored, self.model.class_names, self.score_threshold, per_class)
+        self.shared.metrics_runner.request(self)
+
+    @property
+    def metrics(self) -> dict | None:
+        """The metrics over the frames viewed (``metrics.detection_metrics`` with ``num_frames``
+        and ``errors``, ``metrics.error_breakdown``), measured now if out of date: a caller that
+        must not wait reads ``shown_metrics``."""
+        with self.lock:
+            if self._metrics_inputs is not None:
+                self._metrics, self._metrics_inputs = _measure(self._metrics_inputs), None
+            return self._metrics
+
+    def shown_metrics(self) -> tuple[dict | None, bool]:
+        """``(the last measured metrics, whether they are out of date)``, without waiting: what the
+        metrics panel shows while the background thread measures them again."""
+        with self.lock:
+            return self._metrics, self._metrics_inputs is not None
+
+    def _measure_pending(self) -> None:
+        """Measure what ``_update_metrics`` asked for (on the background thread, not under the
+        lock), keep it unless something newer was asked meanwhile, and redraw this view."""
+        with self.lock:
+            inputs = self._metrics_inputs
+        if inputs is None:
+            return
+        measured = _measure(inputs)
+        with self.lock:
+            if self._metrics_inputs is not inputs:  # asked again since, or measured by a reader
+                return
+            self._metrics, self._metrics_inputs = measured, None
+        self._notify()
 
     def set_detection_filter(
         self,

@@ -51,18 +51,24 @@ class MetricsPanel:
     table: viser.GuiMarkdownHandle
     plot: viser.GuiUplotHandle
     errors: viser.GuiMarkdownHandle
-    _shown: int = -1
+    _shown: tuple = ()
 
     def refresh(self, state: AppState) -> None:
-        with state.lock:
-            metrics = state.metrics
+        # Never waits for a measurement: an edit's redraw shows the last metrics, said to be out of
+        # date, and the background thread's redraw the new ones.
+        metrics, stale = state.shown_metrics()
         if metrics is None:
-            self.table.content = "_Metrics appear once a frame with annotations has detections._"
+            self.table.content = (
+                "_Measuring the metrics…_"
+                if stale
+                else "_Metrics appear once a frame with annotations has detections._"
+            )
             self.errors.content = ""
+            self._shown = ()
             return
-        if id(metrics) == self._shown:
+        if (id(metrics), stale) == self._shown:
             return
-        self._shown = id(metrics)
+        self._shown = (id(metrics), stale)
         rows = [
             class_row(name, row)
             for name, row in metrics["per_class"].items()
@@ -84,9 +90,12 @@ class MetricsPanel:
                 f"| **total** | {metrics['num_reference']} | {metrics['precision']:.2f} | "
                 f"{metrics['recall']:.2f} | **{metrics['f1']:.2f}** | mAP "
                 f"{_fmt(metrics['map'])} |",
+                *(["", "_Measuring again after the last change…_"] if stale else []),
             ]
         )
         self.errors.content = errors_markdown(metrics["errors"]) if "errors" in metrics else ""
+        if stale:  # the rest is as shown already
+            return
         curve = metrics["pr_curves"].get("all")
         if curve and len(curve["recall"]):
             recall = np.concatenate([[0.0], curve["recall"]])

@@ -31,3 +31,32 @@ def test_a_class_without_detections_shows_no_precision_and_one_without_reference
     unseen = {"num_reference": 0, "num_detections": 2, "precision": 0.0, "recall": None, "f1": None,
               "ap": None}  # fmt: skip
     assert class_row("truck", unseen) == "| truck | 0 | 0.00 | – | – | – |"
+
+
+def test_the_panel_says_when_its_metrics_are_being_measured_again_and_never_waits_for_them():
+    from types import SimpleNamespace
+
+    from app.panels.metrics_panel import MetricsPanel
+
+    row = {"num_reference": 2, "num_detections": 1, "precision": 1.0, "recall": 0.5, "f1": 0.67, "ap": 0.5}
+    metrics = {
+        "per_class": {"cone": row}, "num_frames": 1, "iou_threshold": 0.6, "score_threshold": 0.5,
+        "num_reference": 2, "precision": 1.0, "recall": 0.5, "f1": 0.67, "map": 0.5,
+        "pr_curves": {"all": {"recall": np.array([0.5]), "precision": np.array([1.0])}},
+    }  # fmt: skip
+    shown = [(metrics, True)]
+
+    class State:  # only what the panel reads; ``metrics`` itself would measure (and wait)
+        def shown_metrics(self):
+            return shown[0]
+
+    panel = MetricsPanel(SimpleNamespace(content=""), SimpleNamespace(data=None), SimpleNamespace(content=""))
+    panel.refresh(State())
+    assert "| cone | 2 | 1.00 | 0.50 | 0.67 | 0.50 |" in panel.table.content
+    assert "Measuring again" in panel.table.content and panel.plot.data is None
+    shown[0] = (metrics, False)  # measured: the same figures, no longer out of date, and the curve
+    panel.refresh(State())
+    assert "Measuring again" not in panel.table.content and panel.plot.data is not None
+    shown[0] = (None, True)
+    panel.refresh(State())
+    assert panel.table.content == "_Measuring the metrics…_"

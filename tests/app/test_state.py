@@ -284,3 +284,88 @@ def test_the_metrics_are_measured_again_only_when_what_they_measure_changed(
     before = state.metrics
     state.set_detection_result((0, state.params, False), again, "done")
     assert state.metrics is not before and state.metrics["num_frames"] == 2
+
+
+def test_an_edit_returns_before_the_metrics_are_measured_again_on_the_background_thread(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+):
+    import threading
+
+    import app.state as state_module
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.store import SessionDB, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    state = AppState(dataset, model=model, model_name="tiny", db=db)
+    state.set_detection_result(
+        (0, state.params, False), Detector("agv", model=model).detect(dataset.frame(0)), "done"
+    )
+    before = state.metrics
+    # The measurement held back until the edit has returned (as a slow one is on a busy machine).
+    measuring, release = threading.Event(), threading.Event()
+    measure = state_module._measure
+
+    def held(inputs):
+        if threading.current_thread().name == "factorydet-metrics":
+            measuring.set()
+            assert release.wait(30)
+        return measure(inputs)
+
+    monkeypatch.setattr(state_module, "_measure", held)
+    redrawn = threading.Event()
+    state.on_change(redrawn.set)
+    db.delete_labels([db.labels(0)[0].id], "ann")
+    state.session_changed()
+    assert measuring.wait(30)
+    # The edit has returned; the view shows the metrics it had, said to be out of date.
+    assert state.shown_metrics() == (before, True)
+    redrawn.clear()
+    release.set()
+    assert redrawn.wait(30)  # the new metrics came, and the view was redrawn for them
+    after, stale = state.shown_metrics()
+    assert not stale and after["num_reference"] == before["num_reference"] - 1
+
+
+def test_reading_the_metrics_measures_them_at_once_and_a_superseded_measurement_is_dropped(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+):
+    import threading
+
+    import app.state as state_module
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.store import SessionDB, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    state = AppState(dataset, model=model, model_name="tiny", db=db)
+    state.set_detection_result(
+        (0, state.params, False), Detector("agv", model=model).detect(dataset.frame(0)), "done"
+    )
+    before = state.metrics
+    measuring, release = threading.Event(), threading.Event()
+    measure = state_module._measure
+
+    def held(inputs):
+        if threading.current_thread().name == "factorydet-metrics":
+            measuring.set()
+            assert release.wait(30)
+        return measure(inputs)
+
+    monkeypatch.setattr(state_module, "_measure", held)
+    state.shared.metrics_runner.IDLE_SECONDS = 0.01  # its thread ends once idle (joined below)
+    db.delete_labels([db.labels(0)[0].id], "ann")
+    state.session_changed()
+    assert measuring.wait(30)
+    # A reader that needs the figures gets them measured now, while the background thread is held.
+    now = state.metrics
+    assert now["num_reference"] == before["num_reference"] - 1 and state.shown_metrics() == (now, False)
+    thread = state.shared.metrics_runner.thread
+    release.set()
+    thread.join(30)  # the held measurement finished: it must not replace the newer one
+    assert not thread.is_alive()
+    assert state.metrics is now
