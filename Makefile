@@ -22,7 +22,7 @@ demo: $(STAMP)
 # The docs build is not --quiet: that hides the warnings --strict turns into failures.
 test: $(STAMP) browserdeps lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir $$(mktemp -d)
-	$(BIN)/python -m pytest -m "not ray"
+	$(BIN)/python -m pytest -m "not ray" --durations=25
 	$(MAKE) --no-print-directory test-ray
 
 # The tests that start Ray (a local one, a two-node cluster), in a network namespace with only

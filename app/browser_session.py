@@ -31,7 +31,7 @@ from factorydet_core.session.editing import (
     split_in_two,
 )
 from factorydet_core.session.labels_io import export_bytes
-from factorydet_core.session.review_rank import LearnedOrder, place_order
+from factorydet_core.session.review_rank import LearnedOrder, RankedPlaces, place_order
 from factorydet_core.session.store import HIDE_LABELLED_IOU, EditConflictError, on_labelled_object
 from factorydet_core.session.world import (
     MOVING_CLASSES,
@@ -138,6 +138,7 @@ class BrowserSession:
         self._queue_read: tuple | None = None  # ((change stamp, class, frame), the session's queue)
         self._places: tuple | None = None  # ((world, item ids read, order), group_by_place's places)
         self._learned: LearnedOrder | None = None  # the learned review order's fits (review_rank)
+        self._ordered: tuple | None = None  # ((the read, world, session), places in order, ranked or None)
         self._shown_queue: tuple | None = None  # (everything load_queue's result depends on, it)
         self._best_view: tuple | None = None  # (item id, the placement, best_view's answer)
         self.suspect_index = -1
@@ -692,24 +693,13 @@ class BrowserSession:
             # The places of the whole queue read, grouped once and then filtered: a run's items
             # do not change, and grouped after the filters, a class order's turns would be worked
             # out again on what is left and move places ahead of the shown one.
-            run_id = read[0]["run_id"]
-            # A learned order: the cut's order until there are verdicts to learn from.
-            order, learned = place_order(self.state.db, run_id)
-            places_key = (id(world), tuple(q["id"] for q in read), order)
-            cached = self._places
-            if cached is None or cached[0] != places_key:
-                cached = self._places = (places_key, group_by_place(world, read, order=order))
-            ordered = cached[1]
-            if learned:
-                # Answered places first, then the pending ones likeliest to give a label: the
-                # one just answered keeps its place before the next, refitted every few verdicts.
-                ranker = self._learned
-                if ranker is None or ranker.world is not world or ranker.db is not self.state.db:
-                    ranker = self._learned = LearnedOrder(
-                        self.state.db, world, self.state.dataset.class_names
-                    )
-                ranked = ranker.ranked(run_id, read, ordered)
-                ordered = ranked.places
+            # The places' order depends on the read (its items and verdicts), the placement and
+            # the session alone: the next item shown after a verdict orders them once, not twice.
+            ordered_key = (read_key, id(world), id(self.state.db))
+            if self._ordered is None or self._ordered[0] != ordered_key:
+                self._ordered = (ordered_key, *self._order_places(read, world))
+            _, ordered, ranked = self._ordered
+            learned = ranked is not None
             kept = {q["id"] for q in queue}
             places = [[k for k in place if read[k]["id"] in kept] for place in ordered]
             queue = _by_place(read, [place for place in places if place], current_id)
@@ -721,6 +711,26 @@ class BrowserSession:
         with self.lock:
             self.queue = queue
         return queue
+
+    def _order_places(self, read: list[dict], world) -> tuple[list[list[int]], RankedPlaces | None]:
+        """The places of the session's queue ``read`` (positions in it) in its run's review order,
+        and the learned order's ``RankedPlaces`` (``None`` for another order)."""
+        run_id = read[0]["run_id"]
+        # A learned order: the cut's order until there are verdicts to learn from.
+        order, learned = place_order(self.state.db, run_id)
+        places_key = (id(world), tuple(q["id"] for q in read), order)
+        cached = self._places
+        if cached is None or cached[0] != places_key:
+            cached = self._places = (places_key, group_by_place(world, read, order=order))
+        if not learned:
+            return cached[1], None
+        # Answered places first, then the pending ones likeliest to give a label: the one just
+        # answered keeps its place before the next, refitted every few verdicts.
+        ranker = self._learned
+        if ranker is None or ranker.world is not world or ranker.db is not self.state.db:
+            ranker = self._learned = LearnedOrder(self.state.db, world, self.state.dataset.class_names)
+        ranked = ranker.ranked(run_id, read, cached[1])
+        return ranked.places, ranked
 
     def current_item(self) -> dict | None:
         with self.lock:

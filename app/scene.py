@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import threading
 
 import numpy as np
@@ -64,6 +65,11 @@ def grid_segments(half_width: float, spacing: float, skip_every: int = 0) -> np.
     return np.concatenate([lines, np.zeros((*lines.shape[:2], 1))], axis=2).astype(np.float32)
 
 
+MERGED_FRAMES_KEPT = 4
+"""Merged scans a browser's scene keeps: going back to a frame just shown (the review queue moves
+between a few frames) merges its sensors again only after this many others."""
+
+
 class SceneView:
     """Owns the scene nodes under ``/scan`` and ``/labels``."""
 
@@ -80,6 +86,9 @@ class SceneView:
         self.dimmed = False
         # The scan is sent from the redraw and from the selection's refresh (dimming): one at a time.
         self._scan_lock = threading.RLock()
+        # By the frame's id, (the frame, its merge): frames are frozen and a data set reads each
+        # one into one object, held here so that its id stays its own.
+        self._merged: collections.OrderedDict[int, tuple] = collections.OrderedDict()
         server.scene.set_up_direction("+z")
         # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
         # wireframes and points.
@@ -103,13 +112,27 @@ class SceneView:
     ) -> None:
         """Replace the shown scan with ``frame``'s, points above ``max_height`` hidden (``labels``:
         the session's, for the class and annotated colours, see ``point_colors``)."""
-        merged = merge_frame(frame)
+        merged = self._merge(frame)
         rgb = point_colors(frame, merged.points, color_mode, labels)
         keep = merged.below(max_height)
         with self._scan_lock:
             self._shown = (merged.points[keep], rgb[keep])
             self._point_size = float(point_size)
             self._send()
+
+    def _merge(self, frame: Frame):
+        """``merge_frame(frame)``, kept for the last ``MERGED_FRAMES_KEPT`` frames drawn."""
+        with self._scan_lock:
+            cached = self._merged.get(id(frame))
+            if cached is not None and cached[0] is frame:
+                self._merged.move_to_end(id(frame))
+                return cached[1]
+        merged = merge_frame(frame)
+        with self._scan_lock:
+            self._merged[id(frame)] = (frame, merged)
+            while len(self._merged) > MERGED_FRAMES_KEPT:
+                self._merged.popitem(last=False)
+        return merged
 
     def _send(self) -> None:
         """(Under ``_scan_lock``.)"""

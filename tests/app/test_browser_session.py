@@ -615,6 +615,35 @@ def test_a_learned_order_queue_with_nothing_to_learn_from_yet_keeps_the_cuts_ord
     assert [q["score"] for q in person.load_queue()] == [0.5, 0.8, 0.4, 0.9]
 
 
+def test_a_verdict_orders_the_places_once_though_the_panel_reads_the_queue_again(
+    state, tiny_model_path, monkeypatch
+):
+    from factorydet_core.session.review_rank import LearnedOrder
+
+    _placed_world(state, seen_in=(0, 1, 2))
+    items = [
+        mined_item(0, 60 + k, [40.0 + 3.0 * k, 5.0, 0.5, 0.6, 0.6, 0.6, 0.0], 0.9 - 0.1 * k, "box")
+        for k in range(4)
+    ]
+    settings = {"queue_order": "class", "review_order": "learned"}
+    state.db.save_training_run(queue_run(tiny_model_path, [items]), "small", {"settings": settings})
+    person = _person(state, "ann")
+    ranked = []
+    original = LearnedOrder.ranked
+    monkeypatch.setattr(LearnedOrder, "ranked", lambda self, *a: ranked.append(1) or original(self, *a))
+    person.step(0)
+    assert len(ranked) == 1
+    person.verdict("background")  # a write: the queue read and ordered again, once
+    assert len(ranked) == 2
+    shown = person.current_item()
+    # The panel reads the queue again with the next item shown: the same order, not worked out again.
+    assert [q["id"] for q in person.load_queue()] == [q["id"] for q in person.queue]
+    assert len(ranked) == 2 and shown["score"] == 0.8
+    person.hide_labelled = True  # another filter of the same read: filtered, not ordered again
+    person.load_queue()
+    assert len(ranked) == 2
+
+
 def test_a_learned_order_queue_shows_the_next_likeliest_place_and_a_skipped_one_again_last(
     state, tiny_model_path
 ):

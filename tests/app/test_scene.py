@@ -67,3 +67,33 @@ def test_an_edit_sends_only_the_labels_it_changed():
         assert view._name_nodes == [] and view._line_nodes == {}
     finally:
         server.stop()
+
+
+def test_a_frame_drawn_again_is_not_merged_again_until_others_push_it_out(small_dataset_dir, monkeypatch):
+    import viser
+
+    import app.scene as scene_module
+    from factorydet_core.io.dataset import open_dataset
+
+    dataset = open_dataset(small_dataset_dir)
+    merged = []
+    merge = scene_module.merge_frame
+    monkeypatch.setattr(scene_module, "merge_frame", lambda frame: merged.append(frame.name) or merge(frame))
+    monkeypatch.setattr(scene_module, "MERGED_FRAMES_KEPT", 2)
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        view = scene_module.SceneView(server)
+        draw = lambda k: view.draw(dataset.frame(k), color_mode="height", point_size=0.05, max_height=6.0)  # noqa: E731
+        for k in (0, 1, 0, 1):
+            draw(k)
+        assert merged == [dataset.frame(0).name, dataset.frame(1).name]
+        points, _ = view._shown
+        np.testing.assert_array_equal(
+            points, merge(dataset.frame(1)).points[merge(dataset.frame(1)).below(6.0)]
+        )
+        draw(2)  # a third frame pushes out the one drawn longest ago (frame 0)
+        draw(1)
+        draw(0)
+        assert merged[2:] == [dataset.frame(2).name, dataset.frame(0).name]
+    finally:
+        server.stop()
