@@ -10,6 +10,7 @@ state redraws every browser. No viser import here: the state is unit-testable wi
 from __future__ import annotations
 
 import threading
+import traceback
 from collections.abc import Callable
 
 import numpy as np
@@ -95,7 +96,10 @@ class MetricsRunner:
                     self._running = False
                     return
                 view = self._pending.pop(next(iter(self._pending)))
-            view._measure_pending()
+            try:
+                view._measure_pending()
+            except Exception:  # the thread goes on; a reader of ``metrics`` meets the error
+                traceback.print_exc()
 
 
 def _measure(inputs: tuple) -> dict:

@@ -3,6 +3,7 @@ import pytest
 
 from app.state import AppState, select_with
 from factorydet_core.io.dataset import open_dataset
+from tests.app.polling import wait
 
 
 def test_frame_changes_are_clamped_counted_and_announced(small_dataset_dir):
@@ -369,3 +370,42 @@ def test_reading_the_metrics_measures_them_at_once_and_a_superseded_measurement_
     thread.join(30)  # the held measurement finished: it must not replace the newer one
     assert not thread.is_alive()
     assert state.metrics is now
+
+
+def test_a_measurement_that_fails_leaves_the_background_thread_measuring_the_next_one(
+    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch, capsys
+):
+    import threading
+
+    import app.state as state_module
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.detection.model import DetectionModel
+    from factorydet_core.session.store import SessionDB, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    model = DetectionModel.load(tiny_model_path)
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    state = AppState(dataset, model=model, model_name="tiny", db=db)
+    state.set_detection_result(
+        (0, state.params, False), Detector("agv", model=model).detect(dataset.frame(0)), "done"
+    )
+    before = state.metrics
+    measure, failed = state_module._measure, threading.Event()
+
+    def failing_once(inputs):
+        if threading.current_thread().name == "factorydet-metrics" and not failed.is_set():
+            failed.set()
+            raise RuntimeError("a measurement gone wrong")
+        return measure(inputs)
+
+    monkeypatch.setattr(state_module, "_measure", failing_once)
+    db.delete_labels([db.labels(0)[0].id], "ann")
+    state.session_changed()
+    thread = state.shared.metrics_runner.thread
+    assert failed.wait(30)
+    db.delete_labels([db.labels(0)[0].id], "ann")  # the next change is measured on the same thread
+    state.session_changed()
+    assert wait(lambda: not state.shown_metrics()[1], 30) and state.shared.metrics_runner.thread is thread
+    after, stale = state.shown_metrics()
+    assert not stale and after["num_reference"] == before["num_reference"] - 2
+    assert "a measurement gone wrong" in capsys.readouterr().err
