@@ -1,3 +1,5 @@
+import threading
+
 import numpy as np
 import pytest
 
@@ -287,12 +289,10 @@ def test_the_metrics_are_measured_again_only_when_what_they_measure_changed(
     assert state.metrics is not before and state.metrics["num_frames"] == 2
 
 
-def test_an_edit_returns_before_the_metrics_are_measured_again_on_the_background_thread(
-    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
-):
-    import threading
-
-    import app.state as state_module
+@pytest.fixture
+def measured(small_dataset_dir, tiny_model_path, tmp_path):
+    """A view with a session, its first frame's detections shown and its metrics measured:
+    ``(state, db, metrics)``."""
     from factorydet_core.detection.detector import Detector
     from factorydet_core.detection.model import DetectionModel
     from factorydet_core.session.store import SessionDB, open_session
@@ -304,18 +304,41 @@ def test_an_edit_returns_before_the_metrics_are_measured_again_on_the_background
     state.set_detection_result(
         (0, state.params, False), Detector("agv", model=model).detect(dataset.frame(0)), "done"
     )
-    before = state.metrics
-    # The measurement held back until the edit has returned (as a slow one is on a busy machine).
-    measuring, release = threading.Event(), threading.Event()
+    return state, db, state.metrics
+
+
+def _on_the_metrics_thread(monkeypatch, before=lambda: None):
+    """``state._measure`` patched to call ``before()`` first when run on the background thread."""
+    import app.state as state_module
+
     measure = state_module._measure
 
-    def held(inputs):
+    def patched(inputs):
         if threading.current_thread().name == "factorydet-metrics":
-            measuring.set()
-            assert release.wait(30)
+            before()
         return measure(inputs)
 
-    monkeypatch.setattr(state_module, "_measure", held)
+    monkeypatch.setattr(state_module, "_measure", patched)
+
+
+def _held(monkeypatch) -> tuple[threading.Event, threading.Event]:
+    """The background measurement held until released: ``(measuring, release)``."""
+    measuring, release = threading.Event(), threading.Event()
+
+    def hold():
+        measuring.set()
+        assert release.wait(30)
+
+    _on_the_metrics_thread(monkeypatch, hold)
+    return measuring, release
+
+
+def test_an_edit_returns_before_the_metrics_are_measured_again_on_the_background_thread(
+    measured, monkeypatch
+):
+    state, db, before = measured
+    # The measurement held back until the edit has returned (as a slow one is on a busy machine).
+    measuring, release = _held(monkeypatch)
     redrawn = threading.Event()
     state.on_change(redrawn.set)
     db.delete_labels([db.labels(0)[0].id], "ann")
@@ -331,33 +354,10 @@ def test_an_edit_returns_before_the_metrics_are_measured_again_on_the_background
 
 
 def test_reading_the_metrics_measures_them_at_once_and_a_superseded_measurement_is_dropped(
-    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch
+    measured, monkeypatch
 ):
-    import threading
-
-    import app.state as state_module
-    from factorydet_core.detection.detector import Detector
-    from factorydet_core.detection.model import DetectionModel
-    from factorydet_core.session.store import SessionDB, open_session
-
-    dataset = open_dataset(small_dataset_dir)
-    model = DetectionModel.load(tiny_model_path)
-    db = SessionDB(open_session("s", tmp_path), dataset)
-    state = AppState(dataset, model=model, model_name="tiny", db=db)
-    state.set_detection_result(
-        (0, state.params, False), Detector("agv", model=model).detect(dataset.frame(0)), "done"
-    )
-    before = state.metrics
-    measuring, release = threading.Event(), threading.Event()
-    measure = state_module._measure
-
-    def held(inputs):
-        if threading.current_thread().name == "factorydet-metrics":
-            measuring.set()
-            assert release.wait(30)
-        return measure(inputs)
-
-    monkeypatch.setattr(state_module, "_measure", held)
+    state, db, before = measured
+    measuring, release = _held(monkeypatch)
     state.shared.metrics_runner.IDLE_SECONDS = 0.01  # its thread ends once idle (joined below)
     db.delete_labels([db.labels(0)[0].id], "ann")
     state.session_changed()
@@ -373,32 +373,17 @@ def test_reading_the_metrics_measures_them_at_once_and_a_superseded_measurement_
 
 
 def test_a_measurement_that_fails_leaves_the_background_thread_measuring_the_next_one(
-    small_dataset_dir, tiny_model_path, tmp_path, monkeypatch, capsys
+    measured, monkeypatch, capsys
 ):
-    import threading
+    state, db, before = measured
+    failed = threading.Event()
 
-    import app.state as state_module
-    from factorydet_core.detection.detector import Detector
-    from factorydet_core.detection.model import DetectionModel
-    from factorydet_core.session.store import SessionDB, open_session
-
-    dataset = open_dataset(small_dataset_dir)
-    model = DetectionModel.load(tiny_model_path)
-    db = SessionDB(open_session("s", tmp_path), dataset)
-    state = AppState(dataset, model=model, model_name="tiny", db=db)
-    state.set_detection_result(
-        (0, state.params, False), Detector("agv", model=model).detect(dataset.frame(0)), "done"
-    )
-    before = state.metrics
-    measure, failed = state_module._measure, threading.Event()
-
-    def failing_once(inputs):
-        if threading.current_thread().name == "factorydet-metrics" and not failed.is_set():
+    def fail_once():
+        if not failed.is_set():
             failed.set()
             raise RuntimeError("a measurement gone wrong")
-        return measure(inputs)
 
-    monkeypatch.setattr(state_module, "_measure", failing_once)
+    _on_the_metrics_thread(monkeypatch, fail_once)
     db.delete_labels([db.labels(0)[0].id], "ann")
     state.session_changed()
     thread = state.shared.metrics_runner.thread
