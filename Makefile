@@ -460,7 +460,7 @@ bench: $(STAMP) corpus corpus50
 	# (blind mining and full labels read back from hitl-e20-folds-pooled-six).
 	test -f docs/bench/hitl-e20-folds-pooled-safe-six.json || cp docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-pooled-safe-six.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,3,4 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --threshold-folds 2 --threshold-objective total --out docs/bench/hitl-e20-folds-pooled-safe-six.json \
