@@ -104,7 +104,7 @@ class MetricsRunner:
 
 def _measure(inputs: tuple) -> dict:
     """The metrics panel's figures from ``AppState._update_metrics``'s inputs."""
-    _, scored, class_names, score_threshold, per_class = inputs
+    scored, class_names, score_threshold, per_class = inputs
     metrics = detection_metrics(scored, class_names, 0.6, score_threshold, per_class)
     metrics["num_frames"] = len(scored)
     metrics["errors"] = error_breakdown(scored, class_names, 0.6, score_threshold, per_class)
@@ -740,9 +740,9 @@ class AppState:
                     "candidate_scores": item["candidates"].scores,
                 }
             )
-        # A new tuple per request: the background thread stores its result only if it is still
-        # the one asked for (``_measure_pending``).
-        self._metrics_inputs = (object(), scored, self.model.class_names, self.score_threshold, per_class)
+        # A new tuple per request: the background thread stores its result only if this very
+        # tuple is still the one asked for (``_measure_pending``).
+        self._metrics_inputs = (scored, self.model.class_names, self.score_threshold, per_class)
         self.shared.metrics_runner.request(self)
 
     @property

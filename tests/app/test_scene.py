@@ -88,9 +88,8 @@ def test_a_frame_drawn_again_is_not_merged_again_until_others_push_it_out(small_
             draw(k)
         assert merged == [dataset.frame(0).name, dataset.frame(1).name]
         points, _ = view._shown
-        np.testing.assert_array_equal(
-            points, merge(dataset.frame(1)).points[merge(dataset.frame(1)).below(6.0)]
-        )
+        expected = merge(dataset.frame(1))
+        np.testing.assert_array_equal(points, expected.points[expected.below(6.0)])
         draw(2)  # a third frame pushes out the one drawn longest ago (frame 0)
         draw(1)
         draw(0)
