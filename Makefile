@@ -20,9 +20,15 @@ demo: $(STAMP)
 	$(BIN)/factorydet demo --session demo
 
 # The docs build is not --quiet: that hides the warnings --strict turns into failures.
+# The suite on every core (pytest-xdist; TEST_WORKERS=0 runs it in this process), then the browser
+# tests one at a time (each drives a headless Chromium whose software WebGL takes a core of its
+# own), then the Ray tier.
+TEST_WORKERS ?= auto
 test: $(STAMP) browserdeps lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir $$(mktemp -d)
-	$(BIN)/python -m pytest -m "not ray" --durations=25
+	$(BIN)/python -m pytest -m "not ray and not browser" -n $(TEST_WORKERS) --maxprocesses 4 --dist worksteal \
+	  --durations=25
+	$(BIN)/python -m pytest -m "browser and not ray" --durations=10
 	$(MAKE) --no-print-directory test-ray
 
 # The tests that start Ray (a local one, a two-node cluster), in a network namespace with only
@@ -32,7 +38,7 @@ test-ray: $(STAMP)
 
 # The quick loop while editing: lint, the import contract and every test not marked slow or browser.
 test-fast: $(STAMP) lint
-	$(BIN)/python -m pytest -m "not slow and not browser" -q
+	$(BIN)/python -m pytest -m "not slow and not browser" -n $(TEST_WORKERS) --maxprocesses 4 -q
 
 # The documentation site (README's links, docs/*.md) into site/; strict: a broken link fails.
 docs: $(STAMP)

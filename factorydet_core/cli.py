@@ -201,6 +201,7 @@ def hitl_settings(args: argparse.Namespace) -> LoopSettings:
             "class_thresholds": args.class_thresholds,
             "threshold_folds": args.threshold_folds,
             "threshold_objective": args.threshold_objective,
+            "quality_trees": args.quality_trees,
         }
     )
 
@@ -324,6 +325,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             overrides=tuple(parse_overrides(args.set).items()),
             scratch=Path(args.scratch),
             calibrate=args.calibrate,
+            quality_trees=args.quality_trees,
         )
         earlier = _earlier_record(args)
         update, close = _training_progress()
@@ -463,6 +465,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     box_quality=args.box_quality,
                     command=command,
                     progress=update,
+                    quality_trees=args.quality_trees,
                 )
             elif args.name == "hitl":
                 from factorydet_core.evaluation.hitl import bench_hitl
@@ -1705,7 +1708,7 @@ def build_parser(
             "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
             "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
             "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
-            "carry_pseudo_labels", "threshold_folds", "threshold_objective",
+            "carry_pseudo_labels", "threshold_folds", "threshold_objective", "quality_trees",
         ),
     )  # fmt: skip
     p.add_argument(

@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from factorydet_core.sim.simulate import SimConfig, simulate_dataset
-from factorydet_core.threads import configure_threads
+from factorydet_core.threads import THREADS_ENV, available_cores, configure_threads
 
 # The library's thread pools sized once, as the command line does (a test process beside a browser
-# or an app server would otherwise oversubscribe the cores).
-configure_threads()
+# or an app server would otherwise oversubscribe the cores). Under pytest-xdist the workers share
+# the cores, so each takes its share (the controller's OMP_NUM_THREADS, which they inherit, would
+# give each all of them); FACTORYDET_THREADS still decides when it is set.
+_NUM_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+_SHARED = _NUM_WORKERS > 1 and not os.environ.get(THREADS_ENV)
+configure_threads(max(1, available_cores() // _NUM_WORKERS) if _SHARED else None)
 
 SHARED_REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 

@@ -144,7 +144,7 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     root = tmp_path / "sessions"
     args = ["train", str(small_dataset_dir), "--session", "s", "--root", str(root), "--rounds", "1",
             "--epochs", "2", "--frames", "2", "--initial-negatives", "150", "--negatives", "30",
-            "--score-threshold", "0.05", "--no-calibrate", "--visibility", "off",
+            "--score-threshold", "0.05", "--no-calibrate", "--visibility", "off", "--quality-trees", "30",
             "--export", str(tmp_path / "out" / "m.pt")]  # fmt: skip
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out)
@@ -162,7 +162,9 @@ def test_train_detect_evaluate(small_dataset_dir, tmp_path, capsys):
     # two-epoch classifier, so every candidate above 0 is shown.
     assert (tmp_path / "out" / "m.boxq.npz").is_file() and note["box_quality"] is not None
     # --visibility off: this multi-sensor data would otherwise give the regressor free space.
-    assert not DetectionModel.load(tmp_path / "out" / "m.pt").box_quality.visibility
+    exported_quality = DetectionModel.load(tmp_path / "out" / "m.pt").box_quality
+    assert not exported_quality.visibility
+    assert len(exported_quality.trees_["roots"]) == 30  # --quality-trees
     detect = ["detect", str(small_dataset_dir), "--model", "s", "--root", str(root), "--frame", "2",
               "--score-threshold", "0.0", "--no-calibrate", "--json"]  # fmt: skip
     assert main(detect) == 0
@@ -579,11 +581,13 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
 @pytest.mark.slow
 def test_bench_classifier_measures_rows_with_the_models_box_quality(small_dataset_dir, capsys):
     args = ["bench", "classifier", str(small_dataset_dir), "--widths", "0.0625", "--features", "aggregated",
-            "--geometry", "on,off", "--epochs", "1", "--train-frames", "1", "--frames", "1"]  # fmt: skip
+            "--geometry", "on,off", "--epochs", "1", "--train-frames", "1", "--frames", "1",
+            "--quality-trees", "30"]  # fmt: skip
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
     # Scored as the loop and the shipped model score: the square root of the probability at 0.35.
     assert result["box_quality"] is True and result["score_threshold"] == 0.35
+    assert result["quality_trees"] == 30
     assert result["probability_exponent"] == 0.5
     rows = [(r["feature"], r["geometry"]) for r in result["rows"]]
     assert rows == [("aggregated", True), ("aggregated", False)]

@@ -38,6 +38,7 @@ from factorydet_core.proposals.voxels import voxel_local_points
 from factorydet_core.sim.simulate import FactorySimulator, SimConfig, simulate_dataset
 from factorydet_core.sim.truth import read_frame_truth, read_truth
 from factorydet_core.training.mining import collect_proposals, train_with_mining
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import PROBABILITY_EXPONENT, SCORE_THRESHOLD, InputError
 
 
@@ -1043,6 +1044,7 @@ def bench_classifier(
     command: str = "",
     progress=None,
     probability_exponent: float = PROBABILITY_EXPONENT,
+    quality_trees: int = LoopSettings.quality_trees,
 ) -> dict:
     """Recognition accuracy (the paper's Table 2) and detection F-score of classifiers of several
     widths, proposal features and inputs (the 3DmFV tensor with or without the geometric
@@ -1053,7 +1055,8 @@ def bench_classifier(
     Detections are made as the shipped model makes them: at ``score_threshold``, scored with
     ``probability_exponent``, with one box
     quality regressor (``box_quality``) fitted per feature on the training frames and shared by
-    every classifier of that feature, so that the rows differ only in the class probabilities."""
+    every classifier of that feature, so that the rows differ only in the class probabilities;
+    ``quality_trees`` is its size (``LoopSettings.quality_trees``)."""
 
     dataset = open_dataset(data)
     simulated = (Path(data) / "truth").is_dir()
@@ -1086,7 +1089,7 @@ def bench_classifier(
                 classifier,
                 rounds=0,
                 score_threshold=score_threshold,
-                box_quality=BoxQuality() if box_quality and quality is None else None,
+                box_quality=(BoxQuality(max_iter=quality_trees) if box_quality and quality is None else None),
                 probability_exponent=probability_exponent,
             )
             quality = quality or run.model.box_quality
@@ -1128,6 +1131,7 @@ def bench_classifier(
         "score_threshold": score_threshold,
         "probability_exponent": probability_exponent,
         "box_quality": box_quality,
+        "quality_trees": quality_trees,
         "rows": rows,
         "machine": machine_info(),
     }

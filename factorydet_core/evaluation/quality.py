@@ -131,6 +131,8 @@ class QualityPlan:
     scratch: Path = HELDOUT_SCRATCH
     """Where the held-out factories and the proposal caches are written."""
     calibrate: bool = True
+    quality_trees: int = LoopSettings.quality_trees
+    """Trees of head_options' box quality regressor (``LoopSettings.quality_trees``)."""
 
     def record(self) -> dict:
         """The plan as JSON: a result is resumed only by a run of the same plan (its seeds aside)."""
@@ -146,6 +148,7 @@ class QualityPlan:
         FrontEndParams().replace(**dict(self.overrides))  # unknown names and bad values fail here
         if self.epochs < 1 or self.rounds < 0:
             raise InputError("epochs must be >= 1, rounds >= 0")
+        LoopSettings(quality_trees=self.quality_trees)  # (its check)
         unknown = set(self.methods) - set(METHODS)
         if unknown or not self.methods:
             raise InputError(f"methods must be among {', '.join(METHODS)}; got {', '.join(self.methods)}")
@@ -328,7 +331,9 @@ def resumable_runs(
     """
     if not earlier:
         return {}
-    check_same_plan("quality", plan.record(), earlier.get("plan"))
+    # A record from before the regressor's size was a setting ran the default's.
+    theirs = {"quality_trees": LoopSettings.quality_trees, **(earlier.get("plan") or {})}
+    check_same_plan("quality", plan.record(), theirs)
     learned = [m for m in plan.methods if m != "paper"]
     done: dict[int, dict[str, dict]] = {}
     for seed in plan.seeds:
@@ -439,7 +444,11 @@ def bench_quality(
             seed=seed,
             progress=progress,
             box_quality=(
-                BoxQuality(seed=seed, visibility=LoopSettings().quality_visibility(train_dataset))
+                BoxQuality(
+                    seed=seed,
+                    visibility=LoopSettings().quality_visibility(train_dataset),
+                    max_iter=plan.quality_trees,
+                )
                 if "head_options" in learned
                 else None
             ),

@@ -403,7 +403,11 @@ def train_session(
     excluded = _merge(reviewed["object"], reviewed["wrong_box"])
     classifier = new_classifier(settings, db.class_names)
     box_quality = (
-        BoxQuality(seed=settings.seed, visibility=settings.quality_visibility(db.dataset))
+        BoxQuality(
+            seed=settings.seed,
+            visibility=settings.quality_visibility(db.dataset),
+            max_iter=settings.quality_trees,
+        )
         if settings.box_quality and settings.method != "box_head"
         else None
     )

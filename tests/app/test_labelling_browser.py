@@ -22,7 +22,9 @@ from tests.fakes import mined_item, queue_run
 
 pytestmark = pytest.mark.browser
 
-TINY = LoopSettings(epochs=1, rounds=0, initial_negatives=100, negatives_per_round=20, score_threshold=0.05)
+TINY = LoopSettings(
+    epochs=1, rounds=0, initial_negatives=100, negatives_per_round=20, score_threshold=0.05, quality_trees=30
+)
 
 
 def _queue_run(model_path, num_mined: int = 6) -> TrainingRun:

@@ -55,6 +55,7 @@ def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_data
         epochs=1,
         rounds=0,
         scratch=tmp_path,
+        quality_trees=30,
     )
     partials, proposed = [], []
 
@@ -77,6 +78,11 @@ def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_data
     assert head_runs[1]["finished"] >= head_runs[0]["finished"] and resumed["training_seeds"] == [0, 1]
     with pytest.raises(InputError, match="another plan .*epochs"):
         bench_quality(dataclasses.replace(plan, epochs=2), earlier=partials[0])
+    # A record from before the regressor's size was a setting ran the default's (500 trees).
+    assert partials[0]["plan"]["quality_trees"] == 30
+    older = {**partials[0], "plan": {k: v for k, v in partials[0]["plan"].items() if k != "quality_trees"}}
+    with pytest.raises(InputError, match="another plan .*quality_trees"):
+        bench_quality(plan, earlier=older)
     assert result["num_heldout_frames"] == 1 and result["train_seed"] == 7
     options, head, paper = (result["methods"][m] for m in ("head_options", "box_head", "paper"))
     assert [r["seed"] for r in head["runs"]] == [0, 1] and len(paper["runs"]) == 1

@@ -135,7 +135,9 @@ def test_mining_rounds_scored_through_batch_files_train_the_plain_run(small_data
     frames = collect_proposals(dataset, [0, 1], Detector("agv"))
     # The shipped method (the box head classifying, the box quality regressor boxing): both are
     # saved with each round's model and must load to the same scores.
-    settings = LoopSettings(epochs=1, rounds=1, initial_negatives=100, negatives_per_round=20, seed=3)
+    settings = LoopSettings(
+        epochs=1, rounds=1, initial_negatives=100, negatives_per_round=20, seed=3, quality_trees=30
+    )
     runs, steps = [], []
     for name in ("plain", "files"):
         db = SessionDB(open_session(name, tmp_path), dataset)

@@ -698,7 +698,9 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
         raise StopError
 
     monkeypatch.setattr(loop, "train_with_mining", capture)
-    with_quality = LoopSettings(epochs=2, round_epochs=1, method="head_options", refit_box_quality=False)
+    with_quality = LoopSettings(
+        epochs=2, round_epochs=1, method="head_options", refit_box_quality=False, quality_trees=40
+    )
     assert LoopSettings().refit_box_quality  # refitted by default
     for settings in (with_quality, dataclasses.replace(with_quality, refit_box_quality=True)):
         with pytest.raises(StopError):
@@ -708,6 +710,7 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
     # refit would give it back (train_with_mining compares their training rows).
     refit, reuse = given[1]
     assert isinstance(refit, loop.BoxQuality) and not hasattr(refit, "trees_") and reuse is kept
+    assert refit.max_iter == 40  # the size the settings ask for
 
 
 @pytest.mark.slow

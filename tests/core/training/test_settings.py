@@ -80,6 +80,9 @@ def test_the_settings_still_check_themselves():
     for bad in (-1, 2.5, True):
         with pytest.raises(InputError, match="review_extra must be an integer"):
             LoopSettings(review_extra=bad)
+    for bad in (0, 2.5, True):
+        with pytest.raises(InputError, match="quality_trees must be an integer >= 1"):
+            LoopSettings(quality_trees=bad)
     for bad in (0.0, 1.5, True):  # a Python caller is checked as the controls check a flag
         with pytest.raises(InputError, match="recalibrate_background must lie in"):
             LoopSettings(recalibrate_background=bad)
