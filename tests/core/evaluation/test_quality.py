@@ -56,6 +56,7 @@ def test_a_tiny_run_measures_every_method_on_the_same_held_out_frames(small_data
         rounds=0,
         scratch=tmp_path,
         quality_trees=30,
+        calibrate=False,  # (ICP, about a third of the run, is not what this tests)
     )
     partials, proposed = [], []
 
