@@ -20,10 +20,10 @@ demo: $(STAMP)
 	$(BIN)/factorydet demo --session demo
 
 # The docs build is not --quiet: that hides the warnings --strict turns into failures.
-# The suite on every core (pytest-xdist; TEST_WORKERS=0 runs it in this process), then the browser
-# tests one at a time (each drives a headless Chromium whose software WebGL takes a core of its
-# own), then the Ray tier.
-TEST_WORKERS ?= auto
+# The suite on every core this process may use (pytest-xdist; TEST_WORKERS=0 runs it in this
+# process), then the browser tests one at a time (each drives a headless Chromium whose software
+# WebGL takes a core of its own), then the Ray tier.
+TEST_WORKERS ?= $(shell nproc)
 test: $(STAMP) browserdeps lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir $$(mktemp -d)
 	$(BIN)/python -m pytest -m "not ray and not browser" -n $(TEST_WORKERS) --maxprocesses 4 --dist worksteal \

@@ -11,7 +11,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from factorydet_core.threads import configure_threads
-from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, loop_settings_from
+from factorydet_core.training.settings import (
+    CONTROL_BY_FIELD,
+    LOOP_CONTROLS,
+    LoopSettings,
+    loop_settings_from,
+)
 from factorydet_core.types import (
     BOX_KINDS,
     LEVELS,
@@ -232,6 +237,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     )
 
     command = "factorydet bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
+    # (checked here, as the Training panel's control checks it, before any work is done)
+    args.quality_trees = CONTROL_BY_FIELD["quality_trees"].parse(args.quality_trees)
     if args.resume and args.name not in ("hitl", "quality", "scale"):
         raise InputError(f"--resume applies to bench hitl, quality and scale, not bench {args.name}")
     if args.resume_other_library and not (args.resume and args.name in ("hitl", "quality")):

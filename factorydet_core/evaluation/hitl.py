@@ -784,6 +784,8 @@ def _run_plan(plan: dict, variant: str) -> dict:
         # Their labels never change after the first fit, so a refit of the box quality regressor
         # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).
         untouched |= {"refit_box_quality", "refit_trees"}
+    if settings.get("box_quality") is False or settings.get("method") == "box_head":
+        untouched.add("quality_trees")  # no regressor is fitted
     if isinstance(out.get("settings"), dict):
         out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}
         if "review_order" not in untouched:

@@ -63,7 +63,7 @@ from factorydet_core.training.mining import (
     train_with_mining,
     with_tuned_thresholds,
 )
-from factorydet_core.training.settings import LoopSettings
+from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
 from factorydet_core.types import (
     METHODS,
     MINING_THRESHOLD,
@@ -331,8 +331,8 @@ def resumable_runs(
     """
     if not earlier:
         return {}
-    # A record from before the regressor's size was a setting ran the default's.
-    theirs = {"quality_trees": LoopSettings.quality_trees, **(earlier.get("plan") or {})}
+    # A record from before the regressor's size was a setting ran what was fitted then.
+    theirs = {"quality_trees": BEFORE_THEY_EXISTED["quality_trees"], **(earlier.get("plan") or {})}
     check_same_plan("quality", plan.record(), theirs)
     learned = [m for m in plan.methods if m != "paper"]
     done: dict[int, dict[str, dict]] = {}

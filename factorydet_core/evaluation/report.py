@@ -270,7 +270,7 @@ def voxel_sweep(
             rounds=0,
             score_threshold=model.score_threshold,
             tune_class_thresholds=model.class_score_thresholds is not None,
-            box_quality=None if model.box_quality is None else BoxQuality(),
+            box_quality=None if model.box_quality is None else _unfitted(model.box_quality),
             probability_exponent=model.probability_exponent,
         )
         metrics = measure(run.model, dataset, test, iou_threshold=iou_threshold, use_truth=True)
@@ -279,6 +279,14 @@ def voxel_sweep(
         if progress is not None:
             progress("sweep", n + 1, len(sizes))
     return rows
+
+
+def _unfitted(quality: BoxQuality) -> BoxQuality:
+    """A regressor of ``quality``'s size and inputs (its trees, anchored options, free space),
+    unfitted: what the sweep fits again at each voxel size."""
+    return BoxQuality(
+        max_iter=len(quality.trees_["roots"]), anchored=quality.anchored, visibility=quality.visibility
+    )
 
 
 def write_report(

@@ -188,7 +188,8 @@ class LoopSettings:
     """Trees of the box quality regressor's fit (``BoxQuality.max_iter``; a refit's too, unless
     ``refit_trees`` boosts it on). 500 trees of 63 leaves chose and scored boxes better on held-out
     frames than 300 of 31 (``BoxQuality``); fewer fit faster and coarser, which tests and quick
-    trials may want: the fit grows about linearly with them."""
+    trials may want: the fit grows about linearly with them. A next round that keeps the model's
+    regressor (``refit_box_quality`` off, or its rows unchanged) keeps its size too."""
     visibility: bool | None = None
     """The box quality regressor also reads what the frame's rays saw of each box
     (``BoxQuality.visibility``). ``None``: on for multi-sensor data, whose rays start at the
@@ -261,6 +262,7 @@ BEFORE_THEY_EXISTED: dict[str, object] = {
     "refit_box_quality": False,
     "refit_trees": 0,
     "model_box_targets": True,
+    "quality_trees": 500,
 }
 """What a record written before each of these ``LoopSettings`` fields existed ran with: the
 behaviour the field was added to keep by default. A record that lacks a field is read with these,

@@ -32,6 +32,14 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
     assert _run_plan(plan, "full_late") != _run_plan(refit, "full_late")  # its labels change
     assert _run_plan(plan, "blind") == _run_plan(refit, "blind")
     assert _run_plan(plan, "blind") != _run_plan({**plan, "data": "e"}, "blind")
+    # The regressor's size shapes every detector that fits one, and none that does not.
+    smaller = {**plan, "settings": {**settings, "quality_trees": 30}}
+    assert _run_plan(plan, "blind") != _run_plan(smaller, "blind")
+    for no_regressor in ({"box_quality": False, "method": "paper"}, {"method": "box_head"}):
+        without = {**plan, "settings": {**settings, **no_regressor}}
+        assert _run_plan(without, "blind") == _run_plan(
+            {**without, "settings": {**without["settings"], "quality_trees": 30}}, "blind"
+        )
     # Recalibrating by class is blind_safe's alone too.
     by_class = {**plan, "settings": {**held, "recalibrate_by_class": True}}
     assert _run_plan({**plan, "settings": held}, "blind_safe") != _run_plan(by_class, "blind_safe")

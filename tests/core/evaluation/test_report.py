@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from factorydet_core.detection.box_quality import BoxQuality
 from factorydet_core.detection.model import DetectionModel
 from factorydet_core.evaluation.report import operating_text
 
@@ -42,14 +43,21 @@ def test_grid_sweep_retrains_with_the_models_score_settings(monkeypatch):
     )
     monkeypatch.setattr(report, "measure", lambda *args, **kwargs: {"f1": 0.0, "map": 0.0, "per_class": {}})
     classifier = types.SimpleNamespace(labels_=["barrel", "background"], get_params=lambda: {"width": 0.0625})
-    model = DetectionModel(classifier, score_threshold=0.35, box_quality=object(), probability_exponent=0.5,
+    rng = np.random.default_rng(0)
+    quality = BoxQuality(max_iter=7, anchored=False, visibility=False).fit(rng.normal(size=(60, 4)),
+                                                                         rng.uniform(size=60))  # fmt: skip
+    model = DetectionModel(classifier, score_threshold=0.35, box_quality=quality, probability_exponent=0.5,
                            class_score_thresholds={"barrel": 0.35})  # fmt: skip
     rows = report.voxel_sweep(types.SimpleNamespace(num_sensors=12), model, [0.2, 0.3], [0], [1], None, 0.6)
     assert [row["voxel_size_m"] for row in rows] == [0.2, 0.3]
     assert len(calls) == 2
     for kwargs in calls:
         assert kwargs["probability_exponent"] == 0.5 and kwargs["score_threshold"] == 0.35
-        assert kwargs["tune_class_thresholds"] and kwargs["box_quality"] is not None
+        assert kwargs["tune_class_thresholds"]
+        # A regressor of the model's size and inputs, fitted again at each size.
+        refit = kwargs["box_quality"]
+        assert (refit.max_iter, refit.anchored, refit.visibility) == (7, False, False)
+        assert not hasattr(refit, "trees_")
 
 
 def test_the_report_names_the_back_half_and_shows_the_held_out_table(tmp_path):
