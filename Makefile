@@ -439,18 +439,19 @@ bench: $(STAMP) corpus corpus50
 	  --readme-block hitl-50-e20-pseudo-alone-vs-pseudo-six
 	# Per-class thresholds tuned out of fold (the training frames in two stretches of the drive, each scored
 	# by a model fitted on the other), with no ceiling: blind mining and full labels at 30%, seeds 0, 1, 3, 4,
-	# each model measured at these thresholds and at its fitted frames' (the same network).
+	# each model measured at these thresholds and at its fitted frames' (the same network). These records
+	# fitted each round's fold models afresh (--no-continue-folds), as the code did before it could go on.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --out docs/bench/hitl-e20-folds-six.json \
+	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --no-continue-folds --out docs/bench/hitl-e20-folds-six.json \
 	  --readme docs/labelling.md --readme-block hitl-e20-folds-six --resume
 	# The same, six seeds, thresholds tuned for the F-score of all classes pooled (--threshold-objective total),
 	# each model also at the class objective's out-of-fold thresholds; against the record above, seed by seed.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --threshold-objective total \
+	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-six.json --readme docs/labelling.md \
 	  --readme-block hitl-e20-folds-pooled-six --resume
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-six.json \
@@ -459,7 +460,7 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
-	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
+	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-reviewed-six.json --readme docs/labelling.md \
 	  --readme-block hitl-e20-folds-pooled-reviewed-six --resume
 	# blind_safe (holding places, recalibrating the background) with thresholds out of fold for the pooled F
@@ -469,7 +470,7 @@ bench: $(STAMP) corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,blind_safe,full --hold-places --recalibrate-background 0.5 \
-	  --threshold-folds 2 --threshold-objective total --out docs/bench/hitl-e20-folds-pooled-safe-six.json \
+	  --threshold-folds 2 --no-continue-folds --threshold-objective total --out docs/bench/hitl-e20-folds-pooled-safe-six.json \
 	  --readme docs/labelling.md --readme-block hitl-e20-folds-pooled-safe-six --resume --resume-other-library
 	# The app's training defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
 	# order over the mined queue alone (--review-extra 0); against the class-turns record above.

@@ -207,6 +207,7 @@ def hitl_settings(args: argparse.Namespace) -> LoopSettings:
             "threshold_folds": args.threshold_folds,
             "threshold_objective": args.threshold_objective,
             "quality_trees": args.quality_trees,
+            "continue_folds": args.continue_folds,
         }
     )
 
@@ -1716,6 +1717,7 @@ def build_parser(
             "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
             "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
             "carry_pseudo_labels", "threshold_folds", "threshold_objective", "quality_trees",
+            "continue_folds",
         ),
     )  # fmt: skip
     p.add_argument(

@@ -1029,6 +1029,11 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 f"each class's threshold tuned on the training frames in {settings['threshold_folds']}"
                 " stretches of the drive, each scored by a model fitted on the others, with no ceiling"
                 " (`threshold_folds`), "
+                + (
+                    "each next round's fold models going on from the last round's (`continue_folds`), "
+                    if settings.get("continue_folds")
+                    else ""
+                )
                 if settings.get("class_thresholds", True) and settings.get("threshold_folds")
                 else ""
             )

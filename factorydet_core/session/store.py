@@ -2187,11 +2187,18 @@ class SessionDB:
 
     # -- training runs
 
+    def fold_model_paths(self, run_id: int) -> list[Path]:
+        """The checkpoints of run ``run_id``'s threshold fold models (``fold_K.pt``, in fold
+        order; none for a run without threshold folds)."""
+        run_dir = self.session.models_dir / f"run_{int(run_id):03d}"
+        return sorted(run_dir.glob("fold_*.pt"), key=lambda path: int(path.stem.split("_")[1]))
+
     def save_training_run(
         self, run, data: str, config: dict, *, kind: str = "mining", snapshot_id: int | None = None
     ) -> int:
         """Store a ``mining.TrainingRun``: a checkpoint per round under ``models/run_NNN/``, the
-        final one as ``final.pt``, and the rounds and mined negatives in the database.
+        final one as ``final.pt``, its threshold fold models as ``fold_K.pt``, and the rounds and
+        mined negatives in the database.
 
         Args:
             kind: 'mining' (blind, from the labels), 'retrain', or whatever the caller names it.
@@ -2218,6 +2225,11 @@ class SessionDB:
             path = run_dir / f"round_{record['round']}.pt"
             model.save(path, {**note, "round": record["round"], "train_metrics": record["train_metrics"]})
             paths.append(path)
+        # The last round's threshold fold models: a next round goes on from them (each never saw
+        # the frames its fold scores). Written before final.pt, which says the run is complete.
+        for k, fold in enumerate(getattr(run, "fold_models", ())):
+            fold_note = {**note, "fold": k, "fold_frames": [int(i) for i in fold.frame_indices]}
+            fold.classifier.save(run_dir / f"fold_{k}.pt", fold_note)
         final = run_dir / "final.pt"
         run.model.save(
             final,

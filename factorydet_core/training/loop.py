@@ -42,6 +42,7 @@ from factorydet_core.session.store import (
 )
 from factorydet_core.session.world import MOVING_CLASSES, WorldFrames, place_box
 from factorydet_core.training.mining import (
+    FoldModel,
     FrameProposals,
     Progress,
     Scorer,
@@ -128,6 +129,21 @@ def continued_model(
     except InputError as exc:
         return None, None, str(exc)
     return run_id, model, ""
+
+
+def continued_folds(db: SessionDB, run_id: int, classifier: ProposalClassifier | BoxHead) -> list[FoldModel]:
+    """Run ``run_id``'s threshold fold models that a next round can go on from (those that load and
+    fit ``classifier``'s network); a fold model that does not is fitted afresh, as without them."""
+    folds = []
+    for path in db.fold_model_paths(run_id):
+        try:
+            fold = DetectionModel.load(path)
+            check_init_model(classifier, fold.classifier)
+            frame_indices = tuple(int(i) for i in fold.note["fold_frames"])
+        except (InputError, OSError, KeyError, TypeError, ValueError):
+            continue
+        folds.append(FoldModel(frame_indices, fold.classifier))
+    return folds
 
 
 def proposals_cache_key(dataset: Dataset, detector: Detector) -> str:
@@ -413,6 +429,7 @@ def train_session(
     )
     continued_run, continued, why = None, None, ""
     reuse_quality = None
+    init_folds: list[FoldModel] = []
     if mode == "next":
         hold = settings.hold_confident
         background = _merge(db.mined_patch_sets(below_score=hold), reviewed["background"])
@@ -441,6 +458,8 @@ def train_session(
             labelled = with_pseudo
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
+        if continued is not None and settings.threshold_folds and settings.continue_folds:
+            init_folds = continued_folds(db, continued_run, classifier)
         keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None
         if keep_quality and not settings.refit_box_quality:
             box_quality = continued.box_quality
@@ -483,6 +502,7 @@ def train_session(
         model_box_targets=settings.model_box_targets,
         init_model=None if continued is None else continued.classifier,
         score=score,
+        init_folds=init_folds,
     )
     for model in run.models:
         model.front_end = front_end

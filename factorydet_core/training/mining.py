@@ -330,6 +330,8 @@ class TrainingRun:
     models: list[DetectionModel]
     """The model after each round."""
     train_frames: list[int]
+    fold_models: list[FoldModel] = dataclasses.field(default_factory=list)
+    """With ``threshold_folds``, the last round's fold models (a next round can go on from them)."""
 
 
 def _training_set(
@@ -531,6 +533,24 @@ def with_tuned_thresholds(
     )
 
 
+@dataclasses.dataclass(frozen=True)
+class FoldModel:
+    """A threshold fold's model (``train_with_mining``'s ``threshold_folds``): a classifier fitted
+    on every training frame but ``frame_indices``, the fold it scores."""
+
+    frame_indices: tuple[int, ...]
+    classifier: ProposalClassifier | BoxHead
+
+
+def threshold_fold_frames(frames: Sequence[FrameProposals], num_folds: int) -> list[tuple[int, ...]]:
+    """The frame indices of each of ``num_folds`` folds of ``frames``: contiguous runs of frame
+    indices (stretches of the drive), empty folds left out."""
+    indices = sorted(frame.frame_index for frame in frames)
+    return [
+        tuple(int(i) for i in block) for block in np.array_split(np.asarray(indices), num_folds) if len(block)
+    ]
+
+
 def _out_of_fold_scored(
     frames: list[FrameProposals],
     num_folds: int,
@@ -540,29 +560,50 @@ def _out_of_fold_scored(
     score: Scorer,
     progress: Progress | None,
     should_stop: Callable[[], bool] | None,
-) -> list[dict]:
-    """``score``'s items for every frame, each frame scored by a model fitted afresh (``classifier``'s
-    settings, ``fit``) on the frames of the other folds: ``num_folds`` contiguous runs of frame
-    indices, so that a fold is a stretch of the drive whose objects its model mostly never saw.
-    A fold whose other folds hold no object is left out (nothing would score it). Items keep the
-    order of ``frames``."""
-    order = sorted(range(len(frames)), key=lambda k: frames[k].frame_index)
-    folds = [[int(j) for j in block] for block in np.array_split(np.asarray(order), num_folds) if len(block)]
+    init_folds: Sequence[FoldModel] = (),
+    round_epochs: int = 0,
+) -> tuple[list[dict], list[FoldModel], int]:
+    """``score``'s items for every frame, each frame scored by a model (``classifier``'s settings,
+    ``fit``) fitted on the frames of the other folds (``threshold_fold_frames``: a fold is a stretch
+    of the drive whose objects its model mostly never saw): afresh, or, with ``round_epochs`` and
+    a fold model of ``init_folds`` for the very same frames (an earlier run's), going on from that
+    model for ``round_epochs`` epochs, as the run's own model goes on from the model it continues
+    (that model never saw the fold either). A fold whose other folds hold no object is left out
+    (nothing would score it).
+
+    Returns:
+        ``(items, fold_models, num_continued)``: the items in the order of ``frames``, the fitted
+        fold models, and how many of them went on from ``init_folds``.
+    """
+    position = {frame.frame_index: k for k, frame in enumerate(frames)}
+    earlier = {fold.frame_indices: fold.classifier for fold in init_folds} if round_epochs else {}
+    folds = threshold_fold_frames(frames, num_folds)
     out: dict[int, dict] = {}
+    fitted_folds, num_continued = [], 0
     for k, fold in enumerate(folds):
         in_fold = set(fold)
-        rest = [frames[j] for j in order if j not in in_fold]
+        rest = [
+            frame for frame in sorted(frames, key=lambda f: f.frame_index) if frame.frame_index not in in_fold
+        ]
 
         def fold_progress(epoch, epochs, k=k):
             progress("threshold folds", k * epochs + epoch, len(folds) * epochs)
 
         fit_progress = None if progress is None else fold_progress
-        fitted, _ = fit(dataclasses.replace(classifier), rest, None, fit_progress)
+        start_from = earlier.get(fold)
+        trainer = (
+            dataclasses.replace(classifier)
+            if start_from is None
+            else dataclasses.replace(classifier, epochs=round_epochs)
+        )
+        fitted, _ = fit(trainer, rest, start_from, fit_progress)
         if fitted is None:
             continue
-        scored = score(model_of(fitted), [frames[j] for j in fold], SCORE_FLOOR, None, should_stop)
-        out.update(zip(fold, scored))
-    return [out[k] for k in range(len(frames)) if k in out]
+        num_continued += start_from is not None
+        fitted_folds.append(FoldModel(fold, fitted))
+        scored = score(model_of(fitted), [frames[position[i]] for i in fold], SCORE_FLOOR, None, should_stop)
+        out.update(zip((position[i] for i in fold), scored))
+    return [out[k] for k in range(len(frames)) if k in out], fitted_folds, num_continued
 
 
 def train_with_mining(
@@ -602,6 +643,7 @@ def train_with_mining(
     model_box_targets: bool = True,
     threshold_folds: int = 0,
     threshold_objective: str = "class",
+    init_folds: Sequence[FoldModel] = (),
 ) -> TrainingRun:
     """Train, then ``rounds`` times mine hard negatives and retrain.
 
@@ -706,6 +748,11 @@ def train_with_mining(
             The round's record gets ``threshold_folds``: the folds, their seconds, the thresholds
             and those the fitted frames would have given, and the out-of-fold thresholds of
             each objective (``by_objective``). 0: tuned on the fitted frames.
+        init_folds: fold models of an earlier run (its ``TrainingRun.fold_models``): with
+            ``round_epochs``, a fold of the very same frames goes on from its model for
+            ``round_epochs`` epochs instead of a fit afresh (a 'next' round continuing a session's
+            model continues its folds too; ``LoopSettings.continue_folds``); other folds are
+            fitted afresh.
         threshold_objective: whose F-score a tuned threshold is best for
             (``types.THRESHOLD_OBJECTIVES``): each class's own ("class"), or that of all
             classes' detections pooled ("total", the figure benchmarks report; a class of few,
@@ -876,6 +923,7 @@ def train_with_mining(
         )
 
     records, models = [], []
+    fold_models: list[FoldModel] = []
     previous = init_model
     for round_index in range(rounds + 1):
         fit_progress = None if progress is None else (lambda e, n: progress("fit", e, n))
@@ -905,9 +953,10 @@ def train_with_mining(
             # The last model's thresholds, tuned where no model fitted instead: each fold's frames
             # scored by a model fitted afresh on the other folds' (the sets as they stand now).
             fold_start = time.perf_counter()
-            out_of_fold = _out_of_fold_scored(
-                frames, threshold_folds, classifier, fit, model_of, score, progress, should_stop
-            )
+            out_of_fold, fold_models, num_continued = _out_of_fold_scored(
+                frames, threshold_folds, classifier, fit, model_of, score, progress, should_stop,
+                init_folds, round_epochs,
+            )  # fmt: skip
             fitted_frame_thresholds = dict(model.class_score_thresholds or {})
             # Both objectives' thresholds from the same scores: a benchmark measures the same
             # network at each (the model keeps ``threshold_objective``'s).
@@ -924,6 +973,8 @@ def train_with_mining(
             folds_record = {
                 "folds": threshold_folds,
                 "seconds": round(time.perf_counter() - fold_start, 2),
+                "fold_frames": [list(fold.frame_indices) for fold in fold_models],
+                "continued": num_continued,
                 "thresholds": dict(model.class_score_thresholds or {}),
                 "fitted_frame_thresholds": fitted_frame_thresholds,
                 "objective": threshold_objective,
@@ -1052,7 +1103,7 @@ def train_with_mining(
         models.append(model)
         if progress is not None:
             progress("round", round_index + 1, rounds + 1)
-    return TrainingRun(models[-1], records, models, [f.frame_index for f in frames])
+    return TrainingRun(models[-1], records, models, [f.frame_index for f in frames], fold_models)
 
 
 def _set_frame_labels(

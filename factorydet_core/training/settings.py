@@ -65,6 +65,13 @@ class LoopSettings:
     fitted afresh on the others (``train_with_mining``'s ``threshold_folds``; about one more fit),
     with no ceiling. 0 tunes them on the frames the model fitted, where scores run high, so none
     may exceed ``score_threshold``."""
+    continue_folds: bool = True
+    """With ``threshold_folds``, a next round that goes on from a model (``round_epochs`` > 0) goes
+    on from that run's fold models too, for ``round_epochs`` epochs, where its folds are the same
+    frames (each never saw the frames it scores), as its own model goes on from the run's: the
+    folds then cost what the round's own fit does, not a fit afresh each, and follow the schedule
+    of the model they stand in for (``train_with_mining``'s ``init_folds``). False fits them
+    afresh every round."""
     threshold_objective: str = "class"
     """With ``class_thresholds``, whose F-score each class's threshold is best for
     (``types.THRESHOLD_OBJECTIVES``): the class's own ("class"), or that of all classes'
@@ -263,6 +270,7 @@ BEFORE_THEY_EXISTED: dict[str, object] = {
     "refit_trees": 0,
     "model_box_targets": True,
     "quality_trees": 500,
+    "continue_folds": False,
 }
 """What a record written before each of these ``LoopSettings`` fields existed ran with: the
 behaviour the field was added to keep by default. A record that lacks a field is read with these,
@@ -391,6 +399,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("threshold_folds", "Threshold folds", "with per-class thresholds, tune them on stretches of "
             "the drive each scored by a model fitted without it, with no ceiling (about one more fit; 0: on "
             "the fitted frames, never above the score threshold)", int, 0, 20, 1),
+    Control("continue_folds", "Continue fold models", "with threshold folds, a next round goes on from the "
+            "last run's fold models for its round epochs (off: fits them afresh every round)", bool),
     Control("threshold_objective", "Threshold objective", "with per-class thresholds, whose F-score each "
             "threshold is best for: the class's own (class), or all classes' detections pooled (total: a "
             "class of few, poorly scored objects is held up, even off, rather than flood the detections)",

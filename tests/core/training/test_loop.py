@@ -836,3 +836,42 @@ def test_a_class_the_fit_finds_none_of_on_its_training_frames_is_named():
     scored[0]["scores"] = np.array([0.9, 0.1])
     metrics = detection_metrics(scored, ("barrel", "cone", "pallet"), 0.6, 0.35)
     assert unlearned_classes(metrics) == {} and unlearned_text(metrics) == ""
+
+
+@pytest.mark.slow
+def test_a_next_round_goes_on_from_the_saved_fold_models(dataset, frames, tmp_path, monkeypatch):
+    import dataclasses
+
+    from factorydet_core.training import loop
+
+    db = SessionDB(open_session("folds", tmp_path), dataset)
+    settings = dataclasses.replace(SETTINGS, rounds=0, threshold_folds=2)
+    run_id, run = train_session(db, frames, settings, mode="full")
+    # Each fold model is saved beside the run's checkpoints with the frames it never saw, and
+    # loads back as the fold model of those frames.
+    paths = db.fold_model_paths(run_id)
+    assert [p.name for p in paths] == ["fold_0.pt", "fold_1.pt"]
+    classifier = loop.new_classifier(settings, db.class_names)
+    folds = loop.continued_folds(db, run_id, classifier)
+    assert [f.frame_indices for f in folds] == [f.frame_indices for f in run.fold_models] == [(0,), (1,)]
+    assert db.fold_model_paths(run_id + 1) == []
+    # A file that does not load is fitted afresh, not an error.
+    paths[1].write_bytes(b"not a checkpoint")
+    assert [f.frame_indices for f in loop.continued_folds(db, run_id, classifier)] == [(0,)]
+
+    given = []
+
+    class StopError(Exception):
+        pass
+
+    def capture(*args, init_folds=(), **kwargs):
+        given.append([f.frame_indices for f in init_folds])
+        raise StopError
+
+    monkeypatch.setattr(loop, "train_with_mining", capture)
+    for continue_folds in (True, False):
+        with pytest.raises(StopError):
+            train_session(
+                db, frames, dataclasses.replace(settings, continue_folds=continue_folds), mode="next"
+            )
+    assert given == [[(0,)], []]

@@ -806,6 +806,51 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         train_with_mining(frames, classifier, threshold_objective="micro")
 
 
+def test_a_continued_run_goes_on_from_the_fold_models_of_the_same_frames(frames, monkeypatch):
+    classifier = ProposalClassifier(width=0.0625, epochs=2, num_threads=1)
+    options = {"initial_negatives": 100, "score_threshold": 0.3, "threshold_folds": 2}
+    run = train_with_mining(frames, classifier, rounds=0, **options)
+    both = sorted(f.frame_index for f in frames)
+    # The run keeps its fold models: each fitted afresh on the other fold (its own epochs).
+    assert [fold.frame_indices for fold in run.fold_models] == training.threshold_fold_frames(frames, 2)
+    assert sorted(i for fold in run.fold_models for i in fold.frame_indices) == both
+    assert [len(fold.classifier.history_) for fold in run.fold_models] == [2, 2]
+    assert run.rounds[-1]["threshold_folds"]["continued"] == 0
+    assert run.rounds[-1]["threshold_folds"]["fold_frames"] == [[both[0]], [both[1]]]
+
+    starts = []
+    real_fit = ProposalClassifier.fit
+
+    def spy_fit(self, *args, init_model=None, **kwargs):
+        starts.append(init_model)
+        return real_fit(self, *args, init_model=init_model, **kwargs)
+
+    monkeypatch.setattr(ProposalClassifier, "fit", spy_fit)
+    on = train_with_mining(
+        frames, classifier, rounds=0, round_epochs=1, init_model=run.model.classifier,
+        init_folds=run.fold_models, **options,
+    )  # fmt: skip
+    # The model goes on from the run's, each fold from the fold model of its frames, for the
+    # round's epochs.
+    assert starts == [run.model.classifier, *(fold.classifier for fold in run.fold_models)]
+    assert [len(fold.classifier.history_) for fold in on.fold_models] == [1, 1]
+    assert on.rounds[-1]["threshold_folds"]["continued"] == 2
+    # A fold model of other frames never stands in (it may have fitted the frames it would score),
+    # and without round epochs every fold is fitted afresh.
+    starts.clear()
+    other = [dataclasses.replace(fold, frame_indices=(99,)) for fold in run.fold_models]
+    mixed = [other[0], run.fold_models[1]]
+    partly = train_with_mining(
+        frames, classifier, rounds=0, round_epochs=1, init_model=run.model.classifier, init_folds=mixed,
+        **options,
+    )  # fmt: skip
+    assert starts[1:] == [None, run.fold_models[1].classifier]
+    assert partly.rounds[-1]["threshold_folds"]["continued"] == 1
+    afresh = train_with_mining(frames, classifier, rounds=0, init_folds=run.fold_models, **options)
+    assert afresh.rounds[-1]["threshold_folds"]["continued"] == 0
+    assert train_with_mining(frames, classifier, rounds=0, initial_negatives=100).fold_models == []
+
+
 def test_threshold_folds_are_zero_or_at_least_two_and_no_more_than_the_frames(frames):
     from factorydet_core.training.settings import LoopSettings
 
