@@ -1032,6 +1032,8 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 + (
                     "each next round's fold models going on from the last round's (`continue_folds`), "
                     if settings.get("continue_folds")
+                    and settings.get("round_epochs")
+                    and result.get("mining_rounds")
                     else ""
                 )
                 if settings.get("class_thresholds", True) and settings.get("threshold_folds")

@@ -9,7 +9,7 @@ A session is a folder ``sessions/NAME/``:
                        and redo walk, the training runs and their rounds, the negatives each round
                        mined and the review verdicts on them
     models/run_NNN/    checkpoints of run NNN: round_R.pt and final.pt, each with its .json note
-                       and .boxq.npz box quality arrays
+                       and .boxq.npz box quality arrays, and fold_K.pt, its threshold fold models
     cache/             derived data (proposals, features), deletable at any time
 
 Every write to the database is one transaction committed before the call returns, so an edit the
@@ -2191,7 +2191,12 @@ class SessionDB:
         """The checkpoints of run ``run_id``'s threshold fold models (``fold_K.pt``, in fold
         order; none for a run without threshold folds)."""
         run_dir = self.session.models_dir / f"run_{int(run_id):03d}"
-        return sorted(run_dir.glob("fold_*.pt"), key=lambda path: int(path.stem.split("_")[1]))
+        folds = {}
+        for path in run_dir.glob("fold_*.pt"):
+            match = re.fullmatch(r"fold_(\d+)\.pt", path.name)
+            if match:  # (anything else there is not one of ours)
+                folds[int(match.group(1))] = path
+        return [folds[k] for k in sorted(folds)]
 
     def save_training_run(
         self, run, data: str, config: dict, *, kind: str = "mining", snapshot_id: int | None = None

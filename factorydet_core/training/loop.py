@@ -140,6 +140,8 @@ def continued_folds(db: SessionDB, run_id: int, classifier: ProposalClassifier |
             fold = DetectionModel.load(path)
             check_init_model(classifier, fold.classifier)
             frame_indices = tuple(int(i) for i in fold.note["fold_frames"])
+            if fold.note.get("run_id") != run_id:  # (a file left from another run)
+                continue
         except (InputError, OSError, KeyError, TypeError, ValueError):
             continue
         folds.append(FoldModel(frame_indices, fold.classifier))
@@ -458,7 +460,8 @@ def train_session(
             labelled = with_pseudo
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
-        if continued is not None and settings.threshold_folds and settings.continue_folds:
+        folds_on = settings.class_thresholds and settings.threshold_folds and settings.continue_folds
+        if continued is not None and folds_on:
             init_folds = continued_folds(db, continued_run, classifier)
         keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None
         if keep_quality and not settings.refit_box_quality:

@@ -749,7 +749,8 @@ def train_with_mining(
             and those the fitted frames would have given, and the out-of-fold thresholds of
             each objective (``by_objective``). 0: tuned on the fitted frames.
         init_folds: fold models of an earlier run (its ``TrainingRun.fold_models``): with
-            ``round_epochs``, a fold of the very same frames goes on from its model for
+            ``init_model`` (that run's model) and ``round_epochs``, a fold of the very same frames
+            goes on from its model for
             ``round_epochs`` epochs instead of a fit afresh (a 'next' round continuing a session's
             model continues its folds too; ``LoopSettings.continue_folds``); other folds are
             fitted afresh.
@@ -955,7 +956,7 @@ def train_with_mining(
             fold_start = time.perf_counter()
             out_of_fold, fold_models, num_continued = _out_of_fold_scored(
                 frames, threshold_folds, classifier, fit, model_of, score, progress, should_stop,
-                init_folds, round_epochs,
+                init_folds, round_epochs if init_model is not None else 0,
             )  # fmt: skip
             fitted_frame_thresholds = dict(model.class_score_thresholds or {})
             # Both objectives' thresholds from the same scores: a benchmark measures the same

@@ -68,10 +68,10 @@ class LoopSettings:
     continue_folds: bool = True
     """With ``threshold_folds``, a next round that goes on from a model (``round_epochs`` > 0) goes
     on from that run's fold models too, for ``round_epochs`` epochs, where its folds are the same
-    frames (each never saw the frames it scores), as its own model goes on from the run's: the
-    folds then cost what the round's own fit does, not a fit afresh each, and follow the schedule
-    of the model they stand in for (``train_with_mining``'s ``init_folds``). False fits them
-    afresh every round."""
+    frames (each never saw the frames it scores), as its own model goes on from the run's: K folds
+    then cost K - 1 times the round's own fit, not a fit of ``epochs`` afresh each, and follow the
+    schedule of the model they stand in for (``train_with_mining``'s ``init_folds``). False fits
+    them afresh every round."""
     threshold_objective: str = "class"
     """With ``class_thresholds``, whose F-score each class's threshold is best for
     (``types.THRESHOLD_OBJECTIVES``): the class's own ("class"), or that of all classes'
@@ -400,7 +400,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "the drive each scored by a model fitted without it, with no ceiling (about one more fit; 0: on "
             "the fitted frames, never above the score threshold)", int, 0, 20, 1),
     Control("continue_folds", "Continue fold models", "with threshold folds, a next round goes on from the "
-            "last run's fold models for its round epochs (off: fits them afresh every round)", bool),
+            "fold models of the run it continues, for its round epochs (off: fits them afresh every "
+            "round)", bool),
     Control("threshold_objective", "Threshold objective", "with per-class thresholds, whose F-score each "
             "threshold is best for: the class's own (class), or all classes' detections pooled (total: a "
             "class of few, poorly scored objects is held up, even off, rather than flood the detections)",

@@ -40,6 +40,15 @@ def test_each_detectors_run_plan_leaves_out_what_cannot_shape_its_runs():
         assert _run_plan(without, "blind") == _run_plan(
             {**without, "settings": {**without["settings"], "quality_trees": 30}}, "blind"
         )
+    # Going on from the fold models shapes every detector with folds and next rounds.
+    folds = {**plan, "mining_rounds": 2, "settings": {**settings, "threshold_folds": 2, "round_epochs": 5}}
+    afresh = {**folds, "settings": {**folds["settings"], "continue_folds": False}}
+    assert _run_plan(folds, "blind") != _run_plan(afresh, "blind")
+    for no_next in ({"mining_rounds": 0}, {"settings": {**folds["settings"], "round_epochs": 0}},
+                    {"settings": {**folds["settings"], "threshold_folds": 0}}):  # fmt: skip
+        other_way = {**folds, **no_next}
+        flipped = {**other_way, "settings": {**other_way["settings"], "continue_folds": False}}
+        assert _run_plan(other_way, "blind") == _run_plan(flipped, "blind")
     # Recalibrating by class is blind_safe's alone too.
     by_class = {**plan, "settings": {**held, "recalibrate_by_class": True}}
     assert _run_plan({**plan, "settings": held}, "blind_safe") != _run_plan(by_class, "blind_safe")

@@ -855,6 +855,8 @@ def test_a_next_round_goes_on_from_the_saved_fold_models(dataset, frames, tmp_pa
     folds = loop.continued_folds(db, run_id, classifier)
     assert [f.frame_indices for f in folds] == [f.frame_indices for f in run.fold_models] == [(0,), (1,)]
     assert db.fold_model_paths(run_id + 1) == []
+    (paths[0].parent / "fold_a.pt").write_bytes(b"")  # not a name of ours: not a fold
+    assert db.fold_model_paths(run_id) == paths
     # A file that does not load is fitted afresh, not an error.
     paths[1].write_bytes(b"not a checkpoint")
     assert [f.frame_indices for f in loop.continued_folds(db, run_id, classifier)] == [(0,)]

@@ -848,6 +848,11 @@ def test_a_continued_run_goes_on_from_the_fold_models_of_the_same_frames(frames,
     assert partly.rounds[-1]["threshold_folds"]["continued"] == 1
     afresh = train_with_mining(frames, classifier, rounds=0, init_folds=run.fold_models, **options)
     assert afresh.rounds[-1]["threshold_folds"]["continued"] == 0
+    # Nor without the run's own model to go on from (a full run).
+    full = train_with_mining(
+        frames, classifier, rounds=0, round_epochs=1, init_folds=run.fold_models, **options
+    )  # fmt: skip
+    assert full.rounds[-1]["threshold_folds"]["continued"] == 0
     assert train_with_mining(frames, classifier, rounds=0, initial_negatives=100).fold_models == []
 
 
