@@ -2187,10 +2187,14 @@ class SessionDB:
 
     # -- training runs
 
+    def _run_dir(self, run_id: int) -> Path:
+        """Run ``run_id``'s checkpoint folder, ``models/run_NNN/``."""
+        return self.session.models_dir / f"run_{int(run_id):03d}"
+
     def fold_model_paths(self, run_id: int) -> list[Path]:
         """The checkpoints of run ``run_id``'s threshold fold models (``fold_K.pt``, in fold
         order; none for a run without threshold folds)."""
-        run_dir = self.session.models_dir / f"run_{int(run_id):03d}"
+        run_dir = self._run_dir(run_id)
         folds = {}
         for path in run_dir.glob("fold_*.pt"):
             match = re.fullmatch(r"fold_(\d+)\.pt", path.name)
@@ -2223,7 +2227,7 @@ class SessionDB:
             )
         # Checkpoints are written outside the transaction (they take seconds); the run only points
         # at its final model once every file is in place.
-        run_dir = self.session.models_dir / f"run_{run_id:03d}"
+        run_dir = self._run_dir(run_id)
         note = {"data": data, "train_frames": run.train_frames, "config": config, "run_id": run_id}
         paths = []
         for record, model in zip(run.rounds, run.models):

@@ -576,15 +576,14 @@ def _out_of_fold_scored(
         fold models, and how many of them went on from ``init_folds``.
     """
     position = {frame.frame_index: k for k, frame in enumerate(frames)}
+    ordered = sorted(frames, key=lambda frame: frame.frame_index)
     earlier = {fold.frame_indices: fold.classifier for fold in init_folds} if round_epochs else {}
     folds = threshold_fold_frames(frames, num_folds)
     out: dict[int, dict] = {}
     fitted_folds, num_continued = [], 0
     for k, fold in enumerate(folds):
         in_fold = set(fold)
-        rest = [
-            frame for frame in sorted(frames, key=lambda f: f.frame_index) if frame.frame_index not in in_fold
-        ]
+        rest = [frame for frame in ordered if frame.frame_index not in in_fold]
 
         def fold_progress(epoch, epochs, k=k):
             progress("threshold folds", k * epochs + epoch, len(folds) * epochs)

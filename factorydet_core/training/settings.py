@@ -226,18 +226,14 @@ class LoopSettings:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        trees = self.refit_trees
-        if isinstance(trees, bool) or not isinstance(trees, int) or trees < 0:
-            raise InputError(f"refit_trees must be an integer >= 0, got {self.refit_trees!r}")
+        _check_count("refit_trees", self.refit_trees, 0)
+        _check_count("quality_trees", self.quality_trees, 1)
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
         if self.review_order is not None and self.review_order not in REVIEW_ORDERS:
             orders = ", ".join(REVIEW_ORDERS)
             raise InputError(f"review_order must be one of {orders} or None, got {self.review_order!r}")
-        trees = self.quality_trees
-        if isinstance(trees, bool) or not isinstance(trees, int) or trees < 1:
-            raise InputError(f"quality_trees must be an integer >= 1, got {self.quality_trees!r}")
         check_threshold_folds(self.threshold_folds)
         check_threshold_objective(self.threshold_objective)
         extra = self.review_extra
@@ -252,6 +248,12 @@ class LoopSettings:
             raise InputError("recalibrate_by_class refines recalibrate_background, which is off")
         if self.method == "head_options" and not self.box_quality:
             raise InputError("method head_options boxes by the box quality regressor: box_quality must be on")
+
+
+def _check_count(name: str, value: object, minimum: int) -> None:
+    """``InputError`` unless ``value`` (setting ``name``) is an integer of at least ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise InputError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
 
 def check_threshold_folds(folds: object) -> int:
