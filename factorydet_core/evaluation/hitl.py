@@ -30,7 +30,7 @@ from factorydet_core.session.store import SessionDB, on_labelled_object, open_se
 from factorydet_core.sim.truth import read_frame_truth
 from factorydet_core.training.loop import Proposer, cached_proposals, session_pseudo_labels, train_session
 from factorydet_core.training.mining import collect_proposals
-from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings
+from factorydet_core.training.settings import BEFORE_THEY_EXISTED, LoopSettings, folds_continue
 from factorydet_core.types import (
     InputError,
 )
@@ -786,12 +786,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
         untouched |= {"refit_box_quality", "refit_trees"}
     if settings.get("box_quality") is False or settings.get("method") == "box_head":
         untouched.add("quality_trees")  # no regressor is fitted
-    if not (
-        settings.get("class_thresholds", True)
-        and settings.get("threshold_folds")
-        and settings.get("round_epochs")
-        and plan.get("mining_rounds")
-    ):
+    if not folds_continue({"continue_folds": True, **settings}, bool(plan.get("mining_rounds"))):
         untouched.add("continue_folds")  # no fold models, or no next round to go on from them
     if isinstance(out.get("settings"), dict):
         out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}

@@ -33,6 +33,7 @@ from factorydet_core.evaluation.records import machine_info, mixed_library_note
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.metrics import MISS_KINDS, OVERLAP_IOU, PART_FRACTION, recorded_false_positive_kinds
 from factorydet_core.training.mining import collect_proposals, group_overlaps, train_with_mining
+from factorydet_core.training.settings import folds_continue
 from factorydet_core.types import InputError
 
 
@@ -1031,9 +1032,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
                 " (`threshold_folds`), "
                 + (
                     "each next round's fold models going on from the last round's (`continue_folds`), "
-                    if settings.get("continue_folds")
-                    and settings.get("round_epochs")
-                    and result.get("mining_rounds")
+                    if folds_continue(settings, bool(result.get("mining_rounds")))
                     else ""
                 )
                 if settings.get("class_thresholds", True) and settings.get("threshold_folds")

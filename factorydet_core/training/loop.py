@@ -54,7 +54,7 @@ from factorydet_core.training.mining import (
     score_frames,
     train_with_mining,
 )
-from factorydet_core.training.settings import LoopSettings
+from factorydet_core.training.settings import LoopSettings, folds_continue
 from factorydet_core.types import (
     InputError,
 )
@@ -460,8 +460,7 @@ def train_session(
             labelled = with_pseudo
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
-        folds_on = settings.class_thresholds and settings.threshold_folds and settings.continue_folds
-        if continued is not None and folds_on:
+        if folds_continue(dataclasses.asdict(settings), continued is not None):
             init_folds = continued_folds(db, continued_run, classifier)
         keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None
         if keep_quality and not settings.refit_box_quality:

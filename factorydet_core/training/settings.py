@@ -279,6 +279,26 @@ behaviour the field was added to keep by default. A record that lacks a field is
 not with today's default, so a default changed since does not rewrite what an old record ran."""
 
 
+def folds_continue(settings: Mapping[str, object], next_rounds: bool) -> bool:
+    """Whether a run with ``settings`` (``LoopSettings`` as a dict, or a record's settings, read
+    with ``BEFORE_THEY_EXISTED``'s values where they lack a field) goes on from its threshold fold
+    models in its next rounds: per-class thresholds tuned out of fold, ``round_epochs`` (a next
+    round continues the model), ``continue_folds``, and ``next_rounds`` (the run has a round that
+    continues a model: a session's saved run, or a benchmark's mining rounds after the first fit).
+    The loop, the benchmark's run plans and its record text all ask this."""
+    if "continue_folds" in settings:
+        continue_folds = settings["continue_folds"]
+    else:
+        continue_folds = BEFORE_THEY_EXISTED["continue_folds"]
+    return bool(
+        next_rounds
+        and settings.get("class_thresholds", True)
+        and settings.get("threshold_folds")
+        and settings.get("round_epochs")
+        and continue_folds
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class Control:
     """How people set one field of ``LoopSettings``: ``factorydet train``'s flag and the app's

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, loop_settings_from
+from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, folds_continue, loop_settings_from
 from factorydet_core.types import InputError
 
 CONTROLS = {c.field: c for c in LOOP_CONTROLS}
@@ -98,3 +98,16 @@ def test_the_settings_still_check_themselves():
     with pytest.raises(InputError, match="recalibrate_by_class refines recalibrate_background"):
         loop_settings_from({"recalibrate_by_class": True})
     assert dataclasses.replace(LoopSettings(), epochs=3) == loop_settings_from({"epochs": 3})
+
+
+def test_folds_continue_only_with_out_of_fold_thresholds_and_a_next_round():
+    on = dataclasses.asdict(LoopSettings(threshold_folds=2))
+    assert folds_continue(on, next_rounds=True)
+    assert not folds_continue(on, next_rounds=False)  # nothing to go on from
+    offs = [{"threshold_folds": 0}, {"class_thresholds": False}, {"round_epochs": 0}]
+    offs.append({"continue_folds": False})
+    for off in offs:
+        assert not folds_continue({**on, **off}, next_rounds=True), off
+    # A record from before the setting existed fitted its folds afresh every round.
+    old_record = {k: v for k, v in on.items() if k != "continue_folds"}
+    assert not folds_continue(old_record, next_rounds=True)
