@@ -472,6 +472,14 @@ bench: $(STAMP) corpus corpus50
 	  --heldout-frames 12 --variants blind,blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total --out docs/bench/hitl-e20-folds-pooled-safe-six.json \
 	  --readme docs/labelling.md --readme-block hitl-e20-folds-pooled-safe-six --resume --resume-other-library
+	# The same at 50% unannotated, all three detectors trained with out-of-fold pooled thresholds, seeds 0-5.
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants blind,full,blind_safe --hold-places --recalibrate-background 0.5 \
+	  --threshold-folds 2 --no-continue-folds --threshold-objective total \
+	  --out docs/bench/hitl-50-e20-folds-pooled-safe-six.json \
+	  --readme docs/labelling.md --readme-block hitl-50-e20-folds-pooled-safe-six --resume --resume-other-library
 	# The app's training defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
 	# order over the mined queue alone (--review-extra 0); against the class-turns record above.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
