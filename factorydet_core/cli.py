@@ -15,6 +15,7 @@ from factorydet_core.training.settings import (
     CONTROL_BY_FIELD,
     LOOP_CONTROLS,
     LoopSettings,
+    loop_arguments,
     loop_settings_from,
 )
 from factorydet_core.types import (
@@ -361,6 +362,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise InputError("bench mining needs --session: the session whose next round is timed")
         if len(args.data) > 1:
             raise InputError("bench mining takes at most one DATA folder (default: the session's)")
+        # The training settings given go to every timed ``train`` (round epochs are the bench's own).
+        given = {field: getattr(args, field) for field in BENCH_LOOP_FIELDS if field != "round_epochs"}
+        training = loop_arguments(loop_settings_from(given))
         update, close = progress_bar("mining", unit="round")
         try:
             result = bench_mining(
@@ -372,7 +376,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 before_after=args.before_after,
                 heldout_seeds=parse_ints(args.heldout_seeds, "--heldout-seeds") if args.heldout else (),
                 heldout_frames=args.heldout_frames,
-                train_args=execution.arguments(),
+                train_args=[*execution.arguments(), *training],
                 verdicts=args.verdicts,
                 command=command,
                 progress=update,
@@ -1203,6 +1207,16 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+BENCH_LOOP_FIELDS = (
+    "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
+    "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
+    "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
+    "carry_pseudo_labels", "threshold_folds", "threshold_objective", "quality_trees", "continue_folds",
+)  # fmt: skip
+"""The ``LoopSettings`` fields ``factorydet bench`` takes as ``add_loop_flags``' flags (its other
+training flags are the benchmarks' own, with defaults of their own)."""
+
+
 def add_loop_flags(parser: argparse.ArgumentParser, fields: Collection[str] | None = None) -> None:
     """A flag per ``training.settings.LOOP_CONTROLS`` entry (those of ``fields`` only, when given),
     its default ``LoopSettings()``'s."""
@@ -1709,17 +1723,9 @@ def build_parser(
         default=12,
         help="quality, detect, hitl, world-labels: frames per held-out factory",
     )
-    # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh)
-    add_loop_flags(
-        p,
-        fields=(
-            "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
-            "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
-            "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
-            "carry_pseudo_labels", "threshold_folds", "threshold_objective", "quality_trees",
-            "continue_folds",
-        ),
-    )  # fmt: skip
+    # hitl: what the loop trains; mining: round epochs of the continued round timed against 0 (afresh),
+    # the others passed on to every timed train
+    add_loop_flags(p, fields=BENCH_LOOP_FIELDS)
     p.add_argument(
         "--methods",
         default="head_options,box_head,paper",

@@ -794,6 +794,30 @@ def test_bench_takes_the_execution_switch_where_frames_are_proposed(
     assert "applies to Ray workers" in capsys.readouterr().err
 
 
+def test_bench_mining_passes_its_training_settings_to_every_timed_train(monkeypatch):
+    from factorydet_core.cli import build_parser, loop_settings_from_args
+    from factorydet_core.training.settings import LoopSettings
+
+    seen = {}
+
+    def fake_mining(*args, **kwargs):
+        seen["train_args"] = kwargs["train_args"]
+        seen["round_epochs"] = kwargs["round_epochs"]
+        return {"benchmark": "mining"}
+
+    monkeypatch.setattr("factorydet_core.evaluation.bench.bench_mining", fake_mining)
+    assert main(["bench", "mining", "--session", "s"]) == 0
+    assert seen["train_args"] == []  # the defaults: nothing to pass on (the records' commands)
+    flags = ["--threshold-folds", "2", "--no-continue-folds", "--threshold-objective", "total"]
+    assert main(["bench", "mining", "--session", "s", "--round-epochs", "3", *flags]) == 0
+    assert seen["round_epochs"] == (0, 3)  # the bench's own, not passed on
+    assert "--round-epochs" not in seen["train_args"]
+    # `factorydet train` reads them back as the same settings.
+    train_args = build_parser().parse_args(["train", "--session", "s", *seen["train_args"]])
+    expected = LoopSettings(threshold_folds=2, continue_folds=False, threshold_objective="total")
+    assert loop_settings_from_args(train_args) == expected
+
+
 def test_an_execution_gives_back_the_flags_it_was_read_from():
     from factorydet_core.cli import add_execution_flags, execution_from_args
     from factorydet_core.scale.runner import Execution

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from types import MappingProxyType
 
 from factorydet_core.io.dataset import Dataset
@@ -354,6 +354,15 @@ class Control:
             return self.kind(self.none_as)
         return value
 
+    def arguments(self, value: object) -> list[str]:
+        """The command-line arguments that set the field to ``value``: none for the default, the
+        flag alone for a switch, else the flag and the value as the flag takes it."""
+        if value == self.default:
+            return []
+        if self.kind is bool:
+            return [self.cli_flag]
+        return [self.cli_flag, str(self.shown(value))]
+
     def parse(self, raw: object) -> object:
         """The field's value of what a flag or a control gave, checked; ``InputError`` otherwise."""
         if self.choices is not None:
@@ -480,6 +489,17 @@ LOOP_CONTROLS: tuple[Control, ...] = (
 
 CONTROL_BY_FIELD: Mapping[str, Control] = MappingProxyType({c.field: c for c in LOOP_CONTROLS})
 """``LOOP_CONTROLS`` by the ``LoopSettings`` field each sets."""
+
+
+def loop_arguments(settings: LoopSettings, fields: Collection[str] | None = None) -> list[str]:
+    """``factorydet train``'s arguments that give ``settings`` (those of ``fields`` only, when
+    given) from the defaults: what a benchmark passes on to the training command it times."""
+    return [
+        argument
+        for control in LOOP_CONTROLS
+        if fields is None or control.field in fields
+        for argument in control.arguments(getattr(settings, control.field))
+    ]
 
 
 def loop_settings_from(values: dict[str, object], base: LoopSettings | None = None) -> LoopSettings:

@@ -4,10 +4,16 @@ one place."""
 import dataclasses
 
 import pytest
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from factorydet_core.training.settings import LOOP_CONTROLS, LoopSettings, folds_continue, loop_settings_from
+from factorydet_core.training.settings import (
+    LOOP_CONTROLS,
+    LoopSettings,
+    folds_continue,
+    loop_arguments,
+    loop_settings_from,
+)
 from factorydet_core.types import InputError
 
 CONTROLS = {c.field: c for c in LOOP_CONTROLS}
@@ -111,3 +117,27 @@ def test_folds_continue_only_with_out_of_fold_thresholds_and_a_next_round():
     # A record from before the setting existed fitted its folds afresh every round.
     old_record = {k: v for k, v in on.items() if k != "continue_folds"}
     assert not folds_continue(old_record, next_rounds=True)
+
+
+@given(st.data())
+def test_loop_arguments_give_back_the_settings_they_were_made_from(data):
+    from factorydet_core.cli import build_parser, loop_settings_from_args
+
+    values = {}
+    controls = st.lists(st.sampled_from(LOOP_CONTROLS), max_size=6, unique_by=lambda c: c.field)
+    for control in data.draw(controls):
+        if control.kind is bool:
+            values[control.field] = not control.default
+        elif control.choices is not None:
+            values[control.field] = data.draw(st.sampled_from([text for text, _ in control.choices]))
+        else:
+            step = control.step or 1
+            low, high = control.minimum, min(control.maximum, control.minimum + 20 * step)
+            number = data.draw(st.integers(0, int((high - low) / step))) * step + low
+            values[control.field] = int(round(number)) if control.kind is int else round(number, 6)
+    try:
+        settings = loop_settings_from(values)
+    except InputError:  # a combination the settings refuse (e.g. head_options without box quality)
+        assume(False)
+    args = build_parser().parse_args(["train", "--session", "s", *loop_arguments(settings)])
+    assert loop_settings_from_args(args) == settings
