@@ -786,7 +786,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
         untouched |= {"refit_box_quality", "refit_trees"}
     if settings.get("box_quality") is False or settings.get("method") == "box_head":
         untouched.add("quality_trees")  # no regressor is fitted
-    if not folds_continue({"continue_folds": True, **settings}, bool(plan.get("mining_rounds"))):
+    if not folds_continue({**settings, "continue_folds": True}, bool(plan.get("mining_rounds"))):
         untouched.add("continue_folds")  # no fold models, or no next round to go on from them
     if isinstance(out.get("settings"), dict):
         out["settings"] = {k: v for k, v in out["settings"].items() if k not in untouched}

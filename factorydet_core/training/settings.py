@@ -359,6 +359,8 @@ class Control:
         flag alone for a switch, else the flag and the value as the flag takes it."""
         if value == self.default:
             return []
+        if value is None and self.none_as is None and self.choices is None:
+            raise InputError(f"{self.field}: no command-line flag sets it to None")
         if self.kind is bool:
             return [self.cli_flag]
         return [self.cli_flag, str(self.shown(value))]

@@ -141,3 +141,8 @@ def test_loop_arguments_give_back_the_settings_they_were_made_from(data):
         assume(False)
     args = build_parser().parse_args(["train", "--session", "s", *loop_arguments(settings)])
     assert loop_settings_from_args(args) == settings
+
+
+def test_loop_arguments_refuse_a_value_no_flag_gives():
+    with pytest.raises(InputError, match="no command-line flag"):
+        loop_arguments(dataclasses.replace(LoopSettings(), mining_threshold=None))
