@@ -189,28 +189,15 @@ def hitl_settings(args: argparse.Namespace) -> LoopSettings:
             "probability_exponent": args.probability_exponent,
             "mining_threshold": args.mining_threshold,
             "box_quality": args.box_quality,
-            "method": args.method,
-            "class_weight": args.class_weight,
-            "round_epochs": args.round_epochs,
-            "hold_confident": args.hold_confident,
-            "hold_places": args.hold_places,
-            "pseudo_label_confident": args.pseudo_label_confident,
-            "carry_pseudo_labels": args.carry_pseudo_labels,
-            "recalibrate_background": args.recalibrate_background,
-            "recalibrate_by_class": args.recalibrate_by_class,
-            "queue_order": args.queue_order,
-            "review_order": args.review_order,
-            "review_extra": args.review_extra,
-            "refit_box_quality": args.refit_box_quality,
-            "refit_trees": args.refit_trees,
-            "model_box_targets": args.model_box_targets,
-            "class_thresholds": args.class_thresholds,
-            "threshold_folds": args.threshold_folds,
-            "threshold_objective": args.threshold_objective,
-            "quality_trees": args.quality_trees,
-            "continue_folds": args.continue_folds,
+            **_bench_loop_values(args),
         }
     )
+
+
+def _bench_loop_values(args: argparse.Namespace) -> dict[str, object]:
+    """The raw values of ``factorydet bench``'s ``add_loop_flags`` flags by field
+    (``BENCH_LOOP_FIELDS``)."""
+    return {field: getattr(args, field) for field in BENCH_LOOP_FIELDS}
 
 
 def _earlier_record(args: argparse.Namespace) -> dict | None:
@@ -363,7 +350,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if len(args.data) > 1:
             raise InputError("bench mining takes at most one DATA folder (default: the session's)")
         # The training settings given go to every timed ``train`` (round epochs are the bench's own).
-        given = {field: getattr(args, field) for field in BENCH_LOOP_FIELDS if field != "round_epochs"}
+        given = _bench_loop_values(args)
+        del given["round_epochs"]
         training = loop_arguments(loop_settings_from(given))
         update, close = progress_bar("mining", unit="round")
         try:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
-from collections.abc import Collection, Mapping
+from collections.abc import Mapping
 from types import MappingProxyType
 
 from factorydet_core.io.dataset import Dataset
@@ -286,16 +286,12 @@ def folds_continue(settings: Mapping[str, object], next_rounds: bool) -> bool:
     round continues the model), ``continue_folds``, and ``next_rounds`` (the run has a round that
     continues a model: a session's saved run, or a benchmark's mining rounds after the first fit).
     The loop, the benchmark's run plans and its record text all ask this."""
-    if "continue_folds" in settings:
-        continue_folds = settings["continue_folds"]
-    else:
-        continue_folds = BEFORE_THEY_EXISTED["continue_folds"]
     return bool(
         next_rounds
         and settings.get("class_thresholds", True)
         and settings.get("threshold_folds")
         and settings.get("round_epochs")
-        and continue_folds
+        and settings.get("continue_folds", BEFORE_THEY_EXISTED["continue_folds"])
     )
 
 
@@ -493,15 +489,11 @@ CONTROL_BY_FIELD: Mapping[str, Control] = MappingProxyType({c.field: c for c in 
 """``LOOP_CONTROLS`` by the ``LoopSettings`` field each sets."""
 
 
-def loop_arguments(settings: LoopSettings, fields: Collection[str] | None = None) -> list[str]:
-    """``factorydet train``'s arguments that give ``settings`` (those of ``fields`` only, when
-    given) from the defaults: what a benchmark passes on to the training command it times."""
-    return [
-        argument
-        for control in LOOP_CONTROLS
-        if fields is None or control.field in fields
-        for argument in control.arguments(getattr(settings, control.field))
-    ]
+def loop_arguments(settings: LoopSettings) -> list[str]:
+    """``factorydet train``'s arguments that give ``settings`` from the defaults: what a benchmark
+    passes on to the training command it times."""
+    values = ((control, getattr(settings, control.field)) for control in LOOP_CONTROLS)
+    return [argument for control, value in values for argument in control.arguments(value)]
 
 
 def loop_settings_from(values: dict[str, object], base: LoopSettings | None = None) -> LoopSettings:
