@@ -123,6 +123,7 @@ class ClientView(BrowserSession):
                     state.color_mode,
                     state.max_height,
                     state.revision if by_labels else None,
+                    state.points_drawn,
                 )
                 labels_key = (state.frame_index, state.revision, state.show_boxes, state.show_box_names)
                 point_size = state.point_size
@@ -130,8 +131,9 @@ class ClientView(BrowserSession):
             if key != self._drawn:
                 labels = state.frame_labels(key[0])[:2] if by_labels else None
                 self.scene.draw(
-                    frame, color_mode=key[1], point_size=point_size, max_height=key[2], labels=labels
-                )
+                    frame, color_mode=key[1], point_size=point_size, max_height=key[2], labels=labels,
+                    max_points=key[4],
+                )  # fmt: skip
                 self._drawn = key
             else:
                 self.scene.set_point_size(point_size)
@@ -147,10 +149,11 @@ class ClientView(BrowserSession):
                 result_frame = state.pipeline_result_key[0] if result is not None else None
                 layers = dict(state.layers)
                 max_height = state.max_height
+                max_points = state.points_drawn
             if result is not None:
-                layers_key = (id(result), max_height)
+                layers_key = (id(result), max_height, max_points)
                 if layers_key != self._layers_key:
-                    self.layers.draw(result, result_frame, layers, point_size, max_height)
+                    self.layers.draw(result, result_frame, layers, point_size, max_height, max_points)
                     self._layers_key = layers_key
                 else:
                     self.layers.set_visibility(layers)

@@ -64,13 +64,15 @@ class LayerView:
         layers: dict[str, bool],
         point_size: float,
         max_height: float,
+        max_points: int | None = None,
     ) -> None:
         """Replace every layer with ``result``'s (computed for ``frame_index``); hidden layers are
-        sent hidden."""
+        sent hidden; the point layers draw at most ``max_points`` points each below ``max_height``
+        (``colors.thin_for_display``: clicks still pick from every point)."""
         cloud = result.cloud
-        low = cloud.below(max_height)
+        low = colors.thin_for_display(cloud.below(max_height), max_points)
         merged = result.merged
-        merged_low = merged.below(max_height)
+        merged_low = colors.thin_for_display(merged.below(max_height), max_points)
         num_sensors = len(merged.T_vehicle_sensor)
         with self.server.atomic():
             for node in self.nodes.values():
@@ -93,7 +95,7 @@ class LayerView:
                     id(result),
                     voxel_colors(result.cloud, result.grid, result.voxel_features),
                 )
-            voxel_low = result.grid.below(max_height)
+            voxel_low = colors.thin_for_display(result.grid.below(max_height), max_points)
             self.nodes["voxels"] = self.server.scene.add_point_cloud(
                 "/pipeline/voxels",
                 points=result.grid.centres[voxel_low].astype(np.float32),

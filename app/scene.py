@@ -109,16 +109,24 @@ class SceneView:
         point_size: float,
         max_height: float,
         labels: tuple | None = None,
+        max_points: int | None = None,
     ) -> None:
-        """Replace the shown scan with ``frame``'s, points above ``max_height`` hidden (``labels``:
-        the session's, for the class and annotated colours, see ``point_colors``)."""
+        """Replace the shown scan with ``frame``'s, points above ``max_height`` hidden and at most
+        ``max_points`` of the others drawn (``colors.thin_for_display``; ``labels``: the
+        session's, for the class and annotated colours, see ``point_colors``)."""
         merged = self._merge(frame)
         rgb = point_colors(frame, merged.points, color_mode, labels)
-        keep = merged.below(max_height)
+        keep = colors.thin_for_display(merged.below(max_height), max_points)
         with self._scan_lock:
             self._shown = (merged.points[keep], rgb[keep])
             self._point_size = float(point_size)
             self._send()
+
+    @property
+    def num_points_shown(self) -> int:
+        """Points of the scan this browser was last sent (after the height cut and the budget)."""
+        with self._scan_lock:
+            return 0 if self._shown is None else len(self._shown[0])
 
     def _merge(self, frame: Frame):
         """``merge_frame(frame)``, kept for the last ``MERGED_FRAMES_KEPT`` frames drawn."""

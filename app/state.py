@@ -30,6 +30,9 @@ AP_SCORE_FLOOR = SCORE_FLOOR
 LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals", "detections")
 """The detection layers the app can draw, in panel order."""
 
+UNCHANGED = object()
+"""``AppState.set_display``'s "leave as it is" where ``None`` is a value (``points_drawn``)."""
+
 
 def select_with(candidates: Detections, kind: str, args: tuple) -> Detections:
     """A view's selection of a frame's candidates: ``kind`` "shown" with ``AppState.selection_args``
@@ -405,6 +408,7 @@ class AppState:
         # the selected box is named (each browser's own) and a click on a box describes it.
         self.show_box_names = False
         self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
+        self.points_drawn: int | None = None  # every point; fewer render faster without a graphics card
         # With a model the detections are what people came for; without, the proposals.
         shown = "detections" if shared.model is not None else "proposals"
         self.layers = {name: name == shown for name in LAYERS}
@@ -424,7 +428,7 @@ class AppState:
         if like is not None:
             self.frame_index = like.frame_index
             for name in (
-                "color_mode", "point_size", "show_boxes", "show_box_names", "max_height",
+                "color_mode", "point_size", "show_boxes", "show_box_names", "max_height", "points_drawn",
                 "score_threshold", "nms_iou", "vote_iou", "use_class_thresholds", "show_suppressed",
                 "color_by_match",
             ):  # fmt: skip
@@ -553,9 +557,16 @@ class AppState:
         show_boxes: bool | None = None,
         max_height: float | None = None,
         show_box_names: bool | None = None,
+        points_drawn: int | None | object = UNCHANGED,
     ) -> None:
-        """Change how the frame is drawn; ``None`` leaves a setting as it is."""
+        """Change how the frame is drawn; ``None`` leaves a setting as it is (``points_drawn``:
+        the most points of the scan and of each layer drawn, ``None`` for all of them; left as
+        it is by ``UNCHANGED``)."""
+        if points_drawn is not UNCHANGED and points_drawn is not None and int(points_drawn) < 1:
+            raise ValueError(f"points drawn must be at least 1 (None: all), got {points_drawn}")
         with self.lock:
+            if points_drawn is not UNCHANGED:
+                self.points_drawn = None if points_drawn is None else int(points_drawn)
             if color_mode is not None:
                 if color_mode not in COLOR_MODES:
                     raise ValueError(f"unknown colour mode {color_mode!r}; choose from {COLOR_MODES}")

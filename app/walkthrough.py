@@ -216,10 +216,15 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
 
 
 def run(
-    data: str, repeats: int = 5, progress: Callable[[str], None] | None = None, retrain: bool = True
+    data: str,
+    repeats: int = 5,
+    progress: Callable[[str], None] | None = None,
+    retrain: bool = True,
+    points_drawn: int | None = None,
 ) -> dict:
     """Drive the app through the steps ``repeats`` times; returns the record. Without ``retrain``
-    the review verdicts and the retrains are left out (minutes instead of a quarter of an hour)."""
+    the review verdicts and the retrains are left out (minutes instead of a quarter of an hour);
+    ``points_drawn``: the Display panel's "Points drawn" (None: all)."""
     from playwright.sync_api import sync_playwright
 
     dataset = open_dataset(data)
@@ -247,6 +252,13 @@ def run(
                 browser, page, view = open_app_page(pw, app, 1400, 1400, init_script=DRAW_LOG)
                 _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
                 _wait(lambda: view.layers.detection_source[0] is not None, 600, "the first detections")
+                if points_drawn is not None:
+                    view.state.set_display(points_drawn=points_drawn)
+                    _wait(
+                        lambda: 0 < view.scene.num_points_shown <= points_drawn,
+                        60,
+                        "the scan drawn with fewer points",
+                    )
                 canvas = page.locator("canvas[data-engine]")
                 canvas.click(position={"x": 5, "y": 5})  # keys go to the page, not a panel
                 _wait(lambda: app.worker.idle, 600, "the frames ahead")
@@ -345,6 +357,7 @@ def run(
         "data": str(data),
         "repeats": int(repeats),
         "label_once": True,
+        "points_drawn": points_drawn,
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
         "target_verdict_ms": TARGET_VERDICT_MS,
@@ -377,6 +390,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="leave out the review verdicts and the retrains (edits only)",
     )
+    parser.add_argument(
+        "--points-drawn",
+        type=int,
+        default=None,
+        help="the Display panel's Points drawn (default: all the points)",
+    )
     args = parser.parse_args(argv)
     if args.no_retrain and args.readme:
         parser.error("--readme records the whole walkthrough: drop --no-retrain")
@@ -385,6 +404,7 @@ def main(argv: list[str] | None = None) -> int:
         args.repeats,
         progress=lambda line: print(line, file=sys.stderr),
         retrain=not args.no_retrain,
+        points_drawn=args.points_drawn,
     )
     record["command"] = "python -m app.walkthrough " + " ".join(argv if argv is not None else sys.argv[1:])
     text = json.dumps(record, indent=2)

@@ -1,6 +1,8 @@
-"""Colours for displaying clouds and labels (the app draws them; the numbers live here)."""
+"""Colours and thinning for displaying clouds and labels (the app draws them; the numbers live here)."""
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
@@ -98,3 +100,39 @@ def colors_by_id(ids: np.ndarray, seed: int = 0) -> np.ndarray:
         ],
     )
     return (rgb * value[:, None] * 235 + 20).clip(0, 255).astype(np.uint8)
+
+
+POINTS_DRAWN_CHOICES = (None, 160_000, 80_000, 40_000, 20_000, 10_000)
+"""The Display panel's "Points drawn" choices (None: every point). A browser without a graphics
+card renders points in software, in time that grows with their number."""
+
+
+@functools.lru_cache(maxsize=8)
+def _display_ranks(num_points: int) -> np.ndarray:
+    """(num_points,) a fixed shuffle of the ranks 0 .. num_points - 1 (read only): the same cloud
+    size always thins the same way."""
+    ranks = np.random.default_rng(num_points).permutation(num_points)
+    ranks.flags.writeable = False
+    return ranks
+
+
+def thin_for_display(keep_mask: np.ndarray, max_points: int | None) -> np.ndarray:
+    """(N,) bool: at most ``max_points`` of the points ``keep_mask`` (N,) bool keeps, spread
+    evenly at random over them; all of them when they are no more (or ``max_points`` is None).
+
+    The choice is fixed for a cloud of N points: a colour mode or a layer drawn again draws the
+    same points, and the points kept under a smaller budget are among those kept under a larger
+    one (lowering the budget only takes points away)."""
+    keep_mask = np.asarray(keep_mask, bool)
+    if keep_mask.ndim != 1:
+        raise ValueError(f"keep_mask must be (N,), got shape {keep_mask.shape}")
+    if max_points is not None and max_points < 0:
+        raise ValueError(f"max_points must be at least 0, got {max_points}")
+    if max_points is None or int(keep_mask.sum()) <= max_points:
+        return keep_mask
+    kept = np.flatnonzero(keep_mask)
+    ranks = _display_ranks(len(keep_mask))[kept]
+    chosen = kept[np.argpartition(ranks, max_points - 1)[:max_points]] if max_points else kept[:0]
+    out = np.zeros(len(keep_mask), bool)
+    out[chosen] = True
+    return out

@@ -1,4 +1,4 @@
-"""Display settings: colour mode, point size and box visibility."""
+"""Display settings: colour mode, point size, points drawn and box visibility."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import dataclasses
 
 import viser
 
-from factorydet_core.colors import COLOR_MODES
+from factorydet_core.colors import COLOR_MODES, POINTS_DRAWN_CHOICES
 
 from ..state import AppState
 from . import from_user
@@ -20,6 +20,16 @@ _MODE_LABELS = {
 }
 
 
+def points_drawn_label(max_points: int | None) -> str:
+    """The "Points drawn" drop-down's text for a budget (None: every point)."""
+    return "All" if max_points is None else f"{max_points:,}"
+
+
+def points_drawn_value(label: str) -> int | None:
+    """The budget a "Points drawn" text stands for (``points_drawn_label``'s inverse)."""
+    return None if label == "All" else int(label.replace(",", ""))
+
+
 @dataclasses.dataclass
 class DisplayPanel:
     color_mode: viser.GuiDropdownHandle
@@ -27,12 +37,13 @@ class DisplayPanel:
     show_boxes: viser.GuiCheckboxHandle
     max_height: viser.GuiSliderHandle
     show_box_names: viser.GuiCheckboxHandle
+    points_drawn: viser.GuiDropdownHandle
 
     def refresh(self, state: AppState) -> None:
         """Show the state's display settings (another client or the code may have changed them)."""
         with state.lock:
             mode, size, boxes, height = state.color_mode, state.point_size, state.show_boxes, state.max_height
-            names = state.show_box_names
+            names, points_drawn = state.show_box_names, points_drawn_label(state.points_drawn)
         if self.show_box_names.value != names:
             self.show_box_names.value = names
         if self.color_mode.value != _MODE_LABELS[mode]:
@@ -43,6 +54,10 @@ class DisplayPanel:
             self.show_boxes.value = boxes
         if self.max_height.value != height:
             self.max_height.value = height
+        if self.points_drawn.value != points_drawn:
+            if points_drawn not in self.points_drawn.options:  # (set by code to a budget not offered)
+                self.points_drawn.options = (*self.points_drawn.options, points_drawn)
+            self.points_drawn.value = points_drawn
 
 
 def build_display_panel(server: viser.ViserServer | viser.ClientHandle, state: AppState) -> DisplayPanel:
@@ -68,6 +83,16 @@ def build_display_panel(server: viser.ViserServer | viser.ClientHandle, state: A
             step=0.5,
             initial_value=state.max_height,
             hint="Hide points higher than this, to look under the roof",
+        )
+        # (a budget set by code that the list lacks is offered too)
+        choices = dict.fromkeys(points_drawn_label(n) for n in (*POINTS_DRAWN_CHOICES, state.points_drawn))
+        points_drawn = server.gui.add_dropdown(
+            "Points drawn",
+            tuple(choices),
+            initial_value=points_drawn_label(state.points_drawn),
+            hint="Draw at most this many points of the scan and of each layer, spread over the whole "
+            "cloud. A browser without a graphics card renders points in software: fewer points show "
+            "every change sooner. Clicks still pick from every point",
         )
 
     @color_mode.on_update
@@ -100,4 +125,10 @@ def build_display_panel(server: viser.ViserServer | viser.ClientHandle, state: A
             return
         state.set_display(max_height=float(max_height.value))
 
-    return DisplayPanel(color_mode, point_size, show_boxes, max_height, show_box_names)
+    @points_drawn.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
+        state.set_display(points_drawn=points_drawn_value(points_drawn.value))
+
+    return DisplayPanel(color_mode, point_size, show_boxes, max_height, show_box_names, points_drawn)

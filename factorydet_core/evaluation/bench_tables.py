@@ -690,6 +690,8 @@ def walkthrough_markdown(result: dict) -> str:
         render.get("notification_alone_median_ms"),
         render.get("with_a_scene_change_median_ms"),
     )
+    drawn = result.get("points_drawn")  # (records before the Display panel's budget drew all)
+    points = "80k points" if drawn is None else f"{drawn:,} of its 80k points by Display's Points drawn"
     scene_text = (
         f" One render of the scene takes this browser {fmt(scene)} ms (the median time between renders"
         " while the camera moves), and a change shows after the renders it causes."
@@ -707,7 +709,7 @@ def walkthrough_markdown(result: dict) -> str:
         " rest is the browser's (delivering the key, rendering, showing)."
         f" In this browser a notification alone takes {fmt(alone)}"
         f" ms to show and {fmt(with_scene)} ms with a scene change in the"
-        " same update: headless Chromium renders the scene (80k points, the boxes) in software WebGL, on"
+        f" same update: headless Chromium renders the scene ({points}, the boxes) in software WebGL, on"
         " the two cores the server uses too, before it shows anything else; a browser with a GPU does"
         " that in milliseconds." + scene_text + _retrain_text(result) + "\n"
     )

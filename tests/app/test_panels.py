@@ -22,3 +22,12 @@ def test_the_review_panel_estimates_the_reach_of_the_first_pending_entries():
     assert f"12 (85%) in the first {REACH_TOP}" in text
     assert reach_text(queue[:3]) == "3 pending; the model's scores expect about 2 of them to be objects."
     assert reach_text([{"verdict": "object", "score": 0.9}]) == "_Nothing pending in this filter._"
+
+
+def test_the_points_drawn_choices_read_back_as_the_budgets_they_show():
+    from app.panels.display_panel import points_drawn_label, points_drawn_value
+    from factorydet_core.colors import POINTS_DRAWN_CHOICES
+
+    assert points_drawn_label(None) == "All" and points_drawn_label(20_000) == "20,000"
+    for budget in (*POINTS_DRAWN_CHOICES, 12_345):
+        assert points_drawn_value(points_drawn_label(budget)) == budget

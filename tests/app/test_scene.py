@@ -96,3 +96,32 @@ def test_a_frame_drawn_again_is_not_merged_again_until_others_push_it_out(small_
         assert merged[2:] == [dataset.frame(2).name, dataset.frame(0).name]
     finally:
         server.stop()
+
+
+def test_a_points_budget_draws_that_many_of_the_scan_spread_over_it_and_all_of_them_again(small_dataset_dir):
+    import viser
+
+    from app.scene import SceneView
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.merge import merge_frame
+
+    frame = open_dataset(small_dataset_dir).frame(0)
+    merged = merge_frame(frame)
+    below = merged.below(6.0)
+    budget = int(below.sum()) // 4
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        view = SceneView(server)
+        view.draw(frame, color_mode="height", point_size=0.05, max_height=6.0, max_points=budget)
+        points, rgb = view._shown
+        assert len(points) == len(rgb) == budget
+        # Drawn points are scan points below the height cut, from all over the scan.
+        inside = (points[:, None, :] == merged.points[below][None, :, :]).all(-1).any(1)
+        assert inside.all()
+        lo, hi = merged.points[below, :2].min(0), merged.points[below, :2].max(0)
+        margin = 0.2 * (hi - lo)
+        assert (points[:, :2].min(0) - lo < margin).all() and (hi - points[:, :2].max(0) < margin).all()
+        view.draw(frame, color_mode="height", point_size=0.05, max_height=6.0, max_points=None)
+        assert len(view._shown[0]) == int(below.sum())
+    finally:
+        server.stop()

@@ -394,3 +394,16 @@ def test_a_measurement_that_fails_leaves_the_background_thread_measuring_the_nex
     after, stale = state.shown_metrics()
     assert not stale and after["num_reference"] == before["num_reference"] - 2
     assert "a measurement gone wrong" in capsys.readouterr().err
+
+
+def test_points_drawn_is_a_budget_or_all_and_other_settings_leave_it_alone(small_dataset_dir):
+    state = AppState(open_dataset(small_dataset_dir))
+    assert state.points_drawn is None  # every point, until someone asks for fewer
+    state.set_display(points_drawn=20_000)
+    state.set_display(point_size=0.1)  # another setting leaves the budget as it was
+    assert state.points_drawn == 20_000
+    state.set_display(points_drawn=None)
+    assert state.points_drawn is None
+    with pytest.raises(ValueError, match="at least 1"):
+        state.set_display(points_drawn=0)
+    assert state.points_drawn is None
