@@ -222,7 +222,7 @@ def lost_classes(table: dict) -> list[str]:
     while its first (the shown one) finds some, on the same labelled frames. A fit can lose a
     whole class to a neighbour (cones taken for barrels), and mining then makes the loss last: the
     class's unlabelled objects come as false positives of the other class and go to the
-    background (``docs/labelling.md``, *Ten training seeds*)."""
+    background (``docs/review-loop.md``, *Ten training seeds*)."""
     names = list(table)
     if len(names) < 2:
         return []
@@ -242,7 +242,7 @@ def unlearned_classes(train_metrics: dict) -> dict[str, int]:
 
     Such a fit has not learned the class: too few epochs for a class with few examples (``bench
     hitl``'s 5-epoch first fit of seed 7 found neither cones nor pallets on its training frames,
-    ``docs/labelling.md``), and mining then sends the class's unlabelled objects to the background
+    ``docs/review-loop.md``), and mining then sends the class's unlabelled objects to the background
     as false positives of another class."""
     return {
         c: int(m["num_reference"])

@@ -102,7 +102,7 @@ class LoopSettings:
     """Mined negatives scoring at least this, off every label, teach their predicted class until
     someone reviews them, as labels whose box is the model's own (self-training; without
     ``model_box_targets`` they teach their class alone). Most negatives scoring 0.6 or more are
-    real objects of their predicted class (``bench hitl`` at 50% unannotated, docs/labelling.md):
+    real objects of their predicted class (``bench hitl`` at 50% unannotated, docs/review-loop.md):
     holding them leaves those objects out, a pseudo-label teaches them; too few to make blind
     mining safe there, which is why it is off by default.
     They stay in the review queue, and a verdict replaces the pseudo-label. They count as labels
@@ -115,7 +115,7 @@ class LoopSettings:
     shows it (``session.world.place_box``: the frames placed in one world frame), as a reviewer's
     Object verdict does, except where a label, another pseudo-label or a box a person rejected
     (``SessionDB.rejected_boxes``) is on that object there. Off by default: on held-out
-    factories (``bench hitl`` at 50% unannotated, docs/labelling.md) it changed nothing
+    factories (``bench hitl`` at 50% unannotated, docs/review-loop.md) it changed nothing
     measurable, as most carried labels land on views too sparse for the annotation policy (a
     frame shows an object from one point) or on no object."""
     recalibrate_background: float | None = None
@@ -145,7 +145,7 @@ class LoopSettings:
     ``queue_order`` until there are enough verdicts to fit on, and a queue shown by item in
     ``queue_order``. On held-out factories, with the cut by class turns, it gave more labels for
     the same verdicts than either fixed order, at 30% and 50% unannotated (``bench hitl``,
-    docs/labelling.md). "score", most likely an object first (with the queue grouped by place,
+    docs/review-loop.md). "score", most likely an object first (with the queue grouped by place,
     each place's chance that one of its items is an object); "class", the predicted classes
     taking turns: class turns reach a class the model has barely learned, but give every
     predicted class the same share of the reviewer's first entries, among them classes whose
@@ -166,14 +166,14 @@ class LoopSettings:
     has learned that their boxes fit nothing (IoU 0) and scores them down whatever the classifier
     says; labels a reviewer adds later only reach it through a refit (``bench hitl``: 200 reviewed
     places a round recover about half the blind-to-full gap without it, most of it with it;
-    docs/labelling.md). Costs one regressor fit per round that changed labels or object verdicts
+    docs/review-loop.md). Costs one regressor fit per round that changed labels or object verdicts
     (``bench mining``'s ``box_quality_seconds``): a round on the rows the model's regressor was
     fitted on keeps it, since the fit would give it back."""
     refit_trees: int = 0
     """With ``refit_box_quality``: 0 fits the regressor afresh (all its trees) on the current
     labels; N > 0 boosts the model's regressor on with N trees fitted to what it gets wrong on them
     (``BoxQuality.continued``), a fraction of the fit's time, the regressor N trees larger each
-    round. 100 kept about half of what the refit gains (``bench hitl``, docs/labelling.md)."""
+    round. 100 kept about half of what the refit gains (``bench hitl``, docs/review-loop.md)."""
     model_box_targets: bool = False
     """Learn boxes from every label (True), or let a label whose box is the model's own teach its
     class alone (False): a reviewer's Object verdict keeps the mined box, and a confirmed pre-label
@@ -182,7 +182,7 @@ class LoopSettings:
     the model; so the box head's box and IoU losses, the box quality regressor and the size prior
     leave it out (unless its class has no other box: ``mining.box_targets``), while its point sets
     still count as the object's. On held-out factories at 50% unannotated the reviewer's detector
-    gained F by it, seed by seed (``bench hitl``, docs/labelling.md)."""
+    gained F by it, seed by seed (``bench hitl``, docs/review-loop.md)."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None

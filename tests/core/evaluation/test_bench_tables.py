@@ -22,10 +22,10 @@ BLOCKS = (
     ("performance.md", "mining-demo-reviewed"),
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
-    ("labelling.md", "hitl-50-class-vs-place"),
-    ("labelling.md", "hitl-50-refit-vs-class"),
-    ("labelling.md", "hitl-50-refit100-vs-refit"),
-    ("labelling.md", "hitl-50-safe-recal-vs-hold"),
+    ("review-loop.md", "hitl-50-class-vs-place"),
+    ("review-loop.md", "hitl-50-refit-vs-class"),
+    ("review-loop.md", "hitl-50-refit100-vs-refit"),
+    ("review-loop.md", "hitl-50-safe-recal-vs-hold"),
 )
 
 
