@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from factorydet_core.cli import build_parser, progress_bar, run
+from factorydet_core.cli import build_parser, positive_int, progress_bar, run
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.demo import DEMO_SESSION, ensure_demo
 from factorydet_core.session.store import latest_model, open_session, open_session_data, session_data
@@ -67,7 +67,10 @@ def _cmd_app(args: argparse.Namespace) -> int:
         model, model_name = DetectionModel.load(path), str(path)
     if db is not None and args.model == "default":
         model, model_name = session_model(db, model, model_name, path)
-    serve(dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name, db=db)
+    serve(
+        dataset, host=args.host, port=args.port, title=title, model=model, model_name=model_name, db=db,
+        points_drawn=args.points_drawn,
+    )  # fmt: skip
     return 0
 
 
@@ -91,6 +94,13 @@ def add_app_command(sub) -> None:
         "--model",
         default="default",
         help="'default' (the shipped checkpoint), a .pt checkpoint, a session name, or 'none'",
+    )
+    p.add_argument(
+        "--points-drawn",
+        type=positive_int,
+        default=None,
+        help="draw at most this many points of each cloud in every browser to begin with (Display > "
+        "Points drawn; default: all). Fewer show every change sooner in a browser without a graphics card",
     )
     p.set_defaults(func=_cmd_app)
 

@@ -12,6 +12,7 @@ import time
 import numpy as np
 import viser
 
+from factorydet_core.colors import thin_for_display
 from factorydet_core.geometry import box_wireframe_segments
 from factorydet_core.session.editing import (
     BOX_FACES,
@@ -307,6 +308,8 @@ class ClientView(BrowserSession):
             self._draw_box(name, box, rgb)
         self._draw_gizmo(label)
         points = self.selected_points()
+        # (a shift-drag over the hall selects most of it: the budget holds for the highlight too)
+        points = points[thin_for_display(np.ones(len(points), bool), self.state.points_drawn)]
         if len(points):
             scene.add_point_cloud(
                 "/client/selected_points", points=points, colors=np.array(HIGHLIGHT_RGB, np.uint8),

@@ -9,6 +9,7 @@ state redraws every browser. No viser import here: the state is unit-testable wi
 
 from __future__ import annotations
 
+import enum
 import threading
 import traceback
 from collections.abc import Callable
@@ -30,8 +31,14 @@ AP_SCORE_FLOOR = SCORE_FLOOR
 LAYERS: tuple[str, ...] = ("merged", "voxels", "patches", "segments", "proposals", "detections")
 """The detection layers the app can draw, in panel order."""
 
-UNCHANGED = object()
-"""``AppState.set_display``'s "leave as it is" where ``None`` is a value (``points_drawn``)."""
+
+class Unchanged(enum.Enum):
+    """``AppState.set_display``'s "leave as it is" where ``None`` is a value (``points_drawn``)."""
+
+    UNCHANGED = "unchanged"
+
+
+UNCHANGED = Unchanged.UNCHANGED
 
 
 def select_with(candidates: Detections, kind: str, args: tuple) -> Detections:
@@ -557,19 +564,20 @@ class AppState:
         show_boxes: bool | None = None,
         max_height: float | None = None,
         show_box_names: bool | None = None,
-        points_drawn: int | None | object = UNCHANGED,
+        points_drawn: int | None | Unchanged = UNCHANGED,
     ) -> None:
         """Change how the frame is drawn; ``None`` leaves a setting as it is (``points_drawn``:
         the most points of the scan and of each layer drawn, ``None`` for all of them; left as
         it is by ``UNCHANGED``)."""
+        # (checked before anything changes: a refused call changes nothing)
         if points_drawn is not UNCHANGED and points_drawn is not None and int(points_drawn) < 1:
             raise ValueError(f"points drawn must be at least 1 (None: all), got {points_drawn}")
+        if color_mode is not None and color_mode not in COLOR_MODES:
+            raise ValueError(f"unknown colour mode {color_mode!r}; choose from {COLOR_MODES}")
         with self.lock:
             if points_drawn is not UNCHANGED:
                 self.points_drawn = None if points_drawn is None else int(points_drawn)
             if color_mode is not None:
-                if color_mode not in COLOR_MODES:
-                    raise ValueError(f"unknown colour mode {color_mode!r}; choose from {COLOR_MODES}")
                 self.color_mode = color_mode
             if point_size is not None:
                 self.point_size = float(point_size)

@@ -65,6 +65,7 @@ class FactorydetApp:
         model_name: str = "",
         db=None,
         training: LoopSettings | None = None,
+        points_drawn: int | None = None,
     ) -> None:
         self.server = server
         # Compile the library's numba kernels (or load them from numba's disk cache, about a
@@ -78,6 +79,7 @@ class FactorydetApp:
         """The view no browser owns (a template): each new browser starts like it (its frame,
         display settings and thresholds), and the worker computes its frame before the first
         browser connects."""
+        self.state.set_display(points_drawn=points_drawn)  # (every browser's, reloads too)
         server.gui.configure_theme(control_width="medium", dark_mode=False)
         self.trainer = TrainingWorker(self.shared, training, calibrate=calibrate)
         self.clients: dict[int, ClientView] = {}
@@ -271,10 +273,14 @@ def serve(
     model=None,
     model_name: str = "",
     db=None,
+    points_drawn: int | None = None,
 ) -> None:
-    """Serve the app until interrupted."""
+    """Serve the app until interrupted (``points_drawn``: every browser's Display > Points drawn
+    to begin with; None, all)."""
     server = viser.ViserServer(host=host, port=port, label="factorydet")
-    app = FactorydetApp(server, dataset, title, model=model, model_name=model_name, db=db)
+    app = FactorydetApp(
+        server, dataset, title, model=model, model_name=model_name, db=db, points_drawn=points_drawn
+    )
     actual_port = server.get_port()
     print(
         f"factorydet: serving {app.state.title} at http://{host}:{actual_port}  (Ctrl+C to stop)", flush=True

@@ -27,6 +27,7 @@ from collections.abc import Callable
 import numpy as np
 import viser
 
+from factorydet_core.cli import positive_int
 from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
 from factorydet_core.evaluation.bench_tables import update_readme
 from factorydet_core.evaluation.records import machine_info
@@ -259,6 +260,7 @@ def run(
                         60,
                         "the scan drawn with fewer points",
                     )
+                points_shown = view.scene.num_points_shown
                 canvas = page.locator("canvas[data-engine]")
                 canvas.click(position={"x": 5, "y": 5})  # keys go to the page, not a panel
                 _wait(lambda: app.worker.idle, 600, "the frames ahead")
@@ -358,6 +360,7 @@ def run(
         "repeats": int(repeats),
         "label_once": True,
         "points_drawn": points_drawn,
+        "points_shown": points_shown,  # of the first frame's scan, after the height cut and the budget
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
         "target_verdict_ms": TARGET_VERDICT_MS,
@@ -392,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--points-drawn",
-        type=int,
+        type=positive_int,
         default=None,
         help="the Display panel's Points drawn (default: all the points)",
     )

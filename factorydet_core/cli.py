@@ -136,6 +136,17 @@ def parse_overrides(pairs: list[str] | None) -> dict:
     return overrides
 
 
+def positive_int(text: str) -> int:
+    """An argparse ``type``: a whole number of at least 1 (refused with argparse's usage line)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def _choices(text: str, flag: str, allowed: tuple[str, ...]) -> list[str]:
     """Comma-separated values of ``flag``, each one of ``allowed``."""
     values = [v.strip() for v in text.split(",") if v.strip()]

@@ -102,11 +102,6 @@ def colors_by_id(ids: np.ndarray, seed: int = 0) -> np.ndarray:
     return (rgb * value[:, None] * 235 + 20).clip(0, 255).astype(np.uint8)
 
 
-POINTS_DRAWN_CHOICES = (None, 160_000, 80_000, 40_000, 20_000, 10_000)
-"""The Display panel's "Points drawn" choices (None: every point). A browser without a graphics
-card renders points in software, in time that grows with their number."""
-
-
 @functools.lru_cache(maxsize=8)
 def _display_ranks(num_points: int) -> np.ndarray:
     """(num_points,) a fixed shuffle of the ranks 0 .. num_points - 1 (read only): the same cloud
@@ -118,7 +113,8 @@ def _display_ranks(num_points: int) -> np.ndarray:
 
 def thin_for_display(keep_mask: np.ndarray, max_points: int | None) -> np.ndarray:
     """(N,) bool: at most ``max_points`` of the points ``keep_mask`` (N,) bool keeps, spread
-    evenly at random over them; all of them when they are no more (or ``max_points`` is None).
+    evenly at random over them; all of them when they are no more (or ``max_points`` is None),
+    then ``keep_mask`` itself (as a bool array), not a copy.
 
     The choice is fixed for a cloud of N points: a colour mode or a layer drawn again draws the
     same points, and the points kept under a smaller budget are among those kept under a larger

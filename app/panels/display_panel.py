@@ -6,7 +6,7 @@ import dataclasses
 
 import viser
 
-from factorydet_core.colors import COLOR_MODES, POINTS_DRAWN_CHOICES
+from factorydet_core.colors import COLOR_MODES
 
 from ..state import AppState
 from . import from_user
@@ -18,6 +18,18 @@ _MODE_LABELS = {
     "annotated": "Annotated / not",
     "rgb": "Colour (RGB)",
 }
+
+
+POINTS_DRAWN_CHOICES = (None, 160_000, 80_000, 40_000, 20_000, 10_000)
+"""The "Points drawn" choices (None: every point). A browser without a graphics card renders
+points in software, in time that grows with their number."""
+
+
+def points_drawn_options(*budgets: int | None) -> tuple[str, ...]:
+    """The drop-down's texts: the usual choices and ``budgets`` (one set by code or on the
+    command line), all first, then from most to fewest points."""
+    ordered = sorted({*POINTS_DRAWN_CHOICES, *budgets}, key=lambda n: -1 if n is None else -n)
+    return tuple(points_drawn_label(n) for n in ordered)
 
 
 def points_drawn_label(max_points: int | None) -> str:
@@ -56,7 +68,8 @@ class DisplayPanel:
             self.max_height.value = height
         if self.points_drawn.value != points_drawn:
             if points_drawn not in self.points_drawn.options:  # (set by code to a budget not offered)
-                self.points_drawn.options = (*self.points_drawn.options, points_drawn)
+                offered = [points_drawn_value(text) for text in self.points_drawn.options]
+                self.points_drawn.options = points_drawn_options(*offered, points_drawn_value(points_drawn))
             self.points_drawn.value = points_drawn
 
 
@@ -84,11 +97,9 @@ def build_display_panel(server: viser.ViserServer | viser.ClientHandle, state: A
             initial_value=state.max_height,
             hint="Hide points higher than this, to look under the roof",
         )
-        # (a budget set by code that the list lacks is offered too)
-        choices = dict.fromkeys(points_drawn_label(n) for n in (*POINTS_DRAWN_CHOICES, state.points_drawn))
         points_drawn = server.gui.add_dropdown(
             "Points drawn",
-            tuple(choices),
+            points_drawn_options(state.points_drawn),
             initial_value=points_drawn_label(state.points_drawn),
             hint="Draw at most this many points of the scan and of each layer, spread over the whole "
             "cloud. A browser without a graphics card renders points in software: fewer points show "

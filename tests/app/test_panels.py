@@ -25,9 +25,45 @@ def test_the_review_panel_estimates_the_reach_of_the_first_pending_entries():
 
 
 def test_the_points_drawn_choices_read_back_as_the_budgets_they_show():
-    from app.panels.display_panel import points_drawn_label, points_drawn_value
-    from factorydet_core.colors import POINTS_DRAWN_CHOICES
+    from app.panels.display_panel import POINTS_DRAWN_CHOICES, points_drawn_label, points_drawn_value
 
     assert points_drawn_label(None) == "All" and points_drawn_label(20_000) == "20,000"
     for budget in (*POINTS_DRAWN_CHOICES, 12_345):
         assert points_drawn_value(points_drawn_label(budget)) == budget
+
+
+def test_the_display_panel_offers_a_budget_set_elsewhere_in_its_order_and_sends_the_choice(small_dataset_dir):
+    import viser
+
+    from app.panels.display_panel import build_display_panel
+    from app.state import AppState
+    from factorydet_core.io.dataset import open_dataset
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        state = AppState(open_dataset(small_dataset_dir))
+        panel = build_display_panel(server, state)
+        assert panel.points_drawn.value == "All"
+        state.set_display(points_drawn=12_345)  # e.g. another code path, or factorydet app --points-drawn
+        panel.refresh(state)
+        assert panel.points_drawn.value == "12,345"
+        options = panel.points_drawn.options
+        assert options.index("20,000") < options.index("12,345") < options.index("10,000")
+        state.set_display(points_drawn=None)
+        panel.refresh(state)
+        assert panel.points_drawn.value == "All"
+    finally:
+        server.stop()
+
+
+def test_the_app_command_takes_a_points_budget_of_at_least_one(capsys):
+    import pytest
+
+    from app.cli import build_app_parser
+
+    assert build_app_parser().parse_args(["app", "--points-drawn", "20000"]).points_drawn == 20_000
+    assert build_app_parser().parse_args(["app"]).points_drawn is None
+    for bad in ("0", "-5", "many"):
+        with pytest.raises(SystemExit):
+            build_app_parser().parse_args(["app", "--points-drawn", bad])
+    assert "--points-drawn" in capsys.readouterr().err

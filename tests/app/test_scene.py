@@ -102,6 +102,7 @@ def test_a_points_budget_draws_that_many_of_the_scan_spread_over_it_and_all_of_t
     import viser
 
     from app.scene import SceneView
+    from factorydet_core.colors import colors_by_height
     from factorydet_core.io.dataset import open_dataset
     from factorydet_core.proposals.merge import merge_frame
 
@@ -114,10 +115,14 @@ def test_a_points_budget_draws_that_many_of_the_scan_spread_over_it_and_all_of_t
         view = SceneView(server)
         view.draw(frame, color_mode="height", point_size=0.05, max_height=6.0, max_points=budget)
         points, rgb = view._shown
-        assert len(points) == len(rgb) == budget
-        # Drawn points are scan points below the height cut, from all over the scan.
-        inside = (points[:, None, :] == merged.points[below][None, :, :]).all(-1).any(1)
-        assert inside.all()
+        assert len(points) == len(rgb) == view.num_points_shown == budget
+        # Drawn points are scan points below the height cut, each in its own colour.
+        same = (points[:, None, :] == merged.points[None, :, :]).all(-1)
+        assert same.any(1).all()
+        index = same.argmax(1)
+        assert below[index].all()
+        assert (rgb == colors_by_height(merged.points[:, 2])[index]).all()
+        # ... from all over the scan.
         lo, hi = merged.points[below, :2].min(0), merged.points[below, :2].max(0)
         margin = 0.2 * (hi - lo)
         assert (points[:, :2].min(0) - lo < margin).all() and (hi - points[:, :2].max(0) < margin).all()

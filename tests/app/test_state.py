@@ -196,12 +196,15 @@ def test_each_view_has_its_own_frame_display_and_thresholds(small_dataset_dir, t
     db = SessionDB(open_session("s", tmp_path), dataset)
     first = AppState(dataset, model=model, model_name="tiny", db=db)
     first.set_frame(2)
-    first.set_display(color_mode="height", point_size=0.1)
+    first.set_display(color_mode="height", point_size=0.1, points_drawn=20_000)
     first.set_detection_filter(score_threshold=0.3, nms_iou=0.4)
     second = first.shared.new_view()  # a new browser: the defaults
     like = first.shared.new_view(like=first)  # one that starts like the first
-    assert (second.frame_index, second.point_size, second.nms_iou) == (0, 0.04, model.nms_iou)
+    assert (second.frame_index, second.point_size, second.nms_iou, second.points_drawn) == (
+        0, 0.04, model.nms_iou, None
+    )  # fmt: skip
     assert (like.frame_index, like.color_mode, like.score_threshold, like.nms_iou) == (2, "height", 0.3, 0.4)
+    assert like.points_drawn == 20_000
     seen = {view: [] for view in (first, second, like)}
     for view in seen:
         view.on_change(lambda view=view: seen[view].append(view.frame_index))
@@ -406,4 +409,7 @@ def test_points_drawn_is_a_budget_or_all_and_other_settings_leave_it_alone(small
     assert state.points_drawn is None
     with pytest.raises(ValueError, match="at least 1"):
         state.set_display(points_drawn=0)
+    # A refused call changes nothing, the settings that were fine included.
+    with pytest.raises(ValueError, match="unknown colour mode"):
+        state.set_display(points_drawn=5_000, color_mode="rainbow")
     assert state.points_drawn is None

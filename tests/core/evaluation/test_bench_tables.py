@@ -465,3 +465,12 @@ def test_every_resumed_hitl_command_of_the_makefile_trains_its_reviewer_as_its_r
             )
             checked += 1
     assert checked >= 15
+
+
+def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
+    record = _record("walkthrough")
+    assert "(80k points, the boxes)" in render_record(record)  # a record from before the budget
+    budgeted = {**record, "points_drawn": 20_000, "points_shown": 19_873}
+    assert "(19,873 points, at most 20,000 by Display's Points drawn, the boxes)" in render_record(budgeted)
+    every_point = {**record, "points_drawn": None, "points_shown": 81_002}
+    assert "(81,002 points, the boxes)" in render_record(every_point)

@@ -1,0 +1,30 @@
+"""``LayerView``: the detection layers drawn into a scene (no browser)."""
+
+import numpy as np
+
+
+def test_a_points_budget_draws_the_same_points_in_every_point_layer_and_all_of_them_again(small_dataset_dir):
+    import viser
+
+    from app.layers import LayerView
+    from app.state import LAYERS
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+
+    result = Detector().propose(open_dataset(small_dataset_dir).frame(0))
+    below = result.cloud.below(6.0)
+    budget = int(below.sum()) // 3
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        view = LayerView(server)
+        view.draw(result, 0, dict.fromkeys(LAYERS, True), 0.05, 6.0, max_points=budget)
+        patches, segments = view.nodes["patches"], view.nodes["segments"]
+        assert len(patches.points) == len(patches.colors) == budget
+        np.testing.assert_array_equal(patches.points, segments.points)  # one choice for one cloud
+        assert len(view.nodes["merged"].points) <= budget
+        assert len(view.nodes["voxels"].points) <= budget
+        view.draw(result, 0, dict.fromkeys(LAYERS, True), 0.05, 6.0, max_points=None)
+        assert len(view.nodes["patches"].points) == int(below.sum())
+        assert len(view.nodes["merged"].points) == int(result.merged.below(6.0).sum())
+    finally:
+        server.stop()
