@@ -79,7 +79,9 @@ def help_markdown(class_names: tuple[str, ...]) -> str:
         "segment (with a model, its box for the object is suggested in cyan), shift-click to add a "
         "segment, shift-drag to select a rectangle. Drag the gizmo to move or turn the selected box. "
         "Ctrl/Cmd+K lists every command. Keys pressed on a drop-down once it is closed are "
-        "these hotkeys (an open drop-down searches its options as you type)."
+        "these hotkeys (an open drop-down searches its options as you type).  \nSlow to show "
+        "changes? Without a graphics card the browser draws points in software: Display > Points "
+        "drawn (e.g. 20,000) shows every change sooner."
     )
 
 
