@@ -219,6 +219,12 @@ def test_each_browser_has_its_own_frame_display_and_thresholds(app_with_model, b
         assert second.state.point_size == 0.04 and second.state.score_threshold != 0.05
         assert _wait(lambda: first.layers.nodes["merged"].point_size == 0.1, 20)
         assert second.layers.nodes["merged"].point_size == 0.04
+        # A budget of points drawn redraws that browser's scan and layers alone.
+        shown_before = second.scene.num_points_shown
+        first.state.set_display(points_drawn=1000)
+        assert _wait(lambda: 0 < first.scene.num_points_shown <= 1000, 20)
+        assert _wait(lambda: len(first.layers.nodes["patches"].points) <= 1000, 20)
+        assert second.scene.num_points_shown == shown_before > 1000
     finally:
         for context in contexts:
             context.close()
