@@ -27,7 +27,6 @@ from collections.abc import Callable
 import numpy as np
 import viser
 
-from factorydet_core.cli import positive_int
 from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
 from factorydet_core.evaluation.bench_tables import update_readme
 from factorydet_core.evaluation.records import machine_info
@@ -395,11 +394,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--points-drawn",
-        type=positive_int,
+        type=int,
         default=None,
         help="the Display panel's Points drawn (default: all the points)",
     )
     args = parser.parse_args(argv)
+    if args.points_drawn is not None and args.points_drawn < 1:
+        parser.error(f"--points-drawn must be at least 1, got {args.points_drawn}")
     if args.no_retrain and args.readme:
         parser.error("--readme records the whole walkthrough: drop --no-retrain")
     record = run(
