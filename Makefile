@@ -480,6 +480,15 @@ bench: $(STAMP) corpus corpus50
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-50-e20-folds-pooled-safe-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-safe-six --resume --resume-other-library
+	# The same with the reviewer's 200 places a round (blind mining and full labels read back from the record above).
+	test -f docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json || cp docs/bench/hitl-50-e20-folds-pooled-safe-six.json docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json
+	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants blind,reviewed_200,full \
+	  --threshold-folds 2 --no-continue-folds --threshold-objective total \
+	  --out docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-reviewed-six --resume --resume-other-library
 	# The app's training defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
 	# order over the mined queue alone (--review-extra 0); against the class-turns record above.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
