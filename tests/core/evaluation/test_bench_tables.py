@@ -22,6 +22,8 @@ BLOCKS = (
     ("performance.md", "mining-demo-reviewed"),
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
+    ("labelling.md", "walkthrough-edits-points-all"),
+    ("labelling.md", "walkthrough-edits-points-20k"),
     ("review-loop.md", "hitl-50-class-vs-place"),
     ("review-loop.md", "hitl-50-refit-vs-class"),
     ("review-loop.md", "hitl-50-refit100-vs-refit"),
