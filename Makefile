@@ -74,6 +74,9 @@ bench: $(STAMP) corpus corpus50
 	  --readme docs/performance.md --readme-block mining-demo
 	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 --verdicts 20 \
 	  --readme docs/performance.md --readme-block mining-demo-reviewed
+	# The same with threshold folds (the fold models going on every next round).
+	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 --verdicts 20 \
+	  --threshold-folds 2 --readme docs/performance.md --readme-block mining-demo-reviewed-folds
 	$(BIN)/factorydet bench quality $(CORPUS) --model paper --seeds 0,1,2 --heldout-seeds 101,102,103 \
 	  --heldout-frames 12 --epochs 20 --rounds 1 --out docs/bench/quality.json --readme README.md
 	$(BIN)/factorydet bench fuzz --cases 1000 --seed 0 --out docs/bench/fuzz.json

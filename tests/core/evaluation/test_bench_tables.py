@@ -20,6 +20,7 @@ BLOCKS = (
     ("performance.md", "detect"),
     ("performance.md", "memory"),
     ("performance.md", "mining-demo-reviewed"),
+    ("performance.md", "mining-demo-reviewed-folds"),
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
     ("labelling.md", "walkthrough-edits-points-all"),
