@@ -334,35 +334,71 @@ class BoxQuality:
             learn = (box_targets or {}).get(frame.frame_index)
             learn = np.ones(len(frame.label_boxes), bool) if learn is None else np.asarray(learn, bool)
             iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
-            for g, members in enumerate(frame.groups.members()):
-                best = iou[members].max(axis=0)
+            members = frame.groups.members()
+            taken: list[tuple[int, int, bool]] = []  # (set, class of its options, overlaps a label)
+            for g, set_members in enumerate(members):
+                best = iou[set_members].max(axis=0)
                 label = int(best.argmax())
                 overlapping = best[label] >= self.min_overlap
+                # Both draws for every set, taken or not: the sample depends on the seed alone.
                 take_background = rng.random() < self.background_rate
                 random_class = int(rng.integers(num_classes))
                 if g in skip or not (overlapping or take_background) or (overlapping and not learn[label]):
                     continue
                 class_id = int(frame.label_class_ids[label]) if overlapping else random_class
-                options, features = option_features(
-                    frame.proposal_boxes[members],
-                    class_id,
-                    frame.groups.descriptors[g],
-                    prior,
-                    num_classes,
-                    self.anchored,
-                    None if frame.groups.anchor_mask is None else frame.groups.anchor_mask[members],
-                    self.free_space_of(frame.groups),
-                )
-                # An overlapping set's options are right when they fit any object of its class (the
-                # neighbour's box in a stack of crates is no worse than the first one's); a
-                # background set's, when they fit anything.
-                same_class = frame.label_class_ids == class_id
-                reference = frame.label_boxes[same_class] if overlapping else frame.label_boxes
-                rows.append(features)
-                targets.append(box_iou_3d(options, reference).max(axis=1))
+                taken.append((g, class_id, bool(overlapping)))
+            frame_rows, frame_targets = self._frame_rows(frame, members, taken, prior, num_classes)
+            rows += frame_rows
+            targets += frame_targets
         if not rows:
             raise InputError("box quality: no training frame has annotations")
         return np.concatenate(rows), np.concatenate(targets)
+
+    def _frame_rows(
+        self,
+        frame,
+        members: Sequence[np.ndarray],
+        taken: Sequence[tuple[int, int, bool]],
+        prior: BoxSizePrior,
+        num_classes: int,
+    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """``training_rows``' rows of one frame: per taken ``(set, class, overlapping)``, its
+        options' (K, F) features and (K,) targets, in ``taken``'s order. The options are grown
+        for all sets of one class and kind in one ``class_option_features`` call (per-set calls
+        cost most of a refit's row building); each set's rows are the ones a call for it alone
+        gives."""
+        if not taken:
+            return [], []
+        features_of: list[np.ndarray | None] = [None] * len(taken)
+        targets_of: list[np.ndarray | None] = [None] * len(taken)
+        free_space = self.free_space_of(frame.groups)
+        for class_id, overlapping in sorted({(c, o) for _, c, o in taken}):
+            picked = [k for k, (_, c, o) in enumerate(taken) if (c, o) == (class_id, overlapping)]
+            set_ids = [taken[k][0] for k in picked]
+            options, features, owner, _ = class_option_features(
+                frame.proposal_boxes,
+                [members[g] for g in set_ids],
+                class_id,
+                frame.groups.descriptors[set_ids],
+                prior,
+                num_classes,
+                self.anchored,
+                frame.groups.anchor_mask,
+                free_space,
+            )
+            # An overlapping set's options are right when they fit any object of its class (the
+            # neighbour's box in a stack of crates is no worse than the first one's); a
+            # background set's, when they fit anything.
+            same_class = frame.label_class_ids == class_id
+            reference = frame.label_boxes[same_class] if overlapping else frame.label_boxes
+            set_targets = box_iou_3d(options, reference).max(axis=1)
+            # (rows come set after set: owner is sorted)
+            bounds = np.cumsum(np.bincount(owner, minlength=len(picked)))[:-1]
+            for k, set_features, set_target in zip(
+                picked, np.split(features, bounds), np.split(set_targets, bounds), strict=True
+            ):
+                features_of[k], targets_of[k] = set_features, set_target
+        return features_of, targets_of
 
     def free_space_of(self, groups: ProposalGroups) -> FreeSpace | None:
         """The free space the features read from ``groups``: theirs with ``visibility``, else none."""

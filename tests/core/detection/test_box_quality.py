@@ -612,3 +612,47 @@ def test_sets_on_a_label_that_is_no_box_target_are_left_out(frames, prior):
     )
     np.testing.assert_array_equal(same, all_rows)
     np.testing.assert_array_equal(same_targets, all_targets)
+
+
+@pytest.mark.parametrize("anchored", [True, False])
+def test_training_rows_are_each_sets_own_options_in_set_order(frames, prior, anchored):
+    """Rows grown for many sets at once are, bit for bit and in the same order, what growing
+    each taken set's options alone gives (``option_features``), with the same background sample."""
+    from factorydet_core.boxes import box_iou_3d
+
+    quality = BoxQuality(background_rate=0.3, anchored=anchored, seed=3)
+    excluded = {frames[0].frame_index: {0, 1}}
+    rows, targets = quality.training_rows(frames, prior, NUM_CLASSES, excluded=excluded)
+
+    rng = np.random.default_rng(quality.seed)
+    expected_rows, expected_targets = [], []
+    kinds = set()
+    for frame in frames:
+        iou = box_iou_3d(frame.proposal_boxes, frame.label_boxes)
+        for g, members in enumerate(frame.groups.members()):
+            best = iou[members].max(axis=0)
+            label = int(best.argmax())
+            overlapping = best[label] >= quality.min_overlap
+            take_background = rng.random() < quality.background_rate
+            random_class = int(rng.integers(NUM_CLASSES))
+            if (frame is frames[0] and g in (0, 1)) or not (overlapping or take_background):
+                continue
+            class_id = int(frame.label_class_ids[label]) if overlapping else random_class
+            kinds.add(bool(overlapping))
+            options, features = option_features(
+                frame.proposal_boxes[members],
+                class_id,
+                frame.groups.descriptors[g],
+                prior,
+                NUM_CLASSES,
+                anchored,
+                None if frame.groups.anchor_mask is None else frame.groups.anchor_mask[members],
+                quality.free_space_of(frame.groups),
+            )
+            same_class = frame.label_class_ids == class_id
+            reference = frame.label_boxes[same_class] if overlapping else frame.label_boxes
+            expected_rows.append(features)
+            expected_targets.append(box_iou_3d(options, reference).max(axis=1))
+    assert kinds == {True, False}  # sets on objects and background sets both taken
+    np.testing.assert_array_equal(rows, np.concatenate(expected_rows))
+    np.testing.assert_array_equal(targets, np.concatenate(expected_targets))
