@@ -1211,6 +1211,7 @@ BENCH_LOOP_FIELDS = (
     "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
     "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
     "carry_pseudo_labels", "threshold_folds", "threshold_objective", "quality_trees", "continue_folds",
+    "label_min_points",
 )  # fmt: skip
 """The ``LoopSettings`` fields ``factorydet bench`` takes as ``add_loop_flags``' flags (its other
 training flags are the benchmarks' own, with defaults of their own)."""

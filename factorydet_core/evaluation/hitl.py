@@ -774,6 +774,7 @@ def _run_plan(plan: dict, variant: str) -> dict:
         out.pop("queue_max_label_iou", None)
         out.pop("review_best_view", None)
         untouched |= {"review_order", "review_extra"}  # the queue, which nobody reviews
+        untouched.add("label_min_points")  # labels of the data set or imported: never checked
         if not (holds(variant) and settings.get("pseudo_label_confident") is not None):
             untouched.add("model_box_targets")  # no verdict nor pseudo-label: no label with the model's box
     if settings.get("pseudo_label_confident") is None:
@@ -1022,6 +1023,8 @@ def _hitl_variants(
                     "num_reviews": sum(reviews[k] for k in VERDICTS),
                     "reviews": reviews,
                     "truth_labels_added": added,
+                    # A person's labels the last fit left out as too sparse (label_min_points).
+                    "sparse_labels_ignored": db.training_runs()[-1]["config"].get("sparse_labels_ignored"),
                     "unannotated_labelled": covered,
                     "unannotated_total": unannotated,
                     "unannotated_labelled_per_class": {c: list(v) for c, v in covered_by_class.items()},
@@ -1081,6 +1084,8 @@ def _hitl_variants(
                 if any(k in r["reviews"] for r in runs)
             },
             "truth_labels_added": _mean_of([r["truth_labels_added"] for r in runs]),
+            # (runs read back from records before it have no count)
+            "sparse_labels_ignored": _mean_of([r.get("sparse_labels_ignored") for r in runs]),
             # Of the objects the data set left unannotated on the training frames, the share the
             # session labels at the end (full: all; blind: none; reviewed: what the reviews gave back).
             "unannotated_labelled": _mean_of(

@@ -29,7 +29,9 @@ from factorydet_core.detection.box_quality import BoxQuality
 from factorydet_core.detection.classifier import ProposalClassifier, check_init_model
 from factorydet_core.detection.detector import Detector
 from factorydet_core.detection.model import DetectionModel
+from factorydet_core.geometry import points_in_box
 from factorydet_core.io.dataset import Dataset
+from factorydet_core.proposals.merge import merge_frame
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.session.store import (
     HIDE_LABELLED_IOU,
@@ -40,7 +42,7 @@ from factorydet_core.session.store import (
     read_cache,
     write_cache,
 )
-from factorydet_core.session.world import MOVING_CLASSES, WorldFrames, place_box
+from factorydet_core.session.world import MOVING_CLASSES, WorldFrames, counting_box, place_box
 from factorydet_core.training.mining import (
     FoldModel,
     FrameProposals,
@@ -197,14 +199,15 @@ def session_references(
 
 
 def with_session_labels(
-    db: SessionDB, frames: Sequence[FrameProposals], snapshot: dict | None = None
+    db: SessionDB, frames: Sequence[FrameProposals], snapshot: dict | None = None, min_points: int = 0
 ) -> list[FrameProposals]:
     """The frames with the session's labels in place of the data set's annotations: the current
     ones, or those of a stored ``snapshot`` (``SessionDB.snapshot``), so that a run trains on
     exactly the labels it records. The model's pre-labels nobody has confirmed yet are neither
-    objects nor background: their places are left out of training (``FrameProposals.ignore_boxes``).
-    Labels whose box is the model's own (origins ``MODEL_BOX_ORIGINS``) are marked so
-    (``FrameProposals.label_model_box_mask``)."""
+    objects nor background: their places are left out of training (``FrameProposals.ignore_boxes``),
+    and so are a person's labels that hold fewer than ``min_points`` of their frame's points
+    (``sparse_label_mask``; ``LoopSettings.label_min_points``). Labels whose box is the model's
+    own (origins ``MODEL_BOX_ORIGINS``) are marked so (``FrameProposals.label_model_box_mask``)."""
     names = db.class_names
     if snapshot is None:
         by_frame = {
@@ -228,7 +231,11 @@ def with_session_labels(
     for frame in frames:
         given = by_frame[frame.frame_index]
         labels = [lab for lab in given if lab.get("reviewed", True)]
-        unreviewed = [lab["box"] for lab in given if not lab.get("reviewed", True)]
+        ignored = [lab["box"] for lab in given if not lab.get("reviewed", True)]
+        if min_points:
+            sparse = sparse_label_mask(db.dataset, frame.frame_index, labels, min_points)
+            ignored += [lab["box"] for lab, is_sparse in zip(labels, sparse) if is_sparse]
+            labels = [lab for lab, is_sparse in zip(labels, sparse) if not is_sparse]
         model_box_mask = np.array([lab["origin"] in MODEL_BOX_ORIGINS for lab in labels], bool)
         instance_classes = {
             int(lab["instance_id"]): names.index(lab["class_name"])
@@ -240,11 +247,34 @@ def with_session_labels(
                 np.array([lab["box"] for lab in labels], np.float64).reshape(-1, 7),
                 np.array([names.index(lab["class_name"]) for lab in labels], np.int64),
                 instance_classes,
-                np.array(unreviewed, np.float64).reshape(-1, 7),
+                np.array(ignored, np.float64).reshape(-1, 7),
                 model_box_mask,
             )
         )
     return out
+
+
+POLICY_ORIGINS = ("dataset", "import")
+"""Label origins that follow the data set's annotation policy as they come (its own annotations,
+labels imported from elsewhere): ``sparse_label_mask`` does not check them."""
+
+
+def sparse_label_mask(
+    dataset: Dataset, frame_index: int, labels: Sequence[dict], min_points: int
+) -> np.ndarray:
+    """(L,) bool: which of a frame's labels (dicts with ``box`` and ``origin``) a person made
+    (origin not in ``POLICY_ORIGINS``) and hold fewer than ``min_points`` of the frame's points,
+    counted in ``world.counting_box`` (the box's surface grown a little, the floor band left
+    out) of the frame merged with its nominal extrinsics. Reads the frame only when it has such a
+    label."""
+    mask = np.zeros(len(labels), bool)
+    checked = [k for k, lab in enumerate(labels) if lab["origin"] not in POLICY_ORIGINS]
+    if not checked or min_points <= 0:
+        return mask
+    points = merge_frame(dataset.frame(frame_index)).points
+    for k in checked:
+        mask[k] = int(points_in_box(points, counting_box(labels[k]["box"])).sum()) < min_points
+    return mask
 
 
 def _merge(*maps: dict[int, list]) -> dict[int, list]:
@@ -416,7 +446,12 @@ def train_session(
     if mode == "next" and settings.carries_pseudo_labels:
         check_carry_world(db, world)  # (before anything is written)
     snapshot_id = db.snapshot_labels(frame_indices)
-    labelled = with_session_labels(db, frames, db.snapshot(snapshot_id))
+    snapshot = db.snapshot(snapshot_id)
+    labelled = with_session_labels(db, frames, snapshot, settings.label_points_floor(db.dataset))
+    # A person's labels too sparse to learn from, left out as ignored places (the run says how many).
+    num_sparse = sum(1 for lab in snapshot["labels"] if lab.get("reviewed", True)) - sum(
+        len(frame.label_boxes) for frame in labelled
+    )
     reviewed = db.reviewed_patch_sets()
     excluded = _merge(reviewed["object"], reviewed["wrong_box"])
     classifier = new_classifier(settings, db.class_names)
@@ -516,6 +551,7 @@ def train_session(
     }
     if why and mode == "next":
         config["afresh_because"] = why
+    config["sparse_labels_ignored"] = num_sparse
     if command:
         config["command"] = command  # the checkpoints' notes say how to reproduce them
     run_id = db.save_training_run(run, data_ref, config, kind=mode, snapshot_id=snapshot_id)

@@ -877,3 +877,49 @@ def test_a_next_round_goes_on_from_the_saved_fold_models(dataset, frames, tmp_pa
                 db, frames, dataclasses.replace(settings, continue_folds=continue_folds), mode="next"
             )
     assert given == [[(0,)], []]
+
+
+def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, dataset, frames):
+    """A label a person made on a handful of points trains as neither object nor background; the
+    data set's annotations and imported labels are the policy's and are not checked."""
+    from factorydet_core.geometry import points_in_box
+    from factorydet_core.proposals.merge import merge_frame
+    from factorydet_core.session.world import counting_box
+    from factorydet_core.training.loop import sparse_label_mask
+
+    frame = frames[0]
+    points = merge_frame(dataset.frame(0)).points
+    counts = [int(points_in_box(points, counting_box(box)).sum()) for box in frame.label_boxes]
+    dense = tuple(frame.label_boxes[int(np.argmax(counts))].tolist())
+    assert max(counts) >= 25
+    empty = (dense[0], dense[1], dense[2] + 30.0, *dense[3:])  # high above everything: no point
+    labels = [
+        {"box": dense, "origin": "user"},
+        {"box": empty, "origin": "user"},
+        {"box": empty, "origin": "review"},
+        {"box": empty, "origin": "dataset"},
+        {"box": empty, "origin": "import"},
+    ]
+    expected = [False, True, True, False, False]
+    np.testing.assert_array_equal(sparse_label_mask(dataset, 0, labels, 25), expected)
+    assert not sparse_label_mask(dataset, 0, labels, 0).any()
+
+    label = db.add_label(0, empty, "box", "sparse")
+    try:
+        (kept,) = with_session_labels(db, [frame])
+        (left_out,) = with_session_labels(db, [frame], min_points=25)
+        assert len(kept.label_boxes) == len(frame.label_boxes) + 1
+        assert len(left_out.label_boxes) == len(frame.label_boxes)
+        np.testing.assert_allclose(left_out.ignore_boxes, [label.box])
+    finally:
+        db.delete_labels([label.id], "sparse")
+
+
+def test_the_label_points_floor_follows_the_data_sets_policy(dataset):
+    policy = dataset.manifest["config"]["min_annotated_points"]
+    assert LoopSettings().label_points_floor(dataset) == round(policy / 2)
+    assert LoopSettings(label_min_points=0).label_points_floor(dataset) == 0
+    assert LoopSettings(label_min_points=7).label_points_floor(dataset) == 7
+    assert LoopSettings().label_points_floor(None) == 0  # no data set, no policy: every label
+    with pytest.raises(InputError, match="label_min_points"):
+        LoopSettings(label_min_points=-1)
