@@ -936,6 +936,17 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(shares)
             + " |"
         )
+    if any(variants[n].get("sparse_labels_ignored") for n in names):
+        rows.append(
+            "| a person's labels too sparse to learn from (ignored places, last fit) | "
+            + " | ".join(
+                "–"
+                if variants[n].get("sparse_labels_ignored") is None
+                else f"{variants[n]['sparse_labels_ignored']:g}"
+                for n in names
+            )
+            + " |"
+        )
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "
