@@ -394,7 +394,8 @@ def test_the_errors_section_reads_the_kinds_its_record_has(tmp_path):
 def test_the_hitl_table_counts_a_persons_labels_left_out_as_too_sparse():
     from factorydet_core.evaluation.report import hitl_markdown
 
-    result = _hitl_result({"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.32, 0.33, 0.31], "full": [0.34] * 3})
+    f1 = {"blind": [0.30, 0.31, 0.29], "reviewed_200": [0.32, 0.33, 0.31], "full": [0.34] * 3}
+    result = _hitl_result(f1)
     assert "too sparse to learn from" not in hitl_markdown(result, heading=False)
     result["variants"]["reviewed_200"]["sparse_labels_ignored"] = 431.5
     result["variants"]["full"]["sparse_labels_ignored"] = 0.0
