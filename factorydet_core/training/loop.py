@@ -208,6 +208,13 @@ def with_session_labels(
     and so are a person's labels that hold fewer than ``min_points`` of their frame's points
     (``sparse_label_mask``; ``LoopSettings.label_min_points``). Labels whose box is the model's
     own (origins ``MODEL_BOX_ORIGINS``) are marked so (``FrameProposals.label_model_box_mask``)."""
+    return session_labels(db, frames, snapshot, min_points)[0]
+
+
+def session_labels(
+    db: SessionDB, frames: Sequence[FrameProposals], snapshot: dict | None = None, min_points: int = 0
+) -> tuple[list[FrameProposals], int]:
+    """``with_session_labels``' frames, and how many labels it left out as too sparse."""
     names = db.class_names
     if snapshot is None:
         by_frame = {
@@ -227,13 +234,14 @@ def with_session_labels(
         by_frame = {f.frame_index: [] for f in frames}
         for lab in snapshot["labels"]:
             by_frame.setdefault(lab["frame_index"], []).append(lab)
-    out = []
+    out, num_sparse = [], 0
     for frame in frames:
         given = by_frame[frame.frame_index]
         labels = [lab for lab in given if lab.get("reviewed", True)]
         ignored = [lab["box"] for lab in given if not lab.get("reviewed", True)]
         if min_points:
             sparse = sparse_label_mask(db.dataset, frame.frame_index, labels, min_points)
+            num_sparse += int(sparse.sum())
             ignored += [lab["box"] for lab, is_sparse in zip(labels, sparse) if is_sparse]
             labels = [lab for lab, is_sparse in zip(labels, sparse) if not is_sparse]
         model_box_mask = np.array([lab["origin"] in MODEL_BOX_ORIGINS for lab in labels], bool)
@@ -251,7 +259,7 @@ def with_session_labels(
                 model_box_mask,
             )
         )
-    return out
+    return out, num_sparse
 
 
 POLICY_ORIGINS = ("dataset", "import")
@@ -260,7 +268,7 @@ labels imported from elsewhere): ``sparse_label_mask`` does not check them."""
 
 
 def sparse_label_mask(
-    dataset: Dataset, frame_index: int, labels: Sequence[dict], min_points: int
+    dataset: Dataset | None, frame_index: int, labels: Sequence[dict], min_points: int
 ) -> np.ndarray:
     """(L,) bool: which of a frame's labels (dicts with ``box`` and ``origin``) a person made
     (origin not in ``POLICY_ORIGINS``) and hold fewer than ``min_points`` of the frame's points,
@@ -271,6 +279,8 @@ def sparse_label_mask(
     checked = [k for k, lab in enumerate(labels) if lab["origin"] not in POLICY_ORIGINS]
     if not checked or min_points <= 0:
         return mask
+    if dataset is None:
+        raise InputError("label_min_points: counting a label's points needs the session's data set")
     points = merge_frame(dataset.frame(frame_index)).points
     for k in checked:
         mask[k] = int(points_in_box(points, counting_box(labels[k]["box"])).sum()) < min_points
@@ -447,11 +457,9 @@ def train_session(
         check_carry_world(db, world)  # (before anything is written)
     snapshot_id = db.snapshot_labels(frame_indices)
     snapshot = db.snapshot(snapshot_id)
-    labelled = with_session_labels(db, frames, snapshot, settings.label_points_floor(db.dataset))
-    # A person's labels too sparse to learn from, left out as ignored places (the run says how many).
-    num_sparse = sum(1 for lab in snapshot["labels"] if lab.get("reviewed", True)) - sum(
-        len(frame.label_boxes) for frame in labelled
-    )
+    # A person's labels too sparse to learn from are left out as ignored places (the run says how many).
+    label_floor = settings.label_points_floor(db.dataset)
+    labelled, num_sparse = session_labels(db, frames, snapshot, label_floor)
     reviewed = db.reviewed_patch_sets()
     excluded = _merge(reviewed["object"], reviewed["wrong_box"])
     classifier = new_classifier(settings, db.class_names)
@@ -551,6 +559,7 @@ def train_session(
     }
     if why and mode == "next":
         config["afresh_because"] = why
+    config["label_points_floor"] = label_floor
     config["sparse_labels_ignored"] = num_sparse
     if command:
         config["command"] = command  # the checkpoints' notes say how to reproduce them

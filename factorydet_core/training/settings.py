@@ -196,15 +196,17 @@ class LoopSettings:
     still count as the object's. On held-out factories at 50% unannotated the reviewer's detector
     gained F by it, seed by seed (``bench hitl``, docs/review-loop.md)."""
     label_min_points: int | None = None
-    """A label a person made in the app (drawn, a verdict, carried by label once; not the data
-    set's own annotations nor imported ones) whose box holds fewer than this many of its frame's
+    """A label a person made in the app (drawn, an Object verdict, carried by label once, a
+    confirmed pre-label, a keyframe's computed box: every origin but the data set's own
+    annotations and imported labels) whose box holds fewer than this many of its frame's
     points (``session.world.counting_box``, the frame merged with its nominal extrinsics) trains
     as an ignored place, neither object nor background, as the data set's annotation policy
     leaves such sparse objects unannotated and the evaluation ignores them. Label once shows an
     object in every frame with a point of it; a positive of a handful of points teaches the
     detector that clutter is an object, and a reference no detector can find lowers the tuned
     thresholds. ``None``: ``SPARSE_LABEL_SHARE`` of the data set's annotation policy (its
-    manifest's ``min_annotated_points``; none stated: every label kept); 0 keeps every label."""
+    manifest's ``min_annotated_points``; none stated: every label kept); 0 keeps every label.
+    Pseudo-labels (``pseudo_label_confident``, carried or not) are not checked."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -510,8 +512,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "verdict's mined box, a confirmed pre-label whose box nobody moved) are box targets too "
             "(off: they teach their class alone)", bool),
     Control("label_min_points", "Label min points", "a label a person made (drawn, a verdict, carried "
-            "by label once) holding fewer of its frame's points trains as an ignored place, neither object "
-            "nor background (0: every label; -1: half the data set's annotation policy, none without one)",
+            "by label once, a confirmed pre-label; not the data set's nor imported ones) holding fewer of "
+            "its frame's points trains as an ignored place, neither object nor background (0: every "
+            "label; -1: half the data set's annotation policy, none without one)",
             int, -1, 1_000_000, 5, none_as=-1),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),

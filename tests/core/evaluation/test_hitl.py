@@ -253,3 +253,16 @@ def test_records_and_compares_say_when_their_runs_ran_other_code():
     unknown = compare_hitl_records(ours, record([None, None]))
     assert unknown["variants"]["blind"]["library"]["unknown"] == 2
     assert "version of the library" not in hitl_compare_table(unknown)
+
+
+def test_the_label_points_floor_shapes_the_reviewers_runs_alone():
+    # Only a reviewer makes labels the floor checks: blind mining and full labels have the data
+    # set's and imported ones.
+    settings = dataclasses.asdict(LoopSettings())
+    plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [50], "review_by": "place",
+            "queue_max_label_iou": 0.25, "settings": settings}  # fmt: skip
+    every_label = {**plan, "settings": {**settings, "label_min_points": 0}}
+    for variant in ("blind", "blind_safe", "full", "full_late"):
+        assert _run_plan(plan, variant) == _run_plan(every_label, variant)
+    for variant in ("reviewed_200", "reviewed_safe_200"):
+        assert _run_plan(plan, variant) != _run_plan(every_label, variant)

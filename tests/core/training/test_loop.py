@@ -123,6 +123,9 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     assert len(queue) == mined_total > 0 and all(item["run_id"] == run_id for item in queue)
     assert db.training_runs()[-1]["kind"] == "full"
     assert db.training_runs()[-1]["snapshot_id"] is not None
+    # Only the data set's annotations: nothing to check against the policy's floor (half its 50).
+    config = db.training_runs()[-1]["config"]
+    assert (config["label_points_floor"], config["sparse_labels_ignored"]) == (25, 0)
     # A run trained with no front-end note (scripts, the benchmark) still loads.
     stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
     assert stored.front_end is None and stored.class_names == run.model.class_names
@@ -885,7 +888,7 @@ def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, datas
     from factorydet_core.geometry import points_in_box
     from factorydet_core.proposals.merge import merge_frame
     from factorydet_core.session.world import counting_box
-    from factorydet_core.training.loop import sparse_label_mask
+    from factorydet_core.training.loop import session_labels, sparse_label_mask
 
     frame = frames[0]
     points = merge_frame(dataset.frame(0)).points
@@ -907,7 +910,8 @@ def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, datas
     label = db.add_label(0, empty, "box", "sparse")
     try:
         (kept,) = with_session_labels(db, [frame])
-        (left_out,) = with_session_labels(db, [frame], min_points=25)
+        (left_out,), num_sparse = session_labels(db, [frame], min_points=25)
+        assert num_sparse == 1
         assert len(kept.label_boxes) == len(frame.label_boxes) + 1
         assert len(left_out.label_boxes) == len(frame.label_boxes)
         np.testing.assert_allclose(left_out.ignore_boxes, [label.box])
@@ -923,3 +927,10 @@ def test_the_label_points_floor_follows_the_data_sets_policy(dataset):
     assert LoopSettings().label_points_floor(None) == 0  # no data set, no policy: every label
     with pytest.raises(InputError, match="label_min_points"):
         LoopSettings(label_min_points=-1)
+    # The control's -1 is the default (the policy's floor); below it is refused.
+    from factorydet_core.training.settings import CONTROL_BY_FIELD
+
+    control = CONTROL_BY_FIELD["label_min_points"]
+    assert control.parse("-1") is None and control.parse("25") == 25
+    with pytest.raises(InputError):
+        control.parse("-2")
