@@ -88,6 +88,8 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
 	$(BIN)/factorydet bench world-labels --heldout-seeds 104,105,106 --heldout-frames 60 --readme docs/labelling.md \
 	  --readme-block world-labels-long
+	# The labelling loop. Every record before the reviewer's sparse-labels one trained on every label a
+	# person made (--label-min-points 0 keeps that, so its runs resume); since, the policy's floor is the default.
 	$(BIN)/factorydet bench hitl $(CORPUS) --label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl.json --readme docs/review-loop.md \
 	  --review-order score --no-refit-box-quality
