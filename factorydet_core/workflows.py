@@ -16,7 +16,12 @@ from factorydet_core.scale.jobs import proposer, scoring
 from factorydet_core.scale.runner import Execution
 from factorydet_core.session.store import SessionDB
 from factorydet_core.session.world import WorldFrames, session_world
-from factorydet_core.training.loop import cached_proposals, session_references, train_session
+from factorydet_core.training.loop import (
+    cached_proposals,
+    session_references,
+    sparse_session_labels,
+    train_session,
+)
 from factorydet_core.training.mining import FrameProposals, Progress, TrainingRun
 from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import InputError
@@ -114,6 +119,13 @@ def retrain_session(
         report("compare", 0, 1)
         test_frames = cached_proposals(db, dataset, detector, test, propose=propose)
         models = {**(before or {}), after_label.format(run_id=run_id): run.model}
-        table = compare_models(models, test_frames, session_references(db, test))
+        # A person's labels too sparse to train on are neither references nor false positives.
+        floor = settings.label_points_floor(dataset)
+        table = compare_models(
+            models,
+            test_frames,
+            session_references(db, test, floor),
+            ignored=sparse_session_labels(db, test, floor),
+        )
         db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
     return Retrained(run_id, run, detector, frames, table)

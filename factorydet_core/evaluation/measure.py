@@ -162,13 +162,17 @@ def compare_models(
     frames: Sequence[FrameProposals],
     references: dict[int, tuple[np.ndarray, np.ndarray]],
     iou_threshold: float = 0.6,
+    ignored: dict[int, np.ndarray] | None = None,
 ) -> dict:
     """Precision, recall and F-score per class and in total of each model on the same frames and
-    references (the app's before/after table)."""
+    references (the app's before/after table); detections on ``ignored`` boxes (frame index ->
+    (Q, 7)) count neither way."""
 
     out = {}
     for name, model in models.items():
-        metrics = measure_against(model, list(frames), references, iou_threshold=iou_threshold)
+        metrics = measure_against(
+            model, list(frames), references, iou_threshold=iou_threshold, ignored=ignored
+        )
         out[name] = {
             "per_class": {
                 k: {m: v[m] for m in ("precision", "recall", "f1", "num_reference")}

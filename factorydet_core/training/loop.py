@@ -187,15 +187,45 @@ def cached_proposals(
 
 
 def session_references(
-    db: SessionDB, frame_indices: Sequence[int]
+    db: SessionDB, frame_indices: Sequence[int], min_points: int = 0
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Frame index -> (boxes (R, 7), class_ids (R,)) of the session's current labels (those a
-    person made or confirmed: the model's unconfirmed pre-labels are not truth)."""
+    person made or confirmed: the model's unconfirmed pre-labels are not truth), less those too
+    sparse to train on (``sparse_label_mask`` at ``min_points``: ``sparse_session_labels``)."""
     out = {}
     for index in frame_indices:
-        boxes, class_ids, _ = db.frame_boxes(index, reviewed=True)
+        labels = _reviewed_labels(db, index)
+        sparse = sparse_label_mask(db.dataset, index, labels, min_points)
+        boxes, class_ids, _ = label_arrays(
+            [lab["label"] for lab, s in zip(labels, sparse) if not s], db.class_names
+        )
         out[int(index)] = (boxes, class_ids)
     return out
+
+
+def sparse_session_labels(
+    db: SessionDB, frame_indices: Sequence[int], min_points: int
+) -> dict[int, np.ndarray]:
+    """Frame index -> (Q, 7) boxes of the session's labels too sparse to train on at ``min_points``
+    (``sparse_label_mask``): places a measurement against ``session_references`` ignores, as
+    training does."""
+    out = {}
+    for index in frame_indices:
+        labels = _reviewed_labels(db, index)
+        sparse = sparse_label_mask(db.dataset, index, labels, min_points)
+        out[int(index)] = np.array([lab["box"] for lab, s in zip(labels, sparse) if s], np.float64).reshape(
+            -1, 7
+        )
+    return out
+
+
+def _reviewed_labels(db: SessionDB, frame_index: int) -> list[dict]:
+    """The frame's labels a person made or confirmed, as ``sparse_label_mask`` reads them."""
+    return [
+        {"box": list(lab.box), "origin": lab.origin, "label": lab}
+        for lab in db.labels(frame_index)
+        if lab.reviewed
+    ]
 
 
 def with_session_labels(
