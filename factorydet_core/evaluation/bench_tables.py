@@ -762,6 +762,7 @@ def hitl_compare_table(result: dict) -> str:
     rows = result["variants"]
     in_factory = any("in_factory_f1" in row for row in rows.values())
     fitted_frames = any("fitted_frame_f1" in row for row in rows.values())
+    precision_recall = any("precision" in row and "recall" in row for row in rows.values())
     heldout = " on the held-out factories" if result.get("heldout") else ""
     lines = [
         f"{what}, seed by seed (seeds {seeds}): mean [95% interval]{heldout}."
@@ -769,8 +770,12 @@ def hitl_compare_table(result: dict) -> str:
         "",
         "| detector | F-score | mAP | F gain over its own blind mining |"
         + (" F-score in-factory |" if in_factory else "")
-        + (" F-score at the fitted frames' thresholds |" if fitted_frames else ""),
-        "|---|---|---|---|" + ("---|" if in_factory else "") + ("---|" if fitted_frames else ""),
+        + (" F-score at the fitted frames' thresholds |" if fitted_frames else "")
+        + (" precision | recall |" if precision_recall else ""),
+        "|---|---|---|---|"
+        + ("---|" if in_factory else "")
+        + ("---|" if fitted_frames else "")
+        + ("---|---|" if precision_recall else ""),
     ]
     for name, row in rows.items():
         # A detector against itself over the same blind mining: its gain is its F difference.
@@ -780,6 +785,8 @@ def hitl_compare_table(result: dict) -> str:
             cells.append(difference_text(row["in_factory_f1"]) if "in_factory_f1" in row else "–")
         if fitted_frames:
             cells.append(difference_text(row["fitted_frame_f1"]) if "fitted_frame_f1" in row else "–")
+        if precision_recall:
+            cells += [difference_text(row[key]) if key in row else "–" for key in ("precision", "recall")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + _library_pairs_text(rows)
 

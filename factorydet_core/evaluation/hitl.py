@@ -1254,9 +1254,9 @@ def compare_hitl_records(
         the plan fields that differ (``{field: [record's, baseline's]}``, settings by
         name), ``variants`` one row per compared pair (named by the detector, or "A minus B" for a
         ``pair`` of two), each ``{"variant", "baseline_variant", "f1", "map", "gain_over_blind"}``
-        and ``"in_factory_f1"`` and ``"fitted_frame_f1"`` (at the fitted frames' thresholds, with
-        threshold folds) where both measured it, each a ``paired_difference`` (record minus
-        baseline).
+        and ``"precision"``, ``"recall"``, ``"in_factory_f1"`` and ``"fitted_frame_f1"`` (at the
+        fitted frames' thresholds, with threshold folds) where both measured it, each a
+        ``paired_difference`` (record minus baseline).
 
     Raises:
         InputError: for a record that is not a complete ``bench hitl`` record, two records of
@@ -1322,6 +1322,9 @@ def compare_hitl_records(
             row["in_factory_f1"] = paired_difference(
                 [ours[s]["in_factory"]["f1"] for s in seeds], [theirs[s]["in_factory"]["f1"] for s in seeds]
             )
+        for key in ("precision", "recall"):  # whether an F that moves (or not) trades one for the other
+            if all(key in runs[s] for runs in (ours, theirs) for s in seeds):
+                row[key] = paired_difference([ours[s][key] for s in seeds], [theirs[s][key] for s in seeds])
         if all("fitted_frame_thresholds" in runs[s] for runs in (ours, theirs) for s in seeds):
             # Both tuned out of fold: the same networks at their fitted frames' thresholds too.
             row["fitted_frame_f1"] = paired_difference(

@@ -477,3 +477,23 @@ def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
     assert "(19,873 points, at most 20,000 by Display's Points drawn, the boxes)" in render_record(budgeted)
     every_point = {**record, "points_drawn": None, "points_shown": 81_002}
     assert "(81,002 points, the boxes)" in render_record(every_point)
+
+
+def test_a_hitl_compare_says_how_precision_and_recall_moved_where_both_records_kept_them():
+    from factorydet_core.evaluation.hitl import compare_hitl_records
+
+    record = _hitl_record({"blind": [0.20, 0.22, 0.21], "reviewed_200": [0.26, 0.27, 0.25]}, {"epochs": 5})
+    baseline = _hitl_record({"blind": [0.20, 0.22, 0.21], "reviewed_200": [0.26, 0.27, 0.25]}, {"epochs": 5})
+    assert "precision" not in render_record(compare_hitl_records(record, baseline, names=("a", "b")))
+    for rec, (precision, recall) in ((record, (0.4, 0.2)), (baseline, (0.3, 0.25))):
+        for runs in rec["per_seed"].values():
+            for run in runs:
+                run["precision"], run["recall"] = precision, recall
+    result = compare_hitl_records(record, baseline, names=("a", "b"))
+    reviewed = result["variants"]["reviewed_200"]
+    assert reviewed["precision"]["mean"] == pytest.approx(0.1) and reviewed["recall"][
+        "mean"
+    ] == pytest.approx(-0.05)
+    table = render_record(result)
+    assert "| precision | recall |" in table
+    assert _rows(table, "reviewed_200")[0][-2:] == ["+0.100 [+0.100, +0.100]", "-0.050 [-0.050, -0.050]"]
