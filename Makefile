@@ -503,6 +503,9 @@ bench: $(STAMP) corpus corpus50
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-reviewed-sparse-six --resume --resume-other-library
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json \
+	  docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json --variants reviewed_200,reviewed_200 \
+	  --readme docs/review-loop.md --readme-block hitl-50-sparse-vs-every-label
 	# The app's training defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
 	# order over the mined queue alone (--review-extra 0); against the class-turns record above.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
