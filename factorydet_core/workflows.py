@@ -18,8 +18,7 @@ from factorydet_core.session.store import SessionDB
 from factorydet_core.session.world import WorldFrames, session_world
 from factorydet_core.training.loop import (
     cached_proposals,
-    session_references,
-    sparse_session_labels,
+    session_references_and_sparse,
     train_session,
 )
 from factorydet_core.training.mining import FrameProposals, Progress, TrainingRun
@@ -120,12 +119,7 @@ def retrain_session(
         test_frames = cached_proposals(db, dataset, detector, test, propose=propose)
         models = {**(before or {}), after_label.format(run_id=run_id): run.model}
         # A person's labels too sparse to train on are neither references nor false positives.
-        floor = settings.label_points_floor(dataset)
-        table = compare_models(
-            models,
-            test_frames,
-            session_references(db, test, floor),
-            ignored=sparse_session_labels(db, test, floor),
-        )
+        references, sparse = session_references_and_sparse(db, test, settings.label_points_floor(dataset))
+        table = compare_models(models, test_frames, references, ignored=sparse)
         db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
     return Retrained(run_id, run, detector, frames, table)

@@ -192,15 +192,7 @@ def session_references(
     """Frame index -> (boxes (R, 7), class_ids (R,)) of the session's current labels (those a
     person made or confirmed: the model's unconfirmed pre-labels are not truth), less those too
     sparse to train on (``sparse_label_mask`` at ``min_points``: ``sparse_session_labels``)."""
-    out = {}
-    for index in frame_indices:
-        labels = _reviewed_labels(db, index)
-        sparse = sparse_label_mask(db.dataset, index, labels, min_points)
-        boxes, class_ids, _ = label_arrays(
-            [lab["label"] for lab, s in zip(labels, sparse) if not s], db.class_names
-        )
-        out[int(index)] = (boxes, class_ids)
-    return out
+    return session_references_and_sparse(db, frame_indices, min_points)[0]
 
 
 def sparse_session_labels(
@@ -209,14 +201,26 @@ def sparse_session_labels(
     """Frame index -> (Q, 7) boxes of the session's labels too sparse to train on at ``min_points``
     (``sparse_label_mask``): places a measurement against ``session_references`` ignores, as
     training does."""
-    out = {}
+    return session_references_and_sparse(db, frame_indices, min_points)[1]
+
+
+def session_references_and_sparse(
+    db: SessionDB, frame_indices: Sequence[int], min_points: int
+) -> tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict[int, np.ndarray]]:
+    """``(session_references, sparse_session_labels)`` of the same frames, each frame's labels read
+    and its points counted once (a measurement needs both)."""
+    references, sparse_boxes = {}, {}
     for index in frame_indices:
         labels = _reviewed_labels(db, index)
         sparse = sparse_label_mask(db.dataset, index, labels, min_points)
-        out[int(index)] = np.array([lab["box"] for lab, s in zip(labels, sparse) if s], np.float64).reshape(
-            -1, 7
+        boxes, class_ids, _ = label_arrays(
+            [lab["label"] for lab, s in zip(labels, sparse) if not s], db.class_names
         )
-    return out
+        references[int(index)] = (boxes, class_ids)
+        sparse_boxes[int(index)] = np.array(
+            [lab["box"] for lab, s in zip(labels, sparse) if s], np.float64
+        ).reshape(-1, 7)
+    return references, sparse_boxes
 
 
 def _reviewed_labels(db: SessionDB, frame_index: int) -> list[dict]:
