@@ -7,8 +7,9 @@ in headless Chromium with the keyboard.
 Each step is a key press, timed until the server has stored its effect (the label's new version,
 polled from the database; for a frame change, its detections drawn into the scene) and until the
 page shows it (the selected label's new version in the Labels panel, the new frame number). The
-record also gives what one scene change costs this browser to render (``_render_cost``): in
-headless Chromium that is software WebGL, which a browser with a GPU does not pay. Runs in a
+record also gives what one scene change costs this browser to render, and how many renders it
+causes (``_render_cost``): in headless Chromium that is software WebGL, which a browser with a GPU
+does not pay. Runs in a
 scratch session on the data set (nothing is written under ``sessions/``), with the shipped model,
 label once on (edits reach every frame that shows the object). Prints one JSON object.
 """
@@ -107,13 +108,30 @@ def _scene_render_ms(page, view, seconds: float = 5.0) -> float | None:
     return round(float(np.median(np.diff(renders))), 1) if len(renders) > 2 else None
 
 
-def _render_cost(page, view, repeats: int = 5) -> dict:
+def _renders_since(page, since_ms: float, window_ms: float) -> int:
+    """How many renders of the scene (bursts of draw calls) the page began in the ``window_ms``
+    after page time ``since_ms``."""
+    draws = page.evaluate("window.__factorydetDraws")
+    starts = [t for k, t in enumerate(draws) if k == 0 or t - draws[k - 1] > 20.0]
+    return sum(since_ms <= t < since_ms + window_ms for t in starts)
+
+
+def _render_cost(page, view, repeats: int = 5, window_s: float = 1.0) -> dict:
     """What one scene change costs this browser: a notification's round trip alone, and with a
     small scene change in the same update (the page renders the whole scene again before it shows
-    the notification; in headless Chromium that is software WebGL)."""
+    the notification; in headless Chromium that is software WebGL). Also how many renders the
+    page begins in the ``window_s`` after each (viser renders on a 1 s heartbeat when idle, and
+    for a quarter of a second after each scene change), and in as long a time with nothing sent."""
     alone, with_scene = [], []
+    renders: dict[str, list[int]] = {"idle": [], "alone": [], "scene": []}
     for k in range(repeats):
+        page.evaluate("window.__factorydetDraws = []")
+        since = page.evaluate("performance.now()")
+        time.sleep(window_s)
+        renders["idle"].append(_renders_since(page, since, 1000.0 * window_s))
         for scene_change, into in ((False, alone), (True, with_scene)):
+            page.evaluate("window.__factorydetDraws = []")
+            since = page.evaluate("performance.now()")
             start = time.perf_counter()
             if scene_change:
                 view.client.scene.add_box(
@@ -125,11 +143,20 @@ def _render_cost(page, view, repeats: int = 5) -> dict:
             view.client.add_notification("probe", f"probe {k} {scene_change}", auto_close_seconds=0.5)
             page.get_by_text(f"probe {k} {scene_change}", exact=False).first.wait_for(timeout=30_000)
             into.append(1000.0 * (time.perf_counter() - start))
+            time.sleep(max(0.0, window_s - (time.perf_counter() - start)))
+            renders["scene" if scene_change else "alone"].append(
+                _renders_since(page, since, 1000.0 * window_s)
+            )
             time.sleep(0.3)
     view.client.scene.remove_by_name("/client/probe")
     return {
         "notification_alone_median_ms": round(statistics.median(alone), 1),
         "with_a_scene_change_median_ms": round(statistics.median(with_scene), 1),
+        "render_window_s": window_s,
+        "renders_idle_median": float(statistics.median(renders["idle"])),
+        "renders_after_a_notification_median": float(statistics.median(renders["alone"])),
+        "renders_after_a_scene_change_median": float(statistics.median(renders["scene"])),
+        "renders": renders,
     }
 
 

@@ -701,6 +701,16 @@ def walkthrough_markdown(result: dict) -> str:
         if scene is not None
         else ""
     )
+    if "renders_after_a_scene_change_median" in render:  # (records before it did not count them)
+        window = render["render_window_s"]
+        scene_text += (
+            f" In {fmt(window)} s the page begins {fmt(render['renders_idle_median'])} render(s) of the"
+            f" scene with nothing sent, {fmt(render['renders_after_a_notification_median'])} after a"
+            f" notification alone and {fmt(render['renders_after_a_scene_change_median'])} after a"
+            " scene change (medians): viser draws the scene on a heartbeat when idle and keeps"
+            " drawing it for a moment after every change, which costs a browser with a GPU nothing"
+            " and this one a render's time each."
+        )
     return (
         table(header, rows)
         + f"\n\n{result['repeats']} rounds of key presses in headless Chromium on `{result['data']}` with"

@@ -942,7 +942,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(
                 "–"
                 if variants[n].get("sparse_labels_ignored") is None
-                else f"{variants[n]['sparse_labels_ignored']:g}"
+                else f"{variants[n]['sparse_labels_ignored']:.1f}"
                 for n in names
             )
             + " |"

@@ -515,7 +515,7 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "by label once, a confirmed pre-label; not the data set's nor imported ones) holding fewer of "
             "its frame's points trains as an ignored place, neither object nor background (0: every "
             "label; -1: half the data set's annotation policy, none without one)",
-            int, -1, 1_000_000, 5, none_as=-1),
+            int, -1, 1_000_000, 1, none_as=-1),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

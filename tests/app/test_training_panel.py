@@ -60,3 +60,25 @@ def test_the_ray_controls_show_and_give_the_session_s_setting(server, small_data
     for bad in (1.5, -1):  # the control rounds and clamps; a value from elsewhere is checked
         with pytest.raises(InputError, match="whole number"):
             execution_of(bad, "")
+
+
+def test_the_runs_table_says_how_many_labels_trained_as_ignored_places(
+    small_dataset_dir, tiny_model_path, tmp_path
+):
+    from app.panels.training_panel import runs_markdown
+    from app.state import AppState
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.session.store import SessionDB, open_session
+    from tests.fakes import queue_run
+
+    dataset = open_dataset(small_dataset_dir)
+    db = SessionDB(open_session("runs", tmp_path), dataset)
+    snapshot = db.snapshot_labels(range(dataset.num_frames))
+    size = db.snapshot_size(snapshot)
+    assert size >= 2
+    run = queue_run(tiny_model_path, [[]])
+    db.save_training_run(run, "small", {"sparse_labels_ignored": 2}, snapshot_id=snapshot)
+    db.save_training_run(run, "small", {"sparse_labels_ignored": 0}, snapshot_id=snapshot)
+    rows = runs_markdown(AppState(dataset, db=db)).splitlines()[2:]
+    assert f"| {size - 2} (+2 too sparse, ignored) |" in rows[0]
+    assert f"| {size} |" in rows[1] and "ignored" not in rows[1]

@@ -479,6 +479,25 @@ def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
     assert "(81,002 points, the boxes)" in render_record(every_point)
 
 
+def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counted_it():
+    record = _record("walkthrough")
+    assert "render(s) of the scene" not in render_record(record)  # a record from before the count
+    counted = {
+        **record,
+        "browser_render": {
+            **record["browser_render"],
+            "render_window_s": 1.0,
+            "renders_idle_median": 1.0,
+            "renders_after_a_notification_median": 1.0,
+            "renders_after_a_scene_change_median": 3.0,
+        },
+    }
+    assert (
+        "In 1.0 s the page begins 1.0 render(s) of the scene with nothing sent, 1.0 after a notification"
+        " alone and 3.0 after a scene change (medians)"
+    ) in render_record(counted)
+
+
 def test_a_hitl_compare_says_how_precision_and_recall_moved_where_both_records_kept_them():
     from factorydet_core.evaluation.hitl import compare_hitl_records
 
