@@ -75,6 +75,9 @@ def _timed(
     return 1000.0 * (stored_at - start), 1000.0 * server, 1000.0 * (end - start)
 
 
+FEW_POINTS = 1_000
+"""Points drawn while the walkthrough times a render of the scene with (almost) no scan."""
+
 DRAW_LOG = """
 window.__factorydetDraws = [];
 for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.prototype]) {
@@ -292,6 +295,14 @@ def run(
                 _wait(lambda: app.worker.idle, 600, "the frames ahead")
                 render.update(_render_cost(page, view))
                 render["scene_render_ms"] = _scene_render_ms(page, view)
+                # The same with a handful of points: what a render costs this browser whatever the
+                # scan (the boxes, the grid, the page), then the scan as it was.
+                view.state.set_display(points_drawn=FEW_POINTS)
+                _wait(lambda: 0 < view.scene.num_points_shown <= FEW_POINTS, 60, "a handful of points drawn")
+                render["few_points"] = FEW_POINTS
+                render["scene_render_ms_few_points"] = _scene_render_ms(page, view)
+                view.state.set_display(points_drawn=points_drawn)
+                _wait(lambda: view.scene.num_points_shown == points_shown, 60, "the scan drawn again")
 
                 def shows(text: str) -> Callable[[], None]:
                     return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)

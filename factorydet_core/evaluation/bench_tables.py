@@ -701,6 +701,11 @@ def walkthrough_markdown(result: dict) -> str:
         if scene is not None
         else ""
     )
+    if render.get("scene_render_ms_few_points") is not None:  # (records before it: not measured)
+        scene_text += (
+            f" With at most {render['few_points']:,} points drawn, one render still takes"
+            f" {fmt(render['scene_render_ms_few_points'])} ms."
+        )
     if "renders_after_a_scene_change_median" in render:  # (records before it did not count them)
         window = render["render_window_s"]
         scene_text += (

@@ -490,8 +490,11 @@ def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counte
             "renders_idle_median": 1.0,
             "renders_after_a_notification_median": 1.0,
             "renders_after_a_scene_change_median": 3.0,
+            "few_points": 1000,
+            "scene_render_ms_few_points": 120.5,
         },
     }
+    assert "With at most 1,000 points drawn, one render still takes 120.5 ms." in render_record(counted)
     assert (
         "In 1.0 s the page begins 1.0 render(s) of the scene with nothing sent, 1.0 after a notification"
         " alone and 3.0 after a scene change (medians)"
