@@ -83,6 +83,11 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench import --boxes 10000 --out docs/bench/label_import.json
 	$(BIN)/factorydet bench import --boxes 10000 --large-box --out docs/bench/label_import_large_box.json
 	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --readme docs/labelling.md
+	# The edits alone, with every point drawn and with at most 20,000 (Display's Points drawn).
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --readme docs/labelling.md \
+	  --readme-block walkthrough-edits-points-all
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --points-drawn 20000 \
+	  --readme docs/labelling.md --readme-block walkthrough-edits-points-20k
 	$(BIN)/factorydet bench world-labels --heldout-seeds 201,202,203 --heldout-frames 12 --readme docs/labelling.md \
 	  --readme-block world-labels-validation
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md

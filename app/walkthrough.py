@@ -2,7 +2,7 @@
 in headless Chromium with the keyboard.
 
     .venv/bin/python -m app.walkthrough DATA [--repeats 5] [--out docs/bench/walkthrough.json]
-        [--readme docs/labelling.md]
+        [--readme docs/labelling.md [--readme-block walkthrough]] [--no-retrain] [--points-drawn N]
 
 Each step is a key press, timed until the server has stored its effect (the label's new version,
 polled from the database; for a frame change, its detections drawn into the scene) and until the
@@ -426,6 +426,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="also write the JSON here")
     parser.add_argument("--readme", default=None, help="update the page's walkthrough block (and its record)")
     parser.add_argument(
+        "--readme-block",
+        default="walkthrough",
+        help="the block of --readme to update (default: walkthrough, the whole walkthrough's; another "
+        "block may hold the edits alone)",
+    )
+    parser.add_argument(
         "--no-retrain",
         action="store_true",
         help="leave out the review verdicts and the retrains (edits only)",
@@ -439,8 +445,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.points_drawn is not None and args.points_drawn < 1:
         parser.error(f"--points-drawn must be at least 1, got {args.points_drawn}")
-    if args.no_retrain and args.readme:
-        parser.error("--readme records the whole walkthrough: drop --no-retrain")
+    if args.no_retrain and args.readme and args.readme_block == "walkthrough":
+        parser.error(
+            "the walkthrough block records the whole walkthrough: drop --no-retrain or name --readme-block"
+        )
     record = run(
         args.data,
         args.repeats,
@@ -454,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         write_text_atomic(args.out, text + "\n")
     if args.readme:
-        update_readme(args.readme, record)
+        update_readme(args.readme, record, name=args.readme_block)
     return 0
 
 
