@@ -258,7 +258,7 @@ def test_records_and_compares_say_when_their_runs_ran_other_code():
 def test_the_label_points_floor_shapes_the_reviewers_runs_alone():
     # Only a reviewer makes labels the floor checks: blind mining and full labels have the data
     # set's and imported ones.
-    settings = dataclasses.asdict(LoopSettings())
+    settings = dataclasses.asdict(LoopSettings(label_min_points=None))  # the policy's floor
     plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [50], "review_by": "place",
             "queue_max_label_iou": 0.25, "settings": settings}  # fmt: skip
     every_label = {**plan, "settings": {**settings, "label_min_points": 0}}

@@ -123,9 +123,9 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     assert len(queue) == mined_total > 0 and all(item["run_id"] == run_id for item in queue)
     assert db.training_runs()[-1]["kind"] == "full"
     assert db.training_runs()[-1]["snapshot_id"] is not None
-    # Only the data set's annotations: nothing to check against the policy's floor (half its 50).
+    # Every label by default: no floor, nothing left out.
     config = db.training_runs()[-1]["config"]
-    assert (config["label_points_floor"], config["sparse_labels_ignored"]) == (25, 0)
+    assert (config["label_points_floor"], config["sparse_labels_ignored"]) == (0, 0)
     # A run trained with no front-end note (scripts, the benchmark) still loads.
     stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
     assert stored.front_end is None and stored.class_names == run.model.class_names
@@ -925,16 +925,17 @@ def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, datas
 
 def test_the_label_points_floor_follows_the_data_sets_policy(dataset):
     policy = dataset.manifest["config"]["min_annotated_points"]
-    assert LoopSettings().label_points_floor(dataset) == round(policy / 2)
-    assert LoopSettings(label_min_points=0).label_points_floor(dataset) == 0
+    assert LoopSettings(label_min_points=None).label_points_floor(dataset) == round(policy / 2)
+    assert LoopSettings().label_points_floor(dataset) == 0  # every label, the default
     assert LoopSettings(label_min_points=7).label_points_floor(dataset) == 7
-    assert LoopSettings().label_points_floor(None) == 0  # no data set, no policy: every label
+    assert LoopSettings(label_min_points=None).label_points_floor(None) == 0  # no policy: every label
     with pytest.raises(InputError, match="label_min_points"):
         LoopSettings(label_min_points=-1)
-    # The control's -1 is the default (the policy's floor); below it is refused.
+    # The control's -1 is the policy's floor; below it is refused; the default needs no flag.
     from factorydet_core.training.settings import CONTROL_BY_FIELD
 
     control = CONTROL_BY_FIELD["label_min_points"]
     assert control.parse("-1") is None and control.parse("25") == 25
+    assert control.arguments(None) == ["--label-min-points", "-1"] and control.arguments(0) == []
     with pytest.raises(InputError):
         control.parse("-2")
