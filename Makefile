@@ -93,8 +93,9 @@ bench: $(STAMP) corpus corpus50
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
 	$(BIN)/factorydet bench world-labels --heldout-seeds 104,105,106 --heldout-frames 60 --readme docs/labelling.md \
 	  --readme-block world-labels-long
-	# The labelling loop. Every line trains on every label a person made (the default), but the sparse-labels
-	# ones, which leave a person's labels on fewer than half the policy's points out (--label-min-points -1).
+	# The labelling loop. Every line trains on every label a person made (the default), except the two
+	# sparse-label lines, which leave out a person's labels holding fewer than half the policy's points
+	# (--label-min-points -1).
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl.json --readme docs/review-loop.md \
 	  --review-order score --no-refit-box-quality

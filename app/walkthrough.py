@@ -9,9 +9,9 @@ polled from the database; for a frame change, its detections drawn into the scen
 page shows it (the selected label's new version in the Labels panel, the new frame number). The
 record also gives what one scene change costs this browser to render, and how many renders it
 causes (``_render_cost``): in headless Chromium that is software WebGL, which a browser with a GPU
-does not pay. Runs in a
-scratch session on the data set (nothing is written under ``sessions/``), with the shipped model,
-label once on (edits reach every frame that shows the object). Prints one JSON object.
+does not pay. Runs in a scratch session on the data set (nothing is written under ``sessions/``),
+with the shipped model, label once on (edits reach every frame that shows the object). Prints one
+JSON object.
 """
 
 from __future__ import annotations
@@ -77,6 +77,8 @@ def _timed(
 
 FEW_POINTS = 1_000
 """Points drawn while the walkthrough times a render of the scene with (almost) no scan."""
+BURST_GAP_MS = 20.0
+"""Draw calls less than this far apart belong to one render of the scene."""
 
 DRAW_LOG = """
 window.__factorydetDraws = [];
@@ -106,16 +108,20 @@ def _scene_render_ms(page, view, seconds: float = 5.0) -> float | None:
         k += 1
         time.sleep(0.05)
     camera.position = position
-    draws = page.evaluate("window.__factorydetDraws")
-    renders = [t for k, t in enumerate(draws) if k == 0 or t - draws[k - 1] > 20.0]  # a burst's first call
+    renders = _render_starts(page.evaluate("window.__factorydetDraws"))
     return round(float(np.median(np.diff(renders))), 1) if len(renders) > 2 else None
 
 
+def _render_starts(draws: list[float]) -> list[float]:
+    """The page times at which renders of the scene began: the first draw call of each burst
+    (``DRAW_LOG``'s times, in order; a render's calls come less than ``BURST_GAP_MS`` apart)."""
+    return [t for k, t in enumerate(draws) if k == 0 or t - draws[k - 1] > BURST_GAP_MS]
+
+
 def _renders_since(page, since_ms: float, window_ms: float) -> int:
-    """How many renders of the scene (bursts of draw calls) the page began in the ``window_ms``
-    after page time ``since_ms``."""
-    draws = page.evaluate("window.__factorydetDraws")
-    starts = [t for k, t in enumerate(draws) if k == 0 or t - draws[k - 1] > 20.0]
+    """How many renders of the scene the page began in the ``window_ms`` after page time
+    ``since_ms``."""
+    starts = _render_starts(page.evaluate("window.__factorydetDraws"))
     return sum(since_ms <= t < since_ms + window_ms for t in starts)
 
 
@@ -295,14 +301,18 @@ def run(
                 _wait(lambda: app.worker.idle, 600, "the frames ahead")
                 render.update(_render_cost(page, view))
                 render["scene_render_ms"] = _scene_render_ms(page, view)
-                # The same with a handful of points: what a render costs this browser whatever the
-                # scan (the boxes, the grid, the page), then the scan as it was.
-                view.state.set_display(points_drawn=FEW_POINTS)
-                _wait(lambda: 0 < view.scene.num_points_shown <= FEW_POINTS, 60, "a handful of points drawn")
-                render["few_points"] = FEW_POINTS
-                render["scene_render_ms_few_points"] = _scene_render_ms(page, view)
-                view.state.set_display(points_drawn=points_drawn)
-                _wait(lambda: view.scene.num_points_shown == points_shown, 60, "the scan drawn again")
+                if points_shown > FEW_POINTS:
+                    # The same with a handful of points: what a render costs this browser whatever
+                    # the scan (the boxes, the grid, the page), then the scan as it was.
+                    view.state.set_display(points_drawn=FEW_POINTS)
+                    # (the scan had more: this holds only once the smaller one is drawn)
+                    _wait(lambda: 0 < view.scene.num_points_shown <= FEW_POINTS, 60, "a handful of points")
+                    time.sleep(1.0)  # the page takes the smaller scan in before the camera moves
+                    render["few_points"] = FEW_POINTS
+                    render["scene_render_ms_few_points"] = _scene_render_ms(page, view)
+                    view.state.set_display(points_drawn=points_drawn)
+                    _wait(lambda: view.scene.num_points_shown == points_shown, 60, "the scan drawn again")
+                    time.sleep(1.0)  # ... and the whole scan again before the first key
 
                 def shows(text: str) -> Callable[[], None]:
                     return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
@@ -445,6 +455,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.points_drawn is not None and args.points_drawn < 1:
         parser.error(f"--points-drawn must be at least 1, got {args.points_drawn}")
+    if args.readme_block != "walkthrough" and not args.readme:
+        parser.error("--readme-block names a block of --readme: give the page too")
     if args.no_retrain and args.readme and args.readme_block == "walkthrough":
         parser.error(
             "the walkthrough block records the whole walkthrough: drop --no-retrain or name --readme-block"

@@ -87,7 +87,7 @@ def runs_markdown(state: AppState) -> str:
         labels = state.db.snapshot_size(snapshot) if snapshot is not None else "–"
         ignored = (run.get("config") or {}).get("sparse_labels_ignored")
         if ignored and snapshot is not None:
-            # Labels the floor on a person's sparse labels left out trained as ignored places.
+            # Labels the floor (label_min_points) left out; they trained as ignored places.
             labels = f"{labels - ignored} (+{ignored} too sparse, ignored)"
         last = run["rounds"][-1]["train_metrics"].get("f1") if run["rounds"] else None
         f1 = "–" if last is None else f"{last:.3f}"

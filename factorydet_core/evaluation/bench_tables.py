@@ -708,13 +708,19 @@ def walkthrough_markdown(result: dict) -> str:
         )
     if "renders_after_a_scene_change_median" in render:  # (records before it did not count them)
         window = render["render_window_s"]
+        idle, alone, scene = (
+            _renders(render[key])
+            for key in (
+                "renders_idle_median",
+                "renders_after_a_notification_median",
+                "renders_after_a_scene_change_median",
+            )
+        )
         scene_text += (
-            f" In {fmt(window)} s the page begins {fmt(render['renders_idle_median'])} render(s) of the"
-            f" scene with nothing sent, {fmt(render['renders_after_a_notification_median'])} after a"
-            f" notification alone and {fmt(render['renders_after_a_scene_change_median'])} after a"
-            " scene change (medians): viser draws the scene on a heartbeat when idle and keeps"
-            " drawing it for a moment after every change, which costs a browser with a GPU nothing"
-            " and this one a render's time each."
+            f" In {fmt(window)} s the page begins {idle} of the scene with nothing sent, {alone} after"
+            f" a notification alone and {scene} after a scene change (medians): viser draws the scene"
+            " on a heartbeat when idle and keeps drawing it for a moment after every scene change,"
+            " which costs a browser with a GPU nothing and this one a render's time each."
         )
     return (
         table(header, rows)
@@ -731,6 +737,12 @@ def walkthrough_markdown(result: dict) -> str:
         " the two cores the server uses too, before it shows anything else; a browser with a GPU does"
         " that in milliseconds." + scene_text + _retrain_text(result) + "\n"
     )
+
+
+def _renders(count: float) -> str:
+    """A median count of renders in words: '1 render', '3 renders', '2.5 renders'."""
+    shown = f"{int(count)}" if float(count).is_integer() else f"{count:g}"
+    return f"{shown} render" + ("" if shown == "1" else "s")
 
 
 def _retrain_text(result: dict) -> str:

@@ -833,6 +833,11 @@ def _same_network_rows(
     return rows
 
 
+def _mean_count(value: float) -> str:
+    """A count averaged over seeds: whole as it is, else to one decimal (487.7)."""
+    return f"{int(value)}" if float(value).is_integer() else f"{value:.1f}"
+
+
 def hitl_markdown(result: dict, heading: bool = True) -> str:
     """The ``bench hitl`` table: F-score per class and in total of blind mining, mining with
     reviews, and full labels (means over the seeds, with each seed's total), the recovered
@@ -942,7 +947,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(
                 "–"
                 if variants[n].get("sparse_labels_ignored") is None
-                else f"{variants[n]['sparse_labels_ignored']:.1f}"
+                else _mean_count(variants[n]["sparse_labels_ignored"])
                 for n in names
             )
             + " |"

@@ -201,8 +201,9 @@ class LoopSettings:
     annotations and imported labels) whose box holds fewer than this many of its frame's
     points (``session.world.counting_box``, the frame merged with its nominal extrinsics) trains
     as an ignored place, neither object nor background, as the data set's annotation policy
-    leaves such sparse objects unannotated and the evaluation ignores them. Label once shows an
-    object in every frame with a point of it. 0 (the default) keeps every label: on held-out
+    leaves such sparse objects unannotated and the evaluation ignores them (label once shows an
+    object in every frame with a point of it, so many of a person's labels are sparse). 0 (the
+    default) keeps every label: on held-out
     factories the reviewer's detector trained without its sparse labels traded recall for
     precision and gained no F-score at 30% or at 50% unannotated, its share of the gap to full
     labels falling at 30% (``bench hitl``, docs/review-loop.md).

@@ -481,7 +481,7 @@ def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
 
 def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counted_it():
     record = _record("walkthrough")
-    assert "render(s) of the scene" not in render_record(record)  # a record from before the count
+    assert "of the scene with nothing sent" not in render_record(record)  # a record from before the count
     counted = {
         **record,
         "browser_render": {
@@ -496,8 +496,8 @@ def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counte
     }
     assert "With at most 1,000 points drawn, one render still takes 120.5 ms." in render_record(counted)
     assert (
-        "In 1.0 s the page begins 1.0 render(s) of the scene with nothing sent, 1.0 after a notification"
-        " alone and 3.0 after a scene change (medians)"
+        "In 1.0 s the page begins 1 render of the scene with nothing sent, 1 render after a notification"
+        " alone and 3 renders after a scene change (medians)"
     ) in render_record(counted)
 
 

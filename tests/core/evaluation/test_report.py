@@ -400,5 +400,5 @@ def test_the_hitl_table_counts_a_persons_labels_left_out_as_too_sparse():
     result["variants"]["reviewed_200"]["sparse_labels_ignored"] = 431.5
     result["variants"]["full"]["sparse_labels_ignored"] = 0.0
     text = hitl_markdown(result, heading=False)
-    row = "| a person's labels too sparse to learn from (ignored places, last fit) | – | 431.5 | 0.0 |"
+    row = "| a person's labels too sparse to learn from (ignored places, last fit) | – | 431.5 | 0 |"
     assert row in text
