@@ -191,24 +191,17 @@ def session_references(
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Frame index -> (boxes (R, 7), class_ids (R,)) of the session's current labels (those a
     person made or confirmed: the model's unconfirmed pre-labels are not truth), less those too
-    sparse to train on (``sparse_label_mask`` at ``min_points``: ``sparse_session_labels``)."""
+    sparse to train on (``sparse_label_mask`` at ``min_points``)."""
     return session_references_and_sparse(db, frame_indices, min_points)[0]
-
-
-def sparse_session_labels(
-    db: SessionDB, frame_indices: Sequence[int], min_points: int
-) -> dict[int, np.ndarray]:
-    """Frame index -> (Q, 7) boxes of the session's labels too sparse to train on at ``min_points``
-    (``sparse_label_mask``): places a measurement against ``session_references`` ignores, as
-    training does."""
-    return session_references_and_sparse(db, frame_indices, min_points)[1]
 
 
 def session_references_and_sparse(
     db: SessionDB, frame_indices: Sequence[int], min_points: int
 ) -> tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict[int, np.ndarray]]:
-    """``(session_references, sparse_session_labels)`` of the same frames, each frame's labels read
-    and its points counted once (a measurement needs both)."""
+    """``session_references`` of the frames, and frame index -> (Q, 7) boxes of the labels too
+    sparse to train on at ``min_points`` (``sparse_label_mask``): places a measurement against
+    those references ignores, as training does. Each frame's labels are read and its points
+    counted once (a measurement needs both)."""
     references, sparse_boxes = {}, {}
     for index in frame_indices:
         labels = _reviewed_labels(db, index)

@@ -25,10 +25,10 @@ from factorydet_core.types import (
 
 SPARSE_LABEL_SHARE = 0.5
 """With ``LoopSettings.label_min_points`` None, a person's label holding fewer than this share of
-the data set's annotation policy's points trains as an ignored place. A box counts fewer points than the
-policy counts of its object (points just outside it, the floor band): on the training factory of
-``bench hitl`` (seed 0), 98% of the objects of the 50-point policy keep at least half of it in
-their boxes, and 5% of the sparser ones do."""
+the data set's annotation policy's points trains as an ignored place. A box counts fewer points
+than the policy counts of its object (points just outside it, the floor band): on the training
+factory of ``bench hitl`` (seed 0), 98% of the objects of the 50-point policy keep at least half
+of it in their boxes, and 5% of the sparser ones do."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,12 +203,11 @@ class LoopSettings:
     as an ignored place, neither object nor background, as the data set's annotation policy
     leaves such sparse objects unannotated and the evaluation ignores them (label once shows an
     object in every frame with a point of it, so many of a person's labels are sparse). 0 (the
-    default) keeps every label: on held-out
-    factories the reviewer's detector trained without its sparse labels traded recall for
-    precision and gained no F-score at 30% or at 50% unannotated, its share of the gap to full
-    labels falling at 30% (``bench hitl``, docs/review-loop.md).
-    ``None``: ``SPARSE_LABEL_SHARE`` of the data set's annotation policy (its manifest's
-    ``min_annotated_points``; none stated: every label kept). Pseudo-labels
+    default) keeps every label: on held-out factories the reviewer's detector trained without
+    its sparse labels traded recall for precision and gained no F-score at 30% or at 50%
+    unannotated, its share of the gap to full labels falling at 30% (``bench hitl``,
+    docs/review-loop.md). ``None``: ``SPARSE_LABEL_SHARE`` of the data set's annotation policy
+    (its manifest's ``min_annotated_points``; none stated: every label kept). Pseudo-labels
     (``pseudo_label_confident``, carried or not) are not checked."""
     nms_iou: float = 0.25
     seed: int = 0

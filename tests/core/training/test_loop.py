@@ -888,7 +888,7 @@ def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, datas
     from factorydet_core.geometry import points_in_box
     from factorydet_core.proposals.merge import merge_frame
     from factorydet_core.session.world import counting_box
-    from factorydet_core.training.loop import session_labels, sparse_label_mask, sparse_session_labels
+    from factorydet_core.training.loop import session_labels, session_references_and_sparse, sparse_label_mask
 
     frame = frames[0]
     points = merge_frame(dataset.frame(0)).points
@@ -915,7 +915,7 @@ def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, datas
         # The before/after table measures as training learns: neither a reference nor a miss.
         assert len(session_references(db, [0])[0][0]) == len(frame.label_boxes) + 1
         assert len(session_references(db, [0], 25)[0][0]) == len(frame.label_boxes)
-        np.testing.assert_allclose(sparse_session_labels(db, [0], 25)[0], [label.box])
+        np.testing.assert_allclose(session_references_and_sparse(db, [0], 25)[1][0], [label.box])
         assert len(kept.label_boxes) == len(frame.label_boxes) + 1
         assert len(left_out.label_boxes) == len(frame.label_boxes)
         np.testing.assert_allclose(left_out.ignore_boxes, [label.box])
