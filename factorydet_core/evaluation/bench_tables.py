@@ -708,7 +708,7 @@ def walkthrough_markdown(result: dict) -> str:
         )
     if "renders_after_a_scene_change_median" in render:  # (records before it did not count them)
         window = render["render_window_s"]
-        idle, alone, scene = (
+        idle_renders, alone_renders, scene_renders = (
             _renders(render[key])
             for key in (
                 "renders_idle_median",
@@ -717,8 +717,9 @@ def walkthrough_markdown(result: dict) -> str:
             )
         )
         scene_text += (
-            f" In {fmt(window)} s the page begins {idle} of the scene with nothing sent, {alone} after"
-            f" a notification alone and {scene} after a scene change (medians): viser draws the scene"
+            f" In {fmt(window)} s the page begins {idle_renders} of the scene with nothing sent,"
+            f" {alone_renders} after a notification alone and {scene_renders} after a scene change"
+            " (medians): viser draws the scene"
             " on a heartbeat when idle and keeps drawing it for a moment after every scene change,"
             " which costs a browser with a GPU nothing and this one a render's time each."
         )

@@ -492,8 +492,11 @@ def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counte
             "renders_after_a_scene_change_median": 3.0,
             "few_points": 1000,
             "scene_render_ms_few_points": 120.5,
+            "notification_alone_median_ms": 64.2,
         },
     }
+    # (the render counts once took the notification's milliseconds' place: "takes 1 render ms")
+    assert "a notification alone takes 64.2 ms to show" in render_record(counted)
     assert "With at most 1,000 points drawn, one render still takes 120.5 ms." in render_record(counted)
     assert (
         "In 1.0 s the page begins 1 render of the scene with nothing sent, 1 render after a notification"
