@@ -597,11 +597,17 @@ sysdeps:
 	  else echo "Python's venv module is missing; run: sudo apt-get install -y python3-venv" >&2; exit 1; fi; \
 	fi
 
-# The browser test drives Debian's chromium through Playwright (no browser download).
+# The browser test drives Debian's chromium through Playwright (no browser download); its WebGL
+# runs on Mesa's llvmpipe through EGL (app/screenshots.py's ARGS; without Mesa's EGL Chromium
+# falls back to its slower SwiftShader).
 browserdeps:
 	@if [ ! -x /usr/bin/chromium ]; then \
 	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq chromium; \
 	  else echo "The browser test needs Debian's chromium; run: sudo apt-get install -y chromium" >&2; exit 1; fi; \
+	fi
+	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0' || ! ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then \
+	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq libegl-mesa0 libgl1-mesa-dri; \
+	  else echo "The browser test's WebGL needs Mesa; run: sudo apt-get install -y libegl-mesa0 libgl1-mesa-dri" >&2; exit 1; fi; \
 	fi
 
 # torch is pinned and installed first: this exact version is a CPU build on this machine's disk,

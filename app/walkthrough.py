@@ -37,7 +37,7 @@ from factorydet_core.session.editing import Suggestion
 from factorydet_core.session.store import SessionDB, open_session
 from factorydet_core.session.world import MOVING_CLASSES
 
-from .screenshots import open_app_page, wait_until
+from .screenshots import WEBGL_RENDERER_JS, open_app_page, wait_until
 from .viewer import FactorydetApp
 
 TARGET_EDIT_MS = 200.0
@@ -169,10 +169,14 @@ def _render_cost(page, view, repeats: int = 5, window_s: float = 1.0) -> dict:
     }
 
 
-def _prelabels(app, page, view, note, shows) -> None:
-    """Pre-label the shown frame (M) and confirm the first pre-label (Enter), each timed."""
+def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
+    """Pre-label the shown frame (M) and confirm the first pre-label (Enter), each timed; the
+    frame shown again afterwards (Confirm moves on to the next pre-label, maybe in another frame).
+    ``open_folder``: open the Pre-labels folder first (its count is what the page shows)."""
     db = app.state.db
-    page.get_by_text("Pre-labels", exact=True).first.click()  # the folder opens: its count shows
+    frame_index = view.state.frame_index
+    if open_folder:
+        page.get_by_text("Pre-labels", exact=True).first.click()
     page.locator("canvas[data-engine]").focus()
     before = len(db.unreviewed_labels())
     note(
@@ -184,7 +188,9 @@ def _prelabels(app, page, view, note, shows) -> None:
             lambda: shows(f"{len(db.unreviewed_labels())} pre-label(s) wait")(),
         ),
     )
-    waiting = db.unreviewed_labels()
+    num_waiting = len(db.unreviewed_labels())
+    # (the frame's own, the model's most confident first: the app selects the first it added)
+    waiting = [lab for lab in db.unreviewed_labels() if lab.frame_index == frame_index]
     _wait(lambda: view.selected_label_id == waiting[0].id, 30, "the first pre-label selected")
     note(
         "confirm a pre-label (Enter)",
@@ -193,10 +199,13 @@ def _prelabels(app, page, view, note, shows) -> None:
             lambda: page.keyboard.press("Enter"),
             lambda: db.label(waiting[0].id).reviewed,
             lambda: shows(
-                f"{len(waiting) - 1} pre-label(s) wait" if len(waiting) > 1 else "No pre-label waits"
+                f"{num_waiting - 1} pre-label(s) wait" if num_waiting > 1 else "No pre-label waits"
             )(),
         ),
     )
+    if view.state.frame_index != frame_index:
+        view.state.set_frame(frame_index)
+        _wait(lambda: view.layers.detection_source[1] == frame_index, 600, "the frame shown again")
 
 
 def _train_from_the_page(app, page, timeout: float) -> float:
@@ -286,6 +295,7 @@ def run(
         try:
             with sync_playwright() as pw:
                 browser, page, view = open_app_page(pw, app, 1400, 1400, init_script=DRAW_LOG)
+                webgl_renderer = page.evaluate(WEBGL_RENDERER_JS)
                 _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
                 _wait(lambda: view.layers.detection_source[0] is not None, 600, "the first detections")
                 if points_drawn is not None:
@@ -322,7 +332,9 @@ def run(
                     label = next(  # an object that stands still: its edits reach every frame showing it
                         lab
                         for lab in db.labels(frame_index)
-                        if lab.instance_id is not None and lab.class_name not in MOVING_CLASSES
+                        if lab.instance_id is not None
+                        and lab.class_name not in MOVING_CLASSES
+                        and lab.reviewed  # (not a pre-label of an earlier round: an edit confirms it)
                     )
                     view.select_label(label.id)
                     page.get_by_text(f"Label #{label.id}:", exact=False).first.wait_for(timeout=30_000)
@@ -372,6 +384,7 @@ def run(
                             accepted,
                         ),
                     )
+                    _prelabels(app, page, view, note, shows, open_folder=k == 0)
                     # The next frame, computed ahead while this one was shown.
                     target = frame_index + 1
                     if target >= dataset.num_frames:
@@ -393,7 +406,6 @@ def run(
                     )
                     if progress is not None:
                         progress(f"round {k + 1} of {repeats} done")
-                _prelabels(app, page, view, note, shows)
                 if retrain:
                     retrained.update(_retrain_and_review(app, page, view, note, shows, progress))
                 browser.close()
@@ -408,6 +420,7 @@ def run(
         "label_once": True,
         "points_drawn": points_drawn,
         "points_shown": points_shown,  # of the first frame's scan, after the height cut and the budget
+        "webgl_renderer": webgl_renderer,
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
         "target_verdict_ms": TARGET_VERDICT_MS,

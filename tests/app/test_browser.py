@@ -33,6 +33,19 @@ def page(app, browser):
     context.close()  # before server.stop(), which otherwise waits for the socket
 
 
+def test_the_browser_draws_webgl_with_mesa_llvmpipe(browser):
+    # Set-up, not the app: without Mesa's EGL Chromium falls back to SwiftShader, which renders the
+    # scene about twice as slowly, and every browser figure of docs/labelling.md would move.
+    from app.screenshots import WEBGL_RENDERER_JS
+
+    context = browser.new_context()
+    try:
+        renderer = context.new_page().evaluate(WEBGL_RENDERER_JS)
+    finally:
+        context.close()
+    assert renderer is not None and "llvmpipe" in renderer, renderer
+
+
 def _view(app):
     """The one connected browser's ``ClientView`` (its own view, scene and layers)."""
     assert _wait(lambda: len(app.views) == 1, 30), "the browser never connected"

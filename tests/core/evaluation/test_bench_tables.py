@@ -25,6 +25,7 @@ BLOCKS = (
     ("labelling.md", "walkthrough"),
     ("labelling.md", "walkthrough-edits-points-all"),
     ("labelling.md", "walkthrough-edits-points-20k"),
+    ("labelling.md", "walkthrough-edits-points-20k-swiftshader"),
     ("review-loop.md", "hitl-50-class-vs-place"),
     ("review-loop.md", "hitl-50-refit-vs-class"),
     ("review-loop.md", "hitl-50-refit100-vs-refit"),
@@ -468,6 +469,16 @@ def test_every_resumed_hitl_command_of_the_makefile_trains_its_reviewer_as_its_r
             )
             checked += 1
     assert checked >= 15
+
+
+def test_the_walkthrough_says_what_drew_its_webgl():
+    record = _record("walkthrough")  # from before the renderer was recorded
+    assert "in software WebGL (Chromium's SwiftShader)" in render_record(record)
+    llvmpipe = {
+        **record,
+        "webgl_renderer": "ANGLE (Mesa/X.org, llvmpipe (LLVM 15.0.6 256 bits), OpenGL ES 3.2)",
+    }
+    assert "in software WebGL (Mesa's llvmpipe through ANGLE)" in render_record(llvmpipe)
 
 
 def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
