@@ -505,7 +505,7 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             choices=(*((o, o) for o in sorted(REVIEW_ORDERS, key=lambda o: o != "learned")), ("auto", None))),
     Control("review_extra", "Review extra", "false positives beyond the mined negatives that the last "
             "mining queues for review alone, left out of training until reviewed (0: none, the paper; "
-            "-1: all)", int, -1, 10_000_000, 100, none_as=-1),
+            "-1: all)", int, -1, 10_000_000, 1, none_as=-1),  # (a step of 100 from -1 allowed 99, 199, ...)
     Control("refit_box_quality", "Refit box quality", "a next round that goes on from a model refits the "
             "box quality regressor on the current labels, when they changed (off: keeps the model's)", bool),
     Control("refit_trees", "Refit trees", "with refit box quality, boost the model's regressor on with "
@@ -523,7 +523,7 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "
             "IoU and weigh the score by it (off: the size prior's box and the class probability)", bool),
     Control("quality_trees", "Box quality trees", "trees of the box quality regressor's fit (fewer: a "
-            "faster, coarser fit)", int, 1, 5000, 50),
+            "faster, coarser fit)", int, 1, 5000, 1),
     Control("visibility", "Free space", "the box quality regressor reads what the rays saw in each box "
             "(auto: on for multi-sensor data, off for single scans)", str,
             choices=(("auto", None), ("on", True), ("off", False))),

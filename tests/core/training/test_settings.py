@@ -29,6 +29,20 @@ def test_every_control_shows_and_parses_back_its_default():
             assert control.minimum <= control.default <= control.maximum, control.field
 
 
+def test_a_number_control_steps_onto_its_default_and_the_values_its_help_names():
+    # A browser's number input accepts, and its arrows reach, only minimum + k * step: a step of
+    # 100 from -1 offered 99, 199, ... and refused 100.
+    for control in LOOP_CONTROLS:
+        if control.kind not in (int, float) or control.step is None:
+            continue
+        shown = control.shown(control.default)
+        for value in (shown, control.none_as, control.minimum, control.maximum):
+            if value is None:
+                continue
+            steps = (value - control.minimum) / control.step
+            assert abs(steps - round(steps)) < 1e-6, (control.field, value, control.step)
+
+
 @given(st.sampled_from([c for c in LOOP_CONTROLS if c.kind in (int, float)]), st.floats(-1e6, 1e6))
 def test_a_number_is_taken_inside_its_bounds_and_refused_outside(control, value):
     if control.kind is int:
