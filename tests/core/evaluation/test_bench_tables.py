@@ -472,7 +472,7 @@ def test_every_resumed_hitl_command_of_the_makefile_trains_its_reviewer_as_its_r
 
 
 def test_the_walkthrough_says_what_drew_its_webgl():
-    record = _record("walkthrough")  # from before the renderer was recorded
+    record = _record("walkthrough-swiftshader")  # from before the renderer was recorded
     assert "in software WebGL (Chromium's SwiftShader)" in render_record(record)
     llvmpipe = {
         **record,
@@ -482,7 +482,7 @@ def test_the_walkthrough_says_what_drew_its_webgl():
 
 
 def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
-    record = _record("walkthrough")
+    record = _record("walkthrough-swiftshader")
     assert "(80k points, the boxes)" in render_record(record)  # a record from before the budget
     budgeted = {**record, "points_drawn": 20_000, "points_shown": 19_873}
     assert "(19,873 points, at most 20,000 by Display's Points drawn, the boxes)" in render_record(budgeted)
@@ -491,7 +491,7 @@ def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
 
 
 def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counted_it():
-    record = _record("walkthrough")
+    record = _record("walkthrough-swiftshader")
     assert "of the scene with nothing sent" not in render_record(record)  # a record from before the count
     counted = {
         **record,
