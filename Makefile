@@ -53,7 +53,7 @@ lint: $(STAMP)
 BENCH_DATA ?= /tmp/bench_sim
 SCALE_DATA ?= /tmp/factorydet_paper_scale
 REAL := ../shared/data/real
-bench: $(STAMP) corpus corpus50
+bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench simulate --readme docs/benchmarks.md
 	rm -rf $(BENCH_DATA) && $(BIN)/factorydet simulate --out $(BENCH_DATA) --frames 24 --seed 0
 	$(BIN)/factorydet bench pipeline $(BENCH_DATA) --frames 8 --json --readme docs/benchmarks.md
@@ -605,9 +605,10 @@ browserdeps:
 	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq chromium; \
 	  else echo "The browser test needs Debian's chromium; run: sudo apt-get install -y chromium" >&2; exit 1; fi; \
 	fi
-	@if ! ldconfig -p | grep -q 'libEGL_mesa.so.0' || ! ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then \
-	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq libegl-mesa0 libgl1-mesa-dri; \
-	  else echo "The browser test's WebGL needs Mesa; run: sudo apt-get install -y libegl-mesa0 libgl1-mesa-dri" >&2; exit 1; fi; \
+	@if ! ldconfig -p | grep -q 'libEGL.so.1 ' || ! ldconfig -p | grep -q 'libEGL_mesa.so.0' \
+	    || ! ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then \
+	  if [ "$(IS_ROOT)" = yes ]; then $(APT_GET) update -qq && $(APT_GET) install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri; \
+	  else echo "The browser test's WebGL needs Mesa's EGL; run: sudo apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri" >&2; exit 1; fi; \
 	fi
 
 # torch is pinned and installed first: this exact version is a CPU build on this machine's disk,

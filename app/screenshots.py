@@ -27,10 +27,11 @@ CHROMIUM = "/usr/bin/chromium"
 ARGS = [
     "--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    # WebGL through ANGLE on Mesa's llvmpipe (EGL): still software on the CPU, but it renders the
-    # app's scene in about half the time of Chromium's own SwiftShader (what --disable-gpu or no GL
-    # flag gives), and shows a scene change about four times sooner. Where Mesa's EGL is missing,
-    # Chromium falls back to SwiftShader; WEBGL_RENDERER_JS says which one drew.
+    # WebGL through ANGLE on EGL: on a machine without a GPU, Mesa's llvmpipe, still software on
+    # the CPU but rendering the app's scene in about half the time of Chromium's own SwiftShader
+    # (what --disable-gpu or no GL flag gives) and showing a scene change several times sooner.
+    # Where Mesa's EGL is missing, Chromium falls back to SwiftShader; WEBGL_RENDERER_JS says
+    # which one drew.
     "--use-gl=angle", "--use-angle=gl-egl", "--ignore-gpu-blocklist",
 ]  # fmt: skip
 """Headless Chromium's flags, for the browser tests, the walkthrough and the screenshots."""

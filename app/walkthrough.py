@@ -34,7 +34,7 @@ from factorydet_core.evaluation.records import machine_info
 from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.editing import Suggestion
-from factorydet_core.session.store import SessionDB, open_session
+from factorydet_core.session.store import PRELABEL_ORIGIN, SessionDB, open_session
 from factorydet_core.session.world import MOVING_CLASSES
 
 from .screenshots import WEBGL_RENDERER_JS, open_app_page, wait_until
@@ -171,10 +171,16 @@ def _render_cost(page, view, repeats: int = 5, window_s: float = 1.0) -> dict:
 
 def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
     """Pre-label the shown frame (M) and confirm the first pre-label (Enter), each timed; the
-    frame shown again afterwards (Confirm moves on to the next pre-label, maybe in another frame).
-    ``open_folder``: open the Pre-labels folder first (its count is what the page shows)."""
+    frame and the camera as they were afterwards (Confirm moves on to the next pre-label and puts
+    the camera on it, maybe in another frame). ``open_folder``: open the Pre-labels folder first
+    (its count is what the page shows). A frame pre-labelled already (the rounds went round the
+    data set) is left as it is: M would add nothing there."""
     db = app.state.db
     frame_index = view.state.frame_index
+    if any(lab.origin == PRELABEL_ORIGIN for lab in db.labels(frame_index)):
+        return
+    camera = view.client.camera
+    position, look_at = tuple(camera.position), tuple(camera.look_at)
     if open_folder:
         page.get_by_text("Pre-labels", exact=True).first.click()
     page.locator("canvas[data-engine]").focus()
@@ -206,6 +212,8 @@ def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
     if view.state.frame_index != frame_index:
         view.state.set_frame(frame_index)
         _wait(lambda: view.layers.detection_source[1] == frame_index, 600, "the frame shown again")
+    view.set_camera(position, look_at, tuple(camera.up_direction))
+    time.sleep(1.0)  # the page draws the view as it was before the next key
 
 
 def _train_from_the_page(app, page, timeout: float) -> float:

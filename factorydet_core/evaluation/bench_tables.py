@@ -734,21 +734,27 @@ def walkthrough_markdown(result: dict) -> str:
         " rest is the browser's (delivering the key, rendering, showing)."
         f" In this browser a notification alone takes {fmt(alone)}"
         f" ms to show and {fmt(with_scene)} ms with a scene change in the"
-        f" same update: headless Chromium renders the scene ({points}, the boxes) in software WebGL"
-        f" ({_renderer(result)}), on the two cores the server uses too, before it shows anything else;"
-        " a browser with a GPU does that in milliseconds." + scene_text + _retrain_text(result) + "\n"
+        f" same update: headless Chromium renders the scene ({points}, the boxes) in {_renderer(result)},"
+        " on the two cores the server uses too; a browser with a GPU does that in milliseconds."
+        + scene_text
+        + _retrain_text(result)
+        + "\n"
     )
 
 
 def _renderer(result: dict) -> str:
-    """What drew the walkthrough's WebGL, in words (records before it was recorded all ran
+    """What drew the walkthrough's WebGL, in words (records from before it was recorded all ran
     Chromium's SwiftShader: the browser was started with --disable-gpu)."""
-    renderer = result.get("webgl_renderer") or "SwiftShader"
+    if "webgl_renderer" not in result:
+        return "software WebGL (Chromium's SwiftShader)"
+    renderer = result["webgl_renderer"]
+    if renderer is None:
+        return "WebGL (its renderer unknown)"
     if "llvmpipe" in renderer:
-        return "Mesa's llvmpipe through ANGLE"
+        return "software WebGL (Mesa's llvmpipe through ANGLE)"
     if "SwiftShader" in renderer:
-        return "Chromium's SwiftShader"
-    return renderer
+        return "software WebGL (Chromium's SwiftShader)"
+    return f"WebGL ({fmt(renderer)})"
 
 
 def _renders(count: float) -> str:

@@ -479,6 +479,8 @@ def test_the_walkthrough_says_what_drew_its_webgl():
         "webgl_renderer": "ANGLE (Mesa/X.org, llvmpipe (LLVM 15.0.6 256 bits), OpenGL ES 3.2)",
     }
     assert "in software WebGL (Mesa's llvmpipe through ANGLE)" in render_record(llvmpipe)
+    assert "in WebGL (NVIDIA GeForce)" in render_record({**record, "webgl_renderer": "NVIDIA GeForce"})
+    assert "in WebGL (its renderer unknown)" in render_record({**record, "webgl_renderer": None})
 
 
 def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
