@@ -194,9 +194,10 @@ def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
             lambda: shows(f"{len(db.unreviewed_labels())} pre-label(s) wait")(),
         ),
     )
-    num_waiting = len(db.unreviewed_labels())
+    unreviewed = db.unreviewed_labels()
+    num_waiting = len(unreviewed)
     # (the frame's own, the model's most confident first: the app selects the first it added)
-    waiting = [lab for lab in db.unreviewed_labels() if lab.frame_index == frame_index]
+    waiting = [lab for lab in unreviewed if lab.frame_index == frame_index]
     _wait(lambda: view.selected_label_id == waiting[0].id, 30, "the first pre-label selected")
     note(
         "confirm a pre-label (Enter)",

@@ -745,9 +745,7 @@ def walkthrough_markdown(result: dict) -> str:
 def _renderer(result: dict) -> str:
     """What drew the walkthrough's WebGL, in words (records from before it was recorded all ran
     Chromium's SwiftShader: the browser was started with --disable-gpu)."""
-    if "webgl_renderer" not in result:
-        return "software WebGL (Chromium's SwiftShader)"
-    renderer = result["webgl_renderer"]
+    renderer = result.get("webgl_renderer", "SwiftShader")
     if renderer is None:
         return "WebGL (its renderer unknown)"
     if "llvmpipe" in renderer:

@@ -9,6 +9,7 @@ import pytest
 import viser
 from PIL import Image
 
+from app.screenshots import WEBGL_RENDERER_JS
 from app.viewer import FactorydetApp
 from factorydet_core.io.dataset import open_dataset
 from tests.app.polling import wait as _wait
@@ -37,8 +38,6 @@ def test_the_browser_draws_webgl_through_egl_not_swiftshader(browser):
     # Set-up, not the app: without Mesa's EGL Chromium falls back to SwiftShader, which renders the
     # scene about twice as slowly as Mesa's llvmpipe (here, no GPU), and every browser figure of
     # docs/labelling.md would move.
-    from app.screenshots import WEBGL_RENDERER_JS
-
     context = browser.new_context()
     try:
         renderer = context.new_page().evaluate(WEBGL_RENDERER_JS)
