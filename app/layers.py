@@ -1,6 +1,7 @@
 """Drawing the detection layers: merged cloud, voxels, patches, segments and proposal boxes.
 
-A new result re-sends every layer once; toggling a layer only flips its node's visibility.
+A new result sends the shown layers; a hidden layer is sent the first time it is shown, and
+after that toggling it only flips its node's visibility.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from .state import LAYERS
 PROPOSAL_RGB = (255, 140, 0)
 SUPPRESSED_RGB = (160, 160, 160)
 MATCH_RGB = {"tp": (30, 170, 60), "fp": (220, 40, 40), "missed": (40, 90, 230)}
+DRAWN_LAYERS: tuple[str, ...] = tuple(name for name in LAYERS if name != "detections")
+"""The layers ``LayerView.draw`` draws from a proposal result (the detections are drawn apart)."""
 MAX_LABELS = 60  # text sprites are one node each; beyond this the view is unreadable anyway
 
 
@@ -46,7 +49,10 @@ class LayerView:
 
     def __init__(self, server: viser.ViserServer | viser.ClientHandle) -> None:
         self.server = server  # a browser's client: each browser draws its own view
-        self.nodes: dict[str, object] = {}
+        self.nodes: dict[str, object] = {}  # the layers sent (``DRAWN_LAYERS``), shown or hidden
+        # (result, point size, max height, max points) of the last draw: what a hidden layer is
+        # drawn from when it is shown.
+        self._source: tuple | None = None
         self.drawn_result: ProposalResult | None = None
         self.drawn_frame_index = 0
         self.drawn: tuple[ProposalResult | None, int] = (None, 0)  # the two above, set as one
@@ -66,83 +72,100 @@ class LayerView:
         max_height: float,
         max_points: int | None = None,
     ) -> None:
-        """Replace every layer with ``result``'s (computed for ``frame_index``); hidden layers are
-        sent hidden; the point layers draw at most ``max_points`` points each below ``max_height``
-        (``colors.thin_for_display``: clicks still pick from every point)."""
-        cloud = result.cloud
-        low = colors.thin_for_display(cloud.below(max_height), max_points)
-        merged = result.merged
-        merged_low = colors.thin_for_display(merged.below(max_height), max_points)
-        num_sensors = len(merged.T_vehicle_sensor)
+        """Replace every layer with ``result``'s (computed for ``frame_index``): the shown layers
+        are sent now, a hidden one when it is first shown (``set_visibility``); the point layers
+        draw at most ``max_points`` points each below ``max_height`` (``colors.thin_for_display``:
+        clicks still pick from every point).
+
+        Hidden layers are not sent: four point clouds of a frame's size that nobody looks at made
+        every frame change (a review verdict's, say) megabytes larger for the browser to decode."""
         with self.server.atomic():
             for node in self.nodes.values():
                 node.remove()
             self.nodes = {}
-            self.nodes["merged"] = self.server.scene.add_point_cloud(
+            self._source = (result, point_size, max_height, max_points)
+            if result.voxel_colors is not None:  # the worker's
+                self._voxel_colors = (id(result), result.voxel_colors)
+            self.proposal_ids = shown_proposal_ids(result)
+            for name in LAYERS:
+                if name in DRAWN_LAYERS and layers[name]:
+                    self._send(name)
+        self.drawn_result = result
+        self.drawn_frame_index = frame_index
+        self.drawn = (result, frame_index)
+
+    def _send(self, name: str) -> None:
+        """Send layer ``name`` (one of ``DRAWN_LAYERS``) of the result last drawn, shown."""
+        result, point_size, max_height, max_points = self._source
+        scene = self.server.scene
+        if name == "merged":
+            merged = result.merged
+            low = colors.thin_for_display(merged.below(max_height), max_points)
+            self.nodes[name] = scene.add_point_cloud(
                 "/pipeline/merged",
-                points=merged.points[merged_low],
-                colors=colors.colors_by_sensor(merged.sensor_ids[merged_low], num_sensors),
+                points=merged.points[low],
+                colors=colors.colors_by_sensor(merged.sensor_ids[low], len(merged.T_vehicle_sensor)),
                 point_size=point_size,
                 point_shape="square",
                 precision="float32",
-                visible=layers["merged"],
             )
-            if result.voxel_colors is not None:  # the worker's
-                self._voxel_colors = (id(result), result.voxel_colors)
-            elif self._voxel_colors is None or self._voxel_colors[0] != id(result):
+        elif name == "voxels":
+            if self._voxel_colors is None or self._voxel_colors[0] != id(result):
                 # Once per result: moving the height slider must not redo the projection.
                 self._voxel_colors = (
                     id(result),
                     voxel_colors(result.cloud, result.grid, result.voxel_features),
                 )
-            voxel_low = colors.thin_for_display(result.grid.below(max_height), max_points)
-            self.nodes["voxels"] = self.server.scene.add_point_cloud(
+            low = colors.thin_for_display(result.grid.below(max_height), max_points)
+            self.nodes[name] = scene.add_point_cloud(
                 "/pipeline/voxels",
-                points=result.grid.centres[voxel_low].astype(np.float32),
-                colors=self._voxel_colors[1][voxel_low],
+                points=result.grid.centres[low].astype(np.float32),
+                colors=self._voxel_colors[1][low],
                 point_size=result.grid.voxel_size * 0.8,
                 point_shape="square",
                 precision="float32",
-                visible=layers["voxels"],
             )
-            for name, ids in (
-                ("patches", result.segmentation.patch_ids),
-                ("segments", result.segmentation.segment_ids),
-            ):
-                self.nodes[name] = self.server.scene.add_point_cloud(
-                    f"/pipeline/{name}",
-                    points=cloud.points[low],
-                    colors=colors.colors_by_id(ids[low], seed=1 if name == "segments" else 0),
-                    point_size=point_size,
-                    point_shape="square",
-                    precision="float32",
-                    visible=layers[name],
-                )
-            self.proposal_ids = shown_proposal_ids(result)
+        elif name in ("patches", "segments"):
+            ids = result.segmentation.patch_ids if name == "patches" else result.segmentation.segment_ids
+            # (one choice of points for both: a point keeps its place when the layer changes)
+            low = colors.thin_for_display(result.cloud.below(max_height), max_points)
+            self.nodes[name] = scene.add_point_cloud(
+                f"/pipeline/{name}",
+                points=result.cloud.points[low],
+                colors=colors.colors_by_id(ids[low], seed=1 if name == "segments" else 0),
+                point_size=point_size,
+                point_shape="square",
+                precision="float32",
+            )
+        else:
             boxes = result.proposals.boxes[self.proposal_ids]
             segments = box_wireframe_segments(boxes).astype(np.float32) if len(boxes) else np.zeros((0, 2, 3))
-            self.nodes["proposals"] = self.server.scene.add_line_segments(
+            self.nodes[name] = scene.add_line_segments(
                 "/pipeline/proposals",
                 points=segments.astype(np.float32).reshape(-1, 2, 3),
                 colors=np.array(PROPOSAL_RGB, np.uint8),
                 thickness=1.5,
                 thickness_units="screen",
-                visible=layers["proposals"],
             )
-        self.drawn_result = result
-        self.drawn_frame_index = frame_index
-        self.drawn = (result, frame_index)
 
     def set_visibility(self, layers: dict[str, bool]) -> None:
-        for name in LAYERS:
-            node = self.nodes.get(name)
-            if node is not None and node.visible != layers[name]:
-                node.visible = layers[name]
+        """Show or hide the layers as ``layers`` says; a layer shown for the first time since
+        the last ``draw`` is sent now."""
+        with self.server.atomic():
+            for name in DRAWN_LAYERS:
+                node = self.nodes.get(name)
+                if node is not None:
+                    if node.visible != layers[name]:
+                        node.visible = layers[name]
+                elif layers[name] and self._source is not None:
+                    self._send(name)
 
     def set_point_size(self, point_size: float) -> None:
+        if self._source is not None:
+            self._source = (self._source[0], float(point_size), *self._source[2:])
         for name in ("merged", "patches", "segments"):
             node = self.nodes.get(name)
-            if node is not None:
+            if node is not None and node.point_size != point_size:
                 node.point_size = point_size
 
     def draw_detections(

@@ -93,6 +93,19 @@ class SceneView:
         # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
         # wireframes and points.
         server.scene.configure_environment_map(None)
+        # A point cloud that is always there, two points far outside any view: it keeps the
+        # browser's compiled point shader alive. Each new scan replaces the node, and with no
+        # other point cloud drawn three.js would free the shader with the old scan and compile it
+        # again for the new one: under software WebGL that compile was the largest part of a frame
+        # change (0.1-0.35 s of the page's main thread).
+        server.scene.add_point_cloud(
+            "/shader_keeper",
+            points=np.full((2, 3), -1.0e4, np.float32),
+            colors=np.zeros((2, 3), np.uint8),
+            point_size=0.01,
+            point_shape="square",
+            precision="float32",
+        )
         # The floor grid as plain lines: viser's grid is a shader evaluated at every pixel of the
         # plane, which under software WebGL took more time per render than the 80k points did.
         for name, segments, rgb in (

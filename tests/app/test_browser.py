@@ -65,7 +65,18 @@ def _colourful_fraction(png: bytes) -> float:
     return float((saturation > 60).mean())
 
 
+PROGRAMS_LINKED_JS = """
+window.__programsLinked = 0;
+for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.prototype]) {
+  const link = proto.linkProgram;
+  proto.linkProgram = function (...args) { window.__programsLinked += 1; return link.apply(this, args); };
+}
+"""
+"""Counts the shader programs the page links (a compile of a shader pair each)."""
+
+
 def test_app_shows_controls_navigates_frames_and_draws(app, page):
+    page.add_init_script(PROGRAMS_LINKED_JS)
     page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
     canvas = page.wait_for_selector("canvas[data-engine]", timeout=30_000)
     assert _wait(lambda: len(app.server.get_clients()) == 1, 30), "the browser never connected"
@@ -79,6 +90,9 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     for label in ("Colour by", "Point size (m)", "Show boxes", "Hide above (m)"):
         assert page.get_by_text(label, exact=True).count() >= 1
     page.get_by_text("frame 1 / 3", exact=False).wait_for(timeout=20_000)
+    assert _wait(lambda: view.layers.drawn == (view.state.pipeline_result, 0), 120)
+    assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "the 3D canvas stayed blank"
+    linked = page.evaluate("window.__programsLinked")
 
     page.get_by_role("button", name="Next frame").click()
     assert view.state.wait_for(lambda: view.state.frame_index == 1, timeout=20), (
@@ -87,7 +101,11 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     page.get_by_text("frame 2 / 3", exact=False).wait_for(timeout=20_000)
 
     # Software WebGL draws within seconds; poll until the points show up.
+    assert _wait(lambda: view.layers.drawn == (view.state.pipeline_result, 1), 120)
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "the 3D canvas stayed blank"
+    # The new frame's scan and boxes are drawn with the shaders compiled for the first (a compile
+    # took up to a third of a second of the page's main thread under software WebGL).
+    assert page.evaluate("window.__programsLinked") == linked > 0
 
     # The measure is not fooled by the page around the points: hide them and it drops.
     view.scene.set_visible(False)
@@ -113,14 +131,15 @@ def test_detection_layers_toggle_and_parameters_recompute(app, page):
     # The first frame's front half runs in the background; its status line reaches the browser.
     assert view.state.wait_for(lambda: view.state.pipeline_result is not None, timeout=120)
     page.get_by_text("proposals,", exact=False).first.wait_for(timeout=30_000)
-    assert view.layers.nodes["proposals"].visible and not view.layers.nodes["patches"].visible
+    assert view.layers.nodes["proposals"].visible
+    assert "patches" not in view.layers.nodes  # a hidden layer is sent when it is first shown
 
     # Toggle a layer from the browser: the state and the scene node follow.
     page.get_by_label("Patches (cut pursuit)").check()
     assert view.state.wait_for(lambda: view.state.layers["patches"], timeout=20), (
         "toggle never reached the server"
     )
-    assert _wait(lambda: view.layers.nodes["patches"].visible, 20)
+    assert _wait(lambda: getattr(view.layers.nodes.get("patches"), "visible", False), 20)
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "patches not drawn"
 
     # Change a parameter from the browser (keyboard on the merge-threshold slider): the layers
@@ -227,6 +246,10 @@ def test_each_browser_has_its_own_frame_display_and_thresholds(app_with_model, b
             lambda: second.layers.drawn_frame_index == 0 and second.layers.drawn_result is not None, 120
         )
 
+        for view in (first, second):  # (a hidden layer is not sent: these two are shown)
+            view.state.set_layer("merged", True)
+            view.state.set_layer("patches", True)
+        assert _wait(lambda: all("patches" in view.layers.nodes for view in (first, second)), 20)
         first.state.set_display(point_size=0.1)
         first.state.set_detection_filter(score_threshold=0.05)
         assert second.state.point_size == 0.04 and second.state.score_threshold != 0.05

@@ -28,3 +28,36 @@ def test_a_points_budget_draws_the_same_points_in_every_point_layer_and_all_of_t
         assert len(view.nodes["merged"].points) == int(result.merged.below(6.0).sum())
     finally:
         server.stop()
+
+
+def test_a_hidden_layer_is_sent_when_first_shown_and_then_only_toggled(small_dataset_dir):
+    import viser
+
+    from app.layers import DRAWN_LAYERS, LayerView
+    from app.state import LAYERS
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+
+    result = Detector().propose(open_dataset(small_dataset_dir).frame(0))
+    layers = {name: name == "proposals" for name in LAYERS}
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        view = LayerView(server)
+        view.draw(result, 0, layers, 0.05, 6.0)
+        assert set(view.nodes) == {"proposals"}
+        view.set_point_size(0.08)  # a hidden layer sent later takes the size set meanwhile
+        view.set_visibility({**layers, "patches": True})
+        patches = view.nodes["patches"]
+        assert patches.visible and patches.point_size == 0.08
+        assert len(patches.points) == int(result.cloud.below(6.0).sum())
+        view.set_visibility(layers)
+        assert view.nodes["patches"] is patches and not patches.visible  # hidden, not sent again
+        view.set_visibility({**layers, "patches": True})
+        assert view.nodes["patches"] is patches and patches.visible
+        # A new result: the old nodes go, hidden ones with them, and only the shown are sent.
+        view.draw(result, 1, layers, 0.05, 6.0)
+        assert set(view.nodes) == {"proposals"} and view.drawn_frame_index == 1
+        view.set_visibility(dict.fromkeys(LAYERS, True))
+        assert set(view.nodes) == set(DRAWN_LAYERS)
+    finally:
+        server.stop()
