@@ -842,6 +842,11 @@ _SNAPSHOT_LABEL = ("id", "frame_index", "box", "class_name", "origin", "instance
 has no ``reviewed``: every label of it was a person's)."""
 
 
+def _table_columns(db: sqlite3.Connection, table: str) -> set[str]:
+    """The columns ``table`` has in this database (an older schema, read as it is, has fewer)."""
+    return {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
+
+
 def _row(table: str, row: sqlite3.Row | dict, where: str | None = None) -> dict:
     """A row of ``table`` (all its columns or some) as a dict, each column checked and decoded
     (``_COLUMNS``); columns of other tables are left as they are.
@@ -1043,7 +1048,8 @@ class SessionDB:
         # (run id, {mined negative id: its checked columns but review_version}): a run's mined
         # negatives are written once, with the run, and then only their review version changes,
         # so the queue of a run is checked once, not at every read after every verdict.
-        self._mined_checked: tuple[int | None, dict[int, dict]] = (None, {})
+        # A run's checked mined negatives by id: (the item without its verdict, its list columns).
+        self._mined_checked: tuple[int | None, dict[int, tuple[dict, list[str]]]] = (None, {})
         # ((run, order), {item id: position}): a class order's positions in a run's whole queue.
         self._queue_positions: tuple[tuple | None, dict[int, int]] = (None, {})
         # {(row's values, the session's classes): Label}: checking a stored label is pure Python
@@ -2466,38 +2472,56 @@ class SessionDB:
     def _queue_rows(
         self, run_id: int | None, predicted_class: str | None, frame_index: int | None, pending_only: bool
     ) -> list[dict]:
-        """``review_queue``'s rows as stored, without the overlap with the labels."""
+        """``review_queue``'s rows as stored, without the overlap with the labels.
+
+        A run's mined negatives never change once it is stored but for their review version:
+        each is read and checked once (``_mined_checked``), and a later read asks SQLite only for
+        the version and the joined verdict of each (the review panel reads the queue after every
+        verdict, and decoding a thousand rows' boxes each time was most of a verdict's time)."""
         if run_id is None:
             run_id = self.latest_run_id()
-        query = (
-            "SELECT m.*, r.verdict, r.class_name AS verdict_class, r.label_id, r.author AS reviewer,"
-            " r.created AS reviewed FROM mined_negatives m LEFT JOIN reviews r ON r.negative_id = m.id"
-            " WHERE m.run_id = ?"
-        )
-        args: list = [run_id]
-        if predicted_class is not None:
-            query, args = query + " AND m.predicted_class = ?", [*args, predicted_class]
-        if frame_index is not None:
-            query, args = query + " AND m.frame_index = ?", [*args, int(frame_index)]
-        if pending_only:
-            query += " AND (r.verdict IS NULL OR r.verdict = 'skip')"
-        with self._read() as db:
-            rows = db.execute(query + " ORDER BY m.score DESC, m.id", args).fetchall()
         checked_run, checked = self._mined_checked
         if checked_run != run_id:
             checked = {}
+        where, args = " WHERE m.run_id = ?", [run_id]
+        if predicted_class is not None:
+            where, args = where + " AND m.predicted_class = ?", [*args, predicted_class]
+        if frame_index is not None:
+            where, args = where + " AND m.frame_index = ?", [*args, int(frame_index)]
+        if pending_only:
+            where += " AND (r.verdict IS NULL OR r.verdict = 'skip')"
+        joined = (
+            " r.verdict, r.class_name AS verdict_class, r.label_id, r.author AS reviewer,"
+            " r.created AS reviewed FROM mined_negatives m LEFT JOIN reviews r ON r.negative_id = m.id"
+        )
+        with self._read() as db:
+            versioned = "review_version" in _table_columns(db, "mined_negatives")
+            version = "m.review_version" if versioned else "NULL AS review_version"
+            rows = db.execute(
+                f"SELECT m.id, {version},{joined}{where} ORDER BY m.score DESC, m.id", args
+            ).fetchall()
+            if any(r["id"] not in checked for r in rows):  # the run's first read: every row, checked
+                for r in db.execute("SELECT * FROM mined_negatives WHERE run_id = ?", (run_id,)):
+                    if r["id"] not in checked:
+                        item = _row("mined_negatives", {k: r[k] for k in r.keys() if k != "review_version"})
+                        # (in the table's column order: the version keeps its place in the item)
+                        item = {k: item.get(k) for k in r.keys()}
+                        checked[item["id"]] = (item, [k for k, v in item.items() if isinstance(v, list)])
         out = []
         for r in rows:
-            known = checked.get(r["id"])
-            if known is None:
-                item = _row("mined_negatives", r)
-                known = checked[item["id"]] = {k: v for k, v in item.items() if k in _MINED_ONCE}
-            # Lists copied: a caller may change the item it got, not the next caller's.
-            item = {**dict(r), **{k: list(v) if isinstance(v, list) else v for k, v in known.items()}}
-            if "review_version" in item:
-                item["review_version"] = _row(
-                    "mined_negatives", {"id": item["id"], "review_version": item["review_version"]}
-                )["review_version"]
+            known, lists = checked[r["id"]]
+            item = dict(known)
+            for key in lists:  # copied: a caller may change the item it got, not the next caller's
+                item[key] = list(item[key])
+            if versioned:
+                item["review_version"] = r["review_version"]
+                if not isinstance(item["review_version"], int) or isinstance(item["review_version"], bool):
+                    _row("mined_negatives", {"id": item["id"], "review_version": item["review_version"]})
+            else:
+                item.pop("review_version", None)
+            for alias in _VERDICT_COLUMNS:
+                if alias != "id":
+                    item[alias] = r[alias]
             if item["reviewed"] is not None or item["verdict"] is not None:  # the joined verdict
                 _row("reviews", {column: item[alias] for alias, column in _VERDICT_COLUMNS.items()})
             item.setdefault("review_version", 0)  # a schema 1 database, read-only: not versioned yet
