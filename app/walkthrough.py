@@ -34,7 +34,7 @@ from factorydet_core.evaluation.records import machine_info
 from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.dataset import open_dataset
 from factorydet_core.session.editing import Suggestion
-from factorydet_core.session.store import PRELABEL_ORIGIN, SessionDB, open_session
+from factorydet_core.session.store import PRELABEL_ORIGIN, VERDICTS, SessionDB, open_session
 from factorydet_core.session.world import MOVING_CLASSES
 
 from .screenshots import WEBGL_RENDERER_JS, open_app_page, wait_until
@@ -184,13 +184,13 @@ def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
     if open_folder:
         page.get_by_text("Pre-labels", exact=True).first.click()
     page.locator("canvas[data-engine]").focus()
-    before = len(db.unreviewed_labels())
     note(
         "pre-label the frame (M)",
         _timed(
             view,
             lambda: page.keyboard.press("m"),
-            lambda: len(db.unreviewed_labels()) > before,
+            # (one frame's labels, polled: the frame had no pre-label before)
+            lambda: any(lab.origin == PRELABEL_ORIGIN for lab in db.labels(frame_index)),
             lambda: shows(f"{len(db.unreviewed_labels())} pre-label(s) wait")(),
         ),
     )
@@ -233,6 +233,13 @@ def _train_from_the_page(app, page, timeout: float) -> float:
     return time.perf_counter() - start
 
 
+def _answered(db) -> int:
+    """The latest run's queue items with a verdict, skips included: each verdict given on a
+    pending item adds one or more (its place's items)."""
+    progress = db.review_progress()
+    return sum(progress[verdict] for verdict in VERDICTS)
+
+
 def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
     """The loop the app exists for, from the page: Train (a full run first, in a session without
     one), ``NUM_VERDICTS`` review verdicts with the keyboard, each timed, then Train again (a next
@@ -251,9 +258,12 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
     for key in itertools.islice(itertools.cycle("bxbbx"), NUM_VERDICTS):  # background and skip
         _wait(lambda: app.worker.idle, 600, "the frames ahead")
         item = view.current_item_id
+        answered = _answered(db)
 
-        def judged(item=item) -> bool:
-            return {q["id"]: q["verdict"] for q in db.review_queue()}.get(item) is not None
+        def judged(answered=answered) -> bool:
+            # Counted in SQL: polled every few milliseconds in the app's own process, reading
+            # the whole queue would take the server's time from the verdict it times.
+            return _answered(db) > answered
 
         def next_item_shown(item=item) -> None:
             _wait(lambda: view.current_item_id not in (None, item), 30, "the next queue item")
