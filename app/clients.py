@@ -156,9 +156,9 @@ class ClientView(BrowserSession):
                 if layers_key != self._layers_key:
                     self.layers.draw(result, result_frame, layers, point_size, max_height, max_points)
                     self._layers_key = layers_key
-                else:
-                    self.layers.set_visibility(layers)
+                else:  # (the size first: a layer shown for the first time is sent at it)
                     self.layers.set_point_size(point_size)
+                    self.layers.set_visibility(layers)
             with state.lock:
                 detections = state.detections
                 detection_result = state.detection_result

@@ -87,8 +87,8 @@ class LayerView:
             if result.voxel_colors is not None:  # the worker's
                 self._voxel_colors = (id(result), result.voxel_colors)
             self.proposal_ids = shown_proposal_ids(result)
-            for name in LAYERS:
-                if name in DRAWN_LAYERS and layers[name]:
+            for name in DRAWN_LAYERS:
+                if layers[name]:
                     self._send(name)
         self.drawn_result = result
         self.drawn_frame_index = frame_index
@@ -137,7 +137,7 @@ class LayerView:
                 point_shape="square",
                 precision="float32",
             )
-        else:
+        elif name == "proposals":
             boxes = result.proposals.boxes[self.proposal_ids]
             segments = box_wireframe_segments(boxes).astype(np.float32) if len(boxes) else np.zeros((0, 2, 3))
             self.nodes[name] = scene.add_line_segments(
@@ -147,6 +147,8 @@ class LayerView:
                 thickness=1.5,
                 thickness_units="screen",
             )
+        else:
+            raise ValueError(f"unknown layer {name!r}; choose from {DRAWN_LAYERS}")
 
     def set_visibility(self, layers: dict[str, bool]) -> None:
         """Show or hide the layers as ``layers`` says; a layer shown for the first time since

@@ -233,7 +233,7 @@ def _train_from_the_page(app, page, timeout: float) -> float:
     return time.perf_counter() - start
 
 
-def _answered(db) -> int:
+def _num_answered(db) -> int:
     """The latest run's queue items with a verdict, skips included: each verdict given on a
     pending item adds one or more (its place's items)."""
     progress = db.review_progress()
@@ -258,12 +258,12 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
     for key in itertools.islice(itertools.cycle("bxbbx"), NUM_VERDICTS):  # background and skip
         _wait(lambda: app.worker.idle, 600, "the frames ahead")
         item = view.current_item_id
-        answered = _answered(db)
+        num_answered = _num_answered(db)
 
-        def judged(answered=answered) -> bool:
+        def judged(num_answered=num_answered) -> bool:
             # Counted in SQL: polled every few milliseconds in the app's own process, reading
             # the whole queue would take the server's time from the verdict it times.
-            return _answered(db) > answered
+            return _num_answered(db) > num_answered
 
         def next_item_shown(item=item) -> None:
             _wait(lambda: view.current_item_id not in (None, item), 30, "the next queue item")

@@ -825,8 +825,6 @@ _COLUMNS: dict[str, dict[str, Callable]] = {
 what a table's rows may hold; ``_row`` applies it."""
 _ROW_ID = {"meta": "key", "frames": "frame_index", "reviews": "negative_id", "training_rounds": "run_id"}
 """The column naming a row in error messages (``id`` where not listed)."""
-_MINED_ONCE = frozenset(_COLUMNS["mined_negatives"]) - {"review_version"}
-"""The columns of a mined negative that never change once its run is stored."""
 
 _VERDICT_COLUMNS = {
     "id": "negative_id",
@@ -1045,10 +1043,10 @@ class SessionDB:
         self.path = session.db_path
         self.readonly = readonly
         self.timeout = float(BUSY_TIMEOUT if timeout is None else timeout)
-        # (run id, {mined negative id: its checked columns but review_version}): a run's mined
-        # negatives are written once, with the run, and then only their review version changes,
-        # so the queue of a run is checked once, not at every read after every verdict.
-        # A run's checked mined negatives by id: (the item without its verdict, its list columns).
+        # (run id, {mined negative id: (its checked columns, the names of its list columns)}): a
+        # run's mined negatives are written once, with the run, and then only their review
+        # version changes, so the queue of a run is checked once, not at every read after every
+        # verdict (``_queue_rows``).
         self._mined_checked: tuple[int | None, dict[int, tuple[dict, list[str]]]] = (None, {})
         # ((run, order), {item id: position}): a class order's positions in a run's whole queue.
         self._queue_positions: tuple[tuple | None, dict[int, int]] = (None, {})
@@ -2005,8 +2003,8 @@ class SessionDB:
         most confident first (the queue a person confirms them from)."""
         names = self.class_names
         with self._read() as db:
-            columns = {r[1] for r in db.execute("PRAGMA table_info(labels)")}
-            if "reviewed" not in columns:  # schema 2 or older, read as it is: no pre-labels
+            # (a schema 2 database or older, read as it is, has no pre-labels)
+            if "reviewed" not in _table_columns(db, "labels"):
                 return []
             rows = db.execute(
                 "SELECT * FROM labels WHERE deleted = 0 AND reviewed = 0 ORDER BY frame_index, score DESC, id"
@@ -2474,10 +2472,12 @@ class SessionDB:
     ) -> list[dict]:
         """``review_queue``'s rows as stored, without the overlap with the labels.
 
-        A run's mined negatives never change once it is stored but for their review version:
-        each is read and checked once (``_mined_checked``), and a later read asks SQLite only for
-        the version and the joined verdict of each (the review panel reads the queue after every
-        verdict, and decoding a thousand rows' boxes each time was most of a verdict's time)."""
+        A run's mined negatives never change once it is stored but for their review version: a
+        read that meets a row for the first time reads and checks its rows whole (``_row``, row by
+        row in queue order) and keeps them (``_mined_checked``); a read that knows every row asks
+        SQLite only for each row's version and joined verdict (the review panel reads the queue
+        after every verdict, and decoding a thousand rows' boxes each time was most of a
+        verdict's time)."""
         if run_id is None:
             run_id = self.latest_run_id()
         checked_run, checked = self._mined_checked
@@ -2493,32 +2493,31 @@ class SessionDB:
         joined = (
             " r.verdict, r.class_name AS verdict_class, r.label_id, r.author AS reviewer,"
             " r.created AS reviewed FROM mined_negatives m LEFT JOIN reviews r ON r.negative_id = m.id"
+            f"{where} ORDER BY m.score DESC, m.id"
         )
         with self._read() as db:
             versioned = "review_version" in _table_columns(db, "mined_negatives")
             version = "m.review_version" if versioned else "NULL AS review_version"
-            rows = db.execute(
-                f"SELECT m.id, {version},{joined}{where} ORDER BY m.score DESC, m.id", args
-            ).fetchall()
-            if any(r["id"] not in checked for r in rows):  # the run's first read: every row, checked
-                for r in db.execute("SELECT * FROM mined_negatives WHERE run_id = ?", (run_id,)):
-                    if r["id"] not in checked:
-                        item = _row("mined_negatives", {k: r[k] for k in r.keys() if k != "review_version"})
-                        # (in the table's column order: the version keeps its place in the item)
-                        item = {k: item.get(k) for k in r.keys()}
-                        checked[item["id"]] = (item, [k for k, v in item.items() if isinstance(v, list)])
+            rows = db.execute(f"SELECT m.id, {version},{joined}", args).fetchall()
+            whole = any(r["id"] not in checked for r in rows)
+            if whole:
+                rows = db.execute(f"SELECT m.*,{joined}", args).fetchall()
+        check_version = _COLUMNS["mined_negatives"]["review_version"]
         out = []
         for r in rows:
+            if whole and r["id"] not in checked:
+                item = _row("mined_negatives", r)  # its columns checked in order, the verdict's left
+                known = {k: item[k] for k in r.keys() if k == "id" or k not in _VERDICT_COLUMNS}
+                checked[known["id"]] = (known, [k for k, v in known.items() if isinstance(v, list)])
             known, lists = checked[r["id"]]
             item = dict(known)
             for key in lists:  # copied: a caller may change the item it got, not the next caller's
                 item[key] = list(item[key])
             if versioned:
-                item["review_version"] = r["review_version"]
-                if not isinstance(item["review_version"], int) or isinstance(item["review_version"], bool):
-                    _row("mined_negatives", {"id": item["id"], "review_version": item["review_version"]})
-            else:
-                item.pop("review_version", None)
+                try:
+                    item["review_version"] = check_version(r["review_version"])
+                except (TypeError, ValueError):  # (``_row`` names the row and the column)
+                    _row("mined_negatives", {"id": item["id"], "review_version": r["review_version"]})
             for alias in _VERDICT_COLUMNS:
                 if alias != "id":
                     item[alias] = r[alias]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import time
 
 import numpy as np
 import pytest
@@ -75,6 +76,17 @@ for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.pro
 """Counts the shader programs the page links (a compile of a shader pair each)."""
 
 
+def _settled(read, quiet: float = 1.0, timeout: float = 30.0):
+    """``read()`` once it has stayed the same for ``quiet`` seconds."""
+    value, since, start = read(), time.monotonic(), time.monotonic()
+    while time.monotonic() - since < quiet and time.monotonic() - start < timeout:
+        time.sleep(0.1)
+        now = read()
+        if now != value:
+            value, since = now, time.monotonic()
+    return value
+
+
 def test_app_shows_controls_navigates_frames_and_draws(app, page):
     page.add_init_script(PROGRAMS_LINKED_JS)
     page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
@@ -90,9 +102,10 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     for label in ("Colour by", "Point size (m)", "Show boxes", "Hide above (m)"):
         assert page.get_by_text(label, exact=True).count() >= 1
     page.get_by_text("frame 1 / 3", exact=False).wait_for(timeout=20_000)
-    assert _wait(lambda: view.layers.drawn == (view.state.pipeline_result, 0), 120)
+    result = view.state.wait_for(lambda: view.state.pipeline_result, timeout=120)
+    assert result is not None and _wait(lambda: view.layers.drawn == (result, 0), 120)
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "the 3D canvas stayed blank"
-    linked = page.evaluate("window.__programsLinked")
+    linked = _settled(lambda: page.evaluate("window.__programsLinked"))
 
     page.get_by_role("button", name="Next frame").click()
     assert view.state.wait_for(lambda: view.state.frame_index == 1, timeout=20), (
@@ -105,7 +118,7 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     assert _wait(lambda: _colourful_fraction(canvas.screenshot()) > 0.005, 30), "the 3D canvas stayed blank"
     # The new frame's scan and boxes are drawn with the shaders compiled for the first (a compile
     # took up to a third of a second of the page's main thread under software WebGL).
-    assert page.evaluate("window.__programsLinked") == linked > 0
+    assert _settled(lambda: page.evaluate("window.__programsLinked")) == linked > 0
 
     # The measure is not fooled by the page around the points: hide them and it drops.
     view.scene.set_visible(False)
