@@ -67,7 +67,7 @@ class ClientView(BrowserSession):
         self._batch_lock = threading.Lock()
         self._open_batches = 0
         self.sent_at = 0.0
-        self.key_received_at = 0.0  # when the server received this browser's last hotkey
+        self.key_received_at = 0.0  # when the server received this browser's last hotkey or click
         self.closed = False  # set when the browser disconnects: nothing is sent to it after that
         # ``coalesced``: per thread in a block, what it asked for meanwhile (viser runs each key
         # and button on its own pool thread: two keys pressed together are two blocks at once).

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import viser
@@ -173,10 +174,16 @@ class FactorydetApp:
     def _on_click(self, event: viser.SceneClickEvent, add: bool = False) -> None:
         """A click picks the nearest label box under the cursor (it becomes the browser's
         selection), else the nearest detection box, else the nearest proposal box, else the nearest
-        patch point (whose segment becomes the browser's selection; shift-click adds it)."""
+        patch point (whose segment becomes the browser's selection; shift-click adds it). What it
+        changes reaches the browser in one update, as a key's does (``help_panel._batched``)."""
         view = self.client_view(event.client_id)
         if view is None:
             return
+        view.key_received_at = time.perf_counter()
+        with view.coalesced():
+            self._click(view, event, add)
+
+    def _click(self, view: ClientView, event: viser.SceneClickEvent, add: bool) -> None:
         state = view.state
         origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
         with state.lock:

@@ -4,7 +4,7 @@ in headless Chromium with the keyboard.
     .venv/bin/python -m app.walkthrough DATA [--repeats 5] [--out docs/bench/walkthrough.json]
         [--readme docs/labelling.md [--readme-block walkthrough]] [--no-retrain] [--points-drawn N]
 
-Each step is a key press, timed until the server has stored its effect (the label's new version,
+Each step is a key press (or a click), timed until the server has stored its effect (the label's new version,
 polled from the database; for a frame change, its detections drawn into the scene) and until the
 page shows it (the selected label's new version in the Labels panel, the new frame number). The
 record also gives what one scene change costs this browser to render, and how many renders it
@@ -30,10 +30,11 @@ import viser
 
 from factorydet_core.detection.model import DEFAULT_MODEL, DetectionModel
 from factorydet_core.evaluation.bench_tables import update_readme
+from factorydet_core.evaluation.diagnostics import ray_box_distances
 from factorydet_core.evaluation.records import machine_info
 from factorydet_core.io.atomic import write_text_atomic
 from factorydet_core.io.dataset import open_dataset
-from factorydet_core.session.editing import Suggestion
+from factorydet_core.session.editing import BOX_VIEWS, Suggestion, camera_view_of_box
 from factorydet_core.session.store import PRELABEL_ORIGIN, VERDICTS, SessionDB, open_session
 from factorydet_core.session.world import MOVING_CLASSES
 
@@ -167,6 +168,46 @@ def _render_cost(page, view, repeats: int = 5, window_s: float = 1.0) -> dict:
         "renders_after_a_scene_change_median": float(statistics.median(renders["scene"])),
         "renders": renders,
     }
+
+
+def _select_by_click(page, view, label_id: int, note, shows) -> None:
+    """Select the label ``label_id`` (selected now) again by a click, timed: the camera on one of
+    its box views (``editing.BOX_VIEWS``: the box in the middle of the page's canvas), Escape, then
+    a click there; the camera as it was afterwards."""
+    # The first of the box views whose line of sight meets this label before any other (an
+    # object stacked on it would take the click from above).
+    boxes, _, label_ids = view.state.db.frame_boxes(view.state.frame_index)
+    for box_view in BOX_VIEWS:
+        eye, centre, _ = camera_view_of_box(view.state.db.label(label_id).box, box_view)
+        distances = ray_box_distances(eye, (centre - eye) / np.linalg.norm(centre - eye), boxes)
+        if label_ids[int(np.argmin(distances))] == label_id:
+            break
+    else:
+        return  # every view of it is blocked: no click this round
+    camera = view.client.camera
+    position, look_at, up = tuple(camera.position), tuple(camera.look_at), tuple(camera.up_direction)
+    view.view_selected(box_view)
+    page.keyboard.press("Escape")
+    _wait(lambda: view.selected_label_id is None, 30, "nothing selected")
+    page.get_by_text(f"Label #{label_id}:", exact=False).first.wait_for(state="hidden", timeout=30_000)
+    # A click is cast from the camera the page has: it must have taken the view from above (the
+    # browser reports its camera back once it has).
+    _wait(lambda: np.allclose(camera.position, eye, atol=0.01), 30, "the page's camera on the label")
+    time.sleep(1.0)  # the page draws the new view before the click
+    canvas = page.locator("canvas[data-engine]")
+    size = canvas.bounding_box()
+    middle = {"x": size["width"] / 2, "y": size["height"] / 2}
+    note(
+        "select a label (click)",
+        _timed(
+            view,
+            lambda: canvas.click(position=middle),
+            lambda: view.selected_label_id == label_id,
+            shows(f"Label #{label_id}:"),
+        ),
+    )
+    view.set_camera(position, look_at, up)
+    time.sleep(1.0)  # the page draws the view as it was before the next key
 
 
 def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
@@ -383,6 +424,7 @@ def run(
                                 shows(f"(version {version})"),
                             ),
                         )
+                    _select_by_click(page, view, label.id, note, shows)
                     # The model's box for an object, accepted: the new label is selected in the page.
                     box = tuple(float(v) for v in np.asarray(label.box) + [3.0, 3.0, 0, 0, 0, 0, 0])
                     view.suggest(frame_index, Suggestion(box, "box", 0.9, 1))
