@@ -247,10 +247,16 @@ class FactorydetApp:
         state.set_selection(description_markdown(info) if info else "_Nothing under the cursor._")
 
     def _on_rect_select(self, event: viser.SceneRectSelectEvent) -> None:
-        """Shift-drag: the patches of the points inside the rectangle become the selection."""
+        """Shift-drag: the patches of the points inside the rectangle become the selection (one
+        update, as a click's)."""
         view = self.client_view(event.client_id)
         if view is None:
             return
+        view.key_received_at = time.perf_counter()
+        with view.coalesced():
+            self._rect_select(view, event)
+
+    def _rect_select(self, view: ClientView, event: viser.SceneRectSelectEvent) -> None:
         with view._draw_lock:
             result = view.layers.drawn_result
         if result is None:

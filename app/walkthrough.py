@@ -1,5 +1,5 @@
 """``bench walkthrough``: a labeller's edits timed as the browser sees them, by driving the real app
-in headless Chromium with the keyboard.
+in headless Chromium with the keyboard (and a click to select).
 
     .venv/bin/python -m app.walkthrough DATA [--repeats 5] [--out docs/bench/walkthrough.json]
         [--readme docs/labelling.md [--readme-block walkthrough]] [--no-retrain] [--points-drawn N]
@@ -170,7 +170,7 @@ def _render_cost(page, view, repeats: int = 5, window_s: float = 1.0) -> dict:
     }
 
 
-def _select_by_click(page, view, label_id: int, note, shows) -> None:
+def _select_by_click(page, view, label_id: int, note, shows, progress=None) -> None:
     """Select the label ``label_id`` (selected now) again by a click, timed: the camera on one of
     its box views (``editing.BOX_VIEWS``: the box in the middle of the page's canvas), Escape, then
     a click there; the camera as it was afterwards."""
@@ -183,30 +183,40 @@ def _select_by_click(page, view, label_id: int, note, shows) -> None:
         if label_ids[int(np.argmin(distances))] == label_id:
             break
     else:
-        return  # every view of it is blocked: no click this round
+        if progress is not None:
+            progress(f"label {label_id}: every box view of it is blocked by another box, no click this round")
+        return
     camera = view.client.camera
     position, look_at, up = tuple(camera.position), tuple(camera.look_at), tuple(camera.up_direction)
+    reported = camera.update_timestamp
     view.view_selected(box_view)
-    page.keyboard.press("Escape")
-    _wait(lambda: view.selected_label_id is None, 30, "nothing selected")
-    page.get_by_text(f"Label #{label_id}:", exact=False).first.wait_for(state="hidden", timeout=30_000)
-    # A click is cast from the camera the page has: it must have taken the view from above (the
-    # browser reports its camera back once it has).
-    _wait(lambda: np.allclose(camera.position, eye, atol=0.01), 30, "the page's camera on the label")
-    time.sleep(1.0)  # the page draws the new view before the click
-    canvas = page.locator("canvas[data-engine]")
-    size = canvas.bounding_box()
-    middle = {"x": size["width"] / 2, "y": size["height"] / 2}
-    note(
-        "select a label (click)",
-        _timed(
-            view,
-            lambda: canvas.click(position=middle),
-            lambda: view.selected_label_id == label_id,
-            shows(f"Label #{label_id}:"),
-        ),
-    )
-    view.set_camera(position, look_at, up)
+    try:
+        page.keyboard.press("Escape")
+        _wait(lambda: view.selected_label_id is None, 30, "nothing selected")
+        page.get_by_text(f"Label #{label_id}:", exact=False).first.wait_for(state="hidden", timeout=30_000)
+        # A click is cast from the camera the page has: the page must have taken the new view (the
+        # server's camera changes when it is set; the timestamp only when the page reports back).
+        _wait(
+            lambda: camera.update_timestamp > reported and np.allclose(camera.position, eye, atol=0.01),
+            30,
+            "the page's camera on the label",
+        )
+        time.sleep(1.0)  # the page draws the new view before the click
+        size = page.locator("canvas[data-engine]").bounding_box()
+        x, y = size["x"] + size["width"] / 2, size["y"] + size["height"] / 2
+        note(
+            "select a label (click)",
+            _timed(
+                view,
+                # (the mouse itself: a locator's click first waits for the canvas to hold still
+                # over two animation frames, renders a key press does not wait for)
+                lambda: page.mouse.click(x, y),
+                lambda: view.selected_label_id == label_id,
+                shows(f"Label #{label_id}:"),
+            ),
+        )
+    finally:
+        view.set_camera(position, look_at, up)
     time.sleep(1.0)  # the page draws the view as it was before the next key
 
 
@@ -424,7 +434,7 @@ def run(
                                 shows(f"(version {version})"),
                             ),
                         )
-                    _select_by_click(page, view, label.id, note, shows)
+                    _select_by_click(page, view, label.id, note, shows, progress)
                     # The model's box for an object, accepted: the new label is selected in the page.
                     box = tuple(float(v) for v in np.asarray(label.box) + [3.0, 3.0, 0, 0, 0, 0, 0])
                     view.suggest(frame_index, Suggestion(box, "box", 0.9, 1))

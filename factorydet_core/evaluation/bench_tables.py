@@ -723,14 +723,18 @@ def walkthrough_markdown(result: dict) -> str:
             " on a heartbeat when idle and keeps drawing it for a moment after every scene change,"
             " which costs a browser with a GPU nothing and this one a render's time each."
         )
+    click, clicked, or_click = ("", "", "")
+    if any("(click)" in step for step in result["steps"]):
+        click, or_click = " (and a click)", " (or click)"
+        clicked = "; for a click, the server the selection"
     return (
-        table(header, rows)
-        + f"\n\n{result['repeats']} rounds of key presses in headless Chromium on `{result['data']}` with"
-        " the shipped model and label once on (an edit reaches every frame that shows the object), once"
-        " the frames ahead are computed; 'stored' is when the database holds the edit (for a frame"
-        " change: its cached detections drawn into the scene) and 'shown' when the page shows it, both"
-        " from the key press; 'server's share' is the app's own latency, from the server receiving the"
-        " key to its having sent the browser everything the key changed (one batch of updates); the"
+        table(header, rows) + f"\n\n{result['repeats']} rounds of key presses{click} in headless Chromium on"
+        f" `{result['data']}` with the shipped model and label once on (an edit reaches every frame"
+        " that shows the object), once the frames ahead are computed; 'stored' is when the database"
+        f" holds the edit (for a frame change: its cached detections drawn into the scene{clicked})"
+        f" and 'shown' when the page shows it, both from the key press{or_click}; 'server's share'"
+        " is the app's own latency, from the server receiving the key to its having sent the"
+        " browser everything the key changed (one batch of updates); the"
         " rest is the browser's (delivering the key, rendering, showing)."
         f" In this browser a notification alone takes {fmt(alone)}"
         f" ms to show and {fmt(with_scene)} ms with a scene change in the"
