@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import viser
@@ -74,6 +75,14 @@ class ClientView(BrowserSession):
         self._coalesce_lock = threading.Lock()
         self._wanted: dict[int, set[str]] = {}
         self._num_refreshes = 0
+
+    def respond(self, action: Callable[[], object]) -> None:
+        """Run the action of a key or a click of this browser so that everything it changes
+        reaches the browser in one update, its panels brought up to date once (``coalesced``);
+        ``key_received_at`` says when it came (the walkthrough times the server's share from it)."""
+        self.key_received_at = time.perf_counter()
+        with self.coalesced():
+            action()
 
     @contextlib.contextmanager
     def coalesced(self):

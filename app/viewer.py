@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 import viser
@@ -175,13 +174,10 @@ class FactorydetApp:
         """A click picks the nearest label box under the cursor (it becomes the browser's
         selection), else the nearest detection box, else the nearest proposal box, else the nearest
         patch point (whose segment becomes the browser's selection; shift-click adds it). What it
-        changes reaches the browser in one update, as a key's does (``help_panel._batched``)."""
+        changes reaches the browser in one update, as a key's does (``ClientView.respond``)."""
         view = self.client_view(event.client_id)
-        if view is None:
-            return
-        view.key_received_at = time.perf_counter()
-        with view.coalesced():
-            self._click(view, event, add)
+        if view is not None:
+            view.respond(lambda: self._click(view, event, add))
 
     def _click(self, view: ClientView, event: viser.SceneClickEvent, add: bool) -> None:
         state = view.state
@@ -250,11 +246,8 @@ class FactorydetApp:
         """Shift-drag: the patches of the points inside the rectangle become the selection (one
         update, as a click's)."""
         view = self.client_view(event.client_id)
-        if view is None:
-            return
-        view.key_received_at = time.perf_counter()
-        with view.coalesced():
-            self._rect_select(view, event)
+        if view is not None:
+            view.respond(lambda: self._rect_select(view, event))
 
     def _rect_select(self, view: ClientView, event: viser.SceneRectSelectEvent) -> None:
         with view._draw_lock:

@@ -177,8 +177,9 @@ def _select_by_click(page, view, label_id: int, note, shows, progress=None) -> N
     # The first of the box views whose line of sight meets this label before any other (an
     # object stacked on it would take the click from above).
     boxes, _, label_ids = view.state.db.frame_boxes(view.state.frame_index)
+    label_box = view.state.db.label(label_id).box
     for box_view in BOX_VIEWS:
-        eye, centre, _ = camera_view_of_box(view.state.db.label(label_id).box, box_view)
+        eye, centre, _ = camera_view_of_box(label_box, box_view)
         distances = ray_box_distances(eye, (centre - eye) / np.linalg.norm(centre - eye), boxes)
         if label_ids[int(np.argmin(distances))] == label_id:
             break
@@ -228,7 +229,11 @@ def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
     data set) is left as it is: M would add nothing there."""
     db = app.state.db
     frame_index = view.state.frame_index
-    if any(lab.origin == PRELABEL_ORIGIN for lab in db.labels(frame_index)):
+
+    def prelabelled() -> bool:  # (one frame's labels: polled while M is timed)
+        return any(lab.origin == PRELABEL_ORIGIN for lab in db.labels(frame_index))
+
+    if prelabelled():
         return
     camera = view.client.camera
     position, look_at = tuple(camera.position), tuple(camera.look_at)
@@ -240,8 +245,7 @@ def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
         _timed(
             view,
             lambda: page.keyboard.press("m"),
-            # (one frame's labels, polled: the frame had no pre-label before)
-            lambda: any(lab.origin == PRELABEL_ORIGIN for lab in db.labels(frame_index)),
+            prelabelled,  # (the frame had no pre-label before)
             lambda: shows(f"{len(db.unreviewed_labels())} pre-label(s) wait")(),
         ),
     )

@@ -3,8 +3,6 @@ review item) and the help panel that lists them."""
 
 from __future__ import annotations
 
-import time
-
 import viser
 
 from ..browser_session import NUDGE_DEG, NUDGE_M
@@ -85,14 +83,6 @@ def help_markdown(class_names: tuple[str, ...]) -> str:
     )
 
 
-def _batched(view: ClientView, action) -> None:
-    """Run a key's action so that everything it changes reaches the browser in one update, its
-    panels brought up to date once (``coalesced``)."""
-    view.key_received_at = time.perf_counter()
-    with view.coalesced():
-        action()
-
-
 def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser.CommandHandle]:
     """Register the shortcuts for one browser; returns the command handles."""
     gui = view.client.gui
@@ -131,15 +121,15 @@ def register_hotkeys(view: ClientView, labels_panel, review_panel) -> list[viser
     handles = []
     for key, (label, action) in actions.items():
         handle = gui.add_command(label, hotkey=key)
-        handle.on_trigger(lambda _event, action=action: _batched(view, action))
+        handle.on_trigger(lambda _event, action=action: view.respond(action))
         handles.append(handle)
     for key, (what, step) in NUDGES.items():
         handle = gui.add_command(f"Box: {what}", hotkey=key, modifier="shift")
-        handle.on_trigger(lambda _event, step=step: _batched(view, lambda: view.nudge(**step)))
+        handle.on_trigger(lambda _event, step=step: view.respond(lambda: view.nudge(**step)))
         handles.append(handle)
     for key, (what, step) in RESIZES.items():
         handle = gui.add_command(f"Box: {what}", hotkey=key, modifier="alt")
-        handle.on_trigger(lambda _event, step=step: _batched(view, lambda: view.nudge(**step)))
+        handle.on_trigger(lambda _event, step=step: view.respond(lambda: view.nudge(**step)))
         handles.append(handle)
     for i, name in enumerate(names[:9]):
 
