@@ -318,6 +318,21 @@ def test_bench_hitl_with_threshold_folds_measures_each_model_at_both_thresholds(
             r["other_objective_thresholds"]["f1"] for r in result["per_seed"][name]
         ]
     assert "out-of-fold thresholds of objective total" in out.with_suffix(".md").read_text()
+    # ... and at the other objective's thresholds on the fitted frames (what no folds give).
+    for name in ("blind", "full"):
+        runs = result["per_seed"][name]
+        for run in runs:
+            no_folds = run["fitted_frame_other_objective_thresholds"]
+            assert no_folds["objective"] == "total" and no_folds["map"] == run["map"]
+            assert all(t <= 0.35 for t in no_folds["thresholds"].values())  # under the ceiling
+        variant = result["variants"][name]["fitted_frame_other_objective_thresholds"]
+        assert variant["f1_per_seed"] == [r["fitted_frame_other_objective_thresholds"]["f1"] for r in runs]
+        gained = runs[0]["f1"] - runs[0]["fitted_frame_other_objective_thresholds"]["f1"]
+        assert variant["chosen_minus_these"]["mean"] == pytest.approx(gained, abs=1e-4)
+    assert "difference_vs_blind" in result["variants"]["full"]["fitted_frame_other_objective_thresholds"]
+    assert "thresholds of objective total tuned on their fitted frames (no folds)" in (
+        out.with_suffix(".md").read_text()
+    )
 
 
 @pytest.mark.slow

@@ -963,6 +963,12 @@ def _hitl_variants(
                 others = [o for o in folds["by_objective"] if o != folds["objective"]]
                 other_objective = others[0]
                 thresholds_of["other_objective"] = dict(folds["by_objective"][other_objective])
+                # What the settings without folds give (the app's defaults when the run's
+                # objective is "total"); runs from before it was recorded lack it.
+                if "fitted_frame_by_objective" in folds:
+                    thresholds_of["fitted_frames_other_objective"] = dict(
+                        folds["fitted_frame_by_objective"][other_objective]
+                    )
             models = {
                 key: dataclasses.replace(run.model, class_score_thresholds=t or None)
                 for key, t in thresholds_of.items()
@@ -988,7 +994,7 @@ def _hitl_variants(
                     for key, model in models.items()
                 }
             metrics = measured["model"]
-            fitted_frame = other_objective_thresholds = None
+            fitted_frame = other_objective_thresholds = fitted_frame_other_objective = None
             if folds is not None:
                 fitted_frame = {
                     **{k: measured["fitted_frames"][k] for k in ("f1", "precision", "recall", "map")},
@@ -1002,6 +1008,14 @@ def _hitl_variants(
                     "per_class_f1": {k: v["f1"] for k, v in measured["other_objective"]["per_class"].items()},
                     "thresholds": thresholds_of["other_objective"],
                 }
+                if "fitted_frames_other_objective" in measured:
+                    at = measured["fitted_frames_other_objective"]
+                    fitted_frame_other_objective = {
+                        "objective": other_objective,
+                        **{k: at[k] for k in ("f1", "precision", "recall", "map")},
+                        "per_class_f1": {k: v["f1"] for k, v in at["per_class"].items()},
+                        "thresholds": thresholds_of["fitted_frames_other_objective"],
+                    }
             covered_by_class = unannotated_coverage_by_class(db, dataset, train)
             covered, unannotated = _coverage_totals(covered_by_class)
             pseudo = None
@@ -1045,6 +1059,12 @@ def _hitl_variants(
                     **(
                         {"other_objective_thresholds": other_objective_thresholds}
                         if other_objective_thresholds is not None
+                        else {}
+                    ),
+                    # And at the other objective's fitted frames' (no folds).
+                    **(
+                        {"fitted_frame_other_objective_thresholds": fitted_frame_other_objective}
+                        if fitted_frame_other_objective is not None
                         else {}
                     ),
                 }
@@ -1151,6 +1171,17 @@ def _hitl_variants(
                     [r["other_objective_thresholds"]["f1"] for r in runs], [r["f1"] for r in runs]
                 ),
             }
+        if all("fitted_frame_other_objective_thresholds" in r for r in runs):
+            # The other objective's fitted frames' thresholds (the settings without folds), on the
+            # very same networks.
+            at = [r["fitted_frame_other_objective_thresholds"] for r in runs]
+            results[name]["fitted_frame_other_objective_thresholds"] = {
+                "objective": at[0]["objective"],
+                "f1": _mean_of([a["f1"] for a in at]),
+                "f1_per_seed": [a["f1"] for a in at],
+                "map": _mean_of([a["map"] for a in at]),
+                "chosen_minus_these": paired_difference([r["f1"] for r in runs], [a["f1"] for a in at]),
+            }
         if all("in_factory" in r for r in runs):
             results[name]["in_factory"] = {
                 **{key: _mean_of([r["in_factory"][key] for r in runs]) for key in ("f1", "map")},
@@ -1166,11 +1197,11 @@ def _hitl_variants(
                 results[name]["other_objective_thresholds"]["f1_per_seed"],
                 results["blind"]["other_objective_thresholds"]["f1_per_seed"],
             )
-        if "fitted_frame_thresholds" in results[name] and "fitted_frame_thresholds" in results["blind"]:
-            results[name]["fitted_frame_thresholds"]["difference_vs_blind"] = paired_difference(
-                results[name]["fitted_frame_thresholds"]["f1_per_seed"],
-                results["blind"]["fitted_frame_thresholds"]["f1_per_seed"],
-            )
+        for key in ("fitted_frame_thresholds", "fitted_frame_other_objective_thresholds"):
+            if key in results[name] and key in results["blind"]:
+                results[name][key]["difference_vs_blind"] = paired_difference(
+                    results[name][key]["f1_per_seed"], results["blind"][key]["f1_per_seed"]
+                )
     reviewed = [k for k in budgets if f"reviewed_{k}" in results]
     gap, recovered, recovered_per_seed, gap_significant = None, {}, {}, False
     if "full" in results:

@@ -887,6 +887,17 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             f"the same ({objective})",
             ("minus_chosen", f"F of objective {objective}'s out-of-fold thresholds minus the model's"),
         )
+    if all("fitted_frame_other_objective_thresholds" in variants[n] for n in names):
+        # The same networks at what the settings without folds give them (with the objective
+        # "total" chosen, the defaults: the fitted frames' thresholds of objective "class").
+        objective = variants[names[0]]["fitted_frame_other_objective_thresholds"]["objective"]
+        rows += _same_network_rows(
+            {n: variants[n]["fitted_frame_other_objective_thresholds"] for n in names},
+            names,
+            f"thresholds of objective {objective} tuned on their fitted frames (no folds)",
+            f"the same (no folds, {objective})",
+            ("chosen_minus_these", f"F of the model's thresholds minus no folds' of objective {objective}"),
+        )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
     map_differences = _map_differences(result)
     rows += _difference_row("mAP minus blind's", map_differences, names)

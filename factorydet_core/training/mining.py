@@ -958,6 +958,17 @@ def train_with_mining(
                 init_folds, round_epochs if init_model is not None else 0,
             )  # fmt: skip
             fitted_frame_thresholds = dict(model.class_score_thresholds or {})
+            # The fitted frames' thresholds of every objective too (the same scores): a benchmark
+            # measures the same network at what the settings without folds would have given.
+            fitted_frame_by_objective = {
+                objective: dict(
+                    with_tuned_thresholds(
+                        model, scored, positive_iou, max_threshold=score_threshold, objective=objective
+                    ).class_score_thresholds
+                    or {}
+                )
+                for objective in THRESHOLD_OBJECTIVES
+            }
             # Both objectives' thresholds from the same scores: a benchmark measures the same
             # network at each (the model keeps ``threshold_objective``'s).
             by_objective = {
@@ -977,6 +988,7 @@ def train_with_mining(
                 "continued": num_continued,
                 "thresholds": dict(model.class_score_thresholds or {}),
                 "fitted_frame_thresholds": fitted_frame_thresholds,
+                "fitted_frame_by_objective": fitted_frame_by_objective,
                 "objective": threshold_objective,
                 "by_objective": by_objective,
             }

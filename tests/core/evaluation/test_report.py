@@ -297,6 +297,26 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     row = "| F of objective total's out-of-fold thresholds minus the model's, per seed: mean [95% interval] |"
     assert row + " +0.020" in text
     assert "| the same (total), F minus blind's, per seed: mean [95% interval] | – |" in text
+    # And at the other objective's fitted frames' thresholds (what no folds give).
+    assert "(no folds" not in text
+    for variant in result["variants"].values():
+        no_folds = [f - 0.03 for f in variant["f1_per_seed"]]
+        variant["fitted_frame_other_objective_thresholds"] = {
+            "objective": "class",
+            "f1": sum(no_folds) / 3,
+            "f1_per_seed": no_folds,
+            "chosen_minus_these": paired_difference(variant["f1_per_seed"], no_folds),
+        }
+    blind_no_folds = result["variants"]["blind"]["fitted_frame_other_objective_thresholds"]["f1_per_seed"]
+    for variant in result["variants"].values():
+        no_folds = variant["fitted_frame_other_objective_thresholds"]
+        no_folds["difference_vs_blind"] = paired_difference(no_folds["f1_per_seed"], blind_no_folds)
+    text = hitl_markdown(result)
+    at = "thresholds of objective class tuned on their fitted frames (no folds)"
+    assert f"| total F, the same models at {at} | 0.270 |" in text
+    row = "| F of the model's thresholds minus no folds' of objective class, per seed: mean [95% interval] |"
+    assert row + " +0.030" in text
+    assert "| the same (no folds, class), F minus blind's, per seed: mean [95% interval] | – |" in text
     result["settings"]["threshold_objective"] = "total"
     assert "best for the F-score of all classes' detections pooled" in hitl_markdown(result)
     result["settings"]["threshold_objective"] = "class"

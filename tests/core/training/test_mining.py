@@ -761,7 +761,8 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         )  # (it runs)  # fmt: skip
         out = np.full(len(class_names), np.nan)
         # Bobbins: capped on fitted frames, not beyond; the objectives differ out of fold.
-        out[1] = 0.25 if max_threshold < 1 else {"class": 0.7, "total": 0.6}[objective]
+        fitted, out_of_fold = {"class": 0.25, "total": 0.2}, {"class": 0.7, "total": 0.6}
+        out[1] = (fitted if max_threshold < 1 else out_of_fold)[objective]
         return out
 
     monkeypatch.setattr(training, "_training_set", spy_training_set)
@@ -780,8 +781,12 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         ("fit", [second]), ("score", [first]), ("fit", [first]), ("score", [second]),
     ]  # fmt: skip
     # Round 0 on its fitted frames under the ceiling; the last on its fitted frames under the
-    # ceiling (for the record), then on the out-of-fold scores without one, for each objective.
-    assert tunings == [(2, 0.3, "class"), (2, 0.3, "class"), (2, 1.0, "class"), (2, 1.0, "total")]
+    # ceiling (the model's before the folds), then for the record each objective's there and on
+    # the out-of-fold scores without one.
+    assert tunings == [
+        (2, 0.3, "class"), (2, 0.3, "class"), (2, 0.3, "class"), (2, 0.3, "total"), (2, 1.0, "class"),
+        (2, 1.0, "total"),
+    ]  # fmt: skip
     assert run.model.class_score_thresholds == {"bobbin": 0.7}
     assert run.models[0].class_score_thresholds == {"bobbin": 0.25}
     folds = run.rounds[-1]["threshold_folds"]
@@ -789,6 +794,8 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
     assert folds["thresholds"] == {"bobbin": 0.7} and folds["fitted_frame_thresholds"] == {"bobbin": 0.25}
     assert folds["objective"] == "class"
     assert folds["by_objective"] == {"class": {"bobbin": 0.7}, "total": {"bobbin": 0.6}}
+    # What no folds would have given, each objective: what a benchmark compares the folds with.
+    assert folds["fitted_frame_by_objective"] == {"class": {"bobbin": 0.25}, "total": {"bobbin": 0.2}}
     assert "threshold_folds" not in run.rounds[0]
     # The record's metrics are the model's as it is returned.
     assert run.rounds[-1]["train_metrics"]["class_score_thresholds"]["bobbin"] == 0.7
@@ -799,7 +806,9 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         frames, classifier, rounds=0, initial_negatives=100, score_threshold=0.3, threshold_folds=2,
         threshold_objective="total",
     )  # fmt: skip
-    assert tunings == [(2, 0.3, "total"), (2, 1.0, "class"), (2, 1.0, "total")]
+    assert tunings == [
+        (2, 0.3, "total"), (2, 0.3, "class"), (2, 0.3, "total"), (2, 1.0, "class"), (2, 1.0, "total"),
+    ]  # fmt: skip
     assert pooled.model.class_score_thresholds == {"bobbin": 0.6}
     assert pooled.rounds[-1]["threshold_folds"]["objective"] == "total"
     with pytest.raises(InputError, match="threshold_objective must be one of class, total"):
