@@ -668,6 +668,39 @@ def _map_recovered_text(result: dict, differences: dict) -> str:
     )
 
 
+def _no_folds_recovered_text(variants: dict) -> str:
+    """With thresholds tuned out of fold, the blind-to-full gap at the thresholds the same networks
+    get without folds (``fitted_frame_other_objective_thresholds``) and the share of it each
+    reviewed variant recovers there, with its 95% interval, stated only where that gap is larger
+    than twice its standard error; ``""`` when the record did not measure them."""
+    from factorydet_core.evaluation.hitl import paired_difference, recovered_share
+
+    key = "fitted_frame_other_objective_thresholds"
+    if not all(n in variants and key in variants[n] for n in ("blind", "full")):
+        return ""
+    per_seed = {n: v[key]["f1_per_seed"] for n, v in variants.items() if key in v}
+    objective = variants["full"][key]["objective"]
+    at = f"At the thresholds of objective {objective} tuned on the fitted frames (no folds)"
+    gap = paired_difference(per_seed["full"], per_seed["blind"])
+    if gap["standard_error"] is None or not gap["mean"] > 2 * gap["standard_error"]:
+        return (
+            f"{at}, the gap between blind and full labels ({difference_text(gap)}) is not larger than"
+            f" twice its standard error ({_fmt(gap['standard_error'])}): no share is stated."
+        )
+    shares = []
+    for name in per_seed:
+        if name in ("blind", "full"):
+            continue
+        share = recovered_share(per_seed[name], per_seed["blind"], per_seed["full"])
+        ci = share["ci95"]
+        interval = " [interval unbounded]" if ci is None else f" [{100 * ci[0]:.0f}%, {100 * ci[1]:.0f}%]"
+        shares.append(f"{name} {100 * share['share']:.0f}%{interval}")
+    return (
+        f"{at}, the gap between blind and full labels is {difference_text(gap)}, more than twice its"
+        " standard error" + (f"; recovered: {', '.join(shares)}." if shares else ".")
+    )
+
+
 def _order_text(queue_order: str | None, review_order: str | None) -> str:
     """How a hitl record's runs cut the mined negatives and ordered the review queue."""
     cut_turns = queue_order == "class"
@@ -1143,6 +1176,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             _recovered_text(result, recovered),
             "",
             *([_map_recovered_text(result, map_differences), ""] if "full" in map_differences else []),
+            *([text, ""] if (text := _no_folds_recovered_text(variants)) else []),
             *_pseudo_label_text(variants, names),
             *class_coverage,
             *precision_recall,

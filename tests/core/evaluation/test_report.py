@@ -317,6 +317,14 @@ def test_the_hitl_table_states_the_shares_of_the_variants_it_ran():
     row = "| F of the model's thresholds minus no folds' of objective class, per seed: mean [95% interval] |"
     assert row + " +0.030" in text
     assert "| the same (no folds, class), F minus blind's, per seed: mean [95% interval] | – |" in text
+    # ... and the gap there, with the share each variant recovers of it, when it is significant.
+    at = "At the thresholds of objective class tuned on the fitted frames (no folds)"
+    assert f"{at}, the gap between blind and full labels is +0.040" in text
+    assert "more than twice its standard error; recovered: full_late 50% [50%, 50%]." in text
+    no_folds = result["variants"]["full"]["fitted_frame_other_objective_thresholds"]
+    no_folds["f1_per_seed"] = [0.26, 0.40, 0.24]  # a gap of noise: no share stated
+    assert f"{at}, the gap between blind and full labels (+0.030" in hitl_markdown(result)
+    assert "is not larger than twice its standard error" in hitl_markdown(result)
     result["settings"]["threshold_objective"] = "total"
     assert "best for the F-score of all classes' detections pooled" in hitl_markdown(result)
     result["settings"]["threshold_objective"] = "class"
