@@ -485,6 +485,14 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json \
 	  docs/bench/hitl-e20-folds-pooled-reviewed-six.json --variants reviewed_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-sparse-vs-every-label
+	# The reviewer's record above on six factories no record had used (simulator seeds 111-116), each
+	# network also measured at the thresholds it gets without folds.
+	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 111,112,113,114,115,116 \
+	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
+	  --out docs/bench/hitl-e20-folds-pooled-fresh-six.json --readme docs/review-loop.md \
+	  --readme-block hitl-e20-folds-pooled-fresh-six --resume --resume-other-library
 	# blind_safe (holding places, recalibrating the background) with thresholds out of fold for the pooled F
 	# (blind mining and full labels read back from hitl-e20-folds-pooled-six).
 	test -f docs/bench/hitl-e20-folds-pooled-safe-six.json || cp docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-pooled-safe-six.json
