@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -621,7 +622,13 @@ def _share_interval(result: dict, name: str) -> str:
     per_seed = result.get("per_seed") or {}
     if not all(n in per_seed for n in ("blind", "full", name)) or len(per_seed["blind"]) < 2:
         return ""
-    ci = recovered_share(*([r["f1"] for r in per_seed[n]] for n in (name, "blind", "full")))["ci95"]
+    share = recovered_share(*([r["f1"] for r in per_seed[n]] for n in (name, "blind", "full")))
+    return _interval_text(share["ci95"])
+
+
+def _interval_text(ci: list[float] | None) -> str:
+    """`` [lo%, hi%]`` of a recovered share's 95% interval (``hitl.recovered_share``'s ``ci95``),
+    `` [interval unbounded]`` when the seeds cannot bound it."""
     return " [interval unbounded]" if ci is None else f" [{100 * ci[0]:.0f}%, {100 * ci[1]:.0f}%]"
 
 
@@ -651,20 +658,30 @@ def _map_recovered_text(result: dict, differences: dict) -> str:
     thresholds training tunes on its own frames) and the share of it each variant recovers, stated
     only where the gap is larger than twice its standard error."""
     full = differences["full"]
-    gap = full["mean"]
-    if full.get("standard_error") is None or not gap > 2 * full["standard_error"]:
+    return _gap_text(
+        "In mAP",
+        full,
+        lambda: [
+            f"{name} {100 * differences[name]['mean'] / full['mean']:.0f}%"
+            for name in differences
+            if name not in ("blind", "full")
+        ],
+    )
+
+
+def _gap_text(where: str, gap: dict, shares: Callable[[], list[str]]) -> str:
+    """ "``where``, the gap between blind and full labels ..." (``gap``: their paired difference,
+    ``hitl.paired_difference``) with the ``shares`` of it recovered, or, where the gap is not larger
+    than twice its standard error, that no share is stated."""
+    if gap.get("standard_error") is None or not gap["mean"] > 2 * gap["standard_error"]:
         return (
-            f"In mAP, the gap between blind and full labels ({difference_text(full)}) is not larger than"
-            f" twice its standard error ({_fmt(full.get('standard_error'))}): no share is stated."
+            f"{where}, the gap between blind and full labels ({difference_text(gap)}) is not larger than"
+            f" twice its standard error ({_fmt(gap.get('standard_error'))}): no share is stated."
         )
-    shares = [
-        f"{name} {100 * differences[name]['mean'] / gap:.0f}%"
-        for name in differences
-        if name not in ("blind", "full")
-    ]
+    stated = shares()
     return (
-        f"In mAP, the gap between blind and full labels is {difference_text(full)}, more than twice its"
-        " standard error" + (f"; recovered: {', '.join(shares)}." if shares else ".")
+        f"{where}, the gap between blind and full labels is {difference_text(gap)}, more than twice its"
+        " standard error" + (f"; recovered: {', '.join(stated)}." if stated else ".")
     )
 
 
@@ -680,24 +697,19 @@ def _no_folds_recovered_text(variants: dict) -> str:
         return ""
     per_seed = {n: v[key]["f1_per_seed"] for n, v in variants.items() if key in v}
     objective = variants["full"][key]["objective"]
-    at = f"At the thresholds of objective {objective} tuned on the fitted frames (no folds)"
-    gap = paired_difference(per_seed["full"], per_seed["blind"])
-    if gap["standard_error"] is None or not gap["mean"] > 2 * gap["standard_error"]:
-        return (
-            f"{at}, the gap between blind and full labels ({difference_text(gap)}) is not larger than"
-            f" twice its standard error ({_fmt(gap['standard_error'])}): no share is stated."
-        )
-    shares = []
-    for name in per_seed:
-        if name in ("blind", "full"):
-            continue
-        share = recovered_share(per_seed[name], per_seed["blind"], per_seed["full"])
-        ci = share["ci95"]
-        interval = " [interval unbounded]" if ci is None else f" [{100 * ci[0]:.0f}%, {100 * ci[1]:.0f}%]"
-        shares.append(f"{name} {100 * share['share']:.0f}%{interval}")
-    return (
-        f"{at}, the gap between blind and full labels is {difference_text(gap)}, more than twice its"
-        " standard error" + (f"; recovered: {', '.join(shares)}." if shares else ".")
+
+    def shares() -> list[str]:
+        out = []
+        for name in per_seed:
+            if name not in ("blind", "full"):
+                share = recovered_share(per_seed[name], per_seed["blind"], per_seed["full"])
+                out.append(f"{name} {100 * share['share']:.0f}%{_interval_text(share['ci95'])}")
+        return out
+
+    return _gap_text(
+        f"At the thresholds of objective {objective} tuned on the fitted frames (no folds)",
+        paired_difference(per_seed["full"], per_seed["blind"]),
+        shares,
     )
 
 
@@ -900,37 +912,30 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
         )
     f1_differences = {n: variants[n].get("difference_vs_blind", {}) for n in names}
     rows += _difference_row("F minus blind's", f1_differences, names)
-    if all("fitted_frame_thresholds" in variants[n] for n in names):
-        # Thresholds tuned out of fold: the same networks at the thresholds their fitted frames
-        # give (never above the operating score), and what the folds changed, seed by seed.
-        rows += _same_network_rows(
-            {n: variants[n]["fitted_frame_thresholds"] for n in names},
-            names,
-            "thresholds tuned on their fitted frames",
-            "the same",
-            ("out_of_fold_minus_fitted", "F of out-of-fold thresholds minus the fitted frames'"),
-        )
-    if all("other_objective_thresholds" in variants[n] for n in names):
-        # The same networks at the other objective's out-of-fold thresholds.
-        objective = variants[names[0]]["other_objective_thresholds"]["objective"]
-        rows += _same_network_rows(
-            {n: variants[n]["other_objective_thresholds"] for n in names},
-            names,
-            f"out-of-fold thresholds of objective {objective}",
-            f"the same ({objective})",
-            ("minus_chosen", f"F of objective {objective}'s out-of-fold thresholds minus the model's"),
-        )
-    if all("fitted_frame_other_objective_thresholds" in variants[n] for n in names):
-        # The same networks at what the settings without folds give them (with the objective
-        # "total" chosen, the defaults: the fitted frames' thresholds of objective "class").
-        objective = variants[names[0]]["fitted_frame_other_objective_thresholds"]["objective"]
-        rows += _same_network_rows(
-            {n: variants[n]["fitted_frame_other_objective_thresholds"] for n in names},
-            names,
-            f"thresholds of objective {objective} tuned on their fitted frames (no folds)",
-            f"the same (no folds, {objective})",
-            ("chosen_minus_these", f"F of the model's thresholds minus no folds' of objective {objective}"),
-        )
+    # Thresholds tuned out of fold: the same networks at other thresholds, each set by the key
+    # its record has and its rows' texts (of its objective): those their fitted frames give (never
+    # above the operating score) and what the folds changed, seed by seed; the other objective's
+    # out of fold; and what the settings without folds give (the other objective's on the fitted
+    # frames: with the objective "total" chosen, the defaults).
+    same_networks = (
+        ("fitted_frame_thresholds", "thresholds tuned on their fitted frames", "the same",
+         "out_of_fold_minus_fitted", "F of out-of-fold thresholds minus the fitted frames'"),
+        ("other_objective_thresholds", "out-of-fold thresholds of objective {o}", "the same ({o})",
+         "minus_chosen", "F of objective {o}'s out-of-fold thresholds minus the model's"),
+        ("fitted_frame_other_objective_thresholds",
+         "thresholds of objective {o} tuned on their fitted frames (no folds)", "the same (no folds, {o})",
+         "chosen_minus_these", "F of the model's thresholds minus no folds' of objective {o}"),
+    )  # fmt: skip
+    for key, at, short, paired_key, paired_text in same_networks:
+        if all(key in variants[n] for n in names):
+            o = variants[names[0]][key].get("objective")
+            rows += _same_network_rows(
+                {n: variants[n][key] for n in names},
+                names,
+                at.format(o=o),
+                short.format(o=o),
+                (paired_key, paired_text.format(o=o)),
+            )
     rows.append("| mAP | " + " | ".join(_fmt(variants[n]["map"]) for n in names) + " |")
     map_differences = _map_differences(result)
     rows += _difference_row("mAP minus blind's", map_differences, names)

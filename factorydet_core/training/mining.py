@@ -958,10 +958,13 @@ def train_with_mining(
                 init_folds, round_epochs if init_model is not None else 0,
             )  # fmt: skip
             fitted_frame_thresholds = dict(model.class_score_thresholds or {})
-            # The fitted frames' thresholds of every objective too (the same scores): a benchmark
-            # measures the same network at what the settings without folds would have given.
+            # The fitted frames' thresholds of every objective too (the same scores; the run's own
+            # are the model's): a benchmark measures the same network at what the settings without
+            # folds would have given.
             fitted_frame_by_objective = {
-                objective: dict(
+                objective: fitted_frame_thresholds
+                if objective == threshold_objective
+                else dict(
                     with_tuned_thresholds(
                         model, scored, positive_iou, max_threshold=score_threshold, objective=objective
                     ).class_score_thresholds

@@ -781,11 +781,10 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         ("fit", [second]), ("score", [first]), ("fit", [first]), ("score", [second]),
     ]  # fmt: skip
     # Round 0 on its fitted frames under the ceiling; the last on its fitted frames under the
-    # ceiling (the model's before the folds), then for the record each objective's there and on
-    # the out-of-fold scores without one.
+    # ceiling (the model's before the folds), then for the record the other objective's there and
+    # each objective's on the out-of-fold scores without one.
     assert tunings == [
-        (2, 0.3, "class"), (2, 0.3, "class"), (2, 0.3, "class"), (2, 0.3, "total"), (2, 1.0, "class"),
-        (2, 1.0, "total"),
+        (2, 0.3, "class"), (2, 0.3, "class"), (2, 0.3, "total"), (2, 1.0, "class"), (2, 1.0, "total"),
     ]  # fmt: skip
     assert run.model.class_score_thresholds == {"bobbin": 0.7}
     assert run.models[0].class_score_thresholds == {"bobbin": 0.25}
@@ -806,11 +805,11 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
         frames, classifier, rounds=0, initial_negatives=100, score_threshold=0.3, threshold_folds=2,
         threshold_objective="total",
     )  # fmt: skip
-    assert tunings == [
-        (2, 0.3, "total"), (2, 0.3, "class"), (2, 0.3, "total"), (2, 1.0, "class"), (2, 1.0, "total"),
-    ]  # fmt: skip
+    assert tunings == [(2, 0.3, "total"), (2, 0.3, "class"), (2, 1.0, "class"), (2, 1.0, "total")]
     assert pooled.model.class_score_thresholds == {"bobbin": 0.6}
     assert pooled.rounds[-1]["threshold_folds"]["objective"] == "total"
+    fitted_frame_by_objective = pooled.rounds[-1]["threshold_folds"]["fitted_frame_by_objective"]
+    assert fitted_frame_by_objective == {"class": {"bobbin": 0.25}, "total": {"bobbin": 0.2}}
     with pytest.raises(InputError, match="threshold_objective must be one of class, total"):
         train_with_mining(frames, classifier, threshold_objective="micro")
 
