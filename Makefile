@@ -93,35 +93,44 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
 	$(BIN)/factorydet bench world-labels --heldout-seeds 104,105,106 --heldout-frames 60 --readme docs/labelling.md \
 	  --readme-block world-labels-long
-	# The labelling loop. Every line trains on every label a person made (the default), except the two
+	# The labelling loop. Lines of records made before thresholds were tuned out of fold by default name
+	# --threshold-folds 0 --threshold-objective class, as those records ran.
+	# Every line trains on every label a person made (the default), except the two
 	# sparse-label lines, which leave out a person's labels holding fewer than half the policy's points
 	# (--label-min-points -1).
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl.json --readme docs/review-loop.md \
-	  --review-order score --no-refit-box-quality
+	  --review-order score --no-refit-box-quality \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl-50.json --readme docs/review-loop.md \
-	  --readme-block hitl-50 --review-order score --no-refit-box-quality
+	  --readme-block hitl-50 --review-order score --no-refit-box-quality \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants blind_safe,full --hold-places \
-	  --out docs/bench/hitl-safe.json --readme docs/review-loop.md --readme-block hitl-safe --no-refit-box-quality
+	  --out docs/bench/hitl-safe.json --readme docs/review-loop.md --readme-block hitl-safe --no-refit-box-quality \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --review-order score \
 	  --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-50-place.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-place --no-refit-box-quality --resume
+	  --readme-block hitl-50-place --no-refit-box-quality --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants full_late,full \
-	  --out docs/bench/hitl-50-late.json --readme docs/review-loop.md --readme-block hitl-50-late --no-refit-box-quality --resume
+	  --out docs/bench/hitl-50-late.json --readme docs/review-loop.md --readme-block hitl-50-late --no-refit-box-quality --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-50-class.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-class --no-refit-box-quality --resume
+	  --readme-block hitl-50-class --no-refit-box-quality --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-class.json docs/bench/hitl-50-place.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-class-vs-place
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-refit.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-refit --resume
+	  --readme-block hitl-50-refit --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-refit.json docs/bench/hitl-50-class.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-refit-vs-class
 	# blind_safe with the refit: a copy of the refit record gives blind and full (--resume takes the
@@ -130,13 +139,15 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --variants blind_safe,full --hold-places --out docs/bench/hitl-50-safe-refit.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-safe-refit --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-safe-refit --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# The refit boosting the model's regressor on with 100 trees instead (blind and full from the refit record).
 	test -f docs/bench/hitl-50-refit100.json || cp docs/bench/hitl-50-refit.json docs/bench/hitl-50-refit100.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --refit-trees 100 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-refit100.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-refit100 --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-refit100 --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-refit100.json docs/bench/hitl-50-refit.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-refit100-vs-refit
 	# blind_safe also recalibrating the background (blind and full from the refit record), against
@@ -145,35 +156,40 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --variants blind_safe,full --hold-places --recalibrate-background 0.5 --out docs/bench/hitl-50-safe-recal.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-safe-recal.json docs/bench/hitl-50-safe-refit.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal-vs-hold
 	# The loop's headline figures: the same models measured on held-out factories, 30% unannotated.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants full --out docs/bench/hitl-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-heldout --resume
+	  --readme docs/review-loop.md --readme-block hitl-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# blind_safe recalibrating there too (blind and full from the held-out record).
 	test -f docs/bench/hitl-safe-recal-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-safe-recal-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --out docs/bench/hitl-safe-recal-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-safe-recal-heldout --resume
+	  --readme docs/review-loop.md --readme-block hitl-safe-recal-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# ... recalibrating by class (each class's bar: the median of its labelled sets).
 	test -f docs/bench/hitl-safe-byclass-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-safe-byclass-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --recalibrate-by-class --out docs/bench/hitl-safe-byclass-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-safe-byclass-heldout --resume
+	  --readme docs/review-loop.md --readme-block hitl-safe-byclass-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# A reviewer answering 200 places per round, on the same held-out factories.
 	test -f docs/bench/hitl-reviewed-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-reviewed-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-reviewed-heldout.json --readme docs/review-loop.md --readme-block hitl-reviewed-heldout \
-	  --resume
+	  --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# The same reviewer holding what it leaves, as blind_safe (the rest from the reviewed record).
 	test -f docs/bench/hitl-reviewed-safe-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-reviewed-safe-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
@@ -181,21 +197,24 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-reviewed-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-reviewed-safe-heldout --resume
+	  --readme-block hitl-reviewed-safe-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-reviewed-safe-vs-reviewed-heldout
 	# Blind mining and full labels on the same held-out factories, 50% unannotated.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants full --out docs/bench/hitl-50-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-heldout --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# ... and a reviewer answering 200 places a round there.
 	test -f docs/bench/hitl-50-reviewed-heldout.json || cp docs/bench/hitl-50-heldout.json docs/bench/hitl-50-reviewed-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-reviewed-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-reviewed-heldout --resume
+	  --readme-block hitl-50-reviewed-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# ... the same reviewer holding what it leaves (the rest from the reviewed record).
 	test -f docs/bench/hitl-50-reviewed-safe-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-reviewed-safe-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
@@ -203,7 +222,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-50-reviewed-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-reviewed-safe-heldout --resume
+	  --readme-block hitl-50-reviewed-safe-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-50-reviewed-safe-vs-reviewed-heldout
 	# The reviewer's queue most likely an object first, the cut still by class turns (30% and 50%).
@@ -212,7 +232,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-score-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-score-heldout --resume
+	  --readme-block hitl-review-score-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-score-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-review-score-vs-turns-heldout
 	test -f docs/bench/hitl-50-review-score-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-score-heldout.json
@@ -220,7 +241,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-score-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-score-heldout --resume
+	  --readme-block hitl-50-review-score-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-score-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-score-vs-turns-heldout
 	# The reviewer's queue also holding every false positive after the mined ones, for review alone (50% and 30%).
@@ -229,7 +251,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-extra-heldout --resume
+	  --readme-block hitl-50-review-extra-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-extra-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-extra-vs-reviewed-heldout
 	test -f docs/bench/hitl-review-extra-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-extra-heldout.json
@@ -237,7 +260,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-extra-heldout --resume
+	  --readme-block hitl-review-extra-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-extra-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-review-extra-vs-reviewed-heldout
 	# blind_safe recalibrating by class at 50% unannotated.
@@ -246,14 +270,16 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --recalibrate-by-class --out docs/bench/hitl-50-safe-byclass-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-safe-byclass-heldout --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-safe-byclass-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# The reviewer's places in an order learned from its own verdicts (50% and 30%).
 	test -f docs/bench/hitl-50-review-learned-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-learned-heldout.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-learned-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-learned-heldout --resume
+	  --readme-block hitl-50-review-learned-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-learned-vs-reviewed-heldout
 	test -f docs/bench/hitl-review-learned-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-learned-heldout.json
@@ -261,7 +287,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-heldout --resume
+	  --readme-block hitl-review-learned-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-review-learned-vs-reviewed-heldout
 	# The learned order's reviewer holding what it leaves, as blind_safe (50% and 30%; the rest from the learned records).
@@ -271,7 +298,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-50-review-learned-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-learned-safe-heldout --resume
+	  --readme-block hitl-50-review-learned-safe-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-safe-heldout.json \
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/review-loop.md \
 	  --readme-block hitl-50-review-learned-safe-vs-learned-heldout
@@ -281,7 +309,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-review-learned-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-safe-heldout --resume
+	  --readme-block hitl-review-learned-safe-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-safe-heldout.json \
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/review-loop.md \
 	  --readme-block hitl-review-learned-safe-vs-learned-heldout
@@ -292,7 +321,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-extra-heldout --resume
+	  --readme-block hitl-review-learned-extra-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-extra-heldout.json \
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \
 	  --readme-block hitl-review-learned-extra-vs-learned-heldout
@@ -301,7 +331,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-review-learned-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-learned-extra-heldout --resume
+	  --readme-block hitl-50-review-learned-extra-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-extra-heldout.json \
 	  docs/bench/hitl-50-review-learned-heldout.json --readme docs/review-loop.md \
 	  --readme-block hitl-50-review-learned-extra-vs-learned-heldout
@@ -312,13 +343,15 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 104,105,106 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-unseen.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-extra-unseen --resume
+	  --readme-block hitl-review-learned-extra-unseen --resume \
+	  --threshold-folds 0 --threshold-objective class
 	test -f docs/bench/hitl-review-best-view-unseen.json || cp docs/bench/hitl-review-learned-extra-unseen.json docs/bench/hitl-review-best-view-unseen.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --review-best-view --heldout --heldout-seeds 104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-best-view-unseen.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-best-view-unseen --resume
+	  --readme docs/review-loop.md --readme-block hitl-review-best-view-unseen --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-best-view-unseen.json \
 	  docs/bench/hitl-review-learned-extra-unseen.json --readme docs/review-loop.md \
 	  --readme-block hitl-review-best-view-vs-learned-extra-unseen
@@ -328,7 +361,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-six --resume
+	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-six --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# Five more training seeds (5-9) of blind mining, the reviewer's 200 places a round and full labels on
 	# the six held-out factories, seeds 0-4 read back from the record above: ten seeds in all.
 	test -f docs/bench/hitl-review-learned-extra-ten-seeds.json || cp docs/bench/hitl-review-learned-extra-six.json docs/bench/hitl-review-learned-extra-ten-seeds.json
@@ -336,21 +370,24 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5,6,7,8,9 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-ten-seeds.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-ten-seeds --resume
+	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-ten-seeds --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# One operating threshold for every class (--no-class-thresholds), blind mining and full labels on
 	# the six held-out factories, three seeds: do the per-class thresholds cost people their precision?
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --no-class-thresholds --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants full --out docs/bench/hitl-no-class-thresholds-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-no-class-thresholds-six --resume
+	  --readme docs/review-loop.md --readme-block hitl-no-class-thresholds-six --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# The first fit at the product's 20 epochs (LoopSettings.epochs; the records above fit 5), each round
 	# after it 5 as before: blind mining, the reviewer's 200 places a round and full labels, seeds 0-5.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-e20-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-e20-six --resume
+	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-e20-six --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# The reviewer at 30% with label once's settled poses and its Object labels teaching their class
 	# alone (today's defaults; blind and full read back from the record above), seeds 0-5; then against
 	# the reviewer above (the drifting poses, the mined boxes learnt), seed by seed.
@@ -359,7 +396,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-e20-class-alone-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-e20-class-alone-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-e20-class-alone-six --resume --resume-other-library \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-class-alone-six.json \
 	  docs/bench/hitl-review-learned-extra-e20-six.json --readme docs/review-loop.md \
 	  --readme-block hitl-e20-class-alone-vs-drift-six
@@ -369,14 +407,16 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --out docs/bench/hitl-e20-16frames-five.json \
-	  --readme docs/review-loop.md --readme-block hitl-e20-16frames-five --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-e20-16frames-five --resume --resume-other-library \
+	  --threshold-folds 0 --threshold-objective class
 	# Half the objects unannotated and the first fit at 20 epochs: blind mining, the reviewer's 200 places
 	# a round and full labels, seeds 0-5.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-six --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-six --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# The reviewer at 50% once label once registers the frames with the settled calibration at the
 	# odometry's height (blind and full, which do not carry labels between frames, read back from the
 	# record above), seeds 0-5; then the reviewer against the one above, seed by seed.
@@ -385,7 +425,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-world-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-world-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-world-six --resume --resume-other-library \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-world-six.json docs/bench/hitl-50-e20-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-world-vs-drift-six
 	# The reviewer at 50% with its Object verdicts' labels (the mined boxes) teaching their class alone
@@ -398,7 +439,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full \
 	  --out docs/bench/hitl-50-e20-class-alone-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-class-alone-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-class-alone-six --resume --resume-other-library \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-class-alone-six.json docs/bench/hitl-50-e20-world-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-class-alone-vs-world-six
 	# blind_safe at 50% with the first fit at 20 epochs, holding places and recalibrating the background
@@ -409,7 +451,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --out docs/bench/hitl-50-e20-safe-recal-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-recal-six --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-recal-six --resume \
+	  --threshold-folds 0 --threshold-objective class
 	# blind_safe with pseudo-labels: the negatives scoring 0.6 or more, off the labels, teach their
 	# predicted class until reviewed, those between 0.35 and 0.6 are held (blind and full read back from
 	# hitl-50-e20-six), seeds 0-5; then against blind_safe holding alone, seed by seed.
@@ -419,7 +462,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --pseudo-label-confident 0.6 --out docs/bench/hitl-50-e20-safe-pseudo-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-pseudo-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-pseudo-six --resume --resume-other-library \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-safe-pseudo-six.json \
 	  docs/bench/hitl-50-e20-safe-recal-six.json --readme docs/review-loop.md \
 	  --readme-block hitl-50-e20-safe-pseudo-vs-recal-six
@@ -431,7 +475,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --pseudo-label-confident 0.6 --carry-pseudo-labels --out docs/bench/hitl-50-e20-safe-carry-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-carry-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-carry-six --resume --resume-other-library \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-safe-carry-six.json \
 	  docs/bench/hitl-50-e20-safe-pseudo-six.json --readme docs/review-loop.md \
 	  --readme-block hitl-50-e20-safe-carry-vs-pseudo-six
@@ -444,7 +489,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-confident 0.6 \
 	  --pseudo-label-confident 0.6 --out docs/bench/hitl-50-e20-pseudo-alone-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-pseudo-alone-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-pseudo-alone-six --resume --resume-other-library \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-pseudo-alone-six.json \
 	  docs/bench/hitl-50-e20-safe-pseudo-six.json --readme docs/review-loop.md \
 	  --readme-block hitl-50-e20-pseudo-alone-vs-pseudo-six
@@ -456,7 +502,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --no-continue-folds --out docs/bench/hitl-e20-folds-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-e20-folds-six --resume
+	  --readme docs/review-loop.md --readme-block hitl-e20-folds-six --resume \
+	  --threshold-objective class
 	# The same, six seeds, thresholds tuned for the F-score of all classes pooled (--threshold-objective total),
 	# each model also at the class objective's out-of-fold thresholds; against the record above, seed by seed.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
@@ -537,7 +584,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order score \
 	  --review-order learned --review-extra 0 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-score-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-score-six --resume
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-score-six --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-score-six.json docs/bench/hitl-50-e20-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-score-vs-class-six
 	# Every round trained afresh (the paper's procedure; --round-epochs 0), blind, the learned
@@ -546,7 +594,8 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --round-epochs 0 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-afresh-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-afresh-heldout --resume
+	  --readme-block hitl-review-afresh-heldout --resume \
+	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-afresh-heldout.json \
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \
 	  --readme-block hitl-review-afresh-vs-learned-heldout

@@ -10,6 +10,7 @@ finished, and labels are only ever read here.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 import traceback
@@ -19,7 +20,7 @@ from factorydet_core.evaluation.measure import unlearned_text
 from factorydet_core.scale.jobs import proposer
 from factorydet_core.scale.runner import Execution
 from factorydet_core.training.loop import cached_proposals, suspect_labels
-from factorydet_core.training.settings import LoopSettings
+from factorydet_core.training.settings import LoopSettings, folds_continue
 from factorydet_core.types import Cancelled, InputError
 from factorydet_core.workflows import retrain_session
 
@@ -38,14 +39,18 @@ def epochs_left(
     (K models of ``epochs`` on (K - 1) / K of the frames each)."""
     rounds = settings.rounds + 1 if mode == "full" else 1
     later = max(0, rounds - round_index - 1) * (settings.round_epochs or settings.epochs)
-    return max(0, epochs_total - epochs_done) + later + fold_epochs(settings)
+    return max(0, epochs_total - epochs_done) + later + fold_epochs(settings, mode)
 
 
-def fold_epochs(settings: LoopSettings) -> int:
+def fold_epochs(settings: LoopSettings, mode: str = "full") -> int:
     """The fold models' fitting after a run's last round (``LoopSettings.threshold_folds``), in
-    epochs on every training frame; 0 without them."""
+    epochs on every training frame; 0 without them. A next round that goes on from the fold
+    models of the run it continues (``training.settings.folds_continue``) fits them ``round_epochs`` each."""
     folds = settings.threshold_folds if settings.class_thresholds else 0
-    return (folds - 1) * settings.epochs if folds else 0
+    if not folds:
+        return 0
+    continued = folds_continue(dataclasses.asdict(settings), next_rounds=mode == "next")
+    return (folds - 1) * (settings.round_epochs if continued else settings.epochs)
 
 
 def time_left_text(seconds: float) -> str:

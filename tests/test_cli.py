@@ -287,7 +287,7 @@ def test_bench_hitl_with_threshold_folds_measures_each_model_at_both_thresholds(
     args = ["bench", "hitl", str(small_dataset_dir), "--budgets", "5", "--rounds", "1", "--epochs", "1",
             "--negatives", "15", "--initial-negatives", "60", "--seeds", "0", "--train-frames", "2",
             "--frames", "1", "--no-calibrate", "--no-box-quality", "--method", "paper", "--variants", "full",
-            "--threshold-folds", "2", "--out", str(out)]  # fmt: skip
+            "--threshold-folds", "2", "--threshold-objective", "class", "--out", str(out)]  # fmt: skip
     assert main(args) == 0
     result = json.loads(out.read_text())
     assert result["plan"]["settings"]["threshold_folds"] == 2

@@ -540,6 +540,7 @@ def train_session(
     else:
         background = reviewed["background"]
         rounds = settings.rounds
+    num_folds = settings.folds_for(len(labelled))
     run = train_with_mining(
         labelled,
         classifier,
@@ -551,7 +552,7 @@ def train_session(
         fragments_per_frame=settings.fragments_per_frame,
         score_threshold=settings.score_threshold,
         tune_class_thresholds=settings.class_thresholds,
-        threshold_folds=settings.threshold_folds,
+        threshold_folds=num_folds,
         threshold_objective=settings.threshold_objective,
         probability_exponent=settings.probability_exponent,
         mining_threshold=settings.mining_threshold,
@@ -586,6 +587,11 @@ def train_session(
     }
     if why and mode == "next":
         config["afresh_because"] = why
+    if num_folds != settings.threshold_folds and settings.class_thresholds:
+        config["threshold_folds_skipped"] = (
+            f"{len(labelled)} training frame(s), fewer than the {settings.threshold_folds} threshold folds:"
+            " the thresholds were tuned on the fitted frames"
+        )
     config["label_points_floor"] = label_floor
     config["sparse_labels_ignored"] = num_sparse
     if command:

@@ -66,12 +66,16 @@ class LoopSettings:
     """Give the model a threshold per class, tuned on the training frames' labels
     (``train_with_mining``'s ``tune_class_thresholds``; where, ``threshold_folds`` says);
     ``score_threshold`` is then the fallback of classes without a labelled match."""
-    threshold_folds: int = 0
+    threshold_folds: int = 2
     """With ``class_thresholds``, 2 or more tunes the thresholds on scores of frames no model
     fitted: the training frames cut into this many stretches of the drive, each scored by a model
     fitted afresh on the others (``train_with_mining``'s ``threshold_folds``; about one more fit),
-    with no ceiling. 0 tunes them on the frames the model fitted, where scores run high, so none
-    may exceed ``score_threshold``."""
+    with no ceiling; a session with fewer training frames than folds tunes them on its fitted
+    frames. 0 tunes them on the frames the model fitted, where scores run high, so none may exceed
+    ``score_threshold``. On factories no choice saw (``bench hitl``, docs/review-loop.md), 2 folds
+    with ``threshold_objective`` "total" gave the same networks a higher F-score than the fitted
+    frames' thresholds, the more so the more of the objects are labelled: what makes a reviewer's
+    labels show in the model."""
     continue_folds: bool = True
     """With ``threshold_folds``, a next round that goes on from a model (``round_epochs`` > 0) goes
     on from that run's fold models too, for ``round_epochs`` epochs, where its folds are the same
@@ -79,7 +83,7 @@ class LoopSettings:
     then cost K - 1 times the round's own fit, not a fit of ``epochs`` afresh each, and follow the
     schedule of the model they stand in for (``train_with_mining``'s ``init_folds``). False fits
     them afresh every round."""
-    threshold_objective: str = "class"
+    threshold_objective: str = "total"
     """With ``class_thresholds``, whose F-score each class's threshold is best for
     (``types.THRESHOLD_OBJECTIVES``): the class's own ("class"), or that of all classes'
     detections pooled ("total", the figure the benchmarks report), which holds a class of few,
@@ -101,9 +105,9 @@ class LoopSettings:
     the background or to a label. ``None``: every mined negative is background, as the paper.
     Measured on held-out factories (``bench hitl``, docs/review-loop.md), holding at the operating
     score gained over blind mining, at 30% and 50% unannotated, with thresholds tuned out of fold
-    (``threshold_folds`` 2, ``threshold_objective`` "total"), ``hold_places`` and
-    ``recalibrate_background`` 0.5; at the fitted frames' thresholds (the default) it was level
-    with blind mining or below it."""
+    (``threshold_folds`` 2, ``threshold_objective`` "total", the defaults), ``hold_places`` and
+    ``recalibrate_background`` 0.5; at the fitted frames' thresholds (``threshold_folds`` 0) it was
+    level with blind mining or below it."""
     hold_places: bool = False
     """With ``hold_confident``, a held negative holds its place, not only its own point set: every
     point set with half its points or more in a held box (one off every label) is left out of the
@@ -229,6 +233,14 @@ class LoopSettings:
     sensors of the merge's extrinsics; off for single scans (ScanNet and S3DIS clouds are sampled
     from meshes and read with an identity extrinsic, so their free space means nothing)."""
 
+    def folds_for(self, num_frames: int) -> int:
+        """The threshold folds a run on ``num_frames`` training frames uses: ``threshold_folds``
+        with per-class thresholds and at least as many frames as folds, else 0 (tuned on the
+        fitted frames: a fold needs a frame of its own)."""
+        if not self.class_thresholds or num_frames < self.threshold_folds:
+            return 0
+        return self.threshold_folds
+
     def label_points_floor(self, dataset: Dataset | None) -> int:
         """The least points a person's label must hold in its frame to train as an object
         (``label_min_points``); 0: every label."""
@@ -301,6 +313,7 @@ def check_threshold_folds(folds: object) -> int:
 
 
 BEFORE_THEY_EXISTED: dict[str, object] = {
+    "threshold_folds": 0,
     "threshold_objective": "class",
     "queue_order": "score",
     "review_order": None,
@@ -475,8 +488,8 @@ LOOP_CONTROLS: tuple[Control, ...] = (
     Control("hold_confident", "Hold confident negatives", "mined negatives scoring at least this are neither "
             "background nor object until reviewed (0: off, every mined negative is background, as the "
             "paper). On held-out factories it gained over blind mining with threshold folds 2, objective "
-            "total, hold their places and recalibrate background 0.5; with the default thresholds it did "
-            "not", float, 0.0, 1.0, 0.05,
+            "total (the defaults), hold their places and recalibrate background 0.5; with threshold folds "
+            "0 it did not", float, 0.0, 1.0, 0.05,
             none_as=0),
     Control("hold_places", "Hold their places", "with held negatives (hold confident above 0; hitl: "
             "blind_safe's and reviewed_safe_K's), every point set on a held box off the labels is left "

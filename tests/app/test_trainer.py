@@ -210,13 +210,18 @@ def test_the_chosen_model_is_what_the_session_shows_again(small_dataset_dir, tin
 def test_the_time_left_counts_the_epochs_of_this_round_and_of_the_rounds_after_it():
     from app.trainer import epochs_left, time_left_text
 
-    full = LoopSettings(epochs=20, round_epochs=5, rounds=2)
+    full = LoopSettings(epochs=20, round_epochs=5, rounds=2, threshold_folds=0)
     assert epochs_left("full", full, 0, 4, 20) == 16 + 2 * 5
     assert epochs_left("full", full, 2, 5, 5) == 0
     assert epochs_left("full", dataclasses.replace(full, round_epochs=0), 1, 10, 20) == 10 + 20
     assert epochs_left("next", full, 0, 2, 5) == 3
     # Two fold models of 20 epochs on half the frames each: 20 epochs on every frame.
-    assert epochs_left("next", dataclasses.replace(full, threshold_folds=2), 0, 2, 5) == 3 + 20
+    folds = dataclasses.replace(full, threshold_folds=2)
+    assert epochs_left("full", folds, 2, 5, 5) == 20
+    assert epochs_left("next", dataclasses.replace(folds, continue_folds=False), 0, 2, 5) == 3 + 20
+    # A next round goes on from the fold models of the run it continues, for its round epochs.
+    assert epochs_left("next", folds, 0, 2, 5) == 3 + 5
+    assert epochs_left("next", dataclasses.replace(folds, round_epochs=0), 0, 2, 20) == 18 + 20
     assert (
         epochs_left("next", dataclasses.replace(full, threshold_folds=3, class_thresholds=False), 0, 2, 5)
         == 3
@@ -258,17 +263,22 @@ def _reports_of(
 
 def test_the_training_status_gives_the_fitting_time_left(small_dataset_dir, tmp_path, monkeypatch):
     reports = [("fit", epoch, 5) for epoch in (1, 2, 3)]
-    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 10, reports)
+    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 10, reports, threshold_folds=0)
     fits = [s for s, _ in shown if s and s.startswith("round 1 of 1")]
     # Ten seconds an epoch: after epoch 2, three are left (30 s); after epoch 3, two (20 s).
     assert fits == ["round 1 of 1: epoch 1 of 5", "round 1 of 1: epoch 2 of 5 · about 30 s of fitting left",
                     "round 1 of 1: epoch 3 of 5 · about 20 s of fitting left"]  # fmt: skip
+    # With the default threshold folds, the fold models' epochs after the round count too: two of
+    # the run's epochs (20 on half the frames each) after its own three.
+    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 10, reports, epochs=5)
+    fits = [s for s, _ in shown if s and s.startswith("round 1 of 1")]
+    assert fits[1] == "round 1 of 1: epoch 2 of 5 · about 80 s of fitting left"  # (3 + 5) x 10 s
 
 
 def test_proposals_and_scoring_move_the_bar_and_say_the_time_left(small_dataset_dir, tmp_path, monkeypatch):
     reports = [("proposals", frame, 8) for frame in range(4)] + [("fit", 5, 5)]
     reports += [("score", frame, 10) for frame in range(3)]
-    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 4, reports)
+    shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 4, reports, threshold_folds=0)
     proposals = [(s, p) for s, p in shown if s and s.startswith("proposals")]
     # Four seconds a frame: after frame 1, seven are left (28 s).
     assert proposals[0][0] == "proposals: frame 0 of 8"

@@ -581,6 +581,24 @@ def test_held_negatives_hold_their_places_when_asked(dataset, frames, tiny_model
         assert len(seen["frames"][1].ignore_boxes) == 0  # nothing held in frame 1
 
 
+def test_a_session_with_fewer_training_frames_than_threshold_folds_tunes_on_its_fitted_frames(
+    db, frames, monkeypatch
+):
+    """The default threshold folds need a training frame each; with fewer, the run tunes its
+    thresholds on the frames it fitted instead of refusing to train."""
+    assert LoopSettings().threshold_folds == 2 and LoopSettings().threshold_objective == "total"
+    seen = _capture_training(monkeypatch)
+    settings = LoopSettings(**{**SETTINGS.__dict__, "threshold_folds": 2})
+    with pytest.raises(_CapturedError):
+        train_session(db, frames[:2], settings, mode="full", data_ref="small")
+    assert seen["threshold_folds"] == 2
+    with pytest.raises(_CapturedError):
+        train_session(db, frames[:1], settings, mode="full", data_ref="small")
+    assert seen["threshold_folds"] == 0
+    without = LoopSettings(**{**SETTINGS.__dict__, "threshold_folds": 2, "class_thresholds": False})
+    assert without.folds_for(10) == 0 and settings.folds_for(10) == 2 and settings.folds_for(1) == 0
+
+
 def test_confident_negatives_teach_their_class_in_a_next_round_when_asked(
     dataset, frames, tiny_model_path, tmp_path, monkeypatch
 ):
