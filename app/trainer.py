@@ -10,7 +10,6 @@ finished, and labels are only ever read here.
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import time
 import traceback
@@ -19,10 +18,10 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.measure import unlearned_text
 from factorydet_core.scale.jobs import proposer
 from factorydet_core.scale.runner import Execution
-from factorydet_core.training.loop import cached_proposals, suspect_labels
-from factorydet_core.training.settings import LoopSettings, folds_continue
+from factorydet_core.training.loop import cached_proposals, fold_fit_epochs, suspect_labels
+from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled, InputError
-from factorydet_core.workflows import retrain_session
+from factorydet_core.workflows import retrain_session, training_frame_indices
 
 from .state import SharedState
 
@@ -31,26 +30,20 @@ _clock = time.perf_counter
 
 
 def epochs_left(
-    mode: str, settings: LoopSettings, round_index: int, epochs_done: int, epochs_total: int
+    mode: str,
+    settings: LoopSettings,
+    round_index: int,
+    epochs_done: int,
+    epochs_total: int,
+    fold_epochs: int = 0,
 ) -> int:
     """Epochs still to fit in a run: the rest of the current round's, every later round's (a full
-    retrain's rounds after the first fit ``round_epochs`` each, or ``epochs`` afresh), and the
-    fold models' of ``threshold_folds`` after the last round, counted as epochs on every frame
-    (K models of ``epochs`` on (K - 1) / K of the frames each)."""
+    retrain's rounds after the first fit ``round_epochs`` each, or ``epochs`` afresh), and
+    ``fold_epochs``, the threshold fold models' after the last round
+    (``training.loop.fold_fit_epochs``)."""
     rounds = settings.rounds + 1 if mode == "full" else 1
     later = max(0, rounds - round_index - 1) * (settings.round_epochs or settings.epochs)
-    return max(0, epochs_total - epochs_done) + later + fold_epochs(settings, mode)
-
-
-def fold_epochs(settings: LoopSettings, mode: str = "full") -> int:
-    """The fold models' fitting after a run's last round (``LoopSettings.threshold_folds``), in
-    epochs on every training frame; 0 without them. A next round that goes on from the fold
-    models of the run it continues (``training.settings.folds_continue``) fits them ``round_epochs`` each."""
-    folds = settings.threshold_folds if settings.class_thresholds else 0
-    if not folds:
-        return 0
-    continued = folds_continue(dataclasses.asdict(settings), next_rounds=mode == "next")
-    return (folds - 1) * (settings.round_epochs if continued else settings.epochs)
+    return max(0, epochs_total - epochs_done) + later + fold_epochs
 
 
 def time_left_text(seconds: float) -> str:
@@ -234,8 +227,9 @@ class TrainingWorker:
                 )
                 return
         rounds = settings.rounds + 1 if mode == "full" else 1
-        # The fold models that tune the thresholds take about one round's share (a first fit's).
-        units = rounds + (1 if fold_epochs(settings) else 0)
+        fold_epochs = fold_fit_epochs(db, settings, mode, len(training_frame_indices(dataset)))
+        # The fold models that tune the thresholds take about one round's share.
+        units = rounds + (1 if fold_epochs else 0)
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75
         score_share = 0.2  # of each round's share: its scoring (the fit has the rest)
@@ -278,7 +272,7 @@ class TrainingWorker:
                     # The epochs left at this round's pace since its first reported epoch; scoring
                     # and the comparison come on top.
                     per_epoch = (_clock() - fit_started[0]) / (done - fit_started[2])
-                    left = per_epoch * epochs_left(mode, settings, done_fits[0], done, total)
+                    left = per_epoch * epochs_left(mode, settings, done_fits[0], done, total, fold_epochs)
                     status += f" · {time_left_text(left)} of fitting left"
                 state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "threshold folds":
@@ -310,7 +304,8 @@ class TrainingWorker:
             status=f"run {done.run_id} ({mode}) done: {len(queue)} items to review ({len(queue) - alone} "
             f"mined negatives{f', {alone} for review alone' if alone else ''}); the table "
             "compares it with the shown model, and **Show this model** uses it"
-            + (f". {unlearned}" if unlearned else ""),
+            + (f". {unlearned}" if unlearned else "")
+            + "".join(f". Note: {note}" for note in done.notes),
             progress=1.0,
             comparison=done.comparison,
         )

@@ -769,6 +769,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         "model": str(db.session.models_dir / f"run_{run_id:03d}" / "final.pt"),
         # Classes labelled on the training frames that the model finds none of there.
         "unlearned_classes": unlearned_classes(run.rounds[-1]["train_metrics"]),
+        # What the run did otherwise than its settings asked (trained afresh, folds skipped).
+        "notes": list(done.notes),
     }
     if done.comparison is not None:
         summary["compare"] = {

@@ -18,6 +18,7 @@ from factorydet_core.session.store import SessionDB
 from factorydet_core.session.world import WorldFrames, session_world
 from factorydet_core.training.loop import (
     cached_proposals,
+    run_notes,
     session_references_and_sparse,
     train_session,
 )
@@ -39,6 +40,15 @@ class Retrained:
     comparison: dict | None
     """``compare_models``' table of the models before and the new one on the test frames, or
     ``None`` when not compared (no test split, or not asked)."""
+    notes: tuple[str, ...] = ()
+    """What the run did otherwise than its settings asked, and why (``training.loop.run_notes``)."""
+
+
+def training_frame_indices(dataset: Dataset, max_train_frames: int | None = None) -> list[int]:
+    """The frames ``retrain_session`` trains on: the data set's train split (every frame without
+    one), its first ``max_train_frames`` if given."""
+    train = dataset.splits.get("train") or list(range(dataset.num_frames))
+    return list(train[:max_train_frames] if max_train_frames else train)
 
 
 def retrain_session(
@@ -94,8 +104,7 @@ def retrain_session(
         raise InputError(f"session {db.session.name!r} has no training run to continue; use mode 'full'")
     db.check_writable()
     report = progress or (lambda what, done, total: None)
-    train = dataset.splits.get("train") or list(range(dataset.num_frames))
-    train = list(train[:max_train_frames] if max_train_frames else train)
+    train = training_frame_indices(dataset, max_train_frames)
     detector = Detector(front_end)
     if calibrate and dataset.num_sensors > 1:
         report("calibrate", 0, 1)
@@ -122,4 +131,5 @@ def retrain_session(
         references, sparse = session_references_and_sparse(db, test, settings.label_points_floor(dataset))
         table = compare_models(models, test_frames, references, ignored=sparse)
         db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
-    return Retrained(run_id, run, detector, frames, table)
+    config = next(r["config"] for r in db.training_runs() if r["id"] == run_id)
+    return Retrained(run_id, run, detector, frames, table, run_notes(config))

@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -112,11 +112,7 @@ def continued_model(
         return None, None, "the session has no training run"
     if not settings.round_epochs:
         return None, None, "round_epochs is 0: every round trains afresh"
-    run_id = max(runs)
-    chosen = db.shown_model()
-    if chosen is not None:
-        shown = [i for i, run in runs.items() if db.session.path / run["model_path"] == chosen[1]]
-        run_id = shown[0] if shown else run_id
+    run_id = _continued_run_id(db, runs)
     try:
         model = DetectionModel.load(db.session.path / runs[run_id]["model_path"])
     except (InputError, OSError) as exc:
@@ -131,6 +127,45 @@ def continued_model(
     except InputError as exc:
         return None, None, str(exc)
     return run_id, model, ""
+
+
+def _continued_run_id(db: SessionDB, runs: dict[int, dict]) -> int:
+    """The run of ``runs`` (by id, each with a model) a next round goes on from: the shown
+    model's, else the latest."""
+    run_id = max(runs)
+    chosen = db.shown_model()
+    if chosen is not None:
+        shown = [i for i, run in runs.items() if db.session.path / run["model_path"] == chosen[1]]
+        run_id = shown[0] if shown else run_id
+    return run_id
+
+
+def fold_fit_epochs(db: SessionDB, settings: LoopSettings, mode: str, num_frames: int) -> int:
+    """The epochs a run of ``mode`` on ``num_frames`` training frames will spend fitting its
+    threshold fold models (``LoopSettings.folds_for``), counted as epochs on every training frame
+    (K models on (K - 1) / K of the frames each): ``round_epochs`` each for a next round that goes
+    on from the fold models of the run it continues (``folds_continue``, and that run has them),
+    else ``epochs`` each; 0 without folds. What the app's time-left estimate counts."""
+    folds = settings.folds_for(num_frames)
+    if not folds:
+        return 0
+    continues = False
+    if mode == "next" and folds_continue(dataclasses.asdict(settings), next_rounds=True):
+        runs = {run["id"]: run for run in db.training_runs() if run["model_path"]}
+        continues = bool(runs) and bool(db.fold_model_paths(_continued_run_id(db, runs)))
+    return (folds - 1) * (settings.round_epochs if continues else settings.epochs)
+
+
+def run_notes(config: Mapping[str, object]) -> tuple[str, ...]:
+    """What a stored run (its ``train_session`` config) did otherwise than its settings asked,
+    one sentence each: a next round trained afresh, threshold folds skipped. What ``factorydet
+    train`` and the app say with the run."""
+    notes = []
+    if config.get("mode") == "next" and config.get("afresh_because"):
+        notes.append(f"trained afresh, not going on from a model: {config['afresh_because']}")
+    if config.get("threshold_folds_skipped"):
+        notes.append(str(config["threshold_folds_skipped"]))
+    return tuple(notes)
 
 
 def continued_folds(db: SessionDB, run_id: int, classifier: ProposalClassifier | BoxHead) -> list[FoldModel]:
@@ -502,6 +537,7 @@ def train_session(
     continued_run, continued, why = None, None, ""
     reuse_quality = None
     init_folds: list[FoldModel] = []
+    num_folds = settings.folds_for(len(labelled))
     if mode == "next":
         hold = settings.hold_confident
         background = _merge(db.mined_patch_sets(below_score=hold), reviewed["background"])
@@ -530,7 +566,7 @@ def train_session(
             labelled = with_pseudo
         rounds = 0
         continued_run, continued, why = continued_model(db, settings, classifier, front_end)
-        if folds_continue(dataclasses.asdict(settings), continued is not None):
+        if num_folds and folds_continue(dataclasses.asdict(settings), continued is not None):
             init_folds = continued_folds(db, continued_run, classifier)
         keep_quality = continued is not None and continued.box_quality is not None and box_quality is not None
         if keep_quality and not settings.refit_box_quality:
@@ -540,7 +576,6 @@ def train_session(
     else:
         background = reviewed["background"]
         rounds = settings.rounds
-    num_folds = settings.folds_for(len(labelled))
     run = train_with_mining(
         labelled,
         classifier,

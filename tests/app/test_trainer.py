@@ -215,17 +215,9 @@ def test_the_time_left_counts_the_epochs_of_this_round_and_of_the_rounds_after_i
     assert epochs_left("full", full, 2, 5, 5) == 0
     assert epochs_left("full", dataclasses.replace(full, round_epochs=0), 1, 10, 20) == 10 + 20
     assert epochs_left("next", full, 0, 2, 5) == 3
-    # Two fold models of 20 epochs on half the frames each: 20 epochs on every frame.
-    folds = dataclasses.replace(full, threshold_folds=2)
-    assert epochs_left("full", folds, 2, 5, 5) == 20
-    assert epochs_left("next", dataclasses.replace(folds, continue_folds=False), 0, 2, 5) == 3 + 20
-    # A next round goes on from the fold models of the run it continues, for its round epochs.
-    assert epochs_left("next", folds, 0, 2, 5) == 3 + 5
-    assert epochs_left("next", dataclasses.replace(folds, round_epochs=0), 0, 2, 20) == 18 + 20
-    assert (
-        epochs_left("next", dataclasses.replace(full, threshold_folds=3, class_thresholds=False), 0, 2, 5)
-        == 3
-    )
+    # The threshold fold models' epochs after the last round (training.loop.fold_fit_epochs).
+    assert epochs_left("full", full, 2, 5, 5, fold_epochs=20) == 20
+    assert epochs_left("next", full, 0, 2, 5, fold_epochs=5) == 3 + 5
     assert time_left_text(12) == "about 10 s" and time_left_text(1) == "about 5 s"
     assert time_left_text(200) == "about 3 min"
 

@@ -599,6 +599,22 @@ def test_a_session_with_fewer_training_frames_than_threshold_folds_tunes_on_its_
     assert without.folds_for(10) == 0 and settings.folds_for(10) == 2 and settings.folds_for(1) == 0
 
 
+def test_a_run_says_what_it_did_otherwise_than_its_settings_asked():
+    from factorydet_core.training.loop import run_notes
+
+    assert run_notes({"mode": "next"}) == ()
+    # (a full run trains afresh by design: nothing to say)
+    assert run_notes({"mode": "full", "afresh_because": "the session has no training run"}) == ()
+    notes = run_notes(
+        {"mode": "next", "afresh_because": "round_epochs is 0: every round trains afresh",
+         "threshold_folds_skipped": "1 training frame(s), fewer than the 2 threshold folds"}
+    )  # fmt: skip
+    assert notes == (
+        "trained afresh, not going on from a model: round_epochs is 0: every round trains afresh",
+        "1 training frame(s), fewer than the 2 threshold folds",
+    )
+
+
 def test_confident_negatives_teach_their_class_in_a_next_round_when_asked(
     dataset, frames, tiny_model_path, tmp_path, monkeypatch
 ):
@@ -876,6 +892,16 @@ def test_a_next_round_goes_on_from_the_saved_fold_models(dataset, frames, tmp_pa
     folds = loop.continued_folds(db, run_id, classifier)
     assert [f.frame_indices for f in folds] == [f.frame_indices for f in run.fold_models] == [(0,), (1,)]
     assert db.fold_model_paths(run_id + 1) == []
+    # The time left counts the fold models' epochs on every frame: a next round goes on from
+    # these for its round epochs each, a full run (or one not continuing folds) fits them afresh.
+    assert loop.fold_fit_epochs(db, settings, "next", 2) == settings.round_epochs
+    assert loop.fold_fit_epochs(db, settings, "full", 2) == settings.epochs
+    afresh = dataclasses.replace(settings, continue_folds=False)
+    assert loop.fold_fit_epochs(db, afresh, "next", 2) == settings.epochs
+    assert loop.fold_fit_epochs(db, settings, "next", 1) == 0  # (fewer frames than folds: none)
+    assert loop.fold_fit_epochs(db, dataclasses.replace(settings, threshold_folds=0), "next", 2) == 0
+    fresh = SessionDB(open_session("no_folds_yet", tmp_path), dataset)
+    assert loop.fold_fit_epochs(fresh, settings, "next", 2) == settings.epochs  # (no run to go on from)
     (paths[0].parent / "fold_a.pt").write_bytes(b"")  # not a name of ours: not a fold
     assert db.fold_model_paths(run_id) == paths
     # A file that does not load is fitted afresh, not an error.
