@@ -18,7 +18,12 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.measure import unlearned_text
 from factorydet_core.scale.jobs import proposer
 from factorydet_core.scale.runner import Execution
-from factorydet_core.training.loop import cached_proposals, fold_fit_epochs, suspect_labels
+from factorydet_core.training.loop import (
+    cached_calibration,
+    cached_proposals,
+    fold_fit_epochs,
+    suspect_labels,
+)
 from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled, InputError
 from factorydet_core.workflows import retrain_session, training_frame_indices
@@ -190,7 +195,7 @@ class TrainingWorker:
         if self.calibrate and dataset.num_sensors > 1:
             train = dataset.splits.get("train") or [0]
             self.state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
-            detector.calibrate(dataset.frame(train[0]))
+            cached_calibration(self.state.db, dataset, detector, train[0])
         return detector
 
     def cancel(self) -> None:
@@ -234,6 +239,7 @@ class TrainingWorker:
         fit_share = 0.75
         score_share = 0.2  # of each round's share: its scoring (the fit has the rest)
         done_fits = [0]
+        folds_fitted = [0]  # 1 once the last round's fold models are fitting
         fit_started = [0.0, -1, 0]  # this round's first reported epoch: when, which round, which epoch
         pace = Pace()
         execution = self.execution()
@@ -258,8 +264,10 @@ class TrainingWorker:
                 status = f"proposals: frame {done} of {total}{on_ray}" + pace.text(what, done, total)
                 state.set_training(status=status, progress=0.1 * done / total)
             elif what == "score":
-                # Each round scores every training frame (what mining and the thresholds read).
-                fraction = (done_fits[0] + (1 - score_share) + score_share * done / total) / units
+                # Each round scores every training frame (what mining and the thresholds read),
+                # the last one after its fold models' fits.
+                before = done_fits[0] + folds_fitted[0] + (1 - score_share)
+                fraction = (before + score_share * done / total) / units
                 status = f"round {done_fits[0] + 1} of {rounds}: scoring frame {done + 1} of {total}"
                 status += pace.text((what, done_fits[0]), done, total)
                 state.set_training(status=status, progress=0.1 + fit_share * fraction)
@@ -276,12 +284,16 @@ class TrainingWorker:
                     status += f" · {time_left_text(left)} of fitting left"
                 state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "threshold folds":
-                # After the last round's scoring, before its mining: the fold models' epochs.
+                # After the last round's fit, before its scoring: the fold models' epochs.
+                folds_fitted[0] = 1
                 status = f"tuning the thresholds on frames no model fitted: epoch {done} of {total}"
                 status += pace.text(what, done, total)
-                state.set_training(status=status, progress=0.1 + fit_share * (rounds + done / total) / units)
+                fraction = (done_fits[0] + (1 - score_share) + done / total) / units
+                state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "box quality" and done == 0:
-                state.set_training(status="fitting the box quality regressor", progress=0.1)
+                # Said when its fit starts (alongside the first fit) and again if the round's model
+                # has to wait for it: the bar stays where the fits left it.
+                state.set_training(status="fitting the box quality regressor")
             elif what == "round":
                 done_fits[0] = done
             elif what == "compare":

@@ -23,6 +23,7 @@ import traceback
 from factorydet_core.detection.detector import Detector
 from factorydet_core.proposals.voxels import voxel_colors
 from factorydet_core.session.world import session_world
+from factorydet_core.training.loop import cached_calibration
 
 from .state import AppState, SharedState, select_with
 
@@ -292,7 +293,11 @@ class PipelineWorker:
         if use_refined and self.calibrate and dataset.num_sensors > 1 and self._refined_extrinsics is None:
             for view in self._wanting(key):
                 view.set_pipeline_progress("refining the sensor extrinsics (ICP, once)", 0.02)
-            detector = Detector(params).calibrate(dataset.frame(frame_index))
+            detector = Detector(params)
+            if self.shared.db is not None:  # (read back from the session after its first time)
+                cached_calibration(self.shared.db, dataset, detector, frame_index)
+            else:
+                detector.calibrate(dataset.frame(frame_index))
             self._refined_extrinsics = detector.T_vehicle_sensor
         extrinsics = self._refined_extrinsics if use_refined else None
         detector = Detector(params, extrinsics, model=self.shared.model)

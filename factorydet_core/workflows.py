@@ -17,6 +17,7 @@ from factorydet_core.scale.runner import Execution
 from factorydet_core.session.store import SessionDB
 from factorydet_core.session.world import WorldFrames, session_world
 from factorydet_core.training.loop import (
+    cached_calibration,
     cached_proposals,
     run_notes,
     session_references_and_sparse,
@@ -108,7 +109,7 @@ def retrain_session(
     detector = Detector(front_end)
     if calibrate and dataset.num_sensors > 1:
         report("calibrate", 0, 1)
-        detector.calibrate(dataset.frame(train[0]))
+        cached_calibration(db, dataset, detector, train[0])
     propose = proposer(execution)
     frames = cached_proposals(db, dataset, detector, train, progress, propose)
     if world is None and mode == "next" and settings.carries_pseudo_labels:

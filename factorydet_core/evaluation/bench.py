@@ -911,9 +911,14 @@ def bench_mining(
             raise InputError(f"bench mining: the round with {epochs} round epochs trained afresh: {why}")
         model = DetectionModel.load(copy.path / run["model_path"])
         (record,) = model.classifier.note_["rounds_record"]
+        # The round's own time, one after the other: waiting for the box quality regressor (fitted
+        # on a thread of its own alongside the fits), the network's fit, the fold models' fits,
+        # the scoring (with the fold models' and the thresholds' tuning).
         parts = {
-            key: float(record.get(key) or 0.0)
-            for key in ("box_quality_seconds", "fit_seconds", "score_seconds")
+            "box_quality_wait_seconds": float(record.get("box_quality_wait_seconds") or 0.0),
+            "fit_seconds": float(record.get("fit_seconds") or 0.0),
+            "folds_fit_seconds": float(record.get("folds_fit_seconds") or 0.0),
+            "score_seconds": float(record.get("score_seconds") or 0.0),
         }
         config = {
             "round_epochs": epochs,
@@ -922,6 +927,7 @@ def bench_mining(
             "epochs": record.get("epochs"),
             "continued_run": run["config"].get("continued_run"),
             "seconds": child["seconds"],
+            "box_quality_seconds": round(float(record.get("box_quality_seconds") or 0.0), 1),
             **{key: round(value, 1) for key, value in parts.items()},
             "other_seconds": round(child["seconds"] - sum(parts.values()), 1),
             "peak_rss_mb": child["peak_rss_mb"],

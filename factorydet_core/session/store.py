@@ -2976,6 +2976,9 @@ def rounds_record(run) -> list[dict]:
             "fit_seconds": r["fit_seconds"],
             "score_seconds": r.get("score_seconds"),
             "box_quality_seconds": r.get("box_quality_seconds"),
+            "box_quality_wait_seconds": r.get("box_quality_wait_seconds"),
+            # (the threshold fold models' fits, in the last round: not part of its scoring)
+            "folds_fit_seconds": (r.get("threshold_folds") or {}).get("fit_seconds"),
             "box_quality": r.get("box_quality"),
             "epochs": r.get("epochs"),
             "continued": r.get("continued"),

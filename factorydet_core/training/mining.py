@@ -11,6 +11,7 @@ every round is recorded so that people can review them (``store.save_training_ru
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
@@ -322,9 +323,12 @@ class TrainingRun:
     rounds: list[dict]
     """Per round: ``round``, ``num_positives``, ``num_background``, ``fit_seconds``, ``epochs``,
     ``continued`` (the fit went on from a model), ``box_quality_seconds`` (the regressor's fit, in
-    round 0), ``box_quality`` (round 0: "fitted", "kept" from a model, "same rows, kept" when a
-    refit would have given the model's back, "continued, N trees", or ``None`` without one),
-    ``score_seconds``,
+    round 0, on a thread of its own alongside the networks' fits), ``box_quality_wait_seconds``
+    (round 0: how long the round's model waited for it before scoring), ``box_quality`` (round 0:
+    "fitted", "kept" from a model, "same rows, kept" when a refit would have given the model's
+    back, "continued, N trees", or ``None`` without one), ``score_seconds`` (scoring the training
+    frames, and with threshold folds the fold models scoring theirs and the thresholds' tuning;
+    the fold models' fits are the folds record's ``fit_seconds``),
     ``train_metrics`` (detection on the training frames against the annotations) and ``mined``
     (the negatives added after that round: frame, proposal, box, patch set, score, class)."""
     models: list[DetectionModel]
@@ -533,6 +537,37 @@ def with_tuned_thresholds(
     )
 
 
+class _Background:
+    """``fn(*args)`` on a thread of its own, started at once; ``result`` waits for it."""
+
+    def __init__(self, fn: Callable, *args) -> None:
+        self._outcome: list = []
+        # (a daemon: a cancelled run leaves it to finish its fit without keeping the process alive)
+        self._thread = threading.Thread(target=self._run, args=(fn, args), daemon=True)
+        self._thread.start()
+
+    def _run(self, fn: Callable, args: tuple) -> None:
+        try:
+            self._outcome.append((True, fn(*args)))
+        except BaseException as exc:  # handed to whoever waits for it
+            self._outcome.append((False, exc))
+
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def result(self, should_stop: Callable[[], bool] | None = None):
+        """``fn``'s return value (or its exception, raised here); ``should_stop`` is polled while
+        waiting (``types.Cancelled``: the thread is left to finish on its own)."""
+        while self._thread.is_alive():
+            if should_stop is not None and should_stop():
+                raise Cancelled("training cancelled")
+            self._thread.join(0.2)
+        ok, value = self._outcome[0]
+        if not ok:
+            raise value
+        return value
+
+
 @dataclasses.dataclass(frozen=True)
 class FoldModel:
     """A threshold fold's model (``train_with_mining``'s ``threshold_folds``): a classifier fitted
@@ -551,35 +586,29 @@ def threshold_fold_frames(frames: Sequence[FrameProposals], num_folds: int) -> l
     ]
 
 
-def _out_of_fold_scored(
+def _fit_folds(
     frames: list[FrameProposals],
     num_folds: int,
     classifier: ProposalClassifier | BoxHead,
     fit: Callable,
-    model_of: Callable,
-    score: Scorer,
     progress: Progress | None,
-    should_stop: Callable[[], bool] | None,
     init_folds: Sequence[FoldModel] = (),
     round_epochs: int = 0,
-) -> tuple[list[dict], list[FoldModel], int]:
-    """``score``'s items for every frame, each frame scored by a model (``classifier``'s settings,
-    ``fit``) fitted on the frames of the other folds (``threshold_fold_frames``: a fold is a stretch
-    of the drive whose objects its model mostly never saw): afresh, or, with ``round_epochs`` and
-    a fold model of ``init_folds`` for the very same frames (an earlier run's), going on from that
-    model for ``round_epochs`` epochs, as the run's own model goes on from the model it continues
-    (that model never saw the fold either). A fold whose other folds hold no object is left out
-    (nothing would score it).
+) -> tuple[list[FoldModel], int]:
+    """A model per fold (``threshold_fold_frames``: a fold is a stretch of the drive whose objects
+    its model mostly never saw), of ``classifier``'s settings fitted (``fit``) on the frames of the
+    other folds: afresh, or, with ``round_epochs`` and a fold model of ``init_folds`` for the very
+    same frames (an earlier run's), going on from that model for ``round_epochs`` epochs, as the
+    run's own model goes on from the model it continues (that model never saw the fold either). A
+    fold whose other folds hold no object is left out (nothing would score it).
 
     Returns:
-        ``(items, fold_models, num_continued)``: the items in the order of ``frames``, the fitted
-        fold models, and how many of them went on from ``init_folds``.
+        ``(fold_models, num_continued)``: the fitted fold models, and how many of them went on
+        from ``init_folds``.
     """
-    position = {frame.frame_index: k for k, frame in enumerate(frames)}
     ordered = sorted(frames, key=lambda frame: frame.frame_index)
     earlier = {fold.frame_indices: fold.classifier for fold in init_folds} if round_epochs else {}
     folds = threshold_fold_frames(frames, num_folds)
-    out: dict[int, dict] = {}
     fitted_folds, num_continued = [], 0
     for k, fold in enumerate(folds):
         in_fold = set(fold)
@@ -600,9 +629,25 @@ def _out_of_fold_scored(
             continue
         num_continued += start_from is not None
         fitted_folds.append(FoldModel(fold, fitted))
-        scored = score(model_of(fitted), [frames[position[i]] for i in fold], SCORE_FLOOR, None, should_stop)
-        out.update(zip((position[i] for i in fold), scored))
-    return [out[k] for k in range(len(frames)) if k in out], fitted_folds, num_continued
+    return fitted_folds, num_continued
+
+
+def _out_of_fold_scored(
+    frames: list[FrameProposals],
+    fold_models: Sequence[FoldModel],
+    model_of: Callable,
+    score: Scorer,
+    should_stop: Callable[[], bool] | None,
+) -> list[dict]:
+    """``score``'s items for the frames of every fold of ``fold_models`` (``_fit_folds``), each
+    scored by its fold's model, in the order of ``frames`` (a frame of no fold left out)."""
+    position = {frame.frame_index: k for k, frame in enumerate(frames)}
+    out: dict[int, dict] = {}
+    for fold in fold_models:
+        fold_frames = [frames[position[i]] for i in fold.frame_indices]
+        scored = score(model_of(fold.classifier), fold_frames, SCORE_FLOOR, None, should_stop)
+        out.update(zip((position[i] for i in fold.frame_indices), scored))
+    return [out[k] for k in range(len(frames)) if k in out]
 
 
 def train_with_mining(
@@ -848,12 +893,9 @@ def train_with_mining(
             if frame_labels[index][g] == background_id and int(g) not in excluded.get(index, ()):
                 background.setdefault(index, set()).add(int(g))
 
-    quality = None
-    quality_seconds = 0.0
-    quality_source = None
-    if box_quality is not None and box_prior is not None and hasattr(box_quality, "trees_"):
-        quality, quality_source = box_quality, "kept"
-    elif box_quality is not None and box_prior is not None:
+    def fit_quality(excluded_now: dict[int, set[int]]) -> tuple[BoxQuality, str, float]:
+        """The regressor the run's models box with, how it came (``TrainingRun`` rounds'
+        ``box_quality``) and its seconds."""
         if progress is not None:
             progress("box quality", 0, 1)
         start = time.perf_counter()
@@ -861,23 +903,48 @@ def train_with_mining(
             frames,
             box_prior,
             num_classes,
-            excluded,
+            excluded_now,
             box_targets=targets_of,
         )
         # (fit keeps its own digest: only a regressor to reuse needs one here)
         digest = None if reuse_box_quality is None else box_quality.training_digest(rows, targets)
         if digest is not None and getattr(reuse_box_quality, "training_digest_", None) == digest:
-            quality, quality_source = reuse_box_quality, "same rows, kept"
+            fitted, source = reuse_box_quality, "same rows, kept"
         elif reuse_box_quality is not None and quality_round_trees:
-            quality = reuse_box_quality.continued(rows, targets, quality_round_trees)
-            quality.training_digest_ = digest  # fitted last to these rows: a round on them keeps it
-            quality_source = f"continued, {quality_round_trees} trees"
+            fitted = reuse_box_quality.continued(rows, targets, quality_round_trees)
+            fitted.training_digest_ = digest  # fitted last to these rows: a round on them keeps it
+            source = f"continued, {quality_round_trees} trees"
         else:
-            quality, quality_source = dataclasses.replace(box_quality).fit(rows, targets), "fitted"
-        quality_seconds = time.perf_counter() - start
+            fitted, source = dataclasses.replace(box_quality).fit(rows, targets), "fitted"
+        seconds = time.perf_counter() - start
         del rows, targets
         if progress is not None:
             progress("box quality", 1, 1)
+        return fitted, source, seconds
+
+    # The regressor's fit needs the labels alone, and the networks' fits need no regressor: it is
+    # fitted on a thread of its own while the first round's network (and, in a run of one round,
+    # the fold models) fit, and waited for when that round's model first scores. Most of a next
+    # round is this fit, and a network's fit leaves part of the cores idle.
+    quality_fit: _Background | None = None
+    kept_quality: tuple[BoxQuality | None, str | None, float] = (None, None, 0.0)
+    if box_quality is not None and box_prior is not None and hasattr(box_quality, "trees_"):
+        kept_quality = (box_quality, "kept", 0.0)
+    elif box_quality is not None and box_prior is not None:
+        # (a copy of the sets left out: mining adds to them once the round's model has scored)
+        quality_fit = _Background(fit_quality, {index: set(sets) for index, sets in excluded.items()})
+
+    quality_wait = [0.0]  # seconds the run waited for it, its fit done alongside the networks'
+
+    def quality_now() -> tuple[BoxQuality | None, str | None, float]:
+        nonlocal kept_quality, quality_fit
+        if quality_fit is not None:
+            waiting = time.perf_counter()
+            if progress is not None and quality_fit.running():
+                progress("box quality", 0, 1)  # (what the run is waiting for now)
+            kept_quality, quality_fit = quality_fit.result(should_stop), None
+            quality_wait[0] = time.perf_counter() - waiting
+        return kept_quality
 
     def fit(trainer, fit_frames, start_from, fit_progress):
         """``trainer`` fitted on ``fit_frames``' sets as they stand; ``(fitted, labels)``, or
@@ -918,7 +985,7 @@ def train_with_mining(
             box_prior,
             score_threshold,
             nms_iou,
-            box_quality=quality,
+            box_quality=quality_now()[0],
             probability_exponent=probability_exponent,
         )
 
@@ -941,6 +1008,18 @@ def train_with_mining(
                 else f"no proposal matches an annotated instance at IoU {positive_iou}: nothing to learn from"
             )
         previous = fitted
+        folds_seconds = 0.0
+        if tune_class_thresholds and threshold_folds and round_index == rounds:
+            # The last model's thresholds are tuned where no model fitted instead: each fold's
+            # frames scored by a model fitted on the other folds' (the sets as they stand now, as
+            # the round's own model saw them). Fitted before the round's model scores: they need
+            # no regressor, which may still be fitting.
+            fold_start = time.perf_counter()
+            fold_models, num_continued = _fit_folds(
+                frames, threshold_folds, classifier, fit, progress, init_folds,
+                round_epochs if init_model is not None else 0,
+            )  # fmt: skip
+            folds_seconds = time.perf_counter() - fold_start
         model = model_of(fitted)
         start = time.perf_counter()
         scored = score(model, frames, min(SCORE_FLOOR, mining_threshold), progress, should_stop)
@@ -950,13 +1029,8 @@ def train_with_mining(
                 model, scored, positive_iou, max_threshold=score_threshold, objective=threshold_objective
             )
         if tune_class_thresholds and threshold_folds and round_index == rounds:
-            # The last model's thresholds, tuned where no model fitted instead: each fold's frames
-            # scored by a model fitted afresh on the other folds' (the sets as they stand now).
             fold_start = time.perf_counter()
-            out_of_fold, fold_models, num_continued = _out_of_fold_scored(
-                frames, threshold_folds, classifier, fit, model_of, score, progress, should_stop,
-                init_folds, round_epochs if init_model is not None else 0,
-            )  # fmt: skip
+            out_of_fold = _out_of_fold_scored(frames, fold_models, model_of, score, should_stop)
             fitted_frame_thresholds = dict(model.class_score_thresholds or {})
             # The fitted frames' thresholds of every objective too (the same scores; the run's own
             # are the model's): a benchmark measures the same network at what the settings without
@@ -986,7 +1060,8 @@ def train_with_mining(
             model = dataclasses.replace(model, class_score_thresholds=dict(by_objective[threshold_objective]))
             folds_record = {
                 "folds": threshold_folds,
-                "seconds": round(time.perf_counter() - fold_start, 2),
+                "seconds": round(folds_seconds + time.perf_counter() - fold_start, 2),
+                "fit_seconds": round(folds_seconds, 2),
                 "fold_frames": [list(fold.frame_indices) for fold in fold_models],
                 "continued": num_continued,
                 "thresholds": dict(model.class_score_thresholds or {}),
@@ -1012,8 +1087,9 @@ def train_with_mining(
             else None,
             "continued": start_from is not None,
             # The regressor is fitted once, before the first round (0 when kept from a model).
-            "box_quality_seconds": round(quality_seconds, 2) if round_index == 0 else 0.0,
-            "box_quality": quality_source if round_index == 0 else None,
+            "box_quality_seconds": round(quality_now()[2], 2) if round_index == 0 else 0.0,
+            "box_quality": quality_now()[1] if round_index == 0 else None,
+            "box_quality_wait_seconds": round(quality_wait[0], 2) if round_index == 0 else 0.0,
             "score_seconds": round(time.perf_counter() - start, 2),
             "train_metrics": metrics,
             "mined": [],

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import threading
 
+from pytest import approx
+
 from app.state import AppState
 from app.trainer import TrainingWorker
 from factorydet_core.io.dataset import open_dataset
@@ -155,7 +157,9 @@ def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
             "per_class": {"cone": {"num_reference": 3, "ap": 0.0}, "box": {"num_reference": 9, "ap": 0.4}}
         }
         run = types.SimpleNamespace(model=model, rounds=[{"train_metrics": metrics}])
-        return types.SimpleNamespace(run_id=7, run=run, train_frames=[], comparison={"after (run 7)": {}})
+        return types.SimpleNamespace(
+            run_id=7, run=run, train_frames=[], comparison={"after (run 7)": {}}, notes=()
+        )
 
     monkeypatch.setattr("app.trainer.retrain_session", retrain_session)
     assert trainer.start("full")
@@ -283,16 +287,28 @@ def test_proposals_and_scoring_move_the_bar_and_say_the_time_left(small_dataset_
     assert fitted <= progress[0] < progress[1] < progress[2] < 0.1 + 0.75  # the bar moves while scoring
 
 
-def test_the_fold_models_move_the_bar_after_the_last_round(small_dataset_dir, tmp_path, monkeypatch):
-    reports = [("fit", 5, 5)] + [("score", frame, 10) for frame in range(10)]
-    reports += [("threshold folds", epoch, 40) for epoch in (1, 2, 40)]
+def test_the_fold_models_move_the_bar_between_the_last_fit_and_its_scoring(
+    small_dataset_dir, tmp_path, monkeypatch
+):
+    # The last round's fit, its fold models' fits, waiting for the box quality regressor (fitted
+    # alongside), then its scoring: the bar only moves on.
+    reports = [("box quality", 0, 1), ("fit", 5, 5)] + [
+        ("threshold folds", epoch, 40) for epoch in (1, 2, 40)
+    ]
+    reports += [("box quality", 0, 1), ("box quality", 1, 1)] + [("score", frame, 10) for frame in range(10)]
     shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 4, reports, threshold_folds=2)
     folds = [(s, p) for s, p in shown if s and "no model fitted" in s]
     assert folds[0][0] == "tuning the thresholds on frames no model fitted: epoch 1 of 40"
     assert folds[1][0].startswith("tuning the thresholds on frames no model fitted: epoch 2 of 40 · about")
-    scored = [p for s, p in shown if s and "scoring" in s][-1]
-    # The round and the fold models share the fits' part of the bar: the round half, the folds half.
-    assert scored < 0.1 + 0.75 / 2 + 1e-9 < folds[0][1] < folds[1][1] < folds[2][1] == 0.1 + 0.75
+    fitted = [p for s, p in shown if s and "epoch 5 of 5" in s][0]
+    waiting = [(s, p) for s, p in shown if s == "fitting the box quality regressor"]
+    assert len(waiting) == 2 and all(p is None for _, p in waiting)  # (the bar stays)
+    scoring = [p for s, p in shown if s and "scoring" in s]
+    bar = [fitted, *(p for _, p in folds), *scoring]
+    assert bar == sorted(bar) and bar[0] < bar[-1]
+    # The round's fit and its scoring share one half of the fits' part, the fold models the other.
+    assert folds[-1][1] == approx(0.1 + 0.75 * (0.8 + 1) / 2)
+    assert scoring[-1] == approx(0.1 + 0.75 * (1 + 0.8 + 0.2 * 9 / 10) / 2)
 
 
 def test_the_ray_setting_is_the_session_s_and_goes_to_the_retrain(

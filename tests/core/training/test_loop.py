@@ -74,6 +74,33 @@ def frames(db, dataset, detector):
     return cached_proposals(db, dataset, detector, [0, 1])
 
 
+def test_the_rig_is_calibrated_once_per_session_and_read_back_after(dataset, tmp_path, monkeypatch):
+    from factorydet_core.proposals.merge import ExtrinsicRefinement
+    from factorydet_core.training.loop import cached_calibration
+
+    calls = []
+    num_sensors = dataset.num_sensors
+
+    def refine(frames, T_vehicle_sensor=None, **options):
+        calls.append(T_vehicle_sensor)
+        T = np.tile(np.eye(4), (num_sensors, 1, 1))
+        T[:, 0, 3] = 0.01 * (len(calls) + np.arange(num_sensors))  # (a new answer each call)
+        zeros = np.zeros(num_sensors)
+        return ExtrinsicRefinement(T, zeros + 0.02, zeros + 0.01, zeros + 0.9)
+
+    monkeypatch.setattr("factorydet_core.detection.detector.refine_extrinsics", refine)
+    db = SessionDB(open_session("calibration", tmp_path), dataset)
+    first = cached_calibration(db, dataset, Detector("agv"), 0)
+    again = cached_calibration(db, dataset, Detector("agv"), 0)
+    assert len(calls) == 1  # read back: ICP ran once
+    np.testing.assert_array_equal(again.T_vehicle_sensor, first.T_vehicle_sensor)
+    np.testing.assert_array_equal(again.calibration_.rmse_after, first.calibration_.rmse_after)
+    # Another frame, or other starting extrinsics, is another calibration.
+    cached_calibration(db, dataset, Detector("agv"), 1)
+    cached_calibration(db, dataset, Detector("agv", first.T_vehicle_sensor), 0)
+    assert len(calls) == 3 and calls[2] is not None
+
+
 def test_proposals_are_cached_and_read_back_equal(db, dataset, detector, frames, monkeypatch):
     key = proposals_cache_key(dataset, detector)
     assert (db.session.cache_dir / f"{key}.npz").is_file()

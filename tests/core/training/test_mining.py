@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import time
 
 import numpy as np
 import pytest
@@ -142,6 +143,81 @@ def test_box_quality_is_fitted_once_and_shared_by_every_round(frames):
     exponent = run.model.probability_exponent
     assert exponent == 0.5
     assert (detections.scores <= probability**exponent + 1e-6).all()
+
+
+def test_the_box_quality_regressor_fits_alongside_the_networks_and_the_models_wait_for_it(
+    frames, monkeypatch
+):
+    """The regressor's fit needs the labels alone: it runs on a thread of its own while the
+    round's network and fold models fit, and the round's model waits for it before scoring."""
+    import threading
+
+    events = []
+    released = threading.Event()
+    real_fit, real_classifier_fit = BoxQuality.fit, ProposalClassifier.fit
+
+    def slow_quality_fit(self, features, targets):
+        released.wait(30)  # (until the networks have fitted)
+        events.append(("box quality", threading.current_thread() is threading.main_thread()))
+        return real_fit(self, features, targets)
+
+    def classifier_fit(self, *args, **kwargs):
+        events.append(("network", threading.current_thread() is threading.main_thread()))
+        return real_classifier_fit(self, *args, **kwargs)
+
+    def score(model, score_frames_, *args):
+        released.set()
+        events.append(("score", model.box_quality is not None))
+        return score_frames(model, score_frames_, *args)
+
+    def release_at_the_fold_models(what, done, total):
+        if what == "threshold folds" and done == total:
+            released.set()
+
+    monkeypatch.setattr(BoxQuality, "fit", slow_quality_fit)
+    monkeypatch.setattr(ProposalClassifier, "fit", classifier_fit)
+    run = train_with_mining(
+        frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=0,
+        initial_negatives=50, box_quality=BoxQuality(max_iter=5), threshold_folds=2, score=score,
+        progress=release_at_the_fold_models,
+    )  # fmt: skip
+    # The network and both fold models fitted (here) while the regressor's fit was held back on
+    # its own thread; every model scored with it.
+    assert events[:3] == [("network", True)] * 3
+    assert events[3] == ("box quality", False)
+    assert set(events[4:]) == {("score", True)}
+    record = run.rounds[0]
+    assert record["box_quality"] == "fitted" and record["box_quality_wait_seconds"] > 0
+    assert record["box_quality_seconds"] >= record["box_quality_wait_seconds"]
+    assert run.model.box_quality is not None
+
+
+def test_a_failed_box_quality_fit_fails_the_run_and_a_cancel_does_not_wait_for_it(frames, monkeypatch):
+    import threading
+
+    from factorydet_core.types import Cancelled
+
+    def broken(self, features, targets):
+        raise InputError("box quality: broken on purpose")
+
+    monkeypatch.setattr(BoxQuality, "fit", broken)
+    options = {"rounds": 0, "initial_negatives": 50, "box_quality": BoxQuality(max_iter=5)}
+    classifier = ProposalClassifier(width=0.0625, epochs=1, num_threads=1)
+    with pytest.raises(InputError, match="broken on purpose"):
+        train_with_mining(frames, classifier, **options)
+    held = threading.Event()
+    monkeypatch.setattr(BoxQuality, "fit", lambda self, features, targets: held.wait(30) and self)
+    stop = threading.Event()
+
+    def progress(what, done, total):
+        if what == "fit" and done == total:
+            stop.set()  # (cancelled once the network has fitted, the regressor still fitting)
+
+    start = time.perf_counter()
+    with pytest.raises(Cancelled):
+        train_with_mining(frames, classifier, progress=progress, should_stop=stop.is_set, **options)
+    assert time.perf_counter() - start < 20  # (the regressor is held for 30 s)
+    held.set()
 
 
 @pytest.mark.slow
@@ -774,11 +850,12 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
     )  # fmt: skip
     both = sorted(f.frame_index for f in frames)
     first, second = both
-    # Each round fits and scores every frame; then each fold's frame is scored by a model fitted
-    # on the other alone.
+    # Each round fits and scores every frame; the last one fits each fold's model on the other
+    # fold alone before its own model scores (they need no box quality regressor, which may still
+    # be fitting), and then each fold's frame is scored by its fold's model.
     assert events == [
-        ("fit", both), ("score", both), ("fit", both), ("score", both),
-        ("fit", [second]), ("score", [first]), ("fit", [first]), ("score", [second]),
+        ("fit", both), ("score", both), ("fit", both), ("fit", [second]), ("fit", [first]),
+        ("score", both), ("score", [first]), ("score", [second]),
     ]  # fmt: skip
     # Round 0 on its fitted frames under the ceiling; the last on its fitted frames under the
     # ceiling (the model's before the folds), then for the record the other objective's there and
@@ -789,7 +866,7 @@ def test_threshold_folds_tune_the_last_model_on_frames_no_fit_saw(frames, monkey
     assert run.model.class_score_thresholds == {"bobbin": 0.7}
     assert run.models[0].class_score_thresholds == {"bobbin": 0.25}
     folds = run.rounds[-1]["threshold_folds"]
-    assert folds["folds"] == 2 and folds["seconds"] > 0
+    assert folds["folds"] == 2 and folds["seconds"] > folds["fit_seconds"] > 0
     assert folds["thresholds"] == {"bobbin": 0.7} and folds["fitted_frame_thresholds"] == {"bobbin": 0.25}
     assert folds["objective"] == "class"
     assert folds["by_objective"] == {"class": {"bobbin": 0.7}, "total": {"bobbin": 0.6}}
