@@ -200,7 +200,7 @@ _CALIBRATION_FORMAT = 1  # bump when refine_extrinsics' defaults or result chang
 
 def cached_calibration(db: SessionDB, dataset: Dataset, detector: Detector, frame_index: int) -> Detector:
     """``detector.calibrate`` on frame ``frame_index`` through the session's ``cache/``: ICP of
-    the rig's sensors against each other (some 8 s on the demo, every retrain) runs once per data
+    the rig's sensors against each other (seconds, every retrain) runs once per data
     set, frame and starting extrinsics, and is read back after. Returns ``detector``, calibrated."""
     digest = hashlib.sha256()
     digest.update(json.dumps([_CALIBRATION_FORMAT, dataset.content_hash(), int(frame_index)]).encode())
