@@ -963,8 +963,9 @@ def _hitl_variants(
                 others = [o for o in folds["by_objective"] if o != folds["objective"]]
                 other_objective = others[0]
                 thresholds_of["other_objective"] = dict(folds["by_objective"][other_objective])
-                # What the settings without folds give (the app's defaults when the run's
-                # objective is "total"); runs from before it was recorded lack it.
+                # What the settings without folds give (``--threshold-folds 0`` and, when the run's
+                # objective is "total", objective "class": the defaults before out-of-fold
+                # thresholds); runs from before it was recorded lack it.
                 if "fitted_frame_by_objective" in folds:
                     thresholds_of["fitted_frames_other_objective"] = dict(
                         folds["fitted_frame_by_objective"][other_objective]
