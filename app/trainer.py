@@ -167,7 +167,7 @@ class TrainingWorker:
         state = self.state
         try:
             detector = self._detector()
-            train = state.dataset.splits.get("train") or list(range(state.dataset.num_frames))
+            train = training_frame_indices(state.dataset)
 
             def progress(_what: str, done: int, total: int) -> None:
                 if self._cancel.is_set():
@@ -193,7 +193,7 @@ class TrainingWorker:
         dataset = self.state.dataset
         detector = Detector(params_for(self.state.model, dataset.num_sensors))
         if self.calibrate and dataset.num_sensors > 1:
-            train = dataset.splits.get("train") or [0]
+            train = training_frame_indices(dataset)
             self.state.set_training(status="refining the sensor extrinsics (ICP)", progress=0.01)
             cached_calibration(self.state.db, dataset, detector, train[0])
         return detector

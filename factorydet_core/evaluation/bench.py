@@ -915,10 +915,8 @@ def bench_mining(
         # on a thread of its own alongside the fits), the network's fit, the fold models' fits,
         # the scoring (with the fold models' and the thresholds' tuning).
         parts = {
-            "box_quality_wait_seconds": float(record.get("box_quality_wait_seconds") or 0.0),
-            "fit_seconds": float(record.get("fit_seconds") or 0.0),
-            "folds_fit_seconds": float(record.get("folds_fit_seconds") or 0.0),
-            "score_seconds": float(record.get("score_seconds") or 0.0),
+            key: float(record.get(key) or 0.0)
+            for key in ("box_quality_wait_seconds", "fit_seconds", "folds_fit_seconds", "score_seconds")
         }
         config = {
             "round_epochs": epochs,

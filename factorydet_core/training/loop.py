@@ -107,7 +107,7 @@ def continued_model(
         (no run, ``round_epochs`` 0, an unreadable checkpoint, another method, classes, network or
         front half).
     """
-    runs = {run["id"]: run for run in db.training_runs() if run["model_path"]}
+    runs = _runs_with_models(db)
     if not runs:
         return None, None, "the session has no training run"
     if not settings.round_epochs:
@@ -127,6 +127,11 @@ def continued_model(
     except InputError as exc:
         return None, None, str(exc)
     return run_id, model, ""
+
+
+def _runs_with_models(db: SessionDB) -> dict[int, dict]:
+    """The session's training runs that have a model, by id."""
+    return {run["id"]: run for run in db.training_runs() if run["model_path"]}
 
 
 def _continued_run_id(db: SessionDB, runs: dict[int, dict]) -> int:
@@ -151,7 +156,7 @@ def fold_fit_epochs(db: SessionDB, settings: LoopSettings, mode: str, num_frames
         return 0
     continues = False
     if mode == "next" and folds_continue(dataclasses.asdict(settings), next_rounds=True):
-        runs = {run["id"]: run for run in db.training_runs() if run["model_path"]}
+        runs = _runs_with_models(db)
         continues = bool(runs) and bool(db.fold_model_paths(_continued_run_id(db, runs)))
     return (folds - 1) * (settings.round_epochs if continues else settings.epochs)
 

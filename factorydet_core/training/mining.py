@@ -1009,7 +1009,9 @@ def train_with_mining(
             )
         previous = fitted
         folds_seconds = 0.0
-        if tune_class_thresholds and threshold_folds and round_index == rounds:
+        # (the last model's thresholds tuned out of fold: its fold models fit now, score below)
+        out_of_fold_round = bool(tune_class_thresholds and threshold_folds and round_index == rounds)
+        if out_of_fold_round:
             # The last model's thresholds are tuned where no model fitted instead: each fold's
             # frames scored by a model fitted on the other folds' (the sets as they stand now, as
             # the round's own model saw them). Fitted before the round's model scores: they need
@@ -1028,7 +1030,7 @@ def train_with_mining(
             model = with_tuned_thresholds(
                 model, scored, positive_iou, max_threshold=score_threshold, objective=threshold_objective
             )
-        if tune_class_thresholds and threshold_folds and round_index == rounds:
+        if out_of_fold_round:
             fold_start = time.perf_counter()
             out_of_fold = _out_of_fold_scored(frames, fold_models, model_of, score, should_stop)
             fitted_frame_thresholds = dict(model.class_score_thresholds or {})
@@ -1074,6 +1076,7 @@ def train_with_mining(
             scored, fitted.class_names, positive_iou, score_threshold, model.class_thresholds()
         )
         metrics.pop("pr_curves")
+        _, quality_source, quality_seconds = quality_now()
         record = {
             "round": round_index,
             "num_positives": int((labels != background_id).sum()),
@@ -1087,8 +1090,8 @@ def train_with_mining(
             else None,
             "continued": start_from is not None,
             # The regressor is fitted once, before the first round (0 when kept from a model).
-            "box_quality_seconds": round(quality_now()[2], 2) if round_index == 0 else 0.0,
-            "box_quality": quality_now()[1] if round_index == 0 else None,
+            "box_quality_seconds": round(quality_seconds, 2) if round_index == 0 else 0.0,
+            "box_quality": quality_source if round_index == 0 else None,
             "box_quality_wait_seconds": round(quality_wait[0], 2) if round_index == 0 else 0.0,
             "score_seconds": round(time.perf_counter() - start, 2),
             "train_metrics": metrics,
