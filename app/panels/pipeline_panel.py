@@ -50,7 +50,6 @@ class PipelinePanel:
             if abs(handle.value - value) > 1e-9:
                 handle.value = value
         self.progress.value = round(100 * fraction, 1)
-        self.progress.animated = busy
         self.status.content = f"{'⏳ ' if busy else ''}{status}"
         self.selection.content = selection or "_Click a patch (patches or segments layer) or a proposal box._"
 
@@ -90,6 +89,8 @@ def build_pipeline_panel(server: viser.ViserServer | viser.ClientHandle, state: 
             initial_value=params.segmentation.merge_threshold,
             hint="Least contact strength for two adjacent patches to merge into one segment",
         )
+        # Not animated while busy either (the status says so): the stripes' animation costs a browser
+        # without a GPU cores the frame's own computation needs (see the Training panel's bar).
         progress = server.gui.add_progress_bar(0.0, animated=False)
         status = server.gui.add_markdown("")
     with server.gui.add_folder("Selection", order=62):
