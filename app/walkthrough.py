@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -38,6 +39,7 @@ from factorydet_core.session.editing import BOX_VIEWS, Suggestion, camera_view_o
 from factorydet_core.session.store import PRELABEL_ORIGIN, VERDICTS, SessionDB, open_session
 from factorydet_core.session.world import MOVING_CLASSES
 
+from .panels.training_panel import TrainingPanel
 from .screenshots import WEBGL_RENDERER_JS, open_app_page, wait_until
 from .viewer import FactorydetApp
 
@@ -288,6 +290,46 @@ def _train_from_the_page(app, page, timeout: float) -> float:
     return time.perf_counter() - start
 
 
+def _process_tree(pid: int) -> list[int]:
+    """``pid`` and every process below it (Linux ``/proc``; empty where it is missing)."""
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
+    found = [pid]
+    for task in tasks:
+        try:
+            children = open(f"/proc/{pid}/task/{task}/children").read().split()
+        except OSError:
+            continue
+        for child in children:
+            found += _process_tree(int(child))
+    return found
+
+
+def _cpu_seconds(pids: list[int]) -> float:
+    """User and system CPU seconds the processes have used (those gone count 0)."""
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
+def _browser_cores(seconds: float = 10.0) -> float | None:
+    """Cores the browser (this process's child processes: Playwright's driver and Chromium) uses
+    over ``seconds`` with nothing sent to it; ``None`` where ``/proc`` cannot tell."""
+    children = _process_tree(os.getpid())[1:]
+    if not children:
+        return None
+    start, before = time.perf_counter(), _cpu_seconds(children)
+    time.sleep(seconds)
+    return round((_cpu_seconds(children) - before) / (time.perf_counter() - start), 2)
+
+
 def _num_answered(db) -> int:
     """The latest run's queue items with a verdict, skips included: each verdict given on a
     pending item adds one or more (its place's items)."""
@@ -300,8 +342,17 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
     one), ``NUM_VERDICTS`` review verdicts with the keyboard, each timed, then Train again (a next
     round) until its before/after table shows."""
     db = app.state.db
+    out = {"browser_cores_idle": _browser_cores()}
     page.get_by_text("Training", exact=True).first.click()  # the folder starts collapsed
-    out = {}
+    time.sleep(1.0)  # (opened)
+    # What the browser spends with the Training panel open, its bar still (as the app has it) and
+    # animated (as it once was): cores a run shown there competes for on the same machine.
+    out["browser_cores_training_open"] = _browser_cores()
+    (panel,) = [p for p in view.view_panels if isinstance(p, TrainingPanel)]
+    panel.progress.animated = True
+    time.sleep(1.0)
+    out["browser_cores_training_open_animated_bar"] = _browser_cores()
+    panel.progress.animated = False
     if not db.training_runs():
         out["full_run_shown_s"] = round(_train_from_the_page(app, page, 3600), 1)
         if progress is not None:

@@ -797,7 +797,20 @@ def _retrain_text(result: dict) -> str:
     return (
         f" Then, from the page:{first} after {those} (keyboard), a next round took"
         f" {fmt(retrain['next_round_shown_s'])} s until its before/after"
-        f" table showed (target {fmt(result.get('target_next_round_s'))} s)."
+        f" table showed (target {fmt(result.get('target_next_round_s'))} s)." + _browser_cores_text(retrain)
+    )
+
+
+def _browser_cores_text(retrain: dict) -> str:
+    """What the browser spent with nothing sent to it, in a sentence (records before it: none)."""
+    if retrain.get("browser_cores_training_open") is None:
+        return ""
+    return (
+        f" With nothing sent to it the browser used {fmt(retrain['browser_cores_idle'])} of the"
+        f" machine's cores, {fmt(retrain['browser_cores_training_open'])} with the Training panel open"
+        " (its bar still, as the app draws it) and"
+        f" {fmt(retrain['browser_cores_training_open_animated_bar'])} with the bar animated (as the"
+        " app drew it before): cores the run shown there competes for."
     )
 
 

@@ -517,6 +517,25 @@ def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counte
     ) in render_record(counted)
 
 
+def test_the_walkthrough_says_what_the_browser_spent_with_the_training_panel_open_where_measured():
+    record = _record("walkthrough")
+    before = {**record, "retrain": {"full_run_shown_s": 600.0, "next_round_shown_s": 150.0}}
+    assert "with the Training panel open" not in render_record(before)  # a record from before it
+    measured = {
+        **record,
+        "retrain": {
+            **before["retrain"],
+            "browser_cores_idle": 0.31,
+            "browser_cores_training_open": 0.33,
+            "browser_cores_training_open_animated_bar": 1.72,
+        },
+    }
+    assert (
+        "the browser used 0.31 of the machine's cores, 0.33 with the Training panel open (its bar still,"
+        " as the app draws it) and 1.72 with the bar animated"
+    ) in render_record(measured)
+
+
 def test_a_hitl_compare_says_how_precision_and_recall_moved_where_both_records_kept_them():
     from factorydet_core.evaluation.hitl import compare_hitl_records
 
