@@ -799,6 +799,23 @@ def _heldout_pair(data: str | os.PathLike, configs: dict, seeds: Sequence[int], 
 MINING_TARGET_SECONDS = 300.0
 """The speed issue's target for one hard-negative mining round on the shipped model's 40 training
 frames."""
+DEMO_NEXT_ROUND_TARGET_SECONDS = 180.0
+"""The labelling issue's target for the app's next round on the demo (its 8 training frames)."""
+DEMO_FULL_RUN_TARGET_SECONDS = 600.0
+"""... and for a full run there."""
+
+
+def mining_targets(session_name: str) -> dict[str, float]:
+    """The targets ``bench mining`` holds a session's round (and full run) to: the labelling
+    issue's for the demo's session, the speed issue's round otherwise."""
+    from factorydet_core.session.demo import DEMO_SESSION
+
+    if session_name == DEMO_SESSION:
+        return {
+            "target_seconds": DEMO_NEXT_ROUND_TARGET_SECONDS,
+            "target_full_run_seconds": DEMO_FULL_RUN_TARGET_SECONDS,
+        }
+    return {"target_seconds": MINING_TARGET_SECONDS}
 
 
 def bench_mining(
@@ -955,7 +972,7 @@ def bench_mining(
         "verdicts": int(verdicts),
         "continues_run": runs[-1]["id"] if runs else None,
         "configs": configs,
-        "target_seconds": MINING_TARGET_SECONDS,
+        **mining_targets(session_name),
         "machine": machine_info(),
     }
     if heldout_seeds:

@@ -492,7 +492,13 @@ def mining_markdown(result: dict) -> str:
         table(header, rows)
         + f"\n\nOne more round of session `{result['session']}` ({start}) on its {frames} training"
         " frames, each configuration on a fresh copy of the session in a child process; target"
-        f" {fmt(result['target_seconds'])} s per round. 'other' is reading the cached proposals,"
+        f" {fmt(result['target_seconds'])} s per round"
+        + (
+            f" and {fmt(result['target_full_run_seconds'])} s per full run"
+            if full and result.get("target_full_run_seconds") is not None
+            else ""
+        )
+        + ". 'other' is reading the cached proposals,"
         f" mining and storing the run{measured}."
     )
     if overlapped:

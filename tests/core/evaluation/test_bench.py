@@ -170,6 +170,7 @@ def test_bench_mining_times_a_round_afresh_and_continued_on_session_copies(small
     assert continued["speedup_vs_afresh"] == round(afresh["seconds"] / continued["seconds"], 2)
     assert len(db.training_runs()) == len(before)  # the session itself is not changed
     assert "continued, 1 epochs" in render_record(record)
+    assert (record["target_seconds"], "target_full_run_seconds" in record) == (300.0, False)  # not the demo
     with pytest.raises(InputError, match="distinct"):
         bench_mining("timed", root=tmp_path / "sessions", round_epochs=(1, 1))
     # A session without a run: a full retrain first (the app's first Train), then the next round.

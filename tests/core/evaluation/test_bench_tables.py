@@ -215,6 +215,19 @@ def test_update_readme_refuses_before_writing_anything(tmp_path, record, name, m
     assert page.read_text() == before and not (tmp_path / "docs" / "bench").exists()
 
 
+def test_the_demo_s_mining_records_hold_it_to_the_labelling_issue_s_targets():
+    from factorydet_core.evaluation.bench import mining_targets
+
+    assert mining_targets("demo") == {"target_seconds": 180.0, "target_full_run_seconds": 600.0}
+    assert mining_targets("corpus-head") == {"target_seconds": 300.0}
+    demo = _record("mining-demo-reviewed-folds")
+    assert demo["session"] == "demo" and demo["target_seconds"] == 180.0
+    assert "target 180.0 s per round and 600.0 s per full run." in render_record(demo)
+    corpus = _record("mining")
+    assert corpus["session"] != "demo" and "full_run" not in corpus["configs"][0]
+    assert f"target {fmt(corpus['target_seconds'])} s per round." in render_record(corpus)
+
+
 def test_mining_table_gives_each_configurations_time_parts_and_heldout_figures():
     record = _record("mining")
     text = render_record(record)
