@@ -53,6 +53,11 @@ TARGET_NEXT_ROUND_S = 180.0
 """Issue target: a next-round retrain from the app on the demo."""
 NUM_VERDICTS = 20
 """Review verdicts given with the keyboard, each timed."""
+VERDICT_KEY_CHOICES = "box"
+"""The review panel's verdict keys: background, object (of the item's class), skip."""
+VERDICT_KEYS = "bxbbx"
+"""The verdicts' keys, in turn: background and skip (the labels stay as they are, and so does the
+box quality regressor's fit); ``--verdict-keys bobxo`` answers some Object too (labels change)."""
 
 
 def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
@@ -337,10 +342,15 @@ def _num_answered(db) -> int:
     return sum(progress[verdict] for verdict in VERDICTS)
 
 
-def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
+def verdict_step(keys: str) -> str:
+    """The step's name for review verdicts given with ``keys``: ``review verdict (B / X)``."""
+    return "review verdict (" + " / ".join(sorted(set(keys.upper()))) + ")"
+
+
+def _retrain_and_review(app, page, view, note, shows, progress, verdict_keys: str = VERDICT_KEYS) -> dict:
     """The loop the app exists for, from the page: Train (a full run first, in a session without
-    one), ``NUM_VERDICTS`` review verdicts with the keyboard, each timed, then Train again (a next
-    round) until its before/after table shows."""
+    one), ``NUM_VERDICTS`` review verdicts with the keyboard (``verdict_keys`` in turn), each timed,
+    then Train again (a next round) until its before/after table shows."""
     db = app.state.db
     out = {"browser_cores_idle": _browser_cores()}
     page.get_by_text("Training", exact=True).first.click()  # the folder starts collapsed
@@ -361,7 +371,7 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
     canvas.focus()
     page.keyboard.press("n")
     _wait(lambda: view.current_item_id is not None, 60, "the first queue item")
-    for key in itertools.islice(itertools.cycle("bxbbx"), NUM_VERDICTS):  # background and skip
+    for key in itertools.islice(itertools.cycle(verdict_keys), NUM_VERDICTS):
         _wait(lambda: app.worker.idle, 600, "the frames ahead")
         item = view.current_item_id
         num_answered = _num_answered(db)
@@ -376,7 +386,7 @@ def _retrain_and_review(app, page, view, note, shows, progress) -> dict:
             shows(f"(#{view.current_item_id}, frame")()
 
         note(
-            "review verdict (B / X)",
+            verdict_step(verdict_keys),
             _timed(view, lambda key=key: page.keyboard.press(key), judged, next_item_shown),
         )
     out["next_round_shown_s"] = round(_train_from_the_page(app, page, 3600), 1)
@@ -391,10 +401,14 @@ def run(
     progress: Callable[[str], None] | None = None,
     retrain: bool = True,
     points_drawn: int | None = None,
+    verdict_keys: str = VERDICT_KEYS,
 ) -> dict:
     """Drive the app through the steps ``repeats`` times; returns the record. Without ``retrain``
     the review verdicts and the retrains are left out (minutes instead of a quarter of an hour);
-    ``points_drawn``: the Display panel's "Points drawn" (None: all)."""
+    ``points_drawn``: the Display panel's "Points drawn" (None: all); ``verdict_keys``: the review
+    verdicts' keys, in turn."""
+    if not verdict_keys or set(verdict_keys) - set(VERDICT_KEY_CHOICES):
+        raise ValueError(f"verdict keys must be some of {VERDICT_KEY_CHOICES!r}, got {verdict_keys!r}")
     from playwright.sync_api import sync_playwright
 
     dataset = open_dataset(data)
@@ -533,7 +547,9 @@ def run(
                     if progress is not None:
                         progress(f"round {k + 1} of {repeats} done")
                 if retrain:
-                    retrained.update(_retrain_and_review(app, page, view, note, shows, progress))
+                    retrained.update(
+                        _retrain_and_review(app, page, view, note, shows, progress, verdict_keys)
+                    )
                 browser.close()
         finally:
             app.close()
@@ -551,6 +567,7 @@ def run(
         "target_frame_ms": TARGET_FRAME_MS,
         "target_verdict_ms": TARGET_VERDICT_MS,
         "num_verdicts": NUM_VERDICTS if retrain else 0,
+        "verdict_keys": verdict_keys if retrain else None,
         "browser_render": render,
         "retrain": retrained,
         "target_next_round_s": TARGET_NEXT_ROUND_S,
@@ -591,7 +608,16 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the Display panel's Points drawn (default: all the points)",
     )
+    parser.add_argument(
+        "--verdict-keys",
+        default=VERDICT_KEYS,
+        help=f"the review verdicts' keys, in turn (default {VERDICT_KEYS}: background and skip; o answers "
+        "Object with the item's class, and the next round fits the box quality regressor again)",
+    )
     args = parser.parse_args(argv)
+    if not args.verdict_keys or set(args.verdict_keys) - set(VERDICT_KEY_CHOICES):
+        keys = ", ".join(VERDICT_KEY_CHOICES)
+        parser.error(f"--verdict-keys takes the keys {keys}, got {args.verdict_keys!r}")
     if args.points_drawn is not None and args.points_drawn < 1:
         parser.error(f"--points-drawn must be at least 1, got {args.points_drawn}")
     if args.readme_block != "walkthrough" and not args.readme:
@@ -606,6 +632,7 @@ def main(argv: list[str] | None = None) -> int:
         progress=lambda line: print(line, file=sys.stderr),
         retrain=not args.no_retrain,
         points_drawn=args.points_drawn,
+        verdict_keys=args.verdict_keys,
     )
     record["command"] = "python -m app.walkthrough " + " ".join(argv if argv is not None else sys.argv[1:])
     text = json.dumps(record, indent=2)

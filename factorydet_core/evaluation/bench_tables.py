@@ -800,6 +800,14 @@ def _retrain_text(result: dict) -> str:
     first = f" Train ran a full run (the session's first) in {fmt(full)} s;" if full is not None else ""
     verdicts = result.get("num_verdicts")
     those = f"the {verdicts} review verdicts above, in a row" if verdicts else "the review verdicts above"
+    keys = result.get("verdict_keys")  # (records before it: background and skip)
+    if verdicts and keys:
+        objects = sum(keys[k % len(keys)] == "o" for k in range(verdicts))
+        those += (
+            f", {objects} of them Object (the labels changed: the round fits the box quality regressor again)"
+            if objects
+            else ", background and skip (the labels unchanged: the round keeps the box quality regressor)"
+        )
     return (
         f" Then, from the page:{first} after {those} (keyboard), a next round took"
         f" {fmt(retrain['next_round_shown_s'])} s until its before/after"
