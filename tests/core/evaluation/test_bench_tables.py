@@ -23,6 +23,7 @@ BLOCKS = (
     ("performance.md", "mining-demo-reviewed-folds"),
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
+    ("labelling.md", "walkthrough-object-verdicts"),
     ("labelling.md", "walkthrough-edits-points-all"),
     ("labelling.md", "walkthrough-edits-points-20k"),
     ("labelling.md", "walkthrough-edits-points-20k-swiftshader"),
