@@ -160,7 +160,8 @@ def build_training_panel(
         )
         cancel = server.gui.add_button("Cancel training", color="red", disabled=True)
         # Never animated: a browser without a GPU redraws the page for the stripes' animation, which
-        # took headless Chromium 1.4 of this machine's 2 cores from the training it shows.
+        # took headless Chromium most of a 2-core machine from the training it shows (the
+        # walkthrough records it: docs/labelling.md).
         progress = server.gui.add_progress_bar(0.0, animated=False)
         status = server.gui.add_markdown("")
         comparison = server.gui.add_markdown("")

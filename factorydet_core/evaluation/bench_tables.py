@@ -803,11 +803,7 @@ def _retrain_text(result: dict) -> str:
     keys = result.get("verdict_keys")  # (records before it: background and skip)
     if verdicts and keys:
         objects = sum(keys[k % len(keys)] == "o" for k in range(verdicts))
-        those += (
-            f", {objects} of them Object (the labels changed: the round fits the box quality regressor again)"
-            if objects
-            else ", background and skip (the labels unchanged: the round keeps the box quality regressor)"
-        )
+        those += f", {objects} of them Object (the labels changed)" if objects else ", background and skip"
     return (
         f" Then, from the page:{first} after {those} (keyboard), a next round took"
         f" {fmt(retrain['next_round_shown_s'])} s until its before/after"

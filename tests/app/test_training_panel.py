@@ -86,7 +86,7 @@ def test_the_runs_table_says_how_many_labels_trained_as_ignored_places(
 
 def test_the_progress_bars_move_without_animating_while_busy(server, small_dataset_dir, tmp_path):
     # A browser without a GPU redraws the page for the bar's animation: headless Chromium spent
-    # 1.4 of 2 cores on it, taken from the training and the frame the bars show.
+    # most of a 2-core machine on it, taken from the training and the frame the bars show.
     from app.panels.pipeline_panel import build_pipeline_panel
 
     dataset = open_dataset(small_dataset_dir)

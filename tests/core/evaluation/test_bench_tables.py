@@ -548,11 +548,11 @@ def test_the_walkthrough_says_what_the_browser_spent_with_the_training_panel_ope
         "the browser used 0.31 of the machine's cores, 0.33 with the Training panel open (its bar still,"
         " as the app draws it) and 1.72 with the bar animated"
     ) in render_record(measured)
-    assert "after the 20 review verdicts above, in a row, background and skip" in render_record(
+    assert "after the 20 review verdicts above, in a row, background and skip (keyboard)" in render_record(
         {**measured, "num_verdicts": 20, "verdict_keys": "bxbbx"}
     )
     objects = render_record({**measured, "num_verdicts": 20, "verdict_keys": "bobxo"})
-    assert "in a row, 8 of them Object (the labels changed: the round fits the box quality" in objects
+    assert "in a row, 8 of them Object (the labels changed) (keyboard)" in objects
 
 
 def test_a_hitl_compare_says_how_precision_and_recall_moved_where_both_records_kept_them():
