@@ -539,7 +539,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# The reviewer's record above on six factories no record had used (simulator seeds 111-116), each
 	# network also measured at the thresholds it gets without folds.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
-	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order class \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 111,112,113,114,115,116 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-fresh-six.json --readme docs/review-loop.md \
