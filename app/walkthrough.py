@@ -342,6 +342,13 @@ def _num_answered(db) -> int:
     return sum(progress[verdict] for verdict in VERDICTS)
 
 
+def check_verdict_keys(keys: str) -> str:
+    """``keys`` if every one is a verdict key (``VERDICT_KEY_CHOICES``), else ``ValueError``."""
+    if not keys or set(keys) - set(VERDICT_KEY_CHOICES):
+        raise ValueError(f"verdict keys must be some of {', '.join(VERDICT_KEY_CHOICES)}, got {keys!r}")
+    return keys
+
+
 def verdict_step(keys: str) -> str:
     """The step's name for review verdicts given with ``keys``: ``review verdict (B / X)``."""
     return "review verdict (" + " / ".join(sorted(set(keys.upper()))) + ")"
@@ -407,8 +414,7 @@ def run(
     the review verdicts and the retrains are left out (minutes instead of a quarter of an hour);
     ``points_drawn``: the Display panel's "Points drawn" (None: all); ``verdict_keys``: the review
     verdicts' keys, in turn."""
-    if not verdict_keys or set(verdict_keys) - set(VERDICT_KEY_CHOICES):
-        raise ValueError(f"verdict keys must be some of {VERDICT_KEY_CHOICES!r}, got {verdict_keys!r}")
+    check_verdict_keys(verdict_keys)
     from playwright.sync_api import sync_playwright
 
     dataset = open_dataset(data)
@@ -615,9 +621,10 @@ def main(argv: list[str] | None = None) -> int:
         "Object with the item's class, and the next round fits the box quality regressor again)",
     )
     args = parser.parse_args(argv)
-    if not args.verdict_keys or set(args.verdict_keys) - set(VERDICT_KEY_CHOICES):
-        keys = ", ".join(VERDICT_KEY_CHOICES)
-        parser.error(f"--verdict-keys takes the keys {keys}, got {args.verdict_keys!r}")
+    try:
+        check_verdict_keys(args.verdict_keys)
+    except ValueError as exc:
+        parser.error(f"--verdict-keys: {exc}")
     if args.points_drawn is not None and args.points_drawn < 1:
         parser.error(f"--points-drawn must be at least 1, got {args.points_drawn}")
     if args.readme_block != "walkthrough" and not args.readme:
