@@ -81,6 +81,14 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 --verdicts 20 \
 	  --threshold-folds 2 --threshold-objective total --readme docs/performance.md \
 	  --readme-block mining-demo-reviewed-folds
+	# A reviewer's next round refitting the box quality regressor on half the option rows (the default)
+	# and on all of them, three training seeds each, going on from one full run of a copy of the demo
+	# session; the models measured on held-out factories no setting was chosen on.
+	rm -rf /tmp/factorydet_refit && mkdir -p /tmp/factorydet_refit && cp -r sessions/demo /tmp/factorydet_refit/demo
+	$(BIN)/factorydet train --session demo --root /tmp/factorydet_refit --mode full
+	$(BIN)/factorydet bench mining --session demo --root /tmp/factorydet_refit --before-after --round-epochs 5 \
+	  --verdicts 20 --seeds 0,1,2 --compare-set refit_row_share=1.0 --heldout --heldout-seeds 121,122,123,124,125,126 \
+	  --readme docs/performance.md --readme-block mining-demo-refit-rows
 	$(BIN)/factorydet bench quality $(CORPUS) --model paper --seeds 0,1,2 --heldout-seeds 101,102,103 \
 	  --heldout-frames 12 --epochs 20 --rounds 1 --out docs/bench/quality.json --readme README.md
 	$(BIN)/factorydet bench fuzz --cases 1000 --seed 0 --out docs/bench/fuzz.json
@@ -133,7 +141,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-refit.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-refit --resume \
+	  --readme-block hitl-50-refit --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-refit.json docs/bench/hitl-50-class.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-refit-vs-class
@@ -143,7 +151,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --variants blind_safe,full --hold-places --out docs/bench/hitl-50-safe-refit.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-safe-refit --resume \
+	  --readme docs/review-loop.md --readme-block hitl-50-safe-refit --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# The refit boosting the model's regressor on with 100 trees instead (blind and full from the refit record).
 	test -f docs/bench/hitl-50-refit100.json || cp docs/bench/hitl-50-refit.json docs/bench/hitl-50-refit100.json
@@ -160,7 +168,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --variants blind_safe,full --hold-places --recalibrate-background 0.5 --out docs/bench/hitl-50-safe-recal.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal --resume \
+	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-safe-recal.json docs/bench/hitl-50-safe-refit.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal-vs-hold
@@ -168,7 +176,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants full --out docs/bench/hitl-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-heldout --resume \
+	  --readme docs/review-loop.md --readme-block hitl-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# blind_safe recalibrating there too (blind and full from the held-out record).
 	test -f docs/bench/hitl-safe-recal-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-safe-recal-heldout.json
@@ -176,7 +184,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --out docs/bench/hitl-safe-recal-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-safe-recal-heldout --resume \
+	  --readme docs/review-loop.md --readme-block hitl-safe-recal-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# ... recalibrating by class (each class's bar: the median of its labelled sets).
 	test -f docs/bench/hitl-safe-byclass-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-safe-byclass-heldout.json
@@ -184,7 +192,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --recalibrate-by-class --out docs/bench/hitl-safe-byclass-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-safe-byclass-heldout --resume \
+	  --readme docs/review-loop.md --readme-block hitl-safe-byclass-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# A reviewer answering 200 places per round, on the same held-out factories.
 	test -f docs/bench/hitl-reviewed-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-reviewed-heldout.json
@@ -192,7 +200,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-reviewed-heldout.json --readme docs/review-loop.md --readme-block hitl-reviewed-heldout \
-	  --resume \
+	  --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# The same reviewer holding what it leaves, as blind_safe (the rest from the reviewed record).
 	test -f docs/bench/hitl-reviewed-safe-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-reviewed-safe-heldout.json
@@ -201,7 +209,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-reviewed-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-reviewed-safe-heldout --resume \
+	  --readme-block hitl-reviewed-safe-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-reviewed-safe-vs-reviewed-heldout
@@ -209,7 +217,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants full --out docs/bench/hitl-50-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-heldout --resume \
+	  --readme docs/review-loop.md --readme-block hitl-50-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# ... and a reviewer answering 200 places a round there.
 	test -f docs/bench/hitl-50-reviewed-heldout.json || cp docs/bench/hitl-50-heldout.json docs/bench/hitl-50-reviewed-heldout.json
@@ -217,7 +225,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-reviewed-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-reviewed-heldout --resume \
+	  --readme-block hitl-50-reviewed-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# ... the same reviewer holding what it leaves (the rest from the reviewed record).
 	test -f docs/bench/hitl-50-reviewed-safe-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-reviewed-safe-heldout.json
@@ -226,7 +234,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-50-reviewed-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-reviewed-safe-heldout --resume \
+	  --readme-block hitl-50-reviewed-safe-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-50-reviewed-safe-vs-reviewed-heldout
@@ -236,7 +244,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-score-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-score-heldout --resume \
+	  --readme-block hitl-review-score-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-score-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-review-score-vs-turns-heldout
@@ -245,7 +253,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-score-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-score-heldout --resume \
+	  --readme-block hitl-50-review-score-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-score-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-score-vs-turns-heldout
@@ -255,7 +263,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-extra-heldout --resume \
+	  --readme-block hitl-50-review-extra-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-extra-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-extra-vs-reviewed-heldout
@@ -264,7 +272,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-extra-heldout --resume \
+	  --readme-block hitl-review-extra-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-extra-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-review-extra-vs-reviewed-heldout
@@ -274,7 +282,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --recalibrate-by-class --out docs/bench/hitl-50-safe-byclass-heldout.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-safe-byclass-heldout --resume \
+	  --readme docs/review-loop.md --readme-block hitl-50-safe-byclass-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# The reviewer's places in an order learned from its own verdicts (50% and 30%).
 	test -f docs/bench/hitl-50-review-learned-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-learned-heldout.json
@@ -282,7 +290,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-learned-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-learned-heldout --resume \
+	  --readme-block hitl-50-review-learned-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-learned-vs-reviewed-heldout
@@ -291,7 +299,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-heldout --resume \
+	  --readme-block hitl-review-learned-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-review-learned-vs-reviewed-heldout
@@ -302,7 +310,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-50-review-learned-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-learned-safe-heldout --resume \
+	  --readme-block hitl-50-review-learned-safe-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-safe-heldout.json \
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/review-loop.md \
@@ -313,7 +321,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
 	  --model-box-targets --out docs/bench/hitl-review-learned-safe-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-safe-heldout --resume \
+	  --readme-block hitl-review-learned-safe-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-safe-heldout.json \
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/review-loop.md \
@@ -325,7 +333,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-extra-heldout --resume \
+	  --readme-block hitl-review-learned-extra-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-learned-extra-heldout.json \
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \
@@ -335,7 +343,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-review-learned-extra-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-50-review-learned-extra-heldout --resume \
+	  --readme-block hitl-50-review-learned-extra-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-extra-heldout.json \
 	  docs/bench/hitl-50-review-learned-heldout.json --readme docs/review-loop.md \
@@ -347,14 +355,14 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 104,105,106 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-unseen.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-learned-extra-unseen --resume \
+	  --readme-block hitl-review-learned-extra-unseen --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	test -f docs/bench/hitl-review-best-view-unseen.json || cp docs/bench/hitl-review-learned-extra-unseen.json docs/bench/hitl-review-best-view-unseen.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --review-best-view --heldout --heldout-seeds 104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-best-view-unseen.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-best-view-unseen --resume \
+	  --readme docs/review-loop.md --readme-block hitl-review-best-view-unseen --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-best-view-unseen.json \
 	  docs/bench/hitl-review-learned-extra-unseen.json --readme docs/review-loop.md \
@@ -365,7 +373,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-six --resume \
+	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-six --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# Five more training seeds (5-9) of blind mining, the reviewer's 200 places a round and full labels on
 	# the six held-out factories, seeds 0-4 read back from the record above: ten seeds in all.
@@ -374,7 +382,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5,6,7,8,9 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-ten-seeds.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-ten-seeds --resume \
+	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-ten-seeds --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# One operating threshold for every class (--no-class-thresholds), blind mining and full labels on
 	# the six held-out factories, three seeds: do the per-class thresholds cost people their precision?
@@ -382,7 +390,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --no-class-thresholds --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants full --out docs/bench/hitl-no-class-thresholds-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-no-class-thresholds-six --resume \
+	  --readme docs/review-loop.md --readme-block hitl-no-class-thresholds-six --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# The first fit at the product's 20 epochs (LoopSettings.epochs; the records above fit 5), each round
 	# after it 5 as before: blind mining, the reviewer's 200 places a round and full labels, seeds 0-5.
@@ -390,7 +398,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-e20-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-e20-six --resume \
+	  --readme docs/review-loop.md --readme-block hitl-review-learned-extra-e20-six --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# The reviewer at 30% with label once's settled poses and its Object labels teaching their class
 	# alone (today's defaults; blind and full read back from the record above), seeds 0-5; then against
@@ -400,7 +408,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-e20-class-alone-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-e20-class-alone-six --resume --resume-other-library \
+	  --readme docs/review-loop.md --readme-block hitl-e20-class-alone-six --resume --refit-row-share 1 --resume-other-library \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-class-alone-six.json \
 	  docs/bench/hitl-review-learned-extra-e20-six.json --readme docs/review-loop.md \
@@ -411,7 +419,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --out docs/bench/hitl-e20-16frames-five.json \
-	  --readme docs/review-loop.md --readme-block hitl-e20-16frames-five --resume --resume-other-library \
+	  --readme docs/review-loop.md --readme-block hitl-e20-16frames-five --resume --refit-row-share 1 --resume-other-library \
 	  --threshold-folds 0 --threshold-objective class
 	# Half the objects unannotated and the first fit at 20 epochs: blind mining, the reviewer's 200 places
 	# a round and full labels, seeds 0-5.
@@ -419,7 +427,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-six --resume \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-six --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# The reviewer at 50% once label once registers the frames with the settled calibration at the
 	# odometry's height (blind and full, which do not carry labels between frames, read back from the
@@ -429,7 +437,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-world-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-world-six --resume --resume-other-library \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-world-six --resume --refit-row-share 1 --resume-other-library \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-world-six.json docs/bench/hitl-50-e20-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-world-vs-drift-six
@@ -443,7 +451,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full \
 	  --out docs/bench/hitl-50-e20-class-alone-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-class-alone-six --resume --resume-other-library \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-class-alone-six --resume --refit-row-share 1 --resume-other-library \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-class-alone-six.json docs/bench/hitl-50-e20-world-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-class-alone-vs-world-six
@@ -455,7 +463,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --out docs/bench/hitl-50-e20-safe-recal-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-recal-six --resume \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-recal-six --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# blind_safe with pseudo-labels: the negatives scoring 0.6 or more, off the labels, teach their
 	# predicted class until reviewed, those between 0.35 and 0.6 are held (blind and full read back from
@@ -466,7 +474,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --pseudo-label-confident 0.6 --out docs/bench/hitl-50-e20-safe-pseudo-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-pseudo-six --resume --resume-other-library \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-pseudo-six --resume --refit-row-share 1 --resume-other-library \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-safe-pseudo-six.json \
 	  docs/bench/hitl-50-e20-safe-recal-six.json --readme docs/review-loop.md \
@@ -479,7 +487,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --pseudo-label-confident 0.6 --carry-pseudo-labels --out docs/bench/hitl-50-e20-safe-carry-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-carry-six --resume --resume-other-library \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-safe-carry-six --resume --refit-row-share 1 --resume-other-library \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-safe-carry-six.json \
 	  docs/bench/hitl-50-e20-safe-pseudo-six.json --readme docs/review-loop.md \
@@ -493,7 +501,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-confident 0.6 \
 	  --pseudo-label-confident 0.6 --out docs/bench/hitl-50-e20-pseudo-alone-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-pseudo-alone-six --resume --resume-other-library \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-pseudo-alone-six --resume --refit-row-share 1 --resume-other-library \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-pseudo-alone-six.json \
 	  docs/bench/hitl-50-e20-safe-pseudo-six.json --readme docs/review-loop.md \
@@ -506,7 +514,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --no-continue-folds --out docs/bench/hitl-e20-folds-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-e20-folds-six --resume \
+	  --readme docs/review-loop.md --readme-block hitl-e20-folds-six --resume --refit-row-share 1 \
 	  --threshold-objective class
 	# The same, six seeds, thresholds tuned for the F-score of all classes pooled (--threshold-objective total),
 	# each model also at the class objective's out-of-fold thresholds; against the record above, seed by seed.
@@ -515,7 +523,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-six.json --readme docs/review-loop.md \
-	  --readme-block hitl-e20-folds-pooled-six --resume
+	  --readme-block hitl-e20-folds-pooled-six --resume --refit-row-share 1
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-e20-folds-pooled-vs-class
 	# The same with the reviewer's 200 places a round (blind mining and full labels read back from the record above).
@@ -524,7 +532,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-reviewed-six.json --readme docs/review-loop.md \
-	  --readme-block hitl-e20-folds-pooled-reviewed-six --resume
+	  --readme-block hitl-e20-folds-pooled-reviewed-six --resume --refit-row-share 1
 	# The same with a person's labels on a handful of points left out of training (fewer than half the policy's).
 	test -f docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json || cp docs/bench/hitl-e20-folds-pooled-reviewed-six.json docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json
 	$(BIN)/factorydet bench hitl $(CORPUS) --label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
@@ -532,7 +540,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json --readme docs/review-loop.md \
-	  --readme-block hitl-e20-folds-pooled-reviewed-sparse-six --resume --resume-other-library
+	  --readme-block hitl-e20-folds-pooled-reviewed-sparse-six --resume --refit-row-share 1 --resume-other-library
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json \
 	  docs/bench/hitl-e20-folds-pooled-reviewed-six.json --variants reviewed_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-sparse-vs-every-label
@@ -543,7 +551,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 111,112,113,114,115,116 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-fresh-six.json --readme docs/review-loop.md \
-	  --readme-block hitl-e20-folds-pooled-fresh-six --resume --resume-other-library
+	  --readme-block hitl-e20-folds-pooled-fresh-six --resume --refit-row-share 1 --resume-other-library
 	# blind_safe (holding places, recalibrating the background) with thresholds out of fold for the pooled F
 	# (blind mining and full labels read back from hitl-e20-folds-pooled-six).
 	test -f docs/bench/hitl-e20-folds-pooled-safe-six.json || cp docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-pooled-safe-six.json
@@ -552,7 +560,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total --out docs/bench/hitl-e20-folds-pooled-safe-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-e20-folds-pooled-safe-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-e20-folds-pooled-safe-six --resume --refit-row-share 1 --resume-other-library
 	# The same at 50% unannotated, all three detectors trained with out-of-fold pooled thresholds, seeds 0-5.
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
@@ -560,7 +568,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout-frames 12 --variants blind,full,blind_safe --hold-places --recalibrate-background 0.5 \
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-50-e20-folds-pooled-safe-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-safe-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-safe-six --resume --refit-row-share 1 --resume-other-library
 	# The same with the reviewer's 200 places a round (blind mining and full labels read back from the record above).
 	test -f docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json || cp docs/bench/hitl-50-e20-folds-pooled-safe-six.json docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
@@ -569,7 +577,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout-frames 12 --variants blind,reviewed_200,full \
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-reviewed-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-reviewed-six --resume --refit-row-share 1 --resume-other-library
 	# The same with a person's labels on a handful of points left out of training (fewer than half the policy's).
 	test -f docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json || cp docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json
 	$(BIN)/factorydet bench hitl $(CORPUS50) --label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
@@ -578,7 +586,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout-frames 12 --variants blind,reviewed_200,full \
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total \
 	  --out docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-reviewed-sparse-six --resume --resume-other-library
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-reviewed-sparse-six --resume --refit-row-share 1 --resume-other-library
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json \
 	  docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json --variants reviewed_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-50-sparse-vs-every-label
@@ -588,7 +596,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order score \
 	  --review-order learned --review-extra 0 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-score-six.json \
-	  --readme docs/review-loop.md --readme-block hitl-50-e20-score-six --resume \
+	  --readme docs/review-loop.md --readme-block hitl-50-e20-score-six --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-e20-score-six.json docs/bench/hitl-50-e20-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-score-vs-class-six
@@ -598,7 +606,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --round-epochs 0 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-afresh-heldout.json --readme docs/review-loop.md \
-	  --readme-block hitl-review-afresh-heldout --resume \
+	  --readme-block hitl-review-afresh-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-afresh-heldout.json \
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \

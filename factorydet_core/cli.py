@@ -364,6 +364,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         given = _bench_loop_values(args)
         del given["round_epochs"]
         training = loop_arguments(loop_settings_from(given))
+        # With --compare-set: the continued round with the settings given and with these changed,
+        # per training seed, interleaved.
+        changed = parse_overrides(args.compare_set)
+        compared = [
+            (
+                {"setting": side, "seed": seed},
+                [
+                    *execution.arguments(),
+                    *loop_arguments(loop_settings_from({**given, "seed": seed, **extra})),
+                ],
+            )
+            for seed in (parse_ints(args.seeds, "--seeds") if changed else ())
+            for side, extra in (("reference", {}), ("compared", changed))
+        ]
+        if changed and not args.round_epochs:
+            raise InputError(
+                "bench mining --compare-set compares rounds that go on from a model: --round-epochs > 0"
+            )
         update, close = progress_bar("mining", unit="round")
         try:
             result = bench_mining(
@@ -377,6 +395,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 heldout_frames=args.heldout_frames,
                 train_args=[*execution.arguments(), *training],
                 verdicts=args.verdicts,
+                compared=compared,
+                compare_set=changed,
                 command=command,
                 progress=update,
             )
@@ -1210,7 +1230,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 BENCH_LOOP_FIELDS = (
     "method", "class_weight", "round_epochs", "hold_places", "class_thresholds", "queue_order",
-    "review_order", "review_extra", "refit_box_quality", "refit_trees", "model_box_targets",
+    "review_order", "review_extra", "refit_box_quality", "refit_trees", "refit_row_share",
+    "model_box_targets",
     "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
     "carry_pseudo_labels", "threshold_folds", "threshold_objective", "quality_trees", "continue_folds",
     "label_min_points",
@@ -1571,7 +1592,8 @@ def build_parser(
         help="detect: a second configuration with this setting changed, interleaved (a front-half "
         "setting; the box quality screen: screen_trees, screen_keep; interleaved_walk=0: the "
         "reference tree walk, one row at a time; skip_unread_features=0: the proposals' 3DmFV "
-        "computed for a model that reads none)",
+        "computed for a model that reads none); mining: a training setting (e.g. "
+        "refit_row_share=1.0), the continued round timed with and without it for each of --seeds",
     )
     p.add_argument(
         "--compare-checkout",
@@ -1647,7 +1669,9 @@ def build_parser(
         "default they train again when there is training to do; the record then says it mixes versions)",
     )
     p.add_argument(
-        "--seeds", default="0", help="hitl, quality: training seeds, comma-separated (F is their mean)"
+        "--seeds",
+        default="0",
+        help="hitl, quality, mining --compare-set: training seeds, comma-separated (F is their mean)",
     )
     p.add_argument("--budgets", default="50,200", help="hitl: reviews per round K, comma-separated")
     p.add_argument(

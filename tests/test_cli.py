@@ -831,6 +831,30 @@ def test_bench_mining_passes_its_training_settings_to_every_timed_train(monkeypa
     train_args = build_parser().parse_args(["train", "--session", "s", *seen["train_args"]])
     expected = LoopSettings(threshold_folds=2, continue_folds=False, threshold_objective="total")
     assert loop_settings_from_args(train_args) == expected
+    # --compare-set: per seed, the round with the settings given and with the setting changed.
+    seen.clear()
+
+    def fake_compared(*args, **kwargs):
+        seen.update(kwargs)
+        return {"benchmark": "mining"}
+
+    monkeypatch.setattr("factorydet_core.evaluation.bench.bench_mining", fake_compared)
+    argv = ["bench", "mining", "--session", "s", "--seeds", "1,2", "--compare-set", "refit_row_share=1.0"]
+    assert main([*argv, *flags]) == 0
+    labels = [label for label, _ in seen["compared"]]
+    assert labels == [
+        {"setting": side, "seed": seed} for seed in (1, 2) for side in ("reference", "compared")
+    ]
+    assert seen["compare_set"] == {"refit_row_share": 1.0}
+    for label, train_flags in seen["compared"]:
+        read = loop_settings_from_args(build_parser().parse_args(["train", "--session", "s", *train_flags]))
+        share = 1.0 if label["setting"] == "compared" else LoopSettings().refit_row_share
+        assert read == LoopSettings(
+            threshold_folds=2, continue_folds=False, threshold_objective="total", seed=label["seed"],
+            refit_row_share=share,
+        )  # fmt: skip
+    assert main(["bench", "mining", "--session", "s", "--compare-set", "no_such_setting=1"]) == 2
+    assert main(["bench", "mining", "--session", "s", "--compare-set", "seed=1", "--round-epochs", "0"]) == 2
 
 
 def test_an_execution_gives_back_the_flags_it_was_read_from():

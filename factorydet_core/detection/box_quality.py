@@ -77,6 +77,9 @@ An object's box holds its visible surface and the unseen space behind it; a box 
 way, or of the wrong size, holds space the scan saw empty."""
 
 
+_ROW_SAMPLE_STREAM = 1
+"""Spawn key of ``BoxQuality.sampled_rows``' generator beside its ``seed``."""
+
 INFERENCE_SETTINGS: tuple[str, ...] = ("screen_trees", "screen_keep", "interleaved_walk")
 """``BoxQuality`` settings that change how a fitted regressor predicts, not what it learnt
 (``BoxQuality.with_inference``)."""
@@ -255,7 +258,13 @@ class BoxQuality:
             underfitted: on its own training frames it picked an option at IoU 0.6 for under a
             third of the sets that had one. 500 of 63 chose and scored better on held-out frames;
             2,000 of 127 overfitted (the issue notes of 2026-11-24 give the ad hoc runs).
-        seed: seeds the background sample, its classes and the regressor.
+        seed: seeds the background sample, its classes, the rows' sample (``row_share``) and the
+            regressor.
+        row_share: the share of the training rows ``fit`` boosts on, a uniform sample drawn with
+            ``seed`` (1: every row). A fit's time grows about linearly with its rows; a next round
+            that refits the regressor fits on ``LoopSettings.refit_row_share`` of them. The
+            ``training_digest`` leaves it out: it names the rows a regressor learned from, sampled
+            or not, so that a round on the same rows keeps either.
         anchored: the options include each class size set into the fitted box's corners
             (``BoxSizePrior.anchored``): the boxes of objects in a segment of several, and of
             objects seen from one side. Checkpoints from before it load with ``False``.
@@ -281,6 +290,7 @@ class BoxQuality:
     max_leaf_nodes: int = 63
     learning_rate: float = 0.1
     seed: int = 0
+    row_share: float = 1.0
     anchored: bool = True
     visibility: bool = True
     screen_trees: int = 50
@@ -296,6 +306,8 @@ class BoxQuality:
             raise InputError(f"max_iter must be >= 1, got {self.max_iter}")
         if self.max_leaf_nodes < 2:
             raise InputError(f"max_leaf_nodes must be >= 2, got {self.max_leaf_nodes}")
+        if isinstance(self.row_share, bool) or not 0.0 < float(self.row_share) <= 1.0:
+            raise InputError(f"row_share must lie in (0, 1], got {self.row_share!r}")
         for name in ("screen_trees", "screen_keep"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
@@ -414,10 +426,21 @@ class BoxQuality:
     def fit(self, features: np.ndarray, targets: np.ndarray) -> BoxQuality:
         """Fit the regressor on (R, F) option features and their (R,) IoUs; returns self."""
         features, targets = _checked_rows(features, targets)
-        self.trees_ = self._boost(features, targets, self.max_iter)
+        kept = self.sampled_rows(len(targets))
+        self.trees_ = self._boost(features[kept], targets[kept], self.max_iter)
         self.num_features_ = features.shape[1]
         self.training_digest_ = self.training_digest(features, targets)
         return self
+
+    def sampled_rows(self, num_rows: int) -> np.ndarray | slice:
+        """Which of ``num_rows`` training rows ``fit`` boosts on: (round(row_share * R),) sorted
+        indices drawn without replacement (at least 2), from a stream of ``seed``'s own (not the
+        background sample's); every row (a slice) with ``row_share`` 1."""
+        if self.row_share >= 1.0:
+            return slice(None)
+        num_kept = min(num_rows, max(2, round(float(self.row_share) * num_rows)))
+        rng = np.random.default_rng([int(self.seed), _ROW_SAMPLE_STREAM])
+        return np.sort(rng.choice(num_rows, num_kept, replace=False))
 
     def _boost(self, features: np.ndarray, targets: np.ndarray, num_trees: int) -> dict[str, np.ndarray]:
         """``num_trees`` boosted trees of this regressor's leaves, learning rate and seed fitted to
@@ -460,9 +483,10 @@ class BoxQuality:
 
     def training_digest(self, features: np.ndarray, targets: np.ndarray) -> str:
         """A SHA-256 (hex) of what a fit on (R, F) ``features`` and (R,) ``targets`` depends on:
-        the rows, their targets and the fit's settings. ``fit`` keeps it as ``training_digest_``
-        and it is saved with the trees: a regressor whose digest equals the one of new rows is the
-        one a fit on them would give, and need not be fitted again."""
+        the rows, their targets and the fit's settings but ``row_share``. ``fit`` keeps it as
+        ``training_digest_`` and it is saved with the trees: a regressor whose digest equals the one
+        of new rows learned from those rows (all of them, or a sample), and need not be fitted
+        again."""
         digest = hashlib.sha256()
         settings = (
             self.background_rate, self.min_overlap, self.max_iter, self.max_leaf_nodes,

@@ -10,7 +10,7 @@ import os
 import statistics
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -831,6 +831,8 @@ def bench_mining(
     scratch: str | os.PathLike = "/tmp/factorydet_mining",
     train_args: Sequence[str] = (),
     verdicts: int = 0,
+    compared: Sequence[tuple[dict, Sequence[str]]] = (),
+    compare_set: Mapping[str, object] | None = None,
     command: str = "",
     progress=None,
 ) -> dict:
@@ -857,6 +859,14 @@ def bench_mining(
             queue 'object' with their predicted class, as a reviewer's round would: the labels
             change, so the round fits the box quality regressor again (``LoopSettings.refit_box_quality``).
             0: the labels the session has, which a refit meets as they were and keeps.
+        compared: instead of ``round_epochs``' configurations, these: each a label (``setting``,
+            'reference' or 'compared', and the training ``seed``) and the ``factorydet train``
+            flags of its round (in place of ``train_args``), every one going on from the
+            session's model for the last of ``round_epochs``. The record then gives, per setting,
+            the rounds' median seconds and, with ``heldout_seeds``, the held-out F-scores' mean
+            and spread over seeds, and the compared minus the reference seed by seed
+            (``hitl.paired_difference``).
+        compare_set: what the compared rounds changed (field -> value), for the record.
     """
 
     from factorydet_core.evaluation.quality import (
@@ -889,22 +899,33 @@ def bench_mining(
         " 'peak_rss_mb': _peak_rss_mb()}))\n"
     )
 
-    def train(copy, mode: str, epochs: int) -> dict:
+    def train(copy, mode: str, epochs: int, flags: Sequence[str]) -> dict:
         argv = ["train", *([str(data)] if data is not None else []), "--session", copy.name,
-                "--root", str(copy.root), "--mode", mode, *train_args,
+                "--root", str(copy.root), "--mode", mode, *flags,
                 *(["--compare"] if before_after else []), "--round-epochs", str(epochs)]  # fmt: skip
         result, error = _child_json(script, argv)
         if result is None:
             raise InputError(f"bench mining: the {mode} run with {epochs} round epochs failed: {error}")
         return result
 
+    # (label, round epochs, train flags, the copy's folder) per configuration
+    plan = [({}, epochs, list(train_args), f"round_epochs_{epochs}") for epochs in values]
+    if compared:
+        if values[-1] == 0:
+            raise InputError(
+                "bench mining: compared settings go on from the session's model: round epochs > 0"
+            )
+        plan = [
+            (dict(label), values[-1], list(flags), f"compared_{k}")
+            for k, (label, flags) in enumerate(compared)
+        ]
     configs = []
     heldout = None
-    for done, epochs in enumerate(values):
-        copy = copy_session(session, Path(scratch) / f"round_epochs_{epochs}")
+    for done, (label, epochs, flags, folder) in enumerate(plan):
+        copy = copy_session(session, Path(scratch) / folder)
         full = None
         if full_run:
-            child = train(copy, "full", epochs)
+            child = train(copy, "full", epochs, flags)
             first = training_runs(copy)[-1]
             full = {
                 "seconds": child["seconds"],
@@ -921,7 +942,7 @@ def bench_mining(
                 db.review([item["id"]], "object", "bench", class_name=item["predicted_class"])
             if len(items) < verdicts:
                 raise InputError(f"bench mining: the review queue holds {len(items)} items, not {verdicts}")
-        child = train(copy, "next", epochs)
+        child = train(copy, "next", epochs, flags)
         run = training_runs(copy)[-1]
         if epochs and run["config"].get("continued_run") is None:
             why = run["config"].get("afresh_because", "unknown")
@@ -936,6 +957,7 @@ def bench_mining(
             for key in ("box_quality_wait_seconds", "fit_seconds", "folds_fit_seconds", "score_seconds")
         }
         config = {
+            **label,
             "round_epochs": epochs,
             "box_quality": record.get("box_quality"),
             "continued": bool(record.get("continued")),
@@ -962,7 +984,7 @@ def bench_mining(
             config["heldout"] = {key: measured[key] for key in ("f1", "map", "precision", "recall")}
         configs.append(config)
         if progress is not None:
-            progress(done + 1, len(values))
+            progress(done + 1, len(plan))
     record = {
         "benchmark": "mining",
         "command": command,
@@ -977,6 +999,9 @@ def bench_mining(
     }
     if heldout_seeds:
         record["heldout"] = {"seeds": [int(s) for s in heldout_seeds], "frames_per_factory": heldout_frames}
+    if compared:
+        record["compare_set"] = dict(compare_set or {})
+        record["comparison"] = _compared_rounds(configs)
     afresh = [c for c in configs if c["round_epochs"] == 0]
     if afresh:
         for config in configs:
@@ -986,6 +1011,41 @@ def bench_mining(
                     config["heldout"]["f1"] - afresh[0]["heldout"]["f1"], 4
                 )
     return record
+
+
+def _compared_rounds(configs: Sequence[dict]) -> dict:
+    """``bench_mining``'s comparison of its 'reference' and 'compared' rounds: per setting, the
+    median seconds and, when measured, the held-out F-score's mean and spread (population
+    standard deviation) over seeds; the compared minus the reference, seed by seed."""
+    from factorydet_core.evaluation.hitl import paired_difference
+
+    out: dict = {}
+    by_seed: dict[str, dict] = {}
+    for side in ("reference", "compared"):
+        mine = [c for c in configs if c.get("setting") == side]
+        by_seed[side] = {c["seed"]: c for c in mine}
+        out[side] = {
+            "rounds": len(mine),
+            "median_seconds": round(float(np.median([c["seconds"] for c in mine])), 1) if mine else None,
+            "median_box_quality_seconds": round(float(np.median([c["box_quality_seconds"] for c in mine])), 1)
+            if mine
+            else None,
+        }
+        scores = [c["heldout"]["f1"] for c in mine if "heldout" in c]
+        if scores:
+            out[side]["heldout_f1_mean"] = round(float(np.mean(scores)), 4)
+            out[side]["heldout_f1_std"] = round(float(np.std(scores)), 4)
+    seeds = sorted(set(by_seed["reference"]) & set(by_seed["compared"]), key=str)
+    pairs = [(by_seed["compared"][s], by_seed["reference"][s]) for s in seeds]
+    out["seeds"] = seeds
+    out["seconds_ratio_median"] = (
+        round(float(np.median([a["seconds"] / b["seconds"] for a, b in pairs])), 3) if pairs else None
+    )
+    if pairs and all("heldout" in a and "heldout" in b for a, b in pairs):
+        out["heldout_f1_difference"] = paired_difference(
+            [a["heldout"]["f1"] for a, _ in pairs], [b["heldout"]["f1"] for _, b in pairs]
+        )
+    return out
 
 
 def bench_label_import(

@@ -452,6 +452,8 @@ def mining_markdown(result: dict) -> str:
         )
         if config.get("box_quality"):  # records from before it: the regressor's fate unsaid
             name += f" (box quality {config['box_quality']})"
+        if config.get("setting"):  # a compared round (--compare-set)
+            name = f"{config['setting']}, seed {config['seed']}: {name}"
         row = [
             name,
             fmt(config["seconds"]),
@@ -518,9 +520,43 @@ def mining_markdown(result: dict) -> str:
         seeds = ", ".join(str(s) for s in result["heldout"]["seeds"])
         text += (
             f" Held-out: F-score and mAP at IoU 0.6 on {result['heldout']['frames_per_factory']} frames"
-            f" of each held-out factory (seeds {seeds}), one training seed."
+            f" of each held-out factory (seeds {seeds})"
+            + ("." if result.get("comparison") else ", one training seed.")
         )
+    if result.get("comparison"):
+        text += " " + _compared_rounds_text(result)
     return text + "\n"
+
+
+def _compared_rounds_text(result: dict) -> str:
+    """``bench mining --compare-set``'s summary: what the compared rounds changed, their median
+    seconds against the reference's and, when measured, the held-out F-scores over seeds."""
+    comparison = result["comparison"]
+    reference, compared = comparison["reference"], comparison["compared"]
+    changed = result.get("compare_set") or {}
+    what = ", ".join(f"`{k}={v}`" for k, v in changed.items()) or "the compared setting"
+    seeds = ", ".join(str(s) for s in comparison["seeds"])
+    text = (
+        f"'reference' rounds ran the settings given, 'compared' ones with {what}; one of each per"
+        f" training seed ({seeds}), interleaved. Median round: {fmt(compared['median_seconds'])} s"
+        f" compared, {fmt(reference['median_seconds'])} s reference (the ratio seed by seed,"
+        f" median: {fmt(comparison['seconds_ratio_median'], 3)}); the regressor's fit"
+        f" {fmt(compared['median_box_quality_seconds'])} s against"
+        f" {fmt(reference['median_box_quality_seconds'])} s."
+    )
+    if "heldout_f1_difference" in comparison:
+        difference = comparison["heldout_f1_difference"]
+        interval = difference.get("ci95")
+
+        def score(side: dict) -> str:
+            return f"{fmt(side['heldout_f1_mean'], 4)} (spread {fmt(side['heldout_f1_std'], 4)})"
+
+        text += (
+            f" Held-out F: {score(compared)} compared, {score(reference)} reference; compared minus"
+            f" reference, seed by seed: {difference['mean']:+.4f}"
+            + (f" [{interval[0]:+.4f}, {interval[1]:+.4f}] (95% interval)." if interval else ".")
+        )
+    return text
 
 
 @register("import")

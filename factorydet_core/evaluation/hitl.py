@@ -784,9 +784,11 @@ def _run_plan(plan: dict, variant: str) -> dict:
     if variant in ("blind", "full"):
         # Their labels never change after the first fit, so a refit of the box quality regressor
         # meets the rows it was fitted on and keeps it (``train_with_mining``'s training digest).
-        untouched |= {"refit_box_quality", "refit_trees"}
+        untouched |= {"refit_box_quality", "refit_trees", "refit_row_share"}
     if settings.get("box_quality") is False or settings.get("method") == "box_head":
-        untouched.add("quality_trees")  # no regressor is fitted
+        untouched |= {"quality_trees", "refit_row_share"}  # no regressor is fitted
+    if settings.get("refit_box_quality") is False or settings.get("refit_trees"):
+        untouched.add("refit_row_share")  # no next round fits it afresh
     if not folds_continue({**settings, "continue_folds": True}, bool(plan.get("mining_rounds"))):
         untouched.add("continue_folds")  # no fold models, or no next round to go on from them
     if isinstance(out.get("settings"), dict):

@@ -601,6 +601,7 @@ def train_session(
             box_quality = continued.box_quality
         elif keep_quality:  # a refit that would give the model's regressor back is skipped
             reuse_quality = continued.box_quality
+            box_quality = dataclasses.replace(box_quality, row_share=settings.refit_row_share)
     else:
         background = reviewed["background"]
         rounds = settings.rounds

@@ -190,6 +190,14 @@ class LoopSettings:
     labels; N > 0 boosts the model's regressor on with N trees fitted to what it gets wrong on them
     (``BoxQuality.continued``), a fraction of the fit's time, the regressor N trees larger each
     round. 100 kept about half of what the refit gains (``bench hitl``, docs/review-loop.md)."""
+    refit_row_share: float = 0.5
+    """With ``refit_box_quality`` and ``refit_trees`` 0: the share of the option rows a next
+    round's refit of the regressor boosts on (``BoxQuality.row_share``, a uniform sample; 1: all
+    of them, as a full run's fit). The refit is most of a reviewer's round and its time grows
+    with its rows; on the demo, half of them (about a million) halved it, and on held-out
+    factories the same classifier boxed with a regressor fitted on half the rows or on all of
+    them scored within the spread over the regressor's seeds (docs/performance.md). A next round
+    on the rows its model's regressor learned from keeps it, sampled or not."""
     model_box_targets: bool = False
     """Learn boxes from every label (True), or let a label whose box is the model's own teach its
     class alone (False): a reviewer's Object verdict keeps the mined box, and a confirmed pre-label
@@ -273,6 +281,8 @@ class LoopSettings:
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
         _check_count("refit_trees", self.refit_trees, 0)
+        if isinstance(self.refit_row_share, bool) or not 0.0 < float(self.refit_row_share) <= 1.0:
+            raise InputError(f"refit_row_share must lie in (0, 1], got {self.refit_row_share!r}")
         _check_count("quality_trees", self.quality_trees, 1)
         if self.label_min_points is not None:
             _check_count("label_min_points", self.label_min_points, 0)
@@ -319,6 +329,7 @@ BEFORE_THEY_EXISTED: dict[str, object] = {
     "review_order": None,
     "refit_box_quality": False,
     "refit_trees": 0,
+    "refit_row_share": 1.0,
     "model_box_targets": True,
     "quality_trees": 500,
     "continue_folds": False,
@@ -523,6 +534,9 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "box quality regressor on the current labels, when they changed (off: keeps the model's)", bool),
     Control("refit_trees", "Refit trees", "with refit box quality, boost the model's regressor on with "
             "this many trees fitted to the current labels (0: fit it afresh)", int, 0, 2000, 10),
+    Control("refit_row_share", "Refit row share", "with refit box quality (and refit trees 0), the share "
+            "of the option rows the refit fits on, a random sample (1: all of them, as a full run's "
+            "fit; fewer: a faster refit)", float, 0.05, 1.0, 0.05),
     Control("model_box_targets", "Learn model boxes", "labels whose box is the model's own (an Object "
             "verdict's mined box, a confirmed pre-label whose box nobody moved) are box targets too "
             "(off: they teach their class alone)", bool),

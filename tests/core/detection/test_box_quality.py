@@ -160,6 +160,29 @@ def test_the_training_digest_names_the_rows_and_settings_and_travels_with_the_tr
         BoxQuality.from_arrays({**arrays, "training_digest": np.zeros(31, np.uint8)})
 
 
+def test_a_fit_on_a_share_of_the_rows_boosts_on_a_seeded_sample_and_names_every_row(rng):
+    features = rng.normal(size=(1000, 3))
+    targets = np.clip(0.5 + 0.2 * features[:, 0] + 0.05 * rng.normal(size=1000), 0, 1)
+    half = BoxQuality(max_iter=10, row_share=0.5)
+    kept = half.sampled_rows(1000)
+    assert len(kept) == 500 and len(np.unique(kept)) == 500 and (np.diff(kept) > 0).all()
+    np.testing.assert_array_equal(BoxQuality(max_iter=10, row_share=0.5).sampled_rows(1000), kept)
+    assert not np.array_equal(BoxQuality(max_iter=10, row_share=0.5, seed=1).sampled_rows(1000), kept)
+    fitted = half.fit(features, targets)
+    # The trees a fit on those rows alone gives; not the ones of every row.
+    alone = BoxQuality(max_iter=10).fit(features[kept], targets[kept])
+    np.testing.assert_array_equal(fitted.predict(features), alone.predict(features))
+    every = BoxQuality(max_iter=10).fit(features, targets)
+    assert not np.array_equal(fitted.predict(features), every.predict(features))
+    # The digest names the rows learned from, sampled or not: a round on them keeps either.
+    assert fitted.training_digest_ == every.training_digest_
+    assert len(BoxQuality(row_share=0.001).sampled_rows(1000)) == 2  # never fewer than a fit needs
+    assert BoxQuality().sampled_rows(1000) == slice(None)
+    for bad in (0.0, 1.5, True):
+        with pytest.raises(InputError, match="row_share"):
+            BoxQuality(row_share=bad)
+
+
 def test_a_continued_regressor_boosts_on_from_its_raw_sums(rng, tmp_path):
     from sklearn.ensemble import HistGradientBoostingRegressor
 

@@ -190,3 +190,25 @@ def test_bench_mining_times_a_round_afresh_and_continued_on_session_copies(small
     assert record["verdicts"] == 2 and copied.review_progress(config["full_run"]["run"])["object"] == 2
     assert not SessionDB(open_session("fresh", tmp_path / "sessions"), dataset).training_runs()
     assert config["full_run"]["seconds"] > 0 and "full run s" in render_record(record)
+    # Compared settings: the continued round, each configuration its own flags, from one model.
+    base = ["--epochs", "1", "--method", "paper", "--no-box-quality", "--frames", "2", "--no-calibrate",
+            "--initial-negatives", "100"]  # fmt: skip
+    compared = [
+        ({"setting": "reference", "seed": 0}, base),
+        ({"setting": "compared", "seed": 0}, [*base, "--negatives", "7"]),
+    ]
+    record = bench_mining(
+        "timed", root=tmp_path / "sessions", round_epochs=(1,), scratch=tmp_path / "scratch",
+        compared=compared, compare_set={"negatives_per_round": 7},
+    )  # fmt: skip
+    reference, other = record["configs"]
+    assert (reference["setting"], other["setting"]) == ("reference", "compared")
+    assert reference["continued_run"] == other["continued_run"] == before[-1]["id"]
+    comparison = record["comparison"]
+    assert comparison["seeds"] == [0] and comparison["compared"]["median_seconds"] == other["seconds"]
+    assert comparison["seconds_ratio_median"] == round(other["seconds"] / reference["seconds"], 3)
+    assert "heldout_f1_difference" not in comparison  # not measured on held-out factories
+    text = render_record(record)
+    assert "compared, seed 0" in text and "`negatives_per_round=7`" in text
+    with pytest.raises(InputError, match="round epochs > 0"):
+        bench_mining("timed", root=tmp_path / "sessions", round_epochs=(0,), compared=compared)

@@ -775,6 +775,18 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
     refit, reuse = given[1]
     assert isinstance(refit, loop.BoxQuality) and not hasattr(refit, "trees_") and reuse is kept
     assert refit.max_iter == 40  # the size the settings ask for
+    # On a share of the rows (a full run's fit takes all of them).
+    assert refit.row_share == LoopSettings().refit_row_share < 1.0
+    with pytest.raises(StopError):
+        train_session(
+            db,
+            frames,
+            dataclasses.replace(with_quality, refit_box_quality=True, refit_row_share=1.0),
+            mode="next",
+        )
+    assert given[2][0].row_share == 1.0
+    with pytest.raises(InputError, match="refit_row_share"):
+        LoopSettings(refit_row_share=0.0)
 
 
 @pytest.mark.slow
