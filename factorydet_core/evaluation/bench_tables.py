@@ -436,13 +436,15 @@ def mining_markdown(result: dict) -> str:
     # Records from before the regressor fitted alongside the networks waited for all of it, and
     # counted the fold models' fits in the scoring.
     overlapped = any("box_quality_wait_seconds" in c for c in result["configs"])
+    # Compared settings (--compare-set) have no round afresh to compare with.
+    afresh = "comparison" not in result
     header = ["round", "seconds", "box quality s"]
     header += ["waited for it s", "fit s", "folds fit s"] if overlapped else ["fit s"]
-    header += ["score s", "other s", "peak MB", "speed-up"]
+    header += ["score s", "other s", "peak MB", *(["speed-up"] if afresh else [])]
     if full:
         header += ["full run s", "full run peak MB"]
     if heldout:
-        header += ["held-out F", "held-out mAP", "F minus afresh"]
+        header += ["held-out F", "held-out mAP", *(["F minus afresh"] if afresh else [])]
     rows = []
     for config in result["configs"]:
         name = (
@@ -470,16 +472,13 @@ def mining_markdown(result: dict) -> str:
             fmt(config["score_seconds"]),
             fmt(config["other_seconds"]),
             fmt(config["peak_rss_mb"]),
-            fmt(config.get("speedup_vs_afresh")),
+            *([fmt(config.get("speedup_vs_afresh"))] if afresh else []),
         ]
         if full:
             row += [fmt(config["full_run"]["seconds"]), fmt(config["full_run"]["peak_rss_mb"])]
         if heldout:
-            row += [
-                fmt(config["heldout"]["f1"], 3),
-                fmt(config["heldout"]["map"], 3),
-                fmt(config.get("heldout_f1_minus_afresh"), 4),
-            ]
+            row += [fmt(config["heldout"]["f1"], 3), fmt(config["heldout"]["map"], 3)]
+            row += [fmt(config.get("heldout_f1_minus_afresh"), 4)] if afresh else []
         rows.append(row)
     frames = result["configs"][0]["num_train_frames"]
     start = (
@@ -537,9 +536,10 @@ def _compared_rounds_text(result: dict) -> str:
     what = ", ".join(f"`{k}={v}`" for k, v in changed.items()) or "the compared setting"
     seeds = ", ".join(str(s) for s in comparison["seeds"])
     text = (
-        f"'reference' rounds ran the settings given, 'compared' ones with {what}; one of each per"
-        f" training seed ({seeds}), interleaved. Median round: {fmt(compared['median_seconds'])} s"
-        f" compared, {fmt(reference['median_seconds'])} s reference (the ratio seed by seed,"
+        f"'reference' rounds ran the settings given (else the defaults), 'compared' ones with {what};"
+        f" one of each per training seed ({seeds}), interleaved. Median round:"
+        f" {fmt(compared['median_seconds'])} s compared, {fmt(reference['median_seconds'])} s reference"
+        " (the ratio seed by seed,"
         f" median: {fmt(comparison['seconds_ratio_median'], 3)}); the regressor's fit"
         f" {fmt(compared['median_box_quality_seconds'])} s against"
         f" {fmt(reference['median_box_quality_seconds'])} s."
