@@ -76,10 +76,12 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 \
 	  --threshold-folds 0 --threshold-objective class --readme docs/performance.md --readme-block mining-demo
 	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 --verdicts 20 \
-	  --threshold-folds 0 --threshold-objective class --readme docs/performance.md --readme-block mining-demo-reviewed
-	# The same with the default threshold folds (the fold models going on every next round).
+	  --threshold-folds 0 --threshold-objective class --refit-row-share 1 --readme docs/performance.md \
+	  --readme-block mining-demo-reviewed
+	# The same with the default threshold folds (the fold models going on every next round), both refitting
+	# the regressor on all its rows, as they ran before a next round's refit took half of them.
 	$(BIN)/factorydet bench mining --session demo --full-run --before-after --round-epochs 5 --verdicts 20 \
-	  --threshold-folds 2 --threshold-objective total --readme docs/performance.md \
+	  --threshold-folds 2 --threshold-objective total --refit-row-share 1 --readme docs/performance.md \
 	  --readme-block mining-demo-reviewed-folds
 	# A reviewer's next round refitting the box quality regressor on half the option rows (the default)
 	# and on all of them, three training seeds each, going on from one full run of a copy of the demo

@@ -367,6 +367,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         # With --compare-set: the continued round with the settings given and with these changed,
         # per training seed, interleaved.
         changed = parse_overrides(args.compare_set)
+        own = sorted(set(changed) & {"seed", "round_epochs"})
+        if own:
+            raise InputError(
+                f"bench mining --compare-set: {', '.join(own)} is the benchmark's own"
+                " (--seeds, --round-epochs)"
+            )
+        if changed and loop_settings_from({**given, **changed}) == loop_settings_from(given):
+            raise InputError(
+                f"bench mining --compare-set {args.compare_set}: the settings given already say so"
+            )
         compared = [
             (
                 {"setting": side, "seed": seed},

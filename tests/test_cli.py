@@ -809,7 +809,7 @@ def test_bench_takes_the_execution_switch_where_frames_are_proposed(
     assert "applies to Ray workers" in capsys.readouterr().err
 
 
-def test_bench_mining_passes_its_training_settings_to_every_timed_train(monkeypatch):
+def test_bench_mining_passes_its_training_settings_to_every_timed_train(monkeypatch, capsys):
     from factorydet_core.cli import build_parser, loop_settings_from_args
     from factorydet_core.training.settings import LoopSettings
 
@@ -853,8 +853,17 @@ def test_bench_mining_passes_its_training_settings_to_every_timed_train(monkeypa
             threshold_folds=2, continue_folds=False, threshold_objective="total", seed=label["seed"],
             refit_row_share=share,
         )  # fmt: skip
-    assert main(["bench", "mining", "--session", "s", "--compare-set", "no_such_setting=1"]) == 2
-    assert main(["bench", "mining", "--session", "s", "--compare-set", "seed=1", "--round-epochs", "0"]) == 2
+    refused = {
+        "no_such_setting=1": "unknown training settings",
+        "seed=1": "the benchmark's own",
+        "threshold_folds=2": "already say so",  # the value the flags above give
+    }
+    for pair, message in refused.items():
+        assert main(["bench", "mining", "--session", "s", "--compare-set", pair, *flags]) == 2
+        assert message in capsys.readouterr().err
+    argv = ["bench", "mining", "--session", "s", "--compare-set", "refit_row_share=1", "--round-epochs", "0"]
+    assert main(argv) == 2
+    assert "--round-epochs > 0" in capsys.readouterr().err
 
 
 def test_an_execution_gives_back_the_flags_it_was_read_from():

@@ -958,6 +958,7 @@ def bench_mining(
         }
         config = {
             **label,
+            **({"train_args": list(flags)} if compared else {}),  # (the record's own are the base's)
             "round_epochs": epochs,
             "box_quality": record.get("box_quality"),
             "continued": bool(record.get("continued")),
@@ -1035,7 +1036,7 @@ def _compared_rounds(configs: Sequence[dict]) -> dict:
         if scores:
             out[side]["heldout_f1_mean"] = round(float(np.mean(scores)), 4)
             out[side]["heldout_f1_std"] = round(float(np.std(scores)), 4)
-    seeds = sorted(set(by_seed["reference"]) & set(by_seed["compared"]), key=str)
+    seeds = sorted(set(by_seed["reference"]) & set(by_seed["compared"]))
     pairs = [(by_seed["compared"][s], by_seed["reference"][s]) for s in seeds]
     out["seeds"] = seeds
     out["seconds_ratio_median"] = (

@@ -787,8 +787,13 @@ def _run_plan(plan: dict, variant: str) -> dict:
         untouched |= {"refit_box_quality", "refit_trees", "refit_row_share"}
     if settings.get("box_quality") is False or settings.get("method") == "box_head":
         untouched |= {"quality_trees", "refit_row_share"}  # no regressor is fitted
-    if settings.get("refit_box_quality") is False or settings.get("refit_trees"):
-        untouched.add("refit_row_share")  # no next round fits it afresh
+    if (
+        settings.get("refit_box_quality") is False
+        or settings.get("refit_trees")
+        or not settings.get("round_epochs")
+    ):
+        # No next round refits it from scratch (rounds trained afresh fit it on every row).
+        untouched.add("refit_row_share")
     if not folds_continue({**settings, "continue_folds": True}, bool(plan.get("mining_rounds"))):
         untouched.add("continue_folds")  # no fold models, or no next round to go on from them
     if isinstance(out.get("settings"), dict):

@@ -194,10 +194,12 @@ class LoopSettings:
     """With ``refit_box_quality`` and ``refit_trees`` 0: the share of the option rows a next
     round's refit of the regressor boosts on (``BoxQuality.row_share``, a uniform sample; 1: all
     of them, as a full run's fit). The refit is most of a reviewer's round and its time grows
-    with its rows; on the demo, half of them (about a million) halved it, and on held-out
-    factories the same classifier boxed with a regressor fitted on half the rows or on all of
-    them scored within the spread over the regressor's seeds (docs/performance.md). A next round
-    on the rows its model's regressor learned from keeps it, sampled or not."""
+    with its rows: on the demo after 20 Object verdicts, half of them (about a million) took the
+    fit to about 0.6 of its time and the round to about 0.7, and the rounds' models scored the
+    same on held-out factories within the spread over training seeds (``bench mining
+    --compare-set refit_row_share=1.0``, docs/performance.md; docs/changelog.md gives the check
+    with one classifier that came before). A next round on the rows its model's regressor learned
+    from keeps it, sampled or not."""
     model_box_targets: bool = False
     """Learn boxes from every label (True), or let a label whose box is the model's own teach its
     class alone (False): a reviewer's Object verdict keeps the mined box, and a confirmed pre-label

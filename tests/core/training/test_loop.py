@@ -781,10 +781,14 @@ def test_a_next_round_keeps_the_models_box_quality_regressor_unless_told_to_refi
         train_session(
             db,
             frames,
-            dataclasses.replace(with_quality, refit_box_quality=True, refit_row_share=1.0),
+            dataclasses.replace(with_quality, refit_box_quality=True, refit_row_share=0.25),
             mode="next",
         )
-    assert given[2][0].row_share == 1.0
+    assert given[2][0].row_share == 0.25
+    # A full run fits on every row whatever the setting.
+    with pytest.raises(StopError):
+        train_session(db, frames, dataclasses.replace(with_quality, refit_row_share=0.25), mode="full")
+    assert given[3][0].row_share == 1.0
     with pytest.raises(InputError, match="refit_row_share"):
         LoopSettings(refit_row_share=0.0)
 
