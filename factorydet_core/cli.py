@@ -365,7 +365,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         del given["round_epochs"]
         training = loop_arguments(loop_settings_from(given))
         # With --compare-set: the continued round with the settings given and with these changed,
-        # per training seed, interleaved.
+        # per training seed, interleaved (which of the two runs first alternates from seed to seed,
+        # so that neither always meets the machine as the other left it).
         changed = parse_overrides(args.compare_set)
         own = sorted(set(changed) & {"seed", "round_epochs"})
         if own:
@@ -385,8 +386,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     *loop_arguments(loop_settings_from({**given, "seed": seed, **extra})),
                 ],
             )
-            for seed in (parse_ints(args.seeds, "--seeds") if changed else ())
-            for side, extra in (("reference", {}), ("compared", changed))
+            for k, seed in enumerate(parse_ints(args.seeds, "--seeds") if changed else ())
+            for side, extra in (("reference", {}), ("compared", changed))[:: 1 if k % 2 == 0 else -1]
         ]
         if changed and not args.round_epochs:
             raise InputError(

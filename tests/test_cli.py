@@ -842,8 +842,12 @@ def test_bench_mining_passes_its_training_settings_to_every_timed_train(monkeypa
     argv = ["bench", "mining", "--session", "s", "--seeds", "1,2", "--compare-set", "refit_row_share=1.0"]
     assert main([*argv, *flags]) == 0
     labels = [label for label, _ in seen["compared"]]
+    # Interleaved, which side runs first alternating from seed to seed.
     assert labels == [
-        {"setting": side, "seed": seed} for seed in (1, 2) for side in ("reference", "compared")
+        {"setting": "reference", "seed": 1},
+        {"setting": "compared", "seed": 1},
+        {"setting": "compared", "seed": 2},
+        {"setting": "reference", "seed": 2},
     ]
     assert seen["compare_set"] == {"refit_row_share": 1.0}
     for label, train_flags in seen["compared"]:
