@@ -45,10 +45,15 @@ class LabelsPanel:
     confirm: viser.GuiButtonHandle
     confirm_frame: viser.GuiButtonHandle
     _shown: tuple | None = None
+    _shown_author: str | None = None
 
     def refresh(self, view: ClientView) -> None:
         state = view.state
-        if self.author.value != view.author:  # a name read back from the browser's storage
+        # The field follows the name when the server changed it (read back from the browser's
+        # storage), not whenever they differ: a refresh from another thread between a typed name's
+        # arrival and its callback would put the old name back, and the callback would read that.
+        if view.author != self._shown_author:
+            self._shown_author = view.author
             self.author.value = view.author
         label = view.selected_label()
         points = view.selected_points()
@@ -219,11 +224,17 @@ def build_labels_panel(view: ClientView) -> LabelsPanel:
         prelabel, prelabel_status, next_prelabel, confirm, confirm_frame,
     )  # fmt: skip
 
+    panel._shown_author = view.author
+
     @author.on_update
     def _(event: viser.GuiEvent) -> None:
-        if from_user(event) and view.set_author(author.value):
+        if not from_user(event):
+            return
+        if view.set_author(author.value):
             view.remember_author()
             view.refresh()
+        else:  # an empty name: the field shows the one edits are still signed with
+            author.value = view.author
 
     view.class_dropdowns.append(class_name)
 
