@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import threading
+import time
 import traceback
 from collections.abc import Callable
 
@@ -78,19 +79,28 @@ class MetricsRunner:
     """Measures views' metrics again on one background thread, so that a label edit or a review
     verdict returns before the metrics over every frame viewed (which grow with the frames) are
     measured; a view then shows its last metrics, said to be out of date, until the new ones come.
-    The thread ends when idle and starts again on the next request."""
+    The thread ends when idle and starts again on the next request.
+
+    A measurement waits until no request has come for ``QUIET_SECONDS``: a run of review verdicts
+    or edits is measured once, after it, instead of after each. An Object verdict changes the
+    references of every frame that shows its object, and a measurement started at once ran
+    alongside the verdict's next item, on the cores that answer it; the metrics panel says its
+    figures are out of date meanwhile."""
 
     IDLE_SECONDS = 30.0
+    QUIET_SECONDS = 1.0
 
     def __init__(self) -> None:
         self._wake = threading.Condition()
         self._pending: dict[int, AppState] = {}  # by id: a view asked for twice is measured once
         self._running = False
+        self._last_request = 0.0  # time.monotonic() of the latest request
         self.thread: threading.Thread | None = None  # the last one started
 
     def request(self, view: AppState) -> None:
         with self._wake:
             self._pending[id(view)] = view
+            self._last_request = time.monotonic()
             if not self._running:
                 self._running = True
                 self.thread = threading.Thread(target=self._run, name="factorydet-metrics", daemon=True)
@@ -105,6 +115,9 @@ class MetricsRunner:
                 if not self._pending:
                     self._running = False
                     return
+                # (a request meanwhile wakes this wait and moves the end of the quiet period)
+                while (quiet := self._last_request + self.QUIET_SECONDS - time.monotonic()) > 0:
+                    self._wake.wait(quiet)
                 view = self._pending.pop(next(iter(self._pending)))
             try:
                 view._measure_pending()

@@ -356,6 +356,28 @@ def test_an_edit_returns_before_the_metrics_are_measured_again_on_the_background
     assert not stale and after["num_reference"] == before["num_reference"] - 1
 
 
+def test_a_run_of_edits_is_measured_once_after_a_quiet_period(measured, monkeypatch):
+    """Edits in quick succession (a reviewer's verdicts) are measured once, after the last of
+    them, not alongside each: the background thread waits until no request came for
+    ``QUIET_SECONDS``."""
+    import time
+
+    state, db, before = measured
+    runner = state.shared.metrics_runner
+    runner.QUIET_SECONDS = 0.4
+    started: list[float] = []
+    _on_the_metrics_thread(monkeypatch, lambda: started.append(time.monotonic()))
+    last = 0.0
+    for _ in range(3):
+        db.delete_labels([db.labels(0)[0].id], "ann")
+        state.session_changed()
+        last = time.monotonic()
+        time.sleep(0.15)  # within the quiet period of the edit before
+    assert wait(lambda: not state.shown_metrics()[1], 30)
+    assert len(started) == 1 and started[0] - last >= 0.4
+    assert state.shown_metrics()[0]["num_reference"] == before["num_reference"] - 3
+
+
 def test_reading_the_metrics_measures_them_at_once_and_a_superseded_measurement_is_dropped(
     measured, monkeypatch
 ):
