@@ -97,6 +97,9 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench import --boxes 10000 --out docs/bench/label_import.json
 	$(BIN)/factorydet bench import --boxes 10000 --large-box --out docs/bench/label_import_large_box.json
 	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --readme docs/labelling.md
+	# The same with Object verdicts among the review's (label once writes each into every frame showing it).
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --verdict-keys bobxo --readme docs/labelling.md \
+	  --readme-block walkthrough-object-verdicts --out docs/bench/walkthrough-object-verdicts.json
 	# The edits alone, with every point drawn and with at most 20,000 (Display's Points drawn).
 	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --readme docs/labelling.md \
 	  --readme-block walkthrough-edits-points-all

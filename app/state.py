@@ -19,9 +19,15 @@ import numpy as np
 
 from factorydet_core.colors import COLOR_MODES
 from factorydet_core.detection.detector import DetectionResult, ProposalResult, params_for
-from factorydet_core.detection.scoring import BOX_VOTE_IOU, select_detections
+from factorydet_core.detection.scoring import BOX_VOTE_IOU, operating_thresholds, select_detections
 from factorydet_core.io.dataset import Dataset
-from factorydet_core.metrics import detection_metrics, error_breakdown
+from factorydet_core.metrics import (
+    errors_from_counts,
+    frame_error_counts,
+    frame_matches,
+    metrics_from_matches,
+    pool_matches,
+)
 from factorydet_core.proposals.settings import FrontEndParams
 from factorydet_core.session.store import label_arrays
 from factorydet_core.types import SCORE_FLOOR, Detections, Frame
@@ -125,12 +131,50 @@ class MetricsRunner:
                 traceback.print_exc()
 
 
-def _measure(inputs: tuple) -> dict:
-    """The metrics panel's figures from ``AppState._update_metrics``'s inputs."""
+IOU_THRESHOLD = 0.6
+"""The metrics panel matches detections to labels at this 3D IoU (the paper's)."""
+
+MEASURED_KEYS = (
+    "boxes", "class_ids", "scores", *REFERENCE_KEYS,
+    "candidate_boxes", "candidate_class_ids", "candidate_scores",
+)  # fmt: skip
+"""A viewed frame's metrics entry's arrays: a frame whose arrays are the very ones measured last time
+is not matched again (``_measure``)."""
+
+
+def _measure(inputs: tuple, memo: dict | None = None) -> dict:
+    """The metrics panel's figures from ``AppState._update_metrics``'s inputs. With ``memo`` (a
+    dict kept between calls, by frame index), a frame whose arrays (``MEASURED_KEYS``) and
+    operating thresholds are the ones of its last measurement keeps that measurement's matches
+    (``frame_matches``, ``frame_error_counts``): an edit changes the references of the frames
+    that show its object, and only those are matched again; another operating point counts the
+    errors again, on the same matches."""
     scored, class_names, score_threshold, per_class = inputs
-    metrics = detection_metrics(scored, class_names, 0.6, score_threshold, per_class)
+    num_classes = len(class_names)
+    thresholds = operating_thresholds(num_classes, score_threshold, per_class)
+    memo = {} if memo is None else memo
+    matches, counts = [], []
+    for frame in scored:
+        arrays = tuple(frame.get(key) for key in MEASURED_KEYS)
+        known = memo.get(frame["frame_index"])
+        if known is None or not all(a is b for a, b in zip(known[0], arrays)):
+            known = (arrays, frame_matches(frame, num_classes, IOU_THRESHOLD), None, None)
+        if known[2] is None or not np.array_equal(known[2], thresholds):  # (the matches stand)
+            known = (
+                *known[:2],
+                thresholds,
+                frame_error_counts(frame, num_classes, IOU_THRESHOLD, thresholds),
+            )
+        # (replaced whole: a reader measuring at once and the background thread may share it)
+        memo[frame["frame_index"]] = known
+        matches.append(known[1])
+        counts.append(known[3])
+    for index in set(memo) - {frame["frame_index"] for frame in scored}:
+        memo.pop(index, None)  # a frame no longer viewed
+    pooled = pool_matches(matches, num_classes)
+    metrics = metrics_from_matches(pooled, class_names, IOU_THRESHOLD, score_threshold, per_class)
     metrics["num_frames"] = len(scored)
-    metrics["errors"] = error_breakdown(scored, class_names, 0.6, score_threshold, per_class)
+    metrics["errors"] = errors_from_counts(counts, class_names, IOU_THRESHOLD)
     return metrics
 
 
@@ -471,6 +515,7 @@ class AppState:
         self.frame_detections: dict[int, dict] = {}  # frame -> candidates and labels, for metrics
         self._metrics: dict | None = None  # the last measured (``metrics``)
         self._metrics_inputs: tuple | None = None  # what is to be measured next; None: up to date
+        self._metrics_memo: dict = {}  # each viewed frame's last matches (``_measure``)
 
     # The shared state, read through the view (the panels read one object).
     dataset = _shared("dataset")
@@ -752,7 +797,7 @@ class AppState:
             return
         scored = []
         floor_key = self.floor_args()
-        for item in self.frame_detections.values():
+        for frame_index, item in self.frame_detections.items():
             if item.get("floor_key") != floor_key:
                 item["floor"], item["floor_key"] = (
                     select_with(item["candidates"], "floor", floor_key),
@@ -761,6 +806,7 @@ class AppState:
             kept = item["floor"]
             scored.append(
                 {
+                    "frame_index": frame_index,
                     "boxes": kept.boxes,
                     "class_ids": kept.class_ids,
                     "scores": kept.scores,
@@ -784,7 +830,7 @@ class AppState:
         must not wait reads ``shown_metrics``."""
         with self.lock:
             if self._metrics_inputs is not None:
-                self._metrics, self._metrics_inputs = _measure(self._metrics_inputs), None
+                self._metrics, self._metrics_inputs = _measure(self._metrics_inputs, self._metrics_memo), None
             return self._metrics
 
     def shown_metrics(self) -> tuple[dict | None, bool]:
@@ -800,7 +846,7 @@ class AppState:
             inputs = self._metrics_inputs
         if inputs is None:
             return
-        measured = _measure(inputs)
+        measured = _measure(inputs, self._metrics_memo)
         with self.lock:
             if self._metrics_inputs is not inputs:  # asked again since, or measured by a reader
                 return

@@ -118,29 +118,47 @@ def ignored_mask(boxes: np.ndarray, tp_mask: np.ndarray, ignore_boxes: np.ndarra
     return out
 
 
+def frame_matches(
+    frame: dict, num_classes: int, iou_threshold: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's part of ``detection_metrics`` (``frame`` as one of its ``frames``): its counted
+    detections' (K,) scores, (K,) whether each is a true positive and (K,) classes, and (C,) its
+    references per class. ``pool_matches`` of every frame's part is what ``detection_metrics``
+    measures (``metrics_from_matches``): a caller that measures the same frames again can keep
+    the parts of frames that did not change."""
+    tp, _ = match_detections(
+        frame["boxes"], frame["class_ids"], frame["scores"], frame["reference_boxes"],
+        frame["reference_class_ids"], iou_threshold,
+    )  # fmt: skip
+    counted = ~ignored_mask(frame["boxes"], tp, frame.get("ignore_boxes"))
+    num_reference = np.bincount(np.asarray(frame["reference_class_ids"], np.int64), minlength=num_classes)
+    return (
+        np.asarray(frame["scores"], np.float64)[counted],
+        tp[counted],
+        np.asarray(frame["class_ids"], np.int64)[counted],
+        num_reference[:num_classes],
+    )
+
+
+def pool_matches(
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], num_classes: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Frames' ``frame_matches`` pooled: (K,) scores, (K,) whether each is a true positive, (K,)
+    classes, and (C,) the number of references per class."""
+    scores = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0)
+    tps = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, bool)
+    classes = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0, np.int64)
+    num_reference = np.zeros(num_classes, np.int64)
+    for part in parts:
+        num_reference += part[3]
+    return scores, tps, classes, num_reference
+
+
 def _pooled_matches(
     frames: list[dict], num_classes: int, iou_threshold: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Detections of all ``frames`` pooled: (K,) scores, (K,) whether each is a true positive,
-    (K,) classes, and (C,) the number of references per class."""
-    scores, tps, classes = [], [], []
-    num_reference = np.zeros(num_classes, np.int64)
-    for frame in frames:
-        tp, _ = match_detections(
-            frame["boxes"], frame["class_ids"], frame["scores"], frame["reference_boxes"],
-            frame["reference_class_ids"], iou_threshold,
-        )  # fmt: skip
-        counted = ~ignored_mask(frame["boxes"], tp, frame.get("ignore_boxes"))
-        scores.append(np.asarray(frame["scores"], np.float64)[counted])
-        tps.append(tp[counted])
-        classes.append(np.asarray(frame["class_ids"], np.int64)[counted])
-        num_reference += np.bincount(
-            np.asarray(frame["reference_class_ids"], np.int64), minlength=num_classes
-        )[:num_classes]
-    scores = np.concatenate(scores) if scores else np.zeros(0)
-    tps = np.concatenate(tps) if tps else np.zeros(0, bool)
-    classes = np.concatenate(classes) if classes else np.zeros(0, np.int64)
-    return scores, tps, classes, num_reference
+    """Detections of all ``frames`` pooled (``pool_matches``)."""
+    return pool_matches([frame_matches(f, num_classes, iou_threshold) for f in frames], num_classes)
 
 
 def detection_metrics(
@@ -170,7 +188,19 @@ def detection_metrics(
         (``num_reference``); recall, F-score and AP of a class without references are ``None``, and
         so are the totals when no frame has any (with a warning): they are undefined, not 0.
     """
-    scores, tps, classes, num_reference = _pooled_matches(frames, len(class_names), iou_threshold)
+    pooled = _pooled_matches(frames, len(class_names), iou_threshold)
+    return metrics_from_matches(pooled, class_names, iou_threshold, score_threshold, class_score_thresholds)
+
+
+def metrics_from_matches(
+    pooled: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    class_names: tuple[str, ...],
+    iou_threshold: float = 0.6,
+    score_threshold: float = 0.5,
+    class_score_thresholds: np.ndarray | None = None,
+) -> dict:
+    """``detection_metrics`` from its frames' ``pool_matches`` (matched at ``iou_threshold``)."""
+    scores, tps, classes, num_reference = pooled
     per_class_threshold = operating_thresholds(len(class_names), score_threshold, class_score_thresholds)
     above = scores >= per_class_threshold[classes]
 
@@ -433,61 +463,86 @@ def error_breakdown(
     """
     num_classes = len(class_names)
     thresholds = operating_thresholds(num_classes, score_threshold, class_score_thresholds)
+    counts = [frame_error_counts(frame, num_classes, iou_threshold, thresholds) for frame in frames]
+    return errors_from_counts(counts, class_names, iou_threshold)
+
+
+def frame_error_counts(
+    frame: dict, num_classes: int, iou_threshold: float, thresholds: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's part of ``error_breakdown`` (``frame`` as one of its ``frames``, ``thresholds``
+    (C,) each class's operating score, ``operating_thresholds``): ``(tp (C,), false positives
+    (C, len(FALSE_POSITIVE_KINDS)), misses (C, len(MISS_KINDS)))`` counted per class and kind.
+    ``errors_from_counts`` of every frame's part is ``error_breakdown``'s result."""
     fp = np.zeros((num_classes, len(FALSE_POSITIVE_KINDS)), np.int64)
     missed = np.zeros((num_classes, len(MISS_KINDS)), np.int64)
     tp_per_class = np.zeros(num_classes, np.int64)
-    for frame in frames:
-        classes = np.asarray(frame["class_ids"], np.int64)
-        scores = np.asarray(frame["scores"], np.float64)
-        above = scores >= thresholds[classes] if len(classes) else np.zeros(0, bool)
-        boxes = np.asarray(frame["boxes"], np.float64).reshape(-1, 7)[above]
-        classes, scores = classes[above], scores[above]
-        ref_boxes = np.asarray(frame["reference_boxes"], np.float64).reshape(-1, 7)
-        ref_classes = np.asarray(frame["reference_class_ids"], np.int64)
-        # References of classes the detector does not know are not counted (as detection_metrics).
-        known = (ref_classes >= 0) & (ref_classes < num_classes)
-        ref_boxes, ref_classes = ref_boxes[known], ref_classes[known]
-        tp, matched = match_detections(boxes, classes, scores, ref_boxes, ref_classes, iou_threshold)
-        np.add.at(tp_per_class, classes[tp], 1)
-        iou = (
-            box_iou_3d(boxes, ref_boxes)
-            if len(boxes) and len(ref_boxes)
-            else np.zeros((len(boxes), len(ref_boxes)))
-        )
-        same = classes[:, None] == ref_classes[None, :]
-        same_iou = np.where(same, iou, 0.0).max(axis=1, initial=0.0)
-        other_iou = np.where(same, 0.0, iou).max(axis=1, initial=0.0)
-        inside = _share_inside(boxes, ref_boxes, iou).max(axis=1, initial=0.0)
-        kind = np.select(
-            [
-                same_iou >= iou_threshold,
-                same_iou >= OVERLAP_IOU,
-                other_iou >= OVERLAP_IOU,
-                inside >= PART_FRACTION,
-            ],
-            [0, 1, 2, 3],
-            4,
-        )
-        np.add.at(fp, (classes[~tp], kind[~tp]), 1)
-        found = np.zeros(len(ref_boxes), bool)
-        found[matched[tp]] = True
-        lost = np.flatnonzero(~found)
-        if not len(lost):
-            continue
-        candidate_boxes = np.asarray(frame.get("candidate_boxes", np.zeros((0, 7))), np.float64).reshape(
-            -1, 7
-        )
-        candidate_classes = np.asarray(frame.get("candidate_class_ids", np.zeros(0)), np.int64)
-        candidate_scores = np.asarray(frame.get("candidate_scores", np.zeros(0)), np.float64)
-        fits = np.zeros((len(candidate_boxes), len(lost)), bool)
-        if len(candidate_boxes):
-            fits = box_iou_3d(candidate_boxes, ref_boxes[lost]) >= iou_threshold
-            fits &= candidate_classes[:, None] == ref_classes[lost][None, :]
-        scored_above = (
-            candidate_scores >= thresholds[candidate_classes] if len(candidate_boxes) else np.zeros(0, bool)
-        )
-        miss_kind = np.where(~fits.any(axis=0), 0, np.where((fits & scored_above[:, None]).any(axis=0), 2, 1))
-        np.add.at(missed, (ref_classes[lost], miss_kind), 1)
+    classes = np.asarray(frame["class_ids"], np.int64)
+    scores = np.asarray(frame["scores"], np.float64)
+    above = scores >= thresholds[classes] if len(classes) else np.zeros(0, bool)
+    boxes = np.asarray(frame["boxes"], np.float64).reshape(-1, 7)[above]
+    classes, scores = classes[above], scores[above]
+    ref_boxes = np.asarray(frame["reference_boxes"], np.float64).reshape(-1, 7)
+    ref_classes = np.asarray(frame["reference_class_ids"], np.int64)
+    # References of classes the detector does not know are not counted (as detection_metrics).
+    known = (ref_classes >= 0) & (ref_classes < num_classes)
+    ref_boxes, ref_classes = ref_boxes[known], ref_classes[known]
+    tp, matched = match_detections(boxes, classes, scores, ref_boxes, ref_classes, iou_threshold)
+    np.add.at(tp_per_class, classes[tp], 1)
+    iou = (
+        box_iou_3d(boxes, ref_boxes)
+        if len(boxes) and len(ref_boxes)
+        else np.zeros((len(boxes), len(ref_boxes)))
+    )
+    same = classes[:, None] == ref_classes[None, :]
+    same_iou = np.where(same, iou, 0.0).max(axis=1, initial=0.0)
+    other_iou = np.where(same, 0.0, iou).max(axis=1, initial=0.0)
+    inside = _share_inside(boxes, ref_boxes, iou).max(axis=1, initial=0.0)
+    kind = np.select(
+        [
+            same_iou >= iou_threshold,
+            same_iou >= OVERLAP_IOU,
+            other_iou >= OVERLAP_IOU,
+            inside >= PART_FRACTION,
+        ],
+        [0, 1, 2, 3],
+        4,
+    )
+    np.add.at(fp, (classes[~tp], kind[~tp]), 1)
+    found = np.zeros(len(ref_boxes), bool)
+    found[matched[tp]] = True
+    lost = np.flatnonzero(~found)
+    if not len(lost):
+        return tp_per_class, fp, missed
+    candidate_boxes = np.asarray(frame.get("candidate_boxes", np.zeros((0, 7))), np.float64).reshape(-1, 7)
+    candidate_classes = np.asarray(frame.get("candidate_class_ids", np.zeros(0)), np.int64)
+    candidate_scores = np.asarray(frame.get("candidate_scores", np.zeros(0)), np.float64)
+    fits = np.zeros((len(candidate_boxes), len(lost)), bool)
+    if len(candidate_boxes):
+        fits = box_iou_3d(candidate_boxes, ref_boxes[lost]) >= iou_threshold
+        fits &= candidate_classes[:, None] == ref_classes[lost][None, :]
+    scored_above = (
+        candidate_scores >= thresholds[candidate_classes] if len(candidate_boxes) else np.zeros(0, bool)
+    )
+    miss_kind = np.where(~fits.any(axis=0), 0, np.where((fits & scored_above[:, None]).any(axis=0), 2, 1))
+    np.add.at(missed, (ref_classes[lost], miss_kind), 1)
+    return tp_per_class, fp, missed
+
+
+def errors_from_counts(
+    counts: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    class_names: tuple[str, ...],
+    iou_threshold: float,
+) -> dict:
+    """``error_breakdown``'s result from its frames' ``frame_error_counts`` (at ``iou_threshold``)."""
+    num_classes = len(class_names)
+    tp_per_class = np.zeros(num_classes, np.int64)
+    fp = np.zeros((num_classes, len(FALSE_POSITIVE_KINDS)), np.int64)
+    missed = np.zeros((num_classes, len(MISS_KINDS)), np.int64)
+    for frame_tp, frame_fp, frame_missed in counts:
+        tp_per_class += frame_tp
+        fp += frame_fp
+        missed += frame_missed
     tp_total = int(tp_per_class.sum())
     num_detections = tp_total + int(fp.sum())
     num_reference = tp_total + int(missed.sum())

@@ -132,5 +132,4 @@ def retrain_session(
         references, sparse = session_references_and_sparse(db, test, settings.label_points_floor(dataset))
         table = compare_models(models, test_frames, references, ignored=sparse)
         db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
-    config = next(r["config"] for r in db.training_runs() if r["id"] == run_id)
-    return Retrained(run_id, run, detector, frames, table, run_notes(config))
+    return Retrained(run_id, run, detector, frames, table, run_notes(db.run_config(run_id)))

@@ -2370,13 +2370,18 @@ class SessionDB:
             raise SessionError(f"training run {run_id}: unknown queue order {short_repr(cut, 40)}")
         return str(review), str(cut)
 
-    def _run_settings(self, run_id: int) -> dict:
-        """Run ``run_id``'s ``LoopSettings`` as stored in its config (``{}`` for a run without)."""
+    def run_config(self, run_id: int) -> dict:
+        """Run ``run_id``'s config as ``train_session`` stored it (one row read, where
+        ``training_runs`` reads every run with its rounds)."""
         with self._read() as db:
             row = db.execute("SELECT id, config FROM training_runs WHERE id = ?", (int(run_id),)).fetchone()
         if row is None:
             raise SessionError(f"no training run {run_id}")
-        settings = _row("training_runs", row)["config"].get("settings") or {}
+        return _row("training_runs", row)["config"]
+
+    def _run_settings(self, run_id: int) -> dict:
+        """Run ``run_id``'s ``LoopSettings`` as stored in its config (``{}`` for a run without)."""
+        settings = self.run_config(run_id).get("settings") or {}
         if not isinstance(settings, dict):
             raise SessionError(
                 f"training run {run_id}: its settings are {short_repr(settings, 40)}, not a mapping"

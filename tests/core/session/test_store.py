@@ -1021,6 +1021,16 @@ def test_a_runs_hold_score_is_read_from_its_settings(db, tiny_model_path):
         db.hold_score(99)
 
 
+def test_a_runs_config_is_read_alone_as_it_was_stored(db, tiny_model_path):
+    config = {"mode": "next", "afresh_because": "the labels changed", "settings": {"epochs": 3}}
+    first = db.save_training_run(queue_run(tiny_model_path, [[]]), "small", config)
+    second = db.save_training_run(queue_run(tiny_model_path, [[]]), "small", {"mode": "full"})
+    assert db.run_config(first) == config and db.run_config(second) == {"mode": "full"}
+    assert [db.run_config(r["id"]) for r in db.training_runs()] == [r["config"] for r in db.training_runs()]
+    with pytest.raises(SessionError, match="no training run 99"):
+        db.run_config(99)
+
+
 def test_the_change_stamp_never_returns_after_a_verdict_is_undone_and_redone(db, tiny_model_path):
     """A queue cached on the stamp must see the verdicts' new versions: an undo then a redo leaves
     the edit log as it was, not the versions."""
