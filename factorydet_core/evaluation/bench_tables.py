@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import statistics
 from collections.abc import Callable
 from pathlib import Path
 
@@ -738,6 +739,8 @@ def walkthrough_markdown(result: dict) -> str:
                 fmt(target),
             ]
         )
+        if step.startswith("review verdict"):
+            rows += _verdict_rows_by_key(result.get("verdict_keys"), figures.get("runs") or {}, target)
     render = result.get("browser_render") or {}
     header = [
         "step",
@@ -806,6 +809,36 @@ def walkthrough_markdown(result: dict) -> str:
         + _retrain_text(result)
         + "\n"
     )
+
+
+VERDICT_KEY_NAMES = {"b": "background", "o": "Object", "x": "skip"}
+"""The walkthrough's verdict keys (``app.walkthrough.VERDICT_KEY_CHOICES``), by the verdict's name."""
+
+
+def _verdict_rows_by_key(keys: str | None, runs: dict, target) -> list[list[str]]:
+    """The walkthrough's review verdicts, one row per key where the verdicts had more than one
+    (the k-th verdict was given with ``keys[k % len(keys)]``): an Object verdict writes labels
+    into every frame that shows the object, a background or skip verdict writes one row. Records
+    before the keys were recorded: none."""
+    if not keys or len(set(keys)) < 2 or not runs.get("shown"):
+        return []
+    rows = []
+    for key in sorted(set(keys), key=keys.index):
+        picked = [k for k in range(len(runs["shown"])) if keys[k % len(keys)] == key]
+        rows.append(
+            [
+                f"of them, {VERDICT_KEY_NAMES.get(key, key)} ({key.upper()}; {len(picked)})",
+                *(
+                    fmt(round(float(statistics.median([runs[name][k] for k in picked])), 1))
+                    if runs.get(name)
+                    else "–"
+                    for name in ("stored", "server", "shown")
+                ),
+                fmt(max(runs["shown"][k] for k in picked)),
+                fmt(target),
+            ]
+        )
+    return rows
 
 
 def _renderer(result: dict) -> str:

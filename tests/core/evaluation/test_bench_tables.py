@@ -1,6 +1,7 @@
 import copy
 import json
 import re
+import statistics
 from pathlib import Path
 
 import pytest
@@ -24,6 +25,8 @@ BLOCKS = (
     ("labelling.md", "world-labels"),
     ("labelling.md", "walkthrough"),
     ("labelling.md", "walkthrough-object-verdicts"),
+    ("labelling.md", "walkthrough-object-verdicts-metrics-at-once"),
+    ("labelling.md", "walkthrough-object-verdicts-metrics-quiet"),
     ("labelling.md", "walkthrough-edits-points-all"),
     ("labelling.md", "walkthrough-edits-points-20k"),
     ("labelling.md", "walkthrough-edits-points-20k-swiftshader"),
@@ -573,3 +576,20 @@ def test_a_hitl_compare_says_how_precision_and_recall_moved_where_both_records_k
     table = render_record(result)
     assert "| precision | recall |" in table
     assert _rows(table, "reviewed_200")[0][-2:] == ["+0.100 [+0.100, +0.100]", "-0.050 [-0.050, -0.050]"]
+
+
+def test_the_walkthrough_splits_its_review_verdicts_by_key_where_they_had_several():
+    record = _record("walkthrough-object-verdicts")  # keys bobxo: 8 background, 8 Object, 4 skip
+    runs = record["steps"]["review verdict (B / O / X)"]["runs"]
+    markdown = render_record(record)
+    object_row = _rows(markdown, "of them, Object (O; 8)")[0]
+    picked = [k for k in range(len(runs["shown"])) if "bobxo"[k % 5] == "o"]
+    assert float(object_row[2].replace(",", "")) == round(
+        statistics.median(runs["server"][k] for k in picked), 1
+    )
+    assert float(object_row[4].replace(",", "")) == max(runs["shown"][k] for k in picked)
+    assert len(_rows(markdown, "of them, skip (X; 4)")) == 1
+    # One key, or none recorded: the verdicts' row alone.
+    for keys in ("b", None):
+        alone = render_record({**record, "verdict_keys": keys})
+        assert "of them," not in alone and "| review verdict (B / O / X) |" in alone
