@@ -91,7 +91,9 @@ class MetricsRunner:
     or edits is measured once, after it, instead of after each. An Object verdict changes the
     references of every frame that shows its object, and a measurement started at once ran
     alongside the verdict's next item, on the cores that answer it; the metrics panel says its
-    figures are out of date meanwhile."""
+    figures are out of date meanwhile. The quiet period is the app's, not a view's: while any
+    browser keeps editing (or moving a threshold) less than ``QUIET_SECONDS`` apart, every view's
+    measurement waits (a reader of ``AppState.metrics`` still measures at once)."""
 
     IDLE_SECONDS = 30.0
     QUIET_SECONDS = 1.0

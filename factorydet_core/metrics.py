@@ -189,7 +189,7 @@ def detection_metrics(
         so are the totals when no frame has any (with a warning): they are undefined, not 0.
     """
     pooled = _pooled_matches(frames, len(class_names), iou_threshold)
-    return metrics_from_matches(pooled, class_names, iou_threshold, score_threshold, class_score_thresholds)
+    return _metrics_from_matches(pooled, class_names, iou_threshold, score_threshold, class_score_thresholds)
 
 
 def metrics_from_matches(
@@ -200,6 +200,18 @@ def metrics_from_matches(
     class_score_thresholds: np.ndarray | None = None,
 ) -> dict:
     """``detection_metrics`` from its frames' ``pool_matches`` (matched at ``iou_threshold``)."""
+    return _metrics_from_matches(pooled, class_names, iou_threshold, score_threshold, class_score_thresholds)
+
+
+def _metrics_from_matches(
+    pooled: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    class_names: tuple[str, ...],
+    iou_threshold: float,
+    score_threshold: float,
+    class_score_thresholds: np.ndarray | None,
+) -> dict:
+    """``metrics_from_matches``, called by a public function: its warning names that function's
+    caller."""
     scores, tps, classes, num_reference = pooled
     per_class_threshold = operating_thresholds(len(class_names), score_threshold, class_score_thresholds)
     above = scores >= per_class_threshold[classes]
@@ -251,7 +263,7 @@ def metrics_from_matches(
     if not num_reference.sum():
         warnings.warn(
             "detection metrics without any reference instance: recall, F-score and mAP are undefined",
-            stacklevel=2,
+            stacklevel=3,
         )
     out = {
         "iou_threshold": iou_threshold,

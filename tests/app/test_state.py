@@ -480,12 +480,17 @@ def test_a_measurement_matches_again_only_the_frames_whose_arrays_changed(monkey
     classes = ("a", "b", "c")
     frames = _random_frames(np.random.default_rng(0), 5, len(classes))
     per_class = np.array([0.3, np.nan, 0.6])
-    calls = []
-    matches = state_module.frame_matches
+    calls, counted = [], []
+    matches, counts = state_module.frame_matches, state_module.frame_error_counts
     monkeypatch.setattr(
         state_module,
         "frame_matches",
         lambda frame, *a: calls.append(frame["frame_index"]) or matches(frame, *a),
+    )
+    monkeypatch.setattr(
+        state_module,
+        "frame_error_counts",
+        lambda frame, *a: counted.append(frame["frame_index"]) or counts(frame, *a),
     )
 
     def plain(frames: list[dict], score_threshold: float) -> dict:
@@ -495,16 +500,18 @@ def test_a_measurement_matches_again_only_the_frames_whose_arrays_changed(monkey
 
     memo: dict = {}
     assert state_module._measure((frames, classes, 0.5, per_class), memo) == plain(frames, 0.5)
-    assert sorted(calls) == [0, 1, 2, 3, 4]
+    assert sorted(calls) == sorted(counted) == [0, 1, 2, 3, 4]
     # One frame's labels changed (its reference arrays replaced, as a label edit does), one no
     # longer viewed: only the changed one is matched again, and the figures are as measured afresh.
     calls.clear()
+    counted.clear()
     edited = [dict(f) for f in frames[:4]]
     edited[2]["reference_boxes"] = edited[2]["reference_boxes"][1:]
     edited[2]["reference_class_ids"] = edited[2]["reference_class_ids"][1:]
     assert state_module._measure((edited, classes, 0.5, per_class), memo) == plain(edited, 0.5)
-    assert calls == [2] and sorted(memo) == [0, 1, 2, 3]
+    assert calls == counted == [2] and sorted(memo) == [0, 1, 2, 3]
     # Another operating point: the matches stand, the errors are counted again, as measured afresh.
     calls.clear()
+    counted.clear()
     assert state_module._measure((edited, classes, 0.2, per_class), memo) == plain(edited, 0.2)
-    assert calls == []
+    assert calls == [] and sorted(counted) == [0, 1, 2, 3]

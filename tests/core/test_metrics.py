@@ -345,3 +345,54 @@ def test_detections_on_ignored_objects_are_neither_right_nor_wrong():
     # A true positive is never dropped, even where an ignored box overlaps it.
     tp_only = detection_metrics([frame | {"ignore_boxes": reference}], ("a",), 0.6, 0.5)
     assert tp_only["per_class"]["a"]["tp"] == 1
+
+
+def _empty_frame(num_references: int = 0) -> dict:
+    return {
+        "boxes": np.zeros((0, 7)),
+        "class_ids": np.zeros(0, np.int64),
+        "scores": np.zeros(0),
+        "reference_boxes": np.tile([0.0, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0], (num_references, 1)),
+        "reference_class_ids": np.zeros(num_references, np.int64),
+    }
+
+
+def test_the_per_frame_parts_pool_to_the_whole_measurement_and_nothing_pools_to_nothing():
+    from factorydet_core.metrics import (
+        errors_from_counts,
+        frame_error_counts,
+        frame_matches,
+        metrics_from_matches,
+        pool_matches,
+    )
+
+    box = [0.0, 0.0, 0.5, 1.0, 1.0, 1.0, 0.0]
+    found = {
+        **_empty_frame(1),
+        "boxes": np.array([box, [5.0, 5.0, 0.5, 1.0, 1.0, 1.0, 0.0]]),
+        "class_ids": np.array([0, 1]),
+        "scores": np.array([0.9, 0.7]),
+    }
+    frames = [found, _empty_frame(2)]  # a true and a false positive; two misses
+    parts = [frame_matches(f, 2, 0.6) for f in frames]
+    assert parts[0][1].tolist() == [True, False] and parts[1][3].tolist() == [2, 0]
+    assert metrics_from_matches(pool_matches(parts, 2), ("a", "b")) == detection_metrics(frames, ("a", "b"))
+    thresholds = np.full(2, 0.5)
+    counts = [frame_error_counts(f, 2, 0.6, thresholds) for f in frames]
+    assert errors_from_counts(counts, ("a", "b"), 0.6) == error_breakdown(frames, ("a", "b"), 0.6, 0.5)
+    assert errors_from_counts(counts, ("a", "b"), 0.6)["misses"]["no_candidate"] == 2
+    scores, tps, classes, num_reference = pool_matches([], 2)
+    assert (len(scores), len(tps), len(classes), num_reference.tolist()) == (0, 0, 0, [0, 0])
+    assert errors_from_counts([], ("a", "b"), 0.6)["num_reference"] == 0
+
+
+def test_metrics_without_references_warn_at_their_caller():
+    from factorydet_core.metrics import metrics_from_matches, pool_matches
+
+    for measure in (
+        lambda: detection_metrics([_empty_frame()], ("a",)),
+        lambda: metrics_from_matches(pool_matches([], 1), ("a",)),
+    ):
+        with pytest.warns(UserWarning, match="without any reference instance") as caught:
+            measure()
+        assert caught[0].filename == __file__
