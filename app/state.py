@@ -13,6 +13,7 @@ import enum
 import threading
 import time
 import traceback
+import typing
 from collections.abc import Callable
 
 import numpy as np
@@ -144,6 +145,17 @@ MEASURED_KEYS = (
 is not matched again (``_measure``)."""
 
 
+class _FrameMeasure(typing.NamedTuple):
+    """A viewed frame's last measurement (``_measure``'s memo): the arrays it matched
+    (``MEASURED_KEYS``), their ``frame_matches``, the operating thresholds (C,) its errors were
+    counted at and those ``frame_error_counts`` (both ``None`` until counted)."""
+
+    arrays: tuple
+    matches: tuple
+    thresholds: np.ndarray | None
+    counts: tuple | None
+
+
 def _measure(inputs: tuple, memo: dict | None = None) -> dict:
     """The metrics panel's figures from ``AppState._update_metrics``'s inputs. With ``memo`` (a
     dict kept between calls, by frame index), a frame whose arrays (``MEASURED_KEYS``) and
@@ -159,18 +171,15 @@ def _measure(inputs: tuple, memo: dict | None = None) -> dict:
     for frame in scored:
         arrays = tuple(frame.get(key) for key in MEASURED_KEYS)
         known = memo.get(frame["frame_index"])
-        if known is None or not all(a is b for a, b in zip(known[0], arrays)):
-            known = (arrays, frame_matches(frame, num_classes, IOU_THRESHOLD), None, None)
-        if known[2] is None or not np.array_equal(known[2], thresholds):  # (the matches stand)
-            known = (
-                *known[:2],
-                thresholds,
-                frame_error_counts(frame, num_classes, IOU_THRESHOLD, thresholds),
-            )
+        if known is None or not all(a is b for a, b in zip(known.arrays, arrays)):
+            known = _FrameMeasure(arrays, frame_matches(frame, num_classes, IOU_THRESHOLD), None, None)
+        if known.thresholds is None or not np.array_equal(known.thresholds, thresholds):
+            counted = frame_error_counts(frame, num_classes, IOU_THRESHOLD, thresholds)
+            known = known._replace(thresholds=thresholds, counts=counted)  # (the matches stand)
         # (replaced whole: a reader measuring at once and the background thread may share it)
         memo[frame["frame_index"]] = known
-        matches.append(known[1])
-        counts.append(known[3])
+        matches.append(known.matches)
+        counts.append(known.counts)
     for index in set(memo) - {frame["frame_index"] for frame in scored}:
         memo.pop(index, None)  # a frame no longer viewed
     pooled = pool_matches(matches, num_classes)
