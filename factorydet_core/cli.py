@@ -1245,7 +1245,7 @@ BENCH_LOOP_FIELDS = (
     "model_box_targets",
     "recalibrate_background", "recalibrate_by_class", "hold_confident", "pseudo_label_confident",
     "carry_pseudo_labels", "threshold_folds", "threshold_objective", "quality_trees", "continue_folds",
-    "label_min_points",
+    "label_min_points", "threshold_label_min_points",
 )  # fmt: skip
 """The ``LoopSettings`` fields ``factorydet bench`` takes as ``add_loop_flags``' flags (its other
 training flags are the benchmarks' own, with defaults of their own)."""

@@ -128,8 +128,9 @@ def retrain_session(
         report("compare", 0, 1)
         test_frames = cached_proposals(db, dataset, detector, test, propose=propose)
         models = {**(before or {}), after_label.format(run_id=run_id): run.model}
-        # A person's labels too sparse to train on are neither references nor false positives.
-        references, sparse = session_references_and_sparse(db, test, settings.label_points_floor(dataset))
+        # A person's labels too sparse to train on, or to tune the thresholds on, are neither
+        # references nor false positives.
+        references, sparse = session_references_and_sparse(db, test, settings.measure_points_floor(dataset))
         table = compare_models(models, test_frames, references, ignored=sparse)
         db.set_run_metrics(run_id, {"test_frames": test, "compare": table})
     return Retrained(run_id, run, detector, frames, table, run_notes(db.run_config(run_id)))

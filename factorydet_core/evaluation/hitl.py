@@ -61,6 +61,18 @@ REVIEW_COUNTS: tuple[str, ...] = (*VERDICTS, "boxes_drawn", "hidden", "best_view
 hid, and the places it answered from where the object is seen best (``best_view``)."""
 
 
+OPTIONAL_RUN_FIGURES: tuple[str, ...] = (
+    "per_class_precision",
+    "in_factory",
+    "fitted_frame_thresholds",
+    "other_objective_thresholds",
+    "fitted_frame_other_objective_thresholds",
+)
+"""A ``bench hitl`` run's figures that runs of older records lack (each was kept from some version
+on): the table shows a figure's row only when every run has it (``hitl_markdown`` names the rows
+it left out)."""
+
+
 def truth_verdict(
     dataset: Dataset,
     item: dict,
@@ -774,7 +786,8 @@ def _run_plan(plan: dict, variant: str) -> dict:
         out.pop("queue_max_label_iou", None)
         out.pop("review_best_view", None)
         untouched |= {"review_order", "review_extra"}  # the queue, which nobody reviews
-        untouched.add("label_min_points")  # labels of the data set or imported: never checked
+        # labels of the data set or imported: never checked
+        untouched |= {"label_min_points", "threshold_label_min_points"}
         if not (holds(variant) and settings.get("pseudo_label_confident") is not None):
             untouched.add("model_box_targets")  # no verdict nor pseudo-label: no label with the model's box
     if settings.get("pseudo_label_confident") is None:
@@ -1047,6 +1060,9 @@ def _hitl_variants(
                     "truth_labels_added": added,
                     # A person's labels the last fit left out as too sparse (label_min_points).
                     "sparse_labels_ignored": db.training_runs()[-1]["config"].get("sparse_labels_ignored"),
+                    # ... and those it trained on but tuned its thresholds without
+                    # (threshold_label_min_points).
+                    "labels_tuning_ignored": db.training_runs()[-1]["config"].get("labels_tuning_ignored"),
                     "unannotated_labelled": covered,
                     "unannotated_total": unannotated,
                     "unannotated_labelled_per_class": {c: list(v) for c, v in covered_by_class.items()},
@@ -1114,6 +1130,7 @@ def _hitl_variants(
             "truth_labels_added": _mean_of([r["truth_labels_added"] for r in runs]),
             # (runs read back from records before it have no count)
             "sparse_labels_ignored": _mean_of([r.get("sparse_labels_ignored") for r in runs]),
+            "labels_tuning_ignored": _mean_of([r.get("labels_tuning_ignored") for r in runs]),
             # Of the objects the data set left unannotated on the training frames, the share the
             # session labels at the end (full: all; blind: none; reviewed: what the reviews gave back).
             "unannotated_labelled": _mean_of(
@@ -1152,6 +1169,9 @@ def _hitl_variants(
             "reach_share_estimated": _mean_of([r["reach_share_estimated"] for r in runs]),
             "reach_share_true": _mean_of([r["reach_share_true"] for r in runs]),
             "fit_seconds": round(sum(r["fit_seconds"] for r in runs), 1),  # all seeds' fits together
+            # How many runs measured each figure a run may lack (read back from a record made
+            # before the run kept it): a row needs every run's, and the table says what it left out.
+            "runs_measuring": {key: sum(1 for r in runs if key in r) for key in OPTIONAL_RUN_FIGURES},
         }
         # (runs from before carried pseudo-labels have no count of them)
         for key in ("pseudo_labels", "pseudo_labels_carried"):

@@ -855,6 +855,37 @@ def _library_note(versions: dict[str, int]) -> str:
     )
 
 
+PARTIAL_ROWS: dict[str, str] = {
+    "per_class_precision": "the per-class precision / recall table",
+    "in_factory": "the in-factory F-score",
+    "fitted_frame_thresholds": "the same networks at their fitted frames' thresholds",
+    "other_objective_thresholds": "the same networks at the other objective's thresholds",
+    "fitted_frame_other_objective_thresholds": "the same networks at the thresholds without folds",
+}
+"""What ``hitl_markdown`` calls each of ``hitl.OPTIONAL_RUN_FIGURES`` when it leaves it out."""
+
+
+def _partial_rows_note(variants: dict[str, dict]) -> str:
+    """The rows a hitl table left out because some of its runs, but not all, measured them (runs
+    read back from a record made before they were kept), with how many did; "" for none."""
+    left_out = []
+    for key, what in PARTIAL_ROWS.items():
+        counts = {n: v.get("runs_measuring", {}).get(key) for n, v in variants.items()}
+        if any(c is None for c in counts.values()):
+            continue  # (a record from before the counts were kept: unknown)
+        runs = {n: len(v["f1_per_seed"]) for n, v in variants.items()}
+        measured, total = sum(counts.values()), sum(runs.values())
+        if 0 < measured < total:
+            short = [f"{n} {counts[n]} of {runs[n]}" for n in variants if counts[n] < runs[n]]
+            left_out.append(f"{what} (measured by {', '.join(short)} runs)")
+    if not left_out:
+        return ""
+    return (
+        " Left out, as not every run measured them (runs read back from records made before they"
+        f" were kept): {'; '.join(left_out)}."
+    )
+
+
 def _same_network_rows(
     measured: dict[str, dict], names: list[str], at: str, short: str, paired: tuple[str, str]
 ) -> list[str]:
@@ -1001,6 +1032,17 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             )
             + " |"
         )
+    if any(variants[n].get("labels_tuning_ignored") for n in names):
+        rows.append(
+            "| a person's labels trained on but too sparse for the thresholds' tuning (last fit) | "
+            + " | ".join(
+                "–"
+                if variants[n].get("labels_tuning_ignored") is None
+                else _mean_count(variants[n]["labels_tuning_ignored"])
+                for n in names
+            )
+            + " |"
+        )
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "
@@ -1083,6 +1125,7 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
     )
     mean_note = f" Means over seeds {', '.join(map(str, seeds))}." if len(seeds) > 1 else ""
     mean_note += _library_note(result.get("library_versions") or {})
+    mean_note += _partial_rows_note(variants)
     return "\n".join(
         [
             *(["## Human in the loop: does reviewing the mined negatives help?", ""] if heading else []),

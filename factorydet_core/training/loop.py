@@ -289,7 +289,11 @@ def _reviewed_labels(db: SessionDB, frame_index: int) -> list[dict]:
 
 
 def with_session_labels(
-    db: SessionDB, frames: Sequence[FrameProposals], snapshot: dict | None = None, min_points: int = 0
+    db: SessionDB,
+    frames: Sequence[FrameProposals],
+    snapshot: dict | None = None,
+    min_points: int = 0,
+    tuning_min_points: int = 0,
 ) -> list[FrameProposals]:
     """The frames with the session's labels in place of the data set's annotations: the current
     ones, or those of a stored ``snapshot`` (``SessionDB.snapshot``), so that a run trains on
@@ -297,12 +301,19 @@ def with_session_labels(
     objects nor background: their places are left out of training (``FrameProposals.ignore_boxes``),
     and so are a person's labels that hold fewer than ``min_points`` of their frame's points
     (``sparse_label_mask``; ``LoopSettings.label_min_points``). Labels whose box is the model's
-    own (origins ``MODEL_BOX_ORIGINS``) are marked so (``FrameProposals.label_model_box_mask``)."""
-    return session_labels(db, frames, snapshot, min_points)[0]
+    own (origins ``MODEL_BOX_ORIGINS``) are marked so (``FrameProposals.label_model_box_mask``),
+    and so are a person's labels that train but hold fewer than ``tuning_min_points`` of their
+    frame's points, which the thresholds' tuning ignores
+    (``FrameProposals.label_tuning_ignore_mask``; ``LoopSettings.threshold_label_min_points``)."""
+    return session_labels(db, frames, snapshot, min_points, tuning_min_points)[0]
 
 
 def session_labels(
-    db: SessionDB, frames: Sequence[FrameProposals], snapshot: dict | None = None, min_points: int = 0
+    db: SessionDB,
+    frames: Sequence[FrameProposals],
+    snapshot: dict | None = None,
+    min_points: int = 0,
+    tuning_min_points: int = 0,
 ) -> tuple[list[FrameProposals], int]:
     """``with_session_labels``' frames, and how many labels it left out as too sparse."""
     names = db.class_names
@@ -329,11 +340,15 @@ def session_labels(
         given = by_frame[frame.frame_index]
         labels = [lab for lab in given if lab.get("reviewed", True)]
         ignored = [lab["box"] for lab in given if not lab.get("reviewed", True)]
-        if min_points:
-            sparse = sparse_label_mask(db.dataset, frame.frame_index, labels, min_points)
+        tuning_ignored = None
+        if max(min_points, tuning_min_points) > 0:
+            counts = label_point_counts(db.dataset, frame.frame_index, labels)
+            sparse = counts < min_points
             num_sparse += int(sparse.sum())
             ignored += [lab["box"] for lab, is_sparse in zip(labels, sparse) if is_sparse]
             labels = [lab for lab, is_sparse in zip(labels, sparse) if not is_sparse]
+            if tuning_min_points > min_points:
+                tuning_ignored = counts[~sparse] < tuning_min_points
         model_box_mask = np.array([lab["origin"] in MODEL_BOX_ORIGINS for lab in labels], bool)
         instance_classes = {
             int(lab["instance_id"]): names.index(lab["class_name"])
@@ -347,6 +362,7 @@ def session_labels(
                 instance_classes,
                 np.array(ignored, np.float64).reshape(-1, 7),
                 model_box_mask,
+                tuning_ignored,
             )
         )
     return out, num_sparse
@@ -365,16 +381,26 @@ def sparse_label_mask(
     counted in ``world.counting_box`` (the box's surface grown a little, the floor band left
     out) of the frame merged with its nominal extrinsics. Reads the frame only when it has such a
     label."""
-    mask = np.zeros(len(labels), bool)
+    if min_points <= 0:
+        return np.zeros(len(labels), bool)
+    return label_point_counts(dataset, frame_index, labels) < min_points
+
+
+def label_point_counts(dataset: Dataset | None, frame_index: int, labels: Sequence[dict]) -> np.ndarray:
+    """(L,) int64: the frame's points each of a frame's labels (dicts with ``box`` and ``origin``)
+    holds, as ``sparse_label_mask`` counts them, for those a person made; the largest int64 for
+    those of ``POLICY_ORIGINS``, which are not checked. Reads the frame only when it has such a
+    label."""
+    counts = np.full(len(labels), np.iinfo(np.int64).max, np.int64)
     checked = [k for k, lab in enumerate(labels) if lab["origin"] not in POLICY_ORIGINS]
-    if not checked or min_points <= 0:
-        return mask
+    if not checked:
+        return counts
     if dataset is None:
         raise InputError("label_min_points: counting a label's points needs the session's data set")
     points = merge_frame(dataset.frame(frame_index)).points
     for k in checked:
-        mask[k] = int(points_in_box(points, counting_box(labels[k]["box"])).sum()) < min_points
-    return mask
+        counts[k] = int(points_in_box(points, counting_box(labels[k]["box"])).sum())
+    return counts
 
 
 def _merge(*maps: dict[int, list]) -> dict[int, list]:
@@ -549,7 +575,9 @@ def train_session(
     snapshot = db.snapshot(snapshot_id)
     # A person's labels too sparse to learn from are left out as ignored places (the run says how many).
     label_floor = settings.label_points_floor(db.dataset)
-    labelled, num_sparse = session_labels(db, frames, snapshot, label_floor)
+    labelled, num_sparse = session_labels(
+        db, frames, snapshot, label_floor, settings.threshold_points_floor(db.dataset)
+    )
     reviewed = db.reviewed_patch_sets()
     excluded = _merge(reviewed["object"], reviewed["wrong_box"])
     classifier = new_classifier(settings, db.class_names)
@@ -658,6 +686,11 @@ def train_session(
         )
     config["label_points_floor"] = label_floor
     config["sparse_labels_ignored"] = num_sparse
+    # A person's labels that trained but that the thresholds' tuning ignored as too sparse.
+    config["threshold_points_floor"] = settings.threshold_points_floor(db.dataset)
+    config["labels_tuning_ignored"] = sum(
+        int(f.label_tuning_ignore_mask.sum()) for f in labelled if f.label_tuning_ignore_mask is not None
+    )
     if command:
         config["command"] = command  # the checkpoints' notes say how to reproduce them
     run_id = db.save_training_run(run, data_ref, config, kind=mode, snapshot_id=snapshot_id)

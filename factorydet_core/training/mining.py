@@ -86,6 +86,10 @@ class FrameProposals:
     """(R,) which label boxes are the model's own, as a person accepted them (a reviewer's Object
     verdict on a mined box, a pre-label confirmed unmoved: ``store.MODEL_BOX_ORIGINS``); ``None``:
     none. With ``train_with_mining(model_box_targets=False)`` they teach their class alone."""
+    label_tuning_ignore_mask: np.ndarray | None = None
+    """(R,) which labels train as objects but count neither way when training tunes the score
+    thresholds (``LoopSettings.threshold_label_min_points``: a person's labels sparser than the
+    annotation policy the evaluation measures against); ``None``: none."""
     label_own_sets: tuple[tuple[int, ...], ...] | None = None
     """(R,) for each label, the patch set (patch ids) of the point set it was made from, which is
     its object whatever share of the set's points its box holds, or ``()`` for none; ``None``:
@@ -99,6 +103,7 @@ class FrameProposals:
         instance_classes: dict[int, int] | None = None,
         ignore_boxes: np.ndarray | None = None,
         model_box_mask: np.ndarray | None = None,
+        tuning_ignore_mask: np.ndarray | None = None,
     ) -> FrameProposals:
         """The same proposals with other labels (a session's corrected ones).
 
@@ -110,7 +115,10 @@ class FrameProposals:
                 ``None`` keeps them all as they are.
             ignore_boxes: (Q, 7) places training leaves out (``None``: none).
             model_box_mask: (R,) which boxes are the model's own (``label_model_box_mask``).
+            tuning_ignore_mask: (R,) which labels the thresholds' tuning ignores
+                (``label_tuning_ignore_mask``).
         """
+        num_labels = len(np.asarray(boxes).reshape(-1, 7))
         keep = np.ones(len(self.annotation_instance_ids), bool)
         classes = np.array(self.annotation_class_ids)
         if instance_classes is not None:
@@ -125,7 +133,8 @@ class FrameProposals:
             annotation_class_ids=classes[keep].astype(np.int64),
             annotation_instance_ids=self.annotation_instance_ids[keep],
             ignore_boxes=np.asarray([] if ignore_boxes is None else ignore_boxes, np.float64).reshape(-1, 7),
-            label_model_box_mask=_model_box_mask(model_box_mask, len(np.asarray(boxes).reshape(-1, 7))),
+            label_model_box_mask=_label_mask(model_box_mask, num_labels, "model_box_mask"),
+            label_tuning_ignore_mask=_label_mask(tuning_ignore_mask, num_labels, "tuning_ignore_mask"),
             label_own_sets=None,
         )
 
@@ -160,8 +169,12 @@ class FrameProposals:
         mask = self.label_model_box_mask
         mask = np.zeros(len(self.label_boxes), bool) if mask is None else mask
         own = self.label_own_sets if self.label_own_sets is not None else ((),) * len(self.label_boxes)
+        tuning = self.label_tuning_ignore_mask
+        if tuning is not None:  # (a pseudo-label is not checked for its points: it counts)
+            tuning = np.concatenate([tuning, np.zeros(len(boxes), bool)])
         return dataclasses.replace(
             self,
+            label_tuning_ignore_mask=tuning,
             label_boxes=np.concatenate([self.label_boxes.reshape(-1, 7), boxes]),
             label_class_ids=np.concatenate([np.asarray(self.label_class_ids, np.int64), class_ids]),
             label_model_box_mask=np.concatenate([mask, np.ones(len(boxes), bool)]),
@@ -368,12 +381,12 @@ def _training_set(
     return np.concatenate(features), np.concatenate(descriptors), np.concatenate(labels)
 
 
-def _model_box_mask(mask: np.ndarray | None, num_labels: int) -> np.ndarray | None:
+def _label_mask(mask: np.ndarray | None, num_labels: int, name: str) -> np.ndarray | None:
     if mask is None:
         return None
     mask = np.asarray(mask, bool).reshape(-1)
     if len(mask) != num_labels:
-        raise InputError(f"model_box_mask: expected {num_labels} entries (one per label), got {len(mask)}")
+        raise InputError(f"{name}: expected {num_labels} entries (one per label), got {len(mask)}")
     return mask
 
 
@@ -488,16 +501,23 @@ def kept_detections(model: DetectionModel, frame: FrameProposals, score_threshol
 
 
 def scored_frame(frame: FrameProposals, kept: Detections) -> dict:
-    """``score_frames``' item for one frame: its ``kept_detections`` with its references."""
+    """``score_frames``' item for one frame: its ``kept_detections`` with its references (the
+    labels, less those the thresholds' tuning ignores, which join the ignored places:
+    ``FrameProposals.label_tuning_ignore_mask``)."""
+    references, class_ids, ignore = frame.label_boxes, frame.label_class_ids, frame.ignore_boxes
+    ignored_labels = frame.label_tuning_ignore_mask
+    if ignored_labels is not None and ignored_labels.any():
+        references, class_ids = references[~ignored_labels], class_ids[~ignored_labels]
+        ignore = np.concatenate([ignore.reshape(-1, 7), frame.label_boxes[ignored_labels]])
     return {
         "frame_index": frame.frame_index,
         "detections": kept,
         "boxes": kept.boxes,
         "class_ids": kept.class_ids,
         "scores": kept.scores,
-        "reference_boxes": frame.label_boxes,
-        "reference_class_ids": frame.label_class_ids,
-        "ignore_boxes": frame.ignore_boxes,
+        "reference_boxes": references,
+        "reference_class_ids": class_ids,
+        "ignore_boxes": ignore,
     }
 
 

@@ -223,6 +223,16 @@ class LoopSettings:
     docs/review-loop.md). ``None``: ``SPARSE_LABEL_SHARE`` of the data set's annotation policy
     (its manifest's ``min_annotated_points``; none stated: every label kept). Pseudo-labels
     (``pseudo_label_confident``, carried or not) are not checked."""
+    threshold_label_min_points: int | None = 0
+    """A label a person made (the origins ``label_min_points`` checks) holding fewer than this many
+    of its frame's points still trains as an object, but the score thresholds are tuned (on the
+    fitted frames and out of fold) as if it were an ignored place: a detection on it is neither a
+    hit nor a false alarm, and nobody misses it. The evaluation measures against the data set's
+    annotation policy and ignores objects sparser than that; label once puts a person's label in
+    every frame with a point of its object, so without this the thresholds are tuned to find
+    objects the evaluation never asks for, and come out lower. 0 (the default): every label
+    counts; ``None``: ``SPARSE_LABEL_SHARE`` of the annotation policy, as ``label_min_points``'s
+    ``None``. Below ``label_min_points`` it changes nothing (those labels are ignored already)."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -254,10 +264,18 @@ class LoopSettings:
     def label_points_floor(self, dataset: Dataset | None) -> int:
         """The least points a person's label must hold in its frame to train as an object
         (``label_min_points``); 0: every label."""
-        if self.label_min_points is not None:
-            return self.label_min_points
-        policy = None if dataset is None else annotation_min_points(dataset, default=None)
-        return 0 if not policy else max(1, int(round(SPARSE_LABEL_SHARE * policy)))
+        return _points_floor(self.label_min_points, dataset)
+
+    def threshold_points_floor(self, dataset: Dataset | None) -> int:
+        """The least points a person's label must hold in its frame to count when the thresholds
+        are tuned (``threshold_label_min_points``); 0: every label."""
+        return _points_floor(self.threshold_label_min_points, dataset)
+
+    def measure_points_floor(self, dataset: Dataset | None) -> int:
+        """The least points a person's label must hold in its frame to be a reference when a run's
+        models are measured on the session's labels (the before/after table): what the run
+        neither trains on nor tunes its thresholds on is ignored there too."""
+        return max(self.label_points_floor(dataset), self.threshold_points_floor(dataset))
 
     def quality_visibility(self, dataset: Dataset | None) -> bool:
         """Whether the box quality regressor reads free space for ``dataset`` (``visibility``)."""
@@ -286,8 +304,9 @@ class LoopSettings:
         if isinstance(self.refit_row_share, bool) or not 0.0 < float(self.refit_row_share) <= 1.0:
             raise InputError(f"refit_row_share must lie in (0, 1], got {self.refit_row_share!r}")
         _check_count("quality_trees", self.quality_trees, 1)
-        if self.label_min_points is not None:
-            _check_count("label_min_points", self.label_min_points, 0)
+        for name in ("label_min_points", "threshold_label_min_points"):
+            if getattr(self, name) is not None:
+                _check_count(name, getattr(self, name), 0)
         if self.queue_order not in QUEUE_ORDERS:
             orders = ", ".join(QUEUE_ORDERS)
             raise InputError(f"queue_order must be one of {orders}, got {self.queue_order!r}")
@@ -336,10 +355,20 @@ BEFORE_THEY_EXISTED: dict[str, object] = {
     "quality_trees": 500,
     "continue_folds": False,
     "label_min_points": 0,
+    "threshold_label_min_points": 0,
 }
 """What a record written before each of these ``LoopSettings`` fields existed ran with: the
 behaviour the field was added to keep by default. A record that lacks a field is read with these,
 not with today's default, so a default changed since does not rewrite what an old record ran."""
+
+
+def _points_floor(setting: int | None, dataset: Dataset | None) -> int:
+    """A points floor setting as a number: itself, or with ``None`` ``SPARSE_LABEL_SHARE`` of the
+    data set's annotation policy (0, every label, when it states none)."""
+    if setting is not None:
+        return setting
+    policy = None if dataset is None else annotation_min_points(dataset, default=None)
+    return 0 if not policy else max(1, int(round(SPARSE_LABEL_SHARE * policy)))
 
 
 def folds_continue(settings: Mapping[str, object], next_rounds: bool) -> bool:
@@ -547,6 +576,11 @@ LOOP_CONTROLS: tuple[Control, ...] = (
             "its frame's points trains as an ignored place, neither object nor background (0: every "
             "label, the default; -1: half the data set's annotation policy, none without one)",
             int, -1, 1_000_000, 1, none_as=-1),
+    Control("threshold_label_min_points", "Threshold label min points", "a label a person made "
+            "(as Label min points) holding fewer of its frame's points still trains as an object, but "
+            "the score thresholds are tuned as if it were an ignored place, as the evaluation ignores "
+            "objects sparser than the annotation policy (0: every label counts, the default; -1: half "
+            "the data set's annotation policy, none without one)", int, -1, 1_000_000, 1, none_as=-1),
     Control("nms_iou", "NMS IoU", "3D non-maximum suppression overlap", float, 0.0, 1.0, 0.05),
     Control("seed", "Seed", "random seed of the fit and of the background samples", int, 0, 2**31 - 1, 1),
     Control("box_quality", "Box quality regressor", "pick each box among the options by a regressor of its "

@@ -430,3 +430,32 @@ def test_the_hitl_table_counts_a_persons_labels_left_out_as_too_sparse():
     text = hitl_markdown(result, heading=False)
     row = "| a person's labels too sparse to learn from (ignored places, last fit) | – | 431.5 | 0 |"
     assert row in text
+    assert "too sparse for the thresholds' tuning" not in text
+    result["variants"]["reviewed_200"]["labels_tuning_ignored"] = 120.0
+    text = hitl_markdown(result, heading=False)
+    tuning = "| a person's labels trained on but too sparse for the thresholds' tuning (last fit) |"
+    assert f"{tuning} – | 120 | – |" in text
+
+
+def test_the_hitl_table_names_the_rows_it_left_out_for_runs_that_lack_them():
+    """A row needs every run's figure; runs read back from an older record may lack one, and the
+    table says which rows it left out and how many runs measured them."""
+    from factorydet_core.evaluation.report import hitl_markdown
+
+    result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.34, 0.35, 0.33]})
+    plain = hitl_markdown(result, heading=False)
+    assert "Left out" not in plain  # (no counts: a record from before they were kept)
+    for variant in result["variants"].values():
+        variant["runs_measuring"] = dict.fromkeys(
+            ("per_class_precision", "in_factory", "fitted_frame_thresholds"), 3
+        ) | {"other_objective_thresholds": 0, "fitted_frame_other_objective_thresholds": 0}
+        variant["in_factory"] = {"f1": 0.4, "map": 0.4, "f1_per_seed": [0.4] * 3}
+    assert "Left out" not in hitl_markdown(result, heading=False)  # every run, or none, measured them
+    result["variants"]["full"]["runs_measuring"]["in_factory"] = 1
+    del result["variants"]["full"]["in_factory"]
+    text = hitl_markdown(result, heading=False)
+    assert "(in-factory)" not in text
+    assert (
+        "Left out, as not every run measured them (runs read back from records made before they were"
+        " kept): the in-factory F-score (measured by full 1 of 3 runs)." in text
+    )

@@ -1,6 +1,8 @@
 """The labelling loop: training from a session's labels and verdicts, the proposal cache, the
 before/after comparison, and the simulated reviewer."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -153,6 +155,7 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     # Every label by default: no floor, nothing left out.
     config = db.training_runs()[-1]["config"]
     assert (config["label_points_floor"], config["sparse_labels_ignored"]) == (0, 0)
+    assert (config["threshold_points_floor"], config["labels_tuning_ignored"]) == (0, 0)
     # A run trained with no front-end note (scripts, the benchmark) still loads.
     stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
     assert stored.front_end is None and stored.class_names == run.model.class_names
@@ -1006,6 +1009,14 @@ def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, datas
         assert len(kept.label_boxes) == len(frame.label_boxes) + 1
         assert len(left_out.label_boxes) == len(frame.label_boxes)
         np.testing.assert_allclose(left_out.ignore_boxes, [label.box])
+        # With a floor for the thresholds' tuning alone, it trains as an object and the tuning
+        # ignores it; the data set's labels are not checked.
+        (tuned,), num_sparse = session_labels(db, [frame], tuning_min_points=25)
+        assert num_sparse == 0 and len(tuned.label_boxes) == len(frame.label_boxes) + 1
+        assert tuned.label_tuning_ignore_mask.tolist() == [False] * len(frame.label_boxes) + [True]
+        (both,), _ = session_labels(db, [frame], min_points=25, tuning_min_points=25)
+        assert both.label_tuning_ignore_mask is None  # (nothing left for the tuning to ignore)
+        assert with_session_labels(db, [frame])[0].label_tuning_ignore_mask is None
     finally:
         db.delete_labels([label.id], "sparse")
 
@@ -1026,3 +1037,50 @@ def test_the_label_points_floor_follows_the_data_sets_policy(dataset):
     assert control.arguments(None) == ["--label-min-points", "-1"] and control.arguments(0) == []
     with pytest.raises(InputError):
         control.parse("-2")
+
+
+def test_a_run_tunes_its_thresholds_without_a_persons_sparse_labels(db, dataset, frames, monkeypatch):
+    """``threshold_label_min_points`` reaches the frames a run trains on: a person's label on a
+    handful of points stays a label, marked for the thresholds' tuning to ignore."""
+    from factorydet_core.training import loop
+
+    class StopError(Exception):
+        pass
+
+    given = []
+
+    def capture(frames_given, *args, **kwargs):
+        given.append(frames_given)
+        raise StopError
+
+    monkeypatch.setattr(loop, "train_with_mining", capture)
+    box = tuple(frames[0].label_boxes[0].tolist())
+    label = db.add_label(0, (box[0], box[1], box[2] + 30.0, *box[3:]), "box", "sparse")  # no point
+    try:
+        for floor in (0, 25):
+            with pytest.raises(StopError):
+                train_session(db, frames, dataclasses.replace(SETTINGS, threshold_label_min_points=floor))
+    finally:
+        db.delete_labels([label.id], "sparse")
+    every, floored = ({f.frame_index: f for f in run} for run in given)
+    assert every[0].label_tuning_ignore_mask is None
+    mask = floored[0].label_tuning_ignore_mask
+    assert len(floored[0].label_boxes) == len(every[0].label_boxes) and mask[-1] and not mask[:-1].any()
+
+
+def test_the_thresholds_label_floor_follows_the_data_sets_policy_too(dataset):
+    policy = dataset.manifest["config"]["min_annotated_points"]
+    floor = LoopSettings(threshold_label_min_points=None).threshold_points_floor(dataset)
+    assert floor == LoopSettings(label_min_points=None).label_points_floor(dataset) == round(policy / 2)
+    assert LoopSettings().threshold_points_floor(dataset) == 0  # every label counts, the default
+    assert LoopSettings(threshold_label_min_points=9).threshold_points_floor(dataset) == 9
+    # The before/after table ignores what the run neither trained nor tuned on.
+    assert LoopSettings(threshold_label_min_points=9).measure_points_floor(dataset) == 9
+    assert LoopSettings(label_min_points=12, threshold_label_min_points=9).measure_points_floor(dataset) == 12
+    with pytest.raises(InputError, match="threshold_label_min_points"):
+        LoopSettings(threshold_label_min_points=-1)
+    from factorydet_core.training.settings import CONTROL_BY_FIELD
+
+    control = CONTROL_BY_FIELD["threshold_label_min_points"]
+    assert control.parse("-1") is None
+    assert control.arguments(None) == ["--threshold-label-min-points", "-1"]
