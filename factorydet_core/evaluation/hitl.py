@@ -792,6 +792,8 @@ def _run_plan(plan: dict, variant: str) -> dict:
             untouched.add("model_box_targets")  # no verdict nor pseudo-label: no label with the model's box
     if settings.get("pseudo_label_confident") is None:
         untouched.add("carry_pseudo_labels")  # no pseudo-label to carry
+    if settings.get("class_thresholds") is False:
+        untouched.add("threshold_label_min_points")  # no threshold tuned
     if not holds(variant):
         untouched |= {"hold_confident", *BLIND_SAFE_SETTINGS}
     if variant in ("blind", "full"):
@@ -1044,6 +1046,7 @@ def _hitl_variants(
                 pseudo = pseudo_label_truth(
                     db, dataset, session_pseudo_labels(db, seed_settings, train, world)
                 )
+            last_config = db.training_runs()[-1]["config"]
             per_seed[name].append(
                 {
                     "seed": seed,
@@ -1059,10 +1062,10 @@ def _hitl_variants(
                     "reviews": reviews,
                     "truth_labels_added": added,
                     # A person's labels the last fit left out as too sparse (label_min_points).
-                    "sparse_labels_ignored": db.training_runs()[-1]["config"].get("sparse_labels_ignored"),
+                    "sparse_labels_ignored": last_config.get("sparse_labels_ignored"),
                     # ... and those it trained on but tuned its thresholds without
                     # (threshold_label_min_points).
-                    "labels_tuning_ignored": db.training_runs()[-1]["config"].get("labels_tuning_ignored"),
+                    "labels_tuning_ignored": last_config.get("labels_tuning_ignored"),
                     "unannotated_labelled": covered,
                     "unannotated_total": unannotated,
                     "unannotated_labelled_per_class": {c: list(v) for c, v in covered_by_class.items()},

@@ -261,10 +261,10 @@ def session_references(
 def session_references_and_sparse(
     db: SessionDB, frame_indices: Sequence[int], min_points: int
 ) -> tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict[int, np.ndarray]]:
-    """``session_references`` of the frames, and frame index -> (Q, 7) boxes of the labels too
-    sparse to train on at ``min_points`` (``sparse_label_mask``): places a measurement against
-    those references ignores, as training does. Each frame's labels are read and its points
-    counted once (a measurement needs both)."""
+    """``session_references`` of the frames, and frame index -> (Q, 7) boxes of the labels
+    holding fewer than ``min_points`` of their frame's points (``sparse_label_mask``): places a
+    measurement against those references ignores, as training (or the thresholds' tuning) does.
+    Each frame's labels are read and its points counted once (a measurement needs both)."""
     references, sparse_boxes = {}, {}
     for index in frame_indices:
         labels = _reviewed_labels(db, index)
@@ -396,7 +396,10 @@ def label_point_counts(dataset: Dataset | None, frame_index: int, labels: Sequen
     if not checked:
         return counts
     if dataset is None:
-        raise InputError("label_min_points: counting a label's points needs the session's data set")
+        raise InputError(
+            "label_min_points, threshold_label_min_points: counting a label's points needs the"
+            " session's data set"
+        )
     points = merge_frame(dataset.frame(frame_index)).points
     for k in checked:
         counts[k] = int(points_in_box(points, counting_box(labels[k]["box"])).sum())

@@ -501,23 +501,40 @@ def kept_detections(model: DetectionModel, frame: FrameProposals, score_threshol
 
 
 def scored_frame(frame: FrameProposals, kept: Detections) -> dict:
-    """``score_frames``' item for one frame: its ``kept_detections`` with its references (the
-    labels, less those the thresholds' tuning ignores, which join the ignored places:
-    ``FrameProposals.label_tuning_ignore_mask``)."""
-    references, class_ids, ignore = frame.label_boxes, frame.label_class_ids, frame.ignore_boxes
-    ignored_labels = frame.label_tuning_ignore_mask
-    if ignored_labels is not None and ignored_labels.any():
-        references, class_ids = references[~ignored_labels], class_ids[~ignored_labels]
-        ignore = np.concatenate([ignore.reshape(-1, 7), frame.label_boxes[ignored_labels]])
-    return {
+    """``score_frames``' item for one frame: its ``kept_detections`` with its references (its
+    labels) and, where some labels train but the thresholds' tuning ignores them
+    (``FrameProposals.label_tuning_ignore_mask``), that (R,) mask as ``tuning_ignore_mask``
+    (``for_tuning``)."""
+    item = {
         "frame_index": frame.frame_index,
         "detections": kept,
         "boxes": kept.boxes,
         "class_ids": kept.class_ids,
         "scores": kept.scores,
-        "reference_boxes": references,
-        "reference_class_ids": class_ids,
-        "ignore_boxes": ignore,
+        "reference_boxes": frame.label_boxes,
+        "reference_class_ids": frame.label_class_ids,
+        "ignore_boxes": frame.ignore_boxes,
+    }
+    if frame.label_tuning_ignore_mask is not None and frame.label_tuning_ignore_mask.any():
+        item["tuning_ignore_mask"] = frame.label_tuning_ignore_mask
+    return item
+
+
+def for_tuning(item: dict) -> dict:
+    """A ``scored_frame`` item as the thresholds' tuning sees it: the labels of its
+    ``tuning_ignore_mask`` moved from the references to the ignored places (a detection on one
+    is neither a hit nor a false alarm, and it is nobody's miss); the item itself if it has none."""
+    mask = item.get("tuning_ignore_mask")
+    if mask is None:
+        return item
+    boxes = np.asarray(item["reference_boxes"], np.float64).reshape(-1, 7)
+    class_ids = np.asarray(item["reference_class_ids"])
+    ignore = np.asarray(item["ignore_boxes"], np.float64).reshape(-1, 7)
+    return {
+        **item,
+        "reference_boxes": boxes[~mask],
+        "reference_class_ids": class_ids[~mask],
+        "ignore_boxes": np.concatenate([ignore, boxes[mask]]),
     }
 
 
@@ -540,9 +557,9 @@ def with_tuned_thresholds(
     (``score_frames``'s output for ``model``, down to ``types.SCORE_FLOOR``;
     ``metrics.tune_class_thresholds``, none above ``max_threshold``): the class's own, or with
     ``objective`` "total" that of all classes pooled; a class without a true positive keeps the
-    global threshold."""
+    global threshold. Labels the tuning ignores are ignored places there (``for_tuning``)."""
     tuned = tune_thresholds(
-        scored,
+        [for_tuning(item) for item in scored],
         model.class_names,
         positive_iou,
         max_threshold=max_threshold,

@@ -230,9 +230,10 @@ class LoopSettings:
     hit nor a false alarm, and nobody misses it. The evaluation measures against the data set's
     annotation policy and ignores objects sparser than that; label once puts a person's label in
     every frame with a point of its object, so without this the thresholds are tuned to find
-    objects the evaluation never asks for, and come out lower. 0 (the default): every label
-    counts; ``None``: ``SPARSE_LABEL_SHARE`` of the annotation policy, as ``label_min_points``'s
-    ``None``. Below ``label_min_points`` it changes nothing (those labels are ignored already)."""
+    objects the evaluation never asks for. 0 (the default): every label counts; ``None``:
+    ``SPARSE_LABEL_SHARE`` of the annotation policy, as ``label_min_points``'s ``None``. At or
+    below ``label_min_points`` it changes nothing (those labels are ignored already), nor
+    without ``class_thresholds`` (nothing is tuned)."""
     nms_iou: float = 0.25
     seed: int = 0
     num_threads: int | None = None
@@ -268,13 +269,16 @@ class LoopSettings:
 
     def threshold_points_floor(self, dataset: Dataset | None) -> int:
         """The least points a person's label must hold in its frame to count when the thresholds
-        are tuned (``threshold_label_min_points``); 0: every label."""
+        are tuned (``threshold_label_min_points``); 0: every label, and without per-class
+        thresholds (``class_thresholds`` off: nothing is tuned)."""
+        if not self.class_thresholds:
+            return 0
         return _points_floor(self.threshold_label_min_points, dataset)
 
     def measure_points_floor(self, dataset: Dataset | None) -> int:
         """The least points a person's label must hold in its frame to be a reference when a run's
-        models are measured on the session's labels (the before/after table): what the run
-        neither trains on nor tunes its thresholds on is ignored there too."""
+        models are measured on the session's labels (the before/after table): a label the run
+        does not train on, or does not tune its thresholds on, is ignored there too."""
         return max(self.label_points_floor(dataset), self.threshold_points_floor(dataset))
 
     def quality_visibility(self, dataset: Dataset | None) -> bool:

@@ -262,9 +262,15 @@ def test_the_label_points_floor_shapes_the_reviewers_runs_alone():
     plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [50], "review_by": "place",
             "queue_max_label_iou": 0.25, "settings": settings}  # fmt: skip
     every_label = {**plan, "settings": {**settings, "label_min_points": 0}}
-    tuned = {**plan, "settings": {**settings, "threshold_label_min_points": None}}
+    # (the thresholds' floor on every label's training: a floor of its own)
+    tuned = {**every_label, "settings": {**every_label["settings"], "threshold_label_min_points": None}}
+    untuned = {**tuned, "settings": {**tuned["settings"], "class_thresholds": False}}
     for variant in ("blind", "blind_safe", "full", "full_late"):
-        assert _run_plan(plan, variant) == _run_plan(every_label, variant) == _run_plan(tuned, variant)
+        assert _run_plan(plan, variant) == _run_plan(every_label, variant) == _run_plan(every_label, variant)
+        assert _run_plan(every_label, variant) == _run_plan(tuned, variant)
     for variant in ("reviewed_200", "reviewed_safe_200"):
         assert _run_plan(plan, variant) != _run_plan(every_label, variant)
-        assert _run_plan(plan, variant) != _run_plan(tuned, variant)
+        assert _run_plan(every_label, variant) != _run_plan(tuned, variant)
+        # Without per-class thresholds nothing is tuned: the floor cannot shape the run.
+        no_floor = {**untuned, "settings": {**untuned["settings"], "threshold_label_min_points": 0}}
+        assert _run_plan(untuned, variant) == _run_plan(no_floor, variant)

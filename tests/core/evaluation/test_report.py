@@ -440,8 +440,10 @@ def test_the_hitl_table_counts_a_persons_labels_left_out_as_too_sparse():
 def test_the_hitl_table_names_the_rows_it_left_out_for_runs_that_lack_them():
     """A row needs every run's figure; runs read back from an older record may lack one, and the
     table says which rows it left out and how many runs measured them."""
-    from factorydet_core.evaluation.report import hitl_markdown
+    from factorydet_core.evaluation.hitl import OPTIONAL_RUN_FIGURES
+    from factorydet_core.evaluation.report import PARTIAL_ROWS, hitl_markdown
 
+    assert set(PARTIAL_ROWS) == set(OPTIONAL_RUN_FIGURES)  # (each named when left out)
     result = _hitl_result({"blind": [0.30, 0.31, 0.29], "full": [0.34, 0.35, 0.33]})
     plain = hitl_markdown(result, heading=False)
     assert "Left out" not in plain  # (no counts: a record from before they were kept)

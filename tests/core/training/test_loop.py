@@ -1016,7 +1016,6 @@ def test_a_persons_label_too_sparse_for_the_policy_is_an_ignored_place(db, datas
         assert tuned.label_tuning_ignore_mask.tolist() == [False] * len(frame.label_boxes) + [True]
         (both,), _ = session_labels(db, [frame], min_points=25, tuning_min_points=25)
         assert both.label_tuning_ignore_mask is None  # (nothing left for the tuning to ignore)
-        assert with_session_labels(db, [frame])[0].label_tuning_ignore_mask is None
     finally:
         db.delete_labels([label.id], "sparse")
 
@@ -1066,6 +1065,21 @@ def test_a_run_tunes_its_thresholds_without_a_persons_sparse_labels(db, dataset,
     assert every[0].label_tuning_ignore_mask is None
     mask = floored[0].label_tuning_ignore_mask
     assert len(floored[0].label_boxes) == len(every[0].label_boxes) and mask[-1] and not mask[:-1].any()
+
+
+def test_a_runs_config_counts_the_labels_its_thresholds_were_tuned_without(dataset, frames, tmp_path):
+    db = SessionDB(open_session("tuning_floor", tmp_path), dataset)
+    box = tuple(frames[0].label_boxes[0].tolist())
+    db.add_label(0, (box[0], box[1], box[2] + 30.0, *box[3:]), "box", "sparse")  # no point
+    settings = dataclasses.replace(SETTINGS, rounds=0, threshold_label_min_points=25)
+    run_id, _ = train_session(db, frames, settings)
+    config = db.run_config(run_id)
+    assert (config["threshold_points_floor"], config["labels_tuning_ignored"]) == (25, 1)
+    assert (config["label_points_floor"], config["sparse_labels_ignored"]) == (0, 0)  # it trained
+    # Without per-class thresholds nothing is tuned, and nothing is counted.
+    run_id, _ = train_session(db, frames, dataclasses.replace(settings, class_thresholds=False))
+    config = db.run_config(run_id)
+    assert (config["threshold_points_floor"], config["labels_tuning_ignored"]) == (0, 0)
 
 
 def test_the_thresholds_label_floor_follows_the_data_sets_policy_too(dataset):

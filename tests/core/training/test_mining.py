@@ -953,14 +953,14 @@ def test_threshold_folds_are_zero_or_at_least_two_and_no_more_than_the_frames(fr
         train_with_mining(frames, ProposalClassifier(epochs=1), threshold_folds=3)
 
 
-def test_labels_the_tuning_ignores_are_neither_found_nor_missed_when_scored(frames):
-    """``label_tuning_ignore_mask``: such a label is no reference of the scored frame but an ignored
-    place, so a detection on it counts neither way (the thresholds are tuned as the evaluation
-    measures); mining still reads every label, and pseudo-labels added after count."""
+def test_labels_the_tuning_ignores_are_neither_found_nor_missed_by_the_tuning(frames, monkeypatch):
+    """``label_tuning_ignore_mask``: such a label is a reference of the scored frame (the round's
+    metrics, mining) but an ignored place where the thresholds are tuned (``for_tuning``), so a
+    detection on it counts neither way there; pseudo-labels added after count."""
     from types import SimpleNamespace
 
     from factorydet_core.metrics import detection_metrics
-    from factorydet_core.training.mining import scored_frame
+    from factorydet_core.training.mining import for_tuning, scored_frame, with_tuned_thresholds
 
     frame = next(f for f in frames if len(f.label_boxes) >= 2)
     boxes, class_ids = frame.label_boxes, frame.label_class_ids
@@ -970,15 +970,34 @@ def test_labels_the_tuning_ignores_are_neither_found_nor_missed_when_scored(fram
     np.testing.assert_array_equal(masked.label_boxes, boxes)  # every label still trains
     kept = SimpleNamespace(boxes=boxes[:1], class_ids=class_ids[:1], scores=np.array([0.9]))
     names = tuple(f"c{k}" for k in range(int(class_ids.max()) + 1))
-    plain, ignored = (detection_metrics([scored_frame(f, kept)], names, 0.6, 0.5) for f in (frame, masked))
     name = names[int(class_ids[0])]
-    assert plain["per_class"][name]["tp"] == 1
-    assert ignored["per_class"][name]["tp"] == 0 and ignored["per_class"][name]["num_detections"] == 0
-    num_refs = sum(v["num_reference"] for v in plain["per_class"].values())
-    assert sum(v["num_reference"] for v in ignored["per_class"].values()) == num_refs - 1
     item = scored_frame(masked, kept)
-    np.testing.assert_allclose(item["ignore_boxes"][-1], boxes[0])
-    assert len(item["reference_boxes"]) == len(boxes) - 1
+    assert item.keys() - scored_frame(frame, kept).keys() == {"tuning_ignore_mask"}
+    np.testing.assert_array_equal(item["reference_boxes"], boxes)  # (the round's own metrics)
+    plain, tuned = (detection_metrics([x], names, 0.6, 0.5) for x in (item, for_tuning(item)))
+    assert plain["per_class"][name]["tp"] == 1
+    assert tuned["per_class"][name]["tp"] == 0 and tuned["per_class"][name]["num_detections"] == 0
+    num_refs = sum(v["num_reference"] for v in plain["per_class"].values())
+    assert sum(v["num_reference"] for v in tuned["per_class"].values()) == num_refs - 1
+    np.testing.assert_allclose(for_tuning(item)["ignore_boxes"][-1], boxes[0])
+    assert for_tuning(scored_frame(frame, kept)) == scored_frame(frame, kept)
+    # ... and the tuning is given that view of every item.
+    seen = []
+
+    def tune(items, class_names, *args, **kwargs):
+        seen.extend(items)
+        return np.full(len(class_names), 0.5)
+
+    @dataclasses.dataclass(frozen=True)
+    class Model:
+        class_names: tuple
+        score_threshold: float = 0.35
+        class_score_thresholds: dict | None = None
+
+    monkeypatch.setattr(training, "tune_thresholds", tune)
+    out = with_tuned_thresholds(Model(names), [item, scored_frame(frame, kept)])
+    assert out.class_score_thresholds == dict.fromkeys(names, 0.5)
+    assert [len(x["reference_boxes"]) for x in seen] == [len(boxes) - 1, len(boxes)]
     pseudo = masked.with_pseudo_labels(boxes[:1] + [0, 0, 5, 0, 0, 0, 0], class_ids[:1])
     np.testing.assert_array_equal(pseudo.label_tuning_ignore_mask, [*mask, False])
     with pytest.raises(InputError, match="tuning_ignore_mask"):
