@@ -1178,7 +1178,7 @@ def test_a_box_the_model_gave_becomes_a_persons_when_they_move_it(db, tiny_model
     class Frame:  # what with_session_labels reads of a frame's proposals
         frame_index = item["frame_index"]
 
-        def with_labels(self, boxes, class_ids, instance_classes, ignore, model_box_mask):
+        def with_labels(self, boxes, class_ids, instance_classes, ignore, model_box_mask, tuning_mask):
             return boxes, model_box_mask
 
     boxes, mask = with_session_labels(db, [Frame()])[0]
