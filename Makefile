@@ -549,6 +549,17 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json \
 	  docs/bench/hitl-e20-folds-pooled-reviewed-six.json --variants reviewed_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-sparse-vs-every-label
+	# The same with a person's sparse labels trained on but left out of the thresholds' tuning alone.
+	test -f docs/bench/hitl-e20-folds-pooled-reviewed-tune-sparse-six.json || cp docs/bench/hitl-e20-folds-pooled-reviewed-six.json docs/bench/hitl-e20-folds-pooled-reviewed-tune-sparse-six.json
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
+	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
+	  --out docs/bench/hitl-e20-folds-pooled-reviewed-tune-sparse-six.json --readme docs/review-loop.md \
+	  --readme-block hitl-e20-folds-pooled-reviewed-tune-sparse-six --resume --refit-row-share 1 --resume-other-library
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-reviewed-tune-sparse-six.json \
+	  docs/bench/hitl-e20-folds-pooled-reviewed-six.json --variants reviewed_200,reviewed_200 \
+	  --readme docs/review-loop.md --readme-block hitl-tune-sparse-vs-every-label
 	# The reviewer's record above on six factories no record had used (simulator seeds 111-116), each
 	# network also measured at the thresholds it gets without folds.
 	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
