@@ -1021,28 +1021,16 @@ def hitl_markdown(result: dict, heading: bool = True) -> str:
             + " | ".join(shares)
             + " |"
         )
-    if any(variants[n].get("sparse_labels_ignored") for n in names):
-        rows.append(
-            "| a person's labels too sparse to learn from (ignored places, last fit) | "
-            + " | ".join(
-                "–"
-                if variants[n].get("sparse_labels_ignored") is None
-                else _mean_count(variants[n]["sparse_labels_ignored"])
-                for n in names
-            )
-            + " |"
-        )
-    if any(variants[n].get("labels_tuning_ignored") for n in names):
-        rows.append(
-            "| a person's labels trained on but too sparse for the thresholds' tuning (last fit) | "
-            + " | ".join(
-                "–"
-                if variants[n].get("labels_tuning_ignored") is None
-                else _mean_count(variants[n]["labels_tuning_ignored"])
-                for n in names
-            )
-            + " |"
-        )
+    for key, what in (
+        ("sparse_labels_ignored", "a person's labels too sparse to learn from (ignored places, last fit)"),
+        (
+            "labels_tuning_ignored",
+            "a person's labels trained on but too sparse for the thresholds' tuning (last fit)",
+        ),
+    ):
+        if any(variants[n].get(key) for n in names):
+            counts = ("–" if variants[n].get(key) is None else _mean_count(variants[n][key]) for n in names)
+            rows.append(f"| {what} | " + " | ".join(counts) + " |")
     if all("unannotated_labelled" in variants[n] for n in names):
         rows.append(
             "| unannotated training objects labelled | "
