@@ -869,11 +869,11 @@ def _partial_rows_note(variants: dict[str, dict]) -> str:
     """The rows a hitl table left out because some of its runs, but not all, measured them (runs
     read back from a record made before they were kept), with how many did; "" for none."""
     left_out = []
+    runs = {n: len(v["f1_per_seed"]) for n, v in variants.items()}
     for key, what in PARTIAL_ROWS.items():
         counts = {n: v.get("runs_measuring", {}).get(key) for n, v in variants.items()}
         if any(c is None for c in counts.values()):
             continue  # (a record from before the counts were kept: unknown)
-        runs = {n: len(v["f1_per_seed"]) for n, v in variants.items()}
         measured, total = sum(counts.values()), sum(runs.values())
         if 0 < measured < total:
             short = [f"{n} {counts[n]} of {runs[n]}" for n in variants if counts[n] < runs[n]]

@@ -578,9 +578,9 @@ def train_session(
     snapshot = db.snapshot(snapshot_id)
     # A person's labels too sparse to learn from are left out as ignored places (the run says how many).
     label_floor = settings.label_points_floor(db.dataset)
-    labelled, num_sparse = session_labels(
-        db, frames, snapshot, label_floor, settings.threshold_points_floor(db.dataset)
-    )
+    # ... and those sparser than the thresholds' floor train but are left out of their tuning.
+    tuning_floor = settings.threshold_points_floor(db.dataset)
+    labelled, num_sparse = session_labels(db, frames, snapshot, label_floor, tuning_floor)
     reviewed = db.reviewed_patch_sets()
     excluded = _merge(reviewed["object"], reviewed["wrong_box"])
     classifier = new_classifier(settings, db.class_names)
@@ -690,7 +690,7 @@ def train_session(
     config["label_points_floor"] = label_floor
     config["sparse_labels_ignored"] = num_sparse
     # A person's labels that trained but that the thresholds' tuning ignored as too sparse.
-    config["threshold_points_floor"] = settings.threshold_points_floor(db.dataset)
+    config["threshold_points_floor"] = tuning_floor
     config["labels_tuning_ignored"] = sum(
         int(f.label_tuning_ignore_mask.sum()) for f in labelled if f.label_tuning_ignore_mask is not None
     )
