@@ -100,6 +100,8 @@ def test_app_shows_controls_navigates_frames_and_draws(app, page):
     for name in ("Next frame", "Previous frame"):
         assert page.get_by_role("button", name=name).count() == 1
     for label in ("Colour by", "Point size (m)", "Show boxes", "Hide above (m)"):
+        # (the panels' controls arrive in the same stream of messages, some after the buttons)
+        page.get_by_text(label, exact=True).first.wait_for(timeout=30_000)
         assert page.get_by_text(label, exact=True).count() >= 1
     page.get_by_text("frame 1 / 3", exact=False).wait_for(timeout=20_000)
     result = view.state.wait_for(lambda: view.state.pipeline_result, timeout=120)
