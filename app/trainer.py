@@ -28,6 +28,7 @@ from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled, InputError
 from factorydet_core.workflows import retrain_session, training_frame_indices
 
+from .panels import short_name
 from .state import SharedState
 
 _clock = time.perf_counter
@@ -301,7 +302,7 @@ class TrainingWorker:
 
         done = retrain_session(
             db, dataset, settings, params_for(before, dataset.num_sensors), mode=mode,
-            before={} if before is None else {f"before ({before_name})": before},
+            before={} if before is None else {f"before ({short_name(before_name)})": before},
             after_label="after (run {run_id})", calibrate=self.calibrate, progress=progress,
             should_stop=self._cancel.is_set, execution=execution, world=world,
         )  # fmt: skip

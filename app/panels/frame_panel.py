@@ -1,4 +1,5 @@
-"""Frame navigation: slider, previous/next buttons and the status line."""
+"""Frame navigation: slider, previous/next buttons, the status line, and the progress of the
+frame's computation (the front half and the detections), where a labeller waiting for it looks."""
 
 from __future__ import annotations
 
@@ -17,11 +18,14 @@ class FramePanel:
     previous: viser.GuiButtonHandle
     next: viser.GuiButtonHandle
     status: viser.GuiMarkdownHandle
+    progress: viser.GuiProgressBarHandle
+    work: viser.GuiMarkdownHandle
 
     def refresh(self, state: AppState) -> None:
         """Show the state's frame in the slider and the status line."""
         with state.lock:
             index, frame = state.frame_index, state.frame
+            work, fraction, busy = state.pipeline_status, state.pipeline_progress, state.pipeline_busy
         # The slider counts frames from 1, as the status line does.
         if self.slider.value != index + 1:
             self.slider.value = index + 1
@@ -32,6 +36,8 @@ class FramePanel:
         self.status.content = status_markdown(
             state.title, index, state.dataset.num_frames, frame, class_ids, what
         )
+        self.progress.value = round(100 * fraction, 1)
+        self.work.content = f"{'⏳ ' if busy else ''}{work}"
 
 
 def status_markdown(
@@ -57,6 +63,10 @@ def build_frame_panel(server: viser.ViserServer | viser.ClientHandle, state: App
             previous = server.gui.add_button("Previous frame", icon=viser.Icon.ARROW_LEFT, disabled=True)
             next_ = server.gui.add_button("Next frame", icon=viser.Icon.ARROW_RIGHT, disabled=num_frames <= 1)
         status = server.gui.add_markdown("")
+        # Not animated while busy either (the status says so): the stripes' animation costs a browser
+        # without a GPU cores the frame's own computation needs (see the Training panel's bar).
+        progress = server.gui.add_progress_bar(0.0, animated=False)
+        work = server.gui.add_markdown("")
 
     @slider.on_update
     def _(event: viser.GuiEvent) -> None:
@@ -76,6 +86,6 @@ def build_frame_panel(server: viser.ViserServer | viser.ClientHandle, state: App
             return
         state.step_frame(+1)
 
-    panel = FramePanel(slider, previous, next_, status)
+    panel = FramePanel(slider, previous, next_, status, progress, work)
     panel.refresh(state)
     return panel

@@ -74,6 +74,9 @@ class MetricsPanel:
             for name, row in metrics["per_class"].items()
             if row["num_reference"] or row["num_detections"]
         ]
+        # Undefined figures show as a dash, as a class's do: precision without a detection, recall
+        # and F without a reference (frames viewed whose labels are all pre-labels, say).
+        total_precision = metrics["precision"] if metrics["num_detections"] else None
         self.table.content = "\n".join(
             [
                 f"Against the annotations of the {metrics['num_frames']} frame(s) viewed, IoU "
@@ -87,8 +90,8 @@ class MetricsPanel:
                 "| class | n | P | R | F | AP |",
                 "|---|---|---|---|---|---|",
                 *rows,
-                f"| **total** | {metrics['num_reference']} | {metrics['precision']:.2f} | "
-                f"{metrics['recall']:.2f} | **{metrics['f1']:.2f}** | mAP "
+                f"| **total** | {metrics['num_reference']} | {_fmt(total_precision)} | "
+                f"{_fmt(metrics['recall'])} | **{_fmt(metrics['f1'])}** | mAP "
                 f"{_fmt(metrics['map'])} |",
                 *(["", "_Measuring again after the last change…_"] if stale else []),
             ]

@@ -1,4 +1,5 @@
-"""Detection front half: layer toggles, segmentation and voxel parameters, progress, selection."""
+"""Detection front half: layer toggles, segmentation and voxel parameters, selection (its progress
+shows in the Frame panel)."""
 
 from __future__ import annotations
 
@@ -25,17 +26,14 @@ class PipelinePanel:
     voxel_size: viser.GuiSliderHandle
     regularization: viser.GuiSliderHandle
     merge_threshold: viser.GuiSliderHandle
-    progress: viser.GuiProgressBarHandle
-    status: viser.GuiMarkdownHandle
     selection: viser.GuiMarkdownHandle
 
     def refresh(self, state: AppState) -> None:
-        """Show the state's layers, parameters, progress and selection."""
+        """Show the state's layers, parameters and selection."""
         with state.lock:
             layers = dict(state.layers)
             params = state.params
             refined = state.use_refined_extrinsics
-            status, fraction, busy = state.pipeline_status, state.pipeline_progress, state.pipeline_busy
             selection = state.selection_markdown
         for name, box in self.layer_boxes.items():
             if box.value != layers[name]:
@@ -49,9 +47,7 @@ class PipelinePanel:
         ):
             if abs(handle.value - value) > 1e-9:
                 handle.value = value
-        self.progress.value = round(100 * fraction, 1)
-        self.status.content = f"{'⏳ ' if busy else ''}{status}"
-        self.selection.content = selection or "_Click a patch (patches or segments layer) or a proposal box._"
+        self.selection.content = selection or "_Click a point (any layer) or a proposal box._"
 
 
 def build_pipeline_panel(server: viser.ViserServer | viser.ClientHandle, state: AppState) -> PipelinePanel:
@@ -89,10 +85,6 @@ def build_pipeline_panel(server: viser.ViserServer | viser.ClientHandle, state: 
             initial_value=params.segmentation.merge_threshold,
             hint="Least contact strength for two adjacent patches to merge into one segment",
         )
-        # Not animated while busy either (the status says so): the stripes' animation costs a browser
-        # without a GPU cores the frame's own computation needs (see the Training panel's bar).
-        progress = server.gui.add_progress_bar(0.0, animated=False)
-        status = server.gui.add_markdown("")
     with server.gui.add_folder("Selection", order=62):
         selection = server.gui.add_markdown("")
 
@@ -129,8 +121,6 @@ def build_pipeline_panel(server: viser.ViserServer | viser.ClientHandle, state: 
             return
         state.set_params(merge_threshold=float(merge_threshold.value))
 
-    panel = PipelinePanel(
-        layer_boxes, refined, voxel_size, regularization, merge_threshold, progress, status, selection
-    )
+    panel = PipelinePanel(layer_boxes, refined, voxel_size, regularization, merge_threshold, selection)
     panel.refresh(state)
     return panel

@@ -213,10 +213,21 @@ def comparison_markdown(table: dict) -> str:
         "keep the shown model, or label more of the class and train again."
         for c in lost_classes(table)
     ]
+    before_f1, after_f1 = table[names[0]]["f1"], table[names[-1]]["f1"]
+    worse = (
+        [
+            f"\n\n**{names[-1]} scores a lower total F-score than {names[0]} on these frames "
+            f"({after_f1:.3f} against {before_f1:.3f})**: keep the shown model unless the classes "
+            "above say otherwise."
+        ]
+        if len(names) > 1 and before_f1 is not None and after_f1 is not None and after_f1 < before_f1
+        else []
+    )
     return (
         head
         + "\n".join(rows)
         + "\n\nF-score (precision / recall) at IoU 0.6 against the session's labels."
+        + "".join(worse)
         + "".join(lost)
     )
 

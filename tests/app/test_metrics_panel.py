@@ -41,7 +41,7 @@ def test_the_panel_says_when_its_metrics_are_being_measured_again_and_never_wait
     row = {"num_reference": 2, "num_detections": 1, "precision": 1.0, "recall": 0.5, "f1": 0.67, "ap": 0.5}
     metrics = {
         "per_class": {"cone": row}, "num_frames": 1, "iou_threshold": 0.6, "score_threshold": 0.5,
-        "num_reference": 2, "precision": 1.0, "recall": 0.5, "f1": 0.67, "map": 0.5,
+        "num_reference": 2, "num_detections": 1, "precision": 1.0, "recall": 0.5, "f1": 0.67, "map": 0.5,
         "pr_curves": {"all": {"recall": np.array([0.5]), "precision": np.array([1.0])}},
     }  # fmt: skip
     shown = [(metrics, True)]
@@ -60,3 +60,27 @@ def test_the_panel_says_when_its_metrics_are_being_measured_again_and_never_wait
     shown[0] = (None, True)
     panel.refresh(State())
     assert panel.table.content == "_Measuring the metrics…_"
+
+
+def test_the_total_row_shows_dashes_where_nothing_was_labelled_or_detected():
+    # Frames viewed with detections but no confirmed label (pre-labels only, say): recall and F
+    # rest on nothing (None), and the table once failed formatting them.
+    import warnings
+    from types import SimpleNamespace
+
+    from app.panels.metrics_panel import MetricsPanel
+    from factorydet_core.metrics import metrics_from_matches, pool_matches
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the warning that the figures are undefined)
+        metrics = metrics_from_matches(pool_matches([], 2), ("cone", "box"), 0.6, 0.5, None)
+    metrics.update(num_frames=1)
+    assert metrics["recall"] is None and metrics["f1"] is None
+
+    class State:
+        def shown_metrics(self):
+            return metrics, False
+
+    panel = MetricsPanel(SimpleNamespace(content=""), SimpleNamespace(data=None), SimpleNamespace(content=""))
+    panel.refresh(State())
+    assert "| **total** | 0 | – | – | **–** | mAP – |" in panel.table.content

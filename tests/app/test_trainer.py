@@ -75,8 +75,9 @@ def test_the_app_retrains_through_the_same_function_as_the_command_line(
     dataset = open_dataset(small_dataset_dir)
     model = DetectionModel.load(tiny_model_path)
     state = AppState(
-        dataset, db=SessionDB(open_session("s", tmp_path), dataset), model=model, model_name="tiny"
-    )
+        dataset, db=SessionDB(open_session("s", tmp_path), dataset), model=model,
+        model_name="/a/long/path/to/the/models/tiny.pt",
+    )  # fmt: skip
     calls = []
 
     def retrain_session(db, data, settings, front_end, **options):
@@ -91,7 +92,8 @@ def test_the_app_retrains_through_the_same_function_as_the_command_line(
     [(data, settings, front_end, options)] = calls
     assert data is dataset and settings.epochs == 2 and options["mode"] == "full"
     assert front_end == model.front_end  # the shown model's front half, whole
-    assert list(options["before"]) == ["before (tiny)"] and options["calibrate"] is False
+    # (the before/after table's column, named short enough that the after column fits the panel)
+    assert list(options["before"]) == ["before (…/models/tiny.pt)"] and options["calibrate"] is False
 
 
 def test_carrying_pseudo_labels_waits_for_the_views_world_and_then_uses_it(

@@ -87,16 +87,16 @@ def test_the_runs_table_says_how_many_labels_trained_as_ignored_places(
 def test_the_progress_bars_move_without_animating_while_busy(server, small_dataset_dir, tmp_path):
     # A browser without a GPU redraws the page for the bar's animation: headless Chromium spent
     # most of a 2-core machine on it, taken from the training and the frame the bars show.
-    from app.panels.pipeline_panel import build_pipeline_panel
+    from app.panels.frame_panel import build_frame_panel
 
     dataset = open_dataset(small_dataset_dir)
     state = AppState(dataset, db=SessionDB(open_session("s", tmp_path), dataset))
     training = build_training_panel(server, state, TrainingWorker(state, calibrate=False))
-    pipeline = build_pipeline_panel(server, state)
+    pipeline = build_frame_panel(server, state)  # the frame's computation shows there
     state.set_training(busy=True, status="round 1 of 3: epoch 2 of 20", progress=0.25)
     state.set_pipeline_progress("frame 1: merging", 0.4, busy=True)
     training.refresh(state)
     pipeline.refresh(state)
     assert (training.progress.value, pipeline.progress.value) == (25.0, 40.0)
     assert not training.progress.animated and not pipeline.progress.animated
-    assert "epoch 2 of 20" in training.status.content and "⏳" in pipeline.status.content
+    assert "epoch 2 of 20" in training.status.content and "⏳" in pipeline.work.content

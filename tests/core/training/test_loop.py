@@ -897,6 +897,21 @@ def test_the_before_after_table_says_when_the_new_model_has_lost_a_class():
     assert "finds none" not in comparison_markdown({"run 1": _compared({"cone": 0.0})})
 
 
+def test_the_before_after_table_says_when_the_new_model_scores_lower_in_total():
+    before, after = _compared({"cone": 0.6}), _compared({"cone": 0.5})
+    before["f1"], after["f1"] = 0.244, 0.205
+    table = {"before (run 1)": before, "after (run 2)": after}
+    assert (
+        "**after (run 2) scores a lower total F-score than before (run 1) on these frames "
+        "(0.205 against 0.244)**" in comparison_markdown(table)
+    )
+    after["f1"] = 0.25  # better: nothing said; nor with one model, or an undefined F
+    assert "lower total F-score" not in comparison_markdown(table)
+    assert "lower total F-score" not in comparison_markdown({"run 1": before})
+    after["f1"] = None
+    assert "lower total F-score" not in comparison_markdown(table)
+
+
 def test_a_class_the_fit_finds_none_of_on_its_training_frames_is_named():
     from factorydet_core.metrics import detection_metrics
 
