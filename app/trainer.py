@@ -28,7 +28,7 @@ from factorydet_core.training.settings import LoopSettings
 from factorydet_core.types import Cancelled, InputError
 from factorydet_core.workflows import retrain_session, training_frame_indices
 
-from .panels import short_name
+from .naming import short_name
 from .state import SharedState
 
 _clock = time.perf_counter

@@ -1,11 +1,8 @@
 """One module per GUI panel; each builds its widgets and wires them to the state."""
 
+from ..naming import short_name
 
-def short_name(name: str, parts: int = 2) -> str:
-    """A model's name as a panel shows it: a checkpoint path shortened to its last ``parts`` parts
-    (``…/models/default.pt``), so that a long path does not overflow the sidebar."""
-    pieces = name.replace("\\", "/").split("/")
-    return name if len(pieces) <= parts else "…/" + "/".join(pieces[-parts:])
+__all__ = ["from_user", "short_name"]
 
 
 def from_user(event) -> bool:
