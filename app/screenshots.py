@@ -96,7 +96,7 @@ def take(data: str, out: str, epochs: int = 5, reviews: int = 6) -> list[Path]:
         try:
             with sync_playwright() as pw:
                 browser, page, view = open_app_page(pw, app, 1500, 1200)
-                for folder in ("Display", "Detection layers", "Segmentation", "Selection", "Detections"):
+                for folder in ("Display", "Detection layers", "Detections"):
                     # Fold the viewing panels so the labelling ones fit on the page.
                     title = page.get_by_text(folder, exact=True).first
                     if title.count():

@@ -65,28 +65,29 @@ def build_pipeline_panel(server: viser.ViserServer | viser.ClientHandle, state: 
             disabled=state.dataset.num_sensors < 2,
             hint="Merge with extrinsics refined by ICP between sensors instead of the nominal ones",
         )
-    with server.gui.add_folder("Segmentation", order=61):
-        voxel_size = server.gui.add_slider(
-            "Voxel size (m)", min=0.05, max=0.5, step=0.05, initial_value=params.voxel_size_m
-        )
-        regularization = server.gui.add_slider(
-            "Regularisation",
-            min=0.005,
-            max=0.5,
-            step=0.005,
-            initial_value=params.segmentation.regularization,
-            hint="Cut-pursuit lambda: larger gives fewer, bigger patches",
-        )
-        merge_threshold = server.gui.add_slider(
-            "Merge threshold",
-            min=0.0,
-            max=1.0,
-            step=0.05,
-            initial_value=params.segmentation.merge_threshold,
-            hint="Least contact strength for two adjacent patches to merge into one segment",
-        )
-    with server.gui.add_folder("Selection", order=62):
-        selection = server.gui.add_markdown("")
+        # (inside: one folder for the front half, fewer folders in the sidebar)
+        with server.gui.add_folder("Segmentation"):
+            voxel_size = server.gui.add_slider(
+                "Voxel size (m)", min=0.05, max=0.5, step=0.05, initial_value=params.voxel_size_m
+            )
+            regularization = server.gui.add_slider(
+                "Regularisation",
+                min=0.005,
+                max=0.5,
+                step=0.005,
+                initial_value=params.segmentation.regularization,
+                hint="Cut-pursuit lambda: larger gives fewer, bigger patches",
+            )
+            merge_threshold = server.gui.add_slider(
+                "Merge threshold",
+                min=0.0,
+                max=1.0,
+                step=0.05,
+                initial_value=params.segmentation.merge_threshold,
+                hint="Least contact strength for two adjacent patches to merge into one segment",
+            )
+        with server.gui.add_folder("Selection"):
+            selection = server.gui.add_markdown("")
 
     for name, box in layer_boxes.items():
 

@@ -49,7 +49,7 @@ class ReviewPanel:
         )
         self.progress.value = 100.0 * counts["reviewed"] / total if total else 0.0
         queue = view.load_queue()
-        self.reach.content = reach_text(queue) if total else ""
+        self.reach.content = (reach_text(queue) + filters_text(view)) if total else ""
         item = view.current_item()
         if item is None:
             self.item.content = (
@@ -99,6 +99,19 @@ class ReviewPanel:
         self.suspects.content = text
 
 
+def filters_text(view: ClientView) -> str:
+    """A line naming the queue's filters that narrow or widen it from the defaults (their controls
+    sit in a folded folder), or "" with none."""
+    with view.lock:
+        parts = [
+            *([f"predicted {view.filter_class}"] if view.filter_class is not None else []),
+            *([f"frame {view.filter_frame + 1}"] if view.filter_frame is not None else []),
+            *(["items on labelled objects hidden"] if view.hide_labelled else []),
+            *(["reviewed items too"] if not view.pending_only else []),
+        ]
+    return f"  \n_Filters: {', '.join(parts)}._" if parts else ""
+
+
 REACH_TOP = 50
 """The review panel estimates how many objects its first this many pending entries hold."""
 
@@ -124,23 +137,6 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
         progress_text = gui.add_markdown("")
         progress = gui.add_progress_bar(0.0, animated=False)
         reach = gui.add_markdown("")
-        filter_class = gui.add_dropdown("Predicted class", [ALL, *names], initial_value=ALL)
-        frames = [ALL, *(str(i + 1) for i in range(state.dataset.num_frames))]
-        filter_frame = gui.add_dropdown("Frame", frames, initial_value=ALL)
-        pending_only = gui.add_checkbox("Pending only", initial_value=view.pending_only)
-        hide_labelled = gui.add_checkbox(
-            "Hide items on labelled objects",
-            initial_value=view.hide_labelled,
-            hint=f"Items whose box overlaps a label at IoU {HIDE_LABELLED_IOU} or more: parts, duplicates "
-            "and loose boxes of labelled objects, trained as background whatever the verdict",
-        )
-        group_places = gui.add_checkbox(
-            "One entry per place",
-            initial_value=view.group_places,
-            hint="An object mined in several frames (or twice in one) is one entry, and one verdict "
-            "answers all its items; needs the frames placed in one world frame",
-        )
-        dim = gui.add_checkbox("Dim the scene", initial_value=view.dim)
         item = gui.add_markdown("")
         object_class = gui.add_dropdown("Object class", names, initial_value=view.object_class)
         buttons = {
@@ -163,10 +159,31 @@ def build_review_panel(view: ClientView, find_suspects=None) -> ReviewPanel:
             ),
             "previous": gui.add_button("Previous [P]"),
             "next": gui.add_button("Next [N]"),
-            "batch": gui.add_button(
-                "Background for all pending in this filter", color="red", hint="One undoable edit"
-            ),
         }
+        # Folded by default: the item and its verdict keys fit above the fold, and the Labels
+        # folder below comes sooner.
+        with gui.add_folder("Filters", expand_by_default=False):
+            filter_class = gui.add_dropdown("Predicted class", [ALL, *names], initial_value=ALL)
+            frames = [ALL, *(str(i + 1) for i in range(state.dataset.num_frames))]
+            filter_frame = gui.add_dropdown("Frame", frames, initial_value=ALL)
+            pending_only = gui.add_checkbox("Pending only", initial_value=view.pending_only)
+            hide_labelled = gui.add_checkbox(
+                "Hide items on labelled objects",
+                initial_value=view.hide_labelled,
+                hint=f"Items whose box overlaps a label at IoU {HIDE_LABELLED_IOU} or more: parts, "
+                "duplicates and loose boxes of labelled objects, trained as background whatever the "
+                "verdict",
+            )
+            group_places = gui.add_checkbox(
+                "One entry per place",
+                initial_value=view.group_places,
+                hint="An object mined in several frames (or twice in one) is one entry, and one verdict "
+                "answers all its items; needs the frames placed in one world frame",
+            )
+            dim = gui.add_checkbox("Dim the scene", initial_value=view.dim)
+            buttons["batch"] = gui.add_button(
+                "Background for all pending in this filter", color="red", hint="One undoable edit"
+            )
     with gui.add_folder("Suspect labels", order=21, expand_by_default=False):
         suspects = gui.add_markdown("")
         buttons["find_suspects"] = gui.add_button("Find suspect labels", hint="Runs in the background")

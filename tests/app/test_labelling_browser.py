@@ -136,6 +136,7 @@ def test_review_with_buttons_and_a_hotkey(session_app, browser):  # noqa: F811
         # The filter that hides items on labelled objects: a label on the last item hides it.
         last = db.review_queue()[-1]
         db.add_label(last["frame_index"], last["box"], "box", "someone else")
+        page.get_by_text("Filters", exact=True).first.click()  # the folder starts folded
         page.get_by_label("Hide items on labelled objects").check()
         assert _wait(lambda: view.hide_labelled, 20), "the filter never reached the server"
         assert _wait(lambda: last["id"] not in [q["id"] for q in view.load_queue()], 20)

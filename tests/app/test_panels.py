@@ -24,6 +24,23 @@ def test_the_review_panel_estimates_the_reach_of_the_first_pending_entries():
     assert reach_text([{"verdict": "object", "score": 0.9}]) == "_Nothing pending in this filter._"
 
 
+def test_the_review_panel_names_the_filters_its_folded_folder_sets():
+    import threading
+    from types import SimpleNamespace
+
+    from app.panels.review_panel import filters_text
+
+    view = SimpleNamespace(
+        lock=threading.Lock(), filter_class=None, filter_frame=None, hide_labelled=False, pending_only=True
+    )
+    assert filters_text(view) == ""  # the defaults: nothing said
+    view.filter_class, view.filter_frame, view.hide_labelled = "cone", 2, True
+    assert filters_text(view) == "  \n_Filters: predicted cone, frame 3, items on labelled objects hidden._"
+    view.filter_class = view.filter_frame = None
+    view.hide_labelled, view.pending_only = False, False
+    assert filters_text(view) == "  \n_Filters: reviewed items too._"
+
+
 def test_the_points_drawn_choices_read_back_as_the_budgets_they_show():
     from app.panels.display_panel import POINTS_DRAWN_CHOICES, points_drawn_label, points_drawn_value
 
