@@ -298,7 +298,11 @@ class TrainingWorker:
             elif what == "round":
                 done_fits[0] = done
             elif what == "compare":
-                state.set_training(status="measuring before and after on the test frames", progress=0.88)
+                # (after (0, 1), the test frames the cache lacks go through the front half first)
+                status = "measuring before and after on the test frames"
+                if total > 1 or done:
+                    status += f": proposals, frame {done} of {total}" + pace.text(what, done, total)
+                state.set_training(status=status, progress=0.88 + 0.1 * done / max(total, 1))
 
         done = retrain_session(
             db, dataset, settings, params_for(before, dataset.num_sensors), mode=mode,

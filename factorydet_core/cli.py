@@ -714,13 +714,17 @@ def _author(args: argparse.Namespace) -> str:
 
 def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], None]]:
     bars: dict = {}
+    names = {
+        "fit": ("training", "epoch"),
+        "proposals": ("proposals", "frame"),
+        "compare": ("test frames", "frame"),
+    }
 
     def progress(what: str, done: int, total: int) -> None:
-        if what in ("fit", "proposals"):
+        # ("compare" reports (0, 1) as it starts, then the test frames it proposes)
+        if what in ("fit", "proposals") or (what == "compare" and done):
             if what not in bars:
-                bars[what] = progress_bar(
-                    "training" if what == "fit" else "proposals", "epoch" if what == "fit" else "frame"
-                )
+                bars[what] = progress_bar(*names[what])
             bars[what][0](done, total)
             if done == total:
                 bars.pop(what)[1]()
@@ -730,7 +734,7 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
             print(f"round {done - 1} of {total - 1} done", file=sys.stderr)
         elif what == "calibrate":
             print("calibrating the extrinsics by ICP ...", file=sys.stderr)
-        elif what == "compare":
+        elif what == "compare":  # its start
             print("measuring before and after on the test frames ...", file=sys.stderr)
 
     def close() -> None:

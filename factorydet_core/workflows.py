@@ -86,8 +86,9 @@ def retrain_session(
         calibrate: refine the extrinsics by ICP on the first training frame (multi-sensor data).
         max_train_frames, max_test_frames: use only the first frames of each split.
         progress: called with (what, done, total); ``what`` is "calibrate", "proposals", "world", "fit",
-            "box quality", "round" or "compare". "compare" comes after the run is stored: a
-            progress that raises to cancel must not raise then.
+            "box quality", "round" or "compare" (first (0, 1), then the test frames the proposals
+            cache lacks, one by one). "compare" comes after the run is stored: a progress that
+            raises to cancel must not raise then.
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
         execution: where the per-frame work runs (``scale.runner.Execution``: Ray workers): the
             front half of the frames the cache lacks, and each mining round's scoring of the
@@ -126,7 +127,11 @@ def retrain_session(
     table = None
     if compare and test:
         report("compare", 0, 1)
-        test_frames = cached_proposals(db, dataset, detector, test, propose=propose)
+        # The test frames' front half, on a session's first run, is most of the comparison's time:
+        # its frames report as the comparison's progress.
+        test_frames = cached_proposals(
+            db, dataset, detector, test, lambda _what, done, total: report("compare", done, total), propose
+        )
         models = {**(before or {}), after_label.format(run_id=run_id): run.model}
         # A person's labels too sparse to train on, or to tune the thresholds on, are neither
         # references nor false positives.

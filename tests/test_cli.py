@@ -942,3 +942,16 @@ def test_bench_hitl_heldout_measures_the_same_models_on_held_out_factories(
     # A held-out factory of the training factory's own seed is refused.
     assert main([*args, "--heldout", "--heldout-seeds", "7"]) == 2
     assert "training factory's own seed" in capsys.readouterr().err
+
+
+def test_train_shows_the_comparisons_test_frames_as_a_bar_after_one_line(capsys):
+    from factorydet_core.cli import _training_progress
+
+    progress, close = _training_progress()
+    progress("compare", 0, 1)  # the comparison starts
+    for done in (1, 2, 3):
+        progress("compare", done, 3)  # the test frames' proposals, one by one
+    close()
+    err = capsys.readouterr().err
+    assert err.count("measuring before and after on the test frames") == 1
+    assert "test frames: 100%" in err and "3/3" in err

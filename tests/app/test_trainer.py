@@ -149,11 +149,14 @@ def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
         dataset, db=SessionDB(open_session("s", tmp_path), dataset), model=model, model_name="tiny"
     )
     trainer = TrainingWorker(state, calibrate=False)
+    compared = []
 
     def retrain_session(db, data, settings, front_end, progress, **options):
         progress("round", 1, 1)
         trainer.cancel()  # pressed while the stored run is being measured
         progress("compare", 0, 1)  # must not raise: the run is in the database already
+        progress("compare", 1, 2)  # a test frame's proposals: the bar moves on from 0.88
+        compared.append((state.training_status, state.training_progress))
         # A fit that found none of the 3 cones its training frames label.
         metrics = {
             "per_class": {"cone": {"num_reference": 3, "ap": 0.0}, "box": {"num_reference": 9, "ap": 0.4}}
@@ -167,6 +170,8 @@ def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
     assert trainer.start("full")
     trainer.join(10)
     assert state.training_status.startswith("run 7 (full) done")
+    [(status, fraction)] = compared
+    assert "on the test frames: proposals, frame 1 of 2" in status and abs(fraction - 0.93) < 1e-9
     # The class the fit did not learn is said with it.
     assert (
         "finds none of the labelled instances of cone (3)**: it has not learned them" in state.training_status

@@ -26,7 +26,7 @@ def test_retrain_stores_the_run_its_settings_and_the_before_after_table(
     done = retrain_session(
         db, dataset, TINY, front_end, mode="full", calibrate=False,
         before={"shipped": DetectionModel.load(tiny_model_path)}, max_train_frames=2,
-        progress=lambda what, k, n: seen.append(what),
+        progress=lambda what, k, n: seen.append((what, k, n)),
     )  # fmt: skip
     assert done.run_id == db.latest_run_id() and done.detector.params == front_end
     assert [f.frame_index for f in done.train_frames] == dataset.splits["train"][:2]
@@ -34,7 +34,12 @@ def test_retrain_stores_the_run_its_settings_and_the_before_after_table(
     assert db.training_runs()[-1]["metrics"]["compare"] == done.comparison
     stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
     assert stored.front_end == front_end  # carried whole into the checkpoint
-    assert {"proposals", "fit", "compare"} <= set(seen)
+    assert {"proposals", "fit", "compare"} <= {what for what, _, _ in seen}
+    # The comparison reports the test frames it proposes (none cached yet), one by one.
+    num_test = len(dataset.splits["test"])
+    assert [(k, n) for what, k, n in seen if what == "compare"] == [(0, 1)] + [
+        (k, num_test) for k in range(1, num_test + 1)
+    ]
 
 
 def test_a_next_round_that_carries_pseudo_labels_places_the_world_unless_given_one(
@@ -70,8 +75,8 @@ def test_a_next_round_that_carries_pseudo_labels_places_the_world_unless_given_o
         with pytest.raises(RuntimeError, match="stop here"):
             retrain_session(
                 db, dataset, settings, PRESETS["agv"], mode=mode, calibrate=False, world=world,
-                progress=lambda what, k, n: seen.append(what),
+                progress=lambda what, k, n: seen.append((what, k, n)),
             )  # fmt: skip
     assert worlds == ["placed", "given", None, None] and len(placed) == 1
     placed[0](1, 3)
-    assert seen[-1] == "world"  # its progress is reported as the run's
+    assert seen[-1] == ("world", 1, 3)  # its progress is reported as the run's
