@@ -157,6 +157,14 @@ class PipelineWorker:
                     return "proposal", view.pipeline_result, view.pipeline_status, {}
         return None
 
+    def _voxels_shown(self) -> bool:
+        """Whether a view (or a new browser's template) shows the voxels layer."""
+        for view in self.shared.views + self.shared.templates:
+            with view.lock:
+                if view.layers["voxels"]:
+                    return True
+        return False
+
     def _selections_ahead(self, candidates) -> dict:
         """``{(kind, *args): Detections}``: each view's (and template's) selection of a frame's
         ``candidates``, shown and for the metrics (``state.select_with``)."""
@@ -322,12 +330,19 @@ class PipelineWorker:
             result = detection.proposal
         else:
             detection, result = None, detector.propose(frame, history, progress=progress)
-        # The voxels layer's colours, computed here in the background rather than when drawing; the
-        # vectors themselves (10 kB a voxel, most of a result) are not kept.
+        # The voxels layer's colours, computed here in the background rather than when drawing,
+        # if a view shows that layer: they take a detection's frame its 3DmFV again (seconds on two
+        # cores, a third of the frame's time), for a layer hidden by default; a view that shows it
+        # later has them computed when drawn (``layers.PipelineLayers``). The vectors themselves
+        # (10 kB a voxel, most of a result) are not kept.
         result = dataclasses.replace(
             result,
             voxel_features=None,
-            voxel_colors=voxel_colors(result.cloud, result.grid, result.voxel_features),
+            voxel_colors=(
+                voxel_colors(result.cloud, result.grid, result.voxel_features)
+                if self._voxels_shown()
+                else None
+            ),
         )
         if detection is not None:
             detection = dataclasses.replace(detection, proposal=result)

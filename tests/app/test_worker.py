@@ -108,8 +108,9 @@ def test_neighbours_are_computed_ahead_and_a_cached_frame_shows_at_once(small_da
         assert "frame_00001" not in computed
         fresh = detector_module.Detector(state.params).propose(state.frame)
         np.testing.assert_array_equal(shown.proposals.boxes, fresh.proposals.boxes)
-        # A result keeps its voxels' colours for the voxels layer, not their 3DmFV (10 kB a voxel).
-        assert shown.voxel_features is None and shown.voxel_colors.shape == (shown.grid.num_voxels, 3)
+        # A result keeps neither its voxels' 3DmFV (10 kB a voxel) nor, with the voxels layer
+        # hidden (the default), their colours: seconds of a frame's time for a layer nobody shows.
+        assert shown.voxel_features is None and shown.voxel_colors is None
         # The new frame's next one is computed ahead in turn.
         assert wait(lambda: 2 in worker.cached_frames(state), timeout=120), worker.cached_frames(state)
         # Other parameters: nothing of the cache applies.
@@ -256,3 +257,18 @@ def test_label_once_registers_with_the_librarys_calibration_unless_the_app_draws
     else:
         np.testing.assert_array_equal(asked[0], dataset.T_vehicle_sensor)
     assert state.shared.world is None and "placing the frames failed" in state.shared.world_status
+
+
+def test_a_result_keeps_its_voxels_colours_when_a_view_shows_the_voxels_layer(small_dataset_dir):
+    state = AppState(open_dataset(small_dataset_dir))
+    state.set_layer("voxels", True)
+    worker = PipelineWorker(state.shared, calibrate=False)
+    _wire(state, worker)
+    try:
+        worker.request()
+        assert state.wait_for(lambda: state.pipeline_result is not None, timeout=120)
+        with state.lock:
+            shown = state.pipeline_result
+        assert shown.voxel_features is None and shown.voxel_colors.shape == (shown.grid.num_voxels, 3)
+    finally:
+        worker.stop(timeout=120)
