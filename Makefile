@@ -568,6 +568,19 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
 	  --out docs/bench/hitl-e20-folds-pooled-fresh-six.json --readme docs/review-loop.md \
 	  --readme-block hitl-e20-folds-pooled-fresh-six --resume --refit-row-share 1 --resume-other-library
+	# The same reviewer on factories 111-116 with a person's sparse labels left out of the thresholds'
+	# tuning alone (blind mining and full labels read back from the record above).
+	test -f docs/bench/hitl-e20-folds-pooled-fresh-tune-sparse-six.json || cp docs/bench/hitl-e20-folds-pooled-fresh-six.json docs/bench/hitl-e20-folds-pooled-fresh-tune-sparse-six.json
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 111,112,113,114,115,116 \
+	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
+	  --out docs/bench/hitl-e20-folds-pooled-fresh-tune-sparse-six.json --readme docs/review-loop.md \
+	  --readme-block hitl-e20-folds-pooled-fresh-tune-sparse-six --resume --refit-row-share 1 --resume-other-library
+	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-fresh-tune-sparse-six.json \
+	  docs/bench/hitl-e20-folds-pooled-fresh-six.json --variants reviewed_200,reviewed_200 \
+	  --readme docs/review-loop.md --readme-block hitl-fresh-tune-sparse-vs-every-label \
+	  --out docs/bench/hitl-fresh-tune-sparse-vs-every-label.json
 	# blind_safe (holding places, recalibrating the background) with thresholds out of fold for the pooled F
 	# (blind mining and full labels read back from hitl-e20-folds-pooled-six).
 	test -f docs/bench/hitl-e20-folds-pooled-safe-six.json || cp docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-pooled-safe-six.json
