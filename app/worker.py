@@ -332,9 +332,9 @@ class PipelineWorker:
             detection, result = None, detector.propose(frame, history, progress=progress)
         # The voxels layer's colours, computed here in the background rather than when drawing,
         # if a view shows that layer: they take a detection's frame its 3DmFV again (seconds on two
-        # cores, a third of the frame's time), for a layer hidden by default; a view that shows it
-        # later has them computed when drawn (``layers.PipelineLayers``). The vectors themselves
-        # (10 kB a voxel, most of a result) are not kept.
+        # cores), for a layer hidden by default; a view that shows it later has them computed when
+        # drawn (``layers.LayerView``). The vectors themselves (10 kB a voxel, most of a result)
+        # are not kept.
         result = dataclasses.replace(
             result,
             voxel_features=None,
