@@ -57,7 +57,9 @@ class LayerView:
         self.drawn_frame_index = 0
         self.drawn: tuple[ProposalResult | None, int] = (None, 0)  # the two above, set as one
         self.proposal_ids = np.zeros(0, np.int64)
-        self._voxel_colors: tuple[int, np.ndarray] | None = None  # (id(result), colours)
+        # (the result drawn, its voxels' colours): the result itself, not its id, which a freed
+        # result's successor can take
+        self._voxel_colors: tuple[object, np.ndarray] | None = None
         self.detection_nodes: list = []
         self.detection_source: tuple = (None, 0)  # (DetectionResult, frame index) of the shown detections
         self.shown_detections: Detections | None = None
@@ -85,7 +87,9 @@ class LayerView:
             self.nodes = {}
             self._source = (result, point_size, max_height, max_points)
             if result.voxel_colors is not None:  # the worker's
-                self._voxel_colors = (id(result), result.voxel_colors)
+                self._voxel_colors = (result, result.voxel_colors)
+            elif self._voxel_colors is not None and self._voxel_colors[0] is not result:
+                self._voxel_colors = None  # another frame's (computed when the layer is sent)
             self.proposal_ids = shown_proposal_ids(result)
             for name in DRAWN_LAYERS:
                 if layers[name]:
@@ -110,10 +114,10 @@ class LayerView:
                 precision="float32",
             )
         elif name == "voxels":
-            if self._voxel_colors is None or self._voxel_colors[0] != id(result):
+            if self._voxel_colors is None or self._voxel_colors[0] is not result:
                 # Once per result: moving the height slider must not redo the projection.
                 self._voxel_colors = (
-                    id(result),
+                    result,
                     voxel_colors(result.cloud, result.grid, result.voxel_features),
                 )
             low = colors.thin_for_display(result.grid.below(max_height), max_points)

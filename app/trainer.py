@@ -300,8 +300,9 @@ class TrainingWorker:
             elif what == "compare":
                 # (after (0, 1), the test frames the cache lacks go through the front half first)
                 status = "measuring before and after on the test frames"
-                if total > 1 or done:
+                if 0 < done < total or (done == 0 and total > 1):
                     status += f": proposals, frame {done} of {total}" + pace.text(what, done, total)
+                # (all proposed: the models are measured on them, the status plain again)
                 state.set_training(status=status, progress=0.88 + 0.1 * done / max(total, 1))
 
         done = retrain_session(

@@ -720,8 +720,11 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
         "compare": ("test frames", "frame"),
     }
 
+    started: set[str] = set()
+
     def progress(what: str, done: int, total: int) -> None:
-        # ("compare" reports (0, 1) as it starts, then the test frames it proposes)
+        # ("compare" reports (0, 1) as it starts, then the test frames it proposes; on Ray workers
+        # their first report is (0, N))
         if what in ("fit", "proposals") or (what == "compare" and done):
             if what not in bars:
                 bars[what] = progress_bar(*names[what])
@@ -734,7 +737,8 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
             print(f"round {done - 1} of {total - 1} done", file=sys.stderr)
         elif what == "calibrate":
             print("calibrating the extrinsics by ICP ...", file=sys.stderr)
-        elif what == "compare":  # its start
+        elif what == "compare" and what not in started:  # its start
+            started.add(what)
             print("measuring before and after on the test frames ...", file=sys.stderr)
 
     def close() -> None:

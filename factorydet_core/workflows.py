@@ -87,8 +87,8 @@ def retrain_session(
         max_train_frames, max_test_frames: use only the first frames of each split.
         progress: called with (what, done, total); ``what`` is "calibrate", "proposals", "world", "fit",
             "box quality", "round" or "compare" (first (0, 1), then the test frames the proposals
-            cache lacks, one by one). "compare" comes after the run is stored: a progress that
-            raises to cancel must not raise then.
+            cache lacks, one by one; on Ray workers from (0, their number)). "compare" comes after
+            the run is stored: a progress that raises to cancel must not raise then.
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
         execution: where the per-frame work runs (``scale.runner.Execution``: Ray workers): the
             front half of the frames the cache lacks, and each mining round's scoring of the

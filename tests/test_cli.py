@@ -949,6 +949,7 @@ def test_train_shows_the_comparisons_test_frames_as_a_bar_after_one_line(capsys)
 
     progress, close = _training_progress()
     progress("compare", 0, 1)  # the comparison starts
+    progress("compare", 0, 3)  # (Ray workers' first report: none done yet)
     for done in (1, 2, 3):
         progress("compare", done, 3)  # the test frames' proposals, one by one
     close()

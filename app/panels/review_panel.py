@@ -108,6 +108,7 @@ def filters_text(view: ClientView) -> str:
             *([f"frame {view.filter_frame + 1}"] if view.filter_frame is not None else []),
             *(["items on labelled objects hidden"] if view.hide_labelled else []),
             *(["reviewed items too"] if not view.pending_only else []),
+            *(["an entry per item, not per place"] if not view.group_places else []),
         ]
     return f"  \n_Filters: {', '.join(parts)}._" if parts else ""
 

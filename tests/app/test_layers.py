@@ -61,3 +61,33 @@ def test_a_hidden_layer_is_sent_when_first_shown_and_then_only_toggled(small_dat
         assert set(view.nodes) == set(DRAWN_LAYERS)
     finally:
         server.stop()
+
+
+def test_the_voxels_layer_never_shows_another_results_colours(small_dataset_dir):
+    # A result without colours (the worker makes none while the layer is hidden) gets its own
+    # when the layer is sent, never those of the result drawn before it.
+    import dataclasses
+
+    import viser
+
+    from app.layers import LayerView
+    from app.state import LAYERS
+    from factorydet_core.detection.detector import Detector
+    from factorydet_core.io.dataset import open_dataset
+    from factorydet_core.proposals.voxels import voxel_colors
+
+    dataset = open_dataset(small_dataset_dir)
+    first, second = (Detector().propose(dataset.frame(i)) for i in (0, 1))
+    painted = dataclasses.replace(first, voxel_colors=np.zeros((first.grid.num_voxels, 3), np.uint8))
+    layers = {**dict.fromkeys(LAYERS, False), "voxels": True}
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        view = LayerView(server)
+        view.draw(painted, 0, layers, 0.05, 50.0)
+        assert not view.nodes["voxels"].colors.any()  # the worker's colours, as given
+        unpainted = dataclasses.replace(second, voxel_colors=None)
+        view.draw(unpainted, 1, layers, 0.05, 50.0)
+        expected = voxel_colors(second.cloud, second.grid, second.voxel_features)
+        np.testing.assert_array_equal(view.nodes["voxels"].colors, expected[second.grid.below(50.0)])
+    finally:
+        server.stop()

@@ -31,14 +31,17 @@ def test_the_review_panel_names_the_filters_its_folded_folder_sets():
     from app.panels.review_panel import filters_text
 
     view = SimpleNamespace(
-        lock=threading.Lock(), filter_class=None, filter_frame=None, hide_labelled=False, pending_only=True
-    )
+        lock=threading.Lock(), filter_class=None, filter_frame=None, hide_labelled=False, pending_only=True,
+        group_places=True,
+    )  # fmt: skip
     assert filters_text(view) == ""  # the defaults: nothing said
     view.filter_class, view.filter_frame, view.hide_labelled = "cone", 2, True
     assert filters_text(view) == "  \n_Filters: predicted cone, frame 3, items on labelled objects hidden._"
     view.filter_class = view.filter_frame = None
     view.hide_labelled, view.pending_only = False, False
     assert filters_text(view) == "  \n_Filters: reviewed items too._"
+    view.pending_only, view.group_places = True, False
+    assert filters_text(view) == "  \n_Filters: an entry per item, not per place._"
 
 
 def test_the_points_drawn_choices_read_back_as_the_budgets_they_show():

@@ -157,6 +157,8 @@ def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
         progress("compare", 0, 1)  # must not raise: the run is in the database already
         progress("compare", 1, 2)  # a test frame's proposals: the bar moves on from 0.88
         compared.append((state.training_status, state.training_progress))
+        progress("compare", 2, 2)  # all proposed: the models are measured, said plainly
+        compared.append((state.training_status, state.training_progress))
         # A fit that found none of the 3 cones its training frames label.
         metrics = {
             "per_class": {"cone": {"num_reference": 3, "ap": 0.0}, "box": {"num_reference": 9, "ap": 0.4}}
@@ -170,8 +172,9 @@ def test_a_cancel_after_the_run_is_stored_does_not_lose_it(
     assert trainer.start("full")
     trainer.join(10)
     assert state.training_status.startswith("run 7 (full) done")
-    [(status, fraction)] = compared
+    [(status, fraction), (measuring, last)] = compared
     assert "on the test frames: proposals, frame 1 of 2" in status and abs(fraction - 0.93) < 1e-9
+    assert measuring.endswith("measuring before and after on the test frames") and abs(last - 0.98) < 1e-9
     # The class the fit did not learn is said with it.
     assert (
         "finds none of the labelled instances of cone (3)**: it has not learned them" in state.training_status
