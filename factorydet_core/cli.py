@@ -719,8 +719,7 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
         "proposals": ("proposals", "frame"),
         "compare": ("test frames", "frame"),
     }
-
-    started: set[str] = set()
+    started: set[str] = set()  # ("compare" says its start once)
 
     def progress(what: str, done: int, total: int) -> None:
         # ("compare" reports (0, 1) as it starts, then the test frames it proposes; on Ray workers

@@ -22,7 +22,8 @@ class FramePanel:
     work: viser.GuiMarkdownHandle
 
     def refresh(self, state: AppState) -> None:
-        """Show the state's frame in the slider and the status line."""
+        """Show the state's frame in the slider and the status line, and its computation's
+        progress and status."""
         with state.lock:
             index, frame = state.frame_index, state.frame
             work, fraction, busy = state.pipeline_status, state.pipeline_progress, state.pipeline_busy
