@@ -93,6 +93,10 @@ class SceneView:
         # The lit-mesh environment map costs seconds under software WebGL and changes nothing for
         # wireframes and points.
         server.scene.configure_environment_map(None)
+        # viser's default light casts shadows in three cascades, each drawn again at every render
+        # of the scene; nothing here needs a shadow, and under software WebGL they cost about a
+        # tenth of each render (docs/labelling.md). The light stays for the lit resize handles.
+        server.scene.configure_default_lights(enabled=True, cast_shadow=False)
         # A point cloud that is always there, two points far outside any view: it keeps the
         # browser's compiled point shader alive. Each new scan replaces the node, and with no
         # other point cloud drawn three.js would free the shader with the old scan and compile it

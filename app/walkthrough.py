@@ -120,6 +120,31 @@ def _scene_render_ms(page, view, seconds: float = 5.0) -> float | None:
     return round(float(np.median(np.diff(renders))), 1) if len(renders) > 2 else None
 
 
+def _shadow_cost(page, view, pairs: int = 6, seconds: float = 4.0) -> dict:
+    """One render of the scene with viser's default shadows on and with them off (the app's
+    scene), in turns in the same page (the order alternating, after three renders' worth of
+    camera moves that let viser's adaptive resolution settle): what the shadows the app turns off
+    would cost this browser. Leaves them off."""
+    for _ in range(3):
+        _scene_render_ms(page, view, seconds)
+    on, off = [], []
+    for k in range(pairs):
+        for shadows in (True, False) if k % 2 == 0 else (False, True):
+            view.client.scene.configure_default_lights(enabled=True, cast_shadow=shadows)
+            time.sleep(1.5)
+            (on if shadows else off).append(_scene_render_ms(page, view, seconds))
+    view.client.scene.configure_default_lights(enabled=True, cast_shadow=False)
+    differences = [a - b for a, b in zip(on, off) if a is not None and b is not None]
+    return {
+        "scene_render_ms_shadows_on": on,
+        "scene_render_ms_shadows_off": off,
+        "shadows_on_median_ms": round(statistics.median(x for x in on if x is not None), 1),
+        "shadows_off_median_ms": round(statistics.median(x for x in off if x is not None), 1),
+        "shadows_paired_difference_median_ms": round(statistics.median(differences), 1),
+        "shadows_slower_pairs": sum(d > 0 for d in differences),
+    }
+
+
 def _render_starts(draws: list[float]) -> list[float]:
     """The page times at which renders of the scene began: the first draw call of each burst
     (``DRAW_LOG``'s times, in order; a render's calls come less than ``BURST_GAP_MS`` apart)."""
@@ -468,6 +493,7 @@ def run(
                     view.state.set_display(points_drawn=points_drawn)
                     _wait(lambda: view.scene.num_points_shown == points_shown, 60, "the scan drawn again")
                     time.sleep(1.0)  # ... and the whole scan again before the first key
+                render["shadows"] = _shadow_cost(page, view)
 
                 def shows(text: str) -> Callable[[], None]:
                     return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)

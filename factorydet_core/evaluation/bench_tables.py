@@ -771,6 +771,17 @@ def walkthrough_markdown(result: dict) -> str:
             f" With at most {render['few_points']:,} points drawn, one render still takes"
             f" {fmt(render['scene_render_ms_few_points'])} ms."
         )
+    shadows = render.get("shadows")
+    if shadows is not None:  # (records before it: not measured)
+        pairs = len(shadows["scene_render_ms_shadows_on"])
+        scene_text += (
+            f" viser's default light casts shadows, which the app turns off: with them, one render"
+            f" takes {fmt(shadows['shadows_on_median_ms'])} ms against"
+            f" {fmt(shadows['shadows_off_median_ms'])} ms without (medians of {pairs} turns each in the"
+            f" same page), {fmt(shadows['shadows_paired_difference_median_ms'])} ms more a render"
+            f" (the median of the paired differences; more in {shadows['shadows_slower_pairs']} pairs"
+            f" of {pairs})."
+        )
     if "renders_after_a_scene_change_median" in render:  # (records before it did not count them)
         window = render["render_window_s"]
         idle_renders, alone_renders, scene_renders = (

@@ -21,6 +21,22 @@ def test_the_floor_grid_draws_every_line_once_on_the_floor():
     assert sorted(section_offsets.tolist()) == list(range(-30, 31, 5))
 
 
+def test_the_scene_asks_the_browser_for_a_light_without_shadows():
+    import viser
+
+    from app.scene import SceneView
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        calls = []
+        original = server.scene.configure_default_lights
+        server.scene.configure_default_lights = lambda *a, **k: (calls.append((a, k)), original(*a, **k))
+        SceneView(server)
+        assert calls == [((), {"enabled": True, "cast_shadow": False})]
+    finally:
+        server.stop()
+
+
 def test_an_edit_sends_only_the_labels_it_changed():
     import viser
 

@@ -28,6 +28,7 @@ BLOCKS = (
     ("labelling.md", "walkthrough-object-verdicts-metrics-at-once"),
     ("labelling.md", "walkthrough-object-verdicts-metrics-quiet"),
     ("labelling.md", "walkthrough-edits-points-all"),
+    ("labelling.md", "walkthrough-edits-no-shadows"),
     ("labelling.md", "walkthrough-edits-points-20k"),
     ("labelling.md", "walkthrough-edits-points-20k-swiftshader"),
     ("review-loop.md", "hitl-50-class-vs-place"),
@@ -532,6 +533,24 @@ def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counte
         "In 1.0 s the page begins 1 render of the scene with nothing sent, 1 render after a notification"
         " alone and 3 renders after a scene change (medians)"
     ) in render_record(counted)
+
+
+def test_the_walkthrough_says_what_viser_s_shadows_would_cost_where_it_measured_them():
+    record = _record("walkthrough-swiftshader")
+    assert "casts shadows" not in render_record(record)  # a record from before the measurement
+    shadows = {
+        "scene_render_ms_shadows_on": [150.0, 140.0, 160.0],
+        "scene_render_ms_shadows_off": [130.0, 145.0, 140.0],
+        "shadows_on_median_ms": 150.0,
+        "shadows_off_median_ms": 140.0,
+        "shadows_paired_difference_median_ms": 20.0,
+        "shadows_slower_pairs": 2,
+    }
+    measured = {**record, "browser_render": {**record["browser_render"], "shadows": shadows}}
+    assert (
+        "with them, one render takes 150.0 ms against 140.0 ms without (medians of 3 turns each in the"
+        " same page), 20.0 ms more a render (the median of the paired differences; more in 2 pairs of 3)."
+    ) in render_record(measured)
 
 
 def test_the_walkthrough_says_what_the_browser_spent_with_the_training_panel_open_where_measured():
