@@ -137,7 +137,9 @@ class ClientView(BrowserSession):
                 )
                 labels_key = (state.frame_index, state.revision, state.show_boxes, state.show_box_names)
                 point_size = state.point_size
+                show_grid = state.show_grid
                 frame = state.frame
+            self.scene.set_grid_visible(show_grid)
             if key != self._drawn:
                 labels = state.frame_labels(key[0])[:2] if by_labels else None
                 self.scene.draw(

@@ -112,11 +112,24 @@ class SceneView:
         )
         # The floor grid as plain lines: viser's grid is a shader evaluated at every pixel of the
         # plane, which under software WebGL took more time per render than the 80k points did.
-        for name, segments, rgb in (
-            ("/grid/cells", grid_segments(GRID_HALF_WIDTH_M, 1.0, skip_every=5), (200, 200, 200)),
-            ("/grid/sections", grid_segments(GRID_HALF_WIDTH_M, 5.0), (140, 140, 140)),
-        ):
+        self._grid = [
             server.scene.add_line_segments(name, segments, rgb, thickness=1.0, thickness_units="screen")
+            for name, segments, rgb in (
+                ("/grid/cells", grid_segments(GRID_HALF_WIDTH_M, 1.0, skip_every=5), (200, 200, 200)),
+                ("/grid/sections", grid_segments(GRID_HALF_WIDTH_M, 5.0), (140, 140, 140)),
+            )
+        ]
+
+    @property
+    def grid_visible(self) -> bool:
+        """Whether the floor grid is shown."""
+        return self._grid[0].visible
+
+    def set_grid_visible(self, visible: bool) -> None:
+        """Show or hide the floor grid (sent only when it changes)."""
+        for handle in self._grid:
+            if handle.visible != visible:
+                handle.visible = visible
 
     def draw(
         self,

@@ -482,6 +482,9 @@ class AppState:
         # Names on every box overlap into an unreadable cloud of text at the default view: off, only
         # the selected box is named (each browser's own) and a click on a box describes it.
         self.show_box_names = False
+        # The floor grid helps to judge distances; a browser without a graphics card draws its lines
+        # at every render (docs/labelling.md), so it can be turned off.
+        self.show_grid = True
         self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
         self.points_drawn: int | None = None  # every point; fewer render faster without a graphics card
         # With a model the detections are what people came for; without, the proposals.
@@ -503,9 +506,9 @@ class AppState:
         if like is not None:
             self.frame_index = like.frame_index
             for name in (
-                "color_mode", "point_size", "show_boxes", "show_box_names", "max_height", "points_drawn",
-                "score_threshold", "nms_iou", "vote_iou", "use_class_thresholds", "show_suppressed",
-                "color_by_match",
+                "color_mode", "point_size", "show_boxes", "show_box_names", "show_grid", "max_height",
+                "points_drawn", "score_threshold", "nms_iou", "vote_iou", "use_class_thresholds",
+                "show_suppressed", "color_by_match",
             ):  # fmt: skip
                 setattr(self, name, getattr(like, name))
             self.layers = dict(like.layers)
@@ -633,6 +636,7 @@ class AppState:
         show_boxes: bool | None = None,
         max_height: float | None = None,
         show_box_names: bool | None = None,
+        show_grid: bool | None = None,
         points_drawn: int | None | Unchanged = UNCHANGED,
     ) -> None:
         """Change how the frame is drawn; ``None`` leaves a setting as it is (``points_drawn``:
@@ -656,6 +660,8 @@ class AppState:
                 self.max_height = float(max_height)
             if show_box_names is not None:
                 self.show_box_names = bool(show_box_names)
+            if show_grid is not None:
+                self.show_grid = bool(show_grid)
             self.changed.notify_all()
         self._notify()
 

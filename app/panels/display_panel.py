@@ -1,4 +1,4 @@
-"""Display settings: colour mode, point size, points drawn and box visibility."""
+"""Display settings: colour mode, point size, points drawn, box visibility and the floor grid."""
 
 from __future__ import annotations
 
@@ -50,14 +50,18 @@ class DisplayPanel:
     max_height: viser.GuiSliderHandle
     show_box_names: viser.GuiCheckboxHandle
     points_drawn: viser.GuiDropdownHandle
+    show_grid: viser.GuiCheckboxHandle
 
     def refresh(self, state: AppState) -> None:
         """Show the state's display settings (another client or the code may have changed them)."""
         with state.lock:
             mode, size, boxes, height = state.color_mode, state.point_size, state.show_boxes, state.max_height
             names, points_drawn = state.show_box_names, points_drawn_label(state.points_drawn)
+            grid = state.show_grid
         if self.show_box_names.value != names:
             self.show_box_names.value = names
+        if self.show_grid.value != grid:
+            self.show_grid.value = grid
         if self.color_mode.value != _MODE_LABELS[mode]:
             self.color_mode.value = _MODE_LABELS[mode]
         if self.point_size.value != size:
@@ -105,6 +109,12 @@ def build_display_panel(server: viser.ViserServer | viser.ClientHandle, state: A
             "cloud. A browser without a graphics card renders points in software: fewer points show "
             "every change sooner. Clicks still pick from every point",
         )
+        show_grid = server.gui.add_checkbox(
+            "Floor grid",
+            initial_value=state.show_grid,
+            hint="Lines on the floor every metre, darker every 5 m. A browser without a graphics card "
+            "draws them, like the points, at every render of the scene",
+        )
 
     @color_mode.on_update
     def _(event: viser.GuiEvent) -> None:
@@ -142,4 +152,12 @@ def build_display_panel(server: viser.ViserServer | viser.ClientHandle, state: A
             return
         state.set_display(points_drawn=points_drawn_value(points_drawn.value))
 
-    return DisplayPanel(color_mode, point_size, show_boxes, max_height, show_box_names, points_drawn)
+    @show_grid.on_update
+    def _(event: viser.GuiEvent) -> None:
+        if not from_user(event):
+            return
+        state.set_display(show_grid=bool(show_grid.value))
+
+    return DisplayPanel(
+        color_mode, point_size, show_boxes, max_height, show_box_names, points_drawn, show_grid
+    )

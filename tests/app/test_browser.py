@@ -276,6 +276,10 @@ def test_each_browser_has_its_own_frame_display_and_thresholds(app_with_model, b
         assert _wait(lambda: 0 < first.scene.num_points_shown <= 1000, 20)
         assert _wait(lambda: len(first.layers.nodes["patches"].points) <= 1000, 20)
         assert second.scene.num_points_shown == shown_before > 1000
+        # The floor grid is a display setting of each browser too.
+        first.state.set_display(show_grid=False)
+        assert _wait(lambda: not first.scene.grid_visible, 20)
+        assert second.scene.grid_visible
     finally:
         for context in contexts:
             context.close()

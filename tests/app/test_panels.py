@@ -76,6 +76,28 @@ def test_the_display_panel_offers_a_budget_set_elsewhere_in_its_order_and_sends_
         server.stop()
 
 
+def test_the_display_panel_shows_and_sets_the_floor_grid(small_dataset_dir):
+    import viser
+
+    from app.panels.display_panel import build_display_panel
+    from app.state import AppState
+    from factorydet_core.io.dataset import open_dataset
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        state = AppState(open_dataset(small_dataset_dir))
+        panel = build_display_panel(server, state)
+        assert state.show_grid and panel.show_grid.value
+        state.set_display(show_grid=False)
+        state.set_display(point_size=0.1)  # another setting leaves the grid as it is
+        panel.refresh(state)
+        assert not state.show_grid and not panel.show_grid.value
+        like = state.shared.new_view(like=state)  # a view that starts like this one
+        assert not like.show_grid and state.shared.new_view().show_grid
+    finally:
+        server.stop()
+
+
 def test_the_app_command_takes_a_points_budget_of_at_least_one(capsys):
     import pytest
 

@@ -37,6 +37,34 @@ def test_the_scene_asks_the_browser_for_a_light_without_shadows():
         server.stop()
 
 
+def test_the_floor_grid_is_shown_and_hidden_and_sent_only_when_it_changes():
+    import viser
+
+    from app.scene import SceneView
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        view = SceneView(server)
+        assert view.grid_visible
+        view.set_grid_visible(False)
+        assert not view.grid_visible and not any(handle.visible for handle in view._grid)
+        # A second call with the same value sends nothing (a handle sends in its property's setter).
+        sent = []
+        original = type(view._grid[0]).visible
+        try:
+            type(view._grid[0]).visible = property(
+                original.fget, lambda self, value: (sent.append(value), original.fset(self, value))
+            )
+            view.set_grid_visible(False)
+            assert sent == []
+            view.set_grid_visible(True)
+            assert sent == [True, True] and view.grid_visible
+        finally:
+            type(view._grid[0]).visible = original
+    finally:
+        server.stop()
+
+
 def test_an_edit_sends_only_the_labels_it_changed():
     import viser
 
