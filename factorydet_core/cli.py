@@ -243,6 +243,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise InputError(f"--resume applies to bench hitl, quality and scale, not bench {args.name}")
     if args.resume_other_library and not (args.resume and args.name in ("hitl", "quality")):
         raise InputError("--resume-other-library goes with bench hitl or quality --resume")
+    if args.resume_also and not (args.resume and args.name == "hitl"):
+        raise InputError("--resume-also goes with bench hitl --resume")
     if args.readme and (args.readme_block or args.name in ("hitl", "quality")):
         from factorydet_core.evaluation.bench import check_readme_block
 
@@ -515,6 +517,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 from factorydet_core.scale.jobs import proposer
 
                 earlier = _earlier_record(args)
+                if args.resume_also:
+                    from factorydet_core.evaluation.hitl import with_runs_of
+                    from factorydet_core.io.jsonfile import read_json
+
+                    others = [
+                        read_json(path, what="bench hitl result")
+                        for path in (part.strip() for part in args.resume_also.split(","))
+                        if path
+                    ]
+                    earlier = with_runs_of(earlier, others)
                 result = bench_hitl(
                     args.data[0],
                     budgets=parse_ints(args.budgets, "--budgets"),
@@ -1679,6 +1691,13 @@ def build_parser(
         help="hitl, quality: continue the (partial) result at --out, training only the seeds (hitl: "
         "the seeds' detectors) it lacks; scale: running only the runs it lacks; with it, --out is "
         "also written after every detector of a seed (hitl), training seed (quality) or run (scale)",
+    )
+    p.add_argument(
+        "--resume-also",
+        default=None,
+        metavar="PATHS",
+        help="hitl, with --resume: also read back the finished runs of these records (comma-separated; "
+        "the same benchmark's other seeds run by another process, say), so that --out holds them all",
     )
     p.add_argument(
         "--resume-other-library",

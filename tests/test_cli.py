@@ -583,6 +583,20 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     assert main(args) == 0
     again = json.loads(capsys.readouterr().out)
     assert not fits and again["f1"] == resumed["f1"] and again["proposal_seconds"] is None
+    # Runs finished in other records (another process's detectors or seeds) are read back too,
+    # into a record at --out that did not exist.
+    parts = []
+    for name in ("blind", "blind_safe"):
+        parts.append(tmp_path / f"{name}.json")
+        part = {**resumed, "complete": False, "per_seed": {name: resumed["per_seed"][name]}}
+        parts[-1].write_text(json.dumps(part))
+    joined = tmp_path / "joined.json"
+    at_joined = [*args[:-2], str(joined), "--resume"]
+    assert main([*at_joined, "--resume-also", ",".join(map(str, parts))]) == 0
+    assert not fits and json.loads(capsys.readouterr().out)["per_seed"] == resumed["per_seed"]
+    assert json.loads(joined.read_text())["complete"]
+    assert main([*args[:-1], "--resume-also", str(parts[0])]) == 2  # (only with --resume)
+    assert "--resume-also goes with bench hitl --resume" in capsys.readouterr().err
     # A record of another plan is refused before any work; so is --resume where nothing resumes.
     fits.clear()
     assert args[5] == "--epochs" and main([*args[:6], "2", *args[7:]]) == 2

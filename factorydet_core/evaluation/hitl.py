@@ -747,9 +747,7 @@ def _resumable_runs(
         return {}
     if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
         raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
-    theirs = {**PLAN_BEFORE_THEY_EXISTED, **earlier["plan"]}
-    if isinstance(theirs.get("settings"), dict):
-        theirs["settings"] = _settings_as_run(theirs["settings"])
+    theirs = _record_plan(earlier)
     mine = plan.record()
     same = {name for name in mine["variants"] if _run_plan(mine, name) == _run_plan(theirs, name)}
     if not same:
@@ -765,6 +763,53 @@ def _resumable_runs(
         return runs  # (nothing to train: the record is rendered as it is)
     kept = runs_of_this_library({key: [run] for key, run in runs.items()}, "hitl", "runs")
     return {key: runs[key] for key in kept}
+
+
+def _record_plan(record: dict) -> dict:
+    """A record's plan as its runs ran it (the fields it predates at the values they ran)."""
+    plan = {**PLAN_BEFORE_THEY_EXISTED, **record["plan"]}
+    if isinstance(plan.get("settings"), dict):
+        plan["settings"] = _settings_as_run(plan["settings"])
+    return plan
+
+
+def with_runs_of(earlier: dict | None, others: Sequence[dict]) -> dict | None:
+    """``earlier`` (the partial record ``--resume`` goes on from, or None) with the finished runs
+    of ``others`` that it lacks: records of the same benchmark run elsewhere, say other seeds in
+    another process on another core, for one record to hold them all. A run is taken by its
+    (seed, detector), from a record whose run plan for that detector (``_run_plan``) is
+    ``earlier``'s (the first such record's, without ``earlier``); ``earlier``'s own runs come
+    first, then each record's in turn. ``_resumable_runs`` then checks the plan against the run's.
+
+    Raises:
+        InputError: when one of ``others`` is not a resumable hitl record, or shares no
+            detector's run plan with the records before it (it would mix two benchmarks).
+    """
+    records = [record for record in (earlier, *others) if record is not None]
+    for record in records:
+        if record.get("benchmark") != "hitl" or "plan" not in record:
+            raise InputError("bench hitl --resume-also: a record is not a resumable bench hitl record")
+    if not records:
+        return None
+    base = records[0]
+    base_plan = _record_plan(base)
+    per_seed = {name: list(runs) for name, runs in (base.get("per_seed") or {}).items()}
+    have = {(int(run["seed"]), name) for name, runs in per_seed.items() for run in runs}
+    for record in records[1:]:
+        plan = _record_plan(record)
+        same = {
+            name
+            for name in record.get("per_seed") or {}
+            if _run_plan(plan, name) == _run_plan(base_plan, name)
+        }
+        if not same:
+            check_same_plan("hitl", base_plan, plan)
+        for name in sorted(same):
+            for run in record["per_seed"][name]:
+                if (int(run["seed"]), name) not in have:
+                    per_seed.setdefault(name, []).append(run)
+                    have.add((int(run["seed"]), name))
+    return {**base, "per_seed": per_seed}
 
 
 def _run_plan(plan: dict, variant: str) -> dict:
