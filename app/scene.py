@@ -94,8 +94,8 @@ class SceneView:
         # wireframes and points.
         server.scene.configure_environment_map(None)
         # viser's default light casts shadows in three cascades, each drawn again at every render
-        # of the scene; nothing here needs a shadow, and under software WebGL they cost about a
-        # tenth of each render (docs/labelling.md). The light stays for the lit resize handles.
+        # of the scene, and nothing here needs a shadow (the walkthrough's --shadow-cost times
+        # what they would cost). The light stays for the lit resize handles.
         server.scene.configure_default_lights(enabled=True, cast_shadow=False)
         # A point cloud that is always there, two points far outside any view: it keeps the
         # browser's compiled point shader alive. Each new scan replaces the node, and with no
@@ -126,10 +126,9 @@ class SceneView:
         return self._grid[0].visible
 
     def set_grid_visible(self, visible: bool) -> None:
-        """Show or hide the floor grid (sent only when it changes)."""
+        """Show or hide the floor grid (viser sends a node's visibility only when it changes)."""
         for handle in self._grid:
-            if handle.visible != visible:
-                handle.visible = visible
+            handle.visible = visible
 
     def draw(
         self,

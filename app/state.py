@@ -482,8 +482,8 @@ class AppState:
         # Names on every box overlap into an unreadable cloud of text at the default view: off, only
         # the selected box is named (each browser's own) and a click on a box describes it.
         self.show_box_names = False
-        # The floor grid helps to judge distances; a browser without a graphics card draws its lines
-        # at every render (docs/labelling.md), so it can be turned off.
+        # The floor grid helps to judge distances; a browser without a graphics card draws its lines,
+        # as it does the points, at every render of the scene, so it can be turned off.
         self.show_grid = True
         self.max_height = 6.0  # metres: under the simulated hall's 8 m roof, above its racks
         self.points_drawn: int | None = None  # every point; fewer render faster without a graphics card

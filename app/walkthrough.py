@@ -122,9 +122,12 @@ def _scene_render_ms(page, view, seconds: float = 5.0) -> float | None:
 
 def _shadow_cost(page, view, pairs: int = 6, seconds: float = 4.0) -> dict:
     """One render of the scene with viser's default shadows on and with them off (the app's
-    scene), in turns in the same page (the order alternating, after three renders' worth of
-    camera moves that let viser's adaptive resolution settle): what the shadows the app turns off
-    would cost this browser. Leaves them off."""
+    scene), in turns in the same page, the order alternating, after 12 s of camera moves that let
+    viser's adaptive resolution settle: what the shadows the app turns off would cost this
+    browser. Leaves them off, and the page settled. Returns ``scene_render_ms_shadows_on`` and
+    ``_off`` (``pairs`` turns each, ms, None for a turn with too few renders to time), their
+    medians, and the median and count of the paired differences (on minus off) of the pairs
+    timed on both sides (None without one)."""
     for _ in range(3):
         _scene_render_ms(page, view, seconds)
     on, off = [], []
@@ -134,13 +137,21 @@ def _shadow_cost(page, view, pairs: int = 6, seconds: float = 4.0) -> dict:
             time.sleep(1.5)
             (on if shadows else off).append(_scene_render_ms(page, view, seconds))
     view.client.scene.configure_default_lights(enabled=True, cast_shadow=False)
+    time.sleep(1.5)  # the lit materials made again without shadows, before the first key is timed
+    _scene_render_ms(page, view, 1.0)
     differences = [a - b for a, b in zip(on, off) if a is not None and b is not None]
+
+    def median(values: list) -> float | None:
+        timed = [value for value in values if value is not None]
+        return round(statistics.median(timed), 1) if timed else None
+
     return {
         "scene_render_ms_shadows_on": on,
         "scene_render_ms_shadows_off": off,
-        "shadows_on_median_ms": round(statistics.median(x for x in on if x is not None), 1),
-        "shadows_off_median_ms": round(statistics.median(x for x in off if x is not None), 1),
-        "shadows_paired_difference_median_ms": round(statistics.median(differences), 1),
+        "shadows_on_median_ms": median(on),
+        "shadows_off_median_ms": median(off),
+        "shadows_paired_difference_median_ms": median(differences),
+        "shadows_pairs": len(differences),
         "shadows_slower_pairs": sum(d > 0 for d in differences),
     }
 
@@ -434,11 +445,13 @@ def run(
     retrain: bool = True,
     points_drawn: int | None = None,
     verdict_keys: str = VERDICT_KEYS,
+    shadow_cost: bool = False,
 ) -> dict:
     """Drive the app through the steps ``repeats`` times; returns the record. Without ``retrain``
     the review verdicts and the retrains are left out (minutes instead of a quarter of an hour);
     ``points_drawn``: the Display panel's "Points drawn" (None: all); ``verdict_keys``: the review
-    verdicts' keys, in turn."""
+    verdicts' keys, in turn; ``shadow_cost``: also time a render with viser's default shadows on
+    and off (``_shadow_cost``, a minute and a half)."""
     check_verdict_keys(verdict_keys)
     from playwright.sync_api import sync_playwright
 
@@ -493,7 +506,8 @@ def run(
                     view.state.set_display(points_drawn=points_drawn)
                     _wait(lambda: view.scene.num_points_shown == points_shown, 60, "the scan drawn again")
                     time.sleep(1.0)  # ... and the whole scan again before the first key
-                render["shadows"] = _shadow_cost(page, view)
+                if shadow_cost:
+                    render["shadows"] = _shadow_cost(page, view)
 
                 def shows(text: str) -> Callable[[], None]:
                     return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
@@ -641,6 +655,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the Display panel's Points drawn (default: all the points)",
     )
     parser.add_argument(
+        "--shadow-cost",
+        action="store_true",
+        help="also time a render with viser's default shadows on and off, in turns (they are off in the app)",
+    )
+    parser.add_argument(
         "--verdict-keys",
         default=VERDICT_KEYS,
         help=f"the review verdicts' keys, in turn (default {VERDICT_KEYS}: background and skip; o answers "
@@ -666,6 +685,7 @@ def main(argv: list[str] | None = None) -> int:
         retrain=not args.no_retrain,
         points_drawn=args.points_drawn,
         verdict_keys=args.verdict_keys,
+        shadow_cost=args.shadow_cost,
     )
     record["command"] = "python -m app.walkthrough " + " ".join(argv if argv is not None else sys.argv[1:])
     text = json.dumps(record, indent=2)

@@ -243,8 +243,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise InputError(f"--resume applies to bench hitl, quality and scale, not bench {args.name}")
     if args.resume_other_library and not (args.resume and args.name in ("hitl", "quality")):
         raise InputError("--resume-other-library goes with bench hitl or quality --resume")
-    if args.resume_also and not (args.resume and args.name == "hitl"):
-        raise InputError("--resume-also goes with bench hitl --resume")
+    if args.resume_also is not None:
+        paths = [path.strip() for path in args.resume_also.split(",") if path.strip()]
+        if not paths:
+            raise InputError(f"--resume-also names no record: {args.resume_also!r}")
+        args.resume_also = paths
+        if not (args.resume and args.name == "hitl"):
+            raise InputError("--resume-also goes with bench hitl --resume")
     if args.readme and (args.readme_block or args.name in ("hitl", "quality")):
         from factorydet_core.evaluation.bench import check_readme_block
 
@@ -513,20 +518,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 )
             elif args.name == "hitl":
                 from factorydet_core.evaluation.hitl import bench_hitl
-                from factorydet_core.io.jsonfile import write_json
+                from factorydet_core.io.jsonfile import read_json, write_json
                 from factorydet_core.scale.jobs import proposer
 
                 earlier = _earlier_record(args)
-                if args.resume_also:
-                    from factorydet_core.evaluation.hitl import with_runs_of
-                    from factorydet_core.io.jsonfile import read_json
-
-                    others = [
-                        read_json(path, what="bench hitl result")
-                        for path in (part.strip() for part in args.resume_also.split(","))
-                        if path
-                    ]
-                    earlier = with_runs_of(earlier, others)
+                also = {path: read_json(path, what="bench hitl result") for path in args.resume_also or ()}
                 result = bench_hitl(
                     args.data[0],
                     budgets=parse_ints(args.budgets, "--budgets"),
@@ -550,6 +546,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     heldout_scratch=args.scratch,
                     best_view=args.review_best_view,
                     resume_other_library=args.resume_other_library,
+                    also=also,
                 )
                 result["proposals_on"] = execution.describe()
                 if args.out:

@@ -597,6 +597,8 @@ def test_bench_hitl_resume_trains_only_the_detectors_the_record_lacks(
     assert json.loads(joined.read_text())["complete"]
     assert main([*args[:-1], "--resume-also", str(parts[0])]) == 2  # (only with --resume)
     assert "--resume-also goes with bench hitl --resume" in capsys.readouterr().err
+    assert main([*at_joined, "--resume-also", " , "]) == 2
+    assert "--resume-also names no record" in capsys.readouterr().err
     # A record of another plan is refused before any work; so is --resume where nothing resumes.
     fits.clear()
     assert args[5] == "--epochs" and main([*args[:6], "2", *args[7:]]) == 2

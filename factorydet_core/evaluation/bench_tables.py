@@ -772,15 +772,19 @@ def walkthrough_markdown(result: dict) -> str:
             f" {fmt(render['scene_render_ms_few_points'])} ms."
         )
     shadows = render.get("shadows")
-    if shadows is not None:  # (records before it: not measured)
-        pairs = len(shadows["scene_render_ms_shadows_on"])
+    if shadows is not None and shadows.get("shadows_paired_difference_median_ms") is not None:
+        # (records before it: not measured; None: no pair timed on both sides)
+        turns = [
+            sum(ms is not None for ms in shadows[f"scene_render_ms_shadows_{side}"]) for side in ("on", "off")
+        ]
+        pairs = shadows.get("shadows_pairs", min(turns))  # (the first record timed every turn)
         scene_text += (
             f" viser's default light casts shadows, which the app turns off: with them, one render"
             f" takes {fmt(shadows['shadows_on_median_ms'])} ms against"
-            f" {fmt(shadows['shadows_off_median_ms'])} ms without (medians of {pairs} turns each in the"
-            f" same page), {fmt(shadows['shadows_paired_difference_median_ms'])} ms more a render"
-            f" (the median of the paired differences; more in {shadows['shadows_slower_pairs']} pairs"
-            f" of {pairs})."
+            f" {fmt(shadows['shadows_off_median_ms'])} ms without (medians of {turns[0]} and {turns[1]}"
+            f" turns in the same page), {fmt(shadows['shadows_paired_difference_median_ms'])} ms more a"
+            f" render (the median of the {pairs} paired differences; more in"
+            f" {shadows['shadows_slower_pairs']} of them)."
         )
     if "renders_after_a_scene_change_median" in render:  # (records before it did not count them)
         window = render["render_window_s"]

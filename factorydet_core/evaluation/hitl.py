@@ -7,7 +7,7 @@ import dataclasses
 import json
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -501,6 +501,7 @@ def bench_hitl(
     heldout_scratch: str | os.PathLike = HELDOUT_SCRATCH,
     best_view: bool = False,
     resume_other_library: bool = False,
+    also: Mapping[str, dict] | None = None,
 ) -> dict:
     """Does reviewing mined negatives make the detector better? Several detectors, the same budget
     of mining rounds, F-score at IoU 0.6 against the full truth on the test frames:
@@ -548,9 +549,11 @@ def bench_hitl(
     detectors to train reads back only the runs of the running version (the others train again,
     with a warning) unless ``resume_other_library``; a resume with nothing to train renders the
     record as it is. The record counts its runs per library version (``library_versions``).
+    ``also`` (records by name, e.g. their paths) adds the finished runs of other records of the
+    plan, say the seeds another process ran (``_resumable_runs``).
 
     Raises:
-        InputError: on bad arguments, or an ``earlier`` record of another plan.
+        InputError: on bad arguments, or an ``earlier`` (or ``also``) record of another plan.
     """
     import tempfile
 
@@ -597,7 +600,7 @@ def bench_hitl(
         bool(best_view),
     )  # fmt: skip
     # a plan mismatch fails here, before any work
-    resumed = _resumable_runs(plan, earlier, other_library=resume_other_library)
+    resumed = _resumable_runs(plan, earlier, other_library=resume_other_library, also=also)
     if workdir is not None:
         return _hitl_variants(plan, Path(workdir), progress, resumed, on_partial)
     with tempfile.TemporaryDirectory(prefix="factorydet_hitl_") as scratch_dir:
@@ -731,33 +734,52 @@ frames (no held-out factories), reviewed without the best view."""
 
 
 def _resumable_runs(
-    plan: _HitlPlan, earlier: dict | None, other_library: bool = False
+    plan: _HitlPlan,
+    earlier: dict | None,
+    other_library: bool = False,
+    also: Mapping[str, dict] | None = None,
 ) -> dict[tuple[int, str], dict]:
     """The finished runs of an earlier (partial) result, as ``{(seed, variant): run}``: those of
-    the plan's detectors whose run plan (``_run_plan``) the earlier record shares. When some of
-    the plan's runs are missing (there is training to do), only the runs of this version of the
-    library (``records.library_version``) are read back, unless ``other_library``: a record whose
-    runs ran other code would set two versions side by side in every paired difference. The
-    runs left out train again, with a warning that says so.
+    the plan's detectors whose run plan (``_run_plan``) the earlier record shares. ``also``, by
+    name (a file's path), adds the finished runs of other records of the plan, say the seeds
+    another process ran on the other core: a run the earlier record lacks, or one of this version
+    of the library where the earlier record's ran another; a record without runs adds nothing.
+    When some of the plan's runs are missing (there is training to do), only the runs of this
+    version of the library (``records.library_version``) are read back, unless ``other_library``:
+    a record whose runs ran other code would set two versions side by side in every paired
+    difference. The runs left out train again, with a warning that says so.
 
     Raises:
-        InputError: when ``earlier`` shares no detector's run plan (it would mix two benchmarks).
+        InputError: when a record (``earlier`` or one of ``also``, named) is not a hitl record, or
+            has runs and shares no detector's run plan (it would mix two benchmarks).
     """
-    if not earlier:
-        return {}
-    if earlier.get("benchmark") != "hitl" or "plan" not in earlier:
-        raise InputError("bench hitl --resume: the earlier result is not a resumable bench hitl record")
-    theirs = _record_plan(earlier)
     mine = plan.record()
-    same = {name for name in mine["variants"] if _run_plan(mine, name) == _run_plan(theirs, name)}
-    if not same:
-        check_same_plan("hitl", mine, theirs)
-    runs = {
-        (int(run["seed"]), name): run
-        for name, runs in (earlier.get("per_seed") or {}).items()
-        for run in runs
-        if int(run["seed"]) in plan.seeds and name in same
-    }
+    version = library_version()
+    runs: dict[tuple[int, str], dict] = {}
+    named = [("--out", earlier)] if earlier else []
+    for name, record in [*named, *(also or {}).items()]:
+        where = "the earlier result" if name == "--out" else name
+        if not isinstance(record, dict) or record.get("benchmark") != "hitl" or "plan" not in record:
+            raise InputError(f"bench hitl --resume: {where} is not a resumable bench hitl record")
+        per_seed = record.get("per_seed") or {}
+        if name != "--out" and not any(per_seed.values()):
+            continue  # (nothing to read back, whatever plan it ran)
+        theirs = _record_plan(record)
+        same = {
+            variant for variant in mine["variants"] if _run_plan(mine, variant) == _run_plan(theirs, variant)
+        }
+        if not same:
+            try:
+                check_same_plan("hitl", mine, theirs)
+            except InputError as exc:
+                raise InputError(str(exc).replace("the earlier result", where)) from None
+        for variant, variant_runs in per_seed.items():
+            for run in variant_runs:
+                key = (int(run["seed"]), variant)
+                if key[0] not in plan.seeds or variant not in same:
+                    continue
+                if key not in runs or (runs[key].get("library") != version and run.get("library") == version):
+                    runs[key] = run
     wanted = {(seed, name) for seed in plan.seeds for name in mine["variants"]}
     if other_library or wanted <= set(runs):
         return runs  # (nothing to train: the record is rendered as it is)
@@ -771,45 +793,6 @@ def _record_plan(record: dict) -> dict:
     if isinstance(plan.get("settings"), dict):
         plan["settings"] = _settings_as_run(plan["settings"])
     return plan
-
-
-def with_runs_of(earlier: dict | None, others: Sequence[dict]) -> dict | None:
-    """``earlier`` (the partial record ``--resume`` goes on from, or None) with the finished runs
-    of ``others`` that it lacks: records of the same benchmark run elsewhere, say other seeds in
-    another process on another core, for one record to hold them all. A run is taken by its
-    (seed, detector), from a record whose run plan for that detector (``_run_plan``) is
-    ``earlier``'s (the first such record's, without ``earlier``); ``earlier``'s own runs come
-    first, then each record's in turn. ``_resumable_runs`` then checks the plan against the run's.
-
-    Raises:
-        InputError: when one of ``others`` is not a resumable hitl record, or shares no
-            detector's run plan with the records before it (it would mix two benchmarks).
-    """
-    records = [record for record in (earlier, *others) if record is not None]
-    for record in records:
-        if record.get("benchmark") != "hitl" or "plan" not in record:
-            raise InputError("bench hitl --resume-also: a record is not a resumable bench hitl record")
-    if not records:
-        return None
-    base = records[0]
-    base_plan = _record_plan(base)
-    per_seed = {name: list(runs) for name, runs in (base.get("per_seed") or {}).items()}
-    have = {(int(run["seed"]), name) for name, runs in per_seed.items() for run in runs}
-    for record in records[1:]:
-        plan = _record_plan(record)
-        same = {
-            name
-            for name in record.get("per_seed") or {}
-            if _run_plan(plan, name) == _run_plan(base_plan, name)
-        }
-        if not same:
-            check_same_plan("hitl", base_plan, plan)
-        for name in sorted(same):
-            for run in record["per_seed"][name]:
-                if (int(run["seed"]), name) not in have:
-                    per_seed.setdefault(name, []).append(run)
-                    have.add((int(run["seed"]), name))
-    return {**base, "per_seed": per_seed}
 
 
 def _run_plan(plan: dict, variant: str) -> dict:

@@ -279,7 +279,8 @@ def test_each_browser_has_its_own_frame_display_and_thresholds(app_with_model, b
         # The floor grid is a display setting of each browser too.
         first.state.set_display(show_grid=False)
         assert _wait(lambda: not first.scene.grid_visible, 20)
-        assert second.scene.grid_visible
+        second.redraw()
+        assert second.state.show_grid and second.scene.grid_visible
     finally:
         for context in contexts:
             context.close()

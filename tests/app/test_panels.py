@@ -76,7 +76,7 @@ def test_the_display_panel_offers_a_budget_set_elsewhere_in_its_order_and_sends_
         server.stop()
 
 
-def test_the_display_panel_shows_and_sets_the_floor_grid(small_dataset_dir):
+def test_the_display_panel_shows_the_floor_grid_setting_and_a_like_view_copies_it(small_dataset_dir):
     import viser
 
     from app.panels.display_panel import build_display_panel

@@ -544,13 +544,22 @@ def test_the_walkthrough_says_what_viser_s_shadows_would_cost_where_it_measured_
         "shadows_on_median_ms": 150.0,
         "shadows_off_median_ms": 140.0,
         "shadows_paired_difference_median_ms": 20.0,
+        "shadows_pairs": 3,
         "shadows_slower_pairs": 2,
     }
     measured = {**record, "browser_render": {**record["browser_render"], "shadows": shadows}}
     assert (
-        "with them, one render takes 150.0 ms against 140.0 ms without (medians of 3 turns each in the"
-        " same page), 20.0 ms more a render (the median of the paired differences; more in 2 pairs of 3)."
+        "with them, one render takes 150.0 ms against 140.0 ms without (medians of 3 and 3 turns in the"
+        " same page), 20.0 ms more a render (the median of the 3 paired differences; more in 2 of them)."
     ) in render_record(measured)
+    # A turn too short to time is not counted; with no pair timed on both sides, nothing is said.
+    one_short = {**shadows, "scene_render_ms_shadows_off": [130.0, None, 140.0], "shadows_pairs": 2}
+    measured["browser_render"]["shadows"] = one_short
+    assert "(medians of 3 and 2 turns in the same page)" in render_record(measured)
+    assert "the median of the 2 paired differences" in render_record(measured)
+    none_paired = {**one_short, "shadows_paired_difference_median_ms": None, "shadows_pairs": 0}
+    measured["browser_render"]["shadows"] = none_paired
+    assert "casts shadows" not in render_record(measured)
 
 
 def test_the_walkthrough_says_what_the_browser_spent_with_the_training_panel_open_where_measured():

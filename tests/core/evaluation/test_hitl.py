@@ -228,44 +228,49 @@ def test_a_resume_with_training_to_do_reads_back_only_the_runs_of_this_library()
         assert set(_resumable_runs(one_seed, earlier)) == {(1, "blind"), (1, "full")}
 
 
-def test_runs_of_other_records_of_the_same_plan_join_the_earlier_ones():
+def test_runs_of_other_records_of_the_plan_join_the_earlier_ones():
     import pytest
 
-    from factorydet_core.evaluation.hitl import _HitlPlan, _resumable_runs, with_runs_of
+    from factorydet_core.evaluation.hitl import _HitlPlan, _resumable_runs
     from factorydet_core.evaluation.records import library_version
     from factorydet_core.types import InputError
 
     plan = _HitlPlan(None, "d", [0], [1], [200], 2, LoopSettings(), [0, 1, 2], None, True, "",
                      variants=["blind", "full"])  # fmt: skip
 
-    def run(seed, f1):
-        return {"seed": seed, "f1": f1, "library": library_version()}
+    def run(seed, f1, library=None):
+        return {"seed": seed, "f1": f1, "library": library or library_version()}
 
-    def record(seeds, per_seed):
-        return {"benchmark": "hitl", "plan": {**plan.record(), "seeds": seeds}, "per_seed": per_seed}
+    def record(per_seed, **changes):
+        return {"benchmark": "hitl", "plan": {**plan.record(), **changes}, "per_seed": per_seed}
 
-    here = record([0], {"blind": [run(0, 0.1)]})
-    there = record([0, 1, 2], {
-        "blind": [run(0, 0.9), run(1, 0.2)],
-        "full": [run(1, 0.3), run(2, 0.4)],
-    })  # fmt: skip
-    joined = with_runs_of(here, [there])
-    # The earlier record's own run comes first; the others' runs it lacks join it.
-    assert joined["per_seed"] == {
-        "blind": [run(0, 0.1), run(1, 0.2)],
-        "full": [run(1, 0.3), run(2, 0.4)],
-    }
-    assert here["per_seed"] == {"blind": [run(0, 0.1)]}  # (not changed in place)
-    assert set(_resumable_runs(plan, joined)) == {(0, "blind"), (1, "blind"), (1, "full"), (2, "full")}
+    here = record({"blind": [run(0, 0.1), run(2, 0.5, "0123456789ab")]})
+    there = record(
+        {"blind": [run(0, 0.9), run(1, 0.2), run(2, 0.6)], "full": [run(1, 0.3), run(2, 0.4)]}, seeds=[1]
+    )
+    runs = _resumable_runs(plan, here, also={"b.json": there})
+    # The earlier record's own run comes first, a run of this library before one of another; the
+    # others' runs it lacks join it (what is left to train: seed 0's full labels).
+    assert {key: run["f1"] for key, run in runs.items()} == {
+        (0, "blind"): 0.1, (1, "blind"): 0.2, (2, "blind"): 0.6, (1, "full"): 0.3, (2, "full"): 0.4
+    }  # fmt: skip
+    assert [r["f1"] for r in here["per_seed"]["blind"]] == [0.1, 0.5]  # (the records are not changed)
     # No record at --out yet: the others' runs alone.
-    assert with_runs_of(None, [there])["per_seed"] == there["per_seed"]
-    assert with_runs_of(None, []) is None
-    # A record of another plan, or not a hitl record, is refused.
-    other = {**there, "plan": {**there["plan"], "mining_rounds": 3}}
-    with pytest.raises(InputError, match="another plan"):
-        with_runs_of(here, [other])
-    with pytest.raises(InputError, match="not a resumable bench hitl record"):
-        with_runs_of(here, [{"benchmark": "quality", "plan": {}}])
+    assert set(_resumable_runs(plan, None, also={"b.json": there})) == set(runs)
+    # A record of another plan (one that touches every detector) is refused, by its name.
+    other = record({"blind": [run(1, 0.2)]}, mining_rounds=3)
+    with pytest.raises(InputError, match="other.json ran another plan"):
+        _resumable_runs(plan, here, also={"other.json": other})
+    # A record with no runs adds nothing, whatever it ran (the earlier record's run of another
+    # library, with training to do, trains again).
+    with pytest.warns(UserWarning, match="1 of the earlier record's runs ran another version"):
+        alone = _resumable_runs(plan, here, also={"empty.json": record({}, variants=["blind"])})
+    assert set(alone) == {(0, "blind")}
+    # One that is not a hitl record is refused.
+    with pytest.raises(InputError, match="q.json is not a resumable bench hitl record"):
+        _resumable_runs(plan, here, also={"q.json": {"benchmark": "quality", "plan": {}}})
+    with pytest.raises(InputError, match="q.json is not a resumable"):
+        _resumable_runs(plan, here, also={"q.json": [1, 2]})
 
 
 def test_records_and_compares_say_when_their_runs_ran_other_code():
