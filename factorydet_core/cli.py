@@ -287,6 +287,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             **compare_hitl_records(*records, names=tuple(names), pair=pair),
             "command": command,
         }
+    elif args.name == "hitl-pool":
+        from factorydet_core.evaluation.hitl import pool_hitl_records
+        from factorydet_core.io.jsonfile import read_json
+
+        records = [read_json(path, what="bench hitl record") for path in args.data]
+        result = {
+            **pool_hitl_records(records, names=[Path(path).name for path in args.data]),
+            "command": command,
+        }
     elif args.name == "fuzz":
         from factorydet_core.evaluation.fuzz import (
             TARGETS,
@@ -1550,6 +1559,7 @@ def build_parser(
             "classifier",
             "hitl",
             "hitl-compare",
+            "hitl-pool",
             "quality",
             "fuzz",
             "import",
@@ -1564,7 +1574,8 @@ def build_parser(
         nargs="*",
         help="pipeline: a simulated data set folder, or point-cloud files (recall pooled); sweep: a folder; "
         "hitl-compare: two bench hitl records, RECORD BASELINE (seed by seed, RECORD minus BASELINE), or one "
-        "record with --variants A,B",
+        "record with --variants A,B; hitl-pool: two or more bench hitl records of one plan on disjoint "
+        "held-out factories",
     )
     p.add_argument(
         "--frames",

@@ -88,6 +88,32 @@ def test_bench_hitl_compare_pairs_two_detectors_of_one_record(tmp_path, capsys):
     assert "r.json did not run 'reviewed_200'" in capsys.readouterr().err
 
 
+def test_bench_hitl_pool_takes_records_on_disjoint_factories_together(tmp_path, capsys):
+    def record(factories, offset):
+        per_seed = {
+            name: [{"seed": s, "f1": f + offset + 0.01 * s} for s in range(3)]
+            for name, f in (("blind", 0.2), ("reviewed_200", 0.23), ("full", 0.25))
+        }
+        plan = {"data": "x", "heldout": {"seeds": factories, "frames": 12}}
+        return {"benchmark": "hitl", "complete": True, "plan": plan, "per_seed": per_seed}
+
+    paths = []
+    for name, factories, offset in (("a.json", [111], 0.0), ("b.json", [121], 0.1)):
+        paths.append(tmp_path / name)
+        paths[-1].write_text(json.dumps(record(factories, offset)))
+    page = tmp_path / "docs" / "p.md"
+    page.parent.mkdir()
+    page.write_text("<!-- bench:pooled -->\n<!-- /bench:pooled -->\n")
+    args = ["bench", "hitl-pool", *map(str, paths), "--readme", str(page), "--readme-block", "pooled"]
+    assert main(args) == 0
+    pooled = json.loads(capsys.readouterr().out)
+    assert pooled["f1"]["blind"] == pytest.approx(0.26) and pooled["records"] == ["a.json", "b.json"]
+    assert "recovered: reviewed_200 60%" in page.read_text()
+    assert json.loads((page.parent / "bench" / "pooled.json").read_text())["f1"] == pooled["f1"]
+    assert main(["bench", "hitl-pool", str(paths[0])]) == 2
+    assert "needs two or more bench hitl records" in capsys.readouterr().err
+
+
 def test_propose_json_on_a_simulated_frame(small_dataset_dir, capsys):
     assert main(["propose", str(small_dataset_dir), "--frame", "1", "--json", "--no-calibrate"]) == 0
     record = json.loads(capsys.readouterr().out)

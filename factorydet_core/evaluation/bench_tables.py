@@ -965,6 +965,44 @@ def hitl_compare_table(result: dict) -> str:
     return "\n".join(lines) + _library_pairs_text(rows)
 
 
+@register("hitl-pool")
+def hitl_pool_table(result: dict) -> str:
+    """``bench hitl-pool``: several records' held-out factory sets taken together, per detector,
+    and the share of the blind-to-full gap each recovers (stated where the gap is significant)."""
+    sets = "; ".join(
+        f"`{name}` (factories {', '.join(map(str, heldout['seeds']))}, {heldout['frames']} frames each)"
+        for name, heldout in zip(result["records"], result["heldout"])
+    )
+    seeds = ", ".join(map(str, result["seeds"]))
+    rows = [
+        [name, fmt(result["f1"][name], 3), ", ".join(fmt(value, 3) for value in result["f1_per_seed"][name])]
+        for name in result["variants"]
+    ]
+    gap = result["gap"]
+    text = (
+        f"{sets}, taken together: per training seed (seeds {seeds}), the mean of the sets' F-scores"
+        " weighted by their frames (the mean over the sets, not the F-score of their frames pooled).\n\n"
+        + table(["detector", "F-score (mean over seeds)", "per seed"], rows)
+        + f"\n\nThe gap between blind and full labels: {difference_text(gap)}"
+    )
+    if not result["gap_significant"]:
+        return text + (
+            f", not larger than twice its standard error ({fmt(gap['standard_error'])}): no recovered"
+            " share is stated."
+        )
+    shares = []
+    for name, share in result["recovered"].items():
+        if share["share"] is None:
+            continue
+        interval = (
+            " [{:.0f}%, {:.0f}%]".format(*(100 * bound for bound in share["ci95"]))
+            if share["ci95"]
+            else " [interval unbounded]"
+        )
+        shares.append(f"{name} {100 * share['share']:.0f}%{interval}")
+    return text + ", more than twice its standard error; recovered: " + ("; ".join(shares) or "–") + "."
+
+
 def _library_pairs_text(rows: dict) -> str:
     """Whether a compare's paired runs ran one version of the library ("" when the records did
     not keep it)."""

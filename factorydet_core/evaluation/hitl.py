@@ -1317,6 +1317,98 @@ def _hitl_variants(
     }
 
 
+def pool_hitl_records(records: Sequence[dict], names: Sequence[str] | None = None) -> dict:
+    """Several complete ``bench hitl`` records of one plan measured on disjoint sets of held-out
+    factories, taken together: per training seed and detector, the mean of the records' F-scores
+    weighted by their held-out frames (the mean F over the sets, not the F of the pooled frames:
+    the records keep F-scores, not counts), then the gap of full labels over blind mining and the
+    share of it each other detector recovers, seed by seed paired (``paired_difference``,
+    ``recovered_share``), over the seeds every record ran.
+
+    Returns:
+        ``{"benchmark": "hitl-pool", "records", "heldout", "seeds", "variants", "f1",
+        "f1_per_seed", "gap", "gap_significant", "recovered"}``: ``heldout`` ``{"seeds", "frames"}``
+        of each record in turn, ``f1`` the seeds' means per detector, ``gap`` the paired
+        difference full minus blind, ``recovered`` per detector but blind and full.
+
+    Raises:
+        InputError: fewer than two records, an incomplete one, one not on held-out factories, two
+            sharing a factory, a detector's runs planned differently (the held-out factories
+            aside), no detector or seed in common, or no blind mining and full labels to pool.
+    """
+    names = list(names) if names is not None else [f"record {k + 1}" for k in range(len(records))]
+    if len(records) < 2:
+        raise InputError("bench hitl-pool needs two or more bench hitl records")
+    for name, record in zip(names, records):
+        if not isinstance(record, dict) or record.get("benchmark") != "hitl" or "plan" not in record:
+            raise InputError(f"bench hitl-pool: {name} is not a bench hitl record")
+        if not record.get("complete", True):
+            raise InputError(f"bench hitl-pool: {name} is a partial record; finish it first (--resume)")
+        if not (record["plan"].get("heldout") or {}).get("seeds"):
+            raise InputError(f"bench hitl-pool: {name} was not measured on held-out factories")
+    factories = [int(s) for record in records for s in record["plan"]["heldout"]["seeds"]]
+    if len(set(factories)) != len(factories):
+        raise InputError("bench hitl-pool: the records share held-out factories; pool disjoint sets")
+    variants = [v for v in records[0]["per_seed"] if all(v in r["per_seed"] for r in records[1:])]
+    if not {"blind", "full"} <= set(variants):
+        raise InputError("bench hitl-pool needs blind mining and full labels in every record")
+    plans = [{**_record_plan(record), "heldout": None} for record in records]
+    for variant in variants:
+        for name, plan in zip(names[1:], plans[1:]):
+            if _run_plan(plan, variant) != _run_plan(plans[0], variant):
+                mine, theirs = _run_plan(plans[0], variant), _run_plan(plan, variant)
+                changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+                if "settings" in changed and isinstance(mine.get("settings"), dict):
+                    ours, others = mine["settings"], theirs.get("settings") or {}
+                    changed.remove("settings")
+                    changed += sorted(
+                        f"settings.{k}" for k in ours.keys() | others.keys() if ours.get(k) != others.get(k)
+                    )
+                raise InputError(
+                    f"bench hitl-pool: {name} planned {variant} differently from {names[0]}"
+                    f" ({', '.join(changed)})"
+                )
+    by_seed = [
+        {
+            variant: {int(run["seed"]): run["f1"] for run in record["per_seed"][variant]}
+            for variant in variants
+        }
+        for record in records
+    ]
+    seeds = sorted(set.intersection(*(set(runs[v]) for runs in by_seed for v in variants)))
+    if not seeds:
+        raise InputError("bench hitl-pool: no training seed ran every detector in every record")
+    weights = np.array(
+        [len(r["plan"]["heldout"]["seeds"]) * int(r["plan"]["heldout"]["frames"]) for r in records],
+        np.float64,
+    )
+    f1_per_seed = {
+        variant: [
+            round(float(np.average([runs[variant][seed] for runs in by_seed], weights=weights)), 4)
+            for seed in seeds
+        ]
+        for variant in variants
+    }
+    gap = paired_difference(f1_per_seed["full"], f1_per_seed["blind"])
+    return {
+        "benchmark": "hitl-pool",
+        "records": names,
+        "heldout": [dict(record["plan"]["heldout"]) for record in records],
+        "seeds": seeds,
+        "variants": variants,
+        "f1": {variant: round(float(np.mean(values)), 4) for variant, values in f1_per_seed.items()},
+        "f1_per_seed": f1_per_seed,
+        "gap": gap,
+        # (as in a record: a share of a gap no larger than its noise says nothing)
+        "gap_significant": gap["standard_error"] is not None and gap["mean"] > 2 * gap["standard_error"],
+        "recovered": {
+            variant: recovered_share(f1_per_seed[variant], f1_per_seed["blind"], f1_per_seed["full"])
+            for variant in variants
+            if variant not in ("blind", "full")
+        },
+    }
+
+
 def compare_hitl_records(
     record: dict,
     baseline: dict,

@@ -319,3 +319,65 @@ def test_the_label_points_floor_shapes_the_reviewers_runs_alone():
         # Without per-class thresholds nothing is tuned: the floor cannot shape the run.
         no_floor = {**untuned, "settings": {**untuned["settings"], "threshold_label_min_points": 0}}
         assert _run_plan(untuned, variant) == _run_plan(no_floor, variant)
+
+
+def _pool_record(factories, per_seed_f1, frames=12, **settings_changes):
+    """A complete bench hitl record on held-out ``factories`` with these F-scores per detector."""
+    settings = {**dataclasses.asdict(LoopSettings()), **settings_changes}
+    plan = {"data": "d", "seeds": [0, 1, 2], "variants": list(per_seed_f1), "budgets": [200],
+            "review_by": "place", "queue_max_label_iou": 0.25, "settings": settings,
+            "heldout": {"seeds": list(factories), "frames": frames}}  # fmt: skip
+    per_seed = {
+        name: [{"seed": seed, "f1": f1} for seed, f1 in enumerate(values)]
+        for name, values in per_seed_f1.items()
+    }
+    return {"benchmark": "hitl", "complete": True, "plan": plan, "per_seed": per_seed}
+
+
+def test_records_on_disjoint_factories_pool_their_f_scores_seed_by_seed():
+    import pytest
+
+    from factorydet_core.evaluation.bench_tables import render_record
+    from factorydet_core.evaluation.hitl import pool_hitl_records, recovered_share
+    from factorydet_core.types import InputError
+
+    first = _pool_record(
+        [111, 112],
+        {"blind": [0.20, 0.22, 0.21], "reviewed_200": [0.23, 0.25, 0.24], "full": [0.24, 0.26, 0.25]},
+    )
+    second_f1 = {"blind": [0.30, 0.28, 0.29], "reviewed_200": [0.31, 0.30, 0.30], "full": [0.34, 0.32, 0.33]}
+    second = _pool_record([121, 122], second_f1, frames=24)
+    pooled = pool_hitl_records([first, second], names=["a.json", "b.json"])
+    # Weighted by frames: the second set has twice the first's.
+    assert pooled["f1_per_seed"]["blind"] == pytest.approx(
+        [(0.20 + 2 * 0.30) / 3, (0.22 + 2 * 0.28) / 3, 0.2633], abs=1e-4
+    )
+    assert pooled["seeds"] == [0, 1, 2] and pooled["variants"] == ["blind", "reviewed_200", "full"]
+    expected = recovered_share(*(pooled["f1_per_seed"][n] for n in ("reviewed_200", "blind", "full")))
+    assert pooled["recovered"] == {"reviewed_200": expected} and pooled["gap_significant"]
+    assert pooled["gap"]["mean"] == pytest.approx(0.04, abs=1e-4)
+    text = render_record(pooled)
+    assert (
+        "`a.json` (factories 111, 112, 12 frames each); `b.json` (factories 121, 122, 24 frames each)" in text
+    )
+    assert f"recovered: reviewed_200 {100 * expected['share']:.0f}%" in text
+    # A gap inside its noise states no share.
+    noisy = _pool_record(
+        [131], {"blind": [0.2, 0.3, 0.2], "reviewed_200": [0.2, 0.3, 0.2], "full": [0.3, 0.2, 0.21]}
+    )
+    flat = pool_hitl_records([first, noisy])
+    assert not flat["gap_significant"] and "no recovered share is stated" in render_record(flat)
+    # Refused: one record, a shared factory, a partial record, another plan, no held-out factories.
+    with pytest.raises(InputError, match="two or more"):
+        pool_hitl_records([first])
+    with pytest.raises(InputError, match="share held-out factories"):
+        pool_hitl_records([first, _pool_record([112], {"blind": [0.2], "full": [0.3]})])
+    with pytest.raises(InputError, match="b.json is a partial record"):
+        pool_hitl_records([first, {**second, "complete": False}], names=["a.json", "b.json"])
+    with pytest.raises(
+        InputError, match="b.json planned blind differently from a.json \\(settings.epochs\\)"
+    ):
+        other = _pool_record([121], {"blind": [0.3], "full": [0.4]}, epochs=3)
+        pool_hitl_records([first, other], names=["a.json", "b.json"])
+    with pytest.raises(InputError, match="not measured on held-out factories"):
+        pool_hitl_records([first, {**second, "plan": {**second["plan"], "heldout": None}}])
