@@ -446,12 +446,14 @@ def run(
     points_drawn: int | None = None,
     verdict_keys: str = VERDICT_KEYS,
     shadow_cost: bool = False,
+    show_grid: bool = True,
 ) -> dict:
     """Drive the app through the steps ``repeats`` times; returns the record. Without ``retrain``
     the review verdicts and the retrains are left out (minutes instead of a quarter of an hour);
     ``points_drawn``: the Display panel's "Points drawn" (None: all); ``verdict_keys``: the review
     verdicts' keys, in turn; ``shadow_cost``: also time a render with viser's default shadows on
-    and off (``_shadow_cost``, a minute and a half)."""
+    and off (``_shadow_cost``, a minute and a half); ``show_grid``: the Display panel's "Floor
+    grid"."""
     check_verdict_keys(verdict_keys)
     from playwright.sync_api import sync_playwright
 
@@ -488,6 +490,9 @@ def run(
                         60,
                         "the scan drawn with fewer points",
                     )
+                if not show_grid:
+                    view.state.set_display(show_grid=False)
+                    _wait(lambda: not view.scene.grid_visible, 60, "the floor grid hidden")
                 points_shown = view.scene.num_points_shown
                 canvas = page.locator("canvas[data-engine]")
                 canvas.click(position={"x": 5, "y": 5})  # keys go to the page, not a panel
@@ -608,6 +613,7 @@ def run(
         "label_once": True,
         "points_drawn": points_drawn,
         "points_shown": points_shown,  # of the first frame's scan, after the height cut and the budget
+        "show_grid": show_grid,
         "webgl_renderer": webgl_renderer,
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
@@ -655,6 +661,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the Display panel's Points drawn (default: all the points)",
     )
     parser.add_argument(
+        "--no-grid",
+        action="store_true",
+        help="the Display panel's Floor grid off (default: on, as the app starts)",
+    )
+    parser.add_argument(
         "--shadow-cost",
         action="store_true",
         help="also time a render with viser's default shadows on and off, in turns (they are off in the app)",
@@ -686,6 +697,7 @@ def main(argv: list[str] | None = None) -> int:
         points_drawn=args.points_drawn,
         verdict_keys=args.verdict_keys,
         shadow_cost=args.shadow_cost,
+        show_grid=not args.no_grid,
     )
     record["command"] = "python -m app.walkthrough " + " ".join(argv if argv is not None else sys.argv[1:])
     text = json.dumps(record, indent=2)

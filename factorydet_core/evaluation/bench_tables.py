@@ -760,6 +760,8 @@ def walkthrough_markdown(result: dict) -> str:
     points = "80k points" if shown is None else f"{shown:,} points"
     if drawn is not None:
         points += f", at most {drawn:,} by Display's Points drawn"
+    # (records before the Floor grid setting drew the grid)
+    points += ", the boxes" if result.get("show_grid", True) else ", the boxes, no floor grid"
     scene_text = (
         f" One render of the scene takes this browser {fmt(scene)} ms (the median time between renders"
         " while the camera moves), and a change shows after the renders it causes."
@@ -818,7 +820,7 @@ def walkthrough_markdown(result: dict) -> str:
         " rest is the browser's (delivering the key, rendering, showing)."
         f" In this browser a notification alone takes {fmt(alone)}"
         f" ms to show and {fmt(with_scene)} ms with a scene change in the"
-        f" same update: headless Chromium renders the scene ({points}, the boxes) in {_renderer(result)},"
+        f" same update: headless Chromium renders the scene ({points}) in {_renderer(result)},"
         " on the two cores the server uses too; a browser with a GPU does that in milliseconds."
         + scene_text
         + _retrain_text(result)

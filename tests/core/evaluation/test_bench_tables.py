@@ -508,6 +508,8 @@ def test_the_walkthrough_says_how_many_points_it_drew_and_under_what_budget():
     assert "(19,873 points, at most 20,000 by Display's Points drawn, the boxes)" in render_record(budgeted)
     every_point = {**record, "points_drawn": None, "points_shown": 81_002}
     assert "(81,002 points, the boxes)" in render_record(every_point)
+    no_grid = {**every_point, "show_grid": False}
+    assert "(81,002 points, the boxes, no floor grid)" in render_record(no_grid)
 
 
 def test_the_walkthrough_says_how_often_the_page_renders_where_its_record_counted_it():
