@@ -109,6 +109,10 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --shadow-cost \
 	  --readme docs/labelling.md --readme-block walkthrough-edits-no-shadows \
 	  --out docs/bench/walkthrough-edits-no-shadows.json
+	# ... and with the lightest scene the Display panel gives (20,000 points drawn, no floor grid).
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --points-drawn 20000 --no-grid \
+	  --readme docs/labelling.md --readme-block walkthrough-edits-points-20k-no-grid \
+	  --out docs/bench/walkthrough-edits-points-20k-no-grid.json
 	$(BIN)/factorydet bench world-labels --heldout-seeds 201,202,203 --heldout-frames 12 --readme docs/labelling.md \
 	  --readme-block world-labels-validation
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md

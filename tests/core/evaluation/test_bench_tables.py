@@ -29,6 +29,7 @@ BLOCKS = (
     ("labelling.md", "walkthrough-object-verdicts-metrics-quiet"),
     ("labelling.md", "walkthrough-edits-points-all"),
     ("labelling.md", "walkthrough-edits-no-shadows"),
+    ("labelling.md", "walkthrough-edits-points-20k-no-grid"),
     ("labelling.md", "walkthrough-edits-points-20k"),
     ("labelling.md", "walkthrough-edits-points-20k-swiftshader"),
     ("review-loop.md", "hitl-50-class-vs-place"),
