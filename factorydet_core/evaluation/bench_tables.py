@@ -779,13 +779,12 @@ def walkthrough_markdown(result: dict) -> str:
         turns = [
             sum(ms is not None for ms in shadows[f"scene_render_ms_shadows_{side}"]) for side in ("on", "off")
         ]
-        pairs = shadows.get("shadows_pairs", min(turns))  # (the first record timed every turn)
         scene_text += (
             f" viser's default light casts shadows, which the app turns off: with them, one render"
             f" takes {fmt(shadows['shadows_on_median_ms'])} ms against"
             f" {fmt(shadows['shadows_off_median_ms'])} ms without (medians of {turns[0]} and {turns[1]}"
             f" turns in the same page), {fmt(shadows['shadows_paired_difference_median_ms'])} ms more a"
-            f" render (the median of the {pairs} paired differences; more in"
+            f" render (the median of the {shadows['shadows_pairs']} paired differences; more in"
             f" {shadows['shadows_slower_pairs']} of them)."
         )
     if "renders_after_a_scene_change_median" in render:  # (records before it did not count them)

@@ -17,6 +17,7 @@ from factorydet_core.detection.detector import Detector, params_for
 from factorydet_core.evaluation.evaluate import measure
 from factorydet_core.evaluation.quality import HELDOUT_SCRATCH, check_heldout, heldout_set
 from factorydet_core.evaluation.records import (
+    changed_fields,
     check_same_plan,
     library_version,
     library_versions,
@@ -769,10 +770,7 @@ def _resumable_runs(
             variant for variant in mine["variants"] if _run_plan(mine, variant) == _run_plan(theirs, variant)
         }
         if not same:
-            try:
-                check_same_plan("hitl", mine, theirs)
-            except InputError as exc:
-                raise InputError(str(exc).replace("the earlier result", where)) from None
+            check_same_plan("hitl", mine, theirs, what=where)
         for variant, variant_runs in per_seed.items():
             for run in variant_runs:
                 key = (int(run["seed"]), variant)
@@ -1354,16 +1352,17 @@ def pool_hitl_records(records: Sequence[dict], names: Sequence[str] | None = Non
         raise InputError("bench hitl-pool needs blind mining and full labels in every record")
     plans = [{**_record_plan(record), "heldout": None} for record in records]
     for variant in variants:
+        mine = _run_plan(plans[0], variant)
         for name, plan in zip(names[1:], plans[1:]):
-            if _run_plan(plan, variant) != _run_plan(plans[0], variant):
-                mine, theirs = _run_plan(plans[0], variant), _run_plan(plan, variant)
-                changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+            theirs = _run_plan(plan, variant)
+            if theirs != mine:
+                changed = changed_fields(mine, theirs)
                 if "settings" in changed and isinstance(mine.get("settings"), dict):
-                    ours, others = mine["settings"], theirs.get("settings") or {}
                     changed.remove("settings")
-                    changed += sorted(
-                        f"settings.{k}" for k in ours.keys() | others.keys() if ours.get(k) != others.get(k)
-                    )
+                    changed += [
+                        f"settings.{k}"
+                        for k in changed_fields(mine["settings"], theirs.get("settings") or {})
+                    ]
                 raise InputError(
                     f"bench hitl-pool: {name} planned {variant} differently from {names[0]}"
                     f" ({', '.join(changed)})"

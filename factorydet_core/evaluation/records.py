@@ -124,9 +124,17 @@ def spread_frames(frames: Sequence[int], count: int | None) -> list[int]:
     return [frames[i] for i in picks]
 
 
-def check_same_plan(benchmark: str, mine: dict, theirs: dict | None) -> None:
+def changed_fields(mine: dict, theirs: dict) -> list[str]:
+    """The keys whose values differ between two mappings (a key one lacks counts as None), sorted."""
+    return sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+
+
+def check_same_plan(
+    benchmark: str, mine: dict, theirs: dict | None, what: str = "the earlier result"
+) -> None:
     """Refuse to resume a benchmark from the record of another plan: ``mine`` and ``theirs`` (the
     plans as JSON) must agree in everything but their ``seeds``, which a resumed run may extend.
+    ``what`` names ``theirs`` in the message (a file's path, say).
 
     Raises:
         InputError: naming the fields that differ (resuming would mix two benchmarks).
@@ -134,7 +142,6 @@ def check_same_plan(benchmark: str, mine: dict, theirs: dict | None) -> None:
     mine, theirs = dict(mine), dict(theirs or {})
     mine.pop("seeds", None), theirs.pop("seeds", None)
     if mine != theirs:
-        changed = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
         raise InputError(
-            f"bench {benchmark} --resume: the earlier result ran another plan ({', '.join(changed)})"
+            f"bench {benchmark} --resume: {what} ran another plan ({', '.join(changed_fields(mine, theirs))})"
         )
