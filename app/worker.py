@@ -405,3 +405,23 @@ def place_frames(state: SharedState) -> None:
         return
     placed = "placed (poses from the session's cache)" if from_cache else "placed by ICP"
     state.set_world(world, f"{world.num_frames} frames {placed}")
+    import_annotations_ahead(state.db, dataset.num_frames)
+
+
+def import_annotations_ahead(db, num_frames: int) -> int:
+    """Import the data set's annotations of every frame not imported yet, one frame per write
+    (``SessionDB.ensure_frames``), so that no one waits for them later. With label once, the
+    first edit of an object reaches every frame that shows it, and importing those frames then
+    (reading each frame file) took half a second of that edit on the demo. Stops at the first
+    frame that fails: its error is raised again, with its message, when that frame is opened.
+    Returns how many frames, from the first, are imported now (all of them unless one failed)."""
+    if db is None or db.readonly:
+        return 0
+    done = 0
+    for frame_index in range(num_frames):
+        try:
+            db.ensure_frames([frame_index])
+        except Exception:  # noqa: BLE001 - a thread of its own; the frame's own use says why
+            break
+        done += 1
+    return done

@@ -1334,18 +1334,23 @@ class SessionDB:
 
     # -- labels
 
-    def _import_frame(self, db: sqlite3.Connection, frame_index: int) -> None:
-        """The data set's annotations become the frame's first labels (once per session)."""
+    def _import_frame(
+        self,
+        db: sqlite3.Connection,
+        frame_index: int,
+        annotations: list[tuple[str, str, int]] | None = None,
+    ) -> None:
+        """The data set's annotations become the frame's first labels (once per session);
+        ``annotations``: ``_annotations(frame_index)`` read already (outside the transaction)."""
         if db.execute("SELECT 1 FROM frames WHERE frame_index = ?", (frame_index,)).fetchone():
             return
+        if annotations is None:
+            annotations = self._annotations(frame_index)
         now = _now()
         db.executemany(
             "INSERT INTO labels (frame_index, box, class_name, origin, instance_id, created_by, created,"
             " modified_by, modified) VALUES (?, ?, ?, 'dataset', ?, 'dataset', ?, 'dataset', ?)",
-            [
-                (frame_index, box, name, instance_id, now, now)
-                for box, name, instance_id in self._annotations(frame_index)
-            ],
+            [(frame_index, box, name, instance_id, now, now) for box, name, instance_id in annotations],
         )
         db.execute("INSERT INTO frames VALUES (?, ?)", (frame_index, now))
 
@@ -1383,9 +1388,12 @@ class SessionDB:
         with self._read() as db:
             todo -= _imported_frames(db)
         if todo:
+            # The frame files are read before the write transaction: other writers (a person's
+            # edit) do not wait for them.
+            annotations = {index: self._annotations(index) for index in sorted(todo)}
             with self._write() as db:
                 for index in sorted(todo):
-                    self._import_frame(db, index)
+                    self._import_frame(db, index, annotations[index])
 
     def _stored_labels(self, frames: list[int], include_deleted: bool) -> dict[int, list[Label]]:
         """The stored labels of those of ``frames`` whose labels were imported, in one read."""

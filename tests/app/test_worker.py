@@ -272,3 +272,28 @@ def test_a_result_keeps_its_voxels_colours_when_a_view_shows_the_voxels_layer(sm
         assert shown.voxel_features is None and shown.voxel_colors.shape == (shown.grid.num_voxels, 3)
     finally:
         worker.stop(timeout=120)
+
+
+def test_annotations_are_imported_ahead_so_that_no_later_edit_reads_a_frame_file(
+    small_dataset_dir, tmp_path, monkeypatch
+):
+    from app.worker import import_annotations_ahead
+    from factorydet_core.session.store import SessionDB, SessionError, open_session
+
+    dataset = open_dataset(small_dataset_dir)
+    expected = [len(dataset.frame(f).labels.boxes) for f in range(dataset.num_frames)]
+    db = SessionDB(open_session("s", tmp_path), dataset)
+    assert import_annotations_ahead(db, dataset.num_frames) == dataset.num_frames
+    monkeypatch.setattr(dataset, "frame", lambda index: pytest.fail(f"frame {index} read again"))
+    assert [len(db.labels(f)) for f in range(dataset.num_frames)] == expected
+    assert import_annotations_ahead(db, dataset.num_frames) == dataset.num_frames  # nothing to do
+
+    # A frame whose annotations fail stops the import there; its own use says why later.
+    other = SessionDB(open_session("t", tmp_path), open_dataset(small_dataset_dir))
+
+    def damaged(frame_index):
+        raise SessionError(f"frame {frame_index}: damaged annotation")
+
+    monkeypatch.setattr(other, "_annotations", damaged)
+    assert import_annotations_ahead(other, dataset.num_frames) == 0
+    assert import_annotations_ahead(None, dataset.num_frames) == 0
