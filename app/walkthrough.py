@@ -20,6 +20,7 @@ import argparse
 import itertools
 import json
 import os
+import re
 import statistics
 import sys
 import tempfile
@@ -64,13 +65,14 @@ def _wait(predicate: Callable[[], bool], timeout: float, what: str) -> None:
     wait_until(predicate, timeout, what, poll=0.005)  # finely: it times what it waits for
 
 
-def _timed(
-    view, action: Callable[[], None], stored: Callable[[], bool], shown: Callable[[], None]
-) -> tuple[float, float, float]:
+def _timed(view, action: Callable[[], None], stored: Callable[[], bool], shown: Shows) -> tuple[float, ...]:
     """Milliseconds from ``action`` (a key press) until the server has ``stored`` its effect
-    (polled) and until the page has ``shown`` it, and the server's own share: from receiving the
-    key to having sent the browser ``view`` everything it changed (the end of its batch of
-    updates). The rest is the browser's: delivering the key, rendering, showing."""
+    (polled) and until the page has ``shown`` it (polled by the test driver), the server's own
+    share: from receiving the key to having sent the browser ``view`` everything it changed (the
+    end of its batch of updates), and in the page's own clock, from the key until its text changed
+    and until that change was drawn (``Shows.in_page``). The rest is the browser's: delivering the
+    key, rendering, showing."""
+    shown.watch()
     start = time.perf_counter()
     action()
     _wait(stored, 60, "the edit stored")
@@ -80,9 +82,13 @@ def _timed(
     shown()
     end = time.perf_counter()
     server = sent_at - view.key_received_at
-    return 1000.0 * (stored_at - start), 1000.0 * server, 1000.0 * (end - start)
+    seen, painted = shown.in_page()
+    return 1000.0 * (stored_at - start), 1000.0 * server, 1000.0 * (end - start), seen, painted
 
 
+TIMES = ("stored", "server", "shown", "page_seen", "page")
+"""A step's times (``_timed``): stored, the server's share, shown (polled), and in the page's own
+clock the text changed and the change drawn."""
 FEW_POINTS = 1_000
 """Points drawn while the walkthrough times a render of the scene with (almost) no scan."""
 BURST_GAP_MS = 20.0
@@ -102,6 +108,69 @@ for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.pro
 }
 """
 """An init script that logs the time of every WebGL draw call (a render of the scene is a burst)."""
+
+PAGE_CLOCK = """
+window.__factorydetInput = null;
+for (const type of ['keydown', 'pointerdown']) {
+  window.addEventListener(type, (event) => { window.__factorydetInput = event.timeStamp; }, true);
+}
+window.__factorydetWatch = (pattern, exclude) => new Promise((resolve) => {
+  const regex = new RegExp(pattern, 'g');
+  const shows = () => {
+    for (const match of (document.body ? document.body.innerText : '').matchAll(regex)) {
+      if (match.length < 2 || !exclude.includes(Number(match[1]))) return true;
+    }
+    return false;
+  };
+  const observer = new MutationObserver(() => {
+    if (window.__factorydetInput === null || !shows()) return;
+    observer.disconnect();
+    const seen = performance.now();
+    // The frame that paints the change starts at the first animation frame; the second starts
+    // once that one is drawn.
+    requestAnimationFrame(() => requestAnimationFrame(() => resolve(
+      {input: window.__factorydetInput, seen: seen, painted: performance.now()})));
+  });
+  observer.observe(document.body, {subtree: true, childList: true, characterData: true, attributes: true});
+});
+"""
+"""An init script that times, in the page's own clock, a key press or click (the input event's
+time) until the page's text shows its effect (``Shows``: the DOM mutation, then two animation
+frames, the first of which draws it): what a person at this browser waits, without the test
+driver's polling (Playwright checks a locator at growing intervals, 20, 50, 100, 100 and 500 ms,
+which adds up to the next check's time to every wait)."""
+
+
+class Shows:
+    """What the page shows once a step is done: ``text`` (polled with Playwright, as a person
+    reads it) and ``pattern``, a regular expression of it the page watches for in its own clock
+    (``PAGE_CLOCK``; with a group, a number ``exclude`` leaves out: what was shown before)."""
+
+    def __init__(self, page, text: str | Callable[[], str], pattern: str, exclude=()) -> None:
+        self.page, self.text, self.pattern, self.exclude = page, text, pattern, [int(n) for n in exclude]
+
+    def watch(self) -> None:
+        """Start watching, before the key."""
+        self.page.evaluate(
+            "([pattern, exclude]) => { window.__factorydetInput = null;"
+            " window.__factorydetShown = window.__factorydetWatch(pattern, exclude); }",
+            [self.pattern, self.exclude],
+        )
+
+    def __call__(self) -> None:
+        text = self.text() if callable(self.text) else self.text
+        self.page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
+
+    def in_page(self) -> tuple[float, float]:
+        """Milliseconds from the key (or click) until the page's text changed, and until the frame
+        after it began (the change drawn), in the page's clock."""
+        times = self.page.evaluate("() => window.__factorydetShown")
+        return times["seen"] - times["input"], times["painted"] - times["input"]
+
+
+def shows_text(page, text: str) -> Shows:
+    """``Shows`` of a text known before the key."""
+    return Shows(page, text, re.escape(text))
 
 
 def _scene_render_ms(page, view, seconds: float = 5.0) -> float | None:
@@ -289,7 +358,12 @@ def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
             view,
             lambda: page.keyboard.press("m"),
             prelabelled,  # (the frame had no pre-label before)
-            lambda: shows(f"{len(db.unreviewed_labels())} pre-label(s) wait")(),
+            Shows(
+                page,
+                lambda: f"{len(db.unreviewed_labels())} pre-label(s) wait",
+                r"(\d+) pre-label\(s\) wait",
+                exclude=[len(db.unreviewed_labels())],
+            ),
         ),
     )
     unreviewed = db.unreviewed_labels()
@@ -303,9 +377,7 @@ def _prelabels(app, page, view, note, shows, open_folder: bool = True) -> None:
             view,
             lambda: page.keyboard.press("Enter"),
             lambda: db.label(waiting[0].id).reviewed,
-            lambda: shows(
-                f"{num_waiting - 1} pre-label(s) wait" if num_waiting > 1 else "No pre-label waits"
-            )(),
+            shows(f"{num_waiting - 1} pre-label(s) wait" if num_waiting > 1 else "No pre-label waits"),
         ),
     )
     if view.state.frame_index != frame_index:
@@ -424,10 +496,11 @@ def _retrain_and_review(app, page, view, note, shows, progress, verdict_keys: st
             # the whole queue would take the server's time from the verdict it times.
             return _num_answered(db) > num_answered
 
-        def next_item_shown(item=item) -> None:
+        def next_item(item=item) -> str:
             _wait(lambda: view.current_item_id not in (None, item), 30, "the next queue item")
-            shows(f"(#{view.current_item_id}, frame")()
+            return f"(#{view.current_item_id}, frame"
 
+        next_item_shown = Shows(page, next_item, r"\(#(\d+), frame", exclude=[item])
         note(
             verdict_step(verdict_keys),
             _timed(view, lambda key=key: page.keyboard.press(key), judged, next_item_shown),
@@ -462,14 +535,14 @@ def run(
     render: dict = {}
     retrained: dict = {}
 
-    def note(step: str, times: tuple[float, float]) -> None:
-        record = steps.setdefault(step, {"stored": [], "server": [], "shown": []})
-        for name, value in zip(("stored", "server", "shown"), times):
+    def note(step: str, times: tuple[float, ...]) -> None:
+        record = steps.setdefault(step, {name: [] for name in TIMES})
+        for name, value in zip(TIMES, times):
             record[name].append(round(value, 1))
         if progress is not None:
             progress(
                 f"{step}: stored after {times[0]:.0f} ms, the server's share {times[1]:.0f} ms,"
-                f" shown after {times[2]:.0f} ms"
+                f" shown after {times[2]:.0f} ms (polled), drawn after {times[4]:.0f} ms (the page's clock)"
             )
 
     with tempfile.TemporaryDirectory() as root:
@@ -479,7 +552,7 @@ def run(
         app = FactorydetApp(server, dataset, model=model, model_name="shipped default", db=db)
         try:
             with sync_playwright() as pw:
-                browser, page, view = open_app_page(pw, app, 1400, 1400, init_script=DRAW_LOG)
+                browser, page, view = open_app_page(pw, app, 1400, 1400, init_script=DRAW_LOG + PAGE_CLOCK)
                 webgl_renderer = page.evaluate(WEBGL_RENDERER_JS)
                 _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
                 _wait(lambda: view.layers.detection_source[0] is not None, 600, "the first detections")
@@ -514,8 +587,8 @@ def run(
                 if shadow_cost:
                     render["shadows"] = _shadow_cost(page, view)
 
-                def shows(text: str) -> Callable[[], None]:
-                    return lambda: page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
+                def shows(text: str) -> Shows:
+                    return shows_text(page, text)
 
                 for k in range(repeats):
                     frame_index = view.state.frame_index
@@ -563,8 +636,12 @@ def run(
                     def new_ids(frame_index: int = frame_index, before: set = before) -> set:
                         return {lab.id for lab in db.labels(frame_index)} - before
 
-                    def accepted(new_ids=new_ids) -> None:
-                        shows(f"Label #{min(new_ids())}:")()
+                    accepted = Shows(
+                        page,
+                        lambda new_ids=new_ids: f"Label #{min(new_ids())}:",
+                        r"Label #(\d+):",
+                        exclude=before,
+                    )
 
                     note(
                         "accept suggested box (G)",
@@ -630,6 +707,9 @@ def run(
                 "server_max_ms": round(max(values["server"]), 1),
                 "shown_median_ms": round(statistics.median(values["shown"]), 1),
                 "shown_max_ms": round(max(values["shown"]), 1),
+                "page_seen_median_ms": round(statistics.median(values["page_seen"]), 1),
+                "page_median_ms": round(statistics.median(values["page"]), 1),
+                "page_max_ms": round(max(values["page"]), 1),
                 "runs": values,
             }
             for step, values in steps.items()

@@ -722,6 +722,8 @@ def _margin_sweep_table(result: dict) -> str:
 def walkthrough_markdown(result: dict) -> str:
     """A labeller's edits and frame changes, timed to the server and to the page, against the targets."""
     rows = []
+    # (records before the page's own clock timed the steps: no such columns)
+    paged = any("page_median_ms" in figures for figures in result["steps"].values())
     for step, figures in result["steps"].items():
         if step.startswith("frame change"):
             target = result["target_frame_ms"]
@@ -736,11 +738,12 @@ def walkthrough_markdown(result: dict) -> str:
                 fmt(figures.get("server_median_ms")),
                 fmt(figures["shown_median_ms"]),
                 fmt(figures["shown_max_ms"]),
+                *((fmt(figures["page_median_ms"]), fmt(figures["page_max_ms"])) if paged else ()),
                 fmt(target),
             ]
         )
         if step.startswith("review verdict"):
-            rows += _verdict_rows_by_key(result.get("verdict_keys"), figures.get("runs") or {}, target)
+            rows += _verdict_rows_by_key(result.get("verdict_keys"), figures.get("runs") or {}, target, paged)
     render = result.get("browser_render") or {}
     header = [
         "step",
@@ -748,6 +751,7 @@ def walkthrough_markdown(result: dict) -> str:
         "server's share, median ms",
         "shown (page), median ms",
         "shown, max ms",
+        *(("drawn (page's clock), median ms", "drawn, max ms") if paged else ()),
         "target ms",
     ]
     scene = render.get("scene_render_ms")
@@ -817,7 +821,8 @@ def walkthrough_markdown(result: dict) -> str:
         " is the app's own latency, from the server receiving the key to its having sent the"
         " browser everything the key changed (one batch of updates); the"
         " rest is the browser's (delivering the key, rendering, showing)."
-        f" In this browser a notification alone takes {fmt(alone)}"
+        + _page_clock_text(result)
+        + f" In this browser a notification alone takes {fmt(alone)}"
         f" ms to show and {fmt(with_scene)} ms with a scene change in the"
         f" same update: headless Chromium renders the scene ({points}) in {_renderer(result)},"
         " on the two cores the server uses too; a browser with a GPU does that in milliseconds."
@@ -827,15 +832,28 @@ def walkthrough_markdown(result: dict) -> str:
     )
 
 
+def _page_clock_text(result: dict) -> str:
+    """How the walkthrough's 'drawn' column is timed (records before it: not timed, no text)."""
+    if not any("page_median_ms" in figures for figures in result["steps"].values()):
+        return ""
+    return (
+        " 'Shown' is polled by the test driver, which checks the page at growing intervals (20,"
+        " 50, 100, 100, then 500 ms) and so adds up to the next check's time; 'drawn' is timed in"
+        " the page's own clock, from the key's (or click's) input event until the text showing its"
+        " effect is in the page and the next animation frame has begun after the one that draws"
+        " it, as a person at this browser sees it."
+    )
+
+
 VERDICT_KEY_NAMES = {"b": "background", "o": "Object", "x": "skip"}
 """The walkthrough's verdict keys (``app.walkthrough.VERDICT_KEY_CHOICES``), by the verdict's name."""
 
 
-def _verdict_rows_by_key(keys: str | None, runs: dict, target) -> list[list[str]]:
+def _verdict_rows_by_key(keys: str | None, runs: dict, target, paged: bool = False) -> list[list[str]]:
     """The walkthrough's review verdicts, one row per key where the verdicts had more than one
     (the k-th verdict was given with ``keys[k % len(keys)]``): an Object verdict writes labels
-    into every frame that shows the object, a background or skip verdict writes one row. Records
-    before the keys were recorded: none."""
+    into every frame that shows the object, a background or skip verdict writes one row; with
+    ``paged``, the times in the page's own clock too. Records before the keys were recorded: none."""
     if not keys or len(set(keys)) < 2 or not runs.get("shown"):
         return []
     rows = []
@@ -851,6 +869,14 @@ def _verdict_rows_by_key(keys: str | None, runs: dict, target) -> list[list[str]
                     for name in ("stored", "server", "shown")
                 ),
                 fmt(max(runs["shown"][k] for k in picked)),
+                *(
+                    (
+                        fmt(round(float(statistics.median([runs["page"][k] for k in picked])), 1)),
+                        fmt(max(runs["page"][k] for k in picked)),
+                    )
+                    if paged
+                    else ()
+                ),
                 fmt(target),
             ]
         )

@@ -624,3 +624,29 @@ def test_the_walkthrough_splits_its_review_verdicts_by_key_where_they_had_severa
     for keys in ("b", None):
         alone = render_record({**record, "verdict_keys": keys})
         assert "of them," not in alone and "| review verdict (B / O / X) |" in alone
+
+
+def test_the_walkthrough_gives_the_times_in_the_pages_own_clock_where_it_timed_them():
+    record = _record("walkthrough-object-verdicts")  # from before the page's clock: no such column
+    markdown = render_record(record)
+    assert "drawn (page's clock)" not in markdown and "the page's own clock" not in markdown
+    steps = {}
+    for k, (step, figures) in enumerate(record["steps"].items()):
+        runs = figures["runs"]
+        page = [shown - 50.0 - k for shown in runs["shown"]]
+        steps[step] = {
+            **figures,
+            "page_seen_median_ms": 1.0,
+            "page_median_ms": round(statistics.median(page), 1),
+            "page_max_ms": max(page),
+            "runs": {**runs, "page_seen": [1.0] * len(page), "page": page},
+        }
+    markdown = render_record({**record, "steps": steps})
+    assert "| drawn (page's clock), median ms | drawn, max ms | target ms |" in markdown
+    assert "the page's own clock" in markdown
+    verdicts = steps["review verdict (B / O / X)"]
+    row = _rows(markdown, "review verdict (B / O / X)")[0]
+    assert float(row[5].replace(",", "")) == verdicts["page_median_ms"] and len(row) == 8
+    object_row = _rows(markdown, "of them, Object (O; 8)")[0]
+    picked = [k for k in range(len(verdicts["runs"]["page"])) if "bobxo"[k % 5] == "o"]
+    assert float(object_row[6].replace(",", "")) == max(verdicts["runs"]["page"][k] for k in picked)
