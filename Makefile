@@ -113,6 +113,16 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --points-drawn 20000 --no-grid \
 	  --readme docs/labelling.md --readme-block walkthrough-edits-points-20k-no-grid \
 	  --out docs/bench/walkthrough-edits-points-20k-no-grid.json
+	# The edits timed in the page's own clock too, with the app's defaults and with the lightest scene.
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain \
+	  --readme docs/labelling.md --readme-block walkthrough-edits-page-clock \
+	  --out docs/bench/walkthrough-edits-page-clock.json
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --points-drawn 20000 --no-grid \
+	  --readme docs/labelling.md --readme-block walkthrough-edits-page-clock-20k-no-grid \
+	  --out docs/bench/walkthrough-edits-page-clock-20k-no-grid.json
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --settle-ms 300 \
+	  --readme docs/labelling.md --readme-block walkthrough-edits-page-clock-settled \
+	  --out docs/bench/walkthrough-edits-page-clock-settled.json
 	$(BIN)/factorydet bench world-labels --heldout-seeds 201,202,203 --heldout-frames 12 --readme docs/labelling.md \
 	  --readme-block world-labels-validation
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md
@@ -123,35 +133,35 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# Every line trains on every label a person made (the default), except the two
 	# sparse-label lines, which leave out a person's labels holding fewer than half the policy's points
 	# (--label-min-points -1).
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl.json --readme docs/review-loop.md \
 	  --review-order score --no-refit-box-quality \
 	  --threshold-folds 0 --threshold-objective class
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --model-box-targets --out docs/bench/hitl-50.json --readme docs/review-loop.md \
 	  --readme-block hitl-50 --review-order score --no-refit-box-quality \
 	  --threshold-folds 0 --threshold-objective class
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants blind_safe,full --hold-places \
 	  --out docs/bench/hitl-safe.json --readme docs/review-loop.md --readme-block hitl-safe --no-refit-box-quality \
 	  --threshold-folds 0 --threshold-objective class
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --review-order score \
 	  --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-50-place.json --readme docs/review-loop.md \
 	  --readme-block hitl-50-place --no-refit-box-quality --resume \
 	  --threshold-folds 0 --threshold-objective class
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --variants full_late,full \
 	  --out docs/bench/hitl-50-late.json --readme docs/review-loop.md --readme-block hitl-50-late --no-refit-box-quality --resume \
 	  --threshold-folds 0 --threshold-objective class
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-50-class.json --readme docs/review-loop.md \
 	  --readme-block hitl-50-class --no-refit-box-quality --resume \
 	  --threshold-folds 0 --threshold-objective class
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-class.json docs/bench/hitl-50-place.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-class-vs-place
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-refit.json --readme docs/review-loop.md \
 	  --readme-block hitl-50-refit --resume --refit-row-share 1 \
@@ -161,14 +171,14 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# blind_safe with the refit: a copy of the refit record gives blind and full (--resume takes the
 	# runs that holding negatives does not touch), so only blind_safe trains.
 	test -f docs/bench/hitl-50-safe-refit.json || cp docs/bench/hitl-50-refit.json docs/bench/hitl-50-safe-refit.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --variants blind_safe,full --hold-places --out docs/bench/hitl-50-safe-refit.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-safe-refit --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# The refit boosting the model's regressor on with 100 trees instead (blind and full from the refit record).
 	test -f docs/bench/hitl-50-refit100.json || cp docs/bench/hitl-50-refit.json docs/bench/hitl-50-refit100.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --refit-trees 100 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-refit100.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-refit100 --resume \
@@ -178,7 +188,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# blind_safe also recalibrating the background (blind and full from the refit record), against
 	# blind_safe holding alone.
 	test -f docs/bench/hitl-50-safe-recal.json || cp docs/bench/hitl-50-refit.json docs/bench/hitl-50-safe-recal.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --variants blind_safe,full --hold-places --recalibrate-background 0.5 --out docs/bench/hitl-50-safe-recal.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal --resume --refit-row-share 1 \
@@ -186,14 +196,14 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-safe-recal.json docs/bench/hitl-50-safe-refit.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-safe-recal-vs-hold
 	# The loop's headline figures: the same models measured on held-out factories, 30% unannotated.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants full --out docs/bench/hitl-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# blind_safe recalibrating there too (blind and full from the held-out record).
 	test -f docs/bench/hitl-safe-recal-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-safe-recal-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --out docs/bench/hitl-safe-recal-heldout.json \
@@ -201,7 +211,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# ... recalibrating by class (each class's bar: the median of its labelled sets).
 	test -f docs/bench/hitl-safe-byclass-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-safe-byclass-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --recalibrate-by-class --out docs/bench/hitl-safe-byclass-heldout.json \
@@ -209,7 +219,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# A reviewer answering 200 places per round, on the same held-out factories.
 	test -f docs/bench/hitl-reviewed-heldout.json || cp docs/bench/hitl-heldout.json docs/bench/hitl-reviewed-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-reviewed-heldout.json --readme docs/review-loop.md --readme-block hitl-reviewed-heldout \
@@ -217,7 +227,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# The same reviewer holding what it leaves, as blind_safe (the rest from the reviewed record).
 	test -f docs/bench/hitl-reviewed-safe-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-reviewed-safe-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
@@ -227,14 +237,14 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-reviewed-safe-heldout.json --variants reviewed_safe_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-reviewed-safe-vs-reviewed-heldout
 	# Blind mining and full labels on the same held-out factories, 50% unannotated.
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants full --out docs/bench/hitl-50-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-heldout --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	# ... and a reviewer answering 200 places a round there.
 	test -f docs/bench/hitl-50-reviewed-heldout.json || cp docs/bench/hitl-50-heldout.json docs/bench/hitl-50-reviewed-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-reviewed-heldout.json --readme docs/review-loop.md \
@@ -242,7 +252,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# ... the same reviewer holding what it leaves (the rest from the reviewed record).
 	test -f docs/bench/hitl-50-reviewed-safe-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-reviewed-safe-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,reviewed_safe_200,full \
 	  --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
@@ -253,7 +263,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-50-reviewed-safe-vs-reviewed-heldout
 	# The reviewer's queue most likely an object first, the cut still by class turns (30% and 50%).
 	test -f docs/bench/hitl-review-score-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-score-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-score-heldout.json --readme docs/review-loop.md \
@@ -262,7 +272,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-review-score-heldout.json docs/bench/hitl-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-review-score-vs-turns-heldout
 	test -f docs/bench/hitl-50-review-score-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-score-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order score --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-score-heldout.json --readme docs/review-loop.md \
@@ -272,7 +282,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-50-review-score-vs-turns-heldout
 	# The reviewer's queue also holding every false positive after the mined ones, for review alone (50% and 30%).
 	test -f docs/bench/hitl-50-review-extra-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-extra-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-extra-heldout.json --readme docs/review-loop.md \
@@ -281,7 +291,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-extra-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-extra-vs-reviewed-heldout
 	test -f docs/bench/hitl-review-extra-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-extra-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class --review-order class \
 	  --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-extra-heldout.json --readme docs/review-loop.md \
@@ -291,7 +301,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-review-extra-vs-reviewed-heldout
 	# blind_safe recalibrating by class at 50% unannotated.
 	test -f docs/bench/hitl-50-safe-byclass-heldout.json || cp docs/bench/hitl-50-heldout.json docs/bench/hitl-50-safe-byclass-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants blind_safe,full --hold-places \
 	  --recalibrate-background 0.5 --recalibrate-by-class --out docs/bench/hitl-50-safe-byclass-heldout.json \
@@ -299,7 +309,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# The reviewer's places in an order learned from its own verdicts (50% and 30%).
 	test -f docs/bench/hitl-50-review-learned-heldout.json || cp docs/bench/hitl-50-reviewed-heldout.json docs/bench/hitl-50-review-learned-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-50-review-learned-heldout.json --readme docs/review-loop.md \
@@ -308,7 +318,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-50-review-learned-heldout.json docs/bench/hitl-50-reviewed-heldout.json \
 	  --readme docs/review-loop.md --readme-block hitl-50-review-learned-vs-reviewed-heldout
 	test -f docs/bench/hitl-review-learned-heldout.json || cp docs/bench/hitl-reviewed-heldout.json docs/bench/hitl-review-learned-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 --variants reviewed_200,full \
 	  --model-box-targets --out docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \
@@ -318,7 +328,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-review-learned-vs-reviewed-heldout
 	# The learned order's reviewer holding what it leaves, as blind_safe (50% and 30%; the rest from the learned records).
 	test -f docs/bench/hitl-50-review-learned-safe-heldout.json || cp docs/bench/hitl-50-review-learned-heldout.json docs/bench/hitl-50-review-learned-safe-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
@@ -329,7 +339,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --variants reviewed_safe_200,reviewed_200 --readme docs/review-loop.md \
 	  --readme-block hitl-50-review-learned-safe-vs-learned-heldout
 	test -f docs/bench/hitl-review-learned-safe-heldout.json || cp docs/bench/hitl-review-learned-heldout.json docs/bench/hitl-review-learned-safe-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,reviewed_safe_200,full --hold-places --recalibrate-background 0.5 --recalibrate-by-class \
@@ -342,7 +352,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# The learned order's reviewer over a longer queue: every false positive of the last mining
 	# after the mined ones, for review alone (30% and 50%; blind and full from the learned records).
 	test -f docs/bench/hitl-review-learned-extra-heldout.json || cp docs/bench/hitl-review-learned-heldout.json docs/bench/hitl-review-learned-extra-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-heldout.json --readme docs/review-loop.md \
@@ -352,7 +362,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  docs/bench/hitl-review-learned-heldout.json --readme docs/review-loop.md \
 	  --readme-block hitl-review-learned-extra-vs-learned-heldout
 	test -f docs/bench/hitl-50-review-learned-extra-heldout.json || cp docs/bench/hitl-50-review-learned-heldout.json docs/bench/hitl-50-review-learned-extra-heldout.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-review-learned-extra-heldout.json --readme docs/review-loop.md \
@@ -364,14 +374,14 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# The learned order over the longer queue (chosen on factories 101-103) on three held-out
 	# factories no record had seen (104-106), 30%; then the same reviewer looking where a sparse
 	# place is seen best (blind and full from that record).
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 104,105,106 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-unseen.json --readme docs/review-loop.md \
 	  --readme-block hitl-review-learned-extra-unseen --resume --refit-row-share 1 \
 	  --threshold-folds 0 --threshold-objective class
 	test -f docs/bench/hitl-review-best-view-unseen.json || cp docs/bench/hitl-review-learned-extra-unseen.json docs/bench/hitl-review-best-view-unseen.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --review-best-view --heldout --heldout-seeds 104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-best-view-unseen.json \
@@ -382,7 +392,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme-block hitl-review-best-view-vs-learned-extra-unseen
 	# The same reviewer (50 and 200 places a round), blind mining and full labels on all six held-out
 	# factories (101-106), every detector trained by one version of the library: the loop's headline.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-six.json \
@@ -391,7 +401,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# Five more training seeds (5-9) of blind mining, the reviewer's 200 places a round and full labels on
 	# the six held-out factories, seeds 0-4 read back from the record above: ten seeds in all.
 	test -f docs/bench/hitl-review-learned-extra-ten-seeds.json || cp docs/bench/hitl-review-learned-extra-six.json docs/bench/hitl-review-learned-extra-ten-seeds.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5,6,7,8,9 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-ten-seeds.json \
@@ -399,7 +409,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# One operating threshold for every class (--no-class-thresholds), blind mining and full labels on
 	# the six held-out factories, three seeds: do the per-class thresholds cost people their precision?
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --no-class-thresholds --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants full --out docs/bench/hitl-no-class-thresholds-six.json \
@@ -407,7 +417,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# The first fit at the product's 20 epochs (LoopSettings.epochs; the records above fit 5), each round
 	# after it 5 as before: blind mining, the reviewer's 200 places a round and full labels, seeds 0-5.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-learned-extra-e20-six.json \
@@ -417,7 +427,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# alone (today's defaults; blind and full read back from the record above), seeds 0-5; then against
 	# the reviewer above (the drifting poses, the mined boxes learnt), seed by seed.
 	test -f docs/bench/hitl-e20-class-alone-six.json || cp docs/bench/hitl-review-learned-extra-e20-six.json docs/bench/hitl-e20-class-alone-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --out docs/bench/hitl-e20-class-alone-six.json \
@@ -428,7 +438,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme-block hitl-e20-class-alone-vs-drift-six
 	# Twice the training frames (16) at 30%, blind mining and full labels: does the gap open with more
 	# data? (Runs of one library version, read back whatever the code is now.)
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 16 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 16 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --out docs/bench/hitl-e20-16frames-five.json \
@@ -436,7 +446,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-folds 0 --threshold-objective class
 	# Half the objects unannotated and the first fit at 20 epochs: blind mining, the reviewer's 200 places
 	# a round and full labels, seeds 0-5.
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-six.json \
@@ -446,7 +456,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# odometry's height (blind and full, which do not carry labels between frames, read back from the
 	# record above), seeds 0-5; then the reviewer against the one above, seed by seed.
 	test -f docs/bench/hitl-50-e20-world-six.json || cp docs/bench/hitl-50-e20-six.json docs/bench/hitl-50-e20-world-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-world-six.json \
@@ -459,7 +469,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# have no verdicts, read back), 50 and 200 places a round, seeds 0-5; then against the reviewer
 	# above, seed by seed.
 	test -f docs/bench/hitl-50-e20-class-alone-six.json || cp docs/bench/hitl-50-e20-world-six.json docs/bench/hitl-50-e20-class-alone-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 50,200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_50,reviewed_200,full \
@@ -471,7 +481,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# blind_safe at 50% with the first fit at 20 epochs, holding places and recalibrating the background
 	# (blind and full read back from the record above), seeds 0-3.
 	test -f docs/bench/hitl-50-e20-safe-recal-six.json || cp docs/bench/hitl-50-e20-six.json docs/bench/hitl-50-e20-safe-recal-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
@@ -482,7 +492,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# predicted class until reviewed, those between 0.35 and 0.6 are held (blind and full read back from
 	# hitl-50-e20-six), seeds 0-5; then against blind_safe holding alone, seed by seed.
 	test -f docs/bench/hitl-50-e20-safe-pseudo-six.json || cp docs/bench/hitl-50-e20-six.json docs/bench/hitl-50-e20-safe-pseudo-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
@@ -495,7 +505,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# ... with each pseudo-label of an object that stands still carried to every training frame that shows
 	# it (label once's placement); against pseudo-labels in their own frame alone, seed by seed.
 	test -f docs/bench/hitl-50-e20-safe-carry-six.json || cp docs/bench/hitl-50-e20-six.json docs/bench/hitl-50-e20-safe-carry-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-places --recalibrate-background 0.5 \
@@ -509,7 +519,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# predicted class, nothing is held below them and the background is not recalibrated (blind and full
 	# read back from hitl-50-e20-six), seeds 0-5; then against pseudo-labels with holding, seed by seed.
 	test -f docs/bench/hitl-50-e20-pseudo-alone-six.json || cp docs/bench/hitl-50-e20-six.json docs/bench/hitl-50-e20-pseudo-alone-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind_safe,full --hold-confident 0.6 \
@@ -523,7 +533,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	# by a model fitted on the other), with no ceiling: blind mining and full labels at 30%, seeds 0, 1, 3, 4,
 	# each model measured at these thresholds and at its fitted frames' (the same network). These records
 	# fitted each round's fold models afresh (--no-continue-folds), as the code did before it could go on.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,3,4 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --no-continue-folds --out docs/bench/hitl-e20-folds-six.json \
@@ -531,7 +541,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --threshold-objective class
 	# The same, six seeds, thresholds tuned for the F-score of all classes pooled (--threshold-objective total),
 	# each model also at the class objective's out-of-fold thresholds; against the record above, seed by seed.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
@@ -540,7 +550,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/factorydet bench hitl-compare docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-e20-folds-pooled-vs-class
 	# The same with the reviewer's 200 places a round (blind mining and full labels read back from the record above).
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
@@ -548,7 +558,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme-block hitl-e20-folds-pooled-reviewed-six --resume --refit-row-share 1
 	# The same with a person's labels on a handful of points left out of training (fewer than half the policy's).
 	test -f docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json || cp docs/bench/hitl-e20-folds-pooled-reviewed-six.json docs/bench/hitl-e20-folds-pooled-reviewed-sparse-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --no-continue-folds --threshold-objective total \
@@ -570,7 +580,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-tune-sparse-vs-every-label
 	# The reviewer's record above on six factories no record had used (simulator seeds 111-116), each
 	# network also measured at the thresholds it gets without folds.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 111,112,113,114,115,116 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
@@ -589,17 +599,29 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  docs/bench/hitl-e20-folds-pooled-fresh-six.json --variants reviewed_200,reviewed_200 \
 	  --readme docs/review-loop.md --readme-block hitl-fresh-tune-sparse-vs-every-label \
 	  --out docs/bench/hitl-fresh-tune-sparse-vs-every-label.json
+	# The floor's pre-registered test: the same three detectors on a third set of six factories
+	# (simulator seeds 121-126), then the twelve factories of 111-116 and 121-126 pooled.
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
+	  --review-order learned --review-extra -1 --heldout --heldout-seeds 121,122,123,124,125,126 \
+	  --heldout-frames 12 --variants blind,reviewed_200,full --threshold-folds 2 --threshold-objective total \
+	  --out docs/bench/hitl-e20-folds-pooled-third-tune-sparse-six.json --readme docs/review-loop.md \
+	  --readme-block hitl-e20-folds-pooled-third-tune-sparse-six --resume --refit-row-share 1 --resume-other-library
+	$(BIN)/factorydet bench hitl-pool docs/bench/hitl-e20-folds-pooled-fresh-tune-sparse-six.json \
+	  docs/bench/hitl-e20-folds-pooled-third-tune-sparse-six.json \
+	  --readme docs/review-loop.md --readme-block hitl-pool-tune-sparse-twelve \
+	  --out docs/bench/hitl-pool-tune-sparse-twelve.json
 	# blind_safe (holding places, recalibrating the background) with thresholds out of fold for the pooled F
 	# (blind mining and full labels read back from hitl-e20-folds-pooled-six).
 	test -f docs/bench/hitl-e20-folds-pooled-safe-six.json || cp docs/bench/hitl-e20-folds-pooled-six.json docs/bench/hitl-e20-folds-pooled-safe-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,blind_safe,full --hold-places --recalibrate-background 0.5 \
 	  --threshold-folds 2 --no-continue-folds --threshold-objective total --out docs/bench/hitl-e20-folds-pooled-safe-six.json \
 	  --readme docs/review-loop.md --readme-block hitl-e20-folds-pooled-safe-six --resume --refit-row-share 1 --resume-other-library
 	# The same at 50% unannotated, all three detectors trained with out-of-fold pooled thresholds, seeds 0-5.
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,full,blind_safe --hold-places --recalibrate-background 0.5 \
@@ -608,7 +630,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-safe-six --resume --refit-row-share 1 --resume-other-library
 	# The same with the reviewer's 200 places a round (blind mining and full labels read back from the record above).
 	test -f docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json || cp docs/bench/hitl-50-e20-folds-pooled-safe-six.json docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full \
@@ -617,7 +639,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-folds-pooled-reviewed-six --resume --refit-row-share 1 --resume-other-library
 	# The same with a person's labels on a handful of points left out of training (fewer than half the policy's).
 	test -f docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json || cp docs/bench/hitl-50-e20-folds-pooled-reviewed-six.json docs/bench/hitl-50-e20-folds-pooled-reviewed-sparse-six.json
-	$(BIN)/factorydet bench hitl $(CORPUS50) --label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --label-min-points -1 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4,5 --review-by place --queue-order class \
 	  --review-order learned --review-extra -1 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants blind,reviewed_200,full \
@@ -629,7 +651,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-50-sparse-vs-every-label
 	# The app's training defaults at 50% with the 20-epoch first fit: the paper's score cut, the learned review
 	# order over the mined queue alone (--review-extra 0); against the class-turns record above.
-	$(BIN)/factorydet bench hitl $(CORPUS50) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
+	$(BIN)/factorydet bench hitl $(CORPUS50) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 20 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3 --review-by place --queue-order score \
 	  --review-order learned --review-extra 0 --heldout --heldout-seeds 101,102,103,104,105,106 \
 	  --heldout-frames 12 --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-50-e20-score-six.json \
@@ -639,7 +661,7 @@ bench: $(STAMP) browserdeps corpus corpus50
 	  --readme docs/review-loop.md --readme-block hitl-50-e20-score-vs-class-six
 	# Every round trained afresh (the paper's procedure; --round-epochs 0), blind, the learned
 	# order's reviewer and full labels alike (30%), against the learned record's rounds that go on.
-	$(BIN)/factorydet bench hitl $(CORPUS) --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
+	$(BIN)/factorydet bench hitl $(CORPUS) --threshold-label-min-points 0 --train-frames 8 --frames 10 --budgets 200 --rounds 2 --epochs 5 \
 	  --mining-threshold 0.05 --hide-labelled 0.25 --seeds 0,1,2,3,4 --review-by place --queue-order class \
 	  --review-order learned --round-epochs 0 --heldout --heldout-seeds 101,102,103 --heldout-frames 12 \
 	  --variants reviewed_200,full --model-box-targets --out docs/bench/hitl-review-afresh-heldout.json --readme docs/review-loop.md \

@@ -306,7 +306,7 @@ def test_the_label_points_floor_shapes_the_reviewers_runs_alone():
     settings = dataclasses.asdict(LoopSettings(label_min_points=None))  # the policy's floor
     plan = {"data": "d", "seeds": [0], "variants": ["blind"], "budgets": [50], "review_by": "place",
             "queue_max_label_iou": 0.25, "settings": settings}  # fmt: skip
-    every_label = {**plan, "settings": {**settings, "label_min_points": 0}}
+    every_label = {**plan, "settings": {**settings, "label_min_points": 0, "threshold_label_min_points": 0}}
     # (the thresholds' floor on every label's training: a floor of its own)
     tuned = {**every_label, "settings": {**every_label["settings"], "threshold_label_min_points": None}}
     untuned = {**tuned, "settings": {**tuned["settings"], "class_thresholds": False}}

@@ -152,10 +152,12 @@ def test_full_run_then_review_then_next_round(db, dataset, frames):
     assert len(queue) == mined_total > 0 and all(item["run_id"] == run_id for item in queue)
     assert db.training_runs()[-1]["kind"] == "full"
     assert db.training_runs()[-1]["snapshot_id"] is not None
-    # Every label by default: no floor, nothing left out.
+    # Every label trains by default; the thresholds' tuning leaves out a person's labels sparser
+    # than half the annotation policy, and nobody has labelled anything yet.
     config = db.training_runs()[-1]["config"]
     assert (config["label_points_floor"], config["sparse_labels_ignored"]) == (0, 0)
-    assert (config["threshold_points_floor"], config["labels_tuning_ignored"]) == (0, 0)
+    policy = dataset.manifest["config"]["min_annotated_points"]
+    assert (config["threshold_points_floor"], config["labels_tuning_ignored"]) == (round(policy / 2), 0)
     # A run trained with no front-end note (scripts, the benchmark) still loads.
     stored = DetectionModel.load(db.session.path / db.training_runs()[-1]["model_path"])
     assert stored.front_end is None and stored.class_names == run.model.class_names
@@ -1101,7 +1103,8 @@ def test_the_thresholds_label_floor_follows_the_data_sets_policy_too(dataset):
     policy = dataset.manifest["config"]["min_annotated_points"]
     floor = LoopSettings(threshold_label_min_points=None).threshold_points_floor(dataset)
     assert floor == LoopSettings(label_min_points=None).label_points_floor(dataset) == round(policy / 2)
-    assert LoopSettings().threshold_points_floor(dataset) == 0  # every label counts, the default
+    assert LoopSettings().threshold_points_floor(dataset) == floor  # the default
+    assert LoopSettings(threshold_label_min_points=0).threshold_points_floor(dataset) == 0  # every label
     assert LoopSettings(threshold_label_min_points=9).threshold_points_floor(dataset) == 9
     # The before/after table ignores what the run neither trained nor tuned on.
     assert LoopSettings(threshold_label_min_points=9).measure_points_floor(dataset) == 9
@@ -1112,4 +1115,5 @@ def test_the_thresholds_label_floor_follows_the_data_sets_policy_too(dataset):
 
     control = CONTROL_BY_FIELD["threshold_label_min_points"]
     assert control.parse("-1") is None
-    assert control.arguments(None) == ["--threshold-label-min-points", "-1"]
+    assert control.arguments(None) == []  # the default: no flag
+    assert control.arguments(0) == ["--threshold-label-min-points", "0"]
