@@ -111,6 +111,17 @@ for (const proto of [WebGL2RenderingContext.prototype, WebGLRenderingContext.pro
 
 PAGE_CLOCK = """
 window.__factorydetInput = null;
+window.__factorydetSettleMs = 0;
+window.__factorydetSettled = () => new Promise((resolve) => {
+  const start = performance.now();
+  const check = () => {
+    const draws = window.__factorydetDraws || [];
+    const idle = performance.now() - (draws.length ? draws[draws.length - 1] : -Infinity);
+    if (idle >= window.__factorydetSettleMs || performance.now() - start > 5000) resolve(idle);
+    else setTimeout(check, Math.max(5, window.__factorydetSettleMs - idle));
+  };
+  check();
+});
 for (const type of ['keydown', 'pointerdown']) {
   window.addEventListener(type, (event) => { window.__factorydetInput = event.timeStamp; }, true);
 }
@@ -138,7 +149,10 @@ window.__factorydetWatch = (pattern, exclude) => new Promise((resolve) => {
 time) until the page's text shows its effect (``Shows``: the DOM mutation, then two animation
 frames, the first of which draws it): what a person at this browser waits, without the test
 driver's polling (Playwright checks a locator at growing intervals, 20, 50, 100, 100 and 500 ms,
-which adds up to the next check's time to every wait)."""
+which adds up to the next check's time to every wait). With ``__factorydetSettleMs`` set, a
+watch starts once the page has drawn nothing for that long (``DRAW_LOG``'s draw calls; at most
+5 s): viser keeps rendering for a quarter of a second after every scene change, and a key pressed
+meanwhile waits for the render in flight."""
 
 
 class Shows:
@@ -150,9 +164,10 @@ class Shows:
         self.page, self.text, self.pattern, self.exclude = page, text, pattern, [int(n) for n in exclude]
 
     def watch(self) -> None:
-        """Start watching, before the key."""
+        """Start watching, before the key (once the page has settled, with a settle time set)."""
         self.page.evaluate(
-            "([pattern, exclude]) => { window.__factorydetInput = null;"
+            "async ([pattern, exclude]) => { await window.__factorydetSettled();"
+            " window.__factorydetInput = null;"
             " window.__factorydetShown = window.__factorydetWatch(pattern, exclude); }",
             [self.pattern, self.exclude],
         )
@@ -520,14 +535,18 @@ def run(
     verdict_keys: str = VERDICT_KEYS,
     shadow_cost: bool = False,
     show_grid: bool = True,
+    settle_ms: float = 0.0,
 ) -> dict:
     """Drive the app through the steps ``repeats`` times; returns the record. Without ``retrain``
     the review verdicts and the retrains are left out (minutes instead of a quarter of an hour);
     ``points_drawn``: the Display panel's "Points drawn" (None: all); ``verdict_keys``: the review
     verdicts' keys, in turn; ``shadow_cost``: also time a render with viser's default shadows on
     and off (``_shadow_cost``, a minute and a half); ``show_grid``: the Display panel's "Floor
-    grid"."""
+    grid"; ``settle_ms``: press each timed key once the page has drawn nothing for this long (a
+    labeller who looks at each edit before the next key; 0: as soon as the last step showed)."""
     check_verdict_keys(verdict_keys)
+    if not settle_ms >= 0:
+        raise ValueError(f"settle_ms must be 0 or more, got {settle_ms!r}")
     from playwright.sync_api import sync_playwright
 
     dataset = open_dataset(data)
@@ -554,6 +573,7 @@ def run(
             with sync_playwright() as pw:
                 browser, page, view = open_app_page(pw, app, 1400, 1400, init_script=DRAW_LOG + PAGE_CLOCK)
                 webgl_renderer = page.evaluate(WEBGL_RENDERER_JS)
+                page.evaluate("ms => { window.__factorydetSettleMs = ms; }", float(settle_ms))
                 _wait(lambda: app.state.world is not None, 600, "the frames placed in one world frame")
                 _wait(lambda: view.layers.detection_source[0] is not None, 600, "the first detections")
                 if points_drawn is not None:
@@ -691,6 +711,7 @@ def run(
         "points_drawn": points_drawn,
         "points_shown": points_shown,  # of the first frame's scan, after the height cut and the budget
         "show_grid": show_grid,
+        "settle_ms": float(settle_ms),
         "webgl_renderer": webgl_renderer,
         "target_edit_ms": TARGET_EDIT_MS,
         "target_frame_ms": TARGET_FRAME_MS,
@@ -756,7 +777,16 @@ def main(argv: list[str] | None = None) -> int:
         help=f"the review verdicts' keys, in turn (default {VERDICT_KEYS}: background and skip; o answers "
         "Object with the item's class, and the next round fits the box quality regressor again)",
     )
+    parser.add_argument(
+        "--settle-ms",
+        type=float,
+        default=0.0,
+        help="press each timed key once the page has drawn nothing for this many ms (a labeller who "
+        "looks at each edit before the next key; default 0: as soon as the last step showed)",
+    )
     args = parser.parse_args(argv)
+    if not args.settle_ms >= 0:
+        parser.error(f"--settle-ms must be 0 or more, got {args.settle_ms}")
     try:
         check_verdict_keys(args.verdict_keys)
     except ValueError as exc:
@@ -778,6 +808,7 @@ def main(argv: list[str] | None = None) -> int:
         verdict_keys=args.verdict_keys,
         shadow_cost=args.shadow_cost,
         show_grid=not args.no_grid,
+        settle_ms=args.settle_ms,
     )
     record["command"] = "python -m app.walkthrough " + " ".join(argv if argv is not None else sys.argv[1:])
     text = json.dumps(record, indent=2)

@@ -836,12 +836,21 @@ def _page_clock_text(result: dict) -> str:
     """How the walkthrough's 'drawn' column is timed (records before it: not timed, no text)."""
     if not any("page_median_ms" in figures for figures in result["steps"].values()):
         return ""
+    settle = result.get("settle_ms") or 0.0
+    when = (
+        f" Each key was pressed once the page had drawn nothing for {fmt(settle)} ms (a labeller who"
+        " looks at each edit before the next key)."
+        if settle > 0
+        else " Each key was pressed as soon as the page showed the step before (viser keeps"
+        " rendering for a quarter of a second after a scene change: a key pressed meanwhile waits"
+        " for the render in flight)."
+    )
     return (
         " 'Shown' is polled by the test driver, which checks the page at growing intervals (20,"
         " 50, 100, 100, then 500 ms) and so adds up to the next check's time; 'drawn' is timed in"
         " the page's own clock, from the key's (or click's) input event until the text showing its"
         " effect is in the page and the next animation frame has begun after the one that draws"
-        " it, as a person at this browser sees it."
+        " it, as a person at this browser sees it." + when
     )
 
 

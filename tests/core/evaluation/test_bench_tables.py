@@ -30,12 +30,16 @@ BLOCKS = (
     ("labelling.md", "walkthrough-edits-points-all"),
     ("labelling.md", "walkthrough-edits-no-shadows"),
     ("labelling.md", "walkthrough-edits-points-20k-no-grid"),
+    ("labelling.md", "walkthrough-edits-page-clock"),
+    ("labelling.md", "walkthrough-edits-page-clock-20k-no-grid"),
+    ("labelling.md", "walkthrough-edits-page-clock-settled"),
     ("labelling.md", "walkthrough-edits-points-20k"),
     ("labelling.md", "walkthrough-edits-points-20k-swiftshader"),
     ("review-loop.md", "hitl-50-class-vs-place"),
     ("review-loop.md", "hitl-50-refit-vs-class"),
     ("review-loop.md", "hitl-50-refit100-vs-refit"),
     ("review-loop.md", "hitl-50-safe-recal-vs-hold"),
+    ("review-loop.md", "hitl-pool-tune-sparse-twelve"),
 )
 
 
@@ -643,7 +647,9 @@ def test_the_walkthrough_gives_the_times_in_the_pages_own_clock_where_it_timed_t
         }
     markdown = render_record({**record, "steps": steps})
     assert "| drawn (page's clock), median ms | drawn, max ms | target ms |" in markdown
-    assert "the page's own clock" in markdown
+    assert "the page's own clock" in markdown and "as soon as the page showed the step before" in markdown
+    settled = render_record({**record, "steps": steps, "settle_ms": 300.0})
+    assert "once the page had drawn nothing for 300.0 ms" in settled
     verdicts = steps["review verdict (B / O / X)"]
     row = _rows(markdown, "review verdict (B / O / X)")[0]
     assert float(row[5].replace(",", "")) == verdicts["page_median_ms"] and len(row) == 8
