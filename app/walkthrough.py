@@ -86,6 +86,8 @@ def _timed(view, action: Callable[[], None], stored: Callable[[], bool], shown: 
     return 1000.0 * (stored_at - start), 1000.0 * server, 1000.0 * (end - start), seen, painted
 
 
+VISER_HEARTBEAT_MS = 1000.0
+"""viser's client renders the scene once a second when idle: a page never settles for longer."""
 TIMES = ("stored", "server", "shown", "page_seen", "page")
 """A step's times (``_timed``): stored, the server's share, shown (polled), and in the page's own
 clock the text changed and the change drawn."""
@@ -133,14 +135,16 @@ window.__factorydetWatch = (pattern, exclude) => new Promise((resolve) => {
     }
     return false;
   };
+  if (shows()) throw new Error('the page shows ' + pattern + ' before the key');
   const observer = new MutationObserver(() => {
     if (window.__factorydetInput === null || !shows()) return;
     observer.disconnect();
     const seen = performance.now();
+    const input = window.__factorydetInput;
     // The frame that paints the change starts at the first animation frame; the second starts
     // once that one is drawn.
     requestAnimationFrame(() => requestAnimationFrame(() => resolve(
-      {input: window.__factorydetInput, seen: seen, painted: performance.now()})));
+      {input: input, seen: seen, painted: performance.now()})));
   });
   observer.observe(document.body, {subtree: true, childList: true, characterData: true, attributes: true});
 });
@@ -176,10 +180,16 @@ class Shows:
         text = self.text() if callable(self.text) else self.text
         self.page.get_by_text(text, exact=False).first.wait_for(timeout=30_000)
 
-    def in_page(self) -> tuple[float, float]:
+    def in_page(self, timeout_ms: float = 30_000.0) -> tuple[float, float]:
         """Milliseconds from the key (or click) until the page's text changed, and until the frame
-        after it began (the change drawn), in the page's clock."""
-        times = self.page.evaluate("() => window.__factorydetShown")
+        after it began (the change drawn), in the page's clock. Raises (the page's error) when
+        the pattern has not shown within ``timeout_ms`` of this call: the polled text showed, so a
+        pattern that does not match it is the walkthrough's mistake."""
+        times = self.page.evaluate(
+            "([pattern, ms]) => Promise.race([window.__factorydetShown, new Promise((_, reject) =>"
+            " setTimeout(() => reject(new Error(`the page never matched ${pattern}`)), ms))])",
+            [self.pattern, float(timeout_ms)],
+        )
         return times["seen"] - times["input"], times["painted"] - times["input"]
 
 
@@ -545,8 +555,8 @@ def run(
     grid"; ``settle_ms``: press each timed key once the page has drawn nothing for this long (a
     labeller who looks at each edit before the next key; 0: as soon as the last step showed)."""
     check_verdict_keys(verdict_keys)
-    if not settle_ms >= 0:
-        raise ValueError(f"settle_ms must be 0 or more, got {settle_ms!r}")
+    if not 0 <= settle_ms < VISER_HEARTBEAT_MS:
+        raise ValueError(f"settle_ms must lie in [0, {VISER_HEARTBEAT_MS:.0f}), got {settle_ms!r}")
     from playwright.sync_api import sync_playwright
 
     dataset = open_dataset(data)
@@ -785,8 +795,8 @@ def main(argv: list[str] | None = None) -> int:
         "looks at each edit before the next key; default 0: as soon as the last step showed)",
     )
     args = parser.parse_args(argv)
-    if not args.settle_ms >= 0:
-        parser.error(f"--settle-ms must be 0 or more, got {args.settle_ms}")
+    if not 0 <= args.settle_ms < VISER_HEARTBEAT_MS:
+        parser.error(f"--settle-ms must lie in [0, {VISER_HEARTBEAT_MS:.0f}), got {args.settle_ms}")
     try:
         check_verdict_keys(args.verdict_keys)
     except ValueError as exc:

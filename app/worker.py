@@ -408,20 +408,29 @@ def place_frames(state: SharedState) -> None:
     import_annotations_ahead(state.db, dataset.num_frames)
 
 
-def import_annotations_ahead(db, num_frames: int) -> int:
-    """Import the data set's annotations of every frame not imported yet, one frame per write
-    (``SessionDB.ensure_frames``), so that no one waits for them later. With label once, the
+def import_annotations_ahead(db, num_frames: int, chunk: int = 32) -> int:
+    """Import the data set's annotations of every frame not imported yet, ``chunk`` frames per
+    write (``SessionDB.ensure_frames``), so that no one waits for them later. With label once, the
     first edit of an object reaches every frame that shows it, and importing those frames then
-    (reading each frame file) took half a second of that edit on the demo. Stops at the first
-    frame that fails: its error is raised again, with its message, when that frame is opened.
-    Returns how many frames, from the first, are imported now (all of them unless one failed)."""
+    (reading each frame file) took half a second of that edit on the demo. A chunk that fails is
+    imported frame by frame, and a frame that fails (damaged annotations, a busy database) is
+    left as it was: it is imported, or its error raised with its message, when it is used.
+    Returns how many frames are imported now."""
     if db is None or db.readonly:
         return 0
     done = 0
-    for frame_index in range(num_frames):
+    for start in range(0, num_frames, chunk):
+        frames = range(start, min(start + chunk, num_frames))
         try:
-            db.ensure_frames([frame_index])
-        except Exception:  # noqa: BLE001 - a thread of its own; the frame's own use says why
-            break
-        done += 1
+            db.ensure_frames(frames)
+            done += len(frames)
+            continue
+        except Exception:  # noqa: BLE001 - a thread of its own: frame by frame, below
+            pass
+        for frame_index in frames:
+            try:
+                db.ensure_frames([frame_index])
+            except Exception:  # noqa: BLE001 - the frame's own use says why
+                continue
+            done += 1
     return done

@@ -45,3 +45,24 @@ def test_the_page_times_a_key_until_the_text_that_shows_its_effect(browser):
         browser, lambda page: Shows(page, "Label #4:", r"Label #(\d+):", exclude=[3])
     )
     assert 150.0 <= seen and painted > seen
+
+
+def test_a_pattern_the_page_shows_before_the_key_or_never_is_an_error_not_a_time(browser):
+    from playwright.sync_api import Error
+
+    # "Label #3:" is in the page before the key: any later change would have resolved the watch.
+    with pytest.raises(Error, match="before the key"):
+        _timed_in_page(browser, lambda page: shows_text(page, "Label #3:"))
+    # A polled text the pattern does not match: the page's wait ends, with an error.
+    page = browser.new_page()
+    try:
+        page.set_content(PAGE)
+        page.add_script_tag(content=PAGE_CLOCK)
+        shown = Shows(page, "(version 2)", r"\(version 7\)")
+        shown.watch()
+        page.keyboard.press("n")
+        shown()
+        with pytest.raises(Error, match="never matched"):
+            shown.in_page(timeout_ms=300.0)
+    finally:
+        page.close()

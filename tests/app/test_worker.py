@@ -288,12 +288,20 @@ def test_annotations_are_imported_ahead_so_that_no_later_edit_reads_a_frame_file
     assert [len(db.labels(f)) for f in range(dataset.num_frames)] == expected
     assert import_annotations_ahead(db, dataset.num_frames) == dataset.num_frames  # nothing to do
 
-    # A frame whose annotations fail stops the import there; its own use says why later.
-    other = SessionDB(open_session("t", tmp_path), open_dataset(small_dataset_dir))
+    # A frame whose annotations fail is left out; the others are imported (its own use says why).
+    other_dataset = open_dataset(small_dataset_dir)
+    other = SessionDB(open_session("t", tmp_path), other_dataset)
+    annotations = other._annotations
 
     def damaged(frame_index):
-        raise SessionError(f"frame {frame_index}: damaged annotation")
+        if frame_index == 1:
+            raise SessionError(f"frame {frame_index}: damaged annotation")
+        return annotations(frame_index)
 
     monkeypatch.setattr(other, "_annotations", damaged)
-    assert import_annotations_ahead(other, dataset.num_frames) == 0
+    assert import_annotations_ahead(other, dataset.num_frames, chunk=2) == dataset.num_frames - 1
+    monkeypatch.setattr(other_dataset, "frame", lambda index: pytest.fail(f"frame {index} read again"))
+    assert [len(other.labels(f)) for f in range(dataset.num_frames) if f != 1] == [
+        n for f, n in enumerate(expected) if f != 1
+    ]
     assert import_annotations_ahead(None, dataset.num_frames) == 0
