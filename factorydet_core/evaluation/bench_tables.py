@@ -821,7 +821,7 @@ def walkthrough_markdown(result: dict) -> str:
         " is the app's own latency, from the server receiving the key to its having sent the"
         " browser everything the key changed (one batch of updates); the"
         " rest is the browser's (delivering the key, rendering, showing)."
-        + _page_clock_text(result)
+        + (_page_clock_text(result) if paged else "")
         + f" In this browser a notification alone takes {fmt(alone)}"
         f" ms to show and {fmt(with_scene)} ms with a scene change in the"
         f" same update: headless Chromium renders the scene ({points}) in {_renderer(result)},"
@@ -833,9 +833,7 @@ def walkthrough_markdown(result: dict) -> str:
 
 
 def _page_clock_text(result: dict) -> str:
-    """How the walkthrough's 'drawn' column is timed (records before it: not timed, no text)."""
-    if not any("page_median_ms" in figures for figures in result["steps"].values()):
-        return ""
+    """How the walkthrough's 'drawn' column is timed, for a record that has one."""
     settle = result.get("settle_ms") or 0.0
     when = (
         f" Each key was pressed once the page had drawn nothing for {fmt(settle)} ms (a labeller who"
