@@ -107,13 +107,36 @@ class Dataset:
             return self._single
         return self._read_frame(index)
 
-    @lru_cache(maxsize=8)  # noqa: B019 - a data set lives as long as the app; the cache is small.
-    def _read_frame(self, index: int) -> Frame:
+    def frame_labels(self, index: int) -> tuple[str, BoxLabels]:
+        """``(name, annotations)`` of frame ``index``, reading only the label arrays of its file:
+        what importing a frame's annotations needs, without decompressing its points or taking a
+        place in the frames' cache from the frames being viewed."""
+        if not 0 <= index < self.num_frames:
+            raise IndexError(f"{self.name}: frame {index} out of range [0, {self.num_frames})")
+        if self._single is not None:
+            return self._single.name, self._single.labels
         path = self._frame_paths[index]
+        arrays = self._load(path, LABEL_KEYS)
+        try:
+            labels = _box_labels(arrays)
+            # (as ``Frame`` checks them when the whole frame is read)
+            num_classes = len(self.class_names)
+            if len(labels) and (labels.class_ids.min() < 0 or labels.class_ids.max() >= num_classes):
+                raise InputError(f"label class ids must lie in [0, {num_classes})")
+            return path.stem, labels
+        except KeyError as exc:
+            raise InputError(f"{path}: frame lacks the array {exc}") from None
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+
+    def _load(self, path: Path, keys=None) -> dict[str, np.ndarray]:
+        """The arrays ``keys`` (``None``: all) of a frame file, within the data set's caps; every
+        failure an ``InputError`` naming the file."""
         try:
             # The arrays and their frozen copies in the Frame.
             _, arrays = load_npz(
                 path,
+                keys,
                 max_points=self.max_points,
                 max_read_bytes=self.max_read_bytes,
                 conversion_bytes=lambda headers: sum(
@@ -126,20 +149,20 @@ class Dataset:
             raise InputError(f"{path}: unreadable frame ({type(exc).__name__}: {exc})") from None
         except InputError as exc:
             raise InputError(f"{path}: unreadable frame ({str(exc).removeprefix(f'{path}: ')})") from None
+        return arrays
+
+    @lru_cache(maxsize=8)  # noqa: B019 - a data set lives as long as the app; the cache is small.
+    def _read_frame(self, index: int) -> Frame:
+        path = self._frame_paths[index]
+        arrays = self._load(path)
         try:
-            labels = BoxLabels(
-                boxes=arrays["label_boxes"],
-                class_ids=arrays["label_class_ids"],
-                instance_ids=arrays["label_instance_ids"],
-                num_points=arrays["label_num_points"],
-            )
             return Frame(
                 name=path.stem,
                 points=arrays["points"],
                 sensor_ids=arrays["sensor_ids"],
                 T_vehicle_sensor=self.T_vehicle_sensor,
                 T_world_vehicle=arrays["T_world_vehicle"],
-                labels=labels,
+                labels=_box_labels(arrays),
                 point_instance_ids=arrays["point_instance_ids"],
                 class_names=self.class_names,
             )
@@ -147,6 +170,19 @@ class Dataset:
             raise InputError(f"{path}: frame lacks the array {exc}") from None
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
+
+
+LABEL_KEYS = ("label_boxes", "label_class_ids", "label_instance_ids", "label_num_points")
+"""A frame file's arrays that hold its annotations."""
+
+
+def _box_labels(arrays: dict[str, np.ndarray]) -> BoxLabels:
+    return BoxLabels(
+        boxes=arrays["label_boxes"],
+        class_ids=arrays["label_class_ids"],
+        instance_ids=arrays["label_instance_ids"],
+        num_points=arrays["label_num_points"],
+    )
 
 
 def annotation_min_points(dataset: Dataset, default: int | None = 50) -> int | None:

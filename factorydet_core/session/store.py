@@ -1369,13 +1369,13 @@ class SessionDB:
             raise SessionError(
                 f"frame {frame_index} has no labels yet and no data set is open to import them"
             )
-        frame = self.dataset.frame(frame_index)
-        names = frame.class_names
+        # The label arrays alone: importing ahead reads every frame, and a whole frame would take
+        # a place in the data set's frame cache from the frames being viewed.
+        name, labels = self.dataset.frame_labels(frame_index)
+        names = self.dataset.class_names
         out = []
-        for k, (box, c, i) in enumerate(
-            zip(frame.labels.boxes, frame.labels.class_ids, frame.labels.instance_ids)
-        ):
-            where = f"{self.dataset.path}: frame {frame_index} ({frame.name}), annotation {k}"
+        for k, (box, c, i) in enumerate(zip(labels.boxes, labels.class_ids, labels.instance_ids)):
+            where = f"{self.dataset.path}: frame {frame_index} ({name}), annotation {k}"
             out.append((_usable_box_json(box, where), names[int(c)], int(i)))
         return out
 

@@ -80,3 +80,48 @@ def test_annotation_policy_is_read_from_the_manifest(small_dataset_dir, tmp_path
     (other / "manifest.json").write_text(json.dumps(manifest))
     assert annotation_min_points(open_dataset(other)) == 50
     assert annotation_min_points(open_dataset(other), default=None) is None
+
+
+def _copy_with_frame0(tmp_path, small_dataset_dir, **replace):
+    """A copy of the small data set whose frame 0 has the arrays ``replace``."""
+    manifest = json.loads((small_dataset_dir / "manifest.json").read_text())
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    for path in (small_dataset_dir / "frames").glob("*.npz"):
+        with np.load(path) as data:
+            arrays = dict(data)
+        if path.name == "frame_00000.npz":
+            arrays.update(replace)
+        np.savez_compressed(tmp_path / "frames" / path.name, **arrays)
+    return tmp_path
+
+
+def test_frame_labels_read_the_label_arrays_alone(tmp_path, small_dataset_dir):
+    dataset = open_dataset(small_dataset_dir)
+    for index in range(dataset.num_frames):
+        name, labels = dataset.frame_labels(index)
+        frame = dataset.frame(index)
+        assert name == frame.name and len(labels) > 0
+        for field in ("boxes", "class_ids", "instance_ids", "num_points"):
+            np.testing.assert_array_equal(getattr(labels, field), getattr(frame.labels, field))
+    with pytest.raises(IndexError):
+        dataset.frame_labels(dataset.num_frames)
+    # Points the frame refuses are not read: the annotations still come.
+    with np.load(small_dataset_dir / "frames" / "frame_00000.npz") as data:
+        points = data["points"].copy()
+    points[0] = np.nan
+    broken = open_dataset(_copy_with_frame0(tmp_path, small_dataset_dir, points=points))
+    with pytest.raises(InputError, match="points"):
+        broken.frame(0)
+    np.testing.assert_array_equal(broken.frame_labels(0)[1].boxes, dataset.frame(0).labels.boxes)
+
+
+def test_frame_labels_refuse_what_the_frame_refuses(tmp_path, small_dataset_dir):
+    with np.load(small_dataset_dir / "frames" / "frame_00000.npz") as data:
+        class_ids = data["label_class_ids"].copy()
+    class_ids[0] = 99
+    broken = open_dataset(_copy_with_frame0(tmp_path, small_dataset_dir, label_class_ids=class_ids))
+    with pytest.raises(InputError, match=r"frame_00000.npz: label class ids must lie in \[0, "):
+        broken.frame_labels(0)
+    with pytest.raises(InputError, match="label class ids must lie in"):
+        broken.frame(0)
