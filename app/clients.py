@@ -162,18 +162,25 @@ class ClientView(BrowserSession):
                 layers = dict(state.layers)
                 max_height = state.max_height
                 max_points = state.points_drawn
+            # Another frame's result (the shown frame's is being computed) is hidden in the same
+            # update that draws the new scan: never the old frame's boxes on the new frame's cloud.
             if result is not None:
-                layers_key = (id(result), max_height, max_points)
+                layers_stale = result_frame != key[0]
+                layers_key = (id(result), max_height, max_points, layers_stale)
                 if layers_key != self._layers_key:
-                    self.layers.draw(result, result_frame, layers, point_size, max_height, max_points)
+                    if layers_stale:
+                        self.layers.set_visibility(dict.fromkeys(layers, False))
+                    else:
+                        self.layers.draw(result, result_frame, layers, point_size, max_height, max_points)
                     self._layers_key = layers_key
-                else:  # (the size first: a layer shown for the first time is sent at it)
+                elif not layers_stale:  # (the size first: a layer shown for the first time is sent at it)
                     self.layers.set_point_size(point_size)
                     self.layers.set_visibility(layers)
             with state.lock:
-                detections = state.detections
-                detection_result = state.detection_result
                 detection_frame = state.detection_frame_index
+                fresh = detection_frame == key[0]
+                detections = state.detections if fresh else None
+                detection_result = state.detection_result if fresh else None
                 detections_key = (
                     id(detections),
                     layers["detections"],

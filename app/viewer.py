@@ -183,9 +183,9 @@ class FactorydetApp:
         state = view.state
         origin, direction = np.asarray(event.ray_origin), np.asarray(event.ray_direction)
         with state.lock:
-            show_labels, frame_index = state.show_boxes, state.frame_index
+            show_labels, shown_frame = state.show_boxes, state.frame_index
         if state.editable and show_labels and not add:
-            boxes, _, label_ids = state.frame_labels(frame_index)
+            boxes, _, label_ids = state.frame_labels(shown_frame)
             distances = ray_box_distances(origin, direction, boxes) if len(boxes) else np.zeros(0)
             if np.isfinite(distances).any():
                 view.select_label(int(label_ids[int(np.argmin(distances))]))
@@ -200,6 +200,10 @@ class FactorydetApp:
             detections, detection_ids = layers.shown_detections, layers.shown_detection_ids
             detection_result, detection_frame = layers.detection_source
         if result is None:
+            return
+        if frame_index != shown_frame:
+            # Another frame's result (hidden): its points are not the scan drawn.
+            state.set_selection("_This frame's segments are still being computed: click again in a moment._")
             return
         if detections is not None and detection_result is not None and len(detection_ids):
             distances = ray_box_distances(origin, direction, detections.boxes[detection_ids])
@@ -251,8 +255,10 @@ class FactorydetApp:
 
     def _rect_select(self, view: ClientView, event: viser.SceneRectSelectEvent) -> None:
         with view._draw_lock:
-            result = view.layers.drawn_result
-        if result is None:
+            result, frame_index = view.layers.drawn
+        with view.state.lock:
+            shown_frame = view.state.frame_index
+        if result is None or frame_index != shown_frame:  # (none, or another frame's, hidden)
             return
         camera = event.client.camera
         with view.state.lock:

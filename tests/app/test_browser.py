@@ -233,6 +233,56 @@ def test_detections_layer_and_score_slider(app_with_model, browser):
         context.close()
 
 
+def test_another_frames_boxes_are_hidden_the_moment_the_frame_changes(app_with_model, browser, monkeypatch):
+    """A frame still being computed shows its scan with no boxes, never the last frame's
+    detections and layers on its cloud; a click on it selects nothing of the other frame."""
+    import threading
+
+    from factorydet_core.detection import detector as detector_module
+
+    app = app_with_model
+    release = threading.Event()
+    original = detector_module.Detector.propose
+
+    def held(self, frame, *args, **kwargs):
+        if frame.name == "frame_00002":
+            release.wait(120)
+        return original(self, frame, *args, **kwargs)
+
+    monkeypatch.setattr(detector_module.Detector, "propose", held)
+    context = browser.new_context(viewport={"width": 900, "height": 700})
+    try:
+        page = context.new_page()
+        page.goto(f"http://127.0.0.1:{app.server.get_port()}/")
+        page.wait_for_selector("canvas[data-engine]", timeout=30_000)
+        view = _view(app)
+        assert _wait(
+            lambda: view.layers.shown_detections is not None and view.layers.detection_source[1] == 0, 120
+        )
+        view.state.set_layer("segments", True)
+        assert _wait(lambda: "segments" in view.layers.nodes, 20)
+        assert view.layers.nodes["segments"].visible
+        view.state.set_frame(2)  # not computed ahead (the neighbours of frame 0 are 0 and 1)
+        # Hidden with frame 2's scan, while frame 0's are still the result.
+        assert _wait(
+            lambda: (
+                view._drawn is not None
+                and view._drawn[0] == 2
+                and view.layers.shown_detections is None
+                and not view.layers.detection_nodes
+                and not view.layers.nodes["segments"].visible
+            ),
+            20,
+        )
+        assert view.state.detection_frame_index == 0 and view.state.detections is not None
+        release.set()
+        assert _wait(lambda: view.layers.detection_source[1] == 2 and view.layers.drawn_frame_index == 2, 120)
+        assert view.layers.nodes["segments"].visible
+    finally:
+        release.set()
+        context.close()
+
+
 def test_each_browser_has_its_own_frame_display_and_thresholds(app_with_model, browser):
     """Two browsers on one app: a frame change, a display setting and a threshold in one leave the
     other's as they were; the model and the front half's parameters are shared."""
