@@ -239,6 +239,10 @@ class TrainingWorker:
         # Shares of the progress bar: proposals, the fits, the before/after measurement.
         fit_share = 0.75
         score_share = 0.2  # of each round's share: its scoring (the fit has the rest)
+        # Of the first round's share: the box quality regressor's trees when the round's model
+        # waits for them (fitted alongside that round's network; kept or done sooner, the bar
+        # passes over it).
+        quality_share = 0.3
         done_fits = [0]
         folds_fitted = [0]  # 1 once the last round's fold models are fitting
         fit_started = [0.0, -1, 0]  # this round's first reported epoch: when, which round, which epoch
@@ -250,6 +254,10 @@ class TrainingWorker:
             on_ray = f" on {where}Ray workers" + (
                 f" at {execution.ray_address}" if execution.ray_address else ""
             )
+
+        def quality_room() -> float:
+            """Of this round's share, what the regressor's wait has before the round's scoring."""
+            return quality_share if done_fits[0] == 0 else 0.0
 
         def progress(what: str, done: int, total: int) -> None:
             # "compare" comes after the run is stored: too late to cancel without losing it.
@@ -273,7 +281,7 @@ class TrainingWorker:
                 status += pace.text((what, done_fits[0]), done, total)
                 state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "fit":
-                fraction = (done_fits[0] + (1 - score_share) * done / total) / units
+                fraction = (done_fits[0] + (1 - score_share - quality_room()) * done / total) / units
                 status = f"round {done_fits[0] + 1} of {rounds}: epoch {done} of {total}"
                 if fit_started[1] != done_fits[0]:
                     fit_started[:] = [_clock(), done_fits[0], done]
@@ -289,12 +297,19 @@ class TrainingWorker:
                 folds_fitted[0] = 1
                 status = f"tuning the thresholds on frames no model fitted: epoch {done} of {total}"
                 status += pace.text(what, done, total)
-                fraction = (done_fits[0] + (1 - score_share) + done / total) / units
+                fraction = (done_fits[0] + (1 - score_share - quality_room()) + done / total) / units
                 state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "box quality" and done == 0:
                 # Said when its fit starts (alongside the first fit) and again if the round's model
-                # has to wait for it: the bar stays where the fits left it.
+                # has to wait for it.
                 state.set_training(status="fitting the box quality regressor")
+            elif what == "box quality" and done < total:
+                # The round's model waits for it: its trees move the bar.
+                status = f"fitting the box quality regressor: tree {done} of {total}"
+                status += pace.text(what, done, total)
+                left = quality_room() * (1 - done / total)
+                fraction = (done_fits[0] + folds_fitted[0] + 1 - score_share - left) / units
+                state.set_training(status=status, progress=0.1 + fit_share * fraction)
             elif what == "round":
                 done_fits[0] = done
             elif what == "compare":

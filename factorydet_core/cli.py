@@ -736,13 +736,15 @@ def _training_progress() -> tuple[Callable[[str, int, int], None], Callable[[], 
         "fit": ("training", "epoch"),
         "proposals": ("proposals", "frame"),
         "compare": ("test frames", "frame"),
+        "box quality": ("box quality regressor", "tree"),
     }
     started: set[str] = set()  # ("compare" says its start once)
 
     def progress(what: str, done: int, total: int) -> None:
         # ("compare" reports (0, 1) as it starts, then the test frames it proposes; on Ray workers
         # their first report is (0, N))
-        if what in ("fit", "proposals") or (what == "compare" and done):
+        # (the regressor's trees are reported while the run waits for them)
+        if what in ("fit", "proposals") or (what in ("compare", "box quality") and done):
             if what not in bars:
                 bars[what] = progress_bar(*names[what])
             bars[what][0](done, total)

@@ -86,8 +86,10 @@ def retrain_session(
         calibrate: refine the extrinsics by ICP on the first training frame (multi-sensor data).
         max_train_frames, max_test_frames: use only the first frames of each split.
         progress: called with (what, done, total); ``what`` is "calibrate", "proposals", "world", "fit",
-            "box quality", "round" or "compare" (first (0, 1), then the test frames the proposals
-            cache lacks, one by one; on Ray workers from (0, their number)). "compare" comes after
+            "box quality", "round" or "compare". "box quality" says (0, 1) when the regressor's
+            fit starts and when the run starts waiting for it, then (trees fitted, trees) while the
+            run waits. "compare" says (0, 1) first, then the test frames the proposals
+            cache lacks, one by one (on Ray workers from (0, their number)). "compare" comes after
             the run is stored: a progress that raises to cancel must not raise then.
         should_stop: polled between epochs; True cancels (``types.Cancelled``), storing nothing.
         execution: where the per-frame work runs (``scale.runner.Execution``: Ray workers): the

@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -423,11 +423,16 @@ class BoxQuality:
             )
         return groups.free_space
 
-    def fit(self, features: np.ndarray, targets: np.ndarray) -> BoxQuality:
-        """Fit the regressor on (R, F) option features and their (R,) IoUs; returns self."""
+    def fit(
+        self, features: np.ndarray, targets: np.ndarray, progress: Callable[[int, int], None] | None = None
+    ) -> BoxQuality:
+        """Fit the regressor on (R, F) option features and their (R,) IoUs; returns self.
+
+        ``progress(trees fitted, trees)`` is called before the first tree and after each (the
+        same trees as without it, bit for bit); an exception it raises (a cancel) stops the fit."""
         features, targets = _checked_rows(features, targets)
         kept = self.sampled_rows(len(targets))
-        self.trees_ = self._boost(features[kept], targets[kept], self.max_iter)
+        self.trees_ = self._boost(features[kept], targets[kept], self.max_iter, progress)
         self.num_features_ = features.shape[1]
         self.training_digest_ = self.training_digest(features, targets)
         return self
@@ -442,31 +447,57 @@ class BoxQuality:
         rng = np.random.default_rng([int(self.seed), _ROW_SAMPLE_STREAM])
         return np.sort(rng.choice(num_rows, num_kept, replace=False))
 
-    def _boost(self, features: np.ndarray, targets: np.ndarray, num_trees: int) -> dict[str, np.ndarray]:
+    def _boost(
+        self,
+        features: np.ndarray,
+        targets: np.ndarray,
+        num_trees: int,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> dict[str, np.ndarray]:
         """``num_trees`` boosted trees of this regressor's leaves, learning rate and seed fitted to
-        ``targets``, as ``_export_trees``' arrays."""
+        ``targets``, as ``_export_trees``' arrays; ``progress`` as ``fit``'s."""
         from sklearn.ensemble import HistGradientBoostingRegressor
 
+        watch = {}
+        if progress is not None:
+            # scikit-learn's boosting has no callback; its early-stopping scorer is called before
+            # the first tree and after each. This one scores nothing (no prediction) and reports
+            # the trees, and stopping never triggers (patience beyond the last tree): the fit is
+            # the one without it, tree for tree.
+            watch = {
+                "early_stopping": True,
+                "validation_fraction": None,
+                "scoring": _TreeProgress(progress, int(num_trees)),
+                "n_iter_no_change": int(num_trees) + 1,
+            }
         regressor = HistGradientBoostingRegressor(
             max_iter=int(num_trees),
             max_leaf_nodes=self.max_leaf_nodes,
             learning_rate=self.learning_rate,
-            early_stopping=False,
+            early_stopping=watch.pop("early_stopping", False),
             random_state=self.seed,
+            **watch,
         ).fit(features, targets)
         return _export_trees(regressor)
 
-    def continued(self, features: np.ndarray, targets: np.ndarray, num_trees: int) -> BoxQuality:
+    def continued(
+        self,
+        features: np.ndarray,
+        targets: np.ndarray,
+        num_trees: int,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> BoxQuality:
         """A copy of this fitted regressor boosted on: ``num_trees`` more trees (its leaves and
         learning rate) fitted to what it gets wrong on (R, F) ``features`` and their (R,) IoUs,
         added after its own. Boosting goes on from its raw sums (not clipped), so the copy predicts
         what one longer boosting run would, with the last trees fitted to these rows: a new
-        label's options are corrected at a fraction of a fit from scratch."""
+        label's options are corrected at a fraction of a fit from scratch. ``progress`` as
+        ``fit``'s, over the new trees."""
         if isinstance(num_trees, bool) or not isinstance(num_trees, (int, np.integer)) or num_trees < 1:
             raise InputError(f"box quality: num_trees must be an integer >= 1, got {num_trees!r}")
         features, targets = _checked_rows(features, targets, self.num_features_)
         residuals = targets - _evaluate_trees(self.trees_, features, interleaved=self.interleaved_walk)
-        more = self._boost(features, residuals, num_trees)
+        more = self._boost(features, residuals, num_trees, progress)
         offset = len(self.trees_["is_leaf"])
         for key in ("left", "right", "roots"):  # node indices: the new trees' nodes come after
             more[key] = more[key] + offset
@@ -766,6 +797,21 @@ def _read_arrays(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
         return load_npz(path, keys, max_points=MAX_TREE_NODES)[1]
     except OSError as exc:
         raise InputError(f"{path}: unreadable box quality arrays ({exc.strerror or exc})") from None
+
+
+class _TreeProgress:
+    """An early-stopping scorer of scikit-learn's boosting that reports ``progress(trees fitted,
+    num_trees)`` and scores nothing: called once before the first tree, then after each."""
+
+    def __init__(self, progress: Callable[[int, int], None], num_trees: int) -> None:
+        self.progress = progress
+        self.num_trees = num_trees
+        self.calls = 0
+
+    def __call__(self, estimator, features, targets, **kwargs) -> float:
+        self.progress(min(self.calls, self.num_trees), self.num_trees)
+        self.calls += 1
+        return 0.0
 
 
 def _export_trees(regressor) -> dict[str, np.ndarray]:

@@ -930,6 +930,18 @@ def train_with_mining(
             if frame_labels[index][g] == background_id and int(g) not in excluded.get(index, ()):
                 background.setdefault(index, set()).add(int(g))
 
+    # The regressor's trees fitted so far, and whether the run waits for them: its fit reports
+    # them (``progress("box quality", trees, of)``) only then, the networks' fits having the bar
+    # before.
+    quality_trees = {"done": 0, "total": 1, "waiting": False}
+
+    def tree_fitted(done: int, total: int) -> None:
+        if should_stop is not None and should_stop():
+            raise Cancelled("training cancelled")  # (the fit stops at its next tree)
+        quality_trees.update(done=done, total=total)
+        if progress is not None and quality_trees["waiting"]:
+            progress("box quality", done, total)
+
     def fit_quality(excluded_now: dict[int, set[int]]) -> tuple[BoxQuality, str, float]:
         """The regressor the run's models box with, how it came (``TrainingRun`` rounds'
         ``box_quality``) and its seconds."""
@@ -948,15 +960,13 @@ def train_with_mining(
         if digest is not None and getattr(reuse_box_quality, "training_digest_", None) == digest:
             fitted, source = reuse_box_quality, "same rows, kept"
         elif reuse_box_quality is not None and quality_round_trees:
-            fitted = reuse_box_quality.continued(rows, targets, quality_round_trees)
+            fitted = reuse_box_quality.continued(rows, targets, quality_round_trees, tree_fitted)
             fitted.training_digest_ = digest  # fitted last to these rows: a round on them keeps it
             source = f"continued, {quality_round_trees} trees"
         else:
-            fitted, source = dataclasses.replace(box_quality).fit(rows, targets), "fitted"
+            fitted, source = dataclasses.replace(box_quality).fit(rows, targets, tree_fitted), "fitted"
         seconds = time.perf_counter() - start
         del rows, targets
-        if progress is not None:
-            progress("box quality", 1, 1)
         return fitted, source, seconds
 
     # The regressor's fit needs the labels alone, and the networks' fits need no regressor: it is
@@ -979,6 +989,10 @@ def train_with_mining(
             waiting = time.perf_counter()
             if progress is not None and quality_fit.running():
                 progress("box quality", 0, 1)  # (what the run is waiting for now)
+                # From here on its trees move the bar, those fitted already first.
+                quality_trees["waiting"] = True
+                if quality_trees["done"]:
+                    progress("box quality", quality_trees["done"], quality_trees["total"])
             kept_quality, quality_fit = quality_fit.result(should_stop), None
             quality_wait[0] = time.perf_counter() - waiting
         return kept_quality

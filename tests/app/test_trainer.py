@@ -297,27 +297,38 @@ def test_proposals_and_scoring_move_the_bar_and_say_the_time_left(small_dataset_
     assert fitted <= progress[0] < progress[1] < progress[2] < 0.1 + 0.75  # the bar moves while scoring
 
 
-def test_the_fold_models_move_the_bar_between_the_last_fit_and_its_scoring(
+def test_the_fold_models_and_the_regressors_trees_move_the_bar_between_the_last_fit_and_its_scoring(
     small_dataset_dir, tmp_path, monkeypatch
 ):
     # The last round's fit, its fold models' fits, waiting for the box quality regressor (fitted
-    # alongside), then its scoring: the bar only moves on.
+    # alongside: its trees reported once the run waits), then its scoring: the bar only moves on.
     reports = [("box quality", 0, 1), ("fit", 5, 5)] + [
         ("threshold folds", epoch, 40) for epoch in (1, 2, 40)
     ]
-    reports += [("box quality", 0, 1), ("box quality", 1, 1)] + [("score", frame, 10) for frame in range(10)]
+    reports += [("box quality", 0, 1)] + [("box quality", tree, 500) for tree in (100, 200, 300, 500)]
+    reports += [("score", frame, 10) for frame in range(10)]
     shown = _reports_of(small_dataset_dir, tmp_path, monkeypatch, 4, reports, threshold_folds=2)
     folds = [(s, p) for s, p in shown if s and "no model fitted" in s]
     assert folds[0][0] == "tuning the thresholds on frames no model fitted: epoch 1 of 40"
     assert folds[1][0].startswith("tuning the thresholds on frames no model fitted: epoch 2 of 40 · about")
     fitted = [p for s, p in shown if s and "epoch 5 of 5" in s][0]
-    waiting = [(s, p) for s, p in shown if s == "fitting the box quality regressor"]
-    assert len(waiting) == 2 and all(p is None for _, p in waiting)  # (the bar stays)
+    said = [(s, p) for s, p in shown if s == "fitting the box quality regressor"]
+    assert len(said) == 2 and all(p is None for _, p in said)  # (its start, then the wait's: words alone)
+    trees = [(s, p) for s, p in shown if s and s.startswith("fitting the box quality regressor: tree")]
+    assert [s for s, _ in trees] == [
+        "fitting the box quality regressor: tree 100 of 500",
+        "fitting the box quality regressor: tree 200 of 500 · about 10 s left",  # 4 s per 100: 12 s
+        "fitting the box quality regressor: tree 300 of 500 · about 10 s left",  # 8 s per 200: 8 s
+    ]  # (the last tree is the scoring's start)
     scoring = [p for s, p in shown if s and "scoring" in s]
-    bar = [fitted, *(p for _, p in folds), *scoring]
+    bar = [fitted, *(p for _, p in folds), *(p for _, p in trees), *scoring]
     assert bar == sorted(bar) and bar[0] < bar[-1]
-    # The round's fit and its scoring share one half of the fits' part, the fold models the other.
-    assert folds[-1][1] == approx(0.1 + 0.75 * (0.8 + 1) / 2)
+    # The round's fit, the wait and its scoring share one half of the fits' part (0.5, 0.3, 0.2 of
+    # it), the fold models the other.
+    assert fitted == approx(0.1 + 0.75 * 0.5 / 2)
+    assert folds[-1][1] == approx(0.1 + 0.75 * (0.5 + 1) / 2)
+    assert trees[0][1] == approx(0.1 + 0.75 * (1 + 0.5 + 0.3 * 100 / 500) / 2)
+    assert scoring[0] == approx(0.1 + 0.75 * (1 + 0.8) / 2)
     assert scoring[-1] == approx(0.1 + 0.75 * (1 + 0.8 + 0.2 * 9 / 10) / 2)
 
 

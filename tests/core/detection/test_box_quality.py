@@ -183,6 +183,35 @@ def test_a_fit_on_a_share_of_the_rows_boosts_on_a_seeded_sample_and_names_every_
             BoxQuality(row_share=bad)
 
 
+def test_a_fit_reports_its_trees_and_fits_the_same_trees_with_or_without(rng):
+    features = rng.normal(size=(3000, 4))
+    targets = np.clip(0.5 + 0.2 * features[:, 0] + 0.05 * rng.normal(size=3000), 0, 1)
+    reported = []
+
+    def report(done: int, total: int) -> None:
+        reported.append((done, total))
+
+    watched = BoxQuality(max_iter=12).fit(features, targets, report)
+    assert reported == [(tree, 12) for tree in range(13)]  # before the first tree, then after each
+    plain = BoxQuality(max_iter=12).fit(features, targets)
+    for key, array in plain.trees_.items():
+        np.testing.assert_array_equal(watched.trees_[key], array, err_msg=key)
+    # A continued regressor reports its new trees.
+    reported.clear()
+    plain.continued(features, targets, 3, progress=report)
+    assert reported == [(0, 3), (1, 3), (2, 3), (3, 3)]
+
+    class StopError(Exception):
+        pass
+
+    def cancel_after_two(done: int, total: int) -> None:
+        if done == 2:
+            raise StopError  # (a cancel: the fit stops at the tree it was on)
+
+    with pytest.raises(StopError):
+        BoxQuality(max_iter=12).fit(features, targets, progress=cancel_after_two)
+
+
 def test_a_continued_regressor_boosts_on_from_its_raw_sums(rng, tmp_path):
     from sklearn.ensemble import HistGradientBoostingRegressor
 

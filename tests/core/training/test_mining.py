@@ -156,10 +156,10 @@ def test_the_box_quality_regressor_fits_alongside_the_networks_and_the_models_wa
     released = threading.Event()
     real_fit, real_classifier_fit = BoxQuality.fit, ProposalClassifier.fit
 
-    def slow_quality_fit(self, features, targets):
-        released.wait(30)  # (until the networks have fitted)
+    def slow_quality_fit(self, features, targets, progress=None):
+        released.wait(30)  # (until the networks have fitted and the run waits for it)
         events.append(("box quality", threading.current_thread() is threading.main_thread()))
-        return real_fit(self, features, targets)
+        return real_fit(self, features, targets, progress)
 
     def classifier_fit(self, *args, **kwargs):
         events.append(("network", threading.current_thread() is threading.main_thread()))
@@ -170,22 +170,28 @@ def test_the_box_quality_regressor_fits_alongside_the_networks_and_the_models_wa
         events.append(("score", model.box_quality is not None))
         return score_frames(model, score_frames_, *args)
 
-    def release_at_the_fold_models(what, done, total):
-        if what == "threshold folds" and done == total:
-            released.set()
+    quality_reports = []
+
+    def release_once_waited_for(what, done, total):
+        if what == "box quality":
+            quality_reports.append((done, total))
+            if len(quality_reports) == 2:  # its start, then the run's wait for it
+                released.set()
 
     monkeypatch.setattr(BoxQuality, "fit", slow_quality_fit)
     monkeypatch.setattr(ProposalClassifier, "fit", classifier_fit)
     run = train_with_mining(
         frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=0,
         initial_negatives=50, box_quality=BoxQuality(max_iter=5), threshold_folds=2, score=score,
-        progress=release_at_the_fold_models,
+        progress=release_once_waited_for,
     )  # fmt: skip
     # The network and both fold models fitted (here) while the regressor's fit was held back on
     # its own thread; every model scored with it.
     assert events[:3] == [("network", True)] * 3
     assert events[3] == ("box quality", False)
     assert set(events[4:]) == {("score", True)}
+    # Waited for, its trees were reported, each as it was fitted.
+    assert quality_reports == [(0, 1), (0, 1)] + [(tree, 5) for tree in range(6)]
     record = run.rounds[0]
     assert record["box_quality"] == "fitted" and record["box_quality_wait_seconds"] > 0
     assert record["box_quality_seconds"] >= record["box_quality_wait_seconds"]
@@ -197,7 +203,7 @@ def test_a_failed_box_quality_fit_fails_the_run_and_a_cancel_does_not_wait_for_i
 
     from factorydet_core.types import Cancelled
 
-    def broken(self, features, targets):
+    def broken(self, features, targets, progress=None):
         raise InputError("box quality: broken on purpose")
 
     monkeypatch.setattr(BoxQuality, "fit", broken)
@@ -206,7 +212,7 @@ def test_a_failed_box_quality_fit_fails_the_run_and_a_cancel_does_not_wait_for_i
     with pytest.raises(InputError, match="broken on purpose"):
         train_with_mining(frames, classifier, **options)
     held = threading.Event()
-    monkeypatch.setattr(BoxQuality, "fit", lambda self, features, targets: held.wait(30) and self)
+    monkeypatch.setattr(BoxQuality, "fit", lambda self, rows, targets, progress=None: held.wait(30) and self)
     stop = threading.Event()
 
     def progress(what, done, total):
@@ -218,6 +224,40 @@ def test_a_failed_box_quality_fit_fails_the_run_and_a_cancel_does_not_wait_for_i
         train_with_mining(frames, classifier, progress=progress, should_stop=stop.is_set, **options)
     assert time.perf_counter() - start < 20  # (the regressor is held for 30 s)
     held.set()
+
+
+def test_a_cancel_stops_the_box_quality_fit_at_its_next_tree(frames, monkeypatch):
+    import threading
+
+    from factorydet_core.types import Cancelled
+
+    ended, real_fit = [], BoxQuality.fit
+
+    def watched_fit(self, features, targets, progress=None):
+        try:
+            return real_fit(self, features, targets, progress)
+        except BaseException as exc:
+            ended.append(type(exc).__name__)
+            raise
+
+    monkeypatch.setattr(BoxQuality, "fit", watched_fit)
+    stop = threading.Event()
+
+    def progress(what, done, total):
+        if what == "fit" and done == total:
+            stop.set()  # (cancelled once the network has fitted, the regressor still fitting)
+
+    with pytest.raises(Cancelled):
+        train_with_mining(
+            frames, ProposalClassifier(width=0.0625, epochs=1, num_threads=1), rounds=0,
+            initial_negatives=50, box_quality=BoxQuality(max_iter=100_000), progress=progress,
+            should_stop=stop.is_set,
+        )  # fmt: skip
+    # Its thread does not go on boosting (100,000 trees) for nobody: it stops at its next tree.
+    deadline = time.perf_counter() + 30
+    while not ended and time.perf_counter() < deadline:
+        time.sleep(0.05)
+    assert ended == ["Cancelled"]
 
 
 @pytest.mark.slow
