@@ -123,6 +123,9 @@ bench: $(STAMP) browserdeps corpus corpus50
 	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --no-retrain --settle-ms 300 \
 	  --readme docs/labelling.md --readme-block walkthrough-edits-page-clock-settled \
 	  --out docs/bench/walkthrough-edits-page-clock-settled.json
+	# The whole walkthrough (edits, Object verdicts, both retrains) in the page's clock.
+	$(BIN)/python -m app.walkthrough sessions/demo/data --repeats 5 --verdict-keys bobxo \
+	  --readme docs/labelling.md --readme-block walkthrough-page-clock --out docs/bench/walkthrough-page-clock.json
 	$(BIN)/factorydet bench world-labels --heldout-seeds 201,202,203 --heldout-frames 12 --readme docs/labelling.md \
 	  --readme-block world-labels-validation
 	$(BIN)/factorydet bench world-labels --heldout-seeds 101,102,103 --heldout-frames 12 --readme docs/labelling.md

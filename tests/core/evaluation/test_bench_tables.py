@@ -33,6 +33,7 @@ BLOCKS = (
     ("labelling.md", "walkthrough-edits-page-clock"),
     ("labelling.md", "walkthrough-edits-page-clock-20k-no-grid"),
     ("labelling.md", "walkthrough-edits-page-clock-settled"),
+    ("labelling.md", "walkthrough-page-clock"),
     ("labelling.md", "walkthrough-edits-points-20k"),
     ("labelling.md", "walkthrough-edits-points-20k-swiftshader"),
     ("review-loop.md", "hitl-50-class-vs-place"),
