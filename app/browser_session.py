@@ -314,10 +314,13 @@ class BrowserSession:
     def selected_points(self) -> np.ndarray:
         """(K, 3) points of the selected segment in the drawn result."""
         result, frame_index = self.drawn_result()
+        with self.state.lock:
+            shown_frame = self.state.frame_index
         with self.lock:
             patch_ids = set(self.selected_patch_ids)
             frame = self.selected_frame
-        if result is None or not patch_ids or frame != frame_index:
+        # (another frame's result, hidden while the shown one computes: its points are not the scan)
+        if result is None or not patch_ids or not frame == frame_index == shown_frame:
             return np.zeros((0, 3))
         mask = np.isin(result.segmentation.patch_ids, list(patch_ids))
         return result.cloud.points[mask]

@@ -1376,7 +1376,7 @@ class SessionDB:
         out = []
         for k, (box, c, i) in enumerate(zip(labels.boxes, labels.class_ids, labels.instance_ids)):
             where = f"{self.dataset.path}: frame {frame_index} ({name}), annotation {k}"
-            out.append((_usable_box_json(box, where), names[int(c)], int(i)))
+            out.append((_usable_box_json(box, where), str(names[int(c)]), int(i)))
         return out
 
     def ensure_frames(self, frame_indices) -> None:

@@ -772,8 +772,10 @@ def train_with_mining(
         use_box_prior: box detections by the class sizes of the training annotations.
         annotation_positives: also train on each annotated instance's own points.
         seed: seeds the first background sample.
-        progress: called with ("fit", epoch, epochs), ("score", frame, frames) and
-            ("round", round, rounds + 1).
+        progress: called with ("fit", epoch, epochs), ("score", frame, frames),
+            ("threshold folds", epoch, epochs), ("round", round, rounds + 1) and ("box quality",
+            0, 1) when the regressor's fit starts and when the run starts waiting for it, then
+            (trees fitted, trees) from its thread while the run waits.
         background_sets: per frame, patch sets that start in the background set (confirmed
             background and negatives mined before), unless a label now makes them positives.
         excluded_sets: per frame, patch sets that are never background nor mined (real objects
@@ -793,7 +795,8 @@ def train_with_mining(
             background or held: self-training on the model's likeliest unlabelled objects
             (``LoopSettings.pseudo_label_confident``; ``None``: none). Without
             ``model_box_targets`` they teach their class alone.
-        should_stop: asked between batches and frames; True raises ``types.Cancelled``.
+        should_stop: asked between batches and frames (and the regressor's trees); True raises
+            ``types.Cancelled``.
         box_quality: an unfitted ``BoxQuality``, fitted once on the frames' labels (it does not
             depend on the classifier) and shared by every round's model, so that mining sees the
             scores the model will give, or a fitted one (a model's that the run continues), used as
@@ -933,14 +936,18 @@ def train_with_mining(
     # The regressor's trees fitted so far, and whether the run waits for them: its fit reports
     # them (``progress("box quality", trees, of)``) only then, the networks' fits having the bar
     # before.
+    # Its thread and the run's share them: one lock, so that the reports come in order.
     quality_trees = {"done": 0, "total": 1, "waiting": False}
+    quality_lock = threading.Lock()
 
     def tree_fitted(done: int, total: int) -> None:
         if should_stop is not None and should_stop():
             raise Cancelled("training cancelled")  # (the fit stops at its next tree)
-        quality_trees.update(done=done, total=total)
-        if progress is not None and quality_trees["waiting"]:
-            progress("box quality", done, total)
+        with quality_lock:
+            quality_trees.update(done=done, total=total)
+            # (not its start: the run said that when it began to wait)
+            if progress is not None and quality_trees["waiting"] and done:
+                progress("box quality", done, total)
 
     def fit_quality(excluded_now: dict[int, set[int]]) -> tuple[BoxQuality, str, float]:
         """The regressor the run's models box with, how it came (``TrainingRun`` rounds'
@@ -988,11 +995,12 @@ def train_with_mining(
         if quality_fit is not None:
             waiting = time.perf_counter()
             if progress is not None and quality_fit.running():
-                progress("box quality", 0, 1)  # (what the run is waiting for now)
-                # From here on its trees move the bar, those fitted already first.
-                quality_trees["waiting"] = True
-                if quality_trees["done"]:
-                    progress("box quality", quality_trees["done"], quality_trees["total"])
+                with quality_lock:
+                    progress("box quality", 0, 1)  # (what the run is waiting for now)
+                    # From here on its trees move the bar, those fitted already first.
+                    quality_trees["waiting"] = True
+                    if quality_trees["done"]:
+                        progress("box quality", quality_trees["done"], quality_trees["total"])
             kept_quality, quality_fit = quality_fit.result(should_stop), None
             quality_wait[0] = time.perf_counter() - waiting
         return kept_quality

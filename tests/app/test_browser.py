@@ -237,6 +237,7 @@ def test_another_frames_boxes_are_hidden_the_moment_the_frame_changes(app_with_m
     """A frame still being computed shows its scan with no boxes, never the last frame's
     detections and layers on its cloud; a click on it selects nothing of the other frame."""
     import threading
+    import types
 
     from factorydet_core.detection import detector as detector_module
 
@@ -275,6 +276,14 @@ def test_another_frames_boxes_are_hidden_the_moment_the_frame_changes(app_with_m
             20,
         )
         assert view.state.detection_frame_index == 0 and view.state.detections is not None
+        # A click straight down onto a point of frame 0's result selects nothing of it.
+        point = view.layers.drawn_result.cloud.points[0].astype(np.float64)
+        event = types.SimpleNamespace(
+            ray_origin=point + (0.0, 0.0, 5.0), ray_direction=np.array([0.0, 0.0, -1.0])
+        )
+        app._click(view, event, False)
+        assert "still being computed" in view.state.selection_markdown
+        assert not view.selected_patch_ids
         release.set()
         assert _wait(lambda: view.layers.detection_source[1] == 2 and view.layers.drawn_frame_index == 2, 120)
         assert view.layers.nodes["segments"].visible

@@ -284,7 +284,8 @@ def test_annotations_are_imported_ahead_so_that_no_later_edit_reads_a_frame_file
     expected = [len(dataset.frame(f).labels.boxes) for f in range(dataset.num_frames)]
     db = SessionDB(open_session("s", tmp_path), dataset)
     assert import_annotations_ahead(db, dataset.num_frames) == dataset.num_frames
-    monkeypatch.setattr(dataset, "frame", lambda index: pytest.fail(f"frame {index} read again"))
+    for read in ("frame", "frame_labels"):
+        monkeypatch.setattr(dataset, read, lambda index: pytest.fail(f"frame {index} read again"))
     assert [len(db.labels(f)) for f in range(dataset.num_frames)] == expected
     assert import_annotations_ahead(db, dataset.num_frames) == dataset.num_frames  # nothing to do
 
@@ -300,7 +301,8 @@ def test_annotations_are_imported_ahead_so_that_no_later_edit_reads_a_frame_file
 
     monkeypatch.setattr(other, "_annotations", damaged)
     assert import_annotations_ahead(other, dataset.num_frames, chunk=2) == dataset.num_frames - 1
-    monkeypatch.setattr(other_dataset, "frame", lambda index: pytest.fail(f"frame {index} read again"))
+    for read in ("frame", "frame_labels"):
+        monkeypatch.setattr(other_dataset, read, lambda index: pytest.fail(f"frame {index} read again"))
     assert [len(other.labels(f)) for f in range(dataset.num_frames) if f != 1] == [
         n for f, n in enumerate(expected) if f != 1
     ]

@@ -116,6 +116,16 @@ def test_frame_labels_read_the_label_arrays_alone(tmp_path, small_dataset_dir):
     np.testing.assert_array_equal(broken.frame_labels(0)[1].boxes, dataset.frame(0).labels.boxes)
 
 
+def test_frame_labels_leave_the_frame_cache_alone(small_dataset_dir):
+    from factorydet_core.io.dataset import Dataset
+
+    dataset = open_dataset(small_dataset_dir)
+    Dataset._read_frame.cache_clear()  # (one cache for the class)
+    for index in range(dataset.num_frames):
+        dataset.frame_labels(index)
+    assert Dataset._read_frame.cache_info().currsize == 0
+
+
 def test_frame_labels_refuse_what_the_frame_refuses(tmp_path, small_dataset_dir):
     with np.load(small_dataset_dir / "frames" / "frame_00000.npz") as data:
         class_ids = data["label_class_ids"].copy()
@@ -125,3 +135,17 @@ def test_frame_labels_refuse_what_the_frame_refuses(tmp_path, small_dataset_dir)
         broken.frame_labels(0)
     with pytest.raises(InputError, match="label class ids must lie in"):
         broken.frame(0)
+
+
+def test_frame_labels_name_a_missing_label_array(tmp_path, small_dataset_dir):
+    manifest = json.loads((small_dataset_dir / "manifest.json").read_text())
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    for path in (small_dataset_dir / "frames").glob("*.npz"):
+        with np.load(path) as data:
+            arrays = {k: v for k, v in data.items() if k != "label_num_points"}
+        np.savez_compressed(tmp_path / "frames" / path.name, **arrays)
+    with pytest.raises(InputError, match="frame_00000.npz: frame lacks the array 'label_num_points'"):
+        open_dataset(tmp_path).frame_labels(0)
+    with pytest.raises(InputError, match="frame lacks the array 'label_num_points'"):
+        open_dataset(tmp_path).frame(0)

@@ -191,7 +191,7 @@ def test_the_box_quality_regressor_fits_alongside_the_networks_and_the_models_wa
     assert events[3] == ("box quality", False)
     assert set(events[4:]) == {("score", True)}
     # Waited for, its trees were reported, each as it was fitted.
-    assert quality_reports == [(0, 1), (0, 1)] + [(tree, 5) for tree in range(6)]
+    assert quality_reports == [(0, 1), (0, 1)] + [(tree, 5) for tree in range(1, 6)]
     record = run.rounds[0]
     assert record["box_quality"] == "fitted" and record["box_quality_wait_seconds"] > 0
     assert record["box_quality_seconds"] >= record["box_quality_wait_seconds"]
