@@ -311,16 +311,21 @@ class BrowserSession:
         self.state.set_selection("")
         self.refresh()
 
-    def selected_points(self) -> np.ndarray:
-        """(K, 3) points of the selected segment in the drawn result."""
+    def shown_result(self) -> tuple:
+        """``(ProposalResult | None, frame_index)`` drawn, the result ``None`` when it is another
+        frame's (hidden while the shown frame's is computed: its points are not the scan drawn)."""
         result, frame_index = self.drawn_result()
         with self.state.lock:
-            shown_frame = self.state.frame_index
+            shown = frame_index == self.state.frame_index
+        return (result if shown else None), frame_index
+
+    def selected_points(self) -> np.ndarray:
+        """(K, 3) points of the selected segment in the drawn result."""
+        result, frame_index = self.shown_result()
         with self.lock:
             patch_ids = set(self.selected_patch_ids)
             frame = self.selected_frame
-        # (another frame's result, hidden while the shown one computes: its points are not the scan)
-        if result is None or not patch_ids or not frame == frame_index == shown_frame:
+        if result is None or not patch_ids or frame != frame_index:
             return np.zeros((0, 3))
         mask = np.isin(result.segmentation.patch_ids, list(patch_ids))
         return result.cloud.points[mask]

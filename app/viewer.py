@@ -254,11 +254,8 @@ class FactorydetApp:
             view.respond(lambda: self._rect_select(view, event))
 
     def _rect_select(self, view: ClientView, event: viser.SceneRectSelectEvent) -> None:
-        with view._draw_lock:
-            result, frame_index = view.layers.drawn
-        with view.state.lock:
-            shown_frame = view.state.frame_index
-        if result is None or frame_index != shown_frame:  # (none, or another frame's, hidden)
+        result, _ = view.shown_result()
+        if result is None:
             return
         camera = event.client.camera
         with view.state.lock:

@@ -164,6 +164,11 @@ class BoxLabels:
     def __len__(self) -> int:
         return len(self.boxes)
 
+    def check_class_ids(self, num_classes: int) -> None:
+        """Raise ``InputError`` unless every class id indexes a vocabulary of ``num_classes``."""
+        if len(self) and (self.class_ids.min() < 0 or self.class_ids.max() >= num_classes):
+            raise InputError(f"label class ids must lie in [0, {num_classes})")
+
     @classmethod
     def empty(cls) -> BoxLabels:
         return cls(
@@ -217,10 +222,10 @@ class Frame:
         num_sensors = len(self.T_vehicle_sensor)
         if num_points and (self.sensor_ids.min() < 0 or self.sensor_ids.max() >= num_sensors):
             raise InputError(f"{self.name}: sensor_ids must lie in [0, {num_sensors})")
-        if len(self.labels) and (
-            self.labels.class_ids.min() < 0 or self.labels.class_ids.max() >= len(self.class_names)
-        ):
-            raise InputError(f"{self.name}: label class ids must lie in [0, {len(self.class_names)})")
+        try:
+            self.labels.check_class_ids(len(self.class_names))
+        except InputError as exc:
+            raise InputError(f"{self.name}: {exc}") from None
         if self.colors is not None:
             check_array(self.colors, (num_points, 3), name=f"{self.name}: colors")
             object.__setattr__(self, "colors", _frozen(self.colors.astype(np.uint8, copy=False)))

@@ -465,7 +465,6 @@ class BoxQuality:
             # the trees, and stopping never triggers (patience beyond the last tree): the fit is
             # the one without it, tree for tree.
             watch = {
-                "early_stopping": True,
                 "validation_fraction": None,
                 "scoring": _TreeProgress(progress, int(num_trees)),
                 "n_iter_no_change": int(num_trees) + 1,
@@ -474,7 +473,7 @@ class BoxQuality:
             max_iter=int(num_trees),
             max_leaf_nodes=self.max_leaf_nodes,
             learning_rate=self.learning_rate,
-            early_stopping=watch.pop("early_stopping", False),
+            early_stopping=progress is not None,
             random_state=self.seed,
             **watch,
         ).fit(features, targets)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import os
@@ -101,8 +102,7 @@ class Dataset:
 
     def frame(self, index: int) -> Frame:
         """Frame ``index`` (0-based); frames are cached, so repeated reads are free."""
-        if not 0 <= index < self.num_frames:
-            raise IndexError(f"{self.name}: frame {index} out of range [0, {self.num_frames})")
+        self._check_index(index)
         if self._single is not None:
             return self._single
         return self._read_frame(index)
@@ -111,23 +111,19 @@ class Dataset:
         """``(name, annotations)`` of frame ``index``, reading only the label arrays of its file:
         what importing a frame's annotations needs, without decompressing its points or taking a
         place in the frames' cache from the frames being viewed."""
-        if not 0 <= index < self.num_frames:
-            raise IndexError(f"{self.name}: frame {index} out of range [0, {self.num_frames})")
+        self._check_index(index)
         if self._single is not None:
             return self._single.name, self._single.labels
         path = self._frame_paths[index]
         arrays = self._load(path, LABEL_KEYS)
-        try:
+        with _naming(path):
             labels = _box_labels(arrays)
-            # (as ``Frame`` checks them when the whole frame is read)
-            num_classes = len(self.class_names)
-            if len(labels) and (labels.class_ids.min() < 0 or labels.class_ids.max() >= num_classes):
-                raise InputError(f"label class ids must lie in [0, {num_classes})")
+            labels.check_class_ids(len(self.class_names))  # (as ``Frame`` does, reading a whole frame)
             return path.stem, labels
-        except KeyError as exc:
-            raise InputError(f"{path}: frame lacks the array {exc}") from None
-        except InputError as exc:
-            raise InputError(f"{path}: {exc}") from None
+
+    def _check_index(self, index: int) -> None:
+        if not 0 <= index < self.num_frames:
+            raise IndexError(f"{self.name}: frame {index} out of range [0, {self.num_frames})")
 
     def _load(self, path: Path, keys=None) -> dict[str, np.ndarray]:
         """The arrays ``keys`` (``None``: all) of a frame file, within the data set's caps; every
@@ -155,7 +151,7 @@ class Dataset:
     def _read_frame(self, index: int) -> Frame:
         path = self._frame_paths[index]
         arrays = self._load(path)
-        try:
+        with _naming(path):
             return Frame(
                 name=path.stem,
                 points=arrays["points"],
@@ -166,10 +162,18 @@ class Dataset:
                 point_instance_ids=arrays["point_instance_ids"],
                 class_names=self.class_names,
             )
-        except KeyError as exc:
-            raise InputError(f"{path}: frame lacks the array {exc}") from None
-        except InputError as exc:
-            raise InputError(f"{path}: {exc}") from None
+
+
+@contextlib.contextmanager
+def _naming(path: Path):
+    """A frame's arrays made into its objects: a missing array or a refused one is an
+    ``InputError`` naming the file."""
+    try:
+        yield
+    except KeyError as exc:
+        raise InputError(f"{path}: frame lacks the array {exc}") from None
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
 
 
 LABEL_KEYS = ("label_boxes", "label_class_ids", "label_instance_ids", "label_num_points")
